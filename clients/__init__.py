@@ -1,0 +1,1 @@
+"""Python client SDK (sync and asyncio) and the ``psctl`` command line."""

@@ -1,0 +1,1 @@
+"""The gRPC gateway: router, listen hub, proxies, config and CLI."""

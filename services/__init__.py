@@ -1,0 +1,1 @@
+"""Property Service core and the services themselves."""
