@@ -40,9 +40,15 @@ from services.values import (
 )
 
 finite = st.floats(allow_nan=False, allow_infinity=False)
-atoms = st.from_regex(r"[^\s()]+", fullmatch=True)
+# List atoms: anything but whitespace (as str.isspace and re's \s define it) and parentheses.
+atoms = st.text(
+    st.characters(exclude_categories=("Cs",), exclude_characters="()").filter(lambda c: not c.isspace()),
+    min_size=1,
+    max_size=12,
+)
 nested_lists = st.recursive(atoms, lambda inner: st.lists(inner, max_size=5), max_leaves=30)
-tags = st.from_regex(r"[A-Za-z_][A-Za-z0-9_-]{0,20}", fullmatch=True)
+_LETTERS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ_"
+tags = st.builds(str.__add__, st.sampled_from(_LETTERS), st.text(_LETTERS + "0123456789-", max_size=20))
 # Characters XML 1.0 can carry (section 2.2): no other C0 controls, no surrogates, not U+FFFE/U+FFFF.
 xml_text = st.text(
     st.characters(
