@@ -1,0 +1,279 @@
+"""The synchronous client: :class:`Client`, the blocking twin of :class:`AsyncClient`.
+
+It runs one :class:`AsyncClient` on a private event loop in a background
+thread, so both clients share one implementation, one error mapping and one
+Session protocol; each call hands a coroutine to that loop and waits for it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import threading
+from collections.abc import AsyncIterator, Awaitable, Iterable, Mapping
+from types import TracebackType
+from typing import Any, Generic, Literal, Self, TypeVar, overload
+
+from clients.aio import (
+    DEFAULT_SESSION_QUEUE,
+    DEFAULT_TARGET,
+    DEFAULT_TIMEOUT,
+    AsyncClient,
+    Event,
+    Mark,
+    Selector,
+)
+from clients.aio import Session as AsyncSession
+from clients.errors import DeadlineExceeded
+from clients.values import Marker, Vector
+
+__all__ = ["Client", "ListenIterator", "SyncSession"]
+
+T = TypeVar("T")
+
+# Extra seconds the calling thread waits beyond a call's own deadline, so that
+# the call reports its own DEADLINE_EXCEEDED rather than the thread giving up first.
+_GRACE = 5.0
+
+
+class _LoopThread:
+    """An event loop running forever in a daemon thread."""
+
+    def __init__(self) -> None:
+        self.loop = asyncio.new_event_loop()
+        ready = threading.Event()
+        self.loop.call_soon(ready.set)
+        self.thread = threading.Thread(target=self.loop.run_forever, name="psclient", daemon=True)
+        self.thread.start()
+        ready.wait(_GRACE)
+
+    def run(self, aw: Awaitable[T], timeout: float | None) -> T:
+        if not self.loop.is_running():
+            raise RuntimeError("the client is closed")
+        future = asyncio.run_coroutine_threadsafe(_await(aw), self.loop)
+        try:
+            return future.result(timeout)
+        except concurrent.futures.TimeoutError:
+            future.cancel()
+            raise DeadlineExceeded(None, f"no answer within {timeout} s") from None
+        except BaseException:
+            future.cancel()  # e.g. KeyboardInterrupt in the caller: do not leave the call running
+            raise
+
+    def stop(self) -> None:
+        if self.loop.is_running():
+            self.loop.call_soon_threadsafe(self.loop.stop)
+            self.thread.join(_GRACE)
+        if not self.thread.is_alive() and not self.loop.is_closed():
+            self.loop.close()
+
+
+async def _await(aw: Awaitable[T]) -> T:
+    return await aw
+
+
+class ListenIterator(Generic[T]):
+    """A blocking iterator over a Listen; ``close()`` (or leaving ``with``) ends the stream."""
+
+    def __init__(self, runner: _LoopThread, agen: AsyncIterator[T]) -> None:
+        self._runner = runner
+        self._agen = agen
+        self._closed = False
+
+    def __iter__(self) -> Self:
+        return self
+
+    def __next__(self) -> T:
+        if self._closed:
+            raise StopIteration
+        try:
+            return self._runner.run(self._agen.__anext__(), None)
+        except StopAsyncIteration:
+            self._closed = True
+            raise StopIteration from None
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        """End the stream. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        aclose = getattr(self._agen, "aclose", None)
+        if aclose is not None and self._runner.loop.is_running():
+            self._runner.run(aclose(), _GRACE)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        if not self._closed and self._runner.loop.is_running():
+            aclose = getattr(self._agen, "aclose", None)
+            if aclose is not None:
+                asyncio.run_coroutine_threadsafe(_await(aclose()), self._runner.loop)
+
+
+class Client:
+    """Blocking client of a Property Service gateway; same methods as :class:`AsyncClient`.
+
+    Use as ``with Client("127.0.0.1:50051") as c: c.get("scout1", "location")``.
+    Safe to call from several threads at once.
+    """
+
+    def __init__(
+        self,
+        target: str = DEFAULT_TARGET,
+        *,
+        timeout: float | None = DEFAULT_TIMEOUT,
+        metadata: Iterable[tuple[str, str]] | None = None,
+    ) -> None:
+        self.target = target
+        self.timeout = timeout
+        self._runner = _LoopThread()
+        self._aio = AsyncClient(target, timeout=timeout, metadata=metadata)
+
+    def _run(self, aw: Awaitable[T]) -> T:
+        return self._runner.run(aw, None if self.timeout is None else self.timeout + _GRACE)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the channel and stop the background loop. Idempotent."""
+        if self._runner.loop.is_running():
+            self._runner.run(self._aio.close(), _GRACE)
+        self._runner.stop()
+
+    def get(self, service: str, prop: str, /, **params: Any) -> str:
+        """See :meth:`AsyncClient.get`."""
+        return self._run(self._aio.get(service, prop, **params))
+
+    def get_many(self, refs: Iterable[Selector]) -> list[str]:
+        """See :meth:`AsyncClient.get_many`."""
+        return self._run(self._aio.get_many(list(refs)))
+
+    def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
+        """See :meth:`AsyncClient.set`."""
+        return self._run(self._aio.set(service, prop, value, **params))
+
+    def get_number(self, service: str, prop: str, /, **params: Any) -> float:
+        """See :meth:`AsyncClient.get_number`."""
+        return self._run(self._aio.get_number(service, prop, **params))
+
+    def get_vector(self, service: str, prop: str, /, **params: Any) -> Vector:
+        """See :meth:`AsyncClient.get_vector`."""
+        return self._run(self._aio.get_vector(service, prop, **params))
+
+    def get_vectors(self, service: str, prop: str, /, **params: Any) -> list[Vector]:
+        """See :meth:`AsyncClient.get_vectors`."""
+        return self._run(self._aio.get_vectors(service, prop, **params))
+
+    def get_names(self, service: str, prop: str, /, **params: Any) -> list[str]:
+        """See :meth:`AsyncClient.get_names`."""
+        return self._run(self._aio.get_names(service, prop, **params))
+
+    def get_marker(self, service: str, prop: str, /, **params: Any) -> Marker:
+        """See :meth:`AsyncClient.get_marker`."""
+        return self._run(self._aio.get_marker(service, prop, **params))
+
+    def services(self) -> list[str]:
+        """See :meth:`AsyncClient.services`."""
+        return self._run(self._aio.services())
+
+    def properties(self, service: str) -> list[str]:
+        """See :meth:`AsyncClient.properties`."""
+        return self._run(self._aio.properties(service))
+
+    @overload
+    def listen(
+        self,
+        service: str,
+        prop: str,
+        /,
+        *more: Selector,
+        params: Mapping[str, Any] | None = ...,
+        updates_only: bool = ...,
+        min_interval: float | None = ...,
+        sample_interval: float | None = ...,
+        heartbeat: float | None = ...,
+        max_batch: int = ...,
+        marks: Literal[False] = ...,
+    ) -> ListenIterator[Event]: ...
+
+    @overload
+    def listen(
+        self,
+        service: str,
+        prop: str,
+        /,
+        *more: Selector,
+        params: Mapping[str, Any] | None = ...,
+        updates_only: bool = ...,
+        min_interval: float | None = ...,
+        sample_interval: float | None = ...,
+        heartbeat: float | None = ...,
+        max_batch: int = ...,
+        marks: Literal[True],
+    ) -> ListenIterator[Event | Mark]: ...
+
+    def listen(
+        self, service: str, prop: str, /, *more: Selector, **options: Any
+    ) -> ListenIterator[Event] | ListenIterator[Event | Mark]:
+        """See :meth:`AsyncClient.listen`; returns a blocking iterator to close when done."""
+        agen: AsyncIterator[Any] = self._aio.listen(service, prop, *more, **options)
+        return ListenIterator(self._runner, agen)
+
+    def session(self, *, max_pending: int = DEFAULT_SESSION_QUEUE) -> SyncSession:
+        """An open :class:`SyncSession`: ``with client.session() as s: s.get(...)``."""
+        session = self._aio.session(max_pending=max_pending)
+        self._runner.run(session.open(), _GRACE)
+        return SyncSession(self, session)
+
+
+class SyncSession:
+    """Blocking view of a :class:`clients.aio.Session`; calls from several threads share one stream."""
+
+    def __init__(self, client: Client, session: AsyncSession) -> None:
+        self._client = client
+        self._session = session
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """End the session. Idempotent."""
+        if self._client._runner.loop.is_running():
+            self._client._runner.run(self._session.aclose(), _GRACE)
+
+    def get(self, service: str, prop: str, /, **params: Any) -> str:
+        """See :meth:`clients.aio.Session.get`."""
+        return self._client._run(self._session.get(service, prop, **params))
+
+    def get_many(self, refs: Iterable[Selector]) -> list[str]:
+        """See :meth:`clients.aio.Session.get_many`."""
+        return self._client._run(self._session.get_many(list(refs)))
+
+    def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
+        """See :meth:`clients.aio.Session.set`."""
+        return self._client._run(self._session.set(service, prop, value, **params))
+
+    def listen(self, service: str, prop: str, /, *more: Selector, **options: Any) -> ListenIterator[Any]:
+        """See :meth:`clients.aio.Session.listen`."""
+        agen: AsyncIterator[Any] = self._session.listen(service, prop, *more, **options)
+        return ListenIterator(self._client._runner, agen)
