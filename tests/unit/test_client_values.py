@@ -71,7 +71,8 @@ def test_vectors_and_names() -> None:
 
 
 def test_marker() -> None:
-    m = parse_marker("<marker><location>(1 2)</location><color>(1 0 0)</color><name>a &amp; b</name></marker>")
+    text = "<marker><location>(1 2)</location><color>(1 0 0)</color><name>a &amp; b</name></marker>"
+    m = parse_marker(text)
     assert m.tag == "marker"
     assert m.location is not None
     assert m.location.tolist() == [1.0, 2.0]
