@@ -8,8 +8,9 @@ A query is the parameter map of a ``find`` request (or of a group's
     radius  = 3                      metres around ``near``; without it, results are sorted by distance
     state   = up                     up or down
     limit   = 10                     at most this many names
-    prop.<path> = <value>            the service's property <path> equals <value>
-                                     (numbers and vectors compare by value: 0.5 == 0.50)
+    where   = speed=0.5&mode=auto    the service's property ``speed`` equals ``0.5`` and ``mode``
+                                     equals ``auto`` (query-string syntax, %-escapes allowed;
+                                     numbers and vectors compare by value: 0.5 == 0.50)
 
 Every parameter is optional; an unknown one is an INVALID_ARGUMENT that
 lists the known ones. :class:`ServiceIndex` keeps type, state and location
@@ -22,6 +23,7 @@ equality needs the services' answers and is left to the caller
 from __future__ import annotations
 
 import math
+import urllib.parse
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
@@ -33,9 +35,8 @@ from services.formations import natural_key
 from services.paths import validate_path
 from services.values import ValueFormatError, parse_int, parse_list, parse_number, parse_vector
 
-__all__ = ["PROP_PREFIX", "QUERY_PARAMETERS", "Query", "ServiceIndex", "values_equal"]
+__all__ = ["QUERY_PARAMETERS", "Query", "ServiceIndex", "parse_where", "values_equal"]
 
-PROP_PREFIX = "prop."
 #: Parameter name → (type, default) as ``find.parameters`` lists them.
 QUERY_PARAMETERS: dict[str, tuple[str, str]] = {
     "type": ("names", ""),
@@ -43,7 +44,7 @@ QUERY_PARAMETERS: dict[str, tuple[str, str]] = {
     "radius": ("float", ""),
     "state": ("str", ""),
     "limit": ("int", ""),
-    "prop.<path>": ("str", ""),
+    "where": ("str", ""),
 }
 _STATES = ("up", "down")
 
@@ -91,8 +92,8 @@ class Query:
                     limit = parse_int(text)
                     if limit < 1:
                         raise InvalidArgument(f"expected a positive count, got {limit}")
-                elif name.startswith(PROP_PREFIX):
-                    props[validate_path(name[len(PROP_PREFIX) :])] = text
+                elif name == "where":
+                    props = parse_where(text)
                 else:
                     known = ", ".join(QUERY_PARAMETERS)
                     raise InvalidArgument(
@@ -109,6 +110,22 @@ class Query:
     def is_empty(self) -> bool:
         """True when the query selects every service."""
         return self == Query()
+
+
+def parse_where(text: str) -> dict[str, str]:
+    """``speed=0.5&mode=auto`` → ``{"speed": "0.5", "mode": "auto"}``; paths are checked."""
+    if not text.strip():
+        return {}
+    try:
+        pairs = urllib.parse.parse_qsl(text.strip(), keep_blank_values=True, strict_parsing=True)
+    except ValueError:
+        raise InvalidArgument(
+            f"expected property=value pairs joined by & like speed=0.5&mode=auto, got {text[:60]!r}"
+        ) from None
+    props: dict[str, str] = {}
+    for path, value in pairs:
+        props[validate_path(path)] = value
+    return props
 
 
 def _parse_types(text: str) -> frozenset[str]:

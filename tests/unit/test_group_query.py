@@ -22,12 +22,12 @@ def _index() -> ServiceIndex:
 def test_parse_all_parameters() -> None:
     q = Query.parse(
         {"type": "(mobile_robot sensor)", "near": "(5 5 0)", "radius": "3", "state": "up", "limit": "2"}
-        | {"prop.speed": "0.5"}
+        | {"where": "speed=0.5&location.x=%281%29"}
     )
     assert q.types == frozenset({"mobile_robot", "sensor"})
     assert q.near is not None
     np.testing.assert_array_equal(q.near, [5, 5, 0])
-    assert (q.radius, q.state, q.limit, q.props) == (3.0, "up", 2, {"speed": "0.5"})
+    assert (q.radius, q.state, q.limit, q.props) == (3.0, "up", 2, {"speed": "0.5", "location.x": "(1)"})
     assert Query.parse({"type": "sensor"}).types == frozenset({"sensor"})
     assert Query.parse({}).is_empty()
 
@@ -42,7 +42,8 @@ def test_parse_all_parameters() -> None:
         ({"radius": "2"}, "radius needs near"),
         ({"state": "sleepy"}, "expected up or down"),
         ({"limit": "0"}, "positive count"),
-        ({"prop.a..b": "1"}, "bad query parameter prop.a..b"),
+        ({"where": "a..b=1"}, "bad query parameter where"),
+        ({"where": "speed"}, "property=value pairs"),
         ({"type": "()"}, "bad query parameter type"),
     ],
 )
