@@ -1,0 +1,68 @@
+"""The Property Service line protocol (docs/line-protocol.md) as a sans-IO codec.
+
+``encode(frame) -> bytes`` writes one line; ``LineReceiver.receive_data(bytes)``
+returns the frames of the lines completed so far, bad lines as ``BadLine``.
+No sockets here: the device server, the gateway's proxies and its line
+listener all drive this one codec.
+"""
+
+from services.line_protocol._checksum import crc8
+from services.line_protocol._errors import LineProtocolError
+from services.line_protocol._escaping import escape_field, escape_value, unescape
+from services.line_protocol._frames import (
+    MAX_LINE,
+    MIN_MAX_LINE,
+    PROTOCOL_VERSION,
+    TAGGED,
+    BadLine,
+    ErrorReply,
+    Event,
+    Frame,
+    Get,
+    Gone,
+    Hello,
+    HelloRequest,
+    Listen,
+    Ok,
+    Ping,
+    Pong,
+    Reply,
+    Request,
+    Set,
+    Unlisten,
+)
+from services.line_protocol._reader import decode_line, tag_of
+from services.line_protocol._receivebuffer import LineReceiver
+from services.line_protocol._writer import encode
+
+__all__ = [
+    "MAX_LINE",
+    "MIN_MAX_LINE",
+    "PROTOCOL_VERSION",
+    "TAGGED",
+    "BadLine",
+    "ErrorReply",
+    "Event",
+    "Frame",
+    "Get",
+    "Gone",
+    "Hello",
+    "HelloRequest",
+    "LineProtocolError",
+    "LineReceiver",
+    "Listen",
+    "Ok",
+    "Ping",
+    "Pong",
+    "Reply",
+    "Request",
+    "Set",
+    "Unlisten",
+    "crc8",
+    "decode_line",
+    "encode",
+    "escape_field",
+    "escape_value",
+    "tag_of",
+    "unescape",
+]

@@ -1,0 +1,170 @@
+"""The frames of the line protocol: one class per kind of line (docs/line-protocol.md §3, §4)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from services.errors import Code, PropertyError
+
+#: Protocol version sent in the greeting.
+PROTOCOL_VERSION = 1
+
+#: Longest line, first byte to LF inclusive. It fits every value of the standard
+#: property sets (6-vector ~60 bytes, marker ~150, a 40-name ``properties`` list
+#: ~600, a path at most 256) and keeps one line buffer per connection small; SMTP
+#: settles on 1000 for the same reasons (RFC 5321 §4.5.3.1.6). A device with less
+#: RAM announces a smaller ``maxline`` in its greeting.
+MAX_LINE = 1024
+
+#: Smallest ``maxline`` a device may announce: a GET of a short path and an
+#: ERR reply with a short message must still fit.
+MIN_MAX_LINE = 64
+
+_Params = Mapping[str, str]
+
+
+def _no_params() -> dict[str, str]:
+    return {}
+
+
+@dataclass(frozen=True, slots=True)
+class Get:
+    """``GET [PARAMS] PATH``: read a property."""
+
+    path: str
+    params: _Params = field(default_factory=_no_params)
+    tag: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Set:
+    """``SET [PARAMS] PATH VALUE``: write a property or call a functional property."""
+
+    path: str
+    value: str
+    params: _Params = field(default_factory=_no_params)
+    tag: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Listen:
+    """``LISTEN [PARAMS] PATH``: subscribe; the OK reply carries the current value."""
+
+    path: str
+    params: _Params = field(default_factory=_no_params)
+    tag: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Unlisten:
+    """``UNLISTEN [PARAMS] PATH``: end a subscription."""
+
+    path: str
+    params: _Params = field(default_factory=_no_params)
+    tag: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Ping:
+    """``PING [DATA]``: keep-alive; either side may send it."""
+
+    data: str = ""
+    tag: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Pong:
+    """``PONG [DATA]``: the answer to a PING, echoing its data."""
+
+    data: str = ""
+    tag: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class HelloRequest:
+    """``HELLO`` with no fields: ask the device to send its greeting again."""
+
+    tag: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Hello:
+    """``HELLO VERSION name=.. type=.. push=0|1 maxline=N ...``: a device introduces itself."""
+
+    name: str = ""
+    type: str = ""
+    #: The device sends EVENT lines itself; when False the client polls.
+    push: bool = False
+    max_line: int = MAX_LINE
+    version: int = PROTOCOL_VERSION
+    #: Further ``KEY=VALUE`` fields, kept for the application.
+    extra: _Params = field(default_factory=_no_params)
+    tag: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Ok:
+    """``OK [VALUE]``: a request succeeded."""
+
+    value: str = ""
+    tag: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class ErrorReply:
+    """``ERR CODE [MESSAGE]``: a request failed; CODE is a gRPC status number."""
+
+    code: int
+    message: str = ""
+    tag: str | None = None
+
+    @classmethod
+    def from_exception(cls, error: PropertyError, tag: str | None = None) -> ErrorReply:
+        """The reply that reports ``error``."""
+        return cls(int(error.code), error.message, tag)
+
+    def to_exception(self, context: str = "") -> PropertyError:
+        """The error this reply reports; an unknown code becomes UNKNOWN."""
+        try:
+            code = Code(self.code)
+        except ValueError:
+            code = Code.UNKNOWN
+        message = f"{context}: {self.message}" if context else self.message
+        return PropertyError(message or code.name.lower().replace("_", " "), code)
+
+
+@dataclass(frozen=True, slots=True)
+class Event:
+    """``EVENT PATH [VALUE]``: a listened property changed."""
+
+    path: str
+    value: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class Gone:
+    """``GONE PATH``: a listened property no longer exists; its subscription ends."""
+
+    path: str
+
+
+@dataclass(frozen=True, slots=True)
+class BadLine:
+    """A line that could not be decoded; the receiver goes on with the next line.
+
+    Never encoded. ``tag`` is the line's tag when it could be read, so the
+    error belongs to one request.
+    """
+
+    code: Code
+    message: str
+    tag: str | None = None
+
+
+Request = Get | Set | Listen | Unlisten | Ping | HelloRequest
+Reply = Ok | ErrorReply | Pong | Hello
+Frame = Get | Set | Listen | Unlisten | Ping | Pong | HelloRequest | Hello | Ok | ErrorReply | Event | Gone
+
+#: Frames that carry a request tag.
+TAGGED = (Get, Set, Listen, Unlisten, Ping, Pong, HelloRequest, Hello, Ok, ErrorReply)

@@ -1,0 +1,229 @@
+"""One line of bytes in, one frame out."""
+
+from __future__ import annotations
+
+import re
+
+from services.errors import Code
+from services.line_protocol._checksum import crc8
+from services.line_protocol._errors import LineProtocolError
+from services.line_protocol._escaping import unescape
+from services.line_protocol._frames import (
+    MAX_LINE,
+    MIN_MAX_LINE,
+    ErrorReply,
+    Event,
+    Frame,
+    Get,
+    Gone,
+    Hello,
+    HelloRequest,
+    Listen,
+    Ok,
+    Ping,
+    Pong,
+    Set,
+    Unlisten,
+)
+from services.line_protocol._syntax import ERROR_CODE, PARAM_NAME, PATH, TAG, VERSION
+
+_HEX = re.compile(rb"[0-9A-Fa-f]{2}")
+_TAG_PREFIX = re.compile(rb"#([A-Za-z0-9_-]{1,8}) ")
+
+
+def _show(text: str) -> str:
+    return repr(text if len(text) <= 40 else text[:37] + "...")
+
+
+def tag_of(line: bytes | bytearray) -> str | None:
+    """The tag a raw line begins with, if any; used to address errors for bad lines.
+
+    A ``$`` line's tag is not read: its checksum failed or was not checked, so
+    the tag may be damaged.
+    """
+    match = _TAG_PREFIX.match(line)
+    return match.group(1).decode("ascii") if match else None
+
+
+class _Fields:
+    """A cursor over the fields of one line."""
+
+    __slots__ = ("pos", "text")
+
+    def __init__(self, text: str, pos: int = 0) -> None:
+        self.text = text
+        self.pos = pos
+
+    def next(self) -> str:
+        """The next space-separated field, '' at the end of the line."""
+        text, pos = self.text, self.pos
+        while pos < len(text) and text[pos] == " ":
+            pos += 1
+        end = text.find(" ", pos)
+        if end < 0:
+            end = len(text)
+        self.pos = end
+        return text[pos:end]
+
+    def rest(self) -> str:
+        """The value: everything after the single space that follows the last field read."""
+        return unescape(self.text[self.pos + 1 :])
+
+    def at_end(self) -> bool:
+        return not self.text[self.pos :].strip(" ")
+
+
+def _params_and_path(fields: _Fields, word: str) -> tuple[dict[str, str], str]:
+    params: dict[str, str] = {}
+    while True:
+        token = fields.next()
+        if not token:
+            raise LineProtocolError(f"{word} needs a property path")
+        name, eq, value = token.partition("=")
+        if not eq:
+            if not PATH.fullmatch(token):
+                raise LineProtocolError(
+                    f"bad path {_show(token)}: use letters, digits, _ - and dots, at most 256 characters"
+                )
+            return params, token
+        if not PARAM_NAME.fullmatch(name):
+            raise LineProtocolError(f"bad parameter name {_show(name)}")
+        if name in params:
+            raise LineProtocolError(f"parameter {name!r} given twice")
+        params[name] = unescape(value)
+
+
+def _no_more(fields: _Fields, word: str) -> None:
+    if not fields.at_end():
+        raise LineProtocolError(
+            f"unexpected text after the path of {word}: {_show(fields.text[fields.pos :])}"
+        )
+
+
+def _hello(fields: _Fields, tag: str | None) -> Hello | HelloRequest:
+    version = fields.next()
+    if not version:
+        return HelloRequest(tag)
+    if not VERSION.fullmatch(version):
+        raise LineProtocolError(f"bad protocol version {_show(version)} in greeting")
+    values: dict[str, str] = {}
+    while token := fields.next():
+        key, eq, value = token.partition("=")
+        if not eq or not PARAM_NAME.fullmatch(key):
+            raise LineProtocolError(f"bad greeting field {_show(token)}: expected KEY=VALUE")
+        if key in values:
+            raise LineProtocolError(f"greeting field {key!r} given twice")
+        values[key] = unescape(value)
+    push = values.pop("push", "0")
+    if push not in ("0", "1"):
+        raise LineProtocolError(f"bad greeting field push={_show(push)}: expected 0 or 1")
+    max_line_text = values.pop("maxline", str(MAX_LINE))
+    if not max_line_text.isascii() or not max_line_text.isdigit() or len(max_line_text) > 7:
+        raise LineProtocolError(f"bad greeting field maxline={_show(max_line_text)}")
+    max_line = int(max_line_text)
+    if max_line < MIN_MAX_LINE:
+        raise LineProtocolError(f"greeting says maxline={max_line}; the least allowed is {MIN_MAX_LINE}")
+    return Hello(
+        name=values.pop("name", ""),
+        type=values.pop("type", ""),
+        push=push == "1",
+        max_line=max_line,
+        version=int(version),
+        extra=values,
+        tag=tag,
+    )
+
+
+def _parse(text: str) -> Frame:
+    fields = _Fields(text)
+    tag: str | None = None
+    if text.startswith("#"):
+        token = fields.next()
+        if not TAG.fullmatch(token[1:]):
+            raise LineProtocolError(f"bad tag {_show(token)}: '#' and 1 to 8 of A-Z a-z 0-9 _ -")
+        tag = token[1:]
+    word = fields.next()
+    verb = word.upper()
+    if verb == "GET":
+        params, path = _params_and_path(fields, verb)
+        _no_more(fields, verb)
+        return Get(path, params, tag)
+    if verb == "SET":
+        params, path = _params_and_path(fields, verb)
+        return Set(path, fields.rest(), params, tag)
+    if verb == "LISTEN":
+        params, path = _params_and_path(fields, verb)
+        _no_more(fields, verb)
+        return Listen(path, params, tag)
+    if verb == "UNLISTEN":
+        params, path = _params_and_path(fields, verb)
+        _no_more(fields, verb)
+        return Unlisten(path, params, tag)
+    if verb == "OK":
+        return Ok(fields.rest(), tag)
+    if verb == "ERR":
+        code = fields.next()
+        if not ERROR_CODE.fullmatch(code):
+            raise LineProtocolError(f"bad error code {_show(code)}: expected a number", tag=tag)
+        return ErrorReply(int(code), fields.rest(), tag)
+    if verb == "PING":
+        return Ping(fields.rest(), tag)
+    if verb == "PONG":
+        return Pong(fields.rest(), tag)
+    if verb == "HELLO":
+        return _hello(fields, tag)
+    if verb in ("EVENT", "GONE"):
+        if tag is not None:
+            raise LineProtocolError(f"{verb} lines carry no tag")
+        path = fields.next()
+        if not PATH.fullmatch(path):
+            raise LineProtocolError(f"bad path {_show(path)} in {verb}")
+        if verb == "GONE":
+            _no_more(fields, verb)
+            return Gone(path)
+        return Event(path, fields.rest())
+    if not word:
+        raise LineProtocolError("a tag but no word")
+    raise LineProtocolError(f"unknown word {_show(word)}", Code.UNIMPLEMENTED)
+
+
+def decode_line(line: bytes | bytearray) -> Frame:
+    """Decode one line (without its LF; a trailing CR is ignored).
+
+    Raises LineProtocolError, and nothing else, for any line that is not a
+    frame; its ``tag`` is set when the line's tag could be read.
+    """
+    raw = bytes(line)
+    if raw.endswith(b"\r"):
+        raw = raw[:-1]
+    if len(raw) + 1 > MAX_LINE:
+        raise LineProtocolError(
+            f"line too long: {len(raw) + 1} bytes, the limit is {MAX_LINE}",
+            Code.RESOURCE_EXHAUSTED,
+            tag_of(raw),
+        )
+    if raw.startswith(b"$"):
+        if len(raw) < 4 or raw[-3:-2] != b"*" or not _HEX.fullmatch(raw[-2:]):
+            raise LineProtocolError("checksum mismatch: a '$' line must end with '*HH'", Code.DATA_LOSS)
+        body = raw[1:-3]
+        if crc8(body) != int(raw[-2:], 16):
+            raise LineProtocolError(
+                f"checksum mismatch: line says {raw[-2:].decode().upper()}, content gives {crc8(body):02X}",
+                Code.DATA_LOSS,
+            )
+        raw = body
+    tag = tag_of(raw)
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise LineProtocolError(f"line is not valid UTF-8 (byte {exc.start})", tag=tag) from None
+    if "\r" in text or "\n" in text:
+        raise LineProtocolError("raw CR or LF inside a line; write \\r or \\n", tag=tag)
+    if not text.strip(" "):
+        raise LineProtocolError("empty line", tag=tag)
+    try:
+        return _parse(text)
+    except LineProtocolError as exc:
+        if exc.tag is None:
+            exc.tag = tag
+        raise
