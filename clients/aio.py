@@ -12,7 +12,7 @@ import contextlib
 import dataclasses
 import enum
 import itertools
-from collections.abc import AsyncIterator, Iterable, Mapping, Sequence
+from collections.abc import AsyncGenerator, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from types import TracebackType
@@ -319,7 +319,7 @@ class AsyncClient:
         heartbeat: float | None = ...,
         max_batch: int = ...,
         marks: Literal[False] = ...,
-    ) -> AsyncIterator[Event]: ...
+    ) -> AsyncGenerator[Event, None]: ...
 
     @overload
     def listen(
@@ -335,7 +335,7 @@ class AsyncClient:
         heartbeat: float | None = ...,
         max_batch: int = ...,
         marks: Literal[True],
-    ) -> AsyncIterator[Event | Mark]: ...
+    ) -> AsyncGenerator[Event | Mark, None]: ...
 
     def listen(
         self,
@@ -350,7 +350,7 @@ class AsyncClient:
         heartbeat: float | None = None,
         max_batch: int = 0,
         marks: bool = False,
-    ) -> AsyncIterator[Event] | AsyncIterator[Event | Mark]:
+    ) -> AsyncGenerator[Event, None] | AsyncGenerator[Event | Mark, None]:
         """Stream events of ``(service, prop)`` and of the further ``(service, property)`` selectors.
 
         ``*`` in a selector matches one path segment (or every service).
@@ -375,7 +375,7 @@ class AsyncClient:
         )
         return self._listen(request, marks)
 
-    async def _listen(self, request: pb.ListenRequest, marks: bool) -> AsyncIterator[Any]:
+    async def _listen(self, request: pb.ListenRequest, marks: bool) -> AsyncGenerator[Any, None]:
         call = self._get_stub().Listen(request, metadata=self.metadata)
         try:
             async for resp in call:
@@ -633,7 +633,7 @@ class Session:
         heartbeat: float | None = ...,
         max_batch: int = ...,
         marks: Literal[False] = ...,
-    ) -> AsyncIterator[Event]: ...
+    ) -> AsyncGenerator[Event, None]: ...
 
     @overload
     def listen(
@@ -649,7 +649,7 @@ class Session:
         heartbeat: float | None = ...,
         max_batch: int = ...,
         marks: Literal[True],
-    ) -> AsyncIterator[Event | Mark]: ...
+    ) -> AsyncGenerator[Event | Mark, None]: ...
 
     def listen(
         self,
@@ -664,7 +664,7 @@ class Session:
         heartbeat: float | None = None,
         max_batch: int = 0,
         marks: bool = False,
-    ) -> AsyncIterator[Event] | AsyncIterator[Event | Mark]:
+    ) -> AsyncGenerator[Event, None] | AsyncGenerator[Event | Mark, None]:
         """Like :meth:`AsyncClient.listen`, over the session; closing the iterator sends a Cancel."""
         request = _listen_request(
             service,
@@ -679,7 +679,7 @@ class Session:
         )
         return self._listen(request, marks)
 
-    async def _listen(self, request: pb.ListenRequest, marks: bool) -> AsyncIterator[Any]:
+    async def _listen(self, request: pb.ListenRequest, marks: bool) -> AsyncGenerator[Any, None]:
         self._check_open()
         rid = next(self._ids)
         state = _ListenState(marks)

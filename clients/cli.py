@@ -1,0 +1,402 @@
+"""``psctl``: Get, Set and Listen on a Property Service gateway from the shell.
+
+Exit codes: 0 success (also a Listen ended by --count, --duration or Ctrl-C);
+1 the call failed (the gateway answered with an error status); 2 usage error
+(bad arguments, a malformed -p or value); 3 the gateway cannot be reached;
+130 interrupted by Ctrl-C (commands other than listen).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import sys
+from collections.abc import Sequence
+from datetime import datetime
+from typing import Any, TextIO
+
+from clients.aio import DEFAULT_TARGET, DEFAULT_TIMEOUT, HEARTBEAT, SYNC, AsyncClient, Event, Mark, Selector
+from clients.errors import GatewayUnreachable, NotFound, PropertyServiceError
+from clients.values import ValueFormatError
+
+__all__ = ["EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_UNREACHABLE", "EXIT_USAGE", "main"]
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+EXIT_UNREACHABLE = 3
+EXIT_INTERRUPTED = 130
+
+#: Most Gets in flight at once when ``ls -l`` reads details.
+_LS_CONCURRENCY = 32
+
+_EPILOG = """\
+examples:
+  psctl ls                                   services known to the registry
+  psctl ls -l                                services with type, url and state
+  psctl ls scout1 -l                         properties of scout1 with gui and parameters
+  psctl get scout1 location                  one value
+  psctl get scout1 location.x location.y     several values, "path = value" lines
+  psctl get scout1 location -p frame=world   with a request parameter
+  psctl set scout1 behaviors.moveto '<marker><location>(2 1 0 0 0 0)</location></marker>'
+  psctl listen scout1 location --count 10    ten events, then exit
+  psctl listen scout1 location --also scout2:location --min-interval 0.1 --duration 5
+  psctl --json get scout1 location           machine-readable output
+
+The gateway address comes from --target, else $PSCTL_TARGET, else 127.0.0.1:50051.
+exit codes: 0 ok, 1 the call failed, 2 usage error, 3 gateway unreachable, 130 interrupted.
+"""
+
+
+class _UsageError(Exception):
+    pass
+
+
+def _common_options() -> argparse.ArgumentParser:
+    # SUPPRESS defaults let the options appear before or after the command
+    # without the subcommand's defaults overwriting what was given before it.
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "-t",
+        "--target",
+        metavar="HOST:PORT",
+        default=argparse.SUPPRESS,
+        help=f"gateway address (default: $PSCTL_TARGET or {DEFAULT_TARGET})",
+    )
+    common.add_argument(
+        "--timeout",
+        type=float,
+        metavar="SECONDS",
+        default=argparse.SUPPRESS,
+        help=f"limit for each call, 0 for none (default: {DEFAULT_TIMEOUT:g})",
+    )
+    common.add_argument(
+        "--json", action="store_true", default=argparse.SUPPRESS, help="machine-readable JSON output"
+    )
+    return common
+
+
+def _param_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "-p",
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="request parameter (repeatable), e.g. -p frame=world",
+    )
+
+
+def _positive(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not x > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+    return x
+
+
+def _count(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1, got {text!r}")
+    return n
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``psctl`` argument parser."""
+    common = _common_options()
+    parser = argparse.ArgumentParser(
+        prog="psctl",
+        description="Get, Set and Listen on the services behind a Property Service gateway.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        parents=[common],
+    )
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    ls = commands.add_parser(
+        "ls",
+        parents=[common],
+        help="list services, or the properties of one service",
+        description="Without SERVICE: the services the registry knows. With SERVICE: its properties.",
+    )
+    ls.add_argument("service", nargs="?", help="service whose properties to list")
+    ls.add_argument("-l", "--long", action="store_true", help="add type/url/state or gui/parameters")
+
+    get = commands.add_parser(
+        "get",
+        parents=[common],
+        help="read one or more properties",
+        description='Read properties; one path prints its value, several print "path = value" lines.',
+    )
+    get.add_argument("service")
+    get.add_argument("paths", nargs="+", metavar="PATH", help="dotted property path, e.g. location.x")
+    _param_option(get)
+
+    set_ = commands.add_parser(
+        "set",
+        parents=[common],
+        help="write a property (or call a functional property)",
+        description="Write VALUE (text; '-' reads it from stdin) and print what the service answered.",
+    )
+    set_.add_argument("service")
+    set_.add_argument("path")
+    set_.add_argument("value")
+    _param_option(set_)
+
+    listen = commands.add_parser(
+        "listen",
+        parents=[common],
+        help="print change events until --count, --duration or Ctrl-C",
+        description=(
+            "Print one line per event: time, service, property, value, and [conflated N], [gap] or "
+            "[removed] markers. The current value comes first unless --updates-only. "
+            "'*' in a path matches one segment."
+        ),
+    )
+    listen.add_argument("service")
+    listen.add_argument("path")
+    listen.add_argument(
+        "--also",
+        action="append",
+        default=[],
+        metavar="SERVICE:PATH",
+        help="listen to a further property (repeatable)",
+    )
+    _param_option(listen)
+    listen.add_argument("--updates-only", action="store_true", help="only changes, not the current values")
+    listen.add_argument(
+        "--min-interval", type=_positive, metavar="S", help="at most one event per property per S seconds"
+    )
+    listen.add_argument("--sample", type=_positive, metavar="S", help="every value once per S seconds")
+    listen.add_argument(
+        "--heartbeat", type=_positive, metavar="S", help="ask for a keep-alive after S quiet seconds"
+    )
+    listen.add_argument("--marks", action="store_true", help="also print the sync and heartbeat markers")
+    listen.add_argument("--count", type=_count, metavar="N", help="exit after N events")
+    listen.add_argument("--duration", type=_positive, metavar="S", help="exit after S seconds")
+    return parser
+
+
+def _parse_params(items: Sequence[str]) -> dict[str, str]:
+    params: dict[str, str] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise _UsageError(f"bad parameter {item!r}: use NAME=VALUE, e.g. -p frame=world")
+        params[name] = value
+    return params
+
+
+def _parse_selector(text: str) -> Selector:
+    service, sep, path = text.partition(":")
+    if not sep or not service or not path:
+        raise _UsageError(f"bad selector {text!r}: use SERVICE:PATH, e.g. scout2:location")
+    return (service, path)
+
+
+def _out(line: str, stream: TextIO | None = None) -> None:
+    print(line, file=stream or sys.stdout, flush=True)
+
+
+def _emit_json(obj: Any) -> None:
+    _out(json.dumps(obj, ensure_ascii=False))
+
+
+async def _gather_optional(client: AsyncClient, refs: list[tuple[str, str]]) -> list[str | None]:
+    """Values of ``refs``, None for each that does not exist."""
+    limit = asyncio.Semaphore(_LS_CONCURRENCY)
+
+    async def one(service: str, prop: str) -> str | None:
+        async with limit:
+            try:
+                return await client.get(service, prop)
+            except NotFound:
+                return None
+
+    return list(await asyncio.gather(*(one(s, p) for s, p in refs)))
+
+
+def _table(rows: list[list[str]]) -> None:
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    for row in rows:
+        _out("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip())
+
+
+async def _ls(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+    if args.service is None:
+        names = await client.services()
+        columns = ("type", "url", "state")
+        refs = [("registry", f"services.{name}.{c}") for name in names for c in columns]
+    else:
+        names = await client.properties(args.service)
+        columns = ("gui", "parameters")
+        refs = [(args.service, f"{name}.{c}") for name in names for c in columns]
+    if not args.long:
+        if as_json:
+            _emit_json(names)
+        else:
+            for name in names:
+                _out(name)
+        return EXIT_OK
+    values = await _gather_optional(client, refs)
+    n = len(columns)
+    details = [dict(zip(columns, values[i * n : (i + 1) * n], strict=True)) for i in range(len(names))]
+    if as_json:
+        _emit_json([{"name": name, **d} for name, d in zip(names, details, strict=True)])
+    elif names:
+        header = ["NAME", *(c.upper() for c in columns)]
+        rows = [[name, *(d[c] or "-" for c in columns)] for name, d in zip(names, details, strict=True)]
+        _table([header, *rows])
+    return EXIT_OK
+
+
+async def _get(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+    params = _parse_params(args.param)
+    service: str = args.service
+    paths: list[str] = args.paths
+    if len(paths) == 1:
+        values = [await client.get(service, paths[0], **params)]
+    else:
+        values = await client.get_many([(service, path, params) for path in paths])
+    if as_json:
+        objs = [{"service": service, "property": p, "value": v} for p, v in zip(paths, values, strict=True)]
+        _emit_json(objs[0] if len(objs) == 1 else objs)
+    elif len(paths) == 1:
+        _out(values[0])
+    else:
+        for path, value in zip(paths, values, strict=True):
+            _out(f"{path} = {value}")
+    return EXIT_OK
+
+
+async def _set(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+    params = _parse_params(args.param)
+    value: str = sys.stdin.read().rstrip("\n") if args.value == "-" else args.value
+    answer = await client.set(args.service, args.path, value, **params)
+    if as_json:
+        _emit_json({"service": args.service, "property": args.path, "value": answer})
+    elif answer:
+        _out(answer)
+    return EXIT_OK
+
+
+def _clock(t: datetime) -> str:
+    return t.astimezone().strftime("%H:%M:%S.%f")[:-3]
+
+
+def _event_line(ev: Event) -> str:
+    line = f"{_clock(ev.time)} {ev.service} {ev.property} = {ev.value}"
+    if ev.conflated:
+        line += f" [conflated {ev.conflated}]"
+    if ev.gap:
+        line += " [gap]"
+    if ev.removed:
+        line += " [removed]"
+    return line
+
+
+def _event_json(ev: Event) -> dict[str, Any]:
+    return {
+        "service": ev.service,
+        "property": ev.property,
+        "value": ev.value,
+        "sequence": ev.sequence,
+        "time": ev.time.isoformat(),
+        "conflated": ev.conflated,
+        "gap": ev.gap,
+        "removed": ev.removed,
+    }
+
+
+async def _listen(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+    more = [_parse_selector(s) for s in args.also]
+    stream = client.listen(
+        args.service,
+        args.path,
+        *more,
+        params=_parse_params(args.param),
+        updates_only=args.updates_only,
+        min_interval=args.min_interval,
+        sample_interval=args.sample,
+        heartbeat=args.heartbeat,
+        marks=True,
+    )
+    seen = 0
+    try:
+        async with asyncio.timeout(args.duration):
+            async for item in stream:
+                if isinstance(item, Mark):
+                    if args.marks:
+                        _print_mark(item, as_json)
+                    continue
+                _emit_json(_event_json(item)) if as_json else _out(_event_line(item))
+                seen += 1
+                if args.count is not None and seen >= args.count:
+                    break
+    except TimeoutError:
+        pass  # --duration elapsed
+    finally:
+        await stream.aclose()
+    return EXIT_OK
+
+
+def _print_mark(mark: Mark, as_json: bool) -> None:
+    if as_json:
+        _emit_json({"mark": mark.value, "time": datetime.now().astimezone().isoformat()})
+    elif mark is SYNC:
+        _out("-- sync: current values sent, changes follow")
+    elif mark is HEARTBEAT:
+        _out(f"{_clock(datetime.now())} -- heartbeat")
+
+
+_COMMANDS = {"ls": _ls, "get": _get, "set": _set, "listen": _listen}
+
+
+async def _run(args: argparse.Namespace, target: str, call_timeout: float | None) -> int:
+    as_json = bool(getattr(args, "json", False))
+    async with AsyncClient(target, timeout=call_timeout) as client:
+        return await _COMMANDS[args.command](client, args, as_json)
+
+
+def _error(message: str) -> None:
+    print(f"error: {message}", file=sys.stderr, flush=True)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``psctl`` with ``argv`` (default: the process arguments); return the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    target = getattr(args, "target", None) or os.environ.get("PSCTL_TARGET") or DEFAULT_TARGET
+    timeout: float | None = getattr(args, "timeout", DEFAULT_TIMEOUT)
+    if timeout is not None and timeout <= 0:
+        timeout = None
+    try:
+        return asyncio.run(_run(args, target, timeout))
+    except KeyboardInterrupt:
+        return EXIT_OK if args.command == "listen" else EXIT_INTERRUPTED
+    except GatewayUnreachable as e:
+        _error(str(e))
+        return EXIT_UNREACHABLE
+    except PropertyServiceError as e:
+        _error(str(e))
+        return EXIT_FAILED
+    except (_UsageError, ValueFormatError, ValueError) as e:
+        _error(str(e))
+        return EXIT_USAGE
+    except BrokenPipeError:
+        # The reader went away (e.g. `psctl listen ... | head`); keep the interpreter's final flush quiet.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_OK
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
