@@ -231,6 +231,7 @@ def _table(rows: list[list[str]]) -> None:
 
 
 async def _ls(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+    columns: tuple[str, ...]
     if args.service is None:
         names = await client.services()
         columns = ("type", "url", "state")
