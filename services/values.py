@@ -163,15 +163,21 @@ _INTEGRAL_LIMIT = 1e16
 
 def format_number(x: float | np.integer[Any] | np.floating[Any]) -> str:
     """Shortest text that parses back to exactly ``x``: ``2``, ``0.5``, ``1e+20``."""
+    if type(x) is float:  # the common case, kept free of the isinstance checks below
+        return _format_float(x)
     if isinstance(x, bool | np.bool_):
         raise ValueFormatError(f"expected a number, got the boolean {x}")
     if isinstance(x, int | np.integer):
         return str(int(x))
-    x = float(x)
-    if not math.isfinite(x):
+    return _format_float(float(x))
+
+
+def _format_float(x: float) -> str:
+    if x.is_integer():
+        if abs(x) < _INTEGRAL_LIMIT:
+            return str(int(x))
+    elif not math.isfinite(x):
         raise ValueFormatError(f"cannot format {x!r}: only finite numbers are values")
-    if x.is_integer() and abs(x) < _INTEGRAL_LIMIT:
-        return str(int(x))
     return repr(x)
 
 
@@ -437,7 +443,9 @@ class Marker:
         """A copy with field ``name`` set (replaced in place or appended); non-text values are formatted."""
         if _TAG.fullmatch(name) is None:
             raise ValueFormatError(f"bad marker field name {_show(name)}: use letters, digits, _ and -")
-        if not isinstance(value, str | Marker):
+        if isinstance(value, Marker):
+            value = value if value.tag == name else Marker(name, value.fields)
+        elif not isinstance(value, str):
             value = format_value(value)
         return Marker(self.tag, {**self.fields, name: value})
 
