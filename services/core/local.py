@@ -1,0 +1,225 @@
+"""Serving a Resource as a Backend, in-process, on the event loop."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+from collections.abc import Mapping
+
+from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
+from services.core.resource import Resource
+from services.core.tree import NeedsAwait, RemoteTarget, Target, all_properties, resolve
+from services.errors import PropertyError
+from services.paths import validate_path
+
+__all__ = ["LocalService"]
+
+log = logging.getLogger(__name__)
+
+#: Resolved paths kept per service; a client naming ever new paths cannot grow it without bound.
+_MAX_CACHED_PATHS = 4096
+
+
+class _Watch:
+    """Every listener of one path; fires them when the formatted value really changed."""
+
+    __slots__ = ("_pending", "_service", "_unhook", "last", "listeners", "path", "target")
+
+    def __init__(self, service: LocalService, path: str, target: Target) -> None:
+        self._service = service
+        self.path = path
+        self.target = target
+        self.listeners: dict[int, Notify] = {}
+        self._pending: asyncio.Task[None] | None = None
+        try:
+            self.last: str | None = target.peek()
+        except NeedsAwait:
+            self.last = None
+        except PropertyError:
+            self.last = ""
+        self._unhook = target.hook(self.fire)
+
+    def fire(self) -> None:
+        try:
+            value = self.target.peek()
+        except NeedsAwait:
+            if self._pending is None or self._pending.done():
+                self._pending = asyncio.get_running_loop().create_task(self._fire_later())
+            return
+        except PropertyError:
+            value = ""  # e.g. a marker field that is gone for now
+        self.deliver(value)
+
+    async def _fire_later(self) -> None:
+        await asyncio.sleep(0)  # coalesce the burst of changes that scheduled this
+        try:
+            value = await self.target.get(NO_PARAMS)
+        except PropertyError:
+            value = ""
+        self.deliver(value)
+
+    def deliver(self, value: str, *, removed: bool = False) -> None:
+        if value == self.last and not removed:
+            return
+        self.last = value
+        change = Change(self.path, value, removed=removed)
+        for token, notify in list(self.listeners.items()):
+            try:
+                notify(change)
+            except Exception:
+                log.exception("a listener of %s raised; it is dropped", self.path)
+                self.listeners.pop(token, None)
+
+    def close(self) -> None:
+        if self._unhook is not None:
+            self._unhook()
+            self._unhook = None
+        if self._pending is not None:
+            self._pending.cancel()
+            self._pending = None
+        self.listeners.clear()
+
+
+class _LocalSubscription(Subscription):
+    __slots__ = ("_service", "_token", "_watch")
+
+    def __init__(self, service: LocalService, watch: _Watch, token: int) -> None:
+        self._service = service
+        self._watch = watch
+        self._token = token
+
+    async def close(self) -> None:
+        self._service._drop_listener(self._watch, self._token)
+
+
+class _RemoteSubscription(Subscription):
+    """A listen forwarded into a Backend child, with its paths put back under the child's name."""
+
+    def __init__(self, service: LocalService, path: str, prefix: str, notify: Notify) -> None:
+        self._service = service
+        self.path = path
+        self.prefix = prefix
+        self.notify = notify
+        self.inner: Subscription | None = None
+        self.closed = False
+
+    def forward(self, change: Change) -> None:
+        if self.closed:
+            return
+        self.notify(Change(f"{self.prefix}.{change.path}", change.value, change.gap, change.removed))
+
+    async def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self._service._remote.pop(id(self), None)
+        if self.inner is not None:
+            await self.inner.close()
+
+
+class LocalService(Backend):
+    """Serves a :class:`Resource` (and everything under it) as a Backend.
+
+    All work happens on the event loop: a Get reads the attribute, a Set
+    parses and assigns it, a Listen hooks the attribute so that assigning it
+    calls the listeners directly. Resolved paths are cached until the tree
+    of children changes.
+    """
+
+    def __init__(self, obj: Resource, url: str = "local") -> None:
+        if not isinstance(obj, Resource):
+            raise TypeError(f"LocalService serves a Resource, not a {type(obj).__name__}")
+        self.obj = obj
+        self.info = BackendInfo(type=obj.resource_type, url=url)
+        self._targets: dict[str, Target] = {}
+        self._watches: dict[str, _Watch] = {}
+        self._remote: dict[int, _RemoteSubscription] = {}
+        self._tokens = itertools.count()
+        self._closed = False
+        obj._ps_tree_watchers.append(self._on_tree)
+
+    def __repr__(self) -> str:
+        return f"LocalService({type(self.obj).__name__}, url={self.info.url!r})"
+
+    def _target(self, path: str) -> Target:
+        target = self._targets.get(path)
+        if target is None:
+            target = resolve(self.obj, validate_path(path))
+            if len(self._targets) >= _MAX_CACHED_PATHS:
+                self._targets.clear()
+            self._targets[path] = target
+        return target
+
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+        target = self._targets.get(path) or self._target(path)
+        return await target.get(params)
+
+    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+        return await self._target(path).set(value, params)
+
+    async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
+        """Listen to ``path``; request parameters do not change what is listened to and are ignored."""
+        target = self._target(path)
+        if isinstance(target, RemoteTarget):
+            sub = _RemoteSubscription(self, path, target.prefix, notify)
+            self._remote[id(sub)] = sub
+            try:
+                sub.inner = await target.backend.listen(target.rest, sub.forward, params)
+            except BaseException:
+                self._remote.pop(id(sub), None)
+                raise
+            if sub.closed:  # the child was detached while the listen was on its way
+                await sub.inner.close()
+            return sub
+        watch = self._watches.get(path)
+        if watch is None:
+            watch = _Watch(self, path, target)
+            self._watches[path] = watch
+        token = next(self._tokens)
+        watch.listeners[token] = notify
+        return _LocalSubscription(self, watch, token)
+
+    def _drop_listener(self, watch: _Watch, token: int) -> None:
+        if watch.listeners.pop(token, None) is None:
+            return
+        if not watch.listeners:
+            watch.close()
+            if self._watches.get(watch.path) is watch:
+                del self._watches[watch.path]
+
+    def _on_tree(self, path: str, removed: bool) -> None:
+        self._targets.clear()
+        if not removed:
+            return
+        below = path + "."
+        for watch_path in [p for p in self._watches if p == path or p.startswith(below)]:
+            watch = self._watches.pop(watch_path)
+            watch.deliver("", removed=True)
+            watch.close()
+        gone = [s for s in self._remote.values() if s.path == path or s.path.startswith(below)]
+        for sub in gone:
+            sub.notify(Change(sub.path, "", removed=True))
+            self.obj._ps_spawn(sub.close(), f"close listen on {sub.path}")
+
+    async def properties(self) -> list[str]:
+        return await all_properties(self.obj)
+
+    async def start(self) -> None:
+        """Start the object's background work, children first."""
+        await self.obj._ps_start_tree()
+
+    async def aclose(self) -> None:
+        """Stop the object and end every listen. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._on_tree in self.obj._ps_tree_watchers:
+            self.obj._ps_tree_watchers.remove(self._on_tree)
+        for watch in list(self._watches.values()):
+            watch.close()
+        self._watches.clear()
+        for sub in list(self._remote.values()):
+            await sub.close()
+        self._targets.clear()
+        await self.obj._ps_stop_tree()

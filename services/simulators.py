@@ -1,0 +1,331 @@
+"""Simulated devices: a mobile robot on a plane and a noisy sensor.
+
+They are ordinary Resources (the one way services are written) and carry the
+standard property sets: every mobile robot has ``location``, ``velocity``,
+``actuators``, ``sensors`` and ``behaviors`` (with ``behaviors.moveto``);
+every sensor has ``location`` and ``data``. All changes happen by attribute
+assignment on the event loop, so a Listen hears each of them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Sequence
+from typing import Annotated
+
+import numpy as np
+
+from services.core import Prop, Resource, functional
+from services.errors import InvalidArgument
+from services.values import Marker, Vector, format_number
+
+__all__ = ["Actuators", "Behaviors", "Sensors", "SimRobot", "SimSensor"]
+
+#: Highest simulation rate accepted: above it the loop's timer resolution and
+#: the two shared cores, not the model, decide the motion.
+MAX_TICK_HZ = 1000.0
+#: Fastest cruise speed accepted, m/s (well beyond any indoor robot; tests use it to finish quickly).
+MAX_SPEED = 1000.0
+#: Charge used per metre driven: a full battery lasts 1 km.
+BATTERY_PER_METRE = 0.001
+#: Reference frames ``behaviors.moveto`` understands.
+FRAMES = ("world", "robot")
+
+
+def _pose(values: Sequence[float] | Vector, what: str) -> Vector:
+    """A 6-vector pose from 2, 3 or 6 numbers (x y, x y z, or x y z roll pitch yaw)."""
+    try:
+        numbers = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidArgument(f"{what} must be 2, 3 or 6 numbers, got {values!r}") from None
+    if numbers.ndim != 1 or len(numbers) not in (2, 3, 6) or not np.all(np.isfinite(numbers)):
+        raise InvalidArgument(
+            f"{what} must be 2, 3 or 6 finite numbers (x y [z [roll pitch yaw]]), got {values!r}"
+        )
+    pose = np.zeros(6)
+    pose[: len(numbers)] = numbers
+    return pose
+
+
+def _rate(value: float, what: str, low: float, high: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not low <= value <= high:
+        raise InvalidArgument(
+            f"{what} must be a number from {format_number(low)} to {format_number(high)}, got {value!r}"
+        )
+    return float(value)
+
+
+class _Ticker:
+    """Wakes at a fixed rate on the loop clock; a late wake-up shortens the next sleep (no drift)."""
+
+    def __init__(self, hz: float) -> None:
+        self.period = 1.0 / hz
+        self._next: float | None = None
+        self._last = 0.0
+        self._wake = asyncio.Event()
+
+    def restart(self) -> None:
+        self._next = None
+
+    def set_rate(self, hz: float) -> None:
+        self.period = 1.0 / hz
+        self._next = None
+        self._wake.set()  # a long sleep at the old rate ends now
+
+    async def wait(self) -> float:
+        """Sleep until the next tick; return the seconds since the previous one."""
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        if self._next is None:
+            self._next = self._last = now
+        self._next += self.period
+        if self._next < now:  # fell more than a tick behind: skip the missed ticks instead of bursting
+            self._next = now + self.period
+        self._wake.clear()
+        try:
+            async with asyncio.timeout(self._next - now):
+                await self._wake.wait()
+        except TimeoutError:
+            pass
+        now = loop.time()
+        dt, self._last = now - self._last, now
+        return dt
+
+
+class Actuators(Resource):
+    """What the robot can switch or drive."""
+
+    led: Annotated[bool, Prop(doc="status light on top of the robot")] = False
+    wheels: Annotated[Vector, Prop(readonly=True, doc="left and right wheel speeds, m/s")]
+
+    def __init__(self) -> None:
+        self.wheels = np.zeros(2)
+
+
+class Sensors(Resource):
+    """What the robot senses about itself."""
+
+    battery: Annotated[float, Prop(readonly=True, gui="gauge", doc="charge left, from 0 to 1")]
+    bumper: Annotated[bool, Prop(readonly=True, doc="true while the bumper touches something")] = False
+
+    def __init__(self, battery: float = 1.0) -> None:
+        self.battery = battery
+
+
+class Behaviors(Resource):
+    """What the robot can be asked to do."""
+
+    def __init__(self, robot: SimRobot) -> None:
+        self._robot = robot
+
+    @functional(doc="drive to the target marker's location")
+    def moveto(self, target: Marker, *, frame: str = "world") -> None:
+        """Drive to ``<marker><location>(x y ...)</location></marker>``, given in ``frame``."""
+        location = target.location
+        if location is None:
+            raise InvalidArgument(
+                "the target marker has no location: send <marker><location>(x y)</location></marker>"
+            )
+        if not 2 <= len(location) <= 6:
+            raise InvalidArgument(f"the target location must have 2 to 6 numbers, got {len(location)}")
+        if frame not in FRAMES:
+            raise InvalidArgument(f"unknown frame {frame!r}: use one of {', '.join(FRAMES)}")
+        self._robot.drive_to(location, frame)
+
+    # Also the lifecycle hook's name: being functional, it is the property only (see Resource.start).
+    @functional(doc="stop where the robot is")
+    async def stop(self) -> None:
+        """Stop now; the current target is dropped."""
+        self._robot.halt()
+
+
+class SimRobot(Resource):
+    """A simulated mobile robot on a plane, with the standard mobile-robot property set.
+
+    It drives in a straight line toward its target at ``speed``, heading
+    toward it, and stops exactly on it; then nothing changes (and nothing is
+    sent to listeners) until the next ``behaviors.moveto``.
+    """
+
+    resource_type = "mobile_robot"
+
+    location: Annotated[
+        Vector,
+        Prop(readonly=True, gui="pose", doc="pose x y z roll pitch yaw in the world frame (m, rad)"),
+    ]
+    velocity: Annotated[
+        Vector, Prop(readonly=True, doc="current velocity, same axes as location (m/s, rad/s)")
+    ]
+    speed: Annotated[float, Prop(minimum=0.0, maximum=MAX_SPEED, gui="slider", doc="cruise speed, m/s")]
+    actuators: Actuators
+    sensors: Sensors
+    behaviors: Behaviors
+
+    def __init__(
+        self, *, start: Sequence[float] = (0.0, 0.0), speed: float = 0.5, tick_hz: float = 20.0
+    ) -> None:
+        self.location = _pose(start, "start")
+        self.velocity = np.zeros(6)
+        self.speed = _rate(speed, "speed", 0.0, MAX_SPEED)
+        self.actuators = Actuators()
+        self.sensors = Sensors()
+        self.behaviors = Behaviors(self)
+        self._tick_hz = _rate(tick_hz, "tick_hz", 0.1, MAX_TICK_HZ)
+        self._target: Vector | None = None
+        self._go = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+
+    # -- used by Behaviors -------------------------------------------------------
+
+    def drive_to(self, location: Vector, frame: str) -> None:
+        """Set the target: ``location`` holds x y [z ...] in ``frame`` (orientation is ignored)."""
+        target = self.location[:3].copy()
+        n = min(len(location), 3)
+        if frame == "robot":
+            yaw = self.location[5]
+            x, y = location[0], location[1]
+            target[0] += x * math.cos(yaw) - y * math.sin(yaw)
+            target[1] += x * math.sin(yaw) + y * math.cos(yaw)
+            if n == 3:
+                target[2] += location[2]
+        else:
+            target[:n] = location[:n]
+        self._target = target
+        self._go.set()
+
+    def halt(self) -> None:
+        """Drop the target and stand still."""
+        self._target = None
+        self._go.clear()
+        self._standstill()
+
+    # -- simulation ----------------------------------------------------------------
+
+    async def start(self) -> None:
+        self._task = asyncio.get_running_loop().create_task(self._drive(), name="sim-robot motion")
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+            self._task = None
+
+    async def _drive(self) -> None:
+        ticker = _Ticker(self._tick_hz)
+        longest_step = 5 * ticker.period  # after a stall, do not jump across the room
+        while True:
+            await self._go.wait()
+            ticker.restart()
+            while self._target is not None:
+                dt = await ticker.wait()
+                if self._target is not None:
+                    self._step(min(dt, longest_step))
+
+    def _standstill(self) -> None:
+        if np.any(self.velocity):
+            self.velocity = np.zeros(6)
+            self.actuators.wheels = np.zeros(2)
+
+    def _step(self, dt: float) -> None:
+        target = self._target
+        assert target is not None
+        pose = self.location
+        delta = target - pose[:3]
+        distance = float(np.linalg.norm(delta))
+        step = self.speed * dt
+        new = pose.copy()
+        if distance <= step:
+            new[:3] = target  # arrive exactly: no overshoot, no creeping
+            self._target = None
+            self._go.clear()
+            self._standstill()
+            self._drain(distance)
+            self.location = new
+            return
+        if step <= 0.0:
+            self._standstill()
+            return
+        direction = delta / distance
+        new[:3] += direction * step
+        if math.hypot(delta[0], delta[1]) > 1e-12:
+            new[5] = math.atan2(delta[1], delta[0])
+        turn = math.remainder(new[5] - pose[5], math.tau)
+        velocity = np.zeros(6)
+        velocity[:3] = direction * self.speed
+        velocity[5] = turn / dt if dt > 0 else 0.0
+        self.velocity = velocity
+        self.actuators.wheels = np.full(2, self.speed)
+        self._drain(step)
+        self.location = new
+
+    def _drain(self, metres: float) -> None:
+        if metres > 0:
+            self.sensors.battery = round(max(0.0, self.sensors.battery - metres * BATTERY_PER_METRE), 6)
+
+
+class SimSensor(Resource):
+    """A simulated temperature sensor: a slow daily-like swing plus seeded Gaussian noise."""
+
+    resource_type = "sensor"
+
+    location: Annotated[Vector, Prop(readonly=True, gui="pose", doc="where the sensor is (m, rad)")]
+    data: Annotated[float, Prop(readonly=True, gui="plot", doc="temperature, degrees Celsius")]
+
+    def __init__(
+        self,
+        *,
+        location: Sequence[float] = (0.0, 0.0),
+        rate_hz: float = 5.0,
+        seed: int | None = None,
+        mean: float = 20.0,
+        swing: float = 2.0,
+        noise: float = 0.1,
+        period_s: float = 600.0,
+    ) -> None:
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
+            raise InvalidArgument(f"seed must be an integer, got {seed!r}")
+        self.location = _pose(location, "location")
+        self._rate_hz = _rate(rate_hz, "rate_hz", 0.1, MAX_TICK_HZ)
+        self._mean = _rate(mean, "mean", -1e6, 1e6)
+        self._swing = _rate(swing, "swing", 0.0, 1e6)
+        self._noise = _rate(noise, "noise", 0.0, 1e6)
+        self._period = _rate(period_s, "period_s", 1e-3, 1e9)
+        self._rng = np.random.default_rng(seed)
+        self._t = 0.0
+        self._ticker = _Ticker(self._rate_hz)
+        self._task: asyncio.Task[None] | None = None
+        self.data = self._reading()
+
+    @property
+    def rate_hz(self) -> Annotated[float, Prop(minimum=0.1, maximum=MAX_TICK_HZ, doc="readings per second")]:
+        return self._rate_hz
+
+    @rate_hz.setter
+    def rate_hz(self, value: float) -> None:
+        self._rate_hz = _rate(value, "rate_hz", 0.1, MAX_TICK_HZ)
+        self._ticker.set_rate(self._rate_hz)
+
+    def _reading(self) -> float:
+        wave = self._swing * math.sin(math.tau * self._t / self._period)
+        return round(self._mean + wave + float(self._rng.normal(0.0, self._noise)), 3)
+
+    def sample(self, dt: float) -> None:
+        """Advance the simulated time by ``dt`` seconds and take one reading."""
+        self._t += dt
+        self.data = self._reading()
+
+    async def start(self) -> None:
+        self._task = asyncio.get_running_loop().create_task(self._run(), name="sim-sensor readings")
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+            self._task = None
+
+    async def _run(self) -> None:
+        self._ticker.restart()
+        while True:
+            await self._ticker.wait()
+            self.sample(self._ticker.period)
