@@ -23,6 +23,8 @@ class LineReceiver:
         self._buffer = bytearray()
         self._scanned = 0
         self._discarding = False
+        #: A line with a valid checksum has been received: a device answers with checksums from then on.
+        self.saw_checksum = False
 
     @property
     def pending(self) -> int:
@@ -82,3 +84,6 @@ class LineReceiver:
                 out.append(decode_line(line))
             except LineProtocolError as exc:
                 out.append(BadLine(exc.code, exc.message, exc.tag))
+            else:
+                if line.startswith(b"$"):
+                    self.saw_checksum = True

@@ -1,0 +1,495 @@
+"""Serve any Property Service over the line protocol, on a TCP port or a serial port.
+
+This is the device side of docs/line-protocol.md in Python: it stands in for a
+microcontroller in tests and demos, and lets any :class:`services.backend.Backend`
+(a simulated robot, a sensor, a whole gateway's router) be reached by anything
+that speaks lines of text::
+
+    python -m services.device_server --service sim-robot --tcp 127.0.0.1:7001
+    python -m services.device_server --service sim-sensor --serial /dev/pts/3 --baud 115200
+
+Every connection gets its own :class:`DeviceSession`: requests with a tag run
+concurrently (bounded), untagged requests one at a time; events for a client
+that reads slowly are conflated per property in a bounded outbox, so memory
+never grows with a slow reader.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import dataclasses
+import json
+import logging
+import signal
+import sys
+from collections import deque
+from collections.abc import Callable, Coroutine, Mapping, Sequence
+from typing import Any
+
+from services.backend import Backend, Change, Subscription
+from services.errors import Code, DeadlineExceeded, PropertyError, ResourceExhausted
+from services.line_protocol import (
+    MAX_LINE,
+    BadLine,
+    ErrorReply,
+    Event,
+    Frame,
+    Get,
+    Gone,
+    Hello,
+    HelloRequest,
+    LineProtocolError,
+    LineReceiver,
+    Listen,
+    Ok,
+    Ping,
+    Pong,
+    Set,
+    Unlisten,
+    encode,
+)
+
+log = logging.getLogger(__name__)
+
+#: Requests with a tag that one connection may have running at once; further
+#: lines are not read until one finishes (backpressure instead of memory).
+MAX_IN_FLIGHT = 32
+#: Properties one connection may listen to; each costs one outbox slot.
+MAX_SUBSCRIPTIONS = 256
+#: Replies waiting to be written before the session stops reading (a client
+#: that sends bad lines but never reads must not grow the outbox).
+MAX_QUEUED_REPLIES = 256
+#: A backend call that takes longer gets DEADLINE_EXCEEDED.
+CALL_TIMEOUT = 10.0
+_READ_SIZE = 65536
+
+
+class _Outbox:
+    """What a session still has to write: replies in order, events conflated per path."""
+
+    def __init__(self) -> None:
+        self.replies: deque[bytes] = deque()
+        self.events: dict[str, Frame] = {}
+        self.conflated = 0
+        self.wake = asyncio.Event()
+        self.room = asyncio.Event()
+
+    def reply(self, line: bytes) -> None:
+        self.replies.append(line)
+        self.wake.set()
+
+    def event(self, frame: Event | Gone) -> None:
+        if frame.path in self.events:
+            self.conflated += 1
+            del self.events[frame.path]  # re-insert: the newest change goes last
+        self.events[frame.path] = frame
+        self.wake.set()
+
+    def take(self) -> tuple[list[bytes], list[Frame]]:
+        replies = list(self.replies)
+        self.replies.clear()
+        events = list(self.events.values())
+        self.events.clear()
+        self.wake.clear()
+        self.room.set()
+        return replies, events
+
+
+class DeviceSession:
+    """One line-protocol connection served by one backend."""
+
+    def __init__(
+        self,
+        backend: Backend,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        *,
+        greeting: Hello,
+        checksum: bool = False,
+        call_timeout: float = CALL_TIMEOUT,
+        peer: str = "",
+    ) -> None:
+        self.backend = backend
+        self.reader = reader
+        self.writer = writer
+        self.greeting = greeting
+        self.checksum = checksum
+        self.call_timeout = call_timeout
+        self.peer = peer or str(writer.get_extra_info("peername") or "?")
+        self._receiver = LineReceiver(max_line=greeting.max_line)
+        self._outbox = _Outbox()
+        self._subscriptions: dict[str, Subscription] = {}
+        self._in_flight = asyncio.Semaphore(MAX_IN_FLIGHT)
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    # -- writing ---------------------------------------------------------
+
+    def _encode(self, frame: Frame) -> bytes:
+        return encode(frame, checksum=self.checksum or self._receiver.saw_checksum)
+
+    def _reply(self, frame: Frame) -> None:
+        try:
+            line = self._encode(frame)
+        except LineProtocolError as exc:
+            tag = getattr(frame, "tag", None)
+            line = self._encode(ErrorReply(int(exc.code), f"cannot send the reply: {exc.message}", tag))
+        self._outbox.reply(line)
+
+    async def _write_loop(self) -> None:
+        try:
+            while True:
+                await self._outbox.wake.wait()
+                replies, events = self._outbox.take()
+                lines = replies
+                for frame in events:
+                    try:
+                        lines.append(self._encode(frame))
+                    except LineProtocolError as exc:
+                        log.warning("%s: event not sent: %s", self.peer, exc.message)
+                self.writer.write(b"".join(lines))
+                await self.writer.drain()
+        except (ConnectionError, OSError) as exc:
+            log.info("%s: cannot write: %s", self.peer, exc)
+        finally:
+            self._outbox.room.set()
+
+    # -- reading ---------------------------------------------------------
+
+    async def run(self) -> None:
+        """Greet, then serve until the peer closes the connection."""
+        writer_task = asyncio.create_task(self._write_loop())
+        try:
+            self._reply(self.greeting)
+            while True:
+                try:
+                    data = await self.reader.read(_READ_SIZE)
+                except (ConnectionError, OSError) as exc:
+                    log.info("%s: connection lost: %s", self.peer, exc)
+                    break
+                if not data:
+                    break
+                for frame in self._receiver.receive_data(data):
+                    await self._dispatch(frame)
+                while len(self._outbox.replies) >= MAX_QUEUED_REPLIES and not writer_task.done():
+                    self._outbox.room.clear()
+                    await self._outbox.room.wait()  # set by the writer when it takes replies or stops
+                if writer_task.done():
+                    break
+        finally:
+            await self._shutdown(writer_task)
+
+    async def _shutdown(self, writer_task: asyncio.Task[None]) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+        writer_task.cancel()
+        await asyncio.gather(writer_task, *self._tasks, return_exceptions=True)
+        subscriptions, self._subscriptions = list(self._subscriptions.values()), {}
+        for sub in subscriptions:
+            with contextlib.suppress(Exception):
+                await sub.close()
+        with contextlib.suppress(Exception):
+            self.writer.close()
+
+    async def _dispatch(self, frame: Frame | BadLine) -> None:
+        if isinstance(frame, BadLine):
+            log.info("%s: bad line: %s", self.peer, frame.message)
+            self._reply(ErrorReply(int(frame.code), frame.message, frame.tag))
+        elif isinstance(frame, Ping):
+            self._reply(Pong(frame.data, frame.tag))
+        elif isinstance(frame, HelloRequest):
+            self._reply(dataclasses.replace(self.greeting, tag=frame.tag))
+        elif isinstance(frame, Get | Set | Listen | Unlisten):
+            if frame.tag is None:
+                await self._answer(frame)
+            else:
+                await self._in_flight.acquire()
+                task = asyncio.create_task(self._answer(frame))
+                self._tasks.add(task)
+                task.add_done_callback(self._finished)
+        elif isinstance(frame, Pong | Hello):
+            pass  # answer to a PING of ours / a client introducing itself: nothing to do
+        else:
+            word = type(frame).__name__.upper().replace("ERRORREPLY", "ERR")
+            tag = getattr(frame, "tag", None)
+            self._reply(ErrorReply(int(Code.INVALID_ARGUMENT), f"{word} is a reply; send a request", tag))
+
+    def _finished(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        self._in_flight.release()
+
+    async def _answer(self, frame: Get | Set | Listen | Unlisten) -> None:
+        try:
+            async with asyncio.timeout(self.call_timeout):
+                value = await self._call(frame)
+        except PropertyError as exc:
+            self._reply(ErrorReply.from_exception(exc, frame.tag))
+        except TimeoutError:
+            late = DeadlineExceeded(
+                f"{frame.path}: the service did not answer within {self.call_timeout:g} s"
+            )
+            self._reply(ErrorReply.from_exception(late, frame.tag))
+        except Exception:
+            log.exception("%s: service failed on %r", self.peer, frame)
+            self._reply(
+                ErrorReply(int(Code.INTERNAL), f"{frame.path}: internal error in the service", frame.tag)
+            )
+        else:
+            self._reply(Ok(value, frame.tag))
+
+    async def _call(self, frame: Get | Set | Listen | Unlisten) -> str:
+        backend = self.backend
+        if isinstance(frame, Get):
+            return await backend.get(frame.path, frame.params)
+        if isinstance(frame, Set):
+            return await backend.set(frame.path, frame.value, frame.params)
+        if isinstance(frame, Unlisten):
+            sub = self._subscriptions.pop(frame.path, None)
+            if sub is not None:
+                await sub.close()
+            return ""
+        if not self.greeting.push:
+            raise PropertyError(
+                f"{frame.path}: this device cannot push events (push=0); poll with GET", Code.UNIMPLEMENTED
+            )
+        if frame.path not in self._subscriptions:
+            if len(self._subscriptions) >= MAX_SUBSCRIPTIONS:
+                raise ResourceExhausted(f"at most {MAX_SUBSCRIPTIONS} subscriptions per connection")
+            sub = await backend.listen(frame.path, self._notifier(frame.path), frame.params)
+            if frame.path in self._subscriptions:  # a concurrent LISTEN of the same path won
+                await sub.close()
+            else:
+                self._subscriptions[frame.path] = sub
+        return await backend.get(frame.path, frame.params)
+
+    def _notifier(self, path: str) -> Callable[[Change], None]:
+        # Events are sent under the path the client listened to: that is its key.
+        def notify(change: Change) -> None:
+            if path not in self._subscriptions:
+                return
+            if change.removed:
+                self._outbox.event(Gone(path))
+                self._spawn(self._subscriptions.pop(path).close())
+            else:
+                self._outbox.event(Event(path, change.value))
+
+        return notify
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        task = asyncio.create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+
+class DeviceServer:
+    """Serves one backend to any number of line-protocol connections (TCP clients, a serial port)."""
+
+    def __init__(
+        self,
+        backend: Backend,
+        *,
+        name: str,
+        type: str | None = None,
+        push: bool = True,
+        checksum: bool = False,
+        max_line: int = MAX_LINE,
+        call_timeout: float = CALL_TIMEOUT,
+        max_connections: int = 64,
+    ) -> None:
+        self.backend = backend
+        self.greeting = Hello(name=name, type=type or backend.info.type, push=push, max_line=max_line)
+        self.checksum = checksum
+        self.call_timeout = call_timeout
+        self.max_connections = max_connections
+        self._sessions: set[asyncio.Task[None]] = set()
+        self._servers: list[asyncio.Server] = []
+        self._serial_tasks: list[asyncio.Task[None]] = []
+
+    async def serve_stream(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str = ""
+    ) -> None:
+        """Serve one connection until it closes."""
+        session = DeviceSession(
+            self.backend,
+            reader,
+            writer,
+            greeting=self.greeting,
+            checksum=self.checksum,
+            call_timeout=self.call_timeout,
+            peer=peer,
+        )
+        await session.run()
+
+    async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        if len(self._sessions) >= self.max_connections:
+            writer.write(encode(ErrorReply(int(Code.RESOURCE_EXHAUSTED), "too many connections; try later")))
+            with contextlib.suppress(ConnectionError):
+                await writer.drain()
+            writer.close()
+            return
+        self._sessions.add(task)
+        host, port = tuple(writer.get_extra_info("peername") or ("?", "?"))[:2]
+        peer = f"{host}:{port}"
+        log.info("%s: connected", peer)
+        try:
+            await self.serve_stream(reader, writer, peer)
+        finally:
+            self._sessions.discard(task)
+            log.info("%s: disconnected", peer)
+
+    async def serve_tcp(self, host: str, port: int) -> tuple[str, int]:
+        """Listen on ``host:port`` (0 picks a free port); return the address actually bound."""
+        server = await asyncio.start_server(self._on_tcp, host, port, limit=_READ_SIZE)
+        self._servers.append(server)
+        bound = server.sockets[0].getsockname()
+        return str(bound[0]), int(bound[1])
+
+    async def serve_serial(self, port: str, baudrate: int = 115200, *, reopen_delay: float = 1.0) -> None:
+        """Serve the serial ``port`` in the background, reopening it when it fails."""
+        self._serial_tasks.append(asyncio.create_task(self._serial_loop(port, baudrate, reopen_delay)))
+
+    async def _serial_loop(self, port: str, baudrate: int, reopen_delay: float) -> None:
+        import serial_asyncio_fast
+
+        while True:
+            try:
+                reader, writer = await serial_asyncio_fast.open_serial_connection(
+                    url=port, baudrate=baudrate, limit=_READ_SIZE
+                )
+            except (OSError, ValueError) as exc:
+                log.warning("%s: cannot open serial port: %s", port, exc)
+            else:
+                log.info("%s: serving at %d baud", port, baudrate)
+                await self.serve_stream(reader, writer, port)
+                log.info("%s: serial port closed", port)
+            await asyncio.sleep(reopen_delay)
+
+    async def aclose(self) -> None:
+        """Stop listening and end every session. Idempotent."""
+        for server in self._servers:
+            server.close()
+        tasks = [*self._serial_tasks, *self._sessions]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        for server in self._servers:
+            with contextlib.suppress(Exception):
+                await server.wait_closed()
+        self._servers.clear()
+        self._serial_tasks.clear()
+
+
+# -- command line ---------------------------------------------------------
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or int(port) > 65535:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT, e.g. 127.0.0.1:7001, not {text!r}")
+    return host.strip("[]") or "127.0.0.1", int(port)
+
+
+def _option(text: str) -> tuple[str, Any]:
+    key, sep, raw = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, not {text!r}")
+    try:
+        return key, json.loads(raw)
+    except ValueError:
+        return key, raw
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of the device command (shared by ``psgateway device`` and ``python -m``)."""
+    parser.add_argument(
+        "--service", required=True, help="kind of service to serve, e.g. sim-robot, sim-sensor"
+    )
+    parser.add_argument("--name", help="name in the greeting (default: the service kind)")
+    parser.add_argument(
+        "--option",
+        action="append",
+        type=_option,
+        default=[],
+        metavar="KEY=VALUE",
+        help="service option; VALUE is JSON when it parses as JSON, else text (repeatable)",
+    )
+    where = parser.add_mutually_exclusive_group(required=True)
+    where.add_argument("--tcp", type=_host_port, metavar="HOST:PORT", help="listen on TCP (port 0: pick one)")
+    where.add_argument(
+        "--serial", metavar="PORT", help="serve on a serial port, e.g. /dev/ttyUSB0 or /dev/pts/3"
+    )
+    parser.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    parser.add_argument("--no-push", action="store_true", help="act as a device that cannot push events")
+    parser.add_argument("--checksum", action="store_true", help="send a CRC-8 checksum on every line")
+    parser.add_argument(
+        "--max-line", type=int, default=MAX_LINE, help=f"longest line accepted (default {MAX_LINE})"
+    )
+    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+
+
+def _make_backend(kind: str, options: Mapping[str, Any]) -> Backend:
+    from services.catalog import create
+    from services.core import LocalService
+
+    return LocalService(create(kind, **options))
+
+
+async def serve(args: argparse.Namespace) -> None:
+    """Run the device described by parsed ``args`` until SIGINT/SIGTERM."""
+    backend = _make_backend(args.service, dict(args.option))
+    await backend.start()
+    server = DeviceServer(
+        backend,
+        name=args.name or args.service,
+        push=not args.no_push,
+        checksum=args.checksum,
+        max_line=args.max_line,
+    )
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, stop.set)
+    try:
+        if args.tcp:
+            host, port = await server.serve_tcp(*args.tcp)
+            print(f"listening on {host}:{port}", flush=True)
+        else:
+            await server.serve_serial(args.serial, args.baud)
+            print(f"serving on {args.serial}", flush=True)
+        await stop.wait()
+    finally:
+        await server.aclose()
+        await backend.aclose()
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the device command; return the process exit status."""
+    logging.basicConfig(
+        level=str(args.log_level).upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    try:
+        asyncio.run(serve(args))
+    except PropertyError as exc:
+        print(f"error: {exc.message}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m services.device_server``."""
+    parser = argparse.ArgumentParser(
+        prog="python -m services.device_server", description=__doc__.split("\n")[0]
+    )
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
