@@ -1,0 +1,253 @@
+"""``python -m bench``: measure the gateway beside the bare server and print the ratios.
+
+Each server runs in its own process, one at a time, on 127.0.0.1; this
+process is the load generator and drives both with the generated stubs.
+Part (d) gets a freshly started server of its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import math
+import os
+import sys
+import time
+import traceback
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from bench import report
+from bench.listen import run_listen
+from bench.memory import run_memory
+from bench.servers import ServerProcess
+from bench.session import run_session
+from bench.target import BATCH_PROPERTIES, VALUE_PROPERTY
+from bench.unary import run_unary
+
+PARTS = ("unary", "session", "listen", "batched", "memory")
+SERVERS = {
+    "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
+    "gateway": ["bench.gateway_server", "--listen", "127.0.0.1:0"],
+}
+
+#: Sizes of the full run and of ``--quick``.
+PROFILES: dict[str, dict[str, Any]] = {
+    "full": {
+        "calls": 20_000,
+        "warmup": 1_000,
+        "session_gets": 100_000,
+        "subscribers": 100,
+        "sets": 2_000,
+        "streams": 1_000,
+        "time_limit": 60.0,
+    },
+    "quick": {
+        "calls": 2_000,
+        "warmup": 200,
+        "session_gets": 10_000,
+        "subscribers": 100,
+        "sets": 200,
+        "streams": 200,
+        "time_limit": 15.0,
+    },
+}
+
+
+def _csv(choices: tuple[str, ...]) -> Callable[[str], list[str]]:
+    def parse(text: str) -> list[str]:
+        names = [name.strip() for name in text.split(",") if name.strip()]
+        unknown = [name for name in names if name not in choices]
+        if unknown or not names:
+            raise argparse.ArgumentTypeError(f"choose from {', '.join(choices)} (comma-separated)")
+        return names
+
+    return parse
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError("must be at least 1")
+    return value
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="python -m bench",
+        description="Benchmark the gateway beside a bare grpc.aio server of the same contract: "
+        "(a) unary Get, (b) Gets over Session, (c) Listen fan-out one-by-one and batched, "
+        "(d) memory per idle Listen stream. Prints absolute figures, ratios and targets.",
+    )
+    parser.add_argument(
+        "--quick", action="store_true", help="small sizes: a smoke run of well under a minute"
+    )
+    parser.add_argument(
+        "--parts",
+        type=_csv(PARTS),
+        default=list(PARTS),
+        help=f"parts to run, comma-separated (default: all of {','.join(PARTS)})",
+    )
+    parser.add_argument(
+        "--servers",
+        type=_csv(tuple(SERVERS)),
+        default=list(SERVERS),
+        help="servers to measure, comma-separated (default: baseline,gateway)",
+    )
+    parser.add_argument("--json", metavar="FILE", help="also save the results as JSON to FILE")
+    parser.add_argument("--strict", action="store_true", help="exit with status 1 when a target is missed")
+    sizes = parser.add_argument_group("sizes (defaults: full run / --quick)")
+    full, quick = PROFILES["full"], PROFILES["quick"]
+
+    def both(key: str) -> str:
+        return f"(default {full[key]:,} / {quick[key]:,})"
+
+    sizes.add_argument("--calls", type=_positive, help=f"(a) measured unary Gets {both('calls')}")
+    sizes.add_argument("--warmup", type=_positive, help=f"(a, b) calls before measuring {both('warmup')}")
+    sizes.add_argument("--inflight", type=_positive, default=8, help="(a) unary calls in flight (default 8)")
+    sizes.add_argument("--session-gets", type=_positive, help=f"(b) Gets over Session {both('session_gets')}")
+    sizes.add_argument(
+        "--session-batch", type=_positive, default=100, help="(b) Gets per message (default 100)"
+    )
+    sizes.add_argument(
+        "--session-window", type=_positive, default=4, help="(b) messages unanswered at most (default 4)"
+    )
+    sizes.add_argument("--subscribers", type=_positive, help=f"(c) Listen subscribers {both('subscribers')}")
+    sizes.add_argument("--sets", type=_positive, help=f"(c) Sets made by the setter {both('sets')}")
+    sizes.add_argument(
+        "--set-rate",
+        type=float,
+        default=0.0,
+        help="(c) Sets per second; 0 = as fast as the server answers, one Set (or burst) at a time "
+        "(default 0)",
+    )
+    sizes.add_argument(
+        "--listen-channels",
+        type=_positive,
+        help="(c) connections for the subscribers (default: 25 per connection)",
+    )
+    sizes.add_argument("--streams", type=_positive, help=f"(d) idle Listen streams {both('streams')}")
+    sizes.add_argument(
+        "--memory-channels",
+        type=_positive,
+        help="(d) connections for the streams (default: 50 per connection)",
+    )
+    sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
+    args = parser.parse_args(argv)
+    profile = PROFILES["quick" if args.quick else "full"]
+    for key, value in profile.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    if args.listen_channels is None:
+        args.listen_channels = math.ceil(args.subscribers / 25)
+    if args.memory_channels is None:
+        args.memory_channels = math.ceil(args.streams / 50)
+    return args
+
+
+async def _part(
+    results: dict[str, dict[str, Any]], server: ServerProcess, part: str, run: Callable[[], Awaitable[Any]]
+) -> None:
+    started = time.perf_counter()
+    print(f"  {server.kind}: {part} ...", end="", file=sys.stderr, flush=True)
+    try:
+        outcome = await run()
+    except Exception as exc:
+        detail = "".join(traceback.format_exception_only(exc)).strip()
+        results[part] = {"error": detail}
+        print(f" error: {detail}\n{server.log_tail}", file=sys.stderr, flush=True)
+    else:
+        results[part] = outcome.as_dict()
+        print(f" {time.perf_counter() - started:.1f} s", file=sys.stderr, flush=True)
+
+
+async def run(args: argparse.Namespace) -> report.Results:
+    """Run the chosen parts on each chosen server, one server process at a time."""
+    results: report.Results = {}
+    for kind in args.servers:
+        parts = results.setdefault(kind, {})
+        loads = [p for p in args.parts if p != "memory"]
+        if loads:
+            server = await ServerProcess.start(kind, SERVERS[kind])
+            print(f"{kind} server, pid {server.pid}, on {server.address}", file=sys.stderr)
+            try:
+                for part in loads:
+                    await _part(parts, server, part, _runner(args, server, part))
+            finally:
+                await server.stop()
+        if "memory" in args.parts:
+            server = await ServerProcess.start(kind, SERVERS[kind])
+            print(
+                f"{kind} server (fresh, for memory), pid {server.pid}, on {server.address}", file=sys.stderr
+            )
+            try:
+                await _part(parts, server, "memory", _runner(args, server, "memory"))
+            finally:
+                await server.stop()
+    return results
+
+
+def _runner(args: argparse.Namespace, server: ServerProcess, part: str) -> Callable[[], Awaitable[Any]]:
+    if part == "unary":
+        return lambda: run_unary(
+            server, calls=args.calls, inflight=args.inflight, warmup=args.warmup, time_limit=args.time_limit
+        )
+    if part == "session":
+        return lambda: run_session(
+            server,
+            gets=args.session_gets,
+            batch=args.session_batch,
+            window_batches=args.session_window,
+            warmup=args.warmup * 10,
+            time_limit=args.time_limit,
+        )
+    if part in ("listen", "batched"):
+        return lambda: run_listen(
+            server,
+            mode="one-by-one" if part == "listen" else "batched",
+            properties=(VALUE_PROPERTY,) if part == "listen" else BATCH_PROPERTIES,
+            subscribers=args.subscribers,
+            sets=args.sets,
+            channels=args.listen_channels,
+            set_rate=args.set_rate,
+            time_limit=args.time_limit,
+        )
+    return lambda: run_memory(
+        server, streams=args.streams, channels=args.memory_channels, time_limit=args.time_limit
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; exit 0 when every part ran (and, with ``--strict``, met its target)."""
+    args = parse_args(argv)
+    info = report.machine()
+    started = time.perf_counter()
+    results = asyncio.run(run(args))
+    info["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
+    verdicts = report.evaluate(results)
+    report.print_report(sys.stdout, info, results, verdicts)
+    elapsed = time.perf_counter() - started
+    print(f"\ncommand: {report.command_line()}   ({elapsed:.0f} s)")
+    if args.json:
+        config = {key: value for key, value in vars(args).items() if key != "json"}
+        report.save_json(
+            args.json,
+            {
+                "command": report.command_line(),
+                "machine": info,
+                "config": config,
+                "results": results,
+                "targets": verdicts,
+                "elapsed_s": round(elapsed, 1),
+            },
+        )
+        print(f"results saved to {args.json}")
+    errors = any("error" in part for parts in results.values() for part in parts.values())
+    missed = any(
+        not v["verdict"].startswith("PASS") for v in verdicts if not v["verdict"].startswith("NOT RUN")
+    )
+    return 1 if errors or (args.strict and missed) else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,283 @@
+"""Part (c): Listen fan-out — many subscribers, one setter, events delivered and set-to-delivery latency.
+
+Every subscriber opens a Listen stream (current values first), waits for the
+``sync`` marker, and from then on counts every event it reads. The setter is
+one client on its own connection writing ``str(time.perf_counter_ns())`` as
+the value, as fast as the server answers (or paced at ``set_rate``); the
+subscriber subtracts that from its own ``perf_counter_ns`` on arrival. Both
+run in this process, so the clock is shared (it is CLOCK_MONOTONIC on Linux,
+the same for every process of the machine anyway).
+
+Two modes:
+
+* ``one-by-one``: every subscriber listens to one property; the setter makes
+  one Set at a time. This is the plain fan-out of part (c).
+* ``batched``: every subscriber listens to ``len(properties)`` properties in
+  one stream; the setter writes a burst of Sets, one to each property, all
+  in flight together, then the next burst. Several events are then ready for
+  each subscriber at once, and a server that batches sends them in one
+  ListenResponse; the subscribers count events per message. The bare server
+  sends one event per message whatever is ready.
+
+Events/s is the number of events all subscribers read, divided by the time
+from the first Set to the last event read. A server that conflates (drops
+intermediate values for a slow reader, counting them in ``conflated``)
+delivers fewer events; those are reported, never counted as delivered.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import grpc
+
+from bench.measure import STREAM_END, Latencies, Window, window
+from bench.servers import ServerProcess
+from bench.target import SERVICE
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+
+CALL_TIMEOUT = 10.0
+#: How long subscribers may keep reading after the last Set before the run is declared incomplete.
+DRAIN_TIMEOUT = 15.0
+#: Each channel gets its own TCP connection (grpc otherwise shares one between
+#: channels to the same address).
+CHANNEL_OPTIONS = [("grpc.use_local_subchannel_pool", 1)]
+
+
+@dataclass
+class ListenResult:
+    """What part (c) measured on one server in one mode."""
+
+    mode: str
+    subscribers: int
+    sets: int
+    properties: int
+    burst: int
+    set_rate: float
+    channels: int
+    sets_done: int = 0
+    set_errors: int = 0
+    events: int = 0
+    conflated: int = 0
+    messages: int = 0
+    complete_subscribers: int = 0
+    delivery_s: float = 0.0
+    setter_s: float = 0.0
+    latency: Latencies = field(default_factory=Latencies)
+    window: Window = field(default_factory=Window)
+
+    @property
+    def events_per_s(self) -> float:
+        """Events read by all subscribers per second, first Set to last event."""
+        return self.events / self.delivery_s if self.delivery_s else 0.0
+
+    @property
+    def events_per_message(self) -> float:
+        return self.events / self.messages if self.messages else 0.0
+
+    @property
+    def complete(self) -> bool:
+        return self.complete_subscribers == self.subscribers and self.sets_done == self.sets
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "mode": self.mode,
+            "subscribers": self.subscribers,
+            "sets": self.sets,
+            "properties": self.properties,
+            "burst": self.burst,
+            "set_rate_per_s": self.set_rate or "as fast as possible",
+            "channels": self.channels,
+            "sets_done": self.sets_done,
+            "set_errors": self.set_errors,
+            "events": self.events,
+            "expected_events": self.sets * self.subscribers,
+            "conflated": self.conflated,
+            "messages": self.messages,
+            "events_per_message": round(self.events_per_message, 2),
+            "complete": self.complete,
+            "complete_subscribers": self.complete_subscribers,
+            "setter_s": round(self.setter_s, 4),
+            "delivery_s": round(self.delivery_s, 4),
+            "events_per_s": round(self.events_per_s, 1),
+            "sets_per_s": round(self.sets_done / self.setter_s, 1) if self.setter_s else 0.0,
+            "server_cpu_us_per_event": round(1e6 * self.window.server_cpu_s / max(self.events, 1), 2),
+            "latency": self.latency.as_dict(),
+            "window": self.window.as_dict(),
+        }
+
+
+class _Run:
+    """State shared by the setter and the subscribers of one run."""
+
+    def __init__(self, expected: int) -> None:
+        self.expected = expected
+        self.final: dict[str, str] | None = None
+        self.samples: list[int] = []
+
+
+class _Subscriber:
+    """One Listen stream and what it has read."""
+
+    def __init__(self, call: Any, run: _Run) -> None:
+        self.call = call
+        self.run = run
+        self.latest: dict[str, str] = {}
+        self.events = 0
+        self.conflated = 0
+        self.messages = 0
+        self.last_ns = 0
+        self.done = asyncio.Event()
+
+    async def wait_sync(self) -> None:
+        """Read the current values and the ``sync`` marker."""
+        while True:
+            response = await self.call.read()
+            if response is STREAM_END:
+                raise RuntimeError("a Listen stream ended before its sync marker")
+            if response.sync:
+                return
+
+    def check_done(self) -> None:
+        final = self.run.final
+        if self.events + self.conflated >= self.run.expected or (
+            final is not None and all(self.latest.get(p) == v for p, v in final.items())
+        ):
+            self.done.set()
+
+    async def consume(self) -> None:
+        samples = self.run.samples
+        while True:
+            response = await self.call.read()
+            if response is STREAM_END:
+                return
+            now = time.perf_counter_ns()
+            if not response.events:
+                continue
+            self.messages += 1
+            for event in response.events:
+                self.events += 1
+                self.conflated += event.conflated
+                self.latest[event.property] = event.value
+                samples.append(now - int(event.value))
+            self.last_ns = now
+            self.check_done()
+
+
+async def _set_all(
+    stub: pb_grpc.PropertyServiceStub,
+    *,
+    properties: Sequence[str],
+    sets: int,
+    set_rate: float,
+    deadline: float,
+    result: ListenResult,
+) -> dict[str, str]:
+    """Make ``sets`` Sets in bursts of ``len(properties)``; return the last value written to each."""
+    final: dict[str, str] = {}
+
+    async def one(prop: str) -> None:
+        value = str(time.perf_counter_ns())
+        try:
+            await stub.Set(pb.SetRequest(service=SERVICE, property=prop, value=value), timeout=CALL_TIMEOUT)
+        except grpc.aio.AioRpcError:
+            result.set_errors += 1
+        else:
+            final[prop] = value
+        result.sets_done += 1
+
+    interval = len(properties) / set_rate if set_rate else 0.0
+    next_at = time.monotonic()
+    while result.sets_done < sets and time.monotonic() < deadline:
+        group = properties[: sets - result.sets_done]
+        if len(group) == 1:
+            await one(group[0])
+        else:
+            await asyncio.gather(*(one(prop) for prop in group))
+        if interval:
+            next_at += interval
+            await asyncio.sleep(max(next_at - time.monotonic(), 0.0))
+    return final
+
+
+async def run_listen(
+    server: ServerProcess,
+    *,
+    mode: str,
+    properties: Sequence[str],
+    subscribers: int,
+    sets: int,
+    channels: int,
+    set_rate: float,
+    time_limit: float,
+) -> ListenResult:
+    """Open ``subscribers`` Listen streams on ``properties``, make ``sets`` Sets, count what arrives."""
+    result = ListenResult(
+        mode=mode,
+        subscribers=subscribers,
+        sets=sets,
+        properties=len(properties),
+        burst=len(properties),
+        set_rate=set_rate,
+        channels=channels,
+    )
+    run = _Run(expected=sets)
+    deadline = time.monotonic() + time_limit
+    opened = [grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(channels)]
+    setter_channel = grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS)
+    tasks: list[asyncio.Task[None]] = []
+    subs: list[_Subscriber] = []
+    first_set_ns = 0
+    try:
+        setter = pb_grpc.PropertyServiceStub(setter_channel)
+        for prop in properties:
+            await setter.Set(pb.SetRequest(service=SERVICE, property=prop, value="0"), timeout=CALL_TIMEOUT)
+        request = pb.ListenRequest(
+            service=SERVICE,
+            property=properties[0],
+            more=[pb.PropertyRef(service=SERVICE, property=prop) for prop in properties[1:]],
+        )
+        for number in range(subscribers):
+            stub = pb_grpc.PropertyServiceStub(opened[number % channels])
+            subs.append(_Subscriber(stub.Listen(request), run))
+        async with asyncio.timeout(CALL_TIMEOUT * 3):
+            await asyncio.gather(*(sub.wait_sync() for sub in subs))
+        tasks = [asyncio.create_task(sub.consume()) for sub in subs]
+
+        with window(server) as result.window:
+            first_set_ns = time.perf_counter_ns()
+            final = await _set_all(
+                setter, properties=properties, sets=sets, set_rate=set_rate, deadline=deadline, result=result
+            )
+            result.setter_s = (time.perf_counter_ns() - first_set_ns) / 1e9
+            run.final = final
+            for sub in subs:
+                sub.check_done()
+            drain_until = min(deadline, time.monotonic() + DRAIN_TIMEOUT)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(max(drain_until - time.monotonic(), 0.0)):
+                    await asyncio.gather(*(sub.done.wait() for sub in subs))
+    finally:
+        for task in tasks:
+            task.cancel()
+        for sub in subs:
+            sub.call.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        for channel in [*opened, setter_channel]:
+            await channel.close(None)
+
+    last_ns = max((sub.last_ns for sub in subs), default=0)
+    result.delivery_s = max(last_ns - first_set_ns, 0) / 1e9
+    result.events = sum(sub.events for sub in subs)
+    result.conflated = sum(sub.conflated for sub in subs)
+    result.messages = sum(sub.messages for sub in subs)
+    result.complete_subscribers = sum(sub.done.is_set() for sub in subs)
+    result.latency = Latencies.of(run.samples)
+    server.check_alive()
+    return result

@@ -1,0 +1,110 @@
+"""Part (d): server memory per idle Listen stream.
+
+On a freshly started server: open the channels (each its own TCP connection)
+and one Listen stream on each, so that connection set-up and first-use
+allocations are paid; read the server's RSS. Then open ``streams`` more
+Listen streams on one property, spread evenly over the channels, wait until
+each has read its ``sync`` marker (so the server holds every one of them),
+let the server settle, and read RSS again. Per-stream memory is the
+difference divided by ``streams``. Nothing is set while the streams are
+open: they are idle.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import grpc
+
+from bench.listen import CHANNEL_OPTIONS
+from bench.measure import STREAM_END
+from bench.servers import ServerProcess
+from bench.target import SERVICE, VALUE_PROPERTY
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+
+SETTLE_S = 1.0
+#: Streams opened together. When about 1,500 arrive at once, grpc core
+#: cancels some before the server handles them (its queue of pending calls
+#: is bounded, see ``grpc.server_max_pending_requests``), so streams are
+#: opened in waves.
+WAVE = 200
+
+
+@dataclass
+class MemoryResult:
+    """What part (d) measured on one server."""
+
+    streams: int
+    channels: int
+    opened: int = 0
+    rss_start: int = 0
+    rss_before: int = 0
+    rss_after: int = 0
+    rss_closed: int = 0
+    open_s: float = 0.0
+
+    @property
+    def per_stream_kib(self) -> float:
+        return (self.rss_after - self.rss_before) / max(self.opened, 1) / 1024
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "streams": self.streams,
+            "channels": self.channels,
+            "opened": self.opened,
+            "rss_start_mib": round(self.rss_start / 2**20, 2),
+            "rss_before_mib": round(self.rss_before / 2**20, 2),
+            "rss_after_mib": round(self.rss_after / 2**20, 2),
+            "rss_after_close_mib": round(self.rss_closed / 2**20, 2),
+            "open_s": round(self.open_s, 3),
+            "per_stream_kib": round(self.per_stream_kib, 2),
+        }
+
+
+async def _open(stub: pb_grpc.PropertyServiceStub, request: pb.ListenRequest) -> Any:
+    call = stub.Listen(request)
+    while True:
+        response = await call.read()
+        if response is STREAM_END:
+            raise RuntimeError(f"a Listen stream ended before its sync marker: {await call.code()}")
+        if response.sync:
+            return call
+
+
+async def run_memory(
+    server: ServerProcess, *, streams: int, channels: int, time_limit: float
+) -> MemoryResult:
+    """Measure the server's RSS before and after opening ``streams`` idle Listen streams."""
+    result = MemoryResult(streams=streams, channels=channels)
+    result.rss_start = server.rss_bytes()
+    request = pb.ListenRequest(service=SERVICE, property=VALUE_PROPERTY)
+    opened = [grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(channels)]
+    stubs = [pb_grpc.PropertyServiceStub(channel) for channel in opened]
+    calls: list[Any] = []
+    try:
+        async with asyncio.timeout(time_limit):
+            await stubs[0].Set(pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value="0"), timeout=10)
+            calls += await asyncio.gather(*(_open(stub, request) for stub in stubs))
+            await asyncio.sleep(SETTLE_S)
+            result.rss_before = server.rss_bytes()
+            start = time.perf_counter()
+            for first in range(0, streams, WAVE):
+                wave = range(first, min(first + WAVE, streams))
+                calls += await asyncio.gather(*(_open(stubs[n % channels], request) for n in wave))
+            result.open_s = time.perf_counter() - start
+            result.opened = streams
+            await asyncio.sleep(SETTLE_S)
+            result.rss_after = server.rss_bytes()
+    finally:
+        for call in calls:
+            call.cancel()
+        for channel in opened:
+            await channel.close(None)
+    await asyncio.sleep(SETTLE_S)
+    result.rss_closed = server.rss_bytes()
+    server.check_alive()
+    return result

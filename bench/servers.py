@@ -1,0 +1,125 @@
+"""Server processes under test: start one, find its port, watch its CPU and memory, end it by PID."""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import os
+import re
+import signal
+import sys
+from pathlib import Path
+
+import psutil  # type: ignore[import-untyped,unused-ignore]
+
+ROOT = Path(__file__).resolve().parent.parent
+_LISTENING = re.compile(r"listening on (\S+):(\d+)")
+
+#: How long a server may take to print its address.
+START_TIMEOUT = 30.0
+STOP_TIMEOUT = 5.0
+
+
+class ServerError(RuntimeError):
+    """A server under test did not start, or died."""
+
+
+class ServerProcess:
+    """One server under test, running as a child process on 127.0.0.1."""
+
+    def __init__(self, kind: str, process: asyncio.subprocess.Process, address: str) -> None:
+        self.kind = kind
+        self.process = process
+        self.address = address
+        self.pid = process.pid
+        self._ps = psutil.Process(process.pid)
+        self._log: collections.deque[str] = collections.deque(maxlen=40)
+        self._drain: asyncio.Task[None] | None = None
+
+    @classmethod
+    async def start(cls, kind: str, argv: list[str]) -> ServerProcess:
+        """Run ``python -m <argv>`` and wait for its ``listening on HOST:PORT`` line on stderr."""
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH", "")]))
+        process = await asyncio.create_subprocess_exec(
+            sys.executable,
+            "-m",
+            *argv,
+            cwd=ROOT,
+            env=env,
+            stdin=asyncio.subprocess.PIPE,
+            stdout=asyncio.subprocess.DEVNULL,
+            stderr=asyncio.subprocess.PIPE,
+        )
+        assert process.stderr is not None
+        seen: list[str] = []
+        try:
+            async with asyncio.timeout(START_TIMEOUT):
+                while True:
+                    raw = await process.stderr.readline()
+                    if not raw:
+                        raise ServerError(f"{kind} server exited before listening:\n" + "".join(seen[-20:]))
+                    line = raw.decode(errors="replace")
+                    seen.append(line)
+                    match = _LISTENING.search(line)
+                    if match:
+                        break
+        except TimeoutError:
+            await _end(process)
+            raise ServerError(f"{kind} server did not print its address in {START_TIMEOUT:.0f} s") from None
+        except BaseException:
+            await _end(process)
+            raise
+        server = cls(kind, process, f"{match.group(1)}:{match.group(2)}")
+        server._log.extend(seen)
+        server._drain = asyncio.create_task(server._drain_stderr())
+        return server
+
+    async def _drain_stderr(self) -> None:
+        # Keep reading so that a chatty server never blocks on a full pipe.
+        assert self.process.stderr is not None
+        while raw := await self.process.stderr.readline():
+            self._log.append(raw.decode(errors="replace"))
+
+    @property
+    def log_tail(self) -> str:
+        """The last lines the server wrote to stderr."""
+        return "".join(self._log)
+
+    def check_alive(self) -> None:
+        """Raise :class:`ServerError` if the server has exited."""
+        if self.process.returncode is not None:
+            raise ServerError(f"{self.kind} server exited with {self.process.returncode}:\n{self.log_tail}")
+
+    def cpu_seconds(self) -> float:
+        """User plus system CPU time the server has used so far (all its threads)."""
+        times = self._ps.cpu_times()
+        return float(times.user + times.system)
+
+    def rss_bytes(self) -> int:
+        """Resident set size of the server process."""
+        return int(self._ps.memory_info().rss)
+
+    async def stop(self) -> None:
+        """End the server (SIGTERM, then SIGKILL after a grace period), by its PID."""
+        await _end(self.process)
+        if self._drain is not None:
+            self._drain.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._drain
+
+
+async def _end(process: asyncio.subprocess.Process) -> None:
+    if process.stdin is not None:
+        process.stdin.close()
+    if process.returncode is None:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(process.pid, signal.SIGTERM)
+        try:
+            async with asyncio.timeout(STOP_TIMEOUT):
+                await process.wait()
+        except TimeoutError:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(process.pid, signal.SIGKILL)
+            await process.wait()
