@@ -1,0 +1,193 @@
+"""Assembly: a configured, running gateway.
+
+:class:`Gateway` builds the router from a :class:`~gateway.config.Config`
+(plus the built-in ``registry`` service), starts the grpc.aio server with the
+PropertyService, server reflection and the health service, and shuts all of
+it down gracefully. It runs in-process too, which is how tests and users
+run a gateway and a client in one program::
+
+    async with Gateway(config) as gw:
+        channel = grpc.aio.insecure_channel(gw.address)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+import sys
+from collections.abc import Mapping
+from types import TracebackType
+
+import grpc
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+from grpc_health.v1.health import aio as health_aio  # type: ignore[attr-defined]
+from grpc_reflection.v1alpha import reflection
+
+from gateway.backends import open_backend
+from gateway.config import REGISTRY_NAME, Config
+from gateway.listen_hub import ListenHub
+from gateway.router import Router
+from gateway.server import PropertyServicer
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+from services.backend import Backend
+
+log = logging.getLogger("gateway")
+
+SERVICE_NAME = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
+
+
+class Gateway:
+    """A gateway: router, listen hub, grpc.aio server; start with ``async with`` or :meth:`start`."""
+
+    def __init__(
+        self, config: Config | None = None, *, backends: Mapping[str, Backend] | None = None
+    ) -> None:
+        """``backends`` are extra, already built services served next to the configured ones."""
+        from gateway.config import default_config
+
+        self.config = config if config is not None else default_config()
+        self.router = Router()
+        self.hub = ListenHub(self.router, self.config.limits, self.config.gateway.call_timeout)
+        self._extra = dict(backends or {})
+        self._server: grpc.aio.Server | None = None
+        self._health = health_aio.HealthServicer()
+        self._line_listener: object | None = None
+        self._stopped = asyncio.Event()
+        self._unwatch_registry: object | None = None
+        #: "host:port" the gRPC server listens on (the real port when 0 was asked).
+        self.address = ""
+        self.servicer = PropertyServicer(self.router, self.hub, self.config)
+
+    async def __aenter__(self) -> Gateway:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.stop()
+
+    async def start(self) -> None:
+        """Start every service, then serve; returns once the server is listening."""
+        await self._health.set("", health_pb2.HealthCheckResponse.NOT_SERVING)
+        await self._health.set(SERVICE_NAME, health_pb2.HealthCheckResponse.NOT_SERVING)
+        try:
+            await self._start_registry()
+            for entry in self.config.services:
+                backend = open_backend(entry)
+                await self._add(entry.name, backend, entry.url or f"type {entry.type}")
+            for name, backend in self._extra.items():
+                await self._add(name, backend, backend.info.url)
+            await self._start_line_listener()
+            self._server = self._make_server()
+            await self._server.start()
+        except BaseException:
+            await self.stop()
+            raise
+        await self._health.set("", health_pb2.HealthCheckResponse.SERVING)
+        await self._health.set(SERVICE_NAME, health_pb2.HealthCheckResponse.SERVING)
+
+    async def _add(self, name: str, backend: Backend, what: str) -> None:
+        try:
+            await backend.start()
+            self.router.add(name, backend)
+        except BaseException:
+            await backend.aclose()
+            raise
+        log.info("service %s started (%s)", name, what)
+
+    async def _start_registry(self) -> None:
+        from services.core import LocalService
+        from services.registry import Registry
+
+        registry = Registry()
+
+        def follow(name: str, backend: Backend | None) -> None:
+            if backend is None:
+                registry.remove(name)
+            else:
+                registry.add(name, backend.info)
+
+        self._unwatch_registry = self.router.watch(follow)
+        await self._add(REGISTRY_NAME, LocalService(registry), "built in")
+
+    async def _start_line_listener(self) -> None:
+        address = self.config.gateway.line_listen
+        if not address:
+            return
+        from gateway import backends
+
+        backends.load_proxies()
+        if backends.LINE_LISTENER is None:
+            from services.errors import Unavailable
+
+            raise Unavailable("gateway.line_listen is set but no line-protocol listener is installed")
+        self._line_listener = await backends.LINE_LISTENER(address, self.router)
+        log.info("line protocol listening on %s", address)
+
+    def _make_server(self) -> grpc.aio.Server:
+        server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])
+        pb_grpc.add_PropertyServiceServicer_to_server(self.servicer, server)
+        health_pb2_grpc.add_HealthServicer_to_server(self._health, server)
+        reflection.enable_server_reflection(
+            (
+                SERVICE_NAME,
+                health_pb2.DESCRIPTOR.services_by_name["Health"].full_name,
+                reflection.SERVICE_NAME,
+            ),
+            server,
+        )
+        listen = self.config.gateway.listen
+        port = server.add_insecure_port(listen)
+        if port == 0:
+            from services.errors import Unavailable
+
+            raise Unavailable(f"cannot listen on {listen}")
+        host = listen.rpartition(":")[0]
+        self.address = f"{host}:{port}"
+        return server
+
+    async def stop(self, grace: float | None = None) -> None:
+        """Graceful shutdown: NOT_SERVING, streams end with OK, server stops, backends close. Idempotent."""
+        if self._stopped.is_set():
+            return
+        self._stopped.set()
+        grace = self.config.gateway.shutdown_grace if grace is None else grace
+        await self._health.enter_graceful_shutdown()
+        self.hub.end_all()
+        self.servicer.end_sessions()
+        if self._server is not None:
+            await self._server.stop(grace)
+        await self.hub.aclose()
+        if callable(self._unwatch_registry):
+            self._unwatch_registry()
+        if self._line_listener is not None:
+            await self._line_listener.aclose()  # type: ignore[attr-defined]
+        for name in reversed(self.router.names()):
+            backend = self.router.remove(name)
+            try:
+                await asyncio.wait_for(backend.aclose(), grace)
+            except Exception:
+                log.warning("closing service %s failed", name, exc_info=True)
+
+    async def wait_stopped(self) -> None:
+        """Return once :meth:`stop` was called."""
+        await self._stopped.wait()
+
+
+async def serve(config: Config) -> int:
+    """Run a gateway until SIGTERM or SIGINT; the exit code."""
+    gateway = Gateway(config)
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    await gateway.start()
+    print(f"listening on {gateway.address}", flush=True, file=sys.stderr)
+    await stop.wait()
+    log.info("shutting down")
+    await gateway.stop()
+    log.info("stopped")
+    return 0

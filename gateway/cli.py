@@ -1,0 +1,172 @@
+"""``psgateway``: run the Property Service gateway.
+
+Subcommands come from the modules listed in :data:`SUBCOMMAND_MODULES`; each
+defines ``add_subcommand(subparsers)`` which adds its parser and sets
+``func`` (``args -> exit code``) with ``set_defaults``. A listed module that
+is not installed is skipped, so optional parts plug in by being present.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+from gateway.config import Config, ConfigError, default_config, load_config
+
+#: Modules whose ``add_subcommand(subparsers)`` adds a subcommand, in --help order.
+SUBCOMMAND_MODULES: tuple[str, ...] = ("gateway.cli", "gateway.proxies.cli")
+
+EXIT_CONFIG = 2
+
+EXAMPLES = """\
+examples:
+  psgateway                                   serve the demo (two robots, one sensor) on 127.0.0.1:50051
+  psgateway serve --config site.toml          serve the services a config file lists
+  psgateway serve --listen 127.0.0.1:0        pick a free port (printed as "listening on HOST:PORT")
+  psgateway check-config site.toml            check a config file and exit (0 = fine, 2 = errors)
+
+then, from another shell:
+  grpcurl -plaintext 127.0.0.1:50051 list
+  grpcurl -plaintext -d '{"service":"scout1","property":"location"}' \\
+      127.0.0.1:50051 propertyservice.v1.PropertyService/Get
+"""
+
+
+def add_subcommand(subparsers: Any) -> None:
+    """The gateway's own subcommands: ``serve`` and ``check-config``."""
+    serve = subparsers.add_parser(
+        "serve",
+        help="run the gateway (the default)",
+        description="Run the gateway until SIGTERM or Ctrl-C.",
+    )
+    _serve_arguments(serve)
+    serve.set_defaults(func=_serve)
+
+    check = subparsers.add_parser(
+        "check-config",
+        help="check a config file",
+        description="Read a config file, check every key, and build (without starting) every service.",
+    )
+    check.add_argument("file", help="the TOML config file")
+    check.set_defaults(func=_check_config)
+
+
+def _serve_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", metavar="FILE", help="TOML config file (default: the built-in demo)")
+    parser.add_argument(
+        "--listen", metavar="HOST:PORT", help="override gateway.listen (port 0 = a free port)"
+    )
+    parser.add_argument(
+        "--log-level",
+        metavar="LEVEL",
+        choices=("debug", "info", "warning", "error", "critical"),
+        help="override gateway.log_level: debug, info, warning, error, critical",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``psgateway`` argument parser with every installed subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="psgateway",
+        description="The Property Service gateway: Get, Set and Listen on robots and sensors over gRPC.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    subparsers = parser.add_subparsers(title="commands", metavar="COMMAND")
+    for name in SUBCOMMAND_MODULES:
+        try:
+            module = sys.modules[__name__] if name == __name__ else importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name is not None and name.startswith(exc.name):
+                continue
+            raise
+        module.add_subcommand(subparsers)
+    return parser
+
+
+def _load(args: argparse.Namespace) -> Config:
+    config = load_config(args.config) if args.config else default_config()
+    return config.with_overrides(listen=args.listen, log_level=args.log_level)
+
+
+def setup_logging(level: str) -> None:
+    """Log lines to stderr: time, level, logger, message."""
+    logging.basicConfig(
+        level=level.upper(),
+        stream=sys.stderr,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from gateway.app import serve
+
+    try:
+        config = _load(args)
+    except ConfigError as exc:
+        print(f"psgateway: config error: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    setup_logging(config.gateway.log_level)
+    log = logging.getLogger("gateway")
+    log.info("starting gateway from %s", config.source)
+    try:
+        return asyncio.run(serve(config))
+    except KeyboardInterrupt:
+        return 0
+    except Exception as exc:
+        from services.errors import PropertyError
+
+        if isinstance(exc, PropertyError):
+            log.error("cannot start: %s", exc.message)
+        else:
+            log.exception("cannot start")
+        return 1
+
+
+def _check_config(args: argparse.Namespace) -> int:
+    from gateway.backends import open_backend
+    from services.errors import PropertyError
+
+    try:
+        config = load_config(args.file)
+    except ConfigError as exc:
+        print(f"psgateway: config error: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    bad = 0
+
+    async def build_all() -> None:
+        nonlocal bad
+        for entry in config.services:
+            try:
+                backend = open_backend(entry)
+            except PropertyError as exc:
+                print(f"psgateway: config error: {config.source}: services ({entry.name}): {exc.message}")
+                bad += 1
+                continue
+            await backend.aclose()
+
+    asyncio.run(build_all())
+    if bad:
+        return EXIT_CONFIG
+    print(f"{config.source}: fine ({len(config.services)} services, listening on {config.gateway.listen})")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``psgateway``; returns the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help")):
+        # `psgateway` alone, or with only serve's options, serves.
+        argv.insert(0, "serve")
+    args = build_parser().parse_args(argv)
+    code: int = args.func(args)
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,221 @@
+"""The gateway's TOML configuration (documented in ``docs/configuration.md``).
+
+:func:`load_config` reads a file, :func:`parse_config` a parsed mapping, and
+:func:`default_config` the embedded demo (``gateway/demo.toml``). Every
+mistake — an unknown key, a wrong type, a duplicate or bad service name —
+raises :class:`ConfigError` naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+from services.errors import InvalidArgument
+from services.paths import validate_service_name
+
+#: The service every gateway hosts itself; a config may not define it.
+REGISTRY_NAME = "registry"
+DEFAULT_LISTEN = "127.0.0.1:50051"
+
+
+class ConfigError(Exception):
+    """The configuration is wrong; the message names the file and the key."""
+
+
+@dataclass(frozen=True, slots=True)
+class GatewaySection:
+    """``[gateway]``: where to listen and how to behave."""
+
+    #: host:port of the gRPC server; port 0 picks a free port.
+    listen: str = DEFAULT_LISTEN
+    #: host:port of the raw-TCP line-protocol listener; empty = off.
+    line_listen: str = ""
+    #: Seconds any one backend call may take before DEADLINE_EXCEEDED.
+    call_timeout: float = 5.0
+    log_level: str = "info"
+    #: Seconds Listen and Session streams get to end at shutdown.
+    shutdown_grace: float = 2.0
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """``[limits]``: bounds that keep one client from exhausting the gateway."""
+
+    #: Selectors in one Listen request (the request's own plus ``more``).
+    max_selectors: int = 64
+    #: Properties one Listen stream may match after wildcards are expanded.
+    max_stream_properties: int = 10_000
+    #: Listen streams open at once, gRPC Listen and Session listens together.
+    max_streams: int = 10_000
+    #: Paths in one Get (the request's own plus ``more``).
+    max_get_paths: int = 1_000
+    #: Events in one ListenResponse when the client does not ask for fewer.
+    max_batch: int = 256
+    #: Get and Set requests running at once in one Session; beyond, reading waits.
+    session_max_in_flight: int = 256
+    #: Replies waiting to be written in one Session; beyond, reading waits.
+    session_max_queued_replies: int = 1024
+    #: Smallest min_interval, sample_interval or heartbeat_interval accepted (seconds).
+    min_interval_floor: float = 0.001
+
+
+@dataclass(frozen=True, slots=True)
+class ServiceEntry:
+    """One ``[[services]]`` entry: an in-process service (``type``) or a proxy (``url``)."""
+
+    name: str
+    type: str = ""
+    url: str = ""
+    options: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class Config:
+    """A whole, checked configuration."""
+
+    gateway: GatewaySection = field(default_factory=GatewaySection)
+    limits: Limits = field(default_factory=Limits)
+    services: tuple[ServiceEntry, ...] = ()
+    #: Where it came from, for messages.
+    source: str = "<config>"
+
+    def with_overrides(self, *, listen: str | None = None, log_level: str | None = None) -> Config:
+        """A copy with command-line overrides applied."""
+        gw = self.gateway
+        if listen is not None:
+            gw = replace(gw, listen=_check_address(listen, f"{self.source}: --listen"))
+        if log_level is not None:
+            gw = replace(gw, log_level=_check_log_level(log_level, f"{self.source}: --log-level"))
+        return replace(self, gateway=gw)
+
+
+_LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
+_TYPE_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+
+
+def _check_address(value: str, where: str) -> str:
+    host, sep, port = value.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ConfigError(f"{where}: expected host:port like '127.0.0.1:50051', got {value!r}")
+    return value
+
+
+def _check_log_level(value: str, where: str) -> str:
+    if value.lower() not in _LOG_LEVELS:
+        raise ConfigError(f"{where}: expected one of {', '.join(_LOG_LEVELS)}, got {value!r}")
+    return value.lower()
+
+
+def _typed(value: Any, kind: type, where: str) -> Any:
+    ok = isinstance(value, kind) and not (kind is not bool and isinstance(value, bool))
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if not ok:
+        raise ConfigError(f"{where}: expected {_TYPE_NAMES[kind]}, got {value!r}")
+    return value
+
+
+def _section(cls: type[Any], data: Any, where: str) -> Any:
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where}: expected a table")
+    known = {f.name: f for f in fields(cls)}
+    values: dict[str, Any] = {}
+    for key, value in data.items():
+        f = known.get(key)
+        if f is None:
+            raise ConfigError(f"{where}.{key}: unknown key (known: {', '.join(known)})")
+        kind = type(f.default)
+        values[key] = _typed(value, kind, f"{where}.{key}")
+        if kind in (int, float) and values[key] < 0:
+            raise ConfigError(f"{where}.{key}: must not be negative, got {value!r}")
+    return cls(**values)
+
+
+def parse_config(data: Mapping[str, Any], source: str = "<config>") -> Config:
+    """Check a parsed TOML document and build a :class:`Config`; raises ConfigError."""
+    top = {"gateway", "limits", "services"}
+    for key in data:
+        if key not in top:
+            raise ConfigError(f"{source}: unknown key {key!r} (known: gateway, limits, services)")
+    gw: GatewaySection = _section(GatewaySection, data.get("gateway", {}), f"{source}: gateway")
+    _check_address(gw.listen, f"{source}: gateway.listen")
+    if gw.line_listen:
+        _check_address(gw.line_listen, f"{source}: gateway.line_listen")
+    if gw.call_timeout <= 0:
+        raise ConfigError(f"{source}: gateway.call_timeout: must be positive, got {gw.call_timeout}")
+    gw = replace(gw, log_level=_check_log_level(gw.log_level, f"{source}: gateway.log_level"))
+    limits: Limits = _section(Limits, data.get("limits", {}), f"{source}: limits")
+    for f in fields(Limits):
+        if f.name != "min_interval_floor" and getattr(limits, f.name) < 1:
+            raise ConfigError(f"{source}: limits.{f.name}: must be at least 1")
+
+    raw_services = data.get("services", [])
+    if not isinstance(raw_services, list):
+        raise ConfigError(f"{source}: services: expected an array of tables ([[services]])")
+    services: list[ServiceEntry] = []
+    seen: set[str] = set()
+    for i, entry in enumerate(raw_services):
+        services.append(_service(entry, f"{source}: services[{i}]", seen))
+    return Config(gateway=gw, limits=limits, services=tuple(services), source=source)
+
+
+def _service(entry: Any, where: str, seen: set[str]) -> ServiceEntry:
+    if not isinstance(entry, Mapping):
+        raise ConfigError(f"{where}: expected a table")
+    known = ("name", "type", "url", "options")
+    for key in entry:
+        if key not in known:
+            raise ConfigError(f"{where}.{key}: unknown key (known: {', '.join(known)})")
+    if "name" not in entry:
+        raise ConfigError(f"{where}: missing key 'name'")
+    name = _typed(entry["name"], str, f"{where}.name")
+    try:
+        validate_service_name(name)
+    except InvalidArgument as exc:
+        raise ConfigError(f"{where}.name: {exc.message}") from None
+    if name == REGISTRY_NAME:
+        raise ConfigError(f"{where}.name: {name!r} is reserved: every gateway hosts its own registry")
+    if name in seen:
+        raise ConfigError(f"{where}.name: duplicate service name {name!r}")
+    seen.add(name)
+    where = f"{where} ({name})"
+    kind = _typed(entry.get("type", ""), str, f"{where}.type")
+    url = _typed(entry.get("url", ""), str, f"{where}.url")
+    if bool(kind) == bool(url):
+        raise ConfigError(f"{where}: give exactly one of 'type' (an in-process service) or 'url' (a proxy)")
+    if url and "://" not in url:
+        raise ConfigError(f"{where}.url: expected scheme://address like 'tcp://127.0.0.1:7001', got {url!r}")
+    options = entry.get("options", {})
+    if not isinstance(options, Mapping):
+        raise ConfigError(f"{where}.options: expected a table like {{ speed = 0.5 }}")
+    return ServiceEntry(name=name, type=kind, url=url, options=dict(options))
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and check the TOML file at ``path``; raises ConfigError."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read: {exc.strerror or exc}") from None
+    return loads_config(text, str(p))
+
+
+def loads_config(text: str, source: str = "<config>") -> Config:
+    """Parse and check TOML text; raises ConfigError."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+    return parse_config(data, source)
+
+
+def default_config() -> Config:
+    """The embedded demo configuration (``gateway/demo.toml``)."""
+    text = importlib.resources.files("gateway").joinpath("demo.toml").read_text(encoding="utf-8")
+    return loads_config(text, "demo.toml (built in)")

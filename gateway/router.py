@@ -1,0 +1,198 @@
+"""Service name → backend, and bounded calls into backends.
+
+The :class:`Router` is the gateway's live set of services. It satisfies
+:class:`services.directory.Directory`, so system services (the registry,
+groups) can look services up and register new ones; watchers (the listen
+hub, the registry) hear every join and leave.
+
+:func:`bounded_call` runs one backend coroutine under a timeout without
+creating a task, and without even arming a timer when the backend answers
+at once (a local service reading an attribute).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import difflib
+import functools
+import logging
+import types
+from collections.abc import Callable, Coroutine, Generator, Mapping
+from typing import Any, TypeVar
+
+from services.backend import Backend, BackendInfo
+from services.directory import DirectoryListener
+from services.errors import AlreadyExists, DeadlineExceeded, NotFound
+from services.paths import validate_path, validate_pattern, validate_service_name
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+#: Validated paths are cached: the Get path must not re-run the validator for
+#: the same few hundred paths a client reads over and over. Failures are not
+#: cached (lru_cache does not cache exceptions), so the cache holds only good paths.
+check_path: Callable[[str], str] = functools.lru_cache(maxsize=4096)(validate_path)
+check_pattern: Callable[[str], str] = functools.lru_cache(maxsize=1024)(validate_pattern)
+
+_SUGGESTIONS = 5
+
+
+class Router:
+    """The live map from service name to :class:`~services.backend.Backend`."""
+
+    def __init__(self) -> None:
+        self._backends: dict[str, Backend] = {}
+        self._watchers: list[DirectoryListener] = []
+
+    # -- lookups ---------------------------------------------------------
+
+    def backend(self, name: str) -> Backend:
+        """The backend serving ``name``; raises NotFound (with suggestions) or InvalidArgument."""
+        backend = self._backends.get(name)
+        if backend is None:
+            raise self._unknown(name)
+        return backend
+
+    def names(self) -> list[str]:
+        """Names of every service right now, sorted."""
+        return sorted(self._backends)
+
+    def items(self) -> list[tuple[str, Backend]]:
+        """(name, backend) of every service right now."""
+        return list(self._backends.items())
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._backends
+
+    def __len__(self) -> int:
+        return len(self._backends)
+
+    def _unknown(self, name: str) -> Exception:
+        if not name:
+            from services.errors import InvalidArgument
+
+            return InvalidArgument("no service named: the request's service is empty")
+        known = sorted(self._backends)
+        close = difflib.get_close_matches(name, known, n=3)
+        hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
+        shown = ", ".join(known[:_SUGGESTIONS]) + (", ..." if len(known) > _SUGGESTIONS else "")
+        listing = f" (known services: {shown})" if known else " (no services are running)"
+        return NotFound(f"unknown service {name[:80]!r}{hint}{listing}")
+
+    # -- changes ---------------------------------------------------------
+
+    def add(self, name: str, backend: Backend) -> None:
+        """Serve ``backend`` as ``name`` (already started); raises AlreadyExists or InvalidArgument."""
+        validate_service_name(name)
+        if name in self._backends:
+            raise AlreadyExists(f"a service named {name!r} already exists")
+        self._backends[name] = backend
+        self._notify(name, backend)
+
+    def remove(self, name: str) -> Backend:
+        """Stop serving ``name`` and return its backend (the caller closes it); raises NotFound."""
+        backend = self._backends.pop(name, None)
+        if backend is None:
+            raise self._unknown(name)
+        self._notify(name, None)
+        return backend
+
+    def watch(self, listener: DirectoryListener) -> Callable[[], None]:
+        """Call ``listener(name, backend)`` on every add, ``listener(name, None)`` on every remove."""
+        self._watchers.append(listener)
+
+        def unwatch() -> None:
+            if listener in self._watchers:
+                self._watchers.remove(listener)
+
+        return unwatch
+
+    def _notify(self, name: str, backend: Backend | None) -> None:
+        for listener in list(self._watchers):
+            try:
+                listener(name, backend)
+            except Exception:
+                log.exception(
+                    "a watcher of the service list failed on %s of %r", "add" if backend else "remove", name
+                )
+
+    # -- Directory: dynamic registration ----------------------------------
+
+    async def register(self, name: str, url: str, options: Mapping[str, Any] | None = None) -> BackendInfo:
+        """Open a proxy backend for ``url``, start it and serve it as ``name``."""
+        from gateway.backends import open_proxy
+
+        validate_service_name(name)
+        if name in self._backends:
+            raise AlreadyExists(f"a service named {name!r} already exists")
+        backend = open_proxy(name, url, options or {})
+        try:
+            await backend.start()
+            self.add(name, backend)
+        except BaseException:
+            await backend.aclose()
+            raise
+        log.info("service %s registered at %s", name, url)
+        return backend.info
+
+    async def unregister(self, name: str) -> None:
+        """Stop serving ``name`` and close its backend; raises NotFound."""
+        backend = self.remove(name)
+        await backend.aclose()
+        log.info("service %s unregistered", name)
+
+
+@types.coroutine
+def _resume(coro: Coroutine[Any, Any, T], yielded: Any) -> Generator[Any, Any, T]:
+    """Go on running ``coro`` (already stepped once) inside the awaiting task.
+
+    This is what ``await coro`` does after its first step: every value the
+    coroutine yields (a future it waits on) goes to the task, and whatever
+    the task sends or throws back goes to the coroutine.
+    """
+    while True:
+        try:
+            sent = yield yielded
+        except GeneratorExit:
+            coro.close()
+            raise
+        except BaseException as exc:
+            try:
+                yielded = coro.throw(exc)
+            except StopIteration as done:
+                return done.value  # type: ignore[no-any-return]
+        else:
+            try:
+                yielded = coro.send(sent)
+            except StopIteration as done:
+                return done.value  # type: ignore[no-any-return]
+
+
+async def bounded_call(coro: Coroutine[Any, Any, T], time_limit: float, what: Callable[[], str]) -> T:
+    """Await ``coro`` for at most ``time_limit`` seconds; raise DeadlineExceeded naming ``what()`` after.
+
+    The coroutine is first stepped directly: a backend that answers without
+    waiting costs no timer and no task. Only when it has to wait is the rest
+    run under ``asyncio.timeout`` in the calling task (never in another task,
+    so timeouts the backend itself sets stay attached to the right task).
+    """
+    try:
+        yielded = coro.send(None)
+    except StopIteration as done:
+        return done.value  # type: ignore[no-any-return]
+    return await finish_call(coro, yielded, time_limit, what)
+
+
+async def finish_call(
+    coro: Coroutine[Any, Any, T], yielded: Any, time_limit: float, what: Callable[[], str]
+) -> T:
+    """Run the rest of ``coro``, stepped once already (it yielded ``yielded``), under ``time_limit``."""
+    scope = asyncio.timeout(time_limit)
+    try:
+        async with scope:
+            return await _resume(coro, yielded)
+    except TimeoutError:
+        if scope.expired():
+            raise DeadlineExceeded(f"{what()} took longer than {time_limit:g} s") from None
+        raise

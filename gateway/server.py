@@ -1,0 +1,188 @@
+"""The ``propertyservice.v1.PropertyService`` servicer: Get, Set, Listen and Session.
+
+Get and Set go through the router to one backend each, under the call
+timeout (and the client's deadline when that is shorter). Listen streams
+come from the listen hub. Session lives in :mod:`gateway.session`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+from collections.abc import AsyncIterator, Mapping
+from typing import TYPE_CHECKING, Any
+
+import grpc
+
+from gateway.config import Config
+from gateway.listen_hub import ListenHub, parse_options, parse_selectors
+from gateway.router import Router, bounded_call, check_path
+from gateway.status import abort, to_property_error
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+from services.backend import NO_PARAMS, Backend
+from services.errors import InvalidArgument, PropertyError, ResourceExhausted
+
+if TYPE_CHECKING:
+    from gateway.session import Session
+
+Context = grpc.aio.ServicerContext[Any, Any]
+
+
+def _params(params: Mapping[str, str]) -> Mapping[str, str]:
+    return dict(params) if params else NO_PARAMS
+
+
+class Calls:
+    """Get and Set against the router, shared by the unary calls and Session."""
+
+    def __init__(self, router: Router, config: Config) -> None:
+        self.router = router
+        self.timeout = config.gateway.call_timeout
+        self.max_get_paths = config.limits.max_get_paths
+
+    async def get(self, request: pb.GetRequest, time_limit: float) -> pb.GetResponse:
+        """Read the request's path and its ``more`` paths; all or nothing."""
+        service = request.service
+        if not service:
+            raise InvalidArgument("Get needs a service name")
+        backend = self.router.backend(service)
+        path = check_path(request.property)
+        params = request.parameters
+        value = await bounded_call(
+            backend.get(path, dict(params) if params else NO_PARAMS),
+            time_limit,
+            lambda: f"{service}: get {path}",
+        )
+        if not request.more:
+            return pb.GetResponse(value=value)
+        return pb.GetResponse(value=value, more=await self._get_more(request, time_limit))
+
+    async def _get_more(self, request: pb.GetRequest, time_limit: float) -> list[pb.PropertyValue]:
+        if len(request.more) + 1 > self.max_get_paths:
+            raise ResourceExhausted(
+                f"a Get may read at most {self.max_get_paths} paths, this one reads {len(request.more) + 1}"
+            )
+        # Resolve every path first so that a bad one fails the call before any backend is asked.
+        refs: list[tuple[str, str, Mapping[str, str], Backend]] = []
+        for ref in request.more:
+            service = ref.service or request.service
+            try:
+                backend = self.router.backend(service)
+                path = check_path(ref.property)
+            except PropertyError as exc:
+                raise type(exc)(f"{service}/{ref.property}: {exc.message}", exc.code) from None
+            refs.append((service, path, _params(ref.parameters), backend))
+        groups: dict[int, list[int]] = {}
+        for i, (_, _, _, backend) in enumerate(refs):
+            groups.setdefault(id(backend), []).append(i)
+        values: list[str | BaseException] = [""] * len(refs)
+
+        async def read_group(indexes: list[int]) -> None:
+            # One backend's paths are read one after another, as a device would answer them.
+            for i in indexes:
+                service, path, params, backend = refs[i]
+                try:
+                    values[i] = await bounded_call(
+                        backend.get(path, params),
+                        time_limit,
+                        functools.partial("{}: get {}".format, service, path),
+                    )
+                except Exception as exc:
+                    values[i] = exc
+                    return
+
+        if len(groups) == 1:
+            await read_group(next(iter(groups.values())))
+        else:
+            await asyncio.gather(*(read_group(ix) for ix in groups.values()))
+        out = []
+        for (service, path, _, _), value in zip(refs, values, strict=True):
+            if isinstance(value, BaseException):
+                err = to_property_error(value, f"{service}: get {path}")
+                raise type(err)(f"{service}/{path}: {err.message}", err.code) from None
+            out.append(pb.PropertyValue(service=service, property=path, value=value))
+        return out
+
+    async def set(self, request: pb.SetRequest, time_limit: float) -> pb.SetResponse:
+        """Write the request's value; the response carries the service's answer."""
+        service = request.service
+        if not service:
+            raise InvalidArgument("Set needs a service name")
+        backend = self.router.backend(service)
+        path = check_path(request.property)
+        params = request.parameters
+        answer = await bounded_call(
+            backend.set(path, request.value, dict(params) if params else NO_PARAMS),
+            time_limit,
+            lambda: f"{service}: set {path}",
+        )
+        return pb.SetResponse(value=answer if answer is not None else "")
+
+
+class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
+    """Serves the v1 contract from a router and a listen hub."""
+
+    def __init__(self, router: Router, hub: ListenHub, config: Config) -> None:
+        self.calls = Calls(router, config)
+        self.hub = hub
+        self.config = config
+        self._timeout = config.gateway.call_timeout
+        #: Session calls running now (see gateway.session).
+        self.sessions: set[Session] = set()
+
+    def end_sessions(self) -> None:
+        """Gateway shutdown: every Session flushes, ends its listens and ends with OK."""
+        for session in list(self.sessions):
+            session.stop()
+
+    def _deadline(self, context: Context) -> float:
+        remaining = context.time_remaining()
+        timeout = self._timeout
+        return remaining if remaining is not None and remaining < timeout else timeout
+
+    async def Get(self, request: pb.GetRequest, context: Context) -> pb.GetResponse:
+        try:
+            return await self.calls.get(request, self._deadline(context))
+        except Exception as exc:
+            await abort(context, exc, "Get")
+            raise  # not reached: abort raises
+
+    async def Set(self, request: pb.SetRequest, context: Context) -> pb.SetResponse:
+        try:
+            return await self.calls.set(request, self._deadline(context))
+        except Exception as exc:
+            await abort(context, exc, "Set")
+            raise
+
+    async def Listen(self, request: pb.ListenRequest, context: Context) -> None:
+        limits = self.config.limits
+        wake = asyncio.Event()
+        try:
+            stream = self.hub.open(
+                parse_selectors(request, limits), parse_options(request.options, limits), wake.set
+            )
+        except Exception as exc:
+            await abort(context, exc, "Listen")
+            return
+        try:
+            try:
+                await stream.start()
+            except Exception as exc:
+                await abort(context, exc, "Listen")
+            while True:
+                await wake.wait()
+                wake.clear()
+                while (response := stream.take()) is not None:
+                    await context.write(response)
+                if stream.error is not None:
+                    await abort(context, stream.error, "Listen")
+                if stream.ended or stream.closed:
+                    return
+        finally:
+            stream.close()
+
+    async def Session(self, request_iterator: AsyncIterator[pb.SessionRequest], context: Context) -> None:
+        from gateway.session import run_session
+
+        await run_session(self, context)

@@ -1,0 +1,338 @@
+"""The Session call: many Get, Set and Listen requests over one bidirectional stream.
+
+One reader task parses incoming ``SessionRequest``s; the handler's own task
+is the writer, draining the reply queue and every ready Listen into one
+``SessionResponse`` per wake-up. A Get or Set on an in-process service is
+run right in the reader (it usually answers without waiting, so it costs no
+task); only when it has to wait does it go on in a task of its own. Calls to
+other backends get a task each. At most ``limits.session_max_in_flight``
+run at once and at most ``limits.session_max_queued_replies`` wait to be
+written; beyond either, the reader stops reading (backpressure).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections import deque
+from collections.abc import Callable, Coroutine
+from typing import TYPE_CHECKING, Any
+
+import grpc
+
+from gateway.listen_hub import ListenStream, parse_options, parse_selectors
+from gateway.router import check_path, finish_call
+from gateway.status import status_message, to_property_error
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.backend import NO_PARAMS
+from services.core import LocalService
+from services.errors import Code, InvalidArgument, NotFound, PropertyError
+
+if TYPE_CHECKING:
+    from gateway.server import PropertyServicer
+
+log = logging.getLogger(__name__)
+
+#: Replies in one SessionResponse; bounds one message's size.
+MAX_REPLIES_PER_MESSAGE = 1024
+
+
+async def run_session(servicer: PropertyServicer, context: grpc.aio.ServicerContext[Any, Any]) -> None:
+    """Serve one Session call until the client half-closes, disconnects, or the gateway stops."""
+    session = Session(servicer, context)
+    servicer.sessions.add(session)
+    try:
+        await session.run()
+    finally:
+        servicer.sessions.discard(session)
+
+
+class Session:
+    """The state of one Session call."""
+
+    def __init__(self, servicer: PropertyServicer, context: grpc.aio.ServicerContext[Any, Any]) -> None:
+        self._servicer = servicer
+        self._calls = servicer.calls
+        self._router = servicer.calls.router
+        self._context = context
+        limits = servicer.config.limits
+        self._limits = limits
+        self._timeout = servicer.config.gateway.call_timeout
+        self._replies: deque[pb.Reply] = deque()
+        self._wake = asyncio.Event()
+        self._room = asyncio.Event()
+        self._room.set()
+        #: ids of Gets and Sets running in a task, and of Listens (starting or live).
+        self._active: set[int] = set()
+        self._tasks: dict[int, asyncio.Task[None]] = {}
+        self._listens: dict[int, ListenStream] = {}
+        self._ready: dict[int, None] = {}
+        #: ids of Listens still starting (their task is in _tasks).
+        self._starting: set[int] = set()
+        self._reader_done = False
+        self._stopping = False
+
+    # -- the writer (the handler's task) ------------------------------------
+
+    async def run(self) -> None:
+        reader = asyncio.get_running_loop().create_task(self._read())
+        try:
+            await self._write_loop()
+        finally:
+            reader.cancel()
+            for task in list(self._tasks.values()):
+                task.cancel()
+            for stream in self._listens.values():
+                stream.close()
+            self._listens.clear()
+            await asyncio.gather(reader, *self._tasks.values(), return_exceptions=True)
+
+    async def _write_loop(self) -> None:
+        context = self._context
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            if self._stopping or (self._reader_done and self._listens):
+                self._end_listens()
+            replies = self._collect()
+            if replies:
+                await context.write(pb.SessionResponse(replies=replies))
+                if self._replies or self._ready:
+                    self._wake.set()
+            if len(self._replies) < self._limits.session_max_queued_replies:
+                self._room.set()
+            if self._stopping and not self._replies:
+                return
+            if self._reader_done and not self._active and not self._replies and not self._ready:
+                return
+
+    def _collect(self) -> list[pb.Reply]:
+        replies: list[pb.Reply] = []
+        queue = self._replies
+        while queue and len(replies) < MAX_REPLIES_PER_MESSAGE:
+            replies.append(queue.popleft())
+        for rid in list(self._ready):
+            if len(replies) >= MAX_REPLIES_PER_MESSAGE:
+                break
+            del self._ready[rid]
+            stream = self._listens.get(rid)
+            if stream is None:
+                continue
+            while (response := stream.take()) is not None:
+                replies.append(pb.Reply(id=rid, listen=response))
+            if stream.error is not None:
+                replies.append(pb.Reply(id=rid, status=status_message(stream.error)))
+                self._drop_listen(rid)
+            elif stream.ended and not self._stopping:
+                self._drop_listen(rid)
+        return replies
+
+    def _end_listens(self) -> None:
+        """Flush what every Listen has ready and end it (half-close or shutdown)."""
+        for rid, stream in list(self._listens.items()):
+            while (response := stream.take()) is not None:
+                self._replies.append(pb.Reply(id=rid, listen=response))
+            self._drop_listen(rid)
+        for rid in list(self._starting):
+            task = self._tasks.get(rid)
+            if task is not None:
+                task.cancel()
+        self._ready.clear()
+
+    def _drop_listen(self, rid: int) -> None:
+        stream = self._listens.pop(rid, None)
+        if stream is not None:
+            stream.close()
+        self._active.discard(rid)
+        self._ready.pop(rid, None)
+
+    def _push(self, reply: pb.Reply) -> None:
+        self._replies.append(reply)
+        self._wake.set()
+
+    def _fail(self, rid: int, exc: BaseException, what: str) -> None:
+        self._push(pb.Reply(id=rid, status=status_message(to_property_error(exc, what))))
+
+    def stop(self) -> None:
+        """The gateway is stopping: end listens, stop reading, flush, end with OK."""
+        self._stopping = True
+        self._wake.set()
+
+    # -- the reader --------------------------------------------------------
+
+    async def _read(self) -> None:
+        context = self._context
+        limits = self._limits
+        try:
+            while not self._stopping:
+                message = await context.read()
+                if message is grpc.aio.EOF:  # type: ignore[attr-defined]
+                    break
+                for request in message.requests:
+                    self._dispatch(request)
+                while (
+                    len(self._tasks) >= limits.session_max_in_flight
+                    or len(self._replies) >= limits.session_max_queued_replies
+                ) and not self._stopping:
+                    self._room.clear()
+                    await self._room.wait()
+        finally:
+            self._reader_done = True
+            self._wake.set()
+
+    def _dispatch(self, request: pb.Request) -> None:
+        rid = request.id
+        which = request.WhichOneof("call")
+        if which == "cancel":
+            self._cancel(rid, request.cancel.id)
+            return
+        if which is None:
+            self._fail(
+                rid, InvalidArgument(f"request {rid} has no call (get, set, listen or cancel)"), "Session"
+            )
+            return
+        if rid in self._active:
+            self._fail(
+                rid, InvalidArgument(f"request id {rid} is already in use by a running request"), which
+            )
+            return
+        if which == "listen":
+            self._start_listen(rid, request.listen)
+        elif which == "get":
+            self._get(rid, request.get)
+        else:
+            self._set(rid, request.set)
+
+    def _get(self, rid: int, request: pb.GetRequest) -> None:
+        if request.more:
+            self._spawn(rid, self._get_more(rid, request))
+            return
+        try:
+            backend = self._router.backend(request.service)
+            path = check_path(request.property)
+        except PropertyError as exc:
+            self._fail(rid, exc, "Get")
+            return
+        params = request.parameters
+        coro = backend.get(path, dict(params) if params else NO_PARAMS)
+        service = request.service
+        self._run(rid, coro, isinstance(backend, LocalService), "get", lambda: f"{service}: get {path}")
+
+    async def _get_more(self, rid: int, request: pb.GetRequest) -> None:
+        try:
+            self._push(pb.Reply(id=rid, get=await self._calls.get(request, self._timeout)))
+        except Exception as exc:
+            self._fail(rid, exc, "Get")
+
+    def _set(self, rid: int, request: pb.SetRequest) -> None:
+        try:
+            backend = self._router.backend(request.service)
+            path = check_path(request.property)
+        except PropertyError as exc:
+            self._fail(rid, exc, "Set")
+            return
+        params = request.parameters
+        coro = backend.set(path, request.value, dict(params) if params else NO_PARAMS)
+        service = request.service
+        self._run(rid, coro, isinstance(backend, LocalService), "set", lambda: f"{service}: set {path}")
+
+    def _run(
+        self, rid: int, coro: Coroutine[Any, Any, str], inline: bool, kind: str, what: Callable[[], str]
+    ) -> None:
+        if inline:
+            try:
+                yielded = coro.send(None)
+            except StopIteration as done:
+                self._answer(rid, kind, done.value)
+                return
+            except Exception as exc:
+                self._fail(rid, exc, what())
+                return
+            self._spawn(rid, self._finish(rid, kind, finish_call(coro, yielded, self._timeout, what), what))
+        else:
+            from gateway.router import bounded_call
+
+            self._spawn(rid, self._finish(rid, kind, bounded_call(coro, self._timeout, what), what))
+
+    async def _finish(
+        self, rid: int, kind: str, call: Coroutine[Any, Any, str], what: Callable[[], str]
+    ) -> None:
+        try:
+            value = await call
+        except Exception as exc:
+            self._fail(rid, exc, what())
+            return
+        self._answer(rid, kind, value)
+
+    def _answer(self, rid: int, kind: str, value: str | None) -> None:
+        if kind == "get":
+            self._push(pb.Reply(id=rid, get=pb.GetResponse(value=value)))
+        else:
+            self._push(pb.Reply(id=rid, set=pb.SetResponse(value=value if value is not None else "")))
+
+    def _spawn(self, rid: int, coro: Coroutine[Any, Any, None], listen: bool = False) -> None:
+        task = asyncio.get_running_loop().create_task(coro)
+        if listen:
+            self._starting.add(rid)
+        self._active.add(rid)
+        self._tasks[rid] = task
+
+        def done(_: asyncio.Task[None]) -> None:
+            self._starting.discard(rid)
+            if self._tasks.get(rid) is task:
+                del self._tasks[rid]
+                if rid not in self._listens:
+                    self._active.discard(rid)
+            self._room.set()
+            self._wake.set()
+
+        task.add_done_callback(done)
+
+    # -- listens -----------------------------------------------------------
+
+    def _start_listen(self, rid: int, request: pb.ListenRequest) -> None:
+        limits = self._limits
+        try:
+            stream = self._servicer.hub.open(
+                parse_selectors(request, limits),
+                parse_options(request.options, limits),
+                lambda: self._ready_listen(rid),
+            )
+        except Exception as exc:
+            self._fail(rid, exc, "Listen")
+            return
+        self._spawn(rid, self._run_listen(rid, stream), listen=True)
+
+    async def _run_listen(self, rid: int, stream: ListenStream) -> None:
+        try:
+            await stream.start()
+        except BaseException as exc:
+            stream.close()
+            if not isinstance(exc, asyncio.CancelledError):
+                self._fail(rid, exc, "Listen")
+            raise
+        if stream.closed or self._reader_done or self._stopping:
+            stream.close()
+            return
+        self._listens[rid] = stream
+        self._ready_listen(rid)
+
+    def _ready_listen(self, rid: int) -> None:
+        self._ready[rid] = None
+        self._wake.set()
+
+    def _cancel(self, rid: int, target: int) -> None:
+        stream = self._listens.get(target)
+        task = self._tasks.get(target)
+        if stream is None and (task is None or target not in self._starting):
+            self._fail(rid, NotFound(f"no running Listen has id {target}"), "Cancel")
+            return
+        if stream is not None:
+            self._drop_listen(target)
+        elif task is not None:
+            task.cancel()
+            del self._tasks[target]
+            self._active.discard(target)
+        cancelled = PropertyError(f"Listen {target} cancelled by request {rid}", Code.CANCELLED)
+        self._push(pb.Reply(id=target, status=status_message(cancelled)))
+        self._push(pb.Reply(id=rid))

@@ -1,0 +1,55 @@
+"""The one table from :class:`services.errors.Code` to gRPC status codes.
+
+``Code`` numbers are the gRPC (google.rpc.Code) numbers, so the table is the
+identity on numbers; it exists so that every part of the gateway turns an
+error into a status the same way. Which call returns which code when is
+documented in ``docs/errors.md``.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Final
+
+import grpc
+
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.errors import Code, PropertyError
+
+log = logging.getLogger(__name__)
+
+#: Code → grpc.StatusCode, matched by number.
+GRPC_STATUS: Final[dict[Code, grpc.StatusCode]] = {
+    code: status for status in grpc.StatusCode for code in Code if status.value[0] == code.value
+}
+
+assert len(GRPC_STATUS) == len(Code), "every Code has a gRPC status of the same number"
+
+
+def to_property_error(exc: BaseException, what: str = "request") -> PropertyError:
+    """Turn any exception into a :class:`PropertyError`.
+
+    A ``PropertyError`` passes unchanged. Anything else is a bug in a service
+    or in the gateway: it is logged with its traceback and becomes INTERNAL,
+    with a message that names ``what`` failed but leaks no internals.
+    """
+    if isinstance(exc, PropertyError):
+        return exc
+    log.error("%s failed with an unexpected error", what, exc_info=exc)
+    return PropertyError(f"internal error in {what}: {type(exc).__name__}", Code.INTERNAL)
+
+
+def grpc_status(err: PropertyError) -> grpc.StatusCode:
+    """The gRPC status code for ``err``."""
+    return GRPC_STATUS[err.code]
+
+
+def status_message(err: PropertyError) -> pb.Status:
+    """``err`` as the contract's ``Status`` message (used on Session replies)."""
+    return pb.Status(code=int(err.code), message=err.message)
+
+
+async def abort(context: grpc.aio.ServicerContext[object, object], exc: BaseException, what: str) -> None:
+    """End the call with the status for ``exc`` (never returns)."""
+    err = to_property_error(exc, what)
+    await context.abort(GRPC_STATUS[err.code], err.message)
