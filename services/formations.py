@@ -113,10 +113,14 @@ def centroid(locations: Sequence[Sequence[float] | Array]) -> Array:
     """
     if len(locations) == 0:
         raise InvalidArgument("no member locations to average")
-    width = max(len(v) for v in locations)
-    stacked = np.zeros((len(locations), width))
-    for k, v in enumerate(locations):
-        stacked[k, : len(v)] = v
+    widths = {len(v) for v in locations}
+    width = max(widths)
+    if len(widths) == 1:
+        stacked = np.asarray(locations, dtype=np.float64).reshape(len(locations), width)
+    else:
+        stacked = np.zeros((len(locations), width))
+        for k, v in enumerate(locations):
+            stacked[k, : len(v)] = v
     result: Array = stacked.mean(axis=0)
     if width > 3:
         angles = stacked[:, 3:]

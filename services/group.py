@@ -1,0 +1,579 @@
+"""The group (swarm) service: many robots behind one Property Service.
+
+A :class:`Group` holds member services found in a
+:class:`~services.directory.Directory` — named statically, or chosen by a
+registry query that is asked again whenever a service joins or leaves — and
+serves them as one mobile robot:
+
+* ``robots`` lists the members; ``robots.<name>.<property>`` is the member's
+  own property (Get, Set and Listen are forwarded, so ``robots.*.location``
+  works through the gateway's wildcard expansion).
+* ``location`` is the members' centroid, kept current from a Listen on every
+  member's ``location``.
+* ``behaviors.moveto`` sends every member to the target plus its place in a
+  formation (``line``, ``grid``, ``circle``; see :mod:`services.formations`),
+  all members at once, each under ``member_timeout``; ``behaviors.halt``
+  stops them all; ``velocity`` is the mean of the members' velocities.
+* ``subgroup`` selects members into a named subgroup under
+  ``subgroups.<name>``, itself a Group; ``dissolve`` removes one.
+
+A group call that fails on some members still lets the others act; then it
+raises :class:`GroupCallFailed` naming every member that failed and why
+(the code is that of the first failure in name order), and ``failed``
+lists ``(member CODE)`` pairs of the last group call.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import logging
+import math
+import urllib.parse
+from collections.abc import Awaitable, Callable, Iterable, Mapping
+from typing import Annotated, Any
+
+import numpy as np
+
+from services.backend import Backend, Change, Subscription
+from services.core import Prop, Resource, functional
+from services.core.metadata import RESERVED_NAMES
+from services.directory import Directory
+from services.errors import (
+    AlreadyExists,
+    Code,
+    DeadlineExceeded,
+    InvalidArgument,
+    NotFound,
+    PropertyError,
+    Unavailable,
+)
+from services.formations import FORMATIONS, centroid, formation_targets, natural_key
+from services.paths import validate_service_name
+from services.query import Query
+from services.values import Marker, ValueFormatError, Vector, format_marker, format_value, parse_vector
+
+__all__ = ["DEFAULT_MEMBER_TIMEOUT", "Group", "GroupCallFailed", "query_params"]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MEMBER_TIMEOUT = 5.0
+#: Member calls running at once in one group call; a group of 10,000 does
+#: not open 10,000 device requests in the same instant.
+MAX_CONCURRENT_CALLS = 1000
+#: Failures spelled out in one error message; the rest are counted.
+_MAX_LISTED_FAILURES = 10
+
+# The groups whose call is running in this task chain: a group that (through
+# its members) reaches itself fails instead of recursing forever.
+_ACTIVE: contextvars.ContextVar[frozenset[int]] = contextvars.ContextVar("active_groups", default=frozenset())
+
+
+class GroupCallFailed(PropertyError):
+    """A group call failed on some members; ``failures`` maps each to its error."""
+
+    def __init__(self, what: str, failures: Mapping[str, PropertyError], total: int) -> None:
+        names = sorted(failures, key=natural_key)
+        listed = "; ".join(
+            f"{n}: {failures[n].code.name}: {failures[n].message}" for n in names[:_MAX_LISTED_FAILURES]
+        )
+        more = len(names) - _MAX_LISTED_FAILURES
+        if more > 0:
+            listed += f"; and {more} more"
+        ok = total - len(names)
+        others = f" (the other {ok} acted)" if ok else ""
+        super().__init__(
+            f"{what} failed on {len(names)} of {total} members{others}: {listed}", failures[names[0]].code
+        )
+        self.failures = dict(failures)
+
+
+def query_params(query: Mapping[str, Any] | str) -> dict[str, str]:
+    """Query parameters as text, from a config table or a query string.
+
+    ``{type = "mobile_robot", near = [5, 5, 0], radius = 3}`` and
+    ``"type=mobile_robot&near=(5 5 0)&radius=3"`` give the same parameters.
+    Raises InvalidArgument for a malformed string or an unknown parameter.
+    """
+    if isinstance(query, str):
+        try:
+            pairs = urllib.parse.parse_qsl(query.strip(), keep_blank_values=True, strict_parsing=True)
+        except ValueError:
+            raise InvalidArgument(
+                f"expected a query like type=mobile_robot&near=(5 5 0)&radius=3, got {query[:80]!r}"
+            ) from None
+        params = dict(pairs)
+    else:
+        params = {}
+        for key, value in query.items():
+            if isinstance(value, list | tuple):
+                params[str(key)] = format_value(np.asarray(value, dtype=np.float64))
+            else:
+                params[str(key)] = format_value(value)
+    Query.parse(params)
+    return params
+
+
+class Members(Resource):
+    """The group's members: one namespace per member, holding all of its properties."""
+
+
+class Parts(Resource):
+    """A namespace of the mobile-robot property set that a group fills per member (``robots.*``)."""
+
+
+class Subgroups(Resource):
+    """Named subgroups of this group, each a group itself."""
+
+
+class GroupBehaviors(Resource):
+    """What the whole group can be asked to do."""
+
+    def __init__(self, group: Group) -> None:
+        self._group = group
+
+    @functional(doc="drive every member to the target plus its place in a formation")
+    async def moveto(self, target: Marker, *, formation: str = "line", spacing: float = 1.0) -> list[str]:
+        """Send every member to its formation place around the target; returns the members that accepted."""
+        return await self._group.moveto(target, formation=formation, spacing=spacing)
+
+    # Not named ``stop``: that name is the Resource lifecycle hook, and a
+    # gateway shutting down must not stop every robot of the group.
+    @functional(doc="stop every member where it is (each member's behaviors.stop)")
+    async def halt(self) -> list[str]:
+        """Stop every member; returns the members that stopped."""
+
+        def stop(name: str, backend: Backend) -> Awaitable[str]:
+            return backend.set("behaviors.stop", "")
+
+        return await self._group.fan_out("behaviors.halt", stop)
+
+
+class Group(Resource):
+    """A group of robots served as one mobile robot (see the module documentation)."""
+
+    resource_type = "group"
+
+    robots: Members
+    behaviors: GroupBehaviors
+    actuators: Parts
+    sensors: Parts
+    subgroups: Subgroups
+    failed: Annotated[
+        list[Any], Prop(readonly=True, doc="(member CODE) pairs of members that failed the last group call")
+    ]
+    query: Annotated[
+        str, Prop(readonly=True, doc="the registry query choosing the members, empty when static")
+    ]
+    member_timeout: Annotated[float, Prop(doc="seconds each member gets to answer a group call")]
+
+    def __init__(
+        self,
+        *,
+        directory: Directory,
+        members: Iterable[str] | None = None,
+        query: Mapping[str, Any] | str | None = None,
+        registry: str = "registry",
+        member_timeout: float = DEFAULT_MEMBER_TIMEOUT,
+        within: Group | None = None,
+    ) -> None:
+        if members is not None and query is not None:
+            raise InvalidArgument("a group takes members or a query, not both")
+        if not (math.isfinite(member_timeout) and member_timeout > 0):
+            raise InvalidArgument(
+                f"member_timeout must be a positive number of seconds, not {member_timeout}"
+            )
+        self._directory = directory
+        self._registry = registry
+        self._within = within
+        self._static: list[str] | None = None
+        self._query: dict[str, str] | None = None
+        if query is not None:
+            self._query = query_params(query)
+        else:
+            self._static = _member_names(members if members is not None else [])
+        self.robots = Members()
+        self.behaviors = GroupBehaviors(self)
+        self.actuators = Parts()
+        self.sensors = Parts()
+        self.subgroups = Subgroups()
+        self.failed = []
+        self.query = urllib.parse.urlencode(self._query, safe="()") if self._query else ""
+        self.member_timeout = float(member_timeout)
+        self._wanted: set[str] = set(self._static or ())
+        self._locations: dict[str, Vector] = {}
+        self._trackers: dict[str, asyncio.Task[None]] = {}
+        self._subscriptions: dict[str, Subscription] = {}
+        self._location_pending = False
+        self._unwatch: Callable[[], None] | None = None
+        self._refresh_task: asyncio.Task[None] | None = None
+        self._refresh_again = False
+        self._started = False
+
+    # -- lifecycle -------------------------------------------------------
+
+    async def start(self) -> None:
+        self._started = True
+        self._unwatch = self._directory.watch(self._on_directory)
+        if self._query is not None:
+            await self.refresh()
+        else:
+            self._sync()
+        # The members found at start report their locations before the group counts as started.
+        if self._trackers:
+            await asyncio.wait(list(self._trackers.values()), timeout=self.member_timeout)
+
+    async def stop(self) -> None:
+        self._started = False
+        if self._unwatch is not None:
+            self._unwatch()
+            self._unwatch = None
+        tasks = [t for t in (self._refresh_task, *self._trackers.values()) if t is not None]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        self._trackers.clear()
+        for sub in list(self._subscriptions.values()):
+            await _close_quietly(sub)
+        self._subscriptions.clear()
+
+    # -- members ---------------------------------------------------------
+
+    def member_names(self) -> list[str]:
+        """The members right now, in natural name order."""
+        return sorted(self.robots.children(), key=natural_key)
+
+    def member(self, name: str) -> Backend:
+        """The backend of member ``name``; NotFound when it is not a member now."""
+        child = self.robots.children().get(name)
+        if not isinstance(child, Backend):
+            raise NotFound(
+                f"{name!r} is not a member of this group (members: {' '.join(self.member_names())})"
+            )
+        return child
+
+    async def refresh(self) -> None:
+        """Ask the registry for the query's members now and update ``robots``."""
+        if self._query is None:
+            self._sync()
+            return
+        try:
+            registry = self._directory.backend(self._registry)
+            async with asyncio.timeout(self.member_timeout):
+                text = await registry.get("find", self._query)
+        except TimeoutError:
+            log.warning("group query: the registry %r did not answer in time", self._registry)
+            return
+        except PropertyError as e:
+            log.warning("group query: the registry %r refused it: %s", self._registry, e.message)
+            return
+        from services.values import parse_names
+
+        self._wanted = set(parse_names(text))
+        self._sync()
+
+    def _candidates(self) -> set[str]:
+        wanted = set(self._wanted)
+        if self._within is not None:
+            wanted &= set(self._within.robots.children())
+        return wanted
+
+    def _sync(self) -> None:
+        if not self._started:
+            return
+        present = set(self.robots.children())
+        wanted = self._candidates()
+        for name in sorted(present - wanted, key=natural_key):
+            self._drop(name)
+        known = set(self._directory.names())
+        for name in sorted(wanted - present, key=natural_key):
+            if name in known:
+                self._add(name)
+        for sub in self.subgroups.children().values():
+            if isinstance(sub, Group):
+                sub._sync()
+
+    def _add(self, name: str) -> None:
+        try:
+            backend = self._directory.backend(name)
+        except PropertyError:
+            return
+        if getattr(backend, "obj", None) is self:
+            log.warning("group: skipping %r, which is this group itself", name)
+            return
+        if self._query is not None and backend.info.type == "group" and "type" not in self._query:
+            return  # a query group never swallows other groups (or itself) unless asked for groups
+        if name in RESERVED_NAMES:
+            log.warning("group: a member cannot be named %r", name)
+            return
+        self.robots.attach(name, backend)
+        self._trackers[name] = asyncio.get_running_loop().create_task(
+            self._track(name, backend), name=f"group: track {name}"
+        )
+
+    def _drop(self, name: str) -> None:
+        self.robots.detach(name)
+        task = self._trackers.pop(name, None)
+        if task is not None:
+            task.cancel()
+        sub = self._subscriptions.pop(name, None)
+        if sub is not None:
+            asyncio.get_running_loop().create_task(_close_quietly(sub), name=f"group: unlisten {name}")
+        if self._locations.pop(name, None) is not None:
+            self._location_changed()
+
+    def _on_directory(self, name: str, backend: Backend | None) -> None:
+        if not self._started:
+            return
+        if self._query is not None:
+            self._schedule_refresh()
+        elif backend is None and name in self.robots.children():
+            self._drop(name)
+            self._sync_subgroups()
+        elif backend is not None and name in self._wanted:
+            self._sync()
+
+    def _sync_subgroups(self) -> None:
+        for sub in self.subgroups.children().values():
+            if isinstance(sub, Group):
+                sub._sync()
+
+    def _schedule_refresh(self) -> None:
+        if self._refresh_task is not None and not self._refresh_task.done():
+            self._refresh_again = True
+            return
+        self._refresh_task = asyncio.get_running_loop().create_task(
+            self._refresh_loop(), name="group: refresh"
+        )
+
+    async def _refresh_loop(self) -> None:
+        self._refresh_again = True
+        while self._refresh_again:
+            self._refresh_again = False
+            await asyncio.sleep(0)  # let a burst of joins and leaves arrive first
+            await self.refresh()
+
+    # -- location ----------------------------------------------------------
+
+    async def _track(self, name: str, backend: Backend) -> None:
+        def on_change(change: Change) -> None:
+            self._store_location(name, "" if change.removed else change.value)
+
+        try:
+            async with asyncio.timeout(self.member_timeout):
+                sub = await backend.listen("location", on_change)
+        except (PropertyError, TimeoutError):
+            return  # a member without a location (or unreachable now) does not count in the centroid
+        if self._trackers.get(name) is None:
+            await _close_quietly(sub)
+            return
+        self._subscriptions[name] = sub
+        try:
+            async with asyncio.timeout(self.member_timeout):
+                value = await backend.get("location")
+        except (PropertyError, TimeoutError):
+            return
+        if name not in self._locations:  # a change that arrived meanwhile is newer
+            self._store_location(name, value)
+
+    def _store_location(self, name: str, text: str) -> None:
+        if name not in self._trackers:
+            return
+        try:
+            vector = parse_vector(text) if text else None
+        except ValueFormatError:
+            vector = None
+        if vector is None or vector.size == 0:
+            if self._locations.pop(name, None) is None:
+                return
+        else:
+            self._locations[name] = vector
+        self._location_changed()
+
+    def _location_changed(self) -> None:
+        # Many members move in the same instant; listeners get one centroid per loop turn.
+        if self._location_pending:
+            return
+        self._location_pending = True
+        asyncio.get_running_loop().call_soon(self._announce_location)
+
+    def _announce_location(self) -> None:
+        self._location_pending = False
+        self.changed("location")
+
+    @property
+    def location(
+        self,
+    ) -> Annotated[Vector, Prop(readonly=True, gui="pose", doc="centroid of the members' locations")]:
+        """The members' centroid (positions averaged, headings by circular mean)."""
+        if not self._locations:
+            raise Unavailable("no member of this group reports a location")
+        return centroid(list(self._locations.values()))
+
+    def member_locations(self) -> dict[str, Vector]:
+        """The last known location of every member that reports one."""
+        return dict(self._locations)
+
+    # -- group calls -------------------------------------------------------
+
+    async def fan_out(
+        self,
+        what: str,
+        call: Callable[[str, Backend], Awaitable[Any]],
+        names: Iterable[str] | None = None,
+    ) -> list[str]:
+        """Run ``call(name, backend)`` for every member at once, each under ``member_timeout``.
+
+        Returns the members that succeeded, in name order; when any failed,
+        raises :class:`GroupCallFailed` after all have finished, and
+        ``failed`` lists them.
+        """
+        active = _ACTIVE.get()
+        if id(self) in active:
+            raise PropertyError(f"{what}: the group is among its own members", Code.FAILED_PRECONDITION)
+        token = _ACTIVE.set(active | {id(self)})
+        try:
+            return await self._fan_out(what, call, names)
+        finally:
+            _ACTIVE.reset(token)
+
+    async def _fan_out(
+        self, what: str, call: Callable[[str, Backend], Awaitable[Any]], names: Iterable[str] | None
+    ) -> list[str]:
+        members = self.robots.children()
+        chosen = self.member_names() if names is None else list(names)
+        failures: dict[str, PropertyError] = {}
+        for name in self._missing():
+            failures[name] = Unavailable("not registered right now")
+        timeout = self.member_timeout
+        limit = asyncio.Semaphore(MAX_CONCURRENT_CALLS)
+
+        async def one(name: str) -> None:
+            backend = members.get(name)
+            if not isinstance(backend, Backend):
+                failures[name] = NotFound("not a member any more")
+                return
+            async with limit:
+                try:
+                    async with asyncio.timeout(timeout):
+                        await call(name, backend)
+                except TimeoutError:
+                    failures[name] = DeadlineExceeded(f"no answer within {timeout:g} s")
+                except PropertyError as e:
+                    failures[name] = e
+                except Exception as e:
+                    log.exception("group call %s on member %s failed", what, name)
+                    failures[name] = PropertyError(f"internal error: {type(e).__name__}", Code.INTERNAL)
+
+        await asyncio.gather(*(one(name) for name in chosen))
+        ordered = sorted(failures, key=natural_key)
+        self.failed = [[name, failures[name].code.name] for name in ordered]
+        if failures:
+            raise GroupCallFailed(what, failures, len(set(chosen) | set(failures)))
+        return [n for n in chosen if n not in failures]
+
+    def _missing(self) -> list[str]:
+        """Static members that are not registered now (a query group has none by definition)."""
+        if self._static is None:
+            return []
+        present = self.robots.children()
+        candidates = self._candidates()
+        return [n for n in self._static if n in candidates and n not in present]
+
+    async def moveto(self, target: Marker, *, formation: str = "line", spacing: float = 1.0) -> list[str]:
+        """Send each member to ``target`` plus its formation offset; see :class:`GroupBehaviors`."""
+        location = target.location
+        if location is None:
+            raise InvalidArgument(
+                "the target marker has no location: send <marker><location>(x y)</location></marker>"
+            )
+        if formation not in FORMATIONS:
+            raise InvalidArgument(f"unknown formation {formation!r}: use one of {', '.join(FORMATIONS)}")
+        names = self.member_names()
+        places = formation_targets(names + self._missing(), location, formation, spacing)
+        markers = {name: format_marker(target.with_field("location", places[name])) for name in names}
+
+        def send(name: str, backend: Backend) -> Awaitable[str]:
+            return backend.set("behaviors.moveto", markers[name])
+
+        return await self.fan_out("behaviors.moveto", send, names)
+
+    @functional(doc="mean velocity of the members that answer")
+    async def velocity(self) -> Vector:
+        """The mean of the members' velocities (asked now, each under ``member_timeout``)."""
+        found: dict[str, Vector] = {}
+
+        async def ask(name: str, backend: Backend) -> None:
+            found[name] = parse_vector(await backend.get("velocity"))
+
+        try:
+            await self.fan_out("velocity", ask)
+        except GroupCallFailed:
+            if not found:
+                raise
+        if not found:
+            raise Unavailable("the group has no members")
+        return centroid(list(found.values()))
+
+    # -- subgroups -------------------------------------------------------
+
+    @functional(doc="select members into a named subgroup, by names or by a registry query")
+    async def subgroup(self, name: str, *, members: list[str] | None = None, query: str = "") -> list[str]:
+        """Create ``subgroups.<name>`` from ``members`` (names of this group's members) or a ``query``.
+
+        The query is in query-string form (``type=mobile_robot&near=(5 5 0)&radius=3``)
+        and is kept current like this group's; a subgroup only ever holds
+        members of this group. Returns the subgroup's members.
+        """
+        validate_service_name(name)
+        if name in self.subgroups.children():
+            raise AlreadyExists(f"subgroup {name!r} already exists; dissolve it first")
+        if (members is None) == (not query):
+            raise InvalidArgument("give a subgroup either members (a list of names) or a query, not both")
+        if members is not None:
+            current = set(self.robots.children())
+            strangers = [m for m in members if m not in current]
+            if strangers:
+                raise InvalidArgument(f"not members of this group: {' '.join(strangers)}")
+        sub = Group(
+            directory=self._directory,
+            members=members,
+            query=query or None,
+            registry=self._registry,
+            member_timeout=self.member_timeout,
+            within=self,
+        )
+        self.subgroups.attach(name, sub)
+        if self._started:
+            await sub._ps_start_tree()  # idempotent: the core starts it too, a moment later
+        return sub.member_names()
+
+    @functional(doc="remove a subgroup (its members stay in this group)")
+    async def dissolve(self, name: str) -> None:
+        """Remove ``subgroups.<name>``."""
+        sub = self.subgroups.children().get(name)
+        if sub is None:
+            raise NotFound(f"no subgroup named {name!r}")
+        self.subgroups.detach(name)
+        if isinstance(sub, Group):
+            await sub._ps_stop_tree()  # idempotent, as above
+
+
+def _member_names(members: Iterable[str]) -> list[str]:
+    if isinstance(members, str):
+        raise InvalidArgument("members must be a list of names, not one string")
+    names: list[str] = []
+    for name in members:
+        validate_service_name(name)
+        if name in RESERVED_NAMES:
+            raise InvalidArgument(f"a member cannot be named {name!r}")
+        if name not in names:
+            names.append(name)
+    return names
+
+
+async def _close_quietly(sub: Subscription) -> None:
+    try:
+        await sub.close()
+    except Exception:
+        log.debug("closing a member listen failed", exc_info=True)
