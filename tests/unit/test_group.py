@@ -103,7 +103,7 @@ async def world() -> Any:
 
 
 async def wait_for(
-    service: Backend, path: str, predicate: Callable[[str], bool], timeout: float = 10.0
+    service: Backend, path: str, predicate: Callable[[str], bool], within: float = 10.0
 ) -> str:
     """Listen to ``path`` until ``predicate(value)`` holds; return that value."""
     done = asyncio.Event()
