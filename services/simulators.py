@@ -172,6 +172,7 @@ class SimRobot(Resource):
         self.sensors = Sensors()
         self.behaviors = Behaviors(self)
         self._tick_hz = _rate(tick_hz, "tick_hz", 0.1, MAX_TICK_HZ)
+        self._charge = 1.0
         self._target: Vector | None = None
         self._go = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -261,7 +262,9 @@ class SimRobot(Resource):
 
     def _drain(self, metres: float) -> None:
         if metres > 0:
-            self.sensors.battery = round(max(0.0, self.sensors.battery - metres * BATTERY_PER_METRE), 6)
+            self._charge = max(0.0, self._charge - metres * BATTERY_PER_METRE)
+            # Reported to 1e-4: listeners hear of every 10 cm driven, not of every tick.
+            self.sensors.battery = round(self._charge, 4)
 
 
 class SimSensor(Resource):

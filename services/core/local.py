@@ -8,6 +8,7 @@ import logging
 from collections.abc import Mapping
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
+from services.core.metadata import class_spec
 from services.core.resource import Resource
 from services.core.tree import NeedsAwait, RemoteTarget, Target, all_properties, resolve
 from services.errors import PropertyError
@@ -19,6 +20,14 @@ log = logging.getLogger(__name__)
 
 #: Resolved paths kept per service; a client naming ever new paths cannot grow it without bound.
 _MAX_CACHED_PATHS = 4096
+
+
+def _compile_tree(obj: Resource) -> None:
+    """Compile every class in the tree now, so that a badly written class fails when served, not on a Get."""
+    class_spec(type(obj))
+    for child in obj._ps_children.values():
+        if isinstance(child, Resource):
+            _compile_tree(child)
 
 
 class _Watch:
@@ -130,6 +139,7 @@ class LocalService(Backend):
     def __init__(self, obj: Resource, url: str = "local") -> None:
         if not isinstance(obj, Resource):
             raise TypeError(f"LocalService serves a Resource, not a {type(obj).__name__}")
+        _compile_tree(obj)
         self.obj = obj
         self.info = BackendInfo(type=obj.resource_type, url=url)
         self._targets: dict[str, Target] = {}
@@ -199,8 +209,11 @@ class LocalService(Backend):
             watch.close()
         gone = [s for s in self._remote.values() if s.path == path or s.path.startswith(below)]
         for sub in gone:
+            sub.closed = True
+            self._remote.pop(id(sub), None)
             sub.notify(Change(sub.path, "", removed=True))
-            self.obj._ps_spawn(sub.close(), f"close listen on {sub.path}")
+            if sub.inner is not None:
+                self.obj._ps_spawn(sub.inner.close(), f"close listen on {sub.path}")
 
     async def properties(self) -> list[str]:
         return await all_properties(self.obj)

@@ -122,7 +122,7 @@ class Resource:
         if old is not None:
             self._ps_drop_child(name)
         if isinstance(obj, Resource):
-            if obj._ps_parent is not None and obj._ps_parent is not self:
+            if obj._ps_parent is not None:
                 raise InvalidArgument(
                     f"{type(obj).__name__} is already attached as {obj._ps_name!r} elsewhere"
                 )
