@@ -5,12 +5,13 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
-from collections.abc import Mapping
+from collections.abc import Coroutine, Mapping
+from typing import Any
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.core.metadata import class_spec
 from services.core.resource import Resource
-from services.core.tree import NeedsAwait, RemoteTarget, Target, all_properties, resolve
+from services.core.tree import NeedsAwait, RemoteTarget, Target, all_properties, remote_children, resolve
 from services.errors import PropertyError
 from services.paths import validate_path
 
@@ -147,6 +148,10 @@ class LocalService(Backend):
         self._remote: dict[int, _RemoteSubscription] = {}
         self._tokens = itertools.count()
         self._closed = False
+        # While `properties` has listeners: a listen on `properties` of every remote child.
+        self._remote_lists: dict[int, tuple[Backend, Subscription]] = {}
+        self._remote_lists_lock = asyncio.Lock()
+        self._tasks: set[asyncio.Task[None]] = set()
         obj._ps_tree_watchers.append(self._on_tree)
 
     def __repr__(self) -> str:
@@ -188,6 +193,8 @@ class LocalService(Backend):
             self._watches[path] = watch
         token = next(self._tokens)
         watch.listeners[token] = notify
+        if path == "properties" and len(watch.listeners) == 1:
+            await self._sync_remote_lists()
         return _LocalSubscription(self, watch, token)
 
     def _drop_listener(self, watch: _Watch, token: int) -> None:
@@ -197,9 +204,13 @@ class LocalService(Backend):
             watch.close()
             if self._watches.get(watch.path) is watch:
                 del self._watches[watch.path]
+            if watch.path == "properties" and self._remote_lists:
+                self._spawn(self._sync_remote_lists(), "stop following remote property lists")
 
     def _on_tree(self, path: str, removed: bool) -> None:
         self._targets.clear()
+        if "properties" in self._watches or self._remote_lists:
+            self._spawn(self._sync_remote_lists(), "follow remote property lists")
         if not removed:
             return
         below = path + "."
@@ -214,6 +225,40 @@ class LocalService(Backend):
             sub.notify(Change(sub.path, "", removed=True))
             if sub.inner is not None:
                 self.obj._ps_spawn(sub.inner.close(), f"close listen on {sub.path}")
+
+    def _spawn(self, coro: Coroutine[Any, Any, None], what: str) -> None:
+        task = asyncio.get_running_loop().create_task(coro, name=what)
+        self._tasks.add(task)
+
+        def done(t: asyncio.Task[None]) -> None:
+            self._tasks.discard(t)
+            if not t.cancelled() and t.exception() is not None:
+                log.error("%s failed", what, exc_info=t.exception())
+
+        task.add_done_callback(done)
+
+    def _remote_list_changed(self, change: Change) -> None:
+        watch = self._watches.get("properties")
+        if watch is not None:
+            watch.fire()
+
+    async def _sync_remote_lists(self) -> None:
+        """While ``properties`` is listened to, follow ``properties`` of every remote child."""
+        async with self._remote_lists_lock:
+            listened = "properties" in self._watches and not self._closed
+            wanted = {id(b): b for b in remote_children(self.obj)} if listened else {}
+            for key in [k for k in self._remote_lists if k not in wanted]:
+                _, sub = self._remote_lists.pop(key)
+                await sub.close()
+            for key, backend in wanted.items():
+                if key in self._remote_lists:
+                    continue
+                try:
+                    sub = await backend.listen("properties", self._remote_list_changed)
+                except PropertyError as e:
+                    log.debug("cannot follow the property list of %r: %s", backend, e.message)
+                    continue
+                self._remote_lists[key] = (backend, sub)
 
     async def properties(self) -> list[str]:
         return await all_properties(self.obj)
@@ -234,5 +279,9 @@ class LocalService(Backend):
         self._watches.clear()
         for sub in list(self._remote.values()):
             await sub.close()
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self._sync_remote_lists()
         self._targets.clear()
         await self.obj._ps_stop_tree()

@@ -46,6 +46,17 @@ def _walk(node: Resource, prefix: str, out: list[str], remote: list[tuple[int, s
             remote.append((len(out), full + ".", child))
 
 
+def remote_children(node: Resource) -> list[Backend]:
+    """Every Backend child anywhere under ``node`` (each once)."""
+    found: list[Backend] = []
+    for child in node._ps_children.values():
+        if isinstance(child, Resource):
+            found.extend(remote_children(child))
+        elif all(child is not b for b in found):
+            found.append(child)
+    return found
+
+
 def properties_now(root: Resource) -> list[str]:
     """Every property path under ``root``, depth-first; NeedsAwait when a remote child must be asked."""
     out: list[str] = []

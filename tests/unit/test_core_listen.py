@@ -287,3 +287,40 @@ async def test_one_resource_cannot_sit_in_two_places(robot: Robot) -> None:
     robot.tools.attach("a", tool)
     with pytest.raises(InvalidArgument, match="already attached"):
         robot.tools.attach("b", tool)
+
+
+async def test_properties_follows_the_property_lists_of_remote_children() -> None:
+    member = Robot()
+
+    class Group(Resource):
+        """Robots behind one service."""
+
+        def __init__(self) -> None:
+            self.robots = Tools()
+
+    group = Group()
+    svc = LocalService(group)
+    changed = asyncio.Event()
+    lists: list[list[str]] = []
+
+    def on_properties(change: Change) -> None:
+        lists.append(parse_names(change.value))
+        changed.set()
+
+    sub = await svc.listen("properties", on_properties)
+    group.robots.attach("scout1", LocalService(member))
+    await asyncio.wait_for(changed.wait(), timeout=5)
+    assert "robots.scout1.speed" in lists[-1]
+
+    changed.clear()
+    member.tools.attach("drill", Tool())  # the member's own list changes
+    await asyncio.wait_for(changed.wait(), timeout=5)
+    assert "robots.scout1.tools.drill.power" in lists[-1]
+
+    await sub.close()
+    for _ in range(10):
+        if not member._ps_tree_watchers[1:]:
+            break
+        await asyncio.sleep(0)
+    assert member._ps_tree_watchers[1:] == []  # the member's own service stopped following it
+    await svc.aclose()
