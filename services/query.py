@@ -109,7 +109,14 @@ class Query:
 
     def is_empty(self) -> bool:
         """True when the query selects every service."""
-        return self == Query()
+        return (
+            self.types is None
+            and self.near is None
+            and self.radius is None
+            and self.state is None
+            and self.limit is None
+            and not self.props
+        )
 
 
 def parse_where(text: str) -> dict[str, str]:
