@@ -324,3 +324,23 @@ async def test_properties_follows_the_property_lists_of_remote_children() -> Non
         await asyncio.sleep(0)
     assert member._ps_tree_watchers[1:] == []  # the member's own service stopped following it
     await svc.aclose()
+
+
+async def test_marker_field_listeners_hear_only_their_field() -> None:
+    from services.values import Marker, parse_marker
+
+    class Beacon(Resource):
+        """A beacon showing a marker."""
+
+        target: Marker
+
+        def __init__(self) -> None:
+            self.target = parse_marker("<marker><location>(1 2)</location><color>red</color></marker>")
+
+    beacon = Beacon()
+    svc = LocalService(beacon)
+    colors: list[Change] = []
+    await svc.listen("target.color", colors.append)
+    beacon.target = parse_marker("<marker><location>(5 5)</location><color>red</color></marker>")
+    beacon.target = parse_marker("<marker><location>(5 5)</location><color>blue</color></marker>")
+    assert colors == [Change("target.color", "blue")]
