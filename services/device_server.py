@@ -302,7 +302,7 @@ class DeviceServer:
         self.checksum = checksum
         self.call_timeout = call_timeout
         self.max_connections = max_connections
-        self._sessions: set[asyncio.Task[None]] = set()
+        self._sessions: set[asyncio.StreamWriter] = set()
         self._servers: list[asyncio.Server] = []
         self._serial_tasks: list[asyncio.Task[None]] = []
 
@@ -322,22 +322,20 @@ class DeviceServer:
         await session.run()
 
     async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        assert task is not None
         if len(self._sessions) >= self.max_connections:
             writer.write(encode(ErrorReply(int(Code.RESOURCE_EXHAUSTED), "too many connections; try later")))
             with contextlib.suppress(ConnectionError):
                 await writer.drain()
             writer.close()
             return
-        self._sessions.add(task)
+        self._sessions.add(writer)
         host, port = tuple(writer.get_extra_info("peername") or ("?", "?"))[:2]
         peer = f"{host}:{port}"
         log.info("%s: connected", peer)
         try:
             await self.serve_stream(reader, writer, peer)
         finally:
-            self._sessions.discard(task)
+            self._sessions.discard(writer)
             log.info("%s: disconnected", peer)
 
     async def serve_tcp(self, host: str, port: int) -> tuple[str, int]:
@@ -348,36 +346,60 @@ class DeviceServer:
         return str(bound[0]), int(bound[1])
 
     async def serve_serial(self, port: str, baudrate: int = 115200, *, reopen_delay: float = 1.0) -> None:
-        """Serve the serial ``port`` in the background, reopening it when it fails."""
-        self._serial_tasks.append(asyncio.create_task(self._serial_loop(port, baudrate, reopen_delay)))
+        """Open the serial ``port`` (OSError if it cannot be opened) and serve it in the background.
 
-    async def _serial_loop(self, port: str, baudrate: int, reopen_delay: float) -> None:
+        When the port fails later (a USB adapter unplugged), it is reopened
+        every ``reopen_delay`` seconds.
+        """
+        streams = await self._open_serial(port, baudrate)
+        task = asyncio.create_task(self._serial_loop(port, baudrate, reopen_delay, streams))
+        self._serial_tasks.append(task)
+
+    @staticmethod
+    async def _open_serial(port: str, baudrate: int) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        import serial
         import serial_asyncio_fast
 
+        try:
+            return await serial_asyncio_fast.open_serial_connection(
+                url=port, baudrate=baudrate, limit=_READ_SIZE
+            )
+        except (serial.SerialException, ValueError) as exc:
+            raise OSError(f"cannot open serial port {port}: {exc}") from exc
+
+    async def _serial_loop(
+        self,
+        port: str,
+        baudrate: int,
+        reopen_delay: float,
+        streams: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None,
+    ) -> None:
         while True:
-            try:
-                reader, writer = await serial_asyncio_fast.open_serial_connection(
-                    url=port, baudrate=baudrate, limit=_READ_SIZE
-                )
-            except (OSError, ValueError) as exc:
-                log.warning("%s: cannot open serial port: %s", port, exc)
-            else:
+            if streams is None:
+                try:
+                    streams = await self._open_serial(port, baudrate)
+                except OSError as exc:
+                    log.warning("%s", exc)
+            if streams is not None:
                 log.info("%s: serving at %d baud", port, baudrate)
-                await self.serve_stream(reader, writer, port)
+                await self.serve_stream(*streams, peer=port)
                 log.info("%s: serial port closed", port)
+                streams = None
             await asyncio.sleep(reopen_delay)
 
     async def aclose(self) -> None:
         """Stop listening and end every session. Idempotent."""
         for server in self._servers:
             server.close()
-        tasks = [*self._serial_tasks, *self._sessions]
-        for task in tasks:
+        # Closing a connection ends its session the ordinary way (the read sees EOF).
+        for writer in list(self._sessions):
+            writer.close()
+        for task in self._serial_tasks:
             task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await asyncio.gather(*self._serial_tasks, return_exceptions=True)
         for server in self._servers:
             with contextlib.suppress(Exception):
-                await server.wait_closed()
+                await asyncio.wait_for(server.wait_closed(), 5)
         self._servers.clear()
         self._serial_tasks.clear()
 

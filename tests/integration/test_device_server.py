@@ -1,0 +1,161 @@
+"""The device server as a real process, spoken to with raw TCP sockets and a real pty."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import re
+
+from line_device_support import LineClient, device_process, pty_client, pty_pair, tcp_device
+
+from services.backend import Backend, BackendInfo, Change, Notify, Subscription
+from services.device_server import DeviceServer
+from services.errors import NotFound
+from services.line_protocol import Get, crc8, encode
+
+
+async def test_a_whole_tcp_session() -> None:
+    with tcp_device("--service", "sim-robot", "--name", "scout1", "--option", "tick_hz=50") as (host, port):
+        c = await LineClient.tcp(host, port)
+        assert await c.line() == "HELLO 1 name=scout1 type=mobile_robot push=1 maxline=1024"
+        await c.send("get location")
+        assert await c.line() == "OK (0 0 0 0 0 0)"
+        await c.send("#1 GET location.x", "#2 GET speed")
+        assert sorted(await c.lines(2)) == ["#1 OK 0", "#2 OK 0.5"]
+        await c.send("SET speed 2")
+        assert await c.line() == "OK 2"
+        await c.send("#7 LISTEN location.x")
+        assert await c.line() == "#7 OK 0"
+        await c.send("SET behaviors.moveto <marker><location>(1 0)</location></marker>")
+        reply, _ = await c.until("OK")
+        assert reply == "OK"
+        event, _ = await c.until("EVENT location.x")
+        assert float(event.split()[2]) > 0
+        await c.send("#8 GET nosuch", "SET location.x abc", "FROB x", "#9 PING 42")
+        replies = await c.replies(4)
+        assert any(r.startswith("#8 ERR 5 ") for r in replies), replies
+        assert any(r.startswith("ERR 9 ") for r in replies), replies  # location is read-only
+        assert "ERR 12 unknown word 'FROB'" in replies
+        assert "#9 PONG 42" in replies
+        await c.send("UNLISTEN location.x")
+        reply, _ = await c.until("OK")
+        assert reply == "OK"
+        await c.close()
+
+
+async def test_bad_lines_get_errors_and_the_connection_lives_on() -> None:
+    with tcp_device("--service", "sim-sensor") as (host, port):
+        c = await LineClient.tcp(host, port)
+        await c.line()
+        await c.send(b"\x00\xff\xfe garbage\n", b"#5 SET x " + b"y" * 3000 + b"\n", b"#6 SET a b\\q\n")
+        await c.send(encode(Get("location", tag="7"))[:-1] + b" junk\n", b"$#8 GET location*00\n")
+        replies = await c.lines(5)
+        assert replies[0].startswith("ERR 3 line is not valid UTF-8")
+        assert replies[1].startswith("#5 ERR 8 line too long")
+        assert replies[2].startswith("#6 ERR 3 bad escape")
+        assert replies[3].startswith("#7 ERR 3 unexpected text")
+        assert replies[4].startswith("ERR 15 checksum mismatch")
+        await c.send(f"$#9 GET location*{crc8(b'#9 GET location'):02X}")
+        reply = await c.line()
+        assert re.fullmatch(r"\$#9 OK \(.*\)\*[0-9A-F]{2}", reply), reply
+        await c.close()
+
+
+async def test_several_clients_at_once() -> None:
+    with tcp_device("--service", "sim-robot") as (host, port):
+        clients = [await LineClient.tcp(host, port) for _ in range(5)]
+        for c in clients:
+            await c.line()
+        for i, c in enumerate(clients):
+            await c.send(f"#{i} GET speed")
+        assert [await c.line() for c in clients] == [f"#{i} OK 0.5" for i in range(5)]
+        for c in clients:
+            await c.close()
+
+
+async def test_device_without_push_refuses_listen() -> None:
+    with tcp_device("--service", "sim-sensor", "--no-push") as (host, port):
+        c = await LineClient.tcp(host, port)
+        assert "push=0" in await c.line()
+        await c.send("#1 LISTEN data")
+        assert (await c.line()).startswith("#1 ERR 12 ")
+        await c.close()
+
+
+async def test_serial_device_on_a_pty() -> None:
+    with (
+        pty_pair() as (master, path),
+        device_process("--service", "sim-robot", "--name", "tty1", "--serial", path) as (
+            _,
+            first,
+        ),
+    ):
+        assert first == f"serving on {path}"
+        c = await pty_client(master)
+        # The greeting sent when the port opened may have been lost to the pty; ask again.
+        await c.send("#h HELLO")
+        hello, _ = await c.until("#h HELLO")
+        assert "name=tty1" in hello and "push=1" in hello
+        await c.send("#1 GET speed", "garbage line", "#2 get location.y")
+        assert sorted(await c.lines(3)) == ["#1 OK 0.5", "#2 OK 0", "ERR 12 unknown word 'garbage'"]
+        await c.close()
+
+
+class _Counter(Backend):
+    """A backend whose one property changes as fast as the test makes it."""
+
+    def __init__(self) -> None:
+        self.info = BackendInfo(type="counter")
+        self.value = "0"
+        self.listeners: list[Notify] = []
+
+    async def get(self, path: str, params: object = None) -> str:  # type: ignore[override]
+        if path != "n":
+            raise NotFound(path)
+        return self.value
+
+    async def set(self, path: str, value: str, params: object = None) -> str:  # type: ignore[override]
+        raise NotFound(path)
+
+    async def listen(self, path: str, notify: Notify, params: object = None) -> Subscription:  # type: ignore[override]
+        self.listeners.append(notify)
+        backend = self
+
+        class _Sub(Subscription):
+            async def close(self) -> None:
+                with contextlib.suppress(ValueError):
+                    backend.listeners.remove(notify)
+
+        return _Sub()
+
+    def bump(self, value: str) -> None:
+        self.value = value
+        for notify in list(self.listeners):
+            notify(Change("n", value))
+
+
+async def test_slow_reader_gets_conflated_events_and_the_latest_value() -> None:
+    backend = _Counter()
+    server = DeviceServer(backend, name="counter")
+    host, port = await server.serve_tcp("127.0.0.1", 0)
+    try:
+        c = await LineClient.tcp(host, port)
+        await c.line()
+        await c.send("LISTEN n")
+        assert await c.line() == "OK 0"
+        emitted = 5000
+        pad = "x" * 900
+        for i in range(1, emitted + 1):
+            backend.bump(f"{i} {pad}")
+            if i % 500 == 0:
+                await asyncio.sleep(0)  # let the writer run; the reader (this test) does not read yet
+        received = []
+        while True:
+            line = await c.line()
+            received.append(line)
+            if line.startswith(f"EVENT n {emitted} "):
+                break
+        assert len(received) < emitted
+        await c.close()
+    finally:
+        await server.aclose()
