@@ -333,9 +333,7 @@ class ListenStream:
             return
         limit = self._hub.limits.max_stream_properties
         if len(self._refs) >= limit:
-            raise ResourceExhausted(
-                f"this Listen matches more than {limit} properties (limits.max_stream_properties)"
-            )
+            raise self._too_many()
         topic = await self._hub._subscribe(self, key, backend, strict)
         if topic is None:
             return
@@ -346,11 +344,18 @@ class ListenStream:
             self._refs[topic] += 1
             self._hub._unsubscribe(self, topic)
             return
+        if len(self._refs) >= limit:
+            self._hub._unsubscribe(self, topic)
+            raise self._too_many()
         self._refs[topic] = 1
         if not self.options.updates_only and topic not in self._pending:
             self._pending[topic] = _Pending(topic.value, time.time_ns())
             if self._live:
                 self._signal()
+
+    def _too_many(self) -> ResourceExhausted:
+        limit = self._hub.limits.max_stream_properties
+        return ResourceExhausted(f"this Listen matches more than {limit} properties (limits.max_stream_properties)")
 
     def _leave(self, topic: Topic, announce: bool) -> None:
         n = self._refs.get(topic)

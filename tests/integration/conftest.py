@@ -1,0 +1,140 @@
+"""Fixtures that run a real gateway process on a free loopback port.
+
+``gateway_process`` is a factory: call it with the text of a TOML config (or
+nothing, for the built-in demo) and get a :class:`GatewayProcess` whose
+``.address`` is ``127.0.0.1:PORT``. It runs
+``python -m gateway.cli serve [--config FILE] --listen 127.0.0.1:0``, waits
+(at most 20 s) for the ``listening on`` line and a SERVING health check, and
+is always stopped when the test ends::
+
+    async def test_something(gateway_process):
+        gw = gateway_process('''
+            [[services]]
+            name = "bot"
+            type = "sim-robot"
+        ''')
+        async with grpc.aio.insecure_channel(gw.address) as channel:
+            ...
+
+``demo_gateway`` is one module-wide process serving the demo (``scout1``,
+``scout2``, ``thermo1`` and ``registry``); tests that share it must not
+leave it changed in ways other tests would notice.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+
+import grpc
+import pytest
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+ROOT = Path(__file__).resolve().parents[2]
+START_TIMEOUT = 20.0
+STOP_TIMEOUT = 5.0
+_LISTENING = re.compile(r"listening on (\S+:\d+)")
+
+
+class GatewayProcess:
+    """A running ``psgateway serve`` process."""
+
+    def __init__(self, args: Sequence[str], env: dict[str, str] | None = None) -> None:
+        self.args = list(args)
+        self.proc = subprocess.Popen(
+            self.args,
+            cwd=ROOT,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+        )
+        self.address = ""
+        self._lines: list[str] = []
+        self._listening = threading.Event()
+        # A thread drains the output so the process never blocks on a full pipe.
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self._lines.append(line)
+            m = _LISTENING.search(line)
+            if m and not self.address:
+                self.address = m.group(1)
+                self._listening.set()
+        self._listening.set()
+
+    @property
+    def output(self) -> str:
+        """Everything the process printed so far (log lines go to stderr, merged here)."""
+        return "".join(self._lines)
+
+    def wait_ready(self, timeout: float = START_TIMEOUT) -> None:
+        """Wait for the ``listening on`` line and a SERVING health check; raise with the output if not."""
+        if not self._listening.wait(timeout) or not self.address:
+            self.stop()
+            raise RuntimeError(f"gateway did not start (exit {self.proc.poll()}):\n{self.output}")
+        with grpc.insecure_channel(self.address) as channel:
+            stub = health_pb2_grpc.HealthStub(channel)
+            reply = stub.Check(health_pb2.HealthCheckRequest(service=""), timeout=timeout, wait_for_ready=True)
+        if reply.status != health_pb2.HealthCheckResponse.SERVING:
+            raise RuntimeError(f"gateway is not SERVING: {reply}\n{self.output}")
+
+    def stop(self, timeout: float = STOP_TIMEOUT) -> int:
+        """SIGTERM, wait, then SIGKILL (this PID only) if it has not ended; the exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout)
+        self._reader.join(timeout)
+        return self.proc.returncode
+
+
+def _start(tmp: Path, config: str | None, extra_args: Sequence[str] = ()) -> GatewayProcess:
+    args = [sys.executable, "-m", "gateway.cli", "serve", "--listen", "127.0.0.1:0"]
+    if config is not None:
+        path = tmp / f"gateway-{len(list(tmp.glob('gateway-*.toml')))}.toml"
+        path.write_text(textwrap.dedent(config))
+        args += ["--config", str(path)]
+    gw = GatewayProcess([*args, *extra_args])
+    gw.wait_ready()
+    return gw
+
+
+StartGateway = Callable[..., GatewayProcess]
+
+
+@pytest.fixture
+def gateway_process(tmp_path: Path) -> Iterator[StartGateway]:
+    """Factory: ``gateway_process(config_text=None, extra_args=())`` → a ready :class:`GatewayProcess`."""
+    started: list[GatewayProcess] = []
+
+    def start(config: str | None = None, extra_args: Sequence[str] = ()) -> GatewayProcess:
+        gw = _start(tmp_path, config, extra_args)
+        started.append(gw)
+        return gw
+
+    yield start
+    for gw in started:
+        gw.stop()
+
+
+@pytest.fixture(scope="module")
+def demo_gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GatewayProcess]:
+    """One gateway process per test module serving the demo config."""
+    gw = _start(tmp_path_factory.mktemp("demo"), None)
+    yield gw
+    gw.stop()
