@@ -5,10 +5,11 @@
 * :class:`Prop` — metadata in ``Annotated[T, Prop(...)]``; :func:`functional` — marks
   functional properties.
 * :class:`LocalService` — serves a Resource in-process as a ``services.backend.Backend``.
+* ``RESERVED_NAMES`` — names no member or child may take (``properties``, ``parameters``, ``gui``, ``doc``).
 """
 
 from services.core.local import LocalService
-from services.core.metadata import Prop, functional
+from services.core.metadata import RESERVED_NAMES, Prop, functional
 from services.core.resource import Resource
 
-__all__ = ["LocalService", "Prop", "Resource", "functional"]
+__all__ = ["RESERVED_NAMES", "LocalService", "Prop", "Resource", "functional"]
