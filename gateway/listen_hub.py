@@ -355,7 +355,9 @@ class ListenStream:
 
     def _too_many(self) -> ResourceExhausted:
         limit = self._hub.limits.max_stream_properties
-        return ResourceExhausted(f"this Listen matches more than {limit} properties (limits.max_stream_properties)")
+        return ResourceExhausted(
+            f"this Listen matches more than {limit} properties (limits.max_stream_properties)"
+        )
 
     def _leave(self, topic: Topic, announce: bool) -> None:
         n = self._refs.get(topic)

@@ -86,7 +86,9 @@ class GatewayProcess:
             raise RuntimeError(f"gateway did not start (exit {self.proc.poll()}):\n{self.output}")
         with grpc.insecure_channel(self.address) as channel:
             stub = health_pb2_grpc.HealthStub(channel)
-            reply = stub.Check(health_pb2.HealthCheckRequest(service=""), timeout=timeout, wait_for_ready=True)
+            reply = stub.Check(
+                health_pb2.HealthCheckRequest(service=""), timeout=timeout, wait_for_ready=True
+            )
         if reply.status != health_pb2.HealthCheckResponse.SERVING:
             raise RuntimeError(f"gateway is not SERVING: {reply}\n{self.output}")
 

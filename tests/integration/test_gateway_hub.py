@@ -30,15 +30,17 @@ def dev() -> DictBackend:
 
 @pytest.fixture
 async def stub(dev: DictBackend) -> AsyncIterator[pb_grpc.PropertyServiceStub]:
-    async with Gateway(config(), backends={"dev": dev}) as gw:
-        async with grpc.aio.insecure_channel(gw.address) as channel:
-            s = pb_grpc.PropertyServiceStub(channel)
-            s.gateway = gw
-            yield s
+    async with (
+        Gateway(config(), backends={"dev": dev}) as gw,
+        grpc.aio.insecure_channel(gw.address) as channel,
+    ):
+        s = pb_grpc.PropertyServiceStub(channel)
+        s.gateway = gw
+        yield s
 
 
-async def read(call: grpc.aio.UnaryStreamCall, timeout: float = WAIT) -> pb.ListenResponse:
-    return await asyncio.wait_for(call.read(), timeout)
+async def read(call: grpc.aio.UnaryStreamCall, limit: float = WAIT) -> pb.ListenResponse:
+    return await asyncio.wait_for(call.read(), limit)
 
 
 async def events_until_sync(call: grpc.aio.UnaryStreamCall) -> list[pb.Event]:
@@ -56,9 +58,10 @@ def seconds(s: float) -> Duration:
     return d
 
 
-async def eventually(predicate, timeout: float = WAIT) -> None:
-    async with asyncio.timeout(timeout):
-        while not predicate():
+async def eventually(predicate) -> None:
+    """Wait (bounded) for background clean-up that signals nothing, e.g. a subscription closing."""
+    async with asyncio.timeout(WAIT):
+        while not predicate():  # noqa: ASYNC110 - nothing to wait on but the state itself
             await asyncio.sleep(0.01)
 
 
@@ -209,7 +212,9 @@ async def test_unknown_concrete_path_is_not_found_before_streaming(stub) -> None
 
 
 async def test_updates_only_sends_sync_first(stub, dev) -> None:
-    call = stub.Listen(pb.ListenRequest(service="dev", property="a", options=pb.ListenOptions(updates_only=True)))
+    call = stub.Listen(
+        pb.ListenRequest(service="dev", property="a", options=pb.ListenOptions(updates_only=True))
+    )
     msg = await read(call)
     assert msg.sync and not msg.events
     dev.put("a", "new")
@@ -288,7 +293,9 @@ async def test_get_more_all_or_nothing(stub, dev) -> None:
     gw.router.add("dev2", DictBackend({"q": "9"}))
     reply = await stub.Get(
         pb.GetRequest(
-            service="dev", property="a", more=[pb.PropertyRef(property="b"), pb.PropertyRef(service="dev2", property="q")]
+            service="dev",
+            property="a",
+            more=[pb.PropertyRef(property="b"), pb.PropertyRef(service="dev2", property="q")],
         )
     )
     assert reply.value == "1"
@@ -316,7 +323,10 @@ async def test_bad_requests_are_invalid_argument(stub) -> None:
 
 async def test_slow_backend_is_deadline_exceeded(dev) -> None:
     slow = DictBackend({"a": "1"}, delay=3.0)
-    async with Gateway(config(), backends={"slow": slow}) as gw, grpc.aio.insecure_channel(gw.address) as channel:
+    async with (
+        Gateway(config(), backends={"slow": slow}) as gw,
+        grpc.aio.insecure_channel(gw.address) as channel,
+    ):
         stub = pb_grpc.PropertyServiceStub(channel)
         with pytest.raises(grpc.aio.AioRpcError) as err:
             await stub.Get(pb.GetRequest(service="slow", property="a"))
@@ -329,10 +339,10 @@ async def test_crashing_backend_is_internal_and_logged(dev, caplog) -> None:
         async def get(self, path, params=None):  # type: ignore[override]
             raise ZeroDivisionError("oops")
 
-    async with Gateway(config(), backends={"broken": Broken({"a": "1"})}) as gw:
-        async with grpc.aio.insecure_channel(gw.address) as channel:
-            with pytest.raises(grpc.aio.AioRpcError) as err:
-                await pb_grpc.PropertyServiceStub(channel).Get(pb.GetRequest(service="broken", property="a"))
+    broken = {"broken": Broken({"a": "1"})}
+    async with Gateway(config(), backends=broken) as gw, grpc.aio.insecure_channel(gw.address) as channel:
+        with pytest.raises(grpc.aio.AioRpcError) as err:
+            await pb_grpc.PropertyServiceStub(channel).Get(pb.GetRequest(service="broken", property="a"))
     assert err.value.code() == grpc.StatusCode.INTERNAL
     assert "ZeroDivisionError" in caplog.text
 

@@ -123,7 +123,9 @@ async def test_duplicate_active_id_is_invalid_argument(session) -> None:
 
 async def test_listen_errors_arrive_on_their_reply(session) -> None:
     await session.write(
-        pb.SessionRequest(requests=[pb.Request(id=3, listen=pb.ListenRequest(service="dev", property="nope"))])
+        pb.SessionRequest(
+            requests=[pb.Request(id=3, listen=pb.ListenRequest(service="dev", property="nope"))]
+        )
     )
     (reply,) = await replies_until(session, lambda rs: len(rs) >= 1)
     assert (reply.id, reply.status.code) == (3, grpc.StatusCode.NOT_FOUND.value[0])
@@ -159,7 +161,9 @@ async def test_gateway_shutdown_ends_sessions_cleanly(gateway) -> None:
     async with grpc.aio.insecure_channel(gateway.address) as channel:
         call = pb_grpc.PropertyServiceStub(channel).Session()
         await call.write(
-            pb.SessionRequest(requests=[pb.Request(id=1, listen=pb.ListenRequest(service="dev", property="a"))])
+            pb.SessionRequest(
+                requests=[pb.Request(id=1, listen=pb.ListenRequest(service="dev", property="a"))]
+            )
         )
         await replies_until(call, lambda rs: any(r.listen.sync for r in rs))
         await gateway.stop()
