@@ -1,0 +1,26 @@
+"""Proxies to line-protocol Property Services (raw TCP, serial lines), and the gateway's line listener.
+
+Importing this package registers the ``tcp`` and ``serial`` URL schemes in
+:data:`gateway.backends.PROXY_SCHEMES` and the raw-TCP line listener in
+:data:`gateway.backends.LINE_LISTENER`.
+"""
+
+from __future__ import annotations
+
+from gateway.proxies.line_proxy import LineProxy, ProxyOptions
+from gateway.proxies.serial import SerialProxy, open_serial_backend
+from gateway.proxies.tcp import TcpProxy, open_tcp_backend
+
+__all__ = ["LineProxy", "ProxyOptions", "SerialProxy", "TcpProxy", "open_serial_backend", "open_tcp_backend"]
+
+
+def _register() -> None:
+    try:
+        from gateway import backends
+    except ImportError:  # the gateway's backend table is not there: the proxies still work on their own
+        return
+    backends.PROXY_SCHEMES.setdefault("tcp", open_tcp_backend)
+    backends.PROXY_SCHEMES.setdefault("serial", open_serial_backend)
+
+
+_register()

@@ -1,0 +1,413 @@
+"""A Backend for a device that speaks the line protocol: reconnects, shared listens, polling.
+
+:class:`LineProxy` is the part common to the TCP and the serial proxy; a
+subclass only says how to open the stream. The proxy
+
+* keeps one connection, re-established with exponential backoff (bounded,
+  with jitter) whenever it is lost; while it is down every call fails at once
+  with UNAVAILABLE;
+* times out every call (DEADLINE_EXCEEDED) and pipelines calls by tag;
+* holds one device LISTEN per property, shared by all its listeners
+  (reference counted); after a reconnect it listens again, reads the current
+  value and hands it to every listener as a ``Change(gap=True)``;
+* polls a device whose greeting says ``push=0`` and forwards only changes;
+* pings an idle device and reconnects when it stops answering.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import random
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+from urllib.parse import parse_qsl, urlsplit
+
+from gateway.proxies.connection import LineConnection
+from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
+from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable
+from services.line_protocol import (
+    PROTOCOL_VERSION,
+    Event,
+    Get,
+    Gone,
+    Hello,
+    Listen,
+    Ok,
+    Ping,
+    Set,
+    Unlisten,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class ProxyOptions:
+    """Tuning of a line-protocol proxy, set in the config's ``options`` or in the URL's query."""
+
+    #: Seconds a call may take before DEADLINE_EXCEEDED.
+    timeout: float = 5.0
+    #: Seconds to open the stream and receive the device's greeting.
+    connect_timeout: float = 5.0
+    #: First and longest wait between reconnection attempts; doubled per failure, with jitter.
+    backoff_initial: float = 0.2
+    backoff_max: float = 10.0
+    #: Seconds between polls of a device that cannot push events.
+    poll_interval: float = 0.5
+    #: Seconds of a healthy connection between PINGs (0 = never).
+    keepalive: float = 15.0
+    #: Send a CRC-8 checksum on every line.
+    checksum: bool = False
+    #: Calls that may be in flight on the connection at once.
+    max_in_flight: int = 256
+
+    @classmethod
+    def parse(cls, url: str, options: Mapping[str, Any], skip: frozenset[str] = frozenset()) -> ProxyOptions:
+        """Options from the URL's query, overridden by ``options``; InvalidArgument for a bad one."""
+        merged: dict[str, Any] = dict(parse_qsl(urlsplit(url).query))
+        merged.update(options)
+        values: dict[str, Any] = {}
+        for key, raw in merged.items():
+            if key in skip:
+                continue
+            kind = cls.__dataclass_fields__.get(key)
+            if kind is None:
+                known = ", ".join(sorted({*cls.__dataclass_fields__, *skip}))
+                raise InvalidArgument(f"unknown proxy option {key!r} (known: {known})")
+            default = getattr(cls(), key)
+            try:
+                if isinstance(default, bool):
+                    values[key] = _boolean(raw)
+                elif isinstance(default, int):
+                    values[key] = int(raw)
+                else:
+                    values[key] = float(raw)
+            except (TypeError, ValueError):
+                raise InvalidArgument(f"bad proxy option {key}={raw!r}") from None
+            if values[key] < 0 or (
+                key in ("timeout", "connect_timeout", "poll_interval") and values[key] <= 0
+            ):
+                raise InvalidArgument(f"bad proxy option {key}={raw!r}: must be positive")
+        return cls(**values)
+
+
+def _boolean(raw: Any) -> bool:
+    if isinstance(raw, bool):
+        return raw
+    text = str(raw).strip().lower()
+    if text in ("1", "true", "yes", "on"):
+        return True
+    if text in ("0", "false", "no", "off", ""):
+        return False
+    raise ValueError(raw)
+
+
+@dataclass(eq=False)
+class _Shared:
+    """One device subscription (or one poller) shared by every listener of a path."""
+
+    path: str
+    params: Mapping[str, str]
+    listeners: dict[int, Notify] = field(default_factory=dict)
+    last: str | None = None
+    ready: asyncio.Future[None] | None = None
+    poller: asyncio.Task[None] | None = None
+
+
+class _Handle(Subscription):
+    def __init__(self, proxy: LineProxy, shared: _Shared, key: int) -> None:
+        self._proxy = proxy
+        self._shared = shared
+        self._key = key
+
+    async def close(self) -> None:
+        await self._proxy._unlisten(self._shared, self._key)
+
+
+class LineProxy(Backend):
+    """Base of the TCP and serial proxies (see the module docstring)."""
+
+    #: Ask for the greeting after opening (a serial device greeted at its reset, long ago).
+    ask_hello_first = False
+
+    def __init__(self, name: str, url: str, options: ProxyOptions) -> None:
+        self.name = name
+        self.url = url
+        self.options = options
+        self.info = BackendInfo(type="resource", url=url)
+        self.hello: Hello | None = None
+        self._conn: LineConnection | None = None
+        self._connected = asyncio.Event()
+        self._runner: asyncio.Task[None] | None = None
+        self._shared: dict[str, _Shared] = {}
+        self._keys = itertools.count()
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._last_error = "not connected yet"
+        self._closing = False
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.name!r}, {self.url!r})"
+
+    # -- subclass hook -----------------------------------------------------
+
+    async def open_stream(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        """Open the byte stream to the device (raise OSError when it cannot be opened)."""
+        raise NotImplementedError
+
+    # -- lifecycle ---------------------------------------------------------
+
+    async def start(self) -> None:
+        if self._runner is None:
+            self._runner = asyncio.create_task(self._run(), name=f"proxy {self.name}")
+
+    async def aclose(self) -> None:
+        self._closing = True
+        if self._runner is not None:
+            self._runner.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._runner
+        for shared in self._shared.values():
+            if shared.poller is not None:
+                shared.poller.cancel()
+        tasks = [*self._tasks, *(s.poller for s in self._shared.values() if s.poller)]
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        if self._conn is not None:
+            await self._conn.aclose("proxy closed")
+
+    async def wait_connected(self, wait_s: float) -> None:
+        """Wait until the device is connected and has greeted (tests, startup); Unavailable on timeout."""
+        try:
+            async with asyncio.timeout(wait_s):
+                await self._connected.wait()
+        except TimeoutError:
+            raise Unavailable(
+                f"{self._label()}: not connected after {wait_s:g} s ({self._last_error})"
+            ) from None
+
+    @property
+    def connected(self) -> bool:
+        return self._connected.is_set()
+
+    def _label(self) -> str:
+        return f"device {self.name} at {self.url}"
+
+    async def _run(self) -> None:
+        failures = 0
+        while not self._closing:
+            conn = await self._connect()
+            if conn is None:
+                failures += 1
+                delay = min(
+                    self.options.backoff_max, self.options.backoff_initial * 2 ** min(failures - 1, 30)
+                )
+                await asyncio.sleep(delay * random.uniform(0.5, 1.0))
+                continue
+            failures = 0
+            self._conn = conn
+            self._connected.set()
+            self._spawn(self._resubscribe(conn))
+            await self._supervise(conn)
+            self._connected.clear()
+            self._last_error = conn._close_reason
+            log.warning("%s: disconnected (%s); reconnecting", self._label(), conn._close_reason)
+            # Pollers and listeners stay; the next connection picks them up.
+            await asyncio.sleep(self.options.backoff_initial * random.uniform(0.5, 1.0))
+
+    async def _connect(self) -> LineConnection | None:
+        try:
+            async with asyncio.timeout(self.options.connect_timeout):
+                reader, writer = await self.open_stream()
+        except (OSError, TimeoutError) as exc:
+            self._last_error = f"cannot connect: {exc or 'timed out'}"
+            log.info("%s: %s", self._label(), self._last_error)
+            return None
+        conn = LineConnection(
+            reader,
+            writer,
+            label=f"device {self.name}",
+            on_event=self._on_event,
+            checksum=self.options.checksum,
+            max_in_flight=self.options.max_in_flight,
+        )
+        try:
+            async with asyncio.timeout(self.options.connect_timeout):
+                if self.ask_hello_first:
+                    conn.ask_hello()
+                    hello = await conn.hello
+                else:
+                    done, _ = await asyncio.wait([conn.hello], timeout=self.options.connect_timeout / 2)
+                    if not done:  # a device that greeted before we listened; ask again
+                        conn.ask_hello()
+                    hello = await conn.hello
+        except (TimeoutError, PropertyError) as exc:
+            self._last_error = f"no greeting from the device: {exc or 'timed out'}"
+            log.warning("%s: %s", self._label(), self._last_error)
+            await conn.aclose(self._last_error)
+            return None
+        if hello.version != PROTOCOL_VERSION:
+            self._last_error = f"device speaks line protocol {hello.version}, this gateway {PROTOCOL_VERSION}"
+            log.error("%s: %s", self._label(), self._last_error)
+            await conn.aclose(self._last_error)
+            return None
+        self.hello = hello
+        self.info.type = hello.type or "resource"
+        self.info.extra.update({"device_name": hello.name, "push": "1" if hello.push else "0"})
+        log.info("%s: connected (%s, push=%d)", self._label(), hello.name or "unnamed", hello.push)
+        return conn
+
+    async def _supervise(self, conn: LineConnection) -> None:
+        keepalive = self.options.keepalive
+        while not conn.closed:
+            if keepalive <= 0:
+                await conn.wait_closed()
+                return
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(keepalive):
+                    await conn.wait_closed()
+                return
+            try:
+                await conn.request(Ping(), self.options.timeout)
+            except PropertyError as exc:
+                if exc.code == Code.UNAVAILABLE:
+                    return
+                await conn.aclose(f"no answer to keep-alive: {exc.message}")
+                return
+
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    # -- calls -------------------------------------------------------------
+
+    def _live(self) -> LineConnection:
+        conn = self._conn
+        if conn is None or conn.closed or not self._connected.is_set():
+            raise Unavailable(f"{self._label()} is not connected ({self._last_error})")
+        return conn
+
+    async def _call(self, frame: Get | Set | Listen | Unlisten) -> str:
+        reply = await self._live().request(frame, self.options.timeout)
+        assert isinstance(reply, Ok)
+        return reply.value
+
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+        return await self._call(Get(path, dict(params)))
+
+    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+        return await self._call(Set(path, value, dict(params)))
+
+    # -- listening ---------------------------------------------------------
+
+    def _pushes(self) -> bool:
+        return self.hello is not None and self.hello.push
+
+    async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
+        shared = self._shared.get(path)
+        if shared is None:
+            shared = _Shared(path, dict(params))
+            shared.ready = asyncio.get_running_loop().create_future()
+            self._shared[path] = shared
+            try:
+                await self._subscribe(shared)
+            except BaseException as exc:
+                self._shared.pop(path, None)
+                shared.ready.set_exception(exc if isinstance(exc, Exception) else Unavailable("cancelled"))
+                shared.ready.exception()  # retrieved: waiters re-raise it themselves
+                raise
+            shared.ready.set_result(None)
+        elif shared.ready is not None and not shared.ready.done():
+            await asyncio.shield(shared.ready)
+        key = next(self._keys)
+        shared.listeners[key] = notify
+        return _Handle(self, shared, key)
+
+    async def _subscribe(self, shared: _Shared) -> None:
+        self._live()
+        if self._pushes():
+            shared.last = await self._call(Listen(shared.path, dict(shared.params)))
+        else:
+            shared.last = await self._call(Get(shared.path, dict(shared.params)))
+            shared.poller = asyncio.create_task(self._poll(shared), name=f"poll {self.name}.{shared.path}")
+
+    async def _unlisten(self, shared: _Shared, key: int) -> None:
+        if shared.listeners.pop(key, None) is None or shared.listeners:
+            return
+        if self._shared.get(shared.path) is shared:
+            del self._shared[shared.path]
+        if shared.poller is not None:
+            shared.poller.cancel()
+        elif self.connected and self._pushes():
+            try:
+                await self._call(Unlisten(shared.path))
+            except PropertyError as exc:
+                log.info("%s: UNLISTEN %s failed: %s", self._label(), shared.path, exc.message)
+
+    def _deliver(self, shared: _Shared, change: Change) -> None:
+        for notify in list(shared.listeners.values()):
+            try:
+                notify(change)
+            except Exception:
+                log.exception("%s: a listener of %s failed", self._label(), shared.path)
+
+    def _on_event(self, frame: Event | Gone) -> None:
+        shared = self._shared.get(frame.path)
+        if shared is None:
+            log.debug("%s: event for %s, which nobody listens to", self._label(), frame.path)
+            return
+        if isinstance(frame, Gone):
+            del self._shared[frame.path]
+            self._deliver(shared, Change(frame.path, "", removed=True))
+            return
+        shared.last = frame.value
+        self._deliver(shared, Change(frame.path, frame.value))
+
+    async def _resubscribe(self, conn: LineConnection) -> None:
+        """After a (re)connection: listen again and hand every listener the current value, marked as a gap."""
+        for shared in list(self._shared.values()):
+            if shared.ready is not None and not shared.ready.done():
+                continue  # its first LISTEN is under way on this connection
+            if self._shared.get(shared.path) is not shared or conn.closed:
+                continue
+            try:
+                if self._pushes():
+                    value = await self._call(Listen(shared.path, dict(shared.params)))
+                else:
+                    value = await self._call(Get(shared.path, dict(shared.params)))
+                    if shared.poller is None or shared.poller.done():
+                        shared.poller = asyncio.create_task(self._poll(shared))
+            except NotFound:
+                self._shared.pop(shared.path, None)
+                self._deliver(shared, Change(shared.path, "", removed=True))
+                continue
+            except PropertyError as exc:
+                log.warning("%s: cannot listen to %s again: %s", self._label(), shared.path, exc.message)
+                continue
+            shared.last = value
+            self._deliver(shared, Change(shared.path, value, gap=True))
+
+    async def _poll(self, shared: _Shared) -> None:
+        interval = self.options.poll_interval
+        while self._shared.get(shared.path) is shared:
+            await asyncio.sleep(interval)
+            if not self.connected:
+                continue
+            try:
+                value = await self._call(Get(shared.path, dict(shared.params)))
+            except NotFound:
+                if self._shared.get(shared.path) is shared:
+                    del self._shared[shared.path]
+                    self._deliver(shared, Change(shared.path, "", removed=True))
+                return
+            except PropertyError as exc:
+                log.info("%s: poll of %s failed: %s", self._label(), shared.path, exc.message)
+                continue
+            if value != shared.last and self._shared.get(shared.path) is shared:
+                shared.last = value
+                self._deliver(shared, Change(shared.path, value))
