@@ -23,7 +23,14 @@ import grpc.aio
 from google.protobuf.duration_pb2 import Duration
 from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stubs
 
-from clients.errors import Cancelled, PropertyServiceError, Unknown, error_for_code, error_from_rpc
+from clients.errors import (
+    Cancelled,
+    PropertyServiceError,
+    Unavailable,
+    Unknown,
+    error_for_code,
+    error_from_rpc,
+)
 from clients.values import (
     Marker,
     ValueFormatError,
@@ -501,7 +508,7 @@ class Session:
             while True:
                 resp = await self._call.read()
                 if resp is EOF:
-                    error = Unknown(None, "the gateway ended the session")
+                    error = Unavailable(None, "the gateway ended the session")
                     break
                 for reply in resp.replies:
                     self._dispatch(reply)

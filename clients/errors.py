@@ -13,12 +13,14 @@ __all__ = [
     "Aborted",
     "AlreadyExists",
     "Cancelled",
+    "DataLoss",
     "DeadlineExceeded",
     "FailedPrecondition",
     "GatewayUnreachable",
     "Internal",
     "InvalidArgument",
     "NotFound",
+    "OutOfRange",
     "PermissionDenied",
     "PropertyServiceError",
     "ResourceExhausted",
@@ -128,6 +130,12 @@ class Aborted(PropertyServiceError):
     default_code = grpc.StatusCode.ABORTED
 
 
+class OutOfRange(PropertyServiceError):
+    """A value or index beyond the valid range."""
+
+    default_code = grpc.StatusCode.OUT_OF_RANGE
+
+
 class Unimplemented(PropertyServiceError):
     """The server does not offer this call."""
 
@@ -150,6 +158,12 @@ class GatewayUnreachable(Unavailable):
     """No connection to the gateway itself could be made."""
 
 
+class DataLoss(PropertyServiceError):
+    """Unrecoverable loss or corruption of data."""
+
+    default_code = grpc.StatusCode.DATA_LOSS
+
+
 class Unauthenticated(PropertyServiceError):
     """The call carried no valid credentials."""
 
@@ -169,9 +183,11 @@ _BY_CODE: dict[grpc.StatusCode, type[PropertyServiceError]] = {
         ResourceExhausted,
         FailedPrecondition,
         Aborted,
+        OutOfRange,
         Unimplemented,
         Internal,
         Unavailable,
+        DataLoss,
         Unauthenticated,
     )
 }

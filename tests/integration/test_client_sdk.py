@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import socket
 from collections.abc import AsyncIterator
@@ -23,6 +24,7 @@ from clients import (
     InvalidArgument,
     Marker,
     NotFound,
+    PropertyServiceError,
 )
 
 MOVETO = "<marker><location>(2 1 0 0 0 0)</location></marker>"
@@ -216,3 +218,21 @@ async def test_unreachable_gateway() -> None:
     async with AsyncClient(target, timeout=5) as c:
         with pytest.raises(GatewayUnreachable, match="cannot reach the gateway"):
             await c.get("scout1", "location")
+
+
+async def test_session_and_listen_end_when_the_gateway_stops(gateway_process: Any) -> None:
+    gw = gateway_process()
+    async with AsyncClient(gw.address, timeout=5) as c, c.session() as s:
+        assert await s.get("scout1", "location.x") == "0"
+        stream = c.listen("thermo1", "data")
+        first = await anext(stream)
+        assert first.service == "thermo1"
+        await asyncio.to_thread(gw.stop)
+        # The stream ends (normally or with a status) instead of hanging.
+        async with asyncio.timeout(20):
+            with contextlib.suppress(PropertyServiceError):
+                async for _ in stream:
+                    pass
+        with pytest.raises(PropertyServiceError):
+            await s.get("scout1", "location.x")
+        assert s.closed
