@@ -120,6 +120,31 @@ class Calls:
         return pb.SetResponse(value=answer if answer is not None else "")
 
 
+class _Wake:
+    """A one-waiter asyncio.Event without the waiter deque: idle Listen streams stay small."""
+
+    __slots__ = ("_future", "_set")
+
+    def __init__(self) -> None:
+        self._set = False
+        self._future: asyncio.Future[None] | None = None
+
+    def set(self) -> None:
+        self._set = True
+        future = self._future
+        if future is not None and not future.done():
+            future.set_result(None)
+
+    async def wait(self) -> None:
+        if not self._set:
+            self._future = asyncio.get_running_loop().create_future()
+            try:
+                await self._future
+            finally:
+                self._future = None
+        self._set = False
+
+
 class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
     """Serves the v1 contract from a router and a listen hub."""
 
@@ -157,7 +182,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
 
     async def Listen(self, request: pb.ListenRequest, context: Context) -> None:
         limits = self.config.limits
-        wake = asyncio.Event()
+        wake = _Wake()
         try:
             stream = self.hub.open(
                 parse_selectors(request, limits), parse_options(request.options, limits), wake.set
@@ -172,7 +197,6 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
                 await abort(context, exc, "Listen")
             while True:
                 await wake.wait()
-                wake.clear()
                 while (response := stream.take()) is not None:
                     await context.write(response)
                 if stream.error is not None:
