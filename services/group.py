@@ -198,7 +198,11 @@ class Group(Resource):
         self.sensors = Parts()
         self.subgroups = Subgroups()
         self.failed = []
-        self.query = urllib.parse.urlencode(self._query, safe="()") if self._query else ""
+        self.query = (
+            urllib.parse.urlencode(self._query, safe="() ", quote_via=urllib.parse.quote)
+            if self._query
+            else ""
+        )
         self.member_timeout = float(member_timeout)
         self._wanted: set[str] = set(self._static or ())
         self._locations: dict[str, Vector] = {}
