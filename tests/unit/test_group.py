@@ -329,7 +329,7 @@ async def test_a_thousand_members_all_accept_their_targets() -> None:
     directory = MemoryDirectory()
     names = [f"r{i}" for i in range(1000)]
     for i, name in enumerate(names):
-        await directory.add(name, LocalService(SimRobot(start=(i % 40, i // 40))))
+        await directory.add(name, LocalService(SimRobot(start=(i % 40, i // 40), tick_hz=0.1)))
     group = await make_group(directory, members=names)
     try:
         accepted = await group.set(
