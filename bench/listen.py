@@ -13,11 +13,12 @@ Two modes:
 * ``one-by-one``: every subscriber listens to one property; the setter makes
   one Set at a time. This is the plain fan-out of part (c).
 * ``batched``: every subscriber listens to ``len(properties)`` properties in
-  one stream; the setter writes a burst of Sets, one to each property, all
-  in flight together, then the next burst. Several events are then ready for
-  each subscriber at once, and a server that batches sends them in one
-  ListenResponse; the subscribers count events per message. The bare server
-  sends one event per message whatever is ready.
+  one stream; the setter writes bursts over one Session stream: one
+  SessionRequest carrying one Set to each property, then, once all its
+  replies are back, the next. The server applies a burst's Sets together, so
+  several events are ready for each subscriber at once, and a server that
+  batches sends them in one ListenResponse; the subscribers count events per
+  message. The bare server sends one event per message whatever is ready.
 
 Events/s is the number of events all subscribers read, divided by the time
 from the first Set to the last event read. A server that conflates (drops
@@ -179,31 +180,63 @@ async def _set_all(
     deadline: float,
     result: ListenResult,
 ) -> dict[str, str]:
-    """Make ``sets`` Sets in bursts of ``len(properties)``; return the last value written to each."""
+    """Make ``sets`` Sets; return the last value written to each property.
+
+    With one property: one unary Set at a time. With several: each burst is
+    one SessionRequest carrying one Set per property, and the next burst
+    goes when all its replies are back.
+    """
     final: dict[str, str] = {}
-
-    async def one(prop: str) -> None:
-        value = str(time.perf_counter_ns())
-        try:
-            await stub.Set(pb.SetRequest(service=SERVICE, property=prop, value=value), timeout=CALL_TIMEOUT)
-        except grpc.aio.AioRpcError:
-            result.set_errors += 1
-        else:
-            final[prop] = value
-        result.sets_done += 1
-
     interval = len(properties) / set_rate if set_rate else 0.0
     next_at = time.monotonic()
-    while result.sets_done < sets and time.monotonic() < deadline:
-        group = properties[: sets - result.sets_done]
-        if len(group) == 1:
-            await one(group[0])
-        else:
-            await asyncio.gather(*(one(prop) for prop in group))
-        if interval:
-            next_at += interval
-            await asyncio.sleep(max(next_at - time.monotonic(), 0.0))
+    session = stub.Session() if len(properties) > 1 else None
+    try:
+        while result.sets_done < sets and time.monotonic() < deadline:
+            group = properties[: sets - result.sets_done]
+            if session is None:
+                value = str(time.perf_counter_ns())
+                request = pb.SetRequest(service=SERVICE, property=group[0], value=value)
+                try:
+                    await stub.Set(request, timeout=CALL_TIMEOUT)
+                except grpc.aio.AioRpcError:
+                    result.set_errors += 1
+                else:
+                    final[group[0]] = value
+                result.sets_done += 1
+            else:
+                await _burst(session, group, result.sets_done, final, result)
+            if interval:
+                next_at += interval
+                await asyncio.sleep(max(next_at - time.monotonic(), 0.0))
+    finally:
+        if session is not None:
+            session.cancel()
     return final
+
+
+async def _burst(
+    session: Any, group: Sequence[str], first_id: int, final: dict[str, str], result: ListenResult
+) -> None:
+    """One SessionRequest with a Set to each property of ``group``; wait for every reply."""
+    message = pb.SessionRequest()
+    values: dict[int, tuple[str, str]] = {}
+    for number, prop in enumerate(group, start=first_id + 1):
+        value = str(time.perf_counter_ns())
+        values[number] = (prop, value)
+        message.requests.add(id=number, set=pb.SetRequest(service=SERVICE, property=prop, value=value))
+    async with asyncio.timeout(CALL_TIMEOUT):
+        await session.write(message)
+        while values:
+            response = await session.read()
+            if response is STREAM_END:
+                raise RuntimeError(f"the setter's Session ended: {await session.code()}")
+            for reply in response.replies:
+                prop, value = values.pop(reply.id)
+                result.sets_done += 1
+                if reply.status.code:
+                    result.set_errors += 1
+                else:
+                    final[prop] = value
 
 
 async def run_listen(

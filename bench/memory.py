@@ -40,6 +40,9 @@ class MemoryResult:
 
     streams: int
     channels: int
+    #: "streams": one Listen RPC each; "session": Listen requests inside
+    #: Session streams, one Session a channel.
+    how: str = "streams"
     opened: int = 0
     rss_start: int = 0
     rss_before: int = 0
@@ -53,6 +56,7 @@ class MemoryResult:
 
     def as_dict(self) -> dict[str, Any]:
         return {
+            "how": self.how,
             "streams": self.streams,
             "channels": self.channels,
             "opened": self.opened,
@@ -102,6 +106,64 @@ async def run_memory(
     finally:
         for call in calls:
             call.cancel()
+        for channel in opened:
+            await channel.close(None)
+    await asyncio.sleep(SETTLE_S)
+    result.rss_closed = server.rss_bytes()
+    server.check_alive()
+    return result
+
+
+async def _session_listens(session: Any, request: pb.ListenRequest, first_id: int, count: int) -> None:
+    """Start ``count`` Listens in one SessionRequest and wait for the sync marker of each."""
+    message = pb.SessionRequest()
+    for number in range(first_id, first_id + count):
+        message.requests.add(id=number, listen=request)
+    await session.write(message)
+    waiting = set(range(first_id, first_id + count))
+    while waiting:
+        response = await session.read()
+        if response is STREAM_END:
+            raise RuntimeError(f"a Session ended before its Listens were in sync: {await session.code()}")
+        for reply in response.replies:
+            if reply.status.code:
+                raise RuntimeError(f"a Listen inside a Session failed: {reply.status.message}")
+            if reply.listen.sync:
+                waiting.discard(reply.id)
+
+
+async def run_session_memory(
+    server: ServerProcess, *, listens: int, channels: int, time_limit: float
+) -> MemoryResult:
+    """Like :func:`run_memory`, with the idle Listens carried as requests inside one Session per channel."""
+    result = MemoryResult(streams=listens, channels=channels, how="session")
+    result.rss_start = server.rss_bytes()
+    request = pb.ListenRequest(service=SERVICE, property=VALUE_PROPERTY)
+    opened = [grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(channels)]
+    stubs = [pb_grpc.PropertyServiceStub(channel) for channel in opened]
+    sessions: list[Any] = []
+    try:
+        async with asyncio.timeout(time_limit):
+            await stubs[0].Set(pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value="0"), timeout=10)
+            sessions = [stub.Session() for stub in stubs]
+            await asyncio.gather(*(_session_listens(session, request, 1, 1) for session in sessions))
+            await asyncio.sleep(SETTLE_S)
+            result.rss_before = server.rss_bytes()
+            start = time.perf_counter()
+            share = [listens // channels + (n < listens % channels) for n in range(channels)]
+            await asyncio.gather(
+                *(
+                    _session_listens(session, request, 2, count)
+                    for session, count in zip(sessions, share, strict=True)
+                )
+            )
+            result.open_s = time.perf_counter() - start
+            result.opened = listens
+            await asyncio.sleep(SETTLE_S)
+            result.rss_after = server.rss_bytes()
+    finally:
+        for session in sessions:
+            session.cancel()
         for channel in opened:
             await channel.close(None)
     await asyncio.sleep(SETTLE_S)

@@ -331,13 +331,16 @@ def print_report(out: TextIO, info: dict[str, Any], results: Results, verdicts: 
         ]
 
     rows = _rows(results, "memory", memory)
+    rows += [
+        [f"{row[0]} (Listens in Sessions)", *row[1:]] for row in _rows(results, "memory_session", memory)
+    ]
     if rows:
         _table(
             out,
             "(d) idle Listen streams",
             [
                 "server",
-                "streams",
+                "Listens",
                 "channels",
                 "RSS before MiB",
                 "RSS open MiB",

@@ -1,0 +1,76 @@
+"""The gateway under test: a real :class:`gateway.app.Gateway` serving one bench-only service.
+
+The service is :class:`BenchTarget`, a plain Resource with settable text
+properties, served in-process by ``services.core.LocalService`` — the same
+path as every Python service behind the gateway (router, listen hub, Session
+handler, class wrapper), with nothing device-like behind it.
+
+Run ``python -m bench.gateway_server --listen 127.0.0.1:0``; it prints
+``listening on HOST:PORT`` to stderr, like ``psgateway serve``, and stops on
+SIGTERM, SIGINT or end of file on stdin.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import sys
+
+from bench.baseline import until_stopped
+from bench.target import SERVICE
+from services.core import Resource
+
+
+class BenchTarget(Resource):
+    """The property under test: settable text, plus ten more for the batched Listen part."""
+
+    resource_type = "bench"
+
+    value: str = "0"
+    v0: str = "0"
+    v1: str = "0"
+    v2: str = "0"
+    v3: str = "0"
+    v4: str = "0"
+    v5: str = "0"
+    v6: str = "0"
+    v7: str = "0"
+    v8: str = "0"
+    v9: str = "0"
+
+
+async def serve(listen: str) -> None:
+    """Run a gateway with :class:`BenchTarget` as service ``bench`` until stopped."""
+    from gateway.app import Gateway
+    from gateway.config import Config, GatewaySection
+    from services.core import LocalService
+
+    config = Config(gateway=GatewaySection(listen=listen, log_level="warning"))
+    gateway = Gateway(config, backends={SERVICE: LocalService(BenchTarget())})
+    await gateway.start()
+    print(f"listening on {gateway.address}", file=sys.stderr, flush=True)
+    try:
+        await until_stopped()
+    finally:
+        await gateway.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line: ``python -m bench.gateway_server --listen HOST:PORT``."""
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.gateway_server", description="The gateway under test, serving service 'bench'."
+    )
+    parser.add_argument("--listen", default="127.0.0.1:0", help="address to serve on (default %(default)s)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s"
+    )
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(serve(args.listen))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

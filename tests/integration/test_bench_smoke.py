@@ -1,0 +1,49 @@
+"""The benchmark runs end to end: ``python -m bench --quick`` measures both servers and judges every target.
+
+A smoke test only: it checks that each part ran on both servers and that
+every ratio line carries a figure and a verdict, never what the figures are.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+TARGETS = ("unary-get", "session-get", "listen-fanout", "listen-batched", "idle-listen-memory")
+
+
+def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
+    saved = tmp_path / "bench.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "bench", "--quick", "--json", str(saved)],
+        cwd=ROOT,
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=110,
+        check=False,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    out = done.stdout
+    assert re.search(r"^machine: .+ \d+ cores .*grpcio \d", out, re.MULTILINE), out
+    for name in TARGETS:
+        line = re.search(rf"^ratio {name} +(\S+) .*target [<>]= [\d.]+ \S+ +(PASS|FAIL)\b", out, re.MULTILINE)
+        assert line is not None, f"no judged ratio line for {name}:\n{out}"
+        float(line.group(1))
+
+    payload = json.loads(saved.read_text())
+    for server in ("baseline", "gateway"):
+        for part in ("unary", "session", "listen", "batched", "memory"):
+            figures = payload["results"][server][part]
+            assert "error" not in figures, (server, part, figures)
+    # Every Set reached every subscriber, on both servers (delivered or, for the gateway, conflated).
+    for server in ("baseline", "gateway"):
+        listen = payload["results"][server]["listen"]
+        assert listen["complete"], listen
+        assert listen["events"] + listen["conflated"] == listen["expected_events"]
+    assert payload["results"]["gateway"]["batched"]["events_per_message"] > 1
+    assert [t["name"] for t in payload["targets"]] == list(TARGETS)
