@@ -125,7 +125,7 @@ class Gateway:
 
             raise Unavailable("gateway.line_listen is set but no line-protocol listener is installed")
         self._line_listener = await backends.LINE_LISTENER(address, self.router)
-        log.info("line protocol listening on %s", address)
+        log.info("line-protocol listener on %s", address)
 
     def _make_server(self) -> grpc.aio.Server:
         server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])

@@ -40,7 +40,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 ROOT = Path(__file__).resolve().parents[2]
 START_TIMEOUT = 20.0
 STOP_TIMEOUT = 5.0
-_LISTENING = re.compile(r"listening on (\S+:\d+)")
+_LISTENING = re.compile(r"^listening on (\S+:\d+)$")
 
 
 class GatewayProcess:
@@ -68,7 +68,7 @@ class GatewayProcess:
         assert self.proc.stdout is not None
         for line in self.proc.stdout:
             self._lines.append(line)
-            m = _LISTENING.search(line)
+            m = _LISTENING.match(line.strip())
             if m and not self.address:
                 self.address = m.group(1)
                 self._listening.set()
