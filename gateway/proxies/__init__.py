@@ -21,6 +21,10 @@ def _register() -> None:
         return
     backends.PROXY_SCHEMES.setdefault("tcp", open_tcp_backend)
     backends.PROXY_SCHEMES.setdefault("serial", open_serial_backend)
+    if backends.LINE_LISTENER is None:
+        from gateway.line_listener import start_line_listener
+
+        backends.LINE_LISTENER = start_line_listener
 
 
 _register()
