@@ -99,9 +99,15 @@ class Gateway:
         log.info("service %s started (%s)", name, what)
 
     async def _start_registry(self) -> None:
+        import services.registry as registry_module
         from services.core import LocalService
         from services.registry import Registry
 
+        if hasattr(registry_module, "RegistryService"):
+            # The registry that follows the directory (the router) by itself.
+            service = registry_module.RegistryService(Registry(directory=self.router))  # type: ignore[call-arg,unused-ignore]
+            await self._add(REGISTRY_NAME, service, "built in")
+            return
         registry = Registry()
 
         def follow(name: str, backend: Backend | None) -> None:
