@@ -108,7 +108,9 @@ async function set(stub, [service, property, value], values) {
 
 function listen(stub, [service, property], values) {
   const count = values.count === undefined ? Infinity : Number(values.count);
-  if (!(count > 0 && Number.isInteger(count))) throw new UsageError("--count wants a positive integer");
+  if (!(count === Infinity || (Number.isInteger(count) && count > 0))) {
+    throw new UsageError("--count wants a positive integer");
+  }
   const request = { service, property, options: { updates_only: Boolean(values["updates-only"]) } };
   return new Promise((resolve, reject) => {
     const call = stub.Listen(request);
