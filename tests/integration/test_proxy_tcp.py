@@ -223,7 +223,7 @@ async def test_disconnect_mid_reply_fails_outstanding_calls_with_unavailable() -
 
 async def test_device_without_greeting_is_asked_and_bad_urls_are_refused() -> None:
     async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        async for tag, rest in requests(reader):
+        async for tag, _rest in requests(reader):
             if tag == "HELLO":  # the proxy asks untagged
                 writer.write(b"HELLO 1 name=quiet\n")
             else:
