@@ -58,7 +58,6 @@ def _load_integration_fixtures() -> Any:
 
 _fixtures = _load_integration_fixtures()
 demo_gateway = _fixtures.demo_gateway
-GatewayProcess = _fixtures.GatewayProcess
 
 
 @pytest.fixture(scope="session")
