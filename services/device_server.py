@@ -361,11 +361,13 @@ class DeviceServer:
         import serial_asyncio_fast
 
         try:
-            return await serial_asyncio_fast.open_serial_connection(
+            opened: tuple[asyncio.StreamReader, asyncio.StreamWriter]
+            opened = await serial_asyncio_fast.open_serial_connection(
                 url=port, baudrate=baudrate, limit=_READ_SIZE
             )
         except (serial.SerialException, ValueError) as exc:
             raise OSError(f"cannot open serial port {port}: {exc}") from exc
+        return opened
 
     async def _serial_loop(
         self,
