@@ -3,6 +3,12 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python -m pip install --quiet --disable-pip-version-check --root-user-action=ignore -e '.[test]'
+# The interop tests drive the example Node.js client; install node and npm if the machine lacks them.
+if ! command -v node >/dev/null || ! command -v npm >/dev/null; then
+  echo "== installing nodejs and npm (Debian packages)"
+  if [ "$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi
+  $SUDO apt-get update -qq && $SUDO apt-get install -y -qq nodejs npm >/dev/null
+fi
 echo "== ruff check"; python -m ruff check .
 echo "== ruff format --check"; python -m ruff format --check .
 echo "== mypy"; python -m mypy

@@ -9,8 +9,8 @@ import sys
 
 import grpc
 import pytest
-from conftest import ROOT, GatewayProcess
 from google.protobuf.duration_pb2 import Duration
+from support.gateway_process import ROOT, GatewayProcess
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc

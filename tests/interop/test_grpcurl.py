@@ -7,18 +7,14 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import shutil
-import signal
 import subprocess
-import sys
-import threading
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+from support.gateway_process import GatewayProcess
 
 ROOT = Path(__file__).resolve().parents[2]
 SERVICE = "propertyservice.v1.PropertyService"
@@ -35,46 +31,9 @@ def grpcurl() -> str:
 
 
 @pytest.fixture(scope="module")
-def addr() -> Iterator[str]:
-    """A real demo gateway process (``psgateway serve``) on a free loopback port."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "gateway.cli", "serve", "--listen", "127.0.0.1:0"],
-        cwd=ROOT,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-    found: list[str] = []
-    output: list[str] = []
-    listening = threading.Event()
-
-    def drain() -> None:  # keeps the pipe from filling up; notes the address
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            output.append(line)
-            m = re.search(r"listening on (\S+:\d+)", line)
-            if m and not found:
-                found.append(m.group(1))
-                listening.set()
-        listening.set()
-
-    reader = threading.Thread(target=drain, daemon=True)
-    reader.start()
-    try:
-        if not listening.wait(START_TIMEOUT) or not found:
-            pytest.fail(f"the gateway did not start:\n{''.join(output)}")
-        yield found[0]
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(10)
-        reader.join(10)
+def addr(demo_gateway: GatewayProcess) -> str:
+    """Address of a real demo gateway process (``psgateway serve``) on a free loopback port."""
+    return demo_gateway.address
 
 
 def run(grpcurl: str, *args: str) -> subprocess.CompletedProcess[str]:

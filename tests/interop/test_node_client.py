@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
-import importlib.util
 import itertools
 import json
 import math
@@ -29,35 +28,18 @@ NODE_DIR = ROOT / "clients" / "examples" / "node"
 PROPCTL = NODE_DIR / "propctl.mjs"
 # Written after a successful `npm ci`: the hash of the lock file it installed.
 STAMP = NODE_DIR / "node_modules" / ".installed-lock-sha256"
-NODE_MAJOR = 20
+NODE_MAJOR = 18
 NPM_TIMEOUT = 300.0
 CALL_TIMEOUT = 30.0
 MOVETO = "<marker><location>(2.0 1.0 0 0 0 0)</location></marker>"
 TARGET_XY = (2.0, 1.0)
 INSTALL_HINT = (
     f"the Node.js client tests need node >= {NODE_MAJOR} and npm on PATH: "
-    "install Node.js 20 LTS (https://nodejs.org/en/download, or e.g. "
-    "`curl -fsSL https://deb.nodesource.com/setup_20.x | bash - && apt-get install -y nodejs`)"
+    "tests/run.sh installs them with apt-get when missing (Debian packages nodejs and npm)"
 )
 
 # The first test of the session also carries the one-time `npm ci` (bounded by NPM_TIMEOUT).
 pytestmark = pytest.mark.timeout(NPM_TIMEOUT + 60)
-
-
-def _load_integration_fixtures() -> Any:
-    # The real-gateway fixtures live in tests/integration/conftest.py; load that file under its own
-    # name so that it does not clash with the `conftest` module pytest imports for that folder.
-    spec = importlib.util.spec_from_file_location(
-        "integration_gateway_fixtures", ROOT / "tests" / "integration" / "conftest.py"
-    )
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-_fixtures = _load_integration_fixtures()
-demo_gateway = _fixtures.demo_gateway
 
 
 @pytest.fixture(scope="session")

@@ -1,5 +1,6 @@
-"""Fixtures that run a real gateway process on a free loopback port.
+"""A real gateway process on a free loopback port, and the fixtures that start one.
 
+``tests/conftest.py`` exposes the fixtures to every test folder.
 ``gateway_process`` is a factory: call it with the text of a TOML config (or
 nothing, for the built-in demo) and get a :class:`GatewayProcess` whose
 ``.address`` is ``127.0.0.1:PORT``. It runs
@@ -112,7 +113,11 @@ def _start(tmp: Path, config: str | None, extra_args: Sequence[str] = ()) -> Gat
         path.write_text(textwrap.dedent(config))
         args += ["--config", str(path)]
     gw = GatewayProcess([*args, *extra_args])
-    gw.wait_ready()
+    try:
+        gw.wait_ready()
+    except BaseException:
+        gw.stop()  # never leave a half-started gateway behind
+        raise
     return gw
 
 
