@@ -51,7 +51,15 @@ from services.errors import (
 from services.formations import FORMATIONS, centroid, formation_targets, natural_key
 from services.paths import validate_service_name
 from services.query import Query
-from services.values import Marker, ValueFormatError, Vector, format_marker, format_value, parse_vector
+from services.values import (
+    Marker,
+    ValueFormatError,
+    Vector,
+    format_marker,
+    format_value,
+    parse_names,
+    parse_vector,
+)
 
 __all__ = ["DEFAULT_MEMBER_TIMEOUT", "Group", "GroupCallFailed", "query_params", "run_bounded"]
 
@@ -213,6 +221,8 @@ class Group(Resource):
         self._refresh_task: asyncio.Task[None] | None = None
         self._refresh_again = False
         self._started = False
+        self._registry_sub: Subscription | None = None
+        self._registry_backend: Backend | None = None
 
     # -- lifecycle -------------------------------------------------------
 
@@ -237,6 +247,9 @@ class Group(Resource):
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
         self._trackers.clear()
+        if self._registry_sub is not None:
+            await _close_quietly(self._registry_sub)
+            self._registry_sub = None
         for sub in list(self._subscriptions.values()):
             await _close_quietly(sub)
         self._subscriptions.clear()
@@ -263,6 +276,7 @@ class Group(Resource):
             return
         try:
             registry = self._directory.backend(self._registry)
+            await self._follow_registry(registry)
             async with asyncio.timeout(self.member_timeout):
                 text = await registry.get("find", self._query)
         except TimeoutError:
@@ -271,10 +285,23 @@ class Group(Resource):
         except PropertyError as e:
             log.warning("group query: the registry %r refused it: %s", self._registry, e.message)
             return
-        from services.values import parse_names
-
         self._wanted = set(parse_names(text))
         self._sync()
+
+    async def _follow_registry(self, registry: Backend) -> None:
+        """Ask again whenever the registry's table changes (a type learned, a state changed)."""
+        if self._registry_sub is not None and self._registry_backend is registry:
+            return
+        if self._registry_sub is not None:
+            await _close_quietly(self._registry_sub)
+            self._registry_sub = None
+        try:
+            async with asyncio.timeout(self.member_timeout):
+                sub = await registry.listen("revision", lambda change: self._schedule_refresh())
+        except (PropertyError, TimeoutError):
+            return  # a registry without a revision: joins and leaves still trigger a refresh
+        self._registry_sub = sub
+        self._registry_backend = registry
 
     def _candidates(self) -> set[str]:
         wanted = set(self._wanted)
@@ -343,6 +370,8 @@ class Group(Resource):
                 sub._sync()
 
     def _schedule_refresh(self) -> None:
+        if not self._started:
+            return
         if self._refresh_task is not None and not self._refresh_task.done():
             self._refresh_again = True
             return

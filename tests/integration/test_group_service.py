@@ -1,0 +1,153 @@
+"""Groups with the full registry in-process: query membership kept current, query subgroups, scale.
+
+``measure_group_moveto`` and ``measure_find`` are the benchmark's figures for
+issue 4 (bench/ calls them); the tests here run them small and check results.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator
+
+import numpy as np
+import pytest
+from group_support import MemoryDirectory, sim_robot, wait_for
+
+from services.backend import BackendInfo, Change
+from services.core import LocalService
+from services.errors import Code, PropertyError
+from services.formations import formation_targets
+from services.group import Group
+from services.registry import Registry, RegistryService
+from services.simulators import SimRobot, SimSensor
+from services.values import parse_names, parse_vector
+
+
+async def start(directory: MemoryDirectory) -> RegistryService:
+    service = RegistryService(Registry(directory=directory, period=0))
+    await directory.add("registry", service)
+    return service
+
+
+@pytest.fixture
+async def world() -> AsyncIterator[MemoryDirectory]:
+    directory = MemoryDirectory()
+    for i, url in enumerate(["tcp://127.0.0.1:7001", "tcp://127.0.0.1:7002", "tcp://127.0.0.1:7003"]):
+        directory.devices[url] = lambda i=i: sim_robot(4 + i, 5)
+    directory.devices["tcp://127.0.0.1:7004"] = lambda: sim_robot(40, 40)
+    yield directory
+    await directory.aclose()
+
+
+async def test_query_group_follows_registrations(world: MemoryDirectory) -> None:
+    registry = await start(world)
+    await world.add("thermo", LocalService(SimSensor(location=(5, 5))))
+    group = await world.add(
+        "near5",
+        LocalService(Group(directory=world, query={"type": "mobile_robot", "near": [5, 5], "radius": 3})),
+    )
+    assert await group.get("query") == "type=mobile_robot&near=(5 5)&radius=3"
+    assert parse_names(await group.get("robots")) == []
+    changes: list[Change] = []
+    await group.listen("robots", changes.append)
+    await registry.set("services.scout1", "tcp://127.0.0.1:7001")
+    await registry.set("services.scout2", "tcp://127.0.0.1:7002")
+    await registry.set("services.far", "tcp://127.0.0.1:7004")
+    await wait_for(group, "robots", lambda v: set(parse_names(v)) == {"scout1", "scout2"})
+    await registry.set("services.scout1", "")
+    robots = await wait_for(group, "robots", lambda v: parse_names(v) == ["scout2"])
+    assert parse_names(robots) == ["scout2"]
+    assert changes  # a Listen on robots heard the joins and the leave
+
+
+async def test_query_subgroup_and_moveto_in_a_grid(world: MemoryDirectory) -> None:
+    registry = await start(world)
+    for i in (1, 2, 3):
+        await registry.set(f"services.scout{i}", f"tcp://127.0.0.1:700{i}", {"type": "mobile_robot"})
+    group = await world.add("swarm", LocalService(Group(directory=world, query={"type": "mobile_robot"})))
+    await wait_for(group, "robots", lambda v: len(parse_names(v)) == 3)
+    made = await group.set("subgroup", "left", {"query": "type=mobile_robot&near=(4 5)&radius=1.5"})
+    assert parse_names(made) == ["scout1", "scout2"]
+    await group.set(
+        "subgroups.left.behaviors.moveto",
+        "<marker><location>(0 0)</location></marker>",
+        {"formation": "grid"},
+    )
+    places = formation_targets(["scout1", "scout2"], [0, 0], "grid", 1.0)
+    for name, place in places.items():
+        await wait_for(
+            world.backend(name), "location", lambda v, p=place: np.allclose(parse_vector(v)[:2], p)
+        )
+    with pytest.raises(PropertyError) as info:
+        await group.set("subgroup", "bad", {"query": "colour=red"})
+    assert info.value.code is Code.INVALID_ARGUMENT
+
+
+async def measure_group_moveto(n: int) -> float:
+    """Seconds until every one of ``n`` in-process simulated members accepted its moveto target."""
+    directory = MemoryDirectory()
+    names = [f"r{i}" for i in range(n)]
+    for i, name in enumerate(names):
+        await directory.add(name, LocalService(SimRobot(start=(i % 100, i // 100), tick_hz=0.1)))
+    group = LocalService(Group(directory=directory, members=names))
+    await group.start()
+    try:
+        t0 = time.perf_counter()
+        accepted = await group.set(
+            "behaviors.moveto", "<marker><location>(0 0)</location></marker>", {"formation": "circle"}
+        )
+        elapsed = time.perf_counter() - t0
+        assert len(parse_names(accepted)) == n
+        return elapsed
+    finally:
+        await group.aclose()
+        await directory.aclose()
+
+
+async def measure_find(n: int, queries: int = 200) -> tuple[float, float]:
+    """p50 and p99 seconds of ``find`` (type + near + radius) over a registry of ``n`` entries."""
+    registry = Registry(period=0)
+    service = RegistryService(registry)
+    await service.start()
+    rng = np.random.default_rng(1)
+    side = float(np.sqrt(n)) * 10  # about one robot per 100 m²
+    for i, (x, y) in enumerate(rng.uniform(0, side, size=(n, 2))):
+        registry.add(
+            f"r{i}", BackendInfo(type="mobile_robot" if i % 4 else "sensor", url="tcp://10.0.0.1:7000")
+        )
+        registry._store_location(f"r{i}", f"({x:.3f} {y:.3f} 0)")
+    times = []
+    try:
+        for centre in rng.uniform(0, side, size=(queries, 2)):
+            params = {"type": "mobile_robot", "near": f"({centre[0]:.2f} {centre[1]:.2f})", "radius": "30"}
+            t0 = time.perf_counter()
+            await service.get("find", params)
+            times.append(time.perf_counter() - t0)
+    finally:
+        await service.aclose()
+    p50, p99 = np.percentile(times, [50, 99])
+    return float(p50), float(p99)
+
+
+async def test_the_benchmark_measurements_run() -> None:
+    assert await measure_group_moveto(100) > 0
+    p50, p99 = await measure_find(1000, queries=20)
+    assert 0 < p50 <= p99
+
+
+async def test_a_group_reports_members_that_left_the_network(world: MemoryDirectory) -> None:
+    registry = await start(world)
+    await registry.set("services.scout1", "tcp://127.0.0.1:7001")
+    group = await world.add("pair", LocalService(Group(directory=world, members=["scout1", "scout2"])))
+    with pytest.raises(PropertyError) as info:
+        await group.set("behaviors.moveto", "<marker><location>(1 1)</location></marker>")
+    assert "scout2: UNAVAILABLE: not registered right now" in info.value.message
+    await registry.set("services.scout2", "tcp://127.0.0.1:7002")
+    await asyncio.sleep(0)
+    assert parse_names(
+        await group.set("behaviors.moveto", "<marker><location>(1 1)</location></marker>")
+    ) == [
+        "scout1",
+        "scout2",
+    ]
