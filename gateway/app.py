@@ -1,7 +1,8 @@
 """Assembly: a configured, running gateway.
 
 :class:`Gateway` builds the router from a :class:`~gateway.config.Config`
-(plus the built-in ``registry`` service), starts the grpc.aio server with the
+(plus the built-in ``registry`` service), starts the ``[[devices]]`` processes
+(``gateway.devices``) and reaches them through their proxies, starts the grpc.aio server with the
 PropertyService, server reflection and the health service, and shuts all of
 it down gracefully. It runs in-process too, which is how tests and users
 run a gateway and a client in one program::
@@ -24,16 +25,21 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_health.v1.health import aio as health_aio  # type: ignore[attr-defined]
 from grpc_reflection.v1alpha import reflection
 
-from gateway.backends import open_backend
+from gateway.backends import open_backend, open_proxy
 from gateway.config import REGISTRY_NAME, Config
+from gateway.devices import DeviceProcess, start_device
 from gateway.listen_hub import ListenHub
 from gateway.router import Router
 from gateway.server import PropertyServicer
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.backend import Backend
+from services.errors import PropertyError
 
 log = logging.getLogger("gateway")
+
+#: Seconds the gateway waits at startup for each of its own devices to connect and greet.
+DEVICE_CONNECT_WAIT = 5.0
 
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
 
@@ -56,6 +62,8 @@ class Gateway:
         self._line_listener: object | None = None
         self._stopped = asyncio.Event()
         self._unwatch_registry: object | None = None
+        self._devices: list[DeviceProcess] = []
+        self._launch: asyncio.Future[list[DeviceProcess | BaseException]] | None = None
         #: "host:port" the gRPC server listens on (the real port when 0 was asked).
         self.address = ""
         self.servicer = PropertyServicer(self.router, self.hub, self.config)
@@ -74,12 +82,14 @@ class Gateway:
         await self._health.set("", health_pb2.HealthCheckResponse.NOT_SERVING)
         await self._health.set(SERVICE_NAME, health_pb2.HealthCheckResponse.NOT_SERVING)
         try:
+            self._launch_devices()
             await self._start_registry()
             for entry in self.config.services:
                 backend = open_backend(entry)
                 await self._add(entry.name, backend, entry.url or f"type {entry.type}")
             for name, backend in self._extra.items():
                 await self._add(name, backend, backend.info.url)
+            await self._start_devices()
             await self._start_line_listener()
             self._server = self._make_server()
             await self._server.start()
@@ -97,6 +107,49 @@ class Gateway:
             await backend.aclose()
             raise
         log.info("service %s started (%s)", name, what)
+
+    def _launch_devices(self) -> None:
+        """Start every ``[[devices]]`` process at once; they boot while the gateway starts the rest."""
+        if self.config.devices and self._launch is None:
+            self._launch = asyncio.ensure_future(
+                asyncio.gather(*(start_device(e) for e in self.config.devices), return_exceptions=True)
+            )
+
+    async def _start_devices(self) -> None:
+        """Wait for the device processes to say where they serve, then reach each through its proxy."""
+        if self._launch is None:
+            return
+        started = await self._launch
+        self._launch = None
+        self._devices = [d for d in started if isinstance(d, DeviceProcess)]
+        for outcome in started:
+            if isinstance(outcome, BaseException):
+                raise outcome
+        proxies: list[tuple[str, Backend]] = []
+        for entry, device in zip(self.config.devices, self._devices, strict=True):
+            backend = open_proxy(entry.name, device.url, entry.proxy)
+            await self._add(entry.name, backend, f"device process {device.pid} at {device.url}")
+            proxies.append((entry.name, backend))
+        await asyncio.gather(*(self._wait_connected(name, backend) for name, backend in proxies))
+
+    async def _stop_devices(self) -> None:
+        if self._launch is not None:
+            # Never cancelled: a start_device cut short could leave its process behind.
+            started = await self._launch
+            self._launch = None
+            self._devices = [d for d in started if isinstance(d, DeviceProcess)]
+        devices, self._devices = self._devices, []
+        await asyncio.gather(*(d.aclose() for d in devices), return_exceptions=True)
+
+    async def _wait_connected(self, name: str, backend: Backend) -> None:
+        # Clients of a gateway that has just started should find its own devices answering.
+        wait = getattr(backend, "wait_connected", None)
+        if wait is None:
+            return
+        try:
+            await wait(DEVICE_CONNECT_WAIT)
+        except PropertyError as exc:
+            log.warning("device %s: %s; the proxy keeps trying", name, exc.message)
 
     async def _start_registry(self) -> None:
         import services.registry as registry_module
@@ -177,6 +230,7 @@ class Gateway:
                 await asyncio.wait_for(backend.aclose(), grace)
             except Exception:
                 log.warning("closing service %s failed", name, exc_info=True)
+        await self._stop_devices()
 
     async def wait_stopped(self) -> None:
         """Return once :meth:`stop` was called."""

@@ -74,6 +74,34 @@ class ServiceEntry:
     options: Mapping[str, Any] = field(default_factory=dict)
 
 
+#: The one value ``[[devices]] serial`` takes: a pseudo-terminal the device process creates.
+PTY = "pty"
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceEntry:
+    """One ``[[devices]]`` entry: a Python stand-in for a microcontroller.
+
+    The gateway starts it as a child process (``python -m gateway.devices``),
+    on raw TCP (``tcp``) or on a pseudo-terminal (``serial = "pty"``), serves
+    it as service ``name`` through the tcp:// or serial:// proxy, and ends it
+    at shutdown.
+    """
+
+    name: str
+    type: str
+    #: host:port the device listens on (port 0 = a free port); empty when on a serial line.
+    tcp: str = ""
+    #: "pty" for a pseudo-terminal; empty when on TCP.
+    serial: str = ""
+    #: Baud rate of the serial line.
+    baudrate: int = 115200
+    #: Handed to ``services.catalog.create(type, **options)`` in the device process.
+    options: Mapping[str, Any] = field(default_factory=dict)
+    #: Handed to the proxy (timeout, keepalive, ...), as for a ``[[services]]`` url.
+    proxy: Mapping[str, Any] = field(default_factory=dict)
+
+
 @dataclass(frozen=True, slots=True)
 class Config:
     """A whole, checked configuration."""
@@ -81,6 +109,7 @@ class Config:
     gateway: GatewaySection = field(default_factory=GatewaySection)
     limits: Limits = field(default_factory=Limits)
     services: tuple[ServiceEntry, ...] = ()
+    devices: tuple[DeviceEntry, ...] = ()
     #: Where it came from, for messages.
     source: str = "<config>"
 
@@ -138,10 +167,10 @@ def _section(cls: type[Any], data: Any, where: str) -> Any:
 
 def parse_config(data: Mapping[str, Any], source: str = "<config>") -> Config:
     """Check a parsed TOML document and build a :class:`Config`; raises ConfigError."""
-    top = {"gateway", "limits", "services"}
+    top = ("gateway", "limits", "services", "devices")
     for key in data:
         if key not in top:
-            raise ConfigError(f"{source}: unknown key {key!r} (known: gateway, limits, services)")
+            raise ConfigError(f"{source}: unknown key {key!r} (known: {', '.join(top)})")
     gw: GatewaySection = _section(GatewaySection, data.get("gateway", {}), f"{source}: gateway")
     _check_address(gw.listen, f"{source}: gateway.listen")
     if gw.line_listen:
@@ -161,19 +190,23 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> Config:
     seen: set[str] = set()
     for i, entry in enumerate(raw_services):
         services.append(_service(entry, f"{source}: services[{i}]", seen))
-    return Config(gateway=gw, limits=limits, services=tuple(services), source=source)
+    raw_devices = data.get("devices", [])
+    if not isinstance(raw_devices, list):
+        raise ConfigError(f"{source}: devices: expected an array of tables ([[devices]])")
+    devices = [_device(entry, f"{source}: devices[{i}]", seen) for i, entry in enumerate(raw_devices)]
+    return Config(gateway=gw, limits=limits, services=tuple(services), devices=tuple(devices), source=source)
 
 
-def _service(entry: Any, where: str, seen: set[str]) -> ServiceEntry:
+def _name(entry: Any, where: str, known: tuple[str, ...], seen: set[str]) -> str:
+    """Check the keys of a service or device table and its name; the name."""
     if not isinstance(entry, Mapping):
         raise ConfigError(f"{where}: expected a table")
-    known = ("name", "type", "url", "options")
     for key in entry:
         if key not in known:
             raise ConfigError(f"{where}.{key}: unknown key (known: {', '.join(known)})")
     if "name" not in entry:
         raise ConfigError(f"{where}: missing key 'name'")
-    name = _typed(entry["name"], str, f"{where}.name")
+    name: str = _typed(entry["name"], str, f"{where}.name")
     try:
         validate_service_name(name)
     except InvalidArgument as exc:
@@ -183,6 +216,11 @@ def _service(entry: Any, where: str, seen: set[str]) -> ServiceEntry:
     if name in seen:
         raise ConfigError(f"{where}.name: duplicate service name {name!r}")
     seen.add(name)
+    return name
+
+
+def _service(entry: Any, where: str, seen: set[str]) -> ServiceEntry:
+    name = _name(entry, where, ("name", "type", "url", "options"), seen)
     where = f"{where} ({name})"
     kind = _typed(entry.get("type", ""), str, f"{where}.type")
     url = _typed(entry.get("url", ""), str, f"{where}.url")
@@ -194,6 +232,49 @@ def _service(entry: Any, where: str, seen: set[str]) -> ServiceEntry:
     if not isinstance(options, Mapping):
         raise ConfigError(f"{where}.options: expected a table like {{ speed = 0.5 }}")
     return ServiceEntry(name=name, type=kind, url=url, options=dict(options))
+
+
+def _device(entry: Any, where: str, seen: set[str]) -> DeviceEntry:
+    from services.catalog import CATALOG
+
+    known = ("name", "type", "tcp", "serial", "baudrate", "options", "proxy")
+    name = _name(entry, where, known, seen)
+    where = f"{where} ({name})"
+    if "type" not in entry:
+        raise ConfigError(f"{where}: missing key 'type' (one of {', '.join(sorted(CATALOG))})")
+    kind = _typed(entry["type"], str, f"{where}.type")
+    if kind not in CATALOG:
+        raise ConfigError(f"{where}.type: unknown type {kind!r} (known: {', '.join(sorted(CATALOG))})")
+    tcp = _typed(entry.get("tcp", ""), str, f"{where}.tcp")
+    serial = _typed(entry.get("serial", ""), str, f"{where}.serial")
+    if bool(tcp) == bool(serial):
+        raise ConfigError(f"{where}: give exactly one of 'tcp' (\"127.0.0.1:0\") or 'serial' (\"pty\")")
+    if tcp:
+        _check_address(tcp, f"{where}.tcp")
+    if serial and serial != PTY:
+        raise ConfigError(
+            f"{where}.serial: only {PTY!r} (a pseudo-terminal the device creates) is supported,"
+            f" got {serial!r};"
+            ' for a device on a real serial port use a [[services]] entry with url = "serial:///dev/..."'
+        )
+    baudrate = _typed(entry.get("baudrate", 115200), int, f"{where}.baudrate")
+    if baudrate <= 0:
+        raise ConfigError(f"{where}.baudrate: must be positive, got {baudrate}")
+    tables = {}
+    for key in ("options", "proxy"):
+        value = entry.get(key, {})
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}.{key}: expected a table like {{ speed = 0.5 }}")
+        tables[key] = dict(value)
+    return DeviceEntry(
+        name=name,
+        type=kind,
+        tcp=tcp,
+        serial=serial,
+        baudrate=baudrate,
+        options=tables["options"],
+        proxy=tables["proxy"],
+    )
 
 
 def load_config(path: str | Path) -> Config:
