@@ -466,10 +466,14 @@ class Registry(Resource):
         last: PropertyError | None = None
         try:
             async with asyncio.timeout(timeout):
+                backend = directory.backend(name)
+                wait_connected = getattr(backend, "wait_connected", None)
+                if wait_connected is not None:  # a line-protocol proxy says when the device greeted
+                    await wait_connected(timeout)
                 pause = 0.02
                 while True:
                     try:
-                        await directory.backend(name).get("properties")
+                        await backend.get("properties")
                         break
                     except PropertyError as e:
                         if e.code is not Code.UNAVAILABLE:
