@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import difflib
 import inspect
 import logging
@@ -67,17 +68,31 @@ def properties_now(root: Resource) -> list[str]:
     return out
 
 
+#: Remote children asked for their property lists at once (a group of 1,000
+#: proxied members must not be asked one after another, nor all at once).
+LIST_CONCURRENCY = 64
+
+
 async def all_properties(root: Resource) -> list[str]:
     """Every property path under ``root``, depth-first, namespaces included, remote children asked."""
     out: list[str] = []
     remote: list[tuple[int, str, Backend]] = []
     _walk(root, "", out, remote)
-    for position, prefix, backend in reversed(remote):
-        try:
-            names = await backend.properties()
-        except PropertyError as e:
-            log.debug("cannot list the properties under %s: %s", prefix[:-1], e.message)
-            continue
+    if not remote:
+        return out
+    gate = asyncio.Semaphore(LIST_CONCURRENCY)
+
+    async def names_of(prefix: str, backend: Backend) -> list[str]:
+        async with gate:
+            try:
+                return await backend.properties()
+            except PropertyError as e:
+                log.debug("cannot list the properties under %s: %s", prefix[:-1], e.message)
+                return []
+
+    listed = await asyncio.gather(*(names_of(prefix, backend) for _, prefix, backend in remote))
+    # Insert from the back so that earlier positions stay valid.
+    for (position, prefix, _), names in zip(reversed(remote), reversed(listed), strict=True):
         out[position:position] = [prefix + n for n in names]
     return out
 
