@@ -38,8 +38,14 @@ class ServerProcess:
         self._drain: asyncio.Task[None] | None = None
 
     @classmethod
-    async def start(cls, kind: str, argv: list[str]) -> ServerProcess:
-        """Run ``python -m <argv>`` and wait for its ``listening on HOST:PORT`` line on stderr."""
+    async def start(cls, kind: str, argv: list[str], *, address_on: str = "stderr") -> ServerProcess:
+        """Run ``python -m <argv>`` and wait for its ``listening on HOST:PORT`` line.
+
+        The line is looked for on stderr, or with ``address_on="stdout"`` on
+        stdout (stderr then goes to the same pipe), for programs that print
+        their address there (``python -m services.device_server``).
+        """
+        on_stdout = address_on == "stdout"
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH", "")]))
         process = await asyncio.create_subprocess_exec(
@@ -49,15 +55,16 @@ class ServerProcess:
             cwd=ROOT,
             env=env,
             stdin=asyncio.subprocess.PIPE,
-            stdout=asyncio.subprocess.DEVNULL,
-            stderr=asyncio.subprocess.PIPE,
+            stdout=asyncio.subprocess.PIPE if on_stdout else asyncio.subprocess.DEVNULL,
+            stderr=asyncio.subprocess.STDOUT if on_stdout else asyncio.subprocess.PIPE,
         )
-        assert process.stderr is not None
+        output = process.stdout if on_stdout else process.stderr
+        assert output is not None
         seen: list[str] = []
         try:
             async with asyncio.timeout(START_TIMEOUT):
                 while True:
-                    raw = await process.stderr.readline()
+                    raw = await output.readline()
                     if not raw:
                         raise ServerError(f"{kind} server exited before listening:\n" + "".join(seen[-20:]))
                     line = raw.decode(errors="replace")
@@ -73,13 +80,12 @@ class ServerProcess:
             raise
         server = cls(kind, process, f"{match.group(1)}:{match.group(2)}")
         server._log.extend(seen)
-        server._drain = asyncio.create_task(server._drain_stderr())
+        server._drain = asyncio.create_task(server._drain_output(output))
         return server
 
-    async def _drain_stderr(self) -> None:
+    async def _drain_output(self, output: asyncio.StreamReader) -> None:
         # Keep reading so that a chatty server never blocks on a full pipe.
-        assert self.process.stderr is not None
-        while raw := await self.process.stderr.readline():
+        while raw := await output.readline():
             self._log.append(raw.decode(errors="replace"))
 
     @property
@@ -100,6 +106,10 @@ class ServerProcess:
     def rss_bytes(self) -> int:
         """Resident set size of the server process."""
         return int(self._ps.memory_info().rss)
+
+    def open_files(self) -> int:
+        """File descriptors the server process holds (sockets included)."""
+        return int(self._ps.num_fds())
 
     async def stop(self) -> None:
         """End the server (SIGTERM, then SIGKILL after a grace period), by its PID."""

@@ -1,0 +1,97 @@
+"""Many line-protocol devices in one process: the device side of part (h).
+
+``python -m bench.device_farm --count 500 --first 0 --ports-file F`` serves
+500 simulated robots, each a :class:`services.device_server.DeviceServer` of
+its own on its own TCP port of 127.0.0.1, named ``m0`` … ``m499`` in their
+greetings, and placed on a grid. It writes ``{"m0": PORT, ...}`` to ``F``,
+then prints ``listening on 127.0.0.1:PORT`` (the first port) to stderr, and
+serves until SIGTERM, SIGINT or end of file on stdin.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import resource
+import sys
+from pathlib import Path
+
+from bench.baseline import until_stopped
+from services.core import LocalService
+from services.device_server import DeviceServer
+from services.simulators import SimRobot
+
+#: Each device serves the gateway's proxy and little else.
+CONNECTIONS_PER_DEVICE = 4
+#: File descriptors a process needs besides its sockets.
+FD_SPARE = 256
+
+
+def raise_fd_limit(needed: int) -> dict[str, int]:
+    """Raise this process's soft limit on open files to ``needed`` (at most the hard limit).
+
+    Child processes inherit it. Returns the limits before and after.
+    """
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    wanted = needed if hard == resource.RLIM_INFINITY else min(needed, hard)
+    if soft != resource.RLIM_INFINITY and soft < wanted:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (wanted, hard))
+    after = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+    return {"soft_before": int(soft), "soft": int(after), "hard": int(hard), "needed": int(needed)}
+
+
+def device_name(number: int) -> str:
+    """The name of device ``number`` in its greeting and in the registry."""
+    return f"m{number}"
+
+
+async def serve(count: int, first: int, ports_file: Path) -> None:
+    """Serve ``count`` devices, numbered from ``first``, until stopped."""
+    backends: list[LocalService] = []
+    servers: list[DeviceServer] = []
+    ports: dict[str, int] = {}
+    try:
+        for number in range(first, first + count):
+            backend = LocalService(SimRobot(start=(number % 100, number // 100), tick_hz=0.1))
+            await backend.start()
+            backends.append(backend)
+            server = DeviceServer(backend, name=device_name(number), max_connections=CONNECTIONS_PER_DEVICE)
+            servers.append(server)
+            _, port = await server.serve_tcp("127.0.0.1", 0)
+            ports[device_name(number)] = port
+        ports_file.write_text(json.dumps(ports))
+        print(f"listening on 127.0.0.1:{next(iter(ports.values()))}", file=sys.stderr, flush=True)
+        await until_stopped()
+    finally:
+        for server in servers:
+            await server.aclose()
+        for backend in backends:
+            await backend.aclose()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line: ``python -m bench.device_farm --count N --first K --ports-file FILE``."""
+    parser = argparse.ArgumentParser(prog="python -m bench.device_farm", description=__doc__.split("\n")[0])
+    parser.add_argument("--count", type=int, required=True, help="devices to serve")
+    parser.add_argument("--first", type=int, default=0, help="number of the first device (default 0)")
+    parser.add_argument("--ports-file", type=Path, required=True, help="where to write name → port as JSON")
+    args = parser.parse_args(argv)
+    if args.count < 1:
+        parser.error("--count must be at least 1")
+    logging.basicConfig(
+        level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s"
+    )
+    limits = raise_fd_limit(2 * args.count + FD_SPARE)
+    if limits["soft"] < 2 * args.count + FD_SPARE:
+        print(f"error: open-file limit {limits['soft']} is too low for {args.count} devices", file=sys.stderr)
+        return 1
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(serve(args.count, args.first, args.ports_file))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,280 @@
+"""Part (e): Get through the gateway's TCP proxy beside a line-protocol client talking to the device.
+
+Three processes: the device (``python -m services.device_server --service
+sim-robot --tcp 127.0.0.1:0``), a gateway whose config names it as
+``url = "tcp://127.0.0.1:PORT"``, and this one, the load generator. The same
+Gets of the robot's ``speed`` are made two ways in the same run, taking turns:
+
+* *direct*: one TCP connection to the device speaking the line protocol, each
+  request tagged so that several are in flight (the codec of
+  :mod:`services.line_protocol` on both ends);
+* *gateway*: unary gRPC Gets of service ``dev`` on one channel; the gateway's
+  proxy turns each into a tagged line on its one connection to the device.
+
+Each is measured with 1 and with ``inflight`` calls in flight.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import tempfile
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import grpc
+
+from bench.measure import Latencies
+from bench.servers import ServerProcess
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+from services.line_protocol import ErrorReply, Get, Hello, LineReceiver, Ok, encode
+
+#: The device's name in the gateway, and the property every call reads.
+DEVICE = "dev"
+PROPERTY = "speed"
+CALL_TIMEOUT = 10.0
+GREETING_TIMEOUT = 10.0
+
+DEVICE_ARGV = ["services.device_server", "--service", "sim-robot", "--name", DEVICE, "--tcp", "127.0.0.1:0"]
+
+
+class LineClient:
+    """One line-protocol connection that pipelines tagged GETs (what a program on a PC would do)."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader = reader
+        self.writer = writer
+        self.greeting: Hello | None = None
+        self._greeted = asyncio.Event()
+        self._receiver = LineReceiver()
+        self._waiting: dict[str, asyncio.Future[str]] = {}
+        self._tags = itertools.count(1)
+        self._pump = asyncio.create_task(self._read())
+
+    @classmethod
+    async def connect(cls, host: str, port: int) -> LineClient:
+        """Connect and wait for the device's greeting."""
+        reader, writer = await asyncio.open_connection(host, port, limit=65536)
+        client = cls(reader, writer)
+        try:
+            async with asyncio.timeout(GREETING_TIMEOUT):
+                await client._greeted.wait()
+        except BaseException:
+            await client.aclose()
+            raise
+        return client
+
+    async def _read(self) -> None:
+        try:
+            while data := await self.reader.read(65536):
+                for frame in self._receiver.receive_data(data):
+                    if isinstance(frame, Hello) and frame.tag is None:
+                        self.greeting = frame
+                        self._greeted.set()
+                    elif isinstance(frame, Ok | ErrorReply) and frame.tag is not None:
+                        future = self._waiting.pop(frame.tag, None)
+                        if future is None or future.done():
+                            continue
+                        if isinstance(frame, Ok):
+                            future.set_result(frame.value)
+                        else:
+                            future.set_exception(RuntimeError(f"ERR {frame.code} {frame.message}"))
+        finally:
+            for future in self._waiting.values():
+                if not future.done():
+                    future.set_exception(ConnectionError("the device closed the connection"))
+            self._waiting.clear()
+
+    async def get(self, path: str) -> str:
+        """GET ``path`` with a fresh tag; the reply may overtake or be overtaken by others."""
+        tag = format(next(self._tags), "x")
+        future: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        self._waiting[tag] = future
+        self.writer.write(encode(Get(path, tag=tag)))
+        try:
+            async with asyncio.timeout(CALL_TIMEOUT):
+                return await future
+        finally:
+            self._waiting.pop(tag, None)
+
+    async def aclose(self) -> None:
+        """Close the connection and stop reading."""
+        self.writer.close()
+        with contextlib.suppress(Exception):
+            await self.writer.wait_closed()
+        self._pump.cancel()
+        await asyncio.gather(self._pump, return_exceptions=True)
+
+
+@dataclass
+class PathResult:
+    """One way (direct or through the gateway) at one number of calls in flight."""
+
+    inflight: int
+    calls: int
+    done: int = 0
+    errors: int = 0
+    complete: bool = True
+    wall_s: float = 0.0
+    client_cpu_s: float = 0.0
+    device_cpu_s: float = 0.0
+    gateway_cpu_s: float = 0.0
+    latency: Latencies = field(default_factory=Latencies)
+
+    @property
+    def throughput(self) -> float:
+        return (self.done - self.errors) / self.wall_s if self.wall_s else 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        calls = max(self.done, 1)
+        return {
+            "inflight": self.inflight,
+            "calls": self.calls,
+            "done": self.done,
+            "errors": self.errors,
+            "complete": self.complete,
+            "throughput_per_s": round(self.throughput, 1),
+            "latency": self.latency.as_dict(),
+            "wall_s": round(self.wall_s, 4),
+            "client_busy": round(self.client_cpu_s / self.wall_s, 3) if self.wall_s else 0.0,
+            "device_cpu_us_per_call": round(1e6 * self.device_cpu_s / calls, 1),
+            "gateway_cpu_us_per_call": round(1e6 * self.gateway_cpu_s / calls, 1),
+        }
+
+
+async def drive(
+    call: Callable[[], Awaitable[Any]], calls: int, inflight: int, time_limit: float
+) -> PathResult:
+    """Make ``calls`` calls, ``inflight`` at a time, for at most ``time_limit`` seconds."""
+    result = PathResult(inflight=inflight, calls=calls)
+    deadline = time.monotonic() + time_limit
+    remaining = calls
+    samples: list[int] = []
+
+    async def worker() -> None:
+        nonlocal remaining
+        while remaining > 0 and time.monotonic() < deadline:
+            remaining -= 1
+            start = time.perf_counter_ns()
+            try:
+                await call()
+            except (grpc.aio.AioRpcError, RuntimeError, ConnectionError, TimeoutError):
+                result.errors += 1
+                continue
+            samples.append(time.perf_counter_ns() - start)
+
+    cpu = time.process_time()
+    start = time.perf_counter()
+    await asyncio.gather(*(worker() for _ in range(inflight)))
+    result.wall_s = time.perf_counter() - start
+    result.client_cpu_s = time.process_time() - cpu
+    result.done = len(samples) + result.errors
+    result.complete = remaining == 0
+    result.latency = Latencies.of(samples)
+    return result
+
+
+def gateway_config(device_address: str) -> str:
+    """A gateway config that serves the device at ``device_address`` as service ``dev``."""
+    return (
+        '[gateway]\nlisten = "127.0.0.1:0"\nlog_level = "warning"\n\n'
+        f'[[services]]\nname = "{DEVICE}"\nurl = "tcp://{device_address}"\n'
+    )
+
+
+async def _measured(
+    call: Callable[[], Awaitable[Any]],
+    calls: int,
+    inflight: int,
+    time_limit: float,
+    device: ServerProcess,
+    gateway: ServerProcess,
+) -> PathResult:
+    device_cpu, gateway_cpu = device.cpu_seconds(), gateway.cpu_seconds()
+    result = await drive(call, calls, inflight, time_limit)
+    result.device_cpu_s = device.cpu_seconds() - device_cpu
+    result.gateway_cpu_s = gateway.cpu_seconds() - gateway_cpu
+    return result
+
+
+async def run_line(
+    *, calls: int, inflights: tuple[int, ...], warmup: int, rounds: int, time_limit: float
+) -> dict[str, dict[str, Any]]:
+    """Start the device and the gateway, then measure both ways; return ``{"direct": ..., "gateway": ...}``.
+
+    Each way's figures are kept per number in flight (``"1"``, ``"8"``); with
+    several rounds the two ways take turns and the best round (by Gets/s) counts.
+    """
+    best: dict[str, dict[int, PathResult]] = {"direct": {}, "gateway": {}}
+    rounds_seen: dict[str, dict[int, list[float]]] = {"direct": {}, "gateway": {}}
+    device = await ServerProcess.start("device", DEVICE_ARGV, address_on="stdout")
+    gateway: ServerProcess | None = None
+    try:
+        with tempfile.TemporaryDirectory(prefix="bench-line-") as folder:
+            config = Path(folder) / "gateway.toml"
+            config.write_text(gateway_config(device.address))
+            gateway = await ServerProcess.start(
+                "gateway", ["gateway", "serve", "--config", str(config), "--log-level", "warning"]
+            )
+        host, _, port = device.address.rpartition(":")
+        direct = await LineClient.connect(host, int(port))
+        channel = grpc.aio.insecure_channel(gateway.address)
+        try:
+            stub = pb_grpc.PropertyServiceStub(channel)
+            request = pb.GetRequest(service=DEVICE, property=PROPERTY)
+
+            async def through_gateway() -> Any:
+                return await stub.Get(request, timeout=CALL_TIMEOUT)
+
+            async def straight() -> str:
+                return await direct.get(PROPERTY)
+
+            ways = {"direct": straight, "gateway": through_gateway}
+            for way in ways.values():  # the proxy may still be connecting: the warm-up waits for it
+                await _wait_answering(way)
+                await drive(way, warmup, max(inflights), time_limit)
+            for _ in range(rounds):
+                for inflight in inflights:
+                    for name, way in ways.items():
+                        got = await _measured(way, calls, inflight, time_limit, device, gateway)
+                        rounds_seen[name].setdefault(inflight, []).append(round(got.throughput, 1))
+                        kept = best[name].get(inflight)
+                        if kept is None or got.throughput > kept.throughput:
+                            best[name][inflight] = got
+            device.check_alive()
+            gateway.check_alive()
+        finally:
+            await channel.close(None)
+            await direct.aclose()
+    finally:
+        if gateway is not None:
+            await gateway.stop()
+        await device.stop()
+    return {
+        name: {
+            "property": f"{DEVICE}/{PROPERTY}",
+            "rounds": rounds,
+            "inflight": {
+                str(n): {**result.as_dict(), "rounds": rounds_seen[name][n]}
+                for n, result in sorted(ways.items())
+            },
+        }
+        for name, ways in best.items()
+    }
+
+
+async def _wait_answering(call: Callable[[], Awaitable[Any]]) -> None:
+    deadline = time.monotonic() + GREETING_TIMEOUT
+    while True:
+        try:
+            await call()
+            return
+        except (grpc.aio.AioRpcError, RuntimeError, ConnectionError, TimeoutError):
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.05)
