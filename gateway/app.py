@@ -133,10 +133,11 @@ class Gateway:
         await asyncio.gather(*(self._wait_connected(name, backend) for name, backend in proxies))
 
     async def _stop_devices(self) -> None:
-        if self._launch is not None:
-            # Never cancelled: a start_device cut short could leave its process behind.
-            started = await self._launch
-            self._launch = None
+        launch, self._launch = self._launch, None
+        if launch is not None:
+            # Waited for, never cancelled here: a start_device cut short could leave its process behind.
+            await asyncio.wait([launch])
+            started = [] if launch.cancelled() else launch.result()
             self._devices = [d for d in started if isinstance(d, DeviceProcess)]
         devices, self._devices = self._devices, []
         await asyncio.gather(*(d.aclose() for d in devices), return_exceptions=True)
