@@ -2,7 +2,9 @@
 
 Each server runs in its own process, one at a time, on 127.0.0.1; this
 process is the load generator and drives both with the generated stubs.
-Part (d) gets a freshly started server of its own.
+Part (d) gets a freshly started server of its own. Parts (e)-(h) start
+their own processes (a line-protocol device and a gateway; device farms and
+a gateway) or run in this process (groups, find); see their modules.
 """
 
 from __future__ import annotations
@@ -18,14 +20,19 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from bench import report
+from bench.groups import run_scaling
+from bench.line import run_line
 from bench.listen import run_listen
 from bench.memory import run_memory, run_session_memory
+from bench.register import run_register
 from bench.servers import ServerProcess
 from bench.session import run_session
 from bench.target import BATCH_PROPERTIES, VALUE_PROPERTY
 from bench.unary import run_unary
 
-PARTS = ("unary", "session", "listen", "batched", "memory")
+#: Parts (a)-(d) compare the gateway with the bare server; (e)-(h) are the line protocol and registry parts.
+SERVER_PARTS = ("unary", "session", "listen", "batched", "memory")
+PARTS = (*SERVER_PARTS, "line", "group", "find", "register")
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
     "gateway": ["bench.gateway_server", "--listen", "127.0.0.1:0"],
@@ -42,6 +49,11 @@ PROFILES: dict[str, dict[str, Any]] = {
         "streams": 1_000,
         "time_limit": 60.0,
         "rounds": 2,
+        "line_calls": 5_000,
+        "group_sizes": (100, 1_000, 10_000),
+        "find_sizes": (100, 1_000, 10_000),
+        "find_queries": 1_000,
+        "register_sizes": (100, 1_000),
     },
     "quick": {
         "calls": 2_000,
@@ -52,6 +64,11 @@ PROFILES: dict[str, dict[str, Any]] = {
         "streams": 200,
         "time_limit": 15.0,
         "rounds": 1,
+        "line_calls": 500,
+        "group_sizes": (100, 1_000),
+        "find_sizes": (100, 1_000),
+        "find_queries": 200,
+        "register_sizes": (100,),
     },
 }
 
@@ -74,12 +91,26 @@ def _positive(text: str) -> int:
     return value
 
 
+def _sizes(text: str) -> tuple[int, ...]:
+    try:
+        sizes = tuple(int(part.replace("_", "")) for part in text.split(",") if part.strip())
+    except ValueError:
+        sizes = ()
+    if not sizes or min(sizes) < 2 or list(sizes) != sorted(set(sizes)):
+        raise argparse.ArgumentTypeError(
+            "expected increasing sizes of at least 2, comma-separated, e.g. 100,1000"
+        )
+    return sizes
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="python -m bench",
         description="Benchmark the gateway beside a bare grpc.aio server of the same contract: "
         "(a) unary Get, (b) Gets over Session, (c) Listen fan-out one-by-one and batched, "
-        "(d) memory per idle Listen stream. Prints absolute figures, ratios and targets.",
+        "(d) memory per idle Listen stream; (e) Get through the gateway's TCP proxy beside the line "
+        "protocol straight to the device; (f) group moveto, (g) registry find, (h) registration over raw "
+        "TCP at growing sizes. Prints absolute figures, ratios and targets.",
     )
     parser.add_argument(
         "--quick", action="store_true", help="small sizes: a smoke run of well under a minute"
@@ -94,7 +125,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--servers",
         type=_csv(tuple(SERVERS)),
         default=list(SERVERS),
-        help="servers to measure, comma-separated (default: baseline,gateway)",
+        help="servers to measure in parts unary..memory, comma-separated (default: baseline,gateway)",
     )
     parser.add_argument("--json", metavar="FILE", help="also save the results as JSON to FILE")
     parser.add_argument("--strict", action="store_true", help="exit with status 1 when a target is missed")
@@ -133,6 +164,27 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--memory-channels",
         type=_positive,
         help="(d) connections for the streams (default: 50 per connection)",
+    )
+    sizes.add_argument(
+        "--line-calls", type=_positive, help=f"(e) Gets per way and per in-flight count {both('line_calls')}"
+    )
+
+    def listed(key: str) -> str:
+        return f"(default {','.join(map(str, full[key]))} / {','.join(map(str, quick[key]))})"
+
+    sizes.add_argument("--group-sizes", type=_sizes, help=f"(f) group members {listed('group_sizes')}")
+    sizes.add_argument("--find-sizes", type=_sizes, help=f"(g) registry entries {listed('find_sizes')}")
+    sizes.add_argument("--find-queries", type=_positive, help=f"(g) queries per size {both('find_queries')}")
+    sizes.add_argument(
+        "--register-sizes",
+        type=lambda text: _sizes(text) if "," in text else (_positive(text),),
+        help=f"(h) devices registered over raw TCP {listed('register_sizes')}",
+    )
+    sizes.add_argument(
+        "--register-concurrency",
+        type=_positive,
+        default=32,
+        help="(h) registration Sets in flight (default 32)",
     )
     sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
     sizes.add_argument(
@@ -193,7 +245,7 @@ async def run(args: argparse.Namespace) -> report.Results:
     ...), each round on a fresh process, so that load from elsewhere on the
     machine falls on both alike; each part reports its best round.
     """
-    loads = [p for p in args.parts if p != "memory"]
+    loads = [p for p in args.parts if p in SERVER_PARTS and p != "memory"]
     seen: dict[str, dict[str, list[dict[str, Any]]]] = {kind: {} for kind in args.servers}
     for number in range(1, args.rounds + 1):
         if not loads:
@@ -212,6 +264,7 @@ async def run(args: argparse.Namespace) -> report.Results:
         kind: {part: _best(rounds, HEADLINE[part]) for part, rounds in parts.items()}
         for kind, parts in seen.items()
     }
+    await _issue_parts(args, results)
     if "memory" in args.parts:
         for kind in args.servers:
             server = await ServerProcess.start(kind, SERVERS[kind])
@@ -240,6 +293,59 @@ async def run(args: argparse.Namespace) -> report.Results:
             finally:
                 await server.stop()
     return results
+
+
+async def _timed(label: str, run: Callable[[], Awaitable[dict[str, Any]]]) -> dict[str, Any]:
+    started = time.perf_counter()
+    print(f"  {label} ...", end="", file=sys.stderr, flush=True)
+    try:
+        data = await run()
+    except Exception as exc:
+        detail = "".join(traceback.format_exception_only(exc)).strip()
+        print(f" error: {detail}", file=sys.stderr, flush=True)
+        return {"error": detail}
+    print(f" {time.perf_counter() - started:.1f} s", file=sys.stderr, flush=True)
+    return data
+
+
+async def _issue_parts(args: argparse.Namespace, results: report.Results) -> None:
+    """Parts (e)-(h), each once, in the order given."""
+    if "line" in args.parts:
+        print("line: device process and gateway process", file=sys.stderr)
+        inflights = tuple(sorted({1, args.inflight}))
+        ways = await _timed(
+            "line, direct and through the gateway",
+            lambda: run_line(
+                calls=args.line_calls,
+                inflights=inflights,
+                warmup=max(args.line_calls // 10, 10),
+                rounds=args.rounds,
+                time_limit=args.time_limit,
+            ),
+        )
+        for way in ("direct", "gateway"):
+            results.setdefault(way, {})["line"] = ways if "error" in ways else ways[way]
+    if "group" in args.parts:
+        results.setdefault("in-process", {})["group"] = await _timed(
+            f"group moveto, {_listing(args.group_sizes)} members",
+            lambda: run_scaling("group", args.group_sizes, 4 * args.time_limit),
+        )
+    if "find" in args.parts:
+        results.setdefault("in-process", {})["find"] = await _timed(
+            f"find, {_listing(args.find_sizes)} entries",
+            lambda: run_scaling("find", args.find_sizes, 4 * args.time_limit, queries=args.find_queries),
+        )
+    if "register" in args.parts:
+        results.setdefault("gateway", {})["register"] = await _timed(
+            f"register over raw TCP, {_listing(args.register_sizes)} members",
+            lambda: run_register(
+                args.register_sizes, concurrency=args.register_concurrency, time_limit=args.time_limit
+            ),
+        )
+
+
+def _listing(sizes: tuple[int, ...]) -> str:
+    return ", ".join(f"{n:,}" for n in sizes)
 
 
 def _runner(args: argparse.Namespace, server: ServerProcess, part: str) -> Callable[[], Awaitable[Any]]:

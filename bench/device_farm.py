@@ -62,7 +62,7 @@ async def serve(count: int, first: int, ports_file: Path) -> None:
             servers.append(server)
             _, port = await server.serve_tcp("127.0.0.1", 0)
             ports[device_name(number)] = port
-        ports_file.write_text(json.dumps(ports))
+        await asyncio.to_thread(ports_file.write_text, json.dumps(ports))
         print(f"listening on 127.0.0.1:{next(iter(ports.values()))}", file=sys.stderr, flush=True)
         await until_stopped()
     finally:

@@ -189,6 +189,7 @@ def gateway_config(device_address: str) -> str:
 
 async def _measured(
     call: Callable[[], Awaitable[Any]],
+    *,
     calls: int,
     inflight: int,
     time_limit: float,
@@ -241,7 +242,14 @@ async def run_line(
             for _ in range(rounds):
                 for inflight in inflights:
                     for name, way in ways.items():
-                        got = await _measured(way, calls, inflight, time_limit, device, gateway)
+                        got = await _measured(
+                            way,
+                            calls=calls,
+                            inflight=inflight,
+                            time_limit=time_limit,
+                            device=device,
+                            gateway=gateway,
+                        )
                         rounds_seen[name].setdefault(inflight, []).append(round(got.throughput, 1))
                         kept = best[name].get(inflight)
                         if kept is None or got.throughput > kept.throughput:

@@ -67,7 +67,7 @@ def _get(results: Results, server: str, part: str, key: str) -> float:
     return float(results[server][part][key])
 
 
-TARGETS = (
+TARGETS: tuple[Target, ...] = (
     Target(
         "unary-get",
         "unary Get throughput, gateway / bare server",
@@ -125,6 +125,106 @@ TARGETS = (
 )
 
 
+def _line(results: Results, way: str, inflight: str) -> dict[str, Any]:
+    table: dict[str, Any] = results[way]["line"]["inflight"]
+    key = max(table, key=int) if inflight == "most" else inflight
+    return dict(table[key])
+
+
+def _largest(results: Results, server: str, part: str) -> dict[str, Any]:
+    sizes: list[dict[str, Any]] = results[server][part]["sizes"]
+    return sizes[-1]
+
+
+def _exponent(results: Results, server: str, part: str, size: str, figure: str) -> float:
+    """How the figure grows with the size between the smallest and the largest run: 1.0 = linearly."""
+    sizes: list[dict[str, Any]] = results[server][part]["sizes"]
+    if len(sizes) < 2:
+        return math.nan
+    first, last = sizes[0], sizes[-1]
+    return math.log(float(last[figure]) / float(first[figure])) / math.log(last[size] / first[size])
+
+
+TARGETS += (
+    Target(
+        "line-get-p50",
+        "Get p50 with 1 in flight, through gateway's TCP proxy / line protocol straight to the device",
+        lambda r: (
+            _line(r, "gateway", "1")["latency"]["p50_us"] / _line(r, "direct", "1")["latency"]["p50_us"]
+        ),
+        "max",
+        2.0,
+        "x",
+        (("gateway", "line"), ("direct", "line")),
+    ),
+    Target(
+        "line-get-inflight",
+        "Gets/s with 8 in flight, through the gateway's TCP proxy / straight to the device",
+        lambda r: (
+            _line(r, "gateway", "most")["throughput_per_s"] / _line(r, "direct", "most")["throughput_per_s"]
+        ),
+        "min",
+        0.5,
+        "x",
+        (("gateway", "line"), ("direct", "line")),
+    ),
+    Target(
+        "group-moveto",
+        "group behaviors.moveto, time per member at the largest group",
+        lambda r: _largest(r, "in-process", "group")["us_per_member"],
+        "max",
+        1000.0,
+        "µs",
+        (("in-process", "group"),),
+    ),
+    Target(
+        "group-scaling",
+        "growth of moveto time with members (1 = linear), smallest to largest group",
+        lambda r: _exponent(r, "in-process", "group", "members", "seconds"),
+        "max",
+        1.2,
+        "",
+        (("in-process", "group"),),
+    ),
+    Target(
+        "find-p99",
+        "find p99 over the largest registry",
+        lambda r: _largest(r, "in-process", "find")["p99_us"] / 1000.0,
+        "max",
+        10.0,
+        "ms",
+        (("in-process", "find"),),
+    ),
+    Target(
+        "find-scaling",
+        "growth of find p50 with entries (1 = linear), smallest to largest registry",
+        lambda r: _exponent(r, "in-process", "find", "entries", "p50_us"),
+        "max",
+        1.0,
+        "",
+        (("in-process", "find"),),
+    ),
+    Target(
+        "register-rate",
+        "registrations over raw TCP per second, largest run",
+        lambda r: _largest(r, "gateway", "register")["per_s"],
+        "min",
+        100.0,
+        "/s",
+        (("gateway", "register"),),
+    ),
+    Target(
+        "register-memory",
+        "gateway RSS per member registered over raw TCP (live connection), largest run",
+        lambda r: _largest(r, "gateway", "register")["kib_per_member"],
+        "max",
+        64.0,
+        "KiB",
+        (("gateway", "register"),),
+    ),
+)
+
+
 def evaluate(results: Results) -> list[dict[str, Any]]:
     """Each target's figure, bound and verdict (PASS, FAIL, or why it could not be judged)."""
     verdicts = []
@@ -149,7 +249,7 @@ def evaluate(results: Results) -> list[dict[str, Any]]:
         else:
             try:
                 figure = target.figure(results)
-            except ZeroDivisionError:
+            except (ZeroDivisionError, KeyError, IndexError, ValueError):
                 figure = math.nan
             verdict["figure"] = round(figure, 3)
             ok = figure >= target.bound if target.kind == "min" else figure <= target.bound
@@ -350,6 +450,8 @@ def print_report(out: TextIO, info: dict[str, Any], results: Results, verdicts: 
             rows,
         )
 
+    _issue_tables(out, results)
+
     print("", file=out)
     for v in verdicts:
         sign = ">=" if v["kind"] == "min" else "<="
@@ -369,3 +471,157 @@ def save_json(path: str, payload: dict[str, Any]) -> None:
 
 def command_line() -> str:
     return " ".join([Path(sys.executable).name, "-m", "bench", *sys.argv[1:]])
+
+
+def _error_row(label: str, data: dict[str, Any]) -> list[str]:
+    return [label, "error: " + str(data["error"]).splitlines()[0][:60]]
+
+
+def _issue_tables(out: TextIO, results: Results) -> None:
+    """Tables of parts (e)-(h): the line protocol, groups, find, registration over raw TCP."""
+    rows: list[list[str]] = []
+    for way, label in (("direct", "line protocol, direct"), ("gateway", "gRPC via gateway proxy")):
+        data = results.get(way, {}).get("line")
+        if data is None:
+            continue
+        if "error" in data:
+            rows.append(_error_row(label, data))
+            continue
+        for inflight, d in sorted(data["inflight"].items(), key=lambda item: int(item[0])):
+            lat = d["latency"]
+            rows.append(
+                [
+                    label,
+                    inflight,
+                    f"{d['done']:,}",
+                    _fmt(d["throughput_per_s"]),
+                    _fmt(lat["p50_us"]),
+                    _fmt(lat["p99_us"]),
+                    _fmt(d["device_cpu_us_per_call"]),
+                    _fmt(d["gateway_cpu_us_per_call"]) if way == "gateway" else "-",
+                    f"{d['client_busy']:.0%}",
+                    str(d["errors"]),
+                ]
+            )
+    if rows:
+        prop = next(
+            (
+                results[w]["line"].get("property", "?")
+                for w in ("direct", "gateway")
+                if "line" in results.get(w, {})
+            ),
+            "?",
+        )
+        _table(
+            out,
+            f"(e) Get of {prop} on a line-protocol device over raw TCP: straight vs through the gateway",
+            [
+                "path",
+                "in flight",
+                "calls",
+                "Gets/s",
+                "p50 µs",
+                "p99 µs",
+                "device CPU µs/call",
+                "gw CPU µs/call",
+                "load busy",
+                "errors",
+            ],
+            rows,
+        )
+
+    def sized(part: str, cells: Callable[[dict[str, Any]], list[str]]) -> list[list[str]]:
+        found: list[list[str]] = []
+        for server, parts in results.items():
+            data = parts.get(part)
+            if data is None:
+                continue
+            if "error" in data:
+                found.append(_error_row(server, data))
+                continue
+            found += [[server, *cells(d)] for d in data["sizes"]]
+            found += [[server, f"{n:,}", "skipped (time limit)"] for n in data.get("skipped", [])]
+        return found
+
+    rows = sized(
+        "group",
+        lambda d: [
+            f"{d['members']:,}",
+            f"{d['accepted']:,}",
+            _fmt(1000 * d["seconds"], 1),
+            _fmt(d["us_per_member"], 1),
+        ],
+    )
+    if rows:
+        _table(
+            out,
+            "(f) group behaviors.moveto (circle) on N simulated in-process members, until all accepted",
+            ["where", "members", "accepted", "ms", "µs/member"],
+            rows,
+        )
+    rows = sized(
+        "find",
+        lambda d: [
+            f"{d['entries']:,}",
+            f"{d['indexed']:,}",
+            f"{d['queries']:,}",
+            _fmt(d["p50_us"]),
+            _fmt(d["p99_us"]),
+            _fmt(d["max_us"]),
+            _fmt(d["matches_mean"], 2),
+        ],
+    )
+    if rows:
+        _table(
+            out,
+            "(g) registry find type=mobile_robot near=(x y 0) radius=3, N entries",
+            ["where", "entries", "indexed", "queries", "p50 µs", "p99 µs", "max µs", "found/query"],
+            rows,
+        )
+    rows = sized(
+        "register",
+        lambda d: [
+            f"{d['members']:,}",
+            str(d["farms"]),
+            f"{d['registered']:,}",
+            _fmt(d["seconds"], 2),
+            _fmt(d["per_s"]),
+            _fmt(d["set_p50_ms"], 1),
+            _fmt(d["set_p99_ms"], 1),
+            _fmt(d["rss_before_mib"], 1),
+            _fmt(d["rss_after_mib"], 1),
+            _fmt(d["kib_per_member"], 1),
+            f"{d['gateway_fds_before']}→{d['gateway_fds_after']}",
+            f"{d['fd_limits']['soft']}/{d['fd_limits']['hard']}",
+        ],
+    )
+    if rows:
+        concurrency = next(
+            (
+                p["register"]["sizes"][0]["concurrency"]
+                for p in results.values()
+                if p.get("register", {}).get("sizes")
+            ),
+            "?",
+        )
+        _table(
+            out,
+            f"(h) members registered over raw TCP by Set on registry services.<name>, "
+            f"{concurrency} Sets in flight",
+            [
+                "server",
+                "members",
+                "farms",
+                "registered",
+                "s",
+                "per s",
+                "Set p50 ms",
+                "Set p99 ms",
+                "RSS before MiB",
+                "RSS after MiB",
+                "KiB/member",
+                "gw fds",
+                "fd soft/hard",
+            ],
+            rows,
+        )
