@@ -1,13 +1,12 @@
 """Groups with the full registry in-process: query membership kept current, query subgroups, scale.
 
-``measure_group_moveto`` and ``measure_find`` are the benchmark's figures for
-issue 4 (bench/ calls them); the tests here run them small and check results.
+The timings of moveto and find at scale are in ``bench/groups.py``; the test
+here checks the results at those sizes, not their speed.
 """
 
 from __future__ import annotations
 
 import asyncio
-import time
 from collections.abc import AsyncIterator
 
 import numpy as np
@@ -84,56 +83,42 @@ async def test_query_subgroup_and_moveto_in_a_grid(world: MemoryDirectory) -> No
     assert info.value.code is Code.INVALID_ARGUMENT
 
 
-async def measure_group_moveto(n: int) -> float:
-    """Seconds until every one of ``n`` in-process simulated members accepted its moveto target."""
+async def test_moveto_reaches_every_member_and_find_matches_a_full_search() -> None:
+    """At benchmark sizes (timed in bench/groups.py): every member accepts, find misses no one."""
     directory = MemoryDirectory()
-    names = [f"r{i}" for i in range(n)]
+    names = [f"r{i}" for i in range(100)]
     for i, name in enumerate(names):
-        await directory.add(name, LocalService(SimRobot(start=(i % 100, i // 100), tick_hz=0.1)))
+        await directory.add(name, LocalService(SimRobot(start=(i % 10, i // 10), tick_hz=0.1)))
     group = LocalService(Group(directory=directory, members=names))
     await group.start()
     try:
-        t0 = time.perf_counter()
         accepted = await group.set(
             "behaviors.moveto", "<marker><location>(0 0)</location></marker>", {"formation": "circle"}
         )
-        elapsed = time.perf_counter() - t0
-        assert len(parse_names(accepted)) == n
-        return elapsed
     finally:
         await group.aclose()
         await directory.aclose()
+    assert sorted(parse_names(accepted)) == sorted(names)
 
-
-async def measure_find(n: int, queries: int = 200) -> tuple[float, float]:
-    """p50 and p99 seconds of ``find`` (type + near + radius) over a registry of ``n`` entries."""
     registry = Registry(period=0)
     service = RegistryService(registry)
     await service.start()
     rng = np.random.default_rng(1)
-    side = float(np.sqrt(n)) * 10  # about one robot per 100 m²
-    for i, (x, y) in enumerate(rng.uniform(0, side, size=(n, 2))):
-        registry.add(
-            f"r{i}", BackendInfo(type="mobile_robot" if i % 4 else "sensor", url="tcp://10.0.0.1:7000")
-        )
+    places = rng.uniform(0, 300, size=(1000, 2))
+    kinds = ["mobile_robot" if i % 4 else "sensor" for i in range(1000)]
+    for i, (x, y) in enumerate(places):
+        registry.add(f"r{i}", BackendInfo(type=kinds[i], url="tcp://10.0.0.1:7000"))
         registry._store_location(f"r{i}", f"({x:.3f} {y:.3f} 0)")
-    times = []
     try:
-        for centre in rng.uniform(0, side, size=(queries, 2)):
-            params = {"type": "mobile_robot", "near": f"({centre[0]:.2f} {centre[1]:.2f})", "radius": "30"}
-            t0 = time.perf_counter()
-            await service.get("find", params)
-            times.append(time.perf_counter() - t0)
+        for cx, cy in rng.uniform(0, 300, size=(20, 2)):
+            found = await service.get(
+                "find", {"type": "mobile_robot", "near": f"({cx} {cy})", "radius": "30"}
+            )
+            near = np.hypot(places[:, 0] - cx, places[:, 1] - cy) <= 30
+            expected = {f"r{i}" for i in np.flatnonzero(near) if kinds[i] == "mobile_robot"}
+            assert set(parse_names(found)) == expected
     finally:
         await service.aclose()
-    p50, p99 = np.percentile(times, [50, 99])
-    return float(p50), float(p99)
-
-
-async def test_the_benchmark_measurements_run() -> None:
-    assert await measure_group_moveto(100) > 0
-    p50, p99 = await measure_find(1000, queries=20)
-    assert 0 < p50 <= p99
 
 
 async def test_a_group_reports_members_that_left_the_network(world: MemoryDirectory) -> None:
