@@ -113,7 +113,9 @@ async def test_wildcard_listen_over_every_service(demo_gateway: GatewayProcess) 
             while not (msg := await call.read()).sync:
                 events += msg.events
         assert {(e.service, e.property) for e in events} == {
-            (robot, prop) for robot in ("scout1", "scout2") for prop in ("sensors.battery", "sensors.bumper")
+            (robot, prop)
+            for robot in ("scout1", "scout2", "rover1", "rover2")
+            for prop in ("sensors.battery", "sensors.bumper")
         }
         call.cancel()
 

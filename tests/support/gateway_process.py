@@ -17,8 +17,8 @@ is always stopped when the test ends::
         async with grpc.aio.insecure_channel(gw.address) as channel:
             ...
 
-``demo_gateway`` is one module-wide process serving the demo (``scout1``,
-``scout2``, ``thermo1`` and ``registry``); tests that share it must not
+``demo_gateway`` is one module-wide process serving the demo (see
+``gateway/demo.toml``: sim robots, a sensor, devices on TCP and a pty, ``registry``); tests that share it must not
 leave it changed in ways other tests would notice.
 """
 
