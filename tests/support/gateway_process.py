@@ -18,8 +18,9 @@ is always stopped when the test ends::
             ...
 
 ``demo_gateway`` is one module-wide process serving the demo (see
-``gateway/demo.toml``: sim robots, a sensor, devices on TCP and a pty, ``registry``); tests that share it must not
-leave it changed in ways other tests would notice.
+``gateway/demo.toml``: sim robots, a sensor, devices on TCP and a pty,
+``registry``); tests that share it must not leave it changed in ways other
+tests would notice.
 """
 
 from __future__ import annotations
