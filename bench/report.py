@@ -179,11 +179,11 @@ TARGETS += (
     ),
     Target(
         "group-scaling",
-        "growth of moveto time with members (1 = linear), smallest to largest group",
+        "log-log slope of moveto time over members (1 = linear), smallest to largest group",
         lambda r: _exponent(r, "in-process", "group", "members", "seconds"),
         "max",
         1.2,
-        "",
+        "slope",
         (("in-process", "group"),),
     ),
     Target(
@@ -197,11 +197,11 @@ TARGETS += (
     ),
     Target(
         "find-scaling",
-        "growth of find p50 with entries (1 = linear), smallest to largest registry",
+        "log-log slope of find p50 over entries (1 = linear), smallest to largest registry",
         lambda r: _exponent(r, "in-process", "find", "entries", "p50_us"),
         "max",
         1.0,
-        "",
+        "slope",
         (("in-process", "find"),),
     ),
     Target(

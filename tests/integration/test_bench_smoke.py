@@ -13,7 +13,21 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-TARGETS = ("unary-get", "session-get", "listen-fanout", "listen-batched", "idle-listen-memory")
+TARGETS = (
+    "unary-get",
+    "session-get",
+    "listen-fanout",
+    "listen-batched",
+    "idle-listen-memory",
+    "line-get-p50",
+    "line-get-inflight",
+    "group-moveto",
+    "group-scaling",
+    "find-p99",
+    "find-scaling",
+    "register-rate",
+    "register-memory",
+)
 
 
 def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
@@ -46,4 +60,25 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         assert listen["complete"], listen
         assert listen["events"] + listen["conflated"] == listen["expected_events"]
     assert payload["results"]["gateway"]["batched"]["events_per_message"] > 1
+    # The line-protocol part: the same Gets straight to the device and through the gateway, 1 and 8 in flight.
+    for way in ("direct", "gateway"):
+        line = payload["results"][way]["line"]
+        assert "error" not in line, (way, line)
+        assert sorted(line["inflight"], key=int) == ["1", "8"]
+        for figures in line["inflight"].values():
+            assert figures["complete"] and figures["errors"] == 0, (way, figures)
+    # Groups, find and registration ran at each of their sizes, on every member and entry.
+    group = payload["results"]["in-process"]["group"]
+    assert [d["members"] for d in group["sizes"]] == [100, 1000]
+    assert all(d["accepted"] == d["members"] for d in group["sizes"]), group
+    find = payload["results"]["in-process"]["find"]
+    assert [d["entries"] for d in find["sizes"]] == [100, 1000]
+    assert all(d["indexed"] == d["entries"] for d in find["sizes"]), find
+    register = payload["results"]["gateway"]["register"]
+    assert [d["members"] for d in register["sizes"]] == [100]
+    assert all(d["registered"] == d["members"] and d["last_member_answered"] for d in register["sizes"]), (
+        register
+    )
+    for title in ("(e) Get of", "(f) group behaviors.moveto", "(g) registry find", "(h) members registered"):
+        assert title in out, f"no table {title!r}:\n{out}"
     assert [t["name"] for t in payload["targets"]] == list(TARGETS)
