@@ -26,7 +26,7 @@ from grpc_health.v1.health import aio as health_aio  # type: ignore[attr-defined
 from grpc_reflection.v1alpha import reflection
 
 from gateway.backends import open_backend, open_proxy
-from gateway.config import REGISTRY_NAME, Config
+from gateway.config import REGISTRY_NAME, Config, ServiceEntry
 from gateway.devices import DeviceProcess, start_device
 from gateway.listen_hub import ListenHub
 from gateway.router import Router
@@ -34,7 +34,9 @@ from gateway.server import PropertyServicer
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.backend import Backend
+from services.catalog import needs_directory
 from services.errors import PropertyError
+from services.registry import Registry, RegistryService
 
 log = logging.getLogger("gateway")
 
@@ -62,10 +64,14 @@ class Gateway:
         self._line_listener: object | None = None
         self._stopped = asyncio.Event()
         self._unwatch_registry: object | None = None
+        #: The resource service, served as ``registry`` (built in :meth:`start`).
+        self.registry: Registry = Registry()
         self._devices: list[DeviceProcess] = []
         self._launch: asyncio.Future[list[DeviceProcess | BaseException]] | None = None
         #: "host:port" the gRPC server listens on (the real port when 0 was asked).
         self.address = ""
+        #: "host:port" of the line-protocol listener (the real port when 0 was asked); "" when off.
+        self.line_address = ""
         self.servicer = PropertyServicer(self.router, self.hub, self.config)
 
     async def __aenter__(self) -> Gateway:
@@ -84,12 +90,18 @@ class Gateway:
         try:
             self._launch_devices()
             await self._start_registry()
-            for entry in self.config.services:
-                backend = open_backend(entry)
+            # Services that reach others (groups) start last, once the services they name are there.
+            plain = [e for e in self.config.services if not _needs_directory(e)]
+            for entry in plain:
+                backend = open_backend(entry, self.router)
                 await self._add(entry.name, backend, entry.url or f"type {entry.type}")
             for name, backend in self._extra.items():
                 await self._add(name, backend, backend.info.url)
             await self._start_devices()
+            for entry in self.config.services:
+                if _needs_directory(entry):
+                    self._warn_missing_members(entry)
+                    await self._add(entry.name, open_backend(entry, self.router), f"type {entry.type}")
             await self._start_line_listener()
             self._server = self._make_server()
             await self._server.start()
@@ -152,26 +164,46 @@ class Gateway:
         except PropertyError as exc:
             log.warning("device %s: %s; the proxy keeps trying", name, exc.message)
 
-    async def _start_registry(self) -> None:
-        import services.registry as registry_module
-        from services.core import LocalService
-        from services.registry import Registry
-
-        if hasattr(registry_module, "RegistryService"):
-            # The registry that follows the directory (the router) by itself.
-            service = registry_module.RegistryService(Registry(directory=self.router))  # type: ignore[call-arg,unused-ignore]
-            await self._add(REGISTRY_NAME, service, "built in")
+    def _warn_missing_members(self, entry: ServiceEntry) -> None:
+        members = entry.options.get("members")
+        if not isinstance(members, list):
             return
-        registry = Registry()
+        missing = [m for m in members if isinstance(m, str) and m not in self.router]
+        if missing:
+            log.warning(
+                "group %s: %s not served yet; each joins the group when it is registered",
+                entry.name,
+                ", ".join(missing),
+            )
 
-        def follow(name: str, backend: Backend | None) -> None:
-            if backend is None:
-                registry.remove(name)
-            else:
-                registry.add(name, backend.info)
+    async def _start_registry(self) -> None:
+        settings = self.config.registry
+        static = [e.name for e in self.config.services] + [d.name for d in self.config.devices]
+        self.registry = Registry(
+            directory=self.router.directory,
+            period=settings.period,
+            timeout=settings.timeout,
+            misses=settings.misses,
+            grace=settings.grace,
+            static=static,
+            persist=settings.persist or None,
+        )
+        await self._add(REGISTRY_NAME, RegistryService(self.registry), "built in")
+        self._unwatch_registry = self.registry.watch_states(self._on_state)
 
-        self._unwatch_registry = self.router.watch(follow)
-        await self._add(REGISTRY_NAME, LocalService(registry), "built in")
+    def _on_state(self, name: str, state: str) -> None:
+        """The registry marked ``name`` up or down: client calls follow."""
+        if state == "up":
+            self.router.set_down(name, None)
+            log.info("service %s is up", name)
+            return
+        reason = f"service {name!r} is down"
+        entry = self.registry.services.children().get(name)
+        misses = getattr(entry, "misses", 0)
+        if misses:
+            reason += f": it missed {misses} liveness check{'s' if misses != 1 else ''}"
+        self.router.set_down(name, reason)
+        log.warning("%s", reason)
 
     async def _start_line_listener(self) -> None:
         address = self.config.gateway.line_listen
@@ -185,6 +217,10 @@ class Gateway:
 
             raise Unavailable("gateway.line_listen is set but no line-protocol listener is installed")
         self._line_listener = await backends.LINE_LISTENER(address, self.router)
+        bound = getattr(self._line_listener, "address", None)
+        if isinstance(bound, tuple):
+            address = f"{bound[0]}:{bound[1]}"
+        self.line_address = address
         log.info("line-protocol listener on %s", address)
 
     def _make_server(self) -> grpc.aio.Server:
@@ -236,6 +272,10 @@ class Gateway:
     async def wait_stopped(self) -> None:
         """Return once :meth:`stop` was called."""
         await self._stopped.wait()
+
+
+def _needs_directory(entry: ServiceEntry) -> bool:
+    return not entry.url and needs_directory(entry.type)
 
 
 async def serve(config: Config) -> int:

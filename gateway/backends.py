@@ -30,6 +30,7 @@ from services.errors import InvalidArgument, PropertyError
 if TYPE_CHECKING:
     from gateway.config import ServiceEntry
     from gateway.router import Router
+    from services.directory import Directory
 
 #: (service name, url, options) → a Backend that is not started yet.
 ProxyFactory = Callable[[str, str, Mapping[str, Any]], Backend]
@@ -75,15 +76,22 @@ def open_proxy(name: str, url: str, options: Mapping[str, Any]) -> Backend:
     return factory(name, url, options)
 
 
-def open_backend(entry: ServiceEntry) -> Backend:
-    """The backend a config entry describes (not started); raises PropertyError when it cannot be built."""
+def open_backend(entry: ServiceEntry, router: Router | Directory | None = None) -> Backend:
+    """The backend a config entry describes (not started); raises PropertyError when it cannot be built.
+
+    ``router`` is the gateway's directory of services, handed to the kinds
+    that reach other services (``type = "group"``); a router hands on its
+    :attr:`~gateway.router.Router.directory`.
+    """
     if entry.url:
         return open_proxy(entry.name, entry.url, entry.options)
+    from gateway.router import Router
     from services.catalog import create
     from services.core import LocalService
 
+    directory = router.directory if isinstance(router, Router) else router
     try:
-        resource = create(entry.type, **entry.options)
+        resource = create(entry.type, directory=directory, **entry.options)
     except PropertyError:
         raise
     except TypeError as exc:

@@ -9,6 +9,7 @@ raises :class:`ConfigError` naming the file and the key.
 from __future__ import annotations
 
 import importlib.resources
+import math
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
@@ -65,6 +66,23 @@ class Limits:
 
 
 @dataclass(frozen=True, slots=True)
+class RegistrySection:
+    """``[registry]``: liveness checks of the services and where run-time registrations are kept."""
+
+    #: Seconds between liveness checks of each service outside the gateway; 0 = no checks.
+    period: float = 5.0
+    #: Seconds a service gets to answer one check.
+    timeout: float = 2.0
+    #: Checks missed in a row before the service is ``down`` (its calls get UNAVAILABLE).
+    misses: int = 3
+    #: Seconds a service registered at run time may stay ``down`` before it is removed.
+    grace: float = 60.0
+    #: JSON file keeping the registrations made by Set across restarts; empty = not kept.
+    #: A relative path is taken from the config file's folder (absolute once parsed).
+    persist: str = ""
+
+
+@dataclass(frozen=True, slots=True)
 class ServiceEntry:
     """One ``[[services]]`` entry: an in-process service (``type``) or a proxy (``url``)."""
 
@@ -108,6 +126,7 @@ class Config:
 
     gateway: GatewaySection = field(default_factory=GatewaySection)
     limits: Limits = field(default_factory=Limits)
+    registry: RegistrySection = field(default_factory=RegistrySection)
     services: tuple[ServiceEntry, ...] = ()
     devices: tuple[DeviceEntry, ...] = ()
     #: Where it came from, for messages.
@@ -165,9 +184,13 @@ def _section(cls: type[Any], data: Any, where: str) -> Any:
     return cls(**values)
 
 
-def parse_config(data: Mapping[str, Any], source: str = "<config>") -> Config:
-    """Check a parsed TOML document and build a :class:`Config`; raises ConfigError."""
-    top = ("gateway", "limits", "services", "devices")
+def parse_config(data: Mapping[str, Any], source: str = "<config>", folder: Path | None = None) -> Config:
+    """Check a parsed TOML document and build a :class:`Config`; raises ConfigError.
+
+    ``folder`` is where relative paths in it start (the config file's folder;
+    default: the current directory).
+    """
+    top = ("gateway", "limits", "registry", "services", "devices")
     for key in data:
         if key not in top:
             raise ConfigError(f"{source}: unknown key {key!r} (known: {', '.join(top)})")
@@ -182,6 +205,7 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> Config:
     for f in fields(Limits):
         if f.name != "min_interval_floor" and getattr(limits, f.name) < 1:
             raise ConfigError(f"{source}: limits.{f.name}: must be at least 1")
+    registry = _registry(data.get("registry", {}), f"{source}: registry", folder)
 
     raw_services = data.get("services", [])
     if not isinstance(raw_services, list):
@@ -194,7 +218,33 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> Config:
     if not isinstance(raw_devices, list):
         raise ConfigError(f"{source}: devices: expected an array of tables ([[devices]])")
     devices = [_device(entry, f"{source}: devices[{i}]", seen) for i, entry in enumerate(raw_devices)]
-    return Config(gateway=gw, limits=limits, services=tuple(services), devices=tuple(devices), source=source)
+    return Config(
+        gateway=gw,
+        limits=limits,
+        registry=registry,
+        services=tuple(services),
+        devices=tuple(devices),
+        source=source,
+    )
+
+
+def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
+    section: RegistrySection = _section(RegistrySection, data, where)
+    for key in ("period", "timeout", "grace"):
+        if not math.isfinite(getattr(section, key)):
+            raise ConfigError(f"{where}.{key}: must be a finite number of seconds")
+    if section.timeout <= 0:
+        raise ConfigError(f"{where}.timeout: must be positive, got {section.timeout}")
+    if section.misses < 1:
+        raise ConfigError(f"{where}.misses: must be at least 1, got {section.misses}")
+    if section.persist:
+        path = Path(section.persist).expanduser()
+        if not path.is_absolute():
+            path = (folder if folder is not None else Path.cwd()) / path
+        if path.is_dir():
+            raise ConfigError(f"{where}.persist: {str(path)!r} is a folder; name a file")
+        section = replace(section, persist=str(path))
+    return section
 
 
 def _name(entry: Any, where: str, known: tuple[str, ...], seen: set[str]) -> str:
@@ -235,7 +285,7 @@ def _service(entry: Any, where: str, seen: set[str]) -> ServiceEntry:
 
 
 def _device(entry: Any, where: str, seen: set[str]) -> DeviceEntry:
-    from services.catalog import CATALOG
+    from services.catalog import CATALOG, needs_directory
 
     known = ("name", "type", "tcp", "serial", "baudrate", "options", "proxy")
     name = _name(entry, where, known, seen)
@@ -245,6 +295,11 @@ def _device(entry: Any, where: str, seen: set[str]) -> DeviceEntry:
     kind = _typed(entry["type"], str, f"{where}.type")
     if kind not in CATALOG:
         raise ConfigError(f"{where}.type: unknown type {kind!r} (known: {', '.join(sorted(CATALOG))})")
+    if needs_directory(kind):
+        raise ConfigError(
+            f"{where}.type: a {kind!r} reaches other services and runs only inside the gateway;"
+            " make it a [[services]] entry"
+        )
     tcp = _typed(entry.get("tcp", ""), str, f"{where}.tcp")
     serial = _typed(entry.get("serial", ""), str, f"{where}.serial")
     if bool(tcp) == bool(serial):
@@ -284,16 +339,16 @@ def load_config(path: str | Path) -> Config:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read: {exc.strerror or exc}") from None
-    return loads_config(text, str(p))
+    return loads_config(text, str(p), p.resolve().parent)
 
 
-def loads_config(text: str, source: str = "<config>") -> Config:
-    """Parse and check TOML text; raises ConfigError."""
+def loads_config(text: str, source: str = "<config>", folder: Path | None = None) -> Config:
+    """Parse and check TOML text; raises ConfigError. ``folder``: see :func:`parse_config`."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from None
-    return parse_config(data, source)
+    return parse_config(data, source, folder)
 
 
 def default_config() -> Config:

@@ -10,23 +10,49 @@ behind the gateway: the first path segment names the service::
 
 The sessions themselves are :class:`services.device_server.DeviceSession`s: the
 gateway is just one more device whose backend is the whole router.
+
+**A device that dials in.** When the first line a peer sends is a greeting
+(``HELLO 1 name=scout4 type=mobile_robot push=1``) the peer is a device that
+registers itself (docs/line-protocol.md §4): the connection is handed to an
+:class:`InboundProxy` — the ordinary line-protocol proxy, whose stream is this
+connection instead of one it opens — served under the greeting's ``name``
+with the URL ``tcp-in://HOST:PORT`` (the device's end of the connection). The
+registry lists it like any other service. A bad or missing name gets
+``ERR 3`` (INVALID_ARGUMENT), a taken one ``ERR 6`` (ALREADY_EXISTS), and the
+connection is closed. When the connection drops the service stays, not
+connected: the registry's liveness checks mark it ``down`` and its grace
+removes it; a device that dials in again under the same name before that
+takes its place back.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
+import logging
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
-from services.device_server import DeviceServer
-from services.errors import InvalidArgument, ReadOnly
+from services.device_server import DeviceServer, DeviceSession
+from services.errors import AlreadyExists, InvalidArgument, PropertyError, ReadOnly
+from services.line_protocol import MAX_LINE, ErrorReply, Hello, LineReceiver, encode
+from services.paths import validate_service_name
 from services.values import format_names
 
 if TYPE_CHECKING:
     from collections.abc import Callable
 
+    from gateway.inbound import InboundProxy
+    from gateway.proxies.line_proxy import ProxyOptions
     from gateway.router import Router
+
+log = logging.getLogger(__name__)
+
+#: Connections the listener serves at once, clients and devices that dialled in together.
+MAX_CONNECTIONS = 1024
+#: Seconds a device that dialled in gets to be taken up by its proxy.
+_TAKE_UP = 5.0
 
 
 class _Watch(Subscription):
@@ -81,12 +107,188 @@ class RouterBackend(Backend):
         return await backend.listen(rest, forward, params)
 
 
-class LineListener:
-    """A raw-TCP line-protocol server in front of a router; ``aclose`` stops it."""
+class _Prefixed(asyncio.StreamReader):
+    """A stream read from the start again: ``head`` (bytes already read from it), then the rest."""
 
-    def __init__(self, router: Router, *, name: str = "gateway") -> None:
-        self.server = DeviceServer(RouterBackend(router), name=name, type="gateway", push=True)
+    def __init__(self, inner: asyncio.StreamReader, head: bytes) -> None:
+        super().__init__()
+        self._inner = inner
+        self._head = head
+
+    async def read(self, n: int = -1) -> bytes:
+        if self._head:
+            head, self._head = self._head, b""
+            return head
+        return await self._inner.read(n)
+
+
+class _FirstLine(asyncio.StreamReader):
+    """What a connection's client session reads: the stream, unless its first line is a device greeting.
+
+    The session greets and reads through this as usual. When the peer's
+    first line turns out to be a ``HELLO 1 ...`` greeting, :attr:`device`
+    gets that greeting and every byte read so far, and the session reads
+    nothing more (end of stream once :meth:`release` is called).
+    """
+
+    def __init__(self, inner: asyncio.StreamReader) -> None:
+        super().__init__()
+        self._inner = inner
+        self._head = b""
+        self._decided = False
+        self._released = asyncio.Event()
+        self.device: asyncio.Future[tuple[Hello, bytes]] = asyncio.get_running_loop().create_future()
+
+    def release(self) -> None:
+        """Let the session see the end of the stream (the device's connection ended)."""
+        self._released.set()
+        if not self.device.done():
+            self.device.cancel()
+
+    async def read(self, n: int = -1) -> bytes:
+        while not self._decided:
+            data = await self._inner.read(n)
+            if not data:
+                self._decided = True
+                head, self._head = self._head, b""
+                return head
+            self._head += data
+            end = self._head.find(b"\n")
+            if end < 0 and len(self._head) <= MAX_LINE:
+                continue  # the first line is not complete yet
+            self._decided = True
+            frames = LineReceiver().receive_data(self._head[: end + 1]) if end >= 0 else []
+            if frames and isinstance(frames[0], Hello) and frames[0].tag is None and not self.device.done():
+                self.device.set_result((frames[0], self._head))
+                self._head = b""
+                await self._released.wait()
+                return b""
+            head, self._head = self._head, b""
+            return head
+        return await self._inner.read(n)
+
+
+class _ListenerServer(DeviceServer):
+    """The device server of the line listener: clients are served, devices that greet are registered."""
+
+    def __init__(self, listener: LineListener, backend: Backend, **kwargs: object) -> None:
+        super().__init__(backend, **kwargs)  # type: ignore[arg-type]
+        self._listener = listener
+
+    async def serve_stream(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str = ""
+    ) -> None:
+        first = _FirstLine(reader)
+        session = DeviceSession(
+            self.backend,
+            first,
+            writer,
+            greeting=self.greeting,
+            checksum=self.checksum,
+            call_timeout=self.call_timeout,
+            peer=peer,
+        )
+        run = asyncio.create_task(session.run(), name=f"line listener {peer}")
+        try:
+            waits: list[asyncio.Future[object]] = [run, first.device]  # type: ignore[list-item]
+            await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+            if first.device.done() and not first.device.cancelled():
+                hello, head = first.device.result()
+                await self._listener.serve_device(hello, _Prefixed(reader, head), writer, peer)
+        finally:
+            first.release()
+            await asyncio.gather(run, return_exceptions=True)
+
+
+class LineListener:
+    """A raw-TCP line-protocol server in front of a router; ``aclose`` stops it.
+
+    Devices that dial in and greet are served through the router as
+    :class:`InboundProxy` backends (see the module documentation).
+    """
+
+    def __init__(
+        self,
+        router: Router,
+        *,
+        name: str = "gateway",
+        max_connections: int = MAX_CONNECTIONS,
+        device_options: ProxyOptions | None = None,
+    ) -> None:
+        """``device_options`` tune the proxies of devices that dial in (default ``INBOUND_OPTIONS``)."""
+        self.router = router
+        self.device_options = device_options
+        self.server = _ListenerServer(
+            self,
+            RouterBackend(router),
+            name=name,
+            type="gateway",
+            push=True,
+            max_connections=max_connections,
+        )
         self.address: tuple[str, int] | None = None
+
+    async def serve_device(
+        self, hello: Hello, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str
+    ) -> None:
+        """Serve the device that greeted on this connection as service ``hello.name``, until it hangs up."""
+        from gateway.inbound import INBOUND_SCHEME
+
+        url = f"{INBOUND_SCHEME}://{peer}"
+        try:
+            proxy = await self._take_up(hello, reader, writer, url)
+        except PropertyError as exc:
+            log.warning("line listener: device %r at %s refused: %s", hello.name, peer, exc.message)
+            with contextlib.suppress(Exception):
+                writer.write(encode(ErrorReply.from_exception(exc)))
+                await writer.drain()
+            writer.close()
+            return
+        log.info("service %s joined by greeting from %s (%s)", hello.name, peer, proxy.info.type)
+        with contextlib.suppress(Exception):
+            await writer.wait_closed()
+        log.info("service %s: the device at %s hung up", hello.name, peer)
+
+    async def _take_up(
+        self, hello: Hello, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, url: str
+    ) -> InboundProxy:
+        from gateway.inbound import INBOUND_OPTIONS, InboundProxy
+
+        name = hello.name
+        if not name:
+            raise InvalidArgument(
+                "a device that dials in must give its name in its greeting: HELLO 1 name=NAME type=TYPE"
+            )
+        validate_service_name(name)
+        existing = self.router.lookup(name) if name in self.router else None
+        if existing is not None:
+            if not isinstance(existing, InboundProxy):
+                raise AlreadyExists(f"the name {name!r} is taken (by {existing.info.url})")
+            existing.offer(reader, writer, url)  # the same device, back after a drop
+            await existing.wait_connected(_TAKE_UP)
+            self._rejoined(name, existing)
+            return existing
+        proxy = InboundProxy(name, url, self.device_options or INBOUND_OPTIONS)
+        proxy.offer(reader, writer, url)
+        await proxy.start()
+        try:
+            await proxy.wait_connected(_TAKE_UP)
+            self.router.add(name, proxy)
+        except BaseException:
+            await proxy.aclose()
+            raise
+        return proxy
+
+    def _rejoined(self, name: str, proxy: InboundProxy) -> None:
+        """Tell the registry at once: the service is up again, at its new address."""
+        from gateway.config import REGISTRY_NAME
+        from services.registry import RegistryService
+
+        if REGISTRY_NAME in self.router:
+            registry = self.router.lookup(REGISTRY_NAME)
+            if isinstance(registry, RegistryService):
+                with contextlib.suppress(PropertyError):
+                    registry.registry.add(name, proxy.info)
 
     async def start(self, host: str, port: int) -> tuple[str, int]:
         """Listen on ``host:port`` (0 = any free port); return the bound address."""

@@ -1,9 +1,13 @@
 """Service name → backend, and bounded calls into backends.
 
-The :class:`Router` is the gateway's live set of services. It satisfies
-:class:`services.directory.Directory`, so system services (the registry,
-groups) can look services up and register new ones; watchers (the listen
-hub, the registry) hear every join and leave.
+The :class:`Router` is the gateway's live set of services; watchers (the
+listen hub, the registry) hear every join and leave. A service the registry
+marks ``down`` (:meth:`Router.set_down`) still holds its place, but
+:meth:`Router.backend` — the lookup of every client call — answers
+UNAVAILABLE for it. System services (the registry, groups) are handed
+:attr:`Router.directory`, a :class:`services.directory.Directory` whose
+lookups ignore that mark: the registry must keep probing a service that is
+down to see it come back.
 
 :func:`bounded_call` runs one backend coroutine under a timeout without
 creating a task, and without even arming a timer when the backend answers
@@ -22,7 +26,7 @@ from typing import Any, TypeVar
 
 from services.backend import Backend, BackendInfo
 from services.directory import DirectoryListener
-from services.errors import AlreadyExists, DeadlineExceeded, NotFound
+from services.errors import AlreadyExists, DeadlineExceeded, NotFound, Unavailable
 from services.paths import validate_path, validate_pattern, validate_service_name
 
 log = logging.getLogger(__name__)
@@ -44,15 +48,45 @@ class Router:
     def __init__(self) -> None:
         self._backends: dict[str, Backend] = {}
         self._watchers: list[DirectoryListener] = []
+        #: name → why it is down, for the services the registry marked down.
+        self._down: dict[str, str] = {}
+        #: The view of this router that system services get (lookups ignore ``down``).
+        self.directory = RouterDirectory(self)
 
     # -- lookups ---------------------------------------------------------
 
     def backend(self, name: str) -> Backend:
-        """The backend serving ``name``; raises NotFound (with suggestions) or InvalidArgument."""
+        """The backend serving ``name`` for a client call.
+
+        Raises NotFound (with suggestions) or InvalidArgument for an unknown
+        name, Unavailable for a service marked down.
+        """
+        backend = self._backends.get(name)
+        if backend is None:
+            raise self._unknown(name)
+        if self._down:
+            reason = self._down.get(name)
+            if reason is not None:
+                raise Unavailable(reason)
+        return backend
+
+    def lookup(self, name: str) -> Backend:
+        """The backend serving ``name``, down or not; raises NotFound or InvalidArgument."""
         backend = self._backends.get(name)
         if backend is None:
             raise self._unknown(name)
         return backend
+
+    def set_down(self, name: str, reason: str | None) -> None:
+        """Mark ``name`` down (its client calls get UNAVAILABLE with ``reason``), or up again with None."""
+        if reason is None:
+            self._down.pop(name, None)
+        elif name in self._backends:
+            self._down[name] = reason
+
+    def down(self) -> dict[str, str]:
+        """The services marked down right now, with the reason each is given."""
+        return dict(self._down)
 
     def names(self) -> list[str]:
         """Names of every service right now, sorted."""
@@ -95,6 +129,7 @@ class Router:
         backend = self._backends.pop(name, None)
         if backend is None:
             raise self._unknown(name)
+        self._down.pop(name, None)
         self._notify(name, None)
         return backend
 
@@ -141,6 +176,28 @@ class Router:
         backend = self.remove(name)
         await backend.aclose()
         log.info("service %s unregistered", name)
+
+
+class RouterDirectory:
+    """A router as a :class:`services.directory.Directory`: the same services, down ones included."""
+
+    def __init__(self, router: Router) -> None:
+        self.router = router
+
+    def names(self) -> list[str]:
+        return self.router.names()
+
+    def backend(self, name: str) -> Backend:
+        return self.router.lookup(name)
+
+    def watch(self, listener: DirectoryListener) -> Callable[[], None]:
+        return self.router.watch(listener)
+
+    async def register(self, name: str, url: str, options: Mapping[str, Any] | None = None) -> BackendInfo:
+        return await self.router.register(name, url, options)
+
+    async def unregister(self, name: str) -> None:
+        await self.router.unregister(name)
 
 
 @types.coroutine

@@ -2,6 +2,11 @@
 
 ``[[services]] name = "scout1", type = "sim-robot", options = {start = [1, 2]}``
 becomes ``create("sim-robot", start=[1, 2])``.
+
+A kind whose factory takes a ``directory`` (a group of robots reaches its
+members through the gateway's directory) gets the one passed to
+:func:`create`; the others never see it, so a device process, which has no
+directory, can still create every kind that does not need one.
 """
 
 from __future__ import annotations
@@ -11,38 +16,74 @@ from collections.abc import Callable
 from typing import Any
 
 from services.core import Resource
+from services.directory import Directory
 from services.errors import InvalidArgument
+from services.group import Group
 from services.simulators import SimRobot, SimSensor
 
-__all__ = ["CATALOG", "create"]
+__all__ = ["CATALOG", "create", "needs_directory"]
 
 CATALOG: dict[str, Callable[..., Resource]] = {
+    "group": Group,
     "sim-robot": SimRobot,
     "sim-sensor": SimSensor,
 }
 
+#: The keyword a factory declares to be handed the gateway's directory.
+_DIRECTORY = "directory"
+#: Keywords of a factory that are for the service's own use, never options from a config.
+_INTERNAL: dict[str, tuple[str, ...]] = {"group": ("within",)}
 
-def _accepted(factory: Callable[..., Resource]) -> str:
+
+def _parameters(factory: Callable[..., Resource]) -> dict[str, inspect.Parameter]:
     try:
-        names = [
-            p.name
-            for p in inspect.signature(factory).parameters.values()
-            if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
-        ]
+        return dict(inspect.signature(factory).parameters)
     except (TypeError, ValueError):
+        return {}
+
+
+def needs_directory(kind: str) -> bool:
+    """True when services of ``kind`` reach other services (a group) and so need the gateway's directory."""
+    factory = CATALOG.get(kind)
+    return factory is not None and _DIRECTORY in _parameters(factory)
+
+
+def _accepted(kind: str, factory: Callable[..., Resource]) -> str:
+    internal = (_DIRECTORY, *_INTERNAL.get(kind, ()))
+    params = _parameters(factory)
+    if not params:
         return "see its documentation"
+    names = [
+        p.name
+        for p in params.values()
+        if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) and p.name not in internal
+    ]
     return ", ".join(names) or "none"
 
 
-def create(kind: str, **options: Any) -> Resource:
-    """Create a service object of ``kind``; InvalidArgument for an unknown kind or bad options."""
+def create(kind: str, *, directory: Directory | None = None, **options: Any) -> Resource:
+    """Create a service object of ``kind``; InvalidArgument for an unknown kind or bad options.
+
+    ``directory`` is handed on only to kinds that take one (see :func:`needs_directory`);
+    such a kind created without one is an InvalidArgument.
+    """
     factory = CATALOG.get(kind)
     if factory is None:
         raise InvalidArgument(f"unknown service type {kind!r}: known types are {', '.join(sorted(CATALOG))}")
+    for key in (_DIRECTORY, *_INTERNAL.get(kind, ())):
+        if key in options:
+            raise InvalidArgument(
+                f"bad options for {kind!r}: {key!r} is not an option; it accepts: {_accepted(kind, factory)}"
+            )
+    if needs_directory(kind):
+        if directory is None:
+            raise InvalidArgument(f"a {kind!r} service reaches other services: it runs only inside a gateway")
+        options = {**options, _DIRECTORY: directory}
     try:
         bound = inspect.signature(factory).bind(**options)
     except TypeError as e:
-        raise InvalidArgument(f"bad options for {kind!r}: {e}; it accepts: {_accepted(factory)}") from None
+        accepted = _accepted(kind, factory)
+        raise InvalidArgument(f"bad options for {kind!r}: {e}; it accepts: {accepted}") from None
     except ValueError:
         bound = None
     try:

@@ -7,6 +7,10 @@ that speaks lines of text::
 
     python -m services.device_server --service sim-robot --tcp 127.0.0.1:7001
     python -m services.device_server --service sim-sensor --serial /dev/pts/3 --baud 115200
+    python -m services.device_server --service sim-robot --name scout4 --connect 127.0.0.1:7100
+
+With ``--connect`` the device dials out to a gateway's line listener and
+greets; the gateway registers it under its name (docs/line-protocol.md §4).
 
 Every connection gets its own :class:`DeviceSession`: requests with a tag run
 concurrently (bounded), untagged requests one at a time; events for a client
@@ -345,6 +349,37 @@ class DeviceServer:
         bound = server.sockets[0].getsockname()
         return str(bound[0]), int(bound[1])
 
+    async def dial(
+        self, host: str, port: int, *, retry_initial: float = 0.2, retry_max: float = 10.0
+    ) -> None:
+        """Dial ``host:port`` (a gateway's line listener) and serve that connection; dial again when it ends.
+
+        The greeting, sent first as on every connection, registers the device
+        there. Runs until cancelled; the pause between attempts doubles from
+        ``retry_initial`` up to ``retry_max`` seconds while dialling fails or
+        the connection is refused at once.
+        """
+        pause = retry_initial
+        loop = asyncio.get_running_loop()
+        while True:
+            began = loop.time()
+            try:
+                reader, writer = await asyncio.open_connection(host, port, limit=_READ_SIZE)
+            except OSError as exc:
+                log.warning("cannot reach %s:%d: %s", host, port, exc)
+            else:
+                log.info("connected to %s:%d", host, port)
+                self._sessions.add(writer)
+                try:
+                    await self.serve_stream(reader, writer, f"{host}:{port}")
+                finally:
+                    self._sessions.discard(writer)
+                log.warning("connection to %s:%d ended", host, port)
+                if loop.time() - began > retry_max:
+                    pause = retry_initial  # it was up for a while: a fresh drop, not a refusal
+            await asyncio.sleep(pause)
+            pause = min(pause * 2, retry_max)
+
     async def serve_serial(self, port: str, baudrate: int = 115200, *, reopen_delay: float = 1.0) -> None:
         """Open the serial ``port`` (OSError if it cannot be opened) and serve it in the background.
 
@@ -443,6 +478,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--tcp", type=_host_port, metavar="HOST:PORT", help="listen on TCP (port 0: pick one)")
     where.add_argument(
+        "--connect",
+        type=_host_port,
+        metavar="HOST:PORT",
+        help="dial a gateway's line listener and greet: it registers the device under --name",
+    )
+    where.add_argument(
         "--serial", metavar="PORT", help="serve on a serial port, e.g. /dev/ttyUSB0 or /dev/pts/3"
     )
     parser.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
@@ -477,15 +518,23 @@ async def serve(args: argparse.Namespace) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError):
             loop.add_signal_handler(sig, stop.set)
+    dialling: asyncio.Task[None] | None = None
     try:
         if args.tcp:
             host, port = await server.serve_tcp(*args.tcp)
             print(f"listening on {host}:{port}", flush=True)
+        elif getattr(args, "connect", None):
+            host, port = args.connect
+            dialling = asyncio.create_task(server.dial(host, port))
+            print(f"connecting to {host}:{port}", flush=True)
         else:
             await server.serve_serial(args.serial, args.baud)
             print(f"serving on {args.serial}", flush=True)
         await stop.wait()
     finally:
+        if dialling is not None:
+            dialling.cancel()
+            await asyncio.gather(dialling, return_exceptions=True)
         await server.aclose()
         await backend.aclose()
 
