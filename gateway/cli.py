@@ -130,6 +130,8 @@ def _serve(args: argparse.Namespace) -> int:
 
 def _check_config(args: argparse.Namespace) -> int:
     from gateway.backends import open_backend
+    from gateway.router import Router
+    from services.catalog import create
     from services.errors import PropertyError
 
     try:
@@ -141,19 +143,30 @@ def _check_config(args: argparse.Namespace) -> int:
 
     async def build_all() -> None:
         nonlocal bad
+        router = Router()  # groups are built against an empty one: built, never started
         for entry in config.services:
             try:
-                backend = open_backend(entry)
+                backend = open_backend(entry, router)
             except PropertyError as exc:
                 print(f"psgateway: config error: {config.source}: services ({entry.name}): {exc.message}")
                 bad += 1
                 continue
             await backend.aclose()
+        for device in config.devices:
+            # Built here as the device process would build it, so a bad option shows now, not at start.
+            try:
+                create(device.type, **device.options)
+            except PropertyError as exc:
+                print(f"psgateway: config error: {config.source}: devices ({device.name}): {exc.message}")
+                bad += 1
 
     asyncio.run(build_all())
     if bad:
         return EXIT_CONFIG
-    print(f"{config.source}: fine ({len(config.services)} services, listening on {config.gateway.listen})")
+    counted = f"{len(config.services)} services"
+    if config.devices:
+        counted += f", {len(config.devices)} devices"
+    print(f"{config.source}: fine ({counted}, listening on {config.gateway.listen})")
     return 0
 
 
