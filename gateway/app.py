@@ -261,7 +261,10 @@ class Gateway:
             self._unwatch_registry()
         if self._line_listener is not None:
             await self._line_listener.aclose()  # type: ignore[attr-defined]
-        for name in reversed(self.router.names()):
+        # The registry goes first: services closed for the shutdown are not leaves it should
+        # record (a registration kept in its persist file must still be there at the next start).
+        names = reversed(self.router.names())
+        for name in sorted(names, key=lambda n: n != REGISTRY_NAME):
             backend = self.router.remove(name)
             try:
                 await asyncio.wait_for(backend.aclose(), grace)

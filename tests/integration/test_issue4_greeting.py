@@ -137,16 +137,16 @@ async def test_registrations_by_set_come_back_after_a_restart_and_config_service
 ) -> None:
     config = parse_config(liveness_config(persist="registrations.json", period=0), folder=tmp_path)
     assert config.registry.persist == str(tmp_path / "registrations.json")
-    with tcp_device("--service", "sim-robot", "--name", "kept") as (host, port):
+    with tcp_device("--service", "sim-robot", "--name", "survivor") as (host, port):
         url = f"tcp://{host}:{port}"
         async with Gateway(config) as gw, AsyncClient(gw.address, timeout=5) as client:
-            await client.set("registry", "services.kept", url, type="mobile_robot")
+            await client.set("registry", "services.survivor", url, type="mobile_robot")
             assert await client.get_names("pair", "robots") == []
-        assert '"kept"' in (tmp_path / "registrations.json").read_text()
+        assert '"survivor"' in (tmp_path / "registrations.json").read_text()
 
         async with Gateway(config) as gw, AsyncClient(gw.address, timeout=5) as client:
             names = await client.get_names("registry", "services")
-            assert {"registry", "pair", "kept"} <= set(names)
-            assert await client.get("registry", "services.kept") == url
-            assert await client.get("registry", "services.kept.type") == "mobile_robot"
-            assert await client.get("kept", "location.x") == "0"
+            assert {"registry", "pair", "survivor"} <= set(names)
+            assert await client.get("registry", "services.survivor") == url
+            assert await client.get("registry", "services.survivor.type") == "mobile_robot"
+            assert await client.get("survivor", "location.x") == "0"
