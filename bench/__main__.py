@@ -21,6 +21,7 @@ from typing import Any
 
 from bench import report
 from bench.groups import run_scaling
+from bench.line import WAYS as LINE_WAYS
 from bench.line import run_line
 from bench.listen import run_listen
 from bench.memory import run_memory, run_session_memory
@@ -314,7 +315,7 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
         print("line: device process and gateway process", file=sys.stderr)
         inflights = tuple(sorted({1, args.inflight}))
         ways = await _timed(
-            "line, direct and through the gateway",
+            "line, direct and through the gateway (unary and Session)",
             lambda: run_line(
                 calls=args.line_calls,
                 inflights=inflights,
@@ -323,7 +324,7 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
                 time_limit=args.time_limit,
             ),
         )
-        for way in ("direct", "gateway"):
+        for way in LINE_WAYS:
             results.setdefault(way, {})["line"] = ways if "error" in ways else ways[way]
     if "group" in args.parts:
         results.setdefault("in-process", {})["group"] = await _timed(

@@ -9,7 +9,10 @@ Gets of the robot's ``speed`` are made two ways in the same run, taking turns:
   request tagged so that several are in flight (the codec of
   :mod:`services.line_protocol` on both ends);
 * *gateway*: unary gRPC Gets of service ``dev`` on one channel; the gateway's
-  proxy turns each into a tagged line on its one connection to the device.
+  proxy turns each into a tagged line on its one connection to the device;
+* *gateway-session*: the same Gets over one Session stream of the gateway, batched as
+  the client library does (:class:`clients.aio.Session`): the requests issued
+  in the same event-loop iteration go in one SessionRequest.
 
 Each is measured with 1 and with ``inflight`` calls in flight.
 """
@@ -18,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import itertools
 import tempfile
 import time
@@ -40,7 +44,73 @@ PROPERTY = "speed"
 CALL_TIMEOUT = 10.0
 GREETING_TIMEOUT = 10.0
 
+#: The ways each Get is made, in the order they take turns.
+WAYS = ("direct", "gateway", "gateway-session")
+
 DEVICE_ARGV = ["services.device_server", "--service", "sim-robot", "--name", DEVICE, "--tcp", "127.0.0.1:0"]
+
+
+class SessionClient:
+    """One Session stream carrying Gets, batched like the client library does.
+
+    Requests issued in the same event-loop iteration are written as one
+    SessionRequest; each reply resolves its request by id.
+    """
+
+    def __init__(self, stub: pb_grpc.PropertyServiceStub) -> None:
+        self._call = stub.Session()
+        self._ids = itertools.count(1)
+        self._waiting: dict[int, asyncio.Future[pb.Reply]] = {}
+        self._queue: list[pb.Request] = []
+        self._wake = asyncio.Event()
+        self._tasks = [asyncio.create_task(self._read()), asyncio.create_task(self._write())]
+
+    async def _write(self) -> None:
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            batch, self._queue = self._queue, []
+            if batch:
+                await self._call.write(pb.SessionRequest(requests=batch))
+
+    async def _read(self) -> None:
+        try:
+            while True:
+                response = await self._call.read()
+                if response is grpc.aio.EOF:  # type: ignore[attr-defined]
+                    break
+                for reply in response.replies:
+                    future = self._waiting.pop(reply.id, None)
+                    if future is not None and not future.done():
+                        future.set_result(reply)
+        finally:
+            for future in self._waiting.values():
+                if not future.done():
+                    future.set_exception(ConnectionError("the session ended"))
+            self._waiting.clear()
+
+    async def get(self, service: str, path: str) -> str:
+        """GET ``service``/``path`` over the session."""
+        rid = next(self._ids)
+        future: asyncio.Future[pb.Reply] = asyncio.get_running_loop().create_future()
+        self._waiting[rid] = future
+        self._queue.append(pb.Request(id=rid, get=pb.GetRequest(service=service, property=path)))
+        self._wake.set()
+        try:
+            async with asyncio.timeout(CALL_TIMEOUT):
+                reply = await future
+        finally:
+            self._waiting.pop(rid, None)
+        if reply.status.code:
+            raise RuntimeError(f"status {reply.status.code} {reply.status.message}")
+        return str(reply.get.value)
+
+    async def aclose(self) -> None:
+        """End the stream and its tasks."""
+        self._call.cancel()
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
 
 
 class LineClient:
@@ -206,13 +276,13 @@ async def _measured(
 async def run_line(
     *, calls: int, inflights: tuple[int, ...], warmup: int, rounds: int, time_limit: float
 ) -> dict[str, dict[str, Any]]:
-    """Start the device and the gateway, then measure both ways; return ``{"direct": ..., "gateway": ...}``.
+    """Start the device and the gateway, then measure each of :data:`WAYS`; return ``{way: figures}``.
 
     Each way's figures are kept per number in flight (``"1"``, ``"8"``); with
-    several rounds the two ways take turns and the best round (by Gets/s) counts.
+    several rounds the ways take turns and the best round (by Gets/s) counts.
     """
-    best: dict[str, dict[int, PathResult]] = {"direct": {}, "gateway": {}}
-    rounds_seen: dict[str, dict[int, list[float]]] = {"direct": {}, "gateway": {}}
+    best: dict[str, dict[int, PathResult]] = {name: {} for name in WAYS}
+    rounds_seen: dict[str, dict[int, list[float]]] = {name: {} for name in WAYS}
     device = await ServerProcess.start("device", DEVICE_ARGV, address_on="stdout")
     gateway: ServerProcess | None = None
     try:
@@ -225,6 +295,8 @@ async def run_line(
         host, _, port = device.address.rpartition(":")
         direct = await LineClient.connect(host, int(port))
         channel = grpc.aio.insecure_channel(gateway.address)
+        session_channel = grpc.aio.insecure_channel(gateway.address)
+        session: SessionClient | None = None
         try:
             stub = pb_grpc.PropertyServiceStub(channel)
             request = pb.GetRequest(service=DEVICE, property=PROPERTY)
@@ -235,7 +307,9 @@ async def run_line(
             async def straight() -> str:
                 return await direct.get(PROPERTY)
 
-            ways = {"direct": straight, "gateway": through_gateway}
+            session = SessionClient(pb_grpc.PropertyServiceStub(session_channel))
+            over_session = functools.partial(session.get, DEVICE, PROPERTY)
+            ways = {"direct": straight, "gateway": through_gateway, "gateway-session": over_session}
             for way in ways.values():  # the proxy may still be connecting: the warm-up waits for it
                 await _wait_answering(way)
                 await drive(way, warmup, max(inflights), time_limit)
@@ -257,6 +331,9 @@ async def run_line(
             device.check_alive()
             gateway.check_alive()
         finally:
+            if session is not None:
+                await session.aclose()
+            await session_channel.close(None)
             await channel.close(None)
             await direct.aclose()
     finally:

@@ -148,7 +148,7 @@ def _exponent(results: Results, server: str, part: str, size: str, figure: str) 
 TARGETS += (
     Target(
         "line-get-p50",
-        "Get p50 with 1 in flight, through gateway's TCP proxy / line protocol straight to the device",
+        "unary Get p50 with 1 in flight, through the gateway's TCP proxy / straight to the device",
         lambda r: (
             _line(r, "gateway", "1")["latency"]["p50_us"] / _line(r, "direct", "1")["latency"]["p50_us"]
         ),
@@ -159,7 +159,7 @@ TARGETS += (
     ),
     Target(
         "line-get-inflight",
-        "Gets/s with 8 in flight, through the gateway's TCP proxy / straight to the device",
+        "unary Gets/s with 8 in flight, through the gateway's TCP proxy / straight to the device",
         lambda r: (
             _line(r, "gateway", "most")["throughput_per_s"] / _line(r, "direct", "most")["throughput_per_s"]
         ),
@@ -167,6 +167,30 @@ TARGETS += (
         0.5,
         "x",
         (("gateway", "line"), ("direct", "line")),
+    ),
+    Target(
+        "line-session-p50",
+        "Get p50 with 1 in flight, over a Session through the gateway's TCP proxy / straight to the device",
+        lambda r: (
+            _line(r, "gateway-session", "1")["latency"]["p50_us"]
+            / _line(r, "direct", "1")["latency"]["p50_us"]
+        ),
+        "max",
+        2.0,
+        "x",
+        (("gateway-session", "line"), ("direct", "line")),
+    ),
+    Target(
+        "line-session-inflight",
+        "Gets/s with 8 in flight, over a Session through the gateway's TCP proxy / straight to the device",
+        lambda r: (
+            _line(r, "gateway-session", "most")["throughput_per_s"]
+            / _line(r, "direct", "most")["throughput_per_s"]
+        ),
+        "min",
+        0.5,
+        "x",
+        (("gateway-session", "line"), ("direct", "line")),
     ),
     Target(
         "group-moveto",
@@ -457,7 +481,7 @@ def print_report(out: TextIO, info: dict[str, Any], results: Results, verdicts: 
         sign = ">=" if v["kind"] == "min" else "<="
         figure = "n/a" if v["figure"] is None else f"{v['figure']:.2f} {v['unit']}"
         print(
-            f"ratio {v['name']:<19} {figure:>10}   target {sign} {v['bound']:g} {v['unit']:<4} "
+            f"ratio {v['name']:<21} {figure:>10}   target {sign} {v['bound']:g} {v['unit']:<4} "
             f"{v['verdict']}   ({v['description']})",
             file=out,
         )
@@ -480,7 +504,11 @@ def _error_row(label: str, data: dict[str, Any]) -> list[str]:
 def _issue_tables(out: TextIO, results: Results) -> None:
     """Tables of parts (e)-(h): the line protocol, groups, find, registration over raw TCP."""
     rows: list[list[str]] = []
-    for way, label in (("direct", "line protocol, direct"), ("gateway", "gRPC via gateway proxy")):
+    for way, label in (
+        ("direct", "line protocol, direct"),
+        ("gateway", "gRPC via gateway proxy"),
+        ("gateway-session", "gRPC Session via gw proxy"),
+    ):
         data = results.get(way, {}).get("line")
         if data is None:
             continue
@@ -498,7 +526,7 @@ def _issue_tables(out: TextIO, results: Results) -> None:
                     _fmt(lat["p50_us"]),
                     _fmt(lat["p99_us"]),
                     _fmt(d["device_cpu_us_per_call"]),
-                    _fmt(d["gateway_cpu_us_per_call"]) if way == "gateway" else "-",
+                    _fmt(d["gateway_cpu_us_per_call"]) if way != "direct" else "-",
                     f"{d['client_busy']:.0%}",
                     str(d["errors"]),
                 ]
@@ -507,7 +535,7 @@ def _issue_tables(out: TextIO, results: Results) -> None:
         prop = next(
             (
                 results[w]["line"].get("property", "?")
-                for w in ("direct", "gateway")
+                for w in ("direct", "gateway", "gateway-session")
                 if "line" in results.get(w, {})
             ),
             "?",
