@@ -55,6 +55,11 @@ def test_the_demo_config() -> None:
         ("scout1", "sim-robot"),
         ("scout2", "sim-robot"),
         ("thermo1", "sim-sensor"),
+        ("swarm", "group"),
+    ]
+    assert [(d.name, d.tcp or d.serial) for d in cfg.devices] == [
+        ("rover1", "127.0.0.1:0"),
+        ("rover2", "pty"),
     ]
     assert cfg.services[1].options["start"] == [1.0, 0.0]
 
