@@ -148,7 +148,8 @@ def _check_config(args: argparse.Namespace) -> int:
             try:
                 backend = open_backend(entry, router)
             except PropertyError as exc:
-                print(f"psgateway: config error: {config.source}: services ({entry.name}): {exc.message}")
+                where = f"{config.source}: services ({entry.name})"
+                print(f"psgateway: config error: {where}: {exc.message}", file=sys.stderr)
                 bad += 1
                 continue
             await backend.aclose()
@@ -157,7 +158,8 @@ def _check_config(args: argparse.Namespace) -> int:
             try:
                 create(device.type, **device.options)
             except PropertyError as exc:
-                print(f"psgateway: config error: {config.source}: devices ({device.name}): {exc.message}")
+                where = f"{config.source}: devices ({device.name})"
+                print(f"psgateway: config error: {where}: {exc.message}", file=sys.stderr)
                 bad += 1
 
     asyncio.run(build_all())

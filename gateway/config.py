@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from services.errors import InvalidArgument
+from services.errors import InvalidArgument, PropertyError
 from services.paths import validate_service_name
 
 #: The service every gateway hosts itself; a config may not define it.
@@ -285,7 +285,7 @@ def _service(entry: Any, where: str, seen: set[str]) -> ServiceEntry:
 
 
 def _device(entry: Any, where: str, seen: set[str]) -> DeviceEntry:
-    from services.catalog import CATALOG, needs_directory
+    from services.catalog import CATALOG, factory_of, needs_directory
 
     known = ("name", "type", "tcp", "serial", "baudrate", "options", "proxy")
     name = _name(entry, where, known, seen)
@@ -293,8 +293,10 @@ def _device(entry: Any, where: str, seen: set[str]) -> DeviceEntry:
     if "type" not in entry:
         raise ConfigError(f"{where}: missing key 'type' (one of {', '.join(sorted(CATALOG))})")
     kind = _typed(entry["type"], str, f"{where}.type")
-    if kind not in CATALOG:
-        raise ConfigError(f"{where}.type: unknown type {kind!r} (known: {', '.join(sorted(CATALOG))})")
+    try:
+        factory_of(kind)
+    except PropertyError as e:
+        raise ConfigError(f"{where}.type: {e.message}") from None
     if needs_directory(kind):
         raise ConfigError(
             f"{where}.type: a {kind!r} reaches other services and runs only inside the gateway;"

@@ -7,10 +7,15 @@ A kind whose factory takes a ``directory`` (a group of robots reaches its
 members through the gateway's directory) gets the one passed to
 :func:`create`; the others never see it, so a device process, which has no
 directory, can still create every kind that does not need one.
+
+A kind may also name your own class by import path, ``package.module:Class``
+(a :class:`~services.core.Resource` subclass, or a function returning one):
+``type = "lamps:Lamp"`` serves ``Lamp`` from ``lamps.py`` on the Python path.
 """
 
 from __future__ import annotations
 
+import importlib
 import inspect
 from collections.abc import Callable
 from typing import Any
@@ -21,7 +26,7 @@ from services.errors import InvalidArgument
 from services.group import Group
 from services.simulators import SimRobot, SimSensor
 
-__all__ = ["CATALOG", "create", "needs_directory"]
+__all__ = ["CATALOG", "create", "factory_of", "needs_directory"]
 
 CATALOG: dict[str, Callable[..., Resource]] = {
     "group": Group,
@@ -42,10 +47,47 @@ def _parameters(factory: Callable[..., Resource]) -> dict[str, inspect.Parameter
         return {}
 
 
+def _imported(kind: str) -> Callable[..., Resource]:
+    """The factory named by an import path ``package.module:Name``."""
+    module_name, _, attr = kind.partition(":")
+    if not module_name or not attr:
+        raise InvalidArgument(f"bad service type {kind!r}: an import path looks like 'package.module:Class'")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as e:
+        raise InvalidArgument(f"service type {kind!r}: cannot import {module_name!r}: {e}") from None
+    factory: Any = module
+    for part in attr.split("."):
+        factory = getattr(factory, part, None)
+        if factory is None:
+            raise InvalidArgument(f"service type {kind!r}: {module_name!r} has no {attr!r}")
+    if isinstance(factory, type) and not issubclass(factory, Resource):
+        raise InvalidArgument(f"service type {kind!r}: {attr} is not a services.core.Resource subclass")
+    if not callable(factory):
+        raise InvalidArgument(f"service type {kind!r}: {attr} is not a class or function")
+    return factory  # type: ignore[no-any-return]
+
+
+def factory_of(kind: str) -> Callable[..., Resource]:
+    """The factory for ``kind``: a catalog name or an import path; InvalidArgument if there is none."""
+    factory = CATALOG.get(kind)
+    if factory is not None:
+        return factory
+    if ":" in kind:
+        return _imported(kind)
+    raise InvalidArgument(
+        f"unknown service type {kind!r}: known types are {', '.join(sorted(CATALOG))}, "
+        "or an import path 'package.module:Class'"
+    )
+
+
 def needs_directory(kind: str) -> bool:
     """True when services of ``kind`` reach other services (a group) and so need the gateway's directory."""
-    factory = CATALOG.get(kind)
-    return factory is not None and _DIRECTORY in _parameters(factory)
+    try:
+        factory = factory_of(kind)
+    except InvalidArgument:
+        return False
+    return _DIRECTORY in _parameters(factory)
 
 
 def _accepted(kind: str, factory: Callable[..., Resource]) -> str:
@@ -67,9 +109,7 @@ def create(kind: str, *, directory: Directory | None = None, **options: Any) -> 
     ``directory`` is handed on only to kinds that take one (see :func:`needs_directory`);
     such a kind created without one is an InvalidArgument.
     """
-    factory = CATALOG.get(kind)
-    if factory is None:
-        raise InvalidArgument(f"unknown service type {kind!r}: known types are {', '.join(sorted(CATALOG))}")
+    factory = factory_of(kind)
     for key in (_DIRECTORY, *_INTERNAL.get(kind, ())):
         if key in options:
             raise InvalidArgument(
@@ -87,8 +127,13 @@ def create(kind: str, *, directory: Directory | None = None, **options: Any) -> 
     except ValueError:
         bound = None
     try:
-        return factory(**options) if bound is None else factory(*bound.args, **bound.kwargs)
+        made = factory(**options) if bound is None else factory(*bound.args, **bound.kwargs)
     except InvalidArgument as e:
         raise InvalidArgument(f"bad options for {kind!r}: {e.message}") from None
     except (TypeError, ValueError) as e:
         raise InvalidArgument(f"bad options for {kind!r}: {e}") from None
+    if not isinstance(made, Resource):
+        raise InvalidArgument(
+            f"service type {kind!r} made a {type(made).__name__}, not a services.core.Resource"
+        )
+    return made

@@ -46,7 +46,7 @@ def test_the_demo_has_a_tcp_and_a_serial_device() -> None:
     [
         ('type = "sim-robot"\ntcp = "127.0.0.1:0"', "missing key 'name'"),
         ('name = "r"\ntcp = "127.0.0.1:0"', "missing key 'type'"),
-        ('name = "r"\ntype = "toaster"\ntcp = "127.0.0.1:0"', "unknown type 'toaster'"),
+        ('name = "r"\ntype = "toaster"\ntcp = "127.0.0.1:0"', "unknown service type 'toaster'"),
         ('name = "r"\ntype = "sim-robot"', "exactly one of 'tcp'"),
         ('name = "r"\ntype = "sim-robot"\ntcp = "127.0.0.1:0"\nserial = "pty"', "exactly one of 'tcp'"),
         ('name = "r"\ntype = "sim-robot"\ntcp = "localhost"', "expected host:port"),

@@ -127,7 +127,7 @@ def test_check_config_builds_groups_and_device_options(
         """
     )
     assert main(["check-config", str(bad)]) == 2
-    out = capsys.readouterr().out
+    out = capsys.readouterr().err
     assert "services (swarm): bad options for 'group': unknown query parameter 'colour'" in out
     assert "devices (rover1): bad options for 'sim-robot'" in out and "speed" in out
     good = tmp_path / "good.toml"
