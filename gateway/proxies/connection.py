@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import itertools
 import logging
 import time
+from collections import deque
 from collections.abc import Callable
 
 from services.errors import Code, DeadlineExceeded, PropertyError, ResourceExhausted, Unavailable
@@ -30,31 +30,38 @@ from services.line_protocol import (
     ErrorReply,
     Event,
     Frame,
+    Get,
     Gone,
     Hello,
     HelloRequest,
     LineProtocolError,
     LineReceiver,
+    Listen,
     Ok,
     Ping,
     Pong,
     Request,
+    Set,
+    Unlisten,
     encode,
 )
 
 log = logging.getLogger(__name__)
 
 _READ_SIZE = 65536
-_TAG_DIGITS = "0123456789abcdefghijklmnopqrstuvwxyz"
+#: Tags are the request counter in hex, at most 8 digits.
+_TAG_MASK = 0xFFFFFFFF
 
 
-def _tag_text(n: int) -> str:
-    out = ""
-    while True:
-        n, digit = divmod(n, 36)
-        out = _TAG_DIGITS[digit] + out
-        if not n:
-            return out
+class _Pending:
+    """One request waiting for its reply: its future, its timer, its time limit."""
+
+    __slots__ = ("future", "timeout", "timer")
+
+    def __init__(self, future: asyncio.Future[Frame], timer: asyncio.TimerHandle, timeout: float) -> None:
+        self.future = future
+        self.timer = timer
+        self.timeout = timeout
 
 
 class LineConnection:
@@ -76,13 +83,19 @@ class LineConnection:
         self._on_event = on_event
         self._checksum = checksum
         self._receiver = LineReceiver()
-        self._pending: dict[str, asyncio.Future[Frame]] = {}
-        self._tags = itertools.count()
-        self._slots = asyncio.Semaphore(max_in_flight)
+        self._loop = asyncio.get_running_loop()
+        self._pending: dict[str, _Pending] = {}
+        self._next_tag = 0
+        #: Free request slots, and the requests waiting for one (oldest first).
+        self._free = max_in_flight
+        self._slot_waiters: deque[asyncio.Future[None]] = deque()
+        #: Lines queued in this loop iteration after the first one went out; see _write_line.
+        self._outgoing: list[bytes] = []
+        self._flush_due = False
         self._closed = asyncio.Event()
         self._close_reason = "connection closed"
         self._last_data = time.monotonic()
-        self.hello: asyncio.Future[Hello] = asyncio.get_running_loop().create_future()
+        self.hello: asyncio.Future[Hello] = self._loop.create_future()
         #: Longest line the device accepts (from its greeting).
         self.max_line = MAX_LINE
         self._task = asyncio.create_task(self._read_loop(), name=f"line-connection {label}")
@@ -102,10 +115,16 @@ class LineConnection:
             return
         self._close_reason = reason
         self._closed.set()
-        for future in self._pending.values():
-            if not future.done():
-                future.set_exception(Unavailable(f"{self.label}: {reason}"))
+        for pending in self._pending.values():
+            pending.timer.cancel()
+            if not pending.future.done():
+                pending.future.set_exception(Unavailable(f"{self.label}: {reason}"))
         self._pending.clear()
+        for waiter in self._slot_waiters:
+            if not waiter.done():
+                waiter.set_exception(Unavailable(f"{self.label}: {reason}"))
+        self._slot_waiters.clear()
+        self._outgoing.clear()
         if not self.hello.done():
             self.hello.set_exception(Unavailable(f"{self.label}: {reason}"))
         with contextlib.suppress(Exception):
@@ -121,7 +140,42 @@ class LineConnection:
     # -- requests ----------------------------------------------------------
 
     def _send(self, frame: Frame) -> None:
-        self._writer.write(encode(frame, checksum=self._checksum, max_line=self.max_line))
+        self._write_line(encode(frame, checksum=self._checksum, max_line=self.max_line))
+
+    def _write_line(self, line: bytes) -> None:
+        # The first line of a loop iteration goes out at once (no added latency);
+        # lines queued after it in the same iteration go out together in one send.
+        if self._flush_due:
+            self._outgoing.append(line)
+            return
+        self._flush_due = True
+        self._loop.call_soon(self._flush)
+        self._writer.write(line)
+
+    def _flush(self) -> None:
+        self._flush_due = False
+        lines = self._outgoing
+        if lines:
+            self._outgoing = []
+            if not self._closed.is_set():
+                self._writer.write(b"".join(lines))
+
+    def start_request(self, frame: Request, deadline_s: float) -> asyncio.Future[Frame] | None:
+        """Send ``frame`` now under a fresh tag; return the future of its reply (Ok, Pong or Hello).
+
+        The future fails with the PropertyError of an ERR reply, with
+        DeadlineExceeded when no reply came in ``deadline_s`` seconds, with
+        Unavailable when the connection closes. Returns None, sending
+        nothing, when every request slot is taken (:meth:`request` waits for
+        one). Raises Unavailable on a closed connection and PropertyError for
+        a frame that cannot be written.
+        """
+        if self._free <= 0 or self._slot_waiters:
+            if self._closed.is_set():
+                raise Unavailable(f"{self.label}: {self._close_reason}")
+            return None
+        self._free -= 1
+        return self._issue(frame, deadline_s, self._loop.time() + deadline_s)
 
     async def request(self, frame: Request, deadline_s: float) -> Frame:
         """Send ``frame`` under a fresh tag and return the reply frame (Ok, Pong or Hello).
@@ -130,40 +184,66 @@ class LineConnection:
         ``deadline_s`` seconds raises DeadlineExceeded; a closed connection
         raises Unavailable.
         """
+        future = self.start_request(frame, deadline_s)
+        if future is None:
+            deadline = self._loop.time() + deadline_s
+            await self._wait_slot(deadline, deadline_s)
+            future = self._issue(frame, deadline_s, deadline)
+        return await future
+
+    def _issue(self, frame: Request, timeout: float, deadline: float) -> asyncio.Future[Frame]:
+        """Send ``frame`` in the slot the caller holds; the reply or the timeout frees the slot."""
         if self._closed.is_set():
+            self._release_slot()
             raise Unavailable(f"{self.label}: {self._close_reason}")
-        timeout = deadline_s
-        deadline = asyncio.get_running_loop().time() + timeout
+        self._next_tag = tag_number = (self._next_tag + 1) & _TAG_MASK
+        tag = format(tag_number, "x")
         try:
-            async with asyncio.timeout_at(deadline):
-                await self._slots.acquire()
+            line = encode(_with_tag(frame, tag), checksum=self._checksum, max_line=self.max_line)
+        except LineProtocolError as exc:
+            self._release_slot()
+            raise PropertyError(f"{self.label}: cannot send the request: {exc.message}", exc.code) from None
+        loop = self._loop
+        future: asyncio.Future[Frame] = loop.create_future()
+        self._pending[tag] = _Pending(future, loop.call_at(deadline, self._expire, tag), timeout)
+        self._write_line(line)
+        return future
+
+    def _expire(self, tag: str) -> None:
+        pending = self._pending.pop(tag, None)
+        if pending is None:
+            return
+        self._release_slot()
+        if not pending.future.done():
+            self._drop_stale_half_line(pending.timeout)
+            pending.future.set_exception(
+                DeadlineExceeded(f"{self.label}: no reply within {pending.timeout:g} s")
+            )
+
+    async def _wait_slot(self, deadline: float, limit_s: float) -> None:
+        loop = self._loop
+        waiter: asyncio.Future[None] = loop.create_future()
+        self._slot_waiters.append(waiter)
+        timer = loop.call_at(deadline, _time_out, waiter)
+        try:
+            await waiter
         except TimeoutError:
-            raise DeadlineExceeded(f"{self.label}: too many requests in flight for {timeout:g} s") from None
-        tag = _tag_text(next(self._tags) % 36**8)
-        future: asyncio.Future[Frame] = asyncio.get_running_loop().create_future()
-        try:
-            tagged = _with_tag(frame, tag)
-            try:
-                self._send(tagged)
-            except LineProtocolError as exc:
-                raise PropertyError(
-                    f"{self.label}: cannot send the request: {exc.message}", exc.code
-                ) from None
-            if self._closed.is_set():
-                raise Unavailable(f"{self.label}: {self._close_reason}")
-            self._pending[tag] = future
-            try:
-                async with asyncio.timeout_at(deadline):
-                    reply = await future
-            except TimeoutError:
-                self._drop_stale_half_line(timeout)
-                raise DeadlineExceeded(f"{self.label}: no reply within {timeout:g} s") from None
+            raise DeadlineExceeded(f"{self.label}: too many requests in flight for {limit_s:g} s") from None
+        except BaseException:
+            if waiter.done() and not waiter.cancelled() and waiter.exception() is None:
+                self._release_slot()  # handed a slot just as the caller gave up: pass it on
+            raise
         finally:
-            self._pending.pop(tag, None)
-            self._slots.release()
-        if isinstance(reply, ErrorReply):
-            raise reply.to_exception()
-        return reply
+            timer.cancel()
+
+    def _release_slot(self) -> None:
+        waiters = self._slot_waiters
+        while waiters:
+            waiter = waiters.popleft()
+            if not waiter.done():
+                waiter.set_result(None)
+                return
+        self._free += 1
 
     def _drop_stale_half_line(self, timeout: float) -> None:
         # A device that sent half a line and fell silent would otherwise glue
@@ -206,36 +286,51 @@ class LineConnection:
         self.close(reason)
 
     def _handle(self, frame: Frame | BadLine) -> None:
-        if isinstance(frame, Event | Gone):
+        kind = type(frame)
+        if kind is Ok or kind is ErrorReply or kind is Pong or kind is Hello:
+            reply: Ok | ErrorReply | Pong | Hello = frame  # type: ignore[assignment]
+            tag = reply.tag
+            if tag is not None:
+                self._resolve(reply, tag)
+                return
+            if kind is Hello:
+                self._greeted(reply)  # type: ignore[arg-type]
+                return
+            if kind is ErrorReply:
+                log.warning("%s: device reports: ERR %d %s", self.label, reply.code, reply.message)  # type: ignore[union-attr]
+                return
+        elif kind is Event or kind is Gone:
             try:
-                self._on_event(frame)
+                self._on_event(frame)  # type: ignore[arg-type]
             except Exception:
                 log.exception("%s: event handler failed on %r", self.label, frame)
             return
-        if isinstance(frame, Hello) and frame.tag is None:
-            self._greeted(frame)
-            return
-        if isinstance(frame, Ping):
+        elif kind is Ping:
             with contextlib.suppress(LineProtocolError):
-                self._send(Pong(frame.data, frame.tag))
+                self._send(Pong(frame.data, frame.tag))  # type: ignore[union-attr]
             return
-        if isinstance(frame, BadLine):
-            self._bad_line(frame)
-            return
-        tag = getattr(frame, "tag", None)
-        if isinstance(frame, Ok | ErrorReply | Pong | Hello) and tag is not None:
-            if isinstance(frame, Hello):
-                self._greeted(frame)
-            future = self._pending.pop(tag, None)
-            if future is not None and not future.done():
-                future.set_result(frame)
-            elif not isinstance(frame, Hello):
-                log.info("%s: reply for tag #%s came too late or was not asked for; ignored", self.label, tag)
-            return
-        if isinstance(frame, ErrorReply):
-            log.warning("%s: device reports: ERR %d %s", self.label, frame.code, frame.message)
+        elif kind is BadLine:
+            self._bad_line(frame)  # type: ignore[arg-type]
             return
         log.warning("%s: unexpected line from the device ignored: %r", self.label, frame)
+
+    def _resolve(self, reply: Ok | ErrorReply | Pong | Hello, tag: str) -> None:
+        if type(reply) is Hello:
+            self._greeted(reply)
+        pending = self._pending.pop(tag, None)
+        if pending is None:
+            if type(reply) is not Hello:
+                log.info("%s: reply for tag #%s came too late or was not asked for; ignored", self.label, tag)
+            return
+        pending.timer.cancel()
+        self._release_slot()
+        future = pending.future
+        if future.done():
+            return
+        if type(reply) is ErrorReply:
+            future.set_exception(reply.to_exception())
+        else:
+            future.set_result(reply)
 
     def _greeted(self, hello: Hello) -> None:
         self.max_line = hello.max_line
@@ -243,7 +338,11 @@ class LineConnection:
             self.hello.set_result(hello)
 
     def _bad_line(self, bad: BadLine) -> None:
-        future = self._pending.pop(bad.tag, None) if bad.tag is not None else None
+        pending = self._pending.pop(bad.tag, None) if bad.tag is not None else None
+        if pending is not None:
+            pending.timer.cancel()
+            self._release_slot()
+        future = pending.future if pending is not None else None
         log.warning(
             "%s: bad line from the device%s: %s",
             self.label,
@@ -263,7 +362,21 @@ class LineConnection:
         future.set_exception(error)
 
 
-def _with_tag(frame: Request, tag: str) -> Request:
-    import dataclasses
+def _time_out(waiter: asyncio.Future[None]) -> None:
+    if not waiter.done():
+        waiter.set_exception(TimeoutError())
 
-    return dataclasses.replace(frame, tag=tag)
+
+def _with_tag(frame: Request, tag: str) -> Request:
+    kind = type(frame)
+    if kind is Get:
+        return Get(frame.path, frame.params, tag)  # type: ignore[union-attr]
+    if kind is Set:
+        return Set(frame.path, frame.value, frame.params, tag)  # type: ignore[union-attr]
+    if kind is Listen:
+        return Listen(frame.path, frame.params, tag)  # type: ignore[union-attr]
+    if kind is Unlisten:
+        return Unlisten(frame.path, frame.params, tag)  # type: ignore[union-attr]
+    if kind is Ping:
+        return Ping(frame.data, tag)  # type: ignore[union-attr]
+    return HelloRequest(tag)
