@@ -48,7 +48,23 @@ class LineReceiver:
     def receive_data(self, data: bytes | bytearray | memoryview) -> list[Frame | BadLine]:
         """Take the next bytes of the stream; return the frames of the lines they complete."""
         out: list[Frame | BadLine] = []
-        chunk = bytes(data)
+        chunk = data if type(data) is bytes else bytes(data)
+        if not self._buffer and not self._discarding:
+            # The usual case: nothing held back, so the chunk's whole lines are read
+            # from it in place; only an unfinished last line goes to the buffer.
+            max_line = self.max_line
+            start = 0
+            while (end := chunk.find(b"\n", start)) >= 0:
+                line = chunk[start:end]
+                if end + 1 - start > max_line:
+                    out.append(self._too_long(line))
+                else:
+                    self._line(line, out)
+                start = end + 1
+            if start < len(chunk):
+                self._buffer += chunk[start:]
+                self._split(out)
+            return out
         if self._discarding:
             newline = chunk.find(b"\n")
             if newline < 0:
@@ -76,14 +92,18 @@ class LineReceiver:
             if newline + 1 > self.max_line:
                 out.append(self._too_long(line))
                 continue
-            if line.endswith(b"\r"):
-                line = line[:-1]
-            if not line.strip(b" "):
-                continue
-            try:
-                out.append(decode_line(line))
-            except LineProtocolError as exc:
-                out.append(BadLine(exc.code, exc.message, exc.tag))
-            else:
-                if line.startswith(b"$"):
-                    self.saw_checksum = True
+            self._line(line, out)
+
+    def _line(self, line: bytes, out: list[Frame | BadLine]) -> None:
+        """Decode one complete line (no LF; at most max_line bytes with it) into ``out``."""
+        if line.endswith(b"\r"):
+            line = line[:-1]
+        if not line.strip(b" "):
+            return
+        try:
+            out.append(decode_line(line))
+        except LineProtocolError as exc:
+            out.append(BadLine(exc.code, exc.message, exc.tag))
+        else:
+            if line.startswith(b"$"):
+                self.saw_checksum = True
