@@ -49,11 +49,16 @@ class Calls:
         backend = self.router.backend(service)
         path = check_path(request.property)
         params = request.parameters
-        value = await bounded_call(
-            backend.get(path, dict(params) if params else NO_PARAMS),
-            time_limit,
-            lambda: f"{service}: get {path}",
-        )
+        start = getattr(backend, "start_get", None)
+        future = start(path, params, time_limit) if start is not None else None
+        if future is not None:
+            value = (await future).value
+        else:
+            value = await bounded_call(
+                backend.get(path, dict(params) if params else NO_PARAMS),
+                time_limit,
+                lambda: f"{service}: get {path}",
+            )
         if not request.more:
             return pb.GetResponse(value=value)
         return pb.GetResponse(value=value, more=await self._get_more(request, time_limit))

@@ -64,7 +64,7 @@ class Session:
         self._room.set()
         #: ids of Gets and Sets running in a task, and of Listens (starting or live).
         self._active: set[int] = set()
-        self._tasks: dict[int, asyncio.Task[None]] = {}
+        self._tasks: dict[int, asyncio.Future[Any]] = {}
         self._listens: dict[int, ListenStream] = {}
         self._ready: dict[int, None] = {}
         #: ids of Listens still starting (their task is in _tasks).
@@ -214,9 +214,41 @@ class Session:
             self._fail(rid, exc, "Get")
             return
         params = request.parameters
-        coro = backend.get(path, dict(params) if params else NO_PARAMS)
         service = request.service
+        start = getattr(backend, "start_get", None)
+        if start is not None:
+            # A line-protocol proxy sends the GET at once and resolves a future
+            # from its reader: no task, no coroutine, one timer.
+            try:
+                future = start(path, params, self._timeout)
+            except Exception as exc:
+                self._fail(rid, exc, f"{service}: get {path}")
+                return
+            if future is not None:
+                self._await_reply(rid, future, lambda: f"{service}: get {path}")
+                return
+        coro = backend.get(path, dict(params) if params else NO_PARAMS)
         self._run(rid, coro, isinstance(backend, LocalService), "get", lambda: f"{service}: get {path}")
+
+    def _await_reply(self, rid: int, future: asyncio.Future[Any], what: Callable[[], str]) -> None:
+        """Answer request ``rid`` when ``future`` (a proxy's reply frame) is done; it counts as in flight."""
+        self._active.add(rid)
+        self._tasks[rid] = future
+
+        def done(_: asyncio.Future[Any]) -> None:
+            if self._tasks.get(rid) is future:
+                del self._tasks[rid]
+                self._active.discard(rid)
+            if future.cancelled():
+                return
+            error = future.exception()
+            if error is not None:
+                self._fail(rid, error, what())
+            else:
+                self._answer(rid, "get", future.result().value)
+            self._room.set()
+
+        future.add_done_callback(done)
 
     async def _get_more(self, rid: int, request: pb.GetRequest) -> None:
         try:

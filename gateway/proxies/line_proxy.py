@@ -32,6 +32,7 @@ from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unav
 from services.line_protocol import (
     PROTOCOL_VERSION,
     Event,
+    Frame,
     Get,
     Gone,
     Hello,
@@ -299,6 +300,22 @@ class LineProxy(Backend):
 
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
         return await self._call(Get(path, dict(params)))
+
+    def start_get(
+        self, path: str, params: Mapping[str, str], time_limit: float
+    ) -> asyncio.Future[Frame] | None:
+        """Send a GET of ``path`` now; return the future of its reply, an :class:`Ok` frame.
+
+        For callers that would otherwise wrap :meth:`get` in a task and a
+        timeout of their own: the reply resolves the future straight from
+        the connection's reader, and the one timer is the connection's. The
+        future fails with the call's PropertyError (DEADLINE_EXCEEDED after
+        ``time_limit`` or the proxy's own timeout, whichever is shorter).
+        Raises Unavailable when the device is not connected; returns None,
+        sending nothing, when every request slot is taken (await :meth:`get`).
+        """
+        frame = Get(path, dict(params) if params else {})
+        return self._live().start_request(frame, min(time_limit, self.options.timeout))
 
     async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
         return await self._call(Set(path, value, dict(params)))
