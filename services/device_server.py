@@ -28,11 +28,13 @@ import json
 import logging
 import signal
 import sys
+import types
 from collections import deque
-from collections.abc import Callable, Coroutine, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Generator, Mapping, Sequence
 from typing import Any
 
 from services.backend import Backend, Change, Subscription
+from services.core import LocalService
 from services.errors import Code, DeadlineExceeded, PropertyError, ResourceExhausted
 from services.line_protocol import (
     MAX_LINE,
@@ -68,6 +70,27 @@ MAX_QUEUED_REPLIES = 256
 #: A backend call that takes longer gets DEADLINE_EXCEEDED.
 CALL_TIMEOUT = 10.0
 _READ_SIZE = 65536
+
+
+@types.coroutine
+def _resume(coro: Coroutine[Any, Any, str], yielded: Any) -> Generator[Any, Any, str]:
+    """Go on running ``coro``, stepped once already (it yielded ``yielded``), in the awaiting task."""
+    while True:
+        try:
+            sent = yield yielded
+        except GeneratorExit:
+            coro.close()
+            raise
+        except BaseException as exc:
+            try:
+                yielded = coro.throw(exc)
+            except StopIteration as done:
+                return str(done.value)
+        else:
+            try:
+                yielded = coro.send(sent)
+            except StopIteration as done:
+                return str(done.value)
 
 
 class _Outbox:
@@ -127,6 +150,7 @@ class DeviceSession:
         self._subscriptions: dict[str, Subscription] = {}
         self._in_flight = asyncio.Semaphore(MAX_IN_FLIGHT)
         self._tasks: set[asyncio.Task[None]] = set()
+        self._step_gets = isinstance(backend, LocalService)
 
     # -- writing ---------------------------------------------------------
 
@@ -207,11 +231,24 @@ class DeviceSession:
         elif isinstance(frame, Get | Set | Listen | Unlisten):
             if frame.tag is None:
                 await self._answer(frame)
-            else:
-                await self._in_flight.acquire()
-                task = asyncio.create_task(self._answer(frame))
-                self._tasks.add(task)
-                task.add_done_callback(self._finished)
+                return
+            started: tuple[Coroutine[Any, Any, str], Any] | None = None
+            if type(frame) is Get and self._step_gets:
+                # An in-process service usually answers a GET without waiting:
+                # step it here and reply at once, with no task and no timer.
+                call = self.backend.get(frame.path, frame.params)
+                try:
+                    started = call, call.send(None)
+                except StopIteration as done:
+                    self._reply(Ok(done.value, frame.tag))
+                    return
+                except Exception as exc:
+                    self._reply_failure(frame, exc)
+                    return
+            await self._in_flight.acquire()
+            task = asyncio.create_task(self._answer(frame, started))
+            self._tasks.add(task)
+            task.add_done_callback(self._finished)
         elif isinstance(frame, Pong | Hello):
             pass  # answer to a PING of ours / a client introducing itself: nothing to do
         else:
@@ -223,24 +260,30 @@ class DeviceSession:
         self._tasks.discard(task)
         self._in_flight.release()
 
-    async def _answer(self, frame: Get | Set | Listen | Unlisten) -> None:
+    async def _answer(
+        self,
+        frame: Get | Set | Listen | Unlisten,
+        started: tuple[Coroutine[Any, Any, str], Any] | None = None,
+    ) -> None:
         try:
             async with asyncio.timeout(self.call_timeout):
-                value = await self._call(frame)
-        except PropertyError as exc:
-            self._reply(ErrorReply.from_exception(exc, frame.tag))
+                value = await (self._call(frame) if started is None else _resume(*started))
         except TimeoutError:
             late = DeadlineExceeded(
                 f"{frame.path}: the service did not answer within {self.call_timeout:g} s"
             )
             self._reply(ErrorReply.from_exception(late, frame.tag))
-        except Exception:
-            log.exception("%s: service failed on %r", self.peer, frame)
-            self._reply(
-                ErrorReply(int(Code.INTERNAL), f"{frame.path}: internal error in the service", frame.tag)
-            )
+        except Exception as exc:
+            self._reply_failure(frame, exc)
         else:
             self._reply(Ok(value, frame.tag))
+
+    def _reply_failure(self, frame: Get | Set | Listen | Unlisten, exc: Exception) -> None:
+        if isinstance(exc, PropertyError):
+            self._reply(ErrorReply.from_exception(exc, frame.tag))
+            return
+        log.error("%s: service failed on %r", self.peer, frame, exc_info=exc)
+        self._reply(ErrorReply(int(Code.INTERNAL), f"{frame.path}: internal error in the service", frame.tag))
 
     async def _call(self, frame: Get | Set | Listen | Unlisten) -> str:
         backend = self.backend
