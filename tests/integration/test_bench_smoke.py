@@ -21,6 +21,8 @@ TARGETS = (
     "idle-listen-memory",
     "line-get-p50",
     "line-get-inflight",
+    "line-session-p50",
+    "line-session-inflight",
     "group-moveto",
     "group-scaling",
     "find-p99",
@@ -60,8 +62,9 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         assert listen["complete"], listen
         assert listen["events"] + listen["conflated"] == listen["expected_events"]
     assert payload["results"]["gateway"]["batched"]["events_per_message"] > 1
-    # The line-protocol part: the same Gets straight to the device and through the gateway, 1 and 8 in flight.
-    for way in ("direct", "gateway"):
+    # The line-protocol part: the same Gets straight to the device and through the gateway (unary and
+    # Session), 1 and 8 in flight.
+    for way in ("direct", "gateway", "gateway-session"):
         line = payload["results"][way]["line"]
         assert "error" not in line, (way, line)
         assert sorted(line["inflight"], key=int) == ["1", "8"]
