@@ -8,9 +8,15 @@ that speaks lines of text::
     python -m services.device_server --service sim-robot --tcp 127.0.0.1:7001
     python -m services.device_server --service sim-sensor --serial /dev/pts/3 --baud 115200
     python -m services.device_server --service sim-robot --name scout4 --connect 127.0.0.1:7100
+    python -m services.device_server --service sim-robot --name rover2 --pty
 
 With ``--connect`` the device dials out to a gateway's line listener and
 greets; the gateway registers it under its name (docs/line-protocol.md §4).
+With ``--pty`` it creates a pseudo-terminal, plays the device's end of the
+cable on its master side and prints the other end's path (``serial port
+/dev/pts/N``) for a ``serial://`` client to open. With ``--exit-with-parent``
+it stops when its stdin reaches its end: the gateway starts its ``[[devices]]``
+this way (``gateway.devices``), so they end with it even when it is killed.
 
 Every connection gets its own :class:`DeviceSession`: requests with a tag run
 concurrently (bounded), untagged requests one at a time; events for a client
@@ -26,6 +32,7 @@ import contextlib
 import dataclasses
 import json
 import logging
+import os
 import signal
 import sys
 import types
@@ -352,6 +359,7 @@ class DeviceServer:
         self._sessions: set[asyncio.StreamWriter] = set()
         self._servers: list[asyncio.Server] = []
         self._serial_tasks: list[asyncio.Task[None]] = []
+        self._pty_fds: list[int] = []
 
     async def serve_stream(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str = ""
@@ -467,6 +475,35 @@ class DeviceServer:
                 streams = None
             await asyncio.sleep(reopen_delay)
 
+    def serve_pty(self, *, restart_delay: float = 0.5) -> str:
+        """Create a pseudo-terminal, serve its master side in the background; return the other end's path.
+
+        That path (``/dev/pts/N``) is the serial port a client opens. The
+        server keeps it open itself, in raw mode, so that the line stays up
+        (and never echoes) while no client has it open, as a real serial
+        line does when nobody listens. A session that ends is started again
+        after ``restart_delay`` seconds.
+        """
+        import tty
+
+        master, slave = os.openpty()
+        self._pty_fds += [master, slave]
+        tty.setraw(slave)  # no echo, no line editing, until the client sets its own mode
+        path = os.ttyname(slave)
+        self._serial_tasks.append(asyncio.create_task(self._pty_loop(master, path, restart_delay)))
+        return path
+
+    async def _pty_loop(self, master: int, path: str, restart_delay: float) -> None:
+        while True:
+            reader, writer, read_transport = await _pipe_streams(master)
+            try:
+                await self.serve_stream(reader, writer, peer=path)
+            finally:
+                read_transport.close()
+                writer.close()
+            log.info("%s: session ended; serving the line again", path)
+            await asyncio.sleep(restart_delay)
+
     async def aclose(self) -> None:
         """Stop listening and end every session. Idempotent."""
         for server in self._servers:
@@ -482,6 +519,35 @@ class DeviceServer:
                 await asyncio.wait_for(server.wait_closed(), 5)
         self._servers.clear()
         self._serial_tasks.clear()
+        fds, self._pty_fds = self._pty_fds, []
+        for fd in fds:
+            os.close(fd)
+
+
+async def _pipe_streams(fd: int) -> tuple[asyncio.StreamReader, asyncio.StreamWriter, asyncio.BaseTransport]:
+    """Asyncio streams on a read/write file descriptor (on duplicates of it); the read transport, to close."""
+    loop = asyncio.get_running_loop()
+    reader = asyncio.StreamReader(limit=_READ_SIZE)
+    protocol = asyncio.StreamReaderProtocol(reader)
+    read_transport, _ = await loop.connect_read_pipe(lambda: protocol, os.fdopen(os.dup(fd), "rb", 0))
+    write_transport, write_protocol = await loop.connect_write_pipe(
+        asyncio.streams.FlowControlMixin, os.fdopen(os.dup(fd), "wb", 0)
+    )
+    writer = asyncio.StreamWriter(write_transport, write_protocol, reader, loop)
+    return reader, writer, read_transport
+
+
+async def _watch_stdin(stop: asyncio.Event) -> None:
+    """Set ``stop`` when stdin reaches its end: the process that started this one is gone."""
+    loop = asyncio.get_running_loop()
+    reader = asyncio.StreamReader()
+    transport, _ = await loop.connect_read_pipe(lambda: asyncio.StreamReaderProtocol(reader), sys.stdin)
+    try:
+        while await reader.read(4096):
+            pass
+    finally:
+        transport.close()
+        stop.set()
 
 
 # -- command line ---------------------------------------------------------
@@ -529,11 +595,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     where.add_argument(
         "--serial", metavar="PORT", help="serve on a serial port, e.g. /dev/ttyUSB0 or /dev/pts/3"
     )
+    where.add_argument(
+        "--pty",
+        action="store_true",
+        help="create a pseudo-terminal, serve its master side and print the serial port to open"
+        " ('serial port /dev/pts/N')",
+    )
     parser.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
     parser.add_argument("--no-push", action="store_true", help="act as a device that cannot push events")
     parser.add_argument("--checksum", action="store_true", help="send a CRC-8 checksum on every line")
     parser.add_argument(
         "--max-line", type=int, default=MAX_LINE, help=f"longest line accepted (default {MAX_LINE})"
+    )
+    parser.add_argument(
+        "--exit-with-parent",
+        action="store_true",
+        help="stop when stdin reaches its end (a device process that must end with the one that started it)",
     )
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
 
@@ -546,7 +623,7 @@ def _make_backend(kind: str, options: Mapping[str, Any]) -> Backend:
 
 
 async def serve(args: argparse.Namespace) -> None:
-    """Run the device described by parsed ``args`` until SIGINT/SIGTERM."""
+    """Run the device described by parsed ``args`` until SIGINT/SIGTERM (or stdin's end, if asked)."""
     backend = _make_backend(args.service, dict(args.option))
     await backend.start()
     server = DeviceServer(
@@ -561,23 +638,27 @@ async def serve(args: argparse.Namespace) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError):
             loop.add_signal_handler(sig, stop.set)
-    dialling: asyncio.Task[None] | None = None
+    tasks: list[asyncio.Task[None]] = []
+    if getattr(args, "exit_with_parent", False):
+        tasks.append(asyncio.create_task(_watch_stdin(stop)))
     try:
         if args.tcp:
             host, port = await server.serve_tcp(*args.tcp)
             print(f"listening on {host}:{port}", flush=True)
         elif getattr(args, "connect", None):
             host, port = args.connect
-            dialling = asyncio.create_task(server.dial(host, port))
+            tasks.append(asyncio.create_task(server.dial(host, port)))
             print(f"connecting to {host}:{port}", flush=True)
+        elif getattr(args, "pty", False):
+            print(f"serial port {server.serve_pty()}", flush=True)
         else:
             await server.serve_serial(args.serial, args.baud)
             print(f"serving on {args.serial}", flush=True)
         await stop.wait()
     finally:
-        if dialling is not None:
-            dialling.cancel()
-            await asyncio.gather(dialling, return_exceptions=True)
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
         await server.aclose()
         await backend.aclose()
 

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import re
+import sys
+from asyncio.subprocess import PIPE
 
 from line_device_support import LineClient, device_process, pty_client, pty_pair, tcp_device
 
@@ -99,6 +102,50 @@ async def test_serial_device_on_a_pty() -> None:
         await c.send("#1 GET speed", "garbage line", "#2 get location.y")
         assert sorted(await c.lines(3)) == ["#1 OK 0.5", "#2 OK 0", "ERR 12 unknown word 'garbage'"]
         await c.close()
+
+
+async def test_device_on_its_own_pty_ends_with_its_stdin() -> None:
+    # What the gateway runs for a ``[[devices]]`` entry with ``serial = "pty"``.
+    args = [
+        "--service",
+        "sim-robot",
+        "--name",
+        "tty2",
+        "--option",
+        "speed=0.25",
+        "--pty",
+        "--exit-with-parent",
+    ]
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "services.device_server", *args, stdin=PIPE, stdout=PIPE
+    )
+    try:
+        assert proc.stdin is not None and proc.stdout is not None
+        first = await asyncio.wait_for(proc.stdout.readline(), 10)
+        match = re.fullmatch(r"serial port (/dev/pts/\d+)", first.decode().strip())
+        assert match, f"the device did not say which serial port to open: {first!r}"
+        fd = os.open(match.group(1), os.O_RDWR | os.O_NOCTTY)
+        try:
+            c = await pty_client(fd)
+            await c.send("#h HELLO")
+            hello, _ = await c.until("#h HELLO")
+            assert "name=tty2" in hello and "type=mobile_robot" in hello
+            for request, reply in [
+                ("GET speed", "OK 0.25"),
+                ("SET speed 0.5", "OK 0.5"),
+                ("GET speed", "OK 0.5"),
+            ]:
+                await c.send(request)
+                assert await c.line() == reply
+            await c.close()
+        finally:
+            os.close(fd)
+        proc.stdin.close()  # the parent is gone: the device stops by itself, cleanly
+        assert await asyncio.wait_for(proc.wait(), 10) == 0
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
 
 
 class _Counter(Backend):
