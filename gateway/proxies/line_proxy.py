@@ -167,6 +167,7 @@ class LineProxy(Backend):
 
     async def aclose(self) -> None:
         self._closing = True
+        self._last_error = "proxy closed"
         if self._runner is not None:
             self._runner.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -364,7 +365,9 @@ class LineProxy(Backend):
             try:
                 await self._call(Unlisten(shared.path))
             except PropertyError as exc:
-                log.info("%s: UNLISTEN %s failed: %s", self._label(), shared.path, exc.message)
+                # While the proxy closes, its connection goes away under the UNLISTEN: expected, not news.
+                level = logging.DEBUG if self._closing else logging.INFO
+                log.log(level, "%s: UNLISTEN %s failed: %s", self._label(), shared.path, exc.message)
 
     def _deliver(self, shared: _Shared, change: Change) -> None:
         for notify in list(shared.listeners.values()):

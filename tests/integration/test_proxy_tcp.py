@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 import signal
 import socket
@@ -254,3 +255,33 @@ async def test_unreachable_device_is_unavailable_at_once() -> None:
     async with proxy_for(f"tcp://127.0.0.1:{free_port()}") as proxy:
         error = await expect_error(Code.UNAVAILABLE, proxy.get("x"))
         assert "not connected" in error.message
+
+
+def unlisten_failures(caplog: pytest.LogCaptureFixture) -> list[tuple[int, str]]:
+    return [(r.levelno, r.getMessage()) for r in caplog.records if "UNLISTEN" in r.getMessage()]
+
+
+async def test_unlisten_failing_on_a_live_connection_is_logged_but_not_at_shutdown(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    async def script(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        async for tag, rest in requests(reader):
+            if rest.startswith("UNLISTEN"):
+                writer.write(f"{tag} ERR 13 the device lost track\n".encode())
+            else:
+                writer.write(f"{tag} OK 1\n".encode())
+
+    caplog.set_level(logging.DEBUG, logger="gateway.proxies.line_proxy")
+    async with fake_device(script) as url, proxy_for(url) as proxy:
+        await proxy.wait_connected(5)
+        sub = await proxy.listen("a", lambda change: None)
+        await sub.close()
+        assert unlisten_failures(caplog) == [
+            (logging.INFO, f"device dev at {url}: UNLISTEN a failed: the device lost track")
+        ]
+        caplog.clear()
+        sub = await proxy.listen("b", lambda change: None)
+        await proxy.aclose()  # the gateway closes its proxies before the last listeners let go
+        await sub.close()
+    failures = unlisten_failures(caplog)
+    assert failures and all(level == logging.DEBUG for level, _ in failures), failures
