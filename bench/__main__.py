@@ -215,19 +215,11 @@ HEADLINE = {
 
 
 async def _part(server: ServerProcess, part: str, run: Callable[[], Awaitable[Any]]) -> dict[str, Any]:
-    started = time.perf_counter()
-    print(f"  {server.kind}: {part} ...", end="", file=sys.stderr, flush=True)
-    try:
-        outcome = await run()
-    except Exception as exc:
-        detail = "".join(traceback.format_exception_only(exc)).strip()
-        print(f" error: {detail}\n{server.log_tail}", file=sys.stderr, flush=True)
-        return {"error": detail}
-    data: dict[str, Any] = outcome.as_dict()
-    headline = HEADLINE.get(part)
-    shown = f", {data[headline]:,.0f} {headline.removesuffix('_per_s')}/s" if headline else ""
-    print(f" {time.perf_counter() - started:.1f} s{shown}", file=sys.stderr, flush=True)
-    return data
+    async def figures() -> dict[str, Any]:
+        data: dict[str, Any] = (await run()).as_dict()
+        return data
+
+    return await _timed(f"{server.kind}: {part}", figures, server=server, headline=HEADLINE.get(part))
 
 
 def _best(rounds: list[dict[str, Any]], headline: str) -> dict[str, Any]:
@@ -296,16 +288,29 @@ async def run(args: argparse.Namespace) -> report.Results:
     return results
 
 
-async def _timed(label: str, run: Callable[[], Awaitable[dict[str, Any]]]) -> dict[str, Any]:
+async def _timed(
+    label: str,
+    run: Callable[[], Awaitable[dict[str, Any]]],
+    *,
+    server: ServerProcess | None = None,
+    headline: str | None = None,
+) -> dict[str, Any]:
+    """Run one measurement, saying on stderr how long it took (and its ``headline`` figure).
+
+    A failure becomes ``{"error": ...}`` in the results, with the end of
+    ``server``'s log on stderr, so that the other parts still run.
+    """
     started = time.perf_counter()
     print(f"  {label} ...", end="", file=sys.stderr, flush=True)
     try:
         data = await run()
     except Exception as exc:
         detail = "".join(traceback.format_exception_only(exc)).strip()
-        print(f" error: {detail}", file=sys.stderr, flush=True)
+        tail = f"\n{server.log_tail}" if server is not None else ""
+        print(f" error: {detail}{tail}", file=sys.stderr, flush=True)
         return {"error": detail}
-    print(f" {time.perf_counter() - started:.1f} s", file=sys.stderr, flush=True)
+    shown = f", {data[headline]:,.0f} {headline.removesuffix('_per_s')}/s" if headline else ""
+    print(f" {time.perf_counter() - started:.1f} s{shown}", file=sys.stderr, flush=True)
     return data
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 import numpy as np
@@ -131,7 +132,10 @@ async def run_scaling(
     measure: str, sizes: tuple[int, ...], time_limit: float, **options: Any
 ) -> dict[str, Any]:
     """Run ``measure_group_moveto`` or ``measure_find`` at each size; stop early past ``time_limit``."""
-    measures = {"group": measure_group_moveto, "find": measure_find}
+    measures: dict[str, Callable[..., Awaitable[dict[str, Any]]]] = {
+        "group": measure_group_moveto,
+        "find": measure_find,
+    }
     started = time.monotonic()
     done: list[dict[str, Any]] = []
     skipped: list[int] = []

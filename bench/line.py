@@ -309,7 +309,11 @@ async def run_line(
 
             session = SessionClient(pb_grpc.PropertyServiceStub(session_channel))
             over_session = functools.partial(session.get, DEVICE, PROPERTY)
-            ways = {"direct": straight, "gateway": through_gateway, "gateway-session": over_session}
+            ways: dict[str, Callable[[], Awaitable[Any]]] = {
+                "direct": straight,
+                "gateway": through_gateway,
+                "gateway-session": over_session,
+            }
             for way in ways.values():  # the proxy may still be connecting: the warm-up waits for it
                 await _wait_answering(way)
                 await drive(way, warmup, max(inflights), time_limit)

@@ -84,3 +84,20 @@ class Latencies:
             "p99_us": round(self.p99_us, 1),
             "max_us": round(self.max_us, 1),
         }
+
+
+@dataclass(kw_only=True)
+class CallRun:
+    """A measured run of calls: how many were made, how many failed, their latencies, the window."""
+
+    done: int = 0
+    errors: int = 0
+    #: False when the time limit stopped the run before every call was made.
+    complete: bool = True
+    latency: Latencies = field(default_factory=Latencies)
+    window: Window = field(default_factory=Window)
+
+    @property
+    def throughput(self) -> float:
+        """Successful calls per second."""
+        return (self.done - self.errors) / self.window.wall_s if self.window.wall_s else 0.0

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -79,32 +80,40 @@ async def _open(stub: pb_grpc.PropertyServiceStub, request: pb.ListenRequest) ->
             return call
 
 
-async def run_memory(
-    server: ServerProcess, *, streams: int, channels: int, time_limit: float
+async def _measure(
+    server: ServerProcess,
+    result: MemoryResult,
+    time_limit: float,
+    *,
+    open_first: Callable[[list[pb_grpc.PropertyServiceStub]], Awaitable[None]],
+    open_rest: Callable[[list[pb_grpc.PropertyServiceStub]], Awaitable[None]],
+    held: list[Any],
 ) -> MemoryResult:
-    """Measure the server's RSS before and after opening ``streams`` idle Listen streams."""
-    result = MemoryResult(streams=streams, channels=channels)
+    """Read RSS before and after ``open_rest`` opens the ``result.streams`` idle Listens.
+
+    ``open_first`` opens one Listen on each channel first, so that connection
+    set-up is paid before the first reading. Both put what they open (calls
+    or Sessions) into ``held``, which is cancelled before the channels close.
+    """
     result.rss_start = server.rss_bytes()
-    request = pb.ListenRequest(service=SERVICE, property=VALUE_PROPERTY)
-    opened = [grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(channels)]
+    opened = [
+        grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(result.channels)
+    ]
     stubs = [pb_grpc.PropertyServiceStub(channel) for channel in opened]
-    calls: list[Any] = []
     try:
         async with asyncio.timeout(time_limit):
             await stubs[0].Set(pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value="0"), timeout=10)
-            calls += await asyncio.gather(*(_open(stub, request) for stub in stubs))
+            await open_first(stubs)
             await asyncio.sleep(SETTLE_S)
             result.rss_before = server.rss_bytes()
             start = time.perf_counter()
-            for first in range(0, streams, WAVE):
-                wave = range(first, min(first + WAVE, streams))
-                calls += await asyncio.gather(*(_open(stubs[n % channels], request) for n in wave))
+            await open_rest(stubs)
             result.open_s = time.perf_counter() - start
-            result.opened = streams
+            result.opened = result.streams
             await asyncio.sleep(SETTLE_S)
             result.rss_after = server.rss_bytes()
     finally:
-        for call in calls:
+        for call in held:
             call.cancel()
         for channel in opened:
             await channel.close(None)
@@ -112,6 +121,25 @@ async def run_memory(
     result.rss_closed = server.rss_bytes()
     server.check_alive()
     return result
+
+
+async def run_memory(
+    server: ServerProcess, *, streams: int, channels: int, time_limit: float
+) -> MemoryResult:
+    """Measure the server's RSS before and after opening ``streams`` idle Listen streams."""
+    request = pb.ListenRequest(service=SERVICE, property=VALUE_PROPERTY)
+    calls: list[Any] = []
+
+    async def open_first(stubs: list[pb_grpc.PropertyServiceStub]) -> None:
+        calls.extend(await asyncio.gather(*(_open(stub, request) for stub in stubs)))
+
+    async def open_rest(stubs: list[pb_grpc.PropertyServiceStub]) -> None:
+        for first in range(0, streams, WAVE):
+            wave = range(first, min(first + WAVE, streams))
+            calls.extend(await asyncio.gather(*(_open(stubs[n % channels], request) for n in wave)))
+
+    result = MemoryResult(streams=streams, channels=channels)
+    return await _measure(server, result, time_limit, open_first=open_first, open_rest=open_rest, held=calls)
 
 
 async def _session_listens(session: Any, request: pb.ListenRequest, first_id: int, count: int) -> None:
@@ -136,37 +164,23 @@ async def run_session_memory(
     server: ServerProcess, *, listens: int, channels: int, time_limit: float
 ) -> MemoryResult:
     """Like :func:`run_memory`, with the idle Listens carried as requests inside one Session per channel."""
-    result = MemoryResult(streams=listens, channels=channels, how="session")
-    result.rss_start = server.rss_bytes()
     request = pb.ListenRequest(service=SERVICE, property=VALUE_PROPERTY)
-    opened = [grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(channels)]
-    stubs = [pb_grpc.PropertyServiceStub(channel) for channel in opened]
     sessions: list[Any] = []
-    try:
-        async with asyncio.timeout(time_limit):
-            await stubs[0].Set(pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value="0"), timeout=10)
-            sessions = [stub.Session() for stub in stubs]
-            await asyncio.gather(*(_session_listens(session, request, 1, 1) for session in sessions))
-            await asyncio.sleep(SETTLE_S)
-            result.rss_before = server.rss_bytes()
-            start = time.perf_counter()
-            share = [listens // channels + (n < listens % channels) for n in range(channels)]
-            await asyncio.gather(
-                *(
-                    _session_listens(session, request, 2, count)
-                    for session, count in zip(sessions, share, strict=True)
-                )
+
+    async def open_first(stubs: list[pb_grpc.PropertyServiceStub]) -> None:
+        sessions.extend(stub.Session() for stub in stubs)
+        await asyncio.gather(*(_session_listens(session, request, 1, 1) for session in sessions))
+
+    async def open_rest(stubs: list[pb_grpc.PropertyServiceStub]) -> None:
+        share = [listens // channels + (n < listens % channels) for n in range(channels)]
+        await asyncio.gather(
+            *(
+                _session_listens(session, request, 2, count)
+                for session, count in zip(sessions, share, strict=True)
             )
-            result.open_s = time.perf_counter() - start
-            result.opened = listens
-            await asyncio.sleep(SETTLE_S)
-            result.rss_after = server.rss_bytes()
-    finally:
-        for session in sessions:
-            session.cancel()
-        for channel in opened:
-            await channel.close(None)
-    await asyncio.sleep(SETTLE_S)
-    result.rss_closed = server.rss_bytes()
-    server.check_alive()
-    return result
+        )
+
+    result = MemoryResult(streams=listens, channels=channels, how="session")
+    return await _measure(
+        server, result, time_limit, open_first=open_first, open_rest=open_rest, held=sessions
+    )

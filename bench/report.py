@@ -67,51 +67,64 @@ def _get(results: Results, server: str, part: str, key: str) -> float:
     return float(results[server][part][key])
 
 
+def _ratio(
+    name: str,
+    description: str,
+    *,
+    top: tuple[str, str],
+    bottom: tuple[str, str],
+    key: str,
+    kind: str,
+    bound: float,
+) -> Target:
+    """A target on the ratio of one figure (``key``) between two (server, part) results."""
+    return Target(
+        name,
+        description,
+        lambda r: _get(r, *top, key) / _get(r, *bottom, key),
+        kind,
+        bound,
+        "x",
+        (top, bottom),
+    )
+
+
 TARGETS: tuple[Target, ...] = (
-    Target(
+    _ratio(
         "unary-get",
         "unary Get throughput, gateway / bare server",
-        lambda r: (
-            _get(r, "gateway", "unary", "throughput_per_s") / _get(r, "baseline", "unary", "throughput_per_s")
-        ),
-        "min",
-        0.80,
-        "x",
-        (("gateway", "unary"), ("baseline", "unary")),
+        top=("gateway", "unary"),
+        bottom=("baseline", "unary"),
+        key="throughput_per_s",
+        kind="min",
+        bound=0.80,
     ),
-    Target(
+    _ratio(
         "session-get",
         "Gets over Session / unary Gets, both on the gateway",
-        lambda r: (
-            _get(r, "gateway", "session", "throughput_per_s")
-            / _get(r, "gateway", "unary", "throughput_per_s")
-        ),
-        "min",
-        3.0,
-        "x",
-        (("gateway", "session"), ("gateway", "unary")),
+        top=("gateway", "session"),
+        bottom=("gateway", "unary"),
+        key="throughput_per_s",
+        kind="min",
+        bound=3.0,
     ),
-    Target(
+    _ratio(
         "listen-fanout",
         "Listen events/s, one-by-one, gateway / bare server",
-        lambda r: (
-            _get(r, "gateway", "listen", "events_per_s") / _get(r, "baseline", "listen", "events_per_s")
-        ),
-        "min",
-        0.80,
-        "x",
-        (("gateway", "listen"), ("baseline", "listen")),
+        top=("gateway", "listen"),
+        bottom=("baseline", "listen"),
+        key="events_per_s",
+        kind="min",
+        bound=0.80,
     ),
-    Target(
+    _ratio(
         "listen-batched",
         "Listen events/s, bursts (gateway batches), gateway / bare server",
-        lambda r: (
-            _get(r, "gateway", "batched", "events_per_s") / _get(r, "baseline", "batched", "events_per_s")
-        ),
-        "min",
-        3.0,
-        "x",
-        (("gateway", "batched"), ("baseline", "batched")),
+        top=("gateway", "batched"),
+        bottom=("baseline", "batched"),
+        key="events_per_s",
+        kind="min",
+        bound=3.0,
     ),
     Target(
         "idle-listen-memory",

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import asyncio
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import grpc
 
-from bench.measure import STREAM_END, Latencies, Window, window
+from bench.measure import STREAM_END, CallRun, Latencies, window
 from bench.servers import ServerProcess
 from bench.target import SERVICE, VALUE_PROPERTY
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -23,23 +23,13 @@ from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
 
 @dataclass
-class SessionResult:
-    """What part (b) measured on one server."""
+class SessionResult(CallRun):
+    """What part (b) measured on one server (a call here is one Get inside the Session)."""
 
     gets: int
     batch: int
     window_batches: int
-    done: int = 0
-    errors: int = 0
     messages_in: int = 0
-    complete: bool = True
-    latency: Latencies = field(default_factory=Latencies)
-    window: Window = field(default_factory=Window)
-
-    @property
-    def throughput(self) -> float:
-        """Successful Gets per second."""
-        return (self.done - self.errors) / self.window.wall_s if self.window.wall_s else 0.0
 
     def as_dict(self) -> dict[str, Any]:
         return {

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import grpc
 
-from bench.measure import Latencies, Window, window
+from bench.measure import CallRun, Latencies, window
 from bench.servers import ServerProcess
 from bench.target import SERVICE, VALUE_PROPERTY
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -20,21 +20,11 @@ CALL_TIMEOUT = 10.0
 
 
 @dataclass
-class UnaryResult:
+class UnaryResult(CallRun):
     """What part (a) measured on one server."""
 
     calls: int
     inflight: int
-    done: int = 0
-    errors: int = 0
-    complete: bool = True
-    latency: Latencies = field(default_factory=Latencies)
-    window: Window = field(default_factory=Window)
-
-    @property
-    def throughput(self) -> float:
-        """Successful calls per second."""
-        return (self.done - self.errors) / self.window.wall_s if self.window.wall_s else 0.0
 
     def as_dict(self) -> dict[str, Any]:
         return {
