@@ -100,10 +100,11 @@ PTY = "pty"
 class DeviceEntry:
     """One ``[[devices]]`` entry: a Python stand-in for a microcontroller.
 
-    The gateway starts it as a child process (``python -m gateway.devices``),
-    on raw TCP (``tcp``) or on a pseudo-terminal (``serial = "pty"``), serves
-    it as service ``name`` through the tcp:// or serial:// proxy, and ends it
-    at shutdown.
+    The gateway starts it as a child process
+    (``python -m services.device_server ... --exit-with-parent``), on raw TCP
+    (``tcp``) or on a pseudo-terminal (``serial = "pty"``), serves it as
+    service ``name`` through the tcp:// or serial:// proxy, and ends it at
+    shutdown.
     """
 
     name: str

@@ -20,12 +20,12 @@ import asyncio
 import difflib
 import functools
 import logging
-import types
-from collections.abc import Callable, Coroutine, Generator, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from typing import Any, TypeVar
 
 from services.backend import Backend, BackendInfo
 from services.directory import DirectoryListener
+from services.eager import resume
 from services.errors import AlreadyExists, DeadlineExceeded, NotFound, Unavailable
 from services.paths import validate_path, validate_pattern, validate_service_name
 
@@ -200,32 +200,6 @@ class RouterDirectory:
         await self.router.unregister(name)
 
 
-@types.coroutine
-def _resume(coro: Coroutine[Any, Any, T], yielded: Any) -> Generator[Any, Any, T]:
-    """Go on running ``coro`` (already stepped once) inside the awaiting task.
-
-    This is what ``await coro`` does after its first step: every value the
-    coroutine yields (a future it waits on) goes to the task, and whatever
-    the task sends or throws back goes to the coroutine.
-    """
-    while True:
-        try:
-            sent = yield yielded
-        except GeneratorExit:
-            coro.close()
-            raise
-        except BaseException as exc:
-            try:
-                yielded = coro.throw(exc)
-            except StopIteration as done:
-                return done.value  # type: ignore[no-any-return]
-        else:
-            try:
-                yielded = coro.send(sent)
-            except StopIteration as done:
-                return done.value  # type: ignore[no-any-return]
-
-
 async def bounded_call(coro: Coroutine[Any, Any, T], time_limit: float, what: Callable[[], str]) -> T:
     """Await ``coro`` for at most ``time_limit`` seconds; raise DeadlineExceeded naming ``what()`` after.
 
@@ -248,7 +222,7 @@ async def finish_call(
     scope = asyncio.timeout(time_limit)
     try:
         async with scope:
-            return await _resume(coro, yielded)
+            return await resume(coro, yielded)
     except TimeoutError:
         if scope.expired():
             raise DeadlineExceeded(f"{what()} took longer than {time_limit:g} s") from None

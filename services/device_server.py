@@ -35,13 +35,13 @@ import logging
 import os
 import signal
 import sys
-import types
 from collections import deque
-from collections.abc import Callable, Coroutine, Generator, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Mapping, Sequence
 from typing import Any
 
 from services.backend import Backend, Change, Subscription
 from services.core import LocalService
+from services.eager import resume
 from services.errors import Code, DeadlineExceeded, PropertyError, ResourceExhausted
 from services.line_protocol import (
     MAX_LINE,
@@ -77,27 +77,6 @@ MAX_QUEUED_REPLIES = 256
 #: A backend call that takes longer gets DEADLINE_EXCEEDED.
 CALL_TIMEOUT = 10.0
 _READ_SIZE = 65536
-
-
-@types.coroutine
-def _resume(coro: Coroutine[Any, Any, str], yielded: Any) -> Generator[Any, Any, str]:
-    """Go on running ``coro``, stepped once already (it yielded ``yielded``), in the awaiting task."""
-    while True:
-        try:
-            sent = yield yielded
-        except GeneratorExit:
-            coro.close()
-            raise
-        except BaseException as exc:
-            try:
-                yielded = coro.throw(exc)
-            except StopIteration as done:
-                return str(done.value)
-        else:
-            try:
-                yielded = coro.send(sent)
-            except StopIteration as done:
-                return str(done.value)
 
 
 class _Outbox:
@@ -274,7 +253,7 @@ class DeviceSession:
     ) -> None:
         try:
             async with asyncio.timeout(self.call_timeout):
-                value = await (self._call(frame) if started is None else _resume(*started))
+                value = await (self._call(frame) if started is None else resume(*started))
         except TimeoutError:
             late = DeadlineExceeded(
                 f"{frame.path}: the service did not answer within {self.call_timeout:g} s"
