@@ -119,6 +119,10 @@ def check_url(url: str) -> str:
     return url
 
 
+#: The type a backend has before its device says what it is (a proxy before the greeting).
+_PLACEHOLDER_TYPE = BackendInfo().type
+
+
 class ServiceEntry(Resource):
     """One known service; its own value is its contact URL."""
 
@@ -372,9 +376,11 @@ class Registry(Resource):
                 pass
             except PropertyError as e:
                 if e.code not in (Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED):
+                    self._learn_type(name, backend)
                     return  # no location (NOT_FOUND) or not listenable: nothing to follow
             await asyncio.sleep(pause)
             pause = min(pause * 2, max(1.0, self.period))
+        self._learn_type(name, backend)
         if name not in self.services.children():
             await _close_quietly(sub)
             return
@@ -385,6 +391,21 @@ class Registry(Resource):
         except (PropertyError, TimeoutError):
             return
         self._store_location(name, value)
+
+    def _learn_type(self, name: str, backend: Backend) -> None:
+        """Take the type a device told in its greeting, unless the registration declared one.
+
+        A proxy is served before its device greets, so the entry starts with
+        the placeholder type; the device has greeted once it has answered.
+        """
+        entry = self.services.children().get(name)
+        if not isinstance(entry, ServiceEntry) or self._dynamic.get(name, ("", {}))[1].get("type"):
+            return
+        kind = backend.info.type
+        if kind and kind not in (entry.type, _PLACEHOLDER_TYPE):
+            entry.type = kind
+            self._index.set_type(name, kind)
+            self.revision += 1
 
     def _store_location(self, name: str, text: str) -> None:
         entry = self.services.children().get(name)
@@ -587,6 +608,7 @@ class Registry(Resource):
         except (PropertyError, TimeoutError):
             self._miss(name, entry)
             return
+        self._learn_type(name, backend)
         entry.misses = 0
         entry.last_seen = round(time.time(), 3)
         self._set_state(name, entry, "up")
