@@ -452,6 +452,13 @@ class Registry(Resource):
         self._busy.add(name)
         try:
             await self._open(directory, name, url)
+        except asyncio.CancelledError:
+            # The caller gave up first (the gateway's call timeout is shorter than
+            # register_timeout): a half-made registration must not stay behind.
+            undo = self._spawn(self._close_quietly_registered(directory, name), f"registry: undo {name}")
+            with contextlib.suppress(asyncio.CancelledError):
+                await asyncio.shield(undo)
+            raise
         finally:
             self._busy.discard(name)
         entry = self._entry(name)

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import socket
 
 import grpc
-from support.gateway_process import GatewayProcess
+import pytest
+from support.gateway_process import GatewayProcess, StartGateway
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -29,6 +31,13 @@ async def eventually(stub: pb_grpc.PropertyServiceStub, service: str, prop: str,
     return value
 
 
+def closed_port() -> int:
+    """A loopback port nobody listens on (bound, then released)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
 async def test_demo_devices_are_mobile_robots_in_the_swarm(demo_gateway: GatewayProcess) -> None:
     async with grpc.aio.insecure_channel(demo_gateway.address) as channel:
         stub = pb_grpc.PropertyServiceStub(channel)
@@ -44,3 +53,29 @@ async def test_demo_devices_are_mobile_robots_in_the_swarm(demo_gateway: Gateway
             timeout=WAIT,
         )
         assert reply.value == "(rover1 rover2 scout1 scout2)"
+
+
+async def test_registering_a_dead_url_past_the_call_timeout_leaves_nothing(
+    gateway_process: StartGateway,
+) -> None:
+    # The gateway gives a call 1 s; the registry waits longer for a device. When the gateway
+    # gives up on the Set, nothing may stay registered.
+    gw = gateway_process(
+        """
+        [gateway]
+        call_timeout = 1.0
+        """
+    )
+    url = f"tcp://127.0.0.1:{closed_port()}"
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        with pytest.raises(grpc.aio.AioRpcError) as failed:
+            await stub.Set(
+                pb.SetRequest(service="registry", property="services.ghost", value=url), timeout=WAIT
+            )
+        assert failed.value.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED)
+        await asyncio.sleep(0.5)
+        assert await get(stub, "registry", "services") == "(registry)"
+        with pytest.raises(grpc.aio.AioRpcError) as unknown:
+            await get(stub, "ghost", "location")
+        assert unknown.value.code() == grpc.StatusCode.NOT_FOUND
