@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import os
 import sys
 from collections.abc import Sequence
@@ -39,7 +40,7 @@ examples:
   psctl ls scout1 -l                         properties of scout1 with gui and parameters
   psctl get scout1 location                  one value
   psctl get scout1 location.x location.y     several values, "path = value" lines
-  psctl get scout1 location -p frame=world   with a request parameter
+  psctl get registry find -p type=sensor     with a request parameter
   psctl set scout1 behaviors.moveto '<marker><location>(2 1 0 0 0 0)</location></marker>'
   psctl listen scout1 location --count 10    ten events, then exit
   psctl listen scout1 location --also scout2:location --min-interval 0.1 --duration 5
@@ -67,7 +68,7 @@ def _common_options() -> argparse.ArgumentParser:
     )
     common.add_argument(
         "--timeout",
-        type=float,
+        type=_timeout,
         metavar="SECONDS",
         default=argparse.SUPPRESS,
         help=f"limit for each call, 0 for none (default: {DEFAULT_TIMEOUT:g})",
@@ -87,6 +88,16 @@ def _param_option(parser: argparse.ArgumentParser) -> None:
         metavar="NAME=VALUE",
         help="request parameter (repeatable), e.g. -p frame=world",
     )
+
+
+def _timeout(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not (math.isfinite(x) and x >= 0):
+        raise argparse.ArgumentTypeError(f"expected a number of seconds (0 for none), got {text!r}")
+    return x
 
 
 def _positive(text: str) -> float:
