@@ -130,6 +130,7 @@ class Topic:
         "opening",
         "params",
         "path",
+        "removed",
         "service",
         "sinks",
         "subscription",
@@ -144,6 +145,8 @@ class Topic:
         self.sinks: set[_Sink] = set()
         self.subscription: Subscription | None = None
         self.value = ""
+        #: The last change was the property's removal (every sink has been told).
+        self.removed = False
         self.dead = False
         self.opening: asyncio.Task[None] | None = None
 
@@ -152,6 +155,7 @@ class Topic:
         if self.dead:
             return
         self.value = change.value
+        self.removed = change.removed
         seen = time.time_ns()
         for sink in list(self.sinks):
             try:
@@ -368,10 +372,10 @@ class ListenStream:
             return
         del self._refs[topic]
         self._hub._unsubscribe(self, topic)
-        if announce:
-            self._enqueue(topic, "", time.time_ns(), gap=False, removed=True)
-        else:
+        if not announce:
             self._pending.pop(topic, None)
+        elif not topic.removed:  # else the backend's own removal is queued or sent already
+            self._enqueue(topic, "", time.time_ns(), gap=False, removed=True)
 
     def _reconcile(self, exp: _Expansion, paths: set[str]) -> None:
         """The service's properties changed: join new matches, leave the ones gone."""

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 
 import grpc
 import pytest
+from line_device_support import tcp_device
 from support.gateway_process import GatewayProcess, StartGateway
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -79,3 +81,35 @@ async def test_registering_a_dead_url_past_the_call_timeout_leaves_nothing(
         with pytest.raises(grpc.aio.AioRpcError) as unknown:
             await get(stub, "ghost", "location")
         assert unknown.value.code() == grpc.StatusCode.NOT_FOUND
+
+
+async def test_a_wildcard_listen_hears_a_member_leave_once(demo_gateway: GatewayProcess) -> None:
+    events: list[pb.ListenEvent] = []
+    with tcp_device("--service", "sim-robot", "--name", "scout7") as (host, port):
+        async with grpc.aio.insecure_channel(demo_gateway.address) as channel:
+            stub = pb_grpc.PropertyServiceStub(channel)
+            url = f"tcp://{host}:{port}"
+            await stub.Set(
+                pb.SetRequest(service="registry", property="services.scout7", value=url), timeout=WAIT
+            )
+            await eventually(stub, "swarm", "robots", "(scout1 scout2 rover1 rover2 scout7)")
+            call = stub.Listen(pb.ListenRequest(service="swarm", property="robots.*.location"))
+            try:
+                async with asyncio.timeout(WAIT):
+                    async for msg in call:
+                        events.extend(e for e in msg.events if e.property == "robots.scout7.location")
+                        if msg.sync:
+                            await stub.Set(
+                                pb.SetRequest(service="registry", property="services.scout7", value=""),
+                                timeout=WAIT,
+                            )
+                        if any(e.removed for e in events):
+                            break
+                # Anything else about scout7 would come in the next moments.
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(1.0):
+                        async for msg in call:
+                            events.extend(e for e in msg.events if e.property == "robots.scout7.location")
+            finally:
+                call.cancel()
+    assert [e.removed for e in events] == [False, True]
