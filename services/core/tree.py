@@ -408,6 +408,14 @@ def _namespace_meta(path: str, node: Resource, meta: str) -> MetaTarget:
     return MetaTarget(path, class_spec(type(node)).doc)
 
 
+def _backend_meta(path: str, meta: str) -> MetaTarget:
+    if meta == "parameters":
+        return MetaTarget(path, "()")
+    if meta == "gui":
+        return MetaTarget(path, "group")
+    return MetaTarget(path, "")
+
+
 def _member_meta(path: str, member: Member, meta: str) -> MetaTarget:
     if meta == "parameters":
         return MetaTarget(path, member.parameters_text)
@@ -431,6 +439,10 @@ def resolve(root: Resource, path: str) -> Target:
             if i == last:
                 return NamespaceTarget(path, child)
             if not isinstance(child, Resource):
+                if i + 1 == last and segments[last] in META_NAMES:
+                    # The namespace itself is ours to describe; a Backend has no
+                    # top-level `gui` to ask.
+                    return _backend_meta(path, segments[last])
                 prefix = ".".join(segments[: i + 1])
                 return RemoteTarget(path, child, prefix, path[len(prefix) + 1 :])
             following = segments[i + 1]
