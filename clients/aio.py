@@ -435,6 +435,11 @@ class _ListenState:
         self.wake.set()
 
 
+def _again(error: PropertyServiceError, service: str = "", prop: str = "") -> PropertyServiceError:
+    """A fresh error of the same class (GatewayUnreachable stays GatewayUnreachable) for another call."""
+    return type(error)(error.code, error.message, service, prop)
+
+
 class Session:
     """Many Get, Set and Listen calls multiplexed over one bidirectional ``Session`` stream.
 
@@ -495,7 +500,7 @@ class Session:
         self._closed = error
         for p in self._pending.values():
             if not p.future.done():
-                p.future.set_exception(error_for_code(error.code, error.message, p.service, p.property))
+                p.future.set_exception(_again(error, p.service, p.property))
         for state in self._listens.values():
             state.finish(error)
         # Wake callers blocked on a full queue; their futures have failed above.
@@ -550,7 +555,7 @@ class Session:
 
     def _check_open(self) -> None:
         if self._closed is not None:
-            raise error_for_code(self._closed.code, self._closed.message)
+            raise _again(self._closed)
         if self._call is None:
             raise Cancelled(None, "the session is not open: use 'async with client.session() as s'")
 

@@ -1,0 +1,33 @@
+"""Every way of calling a gateway that cannot be reached raises GatewayUnreachable, as docs/client.md says."""
+
+from __future__ import annotations
+
+import socket
+
+import pytest
+
+from clients import AsyncClient, Client, GatewayUnreachable
+
+
+def closed_target() -> str:
+    """host:port of a loopback port nobody listens on (bound, then released)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"127.0.0.1:{s.getsockname()[1]}"
+
+
+async def test_async_calls_and_session_calls_are_gateway_unreachable() -> None:
+    async with AsyncClient(closed_target(), timeout=5) as c:
+        with pytest.raises(GatewayUnreachable):
+            await c.get("scout1", "location")
+        async with c.session() as s:
+            with pytest.raises(GatewayUnreachable) as failed:
+                await s.get("scout1", "location")
+            assert "cannot reach the gateway" in str(failed.value)
+            with pytest.raises(GatewayUnreachable):
+                await s.set("scout1", "speed", 1)
+
+
+def test_sync_session_call_is_gateway_unreachable() -> None:
+    with Client(closed_target(), timeout=5) as c, c.session() as s, pytest.raises(GatewayUnreachable):
+        s.get("scout1", "location")
