@@ -25,7 +25,7 @@ EXIT_CONFIG = 2
 
 EXAMPLES = """\
 examples:
-  psgateway                                   serve the demo (two robots, one sensor) on 127.0.0.1:50051
+  psgateway                                   serve the demo (robots, a sensor, a swarm) on 127.0.0.1:50051
   psgateway serve --config site.toml          serve the services a config file lists
   psgateway serve --listen 127.0.0.1:0        pick a free port (printed as "listening on HOST:PORT")
   psgateway check-config site.toml            check a config file and exit (0 = fine, 2 = errors)
