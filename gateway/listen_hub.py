@@ -36,13 +36,16 @@ from gateway.config import Limits
 from gateway.router import Router, bounded_call, check_pattern
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS, Backend, Change, Subscription
-from services.errors import InvalidArgument, NotFound, PropertyError, ResourceExhausted
+from services.errors import Code, InvalidArgument, NotFound, PropertyError, ResourceExhausted
 from services.paths import WILDCARD, compile_pattern, is_pattern, validate_service_name
 from services.values import parse_names
 
 log = logging.getLogger(__name__)
 
 PROPERTIES = "properties"
+#: Seconds a Listen keeps trying a service that joined but cannot answer yet (a proxy still
+#: connecting to its device) before the stream fails; the registry's register_timeout.
+JOIN_RETRY_S = 10.0
 
 TopicKey = tuple[str, str, tuple[tuple[str, str], ...]]
 
@@ -410,10 +413,31 @@ class ListenStream:
                 self._hub._spawn(self._expand_later(sel, name, backend))
 
     async def _expand_later(self, sel: Selector, name: str, backend: Backend) -> None:
+        """Follow a service that joined; one whose device is not connected yet is asked again."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + JOIN_RETRY_S
+        pause = 0.05
+        while True:
+            try:
+                await self._expand(sel, name, backend, strict=False)
+                return
+            except PropertyError as exc:
+                transient = exc.code in (Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED)
+                # Only a try that set nothing up can be repeated as a whole.
+                untouched = not any(e.selector == sel and e.service == name for e in self._expansions)
+                if not (transient and untouched) or loop.time() + pause > deadline:
+                    self.fail(exc)
+                    return
+            await asyncio.sleep(pause)
+            pause = min(pause * 2, 1.0)
+            if self.closed or not self._serves(name, backend):
+                return
+
+    def _serves(self, name: str, backend: Backend) -> bool:
         try:
-            await self._expand(sel, name, backend, strict=False)
-        except PropertyError as exc:
-            self.fail(exc)
+            return self._hub.router.lookup(name) is backend
+        except PropertyError:
+            return False
 
     def _service_removed(self, name: str) -> None:
         for topic in [t for t in self._refs if t.service == name]:

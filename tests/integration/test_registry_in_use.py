@@ -113,3 +113,62 @@ async def test_a_wildcard_listen_hears_a_member_leave_once(demo_gateway: Gateway
             finally:
                 call.cancel()
     assert [e.removed for e in events] == [False, True]
+
+
+async def test_listens_live_on_when_a_device_registers_and_comes_back(demo_gateway: GatewayProcess) -> None:
+    # A Listen on every service's location, and one on a registered device's location, stay
+    # open while the device registers, leaves and registers again: its proxy is still
+    # connecting when the gateway first serves it.
+    with tcp_device("--service", "sim-robot", "--name", "scout8", "--option", "start=[8, 8]") as (host, port):
+        url = f"tcp://{host}:{port}"
+        async with grpc.aio.insecure_channel(demo_gateway.address) as channel:
+            stub = pb_grpc.PropertyServiceStub(channel)
+
+            async def register(value: str) -> None:
+                await stub.Set(
+                    pb.SetRequest(service="registry", property="services.scout8", value=value), timeout=WAIT
+                )
+
+            everyone = stub.Listen(pb.ListenRequest(service="*", property="location"))
+            try:
+                async with asyncio.timeout(WAIT):
+                    async for msg in everyone:
+                        if msg.sync:
+                            break
+                    await register(url)
+                    async for msg in everyone:
+                        if any(e.service == "scout8" and e.value.startswith("(8 8 ") for e in msg.events):
+                            break
+                one = stub.Listen(pb.ListenRequest(service="scout8", property="location"))
+                try:
+                    async with asyncio.timeout(WAIT):
+                        async for msg in one:
+                            if msg.sync:
+                                break
+                        await register("")
+                        await register(url)
+                        await stub.Set(
+                            pb.SetRequest(
+                                service="scout8",
+                                property="behaviors.moveto",
+                                value="<marker><location>(8 8.2)</location></marker>",
+                            ),
+                            timeout=WAIT,
+                        )
+                        seen: list[str] = []
+                        async for msg in one:
+                            seen.extend(e.value for e in msg.events)
+                            if seen and seen[-1].startswith("(8 8.2 "):
+                                break
+                    async with asyncio.timeout(WAIT):
+                        async for msg in everyone:
+                            if any(
+                                e.service == "scout8" and e.value.startswith("(8 8.2 ") for e in msg.events
+                            ):
+                                break
+                finally:
+                    one.cancel()
+            finally:
+                everyone.cancel()
+                with contextlib.suppress(grpc.aio.AioRpcError):
+                    await register("")
