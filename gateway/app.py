@@ -36,9 +36,13 @@ from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.backend import Backend
 from services.catalog import needs_directory
 from services.errors import PropertyError
-from services.registry import Registry, RegistryService
+from services.registry import DEFAULT_REGISTER_TIMEOUT, Registry, RegistryService
 
 log = logging.getLogger("gateway")
+
+#: Share of the call timeout a registration by Set may spend waiting for the device: the rest
+#: is for undoing it and answering, so the caller hears the registry's reason, not a bare deadline.
+REGISTER_SHARE = 0.8
 
 #: Seconds the gateway waits at startup for each of its own devices to connect and greet.
 DEVICE_CONNECT_WAIT = 5.0
@@ -185,6 +189,7 @@ class Gateway:
             timeout=settings.timeout,
             misses=settings.misses,
             grace=settings.grace,
+            register_timeout=min(DEFAULT_REGISTER_TIMEOUT, REGISTER_SHARE * self.config.gateway.call_timeout),
             static=static,
             persist=settings.persist or None,
         )

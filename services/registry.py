@@ -64,6 +64,7 @@ from services.query import Query, ServiceIndex, values_equal
 from services.values import ValueFormatError, Vector, format_number, parse_number, parse_vector
 
 __all__ = [
+    "DEFAULT_REGISTER_TIMEOUT",
     "REGISTRABLE_SCHEMES",
     "STATES",
     "Registry",
@@ -85,6 +86,9 @@ MAX_CONCURRENT_CHECKS = 64
 MAX_CONCURRENT_PROPERTY_GETS = 256
 #: A lease longer than a day is a mistake rather than a plan.
 MAX_LEASE = 86_400.0
+#: Seconds a Set on ``services.<name>`` waits for the device by default (the gateway passes less
+#: when its call timeout is shorter, so that the caller hears why nothing was registered).
+DEFAULT_REGISTER_TIMEOUT = 10.0
 #: Seconds a burst of registrations is gathered before the persistence file is written once.
 _SAVE_DELAY = 0.2
 
@@ -190,7 +194,7 @@ class Registry(Resource):
         timeout: float = 2.0,
         misses: int = 3,
         grace: float = 60.0,
-        register_timeout: float = 10.0,
+        register_timeout: float = DEFAULT_REGISTER_TIMEOUT,
         static: Iterable[str] = (),
         persist: str | os.PathLike[str] | None = None,
     ) -> None:
@@ -477,8 +481,13 @@ class Registry(Resource):
 
     async def _open(self, directory: Directory, name: str, url: str) -> None:
         timeout = self._register_timeout
+        # One deadline for creating the backend and for the device's first answer together:
+        # the gateway's call timeout is set longer than register_timeout, so the caller gets
+        # this method's clear answer rather than a bare DEADLINE_EXCEEDED.
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
         try:
-            async with asyncio.timeout(timeout):
+            async with asyncio.timeout_at(deadline):
                 await directory.register(name, url)
         except TimeoutError:
             raise DeadlineExceeded(
@@ -493,11 +502,13 @@ class Registry(Resource):
         # background, so "not connected yet" is asked again until the deadline.
         last: PropertyError | None = None
         try:
-            async with asyncio.timeout(timeout):
-                backend = directory.backend(name)
-                wait_connected = getattr(backend, "wait_connected", None)
-                if wait_connected is not None:  # a line-protocol proxy says when the device greeted
-                    await wait_connected(timeout)
+            backend = directory.backend(name)
+            wait_connected = getattr(backend, "wait_connected", None)
+            if wait_connected is not None:
+                # A line-protocol proxy says when the device greeted, and why not (cannot connect)
+                # when the deadline comes: outside the timeout scope, so that reason is not lost.
+                await wait_connected(max(0.0, deadline - loop.time()))
+            async with asyncio.timeout_at(deadline):
                 pause = 0.02
                 while True:
                     try:

@@ -83,6 +83,29 @@ async def test_registering_a_dead_url_past_the_call_timeout_leaves_nothing(
         assert unknown.value.code() == grpc.StatusCode.NOT_FOUND
 
 
+async def test_registering_a_dead_url_answers_unavailable_before_the_call_timeout(
+    gateway_process: StartGateway,
+) -> None:
+    # The registry's wait for the device ends before the gateway's call timeout, so the user
+    # hears why nothing was registered instead of a bare DEADLINE_EXCEEDED.
+    gw = gateway_process(
+        """
+        [gateway]
+        call_timeout = 1.5
+        """
+    )
+    url = f"tcp://127.0.0.1:{closed_port()}"
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        with pytest.raises(grpc.aio.AioRpcError) as failed:
+            await stub.Set(
+                pb.SetRequest(service="registry", property="services.ghost", value=url), timeout=WAIT
+            )
+        assert failed.value.code() == grpc.StatusCode.UNAVAILABLE, failed.value.details()
+        assert "nothing was registered" in str(failed.value.details())
+        assert await get(stub, "registry", "services") == "(registry)"
+
+
 async def test_a_wildcard_listen_hears_a_member_leave_once(demo_gateway: GatewayProcess) -> None:
     events: list[pb.ListenEvent] = []
     with tcp_device("--service", "sim-robot", "--name", "scout7") as (host, port):
