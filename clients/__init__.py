@@ -6,6 +6,7 @@ texts; every failure is a ``PropertyServiceError`` subclass.
 """
 
 from clients.aio import (
+    DEFAULT_MAX_IN_FLIGHT,
     DEFAULT_TARGET,
     DEFAULT_TIMEOUT,
     HEARTBEAT,
@@ -50,6 +51,7 @@ from clients.values import (
 )
 
 __all__ = [
+    "DEFAULT_MAX_IN_FLIGHT",
     "DEFAULT_TARGET",
     "DEFAULT_TIMEOUT",
     "HEARTBEAT",

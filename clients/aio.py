@@ -25,6 +25,7 @@ from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stub
 
 from clients.errors import (
     Cancelled,
+    DeadlineExceeded,
     PropertyServiceError,
     Unavailable,
     Unknown,
@@ -46,6 +47,7 @@ from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
 __all__ = [
+    "DEFAULT_MAX_IN_FLIGHT",
     "DEFAULT_TARGET",
     "DEFAULT_TIMEOUT",
     "HEARTBEAT",
@@ -60,6 +62,10 @@ __all__ = [
 DEFAULT_TARGET = "127.0.0.1:50051"
 #: Seconds a unary call (or a request inside a Session) may take.
 DEFAULT_TIMEOUT = 10.0
+#: Unary calls (Get, Set) one AsyncClient has in flight at once; more callers wait their turn.
+#: grpc.aio answers part of a burst of more than about a thousand simultaneous unary calls on one
+#: channel with CANCELLED, so the client never starts that many.
+DEFAULT_MAX_IN_FLIGHT = 256
 #: Requests a Session holds before callers wait (back-pressure instead of unbounded memory).
 DEFAULT_SESSION_QUEUE = 1024
 #: Most requests put into one SessionRequest.
@@ -201,6 +207,9 @@ class AsyncClient:
     Use as ``async with AsyncClient("127.0.0.1:50051") as c: await c.get("scout1", "location")``.
     Every unary call is bounded by ``timeout`` seconds (None: no limit);
     ``metadata`` (e.g. ``[("authorization", "Bearer ...")]``) goes with every call.
+    At most ``max_in_flight`` unary calls run at once; further callers queue
+    in the client, first come first served, and their waiting counts towards
+    their ``timeout``. For many calls, :meth:`session` is the faster path.
     Failures raise :class:`clients.errors.PropertyServiceError` subclasses.
     """
 
@@ -211,19 +220,25 @@ class AsyncClient:
         timeout: float | None = DEFAULT_TIMEOUT,
         metadata: Iterable[tuple[str, str]] | None = None,
         options: Sequence[tuple[str, Any]] | None = None,
+        max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
     ) -> None:
+        if isinstance(max_in_flight, bool) or not isinstance(max_in_flight, int) or max_in_flight < 1:
+            raise ValueError(f"max_in_flight must be a whole number of at least 1, got {max_in_flight!r}")
         self.target = target
         self.timeout = timeout
         self.metadata: tuple[tuple[str, str], ...] | None = tuple(metadata) if metadata else None
+        self.max_in_flight = max_in_flight
         self._options = list(options or [])
         self._channel: grpc.aio.Channel | None = None
         self._stub: Any = None
+        self._slots = asyncio.Semaphore(max_in_flight)
 
-    # The channel is made on first use, so that it binds to the running event loop.
+    # The channel (and the call slots) are made on first use, so that they bind to the running loop.
     def _get_stub(self) -> Any:
         if self._stub is None:
             self._channel = grpc.aio.insecure_channel(self.target, options=self._options)
             self._stub = pb_grpc.PropertyServiceStub(self._channel)
+            self._slots = asyncio.Semaphore(self.max_in_flight)
         return self._stub
 
     async def __aenter__(self) -> Self:
@@ -244,13 +259,35 @@ class AsyncClient:
     def _error(self, err: grpc.RpcError, service: str = "", prop: str = "") -> PropertyServiceError:
         return error_from_rpc(err, service, prop, self.target)
 
+    async def _unary(self, method: str, request: Any, service: str = "", prop: str = "") -> Any:
+        """One Get or Set, in a call slot; the wait for the slot counts towards the timeout."""
+        stub = self._get_stub()
+        slots = self._slots
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        try:
+            async with asyncio.timeout(self.timeout):
+                await slots.acquire()
+        except TimeoutError:
+            raise DeadlineExceeded(
+                None,
+                f"no call slot free within {self.timeout} s: {self.max_in_flight} calls of this client "
+                "are in flight (raise max_in_flight, or use client.session() for many calls)",
+                service,
+                prop,
+            ) from None
+        try:
+            timeout = None if self.timeout is None else max(self.timeout - (loop.time() - start), 1e-3)
+            return await getattr(stub, method)(request, timeout=timeout, metadata=self.metadata)
+        except grpc.RpcError as e:
+            raise self._error(e, service, prop) from None
+        finally:
+            slots.release()
+
     async def get(self, service: str, prop: str, /, **params: Any) -> str:
         """The value of ``prop`` of ``service`` as text; keyword arguments are request parameters."""
         request = pb.GetRequest(service=service, property=prop, parameters=_params(params))
-        try:
-            resp = await self._get_stub().Get(request, timeout=self.timeout, metadata=self.metadata)
-        except grpc.RpcError as e:
-            raise self._error(e, service, prop) from None
+        resp = await self._unary("Get", request, service, prop)
         value: str = resp.value
         return value
 
@@ -259,12 +296,7 @@ class AsyncClient:
         refs = list(refs)
         if not refs:
             return []
-        try:
-            resp = await self._get_stub().Get(
-                _get_many_request(refs), timeout=self.timeout, metadata=self.metadata
-            )
-        except grpc.RpcError as e:
-            raise self._error(e) from None
+        resp = await self._unary("Get", _get_many_request(refs))
         return _get_many_values(resp, len(refs))
 
     async def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
@@ -272,10 +304,7 @@ class AsyncClient:
         request = pb.SetRequest(
             service=service, property=prop, value=format_value(value), parameters=_params(params)
         )
-        try:
-            resp = await self._get_stub().Set(request, timeout=self.timeout, metadata=self.metadata)
-        except grpc.RpcError as e:
-            raise self._error(e, service, prop) from None
+        resp = await self._unary("Set", request, service, prop)
         answer: str = resp.value
         return answer
 

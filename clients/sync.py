@@ -15,6 +15,7 @@ from types import TracebackType
 from typing import Any, Generic, Literal, Self, TypeVar, overload
 
 from clients.aio import (
+    DEFAULT_MAX_IN_FLIGHT,
     DEFAULT_SESSION_QUEUE,
     DEFAULT_TARGET,
     DEFAULT_TIMEOUT,
@@ -132,11 +133,12 @@ class Client:
         *,
         timeout: float | None = DEFAULT_TIMEOUT,
         metadata: Iterable[tuple[str, str]] | None = None,
+        max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
     ) -> None:
         self.target = target
         self.timeout = timeout
+        self._aio = AsyncClient(target, timeout=timeout, metadata=metadata, max_in_flight=max_in_flight)
         self._runner = _LoopThread()
-        self._aio = AsyncClient(target, timeout=timeout, metadata=metadata)
 
     def _run(self, aw: Awaitable[T]) -> T:
         return self._runner.run(aw, None if self.timeout is None else self.timeout + _GRACE)
