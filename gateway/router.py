@@ -26,7 +26,7 @@ from typing import Any, TypeVar
 from services.backend import Backend, BackendInfo
 from services.directory import DirectoryListener
 from services.eager import resume
-from services.errors import AlreadyExists, DeadlineExceeded, NotFound, Unavailable
+from services.errors import AlreadyExists, DeadlineExceeded, InvalidArgument, NotFound, Unavailable
 from services.paths import validate_path, validate_pattern, validate_service_name
 
 log = logging.getLogger(__name__)
@@ -58,8 +58,8 @@ class Router:
     def backend(self, name: str) -> Backend:
         """The backend serving ``name`` for a client call.
 
-        Raises NotFound (with suggestions) or InvalidArgument for an unknown
-        name, Unavailable for a service marked down.
+        Raises NotFound (with suggestions) for a well-formed unknown name,
+        InvalidArgument for a malformed one, Unavailable for a service marked down.
         """
         backend = self._backends.get(name)
         if backend is None:
@@ -103,10 +103,13 @@ class Router:
         return len(self._backends)
 
     def _unknown(self, name: str) -> Exception:
+        # Only a name that is not served is checked: known names cost one dict lookup.
         if not name:
-            from services.errors import InvalidArgument
-
             return InvalidArgument("no service named: the request's service is empty")
+        try:
+            validate_service_name(name)
+        except InvalidArgument as bad:
+            return bad
         known = sorted(self._backends)
         close = difflib.get_close_matches(name, known, n=3)
         hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
