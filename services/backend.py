@@ -92,6 +92,15 @@ class Backend(abc.ABC):
 
         return parse_names(await self.get("properties"))
 
+    async def check(self) -> None:
+        """Return when the service is alive; raise a PropertyError (UNAVAILABLE, ...) when it is not.
+
+        The registry's liveness check. By default a Get of ``properties``;
+        a backend that can tell more cheaply (a proxy that heard from its
+        device a moment ago) overrides it.
+        """
+        await self.properties()
+
     async def start(self) -> None:  # noqa: B027 - optional hook, empty by default
         """Start background work (simulation ticks, connections). Called once by the gateway."""
 

@@ -17,7 +17,8 @@ through the :class:`~services.directory.Directory` it is given:
   ``register_timeout``; otherwise nothing is registered.
 * **Unregister**: Set ``services.<name>`` to the empty value.
 * **Liveness**: every ``period`` seconds each service that is not in-process
-  gets a Get of ``properties`` under ``timeout``; after ``misses`` misses in a
+  is checked (``Backend.check``: a Get of ``properties``, or less for a
+  line-protocol device) under ``timeout``; after ``misses`` misses in a
   row it is ``down``, and a registered one (not from the config) is removed
   after ``grace`` seconds down. A service with a lease is not polled: it Sets
   ``services.<name>.lease`` to renew it, and is ``down`` when it lapses.
@@ -622,7 +623,7 @@ class Registry(Resource):
         try:
             backend = directory.backend(name)
             async with asyncio.timeout(self.timeout):
-                await backend.get("properties")
+                await backend.check()
         except (PropertyError, TimeoutError):
             self._miss(name, entry)
             return

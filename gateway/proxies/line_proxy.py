@@ -21,6 +21,7 @@ import contextlib
 import itertools
 import logging
 import random
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -134,6 +135,9 @@ class LineProxy(Backend):
 
     #: Ask for the greeting after opening (a serial device greeted at its reset, long ago).
     ask_hello_first = False
+    #: Seconds since the device last sent anything within which :meth:`check` counts it alive
+    #: without asking (the registry's default period); after that a PING has to come back.
+    heard_within = 5.0
 
     def __init__(self, name: str, url: str, options: ProxyOptions) -> None:
         self.name = name
@@ -301,6 +305,17 @@ class LineProxy(Backend):
 
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
         return await self._call(Get(path, dict(params)))
+
+    async def check(self) -> None:
+        """Alive when connected and heard from lately, or when a PING comes back within the timeout.
+
+        Costs the device nothing while it talks anyway, and at most a PING
+        (never a property listing); UNAVAILABLE when not connected.
+        """
+        conn = self._live()
+        if time.monotonic() - conn._last_data <= self.heard_within:
+            return
+        await conn.request(Ping(), self.options.timeout)
 
     def start_get(
         self, path: str, params: Mapping[str, str], time_limit: float

@@ -11,11 +11,13 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 
 import pytest
+from group_support import MemoryDirectory
 from line_device_support import device_process, tcp_device
 
 from gateway.proxies import TcpProxy, open_tcp_backend
 from services.backend import Change
 from services.errors import Code, PropertyError
+from services.registry import Registry, RegistryService
 
 FAST = {
     "timeout": 1.0,
@@ -285,3 +287,62 @@ async def test_unlisten_failing_on_a_live_connection_is_logged_but_not_at_shutdo
         await sub.close()
     failures = unlisten_failures(caplog)
     assert failures and all(level == logging.DEBUG for level, _ in failures), failures
+
+
+# -- liveness checks ----------------------------------------------------------------------------
+
+
+def answering(lines: list[str]) -> Script:
+    """A device script that records every request line and answers PING with PONG, the rest with OK."""
+
+    async def script(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        async for tag, rest in requests(reader):
+            lines.append(rest)
+            writer.write(f"{tag} PONG\n".encode() if rest.startswith("PING") else f"{tag} OK 1\n".encode())
+
+    return script
+
+
+async def test_check_of_a_live_device_sends_no_get_and_a_killed_one_fails() -> None:
+    lines: list[str] = []
+    async with fake_device(answering(lines)) as url, proxy_for(url) as proxy:
+        await proxy.wait_connected(5)
+        await proxy.check()  # it greeted a moment ago: alive without asking
+        assert lines == []
+        proxy.heard_within = 0.0  # silent for too long: a PING has to come back
+        await proxy.check()
+        assert lines == ["PING"]
+    port = free_port()
+    with device_process("--service", "sim-robot", "--tcp", f"127.0.0.1:{port}") as (proc, _):
+        async with proxy_for(f"tcp://127.0.0.1:{port}") as proxy:
+            await proxy.wait_connected(5)
+            await proxy.check()
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(5)
+            with pytest.raises(PropertyError) as info:
+                for _ in range(100):
+                    await proxy.check()
+                    await asyncio.sleep(0.02)
+            assert info.value.code == Code.UNAVAILABLE
+
+
+async def test_registry_checks_a_proxied_device_without_listing_its_properties() -> None:
+    lines: list[str] = []
+    directory = MemoryDirectory()
+    registry = Registry(directory=directory, period=0, timeout=1.0, misses=1, static=["dev"])
+    try:
+        await directory.add("registry", RegistryService(registry))
+        async with fake_device(answering(lines)) as url:
+            proxy = open_tcp_backend("dev", url, FAST)
+            assert isinstance(proxy, TcpProxy)
+            await directory.add("dev", proxy)
+            await proxy.wait_connected(5)
+            for _ in range(3):
+                await registry.check_all()
+            assert registry.state_of("dev") == "up"
+            assert not [line for line in lines if line.startswith("GET properties")], lines
+            await proxy.aclose()
+        await registry.check_all()
+        assert registry.state_of("dev") == "down"
+    finally:
+        await directory.aclose()
