@@ -266,10 +266,12 @@ class Gateway:
             self._unwatch_registry()
         if self._line_listener is not None:
             await self._line_listener.aclose()  # type: ignore[attr-defined]
-        # The registry goes first: services closed for the shutdown are not leaves it should
-        # record (a registration kept in its persist file must still be there at the next start).
+        # Groups go first, so none of them asks the registry again once it is gone; then the
+        # registry: services closed for the shutdown are not leaves it should record (a
+        # registration kept in its persist file must still be there at the next start).
+        groups = {e.name for e in self.config.services if _needs_directory(e)}
         names = reversed(self.router.names())
-        for name in sorted(names, key=lambda n: n != REGISTRY_NAME):
+        for name in sorted(names, key=lambda n: 0 if n in groups else 1 if n == REGISTRY_NAME else 2):
             backend = self.router.remove(name)
             try:
                 await asyncio.wait_for(backend.aclose(), grace)

@@ -283,7 +283,9 @@ class Group(Resource):
             log.warning("group query: the registry %r did not answer in time", self._registry)
             return
         except PropertyError as e:
-            log.warning("group query: the registry %r refused it: %s", self._registry, e.message)
+            # A group being stopped (the gateway shutting down) may find the registry gone: expected.
+            level = logging.WARNING if self._started else logging.DEBUG
+            log.log(level, "group query: the registry %r refused it: %s", self._registry, e.message)
             return
         self._wanted = set(parse_names(text))
         self._sync()

@@ -195,3 +195,29 @@ async def test_listens_live_on_when_a_device_registers_and_comes_back(demo_gatew
                 everyone.cancel()
                 with contextlib.suppress(grpc.aio.AioRpcError):
                     await register("")
+
+
+async def test_a_gateway_with_query_groups_shuts_down_quietly(gateway_process: StartGateway) -> None:
+    gw = gateway_process(
+        """
+        [[services]]
+        name = "scout1"
+        type = "sim-robot"
+
+        [[services]]
+        name = "swarm"
+        type = "group"
+        options = { query = { type = "mobile_robot" } }
+
+        [[services]]
+        name = "pair"
+        type = "group"
+        options = { query = { type = "mobile_robot" } }
+        """
+    )
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        assert await eventually(stub, "swarm", "robots", "(scout1)") == "(scout1)"
+    assert gw.stop() == 0
+    noisy = [line for line in gw.output.splitlines() if "WARNING" in line or "ERROR" in line]
+    assert noisy == [], gw.output
