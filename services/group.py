@@ -561,7 +561,12 @@ class Group(Resource):
         validate_service_name(name)
         if name in self.subgroups.children():
             raise AlreadyExists(f"subgroup {name!r} already exists; dissolve it first")
-        if (members is None) == (not query):
+        if members is None and not query:
+            raise InvalidArgument(
+                "a subgroup needs members (a list of names) or a query "
+                "(e.g. type=mobile_robot&near=(4 5)&radius=2): give one of the two parameters"
+            )
+        if members is not None and query:
             raise InvalidArgument("give a subgroup either members (a list of names) or a query, not both")
         if members is not None:
             current = set(self.robots.children())

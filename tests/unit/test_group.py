@@ -282,7 +282,8 @@ async def test_subgroup_by_names_is_a_group(world: MemoryDirectory) -> None:
         ("behaviors.moveto", "(1 1)", {}, "marker"),
         ("behaviors.moveto", "<marker><location>(1 1)</location></marker>", {"speed": "2"}, "speed"),
         ("subgroup", "west", {"members": "(scout1 nobody)"}, "not members of this group: nobody"),
-        ("subgroup", "west", {}, "either members"),
+        ("subgroup", "west", {}, "a subgroup needs members (a list of names) or a query"),
+        ("subgroup", "west", {"members": "(scout1)", "query": "type=mobile_robot"}, "not both"),
         ("subgroup", "bad.name", {"members": "(scout1)"}, "service name"),
     ],
 )
