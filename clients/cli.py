@@ -35,19 +35,33 @@ _LS_CONCURRENCY = 32
 
 _EPILOG = """\
 examples:
-  psctl ls                                   services known to the registry
-  psctl ls -l                                services with type, url and state
-  psctl ls scout1 -l                         properties of scout1 with gui and parameters
-  psctl get scout1 location                  one value
-  psctl get scout1 location.x location.y     several values, "path = value" lines
-  psctl get registry find -p type=sensor     with a request parameter
+  psctl ls                                    services known to the registry
+  psctl ls -l                                 services with type, url and state
+  psctl ls scout1 -l                          properties of scout1 with gui and parameters
+  psctl get scout1 location                   one value
+  psctl get scout1 location.x location.y      several values, "path = value" lines
+  psctl get registry find -p type=sensor      with a request parameter
   psctl set scout1 behaviors.moveto '<marker><location>(2 1 0 0 0 0)</location></marker>'
-  psctl listen scout1 location --count 10    ten events, then exit
+  psctl listen thermo1 data --count 10        ten readings of the sensor (it changes by itself)
+  psctl listen scout1 location --duration 5   scout1's pose for five seconds
   psctl listen scout1 location --also scout2:location --min-interval 0.1 --duration 5
-  psctl --json get scout1 location           machine-readable output
+  psctl --json get scout1 location            machine-readable output
 
 The gateway address comes from --target, else $PSCTL_TARGET, else 127.0.0.1:50051.
 exit codes: 0 ok, 1 the call failed, 2 usage error, 3 gateway unreachable, 130 interrupted.
+"""
+
+_LISTEN_EPILOG = """\
+--count counts events only (not the sync or heartbeat markers). A property that does not
+change sends its current value and then nothing, so `listen scout1 location --count 10`
+waits while scout1 stands still: add --duration to bound the wait.
+
+examples:
+  psctl listen thermo1 data --count 10                    ten readings (the sensor changes by itself)
+  psctl listen scout1 location --duration 5               scout1's pose for five seconds
+  psctl listen scout1 location --count 10 --duration 5    ten events or five seconds, whichever first
+  psctl listen '*' location --min-interval 0.5 --json --duration 2
+  psctl listen scout1 location --updates-only --heartbeat 1 --marks --duration 3
 """
 
 
@@ -171,6 +185,8 @@ def build_parser() -> argparse.ArgumentParser:
             "[removed] markers. The current value comes first unless --updates-only. "
             "'*' in a path matches one segment."
         ),
+        epilog=_LISTEN_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     listen.add_argument("service")
     listen.add_argument("path")
@@ -191,7 +207,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--heartbeat", type=_positive, metavar="S", help="ask for a keep-alive after S quiet seconds"
     )
     listen.add_argument("--marks", action="store_true", help="also print the sync and heartbeat markers")
-    listen.add_argument("--count", type=_count, metavar="N", help="exit after N events")
+    listen.add_argument(
+        "--count",
+        type=_count,
+        metavar="N",
+        help="exit after N events (markers do not count; waits while nothing changes, see below)",
+    )
     listen.add_argument("--duration", type=_positive, metavar="S", help="exit after S seconds")
     return parser
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import re
 import shlex
@@ -26,17 +27,34 @@ def run(target: str, args: list[str]) -> subprocess.CompletedProcess[str]:
     )
 
 
-def help_examples() -> list[list[str]]:
-    """The one-shot (ls, get, set) example commands of ``psctl --help``, as argument lists."""
-    shown = subprocess.run([*PSCTL, "--help"], capture_output=True, text=True, timeout=30, check=True)
+SUBCOMMANDS = ("ls", "get", "set", "listen")
+#: Seconds a listen example may run before the test calls it stuck (examples end within a few).
+LISTEN_LIMIT = 20.0
+
+
+@functools.cache
+def all_help_examples() -> tuple[tuple[str, ...], ...]:
+    """Every example command of ``psctl --help`` and of each ``psctl COMMAND --help``, as argument lists."""
     examples = []
-    for line in shown.stdout.splitlines():
-        m = re.match(r"^  psctl (.*?)(?:\s{3,}.*)?$", line)
-        if m:
-            args = shlex.split(m.group(1))
-            if "listen" not in args:
-                examples.append(args)
-    return examples
+    for extra in [[], *([c] for c in SUBCOMMANDS)]:
+        shown = subprocess.run(
+            [*PSCTL, *extra, "--help"], capture_output=True, text=True, timeout=30, check=True
+        )
+        for line in shown.stdout.splitlines():
+            m = re.match(r"^  psctl (.*?)(?:\s{3,}.*)?$", line)
+            if m:
+                examples.append(tuple(shlex.split(m.group(1))))
+    return tuple(examples)
+
+
+def help_examples() -> list[list[str]]:
+    """The one-shot (ls, get, set) example commands of the helps."""
+    return [list(args) for args in all_help_examples() if "listen" not in args]
+
+
+def listen_examples() -> list[list[str]]:
+    """The listen example commands of the helps."""
+    return [list(args) for args in all_help_examples() if "listen" in args]
 
 
 def test_every_one_shot_help_example_succeeds(demo_target: str) -> None:
@@ -46,6 +64,33 @@ def test_every_one_shot_help_example_succeeds(demo_target: str) -> None:
         done = run(demo_target, args)
         assert done.returncode == 0, f"psctl {shlex.join(args)}: {done.stderr}"
         assert done.stderr == ""
+
+
+def test_every_listen_help_example_ends_by_itself(gateway_process: Any) -> None:
+    # A fresh demo: nothing has moved a robot, so an example must not rely on one moving.
+    target = str(gateway_process().address)
+    examples = list({shlex.join(args): args for args in listen_examples()}.values())
+    assert len(examples) >= 4
+    # They run side by side; each is given LISTEN_LIMIT seconds and stopped (its PID) after that.
+    procs = [
+        subprocess.Popen(
+            [*PSCTL, "-t", target, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        for args in examples
+    ]
+    stuck = []
+    for args, proc in zip(examples, procs, strict=True):
+        try:
+            out, err = proc.communicate(timeout=LISTEN_LIMIT)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate(timeout=LISTEN_LIMIT)
+            stuck.append(shlex.join(args))
+            continue
+        assert proc.returncode == 0, f"psctl {shlex.join(args)}: {err}"
+        assert err == ""
+        assert out.strip(), f"psctl {shlex.join(args)} printed nothing"
+    assert stuck == [], f"did not end within {LISTEN_LIMIT} s on the demo: {stuck}"
 
 
 def test_listen_example_of_the_guide_runs(demo_target: str) -> None:
