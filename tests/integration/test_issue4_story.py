@@ -131,6 +131,13 @@ async def test_register_find_drive_as_a_group_and_survive_a_dead_device() -> Non
             procs["scout3"].wait(10)  # type: ignore[attr-defined]
             registry = gw.router.backend("registry")
             assert isinstance(registry, RegistryService)
+            # A device heard from a moment ago passes a check until its proxy sees the connection close.
+            proxy = gw.router.lookup("scout3")
+
+            async def connected() -> bool:
+                return bool(getattr(proxy, "connected", False))
+
+            await eventually(connected, lambda up: not up)
             for _ in range(registry.registry.misses):
                 await registry.registry.check_all()
             assert await client.get("registry", "services.scout3.state") == "down"
