@@ -70,6 +70,8 @@ DEFAULT_MAX_IN_FLIGHT = 256
 DEFAULT_SESSION_QUEUE = 1024
 #: Most requests put into one SessionRequest.
 MAX_SESSION_BATCH = 256
+#: Seconds a Session writer that could not send waits for the reader to report why the call ended.
+_READER_GRACE = 1.0
 
 #: A Listen selector: ``(service, property)`` or ``(service, property, parameters)``.
 Selector = tuple[str, str] | tuple[str, str, Mapping[str, Any]]
@@ -579,7 +581,12 @@ class Session:
             self._shutdown(error_from_rpc(e, target=self._client.target))
         except asyncio.CancelledError:
             pass
-        except Exception as e:  # e.g. the call finished under us: the reader reports the reason
+        except Exception as e:
+            # The call finished under us (e.g. no connection): the reader reports the reason,
+            # which says more than this writer can; wait for it (bounded), then fall back.
+            reader = [t for t in self._tasks if t is not asyncio.current_task()]
+            if reader:
+                await asyncio.wait(reader, timeout=_READER_GRACE)
             self._shutdown(Unknown(None, f"the session could not send: {e}"))
 
     def _check_open(self) -> None:

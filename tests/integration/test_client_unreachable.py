@@ -31,3 +31,11 @@ async def test_async_calls_and_session_calls_are_gateway_unreachable() -> None:
 def test_sync_session_call_is_gateway_unreachable() -> None:
     with Client(closed_target(), timeout=5) as c, c.session() as s, pytest.raises(GatewayUnreachable):
         s.get("scout1", "location")
+
+
+def test_every_fresh_sync_session_reports_gateway_unreachable() -> None:
+    # The writer may find the call finished before the reader has seen why; the reason must still win.
+    with Client(closed_target(), timeout=5) as c:
+        for _ in range(20):
+            with c.session() as s, pytest.raises(GatewayUnreachable):
+                s.get("scout1", "location")
