@@ -76,7 +76,8 @@ class Calls:
                 backend = self.router.backend(service)
                 path = check_path(ref.property)
             except PropertyError as exc:
-                raise type(exc)(f"{service}/{ref.property}: {exc.message}", exc.code) from None
+                # Names are clipped: an echo of a huge bad name must not outgrow the status message.
+                raise type(exc)(f"{service[:80]}/{ref.property[:256]}: {exc.message}", exc.code) from None
             refs.append((service, path, _params(ref.parameters), backend))
         groups: dict[int, list[int]] = {}
         for i, (_, _, _, backend) in enumerate(refs):

@@ -78,7 +78,10 @@ class Query:
                 elif name == "near":
                     near = parse_vector(text)
                     if not 2 <= near.size <= 6:
-                        raise InvalidArgument(f"expected (x y) or (x y z), got {near.size} numbers")
+                        raise InvalidArgument(
+                            f"near: expected a location of 2 to 6 numbers ((x y), (x y z) or a pose;"
+                            f" only x y z count), got {near.size} numbers"
+                        )
                     near = near[:3]
                 elif name == "radius":
                     radius = parse_number(text)
