@@ -11,7 +11,7 @@ from collections.abc import AsyncIterator
 
 import numpy as np
 import pytest
-from group_support import MemoryDirectory, sim_robot, wait_for
+from support.group_support import MemoryDirectory, sim_robot, wait_for
 
 from services.backend import BackendInfo, Change
 from services.core import LocalService

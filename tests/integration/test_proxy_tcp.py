@@ -11,8 +11,8 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 
 import pytest
-from group_support import MemoryDirectory
 from line_device_support import device_process, tcp_device
+from support.group_support import MemoryDirectory
 
 from gateway.proxies import TcpProxy, open_tcp_backend
 from services.backend import Change

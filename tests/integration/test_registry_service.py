@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from group_support import DeadBackend, MemoryDirectory, SilentBackend, Switchable, sim_robot, wait_for
+from support.group_support import DeadBackend, MemoryDirectory, SilentBackend, Switchable, sim_robot, wait_for
 
 from services.backend import Change
 from services.core import LocalService

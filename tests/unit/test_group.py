@@ -2,84 +2,19 @@
 
 from __future__ import annotations
 
-import asyncio
-from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 import pytest
+from support.group_support import DeadBackend, MemoryDirectory, SilentBackend, wait_for
 
-from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
+from services.backend import Change
 from services.core import LocalService
-from services.directory import DirectoryListener
-from services.errors import AlreadyExists, Code, NotFound, PropertyError, Unavailable
+from services.errors import Code, PropertyError
 from services.formations import formation_targets
 from services.group import Group, GroupCallFailed, query_params
 from services.simulators import SimRobot
 from services.values import parse_list, parse_names, parse_vector
-
-
-class MemoryDirectory:
-    """A Directory over in-process backends (the gateway's router plays this part in production)."""
-
-    def __init__(self) -> None:
-        self.backends: dict[str, Backend] = {}
-        self._watchers: list[DirectoryListener] = []
-
-    def names(self) -> list[str]:
-        return sorted(self.backends)
-
-    def backend(self, name: str) -> Backend:
-        try:
-            return self.backends[name]
-        except KeyError:
-            raise NotFound(f"unknown service {name!r}") from None
-
-    def watch(self, listener: DirectoryListener) -> Callable[[], None]:
-        self._watchers.append(listener)
-        return lambda: self._watchers.remove(listener)
-
-    async def add(self, name: str, backend: Backend) -> Backend:
-        if name in self.backends:
-            raise AlreadyExists(name)
-        await backend.start()
-        self.backends[name] = backend
-        for w in list(self._watchers):
-            w(name, backend)
-        return backend
-
-    async def register(self, name: str, url: str, options: Mapping[str, Any] | None = None) -> BackendInfo:
-        raise Unavailable(f"this directory cannot open {url}")
-
-    async def unregister(self, name: str) -> None:
-        backend = self.backends.pop(name)
-        for w in list(self._watchers):
-            w(name, None)
-        await backend.aclose()
-
-
-class DeadBackend(Backend):
-    """A device that cannot be reached: every call is UNAVAILABLE."""
-
-    def __init__(self) -> None:
-        self.info = BackendInfo(type="mobile_robot", url="tcp://127.0.0.1:9")
-
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        raise Unavailable("cannot reach tcp://127.0.0.1:9: connection refused")
-
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        raise Unavailable("cannot reach tcp://127.0.0.1:9: connection refused")
-
-    async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
-        raise Unavailable("cannot reach tcp://127.0.0.1:9: connection refused")
-
-
-class SilentBackend(DeadBackend):
-    """A device that is connected but never answers."""
-
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        await asyncio.Event().wait()
-        raise AssertionError("unreachable")
 
 
 def robot(x: float, y: float) -> LocalService:
@@ -100,30 +35,6 @@ async def world() -> Any:
     yield directory
     for name in directory.names():
         await directory.unregister(name)
-
-
-async def wait_for(
-    service: Backend, path: str, predicate: Callable[[str], bool], within: float = 10.0
-) -> str:
-    """Listen to ``path`` until ``predicate(value)`` holds; return that value."""
-    done = asyncio.Event()
-    seen: list[str] = []
-
-    def notify(change: Change) -> None:
-        seen.append(change.value)
-        if predicate(change.value):
-            done.set()
-
-    sub = await service.listen(path, notify)
-    try:
-        current = await service.get(path)
-        if predicate(current):
-            return current
-        async with asyncio.timeout(within):
-            await done.wait()
-        return seen[-1]
-    finally:
-        await sub.close()
 
 
 async def test_robots_lists_members_and_reaches_their_properties(world: MemoryDirectory) -> None:
