@@ -1,0 +1,445 @@
+"""The proxy for ``grpc://HOST:PORT/SERVICE``: a service on another gateway, through the same v1 contract.
+
+Federation: gateway A serves ``far1 = grpc://b:50051/scout1`` and its clients
+reach ``scout1`` of gateway B as if it were local. The proxy
+
+* keeps one grpc.aio channel to the remote gateway; Get and Set are unary
+  calls under the per-call timeout, and the remote's status codes come back
+  1:1 as :class:`~services.errors.PropertyError` with the remote's message,
+  prefixed by which remote said it;
+* holds one remote Listen (``updates_only``) per (path, parameters), shared
+  by all its local listeners (reference counted); a listen returns only once
+  the remote's ``sync`` marker arrived, so no change falls between the
+  caller's subscribe and its Get;
+* re-opens a broken remote Listen (the remote gateway restarted) with
+  exponential backoff (bounded, with jitter), then reads the current value
+  and hands it to every listener as a ``Change(gap=True)``;
+* learns the service's type from the remote ``registry`` (best effort).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import random
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any
+from urllib.parse import parse_qsl, unquote, urlsplit
+
+import grpc
+from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stubs
+
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
+from services.errors import (
+    AlreadyExists,
+    Code,
+    DeadlineExceeded,
+    Internal,
+    InvalidArgument,
+    NotFound,
+    PermissionDenied,
+    PropertyError,
+    ReadOnly,
+    ResourceExhausted,
+    Unauthenticated,
+    Unavailable,
+)
+from services.paths import validate_service_name
+
+log = logging.getLogger(__name__)
+
+#: The name a gateway serves its registry under (``gateway.config.REGISTRY_NAME``), asked for the type.
+REMOTE_REGISTRY = "registry"
+#: Longest remote message passed on; the rest is cut (a remote is not trusted to be brief).
+MAX_REMOTE_MESSAGE = 1000
+
+_ERRORS: dict[Code, type[PropertyError]] = {
+    cls.default_code: cls
+    for cls in (
+        NotFound,
+        InvalidArgument,
+        ReadOnly,
+        AlreadyExists,
+        PermissionDenied,
+        Unauthenticated,
+        Unavailable,
+        DeadlineExceeded,
+        ResourceExhausted,
+        Internal,
+    )
+}
+
+
+@dataclass(frozen=True, slots=True)
+class GrpcProxyOptions:
+    """Tuning of a ``grpc://`` proxy, set in the config's ``options`` or in the URL's query."""
+
+    #: Seconds a call (and the opening of a remote Listen) may take before DEADLINE_EXCEEDED.
+    timeout: float = 5.0
+    #: Seconds a connection attempt to the remote gateway may take.
+    connect_timeout: float = 5.0
+    #: First and longest wait between attempts to re-open a broken Listen (and to reconnect the
+    #: channel); doubled per failure, with jitter.
+    backoff_initial: float = 0.2
+    backoff_max: float = 10.0
+
+    @classmethod
+    def parse(cls, url: str, options: Mapping[str, Any]) -> GrpcProxyOptions:
+        """Options from the URL's query, overridden by ``options``; InvalidArgument for a bad one."""
+        merged: dict[str, Any] = dict(parse_qsl(urlsplit(url).query))
+        merged.update(options)
+        known = {f.name for f in fields(cls)}
+        values: dict[str, float] = {}
+        for key, raw in merged.items():
+            if key not in known:
+                raise InvalidArgument(
+                    f"unknown grpc proxy option {key!r} (known: {', '.join(sorted(known))})"
+                )
+            try:
+                number = float(raw)
+            except (TypeError, ValueError):
+                raise InvalidArgument(f"bad grpc proxy option {key}={raw!r}: expected seconds") from None
+            if not number > 0 or number == float("inf"):
+                raise InvalidArgument(f"bad grpc proxy option {key}={raw!r}: must be a positive number")
+            values[key] = number
+        parsed = cls(**values)
+        if parsed.backoff_initial > parsed.backoff_max:
+            raise InvalidArgument(
+                f"bad grpc proxy options: backoff_initial={parsed.backoff_initial:g} "
+                f"is longer than backoff_max={parsed.backoff_max:g}"
+            )
+        return parsed
+
+
+def _ms(seconds: float) -> int:
+    return max(1, round(seconds * 1000))
+
+
+@dataclass(eq=False)
+class _RemoteListen:
+    """One remote Listen shared by every local listener of (path, parameters)."""
+
+    path: str
+    params: dict[str, str]
+    listeners: dict[int, Notify] = field(default_factory=dict)
+    ready: asyncio.Future[None] | None = None
+    call: Any = None
+    follower: asyncio.Task[None] | None = None
+
+
+class _Handle(Subscription):
+    def __init__(
+        self, proxy: GrpcProxy, key: tuple[str, tuple[tuple[str, str], ...]], shared: _RemoteListen, n: int
+    ):
+        self._proxy = proxy
+        self._key = key
+        self._shared = shared
+        self._n = n
+
+    async def close(self) -> None:
+        await self._proxy._unlisten(self._key, self._shared, self._n)
+
+
+class GrpcProxy(Backend):
+    """A service on another gateway, reached through the v1 contract (see the module docstring)."""
+
+    def __init__(self, name: str, url: str, target: str, remote: str, options: GrpcProxyOptions) -> None:
+        self.name = name
+        self.url = url
+        #: ``host:port`` of the remote gateway.
+        self.target = target
+        #: The service's name on the remote gateway.
+        self.remote = remote
+        self.options = options
+        self.info = BackendInfo(type="resource", url=url)
+        self._channel: grpc.aio.Channel | None = None
+        self._stub: Any = None
+        self._listens: dict[tuple[str, tuple[tuple[str, str], ...]], _RemoteListen] = {}
+        self._numbers = itertools.count()
+        self._type_known = False
+        self._learning: asyncio.Task[None] | None = None
+        self._closed = False
+
+    def __repr__(self) -> str:
+        return f"GrpcProxy({self.name!r}, {self.url!r})"
+
+    def _label(self) -> str:
+        return f"{self.remote} on gateway {self.target}"
+
+    # -- lifecycle ---------------------------------------------------------
+
+    def _get_stub(self) -> Any:
+        if self._closed:
+            raise Unavailable(f"{self._label()}: the proxy is closed")
+        if self._stub is None:
+            self._channel = grpc.aio.insecure_channel(
+                self.target,
+                options=[
+                    # gRPC's own reconnection follows the proxy's backoff (its defaults wait up to 2 min).
+                    ("grpc.initial_reconnect_backoff_ms", _ms(self.options.backoff_initial)),
+                    ("grpc.min_reconnect_backoff_ms", _ms(self.options.connect_timeout)),
+                    ("grpc.max_reconnect_backoff_ms", _ms(self.options.backoff_max)),
+                ],
+            )
+            self._stub = pb_grpc.PropertyServiceStub(self._channel)
+        return self._stub
+
+    async def start(self) -> None:
+        """Make the channel and ask the remote registry for the type in the background; never waits long."""
+        self._get_stub()
+        if self._learning is None:
+            self._learning = asyncio.create_task(self._learn_type(), name=f"grpc proxy {self.name}: type")
+
+    async def aclose(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        tasks = [s.follower for s in self._listens.values() if s.follower is not None]
+        if self._learning is not None:
+            tasks.append(self._learning)
+        for shared in self._listens.values():
+            if shared.call is not None:
+                shared.call.cancel()
+        self._listens.clear()
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        channel, self._channel, self._stub = self._channel, None, None
+        if channel is not None:
+            await channel.close(None)
+
+    async def wait_connected(self, wait_s: float) -> None:
+        """Wait until the remote gateway is reachable (registration); Unavailable after ``wait_s``."""
+        self._get_stub()
+        channel = self._channel
+        assert channel is not None
+        try:
+            async with asyncio.timeout(wait_s):
+                await channel.channel_ready()
+                await self._type_learned()
+        except TimeoutError:
+            raise Unavailable(f"{self._label()}: not reachable within {wait_s:g} s") from None
+
+    async def _type_learned(self) -> None:
+        learning = self._learning
+        if learning is not None and not learning.done():
+            await asyncio.shield(learning)
+
+    async def _learn_type(self) -> None:
+        """Take ``services.<SERVICE>.type`` from the remote registry; nothing when it cannot be read."""
+        try:
+            reply = await self._get_stub().Get(
+                pb.GetRequest(service=REMOTE_REGISTRY, property=f"services.{self.remote}.type"),
+                timeout=self.options.timeout,
+            )
+        except grpc.aio.AioRpcError as exc:
+            log.debug("%s: no type from its registry: %s", self._label(), exc.details())
+            return
+        if reply.value:
+            self.info.type = reply.value
+            self._type_known = True
+
+    # -- calls -------------------------------------------------------------
+
+    def _error(self, exc: grpc.aio.AioRpcError) -> PropertyError:
+        status = exc.code()
+        try:
+            code = Code(status.value[0])
+        except ValueError:
+            code = Code.UNKNOWN
+        details = (exc.details() or status.name)[:MAX_REMOTE_MESSAGE]
+        message = f"{self._label()}: {details}"
+        cls = _ERRORS.get(code)
+        return cls(message, code) if cls is not None else PropertyError(message, code)
+
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+        await self._type_learned()
+        request = pb.GetRequest(service=self.remote, property=path, parameters=dict(params))
+        try:
+            reply = await self._get_stub().Get(request, timeout=self.options.timeout)
+        except grpc.aio.AioRpcError as exc:
+            raise self._error(exc) from None
+        return str(reply.value)
+
+    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+        await self._type_learned()
+        request = pb.SetRequest(service=self.remote, property=path, value=value, parameters=dict(params))
+        try:
+            reply = await self._get_stub().Set(request, timeout=self.options.timeout)
+        except grpc.aio.AioRpcError as exc:
+            raise self._error(exc) from None
+        return str(reply.value)
+
+    async def check(self) -> None:
+        """Alive when the remote service answers a Get of ``properties`` within the timeout.
+
+        Also learns the type from the remote registry while it is not known
+        (the remote was down when the proxy started).
+        """
+        await self.get("properties")
+        if not self._type_known:
+            await self._learn_type()
+
+    # -- listening ---------------------------------------------------------
+
+    async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
+        await self._type_learned()
+        key = (path, tuple(sorted(params.items())))
+        shared = self._listens.get(key)
+        if shared is None:
+            shared = _RemoteListen(path, dict(params))
+            shared.ready = asyncio.get_running_loop().create_future()
+            self._listens[key] = shared
+            try:
+                shared.call = await self._open_remote(shared)
+            except BaseException as exc:
+                self._listens.pop(key, None)
+                error = (
+                    exc if isinstance(exc, Exception) else Unavailable(f"{self._label()}: listen cancelled")
+                )
+                shared.ready.set_exception(error)
+                shared.ready.exception()  # retrieved: waiters re-raise it themselves
+                raise
+            shared.ready.set_result(None)
+            shared.follower = asyncio.create_task(
+                self._follow(key, shared), name=f"grpc proxy {self.name}.{path}"
+            )
+        elif shared.ready is not None and not shared.ready.done():
+            await asyncio.shield(shared.ready)
+        n = next(self._numbers)
+        shared.listeners[n] = notify
+        return _Handle(self, key, shared, n)
+
+    def _listen_request(self, shared: _RemoteListen) -> pb.ListenRequest:
+        return pb.ListenRequest(
+            service=self.remote,
+            property=shared.path,
+            parameters=shared.params,
+            options=pb.ListenOptions(updates_only=True),
+        )
+
+    async def _open_remote(self, shared: _RemoteListen) -> Any:
+        """Open a remote Listen and read up to its ``sync`` marker; the call, ready to be followed."""
+        call = self._get_stub().Listen(self._listen_request(shared))
+        try:
+            async with asyncio.timeout(self.options.timeout):
+                while True:
+                    response = await call.read()
+                    if response is EOF:
+                        raise Unavailable(f"{self._label()}: the remote ended the Listen of {shared.path}")
+                    self._forward(shared, response)
+                    if response.sync:
+                        return call
+        except grpc.aio.AioRpcError as exc:
+            call.cancel()
+            raise self._error(exc) from None
+        except TimeoutError:
+            call.cancel()
+            raise DeadlineExceeded(
+                f"{self._label()}: Listen of {shared.path} not ready within {self.options.timeout:g} s"
+            ) from None
+        except BaseException:
+            call.cancel()
+            raise
+
+    def _forward(self, shared: _RemoteListen, response: pb.ListenResponse) -> None:
+        for event in response.events:
+            self._deliver(shared, Change(shared.path, event.value, gap=event.gap, removed=event.removed))
+
+    def _deliver(self, shared: _RemoteListen, change: Change) -> None:
+        for notify in list(shared.listeners.values()):
+            try:
+                notify(change)
+            except Exception:
+                log.exception("%s: a listener of %s failed", self._label(), shared.path)
+
+    async def _follow(self, key: tuple[str, tuple[tuple[str, str], ...]], shared: _RemoteListen) -> None:
+        """Read the remote Listen; when it breaks, open it again with backoff and report a gap."""
+        failures = 0
+        while self._listens.get(key) is shared:
+            call = shared.call
+            try:
+                while (response := await call.read()) is not EOF:
+                    self._forward(shared, response)
+                reason = "the remote ended the stream"
+            except grpc.aio.AioRpcError as exc:
+                reason = self._error(exc).message
+            call.cancel()
+            shared.call = None
+            log.warning("%s: Listen of %s broke (%s); opening it again", self._label(), shared.path, reason)
+            while self._listens.get(key) is shared:
+                failures += 1
+                delay = min(
+                    self.options.backoff_max, self.options.backoff_initial * 2 ** min(failures - 1, 30)
+                )
+                await asyncio.sleep(delay * random.uniform(0.5, 1.0))
+                try:
+                    value = await self._reopen(shared)
+                except PropertyError as exc:
+                    if exc.code is Code.NOT_FOUND:
+                        self._listens.pop(key, None)
+                        self._deliver(shared, Change(shared.path, "", removed=True))
+                        return
+                    log.info("%s: cannot listen to %s again yet: %s", self._label(), shared.path, exc.message)
+                    continue
+                failures = 0
+                log.info("%s: listening to %s again", self._label(), shared.path)
+                self._deliver(shared, Change(shared.path, value, gap=True))
+                break
+
+    async def _reopen(self, shared: _RemoteListen) -> str:
+        """Open the remote Listen again, then read the current value (the caller reports it as a gap)."""
+        call = await self._open_remote(shared)
+        try:
+            value = await self.get(shared.path, shared.params)
+        except BaseException:
+            call.cancel()
+            raise
+        shared.call = call
+        return value
+
+    async def _unlisten(
+        self, key: tuple[str, tuple[tuple[str, str], ...]], shared: _RemoteListen, n: int
+    ) -> None:
+        if shared.listeners.pop(n, None) is None or shared.listeners:
+            return
+        if self._listens.get(key) is shared:
+            del self._listens[key]
+        if shared.call is not None:
+            shared.call.cancel()
+            shared.call = None
+        follower = shared.follower
+        if follower is not None and follower is not asyncio.current_task():
+            follower.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await follower
+
+
+def open_grpc_backend(name: str, url: str, options: Mapping[str, Any]) -> Backend:
+    """The factory for ``grpc://HOST:PORT[/SERVICE][?option=value...]`` (not started).
+
+    SERVICE is the service's name on the remote gateway; without it, ``name``.
+    """
+    expected = f"expected grpc://HOST:PORT/SERVICE (got {url[:200]!r})"
+    parts = urlsplit(url)
+    try:
+        port = parts.port
+    except ValueError:
+        port = None
+    if parts.scheme != "grpc" or not parts.hostname or not port or parts.username or parts.fragment:
+        raise InvalidArgument(f"service {name!r}: bad URL: {expected}")
+    remote = unquote(parts.path.strip("/")) or name
+    try:
+        validate_service_name(remote)
+    except InvalidArgument as exc:
+        raise InvalidArgument(
+            f"service {name!r}: bad remote service in URL: {exc.message}; {expected}"
+        ) from None
+    host = parts.hostname
+    target = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+    return GrpcProxy(name, url, target, remote, GrpcProxyOptions.parse(url, options))
