@@ -180,7 +180,8 @@ class GrpcProxy(Backend):
             self._channel = grpc.aio.insecure_channel(
                 self.target,
                 options=[
-                    # gRPC's own reconnection follows the proxy's backoff (its defaults wait up to 2 min).
+                    # gRPC's own reconnection follows the proxy's backoff (its defaults wait up to 2 min);
+                    # gRPC core takes its "min reconnect backoff" as the time a connection attempt may take.
                     ("grpc.initial_reconnect_backoff_ms", _ms(self.options.backoff_initial)),
                     ("grpc.min_reconnect_backoff_ms", _ms(self.options.connect_timeout)),
                     ("grpc.max_reconnect_backoff_ms", _ms(self.options.backoff_max)),
@@ -239,6 +240,9 @@ class GrpcProxy(Backend):
             )
         except grpc.aio.AioRpcError as exc:
             log.debug("%s: no type from its registry: %s", self._label(), exc.details())
+            # Only a remote that could not be reached is asked again (by check()).
+            if exc.code() not in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+                self._type_known = True
             return
         if reply.value:
             self.info.type = reply.value
@@ -253,6 +257,10 @@ class GrpcProxy(Backend):
         except ValueError:
             code = Code.UNKNOWN
         details = (exc.details() or status.name)[:MAX_REMOTE_MESSAGE]
+        if (
+            code is Code.DEADLINE_EXCEEDED and details == "Deadline Exceeded"
+        ):  # our own deadline, not the remote's
+            details = f"no answer within {self.options.timeout:g} s"
         message = f"{self._label()}: {details}"
         cls = _ERRORS.get(code)
         return cls(message, code) if cls is not None else PropertyError(message, code)
@@ -385,7 +393,9 @@ class GrpcProxy(Backend):
                         self._listens.pop(key, None)
                         self._deliver(shared, Change(shared.path, "", removed=True))
                         return
-                    log.info("%s: cannot listen to %s again yet: %s", self._label(), shared.path, exc.message)
+                    # Said once per outage; every further attempt only at DEBUG.
+                    level = logging.INFO if failures == 1 else logging.DEBUG
+                    log.log(level, "cannot listen to %s again yet: %s", shared.path, exc.message)
                     continue
                 failures = 0
                 log.info("%s: listening to %s again", self._label(), shared.path)
