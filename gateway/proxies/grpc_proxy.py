@@ -305,6 +305,9 @@ class GrpcProxy(Backend):
             self._listens[key] = shared
             try:
                 shared.call = await self._open_remote(shared)
+                if self._closed:  # closed while the remote Listen was being opened
+                    shared.call.cancel()
+                    raise Unavailable(f"{self._label()}: the proxy is closed")
             except BaseException as exc:
                 self._listens.pop(key, None)
                 error = (
