@@ -120,6 +120,14 @@ def check_url(url: str) -> str:
             f"malformed URL {shown}: expected {parts.scheme}://host:port with a port 1-65535"
         )
     if parts.path not in ("", "/"):
+        if parts.scheme == "grpc":
+            # grpc://host:port/SERVICE names the service on the other gateway.
+            try:
+                validate_service_name(parts.path[1:])
+            except InvalidArgument as e:
+                expected = "grpc://host:port or grpc://host:port/SERVICE"
+                raise InvalidArgument(f"malformed URL {shown}: expected {expected}: {e.message}") from None
+            return url
         raise InvalidArgument(f"malformed URL {shown}: expected {parts.scheme}://host:port with no path")
     return url
 

@@ -261,9 +261,5 @@ async def test_federation_between_two_gateway_processes(gateway_process: Any) ->
             await asyncio.gather(listener, return_exceptions=True)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="services.registry.check_url refuses any path: grpc://HOST:PORT/SERVICE is not registrable",
-)
 def test_the_registry_accepts_a_grpc_url_naming_the_remote_service() -> None:
     assert check_url("grpc://127.0.0.1:5000/scout2") == "grpc://127.0.0.1:5000/scout2"
