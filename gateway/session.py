@@ -168,14 +168,18 @@ class Session:
                 message = await context.read()
                 if message is grpc.aio.EOF:  # type: ignore[attr-defined]
                     break
+                # Checked before every request, not every message: one message may carry
+                # as many requests as fit in 4 MiB (over 100,000), and the bounds must hold inside it.
                 for request in message.requests:
+                    while (
+                        len(self._tasks) >= limits.session_max_in_flight
+                        or len(self._replies) >= limits.session_max_queued_replies
+                    ) and not self._stopping:
+                        self._room.clear()
+                        await self._room.wait()
+                    if self._stopping:
+                        break
                     self._dispatch(request)
-                while (
-                    len(self._tasks) >= limits.session_max_in_flight
-                    or len(self._replies) >= limits.session_max_queued_replies
-                ) and not self._stopping:
-                    self._room.clear()
-                    await self._room.wait()
         finally:
             self._reader_done = True
             self._wake.set()
