@@ -49,6 +49,14 @@ JOIN_RETRY_S = 10.0
 
 TopicKey = tuple[str, str, tuple[tuple[str, str], ...]]
 
+#: The largest message a gRPC client accepts unless it asks for more (grpc's default); the
+#: gateway's own receive limit is the same, so one value a client could Set always fits.
+MAX_MESSAGE_BYTES = 4 * 1024 * 1024
+#: Batching (events in one ListenResponse, replies in one SessionResponse) stops at about this
+#: many bytes, well under MAX_MESSAGE_BYTES: a batch of values that fit one by one must never
+#: add up to a message the client refuses (it would drop the whole stream).
+BATCH_BYTES = 1024 * 1024
+
 
 @dataclass(frozen=True, slots=True)
 class Selector:

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import grpc
 
-from gateway.listen_hub import ListenStream, parse_options, parse_selectors
+from gateway.listen_hub import BATCH_BYTES, ListenStream, parse_options, parse_selectors
 from gateway.router import check_path, finish_call
 from gateway.status import status_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -107,19 +107,37 @@ class Session:
                 return
 
     def _collect(self) -> list[pb.Reply]:
+        """The next SessionResponse's replies: at most MAX_REPLIES_PER_MESSAGE, about BATCH_BYTES.
+
+        A reply bigger than the budget goes alone: a client drops the whole stream on a message
+        over its limit (4 MiB by default), so batching must never add up to one.
+        """
         replies: list[pb.Reply] = []
+        size = 0
         queue = self._replies
         while queue and len(replies) < MAX_REPLIES_PER_MESSAGE:
+            n = queue[0].ByteSize()
+            if replies and size + n > BATCH_BYTES:
+                return replies
+            size += n
             replies.append(queue.popleft())
         for rid in list(self._ready):
-            if len(replies) >= MAX_REPLIES_PER_MESSAGE:
-                break
-            del self._ready[rid]
             stream = self._listens.get(rid)
             if stream is None:
+                del self._ready[rid]
                 continue
-            while (response := stream.take()) is not None:
-                replies.append(pb.Reply(id=rid, listen=response))
+            drained = False
+            while size < BATCH_BYTES and len(replies) < MAX_REPLIES_PER_MESSAGE:
+                response = stream.take()
+                if response is None:
+                    drained = True
+                    break
+                reply = pb.Reply(id=rid, listen=response)
+                size += reply.ByteSize()
+                replies.append(reply)
+            if not drained:
+                break  # the rest goes in the next message; rid stays ready
+            del self._ready[rid]
             if stream.error is not None:
                 replies.append(pb.Reply(id=rid, status=status_message(stream.error)))
                 self._drop_listen(rid)
