@@ -568,13 +568,23 @@ class ListenStream:
         ready: list[tuple[Topic, _Pending]]
         if self._last_emit is not None and self._sync_after <= 0:
             ready = self._ready_throttled(limit)
-        elif len(pending) <= limit:
-            ready = list(pending.items())
-            self._pending = {}
         else:
-            ready = list(islice(pending.items(), limit))
-            for topic, _ in ready:
-                del pending[topic]
+            ready = _within(islice(pending.items(), limit))
+            if len(ready) == len(pending):
+                self._pending = {}
+            else:
+                for topic, _ in ready:
+                    del pending[topic]
+        if len(ready) == 1 and _event_size(*ready[0]) > MAX_MESSAGE_BYTES:
+            topic, entry = ready[0]
+            size = _event_size(topic, entry)
+            self.fail(
+                ResourceExhausted(
+                    f"{topic.service}/{topic.path}: a value of {size} bytes does not fit in one message "
+                    f"(at most {MAX_MESSAGE_BYTES} bytes)"
+                )
+            )
+            return []
         events = []
         seq = self._sequence
         for topic, entry in ready:
@@ -601,9 +611,14 @@ class ListenStream:
         interval = self.options.min_interval
         ready: list[tuple[Topic, _Pending]] = []
         next_due = 0.0
+        size = 0
         for topic, entry in self._pending.items():
             last = last_emit.get(topic)
             if last is None or now - last >= interval:
+                n = _event_size(topic, entry)
+                if ready and size + n > BATCH_BYTES:
+                    break
+                size += n
                 ready.append((topic, entry))
                 if len(ready) >= limit:
                     break
@@ -642,6 +657,26 @@ class ListenStream:
         self._pending.clear()
         self._last_emit = None
         hub._streams.discard(self)
+
+
+def _event_size(topic: Topic, entry: _Pending) -> int:
+    """About the bytes ``entry`` takes as an Event (exact for the value, which is what can be big)."""
+    value = entry.value
+    n = len(value) if value.isascii() else len(value.encode())
+    return n + len(topic.service) + len(topic.path) + 40
+
+
+def _within(items: Iterable[tuple[Topic, _Pending]]) -> list[tuple[Topic, _Pending]]:
+    """The first of ``items`` that add up to at most BATCH_BYTES (always at least one)."""
+    ready: list[tuple[Topic, _Pending]] = []
+    size = 0
+    for item in items:
+        n = _event_size(*item)
+        if ready and size + n > BATCH_BYTES:
+            break
+        size += n
+        ready.append(item)
+    return ready
 
 
 class ListenHub:
