@@ -458,4 +458,12 @@ async def test_get_whose_values_outgrow_a_message_is_resource_exhausted(stub, de
     await call.write(pb.SessionRequest(requests=[get(2)]))
     (reply,) = await replies_until(call, lambda rs: len(rs) >= 1)
     assert reply.get.value == "1"
+    # One value too big for any message: the same, for a single Get.
+    dev.put("big1", "v" * GRPC_MAX_MESSAGE)
+    err = await rpc_error(stub.Get(pb.GetRequest(service="dev", property="big1")))
+    assert err.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert "dev: get big1: the answer is" in (err.details() or "")
+    await call.write(pb.SessionRequest(requests=[get(3, "dev", "big1"), get(4)]))
+    replies = await replies_until(call, lambda rs: len(rs) >= 2)
+    assert sorted((r.id, r.status.code) for r in replies) == [(3, RESOURCE_EXHAUSTED), (4, OK)]
     call.cancel()
