@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import asyncio
 import functools
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 import grpc
 
 from gateway.config import Config
-from gateway.listen_hub import ListenHub, parse_options, parse_selectors
+from gateway.listen_hub import MAX_MESSAGE_BYTES, ListenHub, parse_options, parse_selectors
 from gateway.router import Router, bounded_call, check_path
 from gateway.status import abort, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -27,6 +27,23 @@ if TYPE_CHECKING:
     from gateway.session import Session
 
 Context = grpc.aio.ServicerContext[Any, Any]
+
+#: The largest Get or Set answer sent: a client's limit less room for a Session's envelope.
+MAX_ANSWER_BYTES = MAX_MESSAGE_BYTES - 1024
+
+
+def check_fits(answer: pb.GetResponse | pb.SetResponse, what: Callable[[], str]) -> None:
+    """Raise RESOURCE_EXHAUSTED when ``answer`` is too big for a client to receive.
+
+    Sent anyway, the client would refuse it with a bare "message larger than max" (and, in a
+    Session, drop every other request with it).
+    """
+    size = answer.ByteSize()
+    if size > MAX_ANSWER_BYTES:
+        raise ResourceExhausted(
+            f"{what()}: the answer is {size} bytes, more than one message may carry "
+            f"({MAX_ANSWER_BYTES} bytes); read fewer paths per Get"
+        )
 
 
 def _params(params: Mapping[str, str]) -> Mapping[str, str]:
@@ -60,8 +77,14 @@ class Calls:
                 lambda: f"{service}: get {path}",
             )
         if not request.more:
-            return pb.GetResponse(value=value)
-        return pb.GetResponse(value=value, more=await self._get_more(request, time_limit))
+            response = pb.GetResponse(value=value)
+        else:
+            response = pb.GetResponse(value=value, more=await self._get_more(request, time_limit))
+        check_fits(
+            response,
+            lambda: f"{service}: get {path}" + (f" and {len(request.more)} more" if request.more else ""),
+        )
+        return response
 
     async def _get_more(self, request: pb.GetRequest, time_limit: float) -> list[pb.PropertyValue]:
         if len(request.more) + 1 > self.max_get_paths:
@@ -123,7 +146,9 @@ class Calls:
             time_limit,
             lambda: f"{service}: set {path}",
         )
-        return pb.SetResponse(value=answer if answer is not None else "")
+        response = pb.SetResponse(value=answer if answer is not None else "")
+        check_fits(response, lambda: f"{service}: set {path}")
+        return response
 
 
 class _Wake:

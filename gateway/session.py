@@ -22,6 +22,7 @@ import grpc
 
 from gateway.listen_hub import BATCH_BYTES, ListenStream, parse_options, parse_selectors
 from gateway.router import check_path, finish_call
+from gateway.server import check_fits
 from gateway.status import status_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS
@@ -320,9 +321,18 @@ class Session:
 
     def _answer(self, rid: int, kind: str, value: str | None) -> None:
         if kind == "get":
-            self._push(pb.Reply(id=rid, get=pb.GetResponse(value=value)))
+            response: pb.GetResponse | pb.SetResponse = pb.GetResponse(value=value)
         else:
-            self._push(pb.Reply(id=rid, set=pb.SetResponse(value=value if value is not None else "")))
+            response = pb.SetResponse(value=value if value is not None else "")
+        try:
+            check_fits(response, lambda: f"request {rid} ({kind})")
+        except PropertyError as exc:
+            self._fail(rid, exc, kind)
+            return
+        if kind == "get":
+            self._push(pb.Reply(id=rid, get=response))
+        else:
+            self._push(pb.Reply(id=rid, set=response))
 
     def _spawn(self, rid: int, coro: Coroutine[Any, Any, None], listen: bool = False) -> None:
         task = asyncio.get_running_loop().create_task(coro)
