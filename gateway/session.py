@@ -321,18 +321,17 @@ class Session:
 
     def _answer(self, rid: int, kind: str, value: str | None) -> None:
         if kind == "get":
-            response: pb.GetResponse | pb.SetResponse = pb.GetResponse(value=value)
+            reply = pb.Reply(id=rid, get=pb.GetResponse(value=value))
+            response: pb.GetResponse | pb.SetResponse = reply.get
         else:
-            response = pb.SetResponse(value=value if value is not None else "")
+            reply = pb.Reply(id=rid, set=pb.SetResponse(value=value if value is not None else ""))
+            response = reply.set
         try:
             check_fits(response, lambda: f"request {rid} ({kind})")
         except PropertyError as exc:
             self._fail(rid, exc, kind)
             return
-        if kind == "get":
-            self._push(pb.Reply(id=rid, get=response))
-        else:
-            self._push(pb.Reply(id=rid, set=response))
+        self._push(reply)
 
     def _spawn(self, rid: int, coro: Coroutine[Any, Any, None], listen: bool = False) -> None:
         task = asyncio.get_running_loop().create_task(coro)
