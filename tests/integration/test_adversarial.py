@@ -467,3 +467,46 @@ async def test_get_whose_values_outgrow_a_message_is_resource_exhausted(stub, de
     replies = await replies_until(call, lambda rs: len(rs) >= 2)
     assert sorted((r.id, r.status.code) for r in replies) == [(3, RESOURCE_EXHAUSTED), (4, OK)]
     call.cancel()
+
+
+# -- Requests that do not parse --------------------------------------------------------------
+
+BAD_UTF8 = b"\x0a\x03\xff\xfe\xfd"  # field 1 (a string) holding bytes that are not UTF-8
+
+
+async def test_requests_with_bad_utf8_are_invalid_argument(gw) -> None:
+    from gateway.server import add_to_server
+
+    server = grpc.aio.server()
+    add_to_server(gw.servicer, server)
+    port = server.add_insecure_port("127.0.0.1:0")
+    await server.start()
+    try:
+        async with grpc.aio.insecure_channel(f"127.0.0.1:{port}") as channel:
+            method = "/propertyservice.v1.PropertyService/"
+            for name in ("Get", "Set"):
+                err = await rpc_error(channel.unary_unary(method + name)(BAD_UTF8))
+                assert err.code() == grpc.StatusCode.INVALID_ARGUMENT, name
+                assert "UTF-8" in (err.details() or "")
+            call = channel.unary_stream(method + "Listen")(BAD_UTF8)
+            err = await rpc_error(call.read())
+            assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+            request = b"\x08\x01\x12" + bytes([len(BAD_UTF8)]) + BAD_UTF8
+            session = channel.stream_stream(method + "Session")()
+            await session.write(pb.SessionRequest(requests=[get(5)]).SerializeToString())
+            await session.write(b"\x0a" + bytes([len(request)]) + request)
+            replies = []
+            with pytest.raises(grpc.aio.AioRpcError) as bad:
+                async with asyncio.timeout(WAIT):
+                    while (msg := await session.read()) is not grpc.aio.EOF:
+                        replies.extend(pb.SessionResponse.FromString(msg).replies)
+            assert bad.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+            # What was read before the bad message is answered first.
+            assert [(r.id, r.get.value) for r in replies] == [(5, "1")]
+            # The same channel still works.
+            reply = await channel.unary_unary(method + "Get")(
+                pb.GetRequest(service="dev", property="a").SerializeToString()
+            )
+            assert pb.GetResponse.FromString(reply).value == "1"
+    finally:
+        await server.stop(None)
