@@ -13,6 +13,7 @@ from collections.abc import AsyncIterator, Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 import grpc
+from google.protobuf.message import DecodeError, Message
 
 from gateway.config import Config
 from gateway.listen_hub import MAX_MESSAGE_BYTES, ListenHub, parse_options, parse_selectors
@@ -48,6 +49,59 @@ def check_fits(answer: pb.GetResponse | pb.SetResponse, what: Callable[[], str])
 
 def _params(params: Mapping[str, str]) -> Mapping[str, str]:
     return dict(params) if params else NO_PARAMS
+
+
+class Undecodable:
+    """A request that did not parse, e.g. a string field holding bytes that are not UTF-8."""
+
+    __slots__ = ("error",)
+
+    def __init__(self, error: InvalidArgument) -> None:
+        self.error = error
+
+
+def _lenient(message: type[Message]) -> Callable[[bytes], Message | Undecodable]:
+    # grpc's own handling of a deserializer that raises is UNKNOWN and a logged traceback.
+    name = message.DESCRIPTOR.full_name
+
+    def parse(data: bytes) -> Message | Undecodable:
+        try:
+            return message.FromString(data)
+        except DecodeError as exc:
+            return Undecodable(InvalidArgument(f"the request is not a valid {name}: {exc}"))
+
+    return parse
+
+
+def add_to_server(servicer: PropertyServicer, server: grpc.aio.Server) -> None:
+    """Serve ``servicer`` on ``server``: the generated registration, but a request that does not
+    parse is INVALID_ARGUMENT (a Session ends with it after answering what it read before)."""
+    handlers = {
+        "Get": grpc.unary_unary_rpc_method_handler(
+            servicer.Get,
+            request_deserializer=_lenient(pb.GetRequest),
+            response_serializer=pb.GetResponse.SerializeToString,
+        ),
+        "Set": grpc.unary_unary_rpc_method_handler(
+            servicer.Set,
+            request_deserializer=_lenient(pb.SetRequest),
+            response_serializer=pb.SetResponse.SerializeToString,
+        ),
+        "Listen": grpc.unary_stream_rpc_method_handler(
+            servicer.Listen,
+            request_deserializer=_lenient(pb.ListenRequest),
+            response_serializer=pb.ListenResponse.SerializeToString,
+        ),
+        "Session": grpc.stream_stream_rpc_method_handler(
+            servicer.Session,
+            request_deserializer=_lenient(pb.SessionRequest),
+            response_serializer=pb.SessionResponse.SerializeToString,
+        ),
+    }
+    name = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(name, handlers),))
+    # As the generated code does: grpc finds registered methods faster than generic ones.
+    server.add_registered_method_handlers(name, handlers)  # type: ignore[attr-defined]
 
 
 class Calls:
@@ -199,6 +253,8 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
 
     async def Get(self, request: pb.GetRequest, context: Context) -> pb.GetResponse:
         try:
+            if isinstance(request, Undecodable):
+                raise request.error
             return await self.calls.get(request, self._deadline(context))
         except Exception as exc:
             await abort(context, exc, "Get")
@@ -206,6 +262,8 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
 
     async def Set(self, request: pb.SetRequest, context: Context) -> pb.SetResponse:
         try:
+            if isinstance(request, Undecodable):
+                raise request.error
             return await self.calls.set(request, self._deadline(context))
         except Exception as exc:
             await abort(context, exc, "Set")
@@ -217,6 +275,8 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         limits = self.config.limits
         wake = _Wake()
         try:
+            if isinstance(request, Undecodable):
+                raise request.error
             stream = self.hub.open(
                 parse_selectors(request, limits), parse_options(request.options, limits), wake.set
             )

@@ -22,8 +22,8 @@ import grpc
 
 from gateway.listen_hub import BATCH_BYTES, ListenStream, parse_options, parse_selectors
 from gateway.router import check_path, finish_call
-from gateway.server import check_fits
-from gateway.status import status_message, to_property_error
+from gateway.server import Undecodable, check_fits
+from gateway.status import abort, status_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS
 from services.core import LocalService
@@ -72,6 +72,8 @@ class Session:
         self._starting: set[int] = set()
         self._reader_done = False
         self._stopping = False
+        #: The call ends with this status (a message that did not parse).
+        self._error: PropertyError | None = None
 
     # -- the writer (the handler's task) ------------------------------------
 
@@ -79,6 +81,8 @@ class Session:
         reader = asyncio.get_running_loop().create_task(self._read())
         try:
             await self._write_loop()
+            if self._error is not None:
+                await abort(self._context, self._error, "Session")
         finally:
             reader.cancel()
             for task in list(self._tasks.values()):
@@ -186,6 +190,10 @@ class Session:
             while not self._stopping:
                 message = await context.read()
                 if message is grpc.aio.EOF:  # type: ignore[attr-defined]
+                    break
+                if isinstance(message, Undecodable):
+                    # No id to answer on: the call ends with it once what was read is answered.
+                    self._error = message.error
                     break
                 # Checked before every request, not every message: one message may carry
                 # as many requests as fit in 4 MiB (over 100,000), and the bounds must hold inside it.
