@@ -510,3 +510,46 @@ async def test_requests_with_bad_utf8_are_invalid_argument(gw) -> None:
             assert pb.GetResponse.FromString(reply).value == "1"
     finally:
         await server.stop(None)
+
+
+# -- A real gateway process ------------------------------------------------------------------
+
+
+async def test_a_real_gateway_survives_the_bad_inputs_and_logs_no_error(gateway_process) -> None:
+    proc = gateway_process('[[services]]\nname = "bot"\ntype = "sim-robot"\n')
+    async with grpc.aio.insecure_channel(proc.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        err = await rpc_error(
+            stub.Set(pb.SetRequest(service="bot", property="speed", value="x" * 10_000_000))
+        )
+        assert err.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        err = await rpc_error(stub.Set(pb.SetRequest(service="bot", property="speed", value="y" * 1_000_000)))
+        assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+        assert len(err.details() or "") < 300
+        for name in ("sc\x00out", "a\nb", "x" * 100_000, "😀", "**"):
+            err = await rpc_error(stub.Get(pb.GetRequest(service="bot", property=name)))
+            assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+        more = [pb.PropertyRef(property="speed")] * 10_000
+        err = await rpc_error(stub.Get(pb.GetRequest(service="bot", property="speed", more=more)))
+        assert err.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        err = await rpc_error(stub.Listen(pb.ListenRequest(service="bot", property="a", more=more)).read())
+        assert err.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        opts = pb.ListenOptions(min_interval=seconds(-1))
+        err = await rpc_error(stub.Listen(pb.ListenRequest(service="*", property="*", options=opts)).read())
+        assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+        call = stub.Session()
+        await call.write(
+            pb.SessionRequest(
+                requests=[pb.Request(id=1), get(U64_MAX, "bot", "speed"), listen(0, "bot", "speed")]
+            )
+        )
+        replies = await replies_until(call, lambda rs: len(rs) >= 3 and any(r.listen.sync for r in rs))
+        assert {r.id for r in replies} == {1, U64_MAX, 0}
+        call.cancel()
+        for _ in range(100):
+            listen_call = stub.Listen(pb.ListenRequest(service="bot", property="location"))
+            listen_call.cancel()
+        assert (await stub.Get(pb.GetRequest(service="bot", property="speed"), timeout=WAIT)).value
+    assert proc.stop() == 0
+    assert "Traceback" not in proc.output
+    assert " ERROR " not in proc.output and "ERROR:" not in proc.output, proc.output
