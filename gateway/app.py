@@ -30,9 +30,8 @@ from gateway.config import REGISTRY_NAME, Config, ServiceEntry
 from gateway.devices import DeviceProcess, start_device
 from gateway.listen_hub import ListenHub
 from gateway.router import Router
-from gateway.server import PropertyServicer
+from gateway.server import PropertyServicer, add_to_server
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.backend import Backend
 from services.catalog import needs_directory
 from services.errors import PropertyError
@@ -230,7 +229,8 @@ class Gateway:
 
     def _make_server(self) -> grpc.aio.Server:
         server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])
-        pb_grpc.add_PropertyServiceServicer_to_server(self.servicer, server)
+        # Not the generated registration: a request that does not parse is INVALID_ARGUMENT.
+        add_to_server(self.servicer, server)
         health_pb2_grpc.add_HealthServicer_to_server(self._health, server)
         reflection.enable_server_reflection(
             (
