@@ -61,12 +61,14 @@ class Resource:
         return self
 
     def __setattr__(self, name: str, value: Any) -> None:
-        if name[0] != "_":
-            if isinstance(value, Resource | Backend):
-                self._ps_put_child(name, value, as_attribute=True)
-                return
-            if name in self._ps_children:
-                self._ps_drop_child(name)
+        if name[0] == "_":  # private: never a property, never watched
+            object.__setattr__(self, name, value)
+            return
+        if isinstance(value, _NAMESPACE_TYPES):
+            self._ps_put_child(name, value, as_attribute=True)
+            return
+        if name in self._ps_children:
+            self._ps_drop_child(name)
         object.__setattr__(self, name, value)
         callbacks = self._ps_watch.get(name)
         if callbacks:
@@ -204,3 +206,7 @@ class Resource:
                 log.error("%s of %s failed", what, type(self).__name__, exc_info=t.exception())
 
         task.add_done_callback(done)
+
+
+# A tuple, not ``Resource | Backend``: the union would be built anew on every assignment.
+_NAMESPACE_TYPES = (Resource, Backend)
