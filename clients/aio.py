@@ -265,6 +265,20 @@ class AsyncClient:
         """One Get or Set, in a call slot; the wait for the slot counts towards the timeout."""
         stub = self._get_stub()
         slots = self._slots
+        timeout = self.timeout
+        if slots.locked():
+            timeout = await self._wait_for_slot(slots, service, prop)
+        else:
+            await slots.acquire()  # a free slot: taken at once, no timer needed
+        try:
+            return await getattr(stub, method)(request, timeout=timeout, metadata=self.metadata)
+        except grpc.RpcError as e:
+            raise self._error(e, service, prop) from None
+        finally:
+            slots.release()
+
+    async def _wait_for_slot(self, slots: asyncio.Semaphore, service: str, prop: str) -> float | None:
+        """Wait for a call slot within the timeout; return the time left for the call itself."""
         loop = asyncio.get_running_loop()
         start = loop.time()
         try:
@@ -278,13 +292,7 @@ class AsyncClient:
                 service,
                 prop,
             ) from None
-        try:
-            timeout = None if self.timeout is None else max(self.timeout - (loop.time() - start), 1e-3)
-            return await getattr(stub, method)(request, timeout=timeout, metadata=self.metadata)
-        except grpc.RpcError as e:
-            raise self._error(e, service, prop) from None
-        finally:
-            slots.release()
+        return None if self.timeout is None else max(self.timeout - (loop.time() - start), 1e-3)
 
     async def get(self, service: str, prop: str, /, **params: Any) -> str:
         """The value of ``prop`` of ``service`` as text; keyword arguments are request parameters."""
