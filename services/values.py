@@ -160,14 +160,22 @@ def parse_number(text: str) -> float:
 # exponent form is shorter and still exact.
 _INTEGRAL_LIMIT = 1e16
 
+# Tuples rather than ``X | Y``: a union is built anew each time the expression runs,
+# and these checks run for every value formatted.
+_BOOLS = (bool, np.bool_)
+_INTEGERS = (int, np.integer)
+_NUMBERS = (int, float, np.integer, np.floating)
+_SEQUENCES = (list, tuple)
+_NESTED = (list, tuple, np.ndarray)
+
 
 def format_number(x: float | np.integer[Any] | np.floating[Any]) -> str:
     """Shortest text that parses back to exactly ``x``: ``2``, ``0.5``, ``1e+20``."""
     if type(x) is float:  # the common case, kept free of the isinstance checks below
         return _format_float(x)
-    if isinstance(x, bool | np.bool_):
+    if isinstance(x, _BOOLS):
         raise ValueFormatError(f"expected a number, got the boolean {x}")
-    if isinstance(x, int | np.integer):
+    if isinstance(x, _INTEGERS):
         return str(int(x))
     return _format_float(float(x))
 
@@ -305,9 +313,9 @@ def _format_atom(item: Any) -> str:
                 f"cannot put {_show(item)} in a list: list items are words without spaces or parentheses"
             )
         return item
-    if isinstance(item, bool | np.bool_):
+    if isinstance(item, _BOOLS):
         return format_bool(bool(item))
-    if isinstance(item, int | float | np.integer | np.floating):
+    if isinstance(item, _NUMBERS):
         return format_number(item)
     raise ValueFormatError(f"cannot put a {type(item).__name__} in a list")
 
@@ -318,8 +326,7 @@ def _format_items(items: Any, depth: int) -> str:
     if isinstance(items, np.ndarray):
         items = items.tolist()
     parts = [
-        _format_items(item, depth + 1) if isinstance(item, list | tuple | np.ndarray) else _format_atom(item)
-        for item in items
+        _format_items(item, depth + 1) if isinstance(item, _NESTED) else _format_atom(item) for item in items
     ]
     return "(" + " ".join(parts) + ")"
 
@@ -667,13 +674,15 @@ def type_name(tp: Any) -> str:
 
 def format_value(obj: Any) -> str:
     """Format ``obj`` by its runtime type; TypeError for a type that has no value format."""
+    if type(obj) is float:  # the commonest value, kept free of the checks below
+        return _format_float(obj)
     if obj is None:
         return ""
     if isinstance(obj, str):
         return obj
-    if isinstance(obj, bool | np.bool_):
+    if isinstance(obj, _BOOLS):
         return format_bool(bool(obj))
-    if isinstance(obj, int | float | np.integer | np.floating):
+    if isinstance(obj, _NUMBERS):
         return format_number(obj)
     if isinstance(obj, np.ndarray):
         if obj.ndim == 0:
@@ -683,7 +692,7 @@ def format_value(obj: Any) -> str:
         return format_list(obj)
     if isinstance(obj, Marker):
         return format_marker(obj)
-    if isinstance(obj, list | tuple):
+    if isinstance(obj, _SEQUENCES):
         if obj and all(isinstance(v, np.ndarray) for v in obj):
             return format_vectors(obj)
         return format_list(obj)
