@@ -400,20 +400,12 @@ class RemoteTarget(Target):
         return await self.backend.set(self.rest, value, params)
 
 
-def _namespace_meta(path: str, node: Resource, meta: str) -> MetaTarget:
+def _namespace_meta(path: str, meta: str, doc: str) -> MetaTarget:
     if meta == "parameters":
         return MetaTarget(path, "()")
     if meta == "gui":
         return MetaTarget(path, "group")
-    return MetaTarget(path, class_spec(type(node)).doc)
-
-
-def _backend_meta(path: str, meta: str) -> MetaTarget:
-    if meta == "parameters":
-        return MetaTarget(path, "()")
-    if meta == "gui":
-        return MetaTarget(path, "group")
-    return MetaTarget(path, "")
+    return MetaTarget(path, doc)
 
 
 def _member_meta(path: str, member: Member, meta: str) -> MetaTarget:
@@ -442,7 +434,7 @@ def resolve(root: Resource, path: str) -> Target:
                 if i + 1 == last and segments[last] in META_NAMES:
                     # The namespace itself is ours to describe; a Backend has no
                     # top-level `gui` to ask.
-                    return _backend_meta(path, segments[last])
+                    return _namespace_meta(path, segments[last], "")
                 prefix = ".".join(segments[: i + 1])
                 return RemoteTarget(path, child, prefix, path[len(prefix) + 1 :])
             following = segments[i + 1]
@@ -452,7 +444,7 @@ def resolve(root: Resource, path: str) -> Target:
                 and following not in child._ps_children
                 and following not in class_spec(type(child)).members
             ):
-                return _namespace_meta(path, child, following)
+                return _namespace_meta(path, following, class_spec(type(child)).doc)
             node = child
             i += 1
             continue

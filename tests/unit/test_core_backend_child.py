@@ -19,6 +19,7 @@ async def test_meta_of_a_backend_child_namespace() -> None:
     try:
         assert await service.get("bot.gui") == "group"
         assert await service.get("bot.parameters") == "()"
+        assert await service.get("bot.doc") == ""
         # Below the namespace the child answers for itself.
         assert await service.get("bot.location.gui") == "pose"
         assert await service.get("bot.behaviors.moveto.parameters") == "((frame text world))"
