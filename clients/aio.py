@@ -751,8 +751,7 @@ class Session:
                     yield state.items.pop(key)
                     continue
                 if state.error is not None:
-                    e = state.error
-                    raise error_for_code(e.code, e.message, request.service, request.property)
+                    raise _again(state.error, request.service, request.property)
                 return
         finally:
             del self._listens[rid]

@@ -26,6 +26,14 @@ async def test_async_calls_and_session_calls_are_gateway_unreachable() -> None:
             assert "cannot reach the gateway" in str(failed.value)
             with pytest.raises(GatewayUnreachable):
                 await s.set("scout1", "speed", 1)
+            with pytest.raises(GatewayUnreachable):
+                await anext(s.listen("scout1", "location"))
+        async with c.session() as s:
+            # A listen started before the session learns that the gateway is unreachable.
+            with pytest.raises(GatewayUnreachable):
+                await anext(s.listen("scout1", "location"))
+        with pytest.raises(GatewayUnreachable):
+            await anext(c.listen("scout1", "location"))
 
 
 def test_sync_session_call_is_gateway_unreachable() -> None:
