@@ -13,11 +13,14 @@ without wildcards: wildcard selectors are expanded by the listen hub using
 from __future__ import annotations
 
 import abc
+import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 
 NO_PARAMS: Mapping[str, str] = MappingProxyType({})
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)
@@ -44,6 +47,14 @@ class Subscription(abc.ABC):
 
     @abc.abstractmethod
     async def close(self) -> None: ...
+
+
+async def close_quietly(sub: Subscription) -> None:
+    """Close ``sub``; a failure (the device vanished) is logged at debug level, never raised."""
+    try:
+        await sub.close()
+    except Exception:
+        log.debug("closing a listen failed", exc_info=True)
 
 
 @dataclass(slots=True)

@@ -35,7 +35,7 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from services.backend import Backend, Change, Subscription
+from services.backend import Backend, Change, Subscription, close_quietly
 from services.core import Prop, Resource, functional
 from services.core.metadata import RESERVED_NAMES
 from services.directory import Directory
@@ -248,10 +248,10 @@ class Group(Resource):
         await asyncio.gather(*tasks, return_exceptions=True)
         self._trackers.clear()
         if self._registry_sub is not None:
-            await _close_quietly(self._registry_sub)
+            await close_quietly(self._registry_sub)
             self._registry_sub = None
         for sub in list(self._subscriptions.values()):
-            await _close_quietly(sub)
+            await close_quietly(sub)
         self._subscriptions.clear()
 
     # -- members ---------------------------------------------------------
@@ -295,7 +295,7 @@ class Group(Resource):
         if self._registry_sub is not None and self._registry_backend is registry:
             return
         if self._registry_sub is not None:
-            await _close_quietly(self._registry_sub)
+            await close_quietly(self._registry_sub)
             self._registry_sub = None
         try:
             async with asyncio.timeout(self.member_timeout):
@@ -351,7 +351,7 @@ class Group(Resource):
             task.cancel()
         sub = self._subscriptions.pop(name, None)
         if sub is not None:
-            asyncio.get_running_loop().create_task(_close_quietly(sub), name=f"group: unlisten {name}")
+            asyncio.get_running_loop().create_task(close_quietly(sub), name=f"group: unlisten {name}")
         if self._locations.pop(name, None) is not None:
             self._location_changed()
 
@@ -400,7 +400,7 @@ class Group(Resource):
         except (PropertyError, TimeoutError):
             return  # a member without a location (or unreachable now) does not count in the centroid
         if self._trackers.get(name) is None:
-            await _close_quietly(sub)
+            await close_quietly(sub)
             return
         self._subscriptions[name] = sub
         try:
@@ -623,10 +623,3 @@ async def run_bounded(items: Iterable[str], work: Callable[[str], Awaitable[None
             await work(item)
 
     await asyncio.gather(*(worker() for _ in range(min(limit, len(todo)))))
-
-
-async def _close_quietly(sub: Subscription) -> None:
-    try:
-        await sub.close()
-    except Exception:
-        log.debug("closing a member listen failed", exc_info=True)

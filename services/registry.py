@@ -47,7 +47,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Subscription
+from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Subscription, close_quietly
 from services.core import LocalService, Prop, Resource, functional
 from services.directory import Directory
 from services.errors import (
@@ -309,7 +309,7 @@ class Registry(Resource):
             task.cancel()
         sub = self._location_subs.pop(name, None)
         if sub is not None:
-            self._spawn(_close_quietly(sub), f"registry: unlisten {name}")
+            self._spawn(close_quietly(sub), f"registry: unlisten {name}")
         if self._dynamic.pop(name, None) is not None:
             self._schedule_save()
 
@@ -358,7 +358,7 @@ class Registry(Resource):
             self._save_handle = None
             self._save()
         for sub in list(self._location_subs.values()):
-            await _close_quietly(sub)
+            await close_quietly(sub)
         self._location_subs.clear()
 
     def _on_directory(self, name: str, backend: Backend | None) -> None:
@@ -395,7 +395,7 @@ class Registry(Resource):
             pause = min(pause * 2, max(1.0, self.period))
         self._learn_type(name, backend)
         if name not in self.services.children():
-            await _close_quietly(sub)
+            await close_quietly(sub)
             return
         self._location_subs[name] = sub
         try:
@@ -766,13 +766,6 @@ def _check_lease(seconds: float) -> float:
     if not (math.isfinite(seconds) and 0 <= seconds <= MAX_LEASE):
         raise InvalidArgument(f"a lease is 0 to {format_number(MAX_LEASE)} seconds, got {seconds}")
     return float(seconds)
-
-
-async def _close_quietly(sub: Subscription) -> None:
-    try:
-        await sub.close()
-    except Exception:  # a vanished device must not fail the caller
-        log.debug("closing a location listen failed", exc_info=True)
 
 
 class RegistryService(LocalService):
