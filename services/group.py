@@ -445,10 +445,6 @@ class Group(Resource):
             raise Unavailable("no member of this group reports a location")
         return centroid(list(self._locations.values()))
 
-    def member_locations(self) -> dict[str, Vector]:
-        """The last known location of every member that reports one."""
-        return dict(self._locations)
-
     # -- group calls -------------------------------------------------------
 
     async def fan_out(
