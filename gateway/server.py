@@ -31,6 +31,9 @@ Context = grpc.aio.ServicerContext[Any, Any]
 
 #: The largest Get or Set answer sent: a client's limit less room for a Session's envelope.
 MAX_ANSWER_BYTES = MAX_MESSAGE_BYTES - 1024
+#: An answer carrying one value of at most this many characters fits whatever they are (UTF-8
+#: takes at most 4 bytes a character): such an answer need not be measured.
+SURELY_FITS_CHARS = (MAX_ANSWER_BYTES - 16) // 4
 
 
 def check_fits(answer: pb.GetResponse | pb.SetResponse, what: Callable[[], str]) -> None:

@@ -21,8 +21,8 @@ from typing import TYPE_CHECKING, Any
 import grpc
 
 from gateway.listen_hub import BATCH_BYTES, ListenStream, parse_options, parse_selectors
-from gateway.router import check_path, finish_call
-from gateway.server import Undecodable, check_fits
+from gateway.router import bounded_call, check_path, finish_call
+from gateway.server import SURELY_FITS_CHARS, Undecodable, check_fits
 from gateway.status import abort, status_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS
@@ -59,7 +59,8 @@ class Session:
         limits = servicer.config.limits
         self._limits = limits
         self._timeout = servicer.config.gateway.call_timeout
-        self._replies: deque[pb.Reply] = deque()
+        #: Replies waiting to be written, each with its size in bytes (at most a few bytes over).
+        self._replies: deque[tuple[pb.Reply, int]] = deque()
         self._wake = asyncio.Event()
         self._room = asyncio.Event()
         self._room.set()
@@ -121,11 +122,11 @@ class Session:
         size = 0
         queue = self._replies
         while queue and len(replies) < MAX_REPLIES_PER_MESSAGE:
-            n = queue[0].ByteSize()
+            n = queue[0][1]
             if replies and size + n > BATCH_BYTES:
                 return replies
             size += n
-            replies.append(queue.popleft())
+            replies.append(queue.popleft()[0])
         for rid in list(self._ready):
             stream = self._listens.get(rid)
             if stream is None:
@@ -154,7 +155,8 @@ class Session:
         """Flush what every Listen has ready and end it (half-close or shutdown)."""
         for rid, stream in list(self._listens.items()):
             while (response := stream.take()) is not None:
-                self._replies.append(pb.Reply(id=rid, listen=response))
+                reply = pb.Reply(id=rid, listen=response)
+                self._replies.append((reply, reply.ByteSize()))
             self._drop_listen(rid)
         for rid in list(self._starting):
             task = self._tasks.get(rid)
@@ -169,8 +171,8 @@ class Session:
         self._active.discard(rid)
         self._ready.pop(rid, None)
 
-    def _push(self, reply: pb.Reply) -> None:
-        self._replies.append(reply)
+    def _push(self, reply: pb.Reply, size: int | None = None) -> None:
+        self._replies.append((reply, reply.ByteSize() if size is None else size))
         self._wake.set()
 
     def _fail(self, rid: int, exc: BaseException, what: str) -> None:
@@ -313,8 +315,6 @@ class Session:
                 return
             self._spawn(rid, self._finish(rid, kind, finish_call(coro, yielded, self._timeout, what), what))
         else:
-            from gateway.router import bounded_call
-
             self._spawn(rid, self._finish(rid, kind, bounded_call(coro, self._timeout, what), what))
 
     async def _finish(
@@ -328,18 +328,20 @@ class Session:
         self._answer(rid, kind, value)
 
     def _answer(self, rid: int, kind: str, value: str | None) -> None:
-        if kind == "get":
-            reply = pb.Reply(id=rid, get=pb.GetResponse(value=value))
-            response: pb.GetResponse | pb.SetResponse = reply.get
-        else:
-            reply = pb.Reply(id=rid, set=pb.SetResponse(value=value if value is not None else ""))
-            response = reply.set
-        try:
-            check_fits(response, lambda: f"request {rid} ({kind})")
-        except PropertyError as exc:
-            self._fail(rid, exc, kind)
-            return
-        self._push(reply)
+        if value is None:
+            value = ""
+        # Filled in place: building the answer apart would copy it into the reply.
+        reply = pb.Reply(id=rid)
+        response: pb.GetResponse | pb.SetResponse = reply.get if kind == "get" else reply.set
+        response.value = value
+        if len(value) > SURELY_FITS_CHARS:
+            try:
+                check_fits(response, lambda: f"request {rid} ({kind})")
+            except PropertyError as exc:
+                self._fail(rid, exc, kind)
+                return
+        # The value's bytes and at most 21 of envelope (id, oneof and value tags and lengths).
+        self._push(reply, (len(value) if value.isascii() else len(value.encode())) + 24)
 
     def _spawn(self, rid: int, coro: Coroutine[Any, Any, None], listen: bool = False) -> None:
         task = asyncio.get_running_loop().create_task(coro)
