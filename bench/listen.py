@@ -37,7 +37,7 @@ from typing import Any
 
 import grpc
 
-from bench.measure import STREAM_END, Latencies, Window, window
+from bench.measure import STREAM_END, Latencies, Window, read_until_sync, window
 from bench.servers import ServerProcess
 from bench.target import SERVICE
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -138,12 +138,7 @@ class _Subscriber:
 
     async def wait_sync(self) -> None:
         """Read the current values and the ``sync`` marker."""
-        while True:
-            response = await self.call.read()
-            if response is STREAM_END:
-                raise RuntimeError("a Listen stream ended before its sync marker")
-            if response.sync:
-                return
+        await read_until_sync(self.call)
 
     def check_done(self) -> None:
         final = self.run.final

@@ -6,6 +6,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Any
 
 import grpc
 import numpy as np
@@ -14,6 +15,16 @@ from bench.servers import ServerProcess
 
 #: What ``read()`` of a streaming call returns once the stream has ended.
 STREAM_END: object = grpc.aio.EOF  # type: ignore[attr-defined]
+
+
+async def read_until_sync(call: Any) -> None:
+    """Read a Listen stream's current values up to its ``sync`` marker; RuntimeError if it ends first."""
+    while True:
+        response = await call.read()
+        if response is STREAM_END:
+            raise RuntimeError(f"a Listen stream ended before its sync marker: {await call.code()}")
+        if response.sync:
+            return
 
 
 @dataclass

@@ -21,7 +21,7 @@ from typing import Any
 import grpc
 
 from bench.listen import CHANNEL_OPTIONS
-from bench.measure import STREAM_END
+from bench.measure import STREAM_END, read_until_sync
 from bench.servers import ServerProcess
 from bench.target import SERVICE, VALUE_PROPERTY
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -72,12 +72,8 @@ class MemoryResult:
 
 async def _open(stub: pb_grpc.PropertyServiceStub, request: pb.ListenRequest) -> Any:
     call = stub.Listen(request)
-    while True:
-        response = await call.read()
-        if response is STREAM_END:
-            raise RuntimeError(f"a Listen stream ended before its sync marker: {await call.code()}")
-        if response.sync:
-            return call
+    await read_until_sync(call)
+    return call
 
 
 async def _measure(
