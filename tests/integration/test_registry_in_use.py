@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
+from collections.abc import Callable
+from typing import Any
 
 import grpc
 import pytest
@@ -138,6 +140,18 @@ async def test_a_wildcard_listen_hears_a_member_leave_once(demo_gateway: Gateway
     assert [e.removed for e in events] == [False, True]
 
 
+def has_location(msg: pb.ListenResponse, service: str, prefix: str) -> bool:
+    return any(e.service == service and e.value.startswith(prefix) for e in msg.events)
+
+
+async def read_until(call: Any, wanted: Callable[[pb.ListenResponse], bool]) -> pb.ListenResponse:
+    """Read ``call`` until a message satisfies ``wanted``; a stream that ends first fails the test."""
+    async for msg in call:
+        if wanted(msg):
+            return msg
+    raise AssertionError(f"the Listen stream ended ({await call.code()}) before the awaited message")
+
+
 async def test_listens_live_on_when_a_device_registers_and_comes_back(demo_gateway: GatewayProcess) -> None:
     # A Listen on every service's location, and one on a registered device's location, stay
     # open while the device registers, leaves and registers again: its proxy is still
@@ -155,19 +169,13 @@ async def test_listens_live_on_when_a_device_registers_and_comes_back(demo_gatew
             everyone = stub.Listen(pb.ListenRequest(service="*", property="location"))
             try:
                 async with asyncio.timeout(WAIT):
-                    async for msg in everyone:
-                        if msg.sync:
-                            break
+                    await read_until(everyone, lambda msg: msg.sync)
                     await register(url)
-                    async for msg in everyone:
-                        if any(e.service == "scout8" and e.value.startswith("(8 8 ") for e in msg.events):
-                            break
+                    await read_until(everyone, lambda msg: has_location(msg, "scout8", "(8 8 "))
                 one = stub.Listen(pb.ListenRequest(service="scout8", property="location"))
                 try:
                     async with asyncio.timeout(WAIT):
-                        async for msg in one:
-                            if msg.sync:
-                                break
+                        await read_until(one, lambda msg: msg.sync)
                         await register("")
                         await register(url)
                         await stub.Set(
@@ -178,17 +186,9 @@ async def test_listens_live_on_when_a_device_registers_and_comes_back(demo_gatew
                             ),
                             timeout=WAIT,
                         )
-                        seen: list[str] = []
-                        async for msg in one:
-                            seen.extend(e.value for e in msg.events)
-                            if seen and seen[-1].startswith("(8 8.2 "):
-                                break
+                        await read_until(one, lambda msg: has_location(msg, "scout8", "(8 8.2 "))
                     async with asyncio.timeout(WAIT):
-                        async for msg in everyone:
-                            if any(
-                                e.service == "scout8" and e.value.startswith("(8 8.2 ") for e in msg.events
-                            ):
-                                break
+                        await read_until(everyone, lambda msg: has_location(msg, "scout8", "(8 8.2 "))
                 finally:
                     one.cancel()
             finally:
