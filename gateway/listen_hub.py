@@ -538,13 +538,14 @@ class ListenStream:
             if self._sample_flush < 0:
                 return self._heartbeat()
             limit = min(limit, self._sample_flush)
-        events = self._drain(limit)
+        response = self._drain(limit)
+        count = len(response.events) if response is not None else 0
         if self._sync_due:
-            self._sync_after -= len(events)
+            self._sync_after -= count
         elif self._sample_flush > 0:
-            self._sample_flush = max(self._sample_flush - len(events), 0) or -1
-        if events:
-            return self._sent(pb.ListenResponse(events=events))
+            self._sample_flush = max(self._sample_flush - count, 0) or -1
+        if response is not None:
+            return self._sent(response)
         if self._sync_due:
             self._sync_due = False
             return self._sent(pb.ListenResponse(sync=True))
@@ -561,35 +562,39 @@ class ListenStream:
             self._last_sent = asyncio.get_running_loop().time()
         return response
 
-    def _drain(self, limit: int) -> list[pb.Event]:
+    def _drain(self, limit: int) -> pb.ListenResponse | None:
+        """The events ready, at most ``limit``, in one response; None when there are none."""
         pending = self._pending
         if not pending:
-            return []
+            return None
         ready: list[tuple[Topic, _Pending]]
         if self._last_emit is not None and self._sync_after <= 0:
-            ready = self._ready_throttled(limit)
+            ready, size = self._ready_throttled(limit)
         else:
-            ready = _within(islice(pending.items(), limit))
+            ready, size = _within(islice(pending.items(), limit))
             if len(ready) == len(pending):
                 self._pending = {}
             else:
                 for topic, _ in ready:
                     del pending[topic]
-        if len(ready) == 1 and _event_size(*ready[0]) > MAX_MESSAGE_BYTES:
-            topic, entry = ready[0]
-            size = _event_size(topic, entry)
+        if not ready:
+            return None
+        if len(ready) == 1 and size > MAX_MESSAGE_BYTES:
+            topic = ready[0][0]
             self.fail(
                 ResourceExhausted(
                     f"{topic.service}/{topic.path}: a value of {size} bytes does not fit in one message "
                     f"(at most {MAX_MESSAGE_BYTES} bytes)"
                 )
             )
-            return []
-        events = []
+            return None
+        # Events are added in place: built apart, each would be copied into the response.
+        response = pb.ListenResponse()
+        add = response.events.add
         seq = self._sequence
         for topic, entry in ready:
             seq += 1
-            ev = pb.Event(
+            ev = add(
                 service=topic.service,
                 property=topic.path,
                 value=entry.value,
@@ -599,11 +604,11 @@ class ListenStream:
                 removed=entry.removed,
             )
             ev.time.seconds, ev.time.nanos = divmod(entry.seen, 1_000_000_000)
-            events.append(ev)
         self._sequence = seq
-        return events
+        return response
 
-    def _ready_throttled(self, limit: int) -> list[tuple[Topic, _Pending]]:
+    def _ready_throttled(self, limit: int) -> tuple[list[tuple[Topic, _Pending]], int]:
+        """Like :func:`_within`, but only topics whose ``min_interval`` has passed."""
         last_emit = self._last_emit
         assert last_emit is not None
         loop = asyncio.get_running_loop()
@@ -633,7 +638,7 @@ class ListenStream:
                 del last_emit[topic]
         if next_due and self._throttle_timer is None:
             self._throttle_timer = loop.call_at(next_due, self._throttle_wake)
-        return ready
+        return ready, size
 
     # -- ending ----------------------------------------------------------
 
@@ -666,8 +671,8 @@ def _event_size(topic: Topic, entry: _Pending) -> int:
     return n + len(topic.service) + len(topic.path) + 40
 
 
-def _within(items: Iterable[tuple[Topic, _Pending]]) -> list[tuple[Topic, _Pending]]:
-    """The first of ``items`` that add up to at most BATCH_BYTES (always at least one)."""
+def _within(items: Iterable[tuple[Topic, _Pending]]) -> tuple[list[tuple[Topic, _Pending]], int]:
+    """The first of ``items`` that add up to at most BATCH_BYTES (always at least one), and their size."""
     ready: list[tuple[Topic, _Pending]] = []
     size = 0
     for item in items:
@@ -676,7 +681,7 @@ def _within(items: Iterable[tuple[Topic, _Pending]]) -> list[tuple[Topic, _Pendi
             break
         size += n
         ready.append(item)
-    return ready
+    return ready, size
 
 
 class ListenHub:
