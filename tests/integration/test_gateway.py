@@ -178,7 +178,11 @@ async def test_a_client_that_vanishes_does_not_affect_another(gateway_process) -
         )
         values: list[str] = []
         while not values or not values[-1].startswith("(1 1 0 0 0 "):
-            values += [e.value for e in (await kept.read()).events]
+            msg = await kept.read()
+            assert msg is not grpc.aio.EOF, f"the staying stream ended: {await kept.code()}"
+            values += [e.value for e in msg.events]
+    # The staying client saw the robot drive there, not only its final place.
+    assert len(values) > 1 and values[0] != values[-1]
     kept.cancel()
     await staying.close()
 
