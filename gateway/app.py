@@ -159,11 +159,8 @@ class Gateway:
 
     async def _wait_connected(self, name: str, backend: Backend) -> None:
         # Clients of a gateway that has just started should find its own devices answering.
-        wait = getattr(backend, "wait_connected", None)
-        if wait is None:
-            return
         try:
-            await wait(DEVICE_CONNECT_WAIT)
+            await backend.wait_connected(DEVICE_CONNECT_WAIT)
         except PropertyError as exc:
             log.warning("device %s: %s; the proxy keeps trying", name, exc.message)
 

@@ -25,7 +25,7 @@ from typing import Any, TypeVar
 
 from services.backend import Backend, BackendInfo
 from services.directory import DirectoryListener
-from services.eager import resume
+from services.eager import Started, step
 from services.errors import AlreadyExists, DeadlineExceeded, InvalidArgument, NotFound, Unavailable
 from services.paths import validate_path, validate_pattern, validate_service_name
 
@@ -211,21 +211,18 @@ async def bounded_call(coro: Coroutine[Any, Any, T], time_limit: float, what: Ca
     run under ``asyncio.timeout`` in the calling task (never in another task,
     so timeouts the backend itself sets stay attached to the right task).
     """
-    try:
-        yielded = coro.send(None)
-    except StopIteration as done:
-        return done.value  # type: ignore[no-any-return]
-    return await finish_call(coro, yielded, time_limit, what)
+    first = step(coro)
+    if isinstance(first, Started):
+        return await finish_call(first, time_limit, what)
+    return first
 
 
-async def finish_call(
-    coro: Coroutine[Any, Any, T], yielded: Any, time_limit: float, what: Callable[[], str]
-) -> T:
-    """Run the rest of ``coro``, stepped once already (it yielded ``yielded``), under ``time_limit``."""
+async def finish_call(started: Started[T], time_limit: float, what: Callable[[], str]) -> T:
+    """Run the rest of a call stepped once already, under ``time_limit``."""
     scope = asyncio.timeout(time_limit)
     try:
         async with scope:
-            return await resume(coro, yielded)
+            return await started.rest()
     except TimeoutError:
         if scope.expired():
             raise DeadlineExceeded(f"{what()} took longer than {time_limit:g} s") from None

@@ -123,8 +123,7 @@ class Calls:
         backend = self.router.backend(service)
         path = check_path(request.property)
         params = request.parameters
-        start = getattr(backend, "start_get", None)
-        future = start(path, params, time_limit) if start is not None else None
+        future = backend.start_get(path, params, time_limit)
         if future is not None:
             value = (await future).value
         else:

@@ -26,7 +26,7 @@ from gateway.server import SURELY_FITS_CHARS, Undecodable, check_fits
 from gateway.status import abort, status_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS
-from services.core import LocalService
+from services.eager import Started, step
 from services.errors import Code, InvalidArgument, NotFound, PropertyError
 
 if TYPE_CHECKING:
@@ -248,20 +248,18 @@ class Session:
             return
         params = request.parameters
         service = request.service
-        start = getattr(backend, "start_get", None)
-        if start is not None:
-            # A line-protocol proxy sends the GET at once and resolves a future
-            # from its reader: no task, no coroutine, one timer.
-            try:
-                future = start(path, params, self._timeout)
-            except Exception as exc:
-                self._fail(rid, exc, f"{service}: get {path}")
-                return
-            if future is not None:
-                self._await_reply(rid, future, lambda: f"{service}: get {path}")
-                return
+        # A line-protocol proxy sends the GET at once and resolves a future
+        # from its reader: no task, no coroutine, one timer.
+        try:
+            future = backend.start_get(path, params, self._timeout)
+        except Exception as exc:
+            self._fail(rid, exc, f"{service}: get {path}")
+            return
+        if future is not None:
+            self._await_reply(rid, future, lambda: f"{service}: get {path}")
+            return
         coro = backend.get(path, dict(params) if params else NO_PARAMS)
-        self._run(rid, coro, isinstance(backend, LocalService), "get", lambda: f"{service}: get {path}")
+        self._run(rid, coro, backend.answers_inline, "get", lambda: f"{service}: get {path}")
 
     def _await_reply(self, rid: int, future: asyncio.Future[Any], what: Callable[[], str]) -> None:
         """Answer request ``rid`` when ``future`` (a proxy's reply frame) is done; it counts as in flight."""
@@ -299,21 +297,21 @@ class Session:
         params = request.parameters
         coro = backend.set(path, request.value, dict(params) if params else NO_PARAMS)
         service = request.service
-        self._run(rid, coro, isinstance(backend, LocalService), "set", lambda: f"{service}: set {path}")
+        self._run(rid, coro, backend.answers_inline, "set", lambda: f"{service}: set {path}")
 
     def _run(
         self, rid: int, coro: Coroutine[Any, Any, str], inline: bool, kind: str, what: Callable[[], str]
     ) -> None:
         if inline:
             try:
-                yielded = coro.send(None)
-            except StopIteration as done:
-                self._answer(rid, kind, done.value)
-                return
+                first = step(coro)
             except Exception as exc:
                 self._fail(rid, exc, what())
                 return
-            self._spawn(rid, self._finish(rid, kind, finish_call(coro, yielded, self._timeout, what), what))
+            if not isinstance(first, Started):
+                self._answer(rid, kind, first)
+                return
+            self._spawn(rid, self._finish(rid, kind, finish_call(first, self._timeout, what), what))
         else:
             self._spawn(rid, self._finish(rid, kind, bounded_call(coro, self._timeout, what), what))
 

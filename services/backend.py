@@ -13,10 +13,12 @@ without wildcards: wildcard selectors are expanded by the listen hub using
 from __future__ import annotations
 
 import abc
+import asyncio
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
+from typing import ClassVar, Protocol
 
 NO_PARAMS: Mapping[str, str] = MappingProxyType({})
 
@@ -68,6 +70,13 @@ class BackendInfo:
     extra: dict[str, str] = field(default_factory=dict)
 
 
+class Answer(Protocol):
+    """A reply that carries a value (a line-protocol ``OK`` frame, say)."""
+
+    @property
+    def value(self) -> str: ...
+
+
 class Backend(abc.ABC):
     """One Property Service, whatever it runs on.
 
@@ -75,9 +84,21 @@ class Backend(abc.ABC):
     (NOT_FOUND for an unknown property, INVALID_ARGUMENT for a bad value,
     FAILED_PRECONDITION for a read-only property, UNAVAILABLE when a device
     cannot be reached, DEADLINE_EXCEEDED when it is too slow).
+
+    Besides the calls every backend answers, a few capabilities only some
+    backends have are declared here with defaults that do without them, so
+    that callers never ask which kind of backend they hold:
+    :attr:`answers_inline`, :meth:`start_get`, :meth:`wait_connected`,
+    :meth:`serves`.
     """
 
     info: BackendInfo
+
+    #: Calls usually finish without waiting (an in-process object): callers may run
+    #: the first step of a call in their own task (:func:`services.eager.step`) and
+    #: pay for a task or a timer only when it has to wait. False for a proxy, whose
+    #: calls always wait and may arm timeouts that must belong to the task awaiting them.
+    answers_inline: ClassVar[bool] = False
 
     @abc.abstractmethod
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
@@ -111,6 +132,31 @@ class Backend(abc.ABC):
         device a moment ago) overrides it.
         """
         await self.properties()
+
+    def start_get(
+        self, path: str, params: Mapping[str, str], time_limit: float
+    ) -> asyncio.Future[Answer] | None:
+        """Send a Get of ``path`` now and return a future of its reply, or None to say "await :meth:`get`".
+
+        A shortcut for callers that would otherwise wrap :meth:`get` in a task
+        and a timer of their own: a proxy resolves the future straight from its
+        connection's reader, under the one timer of its connection. The future
+        fails with the call's PropertyError (DEADLINE_EXCEEDED after at most
+        ``time_limit``). The default has no shortcut and returns None.
+        """
+        return None
+
+    async def wait_connected(self, wait_s: float) -> None:  # noqa: B027 - optional hook, at once by default
+        """Return once the backend can serve calls; raise Unavailable, saying why, after ``wait_s``.
+
+        A proxy connects in the background: this waits for its first
+        connection (and greeting). A backend that is ready once started
+        returns at once.
+        """
+
+    def serves(self, obj: object) -> bool:
+        """True when this backend serves ``obj`` itself (a group refuses itself as a member)."""
+        return False
 
     async def start(self) -> None:  # noqa: B027 - optional hook, empty by default
         """Start background work (simulation ticks, connections). Called once by the gateway."""

@@ -40,8 +40,7 @@ from collections.abc import Callable, Coroutine, Mapping, Sequence
 from typing import Any
 
 from services.backend import Backend, Change, Subscription
-from services.core import LocalService
-from services.eager import resume
+from services.eager import Started, step
 from services.errors import Code, DeadlineExceeded, PropertyError, ResourceExhausted
 from services.line_protocol import (
     MAX_LINE,
@@ -136,7 +135,7 @@ class DeviceSession:
         self._subscriptions: dict[str, Subscription] = {}
         self._in_flight = asyncio.Semaphore(MAX_IN_FLIGHT)
         self._tasks: set[asyncio.Task[None]] = set()
-        self._step_gets = isinstance(backend, LocalService)
+        self._step_gets = backend.answers_inline
 
     # -- writing ---------------------------------------------------------
 
@@ -218,19 +217,19 @@ class DeviceSession:
             if frame.tag is None:
                 await self._answer(frame)
                 return
-            started: tuple[Coroutine[Any, Any, str], Any] | None = None
+            started: Started[str] | None = None
             if type(frame) is Get and self._step_gets:
                 # An in-process service usually answers a GET without waiting:
                 # step it here and reply at once, with no task and no timer.
-                call = self.backend.get(frame.path, frame.params)
                 try:
-                    started = call, call.send(None)
-                except StopIteration as done:
-                    self._reply(Ok(done.value, frame.tag))
-                    return
+                    first = step(self.backend.get(frame.path, frame.params))
                 except Exception as exc:
                     self._reply_failure(frame, exc)
                     return
+                if not isinstance(first, Started):
+                    self._reply(Ok(first, frame.tag))
+                    return
+                started = first
             await self._in_flight.acquire()
             task = asyncio.create_task(self._answer(frame, started))
             self._tasks.add(task)
@@ -249,11 +248,11 @@ class DeviceSession:
     async def _answer(
         self,
         frame: Get | Set | Listen | Unlisten,
-        started: tuple[Coroutine[Any, Any, str], Any] | None = None,
+        started: Started[str] | None = None,
     ) -> None:
         try:
             async with asyncio.timeout(self.call_timeout):
-                value = await (self._call(frame) if started is None else resume(*started))
+                value = await (self._call(frame) if started is None else started.rest())
         except TimeoutError:
             late = DeadlineExceeded(
                 f"{frame.path}: the service did not answer within {self.call_timeout:g} s"

@@ -331,7 +331,7 @@ class Group(Resource):
             backend = self._directory.backend(name)
         except PropertyError:
             return
-        if getattr(backend, "obj", None) is self:
+        if backend.serves(self):
             log.warning("group: skipping %r, which is this group itself", name)
             return
         if self._query is not None and backend.info.type == "group" and "type" not in self._query:

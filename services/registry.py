@@ -512,11 +512,9 @@ class Registry(Resource):
         last: PropertyError | None = None
         try:
             backend = directory.backend(name)
-            wait_connected = getattr(backend, "wait_connected", None)
-            if wait_connected is not None:
-                # A line-protocol proxy says when the device greeted, and why not (cannot connect)
-                # when the deadline comes: outside the timeout scope, so that reason is not lost.
-                await wait_connected(max(0.0, deadline - loop.time()))
+            # A line-protocol proxy says when the device greeted, and why not (cannot connect)
+            # when the deadline comes: outside the timeout scope, so that reason is not lost.
+            await backend.wait_connected(max(0.0, deadline - loop.time()))
             async with asyncio.timeout_at(deadline):
                 pause = 0.02
                 while True:

@@ -24,16 +24,15 @@ import random
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 from urllib.parse import parse_qsl, urlsplit
 
 from gateway.proxies.connection import LineConnection
-from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
+from services.backend import NO_PARAMS, Answer, Backend, BackendInfo, Change, Notify, Subscription
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable
 from services.line_protocol import (
     PROTOCOL_VERSION,
     Event,
-    Frame,
     Get,
     Gone,
     Hello,
@@ -319,7 +318,7 @@ class LineProxy(Backend):
 
     def start_get(
         self, path: str, params: Mapping[str, str], time_limit: float
-    ) -> asyncio.Future[Frame] | None:
+    ) -> asyncio.Future[Answer] | None:
         """Send a GET of ``path`` now; return the future of its reply, an :class:`Ok` frame.
 
         For callers that would otherwise wrap :meth:`get` in a task and a
@@ -331,7 +330,11 @@ class LineProxy(Backend):
         sending nothing, when every request slot is taken (await :meth:`get`).
         """
         frame = Get(path, dict(params) if params else {})
-        return self._live().start_request(frame, min(time_limit, self.options.timeout))
+        # The future resolves to an Ok frame (errors fail it), which carries the value.
+        return cast(
+            "asyncio.Future[Answer] | None",
+            self._live().start_request(frame, min(time_limit, self.options.timeout)),
+        )
 
     async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
         return await self._call(Set(path, value, dict(params)))

@@ -154,6 +154,12 @@ class LocalService(Backend):
         self._tasks: set[asyncio.Task[None]] = set()
         obj._ps_tree_watchers.append(self._on_tree)
 
+    #: Reading an attribute answers without waiting: callers step calls inline.
+    answers_inline = True
+
+    def serves(self, obj: object) -> bool:
+        return obj is self.obj
+
     def __repr__(self) -> str:
         return f"LocalService({type(self.obj).__name__}, url={self.info.url!r})"
 
