@@ -28,11 +28,12 @@ from grpc_reflection.v1alpha import reflection
 from gateway.backends import open_backend, open_proxy
 from gateway.config import REGISTRY_NAME, Config, ServiceEntry
 from gateway.devices import DeviceProcess, start_device
+from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen_hub import ListenHub
 from gateway.router import Router
 from gateway.server import PropertyServicer, add_to_server
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.backend import Backend
+from services.backend import Backend, BackendInfo
 from services.catalog import needs_directory
 from services.errors import PropertyError
 from services.registry import DEFAULT_REGISTER_TIMEOUT, Registry, RegistryService
@@ -64,7 +65,7 @@ class Gateway:
         self._extra = dict(backends or {})
         self._server: grpc.aio.Server | None = None
         self._health = health_aio.HealthServicer()
-        self._line_listener: object | None = None
+        self._line_listener: LineListener | None = None
         self._stopped = asyncio.Event()
         self._unwatch_registry: object | None = None
         #: The resource service, served as ``registry`` (built in :meth:`start`).
@@ -96,7 +97,7 @@ class Gateway:
             # Services that reach others (groups) start last, once the services they name are there.
             plain = [e for e in self.config.services if not _needs_directory(e)]
             for entry in plain:
-                backend = open_backend(entry, self.router)
+                backend = open_backend(entry, self.router.directory)
                 await self._add(entry.name, backend, entry.url or f"type {entry.type}")
             for name, backend in self._extra.items():
                 await self._add(name, backend, backend.info.url)
@@ -104,7 +105,9 @@ class Gateway:
             for entry in self.config.services:
                 if _needs_directory(entry):
                     self._warn_missing_members(entry)
-                    await self._add(entry.name, open_backend(entry, self.router), f"type {entry.type}")
+                    await self._add(
+                        entry.name, open_backend(entry, self.router.directory), f"type {entry.type}"
+                    )
             await self._start_line_listener()
             self._server = self._make_server()
             await self._server.start()
@@ -210,19 +213,19 @@ class Gateway:
         address = self.config.gateway.line_listen
         if not address:
             return
-        from gateway import backends
-
-        backends.load_proxies()
-        if backends.LINE_LISTENER is None:
-            from services.errors import Unavailable
-
-            raise Unavailable("gateway.line_listen is set but no line-protocol listener is installed")
-        self._line_listener = await backends.LINE_LISTENER(address, self.router)
-        bound = getattr(self._line_listener, "address", None)
-        if isinstance(bound, tuple):
+        self._line_listener = await start_line_listener(address, self.router, self._rejoined)
+        bound = self._line_listener.address
+        if bound is not None:
             address = f"{bound[0]}:{bound[1]}"
         self.line_address = address
         log.info("line-protocol listener on %s", address)
+
+    def _rejoined(self, name: str, info: BackendInfo) -> None:
+        """A device dialled in again after a drop: the registry hears at once that it is up."""
+        try:
+            self.registry.add(name, info)
+        except PropertyError as exc:
+            log.debug("registry: %s rejoined: %s", name, exc.message)
 
     def _make_server(self) -> grpc.aio.Server:
         server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])
@@ -262,7 +265,7 @@ class Gateway:
         if callable(self._unwatch_registry):
             self._unwatch_registry()
         if self._line_listener is not None:
-            await self._line_listener.aclose()  # type: ignore[attr-defined]
+            await self._line_listener.aclose()
         # Groups go first, so none of them asks the registry again once it is gone; then the
         # registry: services closed for the shutdown are not leaves it should record (a
         # registration kept in its persist file must still be there at the next start).

@@ -143,10 +143,10 @@ def _check_config(args: argparse.Namespace) -> int:
 
     async def build_all() -> None:
         nonlocal bad
-        router = Router()  # groups are built against an empty one: built, never started
+        directory = Router().directory  # groups are built against an empty one: built, never started
         for entry in config.services:
             try:
-                backend = open_backend(entry, router)
+                backend = open_backend(entry, directory)
             except PropertyError as exc:
                 where = f"{config.source}: services ({entry.name})"
                 print(f"psgateway: config error: {where}: {exc.message}", file=sys.stderr)

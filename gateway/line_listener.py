@@ -28,7 +28,6 @@ takes its place back.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
@@ -214,10 +213,14 @@ class LineListener:
         name: str = "gateway",
         max_connections: int = MAX_CONNECTIONS,
         device_options: ProxyOptions | None = None,
+        on_rejoin: Callable[[str, BackendInfo], None] | None = None,
     ) -> None:
-        """``device_options`` tune the proxies of devices that dial in (default ``INBOUND_OPTIONS``)."""
+        """``device_options`` tune the proxies of devices that dial in (default ``INBOUND_OPTIONS``);
+        ``on_rejoin(name, info)`` hears of a device that dialled in again after a drop (the gateway
+        tells its registry at once that the service is up again, at its new address)."""
         self.router = router
         self.device_options = device_options
+        self._on_rejoin = on_rejoin
         self.server = _ListenerServer(
             self,
             RouterBackend(router),
@@ -239,14 +242,18 @@ class LineListener:
             proxy = await self._take_up(hello, reader, writer, url)
         except PropertyError as exc:
             log.warning("line listener: device %r at %s refused: %s", hello.name, peer, exc.message)
-            with contextlib.suppress(Exception):
+            try:
                 writer.write(encode(ErrorReply.from_exception(exc)))
                 await writer.drain()
+            except OSError as gone:  # it hung up first: it would not have read the reason anyway
+                log.debug("line listener: could not tell %s why: %s", peer, gone)
             writer.close()
             return
         log.info("service %s joined by greeting from %s (%s)", hello.name, peer, proxy.info.type)
-        with contextlib.suppress(Exception):
+        try:
             await writer.wait_closed()
+        except OSError as gone:  # a reset rather than a clean close: it hung up all the same
+            log.debug("line listener: %s: %s", peer, gone)
         log.info("service %s: the device at %s hung up", hello.name, peer)
 
     async def _take_up(
@@ -266,7 +273,8 @@ class LineListener:
                 raise AlreadyExists(f"the name {name!r} is taken (by {existing.info.url})")
             existing.offer(reader, writer, url)  # the same device, back after a drop
             await existing.wait_connected(_TAKE_UP)
-            self._rejoined(name, existing)
+            if self._on_rejoin is not None:
+                self._on_rejoin(name, existing.info)
             return existing
         proxy = InboundProxy(name, url, self.device_options or INBOUND_OPTIONS)
         proxy.offer(reader, writer, url)
@@ -279,25 +287,13 @@ class LineListener:
             raise
         return proxy
 
-    def _rejoined(self, name: str, proxy: InboundProxy) -> None:
-        """Tell the registry at once: the service is up again, at its new address."""
-        from gateway.config import REGISTRY_NAME
-        from services.registry import RegistryService
-
-        if REGISTRY_NAME in self.router:
-            registry = self.router.lookup(REGISTRY_NAME)
-            if isinstance(registry, RegistryService):
-                with contextlib.suppress(PropertyError):
-                    registry.registry.add(name, proxy.info)
-
     async def start(self, host: str, port: int) -> tuple[str, int]:
         """Listen on ``host:port`` (0 = any free port); return the bound address."""
         self.address = await self.server.serve_tcp(host, port)
         return self.address
 
     async def aclose(self) -> None:
-        with contextlib.suppress(Exception):
-            await self.server.aclose()
+        await self.server.aclose()
 
 
 def parse_address(address: str) -> tuple[str, int]:
@@ -308,8 +304,10 @@ def parse_address(address: str) -> tuple[str, int]:
     return host.strip("[]") or "127.0.0.1", int(port)
 
 
-async def start_line_listener(address: str, router: Router) -> LineListener:
+async def start_line_listener(
+    address: str, router: Router, on_rejoin: Callable[[str, BackendInfo], None] | None = None
+) -> LineListener:
     """Start a :class:`LineListener` on ``address`` ("HOST:PORT") for ``router``."""
-    listener = LineListener(router)
+    listener = LineListener(router, on_rejoin=on_rejoin)
     await listener.start(*parse_address(address))
     return listener

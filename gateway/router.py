@@ -23,6 +23,7 @@ import logging
 from collections.abc import Callable, Coroutine, Mapping
 from typing import Any, TypeVar
 
+from gateway.backends import open_proxy
 from services.backend import Backend, BackendInfo
 from services.directory import DirectoryListener
 from services.eager import Started, step
@@ -83,10 +84,6 @@ class Router:
             self._down.pop(name, None)
         elif name in self._backends:
             self._down[name] = reason
-
-    def down(self) -> dict[str, str]:
-        """The services marked down right now, with the reason each is given."""
-        return dict(self._down)
 
     def names(self) -> list[str]:
         """Names of every service right now, sorted."""
@@ -159,8 +156,6 @@ class Router:
 
     async def register(self, name: str, url: str, options: Mapping[str, Any] | None = None) -> BackendInfo:
         """Open a proxy backend for ``url``, start it and serve it as ``name``."""
-        from gateway.backends import open_proxy
-
         validate_service_name(name)
         if name in self._backends:
             raise AlreadyExists(f"a service named {name!r} already exists")

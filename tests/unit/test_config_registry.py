@@ -84,7 +84,7 @@ def test_group_entries_build_a_group_over_the_router_s_directory() -> None:
         """
     )
     router = Router()
-    pair, near = (open_backend(entry, router) for entry in cfg.services)
+    pair, near = (open_backend(entry, router.directory) for entry in cfg.services)
     assert isinstance(pair, LocalService) and isinstance(near, LocalService)
     assert isinstance(near.obj, Group)
     assert near.obj.query == "type=mobile_robot&near=(5 5 0)&radius=3"
@@ -95,7 +95,7 @@ def test_group_entries_build_a_group_over_the_router_s_directory() -> None:
 def test_a_group_with_a_bad_query_is_a_clear_error() -> None:
     cfg = loads_config('[[services]]\nname = "g"\ntype = "group"\noptions = { query = { colour = "red" } }')
     with pytest.raises(InvalidArgument, match="unknown query parameter 'colour'"):
-        open_backend(cfg.services[0], Router())
+        open_backend(cfg.services[0], Router().directory)
 
 
 def test_a_group_cannot_be_a_device_process() -> None:
