@@ -34,6 +34,7 @@ from google.protobuf.duration_pb2 import Duration
 
 from gateway.config import Limits
 from gateway.router import Router, bounded_call, check_pattern
+from gateway.sizes import BATCH_BYTES, MAX_MESSAGE_BYTES
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS, Backend, Change, Subscription
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, ResourceExhausted
@@ -48,14 +49,6 @@ PROPERTIES = "properties"
 JOIN_RETRY_S = 10.0
 
 TopicKey = tuple[str, str, tuple[tuple[str, str], ...]]
-
-#: The largest message a gRPC client accepts unless it asks for more (grpc's default); the
-#: gateway's own receive limit is the same, so one value a client could Set always fits.
-MAX_MESSAGE_BYTES = 4 * 1024 * 1024
-#: Batching (events in one ListenResponse, replies in one SessionResponse) stops at about this
-#: many bytes, well under MAX_MESSAGE_BYTES: a batch of values that fit one by one must never
-#: add up to a message the client refuses (it would drop the whole stream).
-BATCH_BYTES = 1024 * 1024
 
 
 @dataclass(frozen=True, slots=True)

@@ -8,59 +8,23 @@ come from the listen hub. Session lives in :mod:`gateway.session`.
 from __future__ import annotations
 
 import asyncio
-import functools
-from collections.abc import AsyncIterator, Callable, Mapping
-from typing import TYPE_CHECKING, Any
+from collections.abc import AsyncIterator, Callable
+from typing import Any
 
 import grpc
 from google.protobuf.message import DecodeError, Message
 
+from gateway.calls import Calls, Undecodable
 from gateway.config import Config
-from gateway.listen_hub import MAX_MESSAGE_BYTES, ListenHub, parse_options, parse_selectors
-from gateway.router import Router, bounded_call, check_path
-from gateway.status import abort, to_property_error
+from gateway.listen_hub import ListenHub, parse_options, parse_selectors
+from gateway.router import Router
+from gateway.session import Session
+from gateway.status import abort
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.backend import NO_PARAMS, Backend
-from services.errors import InvalidArgument, PropertyError, ResourceExhausted
-
-if TYPE_CHECKING:
-    from gateway.session import Session
+from services.errors import InvalidArgument
 
 Context = grpc.aio.ServicerContext[Any, Any]
-
-#: The largest Get or Set answer sent: a client's limit less room for a Session's envelope.
-MAX_ANSWER_BYTES = MAX_MESSAGE_BYTES - 1024
-#: An answer carrying one value of at most this many characters fits whatever they are (UTF-8
-#: takes at most 4 bytes a character): such an answer need not be measured.
-SURELY_FITS_CHARS = (MAX_ANSWER_BYTES - 16) // 4
-
-
-def check_fits(answer: pb.GetResponse | pb.SetResponse, what: Callable[[], str]) -> None:
-    """Raise RESOURCE_EXHAUSTED when ``answer`` is too big for a client to receive.
-
-    Sent anyway, the client would refuse it with a bare "message larger than max" (and, in a
-    Session, drop every other request with it).
-    """
-    size = answer.ByteSize()
-    if size > MAX_ANSWER_BYTES:
-        raise ResourceExhausted(
-            f"{what()}: the answer is {size} bytes, more than one message may carry "
-            f"({MAX_ANSWER_BYTES} bytes); read fewer paths per Get"
-        )
-
-
-def _params(params: Mapping[str, str]) -> Mapping[str, str]:
-    return dict(params) if params else NO_PARAMS
-
-
-class Undecodable:
-    """A request that did not parse, e.g. a string field holding bytes that are not UTF-8."""
-
-    __slots__ = ("error",)
-
-    def __init__(self, error: InvalidArgument) -> None:
-        self.error = error
 
 
 def _lenient(message: type[Message]) -> Callable[[bytes], Message | Undecodable]:
@@ -107,106 +71,6 @@ def add_to_server(servicer: PropertyServicer, server: grpc.aio.Server) -> None:
     server.add_registered_method_handlers(name, handlers)  # type: ignore[attr-defined]
 
 
-class Calls:
-    """Get and Set against the router, shared by the unary calls and Session."""
-
-    def __init__(self, router: Router, config: Config) -> None:
-        self.router = router
-        self.timeout = config.gateway.call_timeout
-        self.max_get_paths = config.limits.max_get_paths
-
-    async def get(self, request: pb.GetRequest, time_limit: float) -> pb.GetResponse:
-        """Read the request's path and its ``more`` paths; all or nothing."""
-        service = request.service
-        if not service:
-            raise InvalidArgument("Get needs a service name")
-        backend = self.router.backend(service)
-        path = check_path(request.property)
-        params = request.parameters
-        future = backend.start_get(path, params, time_limit)
-        if future is not None:
-            value = (await future).value
-        else:
-            value = await bounded_call(
-                backend.get(path, dict(params) if params else NO_PARAMS),
-                time_limit,
-                lambda: f"{service}: get {path}",
-            )
-        if not request.more:
-            response = pb.GetResponse(value=value)
-        else:
-            response = pb.GetResponse(value=value, more=await self._get_more(request, time_limit))
-        check_fits(
-            response,
-            lambda: f"{service}: get {path}" + (f" and {len(request.more)} more" if request.more else ""),
-        )
-        return response
-
-    async def _get_more(self, request: pb.GetRequest, time_limit: float) -> list[pb.PropertyValue]:
-        if len(request.more) + 1 > self.max_get_paths:
-            raise ResourceExhausted(
-                f"a Get may read at most {self.max_get_paths} paths, this one reads {len(request.more) + 1}"
-            )
-        # Resolve every path first so that a bad one fails the call before any backend is asked.
-        refs: list[tuple[str, str, Mapping[str, str], Backend]] = []
-        for ref in request.more:
-            service = ref.service or request.service
-            try:
-                backend = self.router.backend(service)
-                path = check_path(ref.property)
-            except PropertyError as exc:
-                # Names are clipped: an echo of a huge bad name must not outgrow the status message.
-                raise type(exc)(f"{service[:80]}/{ref.property[:256]}: {exc.message}", exc.code) from None
-            refs.append((service, path, _params(ref.parameters), backend))
-        groups: dict[int, list[int]] = {}
-        for i, (_, _, _, backend) in enumerate(refs):
-            groups.setdefault(id(backend), []).append(i)
-        values: list[str | BaseException] = [""] * len(refs)
-
-        async def read_group(indexes: list[int]) -> None:
-            # One backend's paths are read one after another, as a device would answer them.
-            for i in indexes:
-                service, path, params, backend = refs[i]
-                try:
-                    values[i] = await bounded_call(
-                        backend.get(path, params),
-                        time_limit,
-                        functools.partial("{}: get {}".format, service, path),
-                    )
-                except Exception as exc:
-                    values[i] = exc
-                    return
-
-        if len(groups) == 1:
-            await read_group(next(iter(groups.values())))
-        else:
-            await asyncio.gather(*(read_group(ix) for ix in groups.values()))
-        out = []
-        for (service, path, _, _), value in zip(refs, values, strict=True):
-            if isinstance(value, BaseException):
-                err = to_property_error(value, f"{service}: get {path}")
-                raise type(err)(f"{service}/{path}: {err.message}", err.code) from None
-            out.append(pb.PropertyValue(service=service, property=path, value=value))
-        return out
-
-    async def set(self, request: pb.SetRequest, time_limit: float) -> pb.SetResponse:
-        """Write the request's value; the response carries the service's answer."""
-        service = request.service
-        if not service:
-            raise InvalidArgument("Set needs a service name")
-        backend = self.router.backend(service)
-        path = check_path(request.property)
-        params = request.parameters
-        answer = await bounded_call(
-            backend.set(path, request.value, dict(params) if params else NO_PARAMS),
-            time_limit,
-            lambda: f"{service}: set {path}",
-        )
-        response = pb.SetResponse(value=answer if answer is not None else "")
-        check_fits(response, lambda: f"{service}: set {path}")
-        return response
-
-
 class _Wake:
     """A one-waiter asyncio.Event without the waiter deque: idle Listen streams stay small."""
 
@@ -236,7 +100,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
     """Serves the v1 contract from a router and a listen hub."""
 
     def __init__(self, router: Router, hub: ListenHub, config: Config) -> None:
-        self.calls = Calls(router, config)
+        self.calls = Calls(router, config.gateway.call_timeout, config.limits.max_get_paths)
         self.hub = hub
         self.config = config
         self._timeout = config.gateway.call_timeout
@@ -302,6 +166,9 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             stream.close()
 
     async def Session(self, request_iterator: AsyncIterator[pb.SessionRequest], context: Context) -> None:
-        from gateway.session import run_session
-
-        await run_session(self, context)
+        session = Session(self.calls, self.hub, self.config.limits, context)
+        self.sessions.add(session)
+        try:
+            await session.run()
+        finally:
+            self.sessions.discard(session)

@@ -15,22 +15,19 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import deque
-from collections.abc import Callable, Coroutine
-from typing import TYPE_CHECKING, Any
+from collections.abc import Awaitable, Callable, Coroutine
+from typing import Any
 
 import grpc
 
-from gateway.listen_hub import BATCH_BYTES, ListenStream, parse_options, parse_selectors
-from gateway.router import bounded_call, check_path, finish_call
-from gateway.server import SURELY_FITS_CHARS, Undecodable, check_fits
+from gateway.calls import Begun, Calls, Undecodable
+from gateway.config import Limits
+from gateway.listen_hub import ListenHub, ListenStream, parse_options, parse_selectors
+from gateway.sizes import BATCH_BYTES, SURELY_FITS_CHARS, check_fits
 from gateway.status import abort, status_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.backend import NO_PARAMS
-from services.eager import Started, step
+from services.backend import Answer
 from services.errors import Code, InvalidArgument, NotFound, PropertyError
-
-if TYPE_CHECKING:
-    from gateway.server import PropertyServicer
 
 log = logging.getLogger(__name__)
 
@@ -38,27 +35,18 @@ log = logging.getLogger(__name__)
 MAX_REPLIES_PER_MESSAGE = 1024
 
 
-async def run_session(servicer: PropertyServicer, context: grpc.aio.ServicerContext[Any, Any]) -> None:
-    """Serve one Session call until the client half-closes, disconnects, or the gateway stops."""
-    session = Session(servicer, context)
-    servicer.sessions.add(session)
-    try:
-        await session.run()
-    finally:
-        servicer.sessions.discard(session)
-
-
 class Session:
-    """The state of one Session call."""
+    """The state of one Session call: :meth:`run` serves it until the client half-closes,
+    disconnects, or the gateway stops (:meth:`stop`)."""
 
-    def __init__(self, servicer: PropertyServicer, context: grpc.aio.ServicerContext[Any, Any]) -> None:
-        self._servicer = servicer
-        self._calls = servicer.calls
-        self._router = servicer.calls.router
+    def __init__(
+        self, calls: Calls, hub: ListenHub, limits: Limits, context: grpc.aio.ServicerContext[Any, Any]
+    ) -> None:
+        self._calls = calls
+        self._hub = hub
         self._context = context
-        limits = servicer.config.limits
         self._limits = limits
-        self._timeout = servicer.config.gateway.call_timeout
+        self._timeout = calls.timeout
         #: Replies waiting to be written, each with its size in bytes (at most a few bytes over).
         self._replies: deque[tuple[pb.Reply, int]] = deque()
         self._wake = asyncio.Event()
@@ -241,32 +229,37 @@ class Session:
             self._spawn(rid, self._get_more(rid, request))
             return
         try:
-            backend = self._router.backend(request.service)
-            path = check_path(request.property)
-        except PropertyError as exc:
-            self._fail(rid, exc, "Get")
-            return
-        params = request.parameters
-        service = request.service
-        # A line-protocol proxy sends the GET at once and resolves a future
-        # from its reader: no task, no coroutine, one timer.
-        try:
-            future = backend.start_get(path, params, self._timeout)
+            begun = self._calls.start_get(request, self._timeout)
         except Exception as exc:
-            self._fail(rid, exc, f"{service}: get {path}")
+            self._fail(rid, exc, f"{request.service}: get {request.property}")
             return
-        if future is not None:
-            self._await_reply(rid, future, lambda: f"{service}: get {path}")
-            return
-        coro = backend.get(path, dict(params) if params else NO_PARAMS)
-        self._run(rid, coro, backend.answers_inline, "get", lambda: f"{service}: get {path}")
+        self._follow(rid, begun, "get", lambda: f"{request.service}: get {request.property}")
 
-    def _await_reply(self, rid: int, future: asyncio.Future[Any], what: Callable[[], str]) -> None:
-        """Answer request ``rid`` when ``future`` (a proxy's reply frame) is done; it counts as in flight."""
+    def _set(self, rid: int, request: pb.SetRequest) -> None:
+        try:
+            begun = self._calls.start_set(request, self._timeout)
+        except Exception as exc:
+            self._fail(rid, exc, f"{request.service}: set {request.property}")
+            return
+        self._follow(rid, begun, "set", lambda: f"{request.service}: set {request.property}")
+
+    def _follow(self, rid: int, begun: Begun, kind: str, what: Callable[[], str]) -> None:
+        """Answer request ``rid`` from a started call: now, when its future is done, or from a task."""
+        if isinstance(begun, str):
+            self._answer(rid, kind, begun)
+        elif isinstance(begun, asyncio.Future):
+            self._await_reply(rid, begun, kind, what)
+        else:
+            self._spawn(rid, self._finish(rid, kind, begun, what))
+
+    def _await_reply(
+        self, rid: int, future: asyncio.Future[Answer], kind: str, what: Callable[[], str]
+    ) -> None:
+        """Answer request ``rid`` when ``future`` (a proxy's reply) is done; it counts as in flight."""
         self._active.add(rid)
         self._tasks[rid] = future
 
-        def done(_: asyncio.Future[Any]) -> None:
+        def done(_: asyncio.Future[Answer]) -> None:
             if self._tasks.get(rid) is future:
                 del self._tasks[rid]
                 self._active.discard(rid)
@@ -276,7 +269,7 @@ class Session:
             if error is not None:
                 self._fail(rid, error, what())
             else:
-                self._answer(rid, "get", future.result().value)
+                self._answer(rid, kind, future.result().value)
             self._room.set()
 
         future.add_done_callback(done)
@@ -287,37 +280,7 @@ class Session:
         except Exception as exc:
             self._fail(rid, exc, "Get")
 
-    def _set(self, rid: int, request: pb.SetRequest) -> None:
-        try:
-            backend = self._router.backend(request.service)
-            path = check_path(request.property)
-        except PropertyError as exc:
-            self._fail(rid, exc, "Set")
-            return
-        params = request.parameters
-        coro = backend.set(path, request.value, dict(params) if params else NO_PARAMS)
-        service = request.service
-        self._run(rid, coro, backend.answers_inline, "set", lambda: f"{service}: set {path}")
-
-    def _run(
-        self, rid: int, coro: Coroutine[Any, Any, str], inline: bool, kind: str, what: Callable[[], str]
-    ) -> None:
-        if inline:
-            try:
-                first = step(coro)
-            except Exception as exc:
-                self._fail(rid, exc, what())
-                return
-            if not isinstance(first, Started):
-                self._answer(rid, kind, first)
-                return
-            self._spawn(rid, self._finish(rid, kind, finish_call(first, self._timeout, what), what))
-        else:
-            self._spawn(rid, self._finish(rid, kind, bounded_call(coro, self._timeout, what), what))
-
-    async def _finish(
-        self, rid: int, kind: str, call: Coroutine[Any, Any, str], what: Callable[[], str]
-    ) -> None:
+    async def _finish(self, rid: int, kind: str, call: Awaitable[str], what: Callable[[], str]) -> None:
         try:
             value = await call
         except Exception as exc:
@@ -364,7 +327,7 @@ class Session:
     def _start_listen(self, rid: int, request: pb.ListenRequest) -> None:
         limits = self._limits
         try:
-            stream = self._servicer.hub.open(
+            stream = self._hub.open(
                 parse_selectors(request, limits),
                 parse_options(request.options, limits),
                 lambda: self._ready_listen(rid),

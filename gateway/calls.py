@@ -1,0 +1,172 @@
+"""The call layer: a Get or Set request → one bounded backend call → its answer.
+
+The unary handlers and the Session handler both go through :class:`Calls`;
+they differ only in how they wait. :meth:`Calls.start_get` and
+:meth:`Calls.start_set` resolve the service and path (raising at once on a
+bad one) and start the call, returning one of
+
+* the value itself: an in-process service answered without waiting;
+* an :class:`asyncio.Future` of the backend's reply (a line-protocol proxy
+  sent the GET and resolves it from its reader: no task, one timer);
+* an awaitable of the value, under the call timeout, to await in a task.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+from collections.abc import Awaitable, Callable, Mapping
+from typing import Any
+
+from gateway.router import Router, bounded_call, check_path, finish_call
+from gateway.sizes import check_fits
+from gateway.status import to_property_error
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.backend import NO_PARAMS, Answer, Backend
+from services.eager import Started, step
+from services.errors import InvalidArgument, PropertyError, ResourceExhausted
+
+#: What starting a call gives; see the module docstring.
+Begun = str | asyncio.Future[Answer] | Awaitable[str]
+
+
+class Undecodable:
+    """A request that did not parse, e.g. a string field holding bytes that are not UTF-8."""
+
+    __slots__ = ("error",)
+
+    def __init__(self, error: InvalidArgument) -> None:
+        self.error = error
+
+
+def _params(params: Mapping[str, str]) -> Mapping[str, str]:
+    return dict(params) if params else NO_PARAMS
+
+
+async def outcome(begun: Begun) -> str:
+    """Wait for a started call's value, whichever way it was started."""
+    if isinstance(begun, str):
+        return begun
+    if isinstance(begun, asyncio.Future):
+        return (await begun).value
+    return await begun
+
+
+class Calls:
+    """Get and Set against the router, shared by the unary calls and Session."""
+
+    def __init__(self, router: Router, call_timeout: float, max_get_paths: int) -> None:
+        self.router = router
+        self.timeout = call_timeout
+        self.max_get_paths = max_get_paths
+
+    def _backend(self, service: str, verb: str) -> Backend:
+        if not service:
+            raise InvalidArgument(f"{verb} needs a service name")
+        return self.router.backend(service)
+
+    def start_get(self, request: pb.GetRequest, time_limit: float) -> Begun:
+        """Start reading the request's one path (``more`` is :meth:`get`'s)."""
+        backend = self._backend(request.service, "Get")
+        path = check_path(request.property)
+        params = request.parameters
+        future = backend.start_get(path, params, time_limit)
+        if future is not None:
+            return future
+        service = request.service
+        return self._start(
+            backend, backend.get(path, _params(params)), time_limit, lambda: f"{service}: get {path}"
+        )
+
+    def start_set(self, request: pb.SetRequest, time_limit: float) -> Begun:
+        """Start writing the request's value; the call's value is the service's answer."""
+        backend = self._backend(request.service, "Set")
+        path = check_path(request.property)
+        service = request.service
+        return self._start(
+            backend,
+            backend.set(path, request.value, _params(request.parameters)),
+            time_limit,
+            lambda: f"{service}: set {path}",
+        )
+
+    @staticmethod
+    def _start(backend: Backend, call: Any, time_limit: float, what: Callable[[], str]) -> Begun:
+        if backend.answers_inline:
+            # Stepped here, in the caller's task: an in-process answer costs no task and no timer.
+            first = step(call)
+            if isinstance(first, Started):
+                return finish_call(first, time_limit, what)
+            return first if first is not None else ""
+        # A proxy's call is stepped inside whichever task awaits it (its timeouts belong there).
+        return bounded_call(call, time_limit, what)
+
+    async def get(self, request: pb.GetRequest, time_limit: float) -> pb.GetResponse:
+        """Read the request's path and its ``more`` paths; all or nothing."""
+        value = await outcome(self.start_get(request, time_limit))
+        if not request.more:
+            response = pb.GetResponse(value=value)
+        else:
+            response = pb.GetResponse(value=value, more=await self._get_more(request, time_limit))
+        check_fits(
+            response,
+            lambda: (
+                f"{request.service}: get {request.property}"
+                + (f" and {len(request.more)} more" if request.more else "")
+            ),
+        )
+        return response
+
+    async def set(self, request: pb.SetRequest, time_limit: float) -> pb.SetResponse:
+        """Write the request's value; the response carries the service's answer."""
+        # A service method that returns nothing answers an empty value.
+        response = pb.SetResponse(value=await outcome(self.start_set(request, time_limit)) or "")
+        check_fits(response, lambda: f"{request.service}: set {request.property}")
+        return response
+
+    async def _get_more(self, request: pb.GetRequest, time_limit: float) -> list[pb.PropertyValue]:
+        if len(request.more) + 1 > self.max_get_paths:
+            raise ResourceExhausted(
+                f"a Get may read at most {self.max_get_paths} paths, this one reads {len(request.more) + 1}"
+            )
+        # Resolve every path first so that a bad one fails the call before any backend is asked.
+        refs: list[tuple[str, str, Mapping[str, str], Backend]] = []
+        for ref in request.more:
+            service = ref.service or request.service
+            try:
+                backend = self.router.backend(service)
+                path = check_path(ref.property)
+            except PropertyError as exc:
+                # Names are clipped: an echo of a huge bad name must not outgrow the status message.
+                raise type(exc)(f"{service[:80]}/{ref.property[:256]}: {exc.message}", exc.code) from None
+            refs.append((service, path, _params(ref.parameters), backend))
+        groups: dict[int, list[int]] = {}
+        for i, (_, _, _, backend) in enumerate(refs):
+            groups.setdefault(id(backend), []).append(i)
+        values: list[str | BaseException] = [""] * len(refs)
+
+        async def read_group(indexes: list[int]) -> None:
+            # One backend's paths are read one after another, as a device would answer them.
+            for i in indexes:
+                service, path, params, backend = refs[i]
+                try:
+                    values[i] = await bounded_call(
+                        backend.get(path, params),
+                        time_limit,
+                        functools.partial("{}: get {}".format, service, path),
+                    )
+                except Exception as exc:
+                    values[i] = exc
+                    return
+
+        if len(groups) == 1:
+            await read_group(next(iter(groups.values())))
+        else:
+            await asyncio.gather(*(read_group(ix) for ix in groups.values()))
+        out = []
+        for (service, path, _, _), value in zip(refs, values, strict=True):
+            if isinstance(value, BaseException):
+                err = to_property_error(value, f"{service}: get {path}")
+                raise type(err)(f"{service}/{path}: {err.message}", err.code) from None
+            out.append(pb.PropertyValue(service=service, property=path, value=value))
+        return out

@@ -1,0 +1,37 @@
+"""How big a message may be, and the check every answer passes before it is sent.
+
+A gRPC client refuses a message over its receive limit with a bare "message
+larger than max" and drops the call (in a Session, every other request with
+it). So the gateway batches well under that limit and turns an answer that
+cannot fit into RESOURCE_EXHAUSTED naming the call.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.errors import ResourceExhausted
+
+#: The largest message a gRPC client accepts unless it asks for more (grpc's default); the
+#: gateway's own receive limit is the same, so one value a client could Set always fits.
+MAX_MESSAGE_BYTES = 4 * 1024 * 1024
+#: Batching (events in one ListenResponse, replies in one SessionResponse) stops at about this
+#: many bytes, well under MAX_MESSAGE_BYTES: a batch of values that fit one by one must never
+#: add up to a message the client refuses (it would drop the whole stream).
+BATCH_BYTES = 1024 * 1024
+#: The largest Get or Set answer sent: a client's limit less room for a Session's envelope.
+MAX_ANSWER_BYTES = MAX_MESSAGE_BYTES - 1024
+#: An answer carrying one value of at most this many characters fits whatever they are (UTF-8
+#: takes at most 4 bytes a character): such an answer need not be measured.
+SURELY_FITS_CHARS = (MAX_ANSWER_BYTES - 16) // 4
+
+
+def check_fits(answer: pb.GetResponse | pb.SetResponse, what: Callable[[], str]) -> None:
+    """Raise RESOURCE_EXHAUSTED when ``answer`` is too big for a client to receive."""
+    size = answer.ByteSize()
+    if size > MAX_ANSWER_BYTES:
+        raise ResourceExhausted(
+            f"{what()}: the answer is {size} bytes, more than one message may carry "
+            f"({MAX_ANSWER_BYTES} bytes); read fewer paths per Get"
+        )
