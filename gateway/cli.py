@@ -1,25 +1,21 @@
 """``psgateway``: run the Property Service gateway.
 
-Subcommands come from the modules listed in :data:`SUBCOMMAND_MODULES`; each
-defines ``add_subcommand(subparsers)`` which adds its parser and sets
-``func`` (``args -> exit code``) with ``set_defaults``. A listed module that
-is not installed is skipped, so optional parts plug in by being present.
+Subcommands: ``serve`` and ``check-config`` (here) and ``device``
+(:mod:`gateway.device_cli`); each adds its parser and sets ``func``
+(``args -> exit code``) with ``set_defaults``.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
-import importlib
 import logging
 import sys
 from collections.abc import Sequence
 from typing import Any
 
+from gateway import device_cli
 from gateway.config import Config, ConfigError, default_config, load_config
-
-#: Modules whose ``add_subcommand(subparsers)`` adds a subcommand, in --help order.
-SUBCOMMAND_MODULES: tuple[str, ...] = ("gateway.cli", "gateway.proxies.cli")
 
 EXIT_CONFIG = 2
 
@@ -78,14 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     subparsers = parser.add_subparsers(title="commands", metavar="COMMAND")
-    for name in SUBCOMMAND_MODULES:
-        try:
-            module = sys.modules[__name__] if name == __name__ else importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name is not None and name.startswith(exc.name):
-                continue
-            raise
-        module.add_subcommand(subparsers)
+    add_subcommand(subparsers)
+    device_cli.add_parser(subparsers)
     return parser
 
 
