@@ -29,7 +29,7 @@ from gateway.backends import open_backend, open_proxy
 from gateway.config import REGISTRY_NAME, Config, ServiceEntry
 from gateway.devices import DeviceProcess, start_device
 from gateway.line_listener import LineListener, start_line_listener
-from gateway.listen_hub import ListenHub
+from gateway.listen import ListenHub
 from gateway.router import Router
 from gateway.server import PropertyServicer, add_to_server
 from protos.propertyservice.v1 import property_service_pb2 as pb

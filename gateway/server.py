@@ -16,7 +16,7 @@ from google.protobuf.message import DecodeError, Message
 
 from gateway.calls import Calls, Undecodable
 from gateway.config import Config
-from gateway.listen_hub import ListenHub, parse_options, parse_selectors
+from gateway.listen import ListenHub, parse_options, parse_selectors
 from gateway.router import Router
 from gateway.session import Session
 from gateway.status import abort

@@ -22,7 +22,7 @@ import grpc
 
 from gateway.calls import Begun, Calls, Undecodable
 from gateway.config import Limits
-from gateway.listen_hub import ListenHub, ListenStream, parse_options, parse_selectors
+from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.sizes import BATCH_BYTES, SURELY_FITS_CHARS, check_fits
 from gateway.status import abort, status_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb

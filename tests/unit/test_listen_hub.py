@@ -7,7 +7,7 @@ from collections.abc import Mapping
 import pytest
 
 from gateway.config import Limits
-from gateway.listen_hub import ListenHub, Selector, StreamOptions, parse_options, parse_selectors
+from gateway.listen import ListenHub, Selector, StreamOptions, parse_options, parse_selectors
 from gateway.router import Router
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS, Backend, Change, Notify, Subscription

@@ -1,0 +1,16 @@
+"""Listen: fan-out of backend changes to Listen streams, with bounded memory.
+
+* :mod:`~gateway.listen.requests` — a Listen request parsed: selectors, options.
+* :mod:`~gateway.listen.topics` — one shared backend subscription per
+  (service, path, parameters), with its latest value.
+* :mod:`~gateway.listen.stream` — one client's Listen: wildcard expansion, the
+  conflating queue, pacing (throttle, sampling, heartbeat), ``take``.
+* :mod:`~gateway.listen.encoding` — events into ``ListenResponse`` messages, batched by bytes.
+* :mod:`~gateway.listen.hub` — the hub that owns topics and streams.
+"""
+
+from gateway.listen.hub import ListenHub
+from gateway.listen.requests import Selector, StreamOptions, parse_options, parse_selectors
+from gateway.listen.stream import ListenStream
+
+__all__ = ["ListenHub", "ListenStream", "Selector", "StreamOptions", "parse_options", "parse_selectors"]

@@ -1,0 +1,54 @@
+"""Events into ``ListenResponse`` messages: sizes, batches by bytes, and encoding in place."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from gateway.listen.topics import Topic
+from gateway.sizes import BATCH_BYTES
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.conflation import Slot
+
+#: One event ready to go: the topic it is about and what waits for it.
+Ready = tuple[Topic, Slot[str]]
+
+
+def event_size(topic: Topic, entry: Slot[str]) -> int:
+    """About the bytes ``entry`` takes as an Event (exact for the value, which is what can be big)."""
+    value = entry.value
+    n = len(value) if value.isascii() else len(value.encode())
+    return n + len(topic.service) + len(topic.path) + 40
+
+
+def within(items: Iterable[Ready]) -> tuple[list[Ready], int]:
+    """The first of ``items`` that add up to at most BATCH_BYTES (always at least one), and their size."""
+    ready: list[Ready] = []
+    size = 0
+    for item in items:
+        n = event_size(*item)
+        if ready and size + n > BATCH_BYTES:
+            break
+        size += n
+        ready.append(item)
+    return ready, size
+
+
+def encode_events(ready: list[Ready], sequence: int) -> pb.ListenResponse:
+    """One response carrying ``ready``, numbered from ``sequence + 1``."""
+    # Events are added in place: built apart, each would be copied into the response.
+    response = pb.ListenResponse()
+    add = response.events.add
+    seq = sequence
+    for topic, entry in ready:
+        seq += 1
+        ev = add(
+            service=topic.service,
+            property=topic.path,
+            value=entry.value,
+            sequence=seq,
+            conflated=entry.conflated,
+            gap=entry.gap,
+            removed=entry.removed,
+        )
+        ev.time.seconds, ev.time.nanos = divmod(entry.stamp, 1_000_000_000)
+    return response

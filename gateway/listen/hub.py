@@ -1,0 +1,89 @@
+"""The listen hub: fan-out of backend changes to Listen streams, with bounded memory.
+
+It owns the :class:`~gateway.listen.topics.Topics` (one backend subscription
+per (service, path, parameters), shared by every stream) and the open
+:class:`~gateway.listen.stream.ListenStream`\\ s, follows the router's services
+coming and going, and ends everything at shutdown.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+
+from gateway.config import Limits
+from gateway.listen.requests import Selector, StreamOptions
+from gateway.listen.stream import ListenStream
+from gateway.listen.topics import Topics
+from gateway.router import Router
+from services.backend import Backend
+from services.errors import ResourceExhausted, Unavailable
+
+log = logging.getLogger(__name__)
+
+
+class ListenHub:
+    """Shares backend subscriptions among Listen streams; see the module docstring."""
+
+    def __init__(self, router: Router, limits: Limits, call_timeout: float) -> None:
+        self.router = router
+        self.limits = limits
+        self.topics = Topics(call_timeout)
+        self._streams: set[ListenStream] = set()
+        self._closing = False
+        self._unwatch = router.watch(self._service_changed)
+
+    @property
+    def topic_count(self) -> int:
+        """Backend subscriptions open right now."""
+        return len(self.topics)
+
+    @property
+    def stream_count(self) -> int:
+        """Listen streams open right now."""
+        return len(self._streams)
+
+    def open(
+        self, selectors: Sequence[Selector], options: StreamOptions, on_ready: Callable[[], None]
+    ) -> ListenStream:
+        """A new stream (then ``start`` it, and ``close`` it when done); raises RESOURCE_EXHAUSTED."""
+        if self._closing:
+            raise Unavailable("the gateway is shutting down")
+        if len(self._streams) >= self.limits.max_streams:
+            raise ResourceExhausted(
+                f"too many Listen streams open ({self.limits.max_streams}, limits.max_streams)"
+            )
+        stream = ListenStream(
+            self.router,
+            self.topics,
+            self.limits,
+            selectors=selectors,
+            options=options,
+            on_ready=on_ready,
+            on_close=self._streams.discard,
+        )
+        self._streams.add(stream)
+        return stream
+
+    def _service_changed(self, name: str, backend: Backend | None) -> None:
+        if backend is not None:
+            for stream in list(self._streams):
+                stream.service_added(name, backend)
+            return
+        self.topics.service_removed(name)
+        for stream in list(self._streams):
+            stream.service_removed(name)
+
+    def end_all(self) -> None:
+        """End every stream cleanly (writers stop with OK); refuse new ones."""
+        self._closing = True
+        for stream in list(self._streams):
+            stream.end()
+
+    async def aclose(self) -> None:
+        """End every stream and close every backend subscription."""
+        self.end_all()
+        self._unwatch()
+        for stream in list(self._streams):
+            stream.close()
+        await self.topics.aclose()

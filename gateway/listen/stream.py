@@ -1,0 +1,508 @@
+"""One Listen stream: its selectors, wildcard expansion, conflating queue and pacing.
+
+A stream (:class:`ListenStream`) is one client's Listen: its selectors
+(``*`` may stand for the service or for one path segment), its options, and
+one conflating queue (:class:`services.conflation.ConflatingQueue`) that
+holds, per topic, the latest value not yet sent and how many values it
+replaced. Memory is bounded by the number of topics the stream matches, never
+by how fast values change. The stream's writer (the gRPC handler, or the
+Session writer) is woken by ``on_ready`` and calls :meth:`ListenStream.take`
+until it returns None; each call drains what is ready into one
+``ListenResponse``.
+
+Wildcards follow the service: ``*`` as service follows the router's adds and
+removes (the hub calls :meth:`ListenStream.service_added`); ``*`` in a path is
+expanded against the service's ``properties`` and follows a listen on
+``properties``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable, Iterable, Sequence
+from itertools import islice
+
+from gateway.config import Limits
+from gateway.listen.encoding import Ready, encode_events, event_size, within
+from gateway.listen.requests import Selector, StreamOptions
+from gateway.listen.topics import Topic, TopicKey, Topics
+from gateway.router import Router
+from gateway.sizes import BATCH_BYTES, MAX_MESSAGE_BYTES
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.backend import Backend, Change
+from services.conflation import ConflatingQueue
+from services.errors import Code, PropertyError, ResourceExhausted
+from services.paths import WILDCARD, compile_pattern, is_pattern
+from services.values import parse_names
+
+log = logging.getLogger(__name__)
+
+PROPERTIES = "properties"
+#: Seconds a Listen keeps trying a service that joined but cannot answer yet (a proxy still
+#: connecting to its device) before the stream fails; the registry's register_timeout.
+JOIN_RETRY_S = 10.0
+
+
+class _Expansion:
+    """A path pattern expanded against one service's ``properties``; follows its changes."""
+
+    __slots__ = ("list_topic", "matched", "matches", "selector", "service", "stream")
+
+    def __init__(self, stream: ListenStream, selector: Selector, service: str) -> None:
+        self.stream = stream
+        self.selector = selector
+        self.service = service
+        self.matches = compile_pattern(selector.path)
+        self.matched: set[str] = set()
+        self.list_topic: Topic | None = None
+
+    def paths(self, listing: str) -> set[str]:
+        try:
+            names = parse_names(listing)
+        except PropertyError as exc:
+            log.warning("%s: cannot read its properties list: %s", self.service, exc.message)
+            return set(self.matched)
+        return {n for n in names if self.matches(n)}
+
+    def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None:
+        if change.removed:
+            return
+        self.stream.reconcile(self, self.paths(change.value))
+
+
+class ListenStream:
+    """One Listen: selectors, options and the conflating queue; see the module docstring."""
+
+    __slots__ = (
+        "_expansions",
+        "_heartbeat_due",
+        "_heartbeat_timer",
+        "_last_emit",
+        "_last_sent",
+        "_limits",
+        "_live",
+        "_on_close",
+        "_on_ready",
+        "_pending",
+        "_refs",
+        "_router",
+        "_sample_flush",
+        "_sample_timer",
+        "_sequence",
+        "_signalled",
+        "_sync_after",
+        "_sync_due",
+        "_throttle_timer",
+        "_topics",
+        "closed",
+        "ended",
+        "error",
+        "options",
+        "selectors",
+    )
+
+    def __init__(
+        self,
+        router: Router,
+        topics: Topics,
+        limits: Limits,
+        *,
+        selectors: Sequence[Selector],
+        options: StreamOptions,
+        on_ready: Callable[[], None],
+        on_close: Callable[[ListenStream], None],
+    ) -> None:
+        """Called by :meth:`gateway.listen.ListenHub.open`; ``on_close`` tells the hub the stream is gone."""
+        self._router = router
+        self._topics = topics
+        self._limits = limits
+        self._on_close = on_close
+        self.selectors = tuple(selectors)
+        self.options = options
+        self._on_ready = on_ready
+        self._pending: ConflatingQueue[Topic, str] = ConflatingQueue()
+        self._refs: dict[Topic, int] = {}
+        self._expansions: list[_Expansion] = []
+        self._last_emit: dict[Topic, float] | None = {} if options.min_interval else None
+        self._sequence = 0
+        self._signalled = False
+        self._live = False
+        self._sync_due = False
+        self._sync_after = 0
+        self._sample_flush = -1 if options.sample_interval else 0
+        self._heartbeat_due = False
+        self._last_sent = 0.0
+        self._throttle_timer: asyncio.TimerHandle | None = None
+        self._sample_timer: asyncio.TimerHandle | None = None
+        self._heartbeat_timer: asyncio.TimerHandle | None = None
+        #: The stream must end: closed by the client, or ended by the gateway.
+        self.closed = False
+        #: Set when the gateway ends the stream (shutdown); the writer then stops with OK.
+        self.ended = False
+        #: Set when the stream must end with this error (e.g. a limit was passed).
+        self.error: PropertyError | None = None
+
+    @property
+    def property_count(self) -> int:
+        """How many properties the stream matches right now."""
+        return len(self._refs)
+
+    # -- setting up ------------------------------------------------------
+
+    async def start(self) -> None:
+        """Expand the selectors, subscribe, read current values; then the stream is live.
+
+        Raises NOT_FOUND for an unknown service or a concrete path that does
+        not exist, RESOURCE_EXHAUSTED when a limit is passed.
+        """
+        router = self._router
+        for sel in self.selectors:
+            if sel.service == WILDCARD:
+                for name, backend in router.items():
+                    await self._expand(sel, name, backend, strict=False)
+            else:
+                await self._expand(sel, sel.service, router.backend(sel.service), strict=True)
+        if self.closed:
+            return
+        self._live = True
+        self._sync_due = True
+        self._sync_after = 0 if self.options.updates_only else len(self._pending)
+        loop = asyncio.get_running_loop()
+        if self.options.sample_interval:
+            self._sample_timer = loop.call_later(self.options.sample_interval, self._sample_tick)
+        if self.options.heartbeat_interval:
+            self._last_sent = loop.time()
+            self._heartbeat_timer = loop.call_later(self.options.heartbeat_interval, self._heartbeat_check)
+        self._signal()
+
+    async def _expand(self, sel: Selector, service: str, backend: Backend, strict: bool) -> None:
+        if self.closed:
+            return
+        if not is_pattern(sel.path):
+            await self._join((service, sel.path, sel.params), backend, strict)
+            return
+        exp = _Expansion(self, sel, service)
+        list_topic = await self._topics.subscribe(exp, (service, PROPERTIES, ()), backend, strict)
+        if list_topic is None:
+            return
+        if self.closed:
+            self._topics.unsubscribe(exp, list_topic)
+            return
+        exp.list_topic = list_topic
+        self._expansions.append(exp)
+        exp.matched = exp.paths(list_topic.value)
+        await self._join_many(exp, sorted(exp.matched))
+
+    async def _join_many(self, exp: _Expansion, paths: Iterable[str]) -> None:
+        backend = exp.list_topic.backend if exp.list_topic else None
+        if backend is None:
+            return
+        keys = [(exp.service, p, exp.selector.params) for p in paths]
+        if len(keys) == 1:
+            await self._join(keys[0], backend, strict=False)
+        elif keys:
+            await asyncio.gather(*(self._join(k, backend, strict=False) for k in keys))
+
+    async def _join(self, key: TopicKey, backend: Backend, strict: bool) -> None:
+        """Share the topic ``key``; queue its current value unless updates only."""
+        if self.closed:
+            return
+        topic = self._topics.get(key)
+        if topic is not None and topic in self._refs:
+            self._refs[topic] += 1
+            return
+        limit = self._limits.max_stream_properties
+        if len(self._refs) >= limit:
+            raise self._too_many()
+        topic = await self._topics.subscribe(self, key, backend, strict)
+        if topic is None:
+            return
+        if self.closed or topic.dead:
+            self._topics.unsubscribe(self, topic)
+            return
+        if topic in self._refs:  # joined twice concurrently
+            self._refs[topic] += 1
+            self._topics.unsubscribe(self, topic)
+            return
+        if len(self._refs) >= limit:
+            self._topics.unsubscribe(self, topic)
+            raise self._too_many()
+        self._refs[topic] = 1
+        if not self.options.updates_only and topic not in self._pending:
+            self._pending.put(topic, topic.value, time.time_ns())
+            if self._live:
+                self._signal()
+
+    def _too_many(self) -> ResourceExhausted:
+        limit = self._limits.max_stream_properties
+        return ResourceExhausted(
+            f"this Listen matches more than {limit} properties (limits.max_stream_properties)"
+        )
+
+    def _leave(self, topic: Topic, announce: bool) -> None:
+        n = self._refs.get(topic)
+        if n is None:
+            return
+        if n > 1:
+            self._refs[topic] = n - 1
+            return
+        del self._refs[topic]
+        self._topics.unsubscribe(self, topic)
+        if not announce:
+            self._pending.discard(topic)
+        elif not topic.removed:  # else the backend's own removal is queued or sent already
+            self._enqueue(topic, "", time.time_ns(), gap=False, removed=True)
+
+    def reconcile(self, exp: _Expansion, paths: set[str]) -> None:
+        """The service's properties changed: join new matches, leave the ones gone."""
+        if self.closed:
+            return
+        gone = exp.matched - paths
+        new = paths - exp.matched
+        exp.matched = paths
+        for path in gone:
+            topic = self._topics.get((exp.service, path, exp.selector.params))
+            if topic is not None:
+                self._leave(topic, announce=True)
+        if new:
+            self._topics.spawn(self._join_new(exp, sorted(new)))
+
+    async def _join_new(self, exp: _Expansion, paths: list[str]) -> None:
+        try:
+            await self._join_many(exp, [p for p in paths if p in exp.matched])
+        except PropertyError as exc:
+            self.fail(exc)
+            return
+        # A path may have gone again while joining.
+        for path in paths:
+            if path not in exp.matched:
+                topic = self._topics.get((exp.service, path, exp.selector.params))
+                if topic is not None:
+                    self._leave(topic, announce=True)
+
+    def service_added(self, name: str, backend: Backend) -> None:
+        """A service joined the router: a selector whose service is ``*`` expands on it too."""
+        if not self._live:
+            return
+        for sel in self.selectors:
+            if sel.matches_service(name):
+                self._topics.spawn(self._expand_later(sel, name, backend))
+
+    async def _expand_later(self, sel: Selector, name: str, backend: Backend) -> None:
+        """Follow a service that joined; one whose device is not connected yet is asked again."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + JOIN_RETRY_S
+        pause = 0.05
+        while True:
+            try:
+                await self._expand(sel, name, backend, strict=False)
+                return
+            except PropertyError as exc:
+                transient = exc.code in (Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED)
+                # Only a try that set nothing up can be repeated as a whole.
+                untouched = not any(e.selector == sel and e.service == name for e in self._expansions)
+                if not (transient and untouched) or loop.time() + pause > deadline:
+                    self.fail(exc)
+                    return
+            await asyncio.sleep(pause)
+            pause = min(pause * 2, 1.0)
+            if self.closed or not self._serves(name, backend):
+                return
+
+    def _serves(self, name: str, backend: Backend) -> bool:
+        try:
+            return self._router.lookup(name) is backend
+        except PropertyError:
+            return False
+
+    def service_removed(self, name: str) -> None:
+        """A service left the router (its topics have told the stream ``removed``)."""
+        for topic in [t for t in self._refs if t.service == name]:
+            del self._refs[topic]
+        self._expansions = [e for e in self._expansions if e.service != name]
+
+    # -- receiving -------------------------------------------------------
+
+    def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None:
+        """A change on a topic this stream shares (called by :meth:`Topic.notify`)."""
+        if topic in self._refs:
+            self._enqueue(topic, change.value, seen_ns, change.gap, change.removed)
+
+    def _enqueue(self, topic: Topic, value: str, seen: int, gap: bool, removed: bool) -> None:
+        self._pending.put(topic, value, seen, gap, removed)
+        if self._live and not self._sample_flush:
+            self._signal()
+
+    def _signal(self) -> None:
+        if not self._signalled:
+            self._signalled = True
+            self._on_ready()
+
+    def fail(self, err: PropertyError) -> None:
+        """End the stream with ``err`` (the writer sends the status)."""
+        if self.error is None and not self.closed:
+            self.error = err
+            self._signalled = False
+            self._signal()
+
+    def end(self) -> None:
+        """End the stream cleanly (gateway shutdown): the writer flushes nothing more and stops with OK."""
+        self.ended = True
+        self._signalled = False
+        self._signal()
+
+    # -- timers ----------------------------------------------------------
+
+    def _sample_tick(self) -> None:
+        if self.closed:
+            return
+        loop = asyncio.get_running_loop()
+        self._sample_timer = loop.call_later(self.options.sample_interval, self._sample_tick)
+        now = time.time_ns()
+        pending = self._pending
+        for topic in self._refs:
+            if topic not in pending:
+                pending.put(topic, topic.value, now)
+        self._sample_flush = len(self._pending) or -1
+        self._signal()
+
+    def _heartbeat_check(self) -> None:
+        if self.closed:
+            return
+        loop = asyncio.get_running_loop()
+        interval = self.options.heartbeat_interval
+        quiet = loop.time() - self._last_sent
+        if quiet >= interval * 0.999:
+            self._heartbeat_due = True
+            self._signal()
+            quiet = 0.0
+        self._heartbeat_timer = loop.call_later(interval - quiet, self._heartbeat_check)
+
+    def _throttle_wake(self) -> None:
+        self._throttle_timer = None
+        self._signal()
+
+    # -- sending ---------------------------------------------------------
+
+    def take(self) -> pb.ListenResponse | None:
+        """Drain what is ready into one response; None when nothing is ready."""
+        self._signalled = False
+        if not self._live or self.closed or self.error is not None:
+            return None
+        if self._sync_due and (self._sync_after <= 0 or not self._pending):
+            self._sync_due = False
+            return self._sent(pb.ListenResponse(sync=True))
+        limit = self.options.max_batch
+        if self._sync_due:
+            limit = min(limit, self._sync_after)
+        elif self._sample_flush:
+            if self._sample_flush < 0:
+                return self._heartbeat()
+            limit = min(limit, self._sample_flush)
+        response = self._drain(limit)
+        count = len(response.events) if response is not None else 0
+        if self._sync_due:
+            self._sync_after -= count
+        elif self._sample_flush > 0:
+            self._sample_flush = max(self._sample_flush - count, 0) or -1
+        if response is not None:
+            return self._sent(response)
+        if self._sync_due:
+            self._sync_due = False
+            return self._sent(pb.ListenResponse(sync=True))
+        return self._heartbeat()
+
+    def _heartbeat(self) -> pb.ListenResponse | None:
+        if self._heartbeat_due:
+            return self._sent(pb.ListenResponse(heartbeat=True))
+        return None
+
+    def _sent(self, response: pb.ListenResponse) -> pb.ListenResponse:
+        self._heartbeat_due = False
+        if self._heartbeat_timer is not None:
+            self._last_sent = asyncio.get_running_loop().time()
+        return response
+
+    def _drain(self, limit: int) -> pb.ListenResponse | None:
+        """The events ready, at most ``limit``, in one response; None when there are none."""
+        pending = self._pending
+        if not pending:
+            return None
+        ready: list[Ready]
+        if self._last_emit is not None and self._sync_after <= 0:
+            ready, size = self._ready_throttled(limit)
+        else:
+            ready, size = within(islice(pending.items(), limit))
+            pending.take(len(ready))
+        if not ready:
+            return None
+        if len(ready) == 1 and size > MAX_MESSAGE_BYTES:
+            topic = ready[0][0]
+            self.fail(
+                ResourceExhausted(
+                    f"{topic.service}/{topic.path}: a value of {size} bytes does not fit in one message "
+                    f"(at most {MAX_MESSAGE_BYTES} bytes)"
+                )
+            )
+            return None
+        response = encode_events(ready, self._sequence)
+        self._sequence += len(ready)
+        return response
+
+    def _ready_throttled(self, limit: int) -> tuple[list[Ready], int]:
+        """Like :func:`gateway.listen.encoding.within`, but only topics whose ``min_interval`` has passed."""
+        last_emit = self._last_emit
+        assert last_emit is not None
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        interval = self.options.min_interval
+        ready: list[Ready] = []
+        next_due = 0.0
+        size = 0
+        for topic, entry in self._pending.items():
+            last = last_emit.get(topic)
+            if last is None or now - last >= interval:
+                n = event_size(topic, entry)
+                if ready and size + n > BATCH_BYTES:
+                    break
+                size += n
+                ready.append((topic, entry))
+                if len(ready) >= limit:
+                    break
+            else:
+                due = last + interval
+                next_due = due if not next_due else min(next_due, due)
+        for topic, _ in ready:
+            self._pending.discard(topic)
+            last_emit[topic] = now
+        if len(last_emit) > 2 * len(self._refs) + 16:
+            for topic in [t for t in last_emit if t not in self._refs]:
+                del last_emit[topic]
+        if next_due and self._throttle_timer is None:
+            self._throttle_timer = loop.call_at(next_due, self._throttle_wake)
+        return ready, size
+
+    # -- ending ----------------------------------------------------------
+
+    def close(self) -> None:
+        """Release everything at once: topics, timers, the queue. Idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        for timer in (self._throttle_timer, self._sample_timer, self._heartbeat_timer):
+            if timer is not None:
+                timer.cancel()
+        self._throttle_timer = self._sample_timer = self._heartbeat_timer = None
+        topics = self._topics
+        for topic in self._refs:
+            topics.unsubscribe(self, topic)
+        for exp in self._expansions:
+            if exp.list_topic is not None:
+                topics.unsubscribe(exp, exp.list_topic)
+        self._refs.clear()
+        self._expansions.clear()
+        self._pending.clear()
+        self._last_emit = None
+        self._on_close(self)

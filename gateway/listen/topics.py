@@ -1,0 +1,198 @@
+"""Topics: one backend subscription per (service, path, parameters), shared by every stream.
+
+A topic is opened by the first stream that wants it (a Listen on the backend,
+then a Get of the current value, so no change falls between the two), caches
+the latest value, so a stream joining a busy topic needs no backend call, and
+is closed when its last sink leaves.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Coroutine, Mapping
+from typing import Any, Protocol
+
+from gateway.router import bounded_call
+from gateway.status import to_property_error
+from services.backend import NO_PARAMS, Backend, Change, Subscription
+from services.errors import Code, PropertyError
+
+log = logging.getLogger(__name__)
+
+TopicKey = tuple[str, str, tuple[tuple[str, str], ...]]
+
+
+class Sink(Protocol):
+    """Who hears a topic's changes: a stream, or a stream's wildcard expansion."""
+
+    def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None: ...
+
+
+class Topic:
+    """One shared backend subscription and the latest value seen on it."""
+
+    __slots__ = (
+        "backend",
+        "dead",
+        "key",
+        "opening",
+        "params",
+        "path",
+        "removed",
+        "service",
+        "sinks",
+        "subscription",
+        "value",
+    )
+
+    def __init__(self, key: TopicKey, backend: Backend) -> None:
+        self.key = key
+        self.service, self.path, params = key
+        self.params: Mapping[str, str] = dict(params) if params else NO_PARAMS
+        self.backend = backend
+        self.sinks: set[Sink] = set()
+        self.subscription: Subscription | None = None
+        self.value = ""
+        #: The last change was the property's removal (every sink has been told).
+        self.removed = False
+        self.dead = False
+        self.opening: asyncio.Task[None] | None = None
+
+    def notify(self, change: Change) -> None:
+        """The backend's callback: remember the value, hand it to every sink."""
+        if self.dead:
+            return
+        self.value = change.value
+        self.removed = change.removed
+        seen = time.time_ns()
+        for sink in list(self.sinks):
+            try:
+                sink.topic_changed(self, change, seen)
+            except Exception:
+                log.exception("delivering a change of %s %s failed", self.service, self.path)
+
+    def __repr__(self) -> str:
+        return f"Topic({self.service}/{self.path}, {len(self.sinks)} sinks)"
+
+
+class Topics:
+    """The open topics of one hub, and the background work of opening and closing them."""
+
+    def __init__(self, call_timeout: float) -> None:
+        self.call_timeout = call_timeout
+        self._topics: dict[TopicKey, Topic] = {}
+        self._tasks: set[asyncio.Task[Any]] = set()
+
+    def __len__(self) -> int:
+        return len(self._topics)
+
+    def get(self, key: TopicKey) -> Topic | None:
+        """The open topic ``key``, or None."""
+        return self._topics.get(key)
+
+    async def subscribe(self, sink: Sink, key: TopicKey, backend: Backend, strict: bool) -> Topic | None:
+        """Add ``sink`` to topic ``key``, opening it if needed; None when it does not exist (not strict)."""
+        topic = self._topics.get(key)
+        if topic is None or topic.dead:
+            topic = Topic(key, backend)
+            self._topics[key] = topic
+            topic.opening = asyncio.get_running_loop().create_task(self._open(topic))
+        topic.sinks.add(sink)
+        opening = topic.opening
+        assert opening is not None
+        try:
+            if not opening.done():
+                await asyncio.shield(opening)
+            else:
+                opening.result()
+        except PropertyError as exc:
+            self.unsubscribe(sink, topic)
+            if strict or exc.code not in (Code.NOT_FOUND, Code.INVALID_ARGUMENT):
+                raise
+            log.debug("skipping %s %s: %s", key[0], key[1], exc.message)
+            return None
+        except BaseException:
+            self.unsubscribe(sink, topic)
+            raise
+        return topic
+
+    async def _open(self, topic: Topic) -> None:
+        backend, path, params = topic.backend, topic.path, topic.params
+        timeout = self.call_timeout
+        try:
+            topic.subscription = await bounded_call(
+                backend.listen(path, topic.notify, params), timeout, lambda: f"{topic.service}: listen {path}"
+            )
+            topic.value = await bounded_call(
+                backend.get(path, params), timeout, lambda: f"{topic.service}: get {path}"
+            )
+        except BaseException as exc:
+            if self._topics.get(topic.key) is topic:
+                del self._topics[topic.key]
+            topic.dead = True
+            if topic.subscription is not None:
+                self.spawn(self._close_subscription(topic))
+            if isinstance(exc, PropertyError | asyncio.CancelledError):
+                raise
+            raise to_property_error(exc, f"{topic.service}: listen {path}") from exc
+        if not topic.sinks or topic.dead:
+            self.drop(topic)
+
+    def unsubscribe(self, sink: Sink, topic: Topic) -> None:
+        """``sink`` leaves ``topic``; the last one to leave closes it."""
+        topic.sinks.discard(sink)
+        if not topic.sinks and topic.opening is not None and topic.opening.done():
+            self.drop(topic)
+
+    def drop(self, topic: Topic) -> None:
+        """Close ``topic`` now, whoever still listens."""
+        if self._topics.get(topic.key) is topic:
+            del self._topics[topic.key]
+        topic.dead = True
+        if topic.subscription is not None:
+            self.spawn(self._close_subscription(topic))
+
+    def service_removed(self, name: str) -> None:
+        """Service ``name`` left the router: every sink of its topics hears ``removed``; they close."""
+        gone = [t for t in self._topics.values() if t.service == name]
+        for topic in gone:
+            del self._topics[topic.key]
+            topic.notify(Change(topic.path, "", removed=True))
+            topic.dead = True
+            topic.sinks.clear()
+            if topic.subscription is not None:
+                self.spawn(self._close_subscription(topic))
+
+    async def _close_subscription(self, topic: Topic) -> None:
+        sub, topic.subscription = topic.subscription, None
+        if sub is None:
+            return
+        try:
+            await asyncio.wait_for(sub.close(), self.call_timeout)
+        except Exception:
+            log.warning("closing the listen on %s %s failed", topic.service, topic.path, exc_info=True)
+
+    def spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        """Run ``coro`` in a task the hub waits for at shutdown; a failure is logged."""
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._task_done)
+
+    def _task_done(self, task: asyncio.Task[Any]) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.error("listen hub task failed", exc_info=task.exception())
+
+    async def aclose(self) -> None:
+        """Close every topic (cancelling those still opening) and wait for the background work."""
+        opening = []
+        for topic in list(self._topics.values()):
+            if topic.opening is not None and not topic.opening.done():
+                topic.opening.cancel()
+                opening.append(topic.opening)
+            self.drop(topic)
+        await asyncio.gather(*opening, return_exceptions=True)
+        while self._tasks:
+            await asyncio.gather(*self._tasks, return_exceptions=True)
