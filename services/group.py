@@ -257,15 +257,6 @@ class Group(Resource):
         """The members right now, in natural name order."""
         return sorted(self.robots.children(), key=natural_key)
 
-    def member(self, name: str) -> Backend:
-        """The backend of member ``name``; NotFound when it is not a member now."""
-        child = self.robots.children().get(name)
-        if not isinstance(child, Backend):
-            raise NotFound(
-                f"{name!r} is not a member of this group (members: {' '.join(self.member_names())})"
-            )
-        return child
-
     async def refresh(self) -> None:
         """Ask the registry for the query's members now and update ``robots``."""
         if self._query is None:

@@ -79,9 +79,6 @@ class LocationFollower:
         if sub is not None:
             self._spawn(close_quietly(sub), f"{self._what}: unlisten {name}")
 
-    def __contains__(self, name: object) -> bool:
-        return name in self._tasks
-
     async def settled(self, within: float) -> None:
         """Wait, at most ``within`` seconds, until every followed service has answered or given up."""
         pending = [t for t in self._tasks.values() if not t.done()]
