@@ -1,7 +1,7 @@
 """Many line-protocol devices in one process: the device side of part (h).
 
 ``python -m bench.device_farm --count 500 --first 0 --ports-file F`` serves
-500 simulated robots, each a :class:`services.device_server.DeviceServer` of
+500 simulated robots, each a :class:`services.device.DeviceServer` of
 its own on its own TCP port of 127.0.0.1, named ``m0`` … ``m499`` in their
 greetings, and placed on a grid. It writes ``{"m0": PORT, ...}`` to ``F``,
 then prints ``listening on 127.0.0.1:PORT`` (the first port) to stderr, and
@@ -21,7 +21,7 @@ from pathlib import Path
 
 from bench.baseline import until_stopped
 from services.core import LocalService
-from services.device_server import DeviceServer
+from services.device import DeviceServer
 from services.simulators import SimRobot
 
 #: Each device serves the gateway's proxy and little else.

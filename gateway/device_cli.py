@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from services import device_server
+from services.device import cli as device_command
 
 
 def add_parser(subparsers: Any) -> None:
@@ -21,10 +21,10 @@ def add_parser(subparsers: Any) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    device_server.add_arguments(parser)
+    device_command.add_arguments(parser)
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the device until SIGINT/SIGTERM; the exit status."""
-    return device_server.run(args)
+    return device_command.run(args)

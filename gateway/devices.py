@@ -15,7 +15,7 @@ shutdown (SIGTERM, a bounded wait, then SIGKILL).
 
 On a pseudo-terminal the child plays the microcontroller's end of the cable:
 it serves the master side and reports the slave's path, which the gateway's
-serial proxy opens with pyserial (:meth:`services.device_server.DeviceServer.serve_pty`).
+serial proxy opens with pyserial (:meth:`services.device.DeviceServer.serve_pty`).
 The child's stdin is a pipe from the gateway: it ends when that pipe closes,
 even if the gateway is killed.
 """

@@ -8,7 +8,7 @@ behind the gateway: the first path segment names the service::
     LISTEN scout1.location.x  →  EVENT scout1.location.x 0.52 ...
     GET properties            →  the names of the services, "(light1 registry scout1)"
 
-The sessions themselves are :class:`services.device_server.DeviceSession`s: the
+The sessions themselves are :class:`services.device.DeviceSession`s: the
 gateway is just one more device whose backend is the whole router.
 
 **A device that dials in.** When the first line a peer sends is a greeting
@@ -33,7 +33,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
-from services.device_server import DeviceServer, DeviceSession
+from services.device import DeviceServer, DeviceSession
 from services.errors import AlreadyExists, InvalidArgument, PropertyError, ReadOnly
 from services.line_protocol import MAX_LINE, ErrorReply, Hello, LineReceiver, encode
 from services.paths import validate_service_name

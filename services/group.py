@@ -35,7 +35,7 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from services.backend import Backend, Change, Subscription, close_quietly
+from services.backend import Backend, Subscription, close_quietly
 from services.core import Prop, Resource, functional
 from services.core.metadata import RESERVED_NAMES
 from services.directory import Directory
@@ -49,19 +49,20 @@ from services.errors import (
     Unavailable,
 )
 from services.formations import FORMATIONS, centroid, formation_targets, natural_key
+from services.location_following import LocationFollower
 from services.paths import validate_service_name
 from services.query import Query
 from services.values import (
     Marker,
-    ValueFormatError,
     Vector,
     format_marker,
     format_value,
     parse_names,
     parse_vector,
 )
+from services.worker_pool import run_bounded
 
-__all__ = ["DEFAULT_MEMBER_TIMEOUT", "Group", "GroupCallFailed", "query_params", "run_bounded"]
+__all__ = ["DEFAULT_MEMBER_TIMEOUT", "Group", "GroupCallFailed", "query_params"]
 
 log = logging.getLogger(__name__)
 
@@ -214,8 +215,9 @@ class Group(Resource):
         self.member_timeout = float(member_timeout)
         self._wanted: set[str] = set(self._static or ())
         self._locations: dict[str, Vector] = {}
-        self._trackers: dict[str, asyncio.Task[None]] = {}
-        self._subscriptions: dict[str, Subscription] = {}
+        self._following = LocationFollower(
+            self._store_location, timeout=lambda: self.member_timeout, what="group"
+        )
         self._location_pending = False
         self._unwatch: Callable[[], None] | None = None
         self._refresh_task: asyncio.Task[None] | None = None
@@ -234,40 +236,26 @@ class Group(Resource):
         else:
             self._sync()
         # The members found at start report their locations before the group counts as started.
-        if self._trackers:
-            await asyncio.wait(list(self._trackers.values()), timeout=self.member_timeout)
+        await self._following.settled(self.member_timeout)
 
     async def stop(self) -> None:
         self._started = False
         if self._unwatch is not None:
             self._unwatch()
             self._unwatch = None
-        tasks = [t for t in (self._refresh_task, *self._trackers.values()) if t is not None]
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
-        self._trackers.clear()
+        if self._refresh_task is not None:
+            self._refresh_task.cancel()
+            await asyncio.gather(self._refresh_task, return_exceptions=True)
+        await self._following.aclose()
         if self._registry_sub is not None:
             await close_quietly(self._registry_sub)
             self._registry_sub = None
-        for sub in list(self._subscriptions.values()):
-            await close_quietly(sub)
-        self._subscriptions.clear()
 
     # -- members ---------------------------------------------------------
 
     def member_names(self) -> list[str]:
         """The members right now, in natural name order."""
         return sorted(self.robots.children(), key=natural_key)
-
-    def member(self, name: str) -> Backend:
-        """The backend of member ``name``; NotFound when it is not a member now."""
-        child = self.robots.children().get(name)
-        if not isinstance(child, Backend):
-            raise NotFound(
-                f"{name!r} is not a member of this group (members: {' '.join(self.member_names())})"
-            )
-        return child
 
     async def refresh(self) -> None:
         """Ask the registry for the query's members now and update ``robots``."""
@@ -322,9 +310,7 @@ class Group(Resource):
         for name in sorted(wanted - present, key=natural_key):
             if name in known:
                 self._add(name)
-        for sub in self.subgroups.children().values():
-            if isinstance(sub, Group):
-                sub._sync()
+        self._sync_subgroups()
 
     def _add(self, name: str) -> None:
         try:
@@ -340,18 +326,11 @@ class Group(Resource):
             log.warning("group: a member cannot be named %r", name)
             return
         self.robots.attach(name, backend)
-        self._trackers[name] = asyncio.get_running_loop().create_task(
-            self._track(name, backend), name=f"group: track {name}"
-        )
+        self._following.follow(name, backend)
 
     def _drop(self, name: str) -> None:
         self.robots.detach(name)
-        task = self._trackers.pop(name, None)
-        if task is not None:
-            task.cancel()
-        sub = self._subscriptions.pop(name, None)
-        if sub is not None:
-            asyncio.get_running_loop().create_task(close_quietly(sub), name=f"group: unlisten {name}")
+        self._following.forget(name)
         if self._locations.pop(name, None) is not None:
             self._location_changed()
 
@@ -390,35 +369,9 @@ class Group(Resource):
 
     # -- location ----------------------------------------------------------
 
-    async def _track(self, name: str, backend: Backend) -> None:
-        def on_change(change: Change) -> None:
-            self._store_location(name, "" if change.removed else change.value)
-
-        try:
-            async with asyncio.timeout(self.member_timeout):
-                sub = await backend.listen("location", on_change)
-        except (PropertyError, TimeoutError):
-            return  # a member without a location (or unreachable now) does not count in the centroid
-        if self._trackers.get(name) is None:
-            await close_quietly(sub)
-            return
-        self._subscriptions[name] = sub
-        try:
-            async with asyncio.timeout(self.member_timeout):
-                value = await backend.get("location")
-        except (PropertyError, TimeoutError):
-            return
-        if name not in self._locations:  # a change that arrived meanwhile is newer
-            self._store_location(name, value)
-
-    def _store_location(self, name: str, text: str) -> None:
-        if name not in self._trackers:
-            return
-        try:
-            vector = parse_vector(text) if text else None
-        except ValueFormatError:
-            vector = None
-        if vector is None or vector.size == 0:
+    def _store_location(self, name: str, vector: Vector | None) -> None:
+        # A member without a location (or unreachable now) does not count in the centroid.
+        if vector is None:
             if self._locations.pop(name, None) is None:
                 return
         else:
@@ -603,19 +556,3 @@ def _member_names(members: Iterable[str]) -> list[str]:
             raise InvalidArgument(f"a member cannot be named {name!r}")
         names[name] = None
     return list(names)
-
-
-async def run_bounded(items: Iterable[str], work: Callable[[str], Awaitable[None]], limit: int) -> None:
-    """Run ``work(item)`` for every item, at most ``limit`` at once.
-
-    A fixed pool of workers pulls from one iterator: no task or semaphore
-    waiter per item, so ten thousand items cost what a thousand do, per item.
-    """
-    todo = list(items)
-    pending = iter(todo)
-
-    async def worker() -> None:
-        for item in pending:
-            await work(item)
-
-    await asyncio.gather(*(worker() for _ in range(min(limit, len(todo)))))

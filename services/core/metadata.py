@@ -3,6 +3,12 @@
 The class wrapper never inspects signatures or type hints on a request: the
 first use of a class compiles a :class:`ClassSpec` (members in definition
 order, each with its parser, flags and metadata) and caches it on the class.
+An annotation that does not resolve is a TypeError naming the class, the
+member and the annotation, raised then: a member silently typed ``Any``
+would take any text.
+
+The compiler knows the classes it describes only by their base
+:class:`Namespace`, declared here: it imports nothing of ``resource.py``.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ import numpy as np
 from services.backend import Backend
 from services.values import format_list, parser_for, type_name
 
-__all__ = ["ClassSpec", "Member", "MemberKind", "Param", "Prop", "class_spec", "functional"]
+__all__ = ["ClassSpec", "Member", "MemberKind", "Namespace", "Param", "Prop", "class_spec", "functional"]
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +38,16 @@ F = TypeVar("F", bound=Callable[..., Any])
 META_NAMES = frozenset({"parameters", "gui", "doc"})
 #: Reserved for the service's own property list.
 RESERVED_NAMES = frozenset({"properties"}) | META_NAMES
+
+
+class Namespace:
+    """Base of the classes whose members are compiled here (:class:`services.core.Resource`).
+
+    A class-level annotation naming a Namespace (or a Backend) declares a
+    child namespace rather than a value. Namespace itself exposes nothing.
+    """
+
+    __slots__ = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -175,13 +191,7 @@ def _split_annotated(tp: Any) -> tuple[Any, Prop | None]:
 
 
 def _is_node_type(tp: Any) -> bool:
-    return isinstance(tp, type) and (issubclass(tp, Backend) or _is_resource_type(tp))
-
-
-def _is_resource_type(tp: type) -> bool:
-    from services.core.resource import Resource
-
-    return issubclass(tp, Resource)
+    return isinstance(tp, type) and issubclass(tp, Backend | Namespace)
 
 
 def _type_word(tp: Any) -> str:
@@ -191,26 +201,54 @@ def _type_word(tp: Any) -> str:
         return "text"
 
 
-def _resolve_hints(obj: Any, owner: type | None = None) -> dict[str, Any]:
-    """Type hints with ``Annotated`` kept; an unresolvable hint becomes ``Any`` rather than failing."""
+def _evaluate(annotation: Any, globalns: dict[str, Any], localns: dict[str, Any], where: str) -> Any:
+    """An annotation (text under ``from __future__ import annotations``) as the object it names."""
+    if not isinstance(annotation, str):
+        return annotation
     try:
-        return typing.get_type_hints(obj, include_extras=True)
-    except Exception:  # forward references to classes local to a function, names defined later
-        pass
-    raw: dict[str, Any] = dict(getattr(obj, "__annotations__", {}))
+        return eval(annotation, globalns, localns)  # the class's own annotation text
+    except Exception as e:
+        raise TypeError(
+            f"{where}: the annotation {annotation!r} does not resolve ({type(e).__name__}: {e})"
+        ) from None
+
+
+def _module_namespace(obj: Any) -> dict[str, Any]:
     module = sys.modules.get(getattr(obj, "__module__", "") or "")
-    globalns = dict(vars(module)) if module else {}
-    localns = dict(vars(owner)) if owner is not None else {}
+    return dict(vars(module)) if module else {}
+
+
+def _class_hints(cls: type) -> dict[str, Any]:
+    """The attribute annotations of ``cls`` and its bases, resolved, ``Annotated`` kept."""
+    try:
+        return typing.get_type_hints(cls, include_extras=True)
+    except Exception:
+        pass  # one does not resolve: find which; only a member's (a public name) is an error
     hints: dict[str, Any] = {}
-    for name, text in raw.items():
-        resolved = text
-        if isinstance(text, str):
-            try:
-                resolved = eval(text, globalns, localns)  # the class's own annotation text
-            except Exception:
-                resolved = Any
-        hints[name] = resolved
+    for klass in reversed(cls.__mro__):
+        globalns, localns = _module_namespace(klass), dict(vars(klass))
+        for name, annotation in inspect.get_annotations(klass).items():
+            if not name.startswith("_"):
+                hints[name] = _evaluate(annotation, globalns, localns, f"{cls.__qualname__}.{name}")
     return hints
+
+
+def _function_hints(
+    fn: Callable[..., Any], cls: type, member: str, names: typing.Iterable[str]
+) -> dict[str, Any]:
+    """The annotations of ``fn``'s parameters ``names`` (``return``: its result), resolved."""
+    try:
+        return typing.get_type_hints(fn, include_extras=True)
+    except Exception:
+        pass  # one does not resolve: find which; only those the member uses are an error
+    raw = inspect.get_annotations(fn)
+    globalns = getattr(fn, "__globals__", None) or _module_namespace(fn)
+    localns = dict(vars(cls))
+    return {
+        name: _evaluate(raw[name], globalns, localns, f"{cls.__qualname__}.{member} ({name})")
+        for name in names
+        if name in raw
+    }
 
 
 def _parser(tp: Any, where: str) -> Callable[[str], Any]:
@@ -243,9 +281,9 @@ def _parameters_text(params: typing.Iterable[Param]) -> str:
 
 def _functional_member(cls: type, name: str, fn: Callable[..., Any], opts: _FunctionalOptions) -> Member:
     where = f"{cls.__qualname__}.{name}"
-    hints = _resolve_hints(fn)
     sig = inspect.signature(fn)
     params = list(sig.parameters.values())[1:]  # drop self
+    hints = _function_hints(fn, cls, name, [p.name for p in params])
     value_param: Param | None = None
     keyword: dict[str, Param] = {}
     for i, p in enumerate(params):
@@ -286,11 +324,11 @@ def _functional_member(cls: type, name: str, fn: Callable[..., Any], opts: _Func
 
 def _computed_member(cls: type, name: str, prop: property) -> Member:
     where = f"{cls.__qualname__}.{name}"
-    hints = _resolve_hints(prop.fget) if prop.fget else {}
+    hints = _function_hints(prop.fget, cls, name, ["return"]) if prop.fget else {}
     tp, meta = _split_annotated(hints.get("return", Any))
     if prop.fset is not None:
-        set_hints = _resolve_hints(prop.fset)
         value_names = [n for n in inspect.signature(prop.fset).parameters][1:2]
+        set_hints = _function_hints(prop.fset, cls, name, value_names)
         if value_names and value_names[0] in set_hints:
             tp, _ = _split_annotated(set_hints[value_names[0]])
     readonly = prop.fset is None or (meta is not None and meta.readonly)
@@ -328,12 +366,10 @@ def _attribute_member(cls: type, name: str, annotation: Any) -> Member:
 
 
 def _build_spec(cls: type) -> ClassSpec:
-    from services.core.resource import Resource
-
     members: dict[str, Member] = {}
-    hints = _resolve_hints(cls)
+    hints = _class_hints(cls)
     for klass in reversed(cls.__mro__):
-        if klass is object or klass is Resource or not issubclass(klass, Resource):
+        if klass is Namespace or not issubclass(klass, Namespace):
             continue
         for name in inspect.get_annotations(klass):
             if name.startswith("_"):

@@ -8,7 +8,7 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 from services.backend import Backend
-from services.core.metadata import RESERVED_NAMES, MemberKind, class_spec
+from services.core.metadata import RESERVED_NAMES, MemberKind, Namespace, class_spec
 from services.errors import AlreadyExists, InvalidArgument, NotFound
 from services.paths import validate_service_name
 
@@ -26,7 +26,7 @@ def _is_functional(cls: type, name: str) -> bool:
     return member is not None and member.kind is MemberKind.FUNCTIONAL
 
 
-class Resource:
+class Resource(Namespace):
     """A Property Service object written as a plain Python class.
 
     Annotated public attributes are read/write properties, ``@property`` is a

@@ -12,7 +12,7 @@ from asyncio.subprocess import PIPE
 from line_device_support import LineClient, device_process, pty_client, pty_pair, tcp_device
 
 from services.backend import Backend, BackendInfo, Change, Notify, Subscription
-from services.device_server import DeviceServer
+from services.device import DeviceServer
 from services.errors import NotFound
 from services.line_protocol import Get, crc8, encode
 

@@ -108,7 +108,7 @@ async def test_moveto_reaches_every_member_and_find_matches_a_full_search() -> N
     kinds = ["mobile_robot" if i % 4 else "sensor" for i in range(1000)]
     for i, (x, y) in enumerate(places):
         registry.add(f"r{i}", BackendInfo(type=kinds[i], url="tcp://10.0.0.1:7000"))
-        registry._store_location(f"r{i}", f"({x:.3f} {y:.3f} 0)")
+        registry.set_location(f"r{i}", np.array([round(x, 3), round(y, 3), 0.0]))
     try:
         for cx, cy in rng.uniform(0, 300, size=(20, 2)):
             found = await service.get(

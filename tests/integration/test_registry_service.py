@@ -242,7 +242,7 @@ async def test_find_scales_to_ten_thousand_entries(world: MemoryDirectory) -> No
     rng = np.random.default_rng(3)
     for i, (x, y) in enumerate(rng.uniform(0, 100, size=(10_000, 2))):
         registry.add(f"r{i}", _info("mobile_robot" if i % 2 else "sensor"))
-        registry._store_location(f"r{i}", f"({x} {y} 0)")
+        registry.set_location(f"r{i}", np.array([x, y, 0.0]))
     query = {"type": "mobile_robot", "near": "(50 50 0)", "radius": "5"}
     found = parse_names(await svc.get("find", query))
     assert found and all(int(n[1:]) % 2 for n in found)

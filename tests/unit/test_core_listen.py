@@ -11,7 +11,7 @@ import pytest
 from services.backend import Change
 from services.core import LocalService, Prop, Resource, functional
 from services.errors import AlreadyExists, InvalidArgument, NotFound
-from services.values import Vector, parse_names
+from services.values import Marker, Vector, parse_marker, parse_names
 
 
 class Tool(Resource):
@@ -327,8 +327,6 @@ async def test_properties_follows_the_property_lists_of_remote_children() -> Non
 
 
 async def test_marker_field_listeners_hear_only_their_field() -> None:
-    from services.values import Marker, parse_marker
-
     class Beacon(Resource):
         """A beacon showing a marker."""
 

@@ -1,0 +1,200 @@
+"""Serve any Property Service over the line protocol, on a TCP port or a serial port.
+
+This is the device side of docs/line-protocol.md in Python: it stands in for a
+microcontroller in tests and demos, and lets any :class:`services.backend.Backend`
+(a simulated robot, a sensor, a whole gateway's router) be reached by anything
+that speaks lines of text. Every connection gets its own
+:class:`~services.device.session.DeviceSession`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+
+from services.backend import Backend
+from services.device.session import CALL_TIMEOUT, READ_SIZE, DeviceSession
+from services.device.transports import open_pty, open_serial, pipe_streams
+from services.errors import Code
+from services.line_protocol import MAX_LINE, ErrorReply, Hello, encode
+
+__all__ = ["DeviceServer"]
+
+log = logging.getLogger(__name__)
+
+#: Seconds ``aclose`` waits for a listening socket to close.
+_CLOSE_WAIT = 5.0
+
+
+class DeviceServer:
+    """Serves one backend to any number of line-protocol connections (TCP clients, a serial port)."""
+
+    def __init__(
+        self,
+        backend: Backend,
+        *,
+        name: str,
+        type: str | None = None,
+        push: bool = True,
+        checksum: bool = False,
+        max_line: int = MAX_LINE,
+        call_timeout: float = CALL_TIMEOUT,
+        max_connections: int = 64,
+    ) -> None:
+        self.backend = backend
+        self.greeting = Hello(name=name, type=type or backend.info.type, push=push, max_line=max_line)
+        self.checksum = checksum
+        self.call_timeout = call_timeout
+        self.max_connections = max_connections
+        self._sessions: set[asyncio.StreamWriter] = set()
+        self._servers: list[asyncio.Server] = []
+        self._serial_tasks: list[asyncio.Task[None]] = []
+        self._pty_fds: list[int] = []
+
+    async def serve_stream(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str = ""
+    ) -> None:
+        """Serve one connection until it closes."""
+        session = DeviceSession(
+            self.backend,
+            reader,
+            writer,
+            greeting=self.greeting,
+            checksum=self.checksum,
+            call_timeout=self.call_timeout,
+            peer=peer,
+        )
+        await session.run()
+
+    async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if len(self._sessions) >= self.max_connections:
+            writer.write(encode(ErrorReply(int(Code.RESOURCE_EXHAUSTED), "too many connections; try later")))
+            with contextlib.suppress(ConnectionError):
+                await writer.drain()
+            writer.close()
+            return
+        self._sessions.add(writer)
+        host, port = tuple(writer.get_extra_info("peername") or ("?", "?"))[:2]
+        peer = f"{host}:{port}"
+        log.info("%s: connected", peer)
+        try:
+            await self.serve_stream(reader, writer, peer)
+        finally:
+            self._sessions.discard(writer)
+            log.info("%s: disconnected", peer)
+
+    async def serve_tcp(self, host: str, port: int) -> tuple[str, int]:
+        """Listen on ``host:port`` (0 picks a free port); return the address actually bound."""
+        server = await asyncio.start_server(self._on_tcp, host, port, limit=READ_SIZE)
+        self._servers.append(server)
+        bound = server.sockets[0].getsockname()
+        return str(bound[0]), int(bound[1])
+
+    async def dial(
+        self, host: str, port: int, *, retry_initial: float = 0.2, retry_max: float = 10.0
+    ) -> None:
+        """Dial ``host:port`` (a gateway's line listener) and serve that connection; dial again when it ends.
+
+        The greeting, sent first as on every connection, registers the device
+        there. Runs until cancelled; the pause between attempts doubles from
+        ``retry_initial`` up to ``retry_max`` seconds while dialling fails or
+        the connection is refused at once.
+        """
+        pause = retry_initial
+        loop = asyncio.get_running_loop()
+        while True:
+            began = loop.time()
+            try:
+                reader, writer = await asyncio.open_connection(host, port, limit=READ_SIZE)
+            except OSError as exc:
+                log.warning("cannot reach %s:%d: %s", host, port, exc)
+            else:
+                log.info("connected to %s:%d", host, port)
+                self._sessions.add(writer)
+                try:
+                    await self.serve_stream(reader, writer, f"{host}:{port}")
+                finally:
+                    self._sessions.discard(writer)
+                log.warning("connection to %s:%d ended", host, port)
+                if loop.time() - began > retry_max:
+                    pause = retry_initial  # it was up for a while: a fresh drop, not a refusal
+            await asyncio.sleep(pause)
+            pause = min(pause * 2, retry_max)
+
+    async def serve_serial(self, port: str, baudrate: int = 115200, *, reopen_delay: float = 1.0) -> None:
+        """Open the serial ``port`` (OSError if it cannot be opened) and serve it in the background.
+
+        When the port fails later (a USB adapter unplugged), it is reopened
+        every ``reopen_delay`` seconds.
+        """
+        streams = await open_serial(port, baudrate)
+        task = asyncio.create_task(self._serial_loop(port, baudrate, reopen_delay, streams))
+        self._serial_tasks.append(task)
+
+    async def _serial_loop(
+        self,
+        port: str,
+        baudrate: int,
+        reopen_delay: float,
+        streams: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None,
+    ) -> None:
+        while True:
+            if streams is None:
+                try:
+                    streams = await open_serial(port, baudrate)
+                except OSError as exc:
+                    log.warning("%s", exc)
+            if streams is not None:
+                log.info("%s: serving at %d baud", port, baudrate)
+                await self.serve_stream(*streams, peer=port)
+                log.info("%s: serial port closed", port)
+                streams = None
+            await asyncio.sleep(reopen_delay)
+
+    def serve_pty(self, *, restart_delay: float = 0.5) -> str:
+        """Create a pseudo-terminal, serve its master side in the background; return the other end's path.
+
+        That path (``/dev/pts/N``) is the serial port a client opens. The
+        server keeps it open itself, in raw mode, so that the line stays up
+        (and never echoes) while no client has it open, as a real serial
+        line does when nobody listens. A session that ends is started again
+        after ``restart_delay`` seconds.
+        """
+        master, slave, path = open_pty()
+        self._pty_fds += [master, slave]
+        self._serial_tasks.append(asyncio.create_task(self._pty_loop(master, path, restart_delay)))
+        return path
+
+    async def _pty_loop(self, master: int, path: str, restart_delay: float) -> None:
+        while True:
+            reader, writer, read_transport = await pipe_streams(master)
+            try:
+                await self.serve_stream(reader, writer, peer=path)
+            finally:
+                read_transport.close()
+                writer.close()
+            log.info("%s: session ended; serving the line again", path)
+            await asyncio.sleep(restart_delay)
+
+    async def aclose(self) -> None:
+        """Stop listening and end every session. Idempotent."""
+        for server in self._servers:
+            server.close()
+        # Closing a connection ends its session the ordinary way (the read sees EOF).
+        for writer in list(self._sessions):
+            writer.close()
+        for task in self._serial_tasks:
+            task.cancel()
+        await asyncio.gather(*self._serial_tasks, return_exceptions=True)
+        for server in self._servers:
+            try:
+                await asyncio.wait_for(server.wait_closed(), _CLOSE_WAIT)
+            except TimeoutError:
+                log.warning("a listening socket did not close within %g s", _CLOSE_WAIT)
+        self._servers.clear()
+        self._serial_tasks.clear()
+        fds, self._pty_fds = self._pty_fds, []
+        for fd in fds:
+            os.close(fd)

@@ -1,0 +1,268 @@
+"""One line-protocol connection served by one backend: the device side of docs/line-protocol.md.
+
+Requests with a tag run concurrently (bounded), untagged requests one at a
+time; events for a client that reads slowly are conflated per property in a
+bounded outbox, so memory never grows with a slow reader.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+from collections.abc import Callable, Coroutine
+from typing import Any
+
+from services.backend import Backend, Change, Subscription, close_quietly
+from services.device.outbox import Outbox
+from services.eager import Started, step
+from services.errors import Code, DeadlineExceeded, PropertyError, ResourceExhausted
+from services.line_protocol import (
+    BadLine,
+    ErrorReply,
+    Event,
+    Frame,
+    Get,
+    Gone,
+    Hello,
+    HelloRequest,
+    LineProtocolError,
+    LineReceiver,
+    Listen,
+    Ok,
+    Ping,
+    Pong,
+    Set,
+    Unlisten,
+    encode,
+)
+
+__all__ = [
+    "CALL_TIMEOUT",
+    "MAX_IN_FLIGHT",
+    "MAX_QUEUED_REPLIES",
+    "MAX_SUBSCRIPTIONS",
+    "READ_SIZE",
+    "DeviceSession",
+]
+
+log = logging.getLogger(__name__)
+
+#: Requests with a tag that one connection may have running at once; further
+#: lines are not read until one finishes (backpressure instead of memory).
+MAX_IN_FLIGHT = 32
+#: Properties one connection may listen to; each costs one outbox slot.
+MAX_SUBSCRIPTIONS = 256
+#: Replies waiting to be written before the session stops reading (a client
+#: that sends bad lines but never reads must not grow the outbox).
+MAX_QUEUED_REPLIES = 256
+#: A backend call that takes longer gets DEADLINE_EXCEEDED.
+CALL_TIMEOUT = 10.0
+#: Bytes asked of a stream per read (and the stream reader's buffer limit).
+READ_SIZE = 65536
+
+
+class DeviceSession:
+    """One line-protocol connection served by one backend."""
+
+    def __init__(
+        self,
+        backend: Backend,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        *,
+        greeting: Hello,
+        checksum: bool = False,
+        call_timeout: float = CALL_TIMEOUT,
+        peer: str = "",
+    ) -> None:
+        self.backend = backend
+        self.reader = reader
+        self.writer = writer
+        self.greeting = greeting
+        self.checksum = checksum
+        self.call_timeout = call_timeout
+        self.peer = peer or str(writer.get_extra_info("peername") or "?")
+        self._receiver = LineReceiver(max_line=greeting.max_line)
+        self._outbox = Outbox()
+        self._subscriptions: dict[str, Subscription] = {}
+        self._in_flight = asyncio.Semaphore(MAX_IN_FLIGHT)
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._step_gets = backend.answers_inline
+
+    # -- writing ---------------------------------------------------------
+
+    def _encode(self, frame: Frame) -> bytes:
+        return encode(frame, checksum=self.checksum or self._receiver.saw_checksum)
+
+    def _reply(self, frame: Frame) -> None:
+        try:
+            line = self._encode(frame)
+        except LineProtocolError as exc:
+            tag = getattr(frame, "tag", None)
+            line = self._encode(ErrorReply(int(exc.code), f"cannot send the reply: {exc.message}", tag))
+        self._outbox.reply(line)
+
+    async def _write_loop(self) -> None:
+        try:
+            while True:
+                await self._outbox.wake.wait()
+                replies, events = self._outbox.take()
+                lines = replies
+                for frame in events:
+                    try:
+                        lines.append(self._encode(frame))
+                    except LineProtocolError as exc:
+                        log.warning("%s: event not sent: %s", self.peer, exc.message)
+                self.writer.write(b"".join(lines))
+                await self.writer.drain()
+        except (ConnectionError, OSError) as exc:
+            log.info("%s: cannot write: %s", self.peer, exc)
+        finally:
+            self._outbox.room.set()
+
+    # -- reading ---------------------------------------------------------
+
+    async def run(self) -> None:
+        """Greet, then serve until the peer closes the connection."""
+        writer_task = asyncio.create_task(self._write_loop())
+        try:
+            self._reply(self.greeting)
+            while True:
+                try:
+                    data = await self.reader.read(READ_SIZE)
+                except (ConnectionError, OSError) as exc:
+                    log.info("%s: connection lost: %s", self.peer, exc)
+                    break
+                if not data:
+                    break
+                for frame in self._receiver.receive_data(data):
+                    await self._dispatch(frame)
+                while len(self._outbox.replies) >= MAX_QUEUED_REPLIES and not writer_task.done():
+                    self._outbox.room.clear()
+                    await self._outbox.room.wait()  # set by the writer when it takes replies or stops
+                if writer_task.done():
+                    break
+        finally:
+            await self._shutdown(writer_task)
+
+    async def _shutdown(self, writer_task: asyncio.Task[None]) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+        writer_task.cancel()
+        await asyncio.gather(writer_task, *self._tasks, return_exceptions=True)
+        subscriptions, self._subscriptions = list(self._subscriptions.values()), {}
+        for sub in subscriptions:
+            await close_quietly(sub)
+        try:
+            self.writer.close()
+        except OSError as exc:  # the connection is gone already
+            log.debug("%s: closing: %s", self.peer, exc)
+
+    async def _dispatch(self, frame: Frame | BadLine) -> None:
+        if isinstance(frame, BadLine):
+            log.info("%s: bad line: %s", self.peer, frame.message)
+            self._reply(ErrorReply(int(frame.code), frame.message, frame.tag))
+        elif isinstance(frame, Ping):
+            self._reply(Pong(frame.data, frame.tag))
+        elif isinstance(frame, HelloRequest):
+            self._reply(dataclasses.replace(self.greeting, tag=frame.tag))
+        elif isinstance(frame, Get | Set | Listen | Unlisten):
+            if frame.tag is None:
+                await self._answer(frame)
+                return
+            started: Started[str] | None = None
+            if type(frame) is Get and self._step_gets:
+                # An in-process service usually answers a GET without waiting:
+                # step it here and reply at once, with no task and no timer.
+                try:
+                    first = step(self.backend.get(frame.path, frame.params))
+                except Exception as exc:
+                    self._reply_failure(frame, exc)
+                    return
+                if not isinstance(first, Started):
+                    self._reply(Ok(first, frame.tag))
+                    return
+                started = first
+            await self._in_flight.acquire()
+            task = asyncio.create_task(self._answer(frame, started))
+            self._tasks.add(task)
+            task.add_done_callback(self._finished)
+        elif isinstance(frame, Pong | Hello):
+            pass  # answer to a PING of ours / a client introducing itself: nothing to do
+        else:
+            word = type(frame).__name__.upper().replace("ERRORREPLY", "ERR")
+            tag = getattr(frame, "tag", None)
+            self._reply(ErrorReply(int(Code.INVALID_ARGUMENT), f"{word} is a reply; send a request", tag))
+
+    def _finished(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        self._in_flight.release()
+
+    async def _answer(
+        self,
+        frame: Get | Set | Listen | Unlisten,
+        started: Started[str] | None = None,
+    ) -> None:
+        try:
+            async with asyncio.timeout(self.call_timeout):
+                value = await (self._call(frame) if started is None else started.rest())
+        except TimeoutError:
+            late = DeadlineExceeded(
+                f"{frame.path}: the service did not answer within {self.call_timeout:g} s"
+            )
+            self._reply(ErrorReply.from_exception(late, frame.tag))
+        except Exception as exc:
+            self._reply_failure(frame, exc)
+        else:
+            self._reply(Ok(value, frame.tag))
+
+    def _reply_failure(self, frame: Get | Set | Listen | Unlisten, exc: Exception) -> None:
+        if isinstance(exc, PropertyError):
+            self._reply(ErrorReply.from_exception(exc, frame.tag))
+            return
+        log.error("%s: service failed on %r", self.peer, frame, exc_info=exc)
+        self._reply(ErrorReply(int(Code.INTERNAL), f"{frame.path}: internal error in the service", frame.tag))
+
+    async def _call(self, frame: Get | Set | Listen | Unlisten) -> str:
+        backend = self.backend
+        if isinstance(frame, Get):
+            return await backend.get(frame.path, frame.params)
+        if isinstance(frame, Set):
+            return await backend.set(frame.path, frame.value, frame.params)
+        if isinstance(frame, Unlisten):
+            sub = self._subscriptions.pop(frame.path, None)
+            if sub is not None:
+                await sub.close()
+            return ""
+        if not self.greeting.push:
+            raise PropertyError(
+                f"{frame.path}: this device cannot push events (push=0); poll with GET", Code.UNIMPLEMENTED
+            )
+        if frame.path not in self._subscriptions:
+            if len(self._subscriptions) >= MAX_SUBSCRIPTIONS:
+                raise ResourceExhausted(f"at most {MAX_SUBSCRIPTIONS} subscriptions per connection")
+            sub = await backend.listen(frame.path, self._notifier(frame.path), frame.params)
+            if frame.path in self._subscriptions:  # a concurrent LISTEN of the same path won
+                await sub.close()
+            else:
+                self._subscriptions[frame.path] = sub
+        return await backend.get(frame.path, frame.params)
+
+    def _notifier(self, path: str) -> Callable[[Change], None]:
+        # Events are sent under the path the client listened to: that is its key.
+        def notify(change: Change) -> None:
+            if path not in self._subscriptions:
+                return
+            if change.removed:
+                self._outbox.event(Gone(path))
+                self._spawn(self._subscriptions.pop(path).close())
+            else:
+                self._outbox.event(Event(path, change.value))
+
+        return notify
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        task = asyncio.create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)

@@ -1,0 +1,55 @@
+"""The resource service: which services exist, how to reach them, whether they are alive.
+
+``services`` lists the known service names; ``services.<name>`` is the
+contact URL and ``services.<name>.type``, ``.url``, ``.state``,
+``.last_seen``, ``.misses``, ``.lease`` and ``.location`` tell more. A Listen
+on ``services`` hears every join and leave, one on ``services.*.state``
+every change of state.
+
+Served by :class:`RegistryService` (a LocalService that also takes Sets on
+``services.<name>``), the registry changes the set of services itself,
+through the :class:`~services.directory.Directory` it is given:
+
+* **Register**: Set ``services.<name>`` to ``tcp://host:port``,
+  ``serial:///dev/ttyUSB0?baudrate=115200`` or ``grpc://host:port`` (request
+  parameters: ``type`` to declare the resource type, ``lease`` in seconds).
+  The backend is created and must answer a Get of ``properties`` within
+  ``register_timeout``; otherwise nothing is registered.
+* **Unregister**: Set ``services.<name>`` to the empty value.
+* **Liveness**: every ``period`` seconds each service that is not in-process
+  is checked (``Backend.check``: a Get of ``properties``, or less for a
+  line-protocol device) under ``timeout``; after ``misses`` misses in a
+  row it is ``down``, and a registered one (not from the config) is removed
+  after ``grace`` seconds down. A service with a lease is not polled: it Sets
+  ``services.<name>.lease`` to renew it, and is ``down`` when it lapses.
+* **Search**: Get ``find`` with parameters ``type``, ``near``, ``radius``,
+  ``state``, ``limit``, ``where`` (see :mod:`services.query`).
+
+The gateway's router keeps the plain methods :meth:`Registry.add`,
+:meth:`Registry.remove` and :meth:`Registry.set_state` working as before; with
+a directory, the registry also follows joins and leaves by itself.
+
+Modules: ``urls`` (which URLs may be registered), ``entry`` (one service's
+row, its state and lease), ``table`` (the rows and the search index),
+``registration`` (register and unregister through the directory),
+``liveness`` (checks, down, removal after ``grace``), ``persistence`` (the
+registrations file), ``service`` (:class:`Registry` and
+:class:`RegistryService`). Locations are followed by
+:class:`services.location_following.LocationFollower`.
+"""
+
+from services.registry.entry import STATES, ServiceEntry, ServiceList
+from services.registry.registration import DEFAULT_REGISTER_TIMEOUT
+from services.registry.service import Registry, RegistryService
+from services.registry.urls import REGISTRABLE_SCHEMES, check_url
+
+__all__ = [
+    "DEFAULT_REGISTER_TIMEOUT",
+    "REGISTRABLE_SCHEMES",
+    "STATES",
+    "Registry",
+    "RegistryService",
+    "ServiceEntry",
+    "ServiceList",
+    "check_url",
+]

@@ -1,0 +1,213 @@
+"""Registering and unregistering services by Set: ``services.<name>`` set to a URL, or to nothing."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Callable, Mapping
+
+from services.backend import NO_PARAMS, Backend
+from services.directory import Directory
+from services.errors import (
+    AlreadyExists,
+    Code,
+    DeadlineExceeded,
+    InvalidArgument,
+    NotFound,
+    PropertyError,
+    Unavailable,
+)
+from services.paths import validate_service_name
+from services.registry.entry import parse_lease
+from services.registry.persistence import Registration
+from services.registry.table import ServiceTable
+from services.registry.urls import check_url
+
+__all__ = ["DEFAULT_REGISTER_TIMEOUT", "Registrations"]
+
+#: Seconds a Set on ``services.<name>`` waits for the device by default (the gateway passes less
+#: when its call timeout is shorter, so that the caller hears why nothing was registered).
+DEFAULT_REGISTER_TIMEOUT = 10.0
+
+_REGISTER_PARAMS = ("type", "lease")
+
+
+class Registrations:
+    """Turns registrations into backends through a :class:`Directory`, and remembers them.
+
+    ``records`` holds the registrations made by Set (name → (url, options)),
+    what the registrations file keeps; ``saved()`` is called when they change.
+    ``forget(name)`` drops a service from the registry; ``joined(name,
+    backend)`` records one that the directory now serves.
+    """
+
+    def __init__(
+        self,
+        table: ServiceTable,
+        directory: Directory | None,
+        *,
+        timeout: float,
+        forget: Callable[[str], None],
+        joined: Callable[[str, Backend], None],
+        saved: Callable[[], None],
+    ) -> None:
+        self.table = table
+        self.directory = directory
+        self.timeout = timeout
+        self.records: dict[str, Registration] = {}
+        self._forget = forget
+        self._joined = joined
+        self._saved = saved
+        self._busy: set[str] = set()  # names being registered or unregistered right now
+        self._undoing: set[asyncio.Task[None]] = set()
+
+    def busy(self, name: str) -> bool:
+        """``name`` is being registered or unregistered right now."""
+        return name in self._busy
+
+    def declared_type(self, name: str) -> str:
+        """The type the registration of ``name`` declared; empty when none (or not registered by Set)."""
+        record = self.records.get(name)
+        return record[1].get("type", "") if record else ""
+
+    def drop(self, name: str) -> None:
+        """Forget the registration record of ``name`` (it left)."""
+        if self.records.pop(name, None) is not None:
+            self._saved()
+
+    def keep(self, name: str, url: str, options: dict[str, str]) -> None:
+        """Keep a registration that could not be restored, for the next start."""
+        self.records[name] = (url, options)
+
+    def require_directory(self) -> Directory:
+        """The directory, or Unavailable when the registry has none."""
+        if self.directory is None:
+            raise Unavailable("this registry cannot change the services: it was started without a directory")
+        return self.directory
+
+    async def register(self, name: str, url: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+        """Create the backend for ``url`` and serve it as ``name``; see :meth:`Registry.register`."""
+        validate_service_name(name)
+        url = check_url(url.strip())
+        for key in params:
+            if key not in _REGISTER_PARAMS:
+                raise InvalidArgument(
+                    f"registering {name!r}: unknown parameter {key[:64]!r} "
+                    f"(known: {', '.join(_REGISTER_PARAMS)})"
+                )
+        lease = parse_lease(params["lease"]) if "lease" in params else None
+        directory = self.require_directory()
+        existing = self.table.get(name)
+        if name in self._busy:
+            raise AlreadyExists(f"{name!r} is being registered or unregistered right now")
+        if existing is not None or name in directory.names():
+            if existing is not None and existing.url == url:
+                self.table.set_state(name, "up")  # the same registration again: a sign of life
+                if lease is not None:
+                    self.table.renew(name, lease)
+                return url
+            taken_by = existing.url if existing is not None else "another service"
+            raise AlreadyExists(f"the name {name!r} is taken (by {taken_by}); unregister it first")
+        declared = params.get("type", "").strip()
+        self._busy.add(name)
+        try:
+            await self._open(directory, name, url)
+        except asyncio.CancelledError:
+            # The caller gave up first (the gateway's call timeout is shorter than
+            # register_timeout): a half-made registration must not stay behind.
+            undo = asyncio.get_running_loop().create_task(
+                self._undo(directory, name), name=f"registry: undo {name}"
+            )
+            self._undoing.add(undo)
+            undo.add_done_callback(self._undoing.discard)
+            with contextlib.suppress(asyncio.CancelledError):
+                await asyncio.shield(undo)
+            raise
+        finally:
+            self._busy.discard(name)
+        self.table.entry(name)
+        # The proxy learns the type from the device's greeting; a declared type wins.
+        self.table.set_type(name, declared or directory.backend(name).info.type)
+        if lease is not None:
+            self.table.renew(name, lease)
+        options = {"type": declared} if declared else {}
+        self.records[name] = (url, options)
+        self._saved()
+        return url
+
+    async def _open(self, directory: Directory, name: str, url: str) -> None:
+        timeout = self.timeout
+        # One deadline for creating the backend and for the device's first answer together:
+        # the gateway's call timeout is set longer than register_timeout, so the caller gets
+        # this method's clear answer rather than a bare DEADLINE_EXCEEDED.
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        try:
+            async with asyncio.timeout_at(deadline):
+                await directory.register(name, url)
+        except TimeoutError:
+            raise DeadlineExceeded(
+                f"registering {name!r}: {url} did not answer within {timeout:g} s; nothing was registered"
+            ) from None
+        except PropertyError as e:
+            if e.code in (Code.INVALID_ARGUMENT, Code.ALREADY_EXISTS):
+                raise
+            raise type(e)(f"registering {name!r}: {e.message}; nothing was registered", e.code) from None
+        # A device that is not reachable, or accepts a connection but never
+        # answers, is not registered either. A proxy connects in the
+        # background, so "not connected yet" is asked again until the deadline.
+        last: PropertyError | None = None
+        try:
+            backend = directory.backend(name)
+            # A line-protocol proxy says when the device greeted, and why not (cannot connect)
+            # when the deadline comes: outside the timeout scope, so that reason is not lost.
+            await backend.wait_connected(max(0.0, deadline - loop.time()))
+            async with asyncio.timeout_at(deadline):
+                pause = 0.02
+                while True:
+                    try:
+                        await backend.get("properties")
+                        break
+                    except PropertyError as e:
+                        if e.code is not Code.UNAVAILABLE:
+                            raise
+                        last = e
+                    await asyncio.sleep(pause)
+                    pause = min(pause * 2, 0.5)
+        except (TimeoutError, PropertyError) as e:
+            await self._undo(directory, name)
+            if isinstance(e, PropertyError):
+                last = e
+            if last is None:
+                raise DeadlineExceeded(
+                    f"registering {name!r}: {url} did not answer within {timeout:g} s; nothing was registered"
+                ) from None
+            raise type(last)(
+                f"registering {name!r}: {url} does not answer ({last.message}); nothing was registered",
+                last.code,
+            ) from None
+        if self.table.get(name) is None:  # the directory does not tell its watchers before returning
+            self._joined(name, directory.backend(name))
+
+    async def _undo(self, directory: Directory, name: str) -> None:
+        with contextlib.suppress(PropertyError):
+            await directory.unregister(name)
+        self._forget(name)
+
+    async def unregister(self, name: str) -> None:
+        """Remove service ``name`` (what a Set of ``services.<name>`` to the empty value does)."""
+        validate_service_name(name)
+        entry = self.table.entry(name)
+        if entry.is_local() or name in self._busy:
+            raise PropertyError(
+                f"{name!r} runs inside the gateway and cannot be unregistered", Code.FAILED_PRECONDITION
+            )
+        directory = self.require_directory()
+        self._busy.add(name)
+        try:
+            await directory.unregister(name)
+        except NotFound:
+            pass
+        finally:
+            self._busy.discard(name)
+        self._forget(name)

@@ -1,0 +1,300 @@
+"""The registry as a Property Service: :class:`Registry` (its properties and ``find``) and
+:class:`RegistryService` (a LocalService that also takes Sets on ``services.<name>``)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import os
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Annotated
+
+from services.backend import NO_PARAMS, Backend, BackendInfo
+from services.core import LocalService, Prop, Resource, functional
+from services.directory import Directory
+from services.errors import InvalidArgument, PropertyError, Unavailable
+from services.location_following import LocationFollower
+from services.query import Query, values_equal
+from services.registry.entry import ServiceList
+from services.registry.liveness import Liveness
+from services.registry.persistence import RegistrationsFile
+from services.registry.registration import DEFAULT_REGISTER_TIMEOUT, Registrations
+from services.registry.table import ServiceTable
+from services.values import Vector
+from services.worker_pool import run_bounded
+
+__all__ = ["Registry", "RegistryService"]
+
+log = logging.getLogger(__name__)
+
+#: Property Gets running at once for a ``find`` with ``where``.
+MAX_CONCURRENT_PROPERTY_GETS = 256
+
+
+class Registry(Resource):
+    """The resource service: who exists, how to reach them, are they alive, find them by parameters."""
+
+    resource_type = "registry"
+
+    services: ServiceList
+    period: Annotated[float, Prop(readonly=True, doc="seconds between liveness checks; 0: no checks")]
+    timeout: Annotated[float, Prop(readonly=True, doc="seconds a service gets to answer a liveness check")]
+    misses: Annotated[int, Prop(readonly=True, doc="missed checks in a row before a service is down")]
+    grace: Annotated[float, Prop(readonly=True, doc="seconds a registered service may stay down")]
+    revision: Annotated[
+        int, Prop(readonly=True, doc="counts joins, leaves and changes of type or state (Listen to follow)")
+    ]
+
+    def __init__(
+        self,
+        *,
+        directory: Directory | None = None,
+        period: float = 5.0,
+        timeout: float = 2.0,
+        misses: int = 3,
+        grace: float = 60.0,
+        register_timeout: float = DEFAULT_REGISTER_TIMEOUT,
+        static: Iterable[str] = (),
+        persist: str | os.PathLike[str] | None = None,
+    ) -> None:
+        for what, value in (("period", period), ("grace", grace)):
+            if not (math.isfinite(value) and value >= 0):
+                raise InvalidArgument(f"{what} must be zero or a positive number of seconds, got {value}")
+        for what, value in (("timeout", timeout), ("register_timeout", register_timeout)):
+            if not (math.isfinite(value) and value > 0):
+                raise InvalidArgument(f"{what} must be a positive number of seconds, got {value}")
+        if isinstance(misses, bool) or not isinstance(misses, int) or misses < 1:
+            raise InvalidArgument(f"misses must be a positive whole number, got {misses!r}")
+        self.services = ServiceList()
+        self.period = float(period)
+        self.timeout = float(timeout)
+        self.misses = misses
+        self.grace = float(grace)
+        self.revision = 0
+        self._directory = directory
+        self._table = ServiceTable(self.services, self._bump)
+        self._registrations = Registrations(
+            self._table,
+            directory,
+            timeout=float(register_timeout),
+            forget=self._forget,
+            joined=self._on_directory,
+            saved=self._save_soon,
+        )
+        self._file = (
+            RegistrationsFile(Path(persist), lambda: self._registrations.records) if persist else None
+        )
+        self._liveness = Liveness(
+            self._table,
+            directory,
+            period=self.period,
+            timeout=self.timeout,
+            misses=misses,
+            grace=self.grace,
+            static=frozenset(static),
+            busy=self._registrations.busy,
+            unregister=self.unregister,
+            answered=self._learn_type,
+        )
+        self._locations = LocationFollower(
+            self._table.set_location,
+            timeout=lambda: self.timeout,
+            retry_max=max(1.0, self.period),
+            on_answer=self._learn_type,
+            what="registry",
+        )
+        self._unwatch: Callable[[], None] | None = None
+
+    # -- the plain methods the gateway calls ------------------------------
+
+    def names(self) -> list[str]:
+        """The known service names, in the order they joined."""
+        return self._table.names()
+
+    def add(self, name: str, info: BackendInfo) -> None:
+        """Record service ``name``, or refresh it: new type and URL, state up, ``last_seen`` now."""
+        self._table.add(name, info, self.renew)
+
+    def remove(self, name: str) -> None:
+        """Forget service ``name``; NotFound if it is not known."""
+        self._table.entry(name)
+        self._forget(name)
+
+    def set_state(self, name: str, state: str) -> None:
+        """Mark ``name`` up or down; going (or staying) up also refreshes ``last_seen``."""
+        self._table.set_state(name, state)
+
+    def state_of(self, name: str) -> str:
+        """``up`` or ``down``; NotFound when ``name`` is not known."""
+        return self._table.entry(name).state
+
+    def watch_states(self, listener: Callable[[str, str], None]) -> Callable[[], None]:
+        """Call ``listener(name, state)`` on every change of state; returns a function that stops it."""
+        return self._table.watch_states(listener)
+
+    def set_location(self, name: str, location: Vector | None) -> None:
+        """Record where ``name`` is (None: nowhere); the registry also follows ``location`` itself."""
+        self._table.set_location(name, location)
+
+    def renew(self, name: str, seconds: float) -> None:
+        """Give ``name`` a lease of ``seconds`` from now (0 ends the lease: it is polled again)."""
+        self._table.renew(name, seconds)
+
+    async def register(self, name: str, url: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+        """Create the backend for ``url`` and serve it as ``name`` (what a Set on ``services.<name>`` does).
+
+        Raises InvalidArgument (bad name, URL or parameter), AlreadyExists
+        (name taken by another URL), Unavailable or DeadlineExceeded (the
+        device does not answer; nothing stays registered).
+        """
+        return await self._registrations.register(name, url, params)
+
+    async def unregister(self, name: str) -> None:
+        """Remove service ``name`` (what a Set of ``services.<name>`` to the empty value does)."""
+        await self._registrations.unregister(name)
+
+    async def check_all(self) -> None:
+        """One round of liveness checks (the loop runs it every ``period``; tests call it directly)."""
+        await self._liveness.check_all()
+
+    # -- following the directory --------------------------------------------
+
+    async def start(self) -> None:
+        directory = self._directory
+        if directory is None:
+            return
+        self._unwatch = directory.watch(self._on_directory)
+        for name in directory.names():
+            try:
+                self._on_directory(name, directory.backend(name))
+            except PropertyError:
+                continue
+        if self._file is not None:
+            await self._restore(self._file)
+        self._liveness.start()
+
+    async def stop(self) -> None:
+        if self._unwatch is not None:
+            self._unwatch()
+            self._unwatch = None
+        await self._liveness.stop()
+        if self._file is not None:
+            await self._file.flush()
+        await self._locations.aclose()
+
+    def _on_directory(self, name: str, backend: Backend | None) -> None:
+        if backend is None:
+            self._forget(name)
+            return
+        self.add(name, backend.info)
+        self._locations.follow(name, backend)
+
+    def _forget(self, name: str) -> None:
+        if not self._table.forget(name):
+            return
+        self._locations.forget(name)
+        self._registrations.drop(name)
+
+    def _bump(self) -> None:
+        self.revision += 1
+
+    def _learn_type(self, name: str, backend: Backend) -> None:
+        """Take the type a device told in its greeting, unless the registration declared one.
+
+        A proxy is served before its device greets, so the entry starts with
+        the placeholder type; the device has greeted once it has answered.
+        """
+        if not self._registrations.declared_type(name):
+            self._table.learn_type(name, backend.info.type)
+
+    # -- search --------------------------------------------------------------
+
+    @functional(doc="names of the services matching type, location, state and property values")
+    async def find(
+        self,
+        *,
+        type: str = "",
+        near: str = "",
+        radius: str = "",
+        state: str = "",
+        limit: str = "",
+        where: str = "",
+    ) -> list[str]:
+        """Find services: ``type`` (a type or a list of types), ``near`` (x y [z]) with ``radius`` metres,
+        ``state`` (up or down), ``where`` (property=value pairs joined by &), at most ``limit`` names.
+
+        Sorted nearest first when ``near`` is given, else by name.
+        """
+        given = {"type": type, "near": near, "radius": radius, "state": state, "limit": limit, "where": where}
+        query = Query.parse({k: v for k, v in given.items() if v != ""})
+        if query.near is not None:
+            # Services that joined a moment ago: their locations are on the way.
+            await self._locations.settled(self.timeout)
+        names = self._table.index.select(query)
+        if query.props:
+            names = await self._where(names, query.props)
+        if query.limit is not None:
+            names = names[: query.limit]
+        return names
+
+    async def _where(self, names: list[str], props: Mapping[str, str]) -> list[str]:
+        directory = self._directory
+        if directory is None:
+            raise Unavailable("this registry cannot ask services for their properties: it has no directory")
+        timeout = self.timeout
+        matching: set[str] = set()
+
+        async def match(name: str) -> None:
+            try:
+                backend = directory.backend(name)
+                async with asyncio.timeout(timeout):
+                    for path, expected in props.items():
+                        if not values_equal(expected, await backend.get(path)):
+                            return
+            except (PropertyError, TimeoutError):
+                return
+            matching.add(name)
+
+        await run_bounded(names, match, MAX_CONCURRENT_PROPERTY_GETS)
+        return [n for n in names if n in matching]
+
+    # -- persistence ---------------------------------------------------------
+
+    def _save_soon(self) -> None:
+        if self._file is not None:
+            self._file.save_soon()
+
+    async def _restore(self, file: RegistrationsFile) -> None:
+        async def one(name: str, url: str, options: dict[str, str]) -> None:
+            try:
+                await self.register(name, url, options)
+            except PropertyError as e:
+                log.warning("cannot restore the registration of %s at %s: %s", name, url, e.message)
+                self._registrations.keep(name, url, options)  # kept for the next start
+
+        await asyncio.gather(*(one(*item) for item in await file.load()))
+
+
+class RegistryService(LocalService):
+    """Serves a :class:`Registry`, and turns Sets on ``services.<name>`` into (un)registrations.
+
+    ``services.<name>`` is a namespace with its own value (the URL), which
+    the class wrapper treats as read-only; this is the one place it is written.
+    """
+
+    def __init__(self, registry: Registry, url: str = "local") -> None:
+        super().__init__(registry, url)
+        self.registry = registry
+
+    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+        head, dot, name = path.partition(".")
+        if head == "services" and dot and "." not in name:
+            if value.strip() == "":
+                if params:
+                    raise InvalidArgument(f"unregistering {name!r} takes no parameters")
+                await self.registry.unregister(name)
+                return ""
+            return await self.registry.register(name, value, params)
+        return await super().set(path, value, params)

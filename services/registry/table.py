@@ -1,0 +1,161 @@
+"""The registry's table: one :class:`ServiceEntry` per service, and the search index beside it."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+import numpy as np
+
+from services.backend import BackendInfo
+from services.errors import InvalidArgument, NotFound
+from services.paths import validate_service_name
+from services.query import ServiceIndex
+from services.registry.entry import STATES, ServiceEntry, ServiceList, check_lease, wall_clock
+from services.values import Vector
+
+__all__ = ["PLACEHOLDER_TYPE", "ServiceTable"]
+
+log = logging.getLogger(__name__)
+
+#: The type a backend has before its device says what it is (a proxy before the greeting).
+PLACEHOLDER_TYPE = BackendInfo().type
+
+
+class ServiceTable:
+    """The known services (the ``services`` namespace), their search index and who watches their states.
+
+    ``bump()`` is called on every join, leave and change of type or state
+    (the registry counts them in ``revision``).
+    """
+
+    def __init__(self, services: ServiceList, bump: Callable[[], None]) -> None:
+        self.services = services
+        self.index = ServiceIndex()
+        self._bump = bump
+        self._state_watchers: list[Callable[[str, str], None]] = []
+
+    # -- reading -------------------------------------------------------------
+
+    def names(self) -> list[str]:
+        """The known service names, in the order they joined."""
+        return list(self.services.children())
+
+    def get(self, name: str) -> ServiceEntry | None:
+        """The entry of ``name``, None when it is not known."""
+        entry = self.services.children().get(name)
+        return entry if isinstance(entry, ServiceEntry) else None
+
+    def entry(self, name: str) -> ServiceEntry:
+        """The entry of ``name``; NotFound when it is not known."""
+        entry = self.get(name)
+        if entry is None:
+            raise NotFound(f"no service named {name!r} in the registry")
+        return entry
+
+    def entries(self) -> list[tuple[str, ServiceEntry]]:
+        """(name, entry) of every known service, a snapshot."""
+        return [(n, e) for n, e in self.services.children().items() if isinstance(e, ServiceEntry)]
+
+    # -- changing --------------------------------------------------------------
+
+    def add(self, name: str, info: BackendInfo, renew: Callable[[str, float], None]) -> None:
+        """Record ``name``, or refresh it: new type and URL, state up, ``last_seen`` now."""
+        validate_service_name(name)
+        existing = self.get(name)
+        if existing is not None:
+            url_changed = existing.url != info.url
+            existing.type = info.type
+            existing.url = info.url
+            existing.last_seen = wall_clock()
+            self._mark(name, existing, "up")
+            self.index.set_type(name, info.type)
+            if url_changed:
+                existing.changed()
+            self._bump()
+            return
+        self.services.attach(name, ServiceEntry(name, info, renew=renew))
+        self.index.put(name, info.type, True)
+        self._bump()
+
+    def forget(self, name: str) -> bool:
+        """Drop ``name``; False when it was not known."""
+        if name not in self.services.children():
+            return False
+        self.services.detach(name)
+        self.index.remove(name)
+        self._bump()
+        return True
+
+    def set_state(self, name: str, state: str) -> None:
+        """Mark ``name`` up or down; going (or staying) up also refreshes ``last_seen``."""
+        if state not in STATES:
+            raise InvalidArgument(f"bad state {state!r}: use one of {', '.join(STATES)}")
+        entry = self.entry(name)
+        if state == "up":
+            entry.seen()
+        self._mark(name, entry, state)
+
+    def answered(self, name: str, entry: ServiceEntry) -> None:
+        """``name`` answered a check: no misses, seen now, up."""
+        entry.seen()
+        self._mark(name, entry, "up")
+
+    def missed(self, name: str, entry: ServiceEntry, *, allowed: int, lapsed: bool = False) -> None:
+        """``name`` missed a check (or its lease lapsed); down after ``allowed`` misses in a row."""
+        entry.misses = max(entry.misses, allowed) if lapsed else entry.misses + 1
+        if entry.misses >= allowed:
+            self._mark(name, entry, "down")
+
+    def renew(self, name: str, seconds: float) -> None:
+        """Give ``name`` a lease of ``seconds`` from now (0 ends the lease: it is polled again)."""
+        seconds = check_lease(seconds)
+        entry = self.entry(name)
+        entry.set_lease(seconds)
+        if seconds != 0:
+            self.answered(name, entry)
+        entry.changed("lease")
+
+    def set_type(self, name: str, kind: str) -> None:
+        """Change the type of ``name`` (known) when it differs."""
+        entry = self.entry(name)
+        if kind != entry.type:
+            entry.type = kind
+            self.index.set_type(name, kind)
+            self._bump()
+
+    def learn_type(self, name: str, kind: str) -> None:
+        """Take the type a device told, unless it is empty or the placeholder; nothing for an unknown name."""
+        if self.get(name) is not None and kind and kind != PLACEHOLDER_TYPE:
+            self.set_type(name, kind)
+
+    def set_location(self, name: str, location: Vector | None) -> None:
+        """The service's own location (None: it has none); nothing for an unknown name."""
+        entry = self.get(name)
+        if entry is None:
+            return
+        entry.location = location if location is not None else np.zeros(0)
+        self.index.set_location(name, location if location is not None and location.size >= 2 else None)
+
+    # -- watching states -------------------------------------------------------
+
+    def watch_states(self, listener: Callable[[str, str], None]) -> Callable[[], None]:
+        """Call ``listener(name, state)`` on every change of state; returns a function that stops it."""
+        self._state_watchers.append(listener)
+
+        def unwatch() -> None:
+            if listener in self._state_watchers:
+                self._state_watchers.remove(listener)
+
+        return unwatch
+
+    def _mark(self, name: str, entry: ServiceEntry, state: str) -> None:
+        if not entry.mark(state):
+            return
+        self.index.set_up(name, state == "up")
+        self._bump()
+        for listener in list(self._state_watchers):
+            try:
+                listener(name, state)
+            except Exception:
+                log.exception("a watcher of service states failed on %s -> %s", name, state)
