@@ -33,7 +33,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
-from services.device import DeviceServer, DeviceSession
+from services.device import DeviceServer
 from services.errors import AlreadyExists, InvalidArgument, PropertyError, ReadOnly
 from services.line_protocol import MAX_LINE, ErrorReply, Hello, LineReceiver, encode
 from services.paths import validate_service_name
@@ -178,15 +178,7 @@ class _ListenerServer(DeviceServer):
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str = ""
     ) -> None:
         first = _FirstLine(reader)
-        session = DeviceSession(
-            self.backend,
-            first,
-            writer,
-            greeting=self.greeting,
-            checksum=self.checksum,
-            call_timeout=self.call_timeout,
-            peer=peer,
-        )
+        session = self.session(first, writer, peer)
         run = asyncio.create_task(session.run(), name=f"line listener {peer}")
         try:
             waits: list[asyncio.Future[object]] = [run, first.device]  # type: ignore[list-item]

@@ -36,7 +36,7 @@ from typing import Annotated, Any
 import numpy as np
 
 from services.backend import Backend, Subscription, close_quietly
-from services.core import Prop, Resource, functional
+from services.core import Prop, Resource, functional, start_tree, stop_tree
 from services.core.metadata import RESERVED_NAMES
 from services.directory import Directory
 from services.errors import (
@@ -532,7 +532,7 @@ class Group(Resource):
         )
         self.subgroups.attach(name, sub)
         if self._started:
-            await sub._ps_start_tree()  # idempotent: the core starts it too, a moment later
+            await start_tree(sub)  # idempotent: the core starts it too, a moment later
         return sub.member_names()
 
     @functional(doc="remove a subgroup (its members stay in this group)")
@@ -543,7 +543,7 @@ class Group(Resource):
             raise NotFound(f"no subgroup named {name!r}")
         self.subgroups.detach(name)
         if isinstance(sub, Group):
-            await sub._ps_stop_tree()  # idempotent, as above
+            await stop_tree(sub)  # idempotent, as above
 
 
 def _member_names(members: Iterable[str]) -> list[str]:

@@ -5,11 +5,12 @@
 * :class:`Prop` — metadata in ``Annotated[T, Prop(...)]``; :func:`functional` — marks
   functional properties.
 * :class:`LocalService` — serves a Resource in-process as a ``services.backend.Backend``.
+* :func:`start_tree` / :func:`stop_tree` — run a Resource's lifecycle hooks and its children's.
 * ``RESERVED_NAMES`` — names no member or child may take (``properties``, ``parameters``, ``gui``, ``doc``).
 """
 
 from services.core.local import LocalService
 from services.core.metadata import RESERVED_NAMES, Prop, functional
-from services.core.resource import Resource
+from services.core.resource import Resource, start_tree, stop_tree
 
-__all__ = ["RESERVED_NAMES", "LocalService", "Prop", "Resource", "functional"]
+__all__ = ["RESERVED_NAMES", "LocalService", "Prop", "Resource", "functional", "start_tree", "stop_tree"]

@@ -10,7 +10,7 @@ from typing import Any
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.core.metadata import class_spec
-from services.core.resource import Resource
+from services.core.resource import Resource, start_tree, stop_tree
 from services.core.tree import NeedsAwait, RemoteTarget, Target, all_properties, remote_children, resolve
 from services.errors import PropertyError
 from services.paths import validate_path
@@ -271,7 +271,7 @@ class LocalService(Backend):
 
     async def start(self) -> None:
         """Start the object's background work, children first."""
-        await self.obj._ps_start_tree()
+        await start_tree(self.obj)
 
     async def aclose(self) -> None:
         """Stop the object and end every listen. Idempotent."""
@@ -290,4 +290,4 @@ class LocalService(Backend):
         await asyncio.gather(*self._tasks, return_exceptions=True)
         await self._sync_remote_lists()
         self._targets.clear()
-        await self.obj._ps_stop_tree()
+        await stop_tree(self.obj)

@@ -210,3 +210,13 @@ class Resource(Namespace):
 
 # A tuple, not ``Resource | Backend``: the union would be built anew on every assignment.
 _NAMESPACE_TYPES = (Resource, Backend)
+
+
+async def start_tree(obj: Resource) -> None:
+    """Start ``obj`` and its Resource children (their ``start`` hooks), children first; idempotent."""
+    await obj._ps_start_tree()
+
+
+async def stop_tree(obj: Resource) -> None:
+    """Stop ``obj`` and then its Resource children, cancelling their tasks; idempotent."""
+    await obj._ps_stop_tree()

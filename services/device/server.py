@@ -57,7 +57,11 @@ class DeviceServer:
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str = ""
     ) -> None:
         """Serve one connection until it closes."""
-        session = DeviceSession(
+        await self.session(reader, writer, peer).run()
+
+    def session(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str) -> DeviceSession:
+        """The protocol session of one connection, with this server's greeting, checksum and timeout."""
+        return DeviceSession(
             self.backend,
             reader,
             writer,
@@ -66,7 +70,6 @@ class DeviceServer:
             call_timeout=self.call_timeout,
             peer=peer,
         )
-        await session.run()
 
     async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         if len(self._sessions) >= self.max_connections:
