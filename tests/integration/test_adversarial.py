@@ -14,8 +14,8 @@ from typing import Any
 
 import grpc
 import pytest
-from dict_backend import DictBackend
 from google.protobuf.duration_pb2 import Duration
+from support.fake_backend import DictBackend
 
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection, Limits

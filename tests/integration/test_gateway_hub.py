@@ -8,8 +8,8 @@ from dataclasses import replace
 
 import grpc
 import pytest
-from dict_backend import DictBackend
 from google.protobuf.duration_pb2 import Duration
+from support.fake_backend import DictBackend
 
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection, Limits

@@ -7,7 +7,7 @@ from collections.abc import AsyncIterator
 
 import grpc
 import pytest
-from dict_backend import DictBackend
+from support.fake_backend import DictBackend
 
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection

@@ -1,4 +1,4 @@
-"""Issue 4, done-when, through a real gateway process: registry, greeting, group, a dead device.
+"""Registry, greeting, group and a dead device, through a real gateway process.
 
 A ``psgateway serve`` process with its line listener on, short liveness
 checks and a group ``swarm`` chosen by the query ``type = mobile_robot``.

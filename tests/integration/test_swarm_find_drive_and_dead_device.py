@@ -1,4 +1,4 @@
-"""Issue 4, done-when: registry and group through a real gateway, real TCP devices, the gRPC client.
+"""Registry and group through a real gateway, real TCP devices and the gRPC client: find, drive, a dead device.
 
 A gateway serves the registry and a group ``swarm`` (every mobile robot the
 registry knows). Three simulated robots run as device processes on TCP and
