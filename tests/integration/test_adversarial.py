@@ -16,6 +16,7 @@ import grpc
 import pytest
 from google.protobuf.duration_pb2 import Duration
 from support.fake_backend import DictBackend
+from support.waiting import wait_until
 
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection, Limits
@@ -87,8 +88,8 @@ async def gw(
                 pb.GetRequest(service="dev", property="b"), timeout=WAIT
             )
             assert reply.value == "2"
-        await eventually(lambda: gateway.hub.stream_count == 0 and gateway.hub.topic_count == 0)
-        await eventually(lambda: not gateway.servicer.sessions)
+        await wait_until(lambda: gateway.hub.stream_count == 0 and gateway.hub.topic_count == 0)
+        await wait_until(lambda: not gateway.servicer.sessions)
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
     assert not errors, [r.getMessage() for r in errors]
 
@@ -97,13 +98,6 @@ async def gw(
 async def stub(gw: Gateway) -> AsyncIterator[pb_grpc.PropertyServiceStub]:
     async with grpc.aio.insecure_channel(gw.address) as channel:
         yield pb_grpc.PropertyServiceStub(channel)
-
-
-async def eventually(predicate: Callable[[], bool]) -> None:
-    """Wait (bounded) for clean-up that signals nothing, e.g. a stream closing after a cancel."""
-    async with asyncio.timeout(WAIT):
-        while not predicate():  # noqa: ASYNC110 - nothing to wait on but the state itself
-            await asyncio.sleep(0.01)
 
 
 async def rpc_error(awaitable: Awaitable[Any]) -> grpc.aio.AioRpcError:
@@ -256,8 +250,8 @@ async def test_a_client_that_disappears_mid_batch_leaves_nothing(stub, gw, dev) 
         await call.write(pb.SessionRequest(requests=requests))
         await call.read()
         call.cancel()
-    await eventually(lambda: not gw.servicer.sessions and gw.hub.stream_count == 0)
-    await eventually(lambda: dev.listeners("a") == 0)
+    await wait_until(lambda: not gw.servicer.sessions and gw.hub.stream_count == 0)
+    await wait_until(lambda: dev.listeners("a") == 0)
 
 
 async def test_listens_beyond_max_streams_are_resource_exhausted_on_their_reply(stub, gw) -> None:
@@ -406,8 +400,8 @@ async def test_1000_listen_open_cancel_cycles_leak_nothing(stub, gw, dev) -> Non
         if i % 3 == 0:
             await asyncio.wait_for(call.read(), WAIT)
         call.cancel()
-    await eventually(lambda: gw.hub.stream_count == 0 and gw.hub.topic_count == 0)
-    await eventually(lambda: dev.listeners("a") == 0 and dev.listeners("b") == 0)
+    await wait_until(lambda: gw.hub.stream_count == 0 and gw.hub.topic_count == 0)
+    await wait_until(lambda: dev.listeners("a") == 0 and dev.listeners("b") == 0)
 
 
 # -- Get -------------------------------------------------------------------------------------

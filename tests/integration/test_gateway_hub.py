@@ -10,6 +10,7 @@ import grpc
 import pytest
 from google.protobuf.duration_pb2 import Duration
 from support.fake_backend import DictBackend
+from support.waiting import wait_until
 
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection, Limits
@@ -56,13 +57,6 @@ def seconds(s: float) -> Duration:
     d = Duration()
     d.FromNanoseconds(int(s * 1e9))
     return d
-
-
-async def eventually(predicate) -> None:
-    """Wait (bounded) for background clean-up that signals nothing, e.g. a subscription closing."""
-    async with asyncio.timeout(WAIT):
-        while not predicate():  # noqa: ASYNC110 - nothing to wait on but the state itself
-            await asyncio.sleep(0.01)
 
 
 async def test_current_values_then_sync_then_changes(stub, dev) -> None:
@@ -138,7 +132,7 @@ async def test_one_backend_subscription_shared_and_released(stub, dev) -> None:
         assert (await read(c)).events[0].value == "x"
     for c in calls[1:]:
         c.cancel()
-    await eventually(lambda: dev.listeners("a") == 0)
+    await wait_until(lambda: dev.listeners("a") == 0)
     assert stub.gateway.hub.topic_count == 0
     assert stub.gateway.hub.stream_count == 0
 
@@ -152,10 +146,10 @@ async def test_vanished_client_does_not_disturb_another(dev) -> None:
         await events_until_sync(a)
         await events_until_sync(b)
         await gone.close(grace=None)  # the connection goes away mid-stream
-        await eventually(lambda: gw.hub.stream_count == 1)
+        await wait_until(lambda: gw.hub.stream_count == 1)
         dev.put("a", "still here")
         assert (await read(a)).events[0].value == "still here"
-        await eventually(lambda: dev.listeners("b") == 0 and dev.listeners("properties") == 0)
+        await wait_until(lambda: dev.listeners("b") == 0 and dev.listeners("properties") == 0)
         assert dev.listeners("a") == 1
         await stay.close()
 
