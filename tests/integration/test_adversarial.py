@@ -21,10 +21,10 @@ from support.waiting import wait_until
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection, Limits
 from gateway.session import Session
+from gateway.testing import running_gateway
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.backend import NO_PARAMS
-from services.core import LocalService
 from services.simulators import SimRobot
 
 WAIT = 10.0
@@ -76,11 +76,11 @@ async def gw(
         "dev": dev,
         "count": counting,
         "slow": DictBackend({"a": "s"}, delay=0.5),
-        "bot": LocalService(SimRobot(speed=5.0)),
+        "bot": SimRobot(speed=5.0),
     }
-    cfg = Config(gateway=GatewaySection(listen="127.0.0.1:0", call_timeout=2.0), limits=LIMITS)
+    cfg = Config(gateway=GatewaySection(call_timeout=2.0), limits=LIMITS)
     caplog.set_level(logging.WARNING)
-    async with Gateway(cfg, backends=backends) as gateway:
+    async with running_gateway(backends, config=cfg) as gateway:
         yield gateway
         # The gateway is healthy after whatever the test did.
         async with grpc.aio.insecure_channel(gateway.address) as channel:

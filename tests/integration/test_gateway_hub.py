@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator
-from dataclasses import replace
 
 import grpc
 import pytest
@@ -14,6 +13,7 @@ from support.waiting import wait_until
 
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection, Limits
+from gateway.testing import running_gateway
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
@@ -21,7 +21,7 @@ WAIT = 5.0
 
 
 def config(**limits: int) -> Config:
-    return Config(gateway=GatewaySection(listen="127.0.0.1:0", call_timeout=1.0), limits=Limits(**limits))
+    return Config(gateway=GatewaySection(call_timeout=1.0), limits=Limits(**limits))
 
 
 @pytest.fixture
@@ -32,7 +32,7 @@ def dev() -> DictBackend:
 @pytest.fixture
 async def stub(dev: DictBackend) -> AsyncIterator[pb_grpc.PropertyServiceStub]:
     async with (
-        Gateway(config(), backends={"dev": dev}) as gw,
+        running_gateway(dev, name="dev", config=config()) as gw,
         grpc.aio.insecure_channel(gw.address) as channel,
     ):
         s = pb_grpc.PropertyServiceStub(channel)
@@ -138,7 +138,7 @@ async def test_one_backend_subscription_shared_and_released(stub, dev) -> None:
 
 
 async def test_vanished_client_does_not_disturb_another(dev) -> None:
-    async with Gateway(config(), backends={"dev": dev}) as gw:
+    async with running_gateway(dev, name="dev", config=config()) as gw:
         stay = grpc.aio.insecure_channel(gw.address)
         gone = grpc.aio.insecure_channel(gw.address)
         a = pb_grpc.PropertyServiceStub(stay).Listen(pb.ListenRequest(service="dev", property="a"))
@@ -263,7 +263,10 @@ async def test_interval_below_the_floor_is_invalid(stub, field) -> None:
 
 async def test_limits_are_resource_exhausted(dev) -> None:
     cfg = config(max_selectors=2, max_stream_properties=2, max_streams=1)
-    async with Gateway(cfg, backends={"dev": dev}) as gw, grpc.aio.insecure_channel(gw.address) as channel:
+    async with (
+        running_gateway(dev, name="dev", config=cfg) as gw,
+        grpc.aio.insecure_channel(gw.address) as channel,
+    ):
         stub = pb_grpc.PropertyServiceStub(channel)
         many = [pb.PropertyRef(property=p) for p in ("a", "b")]
         for request in (
@@ -318,7 +321,7 @@ async def test_bad_requests_are_invalid_argument(stub) -> None:
 async def test_slow_backend_is_deadline_exceeded(dev) -> None:
     slow = DictBackend({"a": "1"}, delay=3.0)
     async with (
-        Gateway(config(), backends={"slow": slow}) as gw,
+        running_gateway(slow, name="slow", config=config()) as gw,
         grpc.aio.insecure_channel(gw.address) as channel,
     ):
         stub = pb_grpc.PropertyServiceStub(channel)
@@ -334,7 +337,10 @@ async def test_crashing_backend_is_internal_and_logged(dev, caplog) -> None:
             raise ZeroDivisionError("oops")
 
     broken = {"broken": Broken({"a": "1"})}
-    async with Gateway(config(), backends=broken) as gw, grpc.aio.insecure_channel(gw.address) as channel:
+    async with (
+        running_gateway(broken, config=config()) as gw,
+        grpc.aio.insecure_channel(gw.address) as channel,
+    ):
         with pytest.raises(grpc.aio.AioRpcError) as err:
             await pb_grpc.PropertyServiceStub(channel).Get(pb.GetRequest(service="broken", property="a"))
     assert err.value.code() == grpc.StatusCode.INTERNAL
@@ -342,9 +348,10 @@ async def test_crashing_backend_is_internal_and_logged(dev, caplog) -> None:
 
 
 async def test_shutdown_ends_listen_streams_with_ok(dev) -> None:
-    gw = Gateway(replace(config()), backends={"dev": dev})
-    await gw.start()
-    async with grpc.aio.insecure_channel(gw.address) as channel:
+    async with (
+        running_gateway(dev, name="dev", config=config()) as gw,
+        grpc.aio.insecure_channel(gw.address) as channel,
+    ):
         call = pb_grpc.PropertyServiceStub(channel).Listen(pb.ListenRequest(service="dev", property="a"))
         await events_until_sync(call)
         await gw.stop()

@@ -11,9 +11,9 @@ from support.fake_backend import DictBackend
 
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection
+from gateway.testing import running_gateway
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.core import LocalService
 from services.simulators import SimRobot
 
 WAIT = 5.0
@@ -24,10 +24,10 @@ async def gateway() -> AsyncIterator[Gateway]:
     backends = {
         "dev": DictBackend({"a": "1", "b": "2", "ro": "x"}, readonly=("ro",)),
         "slow": DictBackend({"a": "s"}, delay=0.2),
-        "bot": LocalService(SimRobot(speed=50.0)),
+        "bot": SimRobot(speed=50.0),
     }
-    cfg = Config(gateway=GatewaySection(listen="127.0.0.1:0", call_timeout=2.0))
-    async with Gateway(cfg, backends=backends) as gw:
+    cfg = Config(gateway=GatewaySection(call_timeout=2.0))
+    async with running_gateway(backends, config=cfg) as gw:
         yield gw
 
 
