@@ -4,32 +4,19 @@ from __future__ import annotations
 
 import asyncio
 from pathlib import Path
-from typing import Annotated
 
 import grpc
 import pytest
 from support.fake_backend import DictBackend
+from support.lamp import Lamp
 
 from clients import Event, FailedPrecondition, NotFound, ResourceExhausted
 from gateway.config import Config, Limits
 from gateway.testing import running_gateway, serve, serve_sync
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.core import Prop, Resource, functional
 
 WAIT = 10.0
-
-
-class Lamp(Resource):
-    """The README's example of a user's own service."""
-
-    resource_type = "light"
-    on: bool = False
-    watts: Annotated[float, Prop(readonly=True)] = 0.0
-
-    @functional
-    def blink(self, times: int, *, period: float = 0.5) -> str:
-        return f"blinking {times} times every {period} s"
 
 
 def socket_of(target: str) -> Path:
