@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable
 from typing import Any
 
 import grpc
 import pytest
 from google.protobuf.duration_pb2 import Duration
 from support.fake_backend import DictBackend
+from support.session_stream import replies_until
 from support.waiting import wait_until
 
 from gateway.app import Gateway
@@ -112,16 +113,6 @@ def get(rid: int, service: str = "dev", prop: str = "a") -> pb.Request:
 
 def listen(rid: int, service: str = "dev", prop: str = "a") -> pb.Request:
     return pb.Request(id=rid, listen=pb.ListenRequest(service=service, property=prop))
-
-
-async def replies_until(call: Any, done: Callable[[list[pb.Reply]], bool]) -> list[pb.Reply]:
-    out: list[pb.Reply] = []
-    async with asyncio.timeout(WAIT):
-        while not done(out):
-            msg = await call.read()
-            assert msg is not grpc.aio.EOF, f"stream ended early after {out[-5:]}"
-            out.extend(msg.replies)
-    return out
 
 
 async def read_to_end(call: Any) -> list[pb.Reply]:

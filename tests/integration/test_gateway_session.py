@@ -8,6 +8,7 @@ from collections.abc import AsyncIterator
 import grpc
 import pytest
 from support.fake_backend import DictBackend
+from support.session_stream import replies_until
 
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection
@@ -41,17 +42,6 @@ async def session(gateway: Gateway) -> AsyncIterator[grpc.aio.StreamStreamCall]:
 
 def get(rid: int, service: str, prop: str) -> pb.Request:
     return pb.Request(id=rid, get=pb.GetRequest(service=service, property=prop))
-
-
-async def replies_until(call: grpc.aio.StreamStreamCall, done) -> list[pb.Reply]:
-    """Read replies until ``done(all_replies_so_far)`` is true."""
-    out: list[pb.Reply] = []
-    async with asyncio.timeout(WAIT):
-        while not done(out):
-            msg = await call.read()
-            assert msg is not grpc.aio.EOF, f"stream ended early after {out}"
-            out.extend(msg.replies)
-    return out
 
 
 def by_id(replies: list[pb.Reply]) -> dict[int, list[pb.Reply]]:
