@@ -72,7 +72,7 @@ class Gateway:
         self.registry: Registry = Registry()
         self._devices: list[DeviceProcess] = []
         self._launch: asyncio.Future[list[DeviceProcess | BaseException]] | None = None
-        #: "host:port" the gRPC server listens on (the real port when 0 was asked).
+        #: "host:port" the gRPC server listens on (the real port when 0 was asked), or "unix:PATH".
         self.address = ""
         #: "host:port" of the line-protocol listener (the real port when 0 was asked); "" when off.
         self.line_address = ""
@@ -247,7 +247,8 @@ class Gateway:
 
             raise Unavailable(f"cannot listen on {listen}")
         host = listen.rpartition(":")[0]
-        self.address = f"{host}:{port}"
+        # A unix-domain socket ("unix:PATH", how gateway.testing serves) has no port to fill in.
+        self.address = listen if listen.startswith("unix:") else f"{host}:{port}"
         return server
 
     async def stop(self, grace: float | None = None) -> None:

@@ -9,21 +9,23 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable
 from typing import Any
 
 import grpc
 import pytest
-from dict_backend import DictBackend
 from google.protobuf.duration_pb2 import Duration
+from support.fake_backend import DictBackend
+from support.session_stream import replies_until
+from support.waiting import wait_until
 
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection, Limits
 from gateway.session import Session
+from gateway.testing import running_gateway
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.backend import NO_PARAMS
-from services.core import LocalService
 from services.simulators import SimRobot
 
 WAIT = 10.0
@@ -75,11 +77,11 @@ async def gw(
         "dev": dev,
         "count": counting,
         "slow": DictBackend({"a": "s"}, delay=0.5),
-        "bot": LocalService(SimRobot(speed=5.0)),
+        "bot": SimRobot(speed=5.0),
     }
-    cfg = Config(gateway=GatewaySection(listen="127.0.0.1:0", call_timeout=2.0), limits=LIMITS)
+    cfg = Config(gateway=GatewaySection(call_timeout=2.0), limits=LIMITS)
     caplog.set_level(logging.WARNING)
-    async with Gateway(cfg, backends=backends) as gateway:
+    async with running_gateway(backends, config=cfg) as gateway:
         yield gateway
         # The gateway is healthy after whatever the test did.
         async with grpc.aio.insecure_channel(gateway.address) as channel:
@@ -87,8 +89,8 @@ async def gw(
                 pb.GetRequest(service="dev", property="b"), timeout=WAIT
             )
             assert reply.value == "2"
-        await eventually(lambda: gateway.hub.stream_count == 0 and gateway.hub.topic_count == 0)
-        await eventually(lambda: not gateway.servicer.sessions)
+        await wait_until(lambda: gateway.hub.stream_count == 0 and gateway.hub.topic_count == 0)
+        await wait_until(lambda: not gateway.servicer.sessions)
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
     assert not errors, [r.getMessage() for r in errors]
 
@@ -97,13 +99,6 @@ async def gw(
 async def stub(gw: Gateway) -> AsyncIterator[pb_grpc.PropertyServiceStub]:
     async with grpc.aio.insecure_channel(gw.address) as channel:
         yield pb_grpc.PropertyServiceStub(channel)
-
-
-async def eventually(predicate: Callable[[], bool]) -> None:
-    """Wait (bounded) for clean-up that signals nothing, e.g. a stream closing after a cancel."""
-    async with asyncio.timeout(WAIT):
-        while not predicate():  # noqa: ASYNC110 - nothing to wait on but the state itself
-            await asyncio.sleep(0.01)
 
 
 async def rpc_error(awaitable: Awaitable[Any]) -> grpc.aio.AioRpcError:
@@ -118,16 +113,6 @@ def get(rid: int, service: str = "dev", prop: str = "a") -> pb.Request:
 
 def listen(rid: int, service: str = "dev", prop: str = "a") -> pb.Request:
     return pb.Request(id=rid, listen=pb.ListenRequest(service=service, property=prop))
-
-
-async def replies_until(call: Any, done: Callable[[list[pb.Reply]], bool]) -> list[pb.Reply]:
-    out: list[pb.Reply] = []
-    async with asyncio.timeout(WAIT):
-        while not done(out):
-            msg = await call.read()
-            assert msg is not grpc.aio.EOF, f"stream ended early after {out[-5:]}"
-            out.extend(msg.replies)
-    return out
 
 
 async def read_to_end(call: Any) -> list[pb.Reply]:
@@ -256,8 +241,8 @@ async def test_a_client_that_disappears_mid_batch_leaves_nothing(stub, gw, dev) 
         await call.write(pb.SessionRequest(requests=requests))
         await call.read()
         call.cancel()
-    await eventually(lambda: not gw.servicer.sessions and gw.hub.stream_count == 0)
-    await eventually(lambda: dev.listeners("a") == 0)
+    await wait_until(lambda: not gw.servicer.sessions and gw.hub.stream_count == 0)
+    await wait_until(lambda: dev.listeners("a") == 0)
 
 
 async def test_listens_beyond_max_streams_are_resource_exhausted_on_their_reply(stub, gw) -> None:
@@ -406,8 +391,8 @@ async def test_1000_listen_open_cancel_cycles_leak_nothing(stub, gw, dev) -> Non
         if i % 3 == 0:
             await asyncio.wait_for(call.read(), WAIT)
         call.cancel()
-    await eventually(lambda: gw.hub.stream_count == 0 and gw.hub.topic_count == 0)
-    await eventually(lambda: dev.listeners("a") == 0 and dev.listeners("b") == 0)
+    await wait_until(lambda: gw.hub.stream_count == 0 and gw.hub.topic_count == 0)
+    await wait_until(lambda: dev.listeners("a") == 0 and dev.listeners("b") == 0)
 
 
 # -- Get -------------------------------------------------------------------------------------

@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 from typing import Any
 
 import pytest
+from support.ports import free_port
 
 PSCTL = [sys.executable, "-m", "clients.cli"]
 
@@ -168,9 +168,7 @@ def test_errors_are_one_line_with_exit_codes(demo_target: str) -> None:
 
 
 def test_unreachable_gateway_is_clear() -> None:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
+    port = free_port()
     done = psctl(f"127.0.0.1:{port}", "ls")
     assert done.returncode == 3
     assert done.stderr.startswith(f"error: UNAVAILABLE: cannot reach the gateway at 127.0.0.1:{port}")

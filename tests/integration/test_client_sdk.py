@@ -5,12 +5,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
-import socket
 from collections.abc import AsyncIterator
 from typing import Any
 
 import numpy as np
 import pytest
+from support.ports import free_port
 
 from clients import (
     HEARTBEAT,
@@ -206,15 +206,8 @@ def test_sync_client(demo_target: str) -> None:
                 s.get("scoutX", "speed")
 
 
-def _closed_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
-
-
 async def test_unreachable_gateway() -> None:
-    target = f"127.0.0.1:{_closed_port()}"
+    target = f"127.0.0.1:{free_port()}"
     async with AsyncClient(target, timeout=5) as c:
         with pytest.raises(GatewayUnreachable, match="cannot reach the gateway"):
             await c.get("scout1", "location")

@@ -2,18 +2,15 @@
 
 from __future__ import annotations
 
-import socket
-
 import pytest
+from support.ports import free_port
 
 from clients import AsyncClient, Client, GatewayUnreachable
 
 
 def closed_target() -> str:
     """host:port of a loopback port nobody listens on (bound, then released)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"127.0.0.1:{s.getsockname()[1]}"
+    return f"127.0.0.1:{free_port()}"
 
 
 async def test_async_calls_and_session_calls_are_gateway_unreachable() -> None:

@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import os
 import re
 import sys
 from asyncio.subprocess import PIPE
 
 from line_device_support import LineClient, device_process, pty_client, pty_pair, tcp_device
+from support.fake_backend import DictBackend
 
-from services.backend import Backend, BackendInfo, Change, Notify, Subscription
 from services.device import DeviceServer
-from services.errors import NotFound
 from services.line_protocol import Get, crc8, encode
 
 
@@ -148,41 +146,8 @@ async def test_device_on_its_own_pty_ends_with_its_stdin() -> None:
             await proc.wait()
 
 
-class _Counter(Backend):
-    """A backend whose one property changes as fast as the test makes it."""
-
-    def __init__(self) -> None:
-        self.info = BackendInfo(type="counter")
-        self.value = "0"
-        self.listeners: list[Notify] = []
-
-    async def get(self, path: str, params: object = None) -> str:  # type: ignore[override]
-        if path != "n":
-            raise NotFound(path)
-        return self.value
-
-    async def set(self, path: str, value: str, params: object = None) -> str:  # type: ignore[override]
-        raise NotFound(path)
-
-    async def listen(self, path: str, notify: Notify, params: object = None) -> Subscription:  # type: ignore[override]
-        self.listeners.append(notify)
-        backend = self
-
-        class _Sub(Subscription):
-            async def close(self) -> None:
-                with contextlib.suppress(ValueError):
-                    backend.listeners.remove(notify)
-
-        return _Sub()
-
-    def bump(self, value: str) -> None:
-        self.value = value
-        for notify in list(self.listeners):
-            notify(Change("n", value))
-
-
 async def test_slow_reader_gets_conflated_events_and_the_latest_value() -> None:
-    backend = _Counter()
+    backend = DictBackend({"n": "0"}, type="counter")
     server = DeviceServer(backend, name="counter")
     host, port = await server.serve_tcp("127.0.0.1", 0)
     try:
@@ -193,7 +158,7 @@ async def test_slow_reader_gets_conflated_events_and_the_latest_value() -> None:
         emitted = 5000
         pad = "x" * 900
         for i in range(1, emitted + 1):
-            backend.bump(f"{i} {pad}")
+            backend.put("n", f"{i} {pad}")
             if i % 500 == 0:
                 await asyncio.sleep(0)  # let the writer run; the reader (this test) does not read yet
         received = []

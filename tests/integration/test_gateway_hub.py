@@ -4,15 +4,16 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator
-from dataclasses import replace
 
 import grpc
 import pytest
-from dict_backend import DictBackend
 from google.protobuf.duration_pb2 import Duration
+from support.fake_backend import DictBackend
+from support.waiting import wait_until
 
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection, Limits
+from gateway.testing import running_gateway
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
@@ -20,7 +21,7 @@ WAIT = 5.0
 
 
 def config(**limits: int) -> Config:
-    return Config(gateway=GatewaySection(listen="127.0.0.1:0", call_timeout=1.0), limits=Limits(**limits))
+    return Config(gateway=GatewaySection(call_timeout=1.0), limits=Limits(**limits))
 
 
 @pytest.fixture
@@ -31,7 +32,7 @@ def dev() -> DictBackend:
 @pytest.fixture
 async def stub(dev: DictBackend) -> AsyncIterator[pb_grpc.PropertyServiceStub]:
     async with (
-        Gateway(config(), backends={"dev": dev}) as gw,
+        running_gateway(dev, name="dev", config=config()) as gw,
         grpc.aio.insecure_channel(gw.address) as channel,
     ):
         s = pb_grpc.PropertyServiceStub(channel)
@@ -56,13 +57,6 @@ def seconds(s: float) -> Duration:
     d = Duration()
     d.FromNanoseconds(int(s * 1e9))
     return d
-
-
-async def eventually(predicate) -> None:
-    """Wait (bounded) for background clean-up that signals nothing, e.g. a subscription closing."""
-    async with asyncio.timeout(WAIT):
-        while not predicate():  # noqa: ASYNC110 - nothing to wait on but the state itself
-            await asyncio.sleep(0.01)
 
 
 async def test_current_values_then_sync_then_changes(stub, dev) -> None:
@@ -138,13 +132,13 @@ async def test_one_backend_subscription_shared_and_released(stub, dev) -> None:
         assert (await read(c)).events[0].value == "x"
     for c in calls[1:]:
         c.cancel()
-    await eventually(lambda: dev.listeners("a") == 0)
+    await wait_until(lambda: dev.listeners("a") == 0)
     assert stub.gateway.hub.topic_count == 0
     assert stub.gateway.hub.stream_count == 0
 
 
 async def test_vanished_client_does_not_disturb_another(dev) -> None:
-    async with Gateway(config(), backends={"dev": dev}) as gw:
+    async with running_gateway(dev, name="dev", config=config()) as gw:
         stay = grpc.aio.insecure_channel(gw.address)
         gone = grpc.aio.insecure_channel(gw.address)
         a = pb_grpc.PropertyServiceStub(stay).Listen(pb.ListenRequest(service="dev", property="a"))
@@ -152,10 +146,10 @@ async def test_vanished_client_does_not_disturb_another(dev) -> None:
         await events_until_sync(a)
         await events_until_sync(b)
         await gone.close(grace=None)  # the connection goes away mid-stream
-        await eventually(lambda: gw.hub.stream_count == 1)
+        await wait_until(lambda: gw.hub.stream_count == 1)
         dev.put("a", "still here")
         assert (await read(a)).events[0].value == "still here"
-        await eventually(lambda: dev.listeners("b") == 0 and dev.listeners("properties") == 0)
+        await wait_until(lambda: dev.listeners("b") == 0 and dev.listeners("properties") == 0)
         assert dev.listeners("a") == 1
         await stay.close()
 
@@ -269,7 +263,10 @@ async def test_interval_below_the_floor_is_invalid(stub, field) -> None:
 
 async def test_limits_are_resource_exhausted(dev) -> None:
     cfg = config(max_selectors=2, max_stream_properties=2, max_streams=1)
-    async with Gateway(cfg, backends={"dev": dev}) as gw, grpc.aio.insecure_channel(gw.address) as channel:
+    async with (
+        running_gateway(dev, name="dev", config=cfg) as gw,
+        grpc.aio.insecure_channel(gw.address) as channel,
+    ):
         stub = pb_grpc.PropertyServiceStub(channel)
         many = [pb.PropertyRef(property=p) for p in ("a", "b")]
         for request in (
@@ -324,7 +321,7 @@ async def test_bad_requests_are_invalid_argument(stub) -> None:
 async def test_slow_backend_is_deadline_exceeded(dev) -> None:
     slow = DictBackend({"a": "1"}, delay=3.0)
     async with (
-        Gateway(config(), backends={"slow": slow}) as gw,
+        running_gateway(slow, name="slow", config=config()) as gw,
         grpc.aio.insecure_channel(gw.address) as channel,
     ):
         stub = pb_grpc.PropertyServiceStub(channel)
@@ -340,7 +337,10 @@ async def test_crashing_backend_is_internal_and_logged(dev, caplog) -> None:
             raise ZeroDivisionError("oops")
 
     broken = {"broken": Broken({"a": "1"})}
-    async with Gateway(config(), backends=broken) as gw, grpc.aio.insecure_channel(gw.address) as channel:
+    async with (
+        running_gateway(broken, config=config()) as gw,
+        grpc.aio.insecure_channel(gw.address) as channel,
+    ):
         with pytest.raises(grpc.aio.AioRpcError) as err:
             await pb_grpc.PropertyServiceStub(channel).Get(pb.GetRequest(service="broken", property="a"))
     assert err.value.code() == grpc.StatusCode.INTERNAL
@@ -348,9 +348,10 @@ async def test_crashing_backend_is_internal_and_logged(dev, caplog) -> None:
 
 
 async def test_shutdown_ends_listen_streams_with_ok(dev) -> None:
-    gw = Gateway(replace(config()), backends={"dev": dev})
-    await gw.start()
-    async with grpc.aio.insecure_channel(gw.address) as channel:
+    async with (
+        running_gateway(dev, name="dev", config=config()) as gw,
+        grpc.aio.insecure_channel(gw.address) as channel,
+    ):
         call = pb_grpc.PropertyServiceStub(channel).Listen(pb.ListenRequest(service="dev", property="a"))
         await events_until_sync(call)
         await gw.stop()

@@ -7,13 +7,14 @@ from collections.abc import AsyncIterator
 
 import grpc
 import pytest
-from dict_backend import DictBackend
+from support.fake_backend import DictBackend
+from support.session_stream import replies_until
 
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection
+from gateway.testing import running_gateway
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.core import LocalService
 from services.simulators import SimRobot
 
 WAIT = 5.0
@@ -24,10 +25,10 @@ async def gateway() -> AsyncIterator[Gateway]:
     backends = {
         "dev": DictBackend({"a": "1", "b": "2", "ro": "x"}, readonly=("ro",)),
         "slow": DictBackend({"a": "s"}, delay=0.2),
-        "bot": LocalService(SimRobot(speed=50.0)),
+        "bot": SimRobot(speed=50.0),
     }
-    cfg = Config(gateway=GatewaySection(listen="127.0.0.1:0", call_timeout=2.0))
-    async with Gateway(cfg, backends=backends) as gw:
+    cfg = Config(gateway=GatewaySection(call_timeout=2.0))
+    async with running_gateway(backends, config=cfg) as gw:
         yield gw
 
 
@@ -41,17 +42,6 @@ async def session(gateway: Gateway) -> AsyncIterator[grpc.aio.StreamStreamCall]:
 
 def get(rid: int, service: str, prop: str) -> pb.Request:
     return pb.Request(id=rid, get=pb.GetRequest(service=service, property=prop))
-
-
-async def replies_until(call: grpc.aio.StreamStreamCall, done) -> list[pb.Reply]:
-    """Read replies until ``done(all_replies_so_far)`` is true."""
-    out: list[pb.Reply] = []
-    async with asyncio.timeout(WAIT):
-        while not done(out):
-            msg = await call.read()
-            assert msg is not grpc.aio.EOF, f"stream ended early after {out}"
-            out.extend(msg.replies)
-    return out
 
 
 def by_id(replies: list[pb.Reply]) -> dict[int, list[pb.Reply]]:

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import asyncio
-import socket
 
 import grpc
 from line_device_support import LineClient, tcp_device
+from support.ports import free_port
 
 from gateway.line_listener import LineListener
 from gateway.router import Router
@@ -50,14 +50,8 @@ async def test_a_microcontroller_reaches_every_service_through_the_listener() ->
         await bot.aclose()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 async def test_real_gateway_proxies_a_tcp_device_and_speaks_lines(gateway_process) -> None:  # type: ignore[no-untyped-def]
-    line_port = _free_port()
+    line_port = free_port()
     with tcp_device("--service", "sim-robot", "--name", "wifi-bot") as (host, port):
         gw = gateway_process(f"""
             [gateway]

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import asyncio
 import math
-import socket
 from collections.abc import AsyncIterator, Awaitable
 from contextlib import asynccontextmanager
 from typing import Any
 
 import pytest
+from support.ports import free_port
+from support.waiting import eventually
 
 from clients import errors as client_errors
 from clients.aio import SYNC, AsyncClient, Event, Mark
@@ -37,12 +38,6 @@ name = "scout2"
 type = "sim-robot"
 options = { start = [1.0, 0.0] }
 """
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 async def expect_error(code: Code, call: Awaitable[object]) -> PropertyError:
@@ -187,14 +182,8 @@ async def next_event(queue: asyncio.Queue[Event | Mark], within: float = 10.0) -
                 return item
 
 
-async def eventually(call: Any, within: float = 10.0) -> Any:
-    """The first answer of ``call()`` that is not UNAVAILABLE (the registry marks a service up again)."""
-    async with asyncio.timeout(within):
-        while True:
-            try:
-                return await call()
-            except client_errors.Unavailable:
-                await asyncio.sleep(0.1)
+#: The registry marks a service up again: until then its calls are UNAVAILABLE.
+UNAVAILABLE = (client_errors.Unavailable,)
 
 
 async def test_federation_between_two_gateway_processes(gateway_process: Any) -> None:
@@ -220,7 +209,10 @@ async def test_federation_between_two_gateway_processes(gateway_process: Any) ->
         assert await client.get("far1", "location") == await direct.get("scout1", "location")
         with pytest.raises(client_errors.NotFound, match=f"scout1 on gateway 127.0.0.1:{port}: .*nope"):
             await client.get("far1", "nope")
-        assert await eventually(lambda: client.get("registry", "services.far1.type")) == "mobile_robot"
+        assert (
+            await eventually(lambda: client.get("registry", "services.far1.type"), retry_on=UNAVAILABLE)
+            == "mobile_robot"
+        )
 
         listener = asyncio.create_task(listen_into(client, events, "far1", "location"))
         try:
@@ -250,7 +242,7 @@ async def test_federation_between_two_gateway_processes(gateway_process: Any) ->
             assert gap.gap and not gap.removed
             assert xy(gap.value) == (0, 0)
             assert gap.value == await direct.get("scout1", "location")
-            assert await eventually(lambda: client.get("far1", "location")) == gap.value
+            assert await eventually(lambda: client.get("far1", "location"), retry_on=UNAVAILABLE) == gap.value
             await client.set("far1", "behaviors.moveto", "<marker><location>(0 3)</location></marker>")
             while xy((await next_event(events)).value) != (0, 3):
                 pass

@@ -6,13 +6,13 @@ import asyncio
 import logging
 import os
 import signal
-import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 
 import pytest
 from line_device_support import device_process, tcp_device
 from support.group_support import MemoryDirectory
+from support.ports import free_port
 
 from gateway.proxies import TcpProxy, open_tcp_backend
 from services.backend import Change
@@ -44,12 +44,6 @@ async def expect_error(code: Code, call: Awaitable[object]) -> PropertyError:
         await call
     assert info.value.code == code, info.value
     return info.value
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 async def test_get_set_errors_and_pipelining_through_a_real_device() -> None:

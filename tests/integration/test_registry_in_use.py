@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import socket
 from collections.abc import Callable
 from typing import Any
 
@@ -12,6 +11,8 @@ import grpc
 import pytest
 from line_device_support import tcp_device
 from support.gateway_process import GatewayProcess, StartGateway
+from support.ports import free_port
+from support.waiting import eventually
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -24,22 +25,11 @@ async def get(stub: pb_grpc.PropertyServiceStub, service: str, prop: str) -> str
     return str(reply.value)
 
 
-async def eventually(stub: pb_grpc.PropertyServiceStub, service: str, prop: str, want: str) -> str:
-    """The value of ``service``/``prop`` once it equals ``want``, or the last one after WAIT seconds."""
-    value = ""
-    for _ in range(int(WAIT / 0.1)):
-        value = await get(stub, service, prop)
-        if value == want:
-            break
-        await asyncio.sleep(0.1)
-    return value
-
-
-def closed_port() -> int:
-    """A loopback port nobody listens on (bound, then released)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+async def value_becomes(stub: pb_grpc.PropertyServiceStub, service: str, prop: str, want: str) -> str:
+    """The value of ``service``/``prop`` once it equals ``want``; fails after WAIT seconds."""
+    return await eventually(
+        lambda: get(stub, service, prop), lambda v: v == want, within=WAIT, what=f"{service} {prop}"
+    )
 
 
 async def test_demo_devices_are_mobile_robots_in_the_swarm(demo_gateway: GatewayProcess) -> None:
@@ -47,10 +37,10 @@ async def test_demo_devices_are_mobile_robots_in_the_swarm(demo_gateway: Gateway
         stub = pb_grpc.PropertyServiceStub(channel)
         # The rovers greet with type=mobile_robot; the registry learns it from the greeting.
         for rover in ("rover1", "rover2"):
-            assert await eventually(stub, "registry", f"services.{rover}.type", "mobile_robot") == (
+            assert await value_becomes(stub, "registry", f"services.{rover}.type", "mobile_robot") == (
                 "mobile_robot"
             )
-        robots = await eventually(stub, "swarm", "robots", "(scout1 scout2 rover1 rover2)")
+        robots = await value_becomes(stub, "swarm", "robots", "(scout1 scout2 rover1 rover2)")
         assert sorted(robots.strip("()").split()) == ["rover1", "rover2", "scout1", "scout2"]
         reply = await stub.Get(
             pb.GetRequest(service="registry", property="find", parameters={"type": "mobile_robot"}),
@@ -70,7 +60,7 @@ async def test_registering_a_dead_url_past_the_call_timeout_leaves_nothing(
         call_timeout = 1.0
         """
     )
-    url = f"tcp://127.0.0.1:{closed_port()}"
+    url = f"tcp://127.0.0.1:{free_port()}"
     async with grpc.aio.insecure_channel(gw.address) as channel:
         stub = pb_grpc.PropertyServiceStub(channel)
         with pytest.raises(grpc.aio.AioRpcError) as failed:
@@ -96,7 +86,7 @@ async def test_registering_a_dead_url_answers_unavailable_before_the_call_timeou
         call_timeout = 1.5
         """
     )
-    url = f"tcp://127.0.0.1:{closed_port()}"
+    url = f"tcp://127.0.0.1:{free_port()}"
     async with grpc.aio.insecure_channel(gw.address) as channel:
         stub = pb_grpc.PropertyServiceStub(channel)
         with pytest.raises(grpc.aio.AioRpcError) as failed:
@@ -117,7 +107,7 @@ async def test_a_wildcard_listen_hears_a_member_leave_once(demo_gateway: Gateway
             await stub.Set(
                 pb.SetRequest(service="registry", property="services.scout7", value=url), timeout=WAIT
             )
-            await eventually(stub, "swarm", "robots", "(scout1 scout2 rover1 rover2 scout7)")
+            await value_becomes(stub, "swarm", "robots", "(scout1 scout2 rover1 rover2 scout7)")
             call = stub.Listen(pb.ListenRequest(service="swarm", property="robots.*.location"))
             try:
                 async with asyncio.timeout(WAIT):
@@ -217,7 +207,7 @@ async def test_a_gateway_with_query_groups_shuts_down_quietly(gateway_process: S
     )
     async with grpc.aio.insecure_channel(gw.address) as channel:
         stub = pb_grpc.PropertyServiceStub(channel)
-        assert await eventually(stub, "swarm", "robots", "(scout1)") == "(scout1)"
+        assert await value_becomes(stub, "swarm", "robots", "(scout1)") == "(scout1)"
     assert gw.stop() == 0
     noisy = [line for line in gw.output.splitlines() if "WARNING" in line or "ERROR" in line]
     assert noisy == [], gw.output

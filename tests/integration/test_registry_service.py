@@ -10,7 +10,14 @@ from typing import Any
 
 import numpy as np
 import pytest
-from support.group_support import DeadBackend, MemoryDirectory, SilentBackend, Switchable, sim_robot, wait_for
+from support.group_support import (
+    MemoryDirectory,
+    Switchable,
+    mute_robot,
+    sim_robot,
+    unreachable_robot,
+    wait_for,
+)
 
 from services.backend import Change
 from services.core import LocalService
@@ -36,7 +43,7 @@ async def world() -> AsyncIterator[MemoryDirectory]:
     directory.devices["serial:///dev/ttyUSB0?baudrate=115200"] = lambda: LocalService(
         SimSensor(location=(5, 6))
     )
-    directory.devices["tcp://127.0.0.1:7009"] = SilentBackend
+    directory.devices["tcp://127.0.0.1:7009"] = mute_robot
     yield directory
     await directory.aclose()
 
@@ -143,7 +150,7 @@ async def test_liveness_marks_down_then_removes_after_grace(world: MemoryDirecto
 
 
 async def test_configured_services_go_down_but_stay(world: MemoryDirectory) -> None:
-    dead = DeadBackend("tcp://127.0.0.1:7200")
+    dead = unreachable_robot("tcp://127.0.0.1:7200")
     await world.add("door", dead)
     registry, svc = await start_registry(world, period=0, misses=1, grace=0, static=["door"])
     watched: list[tuple[str, str]] = []

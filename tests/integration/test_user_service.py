@@ -15,19 +15,8 @@ from support.gateway_process import ROOT, GatewayProcess
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
-LAMP = """
-from typing import Annotated
-from services.core import Prop, Resource, functional
-
-class Lamp(Resource):
-    resource_type = "light"
-    on: bool = False
-    watts: Annotated[float, Prop(readonly=True)] = 0.0
-
-    @functional
-    def blink(self, times: int, *, period: float = 0.5) -> str:
-        return f"blinking {times} times every {period} s"
-"""
+#: The class, as a module of the user's own outside the project.
+LAMP = (ROOT / "tests" / "support" / "lamp.py").read_text(encoding="utf-8")
 
 
 @pytest.fixture

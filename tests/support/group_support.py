@@ -16,6 +16,7 @@ from services.core import LocalService
 from services.directory import DirectoryListener
 from services.errors import AlreadyExists, NotFound, Unavailable
 from services.simulators import SimRobot
+from support.fake_backend import DictBackend
 
 
 class MemoryDirectory:
@@ -72,32 +73,14 @@ class MemoryDirectory:
             await self.unregister(name)
 
 
-class DeadBackend(Backend):
+def unreachable_robot(url: str = "tcp://127.0.0.1:9") -> DictBackend:
     """A device that cannot be reached any more: every call is UNAVAILABLE."""
-
-    def __init__(self, url: str = "tcp://127.0.0.1:9") -> None:
-        self.info = BackendInfo(type="mobile_robot", url=url)
-
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        raise Unavailable(f"cannot reach {self.info.url}: connection refused")
-
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        raise Unavailable(f"cannot reach {self.info.url}: connection refused")
-
-    async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
-        raise Unavailable(f"cannot reach {self.info.url}: connection refused")
+    return DictBackend(type="mobile_robot", url=url, unreachable=True)
 
 
-class SilentBackend(DeadBackend):
+def mute_robot(url: str = "tcp://127.0.0.1:9") -> DictBackend:
     """A device that is connected but never answers."""
-
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        await asyncio.Event().wait()
-        raise AssertionError("unreachable")
-
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        await asyncio.Event().wait()
-        raise AssertionError("unreachable")
+    return DictBackend(type="mobile_robot", url=url, silent=True)
 
 
 class Switchable(Backend):

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import socket
-
 import grpc
 import pytest
+from support.ports import free_port
 
 from clients.errors import (
     Cancelled,
@@ -48,9 +47,7 @@ def test_text_names_code_and_place() -> None:
 
 
 def test_unreachable_gateway_is_told_apart() -> None:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        target = f"127.0.0.1:{sock.getsockname()[1]}"
+    target = f"127.0.0.1:{free_port()}"
     with grpc.insecure_channel(target) as channel:
         health = channel.unary_unary("/grpc.health.v1.Health/Check")
         with pytest.raises(grpc.RpcError) as refused:

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from support.group_support import DeadBackend, MemoryDirectory, SilentBackend, wait_for
+from support.group_support import MemoryDirectory, mute_robot, unreachable_robot, wait_for
 
 from services.backend import Change
 from services.core import LocalService
@@ -106,7 +106,7 @@ def _near(text: str, place: Any) -> bool:
 
 async def test_partial_failure_names_the_failed_members_and_the_others_act(world: MemoryDirectory) -> None:
     await world.add("scout5", LocalService(SimRobot(start=(0, 0), speed=200.0)))
-    await world.add("dead", DeadBackend())
+    await world.add("dead", unreachable_robot())
     group = await make_group(world, members=["scout1", "dead", "scout5", "ghost"])
     try:
         assert parse_names(await group.get("robots")) == ["dead", "scout1", "scout5"]
@@ -131,7 +131,7 @@ async def test_partial_failure_names_the_failed_members_and_the_others_act(world
 async def test_a_member_that_never_answers_is_reported_after_the_member_timeout(
     world: MemoryDirectory,
 ) -> None:
-    await world.add("mute", SilentBackend())
+    await world.add("mute", mute_robot())
     group = await make_group(world, members=["scout1", "mute"], member_timeout=0.2)
     try:
         with pytest.raises(PropertyError) as info:

@@ -2,57 +2,20 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import pytest
+from support.fake_backend import DictBackend
 
 from gateway.config import Limits
 from gateway.listen import ListenHub, Selector, StreamOptions, parse_options, parse_selectors
 from gateway.router import Router
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.backend import NO_PARAMS, Backend, Change, Notify, Subscription
 from services.errors import InvalidArgument, ResourceExhausted
-from services.values import format_names
-
-
-class Sub(Subscription):
-    def __init__(self, owner: Store, path: str, notify: Notify) -> None:
-        self.owner, self.path, self.notify = owner, path, notify
-
-    async def close(self) -> None:
-        self.owner.subs.remove(self)
-
-
-class Store(Backend):
-    """Values in a dict; ``put`` notifies."""
-
-    def __init__(self, **values: str) -> None:
-        self.values = values
-        self.subs: list[Sub] = []
-
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        return format_names(self.values) if path == "properties" else self.values[path]
-
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        self.put(path, value)
-        return value
-
-    async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
-        sub = Sub(self, path, notify)
-        self.subs.append(sub)
-        return sub
-
-    def put(self, path: str, value: str) -> None:
-        self.values[path] = value
-        for sub in list(self.subs):
-            if sub.path == path:
-                sub.notify(Change(path, value))
 
 
 @pytest.fixture
 def hub() -> ListenHub:
     router = Router()
-    router.add("s", Store(a="1", b="2", c="3"))
+    router.add("s", DictBackend({"a": "1", "b": "2", "c": "3"}))
     return ListenHub(router, Limits(), call_timeout=1.0)
 
 
@@ -72,7 +35,7 @@ async def test_current_values_then_sync_then_conflated_changes(hub: ListenHub) -
     assert [[e.value for e in m.events] for m in first] == [["1", "2"], ["3"], []]
     assert first[-1].sync
     store = hub.router.backend("s")
-    assert isinstance(store, Store)
+    assert isinstance(store, DictBackend)
     for i in range(100):
         store.put("b", str(i))
     (msg,) = drain(stream)
@@ -93,7 +56,7 @@ async def test_topics_are_shared_between_streams(hub: ListenHub) -> None:
         s.close()
     await hub.aclose()
     store = hub.router.backend("s")
-    assert isinstance(store, Store)
+    assert isinstance(store, DictBackend)
     assert store.subs == []
 
 

@@ -1,4 +1,4 @@
-"""Issue 4, done-when, through a real gateway process: registry, greeting, group, a dead device.
+"""Registry, greeting, group and a dead device, through a real gateway process.
 
 A ``psgateway serve`` process with its line listener on, short liveness
 checks and a group ``swarm`` chosen by the query ``type = mobile_robot``.
@@ -15,20 +15,19 @@ from __future__ import annotations
 import asyncio
 import re
 import subprocess
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from contextlib import ExitStack
-from typing import Any, TypeVar
+from typing import Any
 
 import grpc
 import numpy as np
 import pytest
 from line_device_support import device_process
+from support.waiting import eventually
 
 from clients.aio import AsyncClient
 from clients.errors import PropertyServiceError
 from services.formations import formation_targets
-
-T = TypeVar("T")
 
 WAIT = 10.0
 CONFIG = """
@@ -47,16 +46,6 @@ options = { query = { type = "mobile_robot" }, member_timeout = 2.0 }
 """
 START = {"scout1": (4, 5), "scout2": (6, 5), "scout3": (5, 6), "scout4": (5, 4)}
 TARGET = "<marker><location>(10 10 0)</location></marker>"
-
-
-async def eventually(probe: Callable[[], Awaitable[T]], ok: Callable[[T], bool], within: float = WAIT) -> T:
-    """Ask ``probe`` until ``ok`` holds, at most ``within`` seconds; return the last answer."""
-    async with asyncio.timeout(within):
-        while True:
-            value = await probe()
-            if ok(value):
-                return value
-            await asyncio.sleep(0.05)
 
 
 def robot_args(name: str, *where: str) -> list[str]:

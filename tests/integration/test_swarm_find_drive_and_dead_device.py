@@ -1,4 +1,4 @@
-"""Issue 4, done-when: registry and group through a real gateway, real TCP devices, the gRPC client.
+"""Registry and group through a real gateway, TCP devices and the gRPC client: find, drive, a dead device.
 
 A gateway serves the registry and a group ``swarm`` (every mobile robot the
 registry knows). Three simulated robots run as device processes on TCP and
@@ -9,7 +9,6 @@ down, the group names it, the other two still move.
 
 from __future__ import annotations
 
-import asyncio
 import re
 from collections.abc import Awaitable, Callable, Iterator
 from contextlib import ExitStack, contextmanager
@@ -19,6 +18,7 @@ import grpc
 import numpy as np
 import pytest
 from line_device_support import device_process
+from support import waiting
 
 from clients.aio import AsyncClient
 from clients.errors import PropertyServiceError
@@ -30,6 +30,9 @@ from services.group import Group
 from services.registry import RegistryService
 
 T = TypeVar("T")
+
+#: Seconds each step of the story may take: the robots drive across the map.
+STEP_WAIT = 20.0
 
 TARGET = "<marker><location>(10 10 0)</location></marker>"
 
@@ -46,14 +49,9 @@ def robot_device(name: str, x: float, y: float) -> Iterator[tuple[int, object]]:
         yield int(match.group(2)), proc
 
 
-async def eventually(probe: Callable[[], Awaitable[T]], ok: Callable[[T], bool], within: float = 20.0) -> T:
-    """Ask ``probe`` until ``ok`` holds, at most ``within`` seconds; return the last answer."""
-    async with asyncio.timeout(within):
-        while True:
-            value = await probe()
-            if ok(value):
-                return value
-            await asyncio.sleep(0.05)
+async def eventually(probe: Callable[[], Awaitable[T]], ok: Callable[[T], bool]) -> T:
+    """Ask ``probe`` until ``ok`` holds, at most one story step."""
+    return await waiting.eventually(probe, ok, within=STEP_WAIT)
 
 
 def near(v: np.ndarray, p: np.ndarray, tol: float = 1e-3) -> bool:

@@ -11,33 +11,20 @@ from __future__ import annotations
 import asyncio
 import re
 import subprocess
-from collections.abc import Awaitable, Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import TypeVar
 
 import grpc
 import pytest
 from line_device_support import LineClient, device_process, tcp_device
+from support.waiting import eventually
 
 from clients.aio import AsyncClient
 from clients.errors import PropertyServiceError
 from gateway.app import Gateway
 from gateway.config import parse_config
 
-T = TypeVar("T")
-
 WAIT = 10.0
-
-
-async def eventually(probe: Callable[[], Awaitable[T]], ok: Callable[[T], bool], within: float = WAIT) -> T:
-    """Ask ``probe`` until ``ok`` holds, at most ``within`` seconds; return the last answer."""
-    async with asyncio.timeout(within):
-        while True:
-            value = await probe()
-            if ok(value):
-                return value
-            await asyncio.sleep(0.05)
 
 
 def dialling_robot(
