@@ -23,7 +23,15 @@ import time
 from collections import deque
 from collections.abc import Callable
 
-from services.errors import Code, DeadlineExceeded, PropertyError, ResourceExhausted, Unavailable
+from services.errors import (
+    Code,
+    DataLoss,
+    DeadlineExceeded,
+    PropertyError,
+    ResourceExhausted,
+    Unavailable,
+    error_for,
+)
 from services.line_protocol import (
     MAX_LINE,
     BadLine,
@@ -202,7 +210,7 @@ class LineConnection:
             line = encode(_with_tag(frame, tag), checksum=self._checksum, max_line=self.max_line)
         except LineProtocolError as exc:
             self._release_slot()
-            raise PropertyError(f"{self.label}: cannot send the request: {exc.message}", exc.code) from None
+            raise error_for(exc.code, f"{self.label}: cannot send the request: {exc.message}") from None
         loop = self._loop
         future: asyncio.Future[Frame] = loop.create_future()
         self._pending[tag] = _Pending(future, loop.call_at(deadline, self._expire, tag), timeout)
@@ -356,9 +364,7 @@ class LineConnection:
                 f"{self.label}: the device's reply was too long: {bad.message}"
             )
         else:
-            error = PropertyError(
-                f"{self.label}: the device sent a malformed reply: {bad.message}", Code.DATA_LOSS
-            )
+            error = DataLoss(f"{self.label}: the device sent a malformed reply: {bad.message}")
         future.set_exception(error)
 
 

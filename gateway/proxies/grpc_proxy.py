@@ -32,23 +32,11 @@ from urllib.parse import parse_qsl, unquote, urlsplit
 import grpc
 from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stubs
 
+from gateway.status import error_from_status
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
-from services.errors import (
-    AlreadyExists,
-    Code,
-    DeadlineExceeded,
-    Internal,
-    InvalidArgument,
-    NotFound,
-    PermissionDenied,
-    PropertyError,
-    ReadOnly,
-    ResourceExhausted,
-    Unauthenticated,
-    Unavailable,
-)
+from services.errors import Code, DeadlineExceeded, InvalidArgument, PropertyError, Unavailable
 from services.paths import validate_service_name
 
 log = logging.getLogger(__name__)
@@ -57,22 +45,6 @@ log = logging.getLogger(__name__)
 REMOTE_REGISTRY = "registry"
 #: Longest remote message passed on; the rest is cut (a remote is not trusted to be brief).
 MAX_REMOTE_MESSAGE = 1000
-
-_ERRORS: dict[Code, type[PropertyError]] = {
-    cls.default_code: cls
-    for cls in (
-        NotFound,
-        InvalidArgument,
-        ReadOnly,
-        AlreadyExists,
-        PermissionDenied,
-        Unauthenticated,
-        Unavailable,
-        DeadlineExceeded,
-        ResourceExhausted,
-        Internal,
-    )
-}
 
 
 @dataclass(frozen=True, slots=True)
@@ -252,18 +224,12 @@ class GrpcProxy(Backend):
 
     def _error(self, exc: grpc.aio.AioRpcError) -> PropertyError:
         status = exc.code()
-        try:
-            code = Code(status.value[0])
-        except ValueError:
-            code = Code.UNKNOWN
         details = (exc.details() or status.name)[:MAX_REMOTE_MESSAGE]
         if (
-            code is Code.DEADLINE_EXCEEDED and details == "Deadline Exceeded"
+            status is grpc.StatusCode.DEADLINE_EXCEEDED and details == "Deadline Exceeded"
         ):  # our own deadline, not the remote's
             details = f"no answer within {self.options.timeout:g} s"
-        message = f"{self._label()}: {details}"
-        cls = _ERRORS.get(code)
-        return cls(message, code) if cls is not None else PropertyError(message, code)
+        return error_from_status(status, f"{self._label()}: {details}")
 
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
         await self._type_learned()
