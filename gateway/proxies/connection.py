@@ -114,6 +114,16 @@ class LineConnection:
     def closed(self) -> bool:
         return self._closed.is_set()
 
+    @property
+    def close_reason(self) -> str:
+        """Why the connection closed (or will read so, once it does)."""
+        return self._close_reason
+
+    @property
+    def last_heard(self) -> float:
+        """``time.monotonic()`` when the device last sent anything."""
+        return self._last_data
+
     async def wait_closed(self) -> None:
         await self._closed.wait()
 
