@@ -145,15 +145,21 @@ class LineConnection:
         self._outgoing.clear()
         if not self.hello.done():
             self.hello.set_exception(Unavailable(f"{self.label}: {reason}"))
-        with contextlib.suppress(Exception):
+        try:
             self._writer.close()
+        except OSError as exc:  # the stream broke already: closing it is all that was left to do
+            log.debug("%s: closing the stream: %s", self.label, exc)
+        except Exception:
+            log.exception("%s: closing the stream failed", self.label)
         if asyncio.current_task() is not self._task:
             self._task.cancel()
 
     async def aclose(self, reason: str = "connection closed") -> None:
         self.close(reason)
-        with contextlib.suppress(asyncio.CancelledError, Exception):
-            await self._task
+        # The reader ends cancelled (expected); anything else it raised is a bug worth a traceback.
+        (outcome,) = await asyncio.gather(self._task, return_exceptions=True)
+        if isinstance(outcome, Exception):
+            log.error("%s: the reader failed", self.label, exc_info=outcome)
 
     # -- requests ----------------------------------------------------------
 

@@ -102,6 +102,16 @@ class Listening:
                 assert len(response.events) == 1, response
                 return response.events[0]
 
+    async def removed(self) -> None:
+        """The next event says ``tool.level`` is gone."""
+        gone = await self.next()
+        assert gone.removed and gone.property == "tool.level", gone
+
+    async def value(self, expected: str) -> None:
+        """The next event carries ``expected`` as the value of ``tool.level``."""
+        event = await self.next()
+        assert (event.property, event.value, event.removed) == ("tool.level", expected, False), event
+
 
 @asynccontextmanager
 async def gateway_with_rig(
@@ -125,16 +135,11 @@ async def test_unplugged_property_is_removed_and_comes_back(
     with rig_device(port, push=push):
         async with gateway_with_rig(gateway_process, port) as stub:
             listen = Listening(stub)
-            first = await listen.next()
-            assert (first.property, first.value, first.removed) == ("tool.level", "0.5", False)
-
+            await listen.value("0.5")
             await plug(stub, False)
-            gone = await listen.next()
-            assert gone.removed and gone.property == "tool.level"
-
+            await listen.removed()
             await plug(stub, True)
-            back = await listen.next()
-            assert (back.value, back.removed) == ("0.5", False)
+            await listen.value("0.5")
             listen.call.cancel()
 
 
@@ -145,14 +150,11 @@ async def test_property_missing_after_the_device_reconnects_is_removed_and_comes
     with rig_device(port) as (device, _):
         async with gateway_with_rig(gateway_process, port) as stub:
             listen = Listening(stub)
-            assert (await listen.next()).value == "0.5"
+            await listen.value("0.5")
             os.kill(device.pid, signal.SIGKILL)
             device.wait(5)
-
             with rig_device(port, "plugged=false"):
-                gone = await listen.next()
-                assert gone.removed and gone.property == "tool.level"
+                await listen.removed()
                 await plug(stub, True)
-                back = await listen.next()
-                assert (back.value, back.removed) == ("0.5", False)
+                await listen.value("0.5")
             listen.call.cancel()
