@@ -3,11 +3,22 @@
 Every failed call raises a :class:`PropertyServiceError` subclass carrying the
 status code, the server's message and the (service, property) the call was
 about, so that ``except NotFound:`` reads like the failure it handles.
+
+The codes and their classes are the one table of ``services.errors``: each
+class here names the service-side class it reports (``reports=``), and
+:func:`error_for_code` picks the class through ``services.errors.error_class``.
+The client's errors keep grpc's own ``grpc.StatusCode`` in ``code``, so they
+are not service-side errors themselves (a gateway never mistakes one for a
+status it may pass on).
 """
 
 from __future__ import annotations
 
+from typing import Any, ClassVar
+
 import grpc
+
+from services import errors
 
 __all__ = [
     "Aborted",
@@ -33,6 +44,14 @@ __all__ = [
 ]
 
 
+#: A service-side Code → grpc's status of the same number.
+_STATUS: dict[errors.Code, grpc.StatusCode] = {
+    code: status for status in grpc.StatusCode for code in errors.Code if status.value[0] == code.value
+}
+#: A service-side error class → the client's class that reports it (filled as the classes are made).
+_CLIENT_CLASS: dict[type[errors.PropertyError], type[PropertyServiceError]] = {}
+
+
 class PropertyServiceError(Exception):
     """A call failed with a gRPC status.
 
@@ -41,7 +60,14 @@ class PropertyServiceError(Exception):
     the text when the server's message does not name them.
     """
 
-    default_code: grpc.StatusCode = grpc.StatusCode.UNKNOWN
+    #: The status of the class's code, from the service-side class it ``reports``.
+    default_code: ClassVar[grpc.StatusCode] = grpc.StatusCode.UNKNOWN
+
+    def __init_subclass__(cls, reports: type[errors.PropertyError] | None = None, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if reports is not None:
+            cls.default_code = _STATUS[reports.default_code]
+            _CLIENT_CLASS.setdefault(reports, cls)
 
     def __init__(
         self,
@@ -70,128 +96,78 @@ class PropertyServiceError(Exception):
         )
 
 
-class Cancelled(PropertyServiceError):
+class Cancelled(PropertyServiceError, reports=errors.Cancelled):
     """The call was cancelled (a Listen ended by Cancel)."""
 
-    default_code = grpc.StatusCode.CANCELLED
 
-
-class Unknown(PropertyServiceError):
+class Unknown(PropertyServiceError, reports=errors.Unknown):
     """The server gave no more precise reason."""
 
-    default_code = grpc.StatusCode.UNKNOWN
 
-
-class InvalidArgument(PropertyServiceError):
+class InvalidArgument(PropertyServiceError, reports=errors.InvalidArgument):
     """Bad path, bad value or bad parameter."""
 
-    default_code = grpc.StatusCode.INVALID_ARGUMENT
 
-
-class DeadlineExceeded(PropertyServiceError):
+class DeadlineExceeded(PropertyServiceError, reports=errors.DeadlineExceeded):
     """The call or the device behind it took too long."""
 
-    default_code = grpc.StatusCode.DEADLINE_EXCEEDED
 
-
-class NotFound(PropertyServiceError):
+class NotFound(PropertyServiceError, reports=errors.NotFound):
     """Unknown service or property."""
 
-    default_code = grpc.StatusCode.NOT_FOUND
 
-
-class AlreadyExists(PropertyServiceError):
+class AlreadyExists(PropertyServiceError, reports=errors.AlreadyExists):
     """A name that is already taken."""
 
-    default_code = grpc.StatusCode.ALREADY_EXISTS
 
-
-class PermissionDenied(PropertyServiceError):
+class PermissionDenied(PropertyServiceError, reports=errors.PermissionDenied):
     """The caller may not do this."""
 
-    default_code = grpc.StatusCode.PERMISSION_DENIED
 
-
-class ResourceExhausted(PropertyServiceError):
+class ResourceExhausted(PropertyServiceError, reports=errors.ResourceExhausted):
     """A limit was reached."""
 
-    default_code = grpc.StatusCode.RESOURCE_EXHAUSTED
 
-
-class FailedPrecondition(PropertyServiceError):
+class FailedPrecondition(PropertyServiceError, reports=errors.FailedPrecondition):
     """The property cannot be written (read-only) or is not in a state to accept the call."""
 
-    default_code = grpc.StatusCode.FAILED_PRECONDITION
 
-
-class Aborted(PropertyServiceError):
+class Aborted(PropertyServiceError, reports=errors.Aborted):
     """The call was aborted by the server."""
 
-    default_code = grpc.StatusCode.ABORTED
 
-
-class OutOfRange(PropertyServiceError):
+class OutOfRange(PropertyServiceError, reports=errors.OutOfRange):
     """A value or index beyond the valid range."""
 
-    default_code = grpc.StatusCode.OUT_OF_RANGE
 
-
-class Unimplemented(PropertyServiceError):
+class Unimplemented(PropertyServiceError, reports=errors.Unimplemented):
     """The server does not offer this call."""
 
-    default_code = grpc.StatusCode.UNIMPLEMENTED
 
-
-class Internal(PropertyServiceError):
+class Internal(PropertyServiceError, reports=errors.Internal):
     """A fault inside the server or a service."""
 
-    default_code = grpc.StatusCode.INTERNAL
 
-
-class Unavailable(PropertyServiceError):
+class Unavailable(PropertyServiceError, reports=errors.Unavailable):
     """The service, its device or the gateway cannot be reached right now."""
-
-    default_code = grpc.StatusCode.UNAVAILABLE
 
 
 class GatewayUnreachable(Unavailable):
     """No connection to the gateway itself could be made."""
 
 
-class DataLoss(PropertyServiceError):
+class DataLoss(PropertyServiceError, reports=errors.DataLoss):
     """Unrecoverable loss or corruption of data."""
 
-    default_code = grpc.StatusCode.DATA_LOSS
 
-
-class Unauthenticated(PropertyServiceError):
+class Unauthenticated(PropertyServiceError, reports=errors.Unauthenticated):
     """The call carried no valid credentials."""
 
-    default_code = grpc.StatusCode.UNAUTHENTICATED
 
-
-_BY_CODE: dict[grpc.StatusCode, type[PropertyServiceError]] = {
-    cls.default_code: cls
-    for cls in (
-        Cancelled,
-        Unknown,
-        InvalidArgument,
-        DeadlineExceeded,
-        NotFound,
-        AlreadyExists,
-        PermissionDenied,
-        ResourceExhausted,
-        FailedPrecondition,
-        Aborted,
-        OutOfRange,
-        Unimplemented,
-        Internal,
-        Unavailable,
-        DataLoss,
-        Unauthenticated,
-    )
-}
-_BY_NUMBER: dict[int, grpc.StatusCode] = {code.value[0]: code for code in grpc.StatusCode}
+_CLIENT_CLASS[errors.PropertyError] = PropertyServiceError
+assert set(_CLIENT_CLASS) >= set(errors.ERROR_CLASSES.values()), (
+    "every service-side class has its client class"
+)
 
 # Phrases grpc core uses when no connection could be made at all (as opposed
 # to a service behind the gateway being unavailable).
@@ -202,10 +178,9 @@ def error_for_code(
     code: grpc.StatusCode | int, message: str, service: str = "", property: str = ""
 ) -> PropertyServiceError:
     """The error for a status ``code`` (a ``grpc.StatusCode`` or its number, as in a Session reply)."""
-    if isinstance(code, int):
-        code = _BY_NUMBER.get(code, grpc.StatusCode.UNKNOWN)
-    cls = _BY_CODE.get(code, PropertyServiceError)
-    return cls(code, message, service, property)
+    known = errors.code_for(code if isinstance(code, int) else code.value[0])
+    cls = _CLIENT_CLASS[errors.error_class(known)]
+    return cls(_STATUS[known], message, service, property)
 
 
 def error_from_rpc(

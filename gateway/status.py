@@ -1,9 +1,11 @@
-"""The one table from :class:`services.errors.Code` to gRPC status codes.
+"""Errors as gRPC statuses, and statuses as errors, through the one table of ``services.errors``.
 
-``Code`` numbers are the gRPC (google.rpc.Code) numbers, so the table is the
-identity on numbers; it exists so that every part of the gateway turns an
-error into a status the same way. Which call returns which code when is
-documented in ``docs/errors.md``.
+``Code`` numbers are the gRPC (google.rpc.Code) numbers, so the conversion is
+the identity on numbers; it lives here so that every part of the gateway
+turns an error into a status, and a remote status into an error
+(:func:`error_from_status`, of the class ``services.errors.error_for``
+picks), the same way. Which call returns which code when is documented in
+``docs/errors.md``.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from typing import Final
 import grpc
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.errors import Code, PropertyError
+from services.errors import Code, Internal, PropertyError, error_for
 
 log = logging.getLogger(__name__)
 
@@ -24,6 +26,14 @@ GRPC_STATUS: Final[dict[Code, grpc.StatusCode]] = {
 }
 
 assert len(GRPC_STATUS) == len(Code), "every Code has a gRPC status of the same number"
+
+#: grpc.StatusCode → Code, the reverse of :data:`GRPC_STATUS`.
+CODE_OF_STATUS: Final[dict[grpc.StatusCode, Code]] = {status: code for code, status in GRPC_STATUS.items()}
+
+
+def error_from_status(status: grpc.StatusCode, message: str) -> PropertyError:
+    """The error for a gRPC status (a remote gateway's answer): ``NOT_FOUND`` → ``NotFound``."""
+    return error_for(CODE_OF_STATUS.get(status, Code.UNKNOWN), message)
 
 
 def to_property_error(exc: BaseException, what: str = "request") -> PropertyError:
@@ -36,12 +46,7 @@ def to_property_error(exc: BaseException, what: str = "request") -> PropertyErro
     if isinstance(exc, PropertyError):
         return exc
     log.error("%s failed with an unexpected error", what, exc_info=exc)
-    return PropertyError(f"internal error in {what}: {type(exc).__name__}", Code.INTERNAL)
-
-
-def grpc_status(err: PropertyError) -> grpc.StatusCode:
-    """The gRPC status code for ``err``."""
-    return GRPC_STATUS[err.code]
+    return Internal(f"internal error in {what}: {type(exc).__name__}")
 
 
 def status_message(err: PropertyError) -> pb.Status:

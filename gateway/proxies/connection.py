@@ -23,7 +23,15 @@ import time
 from collections import deque
 from collections.abc import Callable
 
-from services.errors import Code, DeadlineExceeded, PropertyError, ResourceExhausted, Unavailable
+from services.errors import (
+    Code,
+    DataLoss,
+    DeadlineExceeded,
+    PropertyError,
+    ResourceExhausted,
+    Unavailable,
+    error_for,
+)
 from services.line_protocol import (
     MAX_LINE,
     BadLine,
@@ -106,6 +114,16 @@ class LineConnection:
     def closed(self) -> bool:
         return self._closed.is_set()
 
+    @property
+    def close_reason(self) -> str:
+        """Why the connection closed (or will read so, once it does)."""
+        return self._close_reason
+
+    @property
+    def last_heard(self) -> float:
+        """``time.monotonic()`` when the device last sent anything."""
+        return self._last_data
+
     async def wait_closed(self) -> None:
         await self._closed.wait()
 
@@ -127,15 +145,21 @@ class LineConnection:
         self._outgoing.clear()
         if not self.hello.done():
             self.hello.set_exception(Unavailable(f"{self.label}: {reason}"))
-        with contextlib.suppress(Exception):
+        try:
             self._writer.close()
+        except OSError as exc:  # the stream broke already: closing it is all that was left to do
+            log.debug("%s: closing the stream: %s", self.label, exc)
+        except Exception:
+            log.exception("%s: closing the stream failed", self.label)
         if asyncio.current_task() is not self._task:
             self._task.cancel()
 
     async def aclose(self, reason: str = "connection closed") -> None:
         self.close(reason)
-        with contextlib.suppress(asyncio.CancelledError, Exception):
-            await self._task
+        # The reader ends cancelled (expected); anything else it raised is a bug worth a traceback.
+        (outcome,) = await asyncio.gather(self._task, return_exceptions=True)
+        if isinstance(outcome, Exception):
+            log.error("%s: the reader failed", self.label, exc_info=outcome)
 
     # -- requests ----------------------------------------------------------
 
@@ -202,7 +226,7 @@ class LineConnection:
             line = encode(_with_tag(frame, tag), checksum=self._checksum, max_line=self.max_line)
         except LineProtocolError as exc:
             self._release_slot()
-            raise PropertyError(f"{self.label}: cannot send the request: {exc.message}", exc.code) from None
+            raise error_for(exc.code, f"{self.label}: cannot send the request: {exc.message}") from None
         loop = self._loop
         future: asyncio.Future[Frame] = loop.create_future()
         self._pending[tag] = _Pending(future, loop.call_at(deadline, self._expire, tag), timeout)
@@ -356,9 +380,7 @@ class LineConnection:
                 f"{self.label}: the device's reply was too long: {bad.message}"
             )
         else:
-            error = PropertyError(
-                f"{self.label}: the device sent a malformed reply: {bad.message}", Code.DATA_LOSS
-            )
+            error = DataLoss(f"{self.label}: the device sent a malformed reply: {bad.message}")
         future.set_exception(error)
 
 

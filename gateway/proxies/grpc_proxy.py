@@ -8,7 +8,7 @@ reach ``scout1`` of gateway B as if it were local. The proxy
   1:1 as :class:`~services.errors.PropertyError` with the remote's message,
   prefixed by which remote said it;
 * holds one remote Listen (``updates_only``) per (path, parameters), shared
-  by all its local listeners (reference counted); a listen returns only once
+  by all its local listeners (reference counted, :mod:`services.sharing`); a listen returns only once
   the remote's ``sync`` marker arrived, so no change falls between the
   caller's subscribe and its Get;
 * re-opens a broken remote Listen (the remote gateway restarted) with
@@ -21,35 +21,23 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import itertools
 import logging
 import random
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import Any
 from urllib.parse import parse_qsl, unquote, urlsplit
 
 import grpc
 from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stubs
 
+from gateway.status import error_from_status
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
-from services.errors import (
-    AlreadyExists,
-    Code,
-    DeadlineExceeded,
-    Internal,
-    InvalidArgument,
-    NotFound,
-    PermissionDenied,
-    PropertyError,
-    ReadOnly,
-    ResourceExhausted,
-    Unauthenticated,
-    Unavailable,
-)
+from services.errors import Code, DeadlineExceeded, InvalidArgument, PropertyError, Unavailable
 from services.paths import validate_service_name
+from services.sharing import SharedListen, SharedListens
 
 log = logging.getLogger(__name__)
 
@@ -57,22 +45,6 @@ log = logging.getLogger(__name__)
 REMOTE_REGISTRY = "registry"
 #: Longest remote message passed on; the rest is cut (a remote is not trusted to be brief).
 MAX_REMOTE_MESSAGE = 1000
-
-_ERRORS: dict[Code, type[PropertyError]] = {
-    cls.default_code: cls
-    for cls in (
-        NotFound,
-        InvalidArgument,
-        ReadOnly,
-        AlreadyExists,
-        PermissionDenied,
-        Unauthenticated,
-        Unavailable,
-        DeadlineExceeded,
-        ResourceExhausted,
-        Internal,
-    )
-}
 
 
 @dataclass(frozen=True, slots=True)
@@ -120,29 +92,13 @@ def _ms(seconds: float) -> int:
     return max(1, round(seconds * 1000))
 
 
-@dataclass(eq=False)
-class _RemoteListen:
+class _RemoteListen(SharedListen):
     """One remote Listen shared by every local listener of (path, parameters)."""
 
-    path: str
-    params: dict[str, str]
-    listeners: dict[int, Notify] = field(default_factory=dict)
-    ready: asyncio.Future[None] | None = None
-    call: Any = None
-    follower: asyncio.Task[None] | None = None
-
-
-class _Handle(Subscription):
-    def __init__(
-        self, proxy: GrpcProxy, key: tuple[str, tuple[tuple[str, str], ...]], shared: _RemoteListen, n: int
-    ):
-        self._proxy = proxy
-        self._key = key
-        self._shared = shared
-        self._n = n
-
-    async def close(self) -> None:
-        await self._proxy._unlisten(self._key, self._shared, self._n)
+    def __init__(self, path: str, params: Mapping[str, str]) -> None:
+        super().__init__(path, params)
+        self.call: Any = None
+        self.follower: asyncio.Task[None] | None = None
 
 
 class GrpcProxy(Backend):
@@ -159,8 +115,10 @@ class GrpcProxy(Backend):
         self.info = BackendInfo(type="resource", url=url)
         self._channel: grpc.aio.Channel | None = None
         self._stub: Any = None
-        self._listens: dict[tuple[str, tuple[tuple[str, str], ...]], _RemoteListen] = {}
-        self._numbers = itertools.count()
+        #: The remote Listens, one per (path, parameters), shared by the proxy's listeners.
+        self.shared_listens: SharedListens[_RemoteListen] = SharedListens(
+            _RemoteListen, self._open_shared, self._close_shared
+        )
         self._type_known = False
         self._learning: asyncio.Task[None] | None = None
         self._closed = False
@@ -200,13 +158,13 @@ class GrpcProxy(Backend):
         if self._closed:
             return
         self._closed = True
-        tasks = [s.follower for s in self._listens.values() if s.follower is not None]
+        entries = self.shared_listens.clear()
+        tasks = [entry.follower for entry in entries if entry.follower is not None]
         if self._learning is not None:
             tasks.append(self._learning)
-        for shared in self._listens.values():
-            if shared.call is not None:
-                shared.call.cancel()
-        self._listens.clear()
+        for entry in entries:
+            if entry.call is not None:
+                entry.call.cancel()
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -252,18 +210,12 @@ class GrpcProxy(Backend):
 
     def _error(self, exc: grpc.aio.AioRpcError) -> PropertyError:
         status = exc.code()
-        try:
-            code = Code(status.value[0])
-        except ValueError:
-            code = Code.UNKNOWN
         details = (exc.details() or status.name)[:MAX_REMOTE_MESSAGE]
         if (
-            code is Code.DEADLINE_EXCEEDED and details == "Deadline Exceeded"
+            status is grpc.StatusCode.DEADLINE_EXCEEDED and details == "Deadline Exceeded"
         ):  # our own deadline, not the remote's
             details = f"no answer within {self.options.timeout:g} s"
-        message = f"{self._label()}: {details}"
-        cls = _ERRORS.get(code)
-        return cls(message, code) if cls is not None else PropertyError(message, code)
+        return error_from_status(status, f"{self._label()}: {details}")
 
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
         await self._type_learned()
@@ -297,34 +249,16 @@ class GrpcProxy(Backend):
 
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
         await self._type_learned()
-        key = (path, tuple(sorted(params.items())))
-        shared = self._listens.get(key)
-        if shared is None:
-            shared = _RemoteListen(path, dict(params))
-            shared.ready = asyncio.get_running_loop().create_future()
-            self._listens[key] = shared
-            try:
-                shared.call = await self._open_remote(shared)
-                if self._closed:  # closed while the remote Listen was being opened
-                    shared.call.cancel()
-                    raise Unavailable(f"{self._label()}: the proxy is closed")
-            except BaseException as exc:
-                self._listens.pop(key, None)
-                error = (
-                    exc if isinstance(exc, Exception) else Unavailable(f"{self._label()}: listen cancelled")
-                )
-                shared.ready.set_exception(error)
-                shared.ready.exception()  # retrieved: waiters re-raise it themselves
-                raise
-            shared.ready.set_result(None)
-            shared.follower = asyncio.create_task(
-                self._follow(key, shared), name=f"grpc proxy {self.name}.{path}"
-            )
-        elif shared.ready is not None and not shared.ready.done():
-            await asyncio.shield(shared.ready)
-        n = next(self._numbers)
-        shared.listeners[n] = notify
-        return _Handle(self, key, shared, n)
+        return await self.shared_listens.listen(path, notify, params)
+
+    async def _open_shared(self, shared: _RemoteListen) -> None:
+        shared.call = await self._open_remote(shared)
+        if self._closed:  # closed while the remote Listen was being opened
+            shared.call.cancel()
+            raise Unavailable(f"{self._label()}: the proxy is closed")
+        shared.follower = asyncio.create_task(
+            self._follow(shared), name=f"grpc proxy {self.name}.{shared.path}"
+        )
 
     def _listen_request(self, shared: _RemoteListen) -> pb.ListenRequest:
         return pb.ListenRequest(
@@ -360,19 +294,12 @@ class GrpcProxy(Backend):
 
     def _forward(self, shared: _RemoteListen, response: pb.ListenResponse) -> None:
         for event in response.events:
-            self._deliver(shared, Change(shared.path, event.value, gap=event.gap, removed=event.removed))
+            shared.deliver(Change(shared.path, event.value, gap=event.gap, removed=event.removed))
 
-    def _deliver(self, shared: _RemoteListen, change: Change) -> None:
-        for notify in list(shared.listeners.values()):
-            try:
-                notify(change)
-            except Exception:
-                log.exception("%s: a listener of %s failed", self._label(), shared.path)
-
-    async def _follow(self, key: tuple[str, tuple[tuple[str, str], ...]], shared: _RemoteListen) -> None:
+    async def _follow(self, shared: _RemoteListen) -> None:
         """Read the remote Listen; when it breaks, open it again with backoff and report a gap."""
         failures = 0
-        while self._listens.get(key) is shared:
+        while self.shared_listens.holds(shared):
             call = shared.call
             try:
                 while (response := await call.read()) is not EOF:
@@ -383,7 +310,7 @@ class GrpcProxy(Backend):
             call.cancel()
             shared.call = None
             log.warning("%s: Listen of %s broke (%s); opening it again", self._label(), shared.path, reason)
-            while self._listens.get(key) is shared:
+            while self.shared_listens.holds(shared):
                 failures += 1
                 delay = min(
                     self.options.backoff_max, self.options.backoff_initial * 2 ** min(failures - 1, 30)
@@ -393,8 +320,8 @@ class GrpcProxy(Backend):
                     value = await self._reopen(shared)
                 except PropertyError as exc:
                     if exc.code is Code.NOT_FOUND:
-                        self._listens.pop(key, None)
-                        self._deliver(shared, Change(shared.path, "", removed=True))
+                        self.shared_listens.drop(shared)
+                        shared.deliver(Change(shared.path, "", removed=True))
                         return
                     # Said once per outage; every further attempt only at DEBUG.
                     level = logging.INFO if failures == 1 else logging.DEBUG
@@ -402,7 +329,7 @@ class GrpcProxy(Backend):
                     continue
                 failures = 0
                 log.info("%s: listening to %s again", self._label(), shared.path)
-                self._deliver(shared, Change(shared.path, value, gap=True))
+                shared.deliver(Change(shared.path, value, gap=True))
                 break
 
     async def _reopen(self, shared: _RemoteListen) -> str:
@@ -416,13 +343,7 @@ class GrpcProxy(Backend):
         shared.call = call
         return value
 
-    async def _unlisten(
-        self, key: tuple[str, tuple[tuple[str, str], ...]], shared: _RemoteListen, n: int
-    ) -> None:
-        if shared.listeners.pop(n, None) is None or shared.listeners:
-            return
-        if self._listens.get(key) is shared:
-            del self._listens[key]
+    async def _close_shared(self, shared: _RemoteListen) -> None:
         if shared.call is not None:
             shared.call.cancel()
             shared.call = None

@@ -7,10 +7,15 @@ subclass only says how to open the stream. The proxy
   with jitter) whenever it is lost; while it is down every call fails at once
   with UNAVAILABLE;
 * times out every call (DEADLINE_EXCEEDED) and pipelines calls by tag;
-* holds one device LISTEN per property, shared by all its listeners
-  (reference counted); after a reconnect it listens again, reads the current
-  value and hands it to every listener as a ``Change(gap=True)``;
+* holds one device LISTEN per (property, parameters), shared by all its
+  listeners (reference counted, :mod:`services.sharing`); after a reconnect
+  it listens again, reads the current value and hands it to every listener
+  as a ``Change(gap=True)``;
 * polls a device whose greeting says ``push=0`` and forwards only changes;
+* tells the listeners ``Change(removed=True)`` once when the device says a
+  property is gone (GONE, or NOT_FOUND on a poll or a LISTEN after a
+  reconnect), then asks for it every ``poll_interval`` while they stay, and
+  hands them its value when it is back;
 * pings an idle device and reconnects when it stops answering.
 """
 
@@ -18,12 +23,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import itertools
 import logging
 import random
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, cast
 from urllib.parse import parse_qsl, urlsplit
 
@@ -42,6 +46,7 @@ from services.line_protocol import (
     Set,
     Unlisten,
 )
+from services.sharing import SharedListen, SharedListens
 
 log = logging.getLogger(__name__)
 
@@ -107,26 +112,16 @@ def _boolean(raw: Any) -> bool:
     raise ValueError(raw)
 
 
-@dataclass(eq=False)
-class _Shared:
-    """One device subscription (or one poller) shared by every listener of a path."""
+class _DeviceListen(SharedListen):
+    """One device LISTEN (or one poller) shared by every listener of (path, parameters)."""
 
-    path: str
-    params: Mapping[str, str]
-    listeners: dict[int, Notify] = field(default_factory=dict)
-    last: str | None = None
-    ready: asyncio.Future[None] | None = None
-    poller: asyncio.Task[None] | None = None
-
-
-class _Handle(Subscription):
-    def __init__(self, proxy: LineProxy, shared: _Shared, key: int) -> None:
-        self._proxy = proxy
-        self._shared = shared
-        self._key = key
-
-    async def close(self) -> None:
-        await self._proxy._unlisten(self._shared, self._key)
+    def __init__(self, path: str, params: Mapping[str, str]) -> None:
+        super().__init__(path, params)
+        self.last: str | None = None
+        #: The device said the property is gone (NOT_FOUND, GONE); the listeners were told once.
+        self.removed = False
+        #: Polls a device that cannot push; for one that can, asks again for a property that went.
+        self.poller: asyncio.Task[None] | None = None
 
 
 class LineProxy(Backend):
@@ -147,8 +142,10 @@ class LineProxy(Backend):
         self._conn: LineConnection | None = None
         self._connected = asyncio.Event()
         self._runner: asyncio.Task[None] | None = None
-        self._shared: dict[str, _Shared] = {}
-        self._keys = itertools.count()
+        #: The device listens, one per (path, parameters), shared by the proxy's listeners.
+        self.shared_listens: SharedListens[_DeviceListen] = SharedListens(
+            _DeviceListen, self._subscribe, self._close_listen
+        )
         self._tasks: set[asyncio.Task[None]] = set()
         self._last_error = "not connected yet"
         self._closing = False
@@ -175,10 +172,10 @@ class LineProxy(Backend):
             self._runner.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._runner
-        for shared in self._shared.values():
-            if shared.poller is not None:
-                shared.poller.cancel()
-        tasks = [*self._tasks, *(s.poller for s in self._shared.values() if s.poller)]
+        pollers = [entry.poller for entry in self.shared_listens if entry.poller is not None]
+        for poller in pollers:
+            poller.cancel()
+        tasks = [*self._tasks, *pollers]
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -219,8 +216,8 @@ class LineProxy(Backend):
             self._spawn(self._resubscribe(conn))
             await self._supervise(conn)
             self._connected.clear()
-            self._last_error = conn._close_reason
-            log.warning("%s: disconnected (%s); reconnecting", self._label(), conn._close_reason)
+            self._last_error = conn.close_reason
+            log.warning("%s: disconnected (%s); reconnecting", self._label(), conn.close_reason)
             # Pollers and listeners stay; the next connection picks them up.
             await asyncio.sleep(self.options.backoff_initial * random.uniform(0.5, 1.0))
 
@@ -312,7 +309,7 @@ class LineProxy(Backend):
         (never a property listing); UNAVAILABLE when not connected.
         """
         conn = self._live()
-        if time.monotonic() - conn._last_data <= self.heard_within:
+        if time.monotonic() - conn.last_heard <= self.heard_within:
             return
         await conn.request(Ping(), self.options.timeout)
 
@@ -345,107 +342,104 @@ class LineProxy(Backend):
         return self.hello is not None and self.hello.push
 
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
-        shared = self._shared.get(path)
-        if shared is None:
-            shared = _Shared(path, dict(params))
-            shared.ready = asyncio.get_running_loop().create_future()
-            self._shared[path] = shared
-            try:
-                await self._subscribe(shared)
-            except BaseException as exc:
-                self._shared.pop(path, None)
-                shared.ready.set_exception(exc if isinstance(exc, Exception) else Unavailable("cancelled"))
-                shared.ready.exception()  # retrieved: waiters re-raise it themselves
-                raise
-            shared.ready.set_result(None)
-        elif shared.ready is not None and not shared.ready.done():
-            await asyncio.shield(shared.ready)
-        key = next(self._keys)
-        shared.listeners[key] = notify
-        return _Handle(self, shared, key)
+        return await self.shared_listens.listen(path, notify, params)
 
-    async def _subscribe(self, shared: _Shared) -> None:
+    async def _subscribe(self, entry: _DeviceListen) -> None:
         self._live()
         if self._pushes():
-            shared.last = await self._call(Listen(shared.path, dict(shared.params)))
+            entry.last = await self._call(Listen(entry.path, dict(entry.params)))
         else:
-            shared.last = await self._call(Get(shared.path, dict(shared.params)))
-            shared.poller = asyncio.create_task(self._poll(shared), name=f"poll {self.name}.{shared.path}")
+            entry.last = await self._call(Get(entry.path, dict(entry.params)))
+            entry.poller = asyncio.create_task(self._poll(entry), name=f"poll {self.name}.{entry.path}")
 
-    async def _unlisten(self, shared: _Shared, key: int) -> None:
-        if shared.listeners.pop(key, None) is None or shared.listeners:
+    async def _close_listen(self, entry: _DeviceListen) -> None:
+        """The last listener left: stop polling, or UNLISTEN when no listen of the path is left."""
+        if entry.poller is not None:
+            entry.poller.cancel()
+        # The device keeps one subscription per path (docs/line-protocol.md §3), whatever the parameters.
+        if (
+            entry.removed
+            or not (self.connected and self._pushes())
+            or self.shared_listens.on_path(entry.path)
+        ):
             return
-        if self._shared.get(shared.path) is shared:
-            del self._shared[shared.path]
-        if shared.poller is not None:
-            shared.poller.cancel()
-        elif self.connected and self._pushes():
-            try:
-                await self._call(Unlisten(shared.path))
-            except PropertyError as exc:
-                # While the proxy closes, its connection goes away under the UNLISTEN: expected, not news.
-                level = logging.DEBUG if self._closing else logging.INFO
-                log.log(level, "%s: UNLISTEN %s failed: %s", self._label(), shared.path, exc.message)
-
-    def _deliver(self, shared: _Shared, change: Change) -> None:
-        for notify in list(shared.listeners.values()):
-            try:
-                notify(change)
-            except Exception:
-                log.exception("%s: a listener of %s failed", self._label(), shared.path)
+        try:
+            await self._call(Unlisten(entry.path))
+        except PropertyError as exc:
+            # While the proxy closes, its connection goes away under the UNLISTEN: expected, not news.
+            level = logging.DEBUG if self._closing else logging.INFO
+            log.log(level, "%s: UNLISTEN %s failed: %s", self._label(), entry.path, exc.message)
 
     def _on_event(self, frame: Event | Gone) -> None:
-        shared = self._shared.get(frame.path)
-        if shared is None:
+        # EVENT and GONE name only the path: every listen of it hears them, whatever its parameters.
+        entries = self.shared_listens.on_path(frame.path)
+        if not entries:
             log.debug("%s: event for %s, which nobody listens to", self._label(), frame.path)
             return
-        if isinstance(frame, Gone):
-            del self._shared[frame.path]
-            self._deliver(shared, Change(frame.path, "", removed=True))
+        for entry in entries:
+            if isinstance(frame, Gone):
+                self._went(entry)
+            else:
+                entry.removed = False
+                entry.last = frame.value
+                entry.deliver(Change(frame.path, frame.value))
+
+    def _went(self, entry: _DeviceListen) -> None:
+        """The property is gone: tell the listeners once, then ask for it until it is back."""
+        if entry.removed:
             return
-        shared.last = frame.value
-        self._deliver(shared, Change(frame.path, frame.value))
+        entry.removed = True
+        entry.last = None
+        entry.deliver(Change(entry.path, "", removed=True))
+        if entry.poller is None or entry.poller.done():
+            entry.poller = asyncio.create_task(self._poll(entry), name=f"await {self.name}.{entry.path}")
 
     async def _resubscribe(self, conn: LineConnection) -> None:
         """After a (re)connection: listen again and hand every listener the current value, marked as a gap."""
-        for shared in list(self._shared.values()):
-            if shared.ready is not None and not shared.ready.done():
+        for entry in self.shared_listens:
+            if entry.ready is not None and not entry.ready.done():
                 continue  # its first LISTEN is under way on this connection
-            if self._shared.get(shared.path) is not shared or conn.closed:
+            if not self.shared_listens.holds(entry) or conn.closed:
                 continue
             try:
                 if self._pushes():
-                    value = await self._call(Listen(shared.path, dict(shared.params)))
+                    value = await self._call(Listen(entry.path, dict(entry.params)))
                 else:
-                    value = await self._call(Get(shared.path, dict(shared.params)))
-                    if shared.poller is None or shared.poller.done():
-                        shared.poller = asyncio.create_task(self._poll(shared))
+                    value = await self._call(Get(entry.path, dict(entry.params)))
+                    if entry.poller is None or entry.poller.done():
+                        entry.poller = asyncio.create_task(self._poll(entry))
             except NotFound:
-                self._shared.pop(shared.path, None)
-                self._deliver(shared, Change(shared.path, "", removed=True))
+                self._went(entry)
                 continue
             except PropertyError as exc:
-                log.warning("%s: cannot listen to %s again: %s", self._label(), shared.path, exc.message)
+                log.warning("%s: cannot listen to %s again: %s", self._label(), entry.path, exc.message)
                 continue
-            shared.last = value
-            self._deliver(shared, Change(shared.path, value, gap=True))
+            entry.removed = False
+            entry.last = value
+            entry.deliver(Change(entry.path, value, gap=True))
 
-    async def _poll(self, shared: _Shared) -> None:
+    async def _poll(self, entry: _DeviceListen) -> None:
+        """Poll a device that cannot push; for one that can, LISTEN until a property that went is back."""
         interval = self.options.poll_interval
-        while self._shared.get(shared.path) is shared:
+        while self.shared_listens.holds(entry):
             await asyncio.sleep(interval)
             if not self.connected:
                 continue
+            pushes = self._pushes()
+            if pushes and not entry.removed:
+                return  # the device pushes the property's changes again
             try:
-                value = await self._call(Get(shared.path, dict(shared.params)))
+                if pushes:
+                    value = await self._call(Listen(entry.path, dict(entry.params)))
+                else:
+                    value = await self._call(Get(entry.path, dict(entry.params)))
             except NotFound:
-                if self._shared.get(shared.path) is shared:
-                    del self._shared[shared.path]
-                    self._deliver(shared, Change(shared.path, "", removed=True))
-                return
-            except PropertyError as exc:
-                log.info("%s: poll of %s failed: %s", self._label(), shared.path, exc.message)
+                self._went(entry)
                 continue
-            if value != shared.last and self._shared.get(shared.path) is shared:
-                shared.last = value
-                self._deliver(shared, Change(shared.path, value))
+            except PropertyError as exc:
+                log.info("%s: poll of %s failed: %s", self._label(), entry.path, exc.message)
+                continue
+            if self.shared_listens.holds(entry) and (entry.removed or value != entry.last):
+                entry.removed = False
+                entry.last = value
+                entry.deliver(Change(entry.path, value))

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from services.errors import Code, PropertyError
+from services.errors import Code, PropertyError, code_for, error_for
 
 #: Protocol version sent in the greeting.
 PROTOCOL_VERSION = 1
@@ -125,13 +125,13 @@ class ErrorReply:
         return cls(int(error.code), error.message, tag)
 
     def to_exception(self, context: str = "") -> PropertyError:
-        """The error this reply reports; an unknown code becomes UNKNOWN."""
-        try:
-            code = Code(self.code)
-        except ValueError:
-            code = Code.UNKNOWN
+        """The error this reply reports, of the class for its code (``ERR 5`` → NotFound).
+
+        An unknown code becomes UNKNOWN.
+        """
+        code = code_for(self.code)
         message = f"{context}: {self.message}" if context else self.message
-        return PropertyError(message or code.name.lower().replace("_", " "), code)
+        return error_for(code, message or code.name.lower().replace("_", " "))
 
 
 @dataclass(frozen=True, slots=True)

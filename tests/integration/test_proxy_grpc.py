@@ -148,7 +148,7 @@ async def test_proxy_calls_and_shared_listens_against_an_in_process_gateway() ->
         second: asyncio.Queue[Change] = asyncio.Queue(1000)
         sub1 = await proxy.listen("location", first.put_nowait)
         sub2 = await proxy.listen("location", second.put_nowait)
-        assert len(proxy._listens) == 1  # one remote Listen for both
+        assert len(proxy.shared_listens) == 1  # one remote Listen for both
         # The remote subscription is live once listen returns: this move is not missed.
         await proxy.set("behaviors.moveto", "<marker><location>(1 1)</location></marker>")
         for queue in (first, second):
@@ -157,14 +157,14 @@ async def test_proxy_calls_and_shared_listens_against_an_in_process_gateway() ->
                     assert not change.gap and not change.removed
         await sub1.close()
         await sub1.close()  # idempotent
-        assert len(proxy._listens) == 1
+        assert len(proxy.shared_listens) == 1
         await expect_error(Code.FAILED_PRECONDITION, proxy.set("location", "(0.5 0.5)"))
         await proxy.set("behaviors.moveto", "<marker><location>(0.5 0.5)</location></marker>")
         async with asyncio.timeout(10):
             while xy((await second.get()).value) != (0.5, 0.5):
                 pass
         await sub2.close()
-        assert not proxy._listens
+        assert not proxy.shared_listens
 
 
 async def listen_into(

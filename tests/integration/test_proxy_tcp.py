@@ -69,16 +69,16 @@ async def test_listeners_share_one_device_listen_and_see_moves() -> None:
             second: asyncio.Queue[Change] = asyncio.Queue()
             sub1 = await proxy.listen("location.x", first.put_nowait)
             sub2 = await proxy.listen("location.x", second.put_nowait)
-            assert list(proxy._shared) == ["location.x"]
+            assert proxy.shared_listens.paths() == ["location.x"]
             await proxy.set("speed", "5")
             await proxy.set("behaviors.moveto", "<marker><location>(1 0)</location></marker>")
             a = await asyncio.wait_for(first.get(), 5)
             b = await asyncio.wait_for(second.get(), 5)
             assert float(a.value) > 0 and float(b.value) > 0 and not a.gap
             await sub1.close()
-            assert list(proxy._shared) == ["location.x"]
+            assert proxy.shared_listens.paths() == ["location.x"]
             await sub2.close()
-            assert proxy._shared == {}
+            assert proxy.shared_listens.paths() == []
 
 
 async def test_lost_device_gives_unavailable_then_reconnects_and_listeners_get_a_gap() -> None:
