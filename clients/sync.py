@@ -127,7 +127,43 @@ class ListenIterator(Generic[T]):
                 asyncio.run_coroutine_threadsafe(_await(aclose()), self._runner.loop)
 
 
-class Client(ListenCalls[ListenIterator[Event], ListenIterator[Event | Mark]]):
+class _BlockingCalls(ListenCalls[ListenIterator[Event], ListenIterator[Event | Mark]]):
+    """Get, Set and Listen of an asyncio client or session, each call run on the loop thread."""
+
+    def __init__(self, runner: _LoopThread, calls: AsyncClient | AsyncSession) -> None:
+        self._runner = runner
+        self._calls = calls
+
+    def get(self, service: str, prop: str, /, **params: Any) -> str:
+        """See :meth:`clients.aio.AsyncClient.get`."""
+        return self._runner.call(self._calls.get(service, prop, **params))
+
+    def get_many(self, refs: Iterable[Selector]) -> list[str]:
+        """See :meth:`clients.aio.AsyncClient.get_many`."""
+        return self._runner.call(self._calls.get_many(list(refs)))
+
+    def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
+        """See :meth:`clients.aio.AsyncClient.set`."""
+        return self._runner.call(self._calls.set(service, prop, value, **params))
+
+    def start_listen(self, request: pb.ListenRequest, marks: bool) -> ListenIterator[Any]:
+        """A blocking iterator over the Listen for ``request``; see :meth:`listen`. Close it when done."""
+        return ListenIterator(self._runner, self._calls.start_listen(request, marks))
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """End the client or session. Idempotent."""
+        raise NotImplementedError
+
+
+class Client(_BlockingCalls):
     """Blocking client of a Property Service gateway; same methods as :class:`AsyncClient`.
 
     Use as ``with Client("127.0.0.1:50051") as c: c.get("scout1", "location")``.
@@ -145,18 +181,7 @@ class Client(ListenCalls[ListenIterator[Event], ListenIterator[Event | Mark]]):
         self.target = target
         self.timeout = timeout
         self._aio = AsyncClient(target, timeout=timeout, metadata=metadata, max_in_flight=max_in_flight)
-        self._runner = _LoopThread(None if timeout is None else timeout + _GRACE)
-
-    def _run(self, aw: Awaitable[T]) -> T:
-        return self._runner.call(aw)
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
+        super().__init__(_LoopThread(None if timeout is None else timeout + _GRACE), self._aio)
 
     def close(self) -> None:
         """Close the channel and stop the background loop. Idempotent."""
@@ -164,49 +189,33 @@ class Client(ListenCalls[ListenIterator[Event], ListenIterator[Event | Mark]]):
             self._runner.run(self._aio.close(), _GRACE)
         self._runner.stop()
 
-    def get(self, service: str, prop: str, /, **params: Any) -> str:
-        """See :meth:`AsyncClient.get`."""
-        return self._run(self._aio.get(service, prop, **params))
-
-    def get_many(self, refs: Iterable[Selector]) -> list[str]:
-        """See :meth:`AsyncClient.get_many`."""
-        return self._run(self._aio.get_many(list(refs)))
-
-    def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
-        """See :meth:`AsyncClient.set`."""
-        return self._run(self._aio.set(service, prop, value, **params))
-
     def get_number(self, service: str, prop: str, /, **params: Any) -> float:
         """See :meth:`AsyncClient.get_number`."""
-        return self._run(self._aio.get_number(service, prop, **params))
+        return self._runner.call(self._aio.get_number(service, prop, **params))
 
     def get_vector(self, service: str, prop: str, /, **params: Any) -> Vector:
         """See :meth:`AsyncClient.get_vector`."""
-        return self._run(self._aio.get_vector(service, prop, **params))
+        return self._runner.call(self._aio.get_vector(service, prop, **params))
 
     def get_vectors(self, service: str, prop: str, /, **params: Any) -> list[Vector]:
         """See :meth:`AsyncClient.get_vectors`."""
-        return self._run(self._aio.get_vectors(service, prop, **params))
+        return self._runner.call(self._aio.get_vectors(service, prop, **params))
 
     def get_names(self, service: str, prop: str, /, **params: Any) -> list[str]:
         """See :meth:`AsyncClient.get_names`."""
-        return self._run(self._aio.get_names(service, prop, **params))
+        return self._runner.call(self._aio.get_names(service, prop, **params))
 
     def get_marker(self, service: str, prop: str, /, **params: Any) -> Marker:
         """See :meth:`AsyncClient.get_marker`."""
-        return self._run(self._aio.get_marker(service, prop, **params))
+        return self._runner.call(self._aio.get_marker(service, prop, **params))
 
     def services(self) -> list[str]:
         """See :meth:`AsyncClient.services`."""
-        return self._run(self._aio.services())
+        return self._runner.call(self._aio.services())
 
     def properties(self, service: str) -> list[str]:
         """See :meth:`AsyncClient.properties`."""
-        return self._run(self._aio.properties(service))
-
-    def start_listen(self, request: pb.ListenRequest, marks: bool) -> ListenIterator[Any]:
-        """A blocking iterator over the Listen for ``request``; see :meth:`listen`. Close it when done."""
-        return ListenIterator(self._runner, self._aio.start_listen(request, marks))
+        return self._runner.call(self._aio.properties(service))
 
     def session(self, *, max_pending: int = DEFAULT_SESSION_QUEUE) -> SyncSession:
         """An open :class:`SyncSession`: ``with client.session() as s: s.get(...)``."""
@@ -215,38 +224,14 @@ class Client(ListenCalls[ListenIterator[Event], ListenIterator[Event | Mark]]):
         return SyncSession(self._runner, session)
 
 
-class SyncSession(ListenCalls[ListenIterator[Event], ListenIterator[Event | Mark]]):
+class SyncSession(_BlockingCalls):
     """Blocking view of a :class:`clients.aio.Session`; calls from several threads share one stream."""
 
     def __init__(self, runner: _LoopThread, session: AsyncSession) -> None:
-        self._runner = runner
+        super().__init__(runner, session)
         self._session = session
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
 
     def close(self) -> None:
         """End the session. Idempotent."""
         if self._runner.loop.is_running():
             self._runner.run(self._session.aclose(), _GRACE)
-
-    def get(self, service: str, prop: str, /, **params: Any) -> str:
-        """See :meth:`clients.aio.Session.get`."""
-        return self._runner.call(self._session.get(service, prop, **params))
-
-    def get_many(self, refs: Iterable[Selector]) -> list[str]:
-        """See :meth:`clients.aio.Session.get_many`."""
-        return self._runner.call(self._session.get_many(list(refs)))
-
-    def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
-        """See :meth:`clients.aio.Session.set`."""
-        return self._runner.call(self._session.set(service, prop, value, **params))
-
-    def start_listen(self, request: pb.ListenRequest, marks: bool) -> ListenIterator[Any]:
-        """A blocking iterator over the session Listen for ``request``; see :meth:`listen`."""
-        return ListenIterator(self._runner, self._session.start_listen(request, marks))
