@@ -80,7 +80,22 @@ async def _await(aw: Awaitable[T]) -> T:
     return await aw
 
 
-class ListenIterator(Generic[T]):
+class _ClosedOnExit:
+    """``with`` support for a class with a ``close()``: leaving the block closes it."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+
+class ListenIterator(_ClosedOnExit, Generic[T]):
     """A blocking iterator over a Listen; ``close()`` (or leaving ``with``) ends the stream."""
 
     def __init__(self, runner: _LoopThread, agen: AsyncIterator[T]) -> None:
@@ -112,14 +127,6 @@ class ListenIterator(Generic[T]):
         if aclose is not None and self._runner.loop.is_running():
             self._runner.run(aclose(), _GRACE)
 
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-
     def __del__(self) -> None:
         if not self._closed and self._runner.loop.is_running():
             aclose = getattr(self._agen, "aclose", None)
@@ -127,7 +134,7 @@ class ListenIterator(Generic[T]):
                 asyncio.run_coroutine_threadsafe(_await(aclose()), self._runner.loop)
 
 
-class _BlockingCalls(ListenCalls[ListenIterator[Event], ListenIterator[Event | Mark]]):
+class _BlockingCalls(_ClosedOnExit, ListenCalls[ListenIterator[Event], ListenIterator[Event | Mark]]):
     """Get, Set and Listen of an asyncio client or session, each call run on the loop thread."""
 
     def __init__(self, runner: _LoopThread, calls: AsyncClient | AsyncSession) -> None:
@@ -149,18 +156,6 @@ class _BlockingCalls(ListenCalls[ListenIterator[Event], ListenIterator[Event | M
     def start_listen(self, request: pb.ListenRequest, marks: bool) -> ListenIterator[Any]:
         """A blocking iterator over the Listen for ``request``; see :meth:`listen`. Close it when done."""
         return ListenIterator(self._runner, self._calls.start_listen(request, marks))
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-
-    def close(self) -> None:
-        """End the client or session. Idempotent."""
-        raise NotImplementedError
 
 
 class Client(_BlockingCalls):
