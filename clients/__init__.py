@@ -3,92 +3,14 @@
 ``AsyncClient`` and ``Client`` call a Property Service gateway; ``Session``
 multiplexes many calls over one stream; ``clients.values`` decodes value
 texts; every failure is a ``PropertyServiceError`` subclass.
+
+The public surface of each module (its ``__all__``) is re-exported here.
 """
 
-from clients.aio import (
-    DEFAULT_MAX_IN_FLIGHT,
-    DEFAULT_TARGET,
-    DEFAULT_TIMEOUT,
-    HEARTBEAT,
-    SYNC,
-    AsyncClient,
-    Event,
-    Mark,
-    Selector,
-    Session,
-)
-from clients.errors import (
-    Aborted,
-    AlreadyExists,
-    Cancelled,
-    DataLoss,
-    DeadlineExceeded,
-    FailedPrecondition,
-    GatewayUnreachable,
-    Internal,
-    InvalidArgument,
-    NotFound,
-    OutOfRange,
-    PermissionDenied,
-    PropertyServiceError,
-    ResourceExhausted,
-    Unauthenticated,
-    Unavailable,
-    Unimplemented,
-    Unknown,
-)
-from clients.sync import Client, ListenIterator, SyncSession
-from clients.values import (
-    Marker,
-    ValueFormatError,
-    Vector,
-    format_value,
-    parse_marker,
-    parse_names,
-    parse_number,
-    parse_vector,
-    parse_vectors,
-)
+from clients import aio, errors, sync, values
+from clients.aio import *  # noqa: F403
+from clients.errors import *  # noqa: F403
+from clients.sync import *  # noqa: F403
+from clients.values import *  # noqa: F403
 
-__all__ = [
-    "DEFAULT_MAX_IN_FLIGHT",
-    "DEFAULT_TARGET",
-    "DEFAULT_TIMEOUT",
-    "HEARTBEAT",
-    "SYNC",
-    "Aborted",
-    "AlreadyExists",
-    "AsyncClient",
-    "Cancelled",
-    "Client",
-    "DataLoss",
-    "DeadlineExceeded",
-    "Event",
-    "FailedPrecondition",
-    "GatewayUnreachable",
-    "Internal",
-    "InvalidArgument",
-    "ListenIterator",
-    "Mark",
-    "Marker",
-    "NotFound",
-    "OutOfRange",
-    "PermissionDenied",
-    "PropertyServiceError",
-    "ResourceExhausted",
-    "Selector",
-    "Session",
-    "SyncSession",
-    "Unauthenticated",
-    "Unavailable",
-    "Unimplemented",
-    "Unknown",
-    "ValueFormatError",
-    "Vector",
-    "format_value",
-    "parse_marker",
-    "parse_names",
-    "parse_number",
-    "parse_vector",
-    "parse_vectors",
-]
+__all__ = aio.__all__ + errors.__all__ + sync.__all__ + values.__all__

@@ -10,9 +10,9 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import threading
-from collections.abc import AsyncIterator, Awaitable, Iterable, Mapping
+from collections.abc import AsyncIterator, Awaitable, Iterable
 from types import TracebackType
-from typing import Any, Generic, Literal, Self, TypeVar, overload
+from typing import Any, Generic, Self, TypeVar
 
 from clients.aio import (
     DEFAULT_MAX_IN_FLIGHT,
@@ -21,12 +21,14 @@ from clients.aio import (
     DEFAULT_TIMEOUT,
     AsyncClient,
     Event,
+    ListenCalls,
     Mark,
     Selector,
 )
 from clients.aio import Session as AsyncSession
 from clients.errors import DeadlineExceeded
 from clients.values import Marker, Vector
+from protos.propertyservice.v1 import property_service_pb2 as pb
 
 __all__ = ["Client", "ListenIterator", "SyncSession"]
 
@@ -38,9 +40,10 @@ _GRACE = 5.0
 
 
 class _LoopThread:
-    """An event loop running forever in a daemon thread."""
+    """An event loop running forever in a daemon thread; ``call_limit`` bounds each :meth:`call`."""
 
-    def __init__(self) -> None:
+    def __init__(self, call_limit: float | None) -> None:
+        self.call_limit = call_limit
         self.loop = asyncio.new_event_loop()
         ready = threading.Event()
         self.loop.call_soon(ready.set)
@@ -61,6 +64,10 @@ class _LoopThread:
             future.cancel()  # e.g. KeyboardInterrupt in the caller: do not leave the call running
             raise
 
+    def call(self, aw: Awaitable[T]) -> T:
+        """Run one call of the client on the loop, waiting at most ``call_limit`` seconds."""
+        return self.run(aw, self.call_limit)
+
     def stop(self) -> None:
         if self.loop.is_running():
             self.loop.call_soon_threadsafe(self.loop.stop)
@@ -73,7 +80,22 @@ async def _await(aw: Awaitable[T]) -> T:
     return await aw
 
 
-class ListenIterator(Generic[T]):
+class _ClosedOnExit:
+    """``with`` support for a class with a ``close()``: leaving the block closes it."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+
+class ListenIterator(_ClosedOnExit, Generic[T]):
     """A blocking iterator over a Listen; ``close()`` (or leaving ``with``) ends the stream."""
 
     def __init__(self, runner: _LoopThread, agen: AsyncIterator[T]) -> None:
@@ -105,14 +127,6 @@ class ListenIterator(Generic[T]):
         if aclose is not None and self._runner.loop.is_running():
             self._runner.run(aclose(), _GRACE)
 
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-
     def __del__(self) -> None:
         if not self._closed and self._runner.loop.is_running():
             aclose = getattr(self._agen, "aclose", None)
@@ -120,7 +134,31 @@ class ListenIterator(Generic[T]):
                 asyncio.run_coroutine_threadsafe(_await(aclose()), self._runner.loop)
 
 
-class Client:
+class _BlockingCalls(_ClosedOnExit, ListenCalls[ListenIterator[Event], ListenIterator[Event | Mark]]):
+    """Get, Set and Listen of an asyncio client or session, each call run on the loop thread."""
+
+    def __init__(self, runner: _LoopThread, calls: AsyncClient | AsyncSession) -> None:
+        self._runner = runner
+        self._calls = calls
+
+    def get(self, service: str, prop: str, /, **params: Any) -> str:
+        """See :meth:`clients.aio.AsyncClient.get`."""
+        return self._runner.call(self._calls.get(service, prop, **params))
+
+    def get_many(self, refs: Iterable[Selector]) -> list[str]:
+        """See :meth:`clients.aio.AsyncClient.get_many`."""
+        return self._runner.call(self._calls.get_many(list(refs)))
+
+    def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
+        """See :meth:`clients.aio.AsyncClient.set`."""
+        return self._runner.call(self._calls.set(service, prop, value, **params))
+
+    def start_listen(self, request: pb.ListenRequest, marks: bool) -> ListenIterator[Any]:
+        """A blocking iterator over the Listen for ``request``; see :meth:`listen`. Close it when done."""
+        return ListenIterator(self._runner, self._calls.start_listen(request, marks))
+
+
+class Client(_BlockingCalls):
     """Blocking client of a Property Service gateway; same methods as :class:`AsyncClient`.
 
     Use as ``with Client("127.0.0.1:50051") as c: c.get("scout1", "location")``.
@@ -138,18 +176,7 @@ class Client:
         self.target = target
         self.timeout = timeout
         self._aio = AsyncClient(target, timeout=timeout, metadata=metadata, max_in_flight=max_in_flight)
-        self._runner = _LoopThread()
-
-    def _run(self, aw: Awaitable[T]) -> T:
-        return self._runner.run(aw, None if self.timeout is None else self.timeout + _GRACE)
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
+        super().__init__(_LoopThread(None if timeout is None else timeout + _GRACE), self._aio)
 
     def close(self) -> None:
         """Close the channel and stop the background loop. Idempotent."""
@@ -157,125 +184,49 @@ class Client:
             self._runner.run(self._aio.close(), _GRACE)
         self._runner.stop()
 
-    def get(self, service: str, prop: str, /, **params: Any) -> str:
-        """See :meth:`AsyncClient.get`."""
-        return self._run(self._aio.get(service, prop, **params))
-
-    def get_many(self, refs: Iterable[Selector]) -> list[str]:
-        """See :meth:`AsyncClient.get_many`."""
-        return self._run(self._aio.get_many(list(refs)))
-
-    def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
-        """See :meth:`AsyncClient.set`."""
-        return self._run(self._aio.set(service, prop, value, **params))
-
     def get_number(self, service: str, prop: str, /, **params: Any) -> float:
         """See :meth:`AsyncClient.get_number`."""
-        return self._run(self._aio.get_number(service, prop, **params))
+        return self._runner.call(self._aio.get_number(service, prop, **params))
 
     def get_vector(self, service: str, prop: str, /, **params: Any) -> Vector:
         """See :meth:`AsyncClient.get_vector`."""
-        return self._run(self._aio.get_vector(service, prop, **params))
+        return self._runner.call(self._aio.get_vector(service, prop, **params))
 
     def get_vectors(self, service: str, prop: str, /, **params: Any) -> list[Vector]:
         """See :meth:`AsyncClient.get_vectors`."""
-        return self._run(self._aio.get_vectors(service, prop, **params))
+        return self._runner.call(self._aio.get_vectors(service, prop, **params))
 
     def get_names(self, service: str, prop: str, /, **params: Any) -> list[str]:
         """See :meth:`AsyncClient.get_names`."""
-        return self._run(self._aio.get_names(service, prop, **params))
+        return self._runner.call(self._aio.get_names(service, prop, **params))
 
     def get_marker(self, service: str, prop: str, /, **params: Any) -> Marker:
         """See :meth:`AsyncClient.get_marker`."""
-        return self._run(self._aio.get_marker(service, prop, **params))
+        return self._runner.call(self._aio.get_marker(service, prop, **params))
 
     def services(self) -> list[str]:
         """See :meth:`AsyncClient.services`."""
-        return self._run(self._aio.services())
+        return self._runner.call(self._aio.services())
 
     def properties(self, service: str) -> list[str]:
         """See :meth:`AsyncClient.properties`."""
-        return self._run(self._aio.properties(service))
-
-    @overload
-    def listen(
-        self,
-        service: str,
-        prop: str,
-        /,
-        *more: Selector,
-        params: Mapping[str, Any] | None = ...,
-        updates_only: bool = ...,
-        min_interval: float | None = ...,
-        sample_interval: float | None = ...,
-        heartbeat: float | None = ...,
-        max_batch: int = ...,
-        marks: Literal[False] = ...,
-    ) -> ListenIterator[Event]: ...
-
-    @overload
-    def listen(
-        self,
-        service: str,
-        prop: str,
-        /,
-        *more: Selector,
-        params: Mapping[str, Any] | None = ...,
-        updates_only: bool = ...,
-        min_interval: float | None = ...,
-        sample_interval: float | None = ...,
-        heartbeat: float | None = ...,
-        max_batch: int = ...,
-        marks: Literal[True],
-    ) -> ListenIterator[Event | Mark]: ...
-
-    def listen(
-        self, service: str, prop: str, /, *more: Selector, **options: Any
-    ) -> ListenIterator[Event] | ListenIterator[Event | Mark]:
-        """See :meth:`AsyncClient.listen`; returns a blocking iterator to close when done."""
-        agen: AsyncIterator[Any] = self._aio.listen(service, prop, *more, **options)
-        return ListenIterator(self._runner, agen)
+        return self._runner.call(self._aio.properties(service))
 
     def session(self, *, max_pending: int = DEFAULT_SESSION_QUEUE) -> SyncSession:
         """An open :class:`SyncSession`: ``with client.session() as s: s.get(...)``."""
         session = self._aio.session(max_pending=max_pending)
         self._runner.run(session.open(), _GRACE)
-        return SyncSession(self, session)
+        return SyncSession(self._runner, session)
 
 
-class SyncSession:
+class SyncSession(_BlockingCalls):
     """Blocking view of a :class:`clients.aio.Session`; calls from several threads share one stream."""
 
-    def __init__(self, client: Client, session: AsyncSession) -> None:
-        self._client = client
+    def __init__(self, runner: _LoopThread, session: AsyncSession) -> None:
+        super().__init__(runner, session)
         self._session = session
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
 
     def close(self) -> None:
         """End the session. Idempotent."""
-        if self._client._runner.loop.is_running():
-            self._client._runner.run(self._session.aclose(), _GRACE)
-
-    def get(self, service: str, prop: str, /, **params: Any) -> str:
-        """See :meth:`clients.aio.Session.get`."""
-        return self._client._run(self._session.get(service, prop, **params))
-
-    def get_many(self, refs: Iterable[Selector]) -> list[str]:
-        """See :meth:`clients.aio.Session.get_many`."""
-        return self._client._run(self._session.get_many(list(refs)))
-
-    def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
-        """See :meth:`clients.aio.Session.set`."""
-        return self._client._run(self._session.set(service, prop, value, **params))
-
-    def listen(self, service: str, prop: str, /, *more: Selector, **options: Any) -> ListenIterator[Any]:
-        """See :meth:`clients.aio.Session.listen`."""
-        agen: AsyncIterator[Any] = self._session.listen(service, prop, *more, **options)
-        return ListenIterator(self._client._runner, agen)
+        if self._runner.loop.is_running():
+            self._runner.run(self._session.aclose(), _GRACE)

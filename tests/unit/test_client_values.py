@@ -154,3 +154,13 @@ def test_vector_round_trip(xs: list[float]) -> None:
 @given(_finite)
 def test_number_round_trip(x: float) -> None:
     assert parse_number(format_value(x)) == x
+
+
+def test_the_client_reads_values_with_the_services_grammar() -> None:
+    from services import values as grammar
+
+    assert parse_vector is grammar.parse_vector
+    assert Marker is grammar.Marker
+    assert ValueFormatError is grammar.ValueFormatError
+    with pytest.raises(ValueError, match="expected a vector"):  # what the SDK documents
+        parse_vector("(1 x)")

@@ -1,0 +1,36 @@
+"""The asyncio client: :class:`AsyncClient` and its multiplexed :class:`Session`.
+
+Unary calls (Get, Set) and server-streamed Listen go over ``grpc.aio``; a
+:class:`Session` multiplexes many calls over the bidirectional ``Session`` RPC,
+which is the fast path for programs making many small calls.
+
+* :mod:`~clients.aio.client`: :class:`AsyncClient`
+* :mod:`~clients.aio.session`: :class:`Session`
+* :mod:`~clients.aio.listen`: the one ``listen`` method of clients and sessions
+* :mod:`~clients.aio.listen_buffer`: the conflating buffer of a session listen
+* :mod:`~clients.aio.events`: :class:`Event`, :class:`Mark`
+* :mod:`~clients.aio.requests`: calls to protobuf requests, :data:`Selector`
+"""
+
+from clients.aio.client import DEFAULT_MAX_IN_FLIGHT, DEFAULT_TARGET, DEFAULT_TIMEOUT, AsyncClient
+from clients.aio.events import HEARTBEAT, SYNC, Event, Mark
+from clients.aio.listen import ListenCalls
+from clients.aio.requests import ListenOptions, Selector
+from clients.aio.session import DEFAULT_SESSION_QUEUE, MAX_SESSION_BATCH, Session
+
+__all__ = [
+    "DEFAULT_MAX_IN_FLIGHT",
+    "DEFAULT_SESSION_QUEUE",
+    "DEFAULT_TARGET",
+    "DEFAULT_TIMEOUT",
+    "HEARTBEAT",
+    "MAX_SESSION_BATCH",
+    "SYNC",
+    "AsyncClient",
+    "Event",
+    "ListenCalls",
+    "ListenOptions",
+    "Mark",
+    "Selector",
+    "Session",
+]

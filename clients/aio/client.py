@@ -1,0 +1,210 @@
+"""The asyncio client: unary Get and Set, server-streamed Listen, and the door to a :class:`Session`."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncGenerator, Iterable, Sequence
+from types import TracebackType
+from typing import Any, Self
+
+import grpc
+import grpc.aio
+
+from clients.aio.events import Event, Mark, listen_items
+from clients.aio.listen import ListenCalls
+from clients.aio.requests import (
+    Selector,
+    decode,
+    format_params,
+    get_many_request,
+    get_many_values,
+)
+from clients.aio.session import DEFAULT_SESSION_QUEUE, Session
+from clients.errors import DeadlineExceeded, PropertyServiceError, error_from_rpc
+from clients.values import (
+    Marker,
+    Vector,
+    format_value,
+    parse_marker,
+    parse_names,
+    parse_number,
+    parse_vector,
+    parse_vectors,
+)
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+
+__all__ = ["DEFAULT_MAX_IN_FLIGHT", "DEFAULT_TARGET", "DEFAULT_TIMEOUT", "AsyncClient"]
+
+DEFAULT_TARGET = "127.0.0.1:50051"
+#: Seconds a unary call (or a request inside a Session) may take.
+DEFAULT_TIMEOUT = 10.0
+#: Unary calls (Get, Set) one AsyncClient has in flight at once; more callers wait their turn.
+#: grpc.aio answers part of a burst of more than about a thousand simultaneous unary calls on one
+#: channel with CANCELLED, so the client never starts that many.
+DEFAULT_MAX_IN_FLIGHT = 256
+
+
+class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Mark, None]]):
+    """Asyncio client of a Property Service gateway.
+
+    Use as ``async with AsyncClient("127.0.0.1:50051") as c: await c.get("scout1", "location")``.
+    Every unary call is bounded by ``timeout`` seconds (None: no limit);
+    ``metadata`` (e.g. ``[("authorization", "Bearer ...")]``) goes with every call.
+    At most ``max_in_flight`` unary calls run at once; further callers queue
+    in the client, first come first served, and their waiting counts towards
+    their ``timeout``. For many calls, :meth:`session` is the faster path.
+    Failures raise :class:`clients.errors.PropertyServiceError` subclasses.
+    """
+
+    def __init__(
+        self,
+        target: str = DEFAULT_TARGET,
+        *,
+        timeout: float | None = DEFAULT_TIMEOUT,
+        metadata: Iterable[tuple[str, str]] | None = None,
+        options: Sequence[tuple[str, Any]] | None = None,
+        max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
+    ) -> None:
+        if isinstance(max_in_flight, bool) or not isinstance(max_in_flight, int) or max_in_flight < 1:
+            raise ValueError(f"max_in_flight must be a whole number of at least 1, got {max_in_flight!r}")
+        self.target = target
+        self.timeout = timeout
+        self.metadata: tuple[tuple[str, str], ...] | None = tuple(metadata) if metadata else None
+        self.max_in_flight = max_in_flight
+        self._options = list(options or [])
+        self._channel: grpc.aio.Channel | None = None
+        self._stub: Any = None
+        self._slots = asyncio.Semaphore(max_in_flight)
+
+    def stub(self) -> Any:
+        """The generated ``PropertyServiceStub`` over this client's channel, made on first use.
+
+        The channel (and the call slots) are made on first use, so that they bind to the running loop.
+        """
+        if self._stub is None:
+            self._channel = grpc.aio.insecure_channel(self.target, options=self._options)
+            self._stub = pb_grpc.PropertyServiceStub(self._channel)
+            self._slots = asyncio.Semaphore(self.max_in_flight)
+        return self._stub
+
+    async def __aenter__(self) -> Self:
+        self.stub()
+        return self
+
+    async def __aexit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.close()
+
+    async def close(self) -> None:
+        """Close the channel; ongoing calls are cancelled. Idempotent."""
+        channel, self._channel, self._stub = self._channel, None, None
+        if channel is not None:
+            await channel.close(None)
+
+    def _error(self, err: grpc.RpcError, service: str = "", prop: str = "") -> PropertyServiceError:
+        return error_from_rpc(err, service, prop, self.target)
+
+    async def _unary(self, method: str, request: Any, service: str = "", prop: str = "") -> Any:
+        """One Get or Set, in a call slot; the wait for the slot counts towards the timeout."""
+        stub = self.stub()
+        slots = self._slots
+        timeout = self.timeout
+        if slots.locked():
+            timeout = await self._wait_for_slot(slots, service, prop)
+        else:
+            await slots.acquire()  # a free slot: taken at once, no timer needed
+        try:
+            return await getattr(stub, method)(request, timeout=timeout, metadata=self.metadata)
+        except grpc.RpcError as e:
+            raise self._error(e, service, prop) from None
+        finally:
+            slots.release()
+
+    async def _wait_for_slot(self, slots: asyncio.Semaphore, service: str, prop: str) -> float | None:
+        """Wait for a call slot within the timeout; return the time left for the call itself."""
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        try:
+            async with asyncio.timeout(self.timeout):
+                await slots.acquire()
+        except TimeoutError:
+            raise DeadlineExceeded(
+                None,
+                f"no call slot free within {self.timeout} s: {self.max_in_flight} calls of this client "
+                "are in flight (raise max_in_flight, or use client.session() for many calls)",
+                service,
+                prop,
+            ) from None
+        return None if self.timeout is None else max(self.timeout - (loop.time() - start), 1e-3)
+
+    async def get(self, service: str, prop: str, /, **params: Any) -> str:
+        """The value of ``prop`` of ``service`` as text; keyword arguments are request parameters."""
+        request = pb.GetRequest(service=service, property=prop, parameters=format_params(params))
+        resp = await self._unary("Get", request, service, prop)
+        value: str = resp.value
+        return value
+
+    async def get_many(self, refs: Iterable[Selector]) -> list[str]:
+        """Values of several ``(service, property[, params])`` in one call, in order; all or nothing."""
+        refs = list(refs)
+        if not refs:
+            return []
+        resp = await self._unary("Get", get_many_request(refs))
+        return get_many_values(resp, len(refs))
+
+    async def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
+        """Write ``value`` (text, number, bool, vector, list, :class:`Marker`); return the answer."""
+        request = pb.SetRequest(
+            service=service, property=prop, value=format_value(value), parameters=format_params(params)
+        )
+        resp = await self._unary("Set", request, service, prop)
+        answer: str = resp.value
+        return answer
+
+    async def get_number(self, service: str, prop: str, /, **params: Any) -> float:
+        """The value as a float."""
+        return decode(parse_number, await self.get(service, prop, **params), service, prop)
+
+    async def get_vector(self, service: str, prop: str, /, **params: Any) -> Vector:
+        """The value ``(1 2 3)`` as a 1-D numpy array."""
+        return decode(parse_vector, await self.get(service, prop, **params), service, prop)
+
+    async def get_vectors(self, service: str, prop: str, /, **params: Any) -> list[Vector]:
+        """The value ``((1 2) (3 4))`` as a list of 1-D numpy arrays."""
+        return decode(parse_vectors, await self.get(service, prop, **params), service, prop)
+
+    async def get_names(self, service: str, prop: str, /, **params: Any) -> list[str]:
+        """The value ``(a b c)`` as a list of names."""
+        return decode(parse_names, await self.get(service, prop, **params), service, prop)
+
+    async def get_marker(self, service: str, prop: str, /, **params: Any) -> Marker:
+        """The value as a :class:`Marker`."""
+        return decode(parse_marker, await self.get(service, prop, **params), service, prop)
+
+    async def services(self) -> list[str]:
+        """Names of the services the gateway's registry knows."""
+        return await self.get_names("registry", "services")
+
+    async def properties(self, service: str) -> list[str]:
+        """The properties ``service`` offers right now."""
+        return await self.get_names(service, "properties")
+
+    async def start_listen(
+        self, request: pb.ListenRequest, marks: bool
+    ) -> AsyncGenerator[Event | Mark, None]:
+        """The server-streamed Listen for ``request``; see :meth:`listen`."""
+        call = self.stub().Listen(request, metadata=self.metadata)
+        try:
+            async for resp in call:
+                for item in listen_items(resp, marks):
+                    yield item
+        except grpc.RpcError as e:
+            raise self._error(e, request.service, request.property) from None
+        finally:
+            call.cancel()
+
+    def session(self, *, max_pending: int = DEFAULT_SESSION_QUEUE) -> Session:
+        """A :class:`Session` over this client's channel: ``async with client.session() as s: ...``."""
+        return Session(self, max_pending=max_pending)

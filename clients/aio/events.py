@@ -1,0 +1,67 @@
+"""What a Listen yields: :class:`Event` values and :class:`Mark` stream markers."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+from protos.propertyservice.v1 import property_service_pb2 as pb
+
+__all__ = ["HEARTBEAT", "SYNC", "Event", "Mark", "listen_items"]
+
+
+@dataclass(frozen=True, slots=True)
+class Event:
+    """One value of one property, as delivered by a Listen."""
+
+    service: str
+    property: str
+    value: str
+    #: Per-stream sequence number, from 1, without holes.
+    sequence: int
+    #: When the gateway saw the change (timezone-aware, UTC).
+    time: datetime
+    #: How many earlier values were replaced by this one (slow reader or throttle).
+    conflated: int = 0
+    #: Values may have been lost before this one; ``value`` is the current value.
+    gap: bool = False
+    #: The property no longer exists; ``value`` is empty.
+    removed: bool = False
+
+
+class Mark(enum.Enum):
+    """Stream markers a Listen yields when asked with ``marks=True``."""
+
+    #: The current values have all been sent; what follows are changes.
+    SYNC = "sync"
+    #: Keep-alive: nothing changed for the heartbeat interval.
+    HEARTBEAT = "heartbeat"
+
+
+SYNC = Mark.SYNC
+HEARTBEAT = Mark.HEARTBEAT
+
+
+def _event(ev: pb.Event) -> Event:
+    return Event(
+        ev.service,
+        ev.property,
+        ev.value,
+        ev.sequence,
+        ev.time.ToDatetime(tzinfo=UTC),
+        ev.conflated,
+        ev.gap,
+        ev.removed,
+    )
+
+
+def listen_items(resp: pb.ListenResponse, marks: bool) -> list[Event | Mark]:
+    """The events of one ListenResponse, then its markers when ``marks`` asks for them."""
+    items: list[Event | Mark] = [_event(ev) for ev in resp.events]
+    if marks:
+        if resp.sync:
+            items.append(SYNC)
+        if resp.heartbeat:
+            items.append(HEARTBEAT)
+    return items

@@ -1,0 +1,114 @@
+"""How the SDK's calls become protobuf requests, and how answers become values."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, TypedDict, TypeVar
+
+from google.protobuf.duration_pb2 import Duration
+
+from clients.errors import Unknown
+from clients.values import ValueFormatError, format_value
+from protos.propertyservice.v1 import property_service_pb2 as pb
+
+__all__ = [
+    "ListenOptions",
+    "Selector",
+    "decode",
+    "format_params",
+    "get_many_request",
+    "get_many_values",
+    "listen_request",
+]
+
+T = TypeVar("T")
+
+#: A Listen selector: ``(service, property)`` or ``(service, property, parameters)``.
+Selector = tuple[str, str] | tuple[str, str, Mapping[str, Any]]
+
+
+class ListenOptions(TypedDict, total=False):
+    """The keyword options of every ``listen`` (see :meth:`clients.aio.AsyncClient.listen`)."""
+
+    params: Mapping[str, Any] | None
+    updates_only: bool
+    min_interval: float | None
+    sample_interval: float | None
+    heartbeat: float | None
+    max_batch: int
+
+
+def format_params(params: Mapping[str, Any]) -> dict[str, str]:
+    """Request parameters as text, each value by :func:`clients.values.format_value`."""
+    return {name: format_value(value) for name, value in params.items()}
+
+
+def _duration(seconds: float | None, what: str) -> Duration | None:
+    if seconds is None:
+        return None
+    if seconds < 0:
+        raise ValueError(f"{what} must not be negative, got {seconds}")
+    d = Duration()
+    d.FromNanoseconds(round(seconds * 1e9))
+    return d
+
+
+def _ref(selector: Selector) -> pb.PropertyRef:
+    if len(selector) == 3:
+        service, prop, params = selector
+        return pb.PropertyRef(service=service, property=prop, parameters=format_params(params))
+    service, prop = selector[0], selector[1]
+    return pb.PropertyRef(service=service, property=prop)
+
+
+def listen_request(
+    service: str,
+    prop: str,
+    more: Sequence[Selector],
+    *,
+    params: Mapping[str, Any] | None = None,
+    updates_only: bool = False,
+    min_interval: float | None = None,
+    sample_interval: float | None = None,
+    heartbeat: float | None = None,
+    max_batch: int = 0,
+) -> pb.ListenRequest:
+    """The ListenRequest for ``(service, prop)``, the further selectors and the options."""
+    options = pb.ListenOptions(
+        updates_only=updates_only,
+        min_interval=_duration(min_interval, "min_interval"),
+        sample_interval=_duration(sample_interval, "sample_interval"),
+        heartbeat_interval=_duration(heartbeat, "heartbeat"),
+        max_batch=max_batch,
+    )
+    return pb.ListenRequest(
+        service=service,
+        property=prop,
+        parameters=format_params(params or {}),
+        more=[_ref(s) for s in more],
+        options=options,
+    )
+
+
+def get_many_request(refs: Sequence[Selector]) -> pb.GetRequest:
+    """One GetRequest for several selectors: the first in the request itself, the rest in ``more``."""
+    first = _ref(refs[0])
+    more = [_ref(r) for r in refs[1:]]
+    return pb.GetRequest(
+        service=first.service, property=first.property, parameters=first.parameters, more=more
+    )
+
+
+def get_many_values(resp: pb.GetResponse, n: int) -> list[str]:
+    """The ``n`` values of a GetResponse to :func:`get_many_request`, in order."""
+    if len(resp.more) != n - 1:
+        raise Unknown(None, f"the gateway answered {len(resp.more) + 1} values for {n} paths")
+    return [resp.value, *(v.value for v in resp.more)]
+
+
+def decode(parse: Callable[[str], T], text: str, service: str, prop: str) -> T:
+    """``parse(text)``; a :class:`ValueFormatError` names the property the value came from."""
+    try:
+        return parse(text)
+    except ValueFormatError as e:
+        raise ValueFormatError(f"{service} {prop}: {e}") from None

@@ -1,0 +1,67 @@
+"""Value formats of the Property Service: every value travels as text.
+
+The text grammar is part of the contract, and both sides use this one
+package: the services and the gateway, and the client SDK (``clients``).
+It imports nothing of the project but :mod:`services.errors`.
+
+* :mod:`~services.values.grammar`: numbers, integers, booleans, vectors,
+  lists, vectors lists and names; the limits and :class:`ValueFormatError`
+* :mod:`~services.values.markers`: :class:`Marker`, the XML element tree value
+* :mod:`~services.values.formatting`: :func:`format_value`, by runtime type
+* :mod:`~services.values.annotations`: :func:`parser_for` / :func:`parse_as`
+  turn a type annotation into a parser (used by the class wrapper)
+* :mod:`~services.values.vector_elements`: :func:`vector_index`, the
+  sub-property names of a vector's elements
+"""
+
+from services.values.annotations import parse_as, parser_for, type_name
+from services.values.formatting import format_value
+from services.values.grammar import (
+    MAX_LIST_DEPTH,
+    MAX_VALUE_LENGTH,
+    ValueFormatError,
+    Vector,
+    format_bool,
+    format_list,
+    format_names,
+    format_number,
+    format_vector,
+    format_vectors,
+    parse_bool,
+    parse_int,
+    parse_list,
+    parse_names,
+    parse_number,
+    parse_vector,
+    parse_vectors,
+)
+from services.values.markers import Marker, format_marker, parse_marker
+from services.values.vector_elements import vector_index
+
+__all__ = [
+    "MAX_LIST_DEPTH",
+    "MAX_VALUE_LENGTH",
+    "Marker",
+    "ValueFormatError",
+    "Vector",
+    "format_bool",
+    "format_list",
+    "format_marker",
+    "format_names",
+    "format_number",
+    "format_value",
+    "format_vector",
+    "format_vectors",
+    "parse_as",
+    "parse_bool",
+    "parse_int",
+    "parse_list",
+    "parse_marker",
+    "parse_names",
+    "parse_number",
+    "parse_vector",
+    "parse_vectors",
+    "parser_for",
+    "type_name",
+    "vector_index",
+]

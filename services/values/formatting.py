@@ -1,0 +1,25 @@
+"""Formatting any value by its runtime type: the one entry point for results and parameters."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from services.values.grammar import format_plain
+from services.values.markers import Marker, format_marker
+
+__all__ = ["format_value"]
+
+
+def format_value(obj: Any) -> str:
+    """Format ``obj`` by its runtime type; TypeError for a type that has no value format.
+
+    ``None`` is the empty text, ``str`` as is, ``bool`` as ``true``/``false``,
+    numbers in their shortest exact form, a 1-D array as a vector, a 2-D array
+    or nested sequences as a list, a sequence of arrays as vectors and a
+    :class:`Marker` as XML.
+    """
+    if type(obj) is float:  # the commonest value: straight to the number format
+        return format_plain(obj)
+    if isinstance(obj, Marker):
+        return format_marker(obj)
+    return format_plain(obj)
