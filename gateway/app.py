@@ -37,6 +37,7 @@ from services.backend import Backend, BackendInfo
 from services.catalog import needs_directory
 from services.errors import PropertyError
 from services.registry import DEFAULT_REGISTER_TIMEOUT, Registry, RegistryService
+from services.registry import ServiceEntry as RegistryEntry
 
 log = logging.getLogger("gateway")
 
@@ -203,7 +204,7 @@ class Gateway:
             return
         reason = f"service {name!r} is down"
         entry = self.registry.services.children().get(name)
-        misses = getattr(entry, "misses", 0)
+        misses = entry.misses if isinstance(entry, RegistryEntry) else 0
         if misses:
             reason += f": it missed {misses} liveness check{'s' if misses != 1 else ''}"
         self.router.set_down(name, reason)
