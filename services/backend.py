@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import ClassVar, Protocol
 
+from services.model import Access, PropertyModel, ServiceModel
+
 NO_PARAMS: Mapping[str, str] = MappingProxyType({})
 
 log = logging.getLogger(__name__)
@@ -123,6 +125,19 @@ class Backend(abc.ABC):
         from services.values import parse_names
 
         return parse_names(await self.get("properties"))
+
+    async def describe(self) -> ServiceModel:
+        """The typed model of every property the service offers right now (one call).
+
+        The default knows only the names: each property is of type and access
+        ``unknown``. Backends that know more (the class wrapper, a device that
+        describes itself, another gateway) override it.
+        """
+        names = await self.properties()
+        return ServiceModel(
+            type=self.info.type,
+            properties=tuple(PropertyModel(name, "unknown", Access.UNKNOWN) for name in names),
+        )
 
     async def check(self) -> None:
         """Return when the service is alive; raise a PropertyError (UNAVAILABLE, ...) when it is not.
