@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Coroutine, Mapping
 from typing import Any
 
 from gateway.router import Router, bounded_call, check_path, finish_call
@@ -67,39 +67,28 @@ class Calls:
 
     def start_get(self, request: pb.GetRequest, time_limit: float) -> Begun:
         """Start reading the request's one path (``more`` is :meth:`get`'s)."""
-        backend = self._backend(request.service, "Get")
+        service = request.service
+        backend = self._backend(service, "Get")
         path = check_path(request.property)
         params = request.parameters
+        if backend.answers_inline:
+            return _inline(backend.get(path, _params(params)), time_limit, service, "get", path)
         future = backend.start_get(path, params, time_limit)
         if future is not None:
             return future
-        service = request.service
-        return self._start(
-            backend, backend.get(path, _params(params)), time_limit, lambda: f"{service}: get {path}"
-        )
+        # A proxy's call is stepped inside whichever task awaits it (its timeouts belong there).
+        what = functools.partial("{}: get {}".format, service, path)
+        return bounded_call(backend.get(path, _params(params)), time_limit, what)
 
     def start_set(self, request: pb.SetRequest, time_limit: float) -> Begun:
         """Start writing the request's value; the call's value is the service's answer."""
-        backend = self._backend(request.service, "Set")
-        path = check_path(request.property)
         service = request.service
-        return self._start(
-            backend,
-            backend.set(path, request.value, _params(request.parameters)),
-            time_limit,
-            lambda: f"{service}: set {path}",
-        )
-
-    @staticmethod
-    def _start(backend: Backend, call: Any, time_limit: float, what: Callable[[], str]) -> Begun:
+        backend = self._backend(service, "Set")
+        path = check_path(request.property)
+        call = backend.set(path, request.value, _params(request.parameters))
         if backend.answers_inline:
-            # Stepped here, in the caller's task: an in-process answer costs no task and no timer.
-            first = step(call)
-            if isinstance(first, Started):
-                return finish_call(first, time_limit, what)
-            return first if first is not None else ""
-        # A proxy's call is stepped inside whichever task awaits it (its timeouts belong there).
-        return bounded_call(call, time_limit, what)
+            return _inline(call, time_limit, service, "set", path)
+        return bounded_call(call, time_limit, functools.partial("{}: set {}".format, service, path))
 
     async def get(self, request: pb.GetRequest, time_limit: float) -> pb.GetResponse:
         """Read the request's path and its ``more`` paths; all or nothing."""
@@ -170,3 +159,11 @@ class Calls:
                 raise type(err)(f"{service}/{path}: {err.message}", err.code) from None
             out.append(pb.PropertyValue(service=service, property=path, value=value))
         return out
+
+
+def _inline(call: Coroutine[Any, Any, str], time_limit: float, service: str, verb: str, path: str) -> Begun:
+    """Step an in-process call here, in the caller's task: an answer at once costs no task and no timer."""
+    first = step(call)
+    if isinstance(first, Started):
+        return finish_call(first, time_limit, functools.partial("{}: {} {}".format, service, verb, path))
+    return first if first is not None else ""

@@ -13,6 +13,7 @@ written; beyond either, the reader stops reading (backpressure).
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine
@@ -233,7 +234,10 @@ class Session:
         except Exception as exc:
             self._fail(rid, exc, f"{request.service}: get {request.property}")
             return
-        self._follow(rid, begun, "get", lambda: f"{request.service}: get {request.property}")
+        if type(begun) is str:  # answered inline: the commonest case, no description built
+            self._answer(rid, "get", begun)
+        else:
+            self._follow(rid, begun, "get", request.service, request.property)
 
     def _set(self, rid: int, request: pb.SetRequest) -> None:
         try:
@@ -241,13 +245,18 @@ class Session:
         except Exception as exc:
             self._fail(rid, exc, f"{request.service}: set {request.property}")
             return
-        self._follow(rid, begun, "set", lambda: f"{request.service}: set {request.property}")
+        if type(begun) is str:
+            self._answer(rid, "set", begun)
+        else:
+            self._follow(rid, begun, "set", request.service, request.property)
 
-    def _follow(self, rid: int, begun: Begun, kind: str, what: Callable[[], str]) -> None:
+    def _follow(self, rid: int, begun: Begun, kind: str, service: str, path: str) -> None:
         """Answer request ``rid`` from a started call: now, when its future is done, or from a task."""
         if isinstance(begun, str):
             self._answer(rid, kind, begun)
-        elif isinstance(begun, asyncio.Future):
+            return
+        what = functools.partial("{}: {} {}".format, service, kind, path)
+        if isinstance(begun, asyncio.Future):
             self._await_reply(rid, begun, kind, what)
         else:
             self._spawn(rid, self._finish(rid, kind, begun, what))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from services.values.grammar import format_plain
+from services.values.grammar import format_float, format_plain
 from services.values.markers import Marker, format_marker
 
 __all__ = ["format_value"]
@@ -18,8 +18,12 @@ def format_value(obj: Any) -> str:
     or nested sequences as a list, a sequence of arrays as vectors and a
     :class:`Marker` as XML.
     """
-    if type(obj) is float:  # the commonest value: straight to the number format
-        return format_plain(obj)
+    # The commonest values first, by exact type: a Get of text or a number costs two checks.
+    cls = type(obj)
+    if cls is float:
+        return format_float(obj)
+    if cls is str:
+        return obj  # type: ignore[no-any-return]
     if isinstance(obj, Marker):
         return format_marker(obj)
     return format_plain(obj)

@@ -36,6 +36,7 @@ __all__ = [
     "check_length",
     "fail",
     "format_bool",
+    "format_float",
     "format_list",
     "format_names",
     "format_number",
@@ -161,15 +162,15 @@ _NESTED = (list, tuple, np.ndarray)
 def format_number(x: float | np.integer[Any] | np.floating[Any]) -> str:
     """Shortest text that parses back to exactly ``x``: ``2``, ``0.5``, ``1e+20``."""
     if type(x) is float:  # the common case, kept free of the isinstance checks below
-        return _format_float(x)
+        return format_float(x)
     if isinstance(x, _BOOLS):
         raise ValueFormatError(f"expected a number, got the boolean {x}")
     if isinstance(x, _INTEGERS):
         return str(int(x))
-    return _format_float(float(x))
+    return format_float(float(x))
 
 
-def _format_float(x: float) -> str:
+def format_float(x: float) -> str:
     if x.is_integer():
         if abs(x) < _INTEGRAL_LIMIT:
             return str(int(x))
@@ -404,7 +405,7 @@ def _format_name(name: str) -> str:
 def format_plain(obj: Any) -> str:
     """Format ``obj`` by its runtime type, markers aside (see ``format_value``); TypeError for others."""
     if type(obj) is float:  # the commonest value, kept free of the checks below
-        return _format_float(obj)
+        return format_float(obj)
     if obj is None:
         return ""
     if isinstance(obj, str):
