@@ -12,8 +12,11 @@ serves them as one mobile robot:
   member's ``location``.
 * ``behaviors.moveto`` sends every member to the target plus its place in a
   formation (``line``, ``grid``, ``circle``; see :mod:`services.formations`),
-  all members at once, each under ``member_timeout``; ``behaviors.halt``
-  stops them all; ``velocity`` is the mean of the members' velocities.
+  all members at once, each under ``member_timeout``; ``behaviors.stop``
+  stops them all (the same name as a robot's).
+* ``velocity``: a Get is the mean of the members' velocities; a Set sends
+  the velocity command to every member, each clipping it to its own limits
+  (a group is teleoperated like one robot).
 * ``subgroup`` selects members into a named subgroup under
   ``subgroups.<name>``, itself a Group; ``dissolve`` removes one.
 
@@ -146,16 +149,17 @@ class GroupBehaviors(Resource):
         """Send every member to its formation place around the target; returns the members that accepted."""
         return await self._group.moveto(target, formation=formation, spacing=spacing)
 
-    # Not named ``stop``: that name is the Resource lifecycle hook, and a
-    # gateway shutting down must not stop every robot of the group.
+    # Also the name of the Resource lifecycle hook: being functional, it is the
+    # property only, so a gateway shutting down never stops the group's robots;
+    # it answers like every group call (the members that acted), hence the override.
     @functional(doc="stop every member where it is (each member's behaviors.stop)")
-    async def halt(self) -> list[str]:
+    async def stop(self) -> list[str]:  # type: ignore[override]
         """Stop every member; returns the members that stopped."""
 
         def stop(name: str, backend: Backend) -> Awaitable[str]:
             return backend.set("behaviors.stop", "")
 
-        return await self._group.fan_out("behaviors.halt", stop)
+        return await self._group.fan_out("behaviors.stop", stop)
 
 
 class Group(Resource):
@@ -480,8 +484,19 @@ class Group(Resource):
 
         return await self.fan_out("behaviors.moveto", send, names)
 
-    @functional(doc="mean velocity of the members that answer")
-    async def velocity(self) -> Vector:
+    # One name, read and written: the value is positional-only so that a Get can
+    # never carry a command (reads do not move robots).
+    @functional(
+        doc="Get: the mean velocity of the members that answer (m/s, rad/s); "
+        "Set: the velocity command for every member, each clipping it to its own limits"
+    )
+    async def velocity(self, command: Vector | None = None, /) -> Vector | list[str]:
+        """Get: the members' mean velocity; Set: command every member, return those that took it."""
+        if command is None:
+            return await self.mean_velocity()
+        return await self.command_velocity(command)
+
+    async def mean_velocity(self) -> Vector:
         """The mean of the members' velocities (asked now, each under ``member_timeout``)."""
         found: dict[str, Vector] = {}
 
@@ -496,6 +511,22 @@ class Group(Resource):
         if not found:
             raise Unavailable("the group has no members")
         return centroid(list(found.values()))
+
+    async def command_velocity(self, command: Vector) -> list[str]:
+        """Set ``velocity`` of every member to ``command``; returns the members that took it.
+
+        Each member clips the command to its own limits and stops by itself
+        when it is not renewed; a member that refuses it fails the call like
+        any group call (the others still drive).
+        """
+        if command.ndim != 1 or command.size == 0:
+            raise InvalidArgument("a velocity command is a vector like (vx vy [vz [wx wy wz]])")
+        text = format_value(command)
+
+        def send(name: str, backend: Backend) -> Awaitable[str]:
+            return backend.set("velocity", text)
+
+        return await self.fan_out("velocity", send)
 
     # -- subgroups -------------------------------------------------------
 

@@ -5,6 +5,11 @@ standard property sets: every mobile robot has ``location``, ``velocity``,
 ``actuators``, ``sensors`` and ``behaviors`` (with ``behaviors.moveto``);
 every sensor has ``location`` and ``data``. All changes happen by attribute
 assignment on the event loop, so a Listen hears each of them.
+
+A robot is driven in one of two ways, and each cancels the other: toward a
+target (``behaviors.moveto``) or by a velocity command (a Set of ``velocity``,
+the teleoperation of a joystick or a web page). Both move it in the world
+frame, the frame of ``location``; a command holds only while it is renewed.
 """
 
 from __future__ import annotations
@@ -31,21 +36,36 @@ MAX_SPEED = 1000.0
 BATTERY_PER_METRE = 0.001
 #: Reference frames ``behaviors.moveto`` understands.
 FRAMES = ("world", "robot")
+#: Fastest turn a velocity command may ask for, rad/s (a robot spinning faster is a centrifuge).
+MAX_TURN_RATE = 100.0
+#: Seconds a velocity command holds without a renewal, as ROS cmd_vel watchdogs commonly use.
+DEFAULT_VELOCITY_TIMEOUT = 0.5
+#: Bounds of ``velocity_timeout``: shorter than a loopback round trip a command could never be
+#: renewed in time; longer than a minute a lost operator leaves the robot driving blind.
+MIN_VELOCITY_TIMEOUT = 0.05
+MAX_VELOCITY_TIMEOUT = 60.0
+#: Distance between the left and right wheels, m: turns the commanded turn rate into wheel speeds.
+WHEEL_TRACK = 0.3
 
 
-def _pose(values: Sequence[float] | Vector, what: str) -> Vector:
-    """A 6-vector pose from 2, 3 or 6 numbers (x y, x y z, or x y z roll pitch yaw)."""
+def _six(values: Sequence[float] | Vector, what: str, axes: str) -> Vector:
+    """A 6-vector from 2, 3 or 6 numbers; the missing elements are zeros. ``axes`` names them."""
     try:
         numbers = np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError):
         raise InvalidArgument(f"{what} must be 2, 3 or 6 numbers, got {values!r}") from None
     if numbers.ndim != 1 or len(numbers) not in (2, 3, 6) or not np.all(np.isfinite(numbers)):
-        raise InvalidArgument(
-            f"{what} must be 2, 3 or 6 finite numbers (x y [z [roll pitch yaw]]), got {values!r}"
-        )
-    pose = np.zeros(6)
-    pose[: len(numbers)] = numbers
-    return pose
+        small = numbers.ndim == 1 and numbers.size <= 12
+        shown = "(" + " ".join(f"{x:g}" for x in numbers.tolist()) + ")" if small else repr(values)[:80]
+        raise InvalidArgument(f"{what} must be 2, 3 or 6 finite numbers ({axes}), got {shown}")
+    six = np.zeros(6)
+    six[: len(numbers)] = numbers
+    return six
+
+
+def _pose(values: Sequence[float] | Vector, what: str) -> Vector:
+    """A 6-vector pose from 2, 3 or 6 numbers (x y, x y z, or x y z roll pitch yaw)."""
+    return _six(values, what, "x y [z [roll pitch yaw]]")
 
 
 def _rate(value: float, what: str, low: float, high: float) -> float:
@@ -63,6 +83,8 @@ class _Ticker:
         self.period = 1.0 / hz
         self._next: float | None = None
         self._last = 0.0
+        # The last wake-up came before its tick (at ``not_after``): that tick is still to come.
+        self._held = False
         self._wake = asyncio.Event()
 
     def restart(self) -> None:
@@ -73,18 +95,26 @@ class _Ticker:
         self._next = None
         self._wake.set()  # a long sleep at the old rate ends now
 
-    async def wait(self) -> float:
-        """Sleep until the next tick; return the seconds since the previous one."""
+    async def wait(self, not_after: float | None = None) -> float:
+        """Sleep until the next tick, or until the loop time ``not_after`` if that is sooner.
+
+        Returns the seconds since the previous wake-up.
+        """
         loop = asyncio.get_running_loop()
         now = loop.time()
         if self._next is None:
             self._next = self._last = now
-        self._next += self.period
+            self._next += self.period
+        elif not self._held:
+            self._next += self.period
         if self._next < now:  # fell more than a tick behind: skip the missed ticks instead of bursting
             self._next = now + self.period
+        wake_at, self._held = self._next, False
+        if not_after is not None and not_after < wake_at:
+            wake_at, self._held = not_after, True
         self._wake.clear()
         try:
-            async with asyncio.timeout(self._next - now):
+            async with asyncio.timeout(max(0.0, wake_at - now)):
                 await self._wake.wait()
         except TimeoutError:
             pass
@@ -119,7 +149,7 @@ class Behaviors(Resource):
     def __init__(self, robot: SimRobot) -> None:
         self._robot = robot
 
-    @functional(doc="drive to the target marker's location")
+    @functional(doc="drive to the target marker's location (ends a velocity command)")
     def moveto(self, target: Marker, *, frame: str = "world") -> None:
         """Drive to ``<marker><location>(x y ...)</location></marker>``, given in ``frame``."""
         location = target.location
@@ -134,18 +164,24 @@ class Behaviors(Resource):
         self._robot.drive_to(location, frame)
 
     # Also the lifecycle hook's name: being functional, it is the property only (see Resource.start).
-    @functional(doc="stop where the robot is")
+    @functional(doc="stop where the robot is (ends a moveto or a velocity command)")
     async def stop(self) -> None:
-        """Stop now; the current target is dropped."""
+        """Stop now; the current target or velocity command is dropped."""
         self._robot.halt()
 
 
 class SimRobot(Resource):
     """A simulated mobile robot on a plane, with the standard mobile-robot property set.
 
-    It drives in a straight line toward its target at ``speed``, heading
-    toward it, and stops exactly on it; then nothing changes (and nothing is
-    sent to listeners) until the next ``behaviors.moveto``.
+    ``behaviors.moveto`` drives it in a straight line toward its target at
+    ``speed``, heading toward it, and stops exactly on it. A Set of
+    ``velocity`` (vx vy [vz [wx wy wz]], m/s and rad/s, in the world frame
+    like ``location``) drives it at that velocity instead: the linear part is
+    scaled down to ``max_speed``, the turn rate clipped to ``max_turn_rate``,
+    roll and pitch rates are zero, and the heading turns at wz. A command
+    holds only while it is renewed: ``velocity_timeout`` seconds after the
+    last Set the robot stops by itself. Each of the two cancels the other.
+    A standing robot changes nothing (and sends nothing to listeners).
     """
 
     resource_type = "mobile_robot"
@@ -154,33 +190,94 @@ class SimRobot(Resource):
         Vector,
         Prop(readonly=True, gui="pose", doc="pose x y z roll pitch yaw in the world frame (m, rad)"),
     ]
-    velocity: Annotated[
-        Vector, Prop(readonly=True, doc="current velocity, same axes as location (m/s, rad/s)")
+    speed: Annotated[
+        float, Prop(minimum=0.0, maximum=MAX_SPEED, gui="slider", doc="cruise speed of moveto (m/s)")
     ]
-    speed: Annotated[float, Prop(minimum=0.0, maximum=MAX_SPEED, gui="slider", doc="cruise speed, m/s")]
+    max_speed: Annotated[
+        float,
+        Prop(
+            minimum=0.0,
+            maximum=MAX_SPEED,
+            gui="slider",
+            doc="fastest linear speed a velocity command gets; a faster one is scaled down (m/s)",
+        ),
+    ]
+    max_turn_rate: Annotated[
+        float,
+        Prop(
+            minimum=0.0,
+            maximum=MAX_TURN_RATE,
+            gui="slider",
+            doc="fastest turn a velocity command gets; a faster one is clipped (rad/s)",
+        ),
+    ]
+    velocity_timeout: Annotated[
+        float,
+        Prop(
+            minimum=MIN_VELOCITY_TIMEOUT,
+            maximum=MAX_VELOCITY_TIMEOUT,
+            doc="a velocity command not renewed by a Set within this time ends: the robot stops (s)",
+        ),
+    ]
     actuators: Actuators
     sensors: Sensors
     behaviors: Behaviors
 
     def __init__(
-        self, *, start: Sequence[float] = (0.0, 0.0), speed: float = 0.5, tick_hz: float = 20.0
+        self,
+        *,
+        start: Sequence[float] = (0.0, 0.0),
+        speed: float = 0.5,
+        tick_hz: float = 20.0,
+        max_speed: float = 1.0,
+        max_turn_rate: float = 2.0,
+        velocity_timeout: float = DEFAULT_VELOCITY_TIMEOUT,
     ) -> None:
         self.location = _pose(start, "start")
-        self.velocity = np.zeros(6)
+        self._velocity = np.zeros(6)
         self.speed = _rate(speed, "speed", 0.0, MAX_SPEED)
+        self.max_speed = _rate(max_speed, "max_speed", 0.0, MAX_SPEED)
+        self.max_turn_rate = _rate(max_turn_rate, "max_turn_rate", 0.0, MAX_TURN_RATE)
+        self.velocity_timeout = _rate(
+            velocity_timeout, "velocity_timeout", MIN_VELOCITY_TIMEOUT, MAX_VELOCITY_TIMEOUT
+        )
         self.actuators = Actuators()
         self.sensors = Sensors()
         self.behaviors = Behaviors(self)
         self._tick_hz = _rate(tick_hz, "tick_hz", 0.1, MAX_TICK_HZ)
         self._charge = 1.0
         self._target: Vector | None = None
+        self._command: Vector | None = None
+        # Seconds the velocity command has run since it was last renewed.
+        self._command_age = 0.0
         self._go = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
 
-    # -- used by Behaviors -------------------------------------------------------
+    @property
+    def velocity(
+        self,
+    ) -> Annotated[
+        Vector,
+        Prop(
+            gui="vector",
+            doc="velocity vx vy vz wx wy wz in the world frame (m/s, rad/s); Set it to drive, "
+            "clipped to max_speed and max_turn_rate, renewed within velocity_timeout",
+        ),
+    ]:
+        """The robot's velocity now: what moveto drives at, or the velocity command it follows."""
+        return self._velocity
+
+    @velocity.setter
+    def velocity(self, command: Vector) -> None:
+        self.command_velocity(command)
+
+    # -- used by Behaviors and the velocity property --------------------------------
 
     def drive_to(self, location: Vector, frame: str) -> None:
-        """Set the target: ``location`` holds x y [z ...] in ``frame`` (orientation is ignored)."""
+        """Set the target: ``location`` holds x y [z ...] in ``frame`` (orientation is ignored).
+
+        A velocity command in progress ends.
+        """
         target = self.location[:3].copy()
         n = min(len(location), 3)
         if frame == "robot":
@@ -192,12 +289,48 @@ class SimRobot(Resource):
                 target[2] += location[2]
         else:
             target[:n] = location[:n]
+        self._command = None
         self._target = target
         self._go.set()
 
-    def halt(self) -> None:
-        """Drop the target and stand still."""
+    def clip_velocity(self, command: Sequence[float] | Vector) -> Vector:
+        """The velocity this robot follows for ``command`` (2, 3 or 6 numbers).
+
+        The linear part keeps its direction and is scaled down to ``max_speed``;
+        the turn rate is clipped to ``max_turn_rate``; a robot on a plane does
+        not roll or pitch, so those rates are zero.
+        """
+        clipped = _six(command, "velocity", "vx vy [vz [wx wy wz]], m/s and rad/s")
+        linear = float(np.linalg.norm(clipped[:3]))
+        if linear > self.max_speed:
+            clipped[:3] *= self.max_speed / linear
+        clipped[3:5] = 0.0
+        clipped[5] = min(max(clipped[5], -self.max_turn_rate), self.max_turn_rate)
+        return clipped
+
+    def command_velocity(self, command: Sequence[float] | Vector) -> None:
+        """Drive at ``command``, clipped (see :meth:`clip_velocity`), for ``velocity_timeout`` seconds.
+
+        Each call renews the command; a target of moveto is dropped. A command
+        of zeros stops the robot at once.
+        """
+        clipped = self.clip_velocity(command)
         self._target = None
+        if not np.any(clipped):
+            self.halt()
+            return
+        self._command = clipped
+        self._command_age = 0.0
+        self._report_velocity(clipped)
+        speed = float(np.linalg.norm(clipped[:2]))
+        turn = clipped[5] * WHEEL_TRACK / 2
+        self.actuators.wheels = np.array([speed - turn, speed + turn])
+        self._go.set()
+
+    def halt(self) -> None:
+        """Drop the target or the velocity command and stand still."""
+        self._target = None
+        self._command = None
         self._go.clear()
         self._standstill()
 
@@ -212,21 +345,58 @@ class SimRobot(Resource):
             await asyncio.gather(self._task, return_exceptions=True)
             self._task = None
 
+    def advance(self, dt: float) -> None:
+        """Move as the robot does in ``dt`` seconds: toward its target, or at its velocity command.
+
+        The motion task calls it on every tick; a test may call it to run the
+        simulation on a clock of its own.
+        """
+        if self._command is not None:
+            self._coast(dt)
+        elif self._target is not None:
+            self._step(dt)
+
     async def _drive(self) -> None:
         ticker = _Ticker(self._tick_hz)
         longest_step = 5 * ticker.period  # after a stall, do not jump across the room
+        loop = asyncio.get_running_loop()
         while True:
-            await self._go.wait()
+            await self._go.wait()  # an idle robot sleeps here: it changes nothing, sends nothing
             ticker.restart()
-            while self._target is not None:
-                dt = await ticker.wait()
-                if self._target is not None:
-                    self._step(min(dt, longest_step))
+            while self._target is not None or self._command is not None:
+                # A command ends on time, not at the next tick after it expired.
+                left = self.velocity_timeout - self._command_age if self._command is not None else None
+                dt = await ticker.wait(None if left is None else loop.time() + max(0.0, left))
+                if self._command is not None:
+                    # Not capped: the command's own timeout bounds how far it goes.
+                    self.advance(dt)
+                else:
+                    self.advance(min(dt, longest_step))
+
+    def _report_velocity(self, velocity: Vector) -> None:
+        self._velocity = velocity
+        self.changed("velocity")
 
     def _standstill(self) -> None:
-        if np.any(self.velocity):
-            self.velocity = np.zeros(6)
+        if np.any(self._velocity):
+            self._report_velocity(np.zeros(6))
             self.actuators.wheels = np.zeros(2)
+
+    def _coast(self, dt: float) -> None:
+        """Follow the velocity command for ``dt`` seconds, no longer than it holds."""
+        command = self._command
+        assert command is not None
+        run = min(dt, max(0.0, self.velocity_timeout - self._command_age))
+        self._command_age += dt
+        if run > 0.0:
+            pose = self.location
+            new = pose.copy()
+            new[:3] += command[:3] * run
+            new[5] = math.remainder(pose[5] + command[5] * run, math.tau)
+            self._drain(float(np.linalg.norm(command[:3])) * run)
+            self.location = new
+        if self._command_age >= self.velocity_timeout:
+            self.halt()  # not renewed in time: the operator is gone, the robot stops by itself
 
     def _step(self, dt: float) -> None:
         target = self._target
@@ -255,7 +425,7 @@ class SimRobot(Resource):
         velocity = np.zeros(6)
         velocity[:3] = direction * self.speed
         velocity[5] = turn / dt if dt > 0 else 0.0
-        self.velocity = velocity
+        self._report_velocity(velocity)
         self.actuators.wheels = np.full(2, self.speed)
         self._drain(step)
         self.location = new

@@ -232,7 +232,7 @@ async def test_velocity_is_the_mean_of_the_members(world: MemoryDirectory) -> No
     group = await make_group(world, members=["scout1", "scout2"])
     try:
         np.testing.assert_allclose(parse_vector(await group.get("velocity")), np.zeros(6))
-        assert parse_names(await group.set("behaviors.halt", "")) == ["scout1", "scout2"]
+        assert parse_names(await group.set("behaviors.stop", "")) == ["scout1", "scout2"]
     finally:
         await group.aclose()
 
