@@ -97,7 +97,7 @@ class Actuators(Resource):
     """What the robot can switch or drive."""
 
     led: Annotated[bool, Prop(doc="status light on top of the robot")] = False
-    wheels: Annotated[Vector, Prop(readonly=True, doc="left and right wheel speeds, m/s")]
+    wheels: Annotated[Vector, Prop(readonly=True, unit="m/s", length=2, doc="left and right wheel speeds")]
 
     def __init__(self) -> None:
         self.wheels = np.zeros(2)
@@ -106,7 +106,7 @@ class Actuators(Resource):
 class Sensors(Resource):
     """What the robot senses about itself."""
 
-    battery: Annotated[float, Prop(readonly=True, gui="gauge", doc="charge left, from 0 to 1")]
+    battery: Annotated[float, Prop(readonly=True, gui="gauge", minimum=0, maximum=1, doc="charge left")]
     bumper: Annotated[bool, Prop(readonly=True, doc="true while the bumper touches something")] = False
 
     def __init__(self, battery: float = 1.0) -> None:
@@ -152,12 +152,12 @@ class SimRobot(Resource):
 
     location: Annotated[
         Vector,
-        Prop(readonly=True, gui="pose", doc="pose x y z roll pitch yaw in the world frame (m, rad)"),
+        Prop(readonly=True, gui="pose", unit="m, rad", length=6, doc="x y z roll pitch yaw, world frame"),
     ]
     velocity: Annotated[
         Vector, Prop(readonly=True, doc="current velocity, same axes as location (m/s, rad/s)")
     ]
-    speed: Annotated[float, Prop(minimum=0.0, maximum=MAX_SPEED, gui="slider", doc="cruise speed, m/s")]
+    speed: Annotated[float, Prop(minimum=0, maximum=MAX_SPEED, unit="m/s", gui="slider", doc="cruise speed")]
     actuators: Actuators
     sensors: Sensors
     behaviors: Behaviors
@@ -272,8 +272,8 @@ class SimSensor(Resource):
 
     resource_type = "sensor"
 
-    location: Annotated[Vector, Prop(readonly=True, gui="pose", doc="where the sensor is (m, rad)")]
-    data: Annotated[float, Prop(readonly=True, gui="plot", doc="temperature, degrees Celsius")]
+    location: Annotated[Vector, Prop(readonly=True, gui="pose", unit="m, rad", length=6, doc="sensor pose")]
+    data: Annotated[float, Prop(readonly=True, gui="plot", unit="degC", doc="temperature, degrees Celsius")]
 
     def __init__(
         self,
@@ -301,7 +301,7 @@ class SimSensor(Resource):
         self.data = self._reading()
 
     @property
-    def rate_hz(self) -> Annotated[float, Prop(minimum=0.1, maximum=MAX_TICK_HZ, doc="readings per second")]:
+    def rate_hz(self) -> Annotated[float, Prop(minimum=0.1, maximum=MAX_TICK_HZ, unit="Hz", doc="samples/s")]:
         return self._rate_hz
 
     @rate_hz.setter
