@@ -36,7 +36,8 @@ from typing import Annotated, Any
 import numpy as np
 
 from services.backend import Backend, Subscription, close_quietly
-from services.core import Prop, Resource, functional, query, start_tree, stop_tree
+from services.core import Prop, Resource, functional, start_tree, stop_tree
+from services.core import query as query_method  # `query` is also an attribute of Group
 from services.core.metadata import RESERVED_NAMES
 from services.directory import Directory
 from services.errors import (
@@ -480,7 +481,7 @@ class Group(Resource):
 
         return await self.fan_out("behaviors.moveto", send, names)
 
-    @query(doc="mean velocity of the members that answer")
+    @query_method(doc="mean velocity of the members that answer")
     async def velocity(self) -> Vector:
         """The mean of the members' velocities (asked now, each under ``member_timeout``)."""
         found: dict[str, Vector] = {}

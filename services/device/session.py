@@ -36,6 +36,7 @@ from services.line_protocol import (
     Unlisten,
     encode,
 )
+from services.model_codec import MODEL_PATH, model_to_text
 
 __all__ = [
     "CALL_TIMEOUT",
@@ -172,7 +173,7 @@ class DeviceSession:
                 await self._answer(frame)
                 return
             started: Started[str] | None = None
-            if type(frame) is Get and self._step_gets:
+            if type(frame) is Get and self._step_gets and frame.path != MODEL_PATH:
                 # An in-process service usually answers a GET without waiting:
                 # step it here and reply at once, with no task and no timer.
                 try:
@@ -227,6 +228,9 @@ class DeviceSession:
     async def _call(self, frame: Get | Set | Listen | Unlisten) -> str:
         backend = self.backend
         if isinstance(frame, Get):
+            if frame.path == MODEL_PATH and not frame.params:
+                # The device describes itself (docs/line-protocol.md): the backend's whole model.
+                return model_to_text(await backend.describe())
             return await backend.get(frame.path, frame.params)
         if isinstance(frame, Set):
             return await backend.set(frame.path, frame.value, frame.params)
