@@ -125,8 +125,8 @@ def _bound(x: float | None) -> Any:
     return "-" if x is None or not math.isfinite(x) else x
 
 
-def model_to_text(model: ServiceModel) -> str:
-    """The line form of ``model`` (see the module docstring)."""
+def model_to_text(model: ServiceModel, *, docs: bool = True) -> str:
+    """The line form of ``model`` (see the module docstring); ``docs=False`` leaves the docs out."""
     return format_list(
         [
             [
@@ -136,7 +136,7 @@ def model_to_text(model: ServiceModel) -> str:
                 _words(p.unit),
                 _bound(p.minimum),
                 _bound(p.maximum),
-                _words(p.doc),
+                *([_words(p.doc)] if docs else []),
             ]
             for p in model.properties
         ]

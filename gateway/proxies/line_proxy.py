@@ -342,14 +342,14 @@ class LineProxy(Backend):
         """The device's own model when it describes itself (``GET properties.model``), else names only.
 
         A device that does not describe itself answers NOT_FOUND (or anything
-        that is not a model): its properties are then of type and access
-        ``unknown`` (docs/line-protocol.md).
+        that is not a model, or a line too long): its properties are then of
+        type and access ``unknown`` (docs/line-protocol.md).
         """
         try:
             text = await self.get(MODEL_PATH)
             return model_from_text(text, self.info.type)
         except PropertyError as e:
-            if e.code not in (Code.NOT_FOUND, Code.INVALID_ARGUMENT):
+            if e.code not in (Code.NOT_FOUND, Code.INVALID_ARGUMENT, Code.RESOURCE_EXHAUSTED, Code.DATA_LOSS):
                 raise
             log.debug("%s does not describe itself (%s)", self._label(), e.message)
         return await super().describe()
