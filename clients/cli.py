@@ -21,6 +21,7 @@ from typing import Any, TextIO
 from clients.aio import DEFAULT_TARGET, DEFAULT_TIMEOUT, HEARTBEAT, SYNC, AsyncClient, Event, Mark, Selector
 from clients.errors import GatewayUnreachable, NotFound, PropertyServiceError
 from clients.values import ValueFormatError
+from services.model import ParameterModel, PropertyModel
 
 __all__ = ["EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_UNREACHABLE", "EXIT_USAGE", "main"]
 
@@ -37,7 +38,7 @@ _EPILOG = """\
 examples:
   psctl ls                                    services known to the registry
   psctl ls -l                                 services with type, url and state
-  psctl ls scout1 -l                          properties of scout1 with gui and parameters
+  psctl ls scout1 -l                          scout1's model: type, access, unit, range, doc
   psctl get scout1 location                   one value
   psctl get scout1 location.x location.y      several values, "path = value" lines
   psctl get registry find -p type=sensor      with a request parameter
@@ -153,7 +154,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Without SERVICE: the services the registry knows. With SERVICE: its properties.",
     )
     ls.add_argument("service", nargs="?", help="service whose properties to list")
-    ls.add_argument("-l", "--long", action="store_true", help="add type/url/state or gui/parameters")
+    ls.add_argument(
+        "-l", "--long", action="store_true", help="services: add type/url/state; a service: its typed model"
+    )
 
     get = commands.add_parser(
         "get",
@@ -262,16 +265,63 @@ def _table(rows: list[list[str]]) -> None:
         _out("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip())
 
 
+def _type_text(prop: PropertyModel) -> str:
+    return f"{prop.type}[{prop.length}]" if prop.length else prop.type
+
+
+def _range_text(prop: PropertyModel) -> str:
+    if prop.choices:
+        return "|".join(prop.choices)
+    if prop.minimum is None and prop.maximum is None:
+        return ""
+    low = "" if prop.minimum is None else f"{prop.minimum:g}"
+    high = "" if prop.maximum is None else f"{prop.maximum:g}"
+    return f"{low}..{high}"
+
+
+def _parameter_json(param: ParameterModel) -> dict[str, Any]:
+    return {"type": param.type, "required": param.required, "default": param.default, "doc": param.doc}
+
+
+def _property_json(prop: PropertyModel) -> dict[str, Any]:
+    return {
+        "name": prop.name,
+        "type": prop.type,
+        "length": prop.length,
+        "access": prop.access.value,
+        "unit": prop.unit,
+        "minimum": prop.minimum,
+        "maximum": prop.maximum,
+        "choices": list(prop.choices),
+        "doc": prop.doc,
+        "gui": prop.gui,
+        "value": None if prop.value is None else {"name": prop.value.name, **_parameter_json(prop.value)},
+        "parameters": {p.name: _parameter_json(p) for p in prop.parameters},
+    }
+
+
+async def _ls_model(client: AsyncClient, service: str, as_json: bool) -> int:
+    """``ls -l SERVICE``: the service's model (the Describe RPC) as a table or JSON."""
+    model = await client.describe(service)
+    if as_json:
+        _emit_json([_property_json(p) for p in model.properties])
+    elif model.properties:
+        header = ["NAME", "TYPE", "ACCESS", "UNIT", "RANGE", "DOC"]
+        rows = [
+            [p.name, _type_text(p), p.access.value, p.unit or "-", _range_text(p) or "-", p.doc or "-"]
+            for p in model.properties
+        ]
+        _table([header, *rows])
+    return EXIT_OK
+
+
 async def _ls(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
-    columns: tuple[str, ...]
+    if args.service is not None and args.long:
+        return await _ls_model(client, args.service, as_json)
     if args.service is None:
         names = await client.services()
-        columns = ("type", "url", "state")
-        refs = [("registry", f"services.{name}.{c}") for name in names for c in columns]
     else:
         names = await client.properties(args.service)
-        columns = ("gui", "parameters")
-        refs = [(args.service, f"{name}.{c}") for name in names for c in columns]
     if not args.long:
         if as_json:
             _emit_json(names)
@@ -279,6 +329,8 @@ async def _ls(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> i
             for name in names:
                 _out(name)
         return EXIT_OK
+    columns = ("type", "url", "state")
+    refs = [("registry", f"services.{name}.{c}") for name in names for c in columns]
     values = await _gather_optional(client, refs)
     n = len(columns)
     details = [dict(zip(columns, values[i * n : (i + 1) * n], strict=True)) for i in range(len(names))]

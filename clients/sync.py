@@ -29,6 +29,7 @@ from clients.aio import Session as AsyncSession
 from clients.errors import DeadlineExceeded
 from clients.values import Marker, Vector
 from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.model import ServiceModel
 
 __all__ = ["Client", "ListenIterator", "SyncSession"]
 
@@ -211,6 +212,10 @@ class Client(_BlockingCalls):
     def properties(self, service: str) -> list[str]:
         """See :meth:`AsyncClient.properties`."""
         return self._runner.call(self._aio.properties(service))
+
+    def describe(self, service: str) -> ServiceModel:
+        """See :meth:`AsyncClient.describe`."""
+        return self._runner.call(self._aio.describe(service))
 
     def session(self, *, max_pending: int = DEFAULT_SESSION_QUEUE) -> SyncSession:
         """An open :class:`SyncSession`: ``with client.session() as s: s.get(...)``."""

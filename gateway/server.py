@@ -1,7 +1,7 @@
-"""The ``propertyservice.v1.PropertyService`` servicer: Get, Set, Listen and Session.
+"""The ``propertyservice.v1.PropertyService`` servicer: Get, Set, Listen, Session and Describe.
 
-Get and Set go through the router to one backend each, under the call
-timeout (and the client's deadline when that is shorter). Listen streams
+Get, Set and Describe go through the router to one backend each, under the
+call timeout (and the client's deadline when that is shorter). Listen streams
 come from the listen hub. Session lives in :mod:`gateway.session`.
 """
 
@@ -17,12 +17,13 @@ from google.protobuf.message import DecodeError, Message
 from gateway.calls import Calls, Undecodable
 from gateway.config import Config
 from gateway.listen import ListenHub, parse_options, parse_selectors
-from gateway.router import Router
+from gateway.router import Router, bounded_call
 from gateway.session import Session
 from gateway.status import abort
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.errors import InvalidArgument
+from services.model_codec import model_to_proto
 
 Context = grpc.aio.ServicerContext[Any, Any]
 
@@ -64,6 +65,11 @@ def add_to_server(servicer: PropertyServicer, server: grpc.aio.Server) -> None:
             request_deserializer=_lenient(pb.SessionRequest),
             response_serializer=pb.SessionResponse.SerializeToString,
         ),
+        "Describe": grpc.unary_unary_rpc_method_handler(
+            servicer.Describe,
+            request_deserializer=_lenient(pb.DescribeRequest),
+            response_serializer=pb.DescribeResponse.SerializeToString,
+        ),
     }
     name = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
     server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(name, handlers),))
@@ -100,6 +106,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
     """Serves the v1 contract from a router and a listen hub."""
 
     def __init__(self, router: Router, hub: ListenHub, config: Config) -> None:
+        self.router = router
         self.calls = Calls(router, config.gateway.call_timeout, config.limits.max_get_paths)
         self.hub = hub
         self.config = config
@@ -133,6 +140,20 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             return await self.calls.set(request, self._deadline(context))
         except Exception as exc:
             await abort(context, exc, "Set")
+            raise
+
+    async def Describe(self, request: pb.DescribeRequest, context: Context) -> pb.DescribeResponse:
+        try:
+            if isinstance(request, Undecodable):
+                raise request.error
+            name = request.service
+            backend = self.router.backend(name)
+            model = await bounded_call(
+                backend.describe(), self._deadline(context), lambda: f"{name}: describe"
+            )
+            return model_to_proto(model)
+        except Exception as exc:
+            await abort(context, exc, "Describe")
             raise
 
     async def Listen(self, request: pb.ListenRequest, context: Context) -> AsyncIterator[pb.ListenResponse]:

@@ -39,7 +39,7 @@ from typing import Annotated, Any
 import numpy as np
 
 from services.backend import Backend, Subscription, close_quietly
-from services.core import Prop, Resource, functional, start_tree, stop_tree
+from services.core import Prop, Resource, functional, read_write, start_tree, stop_tree
 from services.core.metadata import RESERVED_NAMES
 from services.directory import Directory
 from services.errors import (
@@ -486,9 +486,10 @@ class Group(Resource):
 
     # One name, read and written: the value is positional-only so that a Get can
     # never carry a command (reads do not move robots).
-    @functional(
-        doc="Get: the mean velocity of the members that answer (m/s, rad/s); "
-        "Set: the velocity command for every member, each clipping it to its own limits"
+    @read_write(
+        unit="m/s, rad/s",
+        doc="Get: the mean velocity of the members that answer; "
+        "Set: the velocity command for every member, each clipping it to its own limits",
     )
     async def velocity(self, command: Vector | None = None, /) -> Vector | list[str]:
         """Get: the members' mean velocity; Set: command every member, return those that took it."""

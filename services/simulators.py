@@ -127,7 +127,7 @@ class Actuators(Resource):
     """What the robot can switch or drive."""
 
     led: Annotated[bool, Prop(doc="status light on top of the robot")] = False
-    wheels: Annotated[Vector, Prop(readonly=True, doc="left and right wheel speeds, m/s")]
+    wheels: Annotated[Vector, Prop(readonly=True, unit="m/s", length=2, doc="left and right wheel speeds")]
 
     def __init__(self) -> None:
         self.wheels = np.zeros(2)
@@ -136,7 +136,7 @@ class Actuators(Resource):
 class Sensors(Resource):
     """What the robot senses about itself."""
 
-    battery: Annotated[float, Prop(readonly=True, gui="gauge", doc="charge left, from 0 to 1")]
+    battery: Annotated[float, Prop(readonly=True, gui="gauge", minimum=0, maximum=1, doc="charge left")]
     bumper: Annotated[bool, Prop(readonly=True, doc="true while the bumper touches something")] = False
 
     def __init__(self, battery: float = 1.0) -> None:
@@ -188,18 +188,19 @@ class SimRobot(Resource):
 
     location: Annotated[
         Vector,
-        Prop(readonly=True, gui="pose", doc="pose x y z roll pitch yaw in the world frame (m, rad)"),
+        Prop(readonly=True, gui="pose", unit="m, rad", length=6, doc="x y z roll pitch yaw, world frame"),
     ]
     speed: Annotated[
-        float, Prop(minimum=0.0, maximum=MAX_SPEED, gui="slider", doc="cruise speed of moveto (m/s)")
+        float, Prop(minimum=0.0, maximum=MAX_SPEED, unit="m/s", gui="slider", doc="cruise speed of moveto")
     ]
     max_speed: Annotated[
         float,
         Prop(
             minimum=0.0,
             maximum=MAX_SPEED,
+            unit="m/s",
             gui="slider",
-            doc="fastest linear speed a velocity command gets; a faster one is scaled down (m/s)",
+            doc="fastest linear speed a velocity command gets; a faster one is scaled down",
         ),
     ]
     max_turn_rate: Annotated[
@@ -207,8 +208,9 @@ class SimRobot(Resource):
         Prop(
             minimum=0.0,
             maximum=MAX_TURN_RATE,
+            unit="rad/s",
             gui="slider",
-            doc="fastest turn a velocity command gets; a faster one is clipped (rad/s)",
+            doc="fastest turn a velocity command gets; a faster one is clipped",
         ),
     ]
     velocity_timeout: Annotated[
@@ -216,7 +218,8 @@ class SimRobot(Resource):
         Prop(
             minimum=MIN_VELOCITY_TIMEOUT,
             maximum=MAX_VELOCITY_TIMEOUT,
-            doc="a velocity command not renewed by a Set within this time ends: the robot stops (s)",
+            unit="s",
+            doc="a velocity command not renewed by a Set within this time ends: the robot stops",
         ),
     ]
     actuators: Actuators
@@ -260,7 +263,9 @@ class SimRobot(Resource):
         Vector,
         Prop(
             gui="vector",
-            doc="velocity vx vy vz wx wy wz in the world frame (m/s, rad/s); Set it to drive, "
+            unit="m/s, rad/s",
+            length=6,
+            doc="velocity vx vy vz wx wy wz in the world frame; Set it to drive, "
             "clipped to max_speed and max_turn_rate, renewed within velocity_timeout",
         ),
     ]:
@@ -442,8 +447,8 @@ class SimSensor(Resource):
 
     resource_type = "sensor"
 
-    location: Annotated[Vector, Prop(readonly=True, gui="pose", doc="where the sensor is (m, rad)")]
-    data: Annotated[float, Prop(readonly=True, gui="plot", doc="temperature, degrees Celsius")]
+    location: Annotated[Vector, Prop(readonly=True, gui="pose", unit="m, rad", length=6, doc="sensor pose")]
+    data: Annotated[float, Prop(readonly=True, gui="plot", unit="degC", doc="temperature, degrees Celsius")]
 
     def __init__(
         self,
@@ -471,7 +476,7 @@ class SimSensor(Resource):
         self.data = self._reading()
 
     @property
-    def rate_hz(self) -> Annotated[float, Prop(minimum=0.1, maximum=MAX_TICK_HZ, doc="readings per second")]:
+    def rate_hz(self) -> Annotated[float, Prop(minimum=0.1, maximum=MAX_TICK_HZ, unit="Hz", doc="samples/s")]:
         return self._rate_hz
 
     @rate_hz.setter

@@ -33,6 +33,8 @@ from clients.values import (
 )
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+from services.model import ServiceModel
+from services.model_codec import model_from_proto
 
 __all__ = ["DEFAULT_MAX_IN_FLIGHT", "DEFAULT_TARGET", "DEFAULT_TIMEOUT", "AsyncClient"]
 
@@ -186,6 +188,11 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
     async def services(self) -> list[str]:
         """Names of the services the gateway's registry knows."""
         return await self.get_names("registry", "services")
+
+    async def describe(self, service: str) -> ServiceModel:
+        """The typed model of every property of ``service`` in one call (the ``Describe`` RPC)."""
+        resp = await self._unary("Describe", pb.DescribeRequest(service=service), service)
+        return model_from_proto(resp)
 
     async def properties(self, service: str) -> list[str]:
         """The properties ``service`` offers right now."""

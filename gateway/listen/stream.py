@@ -13,7 +13,9 @@ until it returns None; each call drains what is ready into one
 Wildcards follow the service: ``*`` as service follows the router's adds and
 removes (the hub calls :meth:`ListenStream.service_added`); ``*`` in a path is
 expanded against the service's ``properties`` and follows a listen on
-``properties``.
+``properties``. A selector with ``*`` (service or path) matches only what a
+Listen may follow: actions and queries are skipped silently, as the service's
+model (``Backend.describe``, read once per service per expansion) says.
 """
 
 from __future__ import annotations
@@ -46,9 +48,14 @@ JOIN_RETRY_S = 10.0
 
 
 class _Expansion:
-    """A path pattern expanded against one service's ``properties``; follows its changes."""
+    """A path pattern expanded against one service's ``properties``; follows its changes.
 
-    __slots__ = ("list_topic", "matched", "matches", "selector", "service", "stream")
+    It matches only the properties a Listen may follow (``Access.listenable``:
+    never an action, nor a query that needs its parameters), as the service's
+    model says; a name the model does not know counts as listenable.
+    """
+
+    __slots__ = ("known", "list_topic", "matched", "matches", "selector", "service", "skipped", "stream")
 
     def __init__(self, stream: ListenStream, selector: Selector, service: str) -> None:
         self.stream = stream
@@ -57,6 +64,19 @@ class _Expansion:
         self.matches = compile_pattern(selector.path)
         self.matched: set[str] = set()
         self.list_topic: Topic | None = None
+        #: Names the service's model says a Listen may not follow, and every name it knows.
+        self.skipped: frozenset[str] = frozenset()
+        self.known: frozenset[str] = frozenset()
+
+    async def learn_model(self, backend: Backend) -> None:
+        """Read which properties to skip from the service's model (once per expansion)."""
+        try:
+            model = await backend.describe()
+        except PropertyError as exc:
+            log.debug("%s: cannot read its model (%s); every match is followed", self.service, exc.message)
+            return
+        self.known = frozenset(p.name for p in model.properties)
+        self.skipped = frozenset(p.name for p in model.properties if not p.access.listenable)
 
     def paths(self, listing: str) -> set[str]:
         try:
@@ -64,7 +84,7 @@ class _Expansion:
         except PropertyError as exc:
             log.warning("%s: cannot read its properties list: %s", self.service, exc.message)
             return set(self.matched)
-        return {n for n in names if self.matches(n)}
+        return {n for n in names if self.matches(n) and n not in self.skipped}
 
     def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None:
         if change.removed:
@@ -190,6 +210,10 @@ class ListenStream:
         if self.closed:
             self._topics.unsubscribe(exp, list_topic)
             return
+        await exp.learn_model(backend)
+        if self.closed:
+            self._topics.unsubscribe(exp, list_topic)
+            return
         exp.list_topic = list_topic
         self._expansions.append(exp)
         exp.matched = exp.paths(list_topic.value)
@@ -271,6 +295,10 @@ class ListenStream:
 
     async def _join_new(self, exp: _Expansion, paths: list[str]) -> None:
         try:
+            if exp.list_topic is not None and any(p not in exp.known for p in paths):
+                # Properties the model has not seen (a member joined a group): ask it again.
+                await exp.learn_model(exp.list_topic.backend)
+                exp.matched -= exp.skipped
             await self._join_many(exp, [p for p in paths if p in exp.matched])
         except PropertyError as exc:
             self.fail(exc)

@@ -24,7 +24,7 @@ import contextlib
 import logging
 import random
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any
 from urllib.parse import parse_qsl, unquote, urlsplit
 
@@ -36,6 +36,8 @@ from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.errors import Code, DeadlineExceeded, InvalidArgument, PropertyError, Unavailable
+from services.model import ServiceModel
+from services.model_codec import model_from_proto
 from services.paths import validate_service_name
 from services.sharing import SharedListen, SharedListens
 
@@ -234,6 +236,19 @@ class GrpcProxy(Backend):
         except grpc.aio.AioRpcError as exc:
             raise self._error(exc) from None
         return str(reply.value)
+
+    async def describe(self) -> ServiceModel:
+        """The remote service's model, from the remote gateway's Describe (names only from an older one)."""
+        await self._type_learned()
+        request = pb.DescribeRequest(service=self.remote)
+        try:
+            reply = await self._get_stub().Describe(request, timeout=self.options.timeout)
+        except grpc.aio.AioRpcError as exc:
+            if exc.code() is grpc.StatusCode.UNIMPLEMENTED:
+                return await super().describe()
+            raise self._error(exc) from None
+        model = model_from_proto(reply)
+        return model if model.type else replace(model, type=self.info.type)
 
     async def check(self) -> None:
         """Alive when the remote service answers a Get of ``properties`` within the timeout.

@@ -46,6 +46,8 @@ from services.line_protocol import (
     Set,
     Unlisten,
 )
+from services.model import ServiceModel
+from services.model_codec import MODEL_PATH, model_from_text
 from services.sharing import SharedListen, SharedListens
 
 log = logging.getLogger(__name__)
@@ -335,6 +337,22 @@ class LineProxy(Backend):
 
     async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
         return await self._call(Set(path, value, dict(params)))
+
+    async def describe(self) -> ServiceModel:
+        """The device's own model when it describes itself (``GET properties.model``), else names only.
+
+        A device that does not describe itself answers NOT_FOUND (or anything
+        that is not a model, or a line too long): its properties are then of
+        type and access ``unknown`` (docs/line-protocol.md).
+        """
+        try:
+            text = await self.get(MODEL_PATH)
+            return model_from_text(text, self.info.type)
+        except PropertyError as e:
+            if e.code not in (Code.NOT_FOUND, Code.INVALID_ARGUMENT, Code.RESOURCE_EXHAUSTED, Code.DATA_LOSS):
+                raise
+            log.debug("%s does not describe itself (%s)", self._label(), e.message)
+        return await super().describe()
 
     # -- listening ---------------------------------------------------------
 

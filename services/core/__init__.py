@@ -1,16 +1,30 @@
 """The Property Service core: write a service as a plain Python class, serve it as a Backend.
 
 * :class:`Resource` — base class of every service object (attributes, ``@property``,
-  ``@functional`` methods and child namespaces become properties).
-* :class:`Prop` — metadata in ``Annotated[T, Prop(...)]``; :func:`functional` — marks
-  functional properties.
+  ``@action``/``@query`` methods and child namespaces become properties).
+* :class:`Prop` — metadata in ``Annotated[T, Prop(...)]`` (unit, range, choices, length, ...).
+* :func:`action` — a method a Set invokes; :func:`query` — a method a Get calls, declared
+  never to change state; :func:`read_write` — a method a Get calls without a value and a Set
+  with one (a value computed by asking others, set by telling them); :func:`functional` — the
+  former name of :func:`action`.
 * :class:`LocalService` — serves a Resource in-process as a ``services.backend.Backend``.
 * :func:`start_tree` / :func:`stop_tree` — run a Resource's lifecycle hooks and its children's.
 * ``RESERVED_NAMES`` — names no member or child may take (``properties``, ``parameters``, ``gui``, ``doc``).
 """
 
 from services.core.local import LocalService
-from services.core.metadata import RESERVED_NAMES, Prop, functional
+from services.core.metadata import RESERVED_NAMES, Prop, action, functional, query, read_write
 from services.core.resource import Resource, start_tree, stop_tree
 
-__all__ = ["RESERVED_NAMES", "LocalService", "Prop", "Resource", "functional", "start_tree", "stop_tree"]
+__all__ = [
+    "RESERVED_NAMES",
+    "LocalService",
+    "Prop",
+    "Resource",
+    "action",
+    "functional",
+    "query",
+    "read_write",
+    "start_tree",
+    "stop_tree",
+]

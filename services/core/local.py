@@ -9,10 +9,12 @@ from collections.abc import Coroutine, Mapping
 from typing import Any
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
+from services.core.describe import describe_tree
 from services.core.metadata import class_spec
 from services.core.resource import Resource, start_tree, stop_tree
 from services.core.tree import NeedsAwait, RemoteTarget, Target, all_properties, remote_children, resolve
 from services.errors import PropertyError
+from services.model import ServiceModel
 from services.paths import validate_path
 
 __all__ = ["LocalService"]
@@ -182,6 +184,9 @@ class LocalService(Backend):
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
         """Listen to ``path``; request parameters do not change what is listened to and are ignored."""
         target = self._target(path)
+        refused = target.listen_refused()
+        if refused is not None:
+            raise refused
         if isinstance(target, RemoteTarget):
             sub = _RemoteSubscription(self, path, target.prefix, notify)
             self._remote[id(sub)] = sub
@@ -268,6 +273,12 @@ class LocalService(Backend):
 
     async def properties(self) -> list[str]:
         return await all_properties(self.obj)
+
+    async def describe(self) -> ServiceModel:
+        """The model of every property of the object's tree, Backend children's through their own."""
+        return ServiceModel(
+            type=self.info.type, properties=await describe_tree(self.obj), doc=class_spec(type(self.obj)).doc
+        )
 
     async def start(self) -> None:
         """Start the object's background work, children first."""

@@ -13,6 +13,7 @@ The compiler knows the classes it describes only by their base
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import inspect
 import logging
@@ -26,9 +27,21 @@ from typing import Any, TypeVar, overload
 import numpy as np
 
 from services.backend import Backend
-from services.values import format_list, parser_for, type_name
+from services.model import Access
+from services.values import format_list, format_value, parser_for, type_name
 
-__all__ = ["ClassSpec", "Member", "MemberKind", "Namespace", "Param", "Prop", "class_spec", "functional"]
+__all__ = [
+    "ClassSpec",
+    "Member",
+    "MemberKind",
+    "Namespace",
+    "Param",
+    "Prop",
+    "action",
+    "class_spec",
+    "functional",
+    "query",
+]
 
 log = logging.getLogger(__name__)
 
@@ -58,44 +71,113 @@ class Prop:
     #: Preferred widget; the default follows the value type.
     gui: str | None = None
     doc: str | None = None
-    #: Bounds a Set from outside must respect (numbers only; the class itself may assign anything).
+    #: Bounds a Set from outside must respect (numbers, or each element of a vector;
+    #: the class itself may assign anything).
     minimum: float | None = None
     maximum: float | None = None
+    #: Unit of the value (``m``, ``m/s``, ``rad``, ``degC``); "" when it has none.
+    unit: str | None = None
+    #: The values a Set from outside may give, when they are a closed set.
+    choices: tuple[Any, ...] | None = None
+    #: Elements of a vector, when fixed (6 for a pose).
+    length: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
 class _FunctionalOptions:
+    access: Access
     gui: str | None = None
     doc: str | None = None
+    unit: str | None = None
 
 
 _FUNCTIONAL_MARK = "__ps_functional__"
 
 
-@overload
-def functional(fn: F, /) -> F: ...
-
-
-@overload
-def functional(*, gui: str | None = None, doc: str | None = None) -> Callable[[F], F]: ...
-
-
-def functional(
-    fn: F | None = None, /, *, gui: str | None = None, doc: str | None = None
+def _marked(
+    access: Access, fn: F | None, gui: str | None, doc: str | None, unit: str | None
 ) -> F | Callable[[F], F]:
-    """Expose a method as a functional property: a Set calls it (``behaviors.moveto``).
-
-    The first positional parameter after ``self`` receives the Set value, parsed
-    by its annotation; the other parameters are request parameters, passed by
-    keyword and parsed by their annotations. A method whose value parameter is
-    absent or has a default is a query: a Get calls it too.
-    """
+    options = _FunctionalOptions(access, gui=gui, doc=doc, unit=unit)
 
     def mark(f: F) -> F:
-        setattr(f, _FUNCTIONAL_MARK, _FunctionalOptions(gui=gui, doc=doc))
+        setattr(f, _FUNCTIONAL_MARK, options)
         return f
 
     return mark(fn) if fn is not None else mark
+
+
+@overload
+def action(fn: F, /) -> F: ...
+
+
+@overload
+def action(
+    *, gui: str | None = None, doc: str | None = None, unit: str | None = None
+) -> Callable[[F], F]: ...
+
+
+def action(
+    fn: F | None = None, /, *, gui: str | None = None, doc: str | None = None, unit: str | None = None
+) -> F | Callable[[F], F]:
+    """Expose a method as an action: a Set invokes it (``behaviors.moveto``); a Get or Listen never does.
+
+    The first positional parameter after ``self`` receives the Set value, parsed
+    by its annotation (a method without one takes no value: a Set with a value
+    is INVALID_ARGUMENT); the other parameters are request parameters, passed by
+    keyword and parsed by their annotations. A Get is FAILED_PRECONDITION naming
+    how to invoke it. ``doc``, ``gui`` and ``unit`` (of the value) are metadata.
+    """
+    return _marked(Access.ACTION, fn, gui, doc, unit)
+
+
+@overload
+def query(fn: F, /) -> F: ...
+
+
+@overload
+def query(*, gui: str | None = None, doc: str | None = None, unit: str | None = None) -> Callable[[F], F]: ...
+
+
+def query(
+    fn: F | None = None, /, *, gui: str | None = None, doc: str | None = None, unit: str | None = None
+) -> F | Callable[[F], F]:
+    """Expose a method as a query: a Get calls it with the request parameters (``registry/find``).
+
+    Its author declares that calling it never changes state, so a Get (or a
+    Listen naming it exactly) may call it at any time. Every parameter is a
+    request parameter, the first positional one also accepted by name; a Set
+    is FAILED_PRECONDITION. ``doc``, ``gui`` and ``unit`` (of the answer) are metadata.
+    """
+    return _marked(Access.QUERY, fn, gui, doc, unit)
+
+
+@overload
+def read_write(fn: F, /) -> F: ...
+
+
+@overload
+def read_write(
+    *, gui: str | None = None, doc: str | None = None, unit: str | None = None
+) -> Callable[[F], F]: ...
+
+
+def read_write(
+    fn: F | None = None, /, *, gui: str | None = None, doc: str | None = None, unit: str | None = None
+) -> F | Callable[[F], F]:
+    """Expose a method as a read-write property whose Set does work that must be awaited.
+
+    For a value that is computed by asking others and set by telling them (a
+    group's ``velocity``: the members' mean, and a command to every member).
+    The method's only parameter is its value, positional-only with the default
+    None: a Get calls it without one and must not change state (reads never
+    act); a Set calls it with the value, which a Set must carry.
+    """
+    return _marked(Access.READ_WRITE, fn, gui, doc, unit)
+
+
+#: The former name of :func:`action`, kept for existing services. A value-less
+#: ``@functional`` is an action too and no longer answers a Get: declare reads ``@query``.
+functional = action
 
 
 class MemberKind(enum.Enum):
@@ -134,21 +216,23 @@ class Member:
     readonly: bool = False
     gui: str = "text"
     doc: str = ""
-    #: Functional properties: the parameter receiving the Set value (None: takes no value).
+    #: What a client may do: read, read-write, action or query (see :mod:`services.model`).
+    access: Access = Access.READ_WRITE
+    #: Actions: the parameter receiving the Set value (None: takes no value).
     value_param: Param | None = None
-    #: Functional properties: request parameters a Set accepts.
+    #: Functional properties: request parameters a call accepts (a query's value parameter included).
     params: typing.Mapping[str, Param] = field(default_factory=lambda: _NO_PARAMS)
-    #: Functional queries: request parameters a Get accepts (the value parameter included).
-    query_params: typing.Mapping[str, Param] = field(default_factory=lambda: _NO_PARAMS)
+    #: Functional properties: the type of the answer (``None`` for none).
+    result_type: Any = None
     is_async: bool = False
     #: The ``NAME.parameters`` text.
     parameters_text: str = "()"
     minimum: float | None = None
     maximum: float | None = None
-
-    @property
-    def needs_value(self) -> bool:
-        return self.value_param is not None and self.value_param.required
+    unit: str = ""
+    #: The values allowed, as value text; empty when any value of the type is.
+    choices: tuple[str, ...] = ()
+    length: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -283,7 +367,7 @@ def _functional_member(cls: type, name: str, fn: Callable[..., Any], opts: _Func
     where = f"{cls.__qualname__}.{name}"
     sig = inspect.signature(fn)
     params = list(sig.parameters.values())[1:]  # drop self
-    hints = _function_hints(fn, cls, name, [p.name for p in params])
+    hints = _function_hints(fn, cls, name, [p.name for p in params] + ["return"])
     value_param: Param | None = None
     keyword: dict[str, Param] = {}
     for i, p in enumerate(params):
@@ -297,33 +381,79 @@ def _functional_member(cls: type, name: str, fn: Callable[..., Any], opts: _Func
             raise TypeError(f"{where}: only the value parameter may be positional-only")
         else:
             keyword[p.name] = param
-    query: dict[str, Param] = {}
-    if (
-        value_param is not None
-        and not value_param.required
-        and sig.parameters[value_param.name].kind is inspect.Parameter.POSITIONAL_OR_KEYWORD
+    if opts.access is Access.READ_WRITE and (
+        value_param is None
+        or value_param.default is not None
+        or sig.parameters[value_param.name].kind is not inspect.Parameter.POSITIONAL_ONLY
+        or keyword
     ):
-        query[value_param.name] = value_param
-    query.update(keyword)
-    required_value = value_param is not None and value_param.required
-    listed = list(keyword.values()) if required_value else list(query.values())
+        raise TypeError(
+            f"{where}: a @read_write method takes one parameter, its value, positional-only with the "
+            "default None (`def name(self, value: T | None = None, /)`): a Get can never carry it"
+        )
+    if opts.access is Access.QUERY:
+        # A query's value, if any, is one more request parameter of the Get.
+        accepted: dict[str, Param] = {}
+        if value_param is not None:
+            if (
+                value_param.required
+                or sig.parameters[value_param.name].kind is not inspect.Parameter.POSITIONAL_OR_KEYWORD
+            ):
+                raise TypeError(
+                    f"{where}: a query takes request parameters only; give `{value_param.name}` a default "
+                    "or declare the method @action"
+                )
+            accepted[value_param.name] = value_param
+        accepted.update(keyword)
+        value_param, keyword = None, accepted
+    result = hints.get("return", inspect.Parameter.empty)
     return Member(
         name=name,
         kind=MemberKind.FUNCTIONAL,
-        type=value_param.type if value_param else str,
+        type=value_param.type if value_param else type(None),
         readonly=False,
-        gui=opts.gui or "button",
+        gui=opts.gui or ("button" if opts.access is Access.ACTION else _gui_for(result)),
         doc=opts.doc or _first_line(fn.__doc__),
+        access=opts.access,
         value_param=value_param,
         params=MappingProxyType(keyword),
-        query_params=MappingProxyType(query),
+        result_type=None if result is type(None) else result,
         is_async=inspect.iscoroutinefunction(fn),
-        parameters_text=_parameters_text(listed),
+        parameters_text=_parameters_text(keyword.values()),
+        unit=opts.unit or "",
+    )
+
+
+def _gui_for(tp: Any) -> str:
+    return _GUI_BY_TYPE.get(_type_word(tp), "text")
+
+
+def _value_member(
+    cls: type, name: str, tp: Any, meta: Prop | None, *, kind: MemberKind, readonly: bool, doc: str
+) -> Member:
+    """An attribute or a computed property, with the metadata of its ``Prop``."""
+    where = f"{cls.__qualname__}.{name}"
+    choices: tuple[str, ...] = ()
+    if meta is not None and meta.choices:
+        choices = tuple(c if isinstance(c, str) else format_value(c) for c in meta.choices)
+    return Member(
+        name=name,
+        kind=kind,
+        type=tp,
+        parse=None if readonly else _parser(tp, where),
+        readonly=readonly,
+        gui=(meta.gui if meta and meta.gui else _gui_for(tp)),
+        doc=(meta.doc if meta and meta.doc else doc),
+        access=Access.READ if readonly else Access.READ_WRITE,
+        minimum=meta.minimum if meta else None,
+        maximum=meta.maximum if meta else None,
+        unit=(meta.unit or "") if meta else "",
+        choices=choices,
+        length=meta.length if meta else None,
     )
 
 
 def _computed_member(cls: type, name: str, prop: property) -> Member:
-    where = f"{cls.__qualname__}.{name}"
     hints = _function_hints(prop.fget, cls, name, ["return"]) if prop.fget else {}
     tp, meta = _split_annotated(hints.get("return", Any))
     if prop.fset is not None:
@@ -332,17 +462,8 @@ def _computed_member(cls: type, name: str, prop: property) -> Member:
         if value_names and value_names[0] in set_hints:
             tp, _ = _split_annotated(set_hints[value_names[0]])
     readonly = prop.fset is None or (meta is not None and meta.readonly)
-    parse = None if readonly else _parser(tp, where)
-    return Member(
-        name=name,
-        kind=MemberKind.COMPUTED,
-        type=tp,
-        parse=parse,
-        readonly=readonly,
-        gui=(meta.gui if meta and meta.gui else _GUI_BY_TYPE.get(_type_word(tp), "text")),
-        doc=(meta.doc if meta and meta.doc else _first_line(prop.__doc__)),
-        minimum=meta.minimum if meta else None,
-        maximum=meta.maximum if meta else None,
+    return _value_member(
+        cls, name, tp, meta, kind=MemberKind.COMPUTED, readonly=readonly, doc=_first_line(prop.__doc__)
     )
 
 
@@ -350,19 +471,20 @@ def _attribute_member(cls: type, name: str, annotation: Any) -> Member:
     tp, meta = _split_annotated(annotation)
     if _is_node_type(tp):
         return Member(
-            name=name, kind=MemberKind.CHILD, type=tp, readonly=True, gui="group", doc=_first_line(tp.__doc__)
+            name=name,
+            kind=MemberKind.CHILD,
+            type=tp,
+            readonly=True,
+            gui="group",
+            doc=_first_line(tp.__doc__),
+            access=Access.READ,
         )
-    return Member(
-        name=name,
-        kind=MemberKind.ATTRIBUTE,
-        type=tp,
-        parse=_parser(tp, f"{cls.__qualname__}.{name}"),
-        readonly=bool(meta and meta.readonly),
-        gui=(meta.gui if meta and meta.gui else _GUI_BY_TYPE.get(_type_word(tp), "text")),
-        doc=(meta.doc if meta and meta.doc else ""),
-        minimum=meta.minimum if meta else None,
-        maximum=meta.maximum if meta else None,
-    )
+    # Parsed even when read-only: the class's own assignments are not parsed, but a bad
+    # annotation must fail when the class is compiled.
+    member = _value_member(cls, name, tp, meta, kind=MemberKind.ATTRIBUTE, readonly=False, doc="")
+    if meta is not None and meta.readonly:
+        return dataclasses.replace(member, readonly=True, access=Access.READ)
+    return member
 
 
 def _build_spec(cls: type) -> ClassSpec:

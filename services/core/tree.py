@@ -15,6 +15,7 @@ from services.backend import Backend
 from services.core.metadata import META_NAMES, Member, MemberKind, Param, class_spec
 from services.core.resource import Resource
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, ReadOnly
+from services.model import Access
 from services.values import Marker, format_names, format_number, format_value, parse_number, vector_index
 
 __all__ = ["NeedsAwait", "Target", "all_properties", "direct_names", "resolve"]
@@ -109,14 +110,20 @@ def _bad_value(path: str, e: PropertyError) -> InvalidArgument:
 
 
 def _check_range(path: str, member: Member, value: Any) -> None:
-    if not isinstance(value, int | float):
+    """Bounds of a number, or of each element of a vector."""
+    if isinstance(value, np.ndarray):
+        numbers = [float(x) for x in value.ravel()]
+    elif isinstance(value, int | float) and not isinstance(value, bool):
+        numbers = [value]
+    else:
         return
     low, high = member.minimum, member.maximum
-    if (low is not None and value < low) or (high is not None and value > high):
-        bounds = f"from {format_number(low)}" if low is not None else ""
-        if high is not None:
-            bounds += (" " if bounds else "") + f"up to {format_number(high)}"
-        raise InvalidArgument(f"bad value for `{path}`: {format_number(value)} is out of range ({bounds})")
+    for x in numbers:
+        if (low is not None and x < low) or (high is not None and x > high):
+            bounds = f"from {format_number(low)}" if low is not None else ""
+            if high is not None:
+                bounds += (" " if bounds else "") + f"up to {format_number(high)}"
+            raise InvalidArgument(f"bad value for `{path}`: {format_number(x)} is out of range ({bounds})")
 
 
 class Target:
@@ -139,6 +146,10 @@ class Target:
 
     def hook(self, callback: Callable[[], None]) -> Callable[[], None] | None:
         """Call ``callback`` whenever the value may have changed; returns the unhook function."""
+        return None
+
+    def listen_refused(self) -> PropertyError | None:
+        """Why a Listen naming this path exactly is refused (an action), or None."""
         return None
 
     def _no_params(self, params: Mapping[str, str]) -> None:
@@ -182,14 +193,30 @@ class MemberTarget(Target):
             if params:
                 self._no_params(params)
             return format_value(getattr(self.owner, member.name))
-        if member.needs_value:
-            raise PropertyError(f"`{self.path}` is write-only: Set it", code=Code.FAILED_PRECONDITION)
-        return await self._call(None, params, member.query_params)
+        if member.access is Access.ACTION:
+            raise self.is_action()
+        return await self._call(None, params)
+
+    def is_action(self) -> PropertyError:
+        """The error of a read of an action: reads never invoke one."""
+        return PropertyError(
+            f"`{self.path}` is an action: Set it to invoke it", code=Code.FAILED_PRECONDITION
+        )
+
+    def listen_refused(self) -> PropertyError | None:
+        return self.is_action() if self.member.access is Access.ACTION else None
 
     async def set(self, value: str, params: Mapping[str, str]) -> str:
         member = self.member
         if member.kind is MemberKind.FUNCTIONAL:
-            return await self._call(value, params, member.params)
+            if member.access is Access.QUERY:
+                raise PropertyError(
+                    f"`{self.path}` is a query: Get it (with its parameters); a Set does nothing",
+                    code=Code.FAILED_PRECONDITION,
+                )
+            if member.access is Access.READ_WRITE and not value:
+                raise InvalidArgument(f"a Set of `{self.path}` needs a value (a Get reads it)")
+            return await self._call(value, params)
         if member.readonly:
             raise ReadOnly(f"`{self.path}` is read-only")
         self._no_params(params)
@@ -198,6 +225,10 @@ class MemberTarget(Target):
             parsed = member.parse(value)
         except InvalidArgument as e:
             raise _bad_value(self.path, e) from None
+        if member.choices and format_value(parsed) not in member.choices:
+            raise InvalidArgument(
+                f"bad value for `{self.path}`: {value!r} is not one of {', '.join(member.choices)}"
+            )
         if member.minimum is not None or member.maximum is not None:
             _check_range(self.path, member, parsed)
         setattr(self.owner, member.name, parsed)
@@ -207,7 +238,7 @@ class MemberTarget(Target):
         member = self.member
         if member.kind is not MemberKind.FUNCTIONAL:
             return format_value(getattr(self.owner, member.name))
-        if member.needs_value:
+        if member.access is Access.ACTION:
             return ""
         if member.is_async:
             raise NeedsAwait
@@ -222,8 +253,9 @@ class MemberTarget(Target):
         except InvalidArgument as e:
             raise InvalidArgument(f"bad parameter `{param.name}` for `{self.path}`: {e.message}") from None
 
-    async def _call(self, value: str | None, params: Mapping[str, str], accepted: Mapping[str, Param]) -> str:
+    async def _call(self, value: str | None, params: Mapping[str, str]) -> str:
         member = self.member
+        accepted = member.params
         kwargs: dict[str, Any] = {}
         for name, text in params.items():
             param = accepted.get(name)
@@ -233,13 +265,19 @@ class MemberTarget(Target):
             kwargs[name] = self._parse_param(param, text)
         args: list[Any] = []
         value_param = member.value_param
-        if value is not None and value_param is not None and (value != "" or value_param.required):
+        if value_param is None:
+            if value:
+                shown = value if len(value) <= 40 else value[:40] + "..."
+                raise InvalidArgument(
+                    f"bad value for `{self.path}`: it takes no value (got {shown!r}); Set it to ''"
+                )
+        elif value is not None and (value != "" or value_param.required):
             try:
                 args.append(value_param.parse(value))
             except InvalidArgument as e:
                 raise _bad_value(self.path, e) from None
         for param in accepted.values():
-            if param.required and param.name not in kwargs and param is not value_param:
+            if param.required and param.name not in kwargs:
                 raise InvalidArgument(f"`{self.path}` needs the parameter `{param.name}`")
         result = getattr(self.owner, member.name)(*args, **kwargs)
         if member.is_async or inspect.isawaitable(result):

@@ -16,8 +16,9 @@ from typing import Any
 from services.backend import Backend, Change, Subscription, close_quietly
 from services.device.outbox import Outbox
 from services.eager import Started, step
-from services.errors import Code, DeadlineExceeded, PropertyError, ResourceExhausted
+from services.errors import Code, DeadlineExceeded, NotFound, PropertyError, ResourceExhausted
 from services.line_protocol import (
+    MAX_LINE,
     BadLine,
     ErrorReply,
     Event,
@@ -36,6 +37,8 @@ from services.line_protocol import (
     Unlisten,
     encode,
 )
+from services.model import ServiceModel
+from services.model_codec import MODEL_PATH, model_to_text
 
 __all__ = [
     "CALL_TIMEOUT",
@@ -58,6 +61,9 @@ MAX_SUBSCRIPTIONS = 256
 MAX_QUEUED_REPLIES = 256
 #: A backend call that takes longer gets DEADLINE_EXCEEDED.
 CALL_TIMEOUT = 10.0
+#: Room a reply line needs besides its value: a tag, "OK ", escapes of the few
+#: characters that need them, a checksum and the LF.
+_REPLY_OVERHEAD = 64
 #: Bytes asked of a stream per read (and the stream reader's buffer limit).
 READ_SIZE = 65536
 
@@ -172,7 +178,7 @@ class DeviceSession:
                 await self._answer(frame)
                 return
             started: Started[str] | None = None
-            if type(frame) is Get and self._step_gets:
+            if type(frame) is Get and self._step_gets and frame.path != MODEL_PATH:
                 # An in-process service usually answers a GET without waiting:
                 # step it here and reply at once, with no task and no timer.
                 try:
@@ -227,6 +233,8 @@ class DeviceSession:
     async def _call(self, frame: Get | Set | Listen | Unlisten) -> str:
         backend = self.backend
         if isinstance(frame, Get):
+            if frame.path == MODEL_PATH and not frame.params:
+                return self._model_reply(await backend.describe())
             return await backend.get(frame.path, frame.params)
         if isinstance(frame, Set):
             return await backend.set(frame.path, frame.value, frame.params)
@@ -248,6 +256,19 @@ class DeviceSession:
             else:
                 self._subscriptions[frame.path] = sub
         return await backend.get(frame.path, frame.params)
+
+    def _model_reply(self, model: ServiceModel) -> str:
+        """The device describes itself (docs/line-protocol.md): the model in one reply line.
+
+        A model too long for a line goes without its docs; one still too long
+        is NOT_FOUND, as from a device that does not describe itself.
+        """
+        room = MAX_LINE - _REPLY_OVERHEAD
+        for docs in (True, False):
+            text = model_to_text(model, docs=docs)
+            if len(text) <= room:
+                return text
+        raise NotFound(f"{MODEL_PATH}: a model of {len(model.properties)} properties does not fit in a line")
 
     def _notifier(self, path: str) -> Callable[[Change], None]:
         # Events are sent under the path the client listened to: that is its key.

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Annotated
 
 from services.backend import NO_PARAMS, Backend, BackendInfo
-from services.core import LocalService, Prop, Resource, functional
+from services.core import LocalService, Prop, Resource, query
 from services.directory import Directory
 from services.errors import InvalidArgument, PropertyError, Unavailable
 from services.location_following import LocationFollower
@@ -211,7 +211,7 @@ class Registry(Resource):
 
     # -- search --------------------------------------------------------------
 
-    @functional(doc="names of the services matching type, location, state and property values")
+    @query(doc="names of the services matching type, location, state and property values")
     async def find(
         self,
         *,

@@ -55,7 +55,7 @@ def test_ls_services_and_properties(demo_target: str) -> None:
     assert details["location"]["gui"] == "pose"
     assert "frame" in details["behaviors.moveto"]["parameters"]
     table = ok(demo_target, "ls", "-l", "scout1").splitlines()
-    assert table[0].split() == ["NAME", "GUI", "PARAMETERS"]
+    assert table[0].split() == ["NAME", "TYPE", "ACCESS", "UNIT", "RANGE", "DOC"]
 
 
 def test_get_one_and_several(demo_target: str) -> None:

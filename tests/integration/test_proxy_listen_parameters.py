@@ -14,14 +14,14 @@ from gateway.proxies import TcpProxy, open_tcp_backend
 from services.backend import Change
 
 SCALE = """
-from services.core import Resource, functional
+from services.core import Resource, query
 
 
 class Scale(Resource):
     resource_type = "scale"
     grams: float = 1500.0
 
-    @functional
+    @query
     def weight(self, *, unit: str = "kg") -> float:
         return self.grams / 1000 if unit == "kg" else self.grams
 """

@@ -80,7 +80,7 @@ def test_describe_shows_every_rpc(grpcurl: str, addr: str) -> None:
     assert done.returncode == 0, done.stderr
     text = done.stdout
     assert f"{SERVICE} is a service" in text
-    for rpc in ("Get", "Set", "Listen", "Session"):
+    for rpc in ("Get", "Set", "Listen", "Session", "Describe"):
         assert re.search(rf"rpc {rpc} \(", text), f"rpc {rpc} missing from:\n{text}"
     assert re.search(r"rpc Listen \( \.propertyservice\.v1\.ListenRequest \) returns \( stream ", text)
     assert re.search(r"rpc Session \( stream ", text)
@@ -141,6 +141,32 @@ def test_errors_carry_the_status_code(grpcurl: str, addr: str) -> None:
         assert "Message: " in done.stderr
     done = run(grpcurl, "-d", '{"service":"scoutX","property":"location"}', addr, f"{SERVICE}/Get")
     assert "scoutX" in done.stderr
+
+
+def test_describe_rpc_gives_the_typed_model(grpcurl: str, addr: str) -> None:
+    done = run(grpcurl, addr, "describe", "propertyservice.v1.PropertyInfo")
+    assert done.returncode == 0, done.stderr
+    assert ".propertyservice.v1.Access access = 3;" in done.stdout
+    model = call(grpcurl, addr, "Describe", {"service": "scout1"})
+    assert model["type"] == "mobile_robot"
+    props = {p["name"]: p for p in model["properties"]}
+    location = props["location"]
+    assert (location["type"], location["access"], location["length"]) == ("vector", "ACCESS_READ", 6)
+    assert props["speed"]["unit"] == "m/s" and props["speed"]["minimum"] == 0 and "maximum" in props["speed"]
+    moveto = props["behaviors.moveto"]
+    assert moveto["access"] == "ACCESS_ACTION" and moveto["value"]["type"] == "marker"
+    assert [p["name"] for p in moveto["parameters"]] == ["frame"]
+    done = run(grpcurl, "-d", '{"service":"scoutX"}', addr, f"{SERVICE}/Describe")
+    assert done.returncode != 0 and "Code: NotFound" in done.stderr
+
+
+def test_reads_never_act(grpcurl: str, addr: str) -> None:
+    request = {"service": "scout1", "property": "behaviors.stop"}
+    done = run(grpcurl, "-d", json.dumps(request), addr, f"{SERVICE}/Get")
+    assert done.returncode != 0 and "Code: FailedPrecondition" in done.stderr
+    assert "is an action: Set it to invoke it" in done.stderr
+    done = run(grpcurl, "-max-time", "3", "-d", json.dumps(request), addr, f"{SERVICE}/Listen")
+    assert "Code: FailedPrecondition" in done.stderr
 
 
 def test_health_check(grpcurl: str, addr: str) -> None:

@@ -2,7 +2,7 @@
 
 from typing import Annotated
 
-from services.core import Prop, Resource, functional
+from services.core import Prop, Resource, action
 
 
 class Lamp(Resource):
@@ -12,6 +12,6 @@ class Lamp(Resource):
     on: bool = False
     watts: Annotated[float, Prop(readonly=True)] = 0.0
 
-    @functional
+    @action
     def blink(self, times: int, *, period: float = 0.5) -> str:
         return f"blinking {times} times every {period} s"

@@ -7,7 +7,7 @@ from typing import Annotated
 import numpy as np
 import pytest
 
-from services.core import LocalService, Prop, Resource, functional
+from services.core import LocalService, Prop, Resource, functional, query
 from services.errors import Code, InvalidArgument, NotFound, PropertyError
 from services.values import Marker, Vector, parse_list, parse_marker, parse_names
 
@@ -61,7 +61,7 @@ class Arm(Resource):
         self.calls.append(("home",))
         return "homed"
 
-    @functional
+    @query
     def find(self, kind: str = "", *, near: Vector | None = None, radius: float = 1.0) -> list[str]:
         self.calls.append(("find", kind, None if near is None else near.tolist(), radius))
         return ["a", "b"] if kind else []
@@ -205,11 +205,11 @@ async def test_functional_missing_required_parameter(svc: LocalService, arm: Arm
     assert arm.calls == [("reset", True)]
 
 
-async def test_get_on_write_only_functional_is_failed_precondition(svc: LocalService) -> None:
+async def test_get_on_an_action_is_failed_precondition(svc: LocalService) -> None:
     with pytest.raises(PropertyError) as info:
         await svc.get("moveto")
     assert info.value.code is Code.FAILED_PRECONDITION
-    assert info.value.message == "`moveto` is write-only: Set it"
+    assert info.value.message == "`moveto` is an action: Set it to invoke it"
 
 
 async def test_get_calls_a_query_with_its_parameters(svc: LocalService, arm: Arm) -> None:
@@ -220,7 +220,7 @@ async def test_get_calls_a_query_with_its_parameters(svc: LocalService, arm: Arm
 
 async def test_async_functional_is_awaited(svc: LocalService, arm: Arm) -> None:
     assert await svc.set("home", "") == "homed"
-    assert await svc.get("home") == "homed"
+    assert await svc.set("home", "") == "homed"
     assert arm.calls == [("home",), ("home",)]
 
 

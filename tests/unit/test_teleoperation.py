@@ -55,10 +55,15 @@ async def test_the_limits_are_properties_with_units_and_ranges(service: LocalSer
     assert await service.get("max_speed") == "1"
     assert await service.get("max_turn_rate") == "0.5"
     assert await service.get("velocity_timeout") == "0.5"
-    assert "(m/s)" in await service.get("max_speed.doc")
-    assert "(rad/s)" in await service.get("max_turn_rate.doc")
-    assert "(s)" in await service.get("velocity_timeout.doc")
-    assert "(m/s, rad/s)" in await service.get("velocity.doc")
+    model = {p.name: p for p in (await service.describe()).properties}
+    assert model["max_speed"].unit == "m/s"
+    assert model["max_turn_rate"].unit == "rad/s"
+    assert model["velocity_timeout"].unit == "s"
+    assert (model["velocity"].unit, model["velocity"].length, model["velocity"].access) == (
+        "m/s, rad/s",
+        6,
+        "read-write",
+    )
     for name, bad in [("max_speed", "-1"), ("max_turn_rate", "1000"), ("velocity_timeout", "0")]:
         with pytest.raises(InvalidArgument, match="out of range"):
             await service.set(name, bad)

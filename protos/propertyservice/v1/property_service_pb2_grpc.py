@@ -55,6 +55,11 @@ class PropertyServiceStub:
                 request_serializer=propertyservice_dot_v1_dot_property__service__pb2.SessionRequest.SerializeToString,
                 response_deserializer=propertyservice_dot_v1_dot_property__service__pb2.SessionResponse.FromString,
                 _registered_method=True)
+        self.Describe = channel.unary_unary(
+                '/propertyservice.v1.PropertyService/Describe',
+                request_serializer=propertyservice_dot_v1_dot_property__service__pb2.DescribeRequest.SerializeToString,
+                response_deserializer=propertyservice_dot_v1_dot_property__service__pb2.DescribeResponse.FromString,
+                _registered_method=True)
 
 
 class PropertyServiceServicer:
@@ -92,6 +97,15 @@ class PropertyServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Describe(self, request, context):
+        """Describe returns the typed model of every property of one service at
+        once: data type, access, unit, range, allowed values, docs, and the
+        value and parameters of actions and queries.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_PropertyServiceServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -114,6 +128,11 @@ def add_PropertyServiceServicer_to_server(servicer, server):
                     servicer.Session,
                     request_deserializer=propertyservice_dot_v1_dot_property__service__pb2.SessionRequest.FromString,
                     response_serializer=propertyservice_dot_v1_dot_property__service__pb2.SessionResponse.SerializeToString,
+            ),
+            'Describe': grpc.unary_unary_rpc_method_handler(
+                    servicer.Describe,
+                    request_deserializer=propertyservice_dot_v1_dot_property__service__pb2.DescribeRequest.FromString,
+                    response_serializer=propertyservice_dot_v1_dot_property__service__pb2.DescribeResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -225,6 +244,33 @@ class PropertyService:
             '/propertyservice.v1.PropertyService/Session',
             propertyservice_dot_v1_dot_property__service__pb2.SessionRequest.SerializeToString,
             propertyservice_dot_v1_dot_property__service__pb2.SessionResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Describe(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/propertyservice.v1.PropertyService/Describe',
+            propertyservice_dot_v1_dot_property__service__pb2.DescribeRequest.SerializeToString,
+            propertyservice_dot_v1_dot_property__service__pb2.DescribeResponse.FromString,
             options,
             channel_credentials,
             insecure,
