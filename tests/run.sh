@@ -1,5 +1,8 @@
 #!/usr/bin/env bash
-# The whole test suite: install, lint, format check, type check, tests.
+# The whole test suite: install, lint, format check, type check, tests, then the compatibility check
+# (tests/compat/check.py: the demo and the unit tests on the other CPythons 3.11-3.13 present, each in
+# a venv with the newest dependencies; an interpreter that is absent or an index pip cannot reach is
+# a note and a skip).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python -m pip install --quiet --disable-pip-version-check --root-user-action=ignore -e '.[test]'
@@ -13,3 +16,4 @@ echo "== ruff check"; python -m ruff check .
 echo "== ruff format --check"; python -m ruff format --check .
 echo "== mypy"; python -m mypy
 echo "== pytest"; python -m pytest "$@"
+echo "== compatibility check"; python tests/compat/check.py

@@ -4,6 +4,10 @@
 ``list[str]``, ``Optional[Marker]``, ``Annotated[int, ...]``) into the
 parser of the value grammar that reads it; :func:`type_name` gives the word
 for it in ``NAME.parameters`` and docs.
+
+A type alias (``type Pose = NDArray[np.float64]``, and numpy's own
+``NDArray`` since numpy 2.5, where ``NDArray[np.float64]`` is a subscripted
+alias rather than ``np.ndarray[...]``) reads as the type it stands for.
 """
 
 from __future__ import annotations
@@ -39,7 +43,42 @@ def _parse_floats(text: str) -> list[float]:
     return [float(x) for x in parse_vector(text)]
 
 
+def _type_alias_kinds() -> tuple[Any, ...]:
+    """The classes of type aliases: typing's (Python 3.12+) and typing_extensions' (any Python)."""
+    kinds = [getattr(typing, "TypeAliasType", None)]
+    try:
+        import typing_extensions
+
+        kinds.append(getattr(typing_extensions, "TypeAliasType", None))
+    except ImportError:  # only aliases made with typing_extensions need it, and they import it
+        pass
+    return tuple({kind for kind in kinds if isinstance(kind, type)})
+
+
+_TYPE_ALIAS_KINDS = _type_alias_kinds()
+# An alias naming itself (type A = B; type B = A) is an error, not a hang.
+_MAX_ALIAS_DEPTH = 32
+
+
+def _resolve_alias(tp: Any) -> Any:
+    """The type ``tp`` stands for when it is a type alias or a subscripted generic alias; else ``tp``."""
+    for _ in range(_MAX_ALIAS_DEPTH):
+        if isinstance(tp, _TYPE_ALIAS_KINDS):
+            tp = tp.__value__
+            continue
+        origin = typing.get_origin(tp)
+        if not isinstance(origin, _TYPE_ALIAS_KINDS):
+            return tp
+        value = origin.__value__
+        try:
+            tp = value[typing.get_args(tp)]  # NDArray[np.float64] -> np.ndarray[shape, np.dtype[float64]]
+        except TypeError:  # the value takes no parameters: what it names is the type
+            tp = value
+    raise TypeError(f"unsupported value type {tp!r}: a type alias that does not end")
+
+
 def _is_vector_type(tp: Any) -> bool:
+    tp = _resolve_alias(tp)
     return tp is np.ndarray or typing.get_origin(tp) is np.ndarray
 
 
@@ -55,6 +94,7 @@ def _optional_inner(tp: Any) -> Any | None:
 
 
 def _list_parser(item_tp: Any) -> Callable[[str], Any]:
+    item_tp = _resolve_alias(item_tp)
     if item_tp is str:
         return parse_names
     if _is_vector_type(item_tp):
@@ -63,18 +103,19 @@ def _list_parser(item_tp: Any) -> Callable[[str], Any]:
         return _parse_floats
     if item_tp is Any:
         return parse_list
+    if item_tp not in (int, bool):
+        raise TypeError(f"unsupported list item type {item_tp!r} for a value")
     item_parser = _build_parser(item_tp)
 
     def parse_items(text: str) -> list[Any]:
         items = parse_names(text)
         return [item_parser(item) for item in items]
 
-    if item_tp in (int, bool):
-        return parse_items
-    raise TypeError(f"unsupported list item type {item_tp!r} for a value")
+    return parse_items
 
 
 def _build_parser(tp: Any) -> Callable[[str], Any]:
+    tp = _resolve_alias(tp)
     if tp is float:
         return parse_number
     if tp is int:
@@ -131,6 +172,7 @@ def parse_as(tp: Any, text: str) -> Any:
 
 def type_name(tp: Any) -> str:
     """A short word for ``tp`` in docs and ``NAME.parameters``."""
+    tp = _resolve_alias(tp)
     if tp is bool:
         return "boolean"
     if tp is int:
@@ -152,7 +194,7 @@ def type_name(tp: Any) -> str:
     if tp is list:
         return "list"
     if origin is list:
-        (item_tp,) = typing.get_args(tp)
+        item_tp = _resolve_alias(typing.get_args(tp)[0])
         if item_tp is str:
             return "names"
         if _is_vector_type(item_tp):

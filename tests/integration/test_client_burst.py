@@ -31,7 +31,8 @@ async def test_a_burst_of_concurrent_gets_all_succeed(demo_target: str) -> None:
 
 async def test_a_caller_waiting_for_a_call_slot_is_bounded_by_its_timeout() -> None:
     # A listener that accepts connections and never answers keeps the one slot busy.
-    server = await asyncio.start_server(lambda r, w: None, "127.0.0.1", 0)
+    accepted: list[asyncio.StreamWriter] = []
+    server = await asyncio.start_server(lambda r, w: accepted.append(w), "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     try:
         async with AsyncClient(f"127.0.0.1:{port}", timeout=30.0, max_in_flight=1) as c:
@@ -49,6 +50,9 @@ async def test_a_caller_waiting_for_a_call_slot_is_bounded_by_its_timeout() -> N
                 await busy
     finally:
         server.close()
+        # Since Python 3.12 wait_closed also waits for the accepted connections: close them.
+        for writer in accepted:
+            writer.close()
         await server.wait_closed()
 
 
