@@ -253,7 +253,10 @@ class Gateway:
         return server
 
     async def stop(self, grace: float | None = None) -> None:
-        """Graceful shutdown: NOT_SERVING, streams end with OK, server stops, backends close. Idempotent."""
+        """Graceful shutdown: NOT_SERVING, streams end with UNAVAILABLE, server stops, backends close.
+
+        Idempotent.
+        """
         if self._stopped.is_set():
             return
         self._stopped.set()

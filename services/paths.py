@@ -40,7 +40,9 @@ _BAD_CHAR = re.compile(r"[^A-Za-z0-9_.-]")
 
 
 def _show(text: str) -> str:
-    shown = text[:100].encode("unicode_escape").decode("ascii").replace('"', '\\"')
+    # Control characters are escaped; every other character, ASCII or not, shows as itself.
+    printable = "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text[:100])
+    shown = printable.replace('"', '\\"')
     return '"' + (shown if len(shown) <= 80 else shown[:77] + "...") + '"'
 
 
