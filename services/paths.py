@@ -39,10 +39,13 @@ _PATH = re.compile(rf"{_SEGMENT.pattern}(?:\.{_SEGMENT.pattern})*")
 _BAD_CHAR = re.compile(r"[^A-Za-z0-9_.-]")
 
 
+def _shown_char(c: str) -> str:
+    return c if c.isprintable() else c.encode("unicode_escape").decode("ascii")
+
+
 def _show(text: str) -> str:
     # Control characters are escaped; every other character, ASCII or not, shows as itself.
-    printable = "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text[:100])
-    shown = printable.replace('"', '\\"')
+    shown = "".join(_shown_char(c) for c in text[:100]).replace('"', '\\"')
     return '"' + (shown if len(shown) <= 80 else shown[:77] + "...") + '"'
 
 
