@@ -228,10 +228,11 @@ class Gateway:
         self._unwatch_registry = self.registry.watch_states(self._on_state)
 
     def _on_state(self, name: str, state: str) -> None:
-        """The registry marked ``name`` up or down: client calls follow."""
-        if state == "up":
+        """The registry marked ``name`` up, down or connecting: client calls follow."""
+        if state != "down":
+            # A service still connecting answers for itself (a proxy: UNAVAILABLE, saying why).
             self.router.set_down(name, None)
-            log.info("service %s is up", name)
+            log.info("service %s is %s", name, state)
             return
         reason = f"service {name!r} is down"
         entry = self.registry.services.children().get(name)

@@ -17,8 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
-from tests.support.gateway_process import ROOT, GatewayProcess
+from support.gateway_process import ROOT, GatewayProcess
 
 EXIT_CONFIG = 2
 
