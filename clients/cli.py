@@ -40,6 +40,7 @@ examples:
   psctl ls scout1 -l                          properties of scout1 with gui and parameters
   psctl get scout1 location                   one value
   psctl get scout1 location.x location.y      several values, "path = value" lines
+  psctl get swarm 'robots.*.location'         every match of a pattern, "path = value" lines
   psctl get registry find -p type=sensor      with a request parameter
   psctl set scout1 behaviors.moveto '<marker><location>(2 1 0 0 0 0)</location></marker>'
   psctl listen thermo1 data --count 10        ten readings of the sensor (it changes by itself)
@@ -295,7 +296,19 @@ async def _get(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> 
     params = _parse_params(args.param)
     service: str = args.service
     paths: list[str] = args.paths
-    if len(paths) == 1:
+    if any("*" in path for path in paths):
+        # A pattern reads a snapshot of every match: "path = value" lines, one per match.
+        found: dict[str, str] = {}
+        for path in paths:
+            if "*" in path:
+                found.update(await client.get_matching(service, path, **params))
+            else:
+                found[path] = await client.get(service, path, **params)
+        paths, values = list(found), list(found.values())
+        if not as_json and len(paths) == 1:
+            _out(f"{paths[0]} = {values[0]}")
+            return EXIT_OK
+    elif len(paths) == 1:
         values = [await client.get(service, paths[0], **params)]
     else:
         values = await client.get_many([(service, path, params) for path in paths])

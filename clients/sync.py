@@ -145,6 +145,10 @@ class _BlockingCalls(_ClosedOnExit, ListenCalls[ListenIterator[Event], ListenIte
         """See :meth:`clients.aio.AsyncClient.get`."""
         return self._runner.call(self._calls.get(service, prop, **params))
 
+    def get_matching(self, service: str, pattern: str, /, **params: Any) -> dict[str, str]:
+        """See :meth:`clients.aio.AsyncClient.get_matching`."""
+        return self._runner.call(self._calls.get_matching(service, pattern, **params))
+
     def get_many(self, refs: Iterable[Selector]) -> list[str]:
         """See :meth:`clients.aio.AsyncClient.get_many`."""
         return self._runner.call(self._calls.get_many(list(refs)))

@@ -21,7 +21,7 @@ from typing import Any
 
 import grpc
 
-from gateway.calls import Begun, Calls, Undecodable
+from gateway.calls import Begun, Calls, Undecodable, is_snapshot
 from gateway.config import Limits
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.listen.hub import SHUTTING_DOWN
@@ -229,7 +229,7 @@ class Session:
             self._set(rid, request.set)
 
     def _get(self, rid: int, request: pb.GetRequest) -> None:
-        if request.more:
+        if request.more or is_snapshot(request):
             self._spawn(rid, self._get_more(rid, request))
             return
         try:

@@ -18,6 +18,7 @@ from clients.aio.requests import (
     format_params,
     get_many_request,
     get_many_values,
+    matching_values,
 )
 from clients.aio.session import DEFAULT_SESSION_QUEUE, Session
 from clients.errors import DeadlineExceeded, PropertyServiceError, error_from_rpc
@@ -153,6 +154,14 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
             return []
         resp = await self._unary("Get", get_many_request(refs))
         return get_many_values(resp, len(refs))
+
+    async def get_matching(self, service: str, pattern: str, /, **params: Any) -> dict[str, str]:
+        """Path → value of every readable property of ``service`` that ``pattern`` matches, in one Get.
+
+        ``*`` in ``pattern`` stands for one segment (``robots.*.location``); no match is NOT_FOUND.
+        """
+        request = pb.GetRequest(service=service, property=pattern, parameters=format_params(params))
+        return matching_values(await self._unary("Get", request, service, pattern))
 
     async def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
         """Write ``value`` (text, number, bool, vector, list, :class:`Marker`); return the answer."""

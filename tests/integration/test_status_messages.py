@@ -2,24 +2,14 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import grpc
 import pytest
 from support.gateway_process import GatewayProcess
+from support.psctl import psctl
 
 from gateway.status import MAX_MESSAGE_CHARS
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-
-PSCTL = [sys.executable, "-m", "clients.cli"]
-
-
-def psctl(target: str, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*PSCTL, "-t", target, *args], capture_output=True, text=True, timeout=60, check=False
-    )
 
 
 def test_a_non_ascii_name_shows_as_itself(demo_gateway: GatewayProcess) -> None:

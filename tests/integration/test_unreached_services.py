@@ -3,19 +3,14 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 from support.gateway_process import StartGateway
 from support.ports import free_port
-
-PSCTL = [sys.executable, "-m", "clients.cli"]
+from support.psctl import psctl
 
 
 def services_table(target: str) -> dict[str, dict[str, str]]:
-    done = subprocess.run(
-        [*PSCTL, "-t", target, "--json", "ls", "-l"], capture_output=True, text=True, timeout=60, check=False
-    )
+    done = psctl(target, "--json", "ls", "-l")
     assert done.returncode == 0, done.stderr
     return {row["name"]: row for row in json.loads(done.stdout)}
 
