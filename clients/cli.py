@@ -63,6 +63,10 @@ examples:
   psctl listen scout1 location --count 10 --duration 5    ten events or five seconds, whichever first
   psctl listen '*' location --min-interval 0.5 --json --duration 2
   psctl listen scout1 location --updates-only --heartbeat 1 --marks --duration 3
+  psctl listen thermo1 data --count 5 --resume            five readings, across a gateway restart
+
+The stream ends with exit code 0 at --count, --duration or Ctrl-C; a stream the gateway ends
+(UNAVAILABLE "gateway shutting down", or any other error) exits 1 (3 when it cannot be reached).
 """
 
 
@@ -215,6 +219,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="exit after N events (markers do not count; waits while nothing changes, see below)",
     )
     listen.add_argument("--duration", type=_positive, metavar="S", help="exit after S seconds")
+    listen.add_argument(
+        "--resume",
+        action="store_true",
+        help="when the gateway goes away (UNAVAILABLE), listen again once it is back; the first event "
+        "after that is marked [gap]",
+    )
     return parser
 
 
@@ -374,6 +384,7 @@ async def _listen(client: AsyncClient, args: argparse.Namespace, as_json: bool) 
         sample_interval=args.sample,
         heartbeat=args.heartbeat,
         marks=True,
+        resume=args.resume,
     )
     seen = 0
     try:
@@ -386,12 +397,14 @@ async def _listen(client: AsyncClient, args: argparse.Namespace, as_json: bool) 
                 _emit_json(_event_json(item)) if as_json else _out(_event_line(item))
                 seen += 1
                 if args.count is not None and seen >= args.count:
-                    break
+                    return EXIT_OK
     except TimeoutError:
-        pass  # --duration elapsed
+        return EXIT_OK  # --duration elapsed
     finally:
         await stream.aclose()
-    return EXIT_OK
+    # Neither --count nor --duration ended it, nor Ctrl-C: the gateway did (an error raises above).
+    _error(f"the gateway ended the stream after {seen} event{'' if seen == 1 else 's'}")
+    return EXIT_FAILED
 
 
 def _print_mark(mark: Mark, as_json: bool) -> None:

@@ -266,9 +266,12 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
         return answer
 
     async def start_listen(
-        self, request: pb.ListenRequest, marks: bool
+        self, request: pb.ListenRequest, marks: bool, resume: bool = False
     ) -> AsyncGenerator[Event | Mark, None]:
         """The Listen for ``request`` over the session; closing the iterator sends a Cancel."""
+        if resume:
+            # A session ends with its gateway; resuming is opening a new session, the caller's choice.
+            raise ValueError("resume=True is for a client's listen; a session's listens end with the session")
         self._check_open()
         rid = next(self._ids)
         buffer = ListenBuffer(marks)
