@@ -387,6 +387,14 @@ def _runner(args: argparse.Namespace, server: ServerProcess, part: str) -> Calla
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark; exit 0 when every part ran (and, with ``--strict``, met its target)."""
     args = parse_args(argv)
+    try:
+        import psutil  # type: ignore[import-untyped,unused-ignore]  # noqa: F401 - needed by the measuring
+    except ImportError:
+        print(
+            "python -m bench measures memory with psutil, a test extra: pip install -e '.[test]'",
+            file=sys.stderr,
+        )
+        return 2
     info = report.machine()
     started = time.perf_counter()
     results = asyncio.run(run(args))

@@ -13,8 +13,6 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any, TextIO
 
-import psutil  # type: ignore[import-untyped,unused-ignore]
-
 #: results[server][part] is a part's ``as_dict()``, or {"error": "..."}.
 Results = dict[str, dict[str, dict[str, Any]]]
 
@@ -40,7 +38,7 @@ def machine() -> dict[str, Any]:
         "cpu_model": model,
         "logical_cores": os.cpu_count(),
         "usable_cores": len(os.sched_getaffinity(0)),
-        "memory_gib": round(psutil.virtual_memory().total / 2**30, 1),
+        "memory_gib": round(_psutil().virtual_memory().total / 2**30, 1),
         "os": f"{platform.system()} {platform.release()}",
         "python": f"{platform.python_implementation()} {platform.python_version()}",
         "grpcio": version("grpcio"),
@@ -666,3 +664,10 @@ def _issue_tables(out: TextIO, results: Results) -> None:
             ],
             rows,
         )
+
+
+def _psutil() -> Any:
+    # Imported when measuring, so that `python -m bench --help` needs only the runtime packages.
+    import psutil  # type: ignore[import-untyped,unused-ignore]
+
+    return psutil

@@ -11,8 +11,6 @@ import signal
 import sys
 from pathlib import Path
 
-import psutil  # type: ignore[import-untyped,unused-ignore]
-
 ROOT = Path(__file__).resolve().parent.parent
 _LISTENING = re.compile(r"listening on (\S+):(\d+)")
 
@@ -33,6 +31,9 @@ class ServerProcess:
         self.process = process
         self.address = address
         self.pid = process.pid
+        # Imported here, not at the top: `python -m bench --help` needs only the runtime packages.
+        import psutil  # type: ignore[import-untyped,unused-ignore]
+
         self._ps = psutil.Process(process.pid)
         self._log: collections.deque[str] = collections.deque(maxlen=40)
         self._drain: asyncio.Task[None] | None = None

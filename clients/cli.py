@@ -41,6 +41,7 @@ examples:
   psctl ls scout1 -l                          scout1's model: type, access, unit, range, doc
   psctl get scout1 location                   one value
   psctl get scout1 location.x location.y      several values, "path = value" lines
+  psctl get swarm 'robots.*.location'         every match of a pattern, "path = value" lines
   psctl get registry find -p type=sensor      with a request parameter
   psctl set scout1 behaviors.moveto '<marker><location>(2 1 0 0 0 0)</location></marker>'
   psctl listen thermo1 data --count 10        ten readings of the sensor (it changes by itself)
@@ -63,6 +64,10 @@ examples:
   psctl listen scout1 location --count 10 --duration 5    ten events or five seconds, whichever first
   psctl listen '*' location --min-interval 0.5 --json --duration 2
   psctl listen scout1 location --updates-only --heartbeat 1 --marks --duration 3
+  psctl listen thermo1 data --count 5 --resume            five readings, across a gateway restart
+
+The stream ends with exit code 0 at --count, --duration or Ctrl-C; a stream the gateway ends
+(UNAVAILABLE "gateway shutting down", or any other error) exits 1 (3 when it cannot be reached).
 """
 
 
@@ -217,6 +222,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="exit after N events (markers do not count; waits while nothing changes, see below)",
     )
     listen.add_argument("--duration", type=_positive, metavar="S", help="exit after S seconds")
+    listen.add_argument(
+        "--resume",
+        action="store_true",
+        help="when the gateway goes away (UNAVAILABLE), listen again once it is back; the first event "
+        "after that is marked [gap]",
+    )
     return parser
 
 
@@ -347,7 +358,19 @@ async def _get(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> 
     params = _parse_params(args.param)
     service: str = args.service
     paths: list[str] = args.paths
-    if len(paths) == 1:
+    if any("*" in path for path in paths):
+        # A pattern reads a snapshot of every match: "path = value" lines, one per match.
+        found: dict[str, str] = {}
+        for path in paths:
+            if "*" in path:
+                found.update(await client.get_matching(service, path, **params))
+            else:
+                found[path] = await client.get(service, path, **params)
+        paths, values = list(found), list(found.values())
+        if not as_json and len(paths) == 1:
+            _out(f"{paths[0]} = {values[0]}")
+            return EXIT_OK
+    elif len(paths) == 1:
         values = [await client.get(service, paths[0], **params)]
     else:
         values = await client.get_many([(service, path, params) for path in paths])
@@ -413,6 +436,7 @@ async def _listen(client: AsyncClient, args: argparse.Namespace, as_json: bool) 
         sample_interval=args.sample,
         heartbeat=args.heartbeat,
         marks=True,
+        resume=args.resume,
     )
     seen = 0
     try:
@@ -425,12 +449,14 @@ async def _listen(client: AsyncClient, args: argparse.Namespace, as_json: bool) 
                 _emit_json(_event_json(item)) if as_json else _out(_event_line(item))
                 seen += 1
                 if args.count is not None and seen >= args.count:
-                    break
+                    return EXIT_OK
     except TimeoutError:
-        pass  # --duration elapsed
+        return EXIT_OK  # --duration elapsed
     finally:
         await stream.aclose()
-    return EXIT_OK
+    # Neither --count nor --duration ended it, nor Ctrl-C: the gateway did (an error raises above).
+    _error(f"the gateway ended the stream after {seen} event{'' if seen == 1 else 's'}")
+    return EXIT_FAILED
 
 
 def _print_mark(mark: Mark, as_json: bool) -> None:

@@ -146,6 +146,10 @@ class _BlockingCalls(_ClosedOnExit, ListenCalls[ListenIterator[Event], ListenIte
         """See :meth:`clients.aio.AsyncClient.get`."""
         return self._runner.call(self._calls.get(service, prop, **params))
 
+    def get_matching(self, service: str, pattern: str, /, **params: Any) -> dict[str, str]:
+        """See :meth:`clients.aio.AsyncClient.get_matching`."""
+        return self._runner.call(self._calls.get_matching(service, pattern, **params))
+
     def get_many(self, refs: Iterable[Selector]) -> list[str]:
         """See :meth:`clients.aio.AsyncClient.get_many`."""
         return self._runner.call(self._calls.get_many(list(refs)))
@@ -154,9 +158,11 @@ class _BlockingCalls(_ClosedOnExit, ListenCalls[ListenIterator[Event], ListenIte
         """See :meth:`clients.aio.AsyncClient.set`."""
         return self._runner.call(self._calls.set(service, prop, value, **params))
 
-    def start_listen(self, request: pb.ListenRequest, marks: bool) -> ListenIterator[Any]:
+    def start_listen(
+        self, request: pb.ListenRequest, marks: bool, resume: bool = False
+    ) -> ListenIterator[Any]:
         """A blocking iterator over the Listen for ``request``; see :meth:`listen`. Close it when done."""
-        return ListenIterator(self._runner, self._calls.start_listen(request, marks))
+        return ListenIterator(self._runner, self._calls.start_listen(request, marks, resume))
 
 
 class Client(_BlockingCalls):

@@ -1,5 +1,8 @@
 """``python -m gateway`` runs the ``psgateway`` command line."""
 
-from gateway.cli import main
+try:
+    from gateway.cli import main
+except KeyboardInterrupt:  # Ctrl-C while the modules load: a clean exit, as later (128 + SIGINT)
+    raise SystemExit(130) from None
 
 raise SystemExit(main())

@@ -14,6 +14,7 @@ run a gateway and a client in one program::
 from __future__ import annotations
 
 import asyncio
+import errno
 import logging
 import signal
 import sys
@@ -26,15 +27,16 @@ from grpc_health.v1.health import aio as health_aio  # type: ignore[attr-defined
 from grpc_reflection.v1alpha import reflection
 
 from gateway.backends import open_backend, open_proxy
-from gateway.config import REGISTRY_NAME, Config, ServiceEntry
+from gateway.config import REGISTRY_NAME, Config, ConfigError, ServiceEntry
 from gateway.devices import DeviceProcess, start_device
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
+from gateway.ports import PortInUse, check_port_free, port_holder
 from gateway.router import Router
 from gateway.server import PropertyServicer, add_to_server
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, BackendInfo
-from services.catalog import needs_directory
+from services.catalog import create, needs_directory
 from services.errors import PropertyError
 from services.registry import DEFAULT_REGISTER_TIMEOUT, Registry, RegistryService
 from services.registry import ServiceEntry as RegistryEntry
@@ -89,7 +91,14 @@ class Gateway:
         await self.stop()
 
     async def start(self) -> None:
-        """Start every service, then serve; returns once the server is listening."""
+        """Start every service, then serve; returns once the server is listening.
+
+        Raises :class:`~gateway.ports.PortInUse` when a port to listen on is taken and
+        :class:`~gateway.config.ConfigError` when a configured service or device cannot be
+        built, both before any device process is started.
+        """
+        self._check_ports()
+        self._check_devices()
         await self._health.set("", health_pb2.HealthCheckResponse.NOT_SERVING)
         await self._health.set(SERVICE_NAME, health_pb2.HealthCheckResponse.NOT_SERVING)
         try:
@@ -98,7 +107,7 @@ class Gateway:
             # Services that reach others (groups) start last, once the services they name are there.
             plain = [e for e in self.config.services if not _needs_directory(e)]
             for entry in plain:
-                backend = open_backend(entry, self.router.directory)
+                backend = self._open(entry)
                 await self._add(entry.name, backend, entry.url or f"type {entry.type}")
             for name, backend in self._extra.items():
                 await self._add(name, backend, backend.info.url)
@@ -106,9 +115,7 @@ class Gateway:
             for entry in self.config.services:
                 if _needs_directory(entry):
                     self._warn_missing_members(entry)
-                    await self._add(
-                        entry.name, open_backend(entry, self.router.directory), f"type {entry.type}"
-                    )
+                    await self._add(entry.name, self._open(entry), f"type {entry.type}")
             await self._start_line_listener()
             self._server = self._make_server()
             await self._server.start()
@@ -117,6 +124,30 @@ class Gateway:
             raise
         await self._health.set("", health_pb2.HealthCheckResponse.SERVING)
         await self._health.set(SERVICE_NAME, health_pb2.HealthCheckResponse.SERVING)
+
+    def _check_ports(self) -> None:
+        gw = self.config.gateway
+        check_port_free(gw.listen, "gateway.listen")
+        if gw.line_listen:
+            check_port_free(gw.line_listen, "gateway.line_listen")
+
+    def _check_devices(self) -> None:
+        """Build each ``[[devices]]`` service here as its process would, so bad options launch nothing."""
+        problems = []
+        for device in self.config.devices:
+            try:
+                create(device.type, **device.options)
+            except PropertyError as exc:
+                problems.append(f"{self.config.source}: devices ({device.name}): {exc.message}")
+        if problems:
+            raise ConfigError(*problems)
+
+    def _open(self, entry: ServiceEntry) -> Backend:
+        """The backend of a ``[[services]]`` entry; one that cannot be built is a config error."""
+        try:
+            return open_backend(entry, self.router.directory)
+        except PropertyError as exc:
+            raise ConfigError(f"{self.config.source}: services ({entry.name}): {exc.message}") from None
 
     async def _add(self, name: str, backend: Backend, what: str) -> None:
         try:
@@ -197,10 +228,11 @@ class Gateway:
         self._unwatch_registry = self.registry.watch_states(self._on_state)
 
     def _on_state(self, name: str, state: str) -> None:
-        """The registry marked ``name`` up or down: client calls follow."""
-        if state == "up":
+        """The registry marked ``name`` up, down or connecting: client calls follow."""
+        if state != "down":
+            # A service still connecting answers for itself (a proxy: UNAVAILABLE, saying why).
             self.router.set_down(name, None)
-            log.info("service %s is up", name)
+            log.info("service %s is %s", name, state)
             return
         reason = f"service {name!r} is down"
         entry = self.registry.services.children().get(name)
@@ -214,7 +246,13 @@ class Gateway:
         address = self.config.gateway.line_listen
         if not address:
             return
-        self._line_listener = await start_line_listener(address, self.router, self._rejoined)
+        try:
+            self._line_listener = await start_line_listener(address, self.router, self._rejoined)
+        except OSError as exc:
+            if exc.errno != errno.EADDRINUSE:
+                raise
+            port = int(address.rpartition(":")[2])
+            raise PortInUse(f"port {port} (gateway.line_listen) is in use by {port_holder(port)}") from None
         bound = self._line_listener.address
         if bound is not None:
             address = f"{bound[0]}:{bound[1]}"
@@ -242,18 +280,25 @@ class Gateway:
             server,
         )
         listen = self.config.gateway.listen
-        port = server.add_insecure_port(listen)
+        try:
+            port = server.add_insecure_port(listen)
+        except RuntimeError:
+            # Checked free at the start; taken since. grpc's own error names no holder.
+            port = 0
         if port == 0:
-            from services.errors import Unavailable
-
-            raise Unavailable(f"cannot listen on {listen}")
+            asked = int(listen.rpartition(":")[2]) if not listen.startswith("unix:") else 0
+            holder = f"in use by {port_holder(asked)}" if asked else "not available"
+            raise PortInUse(f"cannot listen on {listen} (gateway.listen): {holder}")
         host = listen.rpartition(":")[0]
         # A unix-domain socket ("unix:PATH", how gateway.testing serves) has no port to fill in.
         self.address = listen if listen.startswith("unix:") else f"{host}:{port}"
         return server
 
     async def stop(self, grace: float | None = None) -> None:
-        """Graceful shutdown: NOT_SERVING, streams end with OK, server stops, backends close. Idempotent."""
+        """Graceful shutdown: NOT_SERVING, streams end with UNAVAILABLE, server stops, backends close.
+
+        Idempotent.
+        """
         if self._stopped.is_set():
             return
         self._stopped.set()
@@ -291,15 +336,30 @@ def _needs_directory(entry: ServiceEntry) -> bool:
 
 
 async def serve(config: Config) -> int:
-    """Run a gateway until SIGTERM or SIGINT; the exit code."""
+    """Run a gateway until SIGTERM or SIGINT; the exit code.
+
+    A signal during start-up stops what has started and returns as cleanly as one later.
+    """
     gateway = Gateway(config)
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
-    await gateway.start()
+    starting = asyncio.ensure_future(gateway.start())
+    stopped = asyncio.ensure_future(stop.wait())
+    await asyncio.wait((starting, stopped), return_when=asyncio.FIRST_COMPLETED)
+    if not starting.done():
+        log.info("stopping during start-up")
+        starting.cancel()
+        await asyncio.gather(starting, return_exceptions=True)
+        await gateway.stop()
+        log.info("stopped")
+        return 0
+    if starting.exception() is not None:
+        stopped.cancel()
+    starting.result()  # a start that failed raises here
     print(f"listening on {gateway.address}", flush=True, file=sys.stderr)
-    await stop.wait()
+    await stopped
     log.info("shutting down")
     await gateway.stop()
     log.info("stopped")

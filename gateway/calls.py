@@ -9,6 +9,13 @@ bad one) and start the call, returning one of
 * an :class:`asyncio.Future` of the backend's reply (a line-protocol proxy
   sent the GET and resolves it from its reader: no task, one timer);
 * an awaitable of the value, under the call timeout, to await in a task.
+
+A Get whose path (or one of whose ``more`` paths) has ``*`` segments is a
+snapshot, as gNMI's Get with a wildcard path: each pattern is expanded against
+the service's readable properties (:meth:`services.backend.Backend.describe`),
+and the response lists every match with its concrete path in ``more`` (its
+``value`` stays empty); see ``docs/errors.md``. Such a Get is never started
+inline (:func:`is_snapshot`): it always goes through :meth:`Calls.get`.
 """
 
 from __future__ import annotations
@@ -24,10 +31,19 @@ from gateway.status import to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS, Answer, Backend
 from services.eager import Started, step
-from services.errors import InvalidArgument, PropertyError, ResourceExhausted
+from services.errors import InvalidArgument, NotFound, PropertyError, ResourceExhausted
+from services.paths import compile_pattern, is_pattern, validate_pattern
 
 #: What starting a call gives; see the module docstring.
 Begun = str | asyncio.Future[Answer] | Awaitable[str]
+
+#: (service, path, parameters, backend) of one path a Get reads.
+_Ref = tuple[str, str, Mapping[str, str], Backend]
+
+
+def is_snapshot(request: pb.GetRequest) -> bool:
+    """True when a path of the Get has a ``*`` segment: its answer lists every match in ``more``."""
+    return is_pattern(request.property) or any(is_pattern(ref.property) for ref in request.more)
 
 
 class Undecodable:
@@ -91,12 +107,15 @@ class Calls:
         return bounded_call(call, time_limit, functools.partial("{}: set {}".format, service, path))
 
     async def get(self, request: pb.GetRequest, time_limit: float) -> pb.GetResponse:
-        """Read the request's path and its ``more`` paths; all or nothing."""
-        value = await outcome(self.start_get(request, time_limit))
-        if not request.more:
-            response = pb.GetResponse(value=value)
+        """Read the request's path and its ``more`` paths (a snapshot when one has ``*``); all or nothing."""
+        if is_snapshot(request):
+            response = pb.GetResponse(more=await self._snapshot(request, time_limit))
         else:
-            response = pb.GetResponse(value=value, more=await self._get_more(request, time_limit))
+            value = await outcome(self.start_get(request, time_limit))
+            if not request.more:
+                response = pb.GetResponse(value=value)
+            else:
+                response = pb.GetResponse(value=value, more=await self._get_more(request, time_limit))
         check_fits(
             response,
             lambda: (
@@ -113,22 +132,69 @@ class Calls:
         check_fits(response, lambda: f"{request.service}: set {request.property}")
         return response
 
-    async def _get_more(self, request: pb.GetRequest, time_limit: float) -> list[pb.PropertyValue]:
-        if len(request.more) + 1 > self.max_get_paths:
+    def _check_count(self, paths: int) -> None:
+        if paths > self.max_get_paths:
             raise ResourceExhausted(
-                f"a Get may read at most {self.max_get_paths} paths, this one reads {len(request.more) + 1}"
+                f"a Get may read at most {self.max_get_paths} paths, this one reads {paths}"
             )
+
+    def _resolve(self, service: str, path: str, params: Mapping[str, str], *, pattern: bool = False) -> _Ref:
+        try:
+            backend = self.router.backend(service)
+            path = validate_pattern(path) if pattern else check_path(path)
+        except PropertyError as exc:
+            # Names are clipped: an echo of a huge bad name must not outgrow the status message.
+            raise type(exc)(f"{service[:80]}/{path[:256]}: {exc.message}", exc.code) from None
+        return service, path, _params(params), backend
+
+    async def _get_more(self, request: pb.GetRequest, time_limit: float) -> list[pb.PropertyValue]:
+        self._check_count(len(request.more) + 1)
         # Resolve every path first so that a bad one fails the call before any backend is asked.
-        refs: list[tuple[str, str, Mapping[str, str], Backend]] = []
-        for ref in request.more:
-            service = ref.service or request.service
-            try:
-                backend = self.router.backend(service)
-                path = check_path(ref.property)
-            except PropertyError as exc:
-                # Names are clipped: an echo of a huge bad name must not outgrow the status message.
-                raise type(exc)(f"{service[:80]}/{ref.property[:256]}: {exc.message}", exc.code) from None
-            refs.append((service, path, _params(ref.parameters), backend))
+        refs = [
+            self._resolve(ref.service or request.service, ref.property, ref.parameters)
+            for ref in request.more
+        ]
+        return await self._read(refs, time_limit)
+
+    async def _snapshot(self, request: pb.GetRequest, time_limit: float) -> list[pb.PropertyValue]:
+        """Every path of the Get, each pattern expanded to the readable properties it matches."""
+        asked = [(request.service, request.property, request.parameters)]
+        asked += [(ref.service or request.service, ref.property, ref.parameters) for ref in request.more]
+        self._check_count(len(asked))
+        resolved = [self._resolve(service, path, params, pattern=True) for service, path, params in asked]
+        refs: list[_Ref] = []
+        for service, path, params, backend in resolved:
+            if not is_pattern(path):
+                refs.append((service, path, params, backend))
+            else:
+                refs += [
+                    (service, name, params, backend)
+                    for name in await self._matches(service, path, backend, time_limit)
+                ]
+            self._check_count(len(refs))
+        return await self._read(refs, time_limit)
+
+    async def _matches(self, service: str, pattern: str, backend: Backend, time_limit: float) -> list[str]:
+        """The values of ``service`` that ``pattern`` matches, in the service's order.
+
+        A snapshot holds values a Listen could follow: actions (never read), queries (which
+        take their parameters) and namespaces (not values) are skipped.
+        """
+        model = await bounded_call(
+            backend.describe(), time_limit, functools.partial("{}: describe for {}".format, service, pattern)
+        )
+        matches = compile_pattern(pattern)
+        names = [
+            p.name
+            for p in model.properties
+            if p.access.listenable and p.type != "namespace" and matches(p.name)
+        ]
+        if not names:
+            raise NotFound(f"{service}/{pattern}: no readable property of {service} matches")
+        return names
+
+    async def _read(self, refs: list[_Ref], time_limit: float) -> list[pb.PropertyValue]:
+        """Read every ref: one backend's paths one after another, backends side by side."""
         groups: dict[int, list[int]] = {}
         for i, (_, _, _, backend) in enumerate(refs):
             groups.setdefault(id(backend), []).append(i)
@@ -150,7 +216,7 @@ class Calls:
 
         if len(groups) == 1:
             await read_group(next(iter(groups.values())))
-        else:
+        elif groups:
             await asyncio.gather(*(read_group(ix) for ix in groups.values()))
         out = []
         for (service, path, _, _), value in zip(refs, values, strict=True):

@@ -17,6 +17,7 @@ from typing import Any
 from gateway import device_cli
 from gateway.config import Config, ConfigError, default_config, load_config
 
+#: Exit code of a gateway that cannot start as configured: a config error or a port in use.
 EXIT_CONFIG = 2
 
 EXAMPLES = """\
@@ -93,14 +94,21 @@ def setup_logging(level: str) -> None:
     )
 
 
+def _config_errors(exc: ConfigError) -> int:
+    for problem in exc.problems:
+        print(f"psgateway: config error: {problem}", file=sys.stderr)
+    return EXIT_CONFIG
+
+
 def _serve(args: argparse.Namespace) -> int:
     from gateway.app import serve
+    from gateway.ports import PortInUse
+    from services.errors import PropertyError
 
     try:
         config = _load(args)
     except ConfigError as exc:
-        print(f"psgateway: config error: {exc}", file=sys.stderr)
-        return EXIT_CONFIG
+        return _config_errors(exc)
     setup_logging(config.gateway.log_level)
     log = logging.getLogger("gateway")
     log.info("starting gateway from %s", config.source)
@@ -108,13 +116,16 @@ def _serve(args: argparse.Namespace) -> int:
         return asyncio.run(serve(config))
     except KeyboardInterrupt:
         return 0
-    except Exception as exc:
-        from services.errors import PropertyError
-
-        if isinstance(exc, PropertyError):
-            log.error("cannot start: %s", exc.message)
-        else:
-            log.exception("cannot start")
+    except ConfigError as exc:
+        return _config_errors(exc)
+    except PortInUse as exc:
+        print(f"psgateway: cannot start: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    except PropertyError as exc:
+        log.error("cannot start: %s", exc.message)
+        return 1
+    except Exception:
+        log.exception("cannot start")
         return 1
 
 
@@ -127,8 +138,7 @@ def _check_config(args: argparse.Namespace) -> int:
     try:
         config = load_config(args.file)
     except ConfigError as exc:
-        print(f"psgateway: config error: {exc}", file=sys.stderr)
-        return EXIT_CONFIG
+        return _config_errors(exc)
     bad = 0
 
     async def build_all() -> None:
@@ -169,7 +179,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         # `psgateway` alone, or with only serve's options, serves.
         argv.insert(0, "serve")
     args = build_parser().parse_args(argv)
-    code: int = args.func(args)
+    try:
+        code: int = args.func(args)
+    except KeyboardInterrupt:
+        return 130  # Ctrl-C before the command could take it over (128 + SIGINT)
     return code
 
 

@@ -11,10 +11,10 @@ from __future__ import annotations
 import importlib.resources
 import math
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from services.errors import InvalidArgument, PropertyError
 from services.paths import validate_service_name
@@ -23,9 +23,30 @@ from services.paths import validate_service_name
 REGISTRY_NAME = "registry"
 DEFAULT_LISTEN = "127.0.0.1:50051"
 
+_T = TypeVar("_T")
+
 
 class ConfigError(Exception):
-    """The configuration is wrong; the message names the file and the key."""
+    """The configuration is wrong: each of ``problems`` names the file and the key (the message lists all)."""
+
+    def __init__(self, *problems: str) -> None:
+        super().__init__("\n".join(problems))
+        self.problems: tuple[str, ...] = problems
+
+
+class _Problems:
+    """Every problem of one config, so that one run of check-config reports them all."""
+
+    def __init__(self) -> None:
+        self.found: list[str] = []
+
+    def attempt(self, check: Callable[[], _T], instead: _T) -> _T:
+        """``check()``, or ``instead`` when it raises ConfigError (whose problems are kept)."""
+        try:
+            return check()
+        except ConfigError as exc:
+            self.found.extend(exc.problems)
+            return instead
 
 
 @dataclass(frozen=True, slots=True)
@@ -192,33 +213,34 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>", folder: Path
     default: the current directory).
     """
     top = ("gateway", "limits", "registry", "services", "devices")
+    problems = _Problems()
     for key in data:
         if key not in top:
-            raise ConfigError(f"{source}: unknown key {key!r} (known: {', '.join(top)})")
-    gw: GatewaySection = _section(GatewaySection, data.get("gateway", {}), f"{source}: gateway")
-    _check_address(gw.listen, f"{source}: gateway.listen")
-    if gw.line_listen:
-        _check_address(gw.line_listen, f"{source}: gateway.line_listen")
-    if gw.call_timeout <= 0:
-        raise ConfigError(f"{source}: gateway.call_timeout: must be positive, got {gw.call_timeout}")
-    gw = replace(gw, log_level=_check_log_level(gw.log_level, f"{source}: gateway.log_level"))
-    limits: Limits = _section(Limits, data.get("limits", {}), f"{source}: limits")
-    for f in fields(Limits):
-        if f.name != "min_interval_floor" and getattr(limits, f.name) < 1:
-            raise ConfigError(f"{source}: limits.{f.name}: must be at least 1")
-    registry = _registry(data.get("registry", {}), f"{source}: registry", folder)
-
+            problems.found.append(f"{source}: unknown key {key!r} (known: {', '.join(top)})")
+    gw: GatewaySection = problems.attempt(
+        lambda: _gateway(data.get("gateway", {}), f"{source}: gateway"), GatewaySection()
+    )
+    limits: Limits = problems.attempt(lambda: _limits(data.get("limits", {}), f"{source}: limits"), Limits())
+    registry = problems.attempt(
+        lambda: _registry(data.get("registry", {}), f"{source}: registry", folder), RegistrySection()
+    )
+    seen: set[str] = set()
+    services: list[ServiceEntry] = []
     raw_services = data.get("services", [])
     if not isinstance(raw_services, list):
-        raise ConfigError(f"{source}: services: expected an array of tables ([[services]])")
-    services: list[ServiceEntry] = []
-    seen: set[str] = set()
-    for i, entry in enumerate(raw_services):
-        services.append(_service(entry, f"{source}: services[{i}]", seen))
+        problems.found.append(f"{source}: services: expected an array of tables ([[services]])")
+        raw_services = []
+    for i, raw in enumerate(raw_services):
+        services += problems.attempt(lambda: [_service(raw, f"{source}: services[{i}]", seen)], [])  # noqa: B023
+    devices: list[DeviceEntry] = []
     raw_devices = data.get("devices", [])
     if not isinstance(raw_devices, list):
-        raise ConfigError(f"{source}: devices: expected an array of tables ([[devices]])")
-    devices = [_device(entry, f"{source}: devices[{i}]", seen) for i, entry in enumerate(raw_devices)]
+        problems.found.append(f"{source}: devices: expected an array of tables ([[devices]])")
+        raw_devices = []
+    for i, raw in enumerate(raw_devices):
+        devices += problems.attempt(lambda: [_device(raw, f"{source}: devices[{i}]", seen)], [])  # noqa: B023
+    if problems.found:
+        raise ConfigError(*problems.found)
     return Config(
         gateway=gw,
         limits=limits,
@@ -227,6 +249,24 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>", folder: Path
         devices=tuple(devices),
         source=source,
     )
+
+
+def _gateway(data: Any, where: str) -> GatewaySection:
+    gw: GatewaySection = _section(GatewaySection, data, where)
+    _check_address(gw.listen, f"{where}.listen")
+    if gw.line_listen:
+        _check_address(gw.line_listen, f"{where}.line_listen")
+    if gw.call_timeout <= 0:
+        raise ConfigError(f"{where}.call_timeout: must be positive, got {gw.call_timeout}")
+    return replace(gw, log_level=_check_log_level(gw.log_level, f"{where}.log_level"))
+
+
+def _limits(data: Any, where: str) -> Limits:
+    limits: Limits = _section(Limits, data, where)
+    for f in fields(Limits):
+        if f.name != "min_interval_floor" and getattr(limits, f.name) < 1:
+            raise ConfigError(f"{where}.{f.name}: must be at least 1")
+    return limits
 
 
 def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:

@@ -17,7 +17,9 @@ On a pseudo-terminal the child plays the microcontroller's end of the cable:
 it serves the master side and reports the slave's path, which the gateway's
 serial proxy opens with pyserial (:meth:`services.device.DeviceServer.serve_pty`).
 The child's stdin is a pipe from the gateway: it ends when that pipe closes,
-even if the gateway is killed.
+even if the gateway is killed. It runs in a process group of its own, so a
+Ctrl-C in the gateway's terminal reaches only the gateway, which closes the
+proxies first and then ends the children.
 """
 
 from __future__ import annotations
@@ -114,6 +116,10 @@ async def start_device(entry: DeviceEntry, *, wait_s: float = START_TIMEOUT) -> 
         *device_command(entry),
         stdin=asyncio.subprocess.PIPE,  # the child ends when this pipe closes, even if the gateway is killed
         stdout=asyncio.subprocess.PIPE,
+        # A process group of its own: Ctrl-C in a terminal signals the whole foreground group, and a
+        # device that died at once would be reported as lost by its proxy while the gateway shuts
+        # down. The gateway ends its devices itself, after closing their proxies.
+        process_group=0,
     )
     try:
         async with asyncio.timeout(wait_s):

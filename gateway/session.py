@@ -21,14 +21,15 @@ from typing import Any
 
 import grpc
 
-from gateway.calls import Begun, Calls, Undecodable
+from gateway.calls import Begun, Calls, Undecodable, is_snapshot
 from gateway.config import Limits
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
+from gateway.listen.hub import SHUTTING_DOWN
 from gateway.sizes import BATCH_BYTES, SURELY_FITS_CHARS, check_fits
 from gateway.status import abort, status_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Answer
-from services.errors import Code, InvalidArgument, NotFound, PropertyError
+from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable
 
 log = logging.getLogger(__name__)
 
@@ -168,8 +169,10 @@ class Session:
         self._push(pb.Reply(id=rid, status=status_message(to_property_error(exc, what))))
 
     def stop(self) -> None:
-        """The gateway is stopping: end listens, stop reading, flush, end with OK."""
+        """The gateway is stopping: end listens, stop reading, flush, end with UNAVAILABLE."""
         self._stopping = True
+        if self._error is None:
+            self._error = Unavailable(SHUTTING_DOWN)
         self._wake.set()
 
     # -- the reader --------------------------------------------------------
@@ -226,7 +229,7 @@ class Session:
             self._set(rid, request.set)
 
     def _get(self, rid: int, request: pb.GetRequest) -> None:
-        if request.more:
+        if request.more or is_snapshot(request):
             self._spawn(rid, self._get_more(rid, request))
             return
         try:

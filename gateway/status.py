@@ -4,7 +4,8 @@
 the identity on numbers; it lives here so that every part of the gateway
 turns an error into a status, and a remote status into an error
 (:func:`error_from_status`, of the class ``services.errors.error_for``
-picks), the same way. Which call returns which code when is documented in
+picks), the same way. Every message leaves through here clipped to
+:data:`MAX_MESSAGE_CHARS`. Which call returns which code when is documented in
 ``docs/errors.md``.
 """
 
@@ -19,6 +20,12 @@ from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import Code, Internal, PropertyError, error_for
 
 log = logging.getLogger(__name__)
+
+#: Most characters of a status message. grpc carries the message in a trailer, and a
+#: peer refuses trailers over 16 KiB (grpc's default metadata hard limit) with
+#: RESOURCE_EXHAUSTED instead of the real status; 1,000 characters say what happened
+#: and stay far below it, even when every character takes four bytes in UTF-8.
+MAX_MESSAGE_CHARS = 1000
 
 #: Code → grpc.StatusCode, matched by number.
 GRPC_STATUS: Final[dict[Code, grpc.StatusCode]] = {
@@ -49,12 +56,20 @@ def to_property_error(exc: BaseException, what: str = "request") -> PropertyErro
     return Internal(f"internal error in {what}: {type(exc).__name__}")
 
 
+def clip_message(message: str, limit: int = MAX_MESSAGE_CHARS) -> str:
+    """``message`` cut to at most ``limit`` characters, saying how much was left out."""
+    if len(message) <= limit:
+        return message
+    tail = f"... ({len(message) - limit} more characters)"
+    return message[: limit - len(tail)] + tail
+
+
 def status_message(err: PropertyError) -> pb.Status:
-    """``err`` as the contract's ``Status`` message (used on Session replies)."""
-    return pb.Status(code=int(err.code), message=err.message)
+    """``err`` as the contract's ``Status`` message (used on Session replies), clipped."""
+    return pb.Status(code=int(err.code), message=clip_message(err.message))
 
 
 async def abort(context: grpc.aio.ServicerContext[object, object], exc: BaseException, what: str) -> None:
-    """End the call with the status for ``exc`` (never returns)."""
+    """End the call with the status for ``exc``, its message clipped (never returns)."""
     err = to_property_error(exc, what)
-    await context.abort(GRPC_STATUS[err.code], err.message)
+    await context.abort(GRPC_STATUS[err.code], clip_message(err.message))

@@ -61,6 +61,11 @@ async def close_quietly(sub: Subscription) -> None:
         log.debug("closing a listen failed", exc_info=True)
 
 
+#: The type of a backend that has not been reached yet (a proxy before its device greets, or
+#: before another gateway's registry answered): the registry shows it, and its state "connecting".
+UNKNOWN_TYPE = "unknown"
+
+
 @dataclass(slots=True)
 class BackendInfo:
     """What the registry knows of a backend."""

@@ -39,8 +39,13 @@ _PATH = re.compile(rf"{_SEGMENT.pattern}(?:\.{_SEGMENT.pattern})*")
 _BAD_CHAR = re.compile(r"[^A-Za-z0-9_.-]")
 
 
+def _shown_char(c: str) -> str:
+    return c if c.isprintable() else c.encode("unicode_escape").decode("ascii")
+
+
 def _show(text: str) -> str:
-    shown = text[:100].encode("unicode_escape").decode("ascii").replace('"', '\\"')
+    # Control characters are escaped; every other character, ASCII or not, shows as itself.
+    shown = "".join(_shown_char(c) for c in text[:100]).replace('"', '\\"')
     return '"' + (shown if len(shown) <= 80 else shown[:77] + "...") + '"'
 
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import logging
 from collections.abc import AsyncGenerator, Iterable, Sequence
 from types import TracebackType
 from typing import Any, Self
@@ -18,6 +20,7 @@ from clients.aio.requests import (
     format_params,
     get_many_request,
     get_many_values,
+    matching_values,
 )
 from clients.aio.session import DEFAULT_SESSION_QUEUE, Session
 from clients.errors import DeadlineExceeded, PropertyServiceError, error_from_rpc
@@ -45,6 +48,12 @@ DEFAULT_TIMEOUT = 10.0
 #: grpc.aio answers part of a burst of more than about a thousand simultaneous unary calls on one
 #: channel with CANCELLED, so the client never starts that many.
 DEFAULT_MAX_IN_FLIGHT = 256
+#: Seconds before a resumed Listen (``resume=True``) is opened again, doubling up to the most:
+#: a gateway that restarts is back within seconds; one that stays away is asked every 5 s.
+RESUME_FIRST_PAUSE = 0.1
+RESUME_MAX_PAUSE = 5.0
+
+log = logging.getLogger(__name__)
 
 
 class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Mark, None]]):
@@ -156,6 +165,14 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         resp = await self._unary("Get", get_many_request(refs))
         return get_many_values(resp, len(refs))
 
+    async def get_matching(self, service: str, pattern: str, /, **params: Any) -> dict[str, str]:
+        """Path → value of every readable property of ``service`` that ``pattern`` matches, in one Get.
+
+        ``*`` in ``pattern`` stands for one segment (``robots.*.location``); no match is NOT_FOUND.
+        """
+        request = pb.GetRequest(service=service, property=pattern, parameters=format_params(params))
+        return matching_values(await self._unary("Get", request, service, pattern))
+
     async def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
         """Write ``value`` (text, number, bool, vector, list, :class:`Marker`); return the answer."""
         request = pb.SetRequest(
@@ -199,18 +216,38 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         return await self.get_names(service, "properties")
 
     async def start_listen(
-        self, request: pb.ListenRequest, marks: bool
+        self, request: pb.ListenRequest, marks: bool, resume: bool = False
     ) -> AsyncGenerator[Event | Mark, None]:
         """The server-streamed Listen for ``request``; see :meth:`listen`."""
-        call = self.stub().Listen(request, metadata=self.metadata)
-        try:
-            async for resp in call:
-                for item in listen_items(resp, marks):
-                    yield item
-        except grpc.RpcError as e:
-            raise self._error(e, request.service, request.property) from None
-        finally:
-            call.cancel()
+        pause = RESUME_FIRST_PAUSE
+        resumed = False
+        while True:
+            call = self.stub().Listen(request, metadata=self.metadata)
+            try:
+                async for resp in call:
+                    pause = RESUME_FIRST_PAUSE
+                    for item in listen_items(resp, marks):
+                        if resumed and isinstance(item, Event):
+                            resumed = False
+                            yield dataclasses.replace(item, gap=True)  # values may have been missed
+                        else:
+                            yield item
+                return
+            except grpc.RpcError as e:
+                if not (resume and e.code() == grpc.StatusCode.UNAVAILABLE):
+                    raise self._error(e, request.service, request.property) from None
+                log.info(
+                    "listen %s %s: %s; resuming in %.1f s",
+                    request.service,
+                    request.property,
+                    e.details(),
+                    pause,
+                )
+            finally:
+                call.cancel()
+            await asyncio.sleep(pause)
+            pause = min(2 * pause, RESUME_MAX_PAUSE)
+            resumed = True
 
     def session(self, *, max_pending: int = DEFAULT_SESSION_QUEUE) -> Session:
         """A :class:`Session` over this client's channel: ``async with client.session() as s: ...``."""

@@ -31,6 +31,7 @@ class ListenCalls(Generic[EventsT, ItemsT]):
         /,
         *more: Selector,
         marks: Literal[False] = ...,
+        resume: bool = ...,
         **options: Unpack[ListenOptions],
     ) -> EventsT: ...
 
@@ -42,6 +43,7 @@ class ListenCalls(Generic[EventsT, ItemsT]):
         /,
         *more: Selector,
         marks: Literal[True],
+        resume: bool = ...,
         **options: Unpack[ListenOptions],
     ) -> ItemsT: ...
 
@@ -52,6 +54,7 @@ class ListenCalls(Generic[EventsT, ItemsT]):
         /,
         *more: Selector,
         marks: bool = False,
+        resume: bool = False,
         **options: Unpack[ListenOptions],
     ) -> EventsT | ItemsT:
         """Stream events of ``(service, prop)`` and of the further ``(service, property)`` selectors.
@@ -66,10 +69,17 @@ class ListenCalls(Generic[EventsT, ItemsT]):
         current values and :data:`HEARTBEAT` for each keep-alive. Close the
         iterator (``aclose()``, ``close()`` or leaving the loop) to end the
         stream; over a session that sends a Cancel.
+
+        A stream the gateway ends raises, UNAVAILABLE when it shuts down. With
+        ``resume=True`` (a client's listen, not a session's) the stream is opened
+        again after an UNAVAILABLE, with backoff, until the iterator is closed;
+        the first event after each resume has ``gap`` set (values may have been
+        missed), and sequence numbers start again from 1.
         """
-        result: EventsT | ItemsT = self.start_listen(listen_request(service, prop, more, **options), marks)
+        request = listen_request(service, prop, more, **options)
+        result: EventsT | ItemsT = self.start_listen(request, marks, resume)
         return result
 
-    def start_listen(self, request: pb.ListenRequest, marks: bool) -> Any:
+    def start_listen(self, request: pb.ListenRequest, marks: bool, resume: bool = False) -> Any:
         """Start the stream for a ready-made ``request`` (what ``listen`` does after building it)."""
         raise NotImplementedError

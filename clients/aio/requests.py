@@ -106,6 +106,11 @@ def get_many_values(resp: pb.GetResponse, n: int) -> list[str]:
     return [resp.value, *(v.value for v in resp.more)]
 
 
+def matching_values(resp: pb.GetResponse) -> dict[str, str]:
+    """Path → value of every match of a Get with a ``*`` pattern (the gateway lists them in ``more``)."""
+    return {v.property: v.value for v in resp.more}
+
+
 def decode(parse: Callable[[str], T], text: str, service: str, prop: str) -> T:
     """``parse(text)``; a :class:`ValueFormatError` names the property the value came from."""
     try:

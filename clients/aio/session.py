@@ -16,7 +16,7 @@ from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stub
 from clients.aio.events import Event, Mark
 from clients.aio.listen import ListenCalls
 from clients.aio.listen_buffer import ListenBuffer
-from clients.aio.requests import Selector, format_params, get_many_request, get_many_values
+from clients.aio.requests import Selector, format_params, get_many_request, get_many_values, matching_values
 from clients.errors import (
     Cancelled,
     PropertyServiceError,
@@ -240,6 +240,12 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
         value: str = reply.get.value
         return value
 
+    async def get_matching(self, service: str, pattern: str, /, **params: Any) -> dict[str, str]:
+        """Like :meth:`AsyncClient.get_matching`, over the session."""
+        request = pb.GetRequest(service=service, property=pattern, parameters=format_params(params))
+        reply = await self._call_one(pb.Request(get=request), service, pattern)
+        return matching_values(reply.get)
+
     async def get_many(self, refs: Iterable[Selector]) -> list[str]:
         """Like :meth:`AsyncClient.get_many`, over the session."""
         refs = list(refs)
@@ -260,9 +266,12 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
         return answer
 
     async def start_listen(
-        self, request: pb.ListenRequest, marks: bool
+        self, request: pb.ListenRequest, marks: bool, resume: bool = False
     ) -> AsyncGenerator[Event | Mark, None]:
         """The Listen for ``request`` over the session; closing the iterator sends a Cancel."""
+        if resume:
+            # A session ends with its gateway; resuming is opening a new session, the caller's choice.
+            raise ValueError("resume=True is for a client's listen; a session's listens end with the session")
         self._check_open()
         rid = next(self._ids)
         buffer = ListenBuffer(marks)

@@ -21,6 +21,10 @@ from services.errors import ResourceExhausted, Unavailable
 
 log = logging.getLogger(__name__)
 
+#: The message every stream ends with when the gateway stops: UNAVAILABLE, so a client knows
+#: to reconnect (to this gateway once it is back, or another), never a clean end of the stream.
+SHUTTING_DOWN = "gateway shutting down"
+
 
 class ListenHub:
     """Shares backend subscriptions among Listen streams; see the module docstring."""
@@ -48,7 +52,7 @@ class ListenHub:
     ) -> ListenStream:
         """A new stream (then ``start`` it, and ``close`` it when done); raises RESOURCE_EXHAUSTED."""
         if self._closing:
-            raise Unavailable("the gateway is shutting down")
+            raise Unavailable(SHUTTING_DOWN)
         if len(self._streams) >= self.limits.max_streams:
             raise ResourceExhausted(
                 f"too many Listen streams open ({self.limits.max_streams}, limits.max_streams)"
@@ -75,10 +79,10 @@ class ListenHub:
             stream.service_removed(name)
 
     def end_all(self) -> None:
-        """End every stream cleanly (writers stop with OK); refuse new ones."""
+        """End every stream with UNAVAILABLE "gateway shutting down"; refuse new ones."""
         self._closing = True
         for stream in list(self._streams):
-            stream.end()
+            stream.fail(Unavailable(SHUTTING_DOWN))
 
     async def aclose(self) -> None:
         """End every stream and close every backend subscription."""

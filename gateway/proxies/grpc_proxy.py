@@ -34,7 +34,7 @@ from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stub
 from gateway.status import error_from_status
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
+from services.backend import NO_PARAMS, UNKNOWN_TYPE, Backend, BackendInfo, Change, Notify, Subscription
 from services.errors import Code, DeadlineExceeded, InvalidArgument, PropertyError, Unavailable
 from services.model import ServiceModel
 from services.model_codec import model_from_proto
@@ -114,7 +114,7 @@ class GrpcProxy(Backend):
         #: The service's name on the remote gateway.
         self.remote = remote
         self.options = options
-        self.info = BackendInfo(type="resource", url=url)
+        self.info = BackendInfo(type=UNKNOWN_TYPE, url=url)  # until reached
         self._channel: grpc.aio.Channel | None = None
         self._stub: Any = None
         #: The remote Listens, one per (path, parameters), shared by the proxy's listeners.
@@ -203,6 +203,7 @@ class GrpcProxy(Backend):
             # Only a remote that could not be reached is asked again (by check()).
             if exc.code() not in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
                 self._type_known = True
+                self.info.type = "resource"  # reached, but its registry does not say what it is
             return
         if reply.value:
             self.info.type = reply.value

@@ -32,7 +32,16 @@ from typing import Any, cast
 from urllib.parse import parse_qsl, urlsplit
 
 from gateway.proxies.connection import LineConnection
-from services.backend import NO_PARAMS, Answer, Backend, BackendInfo, Change, Notify, Subscription
+from services.backend import (
+    NO_PARAMS,
+    UNKNOWN_TYPE,
+    Answer,
+    Backend,
+    BackendInfo,
+    Change,
+    Notify,
+    Subscription,
+)
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable
 from services.line_protocol import (
     PROTOCOL_VERSION,
@@ -139,7 +148,7 @@ class LineProxy(Backend):
         self.name = name
         self.url = url
         self.options = options
-        self.info = BackendInfo(type="resource", url=url)
+        self.info = BackendInfo(type=UNKNOWN_TYPE, url=url)  # until reached
         self.hello: Hello | None = None
         self._conn: LineConnection | None = None
         self._connected = asyncio.Event()

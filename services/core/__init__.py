@@ -10,17 +10,22 @@
 * :class:`LocalService` — serves a Resource in-process as a ``services.backend.Backend``.
 * :func:`start_tree` / :func:`stop_tree` — run a Resource's lifecycle hooks and its children's.
 * ``RESERVED_NAMES`` — names no member or child may take (``properties``, ``parameters``, ``gui``, ``doc``).
+* ``Vector`` and ``Marker`` — the value types a property's annotation may name besides the builtins
+  (from :mod:`services.values`).
 """
 
 from services.core.local import LocalService
 from services.core.metadata import RESERVED_NAMES, Prop, action, functional, query, read_write
 from services.core.resource import Resource, start_tree, stop_tree
+from services.values import Marker, Vector
 
 __all__ = [
     "RESERVED_NAMES",
     "LocalService",
+    "Marker",
     "Prop",
     "Resource",
+    "Vector",
     "action",
     "functional",
     "query",

@@ -155,9 +155,15 @@ class Target:
     def _no_params(self, params: Mapping[str, str]) -> None:
         if params:
             raise InvalidArgument(
-                f"`{self.path}` takes no parameters (got {', '.join(sorted(params))}); "
+                f"`{self.path}` takes no parameters (got {_some(sorted(params))}); "
                 f"see `{self.path}.parameters`"
             )
+
+
+def _some(names: list[str], shown: int = 5) -> str:
+    """The first ``shown`` names and how many more: a request may carry thousands."""
+    more = len(names) - shown
+    return ", ".join(names[:shown]) + (f" and {more} more" if more > 0 else "")
 
 
 def _watch_key(owner: Resource, key: str, callback: Callable[[], None]) -> Callable[[], None]:

@@ -16,8 +16,9 @@ from services.values import Vector, format_number, parse_number
 
 __all__ = ["MAX_LEASE", "STATES", "ServiceEntry", "ServiceList", "check_lease", "parse_lease"]
 
-#: What ``services.<name>.state`` can be.
-STATES = ("up", "down")
+#: What ``services.<name>.state`` can be: "connecting" until a service of unknown type (a proxy)
+#: is first reached, then "up", or "down" after missed checks.
+STATES = ("up", "down", "connecting")
 #: A lease longer than a day is a mistake rather than a plan.
 MAX_LEASE = 86_400.0
 
@@ -54,7 +55,7 @@ class ServiceEntry(Resource):
     url: Annotated[
         str, Prop(readonly=True, doc="contact URL: local, tcp://host:port, serial://..., grpc://...")
     ]
-    state: Annotated[str, Prop(readonly=True, doc="up or down")]
+    state: Annotated[str, Prop(readonly=True, doc="up, down, or connecting (never reached yet)")]
     last_seen: Annotated[float, Prop(readonly=True, doc="when it was last heard of, unix seconds")]
     misses: Annotated[int, Prop(readonly=True, doc="liveness checks missed in a row")]
     location: Annotated[Vector, Prop(readonly=True, gui="pose", doc="the service's own location; () if none")]

@@ -128,6 +128,7 @@ class Registrations:
         self.table.entry(name)
         # The proxy learns the type from the device's greeting; a declared type wins.
         self.table.set_type(name, declared or directory.backend(name).info.type)
+        self.table.reached(name)  # _open waited for its first answer
         if lease is not None:
             self.table.renew(name, lease)
         options = {"type": declared} if declared else {}

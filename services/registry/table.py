@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from services.backend import BackendInfo
+from services.backend import UNKNOWN_TYPE, BackendInfo
 from services.errors import InvalidArgument, NotFound
 from services.paths import validate_service_name
 from services.query import ServiceIndex
@@ -19,7 +19,7 @@ __all__ = ["PLACEHOLDER_TYPE", "ServiceTable"]
 log = logging.getLogger(__name__)
 
 #: The type a backend has before its device says what it is (a proxy before the greeting).
-PLACEHOLDER_TYPE = BackendInfo().type
+PLACEHOLDER_TYPE = UNKNOWN_TYPE
 
 
 class ServiceTable:
@@ -60,22 +60,26 @@ class ServiceTable:
     # -- changing --------------------------------------------------------------
 
     def add(self, name: str, info: BackendInfo, renew: Callable[[str, float], None]) -> None:
-        """Record ``name``, or refresh it: new type and URL, state up, ``last_seen`` now."""
+        """Record ``name``, or refresh it: new type and URL, ``last_seen`` now.
+
+        Its state is up, or "connecting" while its type is still unknown (a proxy not yet reached).
+        """
         validate_service_name(name)
+        state = "connecting" if info.type == PLACEHOLDER_TYPE else "up"
         existing = self.get(name)
         if existing is not None:
             url_changed = existing.url != info.url
             existing.type = info.type
             existing.url = info.url
             existing.last_seen = wall_clock()
-            self._mark(name, existing, "up")
+            self._mark(name, existing, state)
             self.index.set_type(name, info.type)
             if url_changed:
                 existing.changed()
             self._bump()
             return
-        self.services.attach(name, ServiceEntry(name, info, renew=renew))
-        self.index.put(name, info.type, True)
+        self.services.attach(name, ServiceEntry(name, info, state, renew=renew))
+        self.index.put(name, info.type, state == "up")
         self._bump()
 
     def forget(self, name: str) -> bool:
@@ -125,9 +129,22 @@ class ServiceTable:
             self._bump()
 
     def learn_type(self, name: str, kind: str) -> None:
-        """Take the type a device told, unless it is empty or the placeholder; nothing for an unknown name."""
-        if self.get(name) is not None and kind and kind != PLACEHOLDER_TYPE:
+        """Take the type a device told, unless it is empty or the placeholder; nothing for an unknown name.
+
+        A service that answered has been reached: "connecting" becomes "up".
+        """
+        if self.get(name) is None:
+            return
+        if kind and kind != PLACEHOLDER_TYPE:
             self.set_type(name, kind)
+        self.reached(name)
+
+    def reached(self, name: str) -> None:
+        """``name`` answered for the first time: "connecting" becomes "up" (other states stay)."""
+        entry = self.entry(name)
+        if entry.state == "connecting":
+            entry.seen()
+            self._mark(name, entry, "up")
 
     def set_location(self, name: str, location: Vector | None) -> None:
         """The service's own location (None: it has none); nothing for an unknown name."""

@@ -347,7 +347,7 @@ async def test_crashing_backend_is_internal_and_logged(dev, caplog) -> None:
     assert "ZeroDivisionError" in caplog.text
 
 
-async def test_shutdown_ends_listen_streams_with_ok(dev) -> None:
+async def test_shutdown_ends_listen_streams_with_unavailable(dev) -> None:
     async with (
         running_gateway(dev, name="dev", config=config()) as gw,
         grpc.aio.insecure_channel(gw.address) as channel,
@@ -355,6 +355,8 @@ async def test_shutdown_ends_listen_streams_with_ok(dev) -> None:
         call = pb_grpc.PropertyServiceStub(channel).Listen(pb.ListenRequest(service="dev", property="a"))
         await events_until_sync(call)
         await gw.stop()
-        assert await read(call) == grpc.aio.EOF
-        assert await call.code() == grpc.StatusCode.OK
+        with pytest.raises(grpc.aio.AioRpcError) as ended:
+            await read(call)
+        assert ended.value.code() == grpc.StatusCode.UNAVAILABLE
+        assert ended.value.details() == "gateway shutting down"
     assert dev.closed

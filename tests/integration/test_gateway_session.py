@@ -147,7 +147,7 @@ async def test_many_gets_in_one_message(session) -> None:
     assert {r.get.value for r in replies} == {"50"}
 
 
-async def test_gateway_shutdown_ends_sessions_cleanly(gateway) -> None:
+async def test_gateway_shutdown_ends_sessions_with_unavailable(gateway) -> None:
     async with grpc.aio.insecure_channel(gateway.address) as channel:
         call = pb_grpc.PropertyServiceStub(channel).Session()
         await call.write(
@@ -157,7 +157,9 @@ async def test_gateway_shutdown_ends_sessions_cleanly(gateway) -> None:
         )
         await replies_until(call, lambda rs: any(r.listen.sync for r in rs))
         await gateway.stop()
-        async with asyncio.timeout(WAIT):
-            while await call.read() is not grpc.aio.EOF:
-                pass
-        assert await call.code() == grpc.StatusCode.OK
+        with pytest.raises(grpc.aio.AioRpcError) as ended:
+            async with asyncio.timeout(WAIT):
+                while await call.read() is not grpc.aio.EOF:
+                    pass
+        assert ended.value.code() == grpc.StatusCode.UNAVAILABLE
+        assert ended.value.details() == "gateway shutting down"

@@ -48,7 +48,10 @@ _LISTENING = re.compile(r"^listening on (\S+:\d+)$")
 class GatewayProcess:
     """A running ``psgateway serve`` process."""
 
-    def __init__(self, args: Sequence[str], env: dict[str, str] | None = None) -> None:
+    def __init__(
+        self, args: Sequence[str], env: dict[str, str] | None = None, *, own_group: bool = False
+    ) -> None:
+        """``own_group``: a process group of its own, like a shell's foreground job (see ``killpg``)."""
         self.args = list(args)
         self.proc = subprocess.Popen(
             self.args,
@@ -58,6 +61,7 @@ class GatewayProcess:
             stderr=subprocess.STDOUT,
             text=True,
             env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+            process_group=0 if own_group else None,
         )
         self.address = ""
         self._lines: list[str] = []
