@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from gateway import device_cli
-from gateway.config import Config, ConfigError, default_config, load_config
+from gateway.config import Config, ConfigError, default_config, load_config, load_config_partly
 
 #: Exit code of a gateway that cannot start as configured: a config error or a port in use.
 EXIT_CONFIG = 2
@@ -135,11 +135,13 @@ def _check_config(args: argparse.Namespace) -> int:
     from services.catalog import create
     from services.errors import PropertyError
 
-    try:
-        config = load_config(args.file)
-    except ConfigError as exc:
-        return _config_errors(exc)
-    bad = 0
+    config, problems = load_config_partly(args.file)
+    if config is None:
+        return _config_errors(ConfigError(*problems))
+    # Every problem of the file in one run: what did not parse, then what does not build.
+    for problem in problems:
+        print(f"psgateway: config error: {problem}", file=sys.stderr)
+    bad = len(problems)
 
     async def build_all() -> None:
         nonlocal bad

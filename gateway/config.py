@@ -190,20 +190,53 @@ def _typed(value: Any, kind: type, where: str) -> Any:
     return value
 
 
+class _PartlyBad(ConfigError):
+    """A section with bad keys: ``partial`` is built from its good ones, so later checks still run."""
+
+    def __init__(self, problems: list[str], partial: Any) -> None:
+        super().__init__(*problems)
+        self.partial = partial
+
+
 def _section(cls: type[Any], data: Any, where: str) -> Any:
+    """The section as ``cls``; raises _PartlyBad naming every bad key (the good ones are kept)."""
     if not isinstance(data, Mapping):
         raise ConfigError(f"{where}: expected a table")
     known = {f.name: f for f in fields(cls)}
     values: dict[str, Any] = {}
+    bad: list[str] = []
     for key, value in data.items():
         f = known.get(key)
         if f is None:
-            raise ConfigError(f"{where}.{key}: unknown key (known: {', '.join(known)})")
+            bad.append(f"{where}.{key}: unknown key (known: {', '.join(known)})")
+            continue
         kind = type(f.default)
-        values[key] = _typed(value, kind, f"{where}.{key}")
-        if kind in (int, float) and values[key] < 0:
-            raise ConfigError(f"{where}.{key}: must not be negative, got {value!r}")
+        try:
+            typed = _typed(value, kind, f"{where}.{key}")
+        except ConfigError as exc:
+            bad.extend(exc.problems)
+            continue
+        if kind in (int, float) and typed < 0:
+            bad.append(f"{where}.{key}: must not be negative, got {value!r}")
+            continue
+        values[key] = typed
+    if bad:
+        raise _PartlyBad(bad, cls(**values))
     return cls(**values)
+
+
+def _checked_section(cls: type[_T], data: Any, where: str, checks: Callable[[_T, list[str]], _T]) -> _T:
+    """:func:`_section`, then ``checks(section, found)``; every problem of the section in one ConfigError."""
+    found: list[str] = []
+    try:
+        section: _T = _section(cls, data, where)
+    except _PartlyBad as partly:
+        found.extend(partly.problems)
+        section = partly.partial
+    section = checks(section, found)
+    if found:
+        raise ConfigError(*found)
+    return section
 
 
 def parse_config(data: Mapping[str, Any], source: str = "<config>", folder: Path | None = None) -> Config:
@@ -211,6 +244,21 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>", folder: Path
 
     ``folder`` is where relative paths in it start (the config file's folder;
     default: the current directory).
+    """
+    config, problems = parse_config_partly(data, source, folder)
+    if problems:
+        raise ConfigError(*problems)
+    return config
+
+
+def parse_config_partly(
+    data: Mapping[str, Any], source: str = "<config>", folder: Path | None = None
+) -> tuple[Config, list[str]]:
+    """Every problem of a parsed TOML document, and the config its good parts make.
+
+    A bad section falls back to its defaults (with its good keys kept) and a bad
+    service or device is left out, so that ``check-config`` can go on to build
+    what is left and report every problem of the file in one run.
     """
     top = ("gateway", "limits", "registry", "services", "devices")
     problems = _Problems()
@@ -239,9 +287,7 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>", folder: Path
         raw_devices = []
     for i, raw in enumerate(raw_devices):
         devices += problems.attempt(lambda: [_device(raw, f"{source}: devices[{i}]", seen)], [])  # noqa: B023
-    if problems.found:
-        raise ConfigError(*problems.found)
-    return Config(
+    config = Config(
         gateway=gw,
         limits=limits,
         registry=registry,
@@ -249,43 +295,53 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>", folder: Path
         devices=tuple(devices),
         source=source,
     )
+    return config, problems.found
 
 
 def _gateway(data: Any, where: str) -> GatewaySection:
-    gw: GatewaySection = _section(GatewaySection, data, where)
-    _check_address(gw.listen, f"{where}.listen")
-    if gw.line_listen:
-        _check_address(gw.line_listen, f"{where}.line_listen")
-    if gw.call_timeout <= 0:
-        raise ConfigError(f"{where}.call_timeout: must be positive, got {gw.call_timeout}")
-    return replace(gw, log_level=_check_log_level(gw.log_level, f"{where}.log_level"))
+    def checks(gw: GatewaySection, found: list[str]) -> GatewaySection:
+        problems = _Problems()
+        problems.attempt(lambda: _check_address(gw.listen, f"{where}.listen"), None)
+        if gw.line_listen:
+            problems.attempt(lambda: _check_address(gw.line_listen, f"{where}.line_listen"), None)
+        if gw.call_timeout <= 0:
+            problems.found.append(f"{where}.call_timeout: must be positive, got {gw.call_timeout}")
+        level = problems.attempt(lambda: _check_log_level(gw.log_level, f"{where}.log_level"), "info")
+        found.extend(problems.found)
+        return replace(gw, log_level=level)
+
+    return _checked_section(GatewaySection, data, where, checks)
 
 
 def _limits(data: Any, where: str) -> Limits:
-    limits: Limits = _section(Limits, data, where)
-    for f in fields(Limits):
-        if f.name != "min_interval_floor" and getattr(limits, f.name) < 1:
-            raise ConfigError(f"{where}.{f.name}: must be at least 1")
-    return limits
+    def checks(limits: Limits, found: list[str]) -> Limits:
+        for f in fields(Limits):
+            if f.name != "min_interval_floor" and getattr(limits, f.name) < 1:
+                found.append(f"{where}.{f.name}: must be at least 1")
+        return limits
+
+    return _checked_section(Limits, data, where, checks)
 
 
 def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
-    section: RegistrySection = _section(RegistrySection, data, where)
-    for key in ("period", "timeout", "grace"):
-        if not math.isfinite(getattr(section, key)):
-            raise ConfigError(f"{where}.{key}: must be a finite number of seconds")
-    if section.timeout <= 0:
-        raise ConfigError(f"{where}.timeout: must be positive, got {section.timeout}")
-    if section.misses < 1:
-        raise ConfigError(f"{where}.misses: must be at least 1, got {section.misses}")
-    if section.persist:
-        path = Path(section.persist).expanduser()
-        if not path.is_absolute():
-            path = (folder if folder is not None else Path.cwd()) / path
-        if path.is_dir():
-            raise ConfigError(f"{where}.persist: {str(path)!r} is a folder; name a file")
-        section = replace(section, persist=str(path))
-    return section
+    def checks(section: RegistrySection, found: list[str]) -> RegistrySection:
+        for key in ("period", "timeout", "grace"):
+            if not math.isfinite(getattr(section, key)):
+                found.append(f"{where}.{key}: must be a finite number of seconds")
+        if section.timeout <= 0:
+            found.append(f"{where}.timeout: must be positive, got {section.timeout}")
+        if section.misses < 1:
+            found.append(f"{where}.misses: must be at least 1, got {section.misses}")
+        if section.persist:
+            path = Path(section.persist).expanduser()
+            if not path.is_absolute():
+                path = (folder if folder is not None else Path.cwd()) / path
+            if path.is_dir():
+                found.append(f"{where}.persist: {str(path)!r} is a folder; name a file")
+            section = replace(section, persist=str(path))
+        return section
+
+    return _checked_section(RegistrySection, data, where, checks)
 
 
 def _name(entry: Any, where: str, known: tuple[str, ...], seen: set[str]) -> str:
@@ -377,12 +433,25 @@ def _device(entry: Any, where: str, seen: set[str]) -> DeviceEntry:
 
 def load_config(path: str | Path) -> Config:
     """Read and check the TOML file at ``path``; raises ConfigError."""
+    config, problems = load_config_partly(path)
+    if problems or config is None:
+        raise ConfigError(*problems)
+    return config
+
+
+def load_config_partly(path: str | Path) -> tuple[Config | None, list[str]]:
+    """Read the TOML file at ``path``: every problem, and the config its good parts make
+    (None when the file cannot be read or is not TOML); see :func:`parse_config_partly`."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
-        raise ConfigError(f"{p}: cannot read: {exc.strerror or exc}") from None
-    return loads_config(text, str(p), p.resolve().parent)
+        return None, [f"{p}: cannot read: {exc.strerror or exc}"]
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        return None, [f"{p}: not valid TOML: {exc}"]
+    return parse_config_partly(data, str(p), p.resolve().parent)
 
 
 def loads_config(text: str, source: str = "<config>", folder: Path | None = None) -> Config:

@@ -135,6 +135,44 @@ def test_check_config_reports_every_service_that_cannot_be_built(tmp_path: Path)
     assert "services (a)" in result.stderr and "services (b)" in result.stderr
 
 
+def test_check_config_reports_keys_values_and_builds_together(tmp_path: Path) -> None:
+    # Two bad keys in one section, a bad value beside them, and services that parse but do not
+    # build: all in the first run, not a few at a time.
+    config = tmp_path / "mixed.toml"
+    config.write_text(
+        textwrap.dedent("""
+            [gateway]
+            call_timout = 3
+            log_level = "verbose"
+            [limits]
+            max_streams = -1
+            [[services]]
+            name = "scout3"
+            type = "sim-robbot"
+            [[services]]
+            name = "scout4"
+            type = "sim-robot"
+            options = { sped = 2 }
+            [[services]]
+            name = "far"
+            url = "ftp://x"
+        """)
+    )
+    result = run_gateway("check-config", str(config))
+    assert result.returncode == EXIT_CONFIG
+    problems = result.stderr.splitlines()
+    for key in (
+        "gateway.call_timout: unknown key",
+        "gateway.log_level",
+        "limits.max_streams",
+        "services (scout3): unknown service type",
+        "services (scout4): bad options",
+        "services (far)",
+    ):
+        assert sum(key in line for line in problems) == 1, (key, problems)
+    assert len(problems) == 6, problems
+
+
 def demo_in_own_group() -> GatewayProcess:
     """The demo gateway as a terminal runs it: Ctrl-C signals its whole process group."""
     return GatewayProcess([sys.executable, "-m", "gateway", "--listen", "127.0.0.1:0"], own_group=True)
