@@ -93,7 +93,7 @@ def make_authority(folder: Path, name: str = "test-ca") -> Authority:
     """A self-signed CA, written as ``<name>.pem`` in ``folder``."""
     key = _new_key()
     subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)])
-    now = datetime.datetime.now(datetime.timezone.utc)
+    now = datetime.datetime.now(datetime.UTC)
     cert = (
         x509.CertificateBuilder()
         .subject_name(subject)
@@ -141,7 +141,7 @@ def issue_certificate(
     auth context as x509_common_name and x509_subject_alternative_name).
     """
     key = _new_key()
-    now = datetime.datetime.now(datetime.timezone.utc)
+    now = datetime.datetime.now(datetime.UTC)
     if expired:
         not_before, not_after = now - 10 * _ONE_DAY, now - _ONE_DAY
     else:
