@@ -226,3 +226,52 @@ key = "{certificates.server.key}"
     assert not (await asyncio.wait_for(plain_reader.read(100), 5)).startswith(b"HELLO")
     plain_writer.close()
     assert gw.proc.poll() is None
+
+
+async def test_grpcs_federation_between_two_gateway_processes_over_mtls(
+    gateway_process: StartGateway, certificates: CertificateFiles
+) -> None:
+    remote = gateway_process(
+        _tls_config(certificates, mutual=True), credentials=_grpc_credentials(certificates)
+    )
+    bob = certificates.clients["bob"]
+    local = gateway_process(f"""
+[[services]]
+name = "far"
+url = "grpcs://{remote.address}/bot"
+options = {{ ca = "{certificates.ca}", cert = "{bob.cert}", key = "{bob.key}" }}
+
+[[services]]
+name = "unknown_ca"
+url = "grpcs://{remote.address}/bot"
+options = {{ cert = "{bob.cert}", key = "{bob.key}", connect_timeout = 1 }}
+
+[[services]]
+name = "no_cert"
+url = "grpcs://{remote.address}/bot"
+options = {{ ca = "{certificates.ca}", connect_timeout = 1 }}
+""")
+    async with AsyncClient(local.address, timeout=5) as client:
+        assert await client.get("far", "location") == await client.get("far", "location")
+        await client.set("far", "velocity", "(0.5 0 0 0 0 0)")
+        async with AsyncClient(remote.address, credentials=_sdk_credentials(certificates)) as direct:
+            assert await direct.get("bot", "velocity") == "(0.5 0 0 0 0 0)"
+        for refused in ("unknown_ca", "no_cert"):
+            with pytest.raises(GatewayUnreachable):
+                await client.get(refused, "location")
+
+
+def _sdk_credentials(certs: CertificateFiles, client: str = "alice") -> ClientCredentials:
+    pair = certs.clients[client]
+    return ClientCredentials(ca=str(certs.ca), cert=str(pair.cert), key=str(pair.key))
+
+
+def test_grpcs_options_are_checked(tmp_path: Path, certificates: CertificateFiles) -> None:
+    cases = {
+        f'url = "grpc://127.0.0.1:1/bot"\noptions = {{ ca = "{certificates.ca}" }}': "need TLS: use grpcs://",
+        f'url = "grpcs://127.0.0.1:1/bot"\noptions = {{ cert = "{certificates.server.cert}" }}': "give both",
+        'url = "grpcs://127.0.0.1:1/bot"\noptions = { ca = "/no/ca.pem" }': "cannot read '/no/ca.pem'",
+    }
+    for entry, message in cases.items():
+        result = _check_config(f'[[services]]\nname = "far"\n{entry}\n', tmp_path)
+        assert result.returncode == 2 and message in result.stderr, result.stderr
