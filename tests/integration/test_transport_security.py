@@ -17,6 +17,7 @@ import pytest
 from support.certs import CertificateFiles, certificates, issue_certificate, make_authority
 from support.gateway_process import ROOT, StartGateway
 from support.ports import free_port
+from support.psctl import psctl
 
 from clients import AsyncClient, ClientCredentials, GatewayUnreachable
 
@@ -275,3 +276,22 @@ def test_grpcs_options_are_checked(tmp_path: Path, certificates: CertificateFile
     for entry, message in cases.items():
         result = _check_config(f'[[services]]\nname = "far"\n{entry}\n', tmp_path)
         assert result.returncode == 2 and message in result.stderr, result.stderr
+
+
+def test_psctl_over_mtls_with_flags_and_environment(
+    gateway_process: StartGateway, certificates: CertificateFiles, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    gw = gateway_process(_tls_config(certificates, mutual=True), credentials=_grpc_credentials(certificates))
+    alice = certificates.clients["alice"]
+    flags = ["--ca", str(certificates.ca), "--cert", str(alice.cert), "--key", str(alice.key), "--token", "t"]
+    ok = psctl(gw.address, *flags, "get", "bot", "location")
+    assert ok.returncode == 0 and ok.stdout.startswith("("), ok.stderr
+    without = psctl(gw.address, "--ca", str(certificates.ca), "--timeout", "3", "get", "bot", "location")
+    assert without.returncode == 3, without.stderr
+    monkeypatch.setenv("PSCTL_CA", str(certificates.ca))
+    monkeypatch.setenv("PSCTL_CERT", str(alice.cert))
+    monkeypatch.setenv("PSCTL_KEY", str(alice.key))
+    from_env = psctl(gw.address, "get", "bot", "location")
+    assert from_env.returncode == 0, from_env.stderr
+    missing = psctl(gw.address, "--ca", "/no/ca.pem", "get", "bot", "location")
+    assert missing.returncode == 2 and "no such file" in missing.stderr
