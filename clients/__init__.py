@@ -2,15 +2,17 @@
 
 ``AsyncClient`` and ``Client`` call a Property Service gateway; ``Session``
 multiplexes many calls over one stream; ``clients.values`` decodes value
-texts; every failure is a ``PropertyServiceError`` subclass.
+texts; ``ClientCredentials`` carry TLS files and a bearer token; every
+failure is a ``PropertyServiceError`` subclass.
 
 The public surface of each module (its ``__all__``) is re-exported here.
 """
 
-from clients import aio, errors, sync, values
+from clients import aio, credentials, errors, sync, values
 from clients.aio import *  # noqa: F403
+from clients.credentials import *  # noqa: F403
 from clients.errors import *  # noqa: F403
 from clients.sync import *  # noqa: F403
 from clients.values import *  # noqa: F403
 
-__all__ = aio.__all__ + errors.__all__ + sync.__all__ + values.__all__
+__all__ = aio.__all__ + credentials.__all__ + errors.__all__ + sync.__all__ + values.__all__

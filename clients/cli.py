@@ -19,6 +19,7 @@ from datetime import datetime
 from typing import Any, TextIO
 
 from clients.aio import DEFAULT_TARGET, DEFAULT_TIMEOUT, HEARTBEAT, SYNC, AsyncClient, Event, Mark, Selector
+from clients.credentials import ENVIRONMENT, ClientCredentials
 from clients.errors import GatewayUnreachable, NotFound, PropertyServiceError
 from clients.values import ValueFormatError
 from services.model import ParameterModel, PropertyModel
@@ -96,6 +97,17 @@ def _common_options() -> argparse.ArgumentParser:
     common.add_argument(
         "--json", action="store_true", default=argparse.SUPPRESS, help="machine-readable JSON output"
     )
+    security = (
+        ("--ca", "FILE", "PEM CA that signs the gateway's certificate; makes the channel TLS"),
+        ("--cert", "FILE", "PEM client certificate, for mutual TLS (with --key)"),
+        ("--key", "FILE", "private key of --cert"),
+        ("--token", "TOKEN", "bearer token, sent as 'authorization: Bearer TOKEN' on every call"),
+    )
+    for flag, metavar, text in security:
+        variable = ENVIRONMENT[flag[2:]]
+        common.add_argument(
+            flag, metavar=metavar, default=argparse.SUPPRESS, help=f"{text} (default: ${variable})"
+        )
     return common
 
 
@@ -471,9 +483,20 @@ def _print_mark(mark: Mark, as_json: bool) -> None:
 _COMMANDS = {"ls": _ls, "get": _get, "set": _set, "listen": _listen}
 
 
+def _credentials(args: argparse.Namespace) -> ClientCredentials:
+    """``--ca --cert --key --token``, each falling back to its PSCTL_ variable; files must exist."""
+    given = {name: getattr(args, name, None) for name in ENVIRONMENT}
+    credentials = ClientCredentials.from_environment(os.environ, **given)
+    for name in ("ca", "cert", "key"):
+        path = getattr(credentials, name)
+        if path and not os.path.isfile(path):
+            raise _UsageError(f"--{name} ({ENVIRONMENT[name]}): no such file {path!r}")
+    return credentials
+
+
 async def _run(args: argparse.Namespace, target: str, call_timeout: float | None) -> int:
     as_json = bool(getattr(args, "json", False))
-    async with AsyncClient(target, timeout=call_timeout) as client:
+    async with AsyncClient(target, timeout=call_timeout, credentials=_credentials(args)) as client:
         return await _COMMANDS[args.command](client, args, as_json)
 
 

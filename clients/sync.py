@@ -26,6 +26,7 @@ from clients.aio import (
     Selector,
 )
 from clients.aio import Session as AsyncSession
+from clients.credentials import ClientCredentials
 from clients.errors import DeadlineExceeded
 from clients.values import Marker, Vector
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -179,10 +180,14 @@ class Client(_BlockingCalls):
         timeout: float | None = DEFAULT_TIMEOUT,
         metadata: Iterable[tuple[str, str]] | None = None,
         max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
+        credentials: ClientCredentials | None = None,
     ) -> None:
+        """``credentials``: TLS and a bearer token, as for :class:`~clients.aio.AsyncClient`."""
         self.target = target
         self.timeout = timeout
-        self._aio = AsyncClient(target, timeout=timeout, metadata=metadata, max_in_flight=max_in_flight)
+        self._aio = AsyncClient(
+            target, timeout=timeout, metadata=metadata, max_in_flight=max_in_flight, credentials=credentials
+        )
         super().__init__(_LoopThread(None if timeout is None else timeout + _GRACE), self._aio)
 
     def close(self) -> None:

@@ -34,6 +34,7 @@ from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
 from gateway.router import Router
 from gateway.server import PropertyServicer, add_to_server
+from gateway.tls import ServerCredentials, line_ssl_context
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, BackendInfo
 from services.catalog import create, needs_directory
@@ -80,6 +81,8 @@ class Gateway:
         #: "host:port" of the line-protocol listener (the real port when 0 was asked); "" when off.
         self.line_address = ""
         self.servicer = PropertyServicer(self.router, self.hub, self.config)
+        #: The gRPC port's TLS credentials; None when it is plaintext.
+        self.credentials: ServerCredentials | None = None
 
     async def __aenter__(self) -> Gateway:
         await self.start()
@@ -247,7 +250,11 @@ class Gateway:
         if not address:
             return
         try:
-            self._line_listener = await start_line_listener(address, self.router, self._rejoined)
+            line_tls = self.config.tls.line
+            context = line_ssl_context(line_tls) if line_tls.enabled else None
+            self._line_listener = await start_line_listener(
+                address, self.router, self._rejoined, ssl_context=context
+            )
         except OSError as exc:
             if exc.errno != errno.EADDRINUSE:
                 raise
@@ -280,8 +287,13 @@ class Gateway:
             server,
         )
         listen = self.config.gateway.listen
+        if self.config.tls.enabled:
+            self.credentials = ServerCredentials(self.config.tls)
         try:
-            port = server.add_insecure_port(listen)
+            if self.credentials is not None:
+                port = server.add_secure_port(listen, self.credentials.credentials)
+            else:
+                port = server.add_insecure_port(listen)
         except RuntimeError:
             # Checked free at the start; taken since. grpc's own error names no holder.
             port = 0
@@ -293,6 +305,13 @@ class Gateway:
         # A unix-domain socket ("unix:PATH", how gateway.testing serves) has no port to fill in.
         self.address = listen if listen.startswith("unix:") else f"{host}:{port}"
         return server
+
+    def reload_certificates(self) -> None:
+        """Read the TLS certificate and key files again (SIGHUP); new connections get the new ones."""
+        if self.credentials is not None:
+            self.credentials.reload()
+        else:
+            log.info("reload asked; the gRPC port has no TLS certificates to read again")
 
     async def stop(self, grace: float | None = None) -> None:
         """Graceful shutdown: NOT_SERVING, streams end with UNAVAILABLE, server stops, backends close.
@@ -345,6 +364,7 @@ async def serve(config: Config) -> int:
     stop = asyncio.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
+    loop.add_signal_handler(signal.SIGHUP, gateway.reload_certificates)
     starting = asyncio.ensure_future(gateway.start())
     stopped = asyncio.ensure_future(stop.wait())
     await asyncio.wait((starting, stopped), return_when=asyncio.FIRST_COMPLETED)

@@ -34,6 +34,7 @@ PROXY_SCHEMES: Mapping[str, ProxyFactory] = MappingProxyType(
         "tcp": open_tcp_backend,
         "serial": open_serial_backend,
         "grpc": open_grpc_backend,
+        "grpcs": open_grpc_backend,
     }
 )
 

@@ -9,6 +9,7 @@ raises :class:`ConfigError` naming the file and the key.
 from __future__ import annotations
 
 import importlib.resources
+import ipaddress
 import math
 import tomllib
 from collections.abc import Callable, Mapping
@@ -62,6 +63,48 @@ class GatewaySection:
     log_level: str = "info"
     #: Seconds Listen and Session streams get to end at shutdown.
     shutdown_grace: float = 2.0
+    #: Listen on a non-loopback address without TLS (anyone who reaches the port reads and drives
+    #: every service); false = such a config is refused.
+    allow_insecure_remote: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class LineTlsSection:
+    """``[tls.line]``: TLS on the line-protocol listener (devices that can do it)."""
+
+    #: PEM certificate chain and private key of the listener; both or neither.
+    cert: str = ""
+    key: str = ""
+    #: PEM CA certificates; when given, a device must present a certificate signed by one of them.
+    client_ca: str = ""
+
+    @property
+    def enabled(self) -> bool:
+        """True when the line listener speaks TLS."""
+        return bool(self.cert)
+
+
+@dataclass(frozen=True, slots=True)
+class TlsSection:
+    """``[tls]``: TLS, and mutual TLS, on the gRPC port.
+
+    File names are relative to the config file's folder (absolute once parsed). The files are read
+    again when the gateway gets SIGHUP; open streams keep their connection.
+    """
+
+    #: PEM certificate chain and private key of the server; both or neither.
+    cert: str = ""
+    key: str = ""
+    #: PEM CA certificates that sign client certificates.
+    client_ca: str = ""
+    #: Refuse a client without a certificate signed by ``client_ca`` (mutual TLS).
+    require_client_cert: bool = False
+    line: LineTlsSection = field(default_factory=LineTlsSection)
+
+    @property
+    def enabled(self) -> bool:
+        """True when the gRPC port speaks TLS."""
+        return bool(self.cert)
 
 
 @dataclass(frozen=True, slots=True)
@@ -149,6 +192,7 @@ class Config:
     gateway: GatewaySection = field(default_factory=GatewaySection)
     limits: Limits = field(default_factory=Limits)
     registry: RegistrySection = field(default_factory=RegistrySection)
+    tls: TlsSection = field(default_factory=TlsSection)
     services: tuple[ServiceEntry, ...] = ()
     devices: tuple[DeviceEntry, ...] = ()
     #: Where it came from, for messages.
@@ -159,6 +203,7 @@ class Config:
         gw = self.gateway
         if listen is not None:
             gw = replace(gw, listen=_check_address(listen, f"{self.source}: --listen"))
+            _check_exposure(gw, self.tls, f"{self.source}: --listen")
         if log_level is not None:
             gw = replace(gw, log_level=_check_log_level(log_level, f"{self.source}: --log-level"))
         return replace(self, gateway=gw)
@@ -260,7 +305,7 @@ def parse_config_partly(
     service or device is left out, so that ``check-config`` can go on to build
     what is left and report every problem of the file in one run.
     """
-    top = ("gateway", "limits", "registry", "services", "devices")
+    top = ("gateway", "limits", "registry", "tls", "services", "devices")
     problems = _Problems()
     for key in data:
         if key not in top:
@@ -272,6 +317,10 @@ def parse_config_partly(
     registry = problems.attempt(
         lambda: _registry(data.get("registry", {}), f"{source}: registry", folder), RegistrySection()
     )
+    tls: TlsSection = problems.attempt(
+        lambda: _tls(data.get("tls", {}), f"{source}: tls", folder), TlsSection()
+    )
+    problems.attempt(lambda: _check_exposure(gw, tls, f"{source}: gateway"), None)
     seen: set[str] = set()
     services: list[ServiceEntry] = []
     raw_services = data.get("services", [])
@@ -291,6 +340,7 @@ def parse_config_partly(
         gateway=gw,
         limits=limits,
         registry=registry,
+        tls=tls,
         services=tuple(services),
         devices=tuple(devices),
         source=source,
@@ -311,6 +361,86 @@ def _gateway(data: Any, where: str) -> GatewaySection:
         return replace(gw, log_level=level)
 
     return _checked_section(GatewaySection, data, where, checks)
+
+
+def _config_file(value: str, where: str, folder: Path | None) -> str:
+    """An existing file named in the config, as an absolute path (relative: from the config's folder)."""
+    path = Path(value).expanduser()
+    if not path.is_absolute():
+        path = (folder if folder is not None else Path.cwd()) / path
+    if not path.is_file():
+        raise ConfigError(f"{where}: no such file {str(path)!r}")
+    return str(path)
+
+
+def _tls_files(section: Any, where: str, folder: Path | None) -> Any:
+    """``section`` with its cert, key and client_ca files checked and made absolute."""
+    if bool(section.cert) != bool(section.key):
+        raise ConfigError(
+            f"{where}: give both 'cert' and 'key' (the server's certificate and its private key)"
+        )
+    found = {}
+    for key in ("cert", "key", "client_ca"):
+        if getattr(section, key):
+            found[key] = _config_file(getattr(section, key), f"{where}.{key}", folder)
+    if section.client_ca and not section.cert:
+        raise ConfigError(f"{where}.client_ca: client certificates need TLS; give 'cert' and 'key' too")
+    return replace(section, **found)
+
+
+def _tls(data: Any, where: str, folder: Path | None) -> TlsSection:
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where}: expected a table")
+    line_data = data.get("line", {})
+    plain = {k: v for k, v in data.items() if k != "line"}
+    for key in plain:
+        if key not in ("cert", "key", "client_ca", "require_client_cert"):
+            raise ConfigError(
+                f"{where}.{key}: unknown key (known: cert, key, client_ca, require_client_cert, line)"
+            )
+    section: TlsSection = _tls_files(_section(TlsSection, plain, where), where, folder)
+    line: LineTlsSection = _tls_files(
+        _section(LineTlsSection, line_data, f"{where}.line"), f"{where}.line", folder
+    )
+    if section.require_client_cert and not section.client_ca:
+        raise ConfigError(
+            f"{where}.require_client_cert: name the CA that signs client certificates in 'client_ca'"
+        )
+    return replace(section, line=line)
+
+
+def is_loopback(address: str) -> bool:
+    """True when ``host:port`` (or ``unix:PATH``) can only be reached from this machine."""
+    if address.startswith("unix:"):
+        return True
+    host = address.rpartition(":")[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name other than localhost may resolve to anything
+
+
+def _check_exposure(gw: GatewaySection, tls: TlsSection, where: str) -> None:
+    """Refuse a plaintext listener on a non-loopback address unless the config says so explicitly."""
+    if gw.allow_insecure_remote:
+        return
+    exposed = []
+    if not is_loopback(gw.listen) and not tls.enabled:
+        exposed.append(("listen", gw.listen, "[tls] cert and key"))
+    if gw.line_listen and not is_loopback(gw.line_listen) and not tls.line.enabled:
+        exposed.append(("line_listen", gw.line_listen, "[tls.line] cert and key"))
+    if exposed:
+        raise ConfigError(
+            *(
+                f"{where}.{key}: {address!r} is reachable from other machines and is not encrypted:"
+                f" anyone who reaches it can read and drive every service. Give {fix}"
+                " (see docs/security.md), listen on 127.0.0.1, or set [gateway] allow_insecure_remote = true"
+                " to accept that on a network you trust"
+                for key, address, fix in exposed
+            )
+        )
 
 
 def _limits(data: Any, where: str) -> Limits:

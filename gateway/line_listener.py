@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import ssl
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
@@ -279,9 +280,11 @@ class LineListener:
             raise
         return proxy
 
-    async def start(self, host: str, port: int) -> tuple[str, int]:
-        """Listen on ``host:port`` (0 = any free port); return the bound address."""
-        self.address = await self.server.serve_tcp(host, port)
+    async def start(
+        self, host: str, port: int, *, ssl_context: ssl.SSLContext | None = None
+    ) -> tuple[str, int]:
+        """Listen on ``host:port`` (0 = any free port), over TLS with ``ssl_context``; the bound address."""
+        self.address = await self.server.serve_tcp(host, port, ssl_context=ssl_context)
         return self.address
 
     async def aclose(self) -> None:
@@ -297,9 +300,13 @@ def parse_address(address: str) -> tuple[str, int]:
 
 
 async def start_line_listener(
-    address: str, router: Router, on_rejoin: Callable[[str, BackendInfo], None] | None = None
+    address: str,
+    router: Router,
+    on_rejoin: Callable[[str, BackendInfo], None] | None = None,
+    *,
+    ssl_context: ssl.SSLContext | None = None,
 ) -> LineListener:
-    """Start a :class:`LineListener` on ``address`` ("HOST:PORT") for ``router``."""
+    """Start a :class:`LineListener` on ``address`` ("HOST:PORT") for ``router``; TLS with ``ssl_context``."""
     listener = LineListener(router, on_rejoin=on_rejoin)
-    await listener.start(*parse_address(address))
+    await listener.start(*parse_address(address), ssl_context=ssl_context)
     return listener

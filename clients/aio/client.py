@@ -23,6 +23,7 @@ from clients.aio.requests import (
     matching_values,
 )
 from clients.aio.session import DEFAULT_SESSION_QUEUE, Session
+from clients.credentials import ClientCredentials
 from clients.errors import DeadlineExceeded, PropertyServiceError, error_from_rpc
 from clients.values import (
     Marker,
@@ -61,7 +62,9 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
 
     Use as ``async with AsyncClient("127.0.0.1:50051") as c: await c.get("scout1", "location")``.
     Every unary call is bounded by ``timeout`` seconds (None: no limit);
-    ``metadata`` (e.g. ``[("authorization", "Bearer ...")]``) goes with every call.
+    ``metadata`` goes with every call; ``credentials`` (a CA, a client certificate and key, a
+    token: :class:`clients.credentials.ClientCredentials`) make the channel TLS and add
+    ``authorization: Bearer TOKEN`` to that metadata.
     At most ``max_in_flight`` unary calls run at once; further callers queue
     in the client, first come first served, and their waiting counts towards
     their ``timeout``. For many calls, :meth:`session` is the faster path.
@@ -76,12 +79,15 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         metadata: Iterable[tuple[str, str]] | None = None,
         options: Sequence[tuple[str, Any]] | None = None,
         max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
+        credentials: ClientCredentials | None = None,
     ) -> None:
         if isinstance(max_in_flight, bool) or not isinstance(max_in_flight, int) or max_in_flight < 1:
             raise ValueError(f"max_in_flight must be a whole number of at least 1, got {max_in_flight!r}")
         self.target = target
         self.timeout = timeout
-        self.metadata: tuple[tuple[str, str], ...] | None = tuple(metadata) if metadata else None
+        self.credentials = credentials or ClientCredentials()
+        sent = (*(metadata or ()), *self.credentials.metadata())
+        self.metadata: tuple[tuple[str, str], ...] | None = sent or None
         self.max_in_flight = max_in_flight
         self._options = list(options or [])
         self._channel: grpc.aio.Channel | None = None
@@ -94,7 +100,12 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         The channel (and the call slots) are made on first use, so that they bind to the running loop.
         """
         if self._stub is None:
-            self._channel = grpc.aio.insecure_channel(self.target, options=self._options)
+            if self.credentials.secure:
+                self._channel = grpc.aio.secure_channel(
+                    self.target, self.credentials.channel_credentials(), options=self._options
+                )
+            else:
+                self._channel = grpc.aio.insecure_channel(self.target, options=self._options)
             self._stub = pb_grpc.PropertyServiceStub(self._channel)
             self._slots = asyncio.Semaphore(self.max_in_flight)
         return self._stub

@@ -1,5 +1,9 @@
 """The proxy for ``grpc://HOST:PORT/SERVICE``: a service on another gateway, through the same v1 contract.
 
+``grpcs://HOST:PORT/SERVICE`` is the same over TLS, with options ``ca`` (PEM CA file that signs the
+remote gateway's certificate; default: the system's roots) and ``cert`` and ``key`` (this gateway's
+client certificate, for a remote that asks for mutual TLS).
+
 Federation: gateway A serves ``far1 = grpc://b:50051/scout1`` and its clients
 reach ``scout1`` of gateway B as if it were local. The proxy
 
@@ -25,6 +29,7 @@ import logging
 import random
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
+from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qsl, unquote, urlsplit
 
@@ -64,9 +69,14 @@ class GrpcProxyOptions:
 
     @classmethod
     def parse(cls, url: str, options: Mapping[str, Any]) -> GrpcProxyOptions:
-        """Options from the URL's query, overridden by ``options``; InvalidArgument for a bad one."""
+        """Options from the URL's query, overridden by ``options``; InvalidArgument for a bad one.
+
+        The TLS files (``ca``, ``cert``, ``key``) are left to :func:`tls_credentials`.
+        """
         merged: dict[str, Any] = dict(parse_qsl(urlsplit(url).query))
         merged.update(options)
+        for key in TLS_OPTIONS:
+            merged.pop(key, None)
         known = {f.name for f in fields(cls)}
         values: dict[str, float] = {}
         for key, raw in merged.items():
@@ -90,6 +100,38 @@ class GrpcProxyOptions:
         return parsed
 
 
+#: The options of a ``grpcs://`` proxy that name files: the CA, the client certificate, its key.
+TLS_OPTIONS = ("ca", "cert", "key")
+
+
+def tls_credentials(url: str, options: Mapping[str, Any]) -> grpc.ChannelCredentials | None:
+    """The channel credentials of a ``grpcs://`` URL (None for ``grpc://``), files read now.
+
+    InvalidArgument when a file cannot be read, when ``cert`` comes without ``key``, or when a
+    ``grpc://`` URL names TLS files.
+    """
+    merged: dict[str, Any] = dict(parse_qsl(urlsplit(url).query))
+    merged.update(options)
+    files = {key: merged[key] for key in TLS_OPTIONS if merged.get(key)}
+    if urlsplit(url).scheme != SECURE_SCHEME:
+        if files:
+            raise InvalidArgument(f"grpc proxy options {', '.join(files)} need TLS: use grpcs://")
+        return None
+    if ("cert" in files) != ("key" in files):
+        raise InvalidArgument("grpcs proxy: a client certificate needs its key: give both cert and key")
+    read: dict[str, bytes] = {}
+    for key, name in files.items():
+        if not isinstance(name, str):
+            raise InvalidArgument(f"grpcs proxy option {key}: expected a file name, got {name!r}")
+        try:
+            read[key] = Path(name).expanduser().read_bytes()
+        except OSError as exc:
+            raise InvalidArgument(f"grpcs proxy option {key}: cannot read {name!r}: {exc.strerror}") from None
+    return grpc.ssl_channel_credentials(
+        root_certificates=read.get("ca"), private_key=read.get("key"), certificate_chain=read.get("cert")
+    )
+
+
 def _ms(seconds: float) -> int:
     return max(1, round(seconds * 1000))
 
@@ -106,8 +148,19 @@ class _RemoteListen(SharedListen):
 class GrpcProxy(Backend):
     """A service on another gateway, reached through the v1 contract (see the module docstring)."""
 
-    def __init__(self, name: str, url: str, target: str, remote: str, options: GrpcProxyOptions) -> None:
+    def __init__(
+        self,
+        name: str,
+        url: str,
+        target: str,
+        remote: str,
+        options: GrpcProxyOptions,
+        *,
+        credentials: grpc.ChannelCredentials | None = None,
+    ) -> None:
+        """``credentials``: TLS to the remote gateway (``grpcs://``); None = plaintext."""
         self.name = name
+        self._credentials = credentials
         self.url = url
         #: ``host:port`` of the remote gateway.
         self.target = target
@@ -137,16 +190,19 @@ class GrpcProxy(Backend):
         if self._closed:
             raise Unavailable(f"{self._label()}: the proxy is closed")
         if self._stub is None:
-            self._channel = grpc.aio.insecure_channel(
-                self.target,
-                options=[
-                    # gRPC's own reconnection follows the proxy's backoff (its defaults wait up to 2 min);
-                    # gRPC core takes its "min reconnect backoff" as the time a connection attempt may take.
-                    ("grpc.initial_reconnect_backoff_ms", _ms(self.options.backoff_initial)),
-                    ("grpc.min_reconnect_backoff_ms", _ms(self.options.connect_timeout)),
-                    ("grpc.max_reconnect_backoff_ms", _ms(self.options.backoff_max)),
-                ],
-            )
+            channel_options = [
+                # gRPC's own reconnection follows the proxy's backoff (its defaults wait up to 2 min);
+                # gRPC core takes its "min reconnect backoff" as the time a connection attempt may take.
+                ("grpc.initial_reconnect_backoff_ms", _ms(self.options.backoff_initial)),
+                ("grpc.min_reconnect_backoff_ms", _ms(self.options.connect_timeout)),
+                ("grpc.max_reconnect_backoff_ms", _ms(self.options.backoff_max)),
+            ]
+            if self._credentials is not None:
+                self._channel = grpc.aio.secure_channel(
+                    self.target, self._credentials, options=channel_options
+                )
+            else:
+                self._channel = grpc.aio.insecure_channel(self.target, options=channel_options)
             self._stub = pb_grpc.PropertyServiceStub(self._channel)
         return self._stub
 
@@ -370,18 +426,28 @@ class GrpcProxy(Backend):
                 await follower
 
 
+#: The scheme of a proxy over TLS.
+SECURE_SCHEME = "grpcs"
+
+
 def open_grpc_backend(name: str, url: str, options: Mapping[str, Any]) -> Backend:
-    """The factory for ``grpc://HOST:PORT[/SERVICE][?option=value...]`` (not started).
+    """The factory for ``grpc://HOST:PORT[/SERVICE][?option=value...]`` and ``grpcs://`` (not started).
 
     SERVICE is the service's name on the remote gateway; without it, ``name``.
     """
-    expected = f"expected grpc://HOST:PORT/SERVICE (got {url[:200]!r})"
+    expected = f"expected grpc://HOST:PORT/SERVICE or grpcs://HOST:PORT/SERVICE (got {url[:200]!r})"
     parts = urlsplit(url)
     try:
         port = parts.port
     except ValueError:
         port = None
-    if parts.scheme != "grpc" or not parts.hostname or not port or parts.username or parts.fragment:
+    if (
+        parts.scheme not in ("grpc", SECURE_SCHEME)
+        or not parts.hostname
+        or not port
+        or parts.username
+        or parts.fragment
+    ):
         raise InvalidArgument(f"service {name!r}: bad URL: {expected}")
     remote = unquote(parts.path.strip("/")) or name
     try:
@@ -392,4 +458,9 @@ def open_grpc_backend(name: str, url: str, options: Mapping[str, Any]) -> Backen
         ) from None
     host = parts.hostname
     target = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
-    return GrpcProxy(name, url, target, remote, GrpcProxyOptions.parse(url, options))
+    parsed = GrpcProxyOptions.parse(url, options)
+    try:
+        credentials = tls_credentials(url, options)
+    except InvalidArgument as exc:
+        raise InvalidArgument(f"service {name!r}: {exc.message}") from None
+    return GrpcProxy(name, url, target, remote, parsed, credentials=credentials)

@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import ssl
 
 from services.backend import Backend
 from services.device.session import CALL_TIMEOUT, READ_SIZE, DeviceSession
@@ -88,9 +89,11 @@ class DeviceServer:
             self._sessions.discard(writer)
             log.info("%s: disconnected", peer)
 
-    async def serve_tcp(self, host: str, port: int) -> tuple[str, int]:
-        """Listen on ``host:port`` (0 picks a free port); return the address actually bound."""
-        server = await asyncio.start_server(self._on_tcp, host, port, limit=READ_SIZE)
+    async def serve_tcp(
+        self, host: str, port: int, *, ssl_context: ssl.SSLContext | None = None
+    ) -> tuple[str, int]:
+        """Listen on ``host:port`` (0 picks a free port), over TLS with ``ssl_context``; the bound address."""
+        server = await asyncio.start_server(self._on_tcp, host, port, limit=READ_SIZE, ssl=ssl_context)
         self._servers.append(server)
         bound = server.sockets[0].getsockname()
         return str(bound[0]), int(bound[1])

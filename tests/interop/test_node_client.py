@@ -19,6 +19,7 @@ from typing import Any
 
 import grpc
 import pytest
+from support.certs import make_certificates
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -183,3 +184,29 @@ def test_session_reports_each_tagged_get_on_its_own_reply(node: str, demo_gatewa
     assert replies[1] == {"id": 1, "code": "OK", "value": python_get(demo_gateway, "scout2", "location")}
     assert replies[2]["code"] == "NOT_FOUND"
     assert "nosuch" in replies[2]["message"]
+
+
+def test_get_over_mutual_tls_with_a_token(node: str, gateway_process: Any, tmp_path: Path) -> None:
+    certs = make_certificates(tmp_path / "certs")
+    alice = certs.clients["alice"]
+    gw = gateway_process(
+        f"""
+        [tls]
+        cert = "{certs.server.cert}"
+        key = "{certs.server.key}"
+        client_ca = "{certs.ca}"
+        require_client_cert = true
+        [[services]]
+        name = "bot"
+        type = "sim-robot"
+        """,
+        credentials=grpc.ssl_channel_credentials(
+            certs.ca.read_bytes(), alice.key.read_bytes(), alice.cert.read_bytes()
+        ),
+    )
+    tls = ["--ca", str(certs.ca), "--cert", str(alice.cert), "--key", str(alice.key), "--token", "t0k"]
+    done = propctl(node, gw, *tls, "get", "bot", "location")
+    assert done.returncode == 0, done.stderr
+    assert json_lines(done.stdout)[0]["value"].startswith("(")
+    refused = propctl(node, gw, "--ca", str(certs.ca), "get", "bot", "location")
+    assert refused.returncode == 3, refused.stderr

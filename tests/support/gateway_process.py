@@ -85,12 +85,22 @@ class GatewayProcess:
         """Everything the process printed so far (log lines go to stderr, merged here)."""
         return "".join(self._lines)
 
-    def wait_ready(self, timeout: float = START_TIMEOUT) -> None:
-        """Wait for the ``listening on`` line and a SERVING health check; raise with the output if not."""
+    def wait_ready(
+        self, timeout: float = START_TIMEOUT, credentials: grpc.ChannelCredentials | None = None
+    ) -> None:
+        """Wait for the ``listening on`` line and a SERVING health check; raise with the output if not.
+
+        ``credentials``: how to reach a gateway that serves TLS (plaintext when None).
+        """
         if not self._listening.wait(timeout) or not self.address:
             self.stop()
             raise RuntimeError(f"gateway did not start (exit {self.proc.poll()}):\n{self.output}")
-        with grpc.insecure_channel(self.address) as channel:
+        channel = (
+            grpc.secure_channel(self.address, credentials)
+            if credentials is not None
+            else grpc.insecure_channel(self.address)
+        )
+        with channel:
             stub = health_pb2_grpc.HealthStub(channel)
             reply = stub.Check(
                 health_pb2.HealthCheckRequest(service=""), timeout=timeout, wait_for_ready=True
@@ -111,7 +121,12 @@ class GatewayProcess:
         return self.proc.returncode
 
 
-def _start(tmp: Path, config: str | None, extra_args: Sequence[str] = ()) -> GatewayProcess:
+def _start(
+    tmp: Path,
+    config: str | None,
+    extra_args: Sequence[str] = (),
+    credentials: grpc.ChannelCredentials | None = None,
+) -> GatewayProcess:
     args = [sys.executable, "-m", "gateway.cli", "serve", "--listen", "127.0.0.1:0"]
     if config is not None:
         path = tmp / f"gateway-{len(list(tmp.glob('gateway-*.toml')))}.toml"
@@ -119,7 +134,7 @@ def _start(tmp: Path, config: str | None, extra_args: Sequence[str] = ()) -> Gat
         args += ["--config", str(path)]
     gw = GatewayProcess([*args, *extra_args])
     try:
-        gw.wait_ready()
+        gw.wait_ready(credentials=credentials)
     except BaseException:
         gw.stop()  # never leave a half-started gateway behind
         raise
@@ -131,11 +146,16 @@ StartGateway = Callable[..., GatewayProcess]
 
 @pytest.fixture
 def gateway_process(tmp_path: Path) -> Iterator[StartGateway]:
-    """Factory: ``gateway_process(config_text=None, extra_args=())`` → a ready :class:`GatewayProcess`."""
+    """Factory: ``gateway_process(config_text=None, extra_args=(), credentials=None)`` → a ready
+    :class:`GatewayProcess` (``credentials``: grpc channel credentials for a gateway serving TLS)."""
     started: list[GatewayProcess] = []
 
-    def start(config: str | None = None, extra_args: Sequence[str] = ()) -> GatewayProcess:
-        gw = _start(tmp_path, config, extra_args)
+    def start(
+        config: str | None = None,
+        extra_args: Sequence[str] = (),
+        credentials: grpc.ChannelCredentials | None = None,
+    ) -> GatewayProcess:
+        gw = _start(tmp_path, config, extra_args, credentials)
         started.append(gw)
         return gw
 

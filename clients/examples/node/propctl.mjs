@@ -7,6 +7,7 @@
 //
 // Exit codes (as psctl): 0 ok, 1 the call failed, 2 usage, 3 the gateway cannot be reached.
 
+import { readFileSync } from "node:fs";
 import { fileURLToPath } from "node:url";
 import path from "node:path";
 import { parseArgs } from "node:util";
@@ -30,11 +31,43 @@ const USAGE = `usage: node propctl.mjs [-t HOST:PORT] COMMAND ...
   session SERVICE:PATH ...                     Get each SERVICE:PATH as a tagged request (ids 1, 2, ...)
                                                over one Session stream; one line per reply
 
-  -t, --target HOST:PORT   gateway address (default $PSCTL_TARGET or 127.0.0.1:50051)`;
+  -t, --target HOST:PORT   gateway address (default $PSCTL_TARGET or 127.0.0.1:50051)
+  --ca FILE                PEM CA of the gateway's certificate; makes the channel TLS ($PSCTL_CA)
+  --cert FILE, --key FILE  client certificate and key, for mutual TLS ($PSCTL_CERT, $PSCTL_KEY)
+  --token TOKEN            sent as "authorization: Bearer TOKEN" on every call ($PSCTL_TOKEN)`;
 
 class UsageError extends Error {}
 
-function loadStub(target) {
+// TLS when a CA or a client certificate is given; plaintext otherwise (a gateway on loopback).
+function channelCredentials({ ca, cert, key }) {
+  if (Boolean(cert) !== Boolean(key)) throw new UsageError("--cert needs --key, and --key needs --cert");
+  if (!ca && !cert) return grpc.credentials.createInsecure();
+  const read = (file, flag) => {
+    try {
+      return readFileSync(file);
+    } catch (error) {
+      throw new UsageError(`${flag}: cannot read ${file}: ${error.code}`);
+    }
+  };
+  return grpc.credentials.createSsl(
+    ca ? read(ca, "--ca") : null,
+    key ? read(key, "--key") : null,
+    cert ? read(cert, "--cert") : null,
+  );
+}
+
+// The bearer token goes as metadata on every call, unary and streamed alike.
+function tokenInterceptor(token) {
+  return (options, nextCall) =>
+    new grpc.InterceptingCall(nextCall(options), {
+      start(metadata, listener, next) {
+        metadata.set("authorization", `Bearer ${token}`);
+        next(metadata, listener);
+      },
+    });
+}
+
+function loadStub(target, security) {
   const definition = protoLoader.loadSync(PROTO, {
     keepCase: true,
     longs: Number, // sequence numbers and timestamp seconds fit a double for centuries
@@ -44,7 +77,8 @@ function loadStub(target) {
     includeDirs: [path.resolve(path.dirname(PROTO), "../../")],
   });
   const { PropertyService } = grpc.loadPackageDefinition(definition).propertyservice.v1;
-  return new PropertyService(target, grpc.credentials.createInsecure());
+  const interceptors = security.token ? [tokenInterceptor(security.token)] : [];
+  return new PropertyService(target, channelCredentials(security), { interceptors });
 }
 
 function parseParameters(pairs = []) {
@@ -182,6 +216,10 @@ async function main(argv) {
       "updates-only": { type: "boolean" },
       marks: { type: "boolean" },
       help: { type: "boolean", short: "h" },
+      ca: { type: "string", default: process.env.PSCTL_CA || "" },
+      cert: { type: "string", default: process.env.PSCTL_CERT || "" },
+      key: { type: "string", default: process.env.PSCTL_KEY || "" },
+      token: { type: "string", default: process.env.PSCTL_TOKEN || "" },
     },
   });
   if (values.help) {
@@ -194,7 +232,7 @@ async function main(argv) {
   if (command.args >= 0 && args.length !== command.args) {
     throw new UsageError(`${name} wants ${command.args} arguments, got ${args.length}`);
   }
-  const stub = loadStub(values.target);
+  const stub = loadStub(values.target, values);
   try {
     return (await command.run(stub, args, values)) ?? EXIT.ok;
   } finally {

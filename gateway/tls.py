@@ -1,0 +1,72 @@
+"""Transport security of the gateway's listeners: gRPC server credentials that reload, and the line
+listener's ``ssl.SSLContext``.
+
+The gRPC port uses grpcio's dynamic server credentials: grpc asks a fetcher for the certificate
+configuration before each new handshake. :class:`ServerCredentials` answers "unchanged" until
+:meth:`~ServerCredentials.reload` is called (on SIGHUP), then reads the files again and hands the new
+configuration over; connections already open, and the streams on them, are not touched.
+"""
+
+from __future__ import annotations
+
+import logging
+import ssl
+import threading
+from pathlib import Path
+
+import grpc
+
+from gateway.config import LineTlsSection, TlsSection
+
+log = logging.getLogger("gateway.tls")
+
+
+class ServerCredentials:
+    """The gRPC port's TLS (or mutual TLS) credentials, re-read from their files on :meth:`reload`."""
+
+    def __init__(self, settings: TlsSection) -> None:
+        """Reads the files now: a missing or unreadable file fails the start, not the first handshake."""
+        self.settings = settings
+        self._lock = threading.Lock()
+        self._pending: grpc.ServerCertificateConfiguration | None = None
+        initial = self._read()
+        self.credentials = grpc.dynamic_ssl_server_credentials(
+            initial,
+            # grpc documents None from the fetcher as "unchanged"; grpc-stubs does not allow it.
+            self._fetch,  # type: ignore[arg-type]
+            require_client_authentication=settings.require_client_cert,
+        )
+
+    def _read(self) -> grpc.ServerCertificateConfiguration:
+        s = self.settings
+        pair = (Path(s.key).read_bytes(), Path(s.cert).read_bytes())
+        roots = Path(s.client_ca).read_bytes() if s.client_ca else None
+        return grpc.ssl_server_certificate_configuration([pair], root_certificates=roots)
+
+    def reload(self) -> bool:
+        """Read the files again; new handshakes use them. False (and the old ones kept) when unreadable."""
+        try:
+            fresh = self._read()
+        except OSError as exc:
+            log.error("TLS reload failed, keeping the certificates in use: %s", exc)
+            return False
+        with self._lock:
+            self._pending = fresh
+        log.info("TLS certificates reloaded from %s", self.settings.cert)
+        return True
+
+    def _fetch(self) -> grpc.ServerCertificateConfiguration | None:
+        # Called by grpc before each handshake, from its own threads: None keeps the current one.
+        with self._lock:
+            pending, self._pending = self._pending, None
+        return pending
+
+
+def line_ssl_context(settings: LineTlsSection) -> ssl.SSLContext:
+    """The line listener's server context; with ``client_ca``, devices must present a certificate."""
+    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    context.load_cert_chain(settings.cert, settings.key)
+    if settings.client_ca:
+        context.load_verify_locations(settings.client_ca)
+        context.verify_mode = ssl.CERT_REQUIRED
+    return context
