@@ -16,6 +16,9 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
+from gateway.audit import AuditSection
+from gateway.identity import Authenticator, AuthSection
+from gateway.rules import Rule
 from services.errors import InvalidArgument, PropertyError
 from services.paths import validate_service_name
 
@@ -151,6 +154,12 @@ class Config:
     registry: RegistrySection = field(default_factory=RegistrySection)
     services: tuple[ServiceEntry, ...] = ()
     devices: tuple[DeviceEntry, ...] = ()
+    #: ``[auth]``: how bearer tokens are checked (docs/security.md, "Identity").
+    auth: AuthSection = field(default_factory=AuthSection)
+    #: ``[[rules]]``: who may do what (docs/security.md, "Rules"); none = everything is allowed.
+    rules: tuple[Rule, ...] = ()
+    #: ``[audit]``: how many audit lines may be written (docs/security.md, "Audit").
+    audit: AuditSection = field(default_factory=AuditSection)
     #: Where it came from, for messages.
     source: str = "<config>"
 
@@ -212,7 +221,7 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>", folder: Path
     ``folder`` is where relative paths in it start (the config file's folder;
     default: the current directory).
     """
-    top = ("gateway", "limits", "registry", "services", "devices")
+    top = ("gateway", "limits", "registry", "services", "devices", "auth", "rules", "audit")
     problems = _Problems()
     for key in data:
         if key not in top:
@@ -239,9 +248,15 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>", folder: Path
         raw_devices = []
     for i, raw in enumerate(raw_devices):
         devices += problems.attempt(lambda: [_device(raw, f"{source}: devices[{i}]", seen)], [])  # noqa: B023
+    auth = problems.attempt(lambda: _auth(data.get("auth", {}), f"{source}: auth", folder), AuthSection())
+    rules: tuple[Rule, ...] = problems.attempt(lambda: _rules(data.get("rules", []), f"{source}: rules"), ())
+    audit = problems.attempt(lambda: _section(AuditSection, data.get("audit", {}), f"{source}: audit"), None)
     if problems.found:
         raise ConfigError(*problems.found)
     return Config(
+        auth=auth,
+        rules=rules,
+        audit=audit or AuditSection(),
         gateway=gw,
         limits=limits,
         registry=registry,
@@ -286,6 +301,63 @@ def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
             raise ConfigError(f"{where}.persist: {str(path)!r} is a folder; name a file")
         section = replace(section, persist=str(path))
     return section
+
+
+def _auth(data: Any, where: str, folder: Path | None) -> AuthSection:
+    section: AuthSection = _section(AuthSection, data, where)
+    for key in ("jwt_secret_file", "jwks_file"):
+        value = getattr(section, key)
+        if value:
+            path = Path(value).expanduser()
+            if not path.is_absolute():
+                path = (folder if folder is not None else Path.cwd()) / path
+            section = replace(section, **{key: str(path)})
+    try:
+        Authenticator(section)  # reads the key files: a bad one is a config error, found at once
+    except InvalidArgument as exc:
+        raise ConfigError(f"{where[: where.rfind(':')]}: {exc.message}") from None
+    return section
+
+
+_RULE_KEYS = ("subject", "service", "path", "operations", "effect")
+
+
+def _rules(data: Any, where: str) -> tuple[Rule, ...]:
+    if not isinstance(data, list):
+        raise ConfigError(f"{where}: expected an array of tables ([[rules]])")
+    rules = []
+    for index, entry in enumerate(data):
+        at = f"{where}[{index}]"
+        if not isinstance(entry, Mapping):
+            raise ConfigError(f"{at}: expected a table")
+        for key in entry:
+            if key not in _RULE_KEYS:
+                raise ConfigError(f"{at}.{key}: unknown key (known: {', '.join(_RULE_KEYS)})")
+        for key in ("subject", "operations", "effect"):
+            if key not in entry:
+                raise ConfigError(f"{at}: missing key {key!r}")
+        operations = entry["operations"]
+        if isinstance(operations, str):
+            operations = [operations]
+        subject = entry["subject"]
+        if not isinstance(operations, list) or not all(isinstance(op, str) for op in operations):
+            raise ConfigError(f'{at}.operations: expected a list like ["read", "write"]')
+        if not isinstance(subject, str | list):
+            raise ConfigError(f'{at}.subject: expected a name, "*" or a list of names')
+        try:
+            rules.append(
+                Rule.build(
+                    index,
+                    subject=subject,
+                    service=_typed(entry.get("service", "*"), str, f"{at}.service"),
+                    path=_typed(entry.get("path", "**"), str, f"{at}.path"),
+                    operations=operations,
+                    effect=_typed(entry["effect"], str, f"{at}.effect"),
+                )
+            )
+        except InvalidArgument as exc:
+            raise ConfigError(f"{where[: where.rfind(':')]}: {exc.message}") from None
+    return tuple(rules)
 
 
 def _name(entry: Any, where: str, known: tuple[str, ...], seen: set[str]) -> str:
