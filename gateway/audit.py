@@ -10,6 +10,7 @@ reported in one ``{"suppressed": N}`` line as soon as it has room again.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import time
@@ -89,8 +90,10 @@ class Audit:
         }
         if error is None:
             line["outcome"] = OK
+        elif isinstance(error, PropertyError):
+            line["outcome"], line["message"] = Code(error.code).name, error.message
+        elif isinstance(error, asyncio.CancelledError):
+            line["outcome"] = Code.CANCELLED.name  # the caller went away before the answer
         else:
-            code = error.code if isinstance(error, PropertyError) else Code.INTERNAL
-            line["outcome"] = Code(code).name
-            line["message"] = error.message if isinstance(error, PropertyError) else type(error).__name__
+            line["outcome"], line["message"] = Code.INTERNAL.name, type(error).__name__
         log.info(json.dumps(line, ensure_ascii=False))
