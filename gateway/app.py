@@ -29,6 +29,7 @@ from grpc_reflection.v1alpha import reflection
 from gateway.backends import open_backend, open_proxy
 from gateway.config import REGISTRY_NAME, Config, ConfigError, ServiceEntry
 from gateway.devices import DeviceProcess, start_device
+from gateway.guard import Guard
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
@@ -65,7 +66,9 @@ class Gateway:
 
         self.config = config if config is not None else default_config()
         self.router = Router()
-        self.hub = ListenHub(self.router, self.config.limits, self.config.gateway.call_timeout)
+        #: Identity, rules and audit: the one check of every front end (gRPC and the line listener).
+        self.guard = Guard.from_config(self.config)
+        self.hub = ListenHub(self.router, self.config.limits, self.config.gateway.call_timeout, self.guard)
         self._extra = dict(backends or {})
         self._server: grpc.aio.Server | None = None
         self._health = health_aio.HealthServicer()
@@ -253,7 +256,7 @@ class Gateway:
             line_tls = self.config.tls.line
             context = line_ssl_context(line_tls) if line_tls.enabled else None
             self._line_listener = await start_line_listener(
-                address, self.router, self._rejoined, ssl_context=context
+                address, self.router, self._rejoined, self.guard, ssl_context=context
             )
         except OSError as exc:
             if exc.errno != errno.EADDRINUSE:

@@ -16,22 +16,31 @@ the service's readable properties (:meth:`services.backend.Backend.describe`),
 and the response lists every match with its concrete path in ``more`` (its
 ``value`` stays empty); see ``docs/errors.md``. Such a Get is never started
 inline (:func:`is_snapshot`): it always goes through :meth:`Calls.get`.
+
+Every path is checked by the :class:`~gateway.guard.Guard` for the caller's
+subject before its backend is asked: each path of a Get (``more`` included;
+a pattern's matches that the subject may not read are skipped), and each Set
+as the operation it is (write, invoke, register, unregister, admin). Every
+Set's outcome is audited.
 """
 
 from __future__ import annotations
 
 import asyncio
 import functools
-from collections.abc import Awaitable, Coroutine, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from typing import Any
 
+from gateway.guard import Guard
+from gateway.identity import ANONYMOUS
 from gateway.router import Router, bounded_call, check_path, finish_call
+from gateway.rules import Operation, Subject
 from gateway.sizes import check_fits
 from gateway.status import to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS, Answer, Backend
 from services.eager import Started, step
-from services.errors import InvalidArgument, NotFound, PropertyError, ResourceExhausted
+from services.errors import Code, InvalidArgument, NotFound, PropertyError, ResourceExhausted
 from services.paths import compile_pattern, is_pattern, validate_pattern
 
 #: What starting a call gives; see the module docstring.
@@ -71,21 +80,26 @@ async def outcome(begun: Begun) -> str:
 class Calls:
     """Get and Set against the router, shared by the unary calls and Session."""
 
-    def __init__(self, router: Router, call_timeout: float, max_get_paths: int) -> None:
+    def __init__(
+        self, router: Router, call_timeout: float, max_get_paths: int, guard: Guard | None = None
+    ) -> None:
         self.router = router
         self.timeout = call_timeout
         self.max_get_paths = max_get_paths
+        self.guard = guard or Guard()
 
     def _backend(self, service: str, verb: str) -> Backend:
         if not service:
             raise InvalidArgument(f"{verb} needs a service name")
         return self.router.backend(service)
 
-    def start_get(self, request: pb.GetRequest, time_limit: float) -> Begun:
+    def start_get(self, request: pb.GetRequest, time_limit: float, subject: Subject = ANONYMOUS) -> Begun:
         """Start reading the request's one path (``more`` is :meth:`get`'s)."""
         service = request.service
         backend = self._backend(service, "Get")
         path = check_path(request.property)
+        if self.guard.checks:
+            self.guard.require(subject, service, path, Operation.READ)
         params = request.parameters
         if backend.answers_inline:
             return _inline(backend.get(path, _params(params)), time_limit, service, "get", path)
@@ -96,26 +110,71 @@ class Calls:
         what = functools.partial("{}: get {}".format, service, path)
         return bounded_call(backend.get(path, _params(params)), time_limit, what)
 
-    def start_set(self, request: pb.SetRequest, time_limit: float) -> Begun:
-        """Start writing the request's value; the call's value is the service's answer."""
+    def start_set(self, request: pb.SetRequest, time_limit: float, subject: Subject = ANONYMOUS) -> Begun:
+        """Start writing the request's value; the call's value is the service's answer.
+
+        Checked and audited: a refusal raises here; the outcome of the Set is recorded when it is known.
+        """
         service = request.service
-        backend = self._backend(service, "Set")
-        path = check_path(request.property)
+        guard = self.guard
+        try:
+            backend = self._backend(service, "Set")
+            path = check_path(request.property)
+            operation = guard.set_operation(subject, service, path, request.value)
+        except PropertyError as exc:
+            if exc.code not in (Code.PERMISSION_DENIED, Code.UNAUTHENTICATED):  # already audited
+                guard.audited(subject, service, request.property, Operation.WRITE, exc)
+            raise
+        if operation is None:
+            return self._set_after_model(request, backend, path, time_limit, subject)
+        try:
+            begun = self._start_set(request, backend, path, time_limit)
+        except Exception as exc:
+            guard.audited(subject, service, path, operation, exc)
+            raise
+        if isinstance(begun, str):
+            guard.audited(subject, service, path, operation, None)
+            return begun
+        return _audited(begun, functools.partial(guard.audited, subject, service, path, operation))
+
+    def _start_set(self, request: pb.SetRequest, backend: Backend, path: str, time_limit: float) -> Begun:
+        service = request.service
         call = backend.set(path, request.value, _params(request.parameters))
         if backend.answers_inline:
             return _inline(call, time_limit, service, "set", path)
         return bounded_call(call, time_limit, functools.partial("{}: set {}".format, service, path))
 
-    async def get(self, request: pb.GetRequest, time_limit: float) -> pb.GetResponse:
+    async def _set_after_model(
+        self, request: pb.SetRequest, backend: Backend, path: str, time_limit: float, subject: Subject
+    ) -> str:
+        """A Set the rules treat differently as a write and as an action: the model tells which it is."""
+        service = request.service
+        describe = bounded_call(
+            backend.describe(), time_limit, functools.partial("{}: describe for set {}".format, service, path)
+        )
+        operation = await self.guard.set_operation_from_model(subject, service, path, describe)
+        try:
+            value = await outcome(self._start_set(request, backend, path, time_limit))
+        except Exception as exc:
+            self.guard.audited(subject, service, path, operation, exc)
+            raise
+        self.guard.audited(subject, service, path, operation, None)
+        return value
+
+    async def get(
+        self, request: pb.GetRequest, time_limit: float, subject: Subject = ANONYMOUS
+    ) -> pb.GetResponse:
         """Read the request's path and its ``more`` paths (a snapshot when one has ``*``); all or nothing."""
         if is_snapshot(request):
-            response = pb.GetResponse(more=await self._snapshot(request, time_limit))
+            response = pb.GetResponse(more=await self._snapshot(request, time_limit, subject))
         else:
-            value = await outcome(self.start_get(request, time_limit))
+            value = await outcome(self.start_get(request, time_limit, subject))
             if not request.more:
                 response = pb.GetResponse(value=value)
             else:
-                response = pb.GetResponse(value=value, more=await self._get_more(request, time_limit))
+                response = pb.GetResponse(
+                    value=value, more=await self._get_more(request, time_limit, subject)
+                )
         check_fits(
             response,
             lambda: (
@@ -125,10 +184,12 @@ class Calls:
         )
         return response
 
-    async def set(self, request: pb.SetRequest, time_limit: float) -> pb.SetResponse:
+    async def set(
+        self, request: pb.SetRequest, time_limit: float, subject: Subject = ANONYMOUS
+    ) -> pb.SetResponse:
         """Write the request's value; the response carries the service's answer."""
         # A service method that returns nothing answers an empty value.
-        response = pb.SetResponse(value=await outcome(self.start_set(request, time_limit)) or "")
+        response = pb.SetResponse(value=await outcome(self.start_set(request, time_limit, subject)) or "")
         check_fits(response, lambda: f"{request.service}: set {request.property}")
         return response
 
@@ -138,30 +199,46 @@ class Calls:
                 f"a Get may read at most {self.max_get_paths} paths, this one reads {paths}"
             )
 
-    def _resolve(self, service: str, path: str, params: Mapping[str, str], *, pattern: bool = False) -> _Ref:
+    def _resolve(
+        self,
+        service: str,
+        path: str,
+        params: Mapping[str, str],
+        subject: Subject,
+        *,
+        pattern: bool = False,
+    ) -> _Ref:
         try:
             backend = self.router.backend(service)
             path = validate_pattern(path) if pattern else check_path(path)
+            if self.guard.checks and not is_pattern(path):
+                self.guard.require(subject, service, path, Operation.READ)
         except PropertyError as exc:
             # Names are clipped: an echo of a huge bad name must not outgrow the status message.
             raise type(exc)(f"{service[:80]}/{path[:256]}: {exc.message}", exc.code) from None
         return service, path, _params(params), backend
 
-    async def _get_more(self, request: pb.GetRequest, time_limit: float) -> list[pb.PropertyValue]:
+    async def _get_more(
+        self, request: pb.GetRequest, time_limit: float, subject: Subject
+    ) -> list[pb.PropertyValue]:
         self._check_count(len(request.more) + 1)
         # Resolve every path first so that a bad one fails the call before any backend is asked.
         refs = [
-            self._resolve(ref.service or request.service, ref.property, ref.parameters)
+            self._resolve(ref.service or request.service, ref.property, ref.parameters, subject)
             for ref in request.more
         ]
         return await self._read(refs, time_limit)
 
-    async def _snapshot(self, request: pb.GetRequest, time_limit: float) -> list[pb.PropertyValue]:
+    async def _snapshot(
+        self, request: pb.GetRequest, time_limit: float, subject: Subject
+    ) -> list[pb.PropertyValue]:
         """Every path of the Get, each pattern expanded to the readable properties it matches."""
         asked = [(request.service, request.property, request.parameters)]
         asked += [(ref.service or request.service, ref.property, ref.parameters) for ref in request.more]
         self._check_count(len(asked))
-        resolved = [self._resolve(service, path, params, pattern=True) for service, path, params in asked]
+        resolved = [
+            self._resolve(service, path, params, subject, pattern=True) for service, path, params in asked
+        ]
         refs: list[_Ref] = []
         for service, path, params, backend in resolved:
             if not is_pattern(path):
@@ -169,25 +246,32 @@ class Calls:
             else:
                 refs += [
                     (service, name, params, backend)
-                    for name in await self._matches(service, path, backend, time_limit)
+                    for name in await self._matches(service, path, backend, time_limit, subject)
                 ]
             self._check_count(len(refs))
         return await self._read(refs, time_limit)
 
-    async def _matches(self, service: str, pattern: str, backend: Backend, time_limit: float) -> list[str]:
+    async def _matches(
+        self, service: str, pattern: str, backend: Backend, time_limit: float, subject: Subject
+    ) -> list[str]:
         """The values of ``service`` that ``pattern`` matches, in the service's order.
 
         A snapshot holds values a Listen could follow: actions (never read), queries (which
-        take their parameters) and namespaces (not values) are skipped.
+        take their parameters) and namespaces (not values) are skipped, and so is what the
+        subject may not read.
         """
         model = await bounded_call(
             backend.describe(), time_limit, functools.partial("{}: describe for {}".format, service, pattern)
         )
         matches = compile_pattern(pattern)
+        guard = self.guard
         names = [
             p.name
             for p in model.properties
-            if p.access.listenable and p.type != "namespace" and matches(p.name)
+            if p.access.listenable
+            and p.type != "namespace"
+            and matches(p.name)
+            and guard.may(subject, service, p.name, Operation.READ)
         ]
         if not names:
             raise NotFound(f"{service}/{pattern}: no readable property of {service} matches")
@@ -233,3 +317,14 @@ def _inline(call: Coroutine[Any, Any, str], time_limit: float, service: str, ver
     if isinstance(first, Started):
         return finish_call(first, time_limit, functools.partial("{}: {} {}".format, service, verb, path))
     return first if first is not None else ""
+
+
+async def _audited(begun: Begun, record: Callable[[BaseException | None], None]) -> str:
+    """A started Set's value, its outcome recorded (``record``: see :meth:`Guard.audited`)."""
+    try:
+        value = await outcome(begun)
+    except BaseException as exc:
+        record(exc)
+        raise
+    record(None)
+    return value

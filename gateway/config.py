@@ -17,6 +17,9 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
+from gateway.audit import AuditSection
+from gateway.identity import Authenticator, AuthSection
+from gateway.rules import Rule
 from services.errors import InvalidArgument, PropertyError
 from services.paths import validate_service_name
 
@@ -195,6 +198,12 @@ class Config:
     tls: TlsSection = field(default_factory=TlsSection)
     services: tuple[ServiceEntry, ...] = ()
     devices: tuple[DeviceEntry, ...] = ()
+    #: ``[auth]``: how bearer tokens are checked (docs/security.md, "Identity").
+    auth: AuthSection = field(default_factory=AuthSection)
+    #: ``[[rules]]``: who may do what (docs/security.md, "Rules"); none = everything is allowed.
+    rules: tuple[Rule, ...] = ()
+    #: ``[audit]``: how many audit lines may be written (docs/security.md, "Audit").
+    audit: AuditSection = field(default_factory=AuditSection)
     #: Where it came from, for messages.
     source: str = "<config>"
 
@@ -305,7 +314,7 @@ def parse_config_partly(
     service or device is left out, so that ``check-config`` can go on to build
     what is left and report every problem of the file in one run.
     """
-    top = ("gateway", "limits", "registry", "tls", "services", "devices")
+    top = ("gateway", "limits", "registry", "tls", "services", "devices", "auth", "rules", "audit")
     problems = _Problems()
     for key in data:
         if key not in top:
@@ -336,7 +345,13 @@ def parse_config_partly(
         raw_devices = []
     for i, raw in enumerate(raw_devices):
         devices += problems.attempt(lambda: [_device(raw, f"{source}: devices[{i}]", seen)], [])  # noqa: B023
+    auth = problems.attempt(lambda: _auth(data.get("auth", {}), f"{source}: auth", folder), AuthSection())
+    rules: tuple[Rule, ...] = problems.attempt(lambda: _rules(data.get("rules", []), f"{source}: rules"), ())
+    audit = problems.attempt(lambda: _section(AuditSection, data.get("audit", {}), f"{source}: audit"), None)
     config = Config(
+        auth=auth,
+        rules=rules,
+        audit=audit or AuditSection(),
         gateway=gw,
         limits=limits,
         registry=registry,
@@ -472,6 +487,63 @@ def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
         return section
 
     return _checked_section(RegistrySection, data, where, checks)
+
+
+def _auth(data: Any, where: str, folder: Path | None) -> AuthSection:
+    section: AuthSection = _section(AuthSection, data, where)
+    for key in ("jwt_secret_file", "jwks_file"):
+        value = getattr(section, key)
+        if value:
+            path = Path(value).expanduser()
+            if not path.is_absolute():
+                path = (folder if folder is not None else Path.cwd()) / path
+            section = replace(section, **{key: str(path)})
+    try:
+        Authenticator(section)  # reads the key files: a bad one is a config error, found at once
+    except InvalidArgument as exc:
+        raise ConfigError(f"{where[: where.rfind(':')]}: {exc.message}") from None
+    return section
+
+
+_RULE_KEYS = ("subject", "service", "path", "operations", "effect")
+
+
+def _rules(data: Any, where: str) -> tuple[Rule, ...]:
+    if not isinstance(data, list):
+        raise ConfigError(f"{where}: expected an array of tables ([[rules]])")
+    rules = []
+    for index, entry in enumerate(data):
+        at = f"{where}[{index}]"
+        if not isinstance(entry, Mapping):
+            raise ConfigError(f"{at}: expected a table")
+        for key in entry:
+            if key not in _RULE_KEYS:
+                raise ConfigError(f"{at}.{key}: unknown key (known: {', '.join(_RULE_KEYS)})")
+        for key in ("subject", "operations", "effect"):
+            if key not in entry:
+                raise ConfigError(f"{at}: missing key {key!r}")
+        operations = entry["operations"]
+        if isinstance(operations, str):
+            operations = [operations]
+        subject = entry["subject"]
+        if not isinstance(operations, list) or not all(isinstance(op, str) for op in operations):
+            raise ConfigError(f'{at}.operations: expected a list like ["read", "write"]')
+        if not isinstance(subject, str | list):
+            raise ConfigError(f'{at}.subject: expected a name, "*" or a list of names')
+        try:
+            rules.append(
+                Rule.build(
+                    index,
+                    subject=subject,
+                    service=_typed(entry.get("service", "*"), str, f"{at}.service"),
+                    path=_typed(entry.get("path", "**"), str, f"{at}.path"),
+                    operations=operations,
+                    effect=_typed(entry["effect"], str, f"{at}.effect"),
+                )
+            )
+        except InvalidArgument as exc:
+            raise ConfigError(f"{where[: where.rfind(':')]}: {exc.message}") from None
+    return tuple(rules)
 
 
 def _name(entry: Any, where: str, known: tuple[str, ...], seen: set[str]) -> str:

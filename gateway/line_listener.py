@@ -23,6 +23,13 @@ connection is closed. When the connection drops the service stays, not
 connected: the registry's liveness checks mark it ``down`` and its grace
 removes it; a device that dials in again under the same name before that
 takes its place back.
+
+**Who asks.** Each connection is served through its own :class:`RouterBackend`,
+whose :attr:`RouterBackend.subject` is the connection's subject: anonymous
+unless the connection proved who it is (set it there once it has). Every GET,
+SET and LISTEN passes the gateway's :class:`~gateway.guard.Guard` as that
+subject, exactly as on the gRPC port; a refusal is an ``ERR 16``
+(UNAUTHENTICATED) or ``ERR 7`` (PERMISSION_DENIED) line naming the rule.
 """
 
 from __future__ import annotations
@@ -33,6 +40,9 @@ import ssl
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
+from gateway.guard import Guard
+from gateway.identity import ANONYMOUS
+from gateway.rules import Operation, Subject
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.device import DeviceServer
 from services.errors import AlreadyExists, InvalidArgument, PropertyError, ReadOnly
@@ -66,30 +76,47 @@ class _Watch(Subscription):
 
 
 class RouterBackend(Backend):
-    """Every service of a router as one tree: ``SERVICE.PATH``; ``properties`` lists the services."""
+    """Every service of a router as one tree: ``SERVICE.PATH``; ``properties`` lists the services.
 
-    def __init__(self, router: Router) -> None:
+    One per line connection: :attr:`subject` is who asks on it, checked by ``guard``.
+    """
+
+    def __init__(self, router: Router, guard: Guard | None = None, subject: Subject = ANONYMOUS) -> None:
         self.router = router
         self.info = BackendInfo(type="gateway", url="line")
+        self.guard = guard or Guard()
+        #: Who asks on this connection: anonymous until it proves who it is (then set it here).
+        self.subject = subject
 
-    def _split(self, path: str) -> tuple[Backend, str]:
+    def _split(self, path: str) -> tuple[Backend, str, str]:
         service, dot, rest = path.partition(".")
         backend = self.router.backend(service)
         if not dot or not rest:
             raise InvalidArgument(f"{path!r} names a service; name one of its properties: {service}.PROPERTY")
-        return backend, rest
+        return backend, service, rest
 
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
         if path == "properties":
             return format_names(self.router.names())
-        backend, rest = self._split(path)
+        backend, service, rest = self._split(path)
+        self.guard.require(self.subject, service, rest, Operation.READ)
         return await backend.get(rest, params)
 
     async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
         if path == "properties":
             raise ReadOnly("properties (the list of services) is read-only")
-        backend, rest = self._split(path)
-        return await backend.set(rest, value, params)
+        backend, service, rest = self._split(path)
+        guard, subject = self.guard, self.subject
+        operation = guard.set_operation(subject, service, rest, value)
+        if operation is None:
+            operation = await guard.set_operation_from_model(subject, service, rest, backend.describe())
+        try:
+            answer = await backend.set(rest, value, params)
+        except BaseException as exc:
+            guard.audited(subject, service, rest, operation, exc)
+            raise
+        guard.audited(subject, service, rest, operation, None)
+        return answer
 
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
         if path == "properties":
@@ -98,8 +125,8 @@ class RouterBackend(Backend):
                 notify(Change("properties", format_names(self.router.names())))
 
             return _Watch(self.router.watch(changed))
-        backend, rest = self._split(path)
-        service = path.partition(".")[0]
+        backend, service, rest = self._split(path)
+        self.guard.require(self.subject, service, rest, Operation.READ)
 
         def forward(change: Change) -> None:
             notify(Change(f"{service}.{change.path}", change.value, change.gap, change.removed))
@@ -171,15 +198,18 @@ class _FirstLine(asyncio.StreamReader):
 class _ListenerServer(DeviceServer):
     """The device server of the line listener: clients are served, devices that greet are registered."""
 
-    def __init__(self, listener: LineListener, backend: Backend, **kwargs: object) -> None:
+    def __init__(self, listener: LineListener, backend: RouterBackend, **kwargs: object) -> None:
         super().__init__(backend, **kwargs)  # type: ignore[arg-type]
         self._listener = listener
+        self._router_backend = backend
 
     async def serve_stream(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str = ""
     ) -> None:
         first = _FirstLine(reader)
-        session = self.session(first, writer, peer)
+        # Each connection asks as its own subject: its own view of the router.
+        shared = self._router_backend
+        session = self.session(first, writer, peer, RouterBackend(shared.router, shared.guard))
         run = asyncio.create_task(session.run(), name=f"line listener {peer}")
         try:
             waits: list[asyncio.Future[object]] = [run, first.device]  # type: ignore[list-item]
@@ -207,8 +237,10 @@ class LineListener:
         max_connections: int = MAX_CONNECTIONS,
         device_options: ProxyOptions | None = None,
         on_rejoin: Callable[[str, BackendInfo], None] | None = None,
+        guard: Guard | None = None,
     ) -> None:
-        """``device_options`` tune the proxies of devices that dial in (default ``INBOUND_OPTIONS``);
+        """``guard`` checks every request of every connection (default: nothing is refused);
+        ``device_options`` tune the proxies of devices that dial in (default ``INBOUND_OPTIONS``);
         ``on_rejoin(name, info)`` hears of a device that dialled in again after a drop (the gateway
         tells its registry at once that the service is up again, at its new address)."""
         self.router = router
@@ -216,7 +248,7 @@ class LineListener:
         self._on_rejoin = on_rejoin
         self.server = _ListenerServer(
             self,
-            RouterBackend(router),
+            RouterBackend(router, guard),
             name=name,
             type="gateway",
             push=True,
@@ -303,10 +335,12 @@ async def start_line_listener(
     address: str,
     router: Router,
     on_rejoin: Callable[[str, BackendInfo], None] | None = None,
+    guard: Guard | None = None,
     *,
     ssl_context: ssl.SSLContext | None = None,
 ) -> LineListener:
-    """Start a :class:`LineListener` on ``address`` ("HOST:PORT") for ``router``; TLS with ``ssl_context``."""
-    listener = LineListener(router, on_rejoin=on_rejoin)
+    """Start a :class:`LineListener` on ``address`` ("HOST:PORT") for ``router``, checked by ``guard``;
+    TLS with ``ssl_context``."""
+    listener = LineListener(router, on_rejoin=on_rejoin, guard=guard)
     await listener.start(*parse_address(address), ssl_context=ssl_context)
     return listener

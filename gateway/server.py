@@ -16,8 +16,11 @@ from google.protobuf.message import DecodeError, Message
 
 from gateway.calls import Calls, Undecodable
 from gateway.config import Config
+from gateway.guard import Guard
+from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, parse_options, parse_selectors
 from gateway.router import Router, bounded_call
+from gateway.rules import Operation, Subject
 from gateway.session import Session
 from gateway.status import abort
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -105,9 +108,11 @@ class _Wake:
 class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
     """Serves the v1 contract from a router and a listen hub."""
 
-    def __init__(self, router: Router, hub: ListenHub, config: Config) -> None:
+    def __init__(self, router: Router, hub: ListenHub, config: Config, guard: Guard | None = None) -> None:
+        """``guard`` checks every call (the hub's own: the same rules hold for every front end)."""
         self.router = router
-        self.calls = Calls(router, config.gateway.call_timeout, config.limits.max_get_paths)
+        self.guard = guard or hub.guard
+        self.calls = Calls(router, config.gateway.call_timeout, config.limits.max_get_paths, self.guard)
         self.hub = hub
         self.config = config
         self._timeout = config.gateway.call_timeout
@@ -119,6 +124,10 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         for session in list(self.sessions):
             session.stop()
 
+    def _subject(self, context: Context) -> Subject:
+        """Who calls; without rules or tokens nobody is refused and a Get need not ask."""
+        return self.guard.identify_call(context) if self.guard.checks else ANONYMOUS
+
     def _deadline(self, context: Context) -> float:
         remaining = context.time_remaining()
         timeout = self._timeout
@@ -128,7 +137,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         try:
             if isinstance(request, Undecodable):
                 raise request.error
-            return await self.calls.get(request, self._deadline(context))
+            return await self.calls.get(request, self._deadline(context), self._subject(context))
         except Exception as exc:
             await abort(context, exc, "Get")
             raise  # not reached: abort raises
@@ -137,7 +146,9 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         try:
             if isinstance(request, Undecodable):
                 raise request.error
-            return await self.calls.set(request, self._deadline(context))
+            # Identified even when nothing is refused: the audit trail names who set what.
+            subject = self.guard.identify_call(context)
+            return await self.calls.set(request, self._deadline(context), subject)
         except Exception as exc:
             await abort(context, exc, "Set")
             raise
@@ -148,6 +159,8 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
                 raise request.error
             name = request.service
             backend = self.router.backend(name)
+            if self.guard.checks:
+                self.guard.require(self._subject(context), name, "", Operation.READ)
             model = await bounded_call(
                 backend.describe(), self._deadline(context), lambda: f"{name}: describe"
             )
@@ -165,7 +178,10 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             if isinstance(request, Undecodable):
                 raise request.error
             stream = self.hub.open(
-                parse_selectors(request, limits), parse_options(request.options, limits), wake.set
+                parse_selectors(request, limits),
+                parse_options(request.options, limits),
+                wake.set,
+                self._subject(context),
             )
         except Exception as exc:
             await abort(context, exc, "Listen")
@@ -187,7 +203,12 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             stream.close()
 
     async def Session(self, request_iterator: AsyncIterator[pb.SessionRequest], context: Context) -> None:
-        session = Session(self.calls, self.hub, self.config.limits, context)
+        try:
+            subject = self._subject(context)
+        except Exception as exc:
+            await abort(context, exc, "Session")
+            raise
+        session = Session(self.calls, self.hub, self.config.limits, context, subject)
         self.sessions.add(session)
         try:
             await session.run()

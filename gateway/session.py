@@ -23,8 +23,10 @@ import grpc
 
 from gateway.calls import Begun, Calls, Undecodable, is_snapshot
 from gateway.config import Limits
+from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.listen.hub import SHUTTING_DOWN
+from gateway.rules import Subject
 from gateway.sizes import BATCH_BYTES, SURELY_FITS_CHARS, check_fits
 from gateway.status import abort, status_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -42,8 +44,15 @@ class Session:
     disconnects, or the gateway stops (:meth:`stop`)."""
 
     def __init__(
-        self, calls: Calls, hub: ListenHub, limits: Limits, context: grpc.aio.ServicerContext[Any, Any]
+        self,
+        calls: Calls,
+        hub: ListenHub,
+        limits: Limits,
+        context: grpc.aio.ServicerContext[Any, Any],
+        subject: Subject = ANONYMOUS,
     ) -> None:
+        """``subject``: who opened the Session; every request in it is checked as theirs."""
+        self._subject = subject
         self._calls = calls
         self._hub = hub
         self._context = context
@@ -233,7 +242,7 @@ class Session:
             self._spawn(rid, self._get_more(rid, request))
             return
         try:
-            begun = self._calls.start_get(request, self._timeout)
+            begun = self._calls.start_get(request, self._timeout, self._subject)
         except Exception as exc:
             self._fail(rid, exc, f"{request.service}: get {request.property}")
             return
@@ -244,7 +253,7 @@ class Session:
 
     def _set(self, rid: int, request: pb.SetRequest) -> None:
         try:
-            begun = self._calls.start_set(request, self._timeout)
+            begun = self._calls.start_set(request, self._timeout, self._subject)
         except Exception as exc:
             self._fail(rid, exc, f"{request.service}: set {request.property}")
             return
@@ -288,7 +297,7 @@ class Session:
 
     async def _get_more(self, rid: int, request: pb.GetRequest) -> None:
         try:
-            self._push(pb.Reply(id=rid, get=await self._calls.get(request, self._timeout)))
+            self._push(pb.Reply(id=rid, get=await self._calls.get(request, self._timeout, self._subject)))
         except Exception as exc:
             self._fail(rid, exc, "Get")
 
@@ -343,6 +352,7 @@ class Session:
                 parse_selectors(request, limits),
                 parse_options(request.options, limits),
                 lambda: self._ready_listen(rid),
+                self._subject,
             )
         except Exception as exc:
             self._fail(rid, exc, "Listen")

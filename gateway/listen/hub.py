@@ -12,12 +12,16 @@ import logging
 from collections.abc import Callable, Sequence
 
 from gateway.config import Limits
+from gateway.guard import Guard
+from gateway.identity import ANONYMOUS
 from gateway.listen.requests import Selector, StreamOptions
 from gateway.listen.stream import ListenStream
 from gateway.listen.topics import Topics
 from gateway.router import Router
+from gateway.rules import Operation, Subject
 from services.backend import Backend
 from services.errors import ResourceExhausted, Unavailable
+from services.paths import WILDCARD, is_pattern
 
 log = logging.getLogger(__name__)
 
@@ -29,8 +33,11 @@ SHUTTING_DOWN = "gateway shutting down"
 class ListenHub:
     """Shares backend subscriptions among Listen streams; see the module docstring."""
 
-    def __init__(self, router: Router, limits: Limits, call_timeout: float) -> None:
+    def __init__(
+        self, router: Router, limits: Limits, call_timeout: float, guard: Guard | None = None
+    ) -> None:
         self.router = router
+        self.guard = guard or Guard()
         self.limits = limits
         self.topics = Topics(call_timeout)
         self._streams: set[ListenStream] = set()
@@ -48,11 +55,24 @@ class ListenHub:
         return len(self._streams)
 
     def open(
-        self, selectors: Sequence[Selector], options: StreamOptions, on_ready: Callable[[], None]
+        self,
+        selectors: Sequence[Selector],
+        options: StreamOptions,
+        on_ready: Callable[[], None],
+        subject: Subject = ANONYMOUS,
     ) -> ListenStream:
-        """A new stream (then ``start`` it, and ``close`` it when done); raises RESOURCE_EXHAUSTED."""
+        """A new stream (then ``start`` it, and ``close`` it when done) for ``subject``.
+
+        Raises RESOURCE_EXHAUSTED beyond the limits, and UNAUTHENTICATED or PERMISSION_DENIED
+        for an exact selector the subject may not read (wildcards skip what it may not read).
+        """
         if self._closing:
             raise Unavailable(SHUTTING_DOWN)
+        guard = self.guard
+        if guard.checks:
+            for sel in selectors:
+                if sel.service != WILDCARD and not is_pattern(sel.path):
+                    guard.require(subject, sel.service, sel.path, Operation.READ)
         if len(self._streams) >= self.limits.max_streams:
             raise ResourceExhausted(
                 f"too many Listen streams open ({self.limits.max_streams}, limits.max_streams)"
@@ -65,6 +85,7 @@ class ListenHub:
             options=options,
             on_ready=on_ready,
             on_close=self._streams.discard,
+            may_read=guard.reader(subject),
         )
         self._streams.add(stream)
         return stream

@@ -52,7 +52,8 @@ class _Expansion:
 
     It matches only the properties a Listen may follow (``Access.listenable``:
     never an action, nor a query that needs its parameters), as the service's
-    model says; a name the model does not know counts as listenable.
+    model says; a name the model does not know counts as listenable. Names the
+    stream's subject may not read are skipped too.
     """
 
     __slots__ = ("known", "list_topic", "matched", "matches", "selector", "service", "skipped", "stream")
@@ -84,7 +85,10 @@ class _Expansion:
         except PropertyError as exc:
             log.warning("%s: cannot read its properties list: %s", self.service, exc.message)
             return set(self.matched)
-        return {n for n in names if self.matches(n) and n not in self.skipped}
+        stream = self.stream
+        return {
+            n for n in names if self.matches(n) and n not in self.skipped and stream.may_read(self.service, n)
+        }
 
     def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None:
         if change.removed:
@@ -103,6 +107,7 @@ class ListenStream:
         "_last_sent",
         "_limits",
         "_live",
+        "_may_read",
         "_on_close",
         "_on_ready",
         "_pending",
@@ -133,8 +138,11 @@ class ListenStream:
         options: StreamOptions,
         on_ready: Callable[[], None],
         on_close: Callable[[ListenStream], None],
+        may_read: Callable[[str, str], bool] | None = None,
     ) -> None:
-        """Called by :meth:`gateway.listen.ListenHub.open`; ``on_close`` tells the hub the stream is gone."""
+        """Called by :meth:`gateway.listen.ListenHub.open`; ``on_close`` tells the hub the stream is gone;
+        ``may_read(service, path)`` says what the stream's subject may read (None: everything)."""
+        self._may_read = may_read
         self._router = router
         self._topics = topics
         self._limits = limits
@@ -163,6 +171,10 @@ class ListenStream:
         self.ended = False
         #: Set when the stream must end with this error (e.g. a limit was passed).
         self.error: PropertyError | None = None
+
+    def may_read(self, service: str, path: str) -> bool:
+        """Whether the stream's subject may read ``service``/``path``: wildcards skip what it may not."""
+        return self._may_read is None or self._may_read(service, path)
 
     @property
     def property_count(self) -> int:
@@ -201,7 +213,9 @@ class ListenStream:
         if self.closed:
             return
         if not is_pattern(sel.path):
-            await self._join((service, sel.path, sel.params), backend, strict)
+            # An exact selector was checked when the stream opened; a wildcard service skips.
+            if strict or self.may_read(service, sel.path):
+                await self._join((service, sel.path, sel.params), backend, strict)
             return
         exp = _Expansion(self, sel, service)
         list_topic = await self._topics.subscribe(exp, (service, PROPERTIES, ()), backend, strict)

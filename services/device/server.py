@@ -60,10 +60,17 @@ class DeviceServer:
         """Serve one connection until it closes."""
         await self.session(reader, writer, peer).run()
 
-    def session(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str) -> DeviceSession:
-        """The protocol session of one connection, with this server's greeting, checksum and timeout."""
+    def session(
+        self,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        peer: str,
+        backend: Backend | None = None,
+    ) -> DeviceSession:
+        """The protocol session of one connection, with this server's greeting, checksum and timeout;
+        ``backend`` serves this connection instead of the server's (a per-connection view of it)."""
         return DeviceSession(
-            self.backend,
+            backend if backend is not None else self.backend,
             reader,
             writer,
             greeting=self.greeting,

@@ -1,0 +1,124 @@
+"""The one access check every front end passes: identity, rules, scopes and the audit trail together.
+
+The call layer (:mod:`gateway.calls`: Get, Set, Describe), the listen
+streams (:mod:`gateway.listen`) and the line listener
+(:mod:`gateway.line_listener`) hold one :class:`Guard` and ask it before they
+touch a backend. What a request does is an :class:`~gateway.rules.Operation`:
+
+* Get (values and queries), Listen and Describe read (Describe asks about the
+  service itself: the empty path, which only a ``**`` rule path matches);
+* a Set on the registry of ``services.NAME`` registers (a URL) or unregisters
+  (nothing); any other Set on the registry is ``admin``;
+* any other Set writes a value or invokes an action. Only when the rules tell
+  the two apart for this subject and path does the guard read the service's
+  model to know which; otherwise the Set is ``write``.
+
+With no rules, no ``[auth]`` and no token scopes, every check passes at the
+cost of one attribute read (:attr:`Guard.checks`); Sets are still audited.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from gateway.audit import Audit, AuditSection
+from gateway.config import Config
+from gateway.identity import ANONYMOUS, Authenticator, AuthSection
+from gateway.rules import Operation, Rules, Subject, refusal
+from services.errors import PropertyError
+from services.model import Access, ServiceModel
+
+#: The service whose ``services.NAME`` Sets register and unregister (gateway.config.REGISTRY_NAME).
+REGISTRY = "registry"
+_SERVICES_PREFIX = "services."
+
+
+def registry_operation(path: str, value: str) -> Operation:
+    """What a Set of ``path`` to ``value`` on the registry does."""
+    if path.startswith(_SERVICES_PREFIX) and "." not in path[len(_SERVICES_PREFIX) :]:
+        return Operation.REGISTER if value else Operation.UNREGISTER
+    return Operation.ADMIN
+
+
+class Guard:
+    """Identity, rules and audit; see the module docstring."""
+
+    def __init__(
+        self,
+        rules: Rules | None = None,
+        auth: AuthSection | None = None,
+        audit: AuditSection | None = None,
+    ) -> None:
+        """Reads the ``[auth]`` key files now; InvalidArgument naming the file when one cannot be used."""
+        self.rules = rules or Rules()
+        self.authenticator = Authenticator(auth or AuthSection())
+        self.audit = Audit(audit or AuditSection())
+        #: False when nothing is ever refused: no rules, and no tokens (whose scopes could narrow).
+        self.checks = bool(self.rules) or self.authenticator.checks_tokens
+
+    @classmethod
+    def from_config(cls, config: Config) -> Guard:
+        """The guard a config describes (its ``[auth]``, ``[[rules]]`` and ``[audit]``)."""
+        return cls(Rules(config.rules), config.auth, config.audit)
+
+    def identify_call(self, context: Any) -> Subject:
+        """The subject of a gRPC call (``context``: a ``grpc.aio.ServicerContext``); Unauthenticated
+        for a bad token, audited."""
+        try:
+            return self.authenticator.identify(context.invocation_metadata(), context.auth_context())
+        except PropertyError as exc:
+            self.audit.record(ANONYMOUS, "", "", Operation.READ, exc)
+            raise
+
+    def may(self, subject: Subject, service: str, path: str, operation: Operation) -> bool:
+        """Whether the rules and scopes allow it (nothing logged: for skipping wildcard matches)."""
+        return not self.checks or self.rules.check(subject, service, path, operation).allowed
+
+    def require(self, subject: Subject, service: str, path: str, operation: Operation) -> None:
+        """Raise UNAUTHENTICATED or PERMISSION_DENIED naming the rule unless it is allowed; audited."""
+        if not self.checks:
+            return
+        decision = self.rules.check(subject, service, path, operation)
+        if not decision.allowed:
+            err = refusal(subject, service, path, operation, decision)
+            self.audit.record(subject, service, path, operation, err)
+            raise err
+
+    def reader(self, subject: Subject) -> Callable[[str, str], bool] | None:
+        """``(service, path) → may subject read it``, or None when everything may be read."""
+        if not self.checks:
+            return None
+        return lambda service, path: self.may(subject, service, path, Operation.READ)
+
+    def set_operation(self, subject: Subject, service: str, path: str, value: str) -> Operation | None:
+        """The Set's operation, checked (raises when refused); None when only the model can tell."""
+        if service == REGISTRY:
+            operation = registry_operation(path, value)
+        elif not self.checks:
+            operation = Operation.WRITE
+        else:
+            rules = self.rules
+            write = rules.check(subject, service, path, Operation.WRITE)
+            invoke = rules.check(subject, service, path, Operation.INVOKE)
+            if write.allowed != invoke.allowed:
+                return None
+            operation = Operation.WRITE
+        self.require(subject, service, path, operation)
+        return operation
+
+    async def set_operation_from_model(
+        self, subject: Subject, service: str, path: str, describe: Awaitable[ServiceModel]
+    ) -> Operation:
+        """The operation of a Set the rules treat differently as a write and as an action, checked."""
+        model = await describe
+        access = next((p.access for p in model.properties if p.name == path), Access.UNKNOWN)
+        operation = Operation.INVOKE if access is Access.ACTION else Operation.WRITE
+        self.require(subject, service, path, operation)
+        return operation
+
+    def audited(
+        self, subject: Subject, service: str, path: str, operation: Operation, error: BaseException | None
+    ) -> None:
+        """Record a Set's outcome (``error`` None: it succeeded)."""
+        self.audit.record(subject, service, path, operation, error)

