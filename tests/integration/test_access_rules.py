@@ -21,9 +21,11 @@ import jwt
 import pytest
 from cryptography.hazmat.primitives.asymmetric import ec
 from line_device_support import LineClient
+from support.certs import make_certificates
 from support.gateway_process import GatewayProcess
 from support.ports import free_port
 
+from clients import AsyncClient, ClientCredentials
 from clients.errors import NotFound, PermissionDenied, Unauthenticated
 from clients.sync import Client
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -332,3 +334,41 @@ async def test_the_line_listener_asks_as_an_anonymous_subject(secured) -> None: 
     reply = await c.line()
     assert reply.startswith("#5 ERR 16 ") and "rules[1]" in reply
     await c.close()
+
+
+async def test_client_certificates_are_subjects_the_rules_know(gateway_process, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    # mTLS end to end: the certificate's CN is the subject. "operator" may write scout1's speed,
+    # "alice" (a certificate the CA signed, but no rule names her) may only read.
+    certs = make_certificates(tmp_path / "certs", clients=("operator", "alice"))
+    gw = gateway_process(
+        f"""
+        [tls]
+        cert = "{certs.server.cert}"
+        key = "{certs.server.key}"
+        client_ca = "{certs.ca}"
+        require_client_cert = true
+
+        [[services]]
+        name = "scout1"
+        type = "sim-robot"
+        """
+        + RULES,
+        credentials=grpc.ssl_channel_credentials(
+            root_certificates=certs.ca.read_bytes(),
+            private_key=certs.clients["operator"].key.read_bytes(),
+            certificate_chain=certs.clients["operator"].cert.read_bytes(),
+        ),
+    )
+
+    def as_(name: str) -> ClientCredentials:
+        pair = certs.clients[name]
+        return ClientCredentials(ca=str(certs.ca), cert=str(pair.cert), key=str(pair.key))
+
+    async with AsyncClient(gw.address, credentials=as_("operator")) as operator:
+        assert await operator.set("scout1", "speed", "0.3") == "0.3"
+        with pytest.raises(PermissionDenied, match=r"rules\[3\]"):
+            await operator.set("scout1", "behaviors.moveto", "<marker><location>(1 1)</location></marker>")
+    async with AsyncClient(gw.address, credentials=as_("alice")) as alice:
+        assert await alice.get("scout1", "speed") == "0.3"
+        with pytest.raises(PermissionDenied, match="alice"):
+            await alice.set("scout1", "speed", "0.1")
