@@ -29,11 +29,12 @@ from bench.register import run_register
 from bench.servers import ServerProcess
 from bench.session import run_session
 from bench.target import BATCH_PROPERTIES, VALUE_PROPERTY
+from bench.tls import run_tls
 from bench.unary import run_unary
 
 #: Parts (a)-(d) compare the gateway with the bare server; (e)-(h) are the line protocol and registry parts.
 SERVER_PARTS = ("unary", "session", "listen", "batched", "memory")
-PARTS = (*SERVER_PARTS, "line", "group", "find", "register")
+PARTS = (*SERVER_PARTS, "line", "group", "find", "register", "tls")
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
     "gateway": ["bench.gateway_server", "--listen", "127.0.0.1:0"],
@@ -340,6 +341,19 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
         results.setdefault("in-process", {})["find"] = await _timed(
             f"find, {_listing(args.find_sizes)} entries",
             lambda: run_scaling("find", args.find_sizes, 4 * args.time_limit, queries=args.find_queries),
+        )
+    if "tls" in args.parts:
+        results.setdefault("gateway", {})["tls"] = await _timed(
+            "tls: plaintext and mTLS + token gateways, unary and Session",
+            lambda: run_tls(
+                calls=args.calls,
+                gets=args.session_gets,
+                inflight=args.inflight,
+                batch=args.session_batch,
+                window_batches=args.session_window,
+                rounds=args.rounds,
+                time_limit=args.time_limit,
+            ),
         )
     if "register" in args.parts:
         results.setdefault("gateway", {})["register"] = await _timed(

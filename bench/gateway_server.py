@@ -41,13 +41,21 @@ class BenchTarget(Resource):
     v9: str = "0"
 
 
-async def serve(listen: str) -> None:
-    """Run a gateway with :class:`BenchTarget` as service ``bench`` until stopped."""
+async def serve(listen: str, config_file: str | None = None) -> None:
+    """Run a gateway with :class:`BenchTarget` as service ``bench`` until stopped.
+
+    ``config_file`` adds security sections (``[tls]``, ``[auth]``, ``[[rules]]``) to measure their cost.
+    """
+    from dataclasses import replace
+
     from gateway.app import Gateway
-    from gateway.config import Config, GatewaySection
+    from gateway.config import Config, GatewaySection, load_config
     from services.core import LocalService
 
     config = Config(gateway=GatewaySection(listen=listen, log_level="warning"))
+    if config_file:
+        loaded = load_config(config_file)
+        config = replace(loaded, gateway=replace(loaded.gateway, listen=listen, log_level="warning"))
     gateway = Gateway(config, backends={SERVICE: LocalService(BenchTarget())})
     await gateway.start()
     print(f"listening on {gateway.address}", file=sys.stderr, flush=True)
@@ -63,12 +71,13 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m bench.gateway_server", description="The gateway under test, serving service 'bench'."
     )
     parser.add_argument("--listen", default="127.0.0.1:0", help="address to serve on (default %(default)s)")
+    parser.add_argument("--config", metavar="FILE", help="a config whose [tls], [auth] and [[rules]] apply")
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s"
     )
     with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(serve(args.listen))
+        asyncio.run(serve(args.listen, args.config))
     return 0
 
 

@@ -260,6 +260,32 @@ TARGETS += (
 )
 
 
+def _tls(results: Results, way: str, call: str) -> float:
+    return float(results["gateway"]["tls"][way][call]["throughput_per_s"])
+
+
+TARGETS += (
+    Target(
+        "tls-unary",
+        "unary Gets/s with mTLS and a bearer token (checked, one rule) / plaintext, both on the gateway",
+        lambda r: _tls(r, "mtls-token", "unary") / _tls(r, "plaintext", "unary"),
+        "min",
+        0.5,
+        "x",
+        (("gateway", "tls"),),
+    ),
+    Target(
+        "tls-session",
+        "Gets/s over a Session with mTLS and a bearer token / plaintext, both on the gateway",
+        lambda r: _tls(r, "mtls-token", "session") / _tls(r, "plaintext", "session"),
+        "min",
+        0.5,
+        "x",
+        (("gateway", "tls"),),
+    ),
+)
+
+
 def evaluate(results: Results) -> list[dict[str, Any]]:
     """Each target's figure, bound and verdict (PASS, FAIL, or why it could not be judged)."""
     verdicts = []
@@ -662,6 +688,25 @@ def _issue_tables(out: TextIO, results: Results) -> None:
                 "gw fds",
                 "fd soft/hard",
             ],
+            rows,
+        )
+    tls = results.get("gateway", {}).get("tls")
+    if tls and "error" not in tls:
+        rows = [
+            [
+                way,
+                call,
+                f"{tls[way][call]['throughput_per_s']:,.0f}",
+                _fmt(tls[way][call]["latency"]["p50_us"]),
+                _fmt(tls[way][call]["latency"]["p99_us"]),
+            ]
+            for way in ("plaintext", "mtls-token")
+            for call in ("unary", "session")
+        ]
+        _table(
+            out,
+            "(i) the cost of mTLS and a bearer token: unary Gets (8 in flight) and Gets over one Session",
+            ["way", "call", "Gets/s", "p50 µs", "p99 µs"],
             rows,
         )
 

@@ -16,7 +16,7 @@ from typing import Any
 import grpc
 
 from bench.measure import STREAM_END, CallRun, Latencies, window
-from bench.servers import ServerProcess
+from bench.servers import Metadata, ServerProcess, open_channel
 from bench.target import SERVICE, VALUE_PROPERTY
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -47,11 +47,16 @@ class SessionResult(CallRun):
         }
 
 
-async def _drive(
-    stub: pb_grpc.PropertyServiceStub, gets: int, batch: int, window_batches: int, deadline: float
+async def _drive(  # noqa: PLR0917
+    stub: pb_grpc.PropertyServiceStub,
+    gets: int,
+    batch: int,
+    window_batches: int,
+    deadline: float,
+    metadata: Metadata = (),
 ) -> tuple[list[int], int, int, int]:
     """Make ``gets`` Gets over one Session; return latencies (ns), replies, errors, response messages."""
-    call = stub.Session()
+    call = stub.Session(metadata=metadata)
     credit = asyncio.Semaphore(window_batches)
     sent_at: dict[int, int] = {}
     waiting: dict[int, int] = {}
@@ -107,17 +112,30 @@ async def _drive(
 
 
 async def run_session(
-    server: ServerProcess, *, gets: int, batch: int, window_batches: int, warmup: int, time_limit: float
+    server: ServerProcess,
+    *,
+    gets: int,
+    batch: int,
+    window_batches: int,
+    warmup: int,
+    time_limit: float,
+    credentials: grpc.ChannelCredentials | None = None,
+    metadata: Metadata = (),
 ) -> SessionResult:
-    """Warm up, then make ``gets`` Gets over one Session stream, ``batch`` requests per message."""
+    """Warm up, then make ``gets`` Gets over one Session stream, ``batch`` requests per message.
+
+    With ``credentials`` the channel is TLS; ``metadata`` goes with the Session call (a bearer token).
+    """
     result = SessionResult(gets=gets, batch=batch, window_batches=window_batches)
-    async with grpc.aio.insecure_channel(server.address) as channel:
+    async with open_channel(server.address, credentials) as channel:
         stub = pb_grpc.PropertyServiceStub(channel)
-        await stub.Set(pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value="0"), timeout=10)
-        await _drive(stub, warmup, batch, window_batches, time.monotonic() + time_limit)
+        await stub.Set(
+            pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value="0"), timeout=10, metadata=metadata
+        )
+        await _drive(stub, warmup, batch, window_batches, time.monotonic() + time_limit, metadata)
         with window(server) as result.window:
             samples, result.done, result.errors, result.messages_in = await _drive(
-                stub, gets, batch, window_batches, time.monotonic() + time_limit
+                stub, gets, batch, window_batches, time.monotonic() + time_limit, metadata
             )
     result.complete = result.done == gets
     result.latency = Latencies.of(samples)

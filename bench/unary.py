@@ -10,7 +10,7 @@ from typing import Any
 import grpc
 
 from bench.measure import CallRun, Latencies, window
-from bench.servers import ServerProcess
+from bench.servers import Metadata, ServerProcess, open_channel
 from bench.target import SERVICE, VALUE_PROPERTY
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -40,8 +40,13 @@ class UnaryResult(CallRun):
         }
 
 
-async def _drive(
-    stub: pb_grpc.PropertyServiceStub, request: pb.GetRequest, calls: int, inflight: int, deadline: float
+async def _drive(  # noqa: PLR0917
+    stub: pb_grpc.PropertyServiceStub,
+    request: pb.GetRequest,
+    calls: int,
+    inflight: int,
+    deadline: float,
+    metadata: Metadata = (),
 ) -> tuple[list[int], int, bool]:
     """Make ``calls`` Gets, ``inflight`` at a time; return latencies (ns), errors, whether all were made."""
     remaining = calls
@@ -54,7 +59,7 @@ async def _drive(
             remaining -= 1
             start = time.perf_counter_ns()
             try:
-                await stub.Get(request, timeout=CALL_TIMEOUT)
+                await stub.Get(request, timeout=CALL_TIMEOUT, metadata=metadata)
             except grpc.aio.AioRpcError:
                 errors += 1
                 continue
@@ -65,20 +70,32 @@ async def _drive(
 
 
 async def run_unary(
-    server: ServerProcess, *, calls: int, inflight: int, warmup: int, time_limit: float
+    server: ServerProcess,
+    *,
+    calls: int,
+    inflight: int,
+    warmup: int,
+    time_limit: float,
+    credentials: grpc.ChannelCredentials | None = None,
+    metadata: Metadata = (),
 ) -> UnaryResult:
-    """Warm up, then make ``calls`` unary Gets of one property with ``inflight`` calls in flight."""
+    """Warm up, then make ``calls`` unary Gets of one property with ``inflight`` calls in flight.
+
+    With ``credentials`` the channel is TLS; ``metadata`` goes with every call (a bearer token).
+    """
     result = UnaryResult(calls=calls, inflight=inflight)
     request = pb.GetRequest(service=SERVICE, property=VALUE_PROPERTY)
-    async with grpc.aio.insecure_channel(server.address) as channel:
+    async with open_channel(server.address, credentials) as channel:
         stub = pb_grpc.PropertyServiceStub(channel)
         await stub.Set(
-            pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value="0"), timeout=CALL_TIMEOUT
+            pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value="0"),
+            timeout=CALL_TIMEOUT,
+            metadata=metadata,
         )
-        await _drive(stub, request, warmup, inflight, time.monotonic() + time_limit)
+        await _drive(stub, request, warmup, inflight, time.monotonic() + time_limit, metadata)
         with window(server) as result.window:
             samples, result.errors, result.complete = await _drive(
-                stub, request, calls, inflight, time.monotonic() + time_limit
+                stub, request, calls, inflight, time.monotonic() + time_limit, metadata
             )
     result.done = len(samples) + result.errors
     result.latency = Latencies.of(samples)
