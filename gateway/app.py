@@ -20,6 +20,7 @@ import signal
 import sys
 from collections.abc import Mapping
 from types import TracebackType
+from urllib.parse import urlsplit
 
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
@@ -38,7 +39,7 @@ from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, BackendInfo
 from services.catalog import create, needs_directory
 from services.errors import PropertyError
-from services.registry import DEFAULT_REGISTER_TIMEOUT, Registry, RegistryService
+from services.registry import DEFAULT_REGISTER_TIMEOUT, AllowList, Registry, RegistryService
 from services.registry import ServiceEntry as RegistryEntry
 
 log = logging.getLogger("gateway")
@@ -80,6 +81,11 @@ class Gateway:
         #: "host:port" of the line-protocol listener (the real port when 0 was asked); "" when off.
         self.line_address = ""
         self.servicer = PropertyServicer(self.router, self.hub, self.config)
+        #: What registrations may reach (``[registry] allow``) and what is this gateway itself.
+        self.allow = AllowList(self.config.registry.allow, own_ports=self._own_ports)
+        for entry in self.config.services:
+            if entry.url.startswith("serial://"):
+                self.allow.reserve(urlsplit(entry.url).path)
 
     async def __aenter__(self) -> Gateway:
         await self.start()
@@ -177,6 +183,8 @@ class Gateway:
                 raise outcome
         proxies: list[tuple[str, Backend]] = []
         for entry, device in zip(self.config.devices, self._devices, strict=True):
+            if device.url.startswith("serial://"):
+                self.allow.reserve(urlsplit(device.url).path)
             backend = open_proxy(entry.name, device.url, entry.proxy)
             await self._add(entry.name, backend, f"device process {device.pid} at {device.url}")
             proxies.append((entry.name, backend))
@@ -211,6 +219,15 @@ class Gateway:
                 ", ".join(missing),
             )
 
+    def _own_ports(self) -> list[int]:
+        """The TCP ports this gateway listens on: a registration naming one would call itself."""
+        ports = []
+        for address in (self.config.gateway.listen, self.address, self.line_address):
+            tail = address.rpartition(":")[2]
+            if not address.startswith("unix:") and tail.isdigit() and int(tail):
+                ports.append(int(tail))
+        return ports
+
     async def _start_registry(self) -> None:
         settings = self.config.registry
         static = [e.name for e in self.config.services] + [d.name for d in self.config.devices]
@@ -223,6 +240,8 @@ class Gateway:
             register_timeout=min(DEFAULT_REGISTER_TIMEOUT, REGISTER_SHARE * self.config.gateway.call_timeout),
             static=static,
             persist=settings.persist or None,
+            allow=self.allow,
+            max_registrations=settings.max_registrations,
         )
         await self._add(REGISTRY_NAME, RegistryService(self.registry), "built in")
         self._unwatch_registry = self.registry.watch_states(self._on_state)

@@ -18,6 +18,7 @@ from typing import Any, TypeVar
 
 from services.errors import InvalidArgument, PropertyError
 from services.paths import validate_service_name
+from services.registry import DEFAULT_ALLOW, DEFAULT_MAX_REGISTRATIONS, parse_allow_entry
 
 #: The service every gateway hosts itself; a config may not define it.
 REGISTRY_NAME = "registry"
@@ -84,6 +85,11 @@ class Limits:
     session_max_queued_replies: int = 1024
     #: Smallest min_interval, sample_interval or heartbeat_interval accepted (seconds).
     min_interval_floor: float = 0.001
+    #: Seconds a line-listener connection may stay silent (nothing read, nothing written) before
+    #: it is closed; and when the listener is full, the connection silent longest makes room.
+    line_idle_timeout: float = 300.0
+    #: Connections of the line listener from one source address at once (devices and clients).
+    max_greetings_per_source: int = 64
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,6 +107,11 @@ class RegistrySection:
     #: JSON file keeping the registrations made by Set across restarts; empty = not kept.
     #: A relative path is taken from the config file's folder (absolute once parsed).
     persist: str = ""
+    #: Addresses a registration may reach: networks with optional ports, serial path globs
+    #: (``services.registry.allow``); default: loopback and USB serial adapters.
+    allow: tuple[str, ...] = DEFAULT_ALLOW
+    #: Registrations by Set held at once.
+    max_registrations: int = DEFAULT_MAX_REGISTRATIONS
 
 
 @dataclass(frozen=True, slots=True)
@@ -264,13 +275,23 @@ def _gateway(data: Any, where: str) -> GatewaySection:
 def _limits(data: Any, where: str) -> Limits:
     limits: Limits = _section(Limits, data, where)
     for f in fields(Limits):
-        if f.name != "min_interval_floor" and getattr(limits, f.name) < 1:
+        if f.name not in ("min_interval_floor", "line_idle_timeout") and getattr(limits, f.name) < 1:
             raise ConfigError(f"{where}.{f.name}: must be at least 1")
+    if not (math.isfinite(limits.line_idle_timeout) and limits.line_idle_timeout > 0):
+        raise ConfigError(f"{where}.line_idle_timeout: must be a positive number of seconds")
     return limits
 
 
 def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
-    section: RegistrySection = _section(RegistrySection, data, where)
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where}: expected a table")
+    allow = _allow(data.get("allow", list(DEFAULT_ALLOW)), f"{where}.allow")
+    section: RegistrySection = _section(
+        RegistrySection, {k: v for k, v in data.items() if k != "allow"}, where
+    )
+    section = replace(section, allow=allow)
+    if section.max_registrations < 1:
+        raise ConfigError(f"{where}.max_registrations: must be at least 1, got {section.max_registrations}")
     for key in ("period", "timeout", "grace"):
         if not math.isfinite(getattr(section, key)):
             raise ConfigError(f"{where}.{key}: must be a finite number of seconds")
@@ -286,6 +307,19 @@ def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
             raise ConfigError(f"{where}.persist: {str(path)!r} is a folder; name a file")
         section = replace(section, persist=str(path))
     return section
+
+
+def _allow(value: Any, where: str) -> tuple[str, ...]:
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise ConfigError(
+            f'{where}: expected an array of strings like ["127.0.0.0/8", "serial:/dev/ttyUSB*"]'
+        )
+    for entry in value:
+        try:
+            parse_allow_entry(entry)
+        except InvalidArgument as exc:
+            raise ConfigError(f"{where}: {exc.message}") from None
+    return tuple(value)
 
 
 def _name(entry: Any, where: str, known: tuple[str, ...], seen: set[str]) -> str:
