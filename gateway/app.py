@@ -266,7 +266,13 @@ class Gateway:
         if not address:
             return
         try:
-            self._line_listener = await start_line_listener(address, self.router, self._rejoined)
+            self._line_listener = await start_line_listener(
+                address,
+                self.router,
+                self._rejoined,
+                idle_timeout=self.config.limits.line_idle_timeout,
+                max_greetings_per_source=self.config.limits.max_greetings_per_source,
+            )
         except OSError as exc:
             if exc.errno != errno.EADDRINUSE:
                 raise
