@@ -23,7 +23,7 @@ MAX_RSS_GROWTH_MB = 20.0
 MAX_P99_S = 0.1
 
 Refusal = tuple[grpc.StatusCode, str, float]
-Attacked = tuple[GatewayProcess, pb_grpc.PropertyServiceStub, int]
+Attacked = tuple[GatewayProcess, pb_grpc.PropertyServiceStub, int, int]
 
 
 def rss_mb(gw: GatewayProcess) -> float:
@@ -68,7 +68,7 @@ CONFIG = """
 line_listen = "127.0.0.1:{line_port}"
 
 [registry]
-allow = ["127.0.0.1:{open_port}", "serial:/dev/pts/*"]
+allow = ["127.0.0.1:{mute_port}", "serial:/dev/pts/*"]
 
 [[services]]
 name = "bot"
@@ -82,13 +82,12 @@ serial = "pty"
 
 
 @pytest.fixture
-async def attacked(
-    gateway_process: StartGateway,
-) -> AsyncIterator[tuple[GatewayProcess, pb_grpc.PropertyServiceStub, int]]:
+async def attacked(gateway_process: StartGateway) -> AsyncIterator[Attacked]:
     line_port = free_port()
-    gw = gateway_process(CONFIG.format(line_port=line_port, open_port=free_port()))
-    async with grpc.aio.insecure_channel(gw.address) as channel:
-        yield gw, pb_grpc.PropertyServiceStub(channel), line_port
+    with listening_port() as mute_port:
+        gw = gateway_process(CONFIG.format(line_port=line_port, mute_port=mute_port))
+        async with grpc.aio.insecure_channel(gw.address) as channel:
+            yield gw, pb_grpc.PropertyServiceStub(channel), line_port, mute_port
 
 
 async def services_listed(stub: pb_grpc.PropertyServiceStub) -> str:
@@ -99,7 +98,7 @@ async def services_listed(stub: pb_grpc.PropertyServiceStub) -> str:
 async def test_every_attack_is_refused_and_a_bystander_keeps_working(
     attacked: Attacked,
 ) -> None:
-    gw, stub, line_port = attacked
+    gw, stub, line_port, mute_port = attacked
     await bystander_p99(stub, 20)  # warm up
     rss_before, p99_before = rss_mb(gw), await bystander_p99(stub)
     listed = await services_listed(stub)
@@ -150,12 +149,26 @@ async def test_every_attack_is_refused_and_a_bystander_keeps_working(
     reply = await stub.Get(pb.GetRequest(service="rover", property="location"), timeout=WAIT)
     assert reply.value
 
+    # URL knobs out of their ranges are refused, not taken as given.
+    for knobs in ("keepalive=0.001", "timeout=1e300", "max_in_flight=100000", "poll_interval=nan"):
+        code, details, took = await refused(stub, "services.knobs", f"tcp://127.0.0.1:{mute_port}?{knobs}")
+        assert code == grpc.StatusCode.INVALID_ARGUMENT and "must be from" in details, details
+        assert took < 1.0
+
+    # A port that accepts but never greets: the registration limit (4 s here) holds.
+    for url in (f"tcp://127.0.0.1:{mute_port}", f"grpc://127.0.0.1:{mute_port}"):
+        code, details, took = await refused(stub, "services.mute", url)
+        assert code in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.UNAVAILABLE), details
+        assert "nothing was registered" in details
+        assert took < 4.6, (url, took)
+
     assert await services_listed(stub) == listed
     rss_after, p99_after = rss_mb(gw), await bystander_p99(stub)
     figures = (rss_before, rss_after, p99_before * 1e3, p99_after * 1e3)
     print("RSS {:.1f} -> {:.1f} MB; bystander Get p99 {:.1f} -> {:.1f} ms".format(*figures))
     assert rss_after - rss_before < MAX_RSS_GROWTH_MB
     assert p99_after < MAX_P99_S
+    assert "Future exception was never retrieved" not in gw.output
 
 
 async def test_the_default_allow_list_is_loopback_only(gateway_process: StartGateway) -> None:
