@@ -19,6 +19,7 @@ import logging
 import signal
 import sys
 from collections.abc import Mapping
+from pathlib import Path
 from types import TracebackType
 from urllib.parse import urlsplit
 
@@ -111,7 +112,7 @@ class Gateway:
             self._launch_devices()
             await self._start_registry()
             # Services that reach others (groups) start last, once the services they name are there.
-            plain = [e for e in self.config.services if not _needs_directory(e)]
+            plain = [e for e in self.config.services if not _needs_directory(e) and not e.dials_in]
             for entry in plain:
                 backend = self._open(entry)
                 await self._add(entry.name, backend, entry.url or f"type {entry.type}")
@@ -272,6 +273,7 @@ class Gateway:
                 self._rejoined,
                 idle_timeout=self.config.limits.line_idle_timeout,
                 max_greetings_per_source=self.config.limits.max_greetings_per_source,
+                device_secrets=self._device_secrets(),
             )
         except OSError as exc:
             if exc.errno != errno.EADDRINUSE:
@@ -283,6 +285,19 @@ class Gateway:
             address = f"{bound[0]}:{bound[1]}"
         self.line_address = address
         log.info("line-protocol listener on %s", address)
+
+    def _device_secrets(self) -> dict[str, str]:
+        """Name → secret of each configured device that dials in (read at start, never logged)."""
+        secrets = {}
+        for entry in self.config.services:
+            if entry.dials_in:
+                try:
+                    secrets[entry.name] = Path(entry.secret_file).read_text(encoding="utf-8").strip()
+                except OSError as exc:
+                    raise ConfigError(
+                        f"{self.config.source}: services ({entry.name}).secret_file: {exc}"
+                    ) from None
+        return secrets
 
     def _rejoined(self, name: str, info: BackendInfo) -> None:
         """A device dialled in again after a drop: the registry hears at once that it is up."""

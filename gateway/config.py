@@ -122,7 +122,18 @@ class ServiceEntry:
     type: str = ""
     url: str = ""
     options: Mapping[str, Any] = field(default_factory=dict)
+    #: A device that dials in (``url = "tcp-in://"``): the file holding the secret its greeting
+    #: must carry (``secret=...``); absolute once parsed. Nobody else may take its name.
+    secret_file: str = ""
 
+    @property
+    def dials_in(self) -> bool:
+        """A device that dials in to the line listener, not a backend the gateway opens."""
+        return self.url.startswith(f"{DIAL_IN_SCHEME}:")
+
+
+#: URL scheme of a configured device that dials in to the line listener.
+DIAL_IN_SCHEME = "tcp-in"
 
 #: The one value ``[[devices]] serial`` takes: a pseudo-terminal the device process creates.
 PTY = "pty"
@@ -242,7 +253,7 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>", folder: Path
         problems.found.append(f"{source}: services: expected an array of tables ([[services]])")
         raw_services = []
     for i, raw in enumerate(raw_services):
-        services += problems.attempt(lambda: [_service(raw, f"{source}: services[{i}]", seen)], [])  # noqa: B023
+        services += problems.attempt(lambda: [_service(raw, f"{source}: services[{i}]", seen, folder)], [])  # noqa: B023
     devices: list[DeviceEntry] = []
     raw_devices = data.get("devices", [])
     if not isinstance(raw_devices, list):
@@ -250,6 +261,8 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>", folder: Path
         raw_devices = []
     for i, raw in enumerate(raw_devices):
         devices += problems.attempt(lambda: [_device(raw, f"{source}: devices[{i}]", seen)], [])  # noqa: B023
+    if any(e.dials_in for e in services) and not gw.line_listen:
+        problems.found.append(f"{source}: services: a device that dials in needs gateway.line_listen")
     if problems.found:
         raise ConfigError(*problems.found)
     return Config(
@@ -344,8 +357,8 @@ def _name(entry: Any, where: str, known: tuple[str, ...], seen: set[str]) -> str
     return name
 
 
-def _service(entry: Any, where: str, seen: set[str]) -> ServiceEntry:
-    name = _name(entry, where, ("name", "type", "url", "options"), seen)
+def _service(entry: Any, where: str, seen: set[str], folder: Path | None = None) -> ServiceEntry:
+    name = _name(entry, where, ("name", "type", "url", "options", "secret_file"), seen)
     where = f"{where} ({name})"
     kind = _typed(entry.get("type", ""), str, f"{where}.type")
     url = _typed(entry.get("url", ""), str, f"{where}.url")
@@ -356,7 +369,32 @@ def _service(entry: Any, where: str, seen: set[str]) -> ServiceEntry:
     options = entry.get("options", {})
     if not isinstance(options, Mapping):
         raise ConfigError(f"{where}.options: expected a table like {{ speed = 0.5 }}")
-    return ServiceEntry(name=name, type=kind, url=url, options=dict(options))
+    secret_file = _typed(entry.get("secret_file", ""), str, f"{where}.secret_file")
+    service = ServiceEntry(name=name, type=kind, url=url, options=dict(options))
+    if service.dials_in or secret_file:
+        service = replace(service, secret_file=_secret_file(service, secret_file, where, folder))
+    return service
+
+
+def _secret_file(service: ServiceEntry, secret_file: str, where: str, folder: Path | None) -> str:
+    if not service.dials_in:
+        raise ConfigError(f'{where}.secret_file: only a device that dials in (url = "tcp-in://") has one')
+    if service.url != f"{DIAL_IN_SCHEME}://" or service.options:
+        raise ConfigError(f'{where}.url: a device that dials in is url = "tcp-in://" with no options')
+    if not secret_file:
+        raise ConfigError(
+            f"{where}: a device that dials in needs secret_file (its greeting carries the secret)"
+        )
+    path = Path(secret_file).expanduser()
+    if not path.is_absolute():
+        path = (folder if folder is not None else Path.cwd()) / path
+    try:
+        secret = path.read_text(encoding="utf-8").strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{where}.secret_file: cannot read {str(path)!r}: {exc}") from None
+    if not secret or any(c.isspace() for c in secret):
+        raise ConfigError(f"{where}.secret_file: the secret must be one word with no spaces")
+    return str(path)
 
 
 def _device(entry: Any, where: str, seen: set[str]) -> DeviceEntry:

@@ -28,13 +28,22 @@ takes its place back.
 from __future__ import annotations
 
 import asyncio
+import hmac
 import logging
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.device import DeviceServer
-from services.errors import AlreadyExists, Code, InvalidArgument, PropertyError, ReadOnly, ResourceExhausted
+from services.errors import (
+    AlreadyExists,
+    Code,
+    InvalidArgument,
+    PropertyError,
+    ReadOnly,
+    ResourceExhausted,
+    Unauthenticated,
+)
 from services.line_protocol import MAX_LINE, ErrorReply, Hello, LineReceiver, encode
 from services.paths import validate_service_name
 from services.values import format_names
@@ -310,8 +319,11 @@ class LineListener:
         on_rejoin: Callable[[str, BackendInfo], None] | None = None,
         idle_timeout: float = LINE_IDLE_TIMEOUT,
         max_greetings_per_source: int = MAX_GREETINGS_PER_SOURCE,
+        device_secrets: Mapping[str, str] | None = None,
     ) -> None:
-        """``device_options`` tune the proxies of devices that dial in (default ``INBOUND_OPTIONS``);
+        """``device_secrets`` (name → secret) are the configured devices that dial in: each name is
+        taken only by a greeting that carries ``secret=`` with its secret.
+        ``device_options`` tune the proxies of devices that dial in (default ``INBOUND_OPTIONS``);
         ``on_rejoin(name, info)`` hears of a device that dialled in again after a drop (the gateway
         tells its registry at once that the service is up again, at its new address)."""
         self.router = router
@@ -327,6 +339,7 @@ class LineListener:
         )
         self.address: tuple[str, int] | None = None
         self._reaper: asyncio.Task[None] | None = None
+        self._device_secrets = dict(device_secrets or {})
 
     async def serve_device(
         self, hello: Hello, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str
@@ -383,6 +396,7 @@ class LineListener:
                 "a device that dials in must give its name in its greeting: HELLO 1 name=NAME type=TYPE"
             )
         validate_service_name(name)
+        self._check_secret(hello)
         existing = self.router.lookup(name) if name in self.router else None
         if existing is not None:
             if not isinstance(existing, InboundProxy):
@@ -402,6 +416,16 @@ class LineListener:
             await proxy.aclose()
             raise
         return proxy
+
+    def _check_secret(self, hello: Hello) -> None:
+        """A configured device's name is taken only with its secret (UNAUTHENTICATED otherwise)."""
+        expected = self._device_secrets.get(hello.name)
+        if expected is None:
+            return
+        given = hello.extra.get("secret", "")
+        if not hmac.compare_digest(given.encode(), expected.encode()):
+            what = "a wrong secret" if given else "no secret"
+            raise Unauthenticated(f"{hello.name!r} is a configured device; the greeting carried {what}")
 
     async def start(self, host: str, port: int) -> tuple[str, int]:
         """Listen on ``host:port`` (0 = any free port); return the bound address."""
@@ -437,6 +461,7 @@ async def start_line_listener(
     *,
     idle_timeout: float = LINE_IDLE_TIMEOUT,
     max_greetings_per_source: int = MAX_GREETINGS_PER_SOURCE,
+    device_secrets: Mapping[str, str] | None = None,
 ) -> LineListener:
     """Start a :class:`LineListener` on ``address`` ("HOST:PORT") for ``router``."""
     listener = LineListener(
@@ -444,6 +469,7 @@ async def start_line_listener(
         on_rejoin=on_rejoin,
         idle_timeout=idle_timeout,
         max_greetings_per_source=max_greetings_per_source,
+        device_secrets=device_secrets,
     )
     await listener.start(*parse_address(address))
     return listener
