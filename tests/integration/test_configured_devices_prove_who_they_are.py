@@ -7,6 +7,7 @@ from pathlib import Path
 
 import grpc
 from line_device_support import LineClient, device_process
+from support.bystander import registry_state
 from support.gateway_process import StartGateway
 from support.ports import free_port
 from support.waiting import eventually
@@ -52,15 +53,12 @@ async def test_only_the_device_with_the_secret_takes_its_configured_name(
         with device_process(
             "--service", "sim-robot", "--name", "rover", "--connect", address, "--secret-file", str(secret)
         ):
-
-            async def rover_state() -> str:
-                try:
-                    reply = await stub.Get(pb.GetRequest(service="registry", property="services.rover.state"))
-                except grpc.aio.AioRpcError as exc:
-                    return exc.code().name
-                return str(reply.value)
-
-            assert await eventually(rover_state, lambda s: s == "up", within=WAIT, what="rover") == "up"
+            assert (
+                await eventually(
+                    lambda: registry_state(stub, "rover"), lambda s: s == "up", within=WAIT, what="rover"
+                )
+                == "up"
+            )
             reply = await stub.Get(pb.GetRequest(service="rover", property="location"), timeout=WAIT)
             assert reply.value
             impostor = await greeting_answer(line_port, "HELLO 1 name=rover type=robot")

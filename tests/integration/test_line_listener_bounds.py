@@ -4,10 +4,10 @@ devices, and one source address cannot register any number of services by greeti
 from __future__ import annotations
 
 import asyncio
-import time
 
 import grpc
 from line_device_support import LineClient, device_process
+from support.bystander import get_p99, registry_state, rss_mb
 from support.gateway_process import StartGateway
 from support.ports import free_port
 from support.waiting import eventually
@@ -17,23 +17,6 @@ from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
 WAIT = 15.0
 IDLE_CONNECTIONS = 1024
-
-
-def rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status", encoding="ascii") as status:
-        for line in status:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    raise AssertionError("no VmRSS")
-
-
-async def get_p99(stub: pb_grpc.PropertyServiceStub) -> float:
-    times = []
-    for _ in range(100):
-        began = time.perf_counter()
-        await stub.Get(pb.GetRequest(service="bot", property="location"), timeout=WAIT)
-        times.append(time.perf_counter() - began)
-    return sorted(times)[98]
 
 
 async def test_idle_connections_cannot_lock_out_a_device_and_greetings_are_bounded(
@@ -52,21 +35,18 @@ async def test_idle_connections_cannot_lock_out_a_device_and_greetings_are_bound
     """)
     async with grpc.aio.insecure_channel(gw.address) as channel:
         stub = pb_grpc.PropertyServiceStub(channel)
-        await get_p99(stub)
-        rss_before, p99_before = rss_mb(gw.proc.pid), await get_p99(stub)
+        await get_p99(stub, "bot", "location")
+        rss_before, p99_before = rss_mb(gw.proc.pid), await get_p99(stub, "bot", "location")
         idle = [await asyncio.open_connection("127.0.0.1", line_port) for _ in range(IDLE_CONNECTIONS)]
         await asyncio.sleep(1.5)  # silent long enough to be made room for
         address = f"127.0.0.1:{line_port}"
         with device_process("--service", "sim-robot", "--name", "rover", "--connect", address):
-
-            async def rover_state() -> str:
-                try:
-                    reply = await stub.Get(pb.GetRequest(service="registry", property="services.rover.state"))
-                except grpc.aio.AioRpcError as exc:
-                    return exc.code().name
-                return str(reply.value)
-
-            assert await eventually(rover_state, lambda s: s == "up", within=WAIT, what="rover") == "up"
+            assert (
+                await eventually(
+                    lambda: registry_state(stub, "rover"), lambda s: s == "up", within=WAIT, what="rover"
+                )
+                == "up"
+            )
 
             # A second device from the same source address is one too many.
             client = await LineClient.tcp("127.0.0.1", line_port)
@@ -87,7 +67,7 @@ async def test_idle_connections_cannot_lock_out_a_device_and_greetings_are_bound
             assert reply.value
         for _, writer in idle:
             writer.close()
-        rss_after, p99_after = rss_mb(gw.proc.pid), await get_p99(stub)
+        rss_after, p99_after = rss_mb(gw.proc.pid), await get_p99(stub, "bot", "location")
         figures = (rss_before, rss_after, p99_before * 1e3, p99_after * 1e3)
         print("RSS {:.1f} -> {:.1f} MB; bystander Get p99 {:.1f} -> {:.1f} ms".format(*figures))
         assert rss_after - rss_before < 30

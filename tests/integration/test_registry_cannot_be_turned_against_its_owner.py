@@ -10,6 +10,7 @@ from contextlib import contextmanager
 
 import grpc
 import pytest
+from support.bystander import get_p99, rss_mb
 from support.gateway_process import GatewayProcess, StartGateway
 from support.ports import free_port
 
@@ -26,22 +27,8 @@ Refusal = tuple[grpc.StatusCode, str, float]
 Attacked = tuple[GatewayProcess, pb_grpc.PropertyServiceStub, int, int]
 
 
-def rss_mb(gw: GatewayProcess) -> float:
-    with open(f"/proc/{gw.proc.pid}/status", encoding="ascii") as status:
-        for line in status:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    raise AssertionError("no VmRSS")
-
-
 async def bystander_p99(stub: pb_grpc.PropertyServiceStub, count: int = 100) -> float:
-    times = []
-    for _ in range(count):
-        began = time.perf_counter()
-        await stub.Get(pb.GetRequest(service="bot", property="location"), timeout=WAIT)
-        times.append(time.perf_counter() - began)
-    times.sort()
-    return times[int(0.99 * (len(times) - 1))]
+    return await get_p99(stub, "bot", "location", count)
 
 
 async def refused(
@@ -100,7 +87,7 @@ async def test_every_attack_is_refused_and_a_bystander_keeps_working(
 ) -> None:
     gw, stub, line_port, mute_port = attacked
     await bystander_p99(stub, 20)  # warm up
-    rss_before, p99_before = rss_mb(gw), await bystander_p99(stub)
+    rss_before, p99_before = rss_mb(gw.proc.pid), await bystander_p99(stub)
     listed = await services_listed(stub)
     gw_port = int(gw.address.rpartition(":")[2])
     rover_url = (
@@ -163,7 +150,7 @@ async def test_every_attack_is_refused_and_a_bystander_keeps_working(
         assert took < 4.6, (url, took)
 
     assert await services_listed(stub) == listed
-    rss_after, p99_after = rss_mb(gw), await bystander_p99(stub)
+    rss_after, p99_after = rss_mb(gw.proc.pid), await bystander_p99(stub)
     figures = (rss_before, rss_after, p99_before * 1e3, p99_after * 1e3)
     print("RSS {:.1f} -> {:.1f} MB; bystander Get p99 {:.1f} -> {:.1f} ms".format(*figures))
     assert rss_after - rss_before < MAX_RSS_GROWTH_MB
