@@ -19,7 +19,9 @@ import logging
 import signal
 import sys
 from collections.abc import Mapping
+from pathlib import Path
 from types import TracebackType
+from urllib.parse import urlsplit
 
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
@@ -40,7 +42,7 @@ from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, BackendInfo
 from services.catalog import create, needs_directory
 from services.errors import PropertyError
-from services.registry import DEFAULT_REGISTER_TIMEOUT, Registry, RegistryService
+from services.registry import DEFAULT_REGISTER_TIMEOUT, AllowList, Registry, RegistryService
 from services.registry import ServiceEntry as RegistryEntry
 
 log = logging.getLogger("gateway")
@@ -86,6 +88,11 @@ class Gateway:
         self.servicer = PropertyServicer(self.router, self.hub, self.config)
         #: The gRPC port's TLS credentials; None when it is plaintext.
         self.credentials: ServerCredentials | None = None
+        #: What registrations may reach (``[registry] allow``) and what is this gateway itself.
+        self.allow = AllowList(self.config.registry.allow, own_ports=self._own_ports)
+        for entry in self.config.services:
+            if entry.url.startswith("serial://"):
+                self.allow.reserve(urlsplit(entry.url).path)
 
     async def __aenter__(self) -> Gateway:
         await self.start()
@@ -111,7 +118,7 @@ class Gateway:
             self._launch_devices()
             await self._start_registry()
             # Services that reach others (groups) start last, once the services they name are there.
-            plain = [e for e in self.config.services if not _needs_directory(e)]
+            plain = [e for e in self.config.services if not _needs_directory(e) and not e.dials_in]
             for entry in plain:
                 backend = self._open(entry)
                 await self._add(entry.name, backend, entry.url or f"type {entry.type}")
@@ -183,6 +190,8 @@ class Gateway:
                 raise outcome
         proxies: list[tuple[str, Backend]] = []
         for entry, device in zip(self.config.devices, self._devices, strict=True):
+            if device.url.startswith("serial://"):
+                self.allow.reserve(urlsplit(device.url).path)
             backend = open_proxy(entry.name, device.url, entry.proxy)
             await self._add(entry.name, backend, f"device process {device.pid} at {device.url}")
             proxies.append((entry.name, backend))
@@ -217,6 +226,15 @@ class Gateway:
                 ", ".join(missing),
             )
 
+    def _own_ports(self) -> list[int]:
+        """The TCP ports this gateway listens on: a registration naming one would call itself."""
+        ports = []
+        for address in (self.config.gateway.listen, self.address, self.line_address):
+            tail = address.rpartition(":")[2]
+            if not address.startswith("unix:") and tail.isdigit() and int(tail):
+                ports.append(int(tail))
+        return ports
+
     async def _start_registry(self) -> None:
         settings = self.config.registry
         static = [e.name for e in self.config.services] + [d.name for d in self.config.devices]
@@ -229,6 +247,8 @@ class Gateway:
             register_timeout=min(DEFAULT_REGISTER_TIMEOUT, REGISTER_SHARE * self.config.gateway.call_timeout),
             static=static,
             persist=settings.persist or None,
+            allow=self.allow,
+            max_registrations=settings.max_registrations,
         )
         await self._add(REGISTRY_NAME, RegistryService(self.registry), "built in")
         self._unwatch_registry = self.registry.watch_states(self._on_state)
@@ -256,7 +276,14 @@ class Gateway:
             line_tls = self.config.tls.line
             context = line_ssl_context(line_tls) if line_tls.enabled else None
             self._line_listener = await start_line_listener(
-                address, self.router, self._rejoined, self.guard, ssl_context=context
+                address,
+                self.router,
+                self._rejoined,
+                self.guard,
+                ssl_context=context,
+                idle_timeout=self.config.limits.line_idle_timeout,
+                max_greetings_per_source=self.config.limits.max_greetings_per_source,
+                device_secrets=self._device_secrets(),
             )
         except OSError as exc:
             if exc.errno != errno.EADDRINUSE:
@@ -268,6 +295,19 @@ class Gateway:
             address = f"{bound[0]}:{bound[1]}"
         self.line_address = address
         log.info("line-protocol listener on %s", address)
+
+    def _device_secrets(self) -> dict[str, str]:
+        """Name → secret of each configured device that dials in (read at start, never logged)."""
+        secrets = {}
+        for entry in self.config.services:
+            if entry.dials_in:
+                try:
+                    secrets[entry.name] = Path(entry.secret_file).read_text(encoding="utf-8").strip()
+                except OSError as exc:
+                    raise ConfigError(
+                        f"{self.config.source}: services ({entry.name}).secret_file: {exc}"
+                    ) from None
+        return secrets
 
     def _rejoined(self, name: str, info: BackendInfo) -> None:
         """A device dialled in again after a drop: the registry hears at once that it is up."""

@@ -22,6 +22,7 @@ from gateway.identity import Authenticator, AuthSection
 from gateway.rules import Rule
 from services.errors import InvalidArgument, PropertyError
 from services.paths import validate_service_name
+from services.registry import DEFAULT_ALLOW, DEFAULT_MAX_REGISTRATIONS, parse_allow_entry
 
 #: The service every gateway hosts itself; a config may not define it.
 REGISTRY_NAME = "registry"
@@ -130,6 +131,11 @@ class Limits:
     session_max_queued_replies: int = 1024
     #: Smallest min_interval, sample_interval or heartbeat_interval accepted (seconds).
     min_interval_floor: float = 0.001
+    #: Seconds a line-listener connection may stay silent (nothing read, nothing written) before
+    #: it is closed; and when the listener is full, the connection silent longest makes room.
+    line_idle_timeout: float = 300.0
+    #: Connections of the line listener from one source address at once (devices and clients).
+    max_greetings_per_source: int = 64
 
 
 @dataclass(frozen=True, slots=True)
@@ -147,6 +153,11 @@ class RegistrySection:
     #: JSON file keeping the registrations made by Set across restarts; empty = not kept.
     #: A relative path is taken from the config file's folder (absolute once parsed).
     persist: str = ""
+    #: Addresses a registration may reach: networks with optional ports, serial path globs
+    #: (``services.registry.allow``); default: loopback and USB serial adapters.
+    allow: tuple[str, ...] = DEFAULT_ALLOW
+    #: Registrations by Set held at once.
+    max_registrations: int = DEFAULT_MAX_REGISTRATIONS
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,7 +168,18 @@ class ServiceEntry:
     type: str = ""
     url: str = ""
     options: Mapping[str, Any] = field(default_factory=dict)
+    #: A device that dials in (``url = "tcp-in://"``): the file holding the secret its greeting
+    #: must carry (``secret=...``); absolute once parsed. Nobody else may take its name.
+    secret_file: str = ""
 
+    @property
+    def dials_in(self) -> bool:
+        """A device that dials in to the line listener, not a backend the gateway opens."""
+        return self.url.startswith(f"{DIAL_IN_SCHEME}:")
+
+
+#: URL scheme of a configured device that dials in to the line listener.
+DIAL_IN_SCHEME = "tcp-in"
 
 #: The one value ``[[devices]] serial`` takes: a pseudo-terminal the device process creates.
 PTY = "pty"
@@ -337,7 +359,7 @@ def parse_config_partly(
         problems.found.append(f"{source}: services: expected an array of tables ([[services]])")
         raw_services = []
     for i, raw in enumerate(raw_services):
-        services += problems.attempt(lambda: [_service(raw, f"{source}: services[{i}]", seen)], [])  # noqa: B023
+        services += problems.attempt(lambda: [_service(raw, f"{source}: services[{i}]", seen, folder)], [])  # noqa: B023
     devices: list[DeviceEntry] = []
     raw_devices = data.get("devices", [])
     if not isinstance(raw_devices, list):
@@ -348,6 +370,8 @@ def parse_config_partly(
     auth = problems.attempt(lambda: _auth(data.get("auth", {}), f"{source}: auth", folder), AuthSection())
     rules: tuple[Rule, ...] = problems.attempt(lambda: _rules(data.get("rules", []), f"{source}: rules"), ())
     audit = problems.attempt(lambda: _section(AuditSection, data.get("audit", {}), f"{source}: audit"), None)
+    if any(e.dials_in for e in services) and not gw.line_listen:
+        problems.found.append(f"{source}: services: a device that dials in needs gateway.line_listen")
     config = Config(
         auth=auth,
         rules=rules,
@@ -461,32 +485,63 @@ def _check_exposure(gw: GatewaySection, tls: TlsSection, where: str) -> None:
 def _limits(data: Any, where: str) -> Limits:
     def checks(limits: Limits, found: list[str]) -> Limits:
         for f in fields(Limits):
-            if f.name != "min_interval_floor" and getattr(limits, f.name) < 1:
+            if f.name not in ("min_interval_floor", "line_idle_timeout") and getattr(limits, f.name) < 1:
                 found.append(f"{where}.{f.name}: must be at least 1")
+        if not (math.isfinite(limits.line_idle_timeout) and limits.line_idle_timeout > 0):
+            found.append(f"{where}.line_idle_timeout: must be a positive number of seconds")
         return limits
 
     return _checked_section(Limits, data, where, checks)
 
 
 def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
-    def checks(section: RegistrySection, found: list[str]) -> RegistrySection:
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where}: expected a table")
+    found: list[str] = []
+    try:
+        allow = _allow(data.get("allow", list(DEFAULT_ALLOW)), f"{where}.allow")
+    except ConfigError as exc:
+        found.extend(exc.problems)
+        allow = DEFAULT_ALLOW
+
+    def checks(section: RegistrySection, found_here: list[str]) -> RegistrySection:
+        found_here.extend(found)
+        section = replace(section, allow=allow)
+        if section.max_registrations < 1:
+            found_here.append(
+                f"{where}.max_registrations: must be at least 1, got {section.max_registrations}"
+            )
         for key in ("period", "timeout", "grace"):
             if not math.isfinite(getattr(section, key)):
-                found.append(f"{where}.{key}: must be a finite number of seconds")
+                found_here.append(f"{where}.{key}: must be a finite number of seconds")
         if section.timeout <= 0:
-            found.append(f"{where}.timeout: must be positive, got {section.timeout}")
+            found_here.append(f"{where}.timeout: must be positive, got {section.timeout}")
         if section.misses < 1:
-            found.append(f"{where}.misses: must be at least 1, got {section.misses}")
+            found_here.append(f"{where}.misses: must be at least 1, got {section.misses}")
         if section.persist:
             path = Path(section.persist).expanduser()
             if not path.is_absolute():
                 path = (folder if folder is not None else Path.cwd()) / path
             if path.is_dir():
-                found.append(f"{where}.persist: {str(path)!r} is a folder; name a file")
+                found_here.append(f"{where}.persist: {str(path)!r} is a folder; name a file")
             section = replace(section, persist=str(path))
         return section
 
-    return _checked_section(RegistrySection, data, where, checks)
+    rest = {k: v for k, v in data.items() if k != "allow"}
+    return _checked_section(RegistrySection, rest, where, checks)
+
+
+def _allow(value: Any, where: str) -> tuple[str, ...]:
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise ConfigError(
+            f'{where}: expected an array of strings like ["127.0.0.0/8", "serial:/dev/ttyUSB*"]'
+        )
+    for entry in value:
+        try:
+            parse_allow_entry(entry)
+        except InvalidArgument as exc:
+            raise ConfigError(f"{where}: {exc.message}") from None
+    return tuple(value)
 
 
 def _auth(data: Any, where: str, folder: Path | None) -> AuthSection:
@@ -568,8 +623,8 @@ def _name(entry: Any, where: str, known: tuple[str, ...], seen: set[str]) -> str
     return name
 
 
-def _service(entry: Any, where: str, seen: set[str]) -> ServiceEntry:
-    name = _name(entry, where, ("name", "type", "url", "options"), seen)
+def _service(entry: Any, where: str, seen: set[str], folder: Path | None = None) -> ServiceEntry:
+    name = _name(entry, where, ("name", "type", "url", "options", "secret_file"), seen)
     where = f"{where} ({name})"
     kind = _typed(entry.get("type", ""), str, f"{where}.type")
     url = _typed(entry.get("url", ""), str, f"{where}.url")
@@ -580,7 +635,32 @@ def _service(entry: Any, where: str, seen: set[str]) -> ServiceEntry:
     options = entry.get("options", {})
     if not isinstance(options, Mapping):
         raise ConfigError(f"{where}.options: expected a table like {{ speed = 0.5 }}")
-    return ServiceEntry(name=name, type=kind, url=url, options=dict(options))
+    secret_file = _typed(entry.get("secret_file", ""), str, f"{where}.secret_file")
+    service = ServiceEntry(name=name, type=kind, url=url, options=dict(options))
+    if service.dials_in or secret_file:
+        service = replace(service, secret_file=_secret_file(service, secret_file, where, folder))
+    return service
+
+
+def _secret_file(service: ServiceEntry, secret_file: str, where: str, folder: Path | None) -> str:
+    if not service.dials_in:
+        raise ConfigError(f'{where}.secret_file: only a device that dials in (url = "tcp-in://") has one')
+    if service.url != f"{DIAL_IN_SCHEME}://" or service.options:
+        raise ConfigError(f'{where}.url: a device that dials in is url = "tcp-in://" with no options')
+    if not secret_file:
+        raise ConfigError(
+            f"{where}: a device that dials in needs secret_file (its greeting carries the secret)"
+        )
+    path = Path(secret_file).expanduser()
+    if not path.is_absolute():
+        path = (folder if folder is not None else Path.cwd()) / path
+    try:
+        secret = path.read_text(encoding="utf-8").strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{where}.secret_file: cannot read {str(path)!r}: {exc}") from None
+    if not secret or any(c.isspace() for c in secret):
+        raise ConfigError(f"{where}.secret_file: the secret must be one word with no spaces")
+    return str(path)
 
 
 def _device(entry: Any, where: str, seen: set[str]) -> DeviceEntry:

@@ -35,6 +35,7 @@ subject, exactly as on the gRPC port; a refusal is an ``ERR 16``
 from __future__ import annotations
 
 import asyncio
+import hmac
 import logging
 import ssl
 from collections.abc import Mapping
@@ -45,7 +46,15 @@ from gateway.identity import ANONYMOUS
 from gateway.rules import Operation, Subject
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.device import DeviceServer
-from services.errors import AlreadyExists, InvalidArgument, PropertyError, ReadOnly
+from services.errors import (
+    AlreadyExists,
+    Code,
+    InvalidArgument,
+    PropertyError,
+    ReadOnly,
+    ResourceExhausted,
+    Unauthenticated,
+)
 from services.line_protocol import MAX_LINE, ErrorReply, Hello, LineReceiver, encode
 from services.paths import validate_service_name
 from services.values import format_names
@@ -63,6 +72,13 @@ log = logging.getLogger(__name__)
 MAX_CONNECTIONS = 1024
 #: Seconds a device that dialled in gets to be taken up by its proxy.
 _TAKE_UP = 5.0
+#: Seconds a connection may stay silent (nothing read from it) before it is closed.
+LINE_IDLE_TIMEOUT = 300.0
+#: Devices that dialled in from one source address and are served at once.
+MAX_GREETINGS_PER_SOURCE = 64
+#: A full listener closes the connection silent longest to admit a new one, if it has been
+#: silent at least this long (a busy listener is not churned by a flood of fresh connections).
+_EVICT_AFTER = 1.0
 
 
 class _Watch(Subscription):
@@ -195,16 +211,111 @@ class _FirstLine(asyncio.StreamReader):
         return await self._inner.read(n)
 
 
+class _Heard(asyncio.StreamReader):
+    """A stream that remembers when its peer last sent anything (for the idle timeout)."""
+
+    def __init__(self, inner: asyncio.StreamReader) -> None:
+        super().__init__()
+        self._inner = inner
+        self.last_heard = asyncio.get_running_loop().time()
+
+    async def read(self, n: int = -1) -> bytes:
+        data = await self._inner.read(n)
+        self.last_heard = asyncio.get_running_loop().time()
+        return data
+
+
+class ConnectionBounds:
+    """How many line-listener connections are open, how long each has been silent, and who greeted.
+
+    Silent connections are closed after ``idle_timeout``; a full listener
+    makes room by closing the one silent longest; one source address may
+    have at most ``max_greetings_per_source`` devices served at once.
+    """
+
+    def __init__(self, *, max_connections: int, idle_timeout: float, max_greetings_per_source: int) -> None:
+        self.max_connections = max_connections
+        self.idle_timeout = idle_timeout
+        self.max_greetings_per_source = max_greetings_per_source
+        self._open: dict[asyncio.StreamWriter, _Heard] = {}
+        self._greetings: dict[str, int] = {}
+
+    def admit(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> _Heard | None:
+        """Track a new connection, making room when full; None when no room can be made."""
+        if len(self._open) >= self.max_connections and not self._evict_quietest():
+            return None
+        heard = _Heard(reader)
+        self._open[writer] = heard
+        return heard
+
+    def release(self, writer: asyncio.StreamWriter) -> None:
+        """The connection ended."""
+        self._open.pop(writer, None)
+
+    def _evict_quietest(self) -> bool:
+        now = asyncio.get_running_loop().time()
+        writer, heard = min(self._open.items(), key=lambda item: item[1].last_heard)
+        if now - heard.last_heard < _EVICT_AFTER:
+            return False
+        log.info("line listener full: closing a connection silent for %.0f s", now - heard.last_heard)
+        self._open.pop(writer)
+        writer.close()
+        return True
+
+    def close_idle(self) -> None:
+        """Close every connection silent for ``idle_timeout`` or longer."""
+        now = asyncio.get_running_loop().time()
+        for writer, heard in list(self._open.items()):
+            if now - heard.last_heard >= self.idle_timeout:
+                log.info("line listener: closing a connection silent for %.0f s", now - heard.last_heard)
+                self._open.pop(writer)
+                writer.close()
+
+    def greet(self, source: str) -> None:
+        """Count a device greeting from ``source``; ResourceExhausted beyond the bound."""
+        if self._greetings.get(source, 0) >= self.max_greetings_per_source:
+            raise ResourceExhausted(
+                f"{self.max_greetings_per_source} devices from {source} are served already "
+                "([limits] max_greetings_per_source)"
+            )
+        self._greetings[source] = self._greetings.get(source, 0) + 1
+
+    def farewell(self, source: str) -> None:
+        """A device from ``source`` hung up."""
+        left = self._greetings.get(source, 0) - 1
+        if left > 0:
+            self._greetings[source] = left
+        else:
+            self._greetings.pop(source, None)
+
+
 class _ListenerServer(DeviceServer):
     """The device server of the line listener: clients are served, devices that greet are registered."""
 
-    def __init__(self, listener: LineListener, backend: RouterBackend, **kwargs: object) -> None:
-        super().__init__(backend, **kwargs)  # type: ignore[arg-type]
+    def __init__(
+        self, listener: LineListener, backend: RouterBackend, bounds: ConnectionBounds, **kwargs: object
+    ) -> None:
+        # The listener bounds its connections itself (ConnectionBounds), evicting silent ones.
+        super().__init__(backend, max_connections=bounds.max_connections + 1, **kwargs)  # type: ignore[arg-type]
         self._listener = listener
         self._router_backend = backend
+        self._bounds = bounds
 
     async def serve_stream(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str = ""
+    ) -> None:
+        heard = self._bounds.admit(reader, writer)
+        if heard is None:
+            writer.write(encode(ErrorReply(int(Code.RESOURCE_EXHAUSTED), "too many connections; try later")))
+            writer.close()
+            return
+        try:
+            await self._serve_admitted(heard, writer, peer)
+        finally:
+            self._bounds.release(writer)
+
+    async def _serve_admitted(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str
     ) -> None:
         first = _FirstLine(reader)
         # Each connection asks as its own subject: its own view of the router.
@@ -238,23 +349,30 @@ class LineListener:
         device_options: ProxyOptions | None = None,
         on_rejoin: Callable[[str, BackendInfo], None] | None = None,
         guard: Guard | None = None,
+        idle_timeout: float = LINE_IDLE_TIMEOUT,
+        max_greetings_per_source: int = MAX_GREETINGS_PER_SOURCE,
+        device_secrets: Mapping[str, str] | None = None,
     ) -> None:
         """``guard`` checks every request of every connection (default: nothing is refused);
+        ``device_secrets`` (name → secret) are the configured devices that dial in: each name is
+        taken only by a greeting that carries ``secret=`` with its secret;
         ``device_options`` tune the proxies of devices that dial in (default ``INBOUND_OPTIONS``);
         ``on_rejoin(name, info)`` hears of a device that dialled in again after a drop (the gateway
         tells its registry at once that the service is up again, at its new address)."""
         self.router = router
         self.device_options = device_options
         self._on_rejoin = on_rejoin
-        self.server = _ListenerServer(
-            self,
-            RouterBackend(router, guard),
-            name=name,
-            type="gateway",
-            push=True,
+        self.bounds = ConnectionBounds(
             max_connections=max_connections,
+            idle_timeout=idle_timeout,
+            max_greetings_per_source=max_greetings_per_source,
+        )
+        self.server = _ListenerServer(
+            self, RouterBackend(router, guard), self.bounds, name=name, type="gateway", push=True
         )
         self.address: tuple[str, int] | None = None
+        self._reaper: asyncio.Task[None] | None = None
+        self._device_secrets = dict(device_secrets or {})
 
     async def serve_device(
         self, hello: Hello, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str
@@ -263,16 +381,35 @@ class LineListener:
         from gateway.inbound import INBOUND_SCHEME
 
         url = f"{INBOUND_SCHEME}://{peer}"
+        source = peer.rpartition(":")[0]
+        try:
+            self.bounds.greet(source)
+        except PropertyError as exc:
+            await self._refuse(hello, writer, peer, exc)
+            return
+        try:
+            await self._serve_greeted(hello, reader, writer, url, peer)
+        finally:
+            self.bounds.farewell(source)
+
+    async def _refuse(
+        self, hello: Hello, writer: asyncio.StreamWriter, peer: str, exc: PropertyError
+    ) -> None:
+        log.warning("line listener: device %r at %s refused: %s", hello.name, peer, exc.message)
+        try:
+            writer.write(encode(ErrorReply.from_exception(exc)))
+            await writer.drain()
+        except OSError as gone:  # it hung up first: it would not have read the reason anyway
+            log.debug("line listener: could not tell %s why: %s", peer, gone)
+        writer.close()
+
+    async def _serve_greeted(
+        self, hello: Hello, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, url: str, peer: str
+    ) -> None:
         try:
             proxy = await self._take_up(hello, reader, writer, url)
         except PropertyError as exc:
-            log.warning("line listener: device %r at %s refused: %s", hello.name, peer, exc.message)
-            try:
-                writer.write(encode(ErrorReply.from_exception(exc)))
-                await writer.drain()
-            except OSError as gone:  # it hung up first: it would not have read the reason anyway
-                log.debug("line listener: could not tell %s why: %s", peer, gone)
-            writer.close()
+            await self._refuse(hello, writer, peer, exc)
             return
         log.info("service %s joined by greeting from %s (%s)", hello.name, peer, proxy.info.type)
         try:
@@ -292,6 +429,7 @@ class LineListener:
                 "a device that dials in must give its name in its greeting: HELLO 1 name=NAME type=TYPE"
             )
         validate_service_name(name)
+        self._check_secret(hello)
         existing = self.router.lookup(name) if name in self.router else None
         if existing is not None:
             if not isinstance(existing, InboundProxy):
@@ -312,14 +450,34 @@ class LineListener:
             raise
         return proxy
 
+    def _check_secret(self, hello: Hello) -> None:
+        """A configured device's name is taken only with its secret (UNAUTHENTICATED otherwise)."""
+        expected = self._device_secrets.get(hello.name)
+        if expected is None:
+            return
+        given = hello.extra.get("secret", "")
+        if not hmac.compare_digest(given.encode(), expected.encode()):
+            what = "a wrong secret" if given else "no secret"
+            raise Unauthenticated(f"{hello.name!r} is a configured device; the greeting carried {what}")
+
     async def start(
         self, host: str, port: int, *, ssl_context: ssl.SSLContext | None = None
     ) -> tuple[str, int]:
         """Listen on ``host:port`` (0 = any free port), over TLS with ``ssl_context``; the bound address."""
         self.address = await self.server.serve_tcp(host, port, ssl_context=ssl_context)
+        self._reaper = asyncio.create_task(self._close_idle_connections(), name="line listener: idle")
         return self.address
 
+    async def _close_idle_connections(self) -> None:
+        pause = min(self.bounds.idle_timeout / 4, 5.0)
+        while True:
+            await asyncio.sleep(pause)
+            self.bounds.close_idle()
+
     async def aclose(self) -> None:
+        if self._reaper is not None:
+            self._reaper.cancel()
+            await asyncio.gather(self._reaper, return_exceptions=True)
         await self.server.aclose()
 
 
@@ -338,9 +496,19 @@ async def start_line_listener(
     guard: Guard | None = None,
     *,
     ssl_context: ssl.SSLContext | None = None,
+    idle_timeout: float = LINE_IDLE_TIMEOUT,
+    max_greetings_per_source: int = MAX_GREETINGS_PER_SOURCE,
+    device_secrets: Mapping[str, str] | None = None,
 ) -> LineListener:
     """Start a :class:`LineListener` on ``address`` ("HOST:PORT") for ``router``, checked by ``guard``;
     TLS with ``ssl_context``."""
-    listener = LineListener(router, on_rejoin=on_rejoin, guard=guard)
+    listener = LineListener(
+        router,
+        on_rejoin=on_rejoin,
+        guard=guard,
+        idle_timeout=idle_timeout,
+        max_greetings_per_source=max_greetings_per_source,
+        device_secrets=device_secrets,
+    )
     await listener.start(*parse_address(address), ssl_context=ssl_context)
     return listener

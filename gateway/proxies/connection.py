@@ -35,6 +35,7 @@ from services.errors import (
 from services.line_protocol import (
     MAX_LINE,
     BadLine,
+    Cancel,
     ErrorReply,
     Event,
     Frame,
@@ -64,12 +65,14 @@ _TAG_MASK = 0xFFFFFFFF
 class _Pending:
     """One request waiting for its reply: its future, its timer, its time limit."""
 
-    __slots__ = ("future", "timeout", "timer")
+    __slots__ = ("cancel_when_abandoned", "future", "timeout", "timer")
 
     def __init__(self, future: asyncio.Future[Frame], timer: asyncio.TimerHandle, timeout: float) -> None:
         self.future = future
         self.timer = timer
         self.timeout = timeout
+        #: A SET: when nobody waits for its reply any more, the device is told to drop it.
+        self.cancel_when_abandoned = False
 
 
 class LineConnection:
@@ -229,15 +232,36 @@ class LineConnection:
             raise error_for(exc.code, f"{self.label}: cannot send the request: {exc.message}") from None
         loop = self._loop
         future: asyncio.Future[Frame] = loop.create_future()
-        self._pending[tag] = _Pending(future, loop.call_at(deadline, self._expire, tag), timeout)
+        pending = _Pending(future, loop.call_at(deadline, self._expire, tag), timeout)
+        self._pending[tag] = pending
+        if type(frame) is Set:
+            pending.cancel_when_abandoned = True
+            future.add_done_callback(lambda done: self._abandoned(done, tag))
         self._write_line(line)
         return future
+
+    def _abandoned(self, future: asyncio.Future[Frame], tag: str) -> None:
+        """The caller of a SET gave up (its own deadline): tell the device to drop the request."""
+        pending = self._pending.get(tag)
+        if future.cancelled() and pending is not None:
+            self._send_cancel(pending, tag)
+
+    def _send_cancel(self, pending: _Pending, tag: str) -> None:
+        # The client is told DEADLINE_EXCEEDED; a device that has not started the SET
+        # yet (it was frozen, or busy) must not apply it when it gets to it
+        # (docs/line-protocol.md, CANCEL). Once per request.
+        if not pending.cancel_when_abandoned or self._closed.is_set():
+            return
+        pending.cancel_when_abandoned = False
+        with contextlib.suppress(LineProtocolError):
+            self._send(Cancel(tag))
 
     def _expire(self, tag: str) -> None:
         pending = self._pending.pop(tag, None)
         if pending is None:
             return
         self._release_slot()
+        self._send_cancel(pending, tag)
         if not pending.future.done():
             self._drop_stale_half_line(pending.timeout)
             pending.future.set_exception(

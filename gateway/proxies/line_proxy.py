@@ -24,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import random
 import time
 from collections.abc import Mapping
@@ -109,7 +110,30 @@ class ProxyOptions:
                 key in ("timeout", "connect_timeout", "poll_interval") and values[key] <= 0
             ):
                 raise InvalidArgument(f"bad proxy option {key}={raw!r}: must be positive")
+            _check_range(key, values[key], raw)
         return cls(**values)
+
+
+#: Sane ranges of the numeric proxy options, as (lowest, highest). A registration names them
+#: in its URL, so without bounds ``keepalive=0.001`` would be a PING flood and ``timeout=1e300``
+#: a call that never ends. Out of range is INVALID_ARGUMENT, never silently clamped.
+OPTION_RANGES: Mapping[str, tuple[float, float]] = {
+    "timeout": (0.01, 600.0),
+    "connect_timeout": (0.01, 3600.0),
+    "backoff_initial": (0.01, 600.0),
+    "backoff_max": (0.01, 3600.0),
+    "poll_interval": (0.01, 3600.0),
+    "keepalive": (0.5, 3600.0),  # or 0: never
+    "max_in_flight": (1, 4096),
+}
+
+
+def _check_range(key: str, value: float, raw: Any) -> None:
+    low, high = OPTION_RANGES.get(key, (-math.inf, math.inf))
+    if key == "keepalive" and value == 0:
+        return
+    if not (math.isfinite(value) and low <= value <= high):
+        raise InvalidArgument(f"bad proxy option {key}={str(raw)[:40]!r}: must be from {low:g} to {high:g}")
 
 
 def _boolean(raw: Any) -> bool:

@@ -110,6 +110,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="stop when stdin reaches its end (a device process that must end with the one that started it)",
     )
+    parser.add_argument(
+        "--secret-file",
+        help="a file holding the secret the greeting carries (secret=...) when dialling a gateway that "
+        "configures this device",
+    )
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
 
 
@@ -118,6 +123,12 @@ def _make_backend(kind: str, options: Mapping[str, Any]) -> Backend:
     from services.core import LocalService
 
     return LocalService(create(kind, **options))
+
+
+def _read_secret(path: str) -> str:
+    from pathlib import Path
+
+    return Path(path).read_text(encoding="utf-8").strip()
 
 
 async def serve(args: argparse.Namespace) -> None:
@@ -130,6 +141,7 @@ async def serve(args: argparse.Namespace) -> None:
         push=not args.no_push,
         checksum=args.checksum,
         max_line=args.max_line,
+        secret=_read_secret(args.secret_file) if getattr(args, "secret_file", None) else "",
     )
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()

@@ -14,6 +14,7 @@ import contextlib
 import logging
 import os
 import ssl
+from dataclasses import replace
 
 from services.backend import Backend
 from services.device.session import CALL_TIMEOUT, READ_SIZE, DeviceSession
@@ -43,9 +44,14 @@ class DeviceServer:
         max_line: int = MAX_LINE,
         call_timeout: float = CALL_TIMEOUT,
         max_connections: int = 64,
+        secret: str = "",
     ) -> None:
+        """``secret``: carried in the greeting (``secret=...``) for a gateway that configures this
+        device by name; it proves the device is the one configured (docs/line-protocol.md §4)."""
         self.backend = backend
         self.greeting = Hello(name=name, type=type or backend.info.type, push=push, max_line=max_line)
+        #: The greeting on a connection this device dialled: only there does it carry the secret.
+        self.dial_greeting = replace(self.greeting, extra={"secret": secret}) if secret else self.greeting
         self.checksum = checksum
         self.call_timeout = call_timeout
         self.max_connections = max_connections
@@ -66,14 +72,16 @@ class DeviceServer:
         writer: asyncio.StreamWriter,
         peer: str,
         backend: Backend | None = None,
+        greeting: Hello | None = None,
     ) -> DeviceSession:
         """The protocol session of one connection, with this server's greeting, checksum and timeout;
-        ``backend`` serves this connection instead of the server's (a per-connection view of it)."""
+        ``backend`` serves this connection instead of the server's (a per-connection view of it),
+        ``greeting`` replaces the server's."""
         return DeviceSession(
             backend if backend is not None else self.backend,
             reader,
             writer,
-            greeting=self.greeting,
+            greeting=greeting or self.greeting,
             checksum=self.checksum,
             call_timeout=self.call_timeout,
             peer=peer,
@@ -127,7 +135,7 @@ class DeviceServer:
                 log.info("connected to %s:%d", host, port)
                 self._sessions.add(writer)
                 try:
-                    await self.serve_stream(reader, writer, f"{host}:{port}")
+                    await self.session(reader, writer, f"{host}:{port}", greeting=self.dial_greeting).run()
                 finally:
                     self._sessions.discard(writer)
                 log.warning("connection to %s:%d ended", host, port)

@@ -20,6 +20,7 @@ from services.errors import Code, DeadlineExceeded, NotFound, PropertyError, Res
 from services.line_protocol import (
     MAX_LINE,
     BadLine,
+    Cancel,
     ErrorReply,
     Event,
     Frame,
@@ -94,6 +95,8 @@ class DeviceSession:
         self._subscriptions: dict[str, Subscription] = {}
         self._in_flight = asyncio.Semaphore(MAX_IN_FLIGHT)
         self._tasks: set[asyncio.Task[None]] = set()
+        #: SETs running now by tag, so that a CANCEL can stop one still waiting on its backend.
+        self._running_sets: dict[str, asyncio.Task[None]] = {}
         self._step_gets = backend.answers_inline
 
     # -- writing ---------------------------------------------------------
@@ -142,7 +145,7 @@ class DeviceSession:
                     break
                 if not data:
                     break
-                for frame in self._receiver.receive_data(data):
+                for frame in self._not_cancelled(self._receiver.receive_data(data)):
                     await self._dispatch(frame)
                 while len(self._outbox.replies) >= MAX_QUEUED_REPLIES and not writer_task.done():
                     self._outbox.room.clear()
@@ -151,6 +154,38 @@ class DeviceSession:
                     break
         finally:
             await self._shutdown(writer_task)
+
+    def _not_cancelled(self, frames: list[Frame | BadLine]) -> list[Frame | BadLine]:
+        """The frames of one read, less every SET that a CANCEL in the same read takes back.
+
+        A device that was frozen (or busy) finds the SET and the client's
+        CANCEL of it waiting together: the SET must not be applied.
+        """
+        cancelled = {f.tag for f in frames if type(f) is Cancel}
+        if not cancelled:
+            return frames
+        kept: list[Frame | BadLine] = []
+        for frame in frames:
+            if type(frame) is Set and frame.tag in cancelled:
+                log.info(
+                    "%s: SET %s (#%s) cancelled by the client before it started",
+                    self.peer,
+                    frame.path,
+                    frame.tag,
+                )
+                continue
+            kept.append(frame)
+        return kept
+
+    def _track_set(self, tag: str, task: asyncio.Task[None]) -> None:
+        self._running_sets[tag] = task
+        task.add_done_callback(lambda _: self._running_sets.pop(tag, None))
+
+    def _cancel(self, tag: str | None) -> None:
+        task = self._running_sets.get(tag) if tag is not None else None
+        if task is not None:
+            task.cancel()  # still waiting on the backend: whether it took effect is the backend's
+            log.info("%s: SET #%s cancelled by the client while running", self.peer, tag)
 
     async def _shutdown(self, writer_task: asyncio.Task[None]) -> None:
         for task in list(self._tasks):
@@ -194,6 +229,10 @@ class DeviceSession:
             task = asyncio.create_task(self._answer(frame, started))
             self._tasks.add(task)
             task.add_done_callback(self._finished)
+            if type(frame) is Set:
+                self._track_set(frame.tag, task)
+        elif isinstance(frame, Cancel):
+            self._cancel(frame.tag)  # no reply: the client has stopped waiting for this tag
         elif isinstance(frame, Pong | Hello):
             pass  # answer to a PING of ours / a client introducing itself: nothing to do
         else:

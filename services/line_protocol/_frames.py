@@ -82,6 +82,13 @@ class Pong:
 
 
 @dataclass(frozen=True, slots=True)
+class Cancel:
+    """``#TAG CANCEL``: the client gave up on request ``TAG``; a SET not started yet is not applied."""
+
+    tag: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
 class HelloRequest:
     """``HELLO`` with no fields: ask the device to send its greeting again."""
 
@@ -164,7 +171,21 @@ class BadLine:
 
 Request = Get | Set | Listen | Unlisten | Ping | HelloRequest
 Reply = Ok | ErrorReply | Pong | Hello
-Frame = Get | Set | Listen | Unlisten | Ping | Pong | HelloRequest | Hello | Ok | ErrorReply | Event | Gone
+Frame = (
+    Get
+    | Set
+    | Listen
+    | Unlisten
+    | Ping
+    | Pong
+    | HelloRequest
+    | Hello
+    | Ok
+    | ErrorReply
+    | Event
+    | Gone
+    | Cancel
+)
 
 #: Frames that carry a request tag.
-TAGGED = (Get, Set, Listen, Unlisten, Ping, Pong, HelloRequest, Hello, Ok, ErrorReply)
+TAGGED = (Get, Set, Listen, Unlisten, Ping, Pong, HelloRequest, Hello, Ok, ErrorReply, Cancel)

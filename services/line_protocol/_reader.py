@@ -11,6 +11,7 @@ from services.line_protocol._escaping import unescape
 from services.line_protocol._frames import (
     MAX_LINE,
     MIN_MAX_LINE,
+    Cancel,
     ErrorReply,
     Event,
     Frame,
@@ -177,6 +178,11 @@ def _parse(text: str) -> Frame:
         if not ERROR_CODE.fullmatch(code):
             raise LineProtocolError(f"bad error code {_show(code)}: expected a number", tag=tag)
         return ErrorReply(int(code), fields.rest(), tag)
+    if verb == "CANCEL":
+        _no_more(fields, verb)
+        if tag is None:
+            raise LineProtocolError("CANCEL names the request it cancels by its tag: #TAG CANCEL")
+        return Cancel(tag)
     if verb == "PING":
         return Ping(fields.rest(), tag)
     if verb == "PONG":

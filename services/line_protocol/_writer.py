@@ -10,6 +10,7 @@ from services.line_protocol._errors import LineProtocolError
 from services.line_protocol._escaping import escape_field, escape_value
 from services.line_protocol._frames import (
     MAX_LINE,
+    Cancel,
     ErrorReply,
     Event,
     Frame,
@@ -72,6 +73,10 @@ def _body(frame: Frame) -> str:
             return f"{_tag(tag)}PONG{_rest(data)}"
         case HelloRequest(tag):
             return f"{_tag(tag)}HELLO"
+        case Cancel(tag):
+            if tag is None:
+                raise LineProtocolError("CANCEL names the request it cancels by its tag: #TAG CANCEL")
+            return f"{_tag(tag)}CANCEL"
         case Hello(name, type_, push, max_line, version, extra, tag):
             clash = _HELLO_KEYS.intersection(extra)
             if clash:

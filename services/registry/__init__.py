@@ -29,7 +29,13 @@ The gateway's router keeps the plain methods :meth:`Registry.add`,
 :meth:`Registry.remove` and :meth:`Registry.set_state` working as before; with
 a directory, the registry also follows joins and leaves by itself.
 
-Modules: ``urls`` (which URLs may be registered), ``entry`` (one service's
+Every registration URL is checked against ``allow`` (an :class:`AllowList`:
+networks and ports, serial path globs; default loopback only) before any
+connection is made; a URL naming the gateway itself is a loop and refused.
+Configured services cannot be unregistered from outside, reserved names
+cannot be taken, and at most ``max_registrations`` registrations are held.
+
+Modules: ``urls`` (which URLs may be registered), ``allow`` (which addresses), ``entry`` (one service's
 row, its state and lease), ``table`` (the rows and the search index),
 ``registration`` (register and unregister through the directory),
 ``liveness`` (checks, down, removal after ``grace``), ``persistence`` (the
@@ -38,18 +44,28 @@ registrations file), ``service`` (:class:`Registry` and
 :class:`services.location_following.LocationFollower`.
 """
 
+from services.registry.allow import DEFAULT_ALLOW, AllowList, parse_allow_entry
 from services.registry.entry import STATES, ServiceEntry, ServiceList
-from services.registry.registration import DEFAULT_REGISTER_TIMEOUT
+from services.registry.registration import (
+    DEFAULT_MAX_REGISTRATIONS,
+    DEFAULT_REGISTER_TIMEOUT,
+    RESERVED_SERVICE_NAMES,
+)
 from services.registry.service import Registry, RegistryService
 from services.registry.urls import REGISTRABLE_SCHEMES, check_url
 
 __all__ = [
+    "DEFAULT_ALLOW",
+    "DEFAULT_MAX_REGISTRATIONS",
     "DEFAULT_REGISTER_TIMEOUT",
     "REGISTRABLE_SCHEMES",
+    "RESERVED_SERVICE_NAMES",
     "STATES",
+    "AllowList",
     "Registry",
     "RegistryService",
     "ServiceEntry",
     "ServiceList",
     "check_url",
+    "parse_allow_entry",
 ]

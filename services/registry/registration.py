@@ -7,6 +7,7 @@ import contextlib
 from collections.abc import Callable, Mapping
 
 from services.backend import NO_PARAMS, Backend
+from services.core import RESERVED_NAMES
 from services.directory import Directory
 from services.errors import (
     AlreadyExists,
@@ -14,16 +15,35 @@ from services.errors import (
     DeadlineExceeded,
     InvalidArgument,
     NotFound,
+    PermissionDenied,
     PropertyError,
+    ResourceExhausted,
     Unavailable,
 )
 from services.paths import validate_service_name
+from services.registry.allow import AllowList
 from services.registry.entry import parse_lease
 from services.registry.persistence import Registration
 from services.registry.table import ServiceTable
 from services.registry.urls import check_url
 
-__all__ = ["DEFAULT_REGISTER_TIMEOUT", "Registrations"]
+__all__ = ["DEFAULT_MAX_REGISTRATIONS", "DEFAULT_REGISTER_TIMEOUT", "RESERVED_SERVICE_NAMES", "Registrations"]
+
+#: Registrations by Set the registry holds at once (``[registry] max_registrations``): each one
+#: is a proxy with a connection and tasks, so an unbounded number is a way to exhaust the gateway.
+DEFAULT_MAX_REGISTRATIONS = 256
+
+#: Names no registration may take: those every service reserves for itself (``services.properties``
+#: is the list of names, ``services.gui`` metadata). ``registry`` is always served, hence taken.
+RESERVED_SERVICE_NAMES = RESERVED_NAMES
+
+#: Answers "may this caller administer service NAME?"; the default: nobody may.
+AdminCheck = Callable[[str], bool]
+
+
+def _nobody_is_admin(name: str) -> bool:
+    return False
+
 
 #: Seconds a Set on ``services.<name>`` waits for the device by default (the gateway passes less
 #: when its call timeout is shorter, so that the caller hears why nothing was registered).
@@ -50,8 +70,17 @@ class Registrations:
         forget: Callable[[str], None],
         joined: Callable[[str, Backend], None],
         saved: Callable[[], None],
+        allow: AllowList | None = None,
+        configured: frozenset[str] = frozenset(),
+        max_registrations: int = DEFAULT_MAX_REGISTRATIONS,
     ) -> None:
         self.table = table
+        self.allow = allow if allow is not None else AllowList()
+        #: Names from the gateway's config: never unregistered or replaced from outside.
+        self.configured = configured
+        self.max_registrations = max_registrations
+        #: The admin check (see :meth:`services.registry.Registry.set_admin_check`).
+        self.may_administer: AdminCheck = _nobody_is_admin
         self.directory = directory
         self.timeout = timeout
         self.records: dict[str, Registration] = {}
@@ -87,7 +116,7 @@ class Registrations:
 
     async def register(self, name: str, url: str, params: Mapping[str, str] = NO_PARAMS) -> str:
         """Create the backend for ``url`` and serve it as ``name``; see :meth:`Registry.register`."""
-        validate_service_name(name)
+        self._check_name(name, "registered")
         url = check_url(url.strip())
         for key in params:
             if key not in _REGISTER_PARAMS:
@@ -109,8 +138,19 @@ class Registrations:
             taken_by = existing.url if existing is not None else "another service"
             raise AlreadyExists(f"the name {name!r} is taken (by {taken_by}); unregister it first")
         declared = params.get("type", "").strip()
+        if len(self.records) + len(self._busy) >= self.max_registrations:
+            raise ResourceExhausted(
+                f"registering {name!r}: the registry holds {self.max_registrations} registrations "
+                "already ([registry] max_registrations); unregister one first"
+            )
         self._busy.add(name)
         try:
+            # Before any connection: neither a port scanner nor a relay, nor a loop into itself.
+            try:
+                async with asyncio.timeout(self.timeout):
+                    await self.allow.check(name, url)
+            except TimeoutError:
+                raise DeadlineExceeded(f"registering {name!r}: resolving {url[:120]} took too long") from None
             await self._open(directory, name, url)
         except asyncio.CancelledError:
             # The caller gave up first (the gateway's call timeout is shorter than
@@ -135,6 +175,15 @@ class Registrations:
         self.records[name] = (url, options)
         self._saved()
         return url
+
+    def _check_name(self, name: str, what: str) -> None:
+        """A name a registration may take; nothing is changed when it is not."""
+        validate_service_name(name)
+        if name in RESERVED_SERVICE_NAMES:
+            raise InvalidArgument(
+                f"{name!r} is reserved (a name every service keeps for itself: "
+                f"{', '.join(sorted(RESERVED_SERVICE_NAMES))}); it cannot be {what}"
+            )
 
     async def _open(self, directory: Directory, name: str, url: str) -> None:
         timeout = self.timeout
@@ -197,8 +246,13 @@ class Registrations:
 
     async def unregister(self, name: str) -> None:
         """Remove service ``name`` (what a Set of ``services.<name>`` to the empty value does)."""
-        validate_service_name(name)
+        self._check_name(name, "unregistered")
         entry = self.table.entry(name)
+        if name in self.configured and not entry.is_local() and not self.may_administer(name):
+            raise PermissionDenied(
+                f"{name!r} comes from the gateway's config and cannot be unregistered "
+                "(only an admin may; no admin is configured)"
+            )
         if entry.is_local() or name in self._busy:
             raise PropertyError(
                 f"{name!r} runs inside the gateway and cannot be unregistered", Code.FAILED_PRECONDITION

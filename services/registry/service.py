@@ -17,10 +17,16 @@ from services.directory import Directory
 from services.errors import InvalidArgument, PropertyError, Unavailable
 from services.location_following import LocationFollower
 from services.query import Query, values_equal
+from services.registry.allow import AllowList
 from services.registry.entry import ServiceList
 from services.registry.liveness import Liveness
 from services.registry.persistence import RegistrationsFile
-from services.registry.registration import DEFAULT_REGISTER_TIMEOUT, Registrations
+from services.registry.registration import (
+    DEFAULT_MAX_REGISTRATIONS,
+    DEFAULT_REGISTER_TIMEOUT,
+    AdminCheck,
+    Registrations,
+)
 from services.registry.table import ServiceTable
 from services.values import Vector
 from services.worker_pool import run_bounded
@@ -58,7 +64,12 @@ class Registry(Resource):
         register_timeout: float = DEFAULT_REGISTER_TIMEOUT,
         static: Iterable[str] = (),
         persist: str | os.PathLike[str] | None = None,
+        allow: AllowList | None = None,
+        max_registrations: int = DEFAULT_MAX_REGISTRATIONS,
     ) -> None:
+        """``static`` names come from the gateway's config: they are never removed for being down,
+        nor unregistered or replaced from outside (see :meth:`set_admin_check`). ``allow`` says
+        which addresses a registration may reach (default: loopback and USB serial adapters)."""
         for what, value in (("period", period), ("grace", grace)):
             if not (math.isfinite(value) and value >= 0):
                 raise InvalidArgument(f"{what} must be zero or a positive number of seconds, got {value}")
@@ -67,6 +78,7 @@ class Registry(Resource):
                 raise InvalidArgument(f"{what} must be a positive number of seconds, got {value}")
         if isinstance(misses, bool) or not isinstance(misses, int) or misses < 1:
             raise InvalidArgument(f"misses must be a positive whole number, got {misses!r}")
+        static = frozenset(static)
         self.services = ServiceList()
         self.period = float(period)
         self.timeout = float(timeout)
@@ -82,6 +94,9 @@ class Registry(Resource):
             forget=self._forget,
             joined=self._on_directory,
             saved=self._save_soon,
+            allow=allow,
+            configured=static,
+            max_registrations=max_registrations,
         )
         self._file = (
             RegistrationsFile(Path(persist), lambda: self._registrations.records) if persist else None
@@ -93,7 +108,7 @@ class Registry(Resource):
             timeout=self.timeout,
             misses=misses,
             grace=self.grace,
-            static=frozenset(static),
+            static=static,
             busy=self._registrations.busy,
             unregister=self.unregister,
             answered=self._learn_type,
@@ -154,6 +169,15 @@ class Registry(Resource):
     async def unregister(self, name: str) -> None:
         """Remove service ``name`` (what a Set of ``services.<name>`` to the empty value does)."""
         await self._registrations.unregister(name)
+
+    def set_admin_check(self, may_administer: AdminCheck) -> None:
+        """Install the check that lets an admin unregister a configured service.
+
+        ``may_administer(name)`` answers whether the caller of the current
+        request may administer service ``name``; the rules engine installs
+        one. Without it nobody may: configured services stay.
+        """
+        self._registrations.may_administer = may_administer
 
     async def check_all(self) -> None:
         """One round of liveness checks (the loop runs it every ``period``; tests call it directly)."""
