@@ -250,6 +250,8 @@ class Gateway:
             allow=self.allow,
             max_registrations=settings.max_registrations,
         )
+        # Only an admin (by the rules) may unregister or replace a configured service.
+        self.registry.set_admin_check(self.guard.may_administer)
         await self._add(REGISTRY_NAME, RegistryService(self.registry), "built in")
         self._unwatch_registry = self.registry.watch_states(self._on_state)
 

@@ -31,7 +31,7 @@ import functools
 from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from typing import Any
 
-from gateway.guard import Guard
+from gateway.guard import CALLER, Guard
 from gateway.identity import ANONYMOUS
 from gateway.router import Router, bounded_call, check_path, finish_call
 from gateway.rules import Operation, Subject
@@ -127,6 +127,8 @@ class Calls:
             raise
         if operation is None:
             return self._set_after_model(request, backend, path, time_limit, subject)
+        if operation is Operation.UNREGISTER or operation is Operation.REGISTER:
+            CALLER.set(subject)  # the registry asks whether this caller is an admin (configured names)
         try:
             begun = self._start_set(request, backend, path, time_limit)
         except Exception as exc:

@@ -19,6 +19,7 @@ cost of one attribute read (:attr:`Guard.checks`); Sets are still audited.
 
 from __future__ import annotations
 
+import contextvars
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -32,6 +33,12 @@ from services.model import Access, ServiceModel
 #: The service whose ``services.NAME`` Sets register and unregister (gateway.config.REGISTRY_NAME).
 REGISTRY = "registry"
 _SERVICES_PREFIX = "services."
+
+
+#: The subject of the Set being carried out, for checks made deep inside a service (the
+#: registry's admin check): set by the call layer before a Set starts, copied into any task
+#: the Set goes on in.
+CALLER: contextvars.ContextVar[Subject] = contextvars.ContextVar("caller", default=ANONYMOUS)
 
 
 def registry_operation(path: str, value: str) -> Operation:
@@ -116,6 +123,13 @@ class Guard:
         operation = Operation.INVOKE if access is Access.ACTION else Operation.WRITE
         self.require(subject, service, path, operation)
         return operation
+
+    def may_administer(self, name: str) -> bool:
+        """Whether the caller of the current Set may unregister or replace the configured service ``name``.
+
+        Only a rule can make someone admin: with no rules, configured services stay as configured.
+        """
+        return self.checks and self.may(CALLER.get(), REGISTRY, f"services.{name}", Operation.ADMIN)
 
     def audited(
         self, subject: Subject, service: str, path: str, operation: Operation, error: BaseException | None

@@ -372,3 +372,43 @@ async def test_client_certificates_are_subjects_the_rules_know(gateway_process, 
         assert await alice.get("scout1", "speed") == "0.3"
         with pytest.raises(PermissionDenied, match="alice"):
             await alice.set("scout1", "speed", "0.1")
+
+
+async def test_only_an_admin_by_the_rules_unregisters_a_configured_device(
+    gateway_process, tmp_path: Path
+) -> None:  # type: ignore[no-untyped-def]
+    tokens = Tokens(tmp_path)
+    gw = gateway_process(
+        """
+        [auth]
+        jwt_secret_file = "jwt.secret"
+        issuer = "lab"
+
+        [[devices]]
+        name = "rover"
+        type = "sim-robot"
+        tcp = "127.0.0.1:0"
+
+        [[rules]]
+        subject = ["operator", "admin"]
+        service = "registry"
+        operations = ["read", "register", "unregister"]
+        effect = "permit"
+
+        [[rules]]
+        subject = "admin"
+        service = "registry"
+        operations = ["admin"]
+        effect = "permit"
+        """
+    )
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        # The rules let the operator unregister, but a configured device needs an admin.
+        code, details = await _call(stub, tokens.hs256("operator"), "set", "registry", "services.rover")
+        assert code == DENIED and "rover" in details, details
+        assert (await _call(stub, tokens.hs256("operator"), "get", "registry", "services.rover"))[0] == OK
+        code, details = await _call(stub, tokens.hs256("admin"), "set", "registry", "services.rover")
+        assert code == OK, details
+        code, _ = await _call(stub, tokens.hs256("admin"), "get", "registry", "services.rover")
+        assert code == grpc.StatusCode.NOT_FOUND

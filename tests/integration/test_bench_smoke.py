@@ -29,6 +29,8 @@ TARGETS = (
     "find-scaling",
     "register-rate",
     "register-memory",
+    "tls-unary",
+    "tls-session",
 )
 
 
@@ -82,6 +84,18 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     assert all(d["registered"] == d["members"] and d["last_member_answered"] for d in register["sizes"]), (
         register
     )
-    for title in ("(e) Get of", "(f) group behaviors.moveto", "(g) registry find", "(h) members registered"):
+    # The cost of mTLS and a token: both ways, both calls, every Get answered.
+    tls = payload["results"]["gateway"]["tls"]
+    for way in ("plaintext", "mtls-token"):
+        for call in ("unary", "session"):
+            assert tls[way][call]["errors"] == 0 and tls[way][call]["throughput_per_s"] > 0, (way, call)
+    titles = (
+        "(e) Get of",
+        "(f) group behaviors.moveto",
+        "(g) registry find",
+        "(h) members registered",
+        "(i) the cost",
+    )
+    for title in titles:
         assert title in out, f"no table {title!r}:\n{out}"
     assert [t["name"] for t in payload["targets"]] == list(TARGETS)
