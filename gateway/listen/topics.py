@@ -195,4 +195,8 @@ class Topics:
             self.drop(topic)
         await asyncio.gather(*opening, return_exceptions=True)
         while self._tasks:
-            await asyncio.gather(*self._tasks, return_exceptions=True)
+            tasks = list(self._tasks)
+            await asyncio.gather(*tasks, return_exceptions=True)
+            # Since Python 3.12 a gather of tasks already done returns without yielding to the loop,
+            # so their done callbacks may not have run yet: forget them here, or this would spin.
+            self._tasks.difference_update(tasks)
