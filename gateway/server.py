@@ -16,6 +16,7 @@ from google.protobuf.message import DecodeError, Message
 
 from gateway.calls import Calls, Undecodable
 from gateway.config import Config
+from gateway.federation import enter, new_gateway_id
 from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, parse_options, parse_selectors
@@ -118,6 +119,8 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         self._timeout = config.gateway.call_timeout
         #: Session calls running now (see gateway.session).
         self.sessions: set[Session] = set()
+        #: This gateway's id in the ``ps-via`` chain of federated calls (gateway.federation).
+        self.gateway_id = new_gateway_id()
 
     def end_sessions(self) -> None:
         """Gateway shutdown: every Session flushes, ends its listens and ends with OK."""
@@ -137,6 +140,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         try:
             if isinstance(request, Undecodable):
                 raise request.error
+            enter(context.invocation_metadata(), self.gateway_id)
             return await self.calls.get(request, self._deadline(context), self._subject(context))
         except Exception as exc:
             await abort(context, exc, "Get")
@@ -146,6 +150,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         try:
             if isinstance(request, Undecodable):
                 raise request.error
+            enter(context.invocation_metadata(), self.gateway_id)
             # Identified even when nothing is refused: the audit trail names who set what.
             subject = self.guard.identify_call(context)
             return await self.calls.set(request, self._deadline(context), subject)
@@ -157,6 +162,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         try:
             if isinstance(request, Undecodable):
                 raise request.error
+            enter(context.invocation_metadata(), self.gateway_id)
             name = request.service
             backend = self.router.backend(name)
             if self.guard.checks:
@@ -177,6 +183,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         try:
             if isinstance(request, Undecodable):
                 raise request.error
+            enter(context.invocation_metadata(), self.gateway_id)
             stream = self.hub.open(
                 parse_selectors(request, limits),
                 parse_options(request.options, limits),
@@ -204,6 +211,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
 
     async def Session(self, request_iterator: AsyncIterator[pb.SessionRequest], context: Context) -> None:
         try:
+            enter(context.invocation_metadata(), self.gateway_id)
             subject = self._subject(context)
         except Exception as exc:
             await abort(context, exc, "Session")

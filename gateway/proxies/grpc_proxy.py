@@ -36,6 +36,7 @@ from urllib.parse import parse_qsl, unquote, urlsplit
 import grpc
 from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stubs
 
+from gateway.federation import outgoing
 from gateway.status import error_from_status
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -253,6 +254,7 @@ class GrpcProxy(Backend):
             reply = await self._get_stub().Get(
                 pb.GetRequest(service=REMOTE_REGISTRY, property=f"services.{self.remote}.type"),
                 timeout=self.options.timeout,
+                metadata=outgoing(),
             )
         except grpc.aio.AioRpcError as exc:
             log.debug("%s: no type from its registry: %s", self._label(), exc.details())
@@ -280,7 +282,7 @@ class GrpcProxy(Backend):
         await self._type_learned()
         request = pb.GetRequest(service=self.remote, property=path, parameters=dict(params))
         try:
-            reply = await self._get_stub().Get(request, timeout=self.options.timeout)
+            reply = await self._get_stub().Get(request, timeout=self.options.timeout, metadata=outgoing())
         except grpc.aio.AioRpcError as exc:
             raise self._error(exc) from None
         return str(reply.value)
@@ -289,7 +291,7 @@ class GrpcProxy(Backend):
         await self._type_learned()
         request = pb.SetRequest(service=self.remote, property=path, value=value, parameters=dict(params))
         try:
-            reply = await self._get_stub().Set(request, timeout=self.options.timeout)
+            reply = await self._get_stub().Set(request, timeout=self.options.timeout, metadata=outgoing())
         except grpc.aio.AioRpcError as exc:
             raise self._error(exc) from None
         return str(reply.value)
@@ -299,7 +301,9 @@ class GrpcProxy(Backend):
         await self._type_learned()
         request = pb.DescribeRequest(service=self.remote)
         try:
-            reply = await self._get_stub().Describe(request, timeout=self.options.timeout)
+            reply = await self._get_stub().Describe(
+                request, timeout=self.options.timeout, metadata=outgoing()
+            )
         except grpc.aio.AioRpcError as exc:
             if exc.code() is grpc.StatusCode.UNIMPLEMENTED:
                 return await super().describe()
@@ -342,7 +346,7 @@ class GrpcProxy(Backend):
 
     async def _open_remote(self, shared: _RemoteListen) -> Any:
         """Open a remote Listen and read up to its ``sync`` marker; the call, ready to be followed."""
-        call = self._get_stub().Listen(self._listen_request(shared))
+        call = self._get_stub().Listen(self._listen_request(shared), metadata=outgoing())
         try:
             async with asyncio.timeout(self.options.timeout):
                 while True:
