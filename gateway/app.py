@@ -37,7 +37,7 @@ from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
 from gateway.router import Router
 from gateway.server import PropertyServicer, add_to_server
-from gateway.tls import ServerCredentials, line_ssl_context
+from gateway.tls import LineCredentials, ServerCredentials
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, BackendInfo
 from services.catalog import create, needs_directory
@@ -88,6 +88,8 @@ class Gateway:
         self.servicer = PropertyServicer(self.router, self.hub, self.config)
         #: The gRPC port's TLS credentials; None when it is plaintext.
         self.credentials: ServerCredentials | None = None
+        #: The line listener's TLS, reloaded with the gRPC port's; None when it is plaintext.
+        self._line_credentials: LineCredentials | None = None
         #: What registrations may reach (``[registry] allow``) and what is this gateway itself.
         self.allow = AllowList(self.config.registry.allow, own_ports=self._own_ports)
         for entry in self.config.services:
@@ -276,7 +278,8 @@ class Gateway:
             return
         try:
             line_tls = self.config.tls.line
-            context = line_ssl_context(line_tls) if line_tls.enabled else None
+            self._line_credentials = LineCredentials(line_tls) if line_tls.enabled else None
+            context = self._line_credentials.context if self._line_credentials else None
             self._line_listener = await start_line_listener(
                 address,
                 self.router,
@@ -357,6 +360,8 @@ class Gateway:
             self.credentials.reload()
         else:
             log.info("reload asked; the gRPC port has no TLS certificates to read again")
+        if self._line_credentials is not None:
+            self._line_credentials.reload()
 
     async def stop(self, grace: float | None = None) -> None:
         """Graceful shutdown: NOT_SERVING, streams end with UNAVAILABLE, server stops, backends close.

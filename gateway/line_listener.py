@@ -39,7 +39,7 @@ import hmac
 import logging
 import ssl
 from collections.abc import Mapping
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
@@ -333,6 +333,15 @@ class _ListenerServer(DeviceServer):
             await asyncio.gather(run, return_exceptions=True)
 
 
+def certificate_name(peercert: Any) -> str:
+    """The subject CN of a verified client certificate (``ssl``'s ``getpeercert()``), or ""."""
+    for rdn in (peercert or {}).get("subject", ()):
+        for key, value in rdn:
+            if key == "commonName":
+                return str(value)
+    return ""
+
+
 class LineListener:
     """A raw-TCP line-protocol server in front of a router; ``aclose`` stops it.
 
@@ -429,7 +438,7 @@ class LineListener:
                 "a device that dials in must give its name in its greeting: HELLO 1 name=NAME type=TYPE"
             )
         validate_service_name(name)
-        self._check_secret(hello)
+        self._check_secret(hello, writer)
         existing = self.router.lookup(name) if name in self.router else None
         if existing is not None:
             if not isinstance(existing, InboundProxy):
@@ -450,10 +459,14 @@ class LineListener:
             raise
         return proxy
 
-    def _check_secret(self, hello: Hello) -> None:
-        """A configured device's name is taken only with its secret (UNAUTHENTICATED otherwise)."""
+    def _check_secret(self, hello: Hello, writer: asyncio.StreamWriter) -> None:
+        """A configured device's name is taken only with its secret, or over TLS with a client
+        certificate whose subject (CN) is that name and that the listener's ``client_ca`` signed
+        (UNAUTHENTICATED otherwise)."""
         expected = self._device_secrets.get(hello.name)
         if expected is None:
+            return
+        if certificate_name(writer.get_extra_info("peercert")) == hello.name:
             return
         given = hello.extra.get("secret", "")
         if not hmac.compare_digest(given.encode(), expected.encode()):

@@ -70,3 +70,31 @@ def line_ssl_context(settings: LineTlsSection) -> ssl.SSLContext:
         context.load_verify_locations(settings.client_ca)
         context.verify_mode = ssl.CERT_REQUIRED
     return context
+
+
+class LineCredentials:
+    """The line listener's TLS, read again on :meth:`reload` (SIGHUP) without closing a connection.
+
+    The listening socket keeps one context; its server-name callback, which OpenSSL calls at
+    every handshake (with or without SNI), hands the handshake the context built from the files
+    as they were at the last reload: new connections get the new certificate and CA, open ones
+    carry on.
+    """
+
+    def __init__(self, settings: LineTlsSection) -> None:
+        self.settings = settings
+        self._current = line_ssl_context(settings)
+        self.context = line_ssl_context(settings)
+        self.context.sni_callback = self._choose
+
+    def _choose(self, connection: ssl.SSLObject, server_name: str | None, _: ssl.SSLContext) -> None:
+        connection.context = self._current
+
+    def reload(self) -> None:
+        """Read the files again; a file that cannot be used is logged and the old context kept."""
+        try:
+            self._current = line_ssl_context(self.settings)
+        except (OSError, ssl.SSLError) as exc:
+            log.error("line listener: TLS files not reloaded, the old ones stay: %s", exc)
+            return
+        log.info("line listener: TLS certificates reloaded from %s", self.settings.cert)

@@ -229,6 +229,57 @@ key = "{certificates.server.key}"
     assert gw.proc.poll() is None
 
 
+async def test_sighup_reloads_the_line_listeners_certificate_and_keeps_open_connections(
+    gateway_process: StartGateway, certificates: CertificateFiles, tmp_path: Path
+) -> None:
+    live = tmp_path / "live"
+    live.mkdir()
+    for name in ("server.pem", "server.key"):
+        shutil.copy(certificates.folder / name, live / name)
+    port = free_port()
+    gw = gateway_process(f"""
+[gateway]
+line_listen = "127.0.0.1:{port}"
+[tls.line]
+cert = "{live / "server.pem"}"
+key = "{live / "server.key"}"
+{SIM}""")
+
+    async def connect(ca: Path) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        context = ssl.create_default_context(cafile=str(ca))
+        reader, writer = await asyncio.open_connection(
+            "127.0.0.1", port, ssl=context, server_hostname="localhost"
+        )
+        assert (await asyncio.wait_for(reader.readline(), 5)).startswith(b"HELLO")
+        return reader, writer
+
+    async def get(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> bytes:
+        writer.write(b"GET bot.location\n")
+        await writer.drain()
+        return await asyncio.wait_for(reader.readline(), 5)
+
+    before = await connect(certificates.ca)
+    new_ca = make_authority(tmp_path, "new-ca")
+    new_server = issue_certificate(new_ca, tmp_path, "new-server", "localhost", server=True)
+    shutil.copy(new_server.cert, live / "server.pem")
+    shutil.copy(new_server.key, live / "server.key")
+    gw.proc.send_signal(signal.SIGHUP)
+    deadline = asyncio.get_running_loop().time() + 5
+    while "line listener: TLS certificates reloaded" not in gw.output:
+        assert asyncio.get_running_loop().time() < deadline, gw.output
+        await asyncio.sleep(0.05)
+    # A new connection gets the new certificate: trusted through the new CA, not the old one.
+    after = await connect(new_ca.cert_path)
+    assert (await get(*after)).startswith(b"OK")
+    with pytest.raises(ssl.SSLError):
+        await connect(certificates.ca)
+    # The connection opened before the reload carries on.
+    assert (await get(*before)).startswith(b"OK")
+    for _, writer in (before, after):
+        writer.close()
+    assert gw.proc.poll() is None
+
+
 async def test_grpcs_federation_between_two_gateway_processes_over_mtls(
     gateway_process: StartGateway, certificates: CertificateFiles
 ) -> None:
