@@ -7,7 +7,7 @@ import time
 import pytest
 from support.ports import free_port
 
-from clients.errors import InvalidArgument
+from clients.errors import InvalidArgument, Unavailable
 from clients.sync import Client
 
 
@@ -23,6 +23,7 @@ def test_a_request_that_comes_back_round_a_loop_is_refused_at_once(gateway_proce
         extra_args=("--listen", f"127.0.0.1:{port_b}"),
     )
     with Client(a.address, timeout=8) as client:
+        _until_both_are_up(client, "far")
         began = time.monotonic()
         with pytest.raises(InvalidArgument, match="federation loop") as refused:
             client.get("far", "location")
@@ -32,6 +33,19 @@ def test_a_request_that_comes_back_round_a_loop_is_refused_at_once(gateway_proce
         assert client.get("scout1", "location") == "(0 0 0 0 0 0)"
     with Client(b.address, timeout=8) as client, pytest.raises(InvalidArgument, match="federation loop"):
         client.get("back", "location")
+
+
+def _until_both_are_up(client: Client, service: str) -> None:
+    """The two gateways start one after the other: wait until a call reaches round the loop."""
+    deadline = time.monotonic() + 20
+    while True:
+        try:
+            client.get(service, "location")
+        except Unavailable:
+            assert time.monotonic() < deadline, "the other gateway never became reachable"
+            time.sleep(0.2)
+        except InvalidArgument:
+            return
 
 
 def test_a_gateway_naming_itself_is_refused_when_asked(gateway_process) -> None:  # type: ignore[no-untyped-def]
