@@ -169,14 +169,14 @@ class Calls:
         """Read the request's path and its ``more`` paths (a snapshot when one has ``*``); all or nothing."""
         if is_snapshot(request):
             response = pb.GetResponse(more=await self._snapshot(request, time_limit, subject))
+        elif not request.more:
+            response = pb.GetResponse(value=await outcome(self.start_get(request, time_limit, subject)))
         else:
+            # Every path is resolved (and counted) first, so that a bad one fails the call
+            # before any backend is asked.
+            refs = self._resolve_more(request, subject)
             value = await outcome(self.start_get(request, time_limit, subject))
-            if not request.more:
-                response = pb.GetResponse(value=value)
-            else:
-                response = pb.GetResponse(
-                    value=value, more=await self._get_more(request, time_limit, subject)
-                )
+            response = pb.GetResponse(value=value, more=await self._read(refs, time_limit))
         check_fits(
             response,
             lambda: (
@@ -220,16 +220,13 @@ class Calls:
             raise type(exc)(f"{service[:80]}/{path[:256]}: {exc.message}", exc.code) from None
         return service, path, _params(params), backend
 
-    async def _get_more(
-        self, request: pb.GetRequest, time_limit: float, subject: Subject
-    ) -> list[pb.PropertyValue]:
+    def _resolve_more(self, request: pb.GetRequest, subject: Subject) -> list[_Ref]:
+        """The request's ``more`` paths, counted and resolved; raises on the first bad one."""
         self._check_count(len(request.more) + 1)
-        # Resolve every path first so that a bad one fails the call before any backend is asked.
-        refs = [
+        return [
             self._resolve(ref.service or request.service, ref.property, ref.parameters, subject)
             for ref in request.more
         ]
-        return await self._read(refs, time_limit)
 
     async def _snapshot(
         self, request: pb.GetRequest, time_limit: float, subject: Subject

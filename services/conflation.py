@@ -15,7 +15,7 @@ share it.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Generic, TypeVar
 
 K = TypeVar("K")
@@ -78,18 +78,6 @@ class ConflatingQueue(Generic[K, V]):
                 break
         for key, _ in taken:
             del slots[key]
-        return taken
-
-    def take_where(self, ready: Callable[[K, Slot[V]], bool], limit: int) -> list[tuple[K, Slot[V]]]:
-        """Remove and return up to ``limit`` waiting keys for which ``ready`` holds, oldest first."""
-        taken = []
-        for key, slot in self._slots.items():
-            if ready(key, slot):
-                taken.append((key, slot))
-                if len(taken) >= limit:
-                    break
-        for key, _ in taken:
-            del self._slots[key]
         return taken
 
     def get(self, key: K) -> Slot[V] | None:

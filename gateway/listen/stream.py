@@ -176,11 +176,6 @@ class ListenStream:
         """Whether the stream's subject may read ``service``/``path``: wildcards skip what it may not."""
         return self._may_read is None or self._may_read(service, path)
 
-    @property
-    def property_count(self) -> int:
-        """How many properties the stream matches right now."""
-        return len(self._refs)
-
     # -- setting up ------------------------------------------------------
 
     async def start(self) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 
 import grpc
+import pytest
 from line_device_support import LineClient, tcp_device
 from support.ports import free_port
 
@@ -73,10 +74,9 @@ async def test_real_gateway_proxies_a_tcp_device_and_speaks_lines(gateway_proces
                     await asyncio.sleep(0.1)
             assert reply.value == "0.5"
             await stub.Set(pb.SetRequest(service="wifibot", property="speed", value="1.25"))
-            try:
+            with pytest.raises(grpc.aio.AioRpcError) as missing:
                 await stub.Get(pb.GetRequest(service="wifibot", property="nosuch"))
-            except grpc.aio.AioRpcError as exc:
-                assert exc.code() == grpc.StatusCode.NOT_FOUND
+            assert missing.value.code() == grpc.StatusCode.NOT_FOUND
         c = await LineClient.tcp("127.0.0.1", line_port)
         assert "name=gateway" in await c.line()
         await c.send("#1 GET wifibot.speed")
