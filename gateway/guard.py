@@ -26,7 +26,7 @@ from typing import Any
 from gateway.audit import Audit, AuditSection
 from gateway.config import Config
 from gateway.identity import ANONYMOUS, Authenticator, AuthSection
-from gateway.rules import Operation, Rules, Subject, refusal
+from gateway.rules import Decision, Operation, Rules, Subject, refusal
 from services.errors import PropertyError
 from services.model import Access, ServiceModel
 
@@ -86,7 +86,11 @@ class Guard:
         """Raise UNAUTHENTICATED or PERMISSION_DENIED naming the rule unless it is allowed; audited."""
         if not self.checks:
             return
-        decision = self.rules.check(subject, service, path, operation)
+        self._enforce(subject, service, path, operation, self.rules.check(subject, service, path, operation))
+
+    def _enforce(
+        self, subject: Subject, service: str, path: str, operation: Operation, decision: Decision
+    ) -> None:
         if not decision.allowed:
             err = refusal(subject, service, path, operation, decision)
             self.audit.record(subject, service, path, operation, err)
@@ -110,7 +114,9 @@ class Guard:
             invoke = rules.check(subject, service, path, Operation.INVOKE)
             if write.allowed != invoke.allowed:
                 return None
-            operation = Operation.WRITE
+            # Decided already: the same for a write and an action.
+            self._enforce(subject, service, path, Operation.WRITE, write)
+            return Operation.WRITE
         self.require(subject, service, path, operation)
         return operation
 

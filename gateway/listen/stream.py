@@ -23,15 +23,15 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from itertools import islice
 
 from gateway.config import Limits
-from gateway.listen.encoding import Ready, encode_events, event_size, within
+from gateway.listen.encoding import Ready, encode_events, within
 from gateway.listen.requests import Selector, StreamOptions
 from gateway.listen.topics import Topic, TopicKey, Topics
 from gateway.router import Router
-from gateway.sizes import BATCH_BYTES, MAX_MESSAGE_BYTES
+from gateway.sizes import MAX_MESSAGE_BYTES
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, Change
 from services.conflation import ConflatingQueue
@@ -495,22 +495,19 @@ class ListenStream:
         loop = asyncio.get_running_loop()
         now = loop.time()
         interval = self.options.min_interval
-        ready: list[Ready] = []
         next_due = 0.0
-        size = 0
-        for topic, entry in self._pending.items():
-            last = last_emit.get(topic)
-            if last is None or now - last >= interval:
-                n = event_size(topic, entry)
-                if ready and size + n > BATCH_BYTES:
-                    break
-                size += n
-                ready.append((topic, entry))
-                if len(ready) >= limit:
-                    break
-            else:
-                due = last + interval
-                next_due = due if not next_due else min(next_due, due)
+
+        def due() -> Iterator[Ready]:
+            # The topics whose interval has passed; of the others, when the first is due again.
+            nonlocal next_due
+            for topic, entry in self._pending.items():
+                last = last_emit.get(topic)
+                if last is None or now - last >= interval:
+                    yield topic, entry
+                else:
+                    next_due = last + interval if not next_due else min(next_due, last + interval)
+
+        ready, size = within(islice(due(), limit))
         for topic, _ in ready:
             self._pending.discard(topic)
             last_emit[topic] = now
