@@ -87,7 +87,7 @@ class Folder:
         return os.open(self.root, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
 
     @contextmanager
-    def _parent(self, name: str, *, create: bool = False) -> Iterator[tuple[int, str]]:
+    def _parent(self, name: str, what: str, *, create: bool = False) -> Iterator[tuple[int, str]]:
         """The open directory holding ``name`` and the last segment; directories made when ``create``."""
         *dirs, leaf = name.split("/")
         fd = self._open_root()
@@ -95,8 +95,10 @@ class Folder:
             for segment in dirs:
                 try:
                     child = os.open(segment, _DIR_FLAGS, dir_fd=fd)
-                except FileNotFoundError:
-                    if not create:
+                except OSError as exc:
+                    if exc.errno in (errno.ENOTDIR, errno.ELOOP):
+                        _refuse_on_the_way(segment, fd, what)
+                    if exc.errno != errno.ENOENT or not create:
                         raise
                     try:
                         os.mkdir(segment, 0o777, dir_fd=fd)
@@ -133,7 +135,7 @@ class Folder:
         """The bytes of file ``name``; NotFound, or ResourceExhausted when it holds more than ``limit``."""
         what = f"read `{check_name(name)}`"
         try:
-            with self._parent(name) as (dir_fd, leaf):
+            with self._parent(name, what) as (dir_fd, leaf):
                 try:
                     fd = os.open(leaf, _READ_FLAGS, dir_fd=dir_fd)
                 except OSError as exc:
@@ -166,7 +168,7 @@ class Folder:
         """Store ``data`` as file ``name`` atomically, making its directories; see the module docstring."""
         what = f"store `{check_name(name)}`"
         try:
-            with self._parent(name, create=True) as (dir_fd, leaf):
+            with self._parent(name, what, create=True) as (dir_fd, leaf):
                 old = self._lstat(leaf, dir_fd)
                 if old is not None:
                     self._refuse_odd(old, what)
@@ -194,7 +196,7 @@ class Folder:
         """Remove file ``name``; NotFound when there is none."""
         what = f"remove `{check_name(name)}`"
         try:
-            with self._parent(name) as (dir_fd, leaf):
+            with self._parent(name, what) as (dir_fd, leaf):
                 st = self._lstat(leaf, dir_fd)
                 if st is None:
                     raise NotFound(f"{what}: no such file")
@@ -208,7 +210,7 @@ class Folder:
         """Size and modification time of file ``name``; NotFound when there is none."""
         what = f"info of `{check_name(name)}`"
         try:
-            with self._parent(name) as (dir_fd, leaf):
+            with self._parent(name, what) as (dir_fd, leaf):
                 st = self._lstat(leaf, dir_fd)
                 if st is None:
                     raise NotFound(f"{what}: no such file")
@@ -271,6 +273,17 @@ class Folder:
                 os.close(dir_fd)
         found.sort(key=lambda f: f.name)
         return found, truncated
+
+
+def _refuse_on_the_way(segment: str, dir_fd: int, what: str) -> None:
+    """Say why directory ``segment`` could not be opened: a link, or a file."""
+    try:
+        st = os.stat(segment, dir_fd=dir_fd, follow_symlinks=False)
+    except OSError:
+        return
+    if stat.S_ISLNK(st.st_mode):
+        raise FailedPrecondition(f"{what}: `{segment}` is a symbolic link; storage never follows links")
+    raise FailedPrecondition(f"{what}: `{segment}` is a file, not a directory")
 
 
 def _too_big(what: str, size: int, limit: int) -> ResourceExhausted:
