@@ -421,6 +421,10 @@ class Storage(Resource):
             entry.reading = True
             try:
                 entry.last = await self._state(name)
+            except BaseException:
+                if not entry.listeners and self._followed.get(name) is entry:
+                    del self._followed[name]
+                raise
             finally:
                 entry.reading = False
             if entry.again:
