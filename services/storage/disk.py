@@ -28,7 +28,14 @@ from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.errors import FailedPrecondition, InvalidArgument, NotFound, PropertyError, ResourceExhausted
+from services.errors import (
+    FailedPrecondition,
+    InvalidArgument,
+    NotFound,
+    PropertyError,
+    ResourceExhausted,
+    Unavailable,
+)
 from services.storage.names import MAX_DEPTH, TEMP_PREFIX, check_name, is_carried
 
 __all__ = ["FileInfo", "Folder", "os_error"]
@@ -84,7 +91,13 @@ class Folder:
     # -- reaching a file ---------------------------------------------------
 
     def _open_root(self) -> int:
-        return os.open(self.root, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+        try:
+            return os.open(self.root, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+        except OSError as exc:
+            # Not the file's fault: the directory itself is gone (or was replaced by a file).
+            raise Unavailable(
+                f"the storage directory {str(self.root)!r} cannot be opened: {exc.strerror or exc}"
+            ) from None
 
     @contextmanager
     def _parent(self, name: str, what: str, *, create: bool = False) -> Iterator[tuple[int, str]]:
@@ -229,10 +242,7 @@ class Folder:
         """
         found: list[FileInfo] = []
         truncated = False
-        try:
-            fd = self._open_root()
-        except OSError as exc:
-            raise os_error(exc, "list the directory") from None
+        fd = self._open_root()
         stack: list[tuple[int, str, int]] = [(fd, "", 1)]
         try:
             while stack and not truncated:

@@ -15,7 +15,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gateway.sizes import MAX_ANSWER_BYTES, MAX_MESSAGE_BYTES
-from services.errors import FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted
+from services.errors import FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted, Unavailable
 from services.storage import MAX_FILE_SIZE, check_name
 from services.storage.disk import FileInfo, Folder
 from services.storage.find import FindQuery, format_time, glob_matcher, parse_time
@@ -120,6 +120,14 @@ def test_symbolic_links_are_never_followed(tmp_path: Path) -> None:
     assert (outside / "secret.txt").read_text() == "secret"
     assert (store / "passwd").is_symlink()
     assert folder.scan(lambda _: True, 10) == ([], False)
+
+
+def test_a_directory_gone_is_unavailable(tmp_path: Path) -> None:
+    folder = Folder(tmp_path / "gone")
+    with pytest.raises(Unavailable, match="cannot be opened"):
+        folder.read("a.txt", 10)
+    with pytest.raises(Unavailable, match="cannot be opened"):
+        folder.write("a.txt", b"x")
 
 
 def test_a_fifo_is_refused_without_blocking(tmp_path: Path) -> None:
