@@ -34,6 +34,7 @@ from services.errors import (
     PropertyError,
     ReadOnly,
     ResourceExhausted,
+    Unavailable,
 )
 from services.model import Access, ParameterModel, PropertyModel, ServiceModel
 from services.storage.disk import FileInfo, Folder
@@ -361,7 +362,11 @@ class Storage(Resource):
         try:
             while True:
                 self._refresh_again = False
-                found, truncated = await self._disk(self._folder.scan, self._listable, MAX_LISTED)
+                try:
+                    found, truncated = await self._disk(self._folder.scan, self._listable, MAX_LISTED)
+                except Unavailable as exc:  # the directory itself is gone: no files until it is back
+                    log.warning("%s", exc.message)
+                    found, truncated = [], False
                 if truncated and not self._warned_truncated:
                     self._warned_truncated = True
                     log.warning(

@@ -7,9 +7,9 @@ change, so an idle directory costs no polling. Changes are gathered for
 handed over as relative names (each with whether it was deleted); the
 service's own temporary files are left out.
 
-When the watch fails (the directory was removed or renamed), it is opened
-again after a growing pause (at most :data:`RETRY_MAX` seconds), and the
-service is told that anything may have changed.
+When the watch fails or the directory itself is removed, it is opened again
+after a growing pause (at most :data:`RETRY_MAX` seconds) once the directory
+is back, and the service is told that anything may have changed.
 """
 
 from __future__ import annotations
@@ -78,6 +78,10 @@ class DirectoryWatcher:
                             names[name] = names.get(name, False) or kind is watchfiles.Change.deleted
                     if names:
                         self._changed(names)
+                    if not self.root.is_dir():
+                        # The directory itself went: its watch hears nothing more. Watch it again
+                        # once it is back (made again by someone); until then calls are UNAVAILABLE.
+                        raise FileNotFoundError(f"{self.root} was removed")
                 return  # stopped
             except (OSError, RuntimeError) as exc:
                 # watchfiles raises FileNotFoundError for a missing directory, RuntimeError for a watch lost.

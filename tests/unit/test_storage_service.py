@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import shutil
 from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
 from support.waiting import wait_until
 
-from clients import Event, InvalidArgument
+from clients import Event, InvalidArgument, Unavailable
 from gateway.config import loads_config
 from gateway.testing import serve
 from services.catalog import build, create, needs_directory
@@ -121,3 +122,21 @@ async def test_listens_of_one_file_share_and_leave(tmp_path: Path) -> None:
             await second.aclose()
         # The last listen gone, the service follows the file no more.
         await wait_until(lambda: not storage._followed, what="the file is followed no more")
+
+
+async def test_a_directory_removed_and_made_again_is_watched_again(tmp_path: Path) -> None:
+    where = tmp_path / "store"
+    async with serve(Storage(directory=str(where)), name="files") as client:
+        await client.set("files", "file", "x", name="a.txt")
+        events = client.listen("files", "files")
+        try:
+            assert (await next_event(events)).value == "(a.txt)"
+            shutil.rmtree(where)
+            assert (await next_event(events)).value == "()"
+            with pytest.raises(Unavailable, match="cannot be opened"):
+                await client.get("files", "file", name="a.txt")
+            where.mkdir()
+            (where / "b.txt").write_text("made by another program")
+            assert (await next_event(events)).value == "(b.txt)"
+        finally:
+            await events.aclose()
