@@ -130,12 +130,14 @@ class GatewayProcess:
         return self.proc.returncode
 
 
-def _start(
+def start_gateway(
     tmp: Path,
     config: str | None,
     extra_args: Sequence[str] = (),
     credentials: grpc.ChannelCredentials | None = None,
 ) -> GatewayProcess:
+    """A ready gateway process serving ``config`` (TOML text written into ``tmp``; None = the demo),
+    stopped again if it does not become ready; the caller stops it (the fixtures do)."""
     # The HTTP front end on a free port too (a later --http in extra_args wins): never a fixed port.
     args = [sys.executable, "-m", "gateway.cli", "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"]
     if config is not None:
@@ -165,7 +167,7 @@ def gateway_process(tmp_path: Path) -> Iterator[StartGateway]:
         extra_args: Sequence[str] = (),
         credentials: grpc.ChannelCredentials | None = None,
     ) -> GatewayProcess:
-        gw = _start(tmp_path, config, extra_args, credentials)
+        gw = start_gateway(tmp_path, config, extra_args, credentials)
         started.append(gw)
         return gw
 
@@ -177,6 +179,6 @@ def gateway_process(tmp_path: Path) -> Iterator[StartGateway]:
 @pytest.fixture(scope="module")
 def demo_gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GatewayProcess]:
     """One gateway process per test module serving the demo config."""
-    gw = _start(tmp_path_factory.mktemp("demo"), None)
+    gw = start_gateway(tmp_path_factory.mktemp("demo"), None)
     yield gw
     gw.stop()
