@@ -6,13 +6,17 @@ Get reads, and the answers and errors are those of the gRPC port, as JSON.
 
 from __future__ import annotations
 
+import time
 from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
 from typing import Any
 
 import aiohttp
+import jwt
 import pytest
 from support.board import BOARD_TYPE
-from support.gateway_process import GatewayProcess, start_gateway
+from support.gateway_process import GatewayProcess, StartGateway, start_gateway
+from support.sse import SseReader
 
 from clients import AsyncClient
 
@@ -204,8 +208,7 @@ async def test_a_grpc_set_is_what_an_http_get_reads(
             "PUT",
             prop("board", "note"),
             {"value": "x", "parameters": {"frame": "robot"}},
-            400,
-            "INVALID_ARGUMENT",
+            (400, "INVALID_ARGUMENT"),
         ),
         ("PUT", prop("registry", "services.scout1"), {"value": "tcp://127.0.0.1:1"}, (409, "ALREADY_EXISTS")),
     ],
@@ -234,3 +237,110 @@ async def test_the_console_is_served_at_the_root(http: aiohttp.ClientSession) ->
         assert root.headers["Cache-Control"] == "no-cache"
         assert await root.text() == await same.text()
         assert "<html" in (await root.text()).lower()
+
+
+# -- identity and rules: the gRPC port's, on every HTTP route ----------------------------------
+
+SECRET = "a shared secret of the lab, long enough for HS256"
+RULES = """
+[auth]
+jwt_secret_file = "jwt.secret"
+issuer = "lab"
+
+[[services]]
+name = "scout1"
+type = "sim-robot"
+
+[[rules]]
+subject = "*"
+service = "scout1"
+operations = ["read"]
+effect = "permit"
+
+[[rules]]
+subject = "*"
+service = "scout1"
+path = "sensors.**"
+operations = ["read"]
+effect = "deny"
+
+[[rules]]
+subject = "operator"
+service = "scout1"
+operations = ["write", "invoke"]
+effect = "permit"
+
+[[rules]]
+subject = "admin"
+operations = ["read", "write", "invoke", "register", "unregister", "admin"]
+effect = "permit"
+"""
+
+
+def token(subject: str) -> str:
+    claims = {"sub": subject, "iss": "lab", "exp": int(time.time()) + 600}
+    return jwt.encode(claims, SECRET, algorithm="HS256")
+
+
+@pytest.fixture
+def secured(gateway_process: StartGateway, tmp_path: Path) -> GatewayProcess:
+    (tmp_path / "jwt.secret").write_text(SECRET)
+    return gateway_process(RULES)
+
+
+def bearer(subject: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token(subject)}"}
+
+
+@pytest.mark.parametrize(
+    ("who", "method", "url", "status"),
+    [
+        (None, "GET", prop("scout1", "location"), 200),
+        (None, "GET", prop("scout1", "sensors.bumper"), 401),  # refused, and no credentials given
+        ("guest", "GET", prop("scout1", "sensors.bumper"), 403),  # deny beats the broader permit
+        (None, "GET", "/api/v1/services/scout1/model", 200),
+        ("guest", "GET", "/api/v1/services", 403),  # the registry: nobody but admin reads it
+        ("admin", "GET", "/api/v1/services", 200),
+        (None, "PUT", prop("scout1", "speed"), 401),
+        ("operator", "PUT", prop("scout1", "speed"), 200),
+        ("guest", "PUT", prop("scout1", "speed"), 403),
+        ("bad", "PUT", prop("scout1", "speed"), 401),
+        ("guest", "GET", "/api/v1/events?sel=scout1/sensors.bumper", 403),
+        ("cookie:operator", "PUT", prop("scout1", "speed"), 200),
+        ("cookie:bad", "GET", prop("scout1", "location"), 401),
+    ],
+)
+async def test_tokens_and_rules_decide_as_on_the_grpc_port(
+    secured: GatewayProcess, who: str | None, method: str, url: str, status: int
+) -> None:
+    headers = {"Content-Type": "application/json"}
+    cookies = {}
+    if who == "bad":
+        headers["Authorization"] = "Bearer not-a-token"
+    elif who == "cookie:bad":
+        cookies["ps_token"] = "not-a-token"
+    elif who is not None and who.startswith("cookie:"):
+        cookies["ps_token"] = token(who.partition(":")[2])
+    elif who is not None:
+        headers.update(bearer(who))
+    body = {"value": 0.4} if method == "PUT" else None
+    async with (
+        aiohttp.ClientSession(base_url=secured.http_url, cookies=cookies) as http,
+        http.request(method, url, json=body, headers=headers) as response,
+    ):
+        assert response.status == status, await response.text()
+        if status >= 400:
+            error = (await response.json())["error"]
+            assert error["code"] == {401: "UNAUTHENTICATED", 403: "PERMISSION_DENIED"}[status]
+
+
+async def test_an_event_stream_skips_what_its_subject_may_not_read(secured: GatewayProcess) -> None:
+    async with (
+        aiohttp.ClientSession(base_url=secured.http_url) as http,
+        http.get("/api/v1/events", params={"sel": "scout1/*"}) as response,
+    ):
+        assert response.status == 200
+        snapshot = await SseReader(response).values_until_sync()
+    paths = [m.data["path"] for m in snapshot]
+    assert "location" in paths
+    assert not [p for p in paths if p.startswith("sensors.")]
