@@ -93,7 +93,7 @@ class HttpFront:
     async def _middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         what = f"{request.method} {request.path[:200]}"
         try:
-            check_request(request, self.loopback_only)
+            check_request(request, self.loopback_only, routed=request.match_info.http_exception is None)
             return await handler(request)
         except PropertyError as exc:
             return error_response(exc, what)
