@@ -280,3 +280,20 @@ async def test_the_test_kit_serves_http_on_a_free_port_when_asked() -> None:
     async with aiohttp.ClientSession() as http:
         with pytest.raises(aiohttp.ClientConnectionError):
             await http.get(url + "api/v1/health")  # stopped with the gateway
+
+
+def test_check_config_checks_and_names_the_http_section(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from gateway.cli import main
+
+    good = tmp_path / "good.toml"
+    good.write_text('[http]\nlisten = "127.0.0.1:8081"\n')
+    assert main(["check-config", str(good)]) == 0
+    assert "HTTP on 127.0.0.1:8081" in capsys.readouterr().out
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[http]\nlisten = "127.0.0.1:8081"\nmax_body = 0\nheartbeat = -1\n')
+    assert main(["check-config", str(bad)]) == 2
+    errors = capsys.readouterr().err.splitlines()
+    assert sum("http.max_body" in line for line in errors) == 1
+    assert sum("http.heartbeat" in line for line in errors) == 1
