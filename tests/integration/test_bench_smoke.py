@@ -33,6 +33,9 @@ TARGETS = (
     "tls-session",
     "storage-set-1k",
     "storage-set-1m",
+    "sse-fanout",
+    "sse-latency-p50",
+    "sse-latency-p99",
 )
 
 
