@@ -25,6 +25,7 @@ from services.directory import Directory
 from services.errors import InvalidArgument
 from services.group import Group
 from services.simulators import SimRobot, SimSensor
+from services.statemachine import StateMachineService
 
 __all__ = ["CATALOG", "create", "factory_of", "needs_directory"]
 
@@ -32,6 +33,7 @@ CATALOG: dict[str, Callable[..., Resource]] = {
     "group": Group,
     "sim-robot": SimRobot,
     "sim-sensor": SimSensor,
+    "statemachine": StateMachineService,
 }
 
 #: The keyword a factory declares to be handed the gateway's directory.
