@@ -93,6 +93,7 @@ class _ActiveListen:
     subscription: Subscription | None = None
     active: bool = True
     last: bool = False
+    value: str | None = None
 
 
 @dataclass(slots=True)
@@ -216,6 +217,7 @@ class Interpreter:
             await self._macrostep()
             if self._finished():
                 return
+            self._retest_listens()
             self.on_change()
             event = await self._external.get()
             if event is None or self._stopping:
@@ -317,7 +319,10 @@ class Interpreter:
         if before != after:
             trigger = f" on {self._event.name}" if self._event is not None else ""
             self.journal(f"{' '.join(before) or '()'} -> {' '.join(after) or '()'}{trigger}")
-        self.on_change()
+            self.on_change()
+            # One turn of the event loop: a Listen stream on `state` takes this configuration before
+            # the next one replaces it (a stream conflates what it has not taken yet).
+            await asyncio.sleep(0)
 
     def _effective_targets(self, t: Transition) -> list[State]:
         targets: list[State] = []
@@ -676,7 +681,15 @@ class Interpreter:
         if active.active and not change.removed:
             self._test(active, change.value)
 
+    def _retest_listens(self) -> None:
+        """A condition reads chart variables too (a new threshold): test it again with the last value."""
+        for listens in self._listens.values():
+            for active in listens:
+                if active.active and active.value is not None and active.spec.cond is not None:
+                    self._test(active, active.value)
+
     def _test(self, active: _ActiveListen, text: str) -> None:
+        active.value = text
         spec = active.spec
         value = parse_chart_value(text)
         if spec.cond is None:
