@@ -5,9 +5,10 @@ property                  meaning
 ========================  ====================================================================
 ``machines``              the machines loaded, ``(patrol docking)``
 ``M.definition``          the chart (SCXML, or the same model in JSON or YAML); a Set loads a new
-                          machine ``M`` or replaces a stopped one; a Set of ``""`` removes it
+                          machine ``M`` or replaces a stopped one
 ``M.start`` / ``M.stop``  actions: run the chart from its initial state / stop it (its active
                           states are exited, their ``onexit`` runs)
+``M.remove``              action: remove the machine (stopped) and its stored chart
 ``M.events``              action: a Set sends the event named by the value (``data=`` parameter:
                           the event's data)
 ``M.state``               the active configuration, ``(patrol goto)``; a Listen is the live view
@@ -104,7 +105,7 @@ class Machine(Resource):
 
     # -- what clients see ------------------------------------------------------------
 
-    @read_write(doc="the chart (SCXML, JSON or YAML): a Set loads or replaces it, a Set of '' removes it")
+    @read_write(doc="the chart (SCXML, JSON or YAML): a Set loads it, or replaces it while stopped")
     async def definition(self, text: str | None = None, /) -> str:
         """Get: the chart's text; Set: load it (the machine must be stopped)."""
         if text is None:
@@ -129,6 +130,10 @@ class Machine(Resource):
     @action(doc="stop the chart: its active states are exited (their onexit runs)")
     async def stop(self) -> None:
         await self.halt()
+
+    @action(doc="remove this machine (stopped) and its stored chart")
+    async def remove(self) -> None:
+        await self._owner.remove(self._name)
 
     @action(doc="send the event named by the value; the parameter data is the event's data")
     async def events(self, name: str, *, data: str = "") -> None:
@@ -320,6 +325,13 @@ class StateMachineService(Resource):
             raise
         machine.load(chart)
         await self._store(name, chart)
+
+    async def remove(self, name: str) -> None:
+        """Remove machine ``name`` (it must be stopped) and its stored chart."""
+        if self.machine(name).running:
+            raise FailedPrecondition(f"machine {name} is running; stop it before removing it")
+        self._remove(name)
+        await self._store(name, None)
 
     # -- storage -------------------------------------------------------------------------
 

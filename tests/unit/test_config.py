@@ -56,6 +56,7 @@ def test_the_demo_config() -> None:
         ("scout2", "sim-robot"),
         ("thermo1", "sim-sensor"),
         ("swarm", "group"),
+        ("missions", "statemachine"),
     ]
     assert [(d.name, d.tcp or d.serial) for d in cfg.devices] == [
         ("rover1", "127.0.0.1:0"),
