@@ -28,13 +28,14 @@ from bench.memory import run_memory, run_session_memory
 from bench.register import run_register
 from bench.servers import ServerProcess
 from bench.session import run_session
+from bench.statemachine import run_statemachine
 from bench.target import BATCH_PROPERTIES, VALUE_PROPERTY
 from bench.tls import run_tls
 from bench.unary import run_unary
 
 #: Parts (a)-(d) compare the gateway with the bare server; (e)-(h) are the line protocol and registry parts.
 SERVER_PARTS = ("unary", "session", "listen", "batched", "memory")
-PARTS = (*SERVER_PARTS, "line", "group", "find", "register", "tls")
+PARTS = (*SERVER_PARTS, "line", "group", "find", "register", "tls", "statemachine")
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
     "gateway": ["bench.gateway_server", "--listen", "127.0.0.1:0"],
@@ -56,6 +57,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "find_sizes": (100, 1_000, 10_000),
         "find_queries": 1_000,
         "register_sizes": (100, 1_000),
+        "transitions": 20_000,
     },
     "quick": {
         "calls": 2_000,
@@ -71,6 +73,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "find_sizes": (100, 1_000),
         "find_queries": 200,
         "register_sizes": (100,),
+        "transitions": 2_000,
     },
 }
 
@@ -112,7 +115,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "(a) unary Get, (b) Gets over Session, (c) Listen fan-out one-by-one and batched, "
         "(d) memory per idle Listen stream; (e) Get through the gateway's TCP proxy beside the line "
         "protocol straight to the device; (f) group moveto, (g) registry find, (h) registration over raw "
-        "TCP at growing sizes. Prints absolute figures, ratios and targets.",
+        "TCP at growing sizes; (i) the cost of mTLS; (j) chart transitions with a Set each. "
+        "Prints absolute figures, ratios and targets.",
     )
     parser.add_argument(
         "--quick", action="store_true", help="small sizes: a smoke run of well under a minute"
@@ -187,6 +191,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         type=_positive,
         default=32,
         help="(h) registration Sets in flight (default 32)",
+    )
+    sizes.add_argument(
+        "--transitions", type=_positive, help=f"(j) chart transitions, each with a Set {both('transitions')}"
     )
     sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
     sizes.add_argument(
@@ -354,6 +361,11 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
                 rounds=args.rounds,
                 time_limit=args.time_limit,
             ),
+        )
+    if "statemachine" in args.parts:
+        results.setdefault("in-process", {})["statemachine"] = await _timed(
+            f"statemachine, {args.transitions:,} transitions each with a Set, and as many bare Sets",
+            lambda: run_statemachine(args.transitions, args.time_limit),
         )
     if "register" in args.parts:
         results.setdefault("gateway", {})["register"] = await _timed(

@@ -10,11 +10,15 @@ interpreter turns into an ``error.action`` event of the chart.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Mapping
+from collections.abc import Awaitable, Coroutine, Mapping
+from typing import Any, TypeVar
 
-from services.backend import NO_PARAMS, Notify, Subscription
+from services.backend import NO_PARAMS, Backend, Notify, Subscription
 from services.directory import Directory
+from services.eager import Started, step
 from services.errors import DeadlineExceeded
+
+T = TypeVar("T")
 
 __all__ = ["DEFAULT_ACTION_TIMEOUT", "PropertyBinding"]
 
@@ -39,22 +43,14 @@ class PropertyBinding:
     ) -> str:
         limit = self.timeout if limit_s is None else limit_s
         backend = self.directory.backend(service)
-        try:
-            async with asyncio.timeout(limit):
-                return await backend.set(path, value, params)
-        except TimeoutError:
-            raise DeadlineExceeded(f"Set of {service}/{path}: no answer within {limit:g} s") from None
+        return await _bounded(backend, backend.set(path, value, params), limit, f"Set of {service}/{path}")
 
     async def get(
         self, service: str, path: str, params: Mapping[str, str] = NO_PARAMS, limit_s: float | None = None
     ) -> str:
         limit = self.timeout if limit_s is None else limit_s
         backend = self.directory.backend(service)
-        try:
-            async with asyncio.timeout(limit):
-                return await backend.get(path, params)
-        except TimeoutError:
-            raise DeadlineExceeded(f"Get of {service}/{path}: no answer within {limit:g} s") from None
+        return await _bounded(backend, backend.get(path, params), limit, f"Get of {service}/{path}")
 
     async def listen(self, service: str, path: str, notify: Notify) -> Subscription:
         backend = self.directory.backend(service)
@@ -64,3 +60,18 @@ class PropertyBinding:
         except TimeoutError:
             why = f"Listen to {service}/{path}: no answer within {self.timeout:g} s"
             raise DeadlineExceeded(why) from None
+
+
+async def _bounded(backend: Backend, call: Coroutine[Any, Any, T], limit: float, what: str) -> T:
+    """``call`` under ``limit`` seconds; an in-process answer that needs no wait costs no timer."""
+    pending: Awaitable[T] = call
+    if backend.answers_inline:
+        first = step(call)
+        if not isinstance(first, Started):
+            return first
+        pending = first.rest()
+    try:
+        async with asyncio.timeout(limit):
+            return await pending
+    except TimeoutError:
+        raise DeadlineExceeded(f"{what}: no answer within {limit:g} s") from None

@@ -126,6 +126,8 @@ class Interpreter:
     on_change: Callable[[], None]
     journal: Callable[[str], None]
     name: str = ""
+    #: True while someone listens to the configuration: each step then gives them a turn to take it.
+    watched: Callable[[], bool] = lambda: False
     configuration: set[State] = field(default_factory=set)
     variables: dict[str, Any] = field(default_factory=dict)
     status: str = "stopped"
@@ -320,9 +322,10 @@ class Interpreter:
             trigger = f" on {self._event.name}" if self._event is not None else ""
             self.journal(f"{' '.join(before) or '()'} -> {' '.join(after) or '()'}{trigger}")
             self.on_change()
-            # One turn of the event loop: a Listen stream on `state` takes this configuration before
-            # the next one replaces it (a stream conflates what it has not taken yet).
-            await asyncio.sleep(0)
+            if self.watched():
+                # One turn of the event loop: a Listen stream on `state` takes this configuration
+                # before the next one replaces it (a stream conflates what it has not taken yet).
+                await asyncio.sleep(0)
 
     def _effective_targets(self, t: Transition) -> list[State]:
         targets: list[State] = []

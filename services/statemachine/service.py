@@ -121,7 +121,12 @@ class Machine(Resource):
             if self._run is not None and self._run.running:
                 raise FailedPrecondition(f"machine {self._name} is already running; stop it first")
             self._run = Interpreter(
-                self._chart, self._owner.binding, self._refresh, self.journal, name=self._name
+                self._chart,
+                self._owner.binding,
+                self._refresh,
+                self.journal,
+                name=self._name,
+                watched=lambda: bool(self._ps_watch.get("state")),
             )
             self.journal("start")
             self._run.start()
@@ -188,8 +193,11 @@ class Machine(Resource):
         return self._run is not None and self._run.running
 
     def journal(self, entry: str) -> None:
-        stamp = time.strftime("%H:%M:%S", time.gmtime()) + f".{int(time.time() * 1000) % 1000:03d}"
-        line = f"{stamp} {entry}"
+        ms = int(time.time() * 1000)
+        seconds, ms = divmod(ms, 1000)
+        minutes, second = divmod(seconds, 60)
+        hours, minute = divmod(minutes, 60)
+        line = f"{hours % 24:02d}:{minute:02d}:{second:02d}.{ms:03d} {entry}"
         self._log.append(line if len(line) <= MAX_LOG_LINE else line[: MAX_LOG_LINE - 1] + "…")
         self.changed("log")
 

@@ -31,6 +31,7 @@ TARGETS = (
     "register-memory",
     "tls-unary",
     "tls-session",
+    "statemachine",
 )
 
 
@@ -89,12 +90,16 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     for way in ("plaintext", "mtls-token"):
         for call in ("unary", "session"):
             assert tls[way][call]["errors"] == 0 and tls[way][call]["throughput_per_s"] > 0, (way, call)
+    # The state machine part ran every transition of its chart, each with its Set.
+    machine = payload["results"]["in-process"]["statemachine"]
+    assert machine["complete"] and machine["transitions"] == 2000, machine
     titles = (
         "(e) Get of",
         "(f) group behaviors.moveto",
         "(g) registry find",
         "(h) members registered",
         "(i) the cost",
+        "(j) a chart",
     )
     for title in titles:
         assert title in out, f"no table {title!r}:\n{out}"
