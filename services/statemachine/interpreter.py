@@ -292,6 +292,8 @@ class Interpreter:
 
     def _remove_conflicts(self, enabled: list[Transition]) -> list[Transition]:
         filtered: list[Transition] = []
+        if len(enabled) < 2:
+            return enabled
         for t1 in enabled:
             preempted = False
             remove: list[Transition] = []
