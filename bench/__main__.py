@@ -29,13 +29,14 @@ from bench.register import run_register
 from bench.servers import ServerProcess
 from bench.session import run_session
 from bench.statemachine import run_statemachine
+from bench.storage import run_storage
 from bench.target import BATCH_PROPERTIES, VALUE_PROPERTY
 from bench.tls import run_tls
 from bench.unary import run_unary
 
 #: Parts (a)-(d) compare the gateway with the bare server; (e)-(h) are the line protocol and registry parts.
 SERVER_PARTS = ("unary", "session", "listen", "batched", "memory")
-PARTS = (*SERVER_PARTS, "line", "group", "find", "register", "tls", "statemachine")
+PARTS = (*SERVER_PARTS, "line", "group", "find", "register", "tls", "storage", "statemachine")
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
     "gateway": ["bench.gateway_server", "--listen", "127.0.0.1:0"],
@@ -57,6 +58,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "find_sizes": (100, 1_000, 10_000),
         "find_queries": 1_000,
         "register_sizes": (100, 1_000),
+        "storage_calls": 1_000,
         "transitions": 20_000,
     },
     "quick": {
@@ -73,6 +75,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "find_sizes": (100, 1_000),
         "find_queries": 200,
         "register_sizes": (100,),
+        "storage_calls": 200,
         "transitions": 2_000,
     },
 }
@@ -115,8 +118,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "(a) unary Get, (b) Gets over Session, (c) Listen fan-out one-by-one and batched, "
         "(d) memory per idle Listen stream; (e) Get through the gateway's TCP proxy beside the line "
         "protocol straight to the device; (f) group moveto, (g) registry find, (h) registration over raw "
-        "TCP at growing sizes; (i) the cost of mTLS; (j) chart transitions with a Set each. "
-        "Prints absolute figures, ratios and targets.",
+        "TCP at growing sizes; (i) mTLS and a token; (j) a storage service's Get and Set beside plain file "
+        "I/O; (k) chart transitions with a Set each. Prints absolute figures, ratios and targets.",
     )
     parser.add_argument(
         "--quick", action="store_true", help="small sizes: a smoke run of well under a minute"
@@ -193,7 +196,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="(h) registration Sets in flight (default 32)",
     )
     sizes.add_argument(
-        "--transitions", type=_positive, help=f"(j) chart transitions, each with a Set {both('transitions')}"
+        "--storage-calls",
+        type=_positive,
+        help=f"(j) Gets and Sets of the 1 KiB file each way, a tenth for 1 MiB {both('storage_calls')}",
+    )
+    sizes.add_argument(
+        "--transitions", type=_positive, help=f"(k) chart transitions, each with a Set {both('transitions')}"
     )
     sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
     sizes.add_argument(
@@ -361,6 +369,11 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
                 rounds=args.rounds,
                 time_limit=args.time_limit,
             ),
+        )
+    if "storage" in args.parts:
+        results.setdefault("gateway", {})["storage"] = await _timed(
+            "storage: 1 KiB and 1 MiB files through the gateway and with plain file I/O",
+            lambda: run_storage(calls=args.storage_calls, time_limit=args.time_limit),
         )
     if "statemachine" in args.parts:
         results.setdefault("in-process", {})["statemachine"] = await _timed(

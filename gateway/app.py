@@ -40,7 +40,7 @@ from gateway.server import PropertyServicer, add_to_server
 from gateway.tls import LineCredentials, ServerCredentials
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, BackendInfo
-from services.catalog import create, needs_directory
+from services.catalog import build, needs_directory
 from services.errors import PropertyError
 from services.registry import DEFAULT_REGISTER_TIMEOUT, AllowList, Registry, RegistryService
 from services.registry import ServiceEntry as RegistryEntry
@@ -151,7 +151,7 @@ class Gateway:
         problems = []
         for device in self.config.devices:
             try:
-                create(device.type, **device.options)
+                build(device.type, device.options)
             except PropertyError as exc:
                 problems.append(f"{self.config.source}: devices ({device.name}): {exc.message}")
         if problems:

@@ -1,7 +1,8 @@
 """Open a backend from a configuration entry or a registration.
 
-An entry with ``type`` is an in-process service: ``services.catalog.create(type,
-**options)`` builds the resource and ``services.core.LocalService`` serves it.
+An entry with ``type`` is an in-process service: ``services.catalog.build(type,
+options)`` builds the resource and ``services.core.serve`` serves it (a LocalService, or
+the subclass its class names).
 An entry with ``url`` is a proxy: the URL's scheme picks a factory from the
 static table :data:`PROXY_SCHEMES`.
 """
@@ -17,8 +18,8 @@ from gateway.proxies.grpc_proxy import open_grpc_backend
 from gateway.proxies.serial import open_serial_backend
 from gateway.proxies.tcp import open_tcp_backend
 from services.backend import Backend
-from services.catalog import create
-from services.core import LocalService
+from services.catalog import build
+from services.core import serve
 from services.errors import InvalidArgument, PropertyError
 
 if TYPE_CHECKING:
@@ -58,9 +59,9 @@ def open_backend(entry: ServiceEntry, directory: Directory | None = None) -> Bac
     if entry.url:
         return open_proxy(entry.name, entry.url, entry.options)
     try:
-        resource = create(entry.type, directory=directory, **entry.options)
+        resource = build(entry.type, entry.options, directory)
     except PropertyError:
         raise
     except TypeError as exc:
         raise InvalidArgument(f"service {entry.name!r} of type {entry.type!r}: bad options: {exc}") from None
-    return LocalService(resource)
+    return serve(resource)

@@ -255,8 +255,9 @@ class Calls:
     ) -> list[str]:
         """The values of ``service`` that ``pattern`` matches, in the service's order.
 
-        A snapshot holds values a Listen could follow: actions (never read), queries (which
-        take their parameters) and namespaces (not values) are skipped, and so is what the
+        A snapshot holds values a Listen could follow: actions (never read), queries and
+        properties that need a parameter (``file`` of a storage service), and namespaces (not
+        values) are skipped, and so is what the
         subject may not read.
         """
         model = await bounded_call(
@@ -268,6 +269,7 @@ class Calls:
             p.name
             for p in model.properties
             if p.access.listenable
+            and not p.needs_parameters
             and p.type != "namespace"
             and matches(p.name)
             and guard.may(subject, service, p.name, Operation.READ)

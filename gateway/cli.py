@@ -132,7 +132,7 @@ def _serve(args: argparse.Namespace) -> int:
 def _check_config(args: argparse.Namespace) -> int:
     from gateway.backends import open_backend
     from gateway.router import Router
-    from services.catalog import create
+    from services.catalog import build
     from services.errors import PropertyError
 
     config, problems = load_config_partly(args.file)
@@ -158,7 +158,7 @@ def _check_config(args: argparse.Namespace) -> int:
         for device in config.devices:
             # Built here as the device process would build it, so a bad option shows now, not at start.
             try:
-                create(device.type, **device.options)
+                build(device.type, device.options)
             except PropertyError as exc:
                 where = f"{config.source}: devices ({device.name})"
                 print(f"psgateway: config error: {where}: {exc.message}", file=sys.stderr)

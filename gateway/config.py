@@ -636,10 +636,26 @@ def _service(entry: Any, where: str, seen: set[str], folder: Path | None = None)
     if not isinstance(options, Mapping):
         raise ConfigError(f"{where}.options: expected a table like {{ speed = 0.5 }}")
     secret_file = _typed(entry.get("secret_file", ""), str, f"{where}.secret_file")
-    service = ServiceEntry(name=name, type=kind, url=url, options=dict(options))
+    service = ServiceEntry(name=name, type=kind, url=url, options=_paths_resolved(kind, options, folder))
     if service.dials_in or secret_file:
         service = replace(service, secret_file=_secret_file(service, secret_file, where, folder))
     return service
+
+
+def _paths_resolved(kind: str, options: Mapping[str, Any], folder: Path | None) -> dict[str, Any]:
+    """``options`` with the relative paths among them (``services.catalog.PATH_OPTIONS``) taken from
+    the config file's folder, as every path in a config is."""
+    from services.catalog import PATH_OPTIONS
+
+    resolved = dict(options)
+    for key in PATH_OPTIONS.get(kind, ()):
+        value = resolved.get(key)
+        if isinstance(value, str) and value:
+            path = Path(value).expanduser()
+            if not path.is_absolute():
+                path = (folder if folder is not None else Path.cwd()) / path
+            resolved[key] = str(path)
+    return resolved
 
 
 def _secret_file(service: ServiceEntry, secret_file: str, where: str, folder: Path | None) -> str:

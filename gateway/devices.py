@@ -109,9 +109,9 @@ async def start_device(entry: DeviceEntry, *, wait_s: float = START_TIMEOUT) -> 
     Raises InvalidArgument for bad options and Unavailable when the process
     ends or stays silent; the process is ended in both cases.
     """
-    from services.catalog import create
+    from services.catalog import build
 
-    create(entry.type, **entry.options)  # bad options fail here, with the catalog's message
+    build(entry.type, entry.options)  # bad options fail here, with the catalog's message
     process = await asyncio.create_subprocess_exec(
         *device_command(entry),
         stdin=asyncio.subprocess.PIPE,  # the child ends when this pipe closes, even if the gateway is killed

@@ -16,7 +16,7 @@ closed and the folder with the socket is removed::
 
 Several services are served by a dict (``serve({"lamp": Lamp(), "bot":
 Robot()})``); a service is a :class:`services.core.Resource` (served as
-``services.core.LocalService`` serves it) or any built
+``services.core.serve`` serves it) or any built
 :class:`services.backend.Backend`. ``config`` sets limits and timeouts
 (``Config(limits=Limits(max_streams=2))``); its ``listen`` address is
 replaced by the socket. :func:`serve_sync` is the same for blocking tests
@@ -41,7 +41,8 @@ from clients import DEFAULT_TIMEOUT, AsyncClient, Client
 from gateway.app import Gateway
 from gateway.config import Config
 from services.backend import Backend
-from services.core import LocalService, Resource
+from services.core import Resource
+from services.core import serve as backend_for
 
 T = TypeVar("T")
 
@@ -62,7 +63,7 @@ def _backends(services: Service | Mapping[str, Service], name: str | None) -> di
         raise TypeError("serve one service as serve(service, name='...'), or several as a dict")
     else:
         named = {name: services}
-    return {key: s if isinstance(s, Backend) else LocalService(s) for key, s in named.items()}
+    return {key: s if isinstance(s, Backend) else backend_for(s) for key, s in named.items()}
 
 
 @asynccontextmanager

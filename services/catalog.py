@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import importlib
 import inspect
-from collections.abc import Callable
+import re
+import typing
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from services.core import Resource
@@ -26,15 +28,21 @@ from services.errors import InvalidArgument
 from services.group import Group
 from services.simulators import SimRobot, SimSensor
 from services.statemachine import StateMachineService
+from services.storage import Storage
 
-__all__ = ["CATALOG", "create", "factory_of", "needs_directory"]
+__all__ = ["CATALOG", "PATH_OPTIONS", "build", "create", "factory_of", "needs_directory"]
 
 CATALOG: dict[str, Callable[..., Resource]] = {
     "group": Group,
     "sim-robot": SimRobot,
     "sim-sensor": SimSensor,
     "statemachine": StateMachineService,
+    "storage": Storage,
 }
+
+#: Options of a kind that name a file or folder: a configuration takes a relative one from its
+#: own folder (``gateway.config``), as it does for every other path it holds.
+PATH_OPTIONS: dict[str, tuple[str, ...]] = {"storage": ("directory",)}
 
 #: The keyword a factory declares to be handed the gateway's directory.
 _DIRECTORY = "directory"
@@ -83,17 +91,32 @@ def factory_of(kind: str) -> Callable[..., Resource]:
     )
 
 
+def _takes_directory(param: inspect.Parameter) -> bool:
+    """A ``directory`` keyword typed as the gateway's :class:`Directory` (a storage service's
+    ``directory`` option, a folder's path, is no such keyword)."""
+    annotation = param.annotation
+    if isinstance(annotation, str):
+        return re.search(r"\bDirectory\b", annotation) is not None
+    return annotation is Directory or Directory in typing.get_args(annotation)
+
+
 def needs_directory(kind: str) -> bool:
     """True when services of ``kind`` reach other services (a group) and so need the gateway's directory."""
     try:
         factory = factory_of(kind)
     except InvalidArgument:
         return False
-    return _DIRECTORY in _parameters(factory)
+    param = _parameters(factory).get(_DIRECTORY)
+    return param is not None and _takes_directory(param)
+
+
+def _internal(kind: str) -> tuple[str, ...]:
+    """Keywords of ``kind``'s factory that no config may give."""
+    return (_DIRECTORY, *_INTERNAL.get(kind, ())) if needs_directory(kind) else _INTERNAL.get(kind, ())
 
 
 def _accepted(kind: str, factory: Callable[..., Resource]) -> str:
-    internal = (_DIRECTORY, *_INTERNAL.get(kind, ()))
+    internal = _internal(kind)
     params = _parameters(factory)
     if not params:
         return "see its documentation"
@@ -109,18 +132,26 @@ def create(kind: str, *, directory: Directory | None = None, **options: Any) -> 
     """Create a service object of ``kind``; InvalidArgument for an unknown kind or bad options.
 
     ``directory`` is handed on only to kinds that take one (see :func:`needs_directory`);
-    such a kind created without one is an InvalidArgument.
+    such a kind created without one is an InvalidArgument. Options from a config go
+    through :func:`build`, where an option may be named ``directory`` too (a storage
+    service's folder).
     """
+    return build(kind, options, directory)
+
+
+def build(kind: str, options: Mapping[str, Any], directory: Directory | None = None) -> Resource:
+    """:func:`create` with the options as a mapping: any option name, ``directory`` included."""
     factory = factory_of(kind)
-    for key in (_DIRECTORY, *_INTERNAL.get(kind, ())):
+    for key in _internal(kind):
         if key in options:
             raise InvalidArgument(
                 f"bad options for {kind!r}: {key!r} is not an option; it accepts: {_accepted(kind, factory)}"
             )
+    options = dict(options)
     if needs_directory(kind):
         if directory is None:
             raise InvalidArgument(f"a {kind!r} service reaches other services: it runs only inside a gateway")
-        options = {**options, _DIRECTORY: directory}
+        options[_DIRECTORY] = directory
     try:
         bound = inspect.signature(factory).bind(**options)
     except TypeError as e:

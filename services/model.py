@@ -93,8 +93,14 @@ class PropertyModel:
     gui: str = ""
     #: Actions and queries: the value a Set (or a query's Get) takes; None when it takes none.
     value: ParameterModel | None = None
-    #: Actions and queries: the request parameters they accept.
+    #: Actions and queries (and a property read with a parameter, a storage service's
+    #: ``file``): the request parameters they accept.
     parameters: tuple[ParameterModel, ...] = ()
+
+    @property
+    def needs_parameters(self) -> bool:
+        """It takes a required parameter: a Get or Listen without one fails, so wildcards skip it."""
+        return any(p.required for p in self.parameters)
 
 
 @dataclass(frozen=True, slots=True)

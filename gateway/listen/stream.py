@@ -51,7 +51,7 @@ class _Expansion:
     """A path pattern expanded against one service's ``properties``; follows its changes.
 
     It matches only the properties a Listen may follow (``Access.listenable``:
-    never an action, nor a query that needs its parameters), as the service's
+    never an action, nor a query, nor a property that needs a parameter), as the service's
     model says; a name the model does not know counts as listenable. Names the
     stream's subject may not read are skipped too.
     """
@@ -77,7 +77,9 @@ class _Expansion:
             log.debug("%s: cannot read its model (%s); every match is followed", self.service, exc.message)
             return
         self.known = frozenset(p.name for p in model.properties)
-        self.skipped = frozenset(p.name for p in model.properties if not p.access.listenable)
+        self.skipped = frozenset(
+            p.name for p in model.properties if not p.access.listenable or p.needs_parameters
+        )
 
     def paths(self, listing: str) -> set[str]:
         try:

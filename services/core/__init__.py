@@ -7,14 +7,15 @@
   never to change state; :func:`read_write` — a method a Get calls without a value and a Set
   with one (a value computed by asking others, set by telling them); :func:`functional` — the
   former name of :func:`action`.
-* :class:`LocalService` — serves a Resource in-process as a ``services.backend.Backend``.
+* :class:`LocalService` — serves a Resource in-process as a ``services.backend.Backend``;
+  :func:`serve` — the backend a Resource's class asks for (``Resource.served_by``, by default LocalService).
 * :func:`start_tree` / :func:`stop_tree` — run a Resource's lifecycle hooks and its children's.
 * ``RESERVED_NAMES`` — names no member or child may take (``properties``, ``parameters``, ``gui``, ``doc``).
 * ``Vector`` and ``Marker`` — the value types a property's annotation may name besides the builtins
   (from :mod:`services.values`).
 """
 
-from services.core.local import LocalService
+from services.core.local import LocalService, serve
 from services.core.metadata import RESERVED_NAMES, Prop, action, functional, query, read_write
 from services.core.resource import Resource, start_tree, stop_tree
 from services.values import Marker, Vector
@@ -30,6 +31,7 @@ __all__ = [
     "functional",
     "query",
     "read_write",
+    "serve",
     "start_tree",
     "stop_tree",
 ]

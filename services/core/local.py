@@ -17,7 +17,7 @@ from services.errors import NotFound, PropertyError
 from services.model import ServiceModel
 from services.paths import validate_path
 
-__all__ = ["LocalService"]
+__all__ = ["LocalService", "serve"]
 
 log = logging.getLogger(__name__)
 
@@ -310,3 +310,9 @@ class LocalService(Backend):
         await self._sync_remote_lists()
         self._targets.clear()
         await stop_tree(self.obj)
+
+
+def serve(obj: Resource, url: str = "local") -> Backend:
+    """The Backend serving ``obj``: its class's ``served_by`` (a LocalService subclass) or LocalService."""
+    served_by = type(obj).served_by
+    return LocalService(obj, url) if served_by is None else served_by(obj, url)

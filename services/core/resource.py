@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 from services.backend import Backend
 from services.core.metadata import RESERVED_NAMES, MemberKind, Namespace, class_spec
@@ -18,6 +18,12 @@ log = logging.getLogger(__name__)
 
 #: Called on a structural change below a resource: (path of the added or removed child, removed?).
 TreeWatcher = Callable[[str, bool], None]
+
+
+class BackendFactory(Protocol):
+    """What ``Resource.served_by`` names: a LocalService subclass, called with the object and its URL."""
+
+    def __call__(self, obj: Any, url: str, /) -> Backend: ...
 
 
 def _is_functional(cls: type, name: str) -> bool:
@@ -38,6 +44,10 @@ class Resource(Namespace):
 
     #: Reported as ``BackendInfo.type`` (``mobile_robot``, ``sensor``, ``registry``, ...).
     resource_type: ClassVar[str] = "resource"
+    #: The Backend that serves this class (:func:`services.core.serve`); None: ``LocalService``.
+    #: A class with a property the class wrapper cannot express alone names a ``LocalService``
+    #: subclass here (a storage service's ``file``: read, written and followed with a parameter).
+    served_by: ClassVar[BackendFactory | None] = None
 
     # Per-instance bookkeeping, created in __new__ so subclasses need not call super().__init__().
     _ps_watch: dict[str, list[Callable[[], None]]]

@@ -119,10 +119,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _make_backend(kind: str, options: Mapping[str, Any]) -> Backend:
-    from services.catalog import create
-    from services.core import LocalService
+    from services.catalog import build
+    from services.core import serve
 
-    return LocalService(create(kind, **options))
+    return serve(build(kind, options))
 
 
 def _read_secret(path: str) -> str:

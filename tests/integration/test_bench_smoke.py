@@ -31,6 +31,8 @@ TARGETS = (
     "register-memory",
     "tls-unary",
     "tls-session",
+    "storage-set-1k",
+    "storage-set-1m",
     "statemachine",
 )
 
@@ -90,6 +92,11 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     for way in ("plaintext", "mtls-token"):
         for call in ("unary", "session"):
             assert tls[way][call]["errors"] == 0 and tls[way][call]["throughput_per_s"] > 0, (way, call)
+    # Storage: both sizes, both calls, through the gateway and with plain file I/O.
+    storage = payload["results"]["gateway"]["storage"]
+    assert sorted(storage["sizes"]) == ["1k", "1m"] and storage["complete"], storage
+    for figures in storage["sizes"].values():
+        assert figures["get_ratio"] > 0 and figures["set_ratio"] > 0, figures
     # The state machine part ran every transition of its chart, each with its Set.
     machine = payload["results"]["in-process"]["statemachine"]
     assert machine["complete"] and machine["transitions"] == 2000, machine
@@ -99,7 +106,8 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         "(g) registry find",
         "(h) members registered",
         "(i) the cost",
-        "(j) a chart",
+        "(j) storage",
+        "(k) a chart",
     )
     for title in titles:
         assert title in out, f"no table {title!r}:\n{out}"

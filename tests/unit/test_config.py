@@ -56,6 +56,7 @@ def test_the_demo_config() -> None:
         ("scout2", "sim-robot"),
         ("thermo1", "sim-sensor"),
         ("swarm", "group"),
+        ("files", "storage"),
         ("missions", "statemachine"),
     ]
     assert [(d.name, d.tcp or d.serial) for d in cfg.devices] == [
