@@ -4,7 +4,8 @@ The patrol chart shipped with the package drives simulated robots to the end
 of its mission while a Listen on ``missions/patrol.state`` shows every
 configuration in order; a chart whose action fails handles the error; a
 chart with an unsafe expression is refused at load with INVALID_ARGUMENT
-naming its line.
+naming its line; a chart loaded by a Set is back after a gateway restart,
+kept by a storage service.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import json
 import xml.etree.ElementTree as ET
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -172,3 +174,52 @@ async def test_an_unsafe_expression_is_refused_at_load_naming_its_line(gateway_p
         assert await client.get_names("missions", "machines") == ["patrol"]
         with pytest.raises(NotFound):
             await client.get("missions", "evil.state")
+
+
+ERRAND = """<scxml xmlns="http://www.w3.org/2005/07/scxml" xmlns:ps="urn:propertyservice:scxml" initial="go">
+  <state id="go">
+    <onentry><ps:set property="scout1/speed" value="0.75" done="set"/></onentry>
+    <transition event="set" target="end"/>
+  </state>
+  <final id="end"/>
+</scxml>
+"""
+
+
+@pytest.mark.timeout(90)
+async def test_charts_survive_a_gateway_restart_through_the_storage_service(
+    gateway_process: Any, tmp_path: Path
+) -> None:
+    config = f"""
+        [[services]]
+        name = "store"
+        type = "storage"
+        options = {{ directory = "{tmp_path / "files"}" }}
+
+        [[services]]
+        name = "scout1"
+        type = "sim-robot"
+
+        [[services]]
+        name = "missions"
+        type = "statemachine"
+        options = {{ storage = "store" }}
+    """
+    first = gateway_process(config)
+    async with AsyncClient(first.address) as client:
+        await client.set("missions", "errand.definition", ERRAND)
+        assert await client.get_names("store", "files") == ["statecharts/errand.scxml"]
+        assert await client.get("store", "file", name="statecharts/errand.scxml") == ERRAND
+    assert first.stop() == 0
+
+    second = gateway_process(config)
+    async with AsyncClient(second.address) as client:
+        assert await client.get_names("missions", "machines") == ["errand"]
+        assert await client.get("missions", "errand.definition") == ERRAND
+        assert await client.get("missions", "errand.status") == "stopped"  # running state is not kept
+        await client.set("missions", "errand.start", "")
+        await eventually(lambda: client.get("missions", "errand.status"), lambda s: s == "done")
+        assert await client.get_number("scout1", "speed") == 0.75
+        await client.set("missions", "errand.remove", "")
+        assert await client.get_names("store", "files") == []
+        assert await client.get_names("missions", "machines") == []
