@@ -257,6 +257,13 @@ class StateMachineService(Resource):
             )
         if isinstance(max_machines, bool) or not isinstance(max_machines, int) or max_machines < 1:
             raise InvalidArgument(f"max_machines must be a positive integer, not {max_machines!r}")
+        if charts is not None and (
+            not isinstance(charts, Mapping)
+            or not all(isinstance(k, str) and isinstance(v, str) for k, v in charts.items())
+        ):
+            raise InvalidArgument('charts is a table of name = "builtin:NAME" or a file path')
+        if isinstance(autostart, str) or not all(isinstance(name, str) for name in autostart):
+            raise InvalidArgument('autostart is a list of machine names, like ["patrol"]')
         if storage:
             validate_service_name(storage)
         if not all(part and all(c.isalnum() or c in "_-" for c in part) for part in folder.split("/")):
@@ -270,6 +277,7 @@ class StateMachineService(Resource):
         self._autostart = list(autostart)
         for name, spec in (charts or {}).items():
             try:
+                validate_service_name(name)
                 self._put(name, compile_chart(name, _read_chart_file(spec)))
             except InvalidArgument as e:
                 raise InvalidArgument(f"chart {name!r} ({spec}): {e.message}") from None

@@ -345,3 +345,23 @@ async def test_charts_are_stored_and_loaded_again_by_a_new_service() -> None:
     again, _ = await service(directory, storage="store")
     assert await again.get("machines") == "(kept)"
     assert await again.get("kept.definition") == chart
+
+
+@pytest.mark.parametrize(
+    ("options", "why"),
+    [
+        ({"charts": ["patrol"]}, "charts is a table"),
+        ({"charts": {"patrol": "builtin:nothing"}}, "no chart 'nothing' is shipped"),
+        ({"charts": {"a.b": "builtin:patrol"}}, "no dots"),
+        ({"charts": {"p": "/nonexistent/p.scxml"}}, "cannot read the chart file"),
+        ({"autostart": "patrol"}, "autostart is a list"),
+        ({"autostart": ["nothing"]}, "not among the charts"),
+        ({"storage": "a/b"}, "bad service name"),
+        ({"action_timeout": 0}, "action_timeout"),
+        ({"max_machines": 0}, "max_machines"),
+    ],
+)
+def test_bad_options_are_clear_errors(options: dict[str, Any], why: str) -> None:
+    with pytest.raises(InvalidArgument) as refused:
+        StateMachineService(directory=MemoryDirectory(), **options)
+    assert why in refused.value.message
