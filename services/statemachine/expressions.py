@@ -33,6 +33,7 @@ __all__ = [
     "EvaluationError",
     "Expression",
     "Record",
+    "check_size",
     "compile_expression",
     "format_chart_value",
     "parse_chart_value",
@@ -361,6 +362,43 @@ class _Evaluator:
                 and len(seq) * max(count, 0) > MAX_RESULT_LENGTH
             ):
                 raise EvaluationError(f"the result would be longer than {MAX_RESULT_LENGTH}")
+
+
+#: Deepest nesting of lists in a chart variable or an event's data.
+MAX_VALUE_DEPTH = 32
+
+
+def check_size(value: Any) -> Any:
+    """``value`` when it may be kept in a chart variable; EvaluationError when it is too big.
+
+    Lists may share items (``w = [w, w]`` in a loop), so a value is measured as it would be
+    written out: at most :data:`MAX_RESULT_LENGTH` items and characters all told, nested at
+    most :data:`MAX_VALUE_DEPTH` levels. A shared list is measured once (its size remembered),
+    so the check costs the number of distinct lists, not the size written out.
+    """
+    sizes: dict[int, int] = {}
+
+    def size(item: Any, depth: int) -> int:
+        if depth > MAX_VALUE_DEPTH:
+            raise EvaluationError(f"the value nests deeper than {MAX_VALUE_DEPTH} levels")
+        if isinstance(item, str):
+            return len(item)
+        if not isinstance(item, list | tuple | Record):
+            return 1
+        known = sizes.get(id(item))
+        if known is not None:
+            return known
+        total = 1
+        for inner in item.fields.values() if isinstance(item, Record) else item:
+            total += size(inner, depth + 1)
+            if total > MAX_RESULT_LENGTH:
+                raise EvaluationError(f"the value would be longer than {MAX_RESULT_LENGTH} written out")
+        sizes[id(item)] = total
+        return total
+
+    if size(value, 0) > MAX_RESULT_LENGTH:
+        raise EvaluationError(f"the value would be longer than {MAX_RESULT_LENGTH} written out")
+    return value
 
 
 def parse_chart_value(text: str) -> Any:

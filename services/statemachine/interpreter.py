@@ -50,6 +50,7 @@ from services.statemachine.expressions import (
     EvaluationError,
     Expression,
     Record,
+    check_size,
     format_chart_value,
     parse_chart_value,
 )
@@ -63,7 +64,9 @@ MAX_QUEUED_EVENTS = 1000
 #: Delayed events (``<send delay=...>``) waiting at once in one machine.
 MAX_TIMERS = 1000
 #: Steps in one macrostep before the machine is stopped as looping without waiting for an event.
-MAX_MICROSTEPS = 10000
+#: A mission's chart takes a handful; a thousand is a loop, and each step may cost a
+#: 64 KiB expression, so the bound also caps what one macrostep can take of the event loop.
+MAX_MICROSTEPS = 1000
 #: Steps run before the machine lets other tasks of the event loop run.
 _STEPS_PER_TURN = 100
 
@@ -484,7 +487,7 @@ class Interpreter:
             if expr is None:
                 continue
             try:
-                self.variables[name] = self._evaluate(expr)
+                self.variables[name] = check_size(self._evaluate(expr))
             except EvaluationError as e:
                 self._error_execution(f"data {name}: {e}", "")
 
@@ -524,6 +527,14 @@ class Interpreter:
         except _BlockFailed:
             pass
 
+    def _kept(self, value: Any, where: str) -> Any:
+        """``value``, when it is small enough to keep in a variable or an event (check_size)."""
+        try:
+            return check_size(value)
+        except EvaluationError as e:
+            self._error_execution(str(e), where)
+            raise _BlockFailed from None
+
     def _value(self, expr: Expression, where: str, extra: Mapping[str, Any] | None = None) -> Any:
         try:
             return self._evaluate(expr, extra)
@@ -539,7 +550,7 @@ class Interpreter:
                 undeclared = f"assign to {action.location!r}, which is not declared in <datamodel>"
                 self._error_execution(undeclared, action.where)
                 raise _BlockFailed
-            self.variables[action.location] = self._value(action.expr, action.where)
+            self.variables[action.location] = self._kept(self._value(action.expr, action.where), action.where)
         elif isinstance(action, Log):
             value = format_chart_value(self._value(action.expr, action.where)) if action.expr else ""
             self.journal(f"log {action.label}: {value}".rstrip(": "))
@@ -572,7 +583,7 @@ class Interpreter:
             self._error_execution(f"foreach over more than {MAX_FOREACH} items", action.where)
             raise _BlockFailed
         for index, item in enumerate(list(items)):
-            self.variables[action.item] = item
+            self.variables[action.item] = self._kept(item, action.where)
             if action.index:
                 self.variables[action.index] = index
             for inner in action.body:
@@ -583,7 +594,7 @@ class Interpreter:
         if action.eventexpr is not None:
             name = str(self._value(action.eventexpr, action.where))
         assert name is not None
-        data = {n: self._value(e, action.where) for n, e in action.params} or None
+        data = {n: self._kept(self._value(e, action.where), action.where) for n, e in action.params} or None
         event_data = Record(data) if data else None
         delay = action.delay
         if action.delayexpr is not None:

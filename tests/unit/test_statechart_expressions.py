@@ -11,6 +11,7 @@ from services.statemachine.expressions import (
     FUNCTIONS,
     EvaluationError,
     Record,
+    check_size,
     compile_expression,
     format_chart_value,
     parse_chart_value,
@@ -87,6 +88,20 @@ def test_runtime_failures_are_evaluation_errors_not_crashes(
     with pytest.raises(EvaluationError) as failed:
         run(text, **variables)
     assert why in str(failed.value)
+
+
+def test_values_kept_in_variables_are_measured_as_written_out() -> None:
+    w: list[object] = ["x" * 1000]
+    for _ in range(6):
+        w = [w, w]
+    assert check_size(w) is w  # 64,000 characters shared 64 times: fits
+    with pytest.raises(EvaluationError, match="longer than"):
+        check_size([w, w])
+    deep: list[object] = []
+    for _ in range(40):
+        deep = [deep]
+    with pytest.raises(EvaluationError, match="deeper than"):
+        check_size(deep)
 
 
 def test_property_text_and_chart_values_convert_both_ways() -> None:

@@ -265,7 +265,7 @@ async def test_an_eventless_loop_stops_the_machine_instead_of_hanging_the_gatewa
 </scxml>""",
     )
     status = await eventually(lambda: sm.get("m.status"), lambda s: s != "running")
-    assert status.startswith("failed: more than 10000 steps")
+    assert status.startswith("failed: more than 1000 steps")
 
 
 async def test_the_event_queue_is_bounded() -> None:
@@ -365,3 +365,25 @@ def test_bad_options_are_clear_errors(options: dict[str, Any], why: str) -> None
     with pytest.raises(InvalidArgument) as refused:
         StateMachineService(directory=MemoryDirectory(), **options)
     assert why in refused.value.message
+
+
+async def test_a_variable_cannot_grow_beyond_a_value_even_by_sharing_lists() -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="grow">
+  <datamodel><data id="w" expr="['x' * 100]"/><data id="rounds" expr="0"/></datamodel>
+  <state id="grow">
+    <transition cond="rounds &lt; 20" target="grow">
+      <assign location="rounds" expr="rounds + 1"/><assign location="w" expr="[w, w]"/>
+    </transition>
+    <transition event="error.execution" target="stopped"/>
+  </state>
+  <state id="stopped"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(stopped)")
+    assert "longer than 65536 written out" in await sm.get("m.log")
+    assert len(await sm.get("m.variables")) < 200_000
