@@ -387,3 +387,27 @@ async def test_a_variable_cannot_grow_beyond_a_value_even_by_sharing_lists() -> 
     await state_becomes(sm, "m", "(stopped)")
     assert "longer than 65536 written out" in await sm.get("m.log")
     assert len(await sm.get("m.variables")) < 200_000
+
+
+async def test_stop_exits_the_active_states_so_their_onexit_stops_the_robots() -> None:
+    directory = MemoryDirectory()
+    robot = DictBackend({"behaviors.moveto": "", "behaviors.stop": ""})
+    await directory.add("scout1", robot)
+    sm, _ = await service(directory)
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="drive">
+  <state id="drive">
+    <onentry><ps:set property="scout1/behaviors.moveto" value="&lt;marker/&gt;"/></onentry>
+    <onexit><ps:set property="scout1/behaviors.stop" value="now"/></onexit>
+  </state>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(drive)")
+    assert robot.values["behaviors.stop"] == ""
+    await sm.set("m.stop", "")
+    assert robot.values["behaviors.stop"] == "now"
+    assert await sm.get("m.state") == "()"
+    assert await sm.get("m.status") == "stopped"
