@@ -184,12 +184,12 @@ class Machine(Resource):
 
     # -- inside ------------------------------------------------------------------------
 
-    @property
-    def chart(self) -> Chart | None:
+    # Plain methods, not properties: the class wrapper would serve a property to clients.
+    def loaded_chart(self) -> Chart | None:
+        """The chart loaded now, if any."""
         return self._chart
 
-    @property
-    def running(self) -> bool:
+    def is_running(self) -> bool:
         return self._run is not None and self._run.running
 
     def journal(self, entry: str) -> None:
@@ -202,7 +202,7 @@ class Machine(Resource):
         self.changed("log")
 
     def load(self, chart: Chart) -> None:
-        if self.running:
+        if self.is_running():
             raise FailedPrecondition(f"machine {self._name} is running; stop it before replacing its chart")
         self._chart = chart
         self._run = None
@@ -325,7 +325,7 @@ class StateMachineService(Resource):
     async def define(self, name: str, text: str) -> None:
         """Load ``text`` as machine ``name`` (remove it, for an empty text); store it when configured."""
         machine = self.machine(name)
-        if machine.running:
+        if machine.is_running():
             raise FailedPrecondition(
                 f"machine {name} is running; stop it before replacing or removing its chart"
             )
@@ -336,7 +336,7 @@ class StateMachineService(Resource):
         try:
             chart = compile_chart(name, text)
         except PropertyError:
-            if machine.chart is None:
+            if machine.loaded_chart() is None:
                 self._remove(name)  # made by this Set: a chart that does not load leaves nothing behind
             raise
         machine.load(chart)
@@ -344,7 +344,7 @@ class StateMachineService(Resource):
 
     async def remove(self, name: str) -> None:
         """Remove machine ``name`` (it must be stopped) and its stored chart."""
-        if self.machine(name).running:
+        if self.machine(name).is_running():
             raise FailedPrecondition(f"machine {name} is running; stop it before removing it")
         self._remove(name)
         await self._store(name, None)

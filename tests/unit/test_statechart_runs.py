@@ -411,3 +411,23 @@ async def test_stop_exits_the_active_states_so_their_onexit_stops_the_robots() -
     assert robot.values["behaviors.stop"] == "now"
     assert await sm.get("m.state") == "()"
     assert await sm.get("m.status") == "stopped"
+
+
+async def test_a_machine_offers_exactly_the_documented_properties() -> None:
+    sm, _ = await service(charts={"patrol": "builtin:patrol"})
+    model = await sm.describe()
+    access = {p.name: p.access.value for p in model.properties}
+    assert access == {
+        "machines": "read",
+        "patrol": "read",
+        "patrol.definition": "read-write",
+        "patrol.start": "action",
+        "patrol.stop": "action",
+        "patrol.remove": "action",
+        "patrol.events": "action",
+        "patrol.state": "read",
+        "patrol.status": "read",
+        "patrol.variables": "read",
+        "patrol.log": "read",
+        "patrol.diagram": "read",
+    }
