@@ -413,14 +413,14 @@ class Interpreter:
         if parent is None or parent.kind == "root":
             self.status = "done"
             return
-        self._internal.append(Event(f"done.state.{parent.id}", None, "internal"))
+        self._queue_internal(Event(f"done.state.{parent.id}", None, "internal"))
         grand = parent.parent
         if (
             grand is not None
             and grand.kind == "parallel"
             and all(self._in_final(child) for child in grand.children if child.kind != "history")
         ):
-            self._internal.append(Event(f"done.state.{grand.id}", None, "internal"))
+            self._queue_internal(Event(f"done.state.{grand.id}", None, "internal"))
 
     def _in_final(self, s: State) -> bool:
         if s.kind == "compound":
