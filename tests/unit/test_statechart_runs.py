@@ -431,3 +431,42 @@ async def test_a_machine_offers_exactly_the_documented_properties() -> None:
         "patrol.log": "read",
         "patrol.diagram": "read",
     }
+
+
+async def test_internal_and_external_transitions_and_conflicts_between_regions() -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="p">
+  <datamodel><data id="entered" expr="0"/><data id="winner" expr="''"/></datamodel>
+  <state id="p" initial="c">
+    <onentry><assign location="entered" expr="entered + 1"/></onentry>
+    <transition event="inside" type="internal" target="c"/>
+    <transition event="outside" target="c"/>
+    <transition event="split" target="both"/>
+    <state id="c"/>
+  </state>
+  <parallel id="both">
+    <state id="r1">
+      <transition event="leave" target="one"><assign location="winner" expr="'r1'"/></transition>
+    </state>
+    <state id="r2">
+      <transition event="leave" target="two"><assign location="winner" expr="'r2'"/></transition>
+    </state>
+  </parallel>
+  <state id="one"/>
+  <state id="two"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(p c)")
+    await sm.set("m.events", "inside")  # an internal transition does not leave p
+    await sm.set("m.events", "outside")  # an external one leaves p and enters it again
+    await eventually(lambda: variables(sm, "m"), lambda v: v["entered"] == 2)
+    await sm.set("m.events", "split")
+    await state_becomes(sm, "m", "(both r1 r2)")
+    # Both regions would leave the parallel state: the first in document order wins, the other is not taken.
+    await sm.set("m.events", "leave")
+    await state_becomes(sm, "m", "(one)")
+    assert (await variables(sm, "m"))["winner"] == "r1"
