@@ -29,6 +29,7 @@ from bench.register import run_register
 from bench.servers import ServerProcess
 from bench.session import run_session
 from bench.sse import run_sse
+from bench.statemachine import run_statemachine
 from bench.storage import run_storage
 from bench.target import BATCH_PROPERTIES, VALUE_PROPERTY
 from bench.tls import run_tls
@@ -36,7 +37,7 @@ from bench.unary import run_unary
 
 #: Parts (a)-(d) compare the gateway with the bare server; (e)-(h) are the line protocol and registry parts.
 SERVER_PARTS = ("unary", "session", "listen", "batched", "memory")
-PARTS = (*SERVER_PARTS, "line", "group", "find", "register", "tls", "storage", "sse")
+PARTS = (*SERVER_PARTS, "line", "group", "find", "register", "tls", "storage", "sse", "statemachine")
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
     "gateway": ["bench.gateway_server", "--listen", "127.0.0.1:0"],
@@ -59,6 +60,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "find_queries": 1_000,
         "register_sizes": (100, 1_000),
         "storage_calls": 1_000,
+        "transitions": 20_000,
     },
     "quick": {
         "calls": 2_000,
@@ -75,6 +77,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "find_queries": 200,
         "register_sizes": (100,),
         "storage_calls": 200,
+        "transitions": 2_000,
     },
 }
 
@@ -117,7 +120,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "(d) memory per idle Listen stream; (e) Get through the gateway's TCP proxy beside the line "
         "protocol straight to the device; (f) group moveto, (g) registry find, (h) registration over raw "
         "TCP at growing sizes; (i) mTLS and a token; (j) a storage service's Get and Set beside plain file "
-        "I/O; (k) Server-Sent-Events fan-out beside gRPC Listen. Prints figures, ratios and targets.",
+        "I/O; (k) Server-Sent-Events fan-out beside gRPC Listen; (l) chart transitions with a Set each. "
+        "Prints figures, ratios and targets.",
     )
     parser.add_argument(
         "--quick", action="store_true", help="small sizes: a smoke run of well under a minute"
@@ -199,6 +203,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--storage-calls",
         type=_positive,
         help=f"(j) Gets and Sets of the 1 KiB file each way, a tenth for 1 MiB {both('storage_calls')}",
+    )
+    sizes.add_argument(
+        "--transitions", type=_positive, help=f"(l) chart transitions, each with a Set {both('transitions')}"
     )
     sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
     sizes.add_argument(
@@ -382,6 +389,11 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
                 rounds=max(args.rounds, 2),
                 time_limit=args.time_limit,
             ),
+        )
+    if "statemachine" in args.parts:
+        results.setdefault("in-process", {})["statemachine"] = await _timed(
+            f"statemachine, {args.transitions:,} transitions each with a Set, and as many bare Sets",
+            lambda: run_statemachine(args.transitions, args.time_limit),
         )
     if "register" in args.parts:
         results.setdefault("gateway", {})["register"] = await _timed(

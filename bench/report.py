@@ -360,6 +360,25 @@ TARGETS += (
 )
 
 
+TARGETS += (
+    # A bare in-process Set is the cheapest call there is (a few µs, no I/O); a transition also
+    # selects, exits, enters, evaluates a guard and an assignment and queues an event. Bound: one
+    # transition with its Set costs at most 50 bare Sets (still several times less than one gRPC Set).
+    Target(
+        "statemachine",
+        "chart transitions/s (each Sets an in-process property) / bare Sets/s on the same service",
+        lambda r: (
+            _get(r, "in-process", "statemachine", "transitions_per_s")
+            / _get(r, "in-process", "statemachine", "bare_sets_per_s")
+        ),
+        "min",
+        0.02,
+        "x",
+        (("in-process", "statemachine"),),
+    ),
+)
+
+
 def evaluate(results: Results) -> list[dict[str, Any]]:
     """Each target's figure, bound and verdict (PASS, FAIL, or why it could not be judged)."""
     verdicts = []
@@ -810,6 +829,7 @@ def _issue_tables(out: TextIO, results: Results) -> None:
     elif storage:
         _table(out, "(j) storage", ["where", "figures"], [_error_row("gateway", storage)])
     _sse_table(out, results)
+    _statemachine_table(out, results)
 
 
 def _sse_table(out: TextIO, results: Results) -> None:
@@ -859,6 +879,26 @@ def _sse_table(out: TextIO, results: Results) -> None:
             f"  {idle['streams']} idle SSE streams on a fresh gateway: RSS {idle['rss_before_mib']} → "
             f"{idle['rss_after_mib']} MiB, {idle['per_stream_kib']} KiB per stream",
             file=out,
+        )
+
+
+def _statemachine_table(out: TextIO, results: Results) -> None:
+    machine = results.get("in-process", {}).get("statemachine")
+    if machine and "error" not in machine:
+        _table(
+            out,
+            "(l) a chart whose every transition Sets an in-process property, beside bare Sets on it",
+            ["transitions", "transitions/s", "µs/transition", "bare Sets/s", "µs/bare Set", "complete"],
+            [
+                [
+                    f"{machine['transitions']:,}",
+                    f"{machine['transitions_per_s']:,.0f}",
+                    _fmt(machine["us_per_transition"], 1),
+                    f"{machine['bare_sets_per_s']:,.0f}",
+                    _fmt(machine["us_per_bare_set"], 1),
+                    str(machine["complete"]),
+                ]
+            ],
         )
 
 

@@ -27,6 +27,7 @@ from services.directory import Directory
 from services.errors import InvalidArgument
 from services.group import Group
 from services.simulators import SimRobot, SimSensor
+from services.statemachine import StateMachineService
 from services.storage import Storage
 
 __all__ = ["CATALOG", "PATH_OPTIONS", "build", "create", "factory_of", "needs_directory"]
@@ -35,6 +36,7 @@ CATALOG: dict[str, Callable[..., Resource]] = {
     "group": Group,
     "sim-robot": SimRobot,
     "sim-sensor": SimSensor,
+    "statemachine": StateMachineService,
     "storage": Storage,
 }
 

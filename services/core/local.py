@@ -13,7 +13,7 @@ from services.core.describe import describe_tree
 from services.core.metadata import class_spec
 from services.core.resource import Resource, start_tree, stop_tree
 from services.core.tree import NeedsAwait, RemoteTarget, Target, all_properties, remote_children, resolve
-from services.errors import PropertyError
+from services.errors import NotFound, PropertyError
 from services.model import ServiceModel
 from services.paths import validate_path
 
@@ -179,7 +179,15 @@ class LocalService(Backend):
         return await target.get(params)
 
     async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        return await self._target(path).set(value, params)
+        try:
+            target = self._target(path)
+        except NotFound:
+            # A service may make a child on a Set (Resource.create_on_set): `M.definition` loads machine M.
+            name, _, rest = path.partition(".")
+            if not rest or name in self.obj._ps_children or not self.obj.create_on_set(name, rest):
+                raise
+            target = self._target(path)
+        return await target.set(value, params)
 
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
         """Listen to ``path``; request parameters do not change what is listened to and are ignored."""

@@ -121,6 +121,16 @@ class Resource(Namespace):
             object.__delattr__(self, name)
         return child
 
+    def create_on_set(self, name: str, rest: str) -> bool:
+        """A Set of ``name.rest`` where this service has no ``name``: make it here and return True.
+
+        By default False, and the Set is NOT_FOUND. A service whose children are
+        made by a Set (a state machine service: a Set of ``M.definition`` loads
+        machine ``M``) attaches the child here; the Set then goes to it. Called
+        on the service's root object only.
+        """
+        return False
+
     def children(self) -> dict[str, Resource | Backend]:
         """The child namespaces right now, in order (a copy)."""
         return dict(self._ps_children)

@@ -36,6 +36,7 @@ TARGETS = (
     "sse-fanout",
     "sse-latency-p50",
     "sse-latency-p99",
+    "statemachine",
 )
 
 
@@ -99,6 +100,9 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     assert sorted(storage["sizes"]) == ["1k", "1m"] and storage["complete"], storage
     for figures in storage["sizes"].values():
         assert figures["get_ratio"] > 0 and figures["set_ratio"] > 0, figures
+    # The state machine part ran every transition of its chart, each with its Set.
+    machine = payload["results"]["in-process"]["statemachine"]
+    assert machine["complete"] and machine["transitions"] == 2000, machine
     titles = (
         "(e) Get of",
         "(f) group behaviors.moveto",
@@ -106,6 +110,8 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         "(h) members registered",
         "(i) the cost",
         "(j) storage",
+        "(k) fan-out to",
+        "(l) a chart",
     )
     for title in titles:
         assert title in out, f"no table {title!r}:\n{out}"

@@ -57,6 +57,7 @@ def test_the_demo_config() -> None:
         ("thermo1", "sim-sensor"),
         ("swarm", "group"),
         ("files", "storage"),
+        ("missions", "statemachine"),
     ]
     assert [(d.name, d.tcp or d.serial) for d in cfg.devices] == [
         ("rover1", "127.0.0.1:0"),

@@ -1,0 +1,638 @@
+"""A chart's model, compiled from its document and checked once, when it is loaded.
+
+The supported SCXML subset (docs/statemachine.md lists it): ``scxml``,
+``state``, ``parallel``, ``final``, ``initial``, ``history`` (shallow and
+deep), ``transition`` (event, cond, target, type), ``onentry``, ``onexit``,
+``datamodel``/``data``, and the executable content ``raise``, ``send``
+(to the chart itself, with ``delay``), ``cancel``, ``assign``, ``log``,
+``if``/``elseif``/``else`` and ``foreach``; plus the Property Service binding
+``ps:set``, ``ps:get`` (executable content) and ``ps:listen`` (in a state).
+``script`` and ``invoke`` would run code or other documents and are refused.
+Every expression is checked by :mod:`services.statemachine.expressions`.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Literal
+
+from services.errors import InvalidArgument
+from services.paths import validate_path, validate_service_name
+from services.statemachine.document import ChartError, Node, read_document
+from services.statemachine.expressions import Expression, compile_expression
+
+__all__ = [
+    "MAX_STATES",
+    "MAX_TIMEOUT",
+    "MAX_TRANSITIONS",
+    "Action",
+    "Assign",
+    "Cancel",
+    "Chart",
+    "Foreach",
+    "If",
+    "Listen",
+    "Log",
+    "PropertyGet",
+    "PropertySet",
+    "Raise",
+    "Send",
+    "State",
+    "Transition",
+    "compile_chart",
+]
+
+#: Most states in one chart.
+MAX_STATES = 256
+#: Most transitions in one chart.
+MAX_TRANSITIONS = 1024
+#: Longest delay of a ``send`` and longest timeout of an action, seconds (a day).
+MAX_DELAY = 86400.0
+MAX_TIMEOUT = 600.0
+#: Most iterations of one ``foreach``.
+MAX_FOREACH = 1000
+
+_ID = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]{0,63}")
+_EVENT = re.compile(r"[A-Za-z0-9_*][A-Za-z0-9_.*-]{0,127}")
+_VARIABLE = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,63}")
+_DURATION = re.compile(r"\s*([0-9]+(?:\.[0-9]*)?|\.[0-9]+)\s*(ms|s|m|min|h)?\s*")
+
+StateKind = Literal["root", "atomic", "compound", "parallel", "final", "history"]
+
+
+@dataclass(eq=False, slots=True)
+class Raise:
+    event: str
+    where: str
+
+
+@dataclass(eq=False, slots=True)
+class Send:
+    event: str | None
+    eventexpr: Expression | None
+    delay: float
+    delayexpr: Expression | None
+    send_id: str
+    params: list[tuple[str, Expression]]
+    where: str
+
+
+@dataclass(eq=False, slots=True)
+class Cancel:
+    send_id: str
+    where: str
+
+
+@dataclass(eq=False, slots=True)
+class Assign:
+    location: str
+    expr: Expression
+    where: str
+
+
+@dataclass(eq=False, slots=True)
+class Log:
+    label: str
+    expr: Expression | None
+    where: str
+
+
+@dataclass(eq=False, slots=True)
+class If:
+    branches: list[tuple[Expression | None, list[Action]]]
+    where: str
+
+
+@dataclass(eq=False, slots=True)
+class Foreach:
+    array: Expression
+    item: str
+    index: str
+    body: list[Action]
+    where: str
+
+
+@dataclass(eq=False, slots=True)
+class PropertySet:
+    """``<ps:set property="scout1/behaviors.moveto" expr="marker(home)" timeout="5" done="sent"/>``."""
+
+    service: str
+    path: str
+    value: str | None
+    expr: Expression | None
+    params: list[tuple[str, str | Expression]]
+    timeout: float | None
+    done: str
+    where: str
+
+
+@dataclass(eq=False, slots=True)
+class PropertyGet:
+    """``<ps:get property="thermo1/data" location="reading"/>``: a Get into a chart variable."""
+
+    service: str
+    path: str
+    location: str
+    params: list[tuple[str, str | Expression]]
+    timeout: float | None
+    where: str
+
+
+Action = Raise | Send | Cancel | Assign | Log | If | Foreach | PropertyGet | PropertySet
+
+
+@dataclass(eq=False, slots=True)
+class Listen:
+    """``<ps:listen property="scout1/location" event="arrived" cond="distance(_value, goal) &lt; 0.2"/>``.
+
+    While its state is active, every value of the property is tested; the
+    event is raised each time the condition becomes true (or on every value,
+    without a condition).
+    """
+
+    service: str
+    path: str
+    event: str
+    cond: Expression | None
+    where: str
+
+
+@dataclass(eq=False, slots=True)
+class Transition:
+    source: State
+    events: tuple[str, ...]
+    cond: Expression | None
+    target_ids: tuple[str, ...]
+    internal: bool
+    actions: list[Action]
+    where: str
+    targets: tuple[State, ...] = ()
+
+    def label(self) -> str:
+        text = " ".join(self.events)
+        if self.cond is not None:
+            text += f" [{self.cond.text}]"
+        return text.strip()
+
+
+@dataclass(eq=False, slots=True)
+class State:
+    id: str
+    kind: StateKind
+    where: str
+    parent: State | None = None
+    order: int = 0
+    depth: int = 0
+    children: list[State] = field(default_factory=list)
+    transitions: list[Transition] = field(default_factory=list)
+    initial: Transition | None = None
+    onentry: list[list[Action]] = field(default_factory=list)
+    onexit: list[list[Action]] = field(default_factory=list)
+    listens: list[Listen] = field(default_factory=list)
+    deep: bool = False
+    history: list[State] = field(default_factory=list)
+
+    def __repr__(self) -> str:
+        return f"State({self.id!r}, {self.kind})"
+
+    @property
+    def is_compound(self) -> bool:
+        return self.kind in ("compound", "root")
+
+    @property
+    def is_atomic(self) -> bool:
+        return self.kind in ("atomic", "final")
+
+    def proper_ancestors(self, upto: State | None = None) -> list[State]:
+        """Ancestors from the parent outwards, stopping before ``upto``."""
+        out = []
+        node = self.parent
+        while node is not None and node is not upto:
+            out.append(node)
+            node = node.parent
+        return out
+
+    def is_descendant(self, other: State) -> bool:
+        node = self.parent
+        while node is not None:
+            if node is other:
+                return True
+            node = node.parent
+        return False
+
+
+@dataclass(eq=False, slots=True)
+class Chart:
+    """A loaded chart: its states in document order, its variables, and the text it came from."""
+
+    name: str
+    format: str
+    source: str
+    root: State
+    states: dict[str, State]
+    ordered: list[State]
+    data: list[tuple[str, Expression | None]]
+    transitions: list[Transition]
+
+    def state(self, state_id: str) -> State:
+        return self.states[state_id]
+
+
+# -- compiling ------------------------------------------------------------------
+
+_STATE_TAGS = ("state", "parallel", "final", "history")
+_EXECUTABLE = ("raise", "send", "cancel", "assign", "log", "if", "foreach", "ps:set", "ps:get")
+_REFUSED = {
+    "script": "<script> runs code and is not supported; use <assign>, <if> and the ps: elements",
+    "invoke": "<invoke> starts other documents and is not supported; use another machine and ps:set",
+    "donedata": "<donedata> is not supported",
+    "content": "<content> is not supported; give values with expr or <param>",
+}
+
+
+def _check_attrs(node: Node, allowed: tuple[str, ...]) -> None:
+    for key in node.attrs:
+        if key not in allowed and not key.startswith("xmlns"):
+            hint = f"; it takes {', '.join(allowed)}" if allowed else "; it takes none"
+            raise node.fail(f"unknown attribute {key!r}{hint}")
+
+
+def _expr(node: Node, attr: str, text: str | None = None) -> Expression:
+    source = node.attrs[attr] if text is None else text
+    try:
+        return compile_expression(source)
+    except InvalidArgument as e:
+        raise node.fail(f"{attr}={source[:60]!r}: {e.message}") from None
+
+
+def _duration(node: Node, attr: str, limit: float) -> float:
+    text = node.attrs[attr]
+    m = _DURATION.fullmatch(text)
+    if m is None:
+        raise node.fail(f"{attr}={text!r}: expected a duration like '2s', '500ms', '1.5' (seconds) or '1min'")
+    scale = {"ms": 0.001, "s": 1.0, None: 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}[m.group(2)]
+    seconds = float(m.group(1)) * scale
+    if not math.isfinite(seconds) or seconds > limit:
+        raise node.fail(f"{attr}={text!r}: at most {limit:g} s")
+    return seconds
+
+
+def _events(node: Node, text: str) -> tuple[str, ...]:
+    events = tuple(text.split())
+    for event in events:
+        if _EVENT.fullmatch(event) is None or ".." in event:
+            raise node.fail(f"bad event name {event!r}: letters, digits, _ - . and * only")
+    return events
+
+
+def _event(node: Node, attr: str) -> str:
+    names = _events(node, node.attrs.get(attr, ""))
+    if len(names) != 1 or "*" in names[0]:
+        raise node.fail(f"{attr} must be one event name, like 'arrived' or 'sensor.hot'")
+    return names[0]
+
+
+def _variable(node: Node, attr: str) -> str:
+    name = node.attrs.get(attr, "")
+    if _VARIABLE.fullmatch(name) is None:
+        raise node.fail(f"{attr}={name!r}: a variable name is a letter then letters, digits or _")
+    return name
+
+
+def _property(node: Node) -> tuple[str, str]:
+    """``property="scout1/behaviors.moveto"``: the service and the property path."""
+    text = node.attrs.get("property", "")
+    service, sep, path = text.partition("/")
+    if not sep:
+        raise node.fail(f"property={text!r}: expected SERVICE/PATH, like 'scout1/behaviors.moveto'")
+    try:
+        validate_service_name(service)
+        validate_path(path)
+    except InvalidArgument as e:
+        raise node.fail(f"property={text!r}: {e.message}") from None
+    return service, path
+
+
+def _params(node: Node) -> list[tuple[str, str | Expression]]:
+    out: list[tuple[str, str | Expression]] = []
+    for child in node.children:
+        if child.tag != "ps:param":
+            raise child.fail(f"not allowed in <{node.tag}>: it holds only <ps:param name= value=|expr=>")
+        _check_attrs(child, ("name", "value", "expr"))
+        name = child.attrs.get("name", "")
+        if not name or ("value" in child.attrs) == ("expr" in child.attrs):
+            raise child.fail("a parameter has a name and exactly one of value or expr")
+        out.append((name, child.attrs["value"] if "value" in child.attrs else _expr(child, "expr")))
+    return out
+
+
+class _Compiler:
+    def __init__(self) -> None:
+        self.states: dict[str, State] = {}
+        self.ordered: list[State] = []
+        self.transitions: list[Transition] = []
+        self.data: list[tuple[str, Expression | None]] = []
+        self.send_ids: set[str] = set()
+
+    # -- executable content ----------------------------------------------------
+
+    def block(self, node: Node) -> list[Action]:
+        return [self.action(child) for child in node.children]
+
+    def action(self, node: Node) -> Action:
+        if node.tag in _REFUSED:
+            raise node.fail(_REFUSED[node.tag])
+        if node.tag == "raise":
+            _check_attrs(node, ("event",))
+            return Raise(_event(node, "event"), node.where)
+        if node.tag == "send":
+            return self.send(node)
+        if node.tag == "cancel":
+            _check_attrs(node, ("sendid",))
+            if not node.attrs.get("sendid"):
+                raise node.fail("needs sendid, the id of a <send>")
+            return Cancel(node.attrs["sendid"], node.where)
+        if node.tag == "assign":
+            _check_attrs(node, ("location", "expr"))
+            if "expr" not in node.attrs:
+                raise node.fail("needs expr, the value to assign")
+            return Assign(_variable(node, "location"), _expr(node, "expr"), node.where)
+        if node.tag == "log":
+            _check_attrs(node, ("label", "expr"))
+            expr = _expr(node, "expr") if "expr" in node.attrs else None
+            return Log(node.attrs.get("label", ""), expr, node.where)
+        if node.tag == "if":
+            return self.if_(node)
+        if node.tag == "foreach":
+            _check_attrs(node, ("array", "item", "index"))
+            if "array" not in node.attrs:
+                raise node.fail("needs array, an expression giving a list")
+            index = _variable(node, "index") if "index" in node.attrs else ""
+            return Foreach(_expr(node, "array"), _variable(node, "item"), index, self.block(node), node.where)
+        if node.tag == "ps:set":
+            return self.property_set(node)
+        if node.tag == "ps:get":
+            _check_attrs(node, ("property", "location", "timeout"))
+            service, path = _property(node)
+            timeout = _duration(node, "timeout", MAX_TIMEOUT) if "timeout" in node.attrs else None
+            return PropertyGet(service, path, _variable(node, "location"), _params(node), timeout, node.where)
+        if node.tag in _STATE_TAGS or node.tag in ("transition", "onentry", "onexit"):
+            raise node.fail("a state element is not executable content (is it in the wrong place?)")
+        raise node.fail(f"unknown element; executable content is one of {', '.join(_EXECUTABLE)}")
+
+    def send(self, node: Node) -> Send:
+        _check_attrs(node, ("event", "eventexpr", "delay", "delayexpr", "id", "target"))
+        if ("event" in node.attrs) == ("eventexpr" in node.attrs):
+            raise node.fail("needs exactly one of event or eventexpr")
+        target = node.attrs.get("target", "")
+        if target not in ("", "#_internal"):
+            raise node.fail(f"target={target!r}: a chart sends only to itself; use ps:set to reach a service")
+        if target and ("delay" in node.attrs or "delayexpr" in node.attrs):
+            raise node.fail("an event sent to #_internal cannot be delayed")
+        if "delay" in node.attrs and "delayexpr" in node.attrs:
+            raise node.fail("give delay or delayexpr, not both")
+        params: list[tuple[str, Expression]] = []
+        for child in node.children:
+            if child.tag != "param":
+                raise child.fail("<send> holds only <param name=... expr=...>")
+            _check_attrs(child, ("name", "expr", "location"))
+            name = child.attrs.get("name", "")
+            source = child.attrs.get("expr") or child.attrs.get("location")
+            if _VARIABLE.fullmatch(name) is None or source is None:
+                raise child.fail("a parameter has a name and an expr")
+            params.append((name, _expr(child, "expr" if "expr" in child.attrs else "location")))
+        send_id = node.attrs.get("id", "")
+        if send_id:
+            self.send_ids.add(send_id)
+        return Send(
+            event=_event(node, "event") if "event" in node.attrs else None,
+            eventexpr=_expr(node, "eventexpr") if "eventexpr" in node.attrs else None,
+            delay=_duration(node, "delay", MAX_DELAY) if "delay" in node.attrs else 0.0,
+            delayexpr=_expr(node, "delayexpr") if "delayexpr" in node.attrs else None,
+            send_id=send_id,
+            params=params,
+            where=node.where,
+        )
+
+    def if_(self, node: Node) -> If:
+        _check_attrs(node, ("cond",))
+        if "cond" not in node.attrs:
+            raise node.fail("needs cond")
+        branches: list[tuple[Expression | None, list[Action]]] = [(_expr(node, "cond"), [])]
+        for child in node.children:
+            if child.tag == "elseif":
+                _check_attrs(child, ("cond",))
+                if branches[-1][0] is None or "cond" not in child.attrs:
+                    raise child.fail("<elseif cond=...> comes before <else/>")
+                branches.append((_expr(child, "cond"), []))
+            elif child.tag == "else":
+                _check_attrs(child, ())
+                if branches[-1][0] is None:
+                    raise child.fail("only one <else/>")
+                branches.append((None, []))
+            else:
+                branches[-1][1].append(self.action(child))
+        return If(branches, node.where)
+
+    def property_set(self, node: Node) -> PropertySet:
+        _check_attrs(node, ("property", "value", "expr", "timeout", "done"))
+        service, path = _property(node)
+        if ("value" in node.attrs) == ("expr" in node.attrs):
+            raise node.fail('needs exactly one of value (text) or expr (an expression); value="" for none')
+        return PropertySet(
+            service=service,
+            path=path,
+            value=node.attrs.get("value"),
+            expr=_expr(node, "expr") if "expr" in node.attrs else None,
+            params=_params(node),
+            timeout=_duration(node, "timeout", MAX_TIMEOUT) if "timeout" in node.attrs else None,
+            done=_event(node, "done") if "done" in node.attrs else "",
+            where=node.where,
+        )
+
+    # -- states ----------------------------------------------------------------
+
+    def state(self, node: Node, parent: State) -> State:
+        kinds = {"state": "atomic", "parallel": "parallel", "final": "final", "history": "history"}
+        allowed = {
+            "state": ("id", "initial"),
+            "parallel": ("id",),
+            "final": ("id",),
+            "history": ("id", "type"),
+        }[node.tag]
+        _check_attrs(node, allowed)
+        state_id = node.attrs.get("id", "")
+        if _ID.fullmatch(state_id) is None:
+            raise node.fail(f"id={state_id!r}: a state id is a letter or _ then letters, digits, _ . or -")
+        if state_id in self.states:
+            raise node.fail(f"id={state_id!r} is used twice (first at {self.states[state_id].where})")
+        if len(self.states) >= MAX_STATES:
+            raise node.fail(f"the chart has more than {MAX_STATES} states")
+        state = State(state_id, kinds[node.tag], node.where, parent, len(self.ordered), parent.depth + 1)  # type: ignore[arg-type]
+        self.states[state_id] = state
+        self.ordered.append(state)
+        if node.tag == "history":
+            if parent.kind not in ("compound", "atomic", "parallel"):
+                raise node.fail("a history state belongs in a <state> or <parallel>")
+            kind = node.attrs.get("type", "shallow")
+            if kind not in ("shallow", "deep"):
+                raise node.fail(f"type={kind!r}: 'shallow' or 'deep'")
+            state.deep = kind == "deep"
+            parent.history.append(state)
+            transitions = [c for c in node.children if c.tag == "transition"]
+            if len(transitions) != 1 or len(node.children) != 1:
+                raise node.fail(
+                    "a history state holds one <transition target=...>: where to go the first time"
+                )
+            state.initial = self.transition(transitions[0], state)
+            if state.initial.events or state.initial.cond is not None:
+                raise transitions[0].fail("the default transition of a history state has no event or cond")
+            return state
+        self.contents(node, state)
+        if node.tag == "state" and any(c.kind != "history" for c in state.children):
+            state.kind = "compound"
+        if node.tag == "final" and (state.children or state.transitions or state.listens):
+            raise node.fail("a final state holds only <onentry> and <onexit>")
+        if node.tag == "state":
+            self.initial(node, state)
+        return state
+
+    def contents(self, node: Node, state: State) -> None:
+        for child in node.children:
+            tag = child.tag
+            if tag in _STATE_TAGS:
+                if state.kind == "history":
+                    raise child.fail("not allowed in a history state")
+                state.children.append(self.state(child, state))
+            elif tag == "transition":
+                state.transitions.append(self.transition(child, state))
+            elif tag in ("onentry", "onexit"):
+                _check_attrs(child, ())
+                (state.onentry if tag == "onentry" else state.onexit).append(self.block(child))
+            elif tag == "datamodel":
+                self.datamodel(child)
+            elif tag == "ps:listen":
+                state.listens.append(self.listen(child))
+            elif tag == "initial":
+                if node.tag != "state":
+                    raise child.fail("only a <state> has an <initial>")
+            elif tag in _REFUSED:
+                raise child.fail(_REFUSED[tag])
+            else:
+                raise child.fail(f"not allowed in <{node.tag}>")
+
+    def initial(self, node: Node, state: State) -> None:
+        elements = [c for c in node.children if c.tag == "initial"]
+        if state.kind != "compound":
+            if elements or "initial" in node.attrs:
+                raise node.fail("an atomic state has no initial state")
+            return
+        if elements and "initial" in node.attrs:
+            raise node.fail("give the initial state as an attribute or an <initial> element, not both")
+        if elements:
+            element = elements[0]
+            transitions = [c for c in element.children if c.tag == "transition"]
+            if len(elements) > 1 or len(transitions) != 1 or len(element.children) != 1:
+                raise element.fail("<initial> holds one <transition target=...>")
+            state.initial = self.transition(transitions[0], state)
+            if state.initial.events or state.initial.cond is not None:
+                raise transitions[0].fail("the transition of <initial> has no event or cond")
+        else:
+            first = next(c for c in state.children if c.kind != "history")
+            targets = tuple(node.attrs["initial"].split()) if "initial" in node.attrs else (first.id,)
+            state.initial = Transition(state, (), None, targets, False, [], node.where)
+            self.transitions.append(state.initial)
+
+    def transition(self, node: Node, source: State) -> Transition:
+        _check_attrs(node, ("event", "cond", "target", "type"))
+        kind = node.attrs.get("type", "external")
+        if kind not in ("external", "internal"):
+            raise node.fail(f"type={kind!r}: 'external' or 'internal'")
+        if len(self.transitions) >= MAX_TRANSITIONS:
+            raise node.fail(f"the chart has more than {MAX_TRANSITIONS} transitions")
+        targets = tuple(node.attrs.get("target", "").split())
+        cond = _expr(node, "cond") if "cond" in node.attrs else None
+        events = _events(node, node.attrs["event"]) if "event" in node.attrs else ()
+        if "event" in node.attrs and not events:
+            raise node.fail("event is empty; leave it out for a transition without an event")
+        if not events and cond is None and not targets and source.kind != "history":
+            raise node.fail("a transition needs an event, a cond or a target")
+        t = Transition(source, events, cond, targets, kind == "internal", self.block(node), node.where)
+        self.transitions.append(t)
+        return t
+
+    def listen(self, node: Node) -> Listen:
+        _check_attrs(node, ("property", "event", "cond"))
+        service, path = _property(node)
+        cond = _expr(node, "cond") if "cond" in node.attrs else None
+        return Listen(service, path, _event(node, "event"), cond, node.where)
+
+    def datamodel(self, node: Node) -> None:
+        _check_attrs(node, ())
+        for child in node.children:
+            if child.tag != "data":
+                raise child.fail("<datamodel> holds only <data id=... expr=...>")
+            _check_attrs(child, ("id", "expr"))
+            name = _variable(child, "id")
+            if name in (n for n, _ in self.data):
+                raise child.fail(f"the variable {name!r} is declared twice")
+            if "expr" in child.attrs:
+                self.data.append((name, _expr(child, "expr")))
+            elif child.text.strip():
+                self.data.append((name, _expr(child, "expr", child.text)))
+            else:
+                self.data.append((name, None))
+
+    # -- resolving targets --------------------------------------------------------
+
+    def resolve(self, root: State) -> None:
+        for t in self.transitions:
+            found = []
+            for target_id in t.target_ids:
+                target = self.states.get(target_id)
+                if target is None:
+                    raise ChartError(f"{t.where}: no state with id {target_id!r}")
+                found.append(target)
+            t.targets = tuple(found)
+        for state in [root, *self.ordered]:
+            initial = state.initial
+            if initial is None or state.kind == "history":
+                continue
+            for target in initial.targets:
+                if not target.is_descendant(state):
+                    inside = state.id or "the chart"
+                    raise ChartError(
+                        f"{initial.where}: the initial state {target.id!r} is not inside {inside!r}"
+                    )
+
+
+def compile_chart(name: str, text: str) -> Chart:
+    """Load and check a chart (SCXML, JSON or YAML); ChartError naming the line and what is wrong."""
+    fmt, node = read_document(text)
+    if node.tag != "scxml":
+        raise node.fail("the root element of a chart is <scxml>")
+    _check_attrs(node, ("initial", "name", "version", "datamodel", "binding"))
+    model = node.attrs.get("datamodel", "python")
+    if model not in ("python", "ps", "null"):
+        raise node.fail(
+            f"datamodel={model!r}: expressions here are a safe subset of Python;"
+            ' write datamodel="python" or leave it out'
+        )
+    if node.attrs.get("binding", "early") != "early":
+        raise node.fail('only binding="early" is supported: every variable is set when the machine starts')
+    compiler = _Compiler()
+    root = State("", "root", node.where)
+    compiler.contents(node, root)
+    if not any(c.kind != "history" for c in root.children):
+        raise node.fail("a chart needs at least one <state>, <parallel> or <final>")
+    if root.transitions or root.listens or root.onentry or root.onexit:
+        raise node.fail("<transition>, <onentry>, <onexit> and <ps:listen> go in a state, not in <scxml>")
+    first = next(c for c in root.children if c.kind != "history")
+    targets = tuple(node.attrs["initial"].split()) if "initial" in node.attrs else (first.id,)
+    root.initial = Transition(root, (), None, targets, False, [], node.where)
+    compiler.transitions.append(root.initial)
+    compiler.resolve(root)
+    states, ordered = compiler.states, compiler.ordered
+    return Chart(name, fmt, text, root, states, ordered, compiler.data, compiler.transitions)
