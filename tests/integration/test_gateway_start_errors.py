@@ -49,7 +49,7 @@ def started_devices(output: str) -> list[str]:
 
 
 def test_grpc_port_in_use_is_one_line_naming_the_port_and_holder(held_port: int) -> None:
-    result = run_gateway("--listen", f"127.0.0.1:{held_port}")
+    result = run_gateway("--listen", f"127.0.0.1:{held_port}", "--http", "127.0.0.1:0")
     assert result.returncode == EXIT_CONFIG
     assert "Traceback" not in result.stderr
     errors = [line for line in result.stderr.splitlines() if str(held_port) in line]
@@ -175,7 +175,9 @@ def test_check_config_reports_keys_values_and_builds_together(tmp_path: Path) ->
 
 def demo_in_own_group() -> GatewayProcess:
     """The demo gateway as a terminal runs it: Ctrl-C signals its whole process group."""
-    return GatewayProcess([sys.executable, "-m", "gateway", "--listen", "127.0.0.1:0"], own_group=True)
+    return GatewayProcess(
+        [sys.executable, "-m", "gateway", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"], own_group=True
+    )
 
 
 def wait_for_line(gw: GatewayProcess, text: str, timeout: float = 20.0) -> None:
