@@ -326,8 +326,8 @@ function plotWidget(prop, ctx) {
 }
 
 function listWidget(prop, ctx) {
-  const pre = ctx.h('pre', { class: 'list' });
-  if (!ctx.writable) return { element: pre, update: (text) => (pre.textContent = text) };
+  // Read-only, `.value` shows it (its title holds the whole text when it is clipped).
+  if (!ctx.writable) return { element: null };
   const area = ctx.h('textarea', { rows: 2, 'aria-label': prop.name, spellcheck: 'false' });
   const ed = editor(ctx, area);
   return {

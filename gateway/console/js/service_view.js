@@ -59,7 +59,8 @@ export class ServiceView {
   }
 
   render(service, model) {
-    const properties = (model?.properties ?? []).filter((p) => p.name !== 'properties');
+    // A namespace (actuators, behaviors) is the fieldset of its properties, not a property.
+    const properties = (model?.properties ?? []).filter((p) => p.name !== 'properties' && p.type !== 'namespace');
     const groups = new Map();
     for (const prop of properties) {
       const ns = namespaceOf(prop.name);
@@ -94,12 +95,8 @@ export class ServiceView {
     const note = skipped.length
       ? h('p', { class: 'muted' }, `${skipped.length} more properties are not followed live (limit ${MAX_FOLLOWED}).`)
       : null;
-    this.root.replaceChildren(
-      this.header(service),
-      model?.doc ? h('p', { class: 'doc' }, model.doc) : null,
-      note,
-      h('div', { class: 'namespaces' }, sections),
-    );
+    const parts = [this.header(service), model?.doc ? h('p', { class: 'doc' }, model.doc) : null, note];
+    this.root.replaceChildren(...parts.filter(Boolean), h('div', { class: 'namespaces' }, sections));
     this._unsubscribe.push(
       this.mux.subscribe(`${service.name}/properties`, {
         onValue: (event) => this.propertiesChanged(event.value),
