@@ -146,18 +146,26 @@ function sliderWidget(prop, ctx) {
     input.dispatchEvent(new Event('input'));
     place(x);
   };
+  let pointer = null;
   track.addEventListener('pointerdown', (e) => {
-    track.setPointerCapture(e.pointerId);
+    pointer = e.pointerId;
+    try {
+      track.setPointerCapture(e.pointerId);
+    } catch {
+      // a synthetic pointer: followed while it stays over the track
+    }
     move(at(e.clientX));
   });
   track.addEventListener('pointermove', (e) => {
-    if (track.hasPointerCapture(e.pointerId)) move(at(e.clientX));
+    if (e.pointerId === pointer) move(at(e.clientX));
   });
-  track.addEventListener('pointerup', (e) => {
-    if (!track.hasPointerCapture(e.pointerId)) return;
-    track.releasePointerCapture(e.pointerId);
-    ed.send();
-  });
+  const release = (e) => {
+    if (e.pointerId !== pointer) return;
+    pointer = null;
+    if (e.type === 'pointerup') ed.send();
+  };
+  track.addEventListener('pointerup', release);
+  track.addEventListener('pointercancel', release);
   track.addEventListener('keydown', (e) => {
     const delta = { ArrowRight: step, ArrowUp: step, ArrowLeft: -step, ArrowDown: -step }[e.key];
     if (delta === undefined) return;

@@ -118,7 +118,8 @@ function select(name) {
   view.show(service);
   teleop.selectionChanged();
   $('#formation-box').hidden = service?.type !== 'group';
-  $('#map-target').textContent = service ? `${service.name} (${service.type})` : 'nothing selected';
+  const movable = service?.type === 'mobile_robot' || service?.type === 'group';
+  $('#map-target').textContent = movable ? `${service.name} (${service.type === 'group' ? 'group' : 'robot'})` : 'a robot or group you select';
   if (service) inspector.use(service.name);
   const url = new URL(location.href);
   if (name) url.hash = encodeURIComponent(name);
