@@ -142,7 +142,9 @@ $('#token-form').addEventListener('submit', (e) => {
   api.setToken($('#token').value);
   $('#token').value = '';
   $('#token-state').textContent = api.token() ? 'token set' : 'no token';
+  mux.reconnect(); // the stream carries the token in its cookie: open it again
   list.refresh();
+  if (selected()) view.show(selected());
 });
 $('#token-state').textContent = api.token() ? 'token set' : 'no token';
 
@@ -155,7 +157,14 @@ for (const button of document.querySelectorAll('[data-fold]')) {
   });
 }
 
-window.addEventListener('pagehide', () => mux.close());
+// A page kept in the back-forward cache holds no stream; shown again, it follows everything anew.
+window.addEventListener('pagehide', () => mux.suspend());
+window.addEventListener('pageshow', (e) => {
+  if (e.persisted) {
+    mux.reconnect();
+    list.refresh();
+  }
+});
 
 // -- the extension point ------------------------------------------------------------------------
 

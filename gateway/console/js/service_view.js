@@ -107,7 +107,14 @@ export class ServiceView {
   follow(selector, view) {
     this._unsubscribe.push(
       this.mux.subscribe(selector, {
-        onValue: (event) => (event.removed ? view.removed() : view.update(event.value, event)),
+        onValue: (event) => {
+          if (view.element.classList.contains('unfollowed')) {
+            view.element.classList.remove('unfollowed'); // followed again after a failure
+            view.element.querySelector('.error').hidden = true;
+          }
+          if (event.removed) view.removed();
+          else view.update(event.value, event);
+        },
         onError: (e) => {
           view.element.classList.add('unfollowed');
           showListenError(view, e);
