@@ -55,8 +55,13 @@ export class RobotMap {
   }
 
   start() {
+    let fitted = false;
     this.mux.subscribe('*/location', {
       onValue: (event) => this.located(event),
+      onSync: () => {
+        if (!fitted && this.poses.size) this.fit(); // the first snapshot: everyone in sight
+        fitted = true;
+      },
     });
   }
 
@@ -296,39 +301,47 @@ export class RobotMap {
     return svg('text', { class: cls, transform: `translate(${x} ${y}) scale(${s} ${-s})` }, text);
   }
 
+  /** Draw `name` at its pose: its <g> is kept and moved (a script holding it sees it move). */
   drawRobot(name) {
     const layer = this.layers.robots;
-    const old = layer.querySelector(`[data-service="${CSS.escape(name)}"]`);
+    let g = layer.querySelector(`[data-service="${CSS.escape(name)}"]`);
     const pose = this.poses.get(name);
     if (!pose) {
-      old?.remove();
+      g?.remove();
       return;
     }
-    const type = this.typeOf(name);
+    const type = this.typeOf(name) || 'unknown';
+    if (g && g.dataset.kind !== type) {
+      g.remove(); // its type became known: drawn anew as what it is
+      g = null;
+    }
+    if (!g) {
+      g = this.robotShape(name, type);
+      layer.append(g);
+    }
     const [x, y] = pose;
     const yaw = pose.length >= 6 ? pose[5] : 0;
     const s = 1 / this.view.scale; // shapes keep their size in pixels when zooming
-    const selected = name === this.selected();
-    let shape;
-    const attrs = { class: `thing ${type || 'unknown'}${selected ? ' selected' : ''}`, dataset: { service: name } };
+    g.setAttribute('transform', `translate(${x} ${y})`);
+    g.classList.toggle('selected', name === this.selected());
+    g.querySelector('title').textContent = `${name} (${type}) at x ${x.toFixed(2)} y ${y.toFixed(2)}`;
+    g.querySelector('.shape').setAttribute('transform', `scale(${s}) rotate(${(yaw * 180) / Math.PI})`);
+    g.querySelector('text').setAttribute('transform', `translate(${12 * s} ${10 * s}) scale(${s} ${-s})`);
+  }
+
+  robotShape(name, type) {
+    const attrs = { class: `thing ${type}`, dataset: { service: name, kind: type } };
+    let body;
     if (type === 'mobile_robot') {
       attrs.dataset.robot = name;
-      shape = svg('path', { d: 'M14,0 L-9,8 L-5,0 L-9,-8 Z', class: 'robot-body', transform: `rotate(${(yaw * 180) / Math.PI})` });
+      body = svg('path', { d: 'M14,0 L-9,8 L-5,0 L-9,-8 Z', class: 'robot-body' });
     } else if (type === 'group') {
       attrs.dataset.group = name;
-      shape = svg('path', { d: 'M0,10 L10,0 L0,-10 L-10,0 Z', class: 'group-body' });
+      body = svg('path', { d: 'M0,10 L10,0 L0,-10 L-10,0 Z', class: 'group-body' });
     } else {
-      shape = svg('circle', { r: 6, class: 'sensor-body' });
+      body = svg('circle', { r: 6, class: 'sensor-body' });
     }
-    const g = svg(
-      'g',
-      { ...attrs, transform: `translate(${x} ${y})` },
-      svg('title', {}, `${name} (${type}) at x ${x.toFixed(2)} y ${y.toFixed(2)}`),
-      svg('g', { transform: `scale(${s})` }, shape),
-      this.label(name, 12 * s, 10 * s),
-    );
-    if (old) old.replaceWith(g);
-    else layer.append(g);
+    return svg('g', attrs, svg('title', {}), svg('g', { class: 'shape' }, body), this.label(name, 0, 0));
   }
 
   drawTargets() {
