@@ -70,6 +70,7 @@ export class EventMux {
     this.subscriptions = new Map();
     this.state = 'closed';
     this.source = null;
+    this._previous = null; // the stream being replaced, delivering until its successor opens
     this._streamSelectors = new Set(); // the selectors of the open stream
     this._confirmed = new Set(); // selectors of a stream that reached `sync`: known good
     this._reopenTimer = null;
@@ -153,9 +154,18 @@ export class EventMux {
     const same =
       selectors.size === this._streamSelectors.size && [...selectors].every((s) => this._streamSelectors.has(s));
     if (same && this.source && this.source.readyState !== 2) return; // already following exactly these
-    this._closeSource();
+    // Make before break: an open stream goes on delivering until its successor is open, so
+    // selecting another service neither blanks the page nor shows it as disconnected.
+    const previous = this.source && this.source.readyState === 1 && this._opened ? this.source : null;
+    if (previous) {
+      this._closePrevious();
+      this._previous = previous;
+      this.source = null;
+    }
+    this._closeSource(false);
     this._streamSelectors = selectors;
     if (!selectors.size) {
+      this._closePrevious();
       this._setState('closed');
       return;
     }
@@ -164,28 +174,42 @@ export class EventMux {
     this.source = source;
     this._opened = false;
     this._errorsInRow = 0;
-    this._setState('connecting');
+    if (!previous) this._setState('connecting');
+    const current = () => source === this.source;
+    const old = () => source === this._previous;
     source.addEventListener('open', () => {
-      if (source !== this.source) return;
+      if (!current()) return;
+      this._closePrevious();
       this._opened = true;
       this._errorsInRow = 0;
       this._setState('open');
     });
-    source.addEventListener('value', (e) => source === this.source && this._onValue(e.data));
-    source.addEventListener('sync', () => source === this.source && this._onSync());
+    source.addEventListener('value', (e) => (current() || old()) && this._onValue(e.data));
+    source.addEventListener('sync', () => current() && this._onSync());
     source.addEventListener('error', (e) => {
-      if (source !== this.source) return;
+      if (old()) {
+        this._closePrevious(); // its successor is on the way
+        return;
+      }
+      if (!current()) return;
       // The gateway's own `event: error` carries data; the browser's connection error does not.
       if (typeof e.data === 'string') this._onServerError(e.data);
       else this._onConnectionError(url);
     });
     this._watchdog = this.timers.setTimeout(() => {
       this._watchdog = null;
-      if (source === this.source && source.readyState !== 1) this._retryLater();
+      if (current() && source.readyState !== 1) this._retryLater();
     }, CONNECT_TIMEOUT_MS);
   }
 
-  _closeSource() {
+  _closePrevious() {
+    if (this._previous) {
+      this._previous.close();
+      this._previous = null;
+    }
+  }
+
+  _closeSource(withPrevious = true) {
     if (this._watchdog !== null) {
       this.timers.clearTimeout(this._watchdog);
       this._watchdog = null;
@@ -194,6 +218,7 @@ export class EventMux {
       this.source.close();
       this.source = null;
     }
+    if (withPrevious) this._closePrevious();
   }
 
   _clearTimers() {

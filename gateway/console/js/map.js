@@ -46,6 +46,7 @@ export class RobotMap {
       grid: svg('g', { class: 'grid' }),
       markers: svg('g', { class: 'markers' }),
       targets: svg('g', { class: 'targets' }),
+      others: svg('g', { class: 'others' }), // sensors and group centroids, under the robots
       robots: svg('g', { class: 'robots' }),
     };
     this.world = svg('g', { class: 'world' }, ...Object.values(this.layers));
@@ -269,8 +270,9 @@ export class RobotMap {
   drawAll() {
     this.drawMarkers();
     this.drawTargets();
-    const layer = this.layers.robots;
-    for (const g of [...layer.children]) if (!this.poses.has(g.dataset.service)) g.remove();
+    for (const layer of [this.layers.robots, this.layers.others]) {
+      for (const g of [...layer.children]) if (!this.poses.has(g.dataset.service)) g.remove();
+    }
     for (const name of this.poses.keys()) this.drawRobot(name);
   }
 
@@ -303,8 +305,8 @@ export class RobotMap {
 
   /** Draw `name` at its pose: its <g> is kept and moved (a script holding it sees it move). */
   drawRobot(name) {
-    const layer = this.layers.robots;
-    let g = layer.querySelector(`[data-service="${CSS.escape(name)}"]`);
+    const selector = `[data-service="${CSS.escape(name)}"]`;
+    let g = this.layers.robots.querySelector(selector) ?? this.layers.others.querySelector(selector);
     const pose = this.poses.get(name);
     if (!pose) {
       g?.remove();
@@ -317,7 +319,7 @@ export class RobotMap {
     }
     if (!g) {
       g = this.robotShape(name, type);
-      layer.append(g);
+      (type === 'mobile_robot' ? this.layers.robots : this.layers.others).append(g);
     }
     const [x, y] = pose;
     const yaw = pose.length >= 6 ? pose[5] : 0;
