@@ -268,3 +268,36 @@ test('a suspended page keeps its subscriptions and follows them all again when s
   assert.notEqual(last(), before);
   assert.deepEqual(last().selectors(), ['a/x', 'b/y']);
 });
+
+test('a subscriber joining a selector the stream follows gets its latest values at once', () => {
+  const { m, timers, last } = mux();
+  const first = [];
+  m.subscribe('scout1/speed', { onValue: (e) => first.push(e.value) });
+  timers.advance(50);
+  last().emit('open');
+  last().emit('value', { service: 'scout1', path: 'speed', value: '0.5' });
+  last().emit('sync', {});
+  last().emit('value', { service: 'scout1', path: 'speed', value: '0.8' });
+  const joined = [];
+  let synced = false;
+  m.subscribe('scout1/speed', { onValue: (e) => joined.push(e.value), onSync: () => (synced = true) });
+  timers.advance(0);
+  assert.equal(StreamStandIn.made.length, 1, 'no reopen: the selector was followed already');
+  assert.deepEqual(joined, ['0.8'], 'the latest value, not the whole history');
+  assert.ok(synced);
+  assert.deepEqual(first, ['0.5', '0.8'], 'the first subscriber hears nothing twice');
+});
+
+test('the latest values are bounded and forget what nobody follows', () => {
+  const { m, timers, last } = mux();
+  const stop = m.subscribe('*/x', {});
+  m.subscribe('keep/y', {});
+  timers.advance(50);
+  last().emit('open');
+  for (let i = 0; i < 5000; i += 1) last().emit('value', { service: `s${i}`, path: 'x', value: String(i) });
+  last().emit('value', { service: 'keep', path: 'y', value: 'kept' });
+  assert.ok(m._latest.size <= 4096);
+  stop();
+  timers.advance(50);
+  assert.deepEqual([...m._latest.values()].map((e) => e.value), ['kept']);
+});

@@ -15,6 +15,8 @@ import { Backoff } from './backoff.js';
 export const EVENTS_URL = '/api/v1/events';
 /** Selectors one page follows at most: the gateway bounds the topics of one Listen too. */
 export const MAX_SELECTORS = 256;
+/** Latest events kept for subscribers that join a selector the stream already follows. */
+export const MAX_CACHED = 4096;
 /** Native errors in a row before the watchdog replaces EventSource's own fixed-delay retry. */
 const ERRORS_BEFORE_BACKOFF = 3;
 /** A stream still not open after this long is closed and opened again (after the backoff). */
@@ -72,6 +74,7 @@ export class EventMux {
     this.source = null;
     this._previous = null; // the stream being replaced, delivering until its successor opens
     this._streamSelectors = new Set(); // the selectors of the open stream
+    this._latest = new Map(); // "service\0path" -> the last value event, oldest first
     this._confirmed = new Set(); // selectors of a stream that reached `sync`: known good
     this._reopenTimer = null;
     this._watchdog = null;
@@ -96,6 +99,11 @@ export class EventMux {
     }
     const sub = { onValue, onSync, onError };
     subs.add(sub);
+    if (this._streamSelectors.has(selector) && this.source) {
+      // The stream follows this selector already and sends no new snapshot for it: the latest
+      // values it delivered stand in for one (after the caller has finished setting up).
+      this.timers.setTimeout(() => this._replay(selector, sub), 0);
+    }
     return () => this._unsubscribe(selector, sub);
   }
 
@@ -164,6 +172,10 @@ export class EventMux {
     }
     this._closeSource(false);
     this._streamSelectors = selectors;
+    for (const [key, event] of this._latest) {
+      // What no selector follows any more would only be stale if it came back.
+      if (![...selectors].some((s) => selectorMatches(s, event.service, event.path))) this._latest.delete(key);
+    }
     if (!selectors.size) {
       this._closePrevious();
       this._setState('closed');
@@ -242,8 +254,25 @@ export class EventMux {
     this.dispatch(event);
   }
 
+  _replay(selector, sub) {
+    if (!this.subscriptions.get(selector)?.has(sub)) return; // gone meanwhile
+    for (const event of this._latest.values()) {
+      if (selectorMatches(selector, event.service, event.path)) sub.onValue(event);
+    }
+    if (this._confirmed.has(selector)) sub.onSync();
+  }
+
+  _remember(event) {
+    const key = `${event.service}\u0000${event.path}`;
+    this._latest.delete(key);
+    if (event.removed) return;
+    this._latest.set(key, event);
+    if (this._latest.size > MAX_CACHED) this._latest.delete(this._latest.keys().next().value);
+  }
+
   /** Hand one value event to every subscription whose selector matches it. */
   dispatch(event) {
+    this._remember(event);
     for (const [selector, subs] of this.subscriptions) {
       if (!selectorMatches(selector, event.service, event.path)) continue;
       for (const sub of [...subs]) {
