@@ -42,6 +42,7 @@ export class RobotMap {
     this._markerSubs = new Map();
     this.view = { cx: 2, cy: 0, scale: 60 }; // metres at the centre; pixels per metre
     this._drag = null;
+    this._userMoved = false; // the operator zoomed or panned: the map no longer fits by itself
     this.layers = {
       grid: svg('g', { class: 'grid' }),
       markers: svg('g', { class: 'markers' }),
@@ -137,8 +138,10 @@ export class RobotMap {
       const label = typeof f.name === 'string' ? f.name : typeof f.label === 'string' ? f.label : typeof f.id === 'string' ? f.id : '';
       shown.push({ location, label, color: typeof f.color === 'string' ? colorOf(f.color) : null });
     }
+    const first = !this.markers.has(selector);
     this.markers.set(selector, shown);
-    this.drawMarkers();
+    if (first && shown.length && !this._userMoved) this.fit(); // new things to see, and nobody chose a view
+    else this.drawMarkers();
   }
 
   typeOf(name) {
@@ -181,6 +184,7 @@ export class RobotMap {
   _bind() {
     this.root.addEventListener('wheel', (e) => {
       e.preventDefault();
+      this._userMoved = true;
       const before = this.toWorld(e.clientX, e.clientY);
       this.view.scale = Math.min(400, Math.max(2, this.view.scale * (e.deltaY < 0 ? 1.2 : 1 / 1.2)));
       const after = this.toWorld(e.clientX, e.clientY);
@@ -197,6 +201,7 @@ export class RobotMap {
       if (!d || d.id !== e.pointerId) return;
       if (!d.moved && Math.hypot(e.clientX - d.x, e.clientY - d.y) > CLICK_SLOP_PX) {
         d.moved = true;
+        this._userMoved = true;
         try {
           this.root.setPointerCapture(e.pointerId);
         } catch {
