@@ -29,15 +29,15 @@ from gateway.http.openapi import document
 from gateway.http.safety import check_request
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, port_holder
-from gateway.tls import https_ssl_context
+from gateway.tls import HttpsCredentials
 from services.errors import Code, PropertyError, ResourceExhausted, error_for
 
 log = logging.getLogger("gateway.http")
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
-#: HTTP errors aiohttp raises itself (routing, body size), as the code each stands for.
-_HTTP_CODES = {404: Code.NOT_FOUND, 405: Code.UNIMPLEMENTED}
+#: HTTP errors aiohttp raises itself, as the code each stands for (others: by their class of status).
+_HTTP_CODES = {404: Code.NOT_FOUND, 413: Code.RESOURCE_EXHAUSTED}
 
 
 class HttpFront:
@@ -52,6 +52,8 @@ class HttpFront:
         #: Whether Host headers must be loopback names (DNS rebinding): the front end listens on loopback.
         self.loopback_only = is_loopback(self.settings.listen)
         self._runner: web.AppRunner | None = None
+        #: HTTPS: the ``[tls]`` files, read again on SIGHUP (:meth:`Gateway.reload_certificates`).
+        self.credentials: HttpsCredentials | None = None
         #: "host:port" it listens on (the real port when 0 was asked); "" before start.
         self.address = ""
         self.scheme = "https" if self.settings.tls else "http"
@@ -60,11 +62,6 @@ class HttpFront:
     def url(self) -> str:
         """``http://HOST:PORT/`` (or https)."""
         return f"{self.scheme}://{self.address}/"
-
-    @property
-    def stream_count(self) -> int:
-        """Event streams open now."""
-        return len(self.events.open)
 
     def build_app(self) -> web.Application:
         """The aiohttp application with every route (also used to check the OpenAPI document)."""
@@ -93,7 +90,7 @@ class HttpFront:
     async def _middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         what = f"{request.method} {request.path[:200]}"
         try:
-            check_request(request, self.loopback_only)
+            check_request(request, self.loopback_only, routed=request.match_info.http_exception is None)
             return await handler(request)
         except PropertyError as exc:
             return error_response(exc, what)
@@ -113,13 +110,18 @@ class HttpFront:
             code = _HTTP_CODES.get(exc.status, Code.INVALID_ARGUMENT if exc.status < 500 else Code.INTERNAL)
             message = f"no route {request.path[:200]}" if exc.status == 404 else exc.reason
             return error_response(error_for(code, message), status=exc.status)
+        except Exception as exc:
+            # A bug: INTERNAL, logged with its traceback by to_property_error; still JSON.
+            return error_response(exc, what)
 
     async def start(self) -> None:
         """Listen; raises PortInUse (one line naming the holder) when the port is taken."""
         host, _, port_text = self.settings.listen.rpartition(":")
         host = host.strip("[]")
         port = int(port_text)
-        ssl_context = https_ssl_context(self.config.tls) if self.settings.tls else None
+        if self.settings.tls:
+            self.credentials = HttpsCredentials(self.config.tls)
+        ssl_context = self.credentials.context if self.credentials is not None else None
         # handler_cancellation: a client that goes away ends its handler (an idle event stream
         # would otherwise only notice at its next heartbeat).
         runner = web.AppRunner(

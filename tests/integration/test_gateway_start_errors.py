@@ -79,6 +79,29 @@ def test_line_port_in_use_is_one_line_too(held_port: int, tmp_path: Path) -> Non
     assert started_devices(result.stderr) == []
 
 
+def test_http_port_in_use_is_one_line_too(held_port: int, tmp_path: Path) -> None:
+    config = tmp_path / "http.toml"
+    config.write_text(
+        textwrap.dedent("""
+            [[devices]]
+            name = "rover"
+            type = "sim-robot"
+            tcp = "127.0.0.1:0"
+        """)
+    )
+    result = run_gateway(
+        "serve", "--config", str(config), "--listen", "127.0.0.1:0", "--http", f"127.0.0.1:{held_port}"
+    )
+    assert result.returncode == EXIT_CONFIG
+    assert "Traceback" not in result.stderr
+    errors = [line for line in result.stderr.splitlines() if str(held_port) in line]
+    assert errors == [
+        f"psgateway: cannot start: port {held_port} (http.listen) is in use by "
+        f"{Path(f'/proc/{os.getpid()}/comm').read_text().strip()} (pid {os.getpid()})"
+    ]
+    assert started_devices(result.stderr) == []
+
+
 def test_serve_exits_2_on_an_unknown_service_type(tmp_path: Path) -> None:
     config = tmp_path / "unknown.toml"
     config.write_text('[[services]]\nname = "arm"\ntype = "robot-arm-9000"\n')

@@ -6,15 +6,29 @@ Get reads, and the answers and errors are those of the gRPC port, as JSON.
 
 from __future__ import annotations
 
+import json
+import re
+import shlex
+import shutil
+import ssl
+import subprocess
+import time
 from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
 from typing import Any
 
 import aiohttp
+import grpc
+import jwt
 import pytest
 from support.board import BOARD_TYPE
-from support.gateway_process import GatewayProcess, start_gateway
+from support.certs import CertificateFiles, certificates
+from support.gateway_process import ROOT, GatewayProcess, StartGateway, start_gateway
+from support.sse import SseReader
 
 from clients import AsyncClient
+
+__all__ = ["certificates"]
 
 CONFIG = f"""
 [[services]]
@@ -204,8 +218,7 @@ async def test_a_grpc_set_is_what_an_http_get_reads(
             "PUT",
             prop("board", "note"),
             {"value": "x", "parameters": {"frame": "robot"}},
-            400,
-            "INVALID_ARGUMENT",
+            (400, "INVALID_ARGUMENT"),
         ),
         ("PUT", prop("registry", "services.scout1"), {"value": "tcp://127.0.0.1:1"}, (409, "ALREADY_EXISTS")),
     ],
@@ -234,3 +247,186 @@ async def test_the_console_is_served_at_the_root(http: aiohttp.ClientSession) ->
         assert root.headers["Cache-Control"] == "no-cache"
         assert await root.text() == await same.text()
         assert "<html" in (await root.text()).lower()
+
+
+# -- identity and rules: the gRPC port's, on every HTTP route ----------------------------------
+
+SECRET = "a shared secret of the lab, long enough for HS256"
+RULES = """
+[auth]
+jwt_secret_file = "jwt.secret"
+issuer = "lab"
+
+[[services]]
+name = "scout1"
+type = "sim-robot"
+
+[[rules]]
+subject = "*"
+service = "scout1"
+operations = ["read"]
+effect = "permit"
+
+[[rules]]
+subject = "*"
+service = "scout1"
+path = "sensors.**"
+operations = ["read"]
+effect = "deny"
+
+[[rules]]
+subject = "operator"
+service = "scout1"
+operations = ["write", "invoke"]
+effect = "permit"
+
+[[rules]]
+subject = "admin"
+operations = ["read", "write", "invoke", "register", "unregister", "admin"]
+effect = "permit"
+"""
+
+
+def token(subject: str) -> str:
+    claims = {"sub": subject, "iss": "lab", "exp": int(time.time()) + 600}
+    return jwt.encode(claims, SECRET, algorithm="HS256")
+
+
+@pytest.fixture
+def secured(gateway_process: StartGateway, tmp_path: Path) -> GatewayProcess:
+    (tmp_path / "jwt.secret").write_text(SECRET)
+    return gateway_process(RULES)
+
+
+def bearer(subject: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token(subject)}"}
+
+
+@pytest.mark.parametrize(
+    ("who", "method", "url", "status"),
+    [
+        (None, "GET", prop("scout1", "location"), 200),
+        (None, "GET", prop("scout1", "sensors.bumper"), 401),  # refused, and no credentials given
+        ("guest", "GET", prop("scout1", "sensors.bumper"), 403),  # deny beats the broader permit
+        (None, "GET", "/api/v1/services/scout1/model", 200),
+        ("guest", "GET", "/api/v1/services", 403),  # the registry: nobody but admin reads it
+        ("admin", "GET", "/api/v1/services", 200),
+        (None, "PUT", prop("scout1", "speed"), 401),
+        ("operator", "PUT", prop("scout1", "speed"), 200),
+        ("guest", "PUT", prop("scout1", "speed"), 403),
+        ("bad", "PUT", prop("scout1", "speed"), 401),
+        ("guest", "GET", "/api/v1/events?sel=scout1/sensors.bumper", 403),
+        ("cookie:operator", "PUT", prop("scout1", "speed"), 200),
+        ("cookie:bad", "GET", prop("scout1", "location"), 401),
+    ],
+)
+async def test_tokens_and_rules_decide_as_on_the_grpc_port(
+    secured: GatewayProcess, who: str | None, method: str, url: str, status: int
+) -> None:
+    headers = {"Content-Type": "application/json"}
+    cookies = {}
+    if who == "bad":
+        headers["Authorization"] = "Bearer not-a-token"
+    elif who == "cookie:bad":
+        cookies["ps_token"] = "not-a-token"
+    elif who is not None and who.startswith("cookie:"):
+        cookies["ps_token"] = token(who.partition(":")[2])
+    elif who is not None:
+        headers.update(bearer(who))
+    body = {"value": 0.4} if method == "PUT" else None
+    async with (
+        aiohttp.ClientSession(base_url=secured.http_url, cookies=cookies) as http,
+        http.request(method, url, json=body, headers=headers) as response,
+    ):
+        assert response.status == status, await response.text()
+        if status >= 400:
+            error = (await response.json())["error"]
+            assert error["code"] == {401: "UNAUTHENTICATED", 403: "PERMISSION_DENIED"}[status]
+
+
+async def test_an_event_stream_skips_what_its_subject_may_not_read(secured: GatewayProcess) -> None:
+    async with (
+        aiohttp.ClientSession(base_url=secured.http_url) as http,
+        http.get("/api/v1/events", params={"sel": "scout1/*"}) as response,
+    ):
+        assert response.status == 200
+        snapshot = await SseReader(response).values_until_sync()
+    paths = [m.data["path"] for m in snapshot]
+    assert "location" in paths
+    assert not [p for p in paths if p.startswith("sensors.")]
+
+
+# -- HTTPS: the [tls] certificate, and client certificates naming the caller -------------------------
+
+
+async def test_https_names_the_caller_by_its_client_certificate(
+    gateway_process: StartGateway, certificates: CertificateFiles
+) -> None:
+    config = f"""
+        [tls]
+        cert = "{certificates.server.cert}"
+        key = "{certificates.server.key}"
+        client_ca = "{certificates.ca}"
+
+        [http]
+        tls = true
+
+        [[services]]
+        name = "scout1"
+        type = "sim-robot"
+
+        [[rules]]
+        subject = "alice"
+        service = "scout1"
+        operations = ["read"]
+        effect = "permit"
+        """
+    grpc_credentials = grpc.ssl_channel_credentials(root_certificates=certificates.ca.read_bytes())
+    gw = gateway_process(config, credentials=grpc_credentials)
+    assert gw.http_url.startswith("https://")
+    url = gw.http_url + "api/v1/services/scout1/properties/location"
+
+    def context(client: str | None) -> ssl.SSLContext:
+        made = ssl.create_default_context(cafile=str(certificates.ca))
+        if client is not None:
+            pair = certificates.clients[client]
+            made.load_cert_chain(str(pair.cert), str(pair.key))
+        return made
+
+    for client, status in (("alice", 200), ("bob", 403), (None, 401)):
+        async with aiohttp.ClientSession() as http, http.get(url, ssl=context(client)) as response:
+            assert response.status == status, (client, await response.text())
+    async with aiohttp.ClientSession() as http:
+        with pytest.raises(aiohttp.ClientError):
+            await http.get(url.replace("https://", "http://"))
+
+
+# -- the curl examples of docs/http-api.md, as written ---------------------------------------------
+
+DOC = (ROOT / "docs" / "http-api.md").read_text(encoding="utf-8")
+
+
+def doc_curl_commands() -> list[list[str]]:
+    """The curl lines of the doc's first bash block (continuations joined)."""
+    block = DOC.split("```bash", 1)[1].split("```", 1)[0].replace("\\\n", " ")
+    lines = [re.sub(r"\s+#.*$", "", line).strip() for line in block.splitlines()]
+    return [shlex.split(line) for line in lines if line.startswith("curl ")]
+
+
+@pytest.mark.skipif(shutil.which("curl") is None, reason="curl is not installed")
+def test_the_curl_examples_of_the_doc_work(demo_gateway: GatewayProcess) -> None:
+    commands = doc_curl_commands()
+    assert len(commands) >= 8
+    for command in commands:
+        args = [arg.replace("localhost:8080", demo_gateway.http_address) for arg in command]
+        streaming = "-sN" in args
+        if streaming:  # an event stream does not end by itself: read it for a while
+            args[1:1] = ["--max-time", "3"]
+        done = subprocess.run(args, capture_output=True, text=True, timeout=30, check=False)
+        if streaming:
+            assert done.returncode == 28, done.stderr  # curl's "timed out", after reading
+            assert "event: sync" in done.stdout and "event: value" in done.stdout
+            continue
+        assert done.returncode == 0, (command, done.stderr)
+        answer = json.loads(done.stdout)
+        assert "error" not in answer, (command, answer)
