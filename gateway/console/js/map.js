@@ -96,9 +96,10 @@ export class RobotMap {
    */
   servicesChanged(list) {
     const names = new Set(list.map((s) => s.name));
-    const follow = new Set(
-      list.filter((s) => s.state === 'up' && (s.location !== null || LOCATED_TYPES.has(s.type))).map((s) => s.name),
-    );
+    const located = list.filter((s) => s.state === 'up' && (s.location !== null || LOCATED_TYPES.has(s.type)));
+    // Many services: one wildcard selector instead of one each (the stream's selectors are bounded).
+    const many = located.length > Math.floor(this.mux.maxSelectors / 2);
+    const follow = new Set(many ? ['*'] : located.map((s) => s.name));
     for (const [name, unsubscribe] of this._locationSubs) {
       if (!follow.has(name)) {
         unsubscribe();
@@ -124,7 +125,7 @@ export class RobotMap {
     }
     for (const name of [...this.poses.keys()]) if (!names.has(name)) this.poses.delete(name);
     for (const s of list) {
-      if (follow.has(s.name)) continue;
+      if (follow.has(s.name) || (many && s.state === 'up')) continue;
       this.stale.add(s.name);
       if (Array.isArray(s.location) && s.location.length >= 2) this.poses.set(s.name, s.location);
     }
