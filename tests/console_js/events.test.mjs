@@ -317,6 +317,8 @@ test('the names an error message points at', () => {
   const selectors = ['rover1/speed', 'scout1/speed', 'swarm/robots.rover1.location', '*/location'];
   assert.deepEqual(namedSelectors(unplugged, selectors), ['rover1/speed', 'swarm/robots.rover1.location']);
   assert.deepEqual(namedSelectors('the gateway is shutting down', selectors), []);
+  // rover1 is named by no selector but the wildcard service reached it.
+  assert.deepEqual(namedSelectors(unplugged, ['scout1/speed', '*/location']), ['*/location']);
 });
 
 test('a service that goes away is left out for a growing while, and the rest of the page stays live', () => {

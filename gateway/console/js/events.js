@@ -71,9 +71,12 @@ export function namedSelectors(message, selectors) {
   // beside a property under it is where the property was looked for, not what failed.
   const deepest = exact.filter(([, , path]) => !exact.some(([, , other]) => other.startsWith(`${path}.`)));
   if (deepest.length) return deepest.map(([selector]) => selector);
-  return all
-    .filter(([, service, path]) => names.has(service) || path.split('.').some((seg) => seg !== '*' && names.has(seg)))
-    .map(([selector]) => selector);
+  const named = all.filter(
+    ([, service, path]) => names.has(service) || path.split('.').some((seg) => seg !== '*' && names.has(seg)),
+  );
+  if (named.length || !names.size) return named.map(([selector]) => selector);
+  // A name no selector spells: a wildcard service (*/location) reached it.
+  return all.filter(([, service]) => service === '*').map(([selector]) => selector);
 }
 
 /** The stream's URL for these selectors, in a stable order. */
@@ -122,7 +125,8 @@ export class EventMux {
 
   /**
    * Follow `selector`; returns a function that ends this subscription. Handlers:
-   * onValue({service, path, value, gap, removed, time}), onSync(), onError({code, message}).
+   * onValue({service, path, value, gap, removed, time}), onSync(), and onError({code, message},
+   * {dropped}): `dropped` when the subscription has ended (else it is tried again later).
    */
   subscribe(selector, { onValue = () => {}, onSync = () => {}, onError = () => {} } = {}) {
     splitSelector(selector);
@@ -401,7 +405,7 @@ export class EventMux {
         this.subscriptions.delete(selector);
         this._quarantine.delete(selector);
       }
-      for (const sub of subs ?? []) sub.onError(error);
+      for (const sub of subs ?? []) sub.onError(error, { dropped: !transient });
     }
     if (transient) {
       if (this._readmitTimer !== null) this.timers.clearTimeout(this._readmitTimer);
