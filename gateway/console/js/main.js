@@ -92,7 +92,7 @@ const teleop = new Teleop(
     stop: $('#teleop-stop'),
     target: $('#teleop-target'),
   },
-  { selected, poseOf: (name) => map.poses.get(name) ?? null },
+  { selected, poseOf: (name) => map.poses.get(name) ?? null, onDrive: (name) => map.forgetTarget(name) },
 );
 
 const inspector = new Inspector(

@@ -31,10 +31,11 @@ export function velocityFor({ forward, turn, mode, yaw = 0, speed, turnRate }) {
 export class Teleop {
   /**
    * `els`: {root, joystick, knob, status, speed, turn, mode, stop, target}; `selected()` the
-   * selected service ({name, type}); `poseOf(name)` its last location vector.
+   * selected service ({name, type}); `poseOf(name)` its last location vector; `onDrive(name)`
+   * hears when driving a service begins (a velocity command ends its moveto).
    */
-  constructor(els, { selected, poseOf }) {
-    Object.assign(this, { els, selected, poseOf });
+  constructor(els, { selected, poseOf, onDrive = () => {} }) {
+    Object.assign(this, { els, selected, poseOf, onDrive });
     this.keys = new Set();
     this.stick = null; // {forward, turn} while the joystick is held
     this.timer = null;
@@ -182,6 +183,7 @@ export class Teleop {
     }
     // One request at a time: a slow gateway gets the latest command next tick, never a queue.
     if (this.inFlight) return;
+    if (this.driving !== t.name) this.onDrive(t.name);
     this.driving = t.name;
     this.send(t.name, velocity);
   }
