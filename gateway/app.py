@@ -190,6 +190,7 @@ class Gateway:
             idle_stop=entry.idle_stop,
             awake=self._awake,
             connect_wait=DEVICE_CONNECT_WAIT,
+            held=lambda name: self.registry.licensing.holder_of(name) is not None,
         )
 
     def _awake(self, name: str, running: bool) -> None:

@@ -7,7 +7,8 @@ itself is not built and started until a Get, Set, Listen or Describe reaches
 it, or the registry's ``wake`` (the scheduler choosing it) asks. The first
 call waits while it starts; then the backend forwards every call. After
 ``idle_stop`` seconds with no call in flight and no Listen open, it is stopped
-again (dormant once more); the next call starts a fresh one.
+again (dormant once more), unless a licence is held on it; the next call
+starts a fresh one.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ class DormantBackend(Backend):
 
     ``awake(name, running)`` is told each time the service starts (True) or
     stops (False); ``connect_wait`` bounds how long a start waits for a proxy's
-    device to answer.
+    device to answer; while ``held(name)`` (a licence is held on it: a consumer
+    is bound to it) it is not stopped for being idle.
     """
 
     on_demand = True
@@ -46,12 +48,14 @@ class DormantBackend(Backend):
         idle_stop: float,
         awake: Callable[[str, bool], None],
         connect_wait: float,
+        held: Callable[[str], bool] = lambda name: False,
     ) -> None:
         self.name = name
         self.info = info
         self.idle_stop = idle_stop
         self._open = open
         self._awake = awake
+        self._held = held
         self._connect_wait = connect_wait
         self._backend: Backend | None = None
         self._lock = asyncio.Lock()
@@ -109,6 +113,9 @@ class DormantBackend(Backend):
         while True:
             quiet = time.monotonic() - self._last_used
             await asyncio.sleep(max(0.0, self.idle_stop - quiet) + 0.01)
+            if self._held(self.name):
+                self._last_used = time.monotonic()  # bound to a consumer: idle from the licence's end
+                continue
             if self._users == 0 and time.monotonic() - self._last_used >= self.idle_stop:
                 async with self._lock:
                     if self._users != 0:
