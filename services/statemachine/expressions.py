@@ -352,7 +352,15 @@ class _Evaluator:
 
     @staticmethod
     def _check_repeat(op: ast.operator, left: Any, right: Any) -> None:
-        """``"ab" * n`` and ``[0] * n``: refuse before building something too long."""
+        """``"ab" * n`` and ``[0] * n``: refuse before building something too long.
+
+        ``%`` is the remainder of two numbers only: on a text it would be printf-style
+        formatting, whose width or precision (``'%999999999d' % 1``) builds a string of any
+        size before its length could be checked.
+        """
+        if isinstance(op, ast.Mod) and not (isinstance(left, int | float) and isinstance(right, int | float)):
+            kinds = f"a {type(left).__name__} and a {type(right).__name__}"
+            raise EvaluationError(f"% takes two numbers (the remainder), not {kinds}")
         if not isinstance(op, ast.Mult):
             return
         for seq, count in ((left, right), (right, left)):
