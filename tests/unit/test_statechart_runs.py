@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import json
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Annotated, Any
 
 import pytest
@@ -470,3 +471,22 @@ async def test_internal_and_external_transitions_and_conflicts_between_regions()
     await sm.set("m.events", "leave")
     await state_becomes(sm, "m", "(one)")
     assert (await variables(sm, "m"))["winner"] == "r1"
+
+
+#: The first YAML example of docs/statemachine.md (read at import: no blocking file I/O in a test's loop).
+DOCS_YAML_EXAMPLE = (
+    (Path(__file__).resolve().parents[2] / "docs" / "statemachine.md")
+    .read_text(encoding="utf-8")
+    .split("```yaml\n", 1)[1]
+    .split("```", 1)[0]
+)
+
+
+async def test_the_yaml_example_of_the_docs_runs_without_an_error() -> None:
+    example = DOCS_YAML_EXAMPLE
+    sm, _ = await service()
+    await run(sm, "m", example)
+    await state_becomes(sm, "m", "(idle)")
+    await sm.set("m.events", "go")
+    await state_becomes(sm, "m", "(busy)")
+    assert "error" not in await sm.get("m.log")
