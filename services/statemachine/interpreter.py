@@ -196,7 +196,7 @@ class Interpreter:
     async def _run(self) -> None:
         try:
             self._init_data()
-            await self._microstep([self.chart.root.initial] if self.chart.root.initial else [])
+            await self._microstep([self.chart.root.initial] if self.chart.root.initial else [], None)
             await self._main_loop()
             if self.status == "done":
                 self.journal("done")
@@ -230,7 +230,7 @@ class Interpreter:
             self._event = event
             enabled = self._select_transitions(event)
             if enabled:
-                await self._microstep(enabled)
+                await self._microstep(enabled, event)
 
     def _finished(self) -> bool:
         return self._stopping or self.status != "running"
@@ -238,14 +238,15 @@ class Interpreter:
     async def _macrostep(self) -> None:
         steps = 0
         while not self._finished():
+            trigger: Event | None = None  # an eventless transition; `_event` keeps the last event
             enabled = self._select_transitions(None)
             if not enabled:
                 if not self._internal:
                     return
-                self._event = self._internal.popleft()
+                self._event = trigger = self._internal.popleft()
                 enabled = self._select_transitions(self._event)
             if enabled:
-                await self._microstep(enabled)
+                await self._microstep(enabled, trigger)
             steps += 1
             if steps >= MAX_MICROSTEPS:
                 raise _Stopped(
@@ -315,7 +316,8 @@ class Interpreter:
 
     # -- one microstep ---------------------------------------------------------------
 
-    async def _microstep(self, enabled: list[Transition]) -> None:
+    async def _microstep(self, enabled: list[Transition], trigger: Event | None) -> None:
+        """Take ``enabled``; ``trigger`` is the event that selected them (None: eventless), for the log."""
         self.transitions += 1
         before = self.active_ids()
         await self._exit_states(enabled)
@@ -324,8 +326,8 @@ class Interpreter:
         await self._enter_states(enabled)
         after = self.active_ids()
         if before != after:
-            trigger = f" on {self._event.name}" if self._event is not None else ""
-            self.journal(f"{' '.join(before) or '()'} -> {' '.join(after) or '()'}{trigger}")
+            on = f" on {trigger.name}" if trigger is not None else ""
+            self.journal(f"{' '.join(before) or '()'} -> {' '.join(after) or '()'}{on}")
             self.on_change()
             if self.watched():
                 # One turn of the event loop: a Listen stream on `state` takes this configuration

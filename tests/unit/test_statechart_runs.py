@@ -490,3 +490,23 @@ async def test_the_yaml_example_of_the_docs_runs_without_an_error() -> None:
     await sm.set("m.events", "go")
     await state_becomes(sm, "m", "(busy)")
     assert "error" not in await sm.get("m.log")
+
+
+async def test_the_log_names_no_event_for_an_eventless_transition() -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="s0">
+  <state id="s0"><transition event="go" target="a"/></state>
+  <state id="a"><transition target="b"/></state>
+  <state id="b"><onentry><raise event="next"/></onentry><transition event="next" target="c"/></state>
+  <state id="c"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(s0)")
+    await sm.set("m.events", "go")
+    await state_becomes(sm, "m", "(c)")
+    lines = [line.split(" ", 1)[1] for line in (await sm.get("m.log")).splitlines()]
+    assert lines[-3:] == ["s0 -> a on go", "a -> b", "b -> c on next"], lines
