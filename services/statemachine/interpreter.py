@@ -325,9 +325,10 @@ class Interpreter:
             await self._run_block(t.actions)
         await self._enter_states(enabled)
         after = self.active_ids()
-        if before != after:
+        if before != after or any(t.targets for t in enabled):  # a state left and entered again too
             on = f" on {trigger.name}" if trigger is not None else ""
             self.journal(f"{' '.join(before) or '()'} -> {' '.join(after) or '()'}{on}")
+        if before != after:
             self.on_change()
             if self.watched():
                 # One turn of the event loop: a Listen stream on `state` takes this configuration

@@ -510,3 +510,32 @@ async def test_the_log_names_no_event_for_an_eventless_transition() -> None:
     await state_becomes(sm, "m", "(c)")
     lines = [line.split(" ", 1)[1] for line in (await sm.get("m.log")).splitlines()]
     assert lines[-3:] == ["s0 -> a on go", "a -> b", "b -> c on next"], lines
+
+
+async def test_the_log_shows_a_transition_that_leaves_and_reenters_its_own_state() -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="sample">
+  <datamodel><data id="n" expr="0"/></datamodel>
+  <state id="sample">
+    <onentry><assign location="n" expr="n + 1"/></onentry>
+    <transition event="tick" cond="n &lt; 3" target="sample"/>
+    <transition event="tick" target="end"/>
+  </state>
+  <final id="end"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(sample)")
+    for _ in range(3):
+        await sm.set("m.events", "tick")
+    await state_becomes(sm, "m", "(end)")
+    assert (await variables(sm, "m"))["n"] == 3
+    lines = [line.split(" ", 1)[1] for line in (await sm.get("m.log")).splitlines()]
+    assert [line for line in lines if "->" in line][-3:] == [
+        "sample -> sample on tick",
+        "sample -> sample on tick",
+        "sample -> end on tick",
+    ], lines
