@@ -129,6 +129,12 @@ def test_scxml_json_and_yaml_of_the_same_chart_give_the_same_model() -> None:
         ('{"scxml": {"children": [{"state": {"id": "a", "children": [{"script": {}}]}}]}}',
          "scxml.children[0].state.children[0].script", "<script> runs code"),
         ("scxml:\n  children:\n  - state: {id: a\n", "line 4", "not valid YAML"),
+        ("scxml:\n  initial: a\n  children:\n  - state:\n      id: a\n      children:\n"
+         "      - transition: {event: go, cond: \"open('x')\", target: a}\n",
+         "line 7 (scxml.children[0].state.children[0].transition)", "only these functions"),
+        ("scxml:\n  initial: a\n  children:\n  - state: {id: a}\n  - state:\n      id: b\n"
+         "      children:\n      - transition: {event: go, target: nowhere}\n",
+         "line 8 (scxml.children[1].state.children[0].transition)", "no state with id 'nowhere'"),
     ],
 )  # fmt: skip
 def test_a_bad_chart_is_refused_naming_where_and_why(text: str, where: str, why: str) -> None:
