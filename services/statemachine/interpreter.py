@@ -55,7 +55,7 @@ from services.statemachine.expressions import (
     parse_chart_value,
 )
 
-__all__ = ["MAX_MICROSTEPS", "MAX_QUEUED_EVENTS", "MAX_TIMERS", "Event", "Interpreter"]
+__all__ = ["MAX_ACTIONS", "MAX_MICROSTEPS", "MAX_QUEUED_EVENTS", "MAX_TIMERS", "Event", "Interpreter"]
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +69,12 @@ MAX_TIMERS = 1000
 MAX_MICROSTEPS = 1000
 #: Steps run before the machine lets other tasks of the event loop run.
 _STEPS_PER_TURN = 100
+#: Actions (executable content: an assign, a log, a ps:set, ...) one macrostep may run before the
+#: machine is stopped: nested ``foreach`` loops multiply (a thousand items each), and no bound on
+#: steps catches what runs inside one step.
+MAX_ACTIONS = 100_000
+#: Actions run before the machine lets other tasks of the event loop run.
+_ACTIONS_PER_TURN = 100
 
 
 @dataclass(frozen=True, slots=True)
@@ -146,6 +152,8 @@ class Interpreter:
         self._task: asyncio.Task[None] | None = None
         self._stopping = False
         self._event: Event | None = None
+        #: Actions run in the current macrostep (MAX_ACTIONS).
+        self._actions = 0
         self._functions = {**FUNCTIONS, "In": self._in}
         self.transitions = 0
 
@@ -195,6 +203,7 @@ class Interpreter:
 
     async def _run(self) -> None:
         try:
+            self._actions = 0
             self._init_data()
             await self._microstep([self.chart.root.initial] if self.chart.root.initial else [], None)
             await self._main_loop()
@@ -228,6 +237,7 @@ class Interpreter:
             if event is None or self._stopping:
                 return
             self._event = event
+            self._actions = 0  # a new macrostep
             enabled = self._select_transitions(event)
             if enabled:
                 await self._microstep(enabled, event)
@@ -256,6 +266,7 @@ class Interpreter:
                 await asyncio.sleep(0)
 
     async def _exit_interpreter(self, *, run_onexit: bool = True) -> None:
+        self._actions = 0  # the exit is a step of its own
         for state in sorted(self.configuration, key=lambda s: s.order, reverse=True):
             if run_onexit:
                 for block in state.onexit:
@@ -546,6 +557,11 @@ class Interpreter:
             raise _BlockFailed from None
 
     async def _act(self, action: Action) -> None:
+        self._actions += 1
+        if self._actions > MAX_ACTIONS:
+            raise _Stopped(f"more than {MAX_ACTIONS} actions without waiting for an event (an endless loop?)")
+        if self._actions % _ACTIONS_PER_TURN == 0:
+            await asyncio.sleep(0)
         if isinstance(action, Raise):
             self._queue_internal(Event(action.event, None, "internal"))
         elif isinstance(action, Assign):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any
@@ -23,7 +24,7 @@ from services.backend import NO_PARAMS
 from services.core import LocalService, Prop, Resource, action, query
 from services.errors import FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted
 from services.statemachine import StateMachineService
-from services.statemachine.interpreter import MAX_QUEUED_EVENTS
+from services.statemachine.interpreter import MAX_ACTIONS, MAX_QUEUED_EVENTS
 
 HEAD = '<scxml xmlns="http://www.w3.org/2005/07/scxml" xmlns:ps="urn:propertyservice:scxml"'
 
@@ -267,6 +268,40 @@ async def test_an_eventless_loop_stops_the_machine_instead_of_hanging_the_gatewa
     )
     status = await eventually(lambda: sm.get("m.status"), lambda s: s != "running")
     assert status.startswith("failed: more than 1000 steps")
+
+
+async def test_nested_foreach_loops_neither_stall_the_event_loop_nor_run_without_end() -> None:
+    sm, _ = await service()
+    await sm.set(
+        "m.definition",
+        HEAD
+        + """ initial="a">
+  <datamodel><data id="w" expr="[0] * 1000"/><data id="x" expr="0"/><data id="y" expr="0"/>
+    <data id="n" expr="0"/></datamodel>
+  <state id="a"><onentry>
+    <foreach array="w" item="x"><foreach array="w" item="y"><assign location="n" expr="n + 1"/>
+    </foreach></foreach>
+  </onentry></state>
+</scxml>""",
+    )
+    stalls: list[float] = []
+
+    async def ticker() -> None:
+        last = time.perf_counter()
+        while True:
+            await asyncio.sleep(0.005)
+            now = time.perf_counter()
+            stalls.append(now - last)
+            last = now
+
+    ticking = asyncio.create_task(ticker())
+    try:
+        await sm.set("m.start", "")
+        status = await eventually(lambda: sm.get("m.status"), lambda s: s != "running", within=30)
+    finally:
+        ticking.cancel()
+    assert status.startswith(f"failed: more than {MAX_ACTIONS} actions"), status
+    assert max(stalls) < 0.5, f"the event loop stood still for {max(stalls):.2f} s"
 
 
 async def test_the_event_queue_is_bounded() -> None:
