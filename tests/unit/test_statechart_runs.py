@@ -304,6 +304,28 @@ async def test_nested_foreach_loops_neither_stall_the_event_loop_nor_run_without
     assert max(stalls) < 0.5, f"the event loop stood still for {max(stalls):.2f} s"
 
 
+async def test_a_chart_that_sends_itself_events_without_end_lets_the_gateway_run() -> None:
+    sm, _ = await service()
+    await sm.set(
+        "m.definition",
+        HEAD
+        + """ initial="a">
+  <datamodel><data id="n" expr="0"/></datamodel>
+  <state id="a">
+    <onentry><assign location="n" expr="n + 1"/><send event="again"/></onentry>
+    <transition event="again" target="a"/>
+  </state>
+</scxml>""",
+    )
+    await sm.set("m.start", "")
+    started = time.perf_counter()
+    await asyncio.wait_for(asyncio.sleep(0.2), 2)  # the event loop still runs other tasks
+    assert time.perf_counter() - started < 1.0
+    assert (await variables(sm, "m"))["n"] > 1
+    await asyncio.wait_for(sm.set("m.stop", ""), 5)
+    assert await sm.get("m.status") == "stopped"
+
+
 async def test_the_event_queue_is_bounded() -> None:
     sm, _ = await service()
     await run(
