@@ -227,23 +227,18 @@ class Interpreter:
             self.on_change()
 
     async def _main_loop(self) -> None:
-        unwaited = 0  # macrosteps in a row whose event was already waiting: the queue's get never waits then
         while not self._finished():
             await self._macrostep()
             if self._finished():
                 return
             self._retest_listens()
             self.on_change()
-            if self._external.empty():
-                unwaited = 0
-            else:
-                unwaited += 1
-                if unwaited % _STEPS_PER_TURN == 0:
-                    # A chart that sends itself events without a delay, forever, must not hold the
-                    # event loop: let the rest of the gateway (and a stop) in.
-                    await asyncio.sleep(0)
-                    if self._stopping:
-                        return
+            if not self._external.empty():
+                # The get below will not wait: a chart that sends itself events without a delay,
+                # forever, would hold the event loop. Let the rest of the gateway (and a stop) in.
+                await asyncio.sleep(0)
+                if self._stopping:
+                    return
             event = await self._external.get()
             if event is None or self._stopping:
                 return
