@@ -664,6 +664,10 @@ def compile_chart(name: str, text: str) -> Chart:
     finally:
         _COMPILED.reset(token)
     _check_names(compiled, {name for name, _ in compiler.data})
+    for expression, at, attr, source in compiled:
+        for state_id in expression.text_arguments("In"):
+            if state_id not in compiler.states:
+                raise at.fail(f"{attr}={source[:60]!r}: In({state_id!r}): no state with id {state_id!r}")
     if not any(c.kind != "history" for c in root.children):
         raise node.fail("a chart needs at least one <state>, <parallel> or <final>")
     if root.transitions or root.listens or root.onentry or root.onexit:

@@ -217,6 +217,16 @@ class Expression:
         """The variable and function names the expression reads."""
         return {n.id for n in ast.walk(self._tree) if isinstance(n, ast.Name)}
 
+    def text_arguments(self, function: str) -> list[str]:
+        """The arguments written as text in calls of ``function`` (``In('goto')``: ``goto``)."""
+        return [
+            a.value
+            for n in ast.walk(self._tree)
+            if isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id == function
+            for a in n.args
+            if isinstance(a, ast.Constant) and isinstance(a.value, str)
+        ]
+
     def evaluate(self, variables: Mapping[str, Any], functions: Mapping[str, Callable[..., Any]]) -> Any:
         """The value; EvaluationError when it cannot be computed."""
         try:

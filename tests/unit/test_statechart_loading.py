@@ -134,6 +134,9 @@ def test_scxml_json_and_yaml_of_the_same_chart_give_the_same_model() -> None:
         (OPEN + "\n<datamodel><data id='n' expr='0'/></datamodel>\n<state id='a'><onentry>\n"
          "<assign location='n' expr='n + _value'/></onentry></state></scxml>",
          "line 4", "'_value' is known only in the cond of a <ps:listen>"),
+        (OPEN + "\n<state id='a'>\n<transition event='go' cond=\"In('nowhere')\" target='a'/>"
+         "</state></scxml>",
+         "line 3", "In('nowhere'): no state with id 'nowhere'"),
         ("scxml:\n  initial: a\n  children:\n  - state:\n      id: a\n      children:\n"
          "      - transition: {event: go, cond: \"open('x')\", target: a}\n",
          "line 7 (scxml.children[0].state.children[0].transition)", "only these functions"),
