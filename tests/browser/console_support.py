@@ -1,0 +1,223 @@
+"""What the browser tests share: the console's gateway, the browser, bounded waits, screenshots.
+
+The browser is Debian's ``chromium`` driven through its ``chromedriver``
+(``tests/run.sh`` installs both when missing) by Selenium, with the driver's
+path given so that Selenium never looks for one on the network.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+from support.gateway_process import GatewayProcess
+
+ROOT = Path(__file__).resolve().parents[2]
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+SCREENSHOTS = ROOT / "build" / "screenshots"
+DOC_IMAGES = ROOT / "docs" / "images"
+#: Seconds a browser-side wait lasts: the page's own work is milliseconds, but two loaded cores
+#: run the gateway, Chromium and the test at once.
+WAIT = 10.0
+#: Seconds the front end has to log its address once the gRPC port is up.
+HTTP_START = 10.0
+_HTTP_LINE = re.compile(r"HTTP front end and console on (https?://\S+?)/?$", re.M)
+#: The flags Chromium needs to run headless in a container, quietly and without the network:
+#: no sandbox (root in a container), no GPU, no QUIC, none of the background fetches a fresh profile makes.
+CHROMIUM_FLAGS = (
+    "--headless=new",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-dev-shm-usage",
+    "--window-size=1280,800",
+)
+
+#: The console's world: two robots, a sensor and a group of every mobile robot.
+CONFIG = """
+[registry]
+period = 0.5
+timeout = 1.0
+misses = 2
+
+[[services]]
+name = "scout1"
+type = "sim-robot"
+options = { start = [0.0, 0.0] }
+
+[[services]]
+name = "scout2"
+type = "sim-robot"
+options = { start = [1.0, 0.0] }
+
+[[services]]
+name = "thermo1"
+type = "sim-sensor"
+
+[[services]]
+name = "swarm"
+type = "group"
+options = { query = { type = "mobile_robot" } }
+"""
+
+T = TypeVar("T")
+
+
+def missing_browser() -> str | None:
+    """Why the browser tests cannot run here, or None when they can."""
+    missing = [str(p) for p in (CHROMIUM, CHROMEDRIVER) if not os.access(p, os.X_OK)]
+    if missing:
+        return (
+            f"browser tests skipped: {' and '.join(missing)} missing"
+            " (Debian: apt-get install chromium chromium-driver; tests/run.sh does it as root)"
+        )
+    try:
+        import selenium  # noqa: F401
+    except ImportError:
+        return "browser tests skipped: selenium is not installed (pip install -e '.[test]')"
+    return None
+
+
+@dataclass
+class ConsoleGateway:
+    """A running gateway: ``address`` for gRPC, ``url`` for the console (ends with ``/``)."""
+
+    process: GatewayProcess
+    address: str
+    url: str
+
+
+def _http_url(gw: GatewayProcess) -> str:
+    """The console's URL from the front end's log line (port 0 picks a free port)."""
+    deadline = time.monotonic() + HTTP_START
+    while time.monotonic() < deadline:
+        if m := _HTTP_LINE.search(gw.output):
+            return m.group(1) + "/"
+        if gw.proc.poll() is not None:
+            break
+        time.sleep(0.05)
+    raise AssertionError(f"no 'HTTP front end and console on' line within {HTTP_START} s:\n{gw.output}")
+
+
+@contextmanager
+def console_gateway_process(folder: Path) -> Iterator[ConsoleGateway]:
+    """``psgateway serve`` of :data:`CONFIG` with gRPC and HTTP on free loopback ports."""
+    config = folder / "gateway.toml"
+    config.write_text(textwrap.dedent(CONFIG))
+    gw = GatewayProcess(
+        [
+            sys.executable, "-m", "gateway.cli", "serve",
+            "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--config", str(config),
+        ]
+    )  # fmt: skip
+    try:
+        gw.wait_ready()
+        yield ConsoleGateway(gw, gw.address, _http_url(gw))
+    finally:
+        gw.stop()
+
+
+@contextmanager
+def chromium() -> Iterator[Any]:
+    """A headless Chromium under Selenium, with a fresh profile removed afterwards."""
+    # The driver is named below, so Selenium Manager has nothing to find; offline all the same.
+    os.environ.setdefault("SE_OFFLINE", "true")
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    profile = tempfile.mkdtemp(prefix="ps-chromium-")
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for flag in (*CHROMIUM_FLAGS, f"--user-data-dir={profile}"):
+        options.add_argument(flag)
+    try:
+        driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
+        try:
+            yield driver
+        finally:
+            driver.quit()
+    finally:
+        shutil.rmtree(profile, ignore_errors=True)
+
+
+def save_screenshot(driver: Any, name: str) -> Path:
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    path = SCREENSHOTS / f"{re.sub(r'[^A-Za-z0-9_.-]+', '_', name)}.png"
+    driver.save_screenshot(str(path))
+    return path
+
+
+def doc_image(driver: Any, name: str) -> None:
+    """A screenshot of a view ``docs/console.md`` shows (``console-NAME.png``)."""
+    path = save_screenshot(driver, f"console-{name}")
+    if os.environ.get("PS_DOC_IMAGES") == "1":
+        DOC_IMAGES.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(path, DOC_IMAGES / path.name)
+
+
+def wait_for(driver: Any, condition: Callable[[Any], T], what: str, within: float = WAIT) -> T:
+    """Selenium's bounded wait, failing with an AssertionError that says what was awaited."""
+    from selenium.common.exceptions import StaleElementReferenceException, TimeoutException
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    try:
+        result: T = WebDriverWait(
+            driver, within, poll_frequency=0.05, ignored_exceptions=(StaleElementReferenceException,)
+        ).until(condition)
+    except TimeoutException:
+        raise AssertionError(f"{what}: not seen in the page within {within} s") from None
+    return result
+
+
+def eventually(probe: Callable[[], T], ok: Callable[[T], bool], what: str, within: float = WAIT) -> T:
+    """Call ``probe()`` (a gRPC Get, say) until ``ok(answer)``; fail after ``within`` s saying the last."""
+    deadline = time.monotonic() + within
+    last: object = "no answer yet"
+    while True:
+        answer = probe()
+        if ok(answer):
+            return answer
+        last = answer
+        if time.monotonic() >= deadline:
+            raise AssertionError(f"{what}: not as expected within {within} s; last answer: {last!r}")
+        time.sleep(0.05)
+
+
+@contextmanager
+def device_process(*args: str) -> Iterator[str]:
+    """``python -m services.device_server ARGS --tcp 127.0.0.1:0``; yields its ``tcp://`` URL."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.device_server", *args, "--tcp", "127.0.0.1:0"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        first = proc.stdout.readline().strip()
+        m = re.fullmatch(r"listening on (\S+:\d+)", first)
+        assert m, f"device said {first!r}, exit {proc.poll()}"
+        yield "tcp://" + m.group(1)
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)

