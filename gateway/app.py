@@ -32,6 +32,7 @@ from gateway.backends import open_backend, open_proxy
 from gateway.config import REGISTRY_NAME, Config, ConfigError, ServiceEntry
 from gateway.devices import DeviceProcess, start_device
 from gateway.guard import Guard
+from gateway.http import HttpFront
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
@@ -75,6 +76,8 @@ class Gateway:
         self._server: grpc.aio.Server | None = None
         self._health = health_aio.HealthServicer()
         self._line_listener: LineListener | None = None
+        #: The HTTP/JSON + SSE front end; None when ``[http] listen`` is empty.
+        self.http: HttpFront | None = None
         self._stopped = asyncio.Event()
         self._unwatch_registry: object | None = None
         #: The resource service, served as ``registry`` (built in :meth:`start`).
@@ -86,6 +89,8 @@ class Gateway:
         #: "host:port" of the line-protocol listener (the real port when 0 was asked); "" when off.
         self.line_address = ""
         self.servicer = PropertyServicer(self.router, self.hub, self.config)
+        #: "host:port" of the HTTP front end (the real port when 0 was asked); "" when off.
+        self.http_address = ""
         #: The gRPC port's TLS credentials; None when it is plaintext.
         self.credentials: ServerCredentials | None = None
         #: The line listener's TLS, reloaded with the gRPC port's; None when it is plaintext.
@@ -134,6 +139,7 @@ class Gateway:
             await self._start_line_listener()
             self._server = self._make_server()
             await self._server.start()
+            await self._start_http()
         except BaseException:
             await self.stop()
             raise
@@ -145,6 +151,8 @@ class Gateway:
         check_port_free(gw.listen, "gateway.listen")
         if gw.line_listen:
             check_port_free(gw.line_listen, "gateway.line_listen")
+        if self.config.http.listen:
+            check_port_free(self.config.http.listen, "http.listen")
 
     def _check_devices(self) -> None:
         """Build each ``[[devices]]`` service here as its process would, so bad options launch nothing."""
@@ -231,7 +239,7 @@ class Gateway:
     def _own_ports(self) -> list[int]:
         """The TCP ports this gateway listens on: a registration naming one would call itself."""
         ports = []
-        for address in (self.config.gateway.listen, self.address, self.line_address):
+        for address in (self.config.gateway.listen, self.address, self.line_address, self.http_address):
             tail = address.rpartition(":")[2]
             if not address.startswith("unix:") and tail.isdigit() and int(tail):
                 ports.append(int(tail))
@@ -300,6 +308,14 @@ class Gateway:
             address = f"{bound[0]}:{bound[1]}"
         self.line_address = address
         log.info("line-protocol listener on %s", address)
+
+    async def _start_http(self) -> None:
+        """The HTTP front end, in this loop, through the same call layer, hub and guard as gRPC."""
+        if not self.config.http.listen:
+            return
+        self.http = HttpFront(self.servicer.calls, self.hub, self.config, self.guard)
+        await self.http.start()
+        self.http_address = self.http.address
 
     def _device_secrets(self) -> dict[str, str]:
         """Name → secret of each configured device that dials in (read at start, never logged)."""
@@ -375,6 +391,8 @@ class Gateway:
         await self._health.enter_graceful_shutdown()
         self.hub.end_all()
         self.servicer.end_sessions()
+        if self.http is not None:
+            await self.http.stop()
         if self._server is not None:
             await self._server.stop(grace)
         await self.hub.aclose()
@@ -428,6 +446,9 @@ async def serve(config: Config) -> int:
     if starting.exception() is not None:
         stopped.cancel()
     starting.result()  # a start that failed raises here
+    if gateway.http is not None:
+        # Printed whatever the log level, as the gRPC address is: tests and scripts read the port here.
+        print(f"HTTP front end and console on {gateway.http.url}", flush=True, file=sys.stderr)
     print(f"listening on {gateway.address}", flush=True, file=sys.stderr)
     await stopped
     log.info("shutting down")

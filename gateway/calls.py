@@ -41,6 +41,7 @@ from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS, Answer, Backend
 from services.eager import Started, step
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, ResourceExhausted
+from services.model import ServiceModel
 from services.paths import compile_pattern, is_pattern, validate_pattern
 
 #: What starting a call gives; see the module docstring.
@@ -92,6 +93,13 @@ class Calls:
         if not service:
             raise InvalidArgument(f"{verb} needs a service name")
         return self.router.backend(service)
+
+    async def describe(self, service: str, time_limit: float, subject: Subject = ANONYMOUS) -> ServiceModel:
+        """The whole model of ``service`` (the Describe RPC), checked as a read of the service itself."""
+        backend = self._backend(service, "Describe")
+        if self.guard.checks:
+            self.guard.require(subject, service, "", Operation.READ)
+        return await bounded_call(backend.describe(), time_limit, lambda: f"{service}: describe")
 
     def start_get(self, request: pb.GetRequest, time_limit: float, subject: Subject = ANONYMOUS) -> Begun:
         """Start reading the request's one path (``more`` is :meth:`get`'s)."""

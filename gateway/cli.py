@@ -25,6 +25,7 @@ examples:
   psgateway                                   serve the demo (robots, a sensor, a swarm) on 127.0.0.1:50051
   psgateway serve --config site.toml          serve the services a config file lists
   psgateway serve --listen 127.0.0.1:0        pick a free port (printed as "listening on HOST:PORT")
+  psgateway serve --http 127.0.0.1:8080       the HTTP/JSON API and browser console on that port ('' = off)
   psgateway check-config site.toml            check a config file and exit (0 = fine, 2 = errors)
 
 then, from another shell:
@@ -59,6 +60,12 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
         "--listen", metavar="HOST:PORT", help="override gateway.listen (port 0 = a free port)"
     )
     parser.add_argument(
+        "--http",
+        metavar="HOST:PORT",
+        help="override http.listen: the HTTP/JSON front end and browser console (port 0 = a free port;"
+        " '' = off)",
+    )
+    parser.add_argument(
         "--log-level",
         metavar="LEVEL",
         choices=("debug", "info", "warning", "error", "critical"),
@@ -82,7 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _load(args: argparse.Namespace) -> Config:
     config = load_config(args.config) if args.config else default_config()
-    return config.with_overrides(listen=args.listen, log_level=args.log_level)
+    return config.with_overrides(listen=args.listen, log_level=args.log_level, http=args.http)
 
 
 def setup_logging(level: str) -> None:
@@ -170,7 +177,10 @@ def _check_config(args: argparse.Namespace) -> int:
     counted = f"{len(config.services)} services"
     if config.devices:
         counted += f", {len(config.devices)} devices"
-    print(f"{config.source}: fine ({counted}, listening on {config.gateway.listen})")
+    listening = config.gateway.listen
+    if config.http.listen:
+        listening += f", HTTP on {config.http.listen}"
+    print(f"{config.source}: fine ({counted}, listening on {listening})")
     return 0
 
 

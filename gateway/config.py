@@ -138,6 +138,30 @@ class Limits:
     max_greetings_per_source: int = 64
 
 
+#: Bytes of a request body the HTTP front end reads at most (a Set's JSON); beyond, 413. A value
+#: text is at most 64 KiB (services.values.MAX_VALUE_LENGTH); 1 MiB leaves room for JSON escapes
+#: (up to 6 bytes a character) and parameters, and is nginx's default client_max_body_size.
+DEFAULT_HTTP_MAX_BODY = 1024 * 1024
+
+
+@dataclass(frozen=True, slots=True)
+class HttpSection:
+    """``[http]``: the HTTP/JSON and Server-Sent-Events front end, and the browser console it serves."""
+
+    #: host:port of the HTTP front end; port 0 picks a free port; empty = no HTTP front end.
+    listen: str = ""
+    #: Serve the static browser console (``gateway/console/``) at ``/``.
+    console: bool = True
+    #: Most bytes of a request body; beyond, 413.
+    max_body: int = DEFAULT_HTTP_MAX_BODY
+    #: Server-Sent-Events streams open at once; beyond, 503.
+    max_streams: int = 256
+    #: Seconds between heartbeat comments on an idle event stream.
+    heartbeat: float = 15.0
+    #: Serve HTTPS with the ``[tls]`` section's certificate (and client CA).
+    tls: bool = False
+
+
 @dataclass(frozen=True, slots=True)
 class RegistrySection:
     """``[registry]``: liveness checks of the services and where run-time registrations are kept."""
@@ -218,6 +242,8 @@ class Config:
     limits: Limits = field(default_factory=Limits)
     registry: RegistrySection = field(default_factory=RegistrySection)
     tls: TlsSection = field(default_factory=TlsSection)
+    #: ``[http]``: the HTTP/JSON + SSE front end (off unless ``listen`` is set).
+    http: HttpSection = field(default_factory=HttpSection)
     services: tuple[ServiceEntry, ...] = ()
     devices: tuple[DeviceEntry, ...] = ()
     #: ``[auth]``: how bearer tokens are checked (docs/security.md, "Identity").
@@ -229,15 +255,23 @@ class Config:
     #: Where it came from, for messages.
     source: str = "<config>"
 
-    def with_overrides(self, *, listen: str | None = None, log_level: str | None = None) -> Config:
-        """A copy with command-line overrides applied."""
+    def with_overrides(
+        self, *, listen: str | None = None, log_level: str | None = None, http: str | None = None
+    ) -> Config:
+        """A copy with command-line overrides applied (``http=""`` turns the HTTP front end off)."""
         gw = self.gateway
         if listen is not None:
             gw = replace(gw, listen=_check_address(listen, f"{self.source}: --listen"))
             _check_exposure(gw, self.tls, f"{self.source}: --listen")
         if log_level is not None:
             gw = replace(gw, log_level=_check_log_level(log_level, f"{self.source}: --log-level"))
-        return replace(self, gateway=gw)
+        web = self.http
+        if http is not None:
+            if http:
+                _check_address(http, f"{self.source}: --http")
+            web = replace(web, listen=http)
+            _check_http_exposure(web, gw, self.tls, f"{self.source}: --http")
+        return replace(self, gateway=gw, http=web)
 
 
 _LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
@@ -336,7 +370,7 @@ def parse_config_partly(
     service or device is left out, so that ``check-config`` can go on to build
     what is left and report every problem of the file in one run.
     """
-    top = ("gateway", "limits", "registry", "tls", "services", "devices", "auth", "rules", "audit")
+    top = ("gateway", "limits", "registry", "tls", "http", "services", "devices", "auth", "rules", "audit")
     problems = _Problems()
     for key in data:
         if key not in top:
@@ -352,6 +386,9 @@ def parse_config_partly(
         lambda: _tls(data.get("tls", {}), f"{source}: tls", folder), TlsSection()
     )
     problems.attempt(lambda: _check_exposure(gw, tls, f"{source}: gateway"), None)
+    http: HttpSection = problems.attempt(
+        lambda: _http(data.get("http", {}), f"{source}: http", gw, tls, limits), HttpSection()
+    )
     seen: set[str] = set()
     services: list[ServiceEntry] = []
     raw_services = data.get("services", [])
@@ -380,6 +417,7 @@ def parse_config_partly(
         limits=limits,
         registry=registry,
         tls=tls,
+        http=http,
         services=tuple(services),
         devices=tuple(devices),
         source=source,
@@ -480,6 +518,47 @@ def _check_exposure(gw: GatewaySection, tls: TlsSection, where: str) -> None:
                 for key, address, fix in exposed
             )
         )
+
+
+def _check_http_exposure(http: HttpSection, gw: GatewaySection, tls: TlsSection, where: str) -> None:
+    """The HTTP front end is held to the gRPC port's rule: plaintext only on loopback, unless allowed."""
+    if not http.listen or gw.allow_insecure_remote or is_loopback(http.listen):
+        return
+    if http.tls and tls.enabled:
+        return
+    raise ConfigError(
+        f"{where}: {http.listen!r} is reachable from other machines and is not encrypted: anyone who"
+        " reaches it can read and drive every service. Set [http] tls = true with [tls] cert and key"
+        " (see docs/security.md), listen on 127.0.0.1, or set [gateway] allow_insecure_remote = true"
+        " to accept that on a network you trust"
+    )
+
+
+def _http(data: Any, where: str, gw: GatewaySection, tls: TlsSection, limits: Limits) -> HttpSection:
+    def checks(http: HttpSection, found: list[str]) -> HttpSection:
+        if http.listen:
+            try:
+                _check_address(http.listen, f"{where}.listen")
+            except ConfigError as exc:
+                found.extend(exc.problems)
+                return replace(http, listen="")
+        for key in ("max_body", "max_streams"):
+            if getattr(http, key) < 1:
+                found.append(f"{where}.{key}: must be at least 1")
+        if not (math.isfinite(http.heartbeat) and http.heartbeat >= limits.min_interval_floor):
+            found.append(
+                f"{where}.heartbeat: must be a number of seconds of at least limits.min_interval_floor"
+                f" ({limits.min_interval_floor:g}), got {http.heartbeat!r}"
+            )
+        if http.tls and not tls.enabled:
+            found.append(f"{where}.tls: HTTPS needs the [tls] section's cert and key")
+        try:
+            _check_http_exposure(http, gw, tls, f"{where}.listen")
+        except ConfigError as exc:
+            found.extend(exc.problems)
+        return http
+
+    return _checked_section(HttpSection, data, where, checks)
 
 
 def _limits(data: Any, where: str) -> Limits:

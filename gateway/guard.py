@@ -20,7 +20,7 @@ cost of one attribute read (:attr:`Guard.checks`); Sets are still audited.
 from __future__ import annotations
 
 import contextvars
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 from gateway.audit import Audit, AuditSection
@@ -72,8 +72,15 @@ class Guard:
     def identify_call(self, context: Any) -> Subject:
         """The subject of a gRPC call (``context``: a ``grpc.aio.ServicerContext``); Unauthenticated
         for a bad token, audited."""
+        return self.identify(context.invocation_metadata(), context.auth_context())
+
+    def identify(
+        self, metadata: Iterable[tuple[str, str | bytes]] | None, auth_context: Mapping[str, Sequence[bytes]]
+    ) -> Subject:
+        """The subject of a request of any front end: its ``authorization`` metadata (or header) and
+        its certificate as grpc's ``auth_context()`` names it; Unauthenticated for a bad token, audited."""
         try:
-            return self.authenticator.identify(context.invocation_metadata(), context.auth_context())
+            return self.authenticator.identify(metadata, auth_context)
         except PropertyError as exc:
             self.audit.record(ANONYMOUS, "", "", Operation.READ, exc)
             raise

@@ -7,8 +7,8 @@ come from the listen hub. Session lives in :mod:`gateway.session`.
 
 from __future__ import annotations
 
-import asyncio
 from collections.abc import AsyncIterator, Callable
+from contextlib import aclosing
 from typing import Any
 
 import grpc
@@ -20,8 +20,9 @@ from gateway.federation import enter, new_gateway_id
 from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, parse_options, parse_selectors
-from gateway.router import Router, bounded_call
-from gateway.rules import Operation, Subject
+from gateway.listen.drain import Wake, responses
+from gateway.router import Router
+from gateway.rules import Subject
 from gateway.session import Session
 from gateway.status import abort
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -81,31 +82,6 @@ def add_to_server(servicer: PropertyServicer, server: grpc.aio.Server) -> None:
     server.add_registered_method_handlers(name, handlers)  # type: ignore[attr-defined]
 
 
-class _Wake:
-    """A one-waiter asyncio.Event without the waiter deque: idle Listen streams stay small."""
-
-    __slots__ = ("_future", "_set")
-
-    def __init__(self) -> None:
-        self._set = False
-        self._future: asyncio.Future[None] | None = None
-
-    def set(self) -> None:
-        self._set = True
-        future = self._future
-        if future is not None and not future.done():
-            future.set_result(None)
-
-    async def wait(self) -> None:
-        if not self._set:
-            self._future = asyncio.get_running_loop().create_future()
-            try:
-                await self._future
-            finally:
-                self._future = None
-        self._set = False
-
-
 class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
     """Serves the v1 contract from a router and a listen hub."""
 
@@ -163,13 +139,8 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             if isinstance(request, Undecodable):
                 raise request.error
             enter(context.invocation_metadata(), self.gateway_id)
-            name = request.service
-            backend = self.router.backend(name)
-            if self.guard.checks:
-                self.guard.require(self._subject(context), name, "", Operation.READ)
-            model = await bounded_call(
-                backend.describe(), self._deadline(context), lambda: f"{name}: describe"
-            )
+            subject = self._subject(context)
+            model = await self.calls.describe(request.service, self._deadline(context), subject)
             return model_to_proto(model)
         except Exception as exc:
             await abort(context, exc, "Describe")
@@ -179,7 +150,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         # Responses are yielded rather than written with context.write: grpc.aio
         # delivers 20-35% more messages per second this way (measured by bench/).
         limits = self.config.limits
-        wake = _Wake()
+        wake = Wake()
         try:
             if isinstance(request, Undecodable):
                 raise request.error
@@ -194,18 +165,11 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             await abort(context, exc, "Listen")
             return
         try:
-            try:
-                await stream.start()
-            except Exception as exc:
-                await abort(context, exc, "Listen")
-            while True:
-                await wake.wait()
-                while (response := stream.take()) is not None:
+            async with aclosing(responses(stream, wake)) as ready:
+                async for response in ready:
                     yield response
-                if stream.error is not None:
-                    await abort(context, stream.error, "Listen")
-                if stream.ended or stream.closed:
-                    return
+        except Exception as exc:
+            await abort(context, exc, "Listen")
         finally:
             stream.close()
 

@@ -98,3 +98,15 @@ class LineCredentials:
             log.error("line listener: TLS files not reloaded, the old ones stay: %s", exc)
             return
         log.info("line listener: TLS certificates reloaded from %s", self.settings.cert)
+
+
+def https_ssl_context(settings: TlsSection) -> ssl.SSLContext:
+    """The HTTP front end's server context from the ``[tls]`` section: the gRPC port's certificate;
+    with ``client_ca``, a client certificate is checked when given (required with
+    ``require_client_cert``), and names the caller as on the gRPC port."""
+    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    context.load_cert_chain(settings.cert, settings.key)
+    if settings.client_ca:
+        context.load_verify_locations(settings.client_ca)
+        context.verify_mode = ssl.CERT_REQUIRED if settings.require_client_cert else ssl.CERT_OPTIONAL
+    return context

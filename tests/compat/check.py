@@ -278,7 +278,16 @@ class GatewayProcess:
         self._listening = threading.Event()
         self.address = ""
         self.process = subprocess.Popen(
-            [str(venv / "bin" / "python"), "-m", "gateway", "serve", "--listen", "127.0.0.1:0"],
+            [
+                str(venv / "bin" / "python"),
+                "-m",
+                "gateway",
+                "serve",
+                "--listen",
+                "127.0.0.1:0",
+                "--http",
+                "127.0.0.1:0",
+            ],
             cwd=ROOT,
             env=clean_env(venv),
             stdin=subprocess.DEVNULL,

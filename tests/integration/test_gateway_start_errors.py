@@ -49,7 +49,7 @@ def started_devices(output: str) -> list[str]:
 
 
 def test_grpc_port_in_use_is_one_line_naming_the_port_and_holder(held_port: int) -> None:
-    result = run_gateway("--listen", f"127.0.0.1:{held_port}")
+    result = run_gateway("--listen", f"127.0.0.1:{held_port}", "--http", "127.0.0.1:0")
     assert result.returncode == EXIT_CONFIG
     assert "Traceback" not in result.stderr
     errors = [line for line in result.stderr.splitlines() if str(held_port) in line]
@@ -76,6 +76,29 @@ def test_line_port_in_use_is_one_line_too(held_port: int, tmp_path: Path) -> Non
     assert result.returncode == EXIT_CONFIG
     assert "Traceback" not in result.stderr
     assert f"port {held_port} (gateway.line_listen) is in use by " in result.stderr
+    assert started_devices(result.stderr) == []
+
+
+def test_http_port_in_use_is_one_line_too(held_port: int, tmp_path: Path) -> None:
+    config = tmp_path / "http.toml"
+    config.write_text(
+        textwrap.dedent("""
+            [[devices]]
+            name = "rover"
+            type = "sim-robot"
+            tcp = "127.0.0.1:0"
+        """)
+    )
+    result = run_gateway(
+        "serve", "--config", str(config), "--listen", "127.0.0.1:0", "--http", f"127.0.0.1:{held_port}"
+    )
+    assert result.returncode == EXIT_CONFIG
+    assert "Traceback" not in result.stderr
+    errors = [line for line in result.stderr.splitlines() if str(held_port) in line]
+    assert errors == [
+        f"psgateway: cannot start: port {held_port} (http.listen) is in use by "
+        f"{Path(f'/proc/{os.getpid()}/comm').read_text().strip()} (pid {os.getpid()})"
+    ]
     assert started_devices(result.stderr) == []
 
 
@@ -175,7 +198,9 @@ def test_check_config_reports_keys_values_and_builds_together(tmp_path: Path) ->
 
 def demo_in_own_group() -> GatewayProcess:
     """The demo gateway as a terminal runs it: Ctrl-C signals its whole process group."""
-    return GatewayProcess([sys.executable, "-m", "gateway", "--listen", "127.0.0.1:0"], own_group=True)
+    return GatewayProcess(
+        [sys.executable, "-m", "gateway", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"], own_group=True
+    )
 
 
 def wait_for_line(gw: GatewayProcess, text: str, timeout: float = 20.0) -> None:

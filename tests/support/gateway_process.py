@@ -4,9 +4,11 @@
 ``gateway_process`` is a factory: call it with the text of a TOML config (or
 nothing, for the built-in demo) and get a :class:`GatewayProcess` whose
 ``.address`` is ``127.0.0.1:PORT``. It runs
-``python -m gateway.cli serve [--config FILE] --listen 127.0.0.1:0``, waits
+``python -m gateway.cli serve [--config FILE] --listen 127.0.0.1:0 --http 127.0.0.1:0``, waits
 (at most 20 s) for the ``listening on`` line and a SERVING health check, and
-is always stopped when the test ends::
+is always stopped when the test ends. The HTTP front end's port is read from its
+``HTTP front end and console on URL`` line: ``.http_url`` is ``http://127.0.0.1:PORT/``
+(``.http_address`` ``127.0.0.1:PORT``)::
 
     async def test_something(gateway_process):
         gw = gateway_process('''
@@ -43,6 +45,7 @@ ROOT = Path(__file__).resolve().parents[2]
 START_TIMEOUT = 20.0
 STOP_TIMEOUT = 5.0
 _LISTENING = re.compile(r"^listening on (\S+:\d+)$")
+_HTTP = re.compile(r"^HTTP front end and console on (https?://(\S+:\d+)/)$")
 
 
 class GatewayProcess:
@@ -64,6 +67,9 @@ class GatewayProcess:
             process_group=0 if own_group else None,
         )
         self.address = ""
+        #: The HTTP front end's base URL (``http://HOST:PORT/``) and ``HOST:PORT``; "" when it has none.
+        self.http_url = ""
+        self.http_address = ""
         self._lines: list[str] = []
         self._listening = threading.Event()
         # A thread drains the output so the process never blocks on a full pipe.
@@ -74,6 +80,9 @@ class GatewayProcess:
         assert self.proc.stdout is not None
         for line in self.proc.stdout:
             self._lines.append(line)
+            web = _HTTP.match(line.strip())
+            if web and not self.http_url:
+                self.http_url, self.http_address = web.group(1), web.group(2)
             m = _LISTENING.match(line.strip())
             if m and not self.address:
                 self.address = m.group(1)
@@ -121,13 +130,16 @@ class GatewayProcess:
         return self.proc.returncode
 
 
-def _start(
+def start_gateway(
     tmp: Path,
     config: str | None,
     extra_args: Sequence[str] = (),
     credentials: grpc.ChannelCredentials | None = None,
 ) -> GatewayProcess:
-    args = [sys.executable, "-m", "gateway.cli", "serve", "--listen", "127.0.0.1:0"]
+    """A ready gateway process serving ``config`` (TOML text written into ``tmp``; None = the demo),
+    stopped again if it does not become ready; the caller stops it (the fixtures do)."""
+    # The HTTP front end on a free port too (a later --http in extra_args wins): never a fixed port.
+    args = [sys.executable, "-m", "gateway.cli", "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"]
     if config is not None:
         path = tmp / f"gateway-{len(list(tmp.glob('gateway-*.toml')))}.toml"
         path.write_text(textwrap.dedent(config))
@@ -155,7 +167,7 @@ def gateway_process(tmp_path: Path) -> Iterator[StartGateway]:
         extra_args: Sequence[str] = (),
         credentials: grpc.ChannelCredentials | None = None,
     ) -> GatewayProcess:
-        gw = _start(tmp_path, config, extra_args, credentials)
+        gw = start_gateway(tmp_path, config, extra_args, credentials)
         started.append(gw)
         return gw
 
@@ -167,6 +179,6 @@ def gateway_process(tmp_path: Path) -> Iterator[StartGateway]:
 @pytest.fixture(scope="module")
 def demo_gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GatewayProcess]:
     """One gateway process per test module serving the demo config."""
-    gw = _start(tmp_path_factory.mktemp("demo"), None)
+    gw = start_gateway(tmp_path_factory.mktemp("demo"), None)
     yield gw
     gw.stop()

@@ -1,0 +1,299 @@
+// One Server-Sent Events stream per page for every subscription (docs/http-api.md, "Server-Sent Events").
+//
+// Widgets subscribe to selectors "SERVICE/PATH" (`*` matches one segment: "*/location"). The
+// multiplexer keeps the subscriptions in a map, opens one EventSource whose URL names them all,
+// and dispatches each `value` event to the subscriptions it matches. When the set of selectors
+// changes it reopens the stream, debounced, so that a burst of changes costs one reconnect.
+//
+// Reconnects: EventSource retries a dropped stream by itself (sending Last-Event-ID; the gateway
+// answers with the snapshot marked gap). A watchdog takes over when that is not enough: a stream
+// the browser gave up on (an HTTP error), or one that failed several times in a row, is reopened
+// after an exponential backoff, which a completed snapshot (`sync`) resets.
+
+import { Backoff } from './backoff.js';
+
+export const EVENTS_URL = '/api/v1/events';
+/** Selectors one page follows at most: the gateway bounds the topics of one Listen too. */
+export const MAX_SELECTORS = 256;
+/** Native errors in a row before the watchdog replaces EventSource's own fixed-delay retry. */
+const ERRORS_BEFORE_BACKOFF = 3;
+/** A stream still not open after this long is closed and opened again (after the backoff). */
+const CONNECT_TIMEOUT_MS = 20000;
+
+/** Split "SERVICE/PATH" at the first "/"; throws for a selector without one. */
+export function splitSelector(selector) {
+  const slash = selector.indexOf('/');
+  if (slash <= 0 || slash === selector.length - 1) {
+    throw new Error(`a selector is SERVICE/PATH, got ${JSON.stringify(selector)}`);
+  }
+  return [selector.slice(0, slash), selector.slice(slash + 1)];
+}
+
+/** Whether `pattern` (segments split on `sep`, `*` = one segment) matches `name`. */
+function patternMatches(pattern, name, sep) {
+  if (!pattern.includes('*')) return pattern === name;
+  const want = pattern.split(sep);
+  const have = name.split(sep);
+  return want.length === have.length && want.every((w, i) => w === '*' || w === have[i]);
+}
+
+/** Whether the selector "SERVICE/PATH" matches an event of `service` and `path`. */
+export function selectorMatches(selector, service, path) {
+  const [s, p] = splitSelector(selector);
+  return patternMatches(s, service, '\u0000') && patternMatches(p, path, '.');
+}
+
+/** The stream's URL for these selectors, in a stable order. */
+export function eventsUrl(selectors, base = EVENTS_URL) {
+  const query = new URLSearchParams();
+  for (const selector of [...selectors].sort()) query.append('sel', selector);
+  return `${base}?${query}`;
+}
+
+/**
+ * The page's event multiplexer. `onState(state, detail)` hears "open", "connecting" or
+ * "closed" (with the seconds to the next try, when one is planned).
+ */
+export class EventMux {
+  constructor({
+    url = EVENTS_URL,
+    EventSourceImpl = globalThis.EventSource,
+    fetchImpl = globalThis.fetch?.bind(globalThis),
+    debounceMs = 80,
+    maxSelectors = MAX_SELECTORS,
+    backoff = new Backoff(),
+    onState = () => {},
+    timers = globalThis,
+  } = {}) {
+    Object.assign(this, { url, EventSourceImpl, fetchImpl, debounceMs, maxSelectors, backoff, onState, timers });
+    /** selector -> Set of subscriptions ({onValue, onSync, onError}). */
+    this.subscriptions = new Map();
+    this.state = 'closed';
+    this.source = null;
+    this._streamSelectors = new Set(); // the selectors of the open stream
+    this._confirmed = new Set(); // selectors of a stream that reached `sync`: known good
+    this._reopenTimer = null;
+    this._watchdog = null;
+    this._errorsInRow = 0;
+    this._opened = false;
+  }
+
+  /**
+   * Follow `selector`; returns a function that ends this subscription. Handlers:
+   * onValue({service, path, value, gap, removed, time}), onSync(), onError({code, message}).
+   */
+  subscribe(selector, { onValue = () => {}, onSync = () => {}, onError = () => {} } = {}) {
+    splitSelector(selector);
+    let subs = this.subscriptions.get(selector);
+    if (!subs) {
+      if (this.subscriptions.size >= this.maxSelectors) {
+        throw new Error(`this page follows ${this.maxSelectors} selectors already; close a view first`);
+      }
+      subs = new Set();
+      this.subscriptions.set(selector, subs);
+      this._schedule(this.debounceMs);
+    }
+    const sub = { onValue, onSync, onError };
+    subs.add(sub);
+    return () => this._unsubscribe(selector, sub);
+  }
+
+  _unsubscribe(selector, sub) {
+    const subs = this.subscriptions.get(selector);
+    if (!subs || !subs.delete(sub)) return;
+    if (!subs.size) {
+      this.subscriptions.delete(selector);
+      this._schedule(this.debounceMs);
+    }
+  }
+
+  /** Close the stream for good (the page is going away). */
+  close() {
+    this._clearTimers();
+    this._closeSource();
+    this.subscriptions.clear();
+    this._setState('closed');
+  }
+
+  // -- the stream ----------------------------------------------------------------------------
+
+  _schedule(delayMs, detail = undefined) {
+    if (this._reopenTimer !== null) this.timers.clearTimeout(this._reopenTimer);
+    this._reopenTimer = this.timers.setTimeout(() => {
+      this._reopenTimer = null;
+      this._open();
+    }, delayMs);
+    if (detail !== undefined) this._setState('closed', detail);
+  }
+
+  _retryLater() {
+    this._closeSource();
+    const delay = this.backoff.next();
+    this._schedule(delay, { retryInSeconds: Math.ceil(delay / 1000) });
+  }
+
+  _open() {
+    const selectors = new Set(this.subscriptions.keys());
+    const same =
+      selectors.size === this._streamSelectors.size && [...selectors].every((s) => this._streamSelectors.has(s));
+    if (same && this.source && this.source.readyState !== 2) return; // already following exactly these
+    this._closeSource();
+    this._streamSelectors = selectors;
+    if (!selectors.size) {
+      this._setState('closed');
+      return;
+    }
+    const url = eventsUrl(selectors, this.url);
+    const source = new this.EventSourceImpl(url, { withCredentials: false });
+    this.source = source;
+    this._opened = false;
+    this._errorsInRow = 0;
+    this._setState('connecting');
+    source.addEventListener('open', () => {
+      if (source !== this.source) return;
+      this._opened = true;
+      this._errorsInRow = 0;
+      this._setState('open');
+    });
+    source.addEventListener('value', (e) => source === this.source && this._onValue(e.data));
+    source.addEventListener('sync', () => source === this.source && this._onSync());
+    source.addEventListener('error', (e) => {
+      if (source !== this.source) return;
+      // The gateway's own `event: error` carries data; the browser's connection error does not.
+      if (typeof e.data === 'string') this._onServerError(e.data);
+      else this._onConnectionError(url);
+    });
+    this._watchdog = this.timers.setTimeout(() => {
+      this._watchdog = null;
+      if (source === this.source && source.readyState !== 1) this._retryLater();
+    }, CONNECT_TIMEOUT_MS);
+  }
+
+  _closeSource() {
+    if (this._watchdog !== null) {
+      this.timers.clearTimeout(this._watchdog);
+      this._watchdog = null;
+    }
+    if (this.source) {
+      this.source.close();
+      this.source = null;
+    }
+  }
+
+  _clearTimers() {
+    if (this._reopenTimer !== null) this.timers.clearTimeout(this._reopenTimer);
+    this._reopenTimer = null;
+  }
+
+  _setState(state, detail = {}) {
+    this.state = state;
+    this.onState(state, detail);
+  }
+
+  _onValue(data) {
+    let event;
+    try {
+      event = JSON.parse(data);
+    } catch {
+      return; // not ours to guess at: the gateway sends JSON
+    }
+    if (typeof event?.service !== 'string' || typeof event?.path !== 'string') return;
+    this.dispatch(event);
+  }
+
+  /** Hand one value event to every subscription whose selector matches it. */
+  dispatch(event) {
+    for (const [selector, subs] of this.subscriptions) {
+      if (!selectorMatches(selector, event.service, event.path)) continue;
+      for (const sub of [...subs]) {
+        try {
+          sub.onValue(event);
+        } catch (e) {
+          console.error('a subscriber of', selector, 'failed:', e);
+        }
+      }
+    }
+  }
+
+  _onSync() {
+    for (const selector of this._streamSelectors) this._confirmed.add(selector);
+    this.backoff.reset();
+    this._errorsInRow = 0;
+    for (const subs of this.subscriptions.values()) for (const sub of subs) sub.onSync();
+  }
+
+  /**
+   * The Listen failed (e.g. NOT_FOUND) and the stream ends. The selectors added since the last
+   * good snapshot are the suspects: their subscriptions hear the error and are dropped, and the
+   * rest are reopened at once. Without suspects everyone hears it and the retry backs off.
+   */
+  _onServerError(data) {
+    let error;
+    try {
+      error = JSON.parse(data);
+    } catch {
+      error = { code: 'UNKNOWN', message: String(data).slice(0, 200) };
+    }
+    this._failed(error);
+  }
+
+  _failed(error) {
+    this._closeSource();
+    const suspects = [...this._streamSelectors].filter((s) => !this._confirmed.has(s));
+    if (suspects.length) {
+      for (const selector of suspects) {
+        const subs = this.subscriptions.get(selector);
+        this.subscriptions.delete(selector);
+        for (const sub of subs ?? []) sub.onError(error);
+      }
+      this._schedule(0);
+      return;
+    }
+    for (const subs of this.subscriptions.values()) for (const sub of subs) sub.onError(error);
+    this._retryLater();
+  }
+
+  _onConnectionError(url) {
+    this._errorsInRow += 1;
+    const source = this.source;
+    if (source && source.readyState === 2 && !this._opened && this.fetchImpl) {
+      // The browser gave up before the stream opened: an HTTP error whose JSON says why.
+      this._closeSource();
+      this._diagnose(url);
+      return;
+    }
+    if (source && source.readyState !== 2 && this._errorsInRow < ERRORS_BEFORE_BACKOFF) {
+      this._setState('connecting');
+      return; // EventSource retries by itself, with Last-Event-ID
+    }
+    this._retryLater();
+  }
+
+  async _diagnose(url) {
+    const controller = new AbortController();
+    let error = null;
+    try {
+      const response = await this.fetchImpl(url, {
+        headers: { Accept: 'text/event-stream' },
+        signal: controller.signal,
+      });
+      if (!response.ok) {
+        const body = await response.json().catch(() => null);
+        error = body?.error ?? { code: 'UNAVAILABLE', message: `HTTP ${response.status}` };
+      }
+    } catch {
+      error = null; // unreachable: a plain retry
+    } finally {
+      controller.abort(); // never keep a second stream open
+    }
+    if (this.source !== null || this._reopenTimer !== null) return; // something reopened meanwhile
+    // A refusal of the request as a whole (too many streams, not authenticated) is nobody's
+    // selector in particular: every subscription keeps waiting through the backoff.
+    if (error && !['RESOURCE_EXHAUSTED', 'UNAVAILABLE', 'UNAUTHENTICATED'].includes(error.code)) {
+      this._failed(error);
+    } else {
+      if (error) for (const subs of this.subscriptions.values()) for (const sub of subs) sub.onError(error);
+      this._retryLater();
+    }
+  }
+}

@@ -1,0 +1,166 @@
+// The selected service (#service-view): its properties laid out by their model (`.gui`, type,
+// access, unit, range), grouped by namespace, each following its value through the page's one
+// event stream. A change of the service's `properties` list loads the model again.
+
+import { describe, getProperty, setProperty } from './api.js';
+import { h } from './dom.js';
+import { propertyView } from './widgets.js';
+
+/** Properties one view follows at most; the rest show a note (a group of many robots is big). */
+export const MAX_FOLLOWED = 150;
+const LISTENABLE = new Set(['read', 'read-write', 'unknown']);
+
+function namespaceOf(path) {
+  const dot = path.lastIndexOf('.');
+  return dot < 0 ? '' : path.slice(0, dot);
+}
+
+export class ServiceView {
+  constructor(root, { mux }) {
+    Object.assign(this, { root, mux });
+    this.service = null;
+    this._views = new Map(); // path -> property view
+    this._unsubscribe = [];
+    this._generation = 0;
+    this._reloadTimer = null;
+    this._propertiesText = null;
+  }
+
+  /** Show `service` ({name, type, state, address}), or nothing for null. */
+  async show(service) {
+    this._close();
+    const generation = ++this._generation;
+    this.service = service;
+    if (!service) {
+      this.root.replaceChildren(h('p', { class: 'muted' }, 'Select a service to see its properties.'));
+      return;
+    }
+    this.root.replaceChildren(this.header(service), h('p', { class: 'muted' }, 'Loading the model…'));
+    let model;
+    try {
+      model = await describe(service.name);
+    } catch (e) {
+      if (generation !== this._generation) return;
+      this.root.replaceChildren(this.header(service), h('div', { class: 'error' }, `${e.code}: ${e.message}`));
+      return;
+    }
+    if (generation !== this._generation) return; // another service was selected meanwhile
+    this.render(service, model);
+  }
+
+  header(service) {
+    return h(
+      'header',
+      { class: 'view-head' },
+      h('h2', {}, service.name),
+      h('span', { class: 'badge', dataset: { state: service.state ?? 'unknown' } }, service.state ?? 'unknown'),
+      h('span', { class: 'muted' }, `${service.type ?? ''}${service.address ? ` · ${service.address}` : ''}`),
+    );
+  }
+
+  render(service, model) {
+    const properties = (model?.properties ?? []).filter((p) => p.name !== 'properties');
+    const groups = new Map();
+    for (const prop of properties) {
+      const ns = namespaceOf(prop.name);
+      if (!groups.has(ns)) groups.set(ns, []);
+      groups.get(ns).push(prop);
+    }
+    let followed = 0;
+    const skipped = [];
+    const sections = [];
+    for (const [ns, props] of [...groups].sort(([a], [b]) => (a === '' ? -1 : b === '' ? 1 : a.localeCompare(b)))) {
+      const items = props.map((prop) => {
+        const view = propertyView(service.name, prop, {
+          setProperty,
+          getProperty,
+          label: ns ? prop.name.slice(ns.length + 1) : prop.name,
+        });
+        this._views.set(prop.name, view);
+        if (LISTENABLE.has(prop.access) && prop.type !== 'namespace') {
+          if (followed < MAX_FOLLOWED) {
+            followed += 1;
+            this.follow(`${service.name}/${prop.name}`, view);
+          } else {
+            skipped.push(prop.name);
+          }
+        }
+        return view.element;
+      });
+      sections.push(
+        h('fieldset', { class: 'namespace', dataset: { namespace: ns } }, h('legend', {}, ns || 'properties'), items),
+      );
+    }
+    const note = skipped.length
+      ? h('p', { class: 'muted' }, `${skipped.length} more properties are not followed live (limit ${MAX_FOLLOWED}).`)
+      : null;
+    this.root.replaceChildren(
+      this.header(service),
+      model?.doc ? h('p', { class: 'doc' }, model.doc) : null,
+      note,
+      h('div', { class: 'namespaces' }, sections),
+    );
+    this._unsubscribe.push(
+      this.mux.subscribe(`${service.name}/properties`, {
+        onValue: (event) => this.propertiesChanged(event.value),
+      }),
+    );
+  }
+
+  follow(selector, view) {
+    this._unsubscribe.push(
+      this.mux.subscribe(selector, {
+        onValue: (event) => (event.removed ? view.removed() : view.update(event.value, event)),
+        onError: (e) => {
+          view.element.classList.add('unfollowed');
+          showListenError(view, e);
+        },
+      }),
+    );
+  }
+
+  /**
+   * The service's `properties` list: the first value is the list the model was read with; a
+   * different one later (a tool plugged in) loads the model again.
+   */
+  propertiesChanged(value) {
+    if (this._propertiesText === null) {
+      this._propertiesText = value;
+      return;
+    }
+    if (value === this._propertiesText || this._reloadTimer !== null) return;
+    this._reloadTimer = setTimeout(() => {
+      this._reloadTimer = null;
+      if (this.service) this.show(this.service);
+    }, 300);
+  }
+
+  /** The service's state changed in the list. */
+  updateState(service) {
+    if (!this.service || service?.name !== this.service.name) return;
+    this.service = service;
+    const badge = this.root.querySelector('.view-head .badge');
+    if (badge) {
+      badge.dataset.state = service.state ?? 'unknown';
+      badge.textContent = service.state ?? 'unknown';
+    }
+  }
+
+  _close() {
+    for (const unsubscribe of this._unsubscribe) unsubscribe();
+    this._unsubscribe = [];
+    for (const view of this._views.values()) view.dispose();
+    this._views.clear();
+    if (this._reloadTimer !== null) clearTimeout(this._reloadTimer);
+    this._reloadTimer = null;
+    this._propertiesText = null;
+  }
+}
+
+function showListenError(view, e) {
+  const error = view.element.querySelector('.error');
+  if (error) {
+    error.textContent = `${e.code}: ${e.message}`;
+    error.hidden = false;
+  }
+}

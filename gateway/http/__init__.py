@@ -1,0 +1,17 @@
+"""The HTTP/JSON + Server-Sent-Events front end of the gateway, and the console's static files.
+
+* :mod:`~gateway.http.front` — :class:`HttpFront`: the aiohttp application, start and stop.
+* :mod:`~gateway.http.api` — the JSON routes: services, model, Get, Set, health.
+* :mod:`~gateway.http.events` — Listen as Server-Sent Events.
+* :mod:`~gateway.http.console` — the browser console's files.
+* :mod:`~gateway.http.bodies` — request bodies and parameters, checked.
+* :mod:`~gateway.http.safety` — Origin, Host and Content-Type checks; identity.
+* :mod:`~gateway.http.errors` — errors as JSON with the HTTP status of their code.
+* :mod:`~gateway.http.openapi` — the OpenAPI 3.1 document.
+
+The routes and formats are documented in ``docs/http-api.md``.
+"""
+
+from gateway.http.front import HttpFront
+
+__all__ = ["HttpFront"]

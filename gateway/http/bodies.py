@@ -1,0 +1,89 @@
+"""What an HTTP request carries, checked: a Set's JSON body, request parameters, and JSON values.
+
+A Set's body is ``{"value": TEXT, "parameters": {"name": "text"}}``. Values travel as text
+(the value grammar of ``services.values``); for convenience a JSON number, boolean or array
+is formatted into that grammar here (``1.5`` → ``1.5``, ``true`` → ``true``, ``[1, 2]`` →
+``(1 2)``), so that ``{"value": 0.5}`` and ``{"value": "0.5"}`` are the same Set. Anything
+that does not fit is INVALID_ARGUMENT naming what is wrong.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from multidict import MultiMapping
+
+from services.errors import InvalidArgument
+from services.values import format_bool, format_list, format_number
+
+_SET_KEYS = ("value", "parameters")
+_EXAMPLE = '{"value": "(1 0 0)", "parameters": {"frame": "robot"}}'
+
+
+@dataclass(frozen=True, slots=True)
+class SetBody:
+    """A Set's body: the value text and the request parameters."""
+
+    value: str
+    parameters: Mapping[str, str]
+
+
+def value_text(value: Any, where: str) -> str:
+    """A JSON value as value text; InvalidArgument for null and objects."""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, bool):
+        return format_bool(value)
+    if isinstance(value, int | float):
+        return format_number(value)
+    if isinstance(value, list):
+        return format_list(value)
+    kind = "null" if value is None else "an object"
+    raise InvalidArgument(f"{where} must be a string, a number, a boolean or an array, not {kind}")
+
+
+def _refuse_constant(name: str) -> float:
+    # json.loads accepts NaN and Infinity, which are not JSON and not values of the grammar.
+    raise InvalidArgument(f"the body is not valid JSON: {name} is not a JSON number")
+
+
+def parse_set_body(body: bytes) -> SetBody:
+    """The Set request in ``body`` (JSON); InvalidArgument naming what is wrong."""
+    try:
+        data = json.loads(body, parse_constant=_refuse_constant)
+    except UnicodeDecodeError as exc:
+        raise InvalidArgument(f"the body is not UTF-8 text: {exc.reason} at byte {exc.start}") from None
+    except ValueError as exc:
+        raise InvalidArgument(f"the body is not valid JSON: {exc}; expected {_EXAMPLE}") from None
+    except RecursionError:
+        raise InvalidArgument("the body is not valid JSON: it nests too deeply") from None
+    if not isinstance(data, dict):
+        raise InvalidArgument(f"the body must be a JSON object like {_EXAMPLE}")
+    unknown = [key for key in data if key not in _SET_KEYS]
+    if unknown:
+        raise InvalidArgument(f"the body has an unknown key {unknown[0]!r} (known: value, parameters)")
+    if "value" not in data:
+        raise InvalidArgument(f"the body needs a 'value', like {_EXAMPLE}")
+    value = value_text(data["value"], "'value'")
+    raw = data.get("parameters", {})
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise InvalidArgument("'parameters' must be a JSON object of names to values")
+    parameters = {str(name): value_text(v, f"parameter {name!r}") for name, v in raw.items()}
+    return SetBody(value, parameters)
+
+
+def query_parameters(query: MultiMapping[str], ignore: tuple[str, ...] = ()) -> dict[str, str]:
+    """The request parameters in a query string (``?frame=robot``); a name given twice is refused."""
+    parameters: dict[str, str] = {}
+    for name, value in query.items():
+        if name in ignore:
+            continue
+        if name in parameters:
+            raise InvalidArgument(f"request parameter {name!r} is given more than once")
+        parameters[name] = value
+    return parameters

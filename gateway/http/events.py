@@ -1,0 +1,159 @@
+"""Server-Sent Events: a Listen as ``text/event-stream``, drained like a gRPC Listen stream.
+
+``GET /api/v1/events?sel=SERVICE/PATH&sel=...`` opens one
+:class:`~gateway.listen.stream.ListenStream` on the gateway's listen hub (the same
+selectors, wildcards, rules, limits and conflating queue as a gRPC Listen) and writes
+what :func:`gateway.listen.drain.responses` yields:
+
+* ``event: value`` with ``id: N`` (the stream's sequence) and ``data:`` a JSON object
+  ``{"service", "path", "value", "gap", "removed", "conflated", "time"}``: first the current
+  value of every matched property, then ``event: sync`` (``data: {}``), then changes;
+* ``: heartbeat`` comment lines when the stream has been quiet for ``http.heartbeat`` seconds;
+* ``event: error`` (``data: {"code", "message"}``) when the Listen fails; the stream then ends.
+
+A request with ``Last-Event-ID`` (EventSource resuming) gets the snapshot with
+``gap: true`` on each value: changes in between may be lost. A client that does not read
+makes ``write`` wait (the transport buffers at most its high-water mark); meanwhile the
+stream's queue keeps only the latest value of each property.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from contextlib import aclosing
+
+from aiohttp import hdrs, web
+from google.protobuf.duration_pb2 import Duration
+
+from gateway.config import HttpSection, Limits
+from gateway.guard import Guard
+from gateway.http.errors import TOO_MANY_STREAMS, error_json, error_response
+from gateway.http.safety import identify
+from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
+from gateway.listen.drain import Wake, responses
+from gateway.status import to_property_error
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.errors import InvalidArgument, PropertyError, ResourceExhausted
+
+log = logging.getLogger(__name__)
+
+SYNC = b"event: sync\ndata: {}\n\n"
+HEARTBEAT = b": heartbeat\n\n"
+#: The query key of a selector; every other key is refused (a typo must not pass unnoticed).
+SELECTOR_KEY = "sel"
+
+
+def listen_request(selectors: list[str]) -> pb.ListenRequest:
+    """``SERVICE/PATH`` selectors as a ListenRequest (the first ``/`` splits service from path)."""
+    if not selectors:
+        raise InvalidArgument("give at least one selector: /api/v1/events?sel=SERVICE/PATH")
+    refs = []
+    for text in selectors:
+        service, slash, path = text.partition("/")
+        if not slash or not service or not path:
+            raise InvalidArgument(
+                f"selector {text[:300]!r} must be SERVICE/PATH, like scout1/location or */location"
+            )
+        refs.append(pb.PropertyRef(service=service, property=path))
+    first = refs[0]
+    return pb.ListenRequest(service=first.service, property=first.property, more=refs[1:])
+
+
+def encode(response: pb.ListenResponse, gap: bool) -> bytes:
+    """One ListenResponse as SSE messages; ``gap`` marks every value (a resumed snapshot)."""
+    if response.sync:
+        return SYNC
+    if response.heartbeat and not response.events:
+        return HEARTBEAT
+    parts = []
+    for ev in response.events:
+        data = json.dumps(
+            {
+                "service": ev.service,
+                "path": ev.property,
+                "value": ev.value,
+                "gap": ev.gap or gap,
+                "removed": ev.removed,
+                "conflated": ev.conflated,
+                "time": ev.time.seconds + ev.time.nanos / 1e9,
+            },
+            ensure_ascii=False,
+        )
+        parts.append(f"id: {ev.sequence}\nevent: value\ndata: {data}\n\n")
+    return "".join(parts).encode()
+
+
+def error_event(err: PropertyError) -> bytes:
+    return f"event: error\ndata: {json.dumps(error_json(err), ensure_ascii=False)}\n\n".encode()
+
+
+class EventStreams:
+    """The ``/api/v1/events`` handler and its bound on open streams."""
+
+    def __init__(self, hub: ListenHub, guard: Guard, limits: Limits, settings: HttpSection) -> None:
+        self.hub = hub
+        self.guard = guard
+        self.limits = limits
+        self.max_streams = settings.max_streams
+        self.options = pb.ListenOptions(heartbeat_interval=_duration(settings.heartbeat))
+        self.open: set[ListenStream] = set()
+
+    async def events(self, request: web.Request) -> web.StreamResponse:
+        unknown = [key for key in request.query if key != SELECTOR_KEY]
+        if unknown:
+            raise InvalidArgument(f"unknown query key {unknown[0][:100]!r} (known: {SELECTOR_KEY})")
+        listen = listen_request(request.query.getall(SELECTOR_KEY, []))
+        selectors = parse_selectors(listen, self.limits)
+        options = parse_options(self.options, self.limits)
+        subject = identify(request, self.guard)
+        if len(self.open) >= self.max_streams:
+            return _too_many(f"too many event streams open ({self.max_streams}, http.max_streams)")
+        wake = Wake()
+        try:
+            stream = self.hub.open(selectors, options, wake.set, subject)
+        except ResourceExhausted as exc:
+            return _too_many(exc.message)
+        self.open.add(stream)
+        try:
+            return await self._serve(request, stream, wake)
+        finally:
+            stream.close()
+            self.open.discard(stream)
+
+    async def _serve(self, request: web.Request, stream: ListenStream, wake: Wake) -> web.StreamResponse:
+        response = web.StreamResponse(
+            headers={
+                hdrs.CONTENT_TYPE: "text/event-stream; charset=utf-8",
+                hdrs.CACHE_CONTROL: "no-cache",
+                # Proxies such as nginx would otherwise hold events back to fill a buffer.
+                "X-Accel-Buffering": "no",
+            }
+        )
+        await response.prepare(request)
+        resumed = hdrs.LAST_EVENT_ID in request.headers
+        snapshot = True
+        try:
+            async with aclosing(responses(stream, wake)) as ready:
+                async for answer in ready:
+                    await response.write(encode(answer, resumed and snapshot))
+                    if answer.sync:
+                        snapshot = False
+        except ConnectionError:
+            return response  # the client went away
+        except Exception as exc:
+            try:
+                await response.write(error_event(to_property_error(exc, "event stream")))
+            except ConnectionError:
+                return response
+        return response
+
+
+def _duration(seconds: float) -> Duration:
+    d = Duration()
+    d.FromNanoseconds(round(seconds * 1e9))
+    return d
+
+
+def _too_many(message: str) -> web.Response:
+    return error_response(ResourceExhausted(message), status=TOO_MANY_STREAMS)

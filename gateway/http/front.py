@@ -1,0 +1,150 @@
+"""The HTTP front end: an aiohttp application in the gateway's own asyncio loop.
+
+:class:`HttpFront` serves the JSON routes (:mod:`gateway.http.api`), Server-Sent Events
+(:mod:`gateway.http.events`), the OpenAPI document and the browser console's files
+(:mod:`gateway.http.console`) on ``[http] listen``. It holds no state of its own beyond its
+open event streams: calls go through the gateway's :class:`~gateway.calls.Calls`, streams
+through its :class:`~gateway.listen.ListenHub`, identity and rules through its
+:class:`~gateway.guard.Guard`. Every error leaves as JSON (:mod:`gateway.http.errors`),
+unknown routes and wrong methods included.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+from collections.abc import Awaitable, Callable
+
+from aiohttp import web
+
+from gateway.calls import Calls
+from gateway.config import Config, is_loopback
+from gateway.guard import Guard
+from gateway.http.api import Api
+from gateway.http.console import CONSOLE_ROOT, Console
+from gateway.http.errors import PAYLOAD_TOO_LARGE, error_response
+from gateway.http.events import EventStreams
+from gateway.http.openapi import document
+from gateway.http.safety import check_request
+from gateway.listen import ListenHub
+from gateway.ports import PortInUse, port_holder
+from gateway.tls import https_ssl_context
+from services.errors import Code, PropertyError, ResourceExhausted, error_for
+
+log = logging.getLogger("gateway.http")
+
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+#: HTTP errors aiohttp raises itself (routing, body size), as the code each stands for.
+_HTTP_CODES = {404: Code.NOT_FOUND, 405: Code.UNIMPLEMENTED}
+
+
+class HttpFront:
+    """The HTTP/JSON + SSE front end of one gateway; :meth:`start` and :meth:`stop` in its loop."""
+
+    def __init__(self, calls: Calls, hub: ListenHub, config: Config, guard: Guard) -> None:
+        self.settings = config.http
+        self.config = config
+        self.api = Api(calls, guard, self.settings.max_body)
+        self.events = EventStreams(hub, guard, config.limits, self.settings)
+        self.console = Console(CONSOLE_ROOT)
+        #: Whether Host headers must be loopback names (DNS rebinding): the front end listens on loopback.
+        self.loopback_only = is_loopback(self.settings.listen)
+        self._runner: web.AppRunner | None = None
+        #: "host:port" it listens on (the real port when 0 was asked); "" before start.
+        self.address = ""
+        self.scheme = "https" if self.settings.tls else "http"
+
+    @property
+    def url(self) -> str:
+        """``http://HOST:PORT/`` (or https)."""
+        return f"{self.scheme}://{self.address}/"
+
+    @property
+    def stream_count(self) -> int:
+        """Event streams open now."""
+        return len(self.events.open)
+
+    def build_app(self) -> web.Application:
+        """The aiohttp application with every route (also used to check the OpenAPI document)."""
+        app = web.Application(middlewares=[self._middleware], client_max_size=self.settings.max_body)
+        api = self.api
+        openapi = json.dumps(document(self.settings.console))
+        add = app.router.add_route
+        add("GET", "/api/v1/services", api.services)
+        add("GET", "/api/v1/services/{service}/model", api.model)
+        add("GET", "/api/v1/services/{service}/properties/{path}", api.get)
+        add("PUT", "/api/v1/services/{service}/properties/{path}", api.set)
+        add("POST", "/api/v1/services/{service}/properties/{path}", api.set)
+        add("GET", "/api/v1/events", self.events.events)
+        add("GET", "/api/v1/health", api.health)
+
+        async def openapi_json(request: web.Request) -> web.Response:
+            return web.Response(text=openapi, content_type="application/json")
+
+        add("GET", "/api/v1/openapi.json", openapi_json)
+        if self.settings.console:
+            add("GET", "/", self.console.file)
+            add("GET", "/console/{file:.*}", self.console.file)
+        return app
+
+    @web.middleware
+    async def _middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        what = f"{request.method} {request.path[:200]}"
+        try:
+            check_request(request, self.loopback_only)
+            return await handler(request)
+        except PropertyError as exc:
+            return error_response(exc, what)
+        except web.HTTPRequestEntityTooLarge:
+            limit = self.settings.max_body
+            err = ResourceExhausted(f"the request body is larger than http.max_body ({limit} bytes)")
+            return error_response(err, status=PAYLOAD_TOO_LARGE)
+        except web.HTTPMethodNotAllowed as exc:
+            allowed = ", ".join(sorted(exc.allowed_methods))
+            message = f"{request.method} is not allowed on {request.path[:200]} (allowed: {allowed})"
+            response = error_response(error_for(Code.UNIMPLEMENTED, message), status=exc.status)
+            response.headers["Allow"] = ",".join(sorted(exc.allowed_methods))
+            return response
+        except web.HTTPException as exc:
+            if exc.status < 400:
+                raise
+            code = _HTTP_CODES.get(exc.status, Code.INVALID_ARGUMENT if exc.status < 500 else Code.INTERNAL)
+            message = f"no route {request.path[:200]}" if exc.status == 404 else exc.reason
+            return error_response(error_for(code, message), status=exc.status)
+
+    async def start(self) -> None:
+        """Listen; raises PortInUse (one line naming the holder) when the port is taken."""
+        host, _, port_text = self.settings.listen.rpartition(":")
+        host = host.strip("[]")
+        port = int(port_text)
+        ssl_context = https_ssl_context(self.config.tls) if self.settings.tls else None
+        # handler_cancellation: a client that goes away ends its handler (an idle event stream
+        # would otherwise only notice at its next heartbeat).
+        runner = web.AppRunner(
+            self.build_app(),
+            handler_cancellation=True,
+            access_log=None,
+            shutdown_timeout=self.config.gateway.shutdown_grace,
+        )
+        await runner.setup()
+        site = web.TCPSite(runner, host, port, ssl_context=ssl_context, reuse_address=True)
+        try:
+            await site.start()
+        except OSError as exc:
+            await runner.cleanup()
+            if exc.errno != errno.EADDRINUSE:
+                raise
+            raise PortInUse(f"port {port} (http.listen) is in use by {port_holder(port)}") from None
+        self._runner = runner
+        bound = runner.addresses[0]
+        shown = f"[{bound[0]}]" if ":" in str(bound[0]) else str(bound[0])
+        self.address = f"{shown}:{bound[1]}"
+        log.debug("HTTP front end and console on %s", self.url)
+
+    async def stop(self) -> None:
+        """Stop listening and end every request (event streams end with the hub's error first)."""
+        runner, self._runner = self._runner, None
+        if runner is not None:
+            await runner.cleanup()

@@ -1,0 +1,99 @@
+"""What a browser could be tricked into, refused; and who a request comes from.
+
+* **Origin.** The front end sends no CORS headers, so a page of another origin cannot read
+  its answers; a request whose ``Origin`` header names another origin is refused as well
+  (403 PERMISSION_DENIED), so such a page cannot make one either (a Set by a form or
+  ``fetch`` with ``no-cors``).
+* **Content type.** A PUT or POST must say ``Content-Type: application/json``: a plain HTML
+  form cannot send that, and a cross-origin ``fetch`` that does needs a preflight, which
+  is never answered.
+* **Host.** When the front end listens on a loopback address, a ``Host`` that is not a
+  loopback name or address is refused (403): a DNS-rebinding page (``evil.example``
+  resolving to 127.0.0.1) reaches the port but never with a loopback host name.
+* **Identity** as on the gRPC port: ``Authorization: Bearer TOKEN``, or the cookie
+  ``ps_token`` (EventSource cannot set headers; the console sets the cookie with
+  SameSite=Strict), or a client certificate over HTTPS; the guard checks it.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from aiohttp import hdrs, web
+
+from gateway.guard import Guard
+from gateway.identity import ANONYMOUS
+from gateway.rules import Subject
+from services.errors import InvalidArgument, PermissionDenied
+
+#: The cookie the console keeps its bearer token in.
+TOKEN_COOKIE = "ps_token"
+JSON_TYPE = "application/json"
+
+
+def is_loopback_host(host: str) -> bool:
+    """True for ``localhost``, ``*.localhost`` and loopback addresses, with or without a port."""
+    name = host.strip().lower()
+    if name.startswith("["):  # [::1]:8080
+        name = name[1 : name.find("]")] if "]" in name else name[1:]
+    elif name.count(":") == 1:
+        name = name.partition(":")[0]
+    name = name.rstrip(".")
+    if name == "localhost" or name.endswith(".localhost"):
+        return True
+    try:
+        return ipaddress.ip_address(name).is_loopback
+    except ValueError:
+        return False
+
+
+def check_request(request: web.Request, loopback: bool) -> None:
+    """Refuse (PermissionDenied, InvalidArgument) what a browser may have been tricked into sending."""
+    host = request.headers.get(hdrs.HOST, "")
+    if loopback and not is_loopback_host(host):
+        raise PermissionDenied(
+            f"host {host[:100]!r} is not a loopback name: this front end listens on loopback only"
+            " (a page of another site may have pointed its name here)"
+        )
+    origin = request.headers.get(hdrs.ORIGIN)
+    if origin is not None:
+        own = f"{request.scheme}://{host}".lower()
+        if origin.lower() != own:
+            raise PermissionDenied(
+                f"origin {origin[:100]!r} is not this front end's own ({own[:100]!r}): requests from"
+                " pages of other origins are refused"
+            )
+    if request.method in (hdrs.METH_PUT, hdrs.METH_POST) and request.content_type != JSON_TYPE:
+        raise InvalidArgument(
+            f"a {request.method} needs Content-Type: {JSON_TYPE}, not {request.content_type!r}"
+        )
+
+
+def certificate_names(peercert: Mapping[str, Any] | None) -> dict[str, Sequence[bytes]]:
+    """A verified client certificate (``ssl`` ``getpeercert()``) as grpc's auth context names it."""
+    if not peercert:
+        return {}
+    names: dict[str, Sequence[bytes]] = {}
+    for rdn in peercert.get("subject", ()):
+        for key, value in rdn:
+            if key == "commonName":
+                names["x509_common_name"] = [value.encode()]
+    sans = [value.encode() for kind, value in peercert.get("subjectAltName", ()) if kind in ("DNS", "URI")]
+    if sans:
+        names["x509_subject_alternative_name"] = sans
+    return names
+
+
+def identify(request: web.Request, guard: Guard, always: bool = False) -> Subject:
+    """Who sends ``request``; ANONYMOUS without a check to make (unless ``always``: a Set is audited)."""
+    if not (always or guard.checks):
+        return ANONYMOUS
+    header = request.headers.get(hdrs.AUTHORIZATION)
+    if header is None:
+        cookie = request.cookies.get(TOKEN_COOKIE)
+        header = f"Bearer {cookie}" if cookie else None
+    metadata = [("authorization", header)] if header is not None else []
+    peercert = request.transport.get_extra_info("peercert") if request.transport is not None else None
+    return guard.identify(metadata, certificate_names(peercert))

@@ -1,0 +1,62 @@
+"""How a front end writes one Listen stream: wait until it is ready, take what it has, repeat.
+
+The gRPC Listen handler and the HTTP front end's Server-Sent Events both drain a
+:class:`~gateway.listen.stream.ListenStream` through :func:`responses`; they differ only
+in how they send each ``ListenResponse``. A writer that waits on its client (a slow reader)
+is simply not taking: the stream's conflating queue holds the latest value per property
+meanwhile, so memory stays bounded by the properties it matches.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncGenerator
+
+from gateway.listen.stream import ListenStream
+from protos.propertyservice.v1 import property_service_pb2 as pb
+
+
+class Wake:
+    """A one-waiter asyncio.Event without the waiter deque: idle Listen streams stay small.
+
+    Hand :meth:`set` to :meth:`gateway.listen.ListenHub.open` as ``on_ready``.
+    """
+
+    __slots__ = ("_future", "_set")
+
+    def __init__(self) -> None:
+        self._set = False
+        self._future: asyncio.Future[None] | None = None
+
+    def set(self) -> None:
+        self._set = True
+        future = self._future
+        if future is not None and not future.done():
+            future.set_result(None)
+
+    async def wait(self) -> None:
+        if not self._set:
+            self._future = asyncio.get_running_loop().create_future()
+            try:
+                await self._future
+            finally:
+                self._future = None
+        self._set = False
+
+
+async def responses(stream: ListenStream, wake: Wake) -> AsyncGenerator[pb.ListenResponse, None]:
+    """Start ``stream`` and yield each response it has ready, as it becomes ready.
+
+    ``wake`` is the one the stream was opened with. Raises the stream's error (a
+    ``PropertyError``: the start failed, a limit was passed, the gateway is shutting down);
+    returns when the stream is ended or closed. The caller closes the stream.
+    """
+    await stream.start()
+    while True:
+        await wake.wait()
+        while (response := stream.take()) is not None:
+            yield response
+        if stream.error is not None:
+            raise stream.error
+        if stream.ended or stream.closed:
+            return

@@ -1,0 +1,229 @@
+// The page's one event stream: selectors, dispatch, reopening on a change, errors, backoff.
+// EventSource and the timers are stand-ins driven by the test (node has neither a browser's
+// EventSource nor a clock the test can step).
+import assert from 'node:assert/strict';
+import { test } from 'node:test';
+
+import { Backoff } from '../../gateway/console/js/backoff.js';
+import { EventMux, eventsUrl, selectorMatches, splitSelector } from '../../gateway/console/js/events.js';
+
+class ManualTimers {
+  constructor() {
+    this.now = 0;
+    this.pending = new Map();
+    this.nextId = 1;
+  }
+  setTimeout(f, ms) {
+    const id = this.nextId++;
+    this.pending.set(id, { at: this.now + ms, f });
+    return id;
+  }
+  clearTimeout(id) {
+    this.pending.delete(id);
+  }
+  /** Run every timer due within `ms` from now, in time order. */
+  advance(ms) {
+    const end = this.now + ms;
+    for (;;) {
+      const due = [...this.pending].filter(([, t]) => t.at <= end).sort((a, b) => a[1].at - b[1].at)[0];
+      if (!due) break;
+      this.pending.delete(due[0]);
+      this.now = due[1].at;
+      due[1].f();
+    }
+    this.now = end;
+  }
+}
+
+class StreamStandIn {
+  static made = [];
+  constructor(url) {
+    this.url = url;
+    this.readyState = 0;
+    this.listeners = {};
+    this.closed = false;
+    StreamStandIn.made.push(this);
+  }
+  addEventListener(type, f) {
+    (this.listeners[type] ??= []).push(f);
+  }
+  close() {
+    this.closed = true;
+    this.readyState = 2;
+  }
+  emit(type, data) {
+    if (type === 'open') this.readyState = 1;
+    for (const f of this.listeners[type] ?? []) f(data === undefined ? {} : { data: JSON.stringify(data) });
+  }
+  selectors() {
+    return new URL(this.url, 'http://x').searchParams.getAll('sel');
+  }
+}
+
+function mux(options = {}) {
+  StreamStandIn.made = [];
+  const timers = new ManualTimers();
+  const states = [];
+  const m = new EventMux({
+    EventSourceImpl: StreamStandIn,
+    fetchImpl: null,
+    timers,
+    debounceMs: 50,
+    backoff: new Backoff({ initial: 500, max: 4000, random: () => 0.5 }),
+    onState: (state, detail) => states.push([state, detail?.retryInSeconds ?? null]),
+    ...options,
+  });
+  return { m, timers, states, last: () => StreamStandIn.made.at(-1) };
+}
+
+test('selectors split at the first slash and match one segment per star', () => {
+  assert.deepEqual(splitSelector('swarm/robots.scout1.location'), ['swarm', 'robots.scout1.location']);
+  assert.throws(() => splitSelector('location'), /SERVICE\/PATH/);
+  assert.throws(() => splitSelector('/location'), /SERVICE\/PATH/);
+  assert.ok(selectorMatches('*/location', 'scout1', 'location'));
+  assert.ok(!selectorMatches('*/location', 'scout1', 'location.x'));
+  assert.ok(selectorMatches('swarm/robots.*.location', 'swarm', 'robots.rover2.location'));
+  assert.ok(!selectorMatches('swarm/robots.*.location', 'swarm', 'robots.rover2.sensors.location'));
+  assert.ok(selectorMatches('scout1/*', 'scout1', 'speed'));
+  assert.ok(!selectorMatches('scout1/*', 'scout2', 'speed'));
+  assert.equal(eventsUrl(['b/y', 'a/*']), '/api/v1/events?sel=a%2F*&sel=b%2Fy');
+});
+
+test('one stream carries every subscription, and a burst of changes reopens it once', () => {
+  const { m, timers, last } = mux();
+  const seen = [];
+  m.subscribe('*/location', { onValue: (e) => seen.push(['map', e.service]) });
+  const stopSpeed = m.subscribe('scout1/speed', { onValue: (e) => seen.push(['speed', e.value]) });
+  assert.equal(StreamStandIn.made.length, 0, 'debounced: nothing opened yet');
+  timers.advance(50);
+  assert.equal(StreamStandIn.made.length, 1);
+  assert.deepEqual(last().selectors(), ['*/location', 'scout1/speed']);
+  last().emit('open');
+  assert.equal(m.state, 'open');
+  last().emit('value', { service: 'scout1', path: 'location', value: '(0 0 0 0 0 0)' });
+  last().emit('value', { service: 'scout1', path: 'speed', value: '0.5' });
+  last().emit('value', { service: 'thermo1', path: 'data', value: '20' }); // nobody's
+  assert.deepEqual(seen, [['map', 'scout1'], ['speed', '0.5']]);
+
+  stopSpeed();
+  m.subscribe('scout2/speed', {});
+  m.subscribe('scout2/speed', {}); // a second subscriber of the same selector
+  timers.advance(50);
+  assert.equal(StreamStandIn.made.length, 2, 'one reopen for the whole burst');
+  assert.ok(StreamStandIn.made[0].closed);
+  assert.deepEqual(last().selectors(), ['*/location', 'scout2/speed']);
+  last().emit('value', { service: 'scout1', path: 'speed', value: '0.7' });
+  assert.equal(seen.length, 2, 'an unsubscribed handler hears nothing more');
+});
+
+test('a subscription set that ends where it began does not reopen the stream', () => {
+  const { m, timers, last } = mux();
+  m.subscribe('a/x', {});
+  timers.advance(50);
+  last().emit('open');
+  const stop = m.subscribe('b/y', {});
+  stop();
+  timers.advance(50);
+  assert.equal(StreamStandIn.made.length, 1);
+});
+
+test('a Listen error drops the selectors added since the last good snapshot, and the rest go on', () => {
+  const { m, timers, last } = mux();
+  const errors = [];
+  m.subscribe('*/location', { onError: (e) => errors.push(['map', e.code]) });
+  timers.advance(50);
+  last().emit('open');
+  last().emit('sync', {});
+  m.subscribe('nosuch/thing', { onError: (e) => errors.push(['inspector', e.code]) });
+  timers.advance(50);
+  last().emit('error', { code: 'NOT_FOUND', message: 'no service nosuch' });
+  assert.deepEqual(errors, [['inspector', 'NOT_FOUND']]);
+  timers.advance(0);
+  assert.deepEqual(last().selectors(), ['*/location'], 'reopened at once without the bad one');
+  assert.ok(!m.subscriptions.has('nosuch/thing'));
+});
+
+test('an error with no new selector reaches everyone and the retry backs off', () => {
+  const { m, timers, states, last } = mux();
+  const errors = [];
+  m.subscribe('scout1/speed', { onError: (e) => errors.push(e.code) });
+  timers.advance(50);
+  last().emit('open');
+  last().emit('sync', {});
+  last().emit('error', { code: 'UNAVAILABLE', message: 'gone' });
+  assert.deepEqual(errors, ['UNAVAILABLE']);
+  assert.deepEqual(states.at(-1), ['closed', 1]);
+  const before = StreamStandIn.made.length;
+  timers.advance(499);
+  assert.equal(StreamStandIn.made.length, before, 'not before the backoff delay');
+  timers.advance(1);
+  assert.equal(StreamStandIn.made.length, before + 1);
+});
+
+test('repeated connection errors replace the browser retry with a growing backoff, reset by a sync', () => {
+  const { m, timers, last } = mux();
+  m.subscribe('a/x', {});
+  timers.advance(50);
+  const delays = [];
+  for (let i = 0; i < 4; i += 1) {
+    const stream = last();
+    stream.emit('error'); // the browser retries by itself ...
+    stream.emit('error');
+    stream.emit('error'); // ... until the third failure in a row
+    assert.ok(stream.closed);
+    const start = timers.now;
+    while (last() === stream) timers.advance(100);
+    delays.push(timers.now - start);
+  }
+  assert.deepEqual(delays, [500, 1000, 2000, 4000]);
+  last().emit('open');
+  last().emit('sync', {});
+  assert.equal(m.backoff.attempts, 0);
+});
+
+test('a stream the browser gave up on is reopened after the backoff', () => {
+  const { m, timers, last } = mux();
+  m.subscribe('a/x', {});
+  timers.advance(50);
+  const stream = last();
+  stream.emit('open');
+  stream.readyState = 2; // closed by the browser (an HTTP error on its own reconnect)
+  stream.emit('error');
+  timers.advance(500);
+  assert.notEqual(last(), stream);
+  assert.equal(m.state, 'connecting');
+});
+
+test('a stream that never opens is replaced by the watchdog', () => {
+  const { m, timers, last } = mux();
+  m.subscribe('a/x', {});
+  timers.advance(50);
+  const stream = last();
+  timers.advance(20000);
+  assert.ok(stream.closed);
+  timers.advance(500);
+  assert.notEqual(last(), stream);
+});
+
+test('the number of selectors is bounded', () => {
+  const { m } = mux({ maxSelectors: 2 });
+  m.subscribe('a/x', {});
+  m.subscribe('a/y', {});
+  m.subscribe('a/y', {}); // the same selector again costs nothing
+  assert.throws(() => m.subscribe('a/z', {}), /follows 2 selectors already/);
+});
+
+test('a handler that throws does not stop the others', () => {
+  const { m } = mux();
+  const heard = [];
+  const quiet = console.error;
+  console.error = () => {};
+  try {
+    m.subscribe('a/x', { onValue: () => { throw new Error('broken widget'); } });
+    m.subscribe('*/x', { onValue: (e) => heard.push(e.value) });
+    m.dispatch({ service: 'a', path: 'x', value: '1' });
+  } finally {
+    console.error = quiet;
+  }
+  assert.deepEqual(heard, ['1']);
+});

@@ -1,0 +1,346 @@
+"""The HTTP/JSON routes of a real gateway process, used as a browser or curl would use them.
+
+Every call goes through the gateway's one call layer, so what a Set over HTTP changes a gRPC
+Get reads, and the answers and errors are those of the gRPC port, as JSON.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import jwt
+import pytest
+from support.board import BOARD_TYPE
+from support.gateway_process import GatewayProcess, StartGateway, start_gateway
+from support.sse import SseReader
+
+from clients import AsyncClient
+
+CONFIG = f"""
+[[services]]
+name = "board"
+type = "{BOARD_TYPE}"
+
+[[services]]
+name = "scout1"
+type = "sim-robot"
+
+[[services]]
+name = "thermo1"
+type = "sim-sensor"
+options = {{ location = [2.0, 3.0] }}
+"""
+
+JSON = {"Content-Type": "application/json"}
+
+
+@pytest.fixture(scope="module")
+def gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GatewayProcess]:
+    gw = start_gateway(tmp_path_factory.mktemp("http"), CONFIG)
+    yield gw
+    gw.stop()
+
+
+@pytest.fixture
+async def http(gateway: GatewayProcess) -> AsyncIterator[aiohttp.ClientSession]:
+    async with aiohttp.ClientSession(base_url=gateway.http_url) as session:
+        yield session
+
+
+@pytest.fixture
+async def grpc_client(gateway: GatewayProcess) -> AsyncIterator[AsyncClient]:
+    async with AsyncClient(gateway.address, timeout=10) as client:
+        yield client
+
+
+async def call(
+    http: aiohttp.ClientSession, method: str, url: str, **kwargs: Any
+) -> tuple[int, Any, aiohttp.ClientResponse]:
+    async with http.request(method, url, **kwargs) as response:
+        return response.status, await response.json(), response
+
+
+def prop(service: str, path: str) -> str:
+    return f"/api/v1/services/{service}/properties/{path}"
+
+
+async def test_health_answers_ok(http: aiohttp.ClientSession) -> None:
+    status, body, response = await call(http, "GET", "/api/v1/health")
+    assert (status, body) == (200, {"status": "ok"})
+    assert response.headers["Content-Type"].startswith("application/json")
+    assert "Access-Control-Allow-Origin" not in response.headers  # no CORS, ever
+
+
+async def test_services_lists_what_the_registry_knows(
+    http: aiohttp.ClientSession, grpc_client: AsyncClient
+) -> None:
+    status, body, _ = await call(http, "GET", "/api/v1/services")
+    assert status == 200
+    rows = {row["name"]: row for row in body["services"]}
+    assert [row["name"] for row in body["services"]] == await grpc_client.services()
+    assert rows["board"] == {
+        "name": "board",
+        "type": "board",
+        "state": "up",
+        "address": "local",
+        "location": None,
+    }
+    assert rows["thermo1"]["type"] == "sensor"
+    assert rows["thermo1"]["location"] == [2.0, 3.0, 0.0, 0.0, 0.0, 0.0]
+    assert rows["scout1"]["type"] == "mobile_robot" and rows["scout1"]["state"] == "up"
+    assert rows["registry"]["type"] == "registry"
+
+
+async def test_model_is_the_describe_model(http: aiohttp.ClientSession, grpc_client: AsyncClient) -> None:
+    status, body, _ = await call(http, "GET", "/api/v1/services/board/model")
+    assert status == 200
+    assert (body["service"], body["type"]) == ("board", "board")
+    described = await grpc_client.describe("board")
+    assert [p["name"] for p in body["properties"]] == [p.name for p in described.properties]
+    level = next(p for p in body["properties"] if p["name"] == "level")
+    assert level == {
+        "name": "level",
+        "type": "number",
+        "access": "read-write",
+        "unit": "m",
+        "minimum": 0.0,
+        "maximum": 10.0,
+        "choices": None,
+        "length": None,
+        "gui": "number",
+        "doc": None,
+        "value": None,
+        "parameters": [],
+    }
+    ring = next(p for p in body["properties"] if p["name"] == "ring")
+    assert ring["access"] == "action"
+    assert ring["value"]["type"] == "integer"
+    assert ring["parameters"] == [
+        {"name": "tone", "type": "text", "required": False, "default": "low", "doc": None}
+    ]
+
+
+async def test_get_reads_what_grpc_reads(http: aiohttp.ClientSession, grpc_client: AsyncClient) -> None:
+    status, body, _ = await call(http, "GET", prop("thermo1", "location"))
+    assert status == 200
+    assert body == {
+        "service": "thermo1",
+        "path": "location",
+        "value": await grpc_client.get("thermo1", "location"),
+    }
+
+
+async def test_a_wildcard_get_lists_every_match(
+    http: aiohttp.ClientSession, grpc_client: AsyncClient
+) -> None:
+    status, body, _ = await call(http, "GET", prop("board", "*"))
+    assert status == 200
+    assert body["service"] == "board" and body["path"] == "*"
+    assert {v["path"]: v["value"] for v in body["values"]} == await grpc_client.get_matching("board", "*")
+    assert "ring" not in [v["path"] for v in body["values"]]  # an action is never read
+
+
+async def test_query_string_carries_request_parameters(http: aiohttp.ClientSession) -> None:
+    status, body, _ = await call(http, "GET", prop("registry", "find"), params={"type": "sensor"})
+    assert status == 200
+    assert body["value"] == "(thermo1)"
+
+
+async def test_set_over_http_is_what_a_grpc_get_reads(
+    http: aiohttp.ClientSession, grpc_client: AsyncClient
+) -> None:
+    status, body, _ = await call(http, "PUT", prop("board", "note"), json={"value": "hello, 世界"})
+    assert status == 200
+    assert body == {"service": "board", "path": "note", "value": "hello, 世界"}
+    assert await grpc_client.get("board", "note") == "hello, 世界"
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "text"),
+    [
+        ("level", 1.5, "1.5"),
+        ("level", 2, "2"),
+        ("level", "2.5", "2.5"),
+        ("lit", True, "true"),
+        ("point", [1, 2.5], "(1 2.5)"),
+        ("point", "(3 4)", "(3 4)"),
+    ],
+)
+async def test_json_values_are_formatted_into_the_value_grammar(
+    http: aiohttp.ClientSession, grpc_client: AsyncClient, path: str, value: Any, text: str
+) -> None:
+    status, body, _ = await call(http, "POST", prop("board", path), json={"value": value})
+    assert status == 200, body
+    assert await grpc_client.get("board", path) == text
+
+
+async def test_an_action_takes_its_value_and_parameters(http: aiohttp.ClientSession) -> None:
+    body = {"value": 3, "parameters": {"tone": "high"}}
+    status, answer, _ = await call(http, "POST", prop("board", "ring"), json=body)
+    assert (status, answer["value"]) == (200, "rang 3 times, high")
+
+
+async def test_a_grpc_set_is_what_an_http_get_reads(
+    http: aiohttp.ClientSession, grpc_client: AsyncClient
+) -> None:
+    await grpc_client.set("board", "note", "from gRPC")
+    status, body, _ = await call(http, "GET", prop("board", "note"))
+    assert (status, body["value"]) == (200, "from gRPC")
+
+
+@pytest.mark.parametrize(
+    ("method", "url", "body", "expected"),
+    [
+        ("GET", prop("nosuch", "location"), None, (404, "NOT_FOUND")),
+        ("GET", prop("board", "nosuch"), None, (404, "NOT_FOUND")),
+        ("GET", prop("board", "ring"), None, (400, "FAILED_PRECONDITION")),  # reads never act
+        ("GET", prop("*", "location"), None, (400, "INVALID_ARGUMENT")),
+        ("GET", prop("board", "bad..path"), None, (400, "INVALID_ARGUMENT")),
+        ("GET", "/api/v1/services/nosuch/model", None, (404, "NOT_FOUND")),
+        ("PUT", prop("thermo1", "location"), {"value": "(1 2)"}, (400, "FAILED_PRECONDITION")),
+        ("PUT", prop("board", "level"), {"value": 11}, (400, "INVALID_ARGUMENT")),  # above maximum
+        ("PUT", prop("board", "lit"), {"value": "perhaps"}, (400, "INVALID_ARGUMENT")),
+        (
+            "PUT",
+            prop("board", "note"),
+            {"value": "x", "parameters": {"frame": "robot"}},
+            (400, "INVALID_ARGUMENT"),
+        ),
+        ("PUT", prop("registry", "services.scout1"), {"value": "tcp://127.0.0.1:1"}, (409, "ALREADY_EXISTS")),
+    ],
+)
+async def test_errors_are_json_with_the_grpc_code_and_its_http_status(
+    http: aiohttp.ClientSession, method: str, url: str, body: Any, expected: tuple[int, str]
+) -> None:
+    got, answer, response = await call(http, method, url, json=body)
+    assert (got, answer["error"]["code"]) == expected, answer
+    assert answer["error"]["message"]
+    assert response.headers["Content-Type"].startswith("application/json")
+
+
+async def test_the_openapi_document_lists_the_routes(http: aiohttp.ClientSession) -> None:
+    status, doc, _ = await call(http, "GET", "/api/v1/openapi.json")
+    assert status == 200
+    assert doc["openapi"].startswith("3.1")
+    assert set(doc["paths"]["/api/v1/services/{service}/properties/{path}"]) == {"get", "put", "post"}
+    assert "/api/v1/events" in doc["paths"]
+
+
+async def test_the_console_is_served_at_the_root(http: aiohttp.ClientSession) -> None:
+    async with http.get("/") as root, http.get("/console/index.html") as same:
+        assert root.status == 200 and same.status == 200
+        assert root.headers["Content-Type"] == "text/html; charset=utf-8"
+        assert root.headers["Cache-Control"] == "no-cache"
+        assert await root.text() == await same.text()
+        assert "<html" in (await root.text()).lower()
+
+
+# -- identity and rules: the gRPC port's, on every HTTP route ----------------------------------
+
+SECRET = "a shared secret of the lab, long enough for HS256"
+RULES = """
+[auth]
+jwt_secret_file = "jwt.secret"
+issuer = "lab"
+
+[[services]]
+name = "scout1"
+type = "sim-robot"
+
+[[rules]]
+subject = "*"
+service = "scout1"
+operations = ["read"]
+effect = "permit"
+
+[[rules]]
+subject = "*"
+service = "scout1"
+path = "sensors.**"
+operations = ["read"]
+effect = "deny"
+
+[[rules]]
+subject = "operator"
+service = "scout1"
+operations = ["write", "invoke"]
+effect = "permit"
+
+[[rules]]
+subject = "admin"
+operations = ["read", "write", "invoke", "register", "unregister", "admin"]
+effect = "permit"
+"""
+
+
+def token(subject: str) -> str:
+    claims = {"sub": subject, "iss": "lab", "exp": int(time.time()) + 600}
+    return jwt.encode(claims, SECRET, algorithm="HS256")
+
+
+@pytest.fixture
+def secured(gateway_process: StartGateway, tmp_path: Path) -> GatewayProcess:
+    (tmp_path / "jwt.secret").write_text(SECRET)
+    return gateway_process(RULES)
+
+
+def bearer(subject: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token(subject)}"}
+
+
+@pytest.mark.parametrize(
+    ("who", "method", "url", "status"),
+    [
+        (None, "GET", prop("scout1", "location"), 200),
+        (None, "GET", prop("scout1", "sensors.bumper"), 401),  # refused, and no credentials given
+        ("guest", "GET", prop("scout1", "sensors.bumper"), 403),  # deny beats the broader permit
+        (None, "GET", "/api/v1/services/scout1/model", 200),
+        ("guest", "GET", "/api/v1/services", 403),  # the registry: nobody but admin reads it
+        ("admin", "GET", "/api/v1/services", 200),
+        (None, "PUT", prop("scout1", "speed"), 401),
+        ("operator", "PUT", prop("scout1", "speed"), 200),
+        ("guest", "PUT", prop("scout1", "speed"), 403),
+        ("bad", "PUT", prop("scout1", "speed"), 401),
+        ("guest", "GET", "/api/v1/events?sel=scout1/sensors.bumper", 403),
+        ("cookie:operator", "PUT", prop("scout1", "speed"), 200),
+        ("cookie:bad", "GET", prop("scout1", "location"), 401),
+    ],
+)
+async def test_tokens_and_rules_decide_as_on_the_grpc_port(
+    secured: GatewayProcess, who: str | None, method: str, url: str, status: int
+) -> None:
+    headers = {"Content-Type": "application/json"}
+    cookies = {}
+    if who == "bad":
+        headers["Authorization"] = "Bearer not-a-token"
+    elif who == "cookie:bad":
+        cookies["ps_token"] = "not-a-token"
+    elif who is not None and who.startswith("cookie:"):
+        cookies["ps_token"] = token(who.partition(":")[2])
+    elif who is not None:
+        headers.update(bearer(who))
+    body = {"value": 0.4} if method == "PUT" else None
+    async with (
+        aiohttp.ClientSession(base_url=secured.http_url, cookies=cookies) as http,
+        http.request(method, url, json=body, headers=headers) as response,
+    ):
+        assert response.status == status, await response.text()
+        if status >= 400:
+            error = (await response.json())["error"]
+            assert error["code"] == {401: "UNAUTHENTICATED", 403: "PERMISSION_DENIED"}[status]
+
+
+async def test_an_event_stream_skips_what_its_subject_may_not_read(secured: GatewayProcess) -> None:
+    async with (
+        aiohttp.ClientSession(base_url=secured.http_url) as http,
+        http.get("/api/v1/events", params={"sel": "scout1/*"}) as response,
+    ):
+        assert response.status == 200
+        snapshot = await SseReader(response).values_until_sync()
+    paths = [m.data["path"] for m in snapshot]
+    assert "location" in paths
+    assert not [p for p in paths if p.startswith("sensors.")]

@@ -1,0 +1,255 @@
+"""The HTTP front end's parts that need no gateway: the [http] config section, the OpenAPI document
+against the routes the application serves, the console's file rules (served by aiohttp on a real
+loopback socket), the error status table and request bodies."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import aiohttp
+import pytest
+from aiohttp import web
+from aiohttp.test_utils import TestServer
+
+from gateway.app import Gateway
+from gateway.config import ConfigError, default_config, loads_config
+from gateway.http import HttpFront
+from gateway.http.bodies import parse_set_body
+from gateway.http.console import Console, console_file
+from gateway.http.errors import HTTP_STATUS
+from gateway.http.openapi import document
+from gateway.http.safety import is_loopback_host
+from services.errors import Code, InvalidArgument, NotFound
+
+# -- configuration ---------------------------------------------------------------------------
+
+
+def test_http_is_off_unless_configured_and_the_demo_serves_it() -> None:
+    assert loads_config("").http.listen == ""
+    demo = default_config()
+    assert demo.http.listen == "127.0.0.1:8080"
+    assert (demo.http.console, demo.http.max_body, demo.http.max_streams, demo.http.heartbeat) == (
+        True,
+        1024 * 1024,
+        256,
+        15.0,
+    )
+
+
+def test_the_http_section_reads_back() -> None:
+    cfg = loads_config(
+        '[http]\nlisten = "127.0.0.1:0"\nconsole = false\nmax_body = 1000\nmax_streams = 3\nheartbeat = 0.5\n'
+    )
+    assert (
+        cfg.http.listen,
+        cfg.http.console,
+        cfg.http.max_body,
+        cfg.http.max_streams,
+        cfg.http.heartbeat,
+    ) == (
+        "127.0.0.1:0",
+        False,
+        1000,
+        3,
+        0.5,
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "named"),
+    [
+        ('listen = "8080"', "http.listen: expected host:port"),
+        ("max_body = 0", "http.max_body: must be at least 1"),
+        ("max_streams = -1", "http.max_streams: must not be negative"),
+        ("heartbeat = 0", "http.heartbeat"),
+        ('heartbeat = "often"', "http.heartbeat: expected a number"),
+        ("tls = true", "http.tls: HTTPS needs the [tls] section's cert and key"),
+        ("colour = 1", "http.colour: unknown key"),
+        ('listen = "0.0.0.0:8080"', "is reachable from other machines and is not encrypted"),
+    ],
+)
+def test_a_bad_http_section_names_the_key(text: str, named: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        loads_config(f"[http]\n{text}\n", "site.toml")
+    assert named in str(err.value)
+
+
+def test_the_command_line_overrides_http_listen() -> None:
+    demo = default_config()
+    assert demo.with_overrides(http="127.0.0.1:0").http.listen == "127.0.0.1:0"
+    assert demo.with_overrides(http="").http.listen == ""
+    with pytest.raises(ConfigError, match="--http"):
+        demo.with_overrides(http="nowhere")
+    with pytest.raises(ConfigError, match="not encrypted"):
+        demo.with_overrides(http="0.0.0.0:8080")
+
+
+# -- routes and the OpenAPI document -----------------------------------------------------------
+
+
+def served_routes(console: bool) -> set[tuple[str, str]]:
+    config = loads_config(f'[http]\nlisten = "127.0.0.1:0"\nconsole = {str(console).lower()}\n')
+    gateway = Gateway(config)
+    front = HttpFront(gateway.servicer.calls, gateway.hub, config, gateway.guard)
+    app = front.build_app()
+    return {
+        (route.method.lower(), route.resource.canonical)
+        for route in app.router.routes()
+        if route.resource is not None
+    }
+
+
+@pytest.mark.parametrize("console", [True, False])
+def test_every_route_served_is_documented_and_nothing_else(console: bool) -> None:
+    documented = {(method, path) for path, item in document(console)["paths"].items() for method in item}
+    assert served_routes(console) == documented
+
+
+def test_the_document_is_openapi_3_1_and_its_references_resolve() -> None:
+    doc = document(True)
+    assert doc["openapi"] == "3.1.0"
+    refs: list[str] = []
+
+    def walk(node: object) -> None:
+        if isinstance(node, dict):
+            if "$ref" in node:
+                refs.append(node["$ref"])
+            for value in node.values():
+                walk(value)
+        elif isinstance(node, list):
+            for value in node:
+                walk(value)
+
+    walk(doc)
+    assert refs
+    for ref in refs:
+        section, name = ref.removeprefix("#/components/").split("/")
+        assert name in doc["components"][section], ref
+
+
+# -- errors and bodies -------------------------------------------------------------------------
+
+
+def test_error_statuses_follow_googles_mapping() -> None:
+    assert {code.name: HTTP_STATUS[code] for code in Code} == {
+        "OK": 200,
+        "CANCELLED": 499,
+        "UNKNOWN": 500,
+        "INVALID_ARGUMENT": 400,
+        "DEADLINE_EXCEEDED": 504,
+        "NOT_FOUND": 404,
+        "ALREADY_EXISTS": 409,
+        "PERMISSION_DENIED": 403,
+        "RESOURCE_EXHAUSTED": 429,
+        "FAILED_PRECONDITION": 400,
+        "ABORTED": 409,
+        "OUT_OF_RANGE": 400,
+        "UNIMPLEMENTED": 501,
+        "INTERNAL": 500,
+        "UNAVAILABLE": 503,
+        "DATA_LOSS": 500,
+        "UNAUTHENTICATED": 401,
+    }
+
+
+def test_json_values_become_value_text() -> None:
+    body = parse_set_body(b'{"value": [[1, 2.5], [true, "a"]], "parameters": {"times": 3, "frame": "robot"}}')
+    assert body.value == "((1 2.5) (true a))"
+    assert body.parameters == {"times": "3", "frame": "robot"}
+    assert parse_set_body(b'{"value": 1e21}').value == "1e+21"
+    with pytest.raises(InvalidArgument, match="Infinity"):
+        parse_set_body(b'{"value": Infinity}')
+
+
+@pytest.mark.parametrize(
+    ("host", "loopback"),
+    [
+        ("localhost", True),
+        ("LOCALHOST:8080", True),
+        ("127.0.0.1", True),
+        ("127.1.2.3:80", True),
+        ("[::1]:8080", True),
+        ("ui.localhost", True),
+        ("localhost.example", False),
+        ("", False),
+        ("[::1", True),
+        ("192.168.1.2", False),
+        ("[2001:db8::1]:80", False),
+    ],
+)
+def test_loopback_host_names(host: str, loopback: bool) -> None:
+    assert is_loopback_host(host) is loopback
+
+
+# -- console files -----------------------------------------------------------------------------
+
+
+@pytest.fixture
+def console_folder(tmp_path: Path) -> Path:
+    root = tmp_path / "console"
+    (root / "js").mkdir(parents=True)
+    (root / "index.html").write_text("<!doctype html><html></html>")
+    (root / "js" / "main.js").write_text("export const x = 1;\n")
+    (root / "console.css").write_text("body {}\n")
+    (root / "logo.svg").write_text("<svg/>")
+    (root / "data.bin").write_bytes(b"\x00\x01")
+    (root / ".secret").write_text("hidden")
+    (tmp_path / "outside.txt").write_text("outside")
+    os.symlink(tmp_path / "outside.txt", root / "escape.txt")
+    return root
+
+
+@pytest.mark.parametrize(
+    "relative",
+    [
+        "../outside.txt",
+        "js/../../outside.txt",
+        "escape.txt",
+        ".secret",
+        "js",
+        "js/",
+        "",
+        "nothing.js",
+        "a\\b",
+    ],
+)
+def test_only_files_inside_the_folder_are_found(console_folder: Path, relative: str) -> None:
+    if relative == "":
+        assert console_file(console_folder, relative).name == "index.html"
+        return
+    with pytest.raises(NotFound):
+        console_file(console_folder, relative)
+
+
+@pytest.fixture
+async def console_server(console_folder: Path) -> AsyncIterator[TestServer]:
+    app = web.Application()
+    console = Console(console_folder)
+    app.router.add_get("/", console.file)
+    app.router.add_get("/console/{file:.*}", console.file)
+    server = TestServer(app, host="127.0.0.1")
+    await server.start_server()
+    yield server
+    await server.close()
+
+
+@pytest.mark.parametrize(
+    ("path", "content_type"),
+    [
+        ("/", "text/html; charset=utf-8"),
+        ("/console/js/main.js", "text/javascript; charset=utf-8"),
+        ("/console/console.css", "text/css; charset=utf-8"),
+        ("/console/logo.svg", "image/svg+xml"),
+        ("/console/data.bin", "application/octet-stream"),
+    ],
+)
+async def test_console_files_have_their_content_type_and_no_cache(
+    console_server: TestServer, path: str, content_type: str
+) -> None:
+    async with aiohttp.ClientSession() as http, http.get(console_server.make_url(path)) as response:
+        assert response.status == 200
+        assert response.headers["Content-Type"] == content_type
+        assert response.headers["Cache-Control"] == "no-cache"
+        assert response.headers["X-Content-Type-Options"] == "nosniff"
