@@ -13,7 +13,6 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import textwrap
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -21,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from support.gateway_process import GatewayProcess
+from support.gateway_process import GatewayProcess, start_gateway
 
 ROOT = Path(__file__).resolve().parents[2]
 CHROMIUM = Path("/usr/bin/chromium")
@@ -31,9 +30,6 @@ DOC_IMAGES = ROOT / "docs" / "images"
 #: Seconds a browser-side wait lasts: the page's own work is milliseconds, but two loaded cores
 #: run the gateway, Chromium and the test at once.
 WAIT = 10.0
-#: Seconds the front end has to log its address once the gRPC port is up.
-HTTP_START = 10.0
-_HTTP_LINE = re.compile(r"HTTP front end and console on (https?://\S+?)/?$", re.M)
 #: The flags Chromium needs to run headless in a container, quietly and without the network:
 #: no sandbox (root in a container), no GPU, no QUIC, none of the background fetches a fresh profile makes.
 CHROMIUM_FLAGS = (
@@ -103,32 +99,14 @@ class ConsoleGateway:
     url: str
 
 
-def _http_url(gw: GatewayProcess) -> str:
-    """The console's URL from the front end's log line (port 0 picks a free port)."""
-    deadline = time.monotonic() + HTTP_START
-    while time.monotonic() < deadline:
-        if m := _HTTP_LINE.search(gw.output):
-            return m.group(1) + "/"
-        if gw.proc.poll() is not None:
-            break
-        time.sleep(0.05)
-    raise AssertionError(f"no 'HTTP front end and console on' line within {HTTP_START} s:\n{gw.output}")
-
-
 @contextmanager
 def console_gateway_process(folder: Path) -> Iterator[ConsoleGateway]:
     """``psgateway serve`` of :data:`CONFIG` with gRPC and HTTP on free loopback ports."""
-    config = folder / "gateway.toml"
-    config.write_text(textwrap.dedent(CONFIG))
-    gw = GatewayProcess(
-        [
-            sys.executable, "-m", "gateway.cli", "serve",
-            "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0", "--config", str(config),
-        ]
-    )  # fmt: skip
+    gw = start_gateway(folder, CONFIG)
     try:
-        gw.wait_ready()
-        yield ConsoleGateway(gw, gw.address, _http_url(gw))
+        # The front end prints its URL before the gateway's "listening on" line.
+        assert gw.http_url, f"no 'HTTP front end and console on' line:\n{gw.output}"
+        yield ConsoleGateway(gw, gw.address, gw.http_url)
     finally:
         gw.stop()
 

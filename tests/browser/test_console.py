@@ -139,6 +139,11 @@ def test_the_service_view_shows_each_property_of_a_robot(page: Any, client: Clie
     for path in (p.name for p in model.properties):
         wait_for(page, lambda d, p=path: prop(d, p), f'[data-property="{path}"] (Describe lists it)')
     assert shown(page, "velocity_timeout") == client.get("scout1", "velocity_timeout")
+    stray = page.execute_script(
+        "return [...document.querySelector('#service-view').childNodes]"
+        ".filter(n => n.nodeType === Node.TEXT_NODE && n.textContent.trim()).map(n => n.textContent)"
+    )
+    assert stray == [], "no loose text (such as 'null') between the header and the properties"
     moveto = prop(page, "behaviors.moveto")
     assert moveto.find_elements(CSS, 'button[data-action="invoke"]'), "an action has an invoke button"
     assert moveto.find_elements(CSS, '[data-param="frame"]'), "and an input for its parameter"
