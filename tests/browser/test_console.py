@@ -57,7 +57,9 @@ def service(driver: Any, name: str) -> Any:
 
 def select(driver: Any, name: str) -> None:
     """Click a service in the list and wait for its properties in the service view."""
-    wait_for(driver, lambda d: service(d, name), f"{name} in the service list").click()
+    # The list is drawn anew when the registry changes: a click on an element just replaced
+    # is stale, and the wait tries again.
+    wait_for(driver, lambda d: service(d, name).click() or True, f"a click on {name} in the service list")
     wait_for(
         driver,
         lambda d: d.find_elements(CSS, "#service-view [data-property]"),
@@ -123,13 +125,15 @@ def test_the_page_lists_the_services_with_their_live_state(page: Any, client: Cl
         lambda d: d.find_element(CSS, "#connection").get_attribute("data-state") == "open",
         '#connection[data-state="open"]: the event stream is up',
     )
-    listed = {e.get_attribute("data-service") for e in page.find_elements(CSS, "#services [data-service]")}
-    assert set(client.services()) == listed, "the page lists what the registry lists"
+    # Read in one script: the list may be drawn anew between two WebDriver calls.
+    items = page.execute_script(
+        "return [...document.querySelectorAll('#services [data-service]')]"
+        ".map(e => [e.dataset.service, (e.dataset.type || '') + ' ' + e.textContent])"
+    )
+    shows = dict(items)
+    assert set(client.services()) == set(shows), "the page lists what the registry lists"
     for name, kind in DEMO.items():
-        element = service(page, name)
-        assert kind in (element.get_attribute("data-type") or "") + element.text, (
-            f"{name} shows its type {kind}"
-        )
+        assert kind in shows[name], f"{name} shows its type {kind}: {shows[name]!r}"
     doc_image(page, "overview")
 
 
@@ -138,7 +142,8 @@ def test_the_service_view_shows_each_property_of_a_robot(page: Any, client: Clie
     model = client.describe("scout1")
     for path in (p.name for p in model.properties):
         wait_for(page, lambda d, p=path: prop(d, p), f'[data-property="{path}"] (Describe lists it)')
-    assert shown(page, "velocity_timeout") == client.get("scout1", "velocity_timeout")
+    expected = client.get("scout1", "velocity_timeout")
+    wait_for(page, lambda d: shown(d, "velocity_timeout") == expected, f"velocity_timeout {expected} shown")
     stray = page.execute_script(
         "return [...document.querySelector('#service-view').childNodes]"
         ".filter(n => n.nodeType === Node.TEXT_NODE && n.textContent.trim()).map(n => n.textContent)"
