@@ -94,12 +94,14 @@ export class ServiceView {
     const note = skipped.length
       ? h('p', { class: 'muted' }, `${skipped.length} more properties are not followed live (limit ${MAX_FOLLOWED}).`)
       : null;
-    this.root.replaceChildren(
+    // replaceChildren, unlike h(), writes a null as the text "null": leave the absent ones out.
+    const parts = [
       this.header(service),
       model?.doc ? h('p', { class: 'doc' }, model.doc) : null,
       note,
       h('div', { class: 'namespaces' }, sections),
-    );
+    ];
+    this.root.replaceChildren(...parts.filter((part) => part !== null));
     this._unsubscribe.push(
       this.mux.subscribe(`${service.name}/properties`, {
         onValue: (event) => this.propertiesChanged(event.value),
