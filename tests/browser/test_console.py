@@ -80,7 +80,7 @@ def shown(driver: Any, path: str) -> str:
 def set_from_page(driver: Any, path: str, text: str) -> None:
     """Type ``text`` into the property's input and press its Set button."""
     widget = wait_for(driver, lambda d: prop(d, path), f"[data-property={path}] in #service-view")
-    field = widget.find_element(CSS, "input, select")
+    field = widget.find_element(CSS, "input, select, textarea")
     field.clear()
     field.send_keys(text)
     widget.find_element(CSS, '[data-action="set"]').click()
@@ -157,12 +157,10 @@ def test_the_service_view_shows_each_property_of_a_robot(page: Any, client: Clie
 
 def test_a_set_from_the_page_changes_the_robot(page: Any, client: Client) -> None:
     select(page, "scout1")
-    set_from_page(page, "velocity_timeout", "2.5")
-    eventually(
-        lambda: client.get("scout1", "velocity_timeout"), lambda v: v == "2.5", "scout1 velocity_timeout"
-    )
-    wait_for(page, lambda d: shown(d, "velocity_timeout") == "2.5", "the new value in the view")
-    client.set("scout1", "velocity_timeout", 0.5)
+    set_from_page(page, "max_speed", "0.7")
+    eventually(lambda: client.get("scout1", "max_speed"), lambda v: v == "0.7", "scout1 max_speed")
+    wait_for(page, lambda d: shown(d, "max_speed") == "0.7", "the new max_speed in the view")
+    client.set("scout1", "max_speed", 1.0)
 
 
 def test_a_click_on_the_map_drives_the_selected_robot_there(page: Any, client: Client) -> None:
@@ -201,17 +199,23 @@ def test_a_set_from_grpcurl_shows_up_on_the_page(
     client.set("scout1", "speed", 0.5)
 
 
-def test_a_bad_value_shows_its_error_next_to_the_widget(page: Any, client: Client) -> None:
+@pytest.mark.parametrize(
+    ("typed", "why"), [("2000", "above the maximum of 1000 m/s"), ("fast", "text in a number field")]
+)
+def test_a_bad_value_shows_its_error_next_to_the_widget(
+    page: Any, client: Client, typed: str, why: str
+) -> None:
     select(page, "scout1")
-    before = client.get("scout1", "velocity_timeout")
-    set_from_page(page, "velocity_timeout", "100")  # the range is 0.05 to 60 s
+    before = client.get("scout1", "max_speed")
+    set_from_page(page, "max_speed", typed)
     error = wait_for(
         page,
-        lambda d: prop(d, "velocity_timeout").find_element(CSS, ".error").text.strip(),
-        "an error in [data-property=velocity_timeout] .error",
+        lambda d: prop(d, "max_speed").find_element(CSS, ".error").text.strip(),
+        f"an error in [data-property=max_speed] .error for {typed!r} ({why})",
     )
     assert re.fullmatch(r"INVALID_ARGUMENT: .+", error), error
-    assert client.get("scout1", "velocity_timeout") == before, "the bad value changed nothing"
+    assert client.get("scout1", "max_speed") == before, "the bad value changed nothing"
+    page.execute_script("arguments[0].scrollIntoView({block: 'center'})", prop(page, "max_speed"))
 
 
 def test_teleop_with_the_keyboard_moves_the_robot_and_releasing_stops_it(page: Any, client: Client) -> None:
