@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from console_support import ConsoleGateway, device_process, doc_image, eventually, wait_for
+from console_support import ConsoleGateway, device_process, doc_image, eventually, save_screenshot, wait_for
 
 from clients.sync import Client
 from services.values import parse_names
@@ -109,6 +109,13 @@ def velocity(client: Client, robot: str) -> np.ndarray:
     return np.asarray(client.get_vector(robot, "velocity"))
 
 
+def forward(client: Client, robot: str) -> float:
+    """The robot's speed along its heading (velocity is in the world frame, yaw in its location)."""
+    v = velocity(client, robot)
+    yaw = float(np.asarray(client.get_vector(robot, "location"))[5])
+    return float(v[0] * np.cos(yaw) + v[1] * np.sin(yaw))
+
+
 def xy(client: Client, robot: str) -> np.ndarray:
     return np.asarray(client.get_vector(robot, "location"))[:2]
 
@@ -188,6 +195,30 @@ def test_a_click_on_the_map_drives_the_selected_robot_there(page: Any, client: C
     client.set("scout1", "behaviors.stop", "")
 
 
+def test_a_click_on_the_map_drives_a_group_in_the_chosen_formation(page: Any, client: Client) -> None:
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.support.ui import Select
+
+    select(page, "swarm")
+    robots = ("scout1", "scout2")
+    starts = {name: xy(client, name) for name in robots}
+    formation = wait_for(page, lambda d: d.find_element(CSS, "#formation"), "#formation for a group")
+    wait_for(page, lambda d: formation.is_displayed(), "#formation shown while a group is selected")
+    Select(formation).select_by_value("circle")
+    ActionChains(page).move_to_element_with_offset(page.find_element(CSS, "#map"), -60, 60).click().perform()
+    try:
+        for name in robots:
+            eventually(
+                lambda n=name: xy(client, n),
+                lambda p, n=name: float(np.linalg.norm(p - starts[n])) > 0.05,
+                f"{name}, a member of swarm, moves after the click",
+            )
+    finally:
+        client.set("swarm", "behaviors.stop", "")
+    for name in robots:
+        eventually(lambda n=name: velocity(client, n), lambda v: not v.any(), f"{name} stopped")
+
+
 def test_a_set_from_grpcurl_shows_up_on_the_page(
     page: Any, client: Client, grpcurl: str, console_gateway: ConsoleGateway
 ) -> None:
@@ -227,14 +258,14 @@ def test_teleop_with_the_keyboard_moves_the_robot_and_releasing_stops_it(page: A
     blur(page)
     try:
         ActionChains(page).key_down(Keys.ARROW_UP).perform()
-        eventually(lambda: velocity(client, "scout2"), lambda v: v[0] > 0, "scout2 drives forward")
+        eventually(lambda: forward(client, "scout2"), lambda v: v > 0, "scout2 drives forward")
         wait_for(page, lambda d: d.find_element(CSS, "#teleop-status").text.strip(), "#teleop-status")
         doc_image(page, "teleop")
         # Held for a second, twice the robot's velocity_timeout: it still drives only if the
         # console renews the command while the key is down.
         time.sleep(1.0)
         eventually(
-            lambda: velocity(client, "scout2"), lambda v: v[0] > 0, "still driving after 1 s held", within=1.0
+            lambda: forward(client, "scout2"), lambda v: v > 0, "still driving after 1 s held", within=1.0
         )
         # From now on a command holds for TELEOP_HOLD seconds: a stop within STOP_WITHIN is the console's.
         client.set("scout2", "velocity_timeout", TELEOP_HOLD)
@@ -260,7 +291,7 @@ def test_losing_the_page_stops_a_teleoperated_robot(page: Any, client: Client) -
     client.set("scout2", "velocity_timeout", TELEOP_HOLD)
     try:
         ActionChains(page).key_down(Keys.ARROW_UP).perform()
-        eventually(lambda: velocity(client, "scout2"), lambda v: v[0] > 0, "scout2 drives forward")
+        eventually(lambda: forward(client, "scout2"), lambda v: v > 0, "scout2 drives forward")
         page.get("about:blank")
         eventually(
             lambda: velocity(client, "scout2"),
@@ -282,7 +313,7 @@ def test_a_service_registered_at_run_time_appears_and_goes(page: Any, client: Cl
             lambda d: service(d, "probe1").get_attribute("data-state") == "up",
             '[data-service="probe1"][data-state="up"] after its registration',
         )
-        doc_image(page, "registered")
+        save_screenshot(page, "probe1_registered")
         assert client.set("registry", "services.probe1", "") == ""
         wait_for(
             page,
