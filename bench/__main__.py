@@ -28,13 +28,14 @@ from bench.memory import run_memory, run_session_memory
 from bench.register import run_register
 from bench.servers import ServerProcess
 from bench.session import run_session
+from bench.sse import run_sse
 from bench.target import BATCH_PROPERTIES, VALUE_PROPERTY
 from bench.tls import run_tls
 from bench.unary import run_unary
 
 #: Parts (a)-(d) compare the gateway with the bare server; (e)-(h) are the line protocol and registry parts.
 SERVER_PARTS = ("unary", "session", "listen", "batched", "memory")
-PARTS = (*SERVER_PARTS, "line", "group", "find", "register", "tls")
+PARTS = (*SERVER_PARTS, "line", "group", "find", "register", "tls", "sse")
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
     "gateway": ["bench.gateway_server", "--listen", "127.0.0.1:0"],
@@ -112,7 +113,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "(a) unary Get, (b) Gets over Session, (c) Listen fan-out one-by-one and batched, "
         "(d) memory per idle Listen stream; (e) Get through the gateway's TCP proxy beside the line "
         "protocol straight to the device; (f) group moveto, (g) registry find, (h) registration over raw "
-        "TCP at growing sizes. Prints absolute figures, ratios and targets.",
+        "TCP at growing sizes, (i) mTLS and tokens, (j) Server-Sent-Events fan-out beside gRPC Listen. "
+        "Prints absolute figures, ratios and targets.",
     )
     parser.add_argument(
         "--quick", action="store_true", help="small sizes: a smoke run of well under a minute"
@@ -147,8 +149,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     sizes.add_argument(
         "--session-window", type=_positive, default=4, help="(b) messages unanswered at most (default 4)"
     )
-    sizes.add_argument("--subscribers", type=_positive, help=f"(c) Listen subscribers {both('subscribers')}")
-    sizes.add_argument("--sets", type=_positive, help=f"(c) Sets made by the setter {both('sets')}")
+    sizes.add_argument(
+        "--subscribers", type=_positive, help=f"(c, j) Listen and SSE subscribers {both('subscribers')}"
+    )
+    sizes.add_argument("--sets", type=_positive, help=f"(c, j) Sets made by the setter {both('sets')}")
     sizes.add_argument(
         "--set-rate",
         type=float,
@@ -352,6 +356,17 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
                 batch=args.session_batch,
                 window_batches=args.session_window,
                 rounds=args.rounds,
+                time_limit=args.time_limit,
+            ),
+        )
+    if "sse" in args.parts:
+        results.setdefault("gateway", {})["sse"] = await _timed(
+            f"sse: {args.subscribers} SSE clients and {args.subscribers} gRPC Listens on one property",
+            lambda: run_sse(
+                subscribers=args.subscribers,
+                sets=args.sets,
+                set_rate=args.set_rate,
+                rounds=max(args.rounds, 2),
                 time_limit=args.time_limit,
             ),
         )

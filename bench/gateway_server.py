@@ -41,23 +41,28 @@ class BenchTarget(Resource):
     v9: str = "0"
 
 
-async def serve(listen: str, config_file: str | None = None) -> None:
+async def serve(listen: str, config_file: str | None = None, http: str = "") -> None:
     """Run a gateway with :class:`BenchTarget` as service ``bench`` until stopped.
 
-    ``config_file`` adds security sections (``[tls]``, ``[auth]``, ``[[rules]]``) to measure their cost.
+    ``config_file`` adds security sections (``[tls]``, ``[auth]``, ``[[rules]]``) to measure their cost;
+    ``http`` (HOST:PORT) turns the HTTP front end on, printed as ``HTTP front end and console on URL``.
     """
     from dataclasses import replace
 
     from gateway.app import Gateway
-    from gateway.config import Config, GatewaySection, load_config
+    from gateway.config import Config, GatewaySection, HttpSection, load_config
     from services.core import LocalService
 
     config = Config(gateway=GatewaySection(listen=listen, log_level="warning"))
     if config_file:
         loaded = load_config(config_file)
         config = replace(loaded, gateway=replace(loaded.gateway, listen=listen, log_level="warning"))
+    if http:
+        config = replace(config, http=HttpSection(listen=http, console=False))
     gateway = Gateway(config, backends={SERVICE: LocalService(BenchTarget())})
     await gateway.start()
+    if gateway.http is not None:
+        print(f"HTTP front end and console on {gateway.http.url}", file=sys.stderr, flush=True)
     print(f"listening on {gateway.address}", file=sys.stderr, flush=True)
     try:
         await until_stopped()
@@ -72,12 +77,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--listen", default="127.0.0.1:0", help="address to serve on (default %(default)s)")
     parser.add_argument("--config", metavar="FILE", help="a config whose [tls], [auth] and [[rules]] apply")
+    parser.add_argument("--http", default="", metavar="HOST:PORT", help="serve the HTTP front end there too")
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s"
     )
     with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(serve(args.listen, args.config))
+        asyncio.run(serve(args.listen, args.config, args.http))
     return 0
 
 

@@ -114,7 +114,7 @@ class ListenResult:
         }
 
 
-class _Run:
+class Run:
     """State shared by the setter and the subscribers of one run."""
 
     def __init__(self, expected: int) -> None:
@@ -126,7 +126,7 @@ class _Run:
 class _Subscriber:
     """One Listen stream and what it has read."""
 
-    def __init__(self, call: Any, run: _Run) -> None:
+    def __init__(self, call: Any, run: Run) -> None:
         self.call = call
         self.run = run
         self.latest: dict[str, str] = {}
@@ -166,7 +166,7 @@ class _Subscriber:
             self.check_done()
 
 
-async def _set_all(
+async def set_all(
     stub: pb_grpc.PropertyServiceStub,
     *,
     properties: Sequence[str],
@@ -255,7 +255,7 @@ async def run_listen(
         set_rate=set_rate,
         channels=channels,
     )
-    run = _Run(expected=sets)
+    run = Run(expected=sets)
     deadline = time.monotonic() + time_limit
     opened = [grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(channels)]
     setter_channel = grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS)
@@ -280,7 +280,7 @@ async def run_listen(
 
         with window(server) as result.window:
             first_set_ns = time.perf_counter_ns()
-            final = await _set_all(
+            final = await set_all(
                 setter, properties=properties, sets=sets, set_rate=set_rate, deadline=deadline, result=result
             )
             result.setter_s = (time.perf_counter_ns() - first_set_ns) / 1e9

@@ -260,6 +260,13 @@ TARGETS += (
 )
 
 
+#: SSE fan-out against gRPC Listen fan-out on one gateway: JSON text per event and one HTTP
+#: connection per client cost more than protobuf over a few HTTP/2 connections; within these
+#: bounds a browser is served about as well as a gRPC client (figures in docs/performance.md).
+SSE_FANOUT_BOUND = 0.5
+SSE_LATENCY_BOUND = 2.0
+
+
 def _tls(results: Results, way: str, call: str) -> float:
     return float(results["gateway"]["tls"][way][call]["throughput_per_s"])
 
@@ -282,6 +289,44 @@ TARGETS += (
         0.5,
         "x",
         (("gateway", "tls"),),
+    ),
+)
+
+
+def _sse(results: Results, way: str, figure: str) -> float:
+    data: dict[str, Any] = results["gateway"]["sse"][way]
+    if figure.endswith("_us"):
+        return float(data["latency"][figure])
+    return float(data[figure])
+
+
+TARGETS += (
+    Target(
+        "sse-fanout",
+        "events/s to SSE clients / to gRPC Listen streams, same subscribers, property and gateway",
+        lambda r: _sse(r, "sse", "events_per_s") / _sse(r, "grpc", "events_per_s"),
+        "min",
+        SSE_FANOUT_BOUND,
+        "x",
+        (("gateway", "sse"),),
+    ),
+    Target(
+        "sse-latency-p50",
+        "Set-to-delivery p50, SSE / gRPC Listen, in the same run",
+        lambda r: _sse(r, "sse", "p50_us") / _sse(r, "grpc", "p50_us"),
+        "max",
+        SSE_LATENCY_BOUND,
+        "x",
+        (("gateway", "sse"),),
+    ),
+    Target(
+        "sse-latency-p99",
+        "Set-to-delivery p99, SSE / gRPC Listen, in the same run",
+        lambda r: _sse(r, "sse", "p99_us") / _sse(r, "grpc", "p99_us"),
+        "max",
+        SSE_LATENCY_BOUND,
+        "x",
+        (("gateway", "sse"),),
     ),
 )
 
@@ -709,6 +754,50 @@ def _issue_tables(out: TextIO, results: Results) -> None:
             ["way", "call", "Gets/s", "p50 µs", "p99 µs"],
             rows,
         )
+    _sse_table(out, results)
+
+
+def _sse_table(out: TextIO, results: Results) -> None:
+    sse = results.get("gateway", {}).get("sse")
+    if not sse or "error" in sse:
+        return
+    rows = []
+    for way, label in (("grpc", "gRPC Listen"), ("sse", "Server-Sent Events")):
+        d = sse[way]
+        lat, win = d["latency"], d["window"]
+        rows.append(
+            [
+                label,
+                f"{d['events']:,}/{d['expected_events']:,}",
+                f"{d['conflated']:,}",
+                _fmt(d["events_per_s"]),
+                _fmt(d["sets_per_s"]),
+                _fmt(lat["p50_us"]),
+                _fmt(lat["p99_us"]),
+                _fmt(d["server_cpu_us_per_event"], 1),
+                f"{win['server_busy']:.0%}",
+                f"{win['client_busy']:.0%}",
+            ]
+        )
+    first = sse["sse"]
+    _table(
+        out,
+        f"(j) fan-out to {first['subscribers']} subscribers on one property of one gateway, "
+        f"{first['sets']} Sets: gRPC Listen streams and SSE clients (one HTTP connection each)",
+        [
+            "way",
+            "events",
+            "conflated",
+            "events/s",
+            "Sets/s",
+            "p50 µs",
+            "p99 µs",
+            "srv CPU µs/event",
+            "srv busy",
+            "load busy",
+        ],
+        rows,
+    )
 
 
 def _psutil() -> Any:

@@ -378,6 +378,8 @@ class Gateway:
             log.info("reload asked; the gRPC port has no TLS certificates to read again")
         if self._line_credentials is not None:
             self._line_credentials.reload()
+        if self.http is not None and self.http.credentials is not None:
+            self.http.credentials.reload()
 
     async def stop(self, grace: float | None = None) -> None:
         """Graceful shutdown: NOT_SERVING, streams end with UNAVAILABLE, server stops, backends close.

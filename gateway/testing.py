@@ -22,7 +22,9 @@ Robot()})``); a service is a :class:`services.core.Resource` (served as
 replaced by the socket. :func:`serve_sync` is the same for blocking tests
 and yields a :class:`clients.Client`; :func:`running_gateway` yields the
 gateway itself, for tests that speak gRPC with the generated stub on
-``grpc.aio.insecure_channel(gateway.address)``. ``docs/testing.md`` has the
+``grpc.aio.insecure_channel(gateway.address)``; with
+``Config(http=HttpSection(listen="127.0.0.1:0"))`` the gateway also serves its HTTP/JSON
+front end on a free loopback port, at ``gateway.http.url``. ``docs/testing.md`` has the
 whole story.
 """
 

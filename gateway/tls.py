@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import ssl
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import grpc
@@ -72,19 +73,22 @@ def line_ssl_context(settings: LineTlsSection) -> ssl.SSLContext:
     return context
 
 
-class LineCredentials:
-    """The line listener's TLS, read again on :meth:`reload` (SIGHUP) without closing a connection.
+class ReloadingContext:
+    """A listener's ``ssl.SSLContext`` that reads its files again on :meth:`reload` (SIGHUP) without
+    closing a connection.
 
     The listening socket keeps one context; its server-name callback, which OpenSSL calls at
     every handshake (with or without SNI), hands the handshake the context built from the files
     as they were at the last reload: new connections get the new certificate and CA, open ones
-    carry on.
+    carry on. ``build`` makes a context from the files; ``what`` names the listener in the log.
     """
 
-    def __init__(self, settings: LineTlsSection) -> None:
-        self.settings = settings
-        self._current = line_ssl_context(settings)
-        self.context = line_ssl_context(settings)
+    def __init__(self, build: Callable[[], ssl.SSLContext], what: str, cert: str) -> None:
+        self._build = build
+        self._what = what
+        self._cert = cert
+        self._current = build()
+        self.context = build()
         self.context.sni_callback = self._choose
 
     def _choose(self, connection: ssl.SSLObject, server_name: str | None, _: ssl.SSLContext) -> None:
@@ -93,11 +97,19 @@ class LineCredentials:
     def reload(self) -> None:
         """Read the files again; a file that cannot be used is logged and the old context kept."""
         try:
-            self._current = line_ssl_context(self.settings)
+            self._current = self._build()
         except (OSError, ssl.SSLError) as exc:
-            log.error("line listener: TLS files not reloaded, the old ones stay: %s", exc)
+            log.error("%s: TLS files not reloaded, the old ones stay: %s", self._what, exc)
             return
-        log.info("line listener: TLS certificates reloaded from %s", self.settings.cert)
+        log.info("%s: TLS certificates reloaded from %s", self._what, self._cert)
+
+
+class LineCredentials(ReloadingContext):
+    """The line listener's TLS (``[tls.line]``), read again on :meth:`reload`."""
+
+    def __init__(self, settings: LineTlsSection) -> None:
+        self.settings = settings
+        super().__init__(lambda: line_ssl_context(settings), "line listener", settings.cert)
 
 
 def https_ssl_context(settings: TlsSection) -> ssl.SSLContext:
@@ -110,3 +122,11 @@ def https_ssl_context(settings: TlsSection) -> ssl.SSLContext:
         context.load_verify_locations(settings.client_ca)
         context.verify_mode = ssl.CERT_REQUIRED if settings.require_client_cert else ssl.CERT_OPTIONAL
     return context
+
+
+class HttpsCredentials(ReloadingContext):
+    """The HTTP front end's TLS (``[http] tls = true``: the ``[tls]`` files), read again on :meth:`reload`."""
+
+    def __init__(self, settings: TlsSection) -> None:
+        self.settings = settings
+        super().__init__(lambda: https_ssl_context(settings), "HTTP front end", settings.cert)

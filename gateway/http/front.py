@@ -29,7 +29,7 @@ from gateway.http.openapi import document
 from gateway.http.safety import check_request
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, port_holder
-from gateway.tls import https_ssl_context
+from gateway.tls import HttpsCredentials
 from services.errors import Code, PropertyError, ResourceExhausted, error_for
 
 log = logging.getLogger("gateway.http")
@@ -52,6 +52,8 @@ class HttpFront:
         #: Whether Host headers must be loopback names (DNS rebinding): the front end listens on loopback.
         self.loopback_only = is_loopback(self.settings.listen)
         self._runner: web.AppRunner | None = None
+        #: HTTPS: the ``[tls]`` files, read again on SIGHUP (:meth:`Gateway.reload_certificates`).
+        self.credentials: HttpsCredentials | None = None
         #: "host:port" it listens on (the real port when 0 was asked); "" before start.
         self.address = ""
         self.scheme = "https" if self.settings.tls else "http"
@@ -93,7 +95,7 @@ class HttpFront:
     async def _middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         what = f"{request.method} {request.path[:200]}"
         try:
-            check_request(request, self.loopback_only)
+            check_request(request, self.loopback_only, routed=request.match_info.http_exception is None)
             return await handler(request)
         except PropertyError as exc:
             return error_response(exc, what)
@@ -119,7 +121,9 @@ class HttpFront:
         host, _, port_text = self.settings.listen.rpartition(":")
         host = host.strip("[]")
         port = int(port_text)
-        ssl_context = https_ssl_context(self.config.tls) if self.settings.tls else None
+        if self.settings.tls:
+            self.credentials = HttpsCredentials(self.config.tls)
+        ssl_context = self.credentials.context if self.credentials is not None else None
         # handler_cancellation: a client that goes away ends its handler (an idle event stream
         # would otherwise only notice at its next heartbeat).
         runner = web.AppRunner(

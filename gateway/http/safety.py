@@ -49,8 +49,11 @@ def is_loopback_host(host: str) -> bool:
         return False
 
 
-def check_request(request: web.Request, loopback: bool) -> None:
-    """Refuse (PermissionDenied, InvalidArgument) what a browser may have been tricked into sending."""
+def check_request(request: web.Request, loopback: bool, routed: bool = True) -> None:
+    """Refuse (PermissionDenied, InvalidArgument) what a browser may have been tricked into sending.
+
+    ``routed``: the request matched a route (else its content type is not judged: 404 or 405 tells more).
+    """
     host = request.headers.get(hdrs.HOST, "")
     if loopback and not is_loopback_host(host):
         raise PermissionDenied(
@@ -65,7 +68,7 @@ def check_request(request: web.Request, loopback: bool) -> None:
                 f"origin {origin[:100]!r} is not this front end's own ({own[:100]!r}): requests from"
                 " pages of other origins are refused"
             )
-    if request.method in (hdrs.METH_PUT, hdrs.METH_POST) and request.content_type != JSON_TYPE:
+    if routed and request.method in (hdrs.METH_PUT, hdrs.METH_POST) and request.content_type != JSON_TYPE:
         raise InvalidArgument(
             f"a {request.method} needs Content-Type: {JSON_TYPE}, not {request.content_type!r}"
         )

@@ -227,3 +227,20 @@ test('a handler that throws does not stop the others', () => {
   }
   assert.deepEqual(heard, ['1']);
 });
+
+test('a suspended page keeps its subscriptions and follows them all again when shown', () => {
+  const { m, timers, last } = mux();
+  m.subscribe('a/x', {});
+  m.subscribe('b/y', {});
+  timers.advance(50);
+  const before = last();
+  m.suspend();
+  assert.ok(before.closed);
+  assert.equal(m.state, 'closed');
+  timers.advance(60000);
+  assert.equal(last(), before, 'nothing reopens while suspended');
+  m.reconnect();
+  timers.advance(0);
+  assert.notEqual(last(), before);
+  assert.deepEqual(last().selectors(), ['a/x', 'b/y']);
+});

@@ -31,6 +31,9 @@ TARGETS = (
     "register-memory",
     "tls-unary",
     "tls-session",
+    "sse-fanout",
+    "sse-latency-p50",
+    "sse-latency-p99",
 )
 
 

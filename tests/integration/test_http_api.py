@@ -6,19 +6,24 @@ Get reads, and the answers and errors are those of the gRPC port, as JSON.
 
 from __future__ import annotations
 
+import ssl
 import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
 import aiohttp
+import grpc
 import jwt
 import pytest
 from support.board import BOARD_TYPE
+from support.certs import CertificateFiles, certificates
 from support.gateway_process import GatewayProcess, StartGateway, start_gateway
 from support.sse import SseReader
 
 from clients import AsyncClient
+
+__all__ = ["certificates"]
 
 CONFIG = f"""
 [[services]]
@@ -344,3 +349,48 @@ async def test_an_event_stream_skips_what_its_subject_may_not_read(secured: Gate
     paths = [m.data["path"] for m in snapshot]
     assert "location" in paths
     assert not [p for p in paths if p.startswith("sensors.")]
+
+
+# -- HTTPS: the [tls] certificate, and client certificates naming the caller -------------------------
+
+
+async def test_https_names_the_caller_by_its_client_certificate(
+    gateway_process: StartGateway, certificates: CertificateFiles
+) -> None:
+    config = f"""
+        [tls]
+        cert = "{certificates.server.cert}"
+        key = "{certificates.server.key}"
+        client_ca = "{certificates.ca}"
+
+        [http]
+        tls = true
+
+        [[services]]
+        name = "scout1"
+        type = "sim-robot"
+
+        [[rules]]
+        subject = "alice"
+        service = "scout1"
+        operations = ["read"]
+        effect = "permit"
+        """
+    grpc_credentials = grpc.ssl_channel_credentials(root_certificates=certificates.ca.read_bytes())
+    gw = gateway_process(config, credentials=grpc_credentials)
+    assert gw.http_url.startswith("https://")
+    url = gw.http_url + "api/v1/services/scout1/properties/location"
+
+    def context(client: str | None) -> ssl.SSLContext:
+        made = ssl.create_default_context(cafile=str(certificates.ca))
+        if client is not None:
+            pair = certificates.clients[client]
+            made.load_cert_chain(str(pair.cert), str(pair.key))
+        return made
+
+    for client, status in (("alice", 200), ("bob", 403), (None, 401)):
+        async with aiohttp.ClientSession() as http, http.get(url, ssl=context(client)) as response:
+            assert response.status == status, (client, await response.text())
+    async with aiohttp.ClientSession() as http:
+        with pytest.raises(aiohttp.ClientError):
+            await http.get(url.replace("https://", "http://"))

@@ -326,3 +326,20 @@ async def first_line(reader: asyncio.StreamReader) -> int:
 async def read_some(reader: asyncio.StreamReader) -> bytes:
     async with asyncio.timeout(1):
         return await reader.read(1 << 16)
+
+
+async def test_a_reader_that_never_reads_does_not_hold_up_shutdown(gateway_process: StartGateway) -> None:
+    gw = gateway_process(CONFIG)
+    port = port_of(gw)
+    slow = socket.socket()
+    slow.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    slow.connect(("127.0.0.1", port))
+    slow.sendall(f"GET /api/v1/events?sel=board/note HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode())
+    try:
+        async with AsyncClient(gw.address, timeout=10) as client:
+            for i in range(200):  # far more than the socket buffers hold: the writer is stuck in write
+                await client.set("board", "note", f"{'z' * 60_000}{i}")
+        assert await asyncio.to_thread(gw.stop) == 0  # SIGTERM: a clean exit, not the SIGKILL after 5 s
+        assert "Traceback" not in gw.output
+    finally:
+        slow.close()

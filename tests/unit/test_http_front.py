@@ -12,15 +12,17 @@ import aiohttp
 import pytest
 from aiohttp import web
 from aiohttp.test_utils import TestServer
+from support.board import Board
 
 from gateway.app import Gateway
-from gateway.config import ConfigError, default_config, loads_config
+from gateway.config import Config, ConfigError, HttpSection, default_config, loads_config
 from gateway.http import HttpFront
 from gateway.http.bodies import parse_set_body
 from gateway.http.console import Console, console_file
 from gateway.http.errors import HTTP_STATUS
 from gateway.http.openapi import document
 from gateway.http.safety import is_loopback_host
+from gateway.testing import running_gateway
 from services.errors import Code, InvalidArgument, NotFound
 
 # -- configuration ---------------------------------------------------------------------------
@@ -253,3 +255,45 @@ async def test_console_files_have_their_content_type_and_no_cache(
         assert response.headers["Content-Type"] == content_type
         assert response.headers["Cache-Control"] == "no-cache"
         assert response.headers["X-Content-Type-Options"] == "nosniff"
+
+
+# -- in-process, through the test kit ------------------------------------------------------------
+
+
+async def test_the_test_kit_serves_http_on_a_free_port_when_asked() -> None:
+    config = Config(http=HttpSection(listen="127.0.0.1:0", console=False))
+    async with running_gateway(Board(), name="board", config=config) as gateway:
+        assert gateway.http is not None
+        url = gateway.http.url
+        assert url.startswith("http://127.0.0.1:") and not url.endswith(":0/")
+        async with aiohttp.ClientSession(base_url=url) as http:
+            put = await http.put(
+                "/api/v1/services/board/properties/note",
+                json={"value": "in process"},
+                headers={"Content-Type": "application/json"},
+            )
+            assert put.status == 200
+            async with http.get("/api/v1/services/board/properties/note") as got:
+                assert (await got.json())["value"] == "in process"
+            async with http.get("/") as console:
+                assert console.status == 404  # console = false
+    async with aiohttp.ClientSession() as http:
+        with pytest.raises(aiohttp.ClientConnectionError):
+            await http.get(url + "api/v1/health")  # stopped with the gateway
+
+
+def test_check_config_checks_and_names_the_http_section(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from gateway.cli import main
+
+    good = tmp_path / "good.toml"
+    good.write_text('[http]\nlisten = "127.0.0.1:8081"\n')
+    assert main(["check-config", str(good)]) == 0
+    assert "HTTP on 127.0.0.1:8081" in capsys.readouterr().out
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[http]\nlisten = "127.0.0.1:8081"\nmax_body = 0\nheartbeat = -1\n')
+    assert main(["check-config", str(bad)]) == 2
+    errors = capsys.readouterr().err.splitlines()
+    assert sum("http.max_body" in line for line in errors) == 1
+    assert sum("http.heartbeat" in line for line in errors) == 1

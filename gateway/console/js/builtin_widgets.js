@@ -146,18 +146,26 @@ function sliderWidget(prop, ctx) {
     input.dispatchEvent(new Event('input'));
     place(x);
   };
+  let pointer = null;
   track.addEventListener('pointerdown', (e) => {
-    track.setPointerCapture(e.pointerId);
+    pointer = e.pointerId;
+    try {
+      track.setPointerCapture(e.pointerId);
+    } catch {
+      // a synthetic pointer: followed while it stays over the track
+    }
     move(at(e.clientX));
   });
   track.addEventListener('pointermove', (e) => {
-    if (track.hasPointerCapture(e.pointerId)) move(at(e.clientX));
+    if (e.pointerId === pointer) move(at(e.clientX));
   });
-  track.addEventListener('pointerup', (e) => {
-    if (!track.hasPointerCapture(e.pointerId)) return;
-    track.releasePointerCapture(e.pointerId);
-    ed.send();
-  });
+  const release = (e) => {
+    if (e.pointerId !== pointer) return;
+    pointer = null;
+    if (e.type === 'pointerup') ed.send();
+  };
+  track.addEventListener('pointerup', release);
+  track.addEventListener('pointercancel', release);
   track.addEventListener('keydown', (e) => {
     const delta = { ArrowRight: step, ArrowUp: step, ArrowLeft: -step, ArrowDown: -step }[e.key];
     if (delta === undefined) return;
@@ -326,8 +334,8 @@ function plotWidget(prop, ctx) {
 }
 
 function listWidget(prop, ctx) {
-  const pre = ctx.h('pre', { class: 'list' });
-  if (!ctx.writable) return { element: pre, update: (text) => (pre.textContent = text) };
+  // Read-only, `.value` shows it (its title holds the whole text when it is clipped).
+  if (!ctx.writable) return { element: null };
   const area = ctx.h('textarea', { rows: 2, 'aria-label': prop.name, spellcheck: 'false' });
   const ed = editor(ctx, area);
   return {

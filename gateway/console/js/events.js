@@ -107,7 +107,23 @@ export class EventMux {
     }
   }
 
-  /** Close the stream for good (the page is going away). */
+  /** Close the stream but keep the subscriptions (the page is hidden in the back-forward cache). */
+  suspend() {
+    this._clearTimers();
+    this._closeSource();
+    this._streamSelectors = new Set();
+    this._setState('closed');
+  }
+
+  /** Open the stream again now, with every subscription (a new token, a page shown again). */
+  reconnect() {
+    this._closeSource();
+    this._streamSelectors = new Set();
+    this.backoff.reset();
+    this._schedule(0);
+  }
+
+  /** Close the stream for good and forget every subscription. */
   close() {
     this._clearTimers();
     this._closeSource();

@@ -118,7 +118,8 @@ function select(name) {
   view.show(service);
   teleop.selectionChanged();
   $('#formation-box').hidden = service?.type !== 'group';
-  $('#map-target').textContent = service ? `${service.name} (${service.type})` : 'nothing selected';
+  const movable = service?.type === 'mobile_robot' || service?.type === 'group';
+  $('#map-target').textContent = movable ? `${service.name} (${service.type === 'group' ? 'group' : 'robot'})` : 'a robot or group you select';
   if (service) inspector.use(service.name);
   const url = new URL(location.href);
   if (name) url.hash = encodeURIComponent(name);
@@ -141,7 +142,9 @@ $('#token-form').addEventListener('submit', (e) => {
   api.setToken($('#token').value);
   $('#token').value = '';
   $('#token-state').textContent = api.token() ? 'token set' : 'no token';
+  mux.reconnect(); // the stream carries the token in its cookie: open it again
   list.refresh();
+  if (selected()) view.show(selected());
 });
 $('#token-state').textContent = api.token() ? 'token set' : 'no token';
 
@@ -154,7 +157,14 @@ for (const button of document.querySelectorAll('[data-fold]')) {
   });
 }
 
-window.addEventListener('pagehide', () => mux.close());
+// A page kept in the back-forward cache holds no stream; shown again, it follows everything anew.
+window.addEventListener('pagehide', () => mux.suspend());
+window.addEventListener('pageshow', (e) => {
+  if (e.persisted) {
+    mux.reconnect();
+    list.refresh();
+  }
+});
 
 // -- the extension point ------------------------------------------------------------------------
 

@@ -191,7 +191,11 @@ export class RobotMap {
       if (!d || d.id !== e.pointerId) return;
       if (!d.moved && Math.hypot(e.clientX - d.x, e.clientY - d.y) > CLICK_SLOP_PX) {
         d.moved = true;
-        this.root.setPointerCapture(e.pointerId);
+        try {
+          this.root.setPointerCapture(e.pointerId);
+        } catch {
+          // a synthetic pointer: the drag goes on while it stays over the map
+        }
         this.root.classList.add('panning');
       }
       if (d.moved) {

@@ -133,7 +133,12 @@ export class ServiceList {
       h(
         'section',
         { class: 'service-group' },
-        h('h3', {}, this.groupBy === 'type' ? (TYPE_TITLES[key] ?? key) : key, h('small', {}, ` ${groups.get(key).length}`)),
+        h(
+          'h3',
+          { class: this.groupBy === 'type' ? 'by-type' : 'by-area' },
+          this.groupBy === 'type' ? (TYPE_TITLES[key] ?? key) : key,
+          h('small', {}, ` ${groups.get(key).length}`),
+        ),
         h(
           'ul',
           { role: 'listbox', 'aria-label': key },

@@ -59,7 +59,8 @@ export class ServiceView {
   }
 
   render(service, model) {
-    const properties = (model?.properties ?? []).filter((p) => p.name !== 'properties');
+    // A namespace (actuators, behaviors) is the fieldset of its properties, not a property.
+    const properties = (model?.properties ?? []).filter((p) => p.name !== 'properties' && p.type !== 'namespace');
     const groups = new Map();
     for (const prop of properties) {
       const ns = namespaceOf(prop.name);
@@ -112,7 +113,14 @@ export class ServiceView {
   follow(selector, view) {
     this._unsubscribe.push(
       this.mux.subscribe(selector, {
-        onValue: (event) => (event.removed ? view.removed() : view.update(event.value, event)),
+        onValue: (event) => {
+          if (view.element.classList.contains('unfollowed')) {
+            view.element.classList.remove('unfollowed'); // followed again after a failure
+            view.element.querySelector('.error').hidden = true;
+          }
+          if (event.removed) view.removed();
+          else view.update(event.value, event);
+        },
         onError: (e) => {
           view.element.classList.add('unfollowed');
           showListenError(view, e);

@@ -67,6 +67,7 @@ export class Teleop {
 
   _bindJoystick() {
     const { joystick, knob } = this.els;
+    let pointer = null; // the pointer holding the stick
     const update = (e) => {
       const rect = joystick.getBoundingClientRect();
       const radius = rect.width / 2;
@@ -82,20 +83,27 @@ export class Teleop {
       this.hold();
     };
     joystick.addEventListener('pointerdown', (e) => {
-      if (!this.target()) return;
-      joystick.setPointerCapture(e.pointerId);
+      if (!this.target() || pointer !== null) return;
+      pointer = e.pointerId;
+      try {
+        joystick.setPointerCapture(e.pointerId); // keep the stick while the pointer leaves it
+      } catch {
+        // a pointer the browser does not track (a synthetic event): held all the same
+      }
       joystick.classList.add('active');
       update(e);
     });
     joystick.addEventListener('pointermove', (e) => {
-      if (joystick.hasPointerCapture(e.pointerId)) update(e);
+      if (e.pointerId === pointer) update(e);
     });
     const end = (e) => {
-      if (!joystick.hasPointerCapture(e.pointerId) && e.type !== 'lostpointercapture') return;
+      if (e.pointerId !== pointer) return;
+      pointer = null;
       joystick.classList.remove('active');
       knob.style.transform = '';
       this.stick = null;
-      this.release();
+      if (this.keys.size) this.hold();
+      else this.release();
     };
     joystick.addEventListener('pointerup', end);
     joystick.addEventListener('pointercancel', end);
