@@ -45,6 +45,8 @@ CHROMIUM_FLAGS = (
     "--window-size=1280,800",
 )
 
+#: The page's size in CSS pixels, and so the screenshots' size.
+VIEWPORT = (1280, 800)
 #: The console's world: two robots, a sensor and a group of every mobile robot.
 CONFIG = """
 [registry]
@@ -65,6 +67,7 @@ options = { start = [1.0, 0.0] }
 [[services]]
 name = "thermo1"
 type = "sim-sensor"
+options = { location = [0.5, 1.0, 0, 0, 0, 0] }
 
 [[services]]
 name = "swarm"
@@ -127,6 +130,12 @@ def chromium() -> Iterator[Any]:
     try:
         driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
         try:
+            # --window-size counts the window's own frame; the page itself gets VIEWPORT.
+            width, height = VIEWPORT
+            driver.execute_cdp_cmd(
+                "Emulation.setDeviceMetricsOverride",
+                {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False},
+            )
             yield driver
         finally:
             driver.quit()

@@ -168,6 +168,7 @@ def test_the_page_lists_the_services_with_their_live_state(page: Any, client: Cl
     assert set(client.services()) == set(shows), "the page lists what the registry lists"
     for name, kind in DEMO.items():
         assert kind in shows[name], f"{name} shows its type {kind}: {shows[name]!r}"
+    page.find_element(CSS, "#map-fit").click()  # zoom to the robots
     doc_image(page, "overview")
 
 
@@ -381,6 +382,9 @@ def test_the_inspector_gets_sets_and_listens(page: Any, client: Client) -> None:
         page,
         lambda d: any("1.25" in li.text for li in d.find_elements(CSS, "#inspector-log li")),
         "the event of a gRPC Set in #inspector-log",
+    )
+    page.execute_script(
+        "arguments[0].scrollIntoView({block: 'end'})", page.find_element(CSS, "#inspector-log")
     )
     doc_image(page, "inspector")
     client.set("scout1", "max_turn_rate", 2.0)
