@@ -309,24 +309,39 @@ def test_teleop_with_the_keyboard_moves_the_robot_and_releasing_stops_it(page: A
     assert float(np.linalg.norm(xy(client, "scout2") - start)) > 0.1, "scout2 moved"
 
 
-def test_losing_the_page_stops_a_teleoperated_robot(page: Any, client: Client) -> None:
+@pytest.mark.parametrize("how", ["navigate away", "close the tab"])
+def test_losing_the_page_stops_a_teleoperated_robot(
+    page: Any, client: Client, console_gateway: ConsoleGateway, how: str
+) -> None:
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.keys import Keys
 
+    home = page.current_window_handle
+    if how == "close the tab":
+        page.switch_to.new_window("tab")
+        page.get(console_gateway.url)
     select(page, "scout2")
     blur(page)
+    # A command now holds for TELEOP_HOLD seconds: a stop within STOP_WITHIN is the page's doing.
     client.set("scout2", "velocity_timeout", TELEOP_HOLD)
     try:
         ActionChains(page).key_down(Keys.ARROW_UP).perform()
         eventually(lambda: forward(client, "scout2"), lambda v: v > 0, "scout2 drives forward")
-        page.get("about:blank")
+        if how == "close the tab":
+            page.close()
+            page.switch_to.window(home)
+        else:
+            page.get("about:blank")
         eventually(
             lambda: velocity(client, "scout2"),
             lambda v: not v.any(),
-            "scout2 stops when the page goes away",
+            f"scout2 stops when the page goes away ({how})",
             within=STOP_WITHIN,
         )
     finally:
+        if page.current_window_handle != home:
+            page.close()
+            page.switch_to.window(home)
         ActionChains(page).key_up(Keys.ARROW_UP).perform()
         client.set("scout2", "velocity_timeout", 0.5)
         client.set("scout2", "velocity", "(0 0 0 0 0 0)")
