@@ -3,9 +3,10 @@
 * ``console_gateway`` (per module): ``psgateway serve`` with a small world
   (``console_support.CONFIG``: scout1, scout2, thermo1 and the group ``swarm``)
   and ``--http 127.0.0.1:0``; ``.address`` is the gRPC address, ``.url`` the console's.
-* ``browser`` (per session): the Selenium driver of Debian's Chromium. When
-  Chromium, chromedriver or Selenium is missing, every test here skips, and the
-  skip (printed, and in pytest's ``-ra`` summary) names what is missing.
+* ``browser`` (per session): the Selenium driver of Debian's Chromium
+  (``PS_CHROMIUM`` and ``PS_CHROMEDRIVER`` name other paths). When Chromium,
+  chromedriver or Selenium is missing, every test here skips, and the skip
+  (printed, and in pytest's ``-ra`` summary) names what is missing.
 * ``page`` (per test): the console loaded in that browser; when the test ends,
   pass or fail, a screenshot goes to ``build/screenshots/TEST.png``.
 """

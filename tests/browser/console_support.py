@@ -23,8 +23,9 @@ from typing import Any, TypeVar
 from support.gateway_process import GatewayProcess, start_gateway
 
 ROOT = Path(__file__).resolve().parents[2]
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMEDRIVER = Path("/usr/bin/chromedriver")
+#: Debian's paths; PS_CHROMIUM and PS_CHROMEDRIVER name others (a Chromium and its matching driver).
+CHROMIUM = Path(os.environ.get("PS_CHROMIUM", "/usr/bin/chromium"))
+CHROMEDRIVER = Path(os.environ.get("PS_CHROMEDRIVER", "/usr/bin/chromedriver"))
 SCREENSHOTS = ROOT / "build" / "screenshots"
 DOC_IMAGES = ROOT / "docs" / "images"
 #: Seconds a browser-side wait lasts: the page's own work is milliseconds, but two loaded cores
@@ -78,9 +79,9 @@ options = { query = { type = "mobile_robot" } }
 T = TypeVar("T")
 
 
-def missing_browser() -> str | None:
+def missing_browser(chromium: Path = CHROMIUM, chromedriver: Path = CHROMEDRIVER) -> str | None:
     """Why the browser tests cannot run here, or None when they can."""
-    missing = [str(p) for p in (CHROMIUM, CHROMEDRIVER) if not os.access(p, os.X_OK)]
+    missing = [str(p) for p in (chromium, chromedriver) if not (p.is_file() and os.access(p, os.X_OK))]
     if missing:
         return (
             f"browser tests skipped: {' and '.join(missing)} missing"
