@@ -309,6 +309,46 @@ def test_teleop_with_the_keyboard_moves_the_robot_and_releasing_stops_it(page: A
     assert float(np.linalg.norm(xy(client, "scout2") - start)) > 0.1, "scout2 moved"
 
 
+def test_keys_typed_into_an_input_do_not_drive(page: Any, client: Client) -> None:
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    select(page, "scout2")
+    start = client.get("scout2", "location")
+    field = page.find_element(CSS, "#inspector-path")
+    field.clear()
+    field.click()
+    ActionChains(page).key_down("w").perform()
+    try:
+        wait_for(page, lambda d: field.get_attribute("value") == "w", "the w typed into #inspector-path")
+        time.sleep(0.3)  # time for a (wrong) command to reach the robot
+        assert not velocity(client, "scout2").any(), "a key typed into an input drove the robot"
+    finally:
+        ActionChains(page).key_up("w").perform()
+    assert client.get("scout2", "location") == start, "scout2 never moved"
+
+
+def test_the_joystick_drives_and_letting_go_stops(page: Any, client: Client) -> None:
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    select(page, "scout2")
+    client.set("scout2", "velocity_timeout", TELEOP_HOLD)
+    stick = wait_for(page, lambda d: d.find_element(CSS, "#joystick"), "#joystick")
+    try:
+        # Press the middle of the stick and push it up: forward.
+        ActionChains(page).move_to_element(stick).click_and_hold().move_by_offset(0, -40).perform()
+        eventually(lambda: forward(client, "scout2"), lambda v: v > 0, "scout2 drives forward with the stick")
+        ActionChains(page).release().perform()
+        eventually(
+            lambda: velocity(client, "scout2"),
+            lambda v: not v.any(),
+            "scout2 stops when the stick is let go",
+            within=STOP_WITHIN,
+        )
+    finally:
+        ActionChains(page).release().perform()
+        client.set("scout2", "velocity_timeout", 0.5)
+
+
 @pytest.mark.parametrize("how", ["navigate away", "close the tab"])
 def test_losing_the_page_stops_a_teleoperated_robot(
     page: Any, client: Client, console_gateway: ConsoleGateway, how: str
