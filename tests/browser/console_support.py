@@ -188,8 +188,8 @@ def eventually(probe: Callable[[], T], ok: Callable[[T], bool], what: str, withi
 
 
 @contextmanager
-def device_process(*args: str) -> Iterator[str]:
-    """``python -m services.device_server ARGS --tcp 127.0.0.1:0``; yields its ``tcp://`` URL."""
+def device_process(*args: str) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """``python -m services.device_server ARGS --tcp 127.0.0.1:0``; yields it and its ``tcp://`` URL."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "services.device_server", *args, "--tcp", "127.0.0.1:0"],
         cwd=ROOT,
@@ -201,7 +201,7 @@ def device_process(*args: str) -> Iterator[str]:
         first = proc.stdout.readline().strip()
         m = re.fullmatch(r"listening on (\S+:\d+)", first)
         assert m, f"device said {first!r}, exit {proc.poll()}"
-        yield "tcp://" + m.group(1)
+        yield proc, "tcp://" + m.group(1)
     finally:
         proc.terminate()
         try:

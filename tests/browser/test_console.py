@@ -191,6 +191,24 @@ def test_the_service_view_shows_each_property_of_a_robot(page: Any, client: Clie
     doc_image(page, "service")
 
 
+def test_a_widget_registered_by_gui_name_shows_those_properties(page: Any, client: Client) -> None:
+    """The extension point: window.PropertyConsole.registerWidget(gui, factory) wins for that gui."""
+    page.execute_script(
+        """window.PropertyConsole.registerWidget('slider', (prop, ctx) => {
+             const el = ctx.h('span', {class: 'test-dial'}, '');
+             return {element: el, update: (text) => { el.textContent = `dial ${prop.name}=${text}`; }};
+           });"""
+    )
+    select(page, "scout1")
+    expected = f"dial max_speed={client.get('scout1', 'max_speed')}"
+    wait_for(
+        page,
+        lambda d: prop(d, "max_speed").find_element(CSS, ".test-dial").text == expected,
+        f"{expected!r} from the registered widget",
+    )
+    assert not prop(page, "velocity_timeout").find_elements(CSS, ".test-dial"), "a gui other than slider"
+
+
 def test_a_set_from_the_page_changes_the_robot(page: Any, client: Client) -> None:
     select(page, "scout1")
     set_from_page(page, "max_speed", "0.7")
@@ -387,21 +405,24 @@ def test_losing_the_page_stops_a_teleoperated_robot(
         client.set("scout2", "velocity", "(0 0 0 0 0 0)")
 
 
-def test_a_service_registered_at_run_time_appears_and_goes(page: Any, client: Client) -> None:
-    with device_process("--service", "sim-sensor", "--name", "probe1") as url:
+def test_a_service_registered_at_run_time_appears_goes_down_and_goes(page: Any, client: Client) -> None:
+    def state(d: Any) -> str | None:
+        found: str | None = d.execute_script(
+            "const e = document.querySelector('#services [data-service=\"probe1\"]');"
+            "return e ? e.dataset.state : null"
+        )
+        return found
+
+    with device_process("--service", "sim-sensor", "--name", "probe1") as (device, url):
         assert client.set("registry", "services.probe1", url, type="sensor") == url
-        wait_for(
-            page,
-            lambda d: service(d, "probe1").get_attribute("data-state") == "up",
-            '[data-service="probe1"][data-state="up"] after its registration',
-        )
+        wait_for(page, lambda d: state(d) == "up", '[data-service="probe1"][data-state="up"] once registered')
         save_screenshot(page, "probe1_registered")
+        device.kill()  # the device dies: the registry's liveness check marks it down
+        device.wait(5)
+        wait_for(page, lambda d: state(d) == "down", '[data-service="probe1"][data-state="down"] once dead')
+        assert client.get("registry", "services.probe1.state") == "down"
         assert client.set("registry", "services.probe1", "") == ""
-        wait_for(
-            page,
-            lambda d: not d.find_elements(CSS, '#services [data-service="probe1"]'),
-            "probe1 gone from the list after it was unregistered",
-        )
+        wait_for(page, lambda d: state(d) is None, "probe1 gone from the list once unregistered")
     assert "probe1" not in parse_names(client.get("registry", "services"))
 
 
