@@ -798,6 +798,13 @@ def _sse_table(out: TextIO, results: Results) -> None:
         ],
         rows,
     )
+    idle = sse.get("idle")
+    if idle:
+        print(
+            f"  {idle['streams']} idle SSE streams on a fresh gateway: RSS {idle['rss_before_mib']} → "
+            f"{idle['rss_after_mib']} MiB, {idle['per_stream_kib']} KiB per stream",
+            file=out,
+        )
 
 
 def _psutil() -> Any:

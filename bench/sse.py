@@ -8,6 +8,10 @@ The same setter (one gRPC client, one unary Set at a time, the value being
 * ``sse``: ``subscribers`` event streams (``GET /api/v1/events?sel=bench/value``), each on its
   own HTTP connection, as that many browser tabs would hold them.
 
+Then, on a fresh gateway, ``idle`` event streams are opened and left idle (below the front
+end's ``max_streams``, 256): the gateway's RSS before and after, divided by the streams, is the
+memory one idle SSE client costs (its connection, its request, its stream of the hub).
+
 A subscriber subtracts the value from its own ``perf_counter_ns`` when an event arrives
 (both run in this process: one clock). Events/s is what all subscribers read, first Set
 to last event. The two ways take turns over the rounds (in the first round gRPC goes
@@ -158,11 +162,51 @@ async def run_sse_listen(
     return result
 
 
+#: Seconds the gateway gets to settle before its memory is read.
+SETTLE_S = 1.0
+
+
+async def idle_memory(streams: int) -> dict[str, Any]:
+    """RSS of a fresh gateway before and after ``streams`` idle event streams; KiB per stream."""
+    server = await ServerProcess.start("gateway with HTTP", ARGV)
+    connector = aiohttp.TCPConnector(limit=0, force_close=True)
+    url = f"{http_url(server)}api/v1/events?sel={SERVICE}/{VALUE_PROPERTY}"
+    responses: list[aiohttp.ClientResponse] = []
+    try:
+        async with aiohttp.ClientSession(
+            connector=connector, timeout=aiohttp.ClientTimeout(total=None)
+        ) as http:
+            # One stream first: the first request's one-time allocations are not counted.
+            first = await http.get(url)
+            await _SseSubscriber(first, Run(expected=0)).wait_sync()
+            await asyncio.sleep(SETTLE_S)
+            before = server.rss_bytes()
+            try:
+                async with asyncio.timeout(CALL_TIMEOUT * 3):
+                    responses = list(await asyncio.gather(*(http.get(url) for _ in range(streams))))
+                    await asyncio.gather(*(_SseSubscriber(r, Run(expected=0)).wait_sync() for r in responses))
+                await asyncio.sleep(SETTLE_S)
+                after = server.rss_bytes()
+            finally:
+                for response in [first, *responses]:
+                    response.close()
+        server.check_alive()
+    finally:
+        await server.stop()
+    return {
+        "streams": streams,
+        "rss_before_mib": round(before / 2**20, 2),
+        "rss_after_mib": round(after / 2**20, 2),
+        "per_stream_kib": round((after - before) / streams / 1024, 2),
+    }
+
+
 async def run_sse(
-    *, subscribers: int, sets: int, set_rate: float, rounds: int, time_limit: float
+    *, subscribers: int, sets: int, set_rate: float, rounds: int, time_limit: float, idle: int = 250
 ) -> dict[str, Any]:
-    """gRPC Listen and SSE fan-out on the same gateway, taking turns; the best round of each."""
-    best: dict[str, dict[str, Any]] = {}
+    """gRPC Listen and SSE fan-out on the same gateway, taking turns (the best round of each),
+    then the memory of ``idle`` idle event streams on a fresh gateway."""
+    best: dict[str, Any] = {}
     for number in range(rounds):
         server = await ServerProcess.start("gateway with HTTP", ARGV)
         try:
@@ -194,4 +238,5 @@ async def run_sse(
                     best[way] = data
         finally:
             await server.stop()
+    best["idle"] = await idle_memory(idle)
     return best

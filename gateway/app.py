@@ -21,6 +21,7 @@ import sys
 from collections.abc import Mapping
 from pathlib import Path
 from types import TracebackType
+from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
 import grpc
@@ -32,7 +33,6 @@ from gateway.backends import open_backend, open_proxy
 from gateway.config import REGISTRY_NAME, Config, ConfigError, ServiceEntry
 from gateway.devices import DeviceProcess, start_device
 from gateway.guard import Guard
-from gateway.http import HttpFront
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
@@ -45,6 +45,9 @@ from services.catalog import create, needs_directory
 from services.errors import PropertyError
 from services.registry import DEFAULT_REGISTER_TIMEOUT, AllowList, Registry, RegistryService
 from services.registry import ServiceEntry as RegistryEntry
+
+if TYPE_CHECKING:
+    from gateway.http import HttpFront
 
 log = logging.getLogger("gateway")
 
@@ -313,6 +316,9 @@ class Gateway:
         """The HTTP front end, in this loop, through the same call layer, hub and guard as gRPC."""
         if not self.config.http.listen:
             return
+        # Imported only when configured: aiohttp takes a quarter of a second to import.
+        from gateway.http import HttpFront
+
         self.http = HttpFront(self.servicer.calls, self.hub, self.config, self.guard)
         await self.http.start()
         self.http_address = self.http.address

@@ -36,8 +36,8 @@ log = logging.getLogger("gateway.http")
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
-#: HTTP errors aiohttp raises itself (routing, body size), as the code each stands for.
-_HTTP_CODES = {404: Code.NOT_FOUND, 405: Code.UNIMPLEMENTED}
+#: HTTP errors aiohttp raises itself, as the code each stands for (others: by their class of status).
+_HTTP_CODES = {404: Code.NOT_FOUND, 413: Code.RESOURCE_EXHAUSTED}
 
 
 class HttpFront:
@@ -62,11 +62,6 @@ class HttpFront:
     def url(self) -> str:
         """``http://HOST:PORT/`` (or https)."""
         return f"{self.scheme}://{self.address}/"
-
-    @property
-    def stream_count(self) -> int:
-        """Event streams open now."""
-        return len(self.events.open)
 
     def build_app(self) -> web.Application:
         """The aiohttp application with every route (also used to check the OpenAPI document)."""
@@ -115,6 +110,9 @@ class HttpFront:
             code = _HTTP_CODES.get(exc.status, Code.INVALID_ARGUMENT if exc.status < 500 else Code.INTERNAL)
             message = f"no route {request.path[:200]}" if exc.status == 404 else exc.reason
             return error_response(error_for(code, message), status=exc.status)
+        except Exception as exc:
+            # A bug: INTERNAL, logged with its traceback by to_property_error; still JSON.
+            return error_response(exc, what)
 
     async def start(self) -> None:
         """Listen; raises PortInUse (one line naming the holder) when the port is taken."""

@@ -110,10 +110,34 @@ test('one stream carries every subscription, and a burst of changes reopens it o
   m.subscribe('scout2/speed', {}); // a second subscriber of the same selector
   timers.advance(50);
   assert.equal(StreamStandIn.made.length, 2, 'one reopen for the whole burst');
-  assert.ok(StreamStandIn.made[0].closed);
-  assert.deepEqual(last().selectors(), ['*/location', 'scout2/speed']);
-  last().emit('value', { service: 'scout1', path: 'speed', value: '0.7' });
-  assert.equal(seen.length, 2, 'an unsubscribed handler hears nothing more');
+  const [first, second] = StreamStandIn.made;
+  assert.deepEqual(second.selectors(), ['*/location', 'scout2/speed']);
+  // Make before break: the first stream delivers until the second is open, and the page stays live.
+  assert.ok(!first.closed);
+  assert.equal(m.state, 'open');
+  first.emit('value', { service: 'scout2', path: 'location', value: '(1 0 0 0 0 0)' });
+  assert.deepEqual(seen.at(-1), ['map', 'scout2']);
+  second.emit('open');
+  assert.ok(first.closed);
+  first.emit('value', { service: 'scout3', path: 'location', value: '(1 0 0 0 0 0)' });
+  assert.deepEqual(seen.at(-1), ['map', 'scout2'], 'a replaced stream is heard no more');
+  second.emit('value', { service: 'scout1', path: 'speed', value: '0.7' });
+  assert.equal(seen.length, 3, 'an unsubscribed handler hears nothing more');
+});
+
+test('a replacement that fails closes the stream it was replacing too', () => {
+  const { m, timers, last } = mux();
+  m.subscribe('a/x', {});
+  timers.advance(50);
+  const first = last();
+  first.emit('open');
+  m.subscribe('b/y', {});
+  timers.advance(50);
+  const second = last();
+  second.readyState = 2;
+  second.emit('error'); // refused: no fetchImpl to ask why, so a plain retry after the backoff
+  assert.ok(first.closed && second.closed);
+  assert.equal(m.state, 'closed');
 });
 
 test('a subscription set that ends where it began does not reopen the stream', () => {
@@ -243,4 +267,37 @@ test('a suspended page keeps its subscriptions and follows them all again when s
   timers.advance(0);
   assert.notEqual(last(), before);
   assert.deepEqual(last().selectors(), ['a/x', 'b/y']);
+});
+
+test('a subscriber joining a selector the stream follows gets its latest values at once', () => {
+  const { m, timers, last } = mux();
+  const first = [];
+  m.subscribe('scout1/speed', { onValue: (e) => first.push(e.value) });
+  timers.advance(50);
+  last().emit('open');
+  last().emit('value', { service: 'scout1', path: 'speed', value: '0.5' });
+  last().emit('sync', {});
+  last().emit('value', { service: 'scout1', path: 'speed', value: '0.8' });
+  const joined = [];
+  let synced = false;
+  m.subscribe('scout1/speed', { onValue: (e) => joined.push(e.value), onSync: () => (synced = true) });
+  timers.advance(0);
+  assert.equal(StreamStandIn.made.length, 1, 'no reopen: the selector was followed already');
+  assert.deepEqual(joined, ['0.8'], 'the latest value, not the whole history');
+  assert.ok(synced);
+  assert.deepEqual(first, ['0.5', '0.8'], 'the first subscriber hears nothing twice');
+});
+
+test('the latest values are bounded and forget what nobody follows', () => {
+  const { m, timers, last } = mux();
+  const stop = m.subscribe('*/x', {});
+  m.subscribe('keep/y', {});
+  timers.advance(50);
+  last().emit('open');
+  for (let i = 0; i < 5000; i += 1) last().emit('value', { service: `s${i}`, path: 'x', value: String(i) });
+  last().emit('value', { service: 'keep', path: 'y', value: 'kept' });
+  assert.ok(m._latest.size <= 4096);
+  stop();
+  timers.advance(50);
+  assert.deepEqual([...m._latest.values()].map((e) => e.value), ['kept']);
 });

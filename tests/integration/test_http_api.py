@@ -6,7 +6,12 @@ Get reads, and the answers and errors are those of the gRPC port, as JSON.
 
 from __future__ import annotations
 
+import json
+import re
+import shlex
+import shutil
 import ssl
+import subprocess
 import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
@@ -18,7 +23,7 @@ import jwt
 import pytest
 from support.board import BOARD_TYPE
 from support.certs import CertificateFiles, certificates
-from support.gateway_process import GatewayProcess, StartGateway, start_gateway
+from support.gateway_process import ROOT, GatewayProcess, StartGateway, start_gateway
 from support.sse import SseReader
 
 from clients import AsyncClient
@@ -394,3 +399,34 @@ async def test_https_names_the_caller_by_its_client_certificate(
     async with aiohttp.ClientSession() as http:
         with pytest.raises(aiohttp.ClientError):
             await http.get(url.replace("https://", "http://"))
+
+
+# -- the curl examples of docs/http-api.md, as written ---------------------------------------------
+
+DOC = (ROOT / "docs" / "http-api.md").read_text(encoding="utf-8")
+
+
+def doc_curl_commands() -> list[list[str]]:
+    """The curl lines of the doc's first bash block (continuations joined)."""
+    block = DOC.split("```bash", 1)[1].split("```", 1)[0].replace("\\\n", " ")
+    lines = [re.sub(r"\s+#.*$", "", line).strip() for line in block.splitlines()]
+    return [shlex.split(line) for line in lines if line.startswith("curl ")]
+
+
+@pytest.mark.skipif(shutil.which("curl") is None, reason="curl is not installed")
+def test_the_curl_examples_of_the_doc_work(demo_gateway: GatewayProcess) -> None:
+    commands = doc_curl_commands()
+    assert len(commands) >= 8
+    for command in commands:
+        args = [arg.replace("localhost:8080", demo_gateway.http_address) for arg in command]
+        streaming = "-sN" in args
+        if streaming:  # an event stream does not end by itself: read it for a while
+            args[1:1] = ["--max-time", "3"]
+        done = subprocess.run(args, capture_output=True, text=True, timeout=30, check=False)
+        if streaming:
+            assert done.returncode == 28, done.stderr  # curl's "timed out", after reading
+            assert "event: sync" in done.stdout and "event: value" in done.stdout
+            continue
+        assert done.returncode == 0, (command, done.stderr)
+        answer = json.loads(done.stdout)
+        assert "error" not in answer, (command, answer)

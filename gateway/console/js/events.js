@@ -15,6 +15,8 @@ import { Backoff } from './backoff.js';
 export const EVENTS_URL = '/api/v1/events';
 /** Selectors one page follows at most: the gateway bounds the topics of one Listen too. */
 export const MAX_SELECTORS = 256;
+/** Latest events kept for subscribers that join a selector the stream already follows. */
+export const MAX_CACHED = 4096;
 /** Native errors in a row before the watchdog replaces EventSource's own fixed-delay retry. */
 const ERRORS_BEFORE_BACKOFF = 3;
 /** A stream still not open after this long is closed and opened again (after the backoff). */
@@ -70,7 +72,9 @@ export class EventMux {
     this.subscriptions = new Map();
     this.state = 'closed';
     this.source = null;
+    this._previous = null; // the stream being replaced, delivering until its successor opens
     this._streamSelectors = new Set(); // the selectors of the open stream
+    this._latest = new Map(); // "service\0path" -> the last value event, oldest first
     this._confirmed = new Set(); // selectors of a stream that reached `sync`: known good
     this._reopenTimer = null;
     this._watchdog = null;
@@ -95,6 +99,11 @@ export class EventMux {
     }
     const sub = { onValue, onSync, onError };
     subs.add(sub);
+    if (this._streamSelectors.has(selector) && this.source) {
+      // The stream follows this selector already and sends no new snapshot for it: the latest
+      // values it delivered stand in for one (after the caller has finished setting up).
+      this.timers.setTimeout(() => this._replay(selector, sub), 0);
+    }
     return () => this._unsubscribe(selector, sub);
   }
 
@@ -153,9 +162,22 @@ export class EventMux {
     const same =
       selectors.size === this._streamSelectors.size && [...selectors].every((s) => this._streamSelectors.has(s));
     if (same && this.source && this.source.readyState !== 2) return; // already following exactly these
-    this._closeSource();
+    // Make before break: an open stream goes on delivering until its successor is open, so
+    // selecting another service neither blanks the page nor shows it as disconnected.
+    const previous = this.source && this.source.readyState === 1 && this._opened ? this.source : null;
+    if (previous) {
+      this._closePrevious();
+      this._previous = previous;
+      this.source = null;
+    }
+    this._closeSource(false);
     this._streamSelectors = selectors;
+    for (const [key, event] of this._latest) {
+      // What no selector follows any more would only be stale if it came back.
+      if (![...selectors].some((s) => selectorMatches(s, event.service, event.path))) this._latest.delete(key);
+    }
     if (!selectors.size) {
+      this._closePrevious();
       this._setState('closed');
       return;
     }
@@ -164,28 +186,42 @@ export class EventMux {
     this.source = source;
     this._opened = false;
     this._errorsInRow = 0;
-    this._setState('connecting');
+    if (!previous) this._setState('connecting');
+    const current = () => source === this.source;
+    const old = () => source === this._previous;
     source.addEventListener('open', () => {
-      if (source !== this.source) return;
+      if (!current()) return;
+      this._closePrevious();
       this._opened = true;
       this._errorsInRow = 0;
       this._setState('open');
     });
-    source.addEventListener('value', (e) => source === this.source && this._onValue(e.data));
-    source.addEventListener('sync', () => source === this.source && this._onSync());
+    source.addEventListener('value', (e) => (current() || old()) && this._onValue(e.data));
+    source.addEventListener('sync', () => current() && this._onSync());
     source.addEventListener('error', (e) => {
-      if (source !== this.source) return;
+      if (old()) {
+        this._closePrevious(); // its successor is on the way
+        return;
+      }
+      if (!current()) return;
       // The gateway's own `event: error` carries data; the browser's connection error does not.
       if (typeof e.data === 'string') this._onServerError(e.data);
       else this._onConnectionError(url);
     });
     this._watchdog = this.timers.setTimeout(() => {
       this._watchdog = null;
-      if (source === this.source && source.readyState !== 1) this._retryLater();
+      if (current() && source.readyState !== 1) this._retryLater();
     }, CONNECT_TIMEOUT_MS);
   }
 
-  _closeSource() {
+  _closePrevious() {
+    if (this._previous) {
+      this._previous.close();
+      this._previous = null;
+    }
+  }
+
+  _closeSource(withPrevious = true) {
     if (this._watchdog !== null) {
       this.timers.clearTimeout(this._watchdog);
       this._watchdog = null;
@@ -194,6 +230,7 @@ export class EventMux {
       this.source.close();
       this.source = null;
     }
+    if (withPrevious) this._closePrevious();
   }
 
   _clearTimers() {
@@ -217,8 +254,25 @@ export class EventMux {
     this.dispatch(event);
   }
 
+  _replay(selector, sub) {
+    if (!this.subscriptions.get(selector)?.has(sub)) return; // gone meanwhile
+    for (const event of this._latest.values()) {
+      if (selectorMatches(selector, event.service, event.path)) sub.onValue(event);
+    }
+    if (this._confirmed.has(selector)) sub.onSync();
+  }
+
+  _remember(event) {
+    const key = `${event.service}\u0000${event.path}`;
+    this._latest.delete(key);
+    if (event.removed) return;
+    this._latest.set(key, event);
+    if (this._latest.size > MAX_CACHED) this._latest.delete(this._latest.keys().next().value);
+  }
+
   /** Hand one value event to every subscription whose selector matches it. */
   dispatch(event) {
+    this._remember(event);
     for (const [selector, subs] of this.subscriptions) {
       if (!selectorMatches(selector, event.service, event.path)) continue;
       for (const sub of [...subs]) {

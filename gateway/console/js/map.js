@@ -42,10 +42,12 @@ export class RobotMap {
     this._markerSubs = new Map();
     this.view = { cx: 2, cy: 0, scale: 60 }; // metres at the centre; pixels per metre
     this._drag = null;
+    this._userMoved = false; // the operator zoomed or panned: the map no longer fits by itself
     this.layers = {
       grid: svg('g', { class: 'grid' }),
       markers: svg('g', { class: 'markers' }),
       targets: svg('g', { class: 'targets' }),
+      others: svg('g', { class: 'others' }), // sensors and group centroids, under the robots
       robots: svg('g', { class: 'robots' }),
     };
     this.world = svg('g', { class: 'world' }, ...Object.values(this.layers));
@@ -55,8 +57,13 @@ export class RobotMap {
   }
 
   start() {
+    let fitted = false;
     this.mux.subscribe('*/location', {
       onValue: (event) => this.located(event),
+      onSync: () => {
+        if (!fitted && this.poses.size) this.fit(); // the first snapshot: everyone in sight
+        fitted = true;
+      },
     });
   }
 
@@ -131,8 +138,10 @@ export class RobotMap {
       const label = typeof f.name === 'string' ? f.name : typeof f.label === 'string' ? f.label : typeof f.id === 'string' ? f.id : '';
       shown.push({ location, label, color: typeof f.color === 'string' ? colorOf(f.color) : null });
     }
+    const first = !this.markers.has(selector);
     this.markers.set(selector, shown);
-    this.drawMarkers();
+    if (first && shown.length && !this._userMoved) this.fit(); // new things to see, and nobody chose a view
+    else this.drawMarkers();
   }
 
   typeOf(name) {
@@ -175,6 +184,7 @@ export class RobotMap {
   _bind() {
     this.root.addEventListener('wheel', (e) => {
       e.preventDefault();
+      this._userMoved = true;
       const before = this.toWorld(e.clientX, e.clientY);
       this.view.scale = Math.min(400, Math.max(2, this.view.scale * (e.deltaY < 0 ? 1.2 : 1 / 1.2)));
       const after = this.toWorld(e.clientX, e.clientY);
@@ -191,6 +201,7 @@ export class RobotMap {
       if (!d || d.id !== e.pointerId) return;
       if (!d.moved && Math.hypot(e.clientX - d.x, e.clientY - d.y) > CLICK_SLOP_PX) {
         d.moved = true;
+        this._userMoved = true;
         try {
           this.root.setPointerCapture(e.pointerId);
         } catch {
@@ -264,8 +275,9 @@ export class RobotMap {
   drawAll() {
     this.drawMarkers();
     this.drawTargets();
-    const layer = this.layers.robots;
-    for (const g of [...layer.children]) if (!this.poses.has(g.dataset.service)) g.remove();
+    for (const layer of [this.layers.robots, this.layers.others]) {
+      for (const g of [...layer.children]) if (!this.poses.has(g.dataset.service)) g.remove();
+    }
     for (const name of this.poses.keys()) this.drawRobot(name);
   }
 
@@ -296,39 +308,47 @@ export class RobotMap {
     return svg('text', { class: cls, transform: `translate(${x} ${y}) scale(${s} ${-s})` }, text);
   }
 
+  /** Draw `name` at its pose: its <g> is kept and moved (a script holding it sees it move). */
   drawRobot(name) {
-    const layer = this.layers.robots;
-    const old = layer.querySelector(`[data-service="${CSS.escape(name)}"]`);
+    const selector = `[data-service="${CSS.escape(name)}"]`;
+    let g = this.layers.robots.querySelector(selector) ?? this.layers.others.querySelector(selector);
     const pose = this.poses.get(name);
     if (!pose) {
-      old?.remove();
+      g?.remove();
       return;
     }
-    const type = this.typeOf(name);
+    const type = this.typeOf(name) || 'unknown';
+    if (g && g.dataset.kind !== type) {
+      g.remove(); // its type became known: drawn anew as what it is
+      g = null;
+    }
+    if (!g) {
+      g = this.robotShape(name, type);
+      (type === 'mobile_robot' ? this.layers.robots : this.layers.others).append(g);
+    }
     const [x, y] = pose;
     const yaw = pose.length >= 6 ? pose[5] : 0;
     const s = 1 / this.view.scale; // shapes keep their size in pixels when zooming
-    const selected = name === this.selected();
-    let shape;
-    const attrs = { class: `thing ${type || 'unknown'}${selected ? ' selected' : ''}`, dataset: { service: name } };
+    g.setAttribute('transform', `translate(${x} ${y})`);
+    g.classList.toggle('selected', name === this.selected());
+    g.querySelector('title').textContent = `${name} (${type}) at x ${x.toFixed(2)} y ${y.toFixed(2)}`;
+    g.querySelector('.shape').setAttribute('transform', `scale(${s}) rotate(${(yaw * 180) / Math.PI})`);
+    g.querySelector('text').setAttribute('transform', `translate(${12 * s} ${10 * s}) scale(${s} ${-s})`);
+  }
+
+  robotShape(name, type) {
+    const attrs = { class: `thing ${type}`, dataset: { service: name, kind: type } };
+    let body;
     if (type === 'mobile_robot') {
       attrs.dataset.robot = name;
-      shape = svg('path', { d: 'M14,0 L-9,8 L-5,0 L-9,-8 Z', class: 'robot-body', transform: `rotate(${(yaw * 180) / Math.PI})` });
+      body = svg('path', { d: 'M14,0 L-9,8 L-5,0 L-9,-8 Z', class: 'robot-body' });
     } else if (type === 'group') {
       attrs.dataset.group = name;
-      shape = svg('path', { d: 'M0,10 L10,0 L0,-10 L-10,0 Z', class: 'group-body' });
+      body = svg('path', { d: 'M0,10 L10,0 L0,-10 L-10,0 Z', class: 'group-body' });
     } else {
-      shape = svg('circle', { r: 6, class: 'sensor-body' });
+      body = svg('circle', { r: 6, class: 'sensor-body' });
     }
-    const g = svg(
-      'g',
-      { ...attrs, transform: `translate(${x} ${y})` },
-      svg('title', {}, `${name} (${type}) at x ${x.toFixed(2)} y ${y.toFixed(2)}`),
-      svg('g', { transform: `scale(${s})` }, shape),
-      this.label(name, 12 * s, 10 * s),
-    );
-    if (old) old.replaceWith(g);
-    else layer.append(g);
+    return svg('g', attrs, svg('title', {}), svg('g', { class: 'shape' }, body), this.label(name, 0, 0));
   }
 
   drawTargets() {

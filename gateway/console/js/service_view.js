@@ -59,39 +59,65 @@ export class ServiceView {
   }
 
   render(service, model) {
-    // A namespace (actuators, behaviors) is the fieldset of its properties, not a property.
-    const properties = (model?.properties ?? []).filter((p) => p.name !== 'properties' && p.type !== 'namespace');
-    const groups = new Map();
-    for (const prop of properties) {
-      const ns = namespaceOf(prop.name);
-      if (!groups.has(ns)) groups.set(ns, []);
-      groups.get(ns).push(prop);
-    }
+    const all = (model?.properties ?? []).filter((p) => p.name !== 'properties');
+    // A namespace (actuators, robots.scout1) is a box of its properties and of the namespaces
+    // under it; one the model lists is itself [data-property=NAME], like every property.
+    const listed = new Set(all.filter((p) => p.type === 'namespace').map((p) => p.name));
+    const boxes = new Map([['', { leaves: [], subs: [] }]]);
+    const box = (ns) => {
+      if (!boxes.has(ns)) {
+        boxes.set(ns, { leaves: [], subs: [] });
+        box(namespaceOf(ns)).subs.push(ns);
+      }
+      return boxes.get(ns);
+    };
+    for (const ns of listed) box(ns);
+    for (const prop of all) if (prop.type !== 'namespace') box(namespaceOf(prop.name)).leaves.push(prop);
+
     let followed = 0;
     const skipped = [];
-    const sections = [];
-    for (const [ns, props] of [...groups].sort(([a], [b]) => (a === '' ? -1 : b === '' ? 1 : a.localeCompare(b)))) {
-      const items = props.map((prop) => {
-        const view = propertyView(service.name, prop, {
-          setProperty,
-          getProperty,
-          label: ns ? prop.name.slice(ns.length + 1) : prop.name,
-        });
-        this._views.set(prop.name, view);
-        if (LISTENABLE.has(prop.access) && prop.type !== 'namespace') {
-          if (followed < MAX_FOLLOWED) {
-            followed += 1;
-            this.follow(`${service.name}/${prop.name}`, view);
-          } else {
-            skipped.push(prop.name);
-          }
-        }
-        return view.element;
+    const leafView = (ns, prop) => {
+      const view = propertyView(service.name, prop, {
+        setProperty,
+        getProperty,
+        label: ns ? prop.name.slice(ns.length + 1) : prop.name,
       });
+      this._views.set(prop.name, view);
+      if (LISTENABLE.has(prop.access)) {
+        if (followed < MAX_FOLLOWED) {
+          followed += 1;
+          this.follow(`${service.name}/${prop.name}`, view);
+        } else {
+          skipped.push(prop.name);
+        }
+      }
+      return view.element;
+    };
+    const fieldset = (ns, parent) => {
+      const { leaves, subs } = boxes.get(ns);
+      const attrs = { class: 'namespace', dataset: { namespace: ns } };
+      if (listed.has(ns)) Object.assign(attrs.dataset, { property: ns, type: 'namespace' });
+      return h(
+        'fieldset',
+        attrs,
+        h('legend', {}, parent ? ns.slice(parent.length + 1) : ns),
+        leaves.map((prop) => leafView(ns, prop)),
+        subs.sort().map((sub) => fieldset(sub, ns)),
+      );
+    };
+    const top = boxes.get('');
+    const sections = [];
+    if (top.leaves.length) {
       sections.push(
-        h('fieldset', { class: 'namespace', dataset: { namespace: ns } }, h('legend', {}, ns || 'properties'), items),
+        h(
+          'fieldset',
+          { class: 'namespace', dataset: { namespace: '' } },
+          h('legend', {}, 'properties'),
+          top.leaves.map((prop) => leafView('', prop)),
+        ),
       );
     }
+    for (const ns of top.subs.sort()) sections.push(fieldset(ns, ''));
     const note = skipped.length
       ? h('p', { class: 'muted' }, `${skipped.length} more properties are not followed live (limit ${MAX_FOLLOWED}).`)
       : null;
