@@ -175,8 +175,8 @@ def test_the_page_lists_the_services_with_their_live_state(page: Any, client: Cl
 def test_the_service_view_shows_each_property_of_a_robot(page: Any, client: Client) -> None:
     select(page, "scout1")
     model = client.describe("scout1")
-    # Every property Describe lists has its widget; a namespace (actuators) only groups others.
-    for path in (p.name for p in model.properties if p.type != "namespace"):
+    # Every property Describe lists has its widget; a namespace's (actuators) is a box of its own.
+    for path in (p.name for p in model.properties):
         wait_for(page, lambda d, p=path: prop(d, p), f'[data-property="{path}"] (Describe lists it)')
     expected = client.get("scout1", "velocity_timeout")
     wait_for(page, lambda d: shown(d, "velocity_timeout") == expected, f"velocity_timeout {expected} shown")
