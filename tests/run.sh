@@ -19,7 +19,7 @@ if [ ! -x /usr/bin/chromium ] || [ ! -x /usr/bin/chromedriver ]; then
   if [ "$(id -u)" = 0 ]; then SUDO=""; elif command -v sudo >/dev/null; then SUDO="sudo -n"; else SUDO="none"; fi
   if [ "$SUDO" = none ]; then
     echo "note: not root and no sudo: chromium and chromium-driver not installed; the browser tests will skip"
-  elif ! apt_log=$({ $SUDO apt-get update -qq && $SUDO apt-get install -y -qq chromium chromium-driver; } 2>&1); then
+  elif ! apt_log=$({ $SUDO apt-get update -qq && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver; } 2>&1); then
     echo "note: could not install chromium and chromium-driver; the browser tests will skip:"
     echo "$apt_log" | tail -n 5
   fi
