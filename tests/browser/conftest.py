@@ -8,7 +8,8 @@
   chromedriver or Selenium is missing, every test here skips, and the skip
   (printed, and in pytest's ``-ra`` summary) names what is missing.
 * ``page`` (per test): the console loaded in that browser; when the test ends,
-  pass or fail, a screenshot goes to ``build/screenshots/TEST.png``.
+  pass or fail, a screenshot goes to ``build/screenshots/TEST.png``, and an
+  uncaught exception or ``console.error`` in the page fails the test.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from console_support import (
     chromium,
     console_gateway_process,
     missing_browser,
+    page_errors,
     save_screenshot,
     wait_for,
 )
@@ -47,8 +49,12 @@ def browser() -> Iterator[Any]:
 
 @pytest.fixture
 def page(browser: Any, console_gateway: ConsoleGateway, request: pytest.FixtureRequest) -> Iterator[Any]:
-    """The console freshly loaded, its service list filled; a screenshot of it when the test ends."""
+    """The console freshly loaded, its service list filled; a screenshot of it when the test ends,
+    and a failure if the page threw or logged an error meanwhile (refused requests are expected)."""
+    browser.get_log("browser")  # read and so dropped: what earlier tests left
     browser.get(console_gateway.url)
     wait_for(browser, lambda d: d.find_elements("css selector", "#services [data-service]"), "a service list")
     yield browser
     save_screenshot(browser, request.node.name)
+    errors = page_errors(browser)
+    assert not errors, f"the page threw or logged errors: {errors}"

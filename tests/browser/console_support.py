@@ -144,6 +144,19 @@ def chromium() -> Iterator[Any]:
         shutil.rmtree(profile, ignore_errors=True)
 
 
+def page_errors(driver: Any) -> list[str]:
+    """Uncaught exceptions and ``console.error`` lines the page logged since the last call.
+
+    Failed requests (``source`` network: a refused Set is a 400, a test's stopped gateway
+    refuses connections) are the page's business to show, and are left out.
+    """
+    return [
+        entry["message"]
+        for entry in driver.get_log("browser")
+        if entry.get("level") == "SEVERE" and entry.get("source") != "network"
+    ]
+
+
 def save_screenshot(driver: Any, name: str) -> Path:
     SCREENSHOTS.mkdir(parents=True, exist_ok=True)
     path = SCREENSHOTS / f"{re.sub(r'[^A-Za-z0-9_.-]+', '_', name)}.png"

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from console_support import CONFIG, save_screenshot, wait_for
+from console_support import CONFIG, page_errors, save_screenshot, wait_for
 from support.gateway_process import GatewayProcess, start_gateway
 from support.ports import free_port
 
@@ -55,6 +55,7 @@ def test_the_page_reconnects_to_a_restarted_gateway(
     gateways.append(start_gateway(tmp_path, CONFIG, ports))
     url = gateways[0].http_url
     try:
+        page_errors(browser)  # read and so dropped: what earlier tests left
         browser.get(url)
         wait_for(browser, lambda d: connection(d) == "open", "#connection open")
         wait_for(
@@ -77,5 +78,6 @@ def test_the_page_reconnects_to_a_restarted_gateway(
             lambda d: shown(d, "max_speed") == "0.8",
             "a Set on the new gateway in the view opened before the restart",
         )
+        assert not page_errors(browser), "the page threw or logged errors"
     finally:
         save_screenshot(browser, "test_the_page_reconnects_to_a_restarted_gateway")

@@ -15,7 +15,7 @@ from typing import Any
 
 import jwt
 import pytest
-from console_support import save_screenshot, wait_for
+from console_support import page_errors, save_screenshot, wait_for
 from support.gateway_process import GatewayProcess, start_gateway
 
 from clients.credentials import ClientCredentials
@@ -93,6 +93,7 @@ def set_speed(driver: Any, text: str) -> None:
 def test_the_token_typed_into_the_page_decides(browser: Any, secured: GatewayProcess) -> None:
     operator = Client(secured.address, timeout=10.0, credentials=ClientCredentials(token=token("operator")))
     try:
+        page_errors(browser)  # read and so dropped: what earlier tests left
         browser.get(secured.http_url)
         browser.delete_all_cookies()
         browser.execute_script("sessionStorage.clear()")
@@ -125,6 +126,7 @@ def test_the_token_typed_into_the_page_decides(browser: Any, secured: GatewayPro
         set_speed(browser, "0.9")
         wait_for(browser, lambda d: speed_widget(d).find_element(CSS, ".value").text == "0.9", "speed 0.9")
         assert operator.get("scout1", "speed") == "0.9"
+        assert not page_errors(browser), "the page threw or logged errors"
     finally:
         save_screenshot(browser, "test_the_token_typed_into_the_page_decides")
         operator.close()
