@@ -25,6 +25,7 @@ import pytest
 from console_support import ConsoleGateway, device_process, doc_image, eventually, save_screenshot, wait_for
 
 from clients.sync import Client
+from services.formations import formation_targets
 from services.values import parse_names
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.timeout(120)]
@@ -246,20 +247,28 @@ def test_a_click_on_the_map_drives_a_group_in_the_chosen_formation(page: Any, cl
 
     select(page, "swarm")
     robots = ("scout1", "scout2")
-    starts = {name: xy(client, name) for name in robots}
     formation = wait_for(page, lambda d: d.find_element(CSS, "#formation"), "#formation for a group")
     wait_for(page, lambda d: formation.is_displayed(), "#formation shown while a group is selected")
     Select(formation).select_by_value("circle")
+    spacing = page.find_element(CSS, "#spacing")
+    spacing.clear()
+    spacing.send_keys("1.5")
     ActionChains(page).move_to_element_with_offset(page.find_element(CSS, "#map"), -60, 60).click().perform()
     try:
-        for name in robots:
+        target = translation(wait_for(page, lambda d: target_on_map(d, "swarm"), "swarm's target on the map"))
+        for name in robots:  # quicker, so that they arrive within the wait
+            client.set(name, "speed", 50)
+        places = formation_targets(robots, target, "circle", 1.5)
+        for name, place in places.items():
             eventually(
                 lambda n=name: xy(client, n),
-                lambda p, n=name: float(np.linalg.norm(p - starts[n])) > 0.05,
-                f"{name}, a member of swarm, moves after the click",
+                lambda p, at=place: bool(np.allclose(p, at, atol=0.01)),
+                f"{name} at its place {place} of a circle of spacing 1.5 around the click {target}",
             )
     finally:
         client.set("swarm", "behaviors.stop", "")
+        for name in robots:
+            client.set(name, "speed", 0.5)
     for name in robots:
         eventually(lambda n=name: velocity(client, n), lambda v: not v.any(), f"{name} stopped")
 
