@@ -473,3 +473,25 @@ def test_the_inspector_gets_sets_and_listens(page: Any, client: Client) -> None:
     )
     doc_image(page, "inspector")
     client.set("scout1", "max_turn_rate", 2.0)
+
+
+def test_the_inspector_listens_with_a_wildcard(page: Any, client: Client) -> None:
+    for field, text in (("service", "*"), ("path", "speed")):
+        element = page.find_element(CSS, f"#inspector-{field}")
+        element.clear()
+        element.send_keys(text)
+    page.find_element(CSS, "#inspector-listen").click()
+
+    def logged(d: Any) -> list[str]:
+        return [li.text for li in d.find_elements(CSS, "#inspector-log li")]
+
+    wait_for(page, lambda d: any("scout1/speed" in t for t in logged(d)), "scout1/speed in the snapshot")
+    client.set("scout2", "speed", 0.65)
+    try:
+        wait_for(
+            page,
+            lambda d: any("scout2/speed" in t and "0.65" in t for t in logged(d)),
+            "the gRPC Set of scout2/speed in the log of a Listen on */speed",
+        )
+    finally:
+        client.set("scout2", "speed", 0.5)
