@@ -5,7 +5,14 @@ import assert from 'node:assert/strict';
 import { test } from 'node:test';
 
 import { Backoff } from '../../gateway/console/js/backoff.js';
-import { EventMux, eventsUrl, selectorMatches, splitSelector } from '../../gateway/console/js/events.js';
+import {
+  EventMux,
+  eventsUrl,
+  namedSelectors,
+  namesIn,
+  selectorMatches,
+  splitSelector,
+} from '../../gateway/console/js/events.js';
 
 class ManualTimers {
   constructor() {
@@ -68,6 +75,7 @@ function mux(options = {}) {
     EventSourceImpl: StreamStandIn,
     fetchImpl: null,
     timers,
+    clock: () => timers.now,
     debounceMs: 50,
     backoff: new Backoff({ initial: 500, max: 4000, random: () => 0.5 }),
     onState: (state, detail) => states.push([state, detail?.retryInSeconds ?? null]),
@@ -300,4 +308,47 @@ test('the latest values are bounded and forget what nobody follows', () => {
   stop();
   timers.advance(50);
   assert.deepEqual([...m._latest.values()].map((e) => e.value), ['kept']);
+});
+
+test('the names an error message points at', () => {
+  const unplugged = "device rover1 at tcp://127.0.0.1:44061 is not connected (cannot connect: [Errno 111])";
+  assert.ok(namesIn(unplugged).has('rover1'));
+  assert.ok(namesIn("service 'rover1' is down: it missed 3 liveness checks").has('rover1'));
+  const selectors = ['rover1/speed', 'scout1/speed', 'swarm/robots.rover1.location', '*/location'];
+  assert.deepEqual(namedSelectors(unplugged, selectors), ['rover1/speed', 'swarm/robots.rover1.location']);
+  assert.deepEqual(namedSelectors('the gateway is shutting down', selectors), []);
+});
+
+test('a service that goes away is left out for a growing while, and the rest of the page stays live', () => {
+  const { m, timers, last } = mux();
+  const errors = [];
+  m.subscribe('scout1/speed', { onError: (e) => errors.push(['scout1', e.code]) });
+  m.subscribe('rover1/speed', { onError: (e) => errors.push(['rover1', e.code]) });
+  timers.advance(50);
+  last().emit('open');
+  last().emit('sync', {});
+  const gone = { code: 'UNAVAILABLE', message: "service 'rover1' is down: it missed 3 liveness checks" };
+  last().emit('error', gone);
+  assert.deepEqual(errors, [['rover1', 'UNAVAILABLE']], 'only the subscribers of the service that went away hear it');
+  timers.advance(0);
+  assert.deepEqual(last().selectors(), ['scout1/speed']);
+  last().emit('open');
+  assert.equal(m.state, 'open');
+  const reopened = StreamStandIn.made.length;
+  timers.advance(4999);
+  assert.equal(StreamStandIn.made.length, reopened, 'left out for 5 s');
+  timers.advance(1);
+  assert.deepEqual(last().selectors(), ['rover1/speed', 'scout1/speed'], 'then tried again');
+  last().emit('error', gone); // still away: twice as long
+  timers.advance(0);
+  last().emit('open');
+  const again = StreamStandIn.made.length;
+  timers.advance(9999);
+  assert.equal(StreamStandIn.made.length, again);
+  timers.advance(1);
+  assert.deepEqual(last().selectors(), ['rover1/speed', 'scout1/speed']);
+  last().emit('open');
+  last().emit('sync', {}); // back: a later failure starts from 5 s again
+  assert.equal(m._quarantine.size, 0);
+  assert.equal(m.subscriptions.size, 2, 'nobody lost a subscription');
 });

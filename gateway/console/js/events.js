@@ -45,6 +45,27 @@ export function selectorMatches(selector, service, path) {
   return patternMatches(s, service, '\u0000') && patternMatches(p, path, '.');
 }
 
+/**
+ * The service and property names an error message points at: quoted ('rover1') or after
+ * "device" / "service" ("device rover1 at tcp://…"). The gateway's Listen errors name what failed.
+ */
+export function namesIn(message) {
+  const names = new Set();
+  for (const m of String(message ?? '').matchAll(/'([A-Za-z0-9_.-]{1,256})'|\b(?:device|service)\s+([A-Za-z0-9_-]{1,64})/g)) {
+    names.add(m[1] ?? m[2]);
+  }
+  return names;
+}
+
+/** The selectors an error message names: by their service, or by a segment of their path. */
+export function namedSelectors(message, selectors) {
+  const names = namesIn(message);
+  return [...selectors].filter((selector) => {
+    const [service, path] = splitSelector(selector);
+    return names.has(service) || path.split('.').some((segment) => segment !== '*' && names.has(segment));
+  });
+}
+
 /** The stream's URL for these selectors, in a stable order. */
 export function eventsUrl(selectors, base = EVENTS_URL) {
   const query = new URLSearchParams();
@@ -66,8 +87,12 @@ export class EventMux {
     backoff = new Backoff(),
     onState = () => {},
     timers = globalThis,
+    clock = () => Date.now(),
   } = {}) {
-    Object.assign(this, { url, EventSourceImpl, fetchImpl, debounceMs, maxSelectors, backoff, onState, timers });
+    Object.assign(this, { url, EventSourceImpl, fetchImpl, debounceMs, maxSelectors, backoff, onState, timers, clock });
+    /** selector -> {until, backoff}: left out of the stream for a while (its service failed). */
+    this._quarantine = new Map();
+    this._readmitTimer = null;
     /** selector -> Set of subscriptions ({onValue, onSync, onError}). */
     this.subscriptions = new Map();
     this.state = 'closed';
@@ -112,8 +137,24 @@ export class EventMux {
     if (!subs || !subs.delete(sub)) return;
     if (!subs.size) {
       this.subscriptions.delete(selector);
+      this._quarantine.delete(selector);
       this._schedule(this.debounceMs);
     }
+  }
+
+  /** The selectors the stream should carry now: every subscription but those left out for a while. */
+  _wanted() {
+    const now = this.clock();
+    return new Set([...this.subscriptions.keys()].filter((s) => !(this._quarantine.get(s)?.until > now)));
+  }
+
+  /** Take the selectors whose time out is over back into the stream, and wait for the next ones. */
+  _readmit() {
+    this._readmitTimer = null;
+    const now = this.clock();
+    const later = [...this._quarantine.values()].map((q) => q.until).filter((until) => until > now);
+    if (later.length) this._readmitTimer = this.timers.setTimeout(() => this._readmit(), Math.min(...later) - now);
+    this._schedule(0);
   }
 
   /** Close the stream but keep the subscriptions (the page is hidden in the back-forward cache). */
@@ -158,7 +199,7 @@ export class EventMux {
   }
 
   _open() {
-    const selectors = new Set(this.subscriptions.keys());
+    const selectors = this._wanted();
     const same =
       selectors.size === this._streamSelectors.size && [...selectors].every((s) => this._streamSelectors.has(s));
     if (same && this.source && this.source.readyState !== 2) return; // already following exactly these
@@ -236,6 +277,8 @@ export class EventMux {
   _clearTimers() {
     if (this._reopenTimer !== null) this.timers.clearTimeout(this._reopenTimer);
     this._reopenTimer = null;
+    if (this._readmitTimer !== null) this.timers.clearTimeout(this._readmitTimer);
+    this._readmitTimer = null;
   }
 
   _setState(state, detail = {}) {
@@ -286,7 +329,10 @@ export class EventMux {
   }
 
   _onSync() {
-    for (const selector of this._streamSelectors) this._confirmed.add(selector);
+    for (const selector of this._streamSelectors) {
+      this._confirmed.add(selector);
+      this._quarantine.delete(selector); // it works again: a later failure starts a short time out
+    }
     this.backoff.reset();
     this._errorsInRow = 0;
     for (const subs of this.subscriptions.values()) for (const sub of subs) sub.onSync();
@@ -316,6 +362,26 @@ export class EventMux {
         this.subscriptions.delete(selector);
         for (const sub of subs ?? []) sub.onError(error);
       }
+      this._schedule(0);
+      return;
+    }
+    // A service that went away (a device unplugged) fails every Listen naming it: leave the
+    // selectors its error names out for a growing while, and keep the rest of the page live.
+    const named = namedSelectors(error?.message, this._streamSelectors);
+    if (named.length && named.length < this._streamSelectors.size) {
+      const now = this.clock();
+      for (const selector of named) {
+        const q = this._quarantine.get(selector) ?? {
+          backoff: new Backoff({ initial: 5000, max: 60000, random: this.backoff.random }),
+        };
+        q.until = now + q.backoff.next();
+        this._quarantine.set(selector, q);
+        for (const sub of this.subscriptions.get(selector) ?? []) sub.onError(error);
+      }
+      if (this._readmitTimer !== null) this.timers.clearTimeout(this._readmitTimer);
+      this._readmitTimer = null;
+      const soonest = Math.min(...named.map((sel) => this._quarantine.get(sel).until));
+      this._readmitTimer = this.timers.setTimeout(() => this._readmit(), soonest - now);
       this._schedule(0);
       return;
     }

@@ -17,6 +17,8 @@ const CLICK_SLOP_PX = 5;
 /** A target counts as reached within this distance (m); its marker then goes. */
 const ARRIVED_M = 0.05;
 const MOVABLE_TYPES = new Set(['mobile_robot', 'group']);
+/** Types that have a location by their standard property set, even before the registry saw one. */
+const LOCATED_TYPES = new Set(['mobile_robot', 'group', 'sensor']);
 
 function colorOf(text) {
   try {
@@ -38,6 +40,8 @@ export class RobotMap {
     this.poses = new Map(); // service -> [x y z roll pitch yaw]
     this.targets = new Map(); // service -> [x, y]
     this.markers = new Map(); // "service/path" -> [{location, label, color}]
+    this.stale = new Set(); // services shown where last seen: not up, or their Listen failed
+    this._locationSubs = new Map(); // service -> unsubscribe
     this._described = new Set();
     this._markerSubs = new Map();
     this.view = { cx: 2, cy: 0, scale: 60 }; // metres at the centre; pixels per metre
@@ -57,14 +61,7 @@ export class RobotMap {
   }
 
   start() {
-    let fitted = false;
-    this.mux.subscribe('*/location', {
-      onValue: (event) => this.located(event),
-      onSync: () => {
-        if (!fitted && this.poses.size) this.fit(); // the first snapshot: everyone in sight
-        fitted = true;
-      },
-    });
+    this._fitted = false;
   }
 
   // -- data ----------------------------------------------------------------------------------
@@ -80,6 +77,7 @@ export class RobotMap {
     }
     if (pose && pose.length >= 2) this.poses.set(service, pose);
     else this.poses.delete(service);
+    this.stale.delete(service);
     const target = this.targets.get(service);
     if (target && pose && Math.hypot(pose[0] - target[0], pose[1] - target[1]) < ARRIVED_M) {
       this.targets.delete(service);
@@ -90,9 +88,46 @@ export class RobotMap {
   }
 
   /** The list of services changed: drop the gone, read the models of the new for markers. */
+  /**
+   * The list of services changed. The map follows `NAME/location` of every service that is up
+   * (one selector per service, so that one that goes away costs only its own); one that is not
+   * up stays where the registry last saw it, greyed. It drops the gone, and reads the models of
+   * the new for marker properties.
+   */
   servicesChanged(list) {
     const names = new Set(list.map((s) => s.name));
+    const follow = new Set(
+      list.filter((s) => s.state === 'up' && (s.location !== null || LOCATED_TYPES.has(s.type))).map((s) => s.name),
+    );
+    for (const [name, unsubscribe] of this._locationSubs) {
+      if (!follow.has(name)) {
+        unsubscribe();
+        this._locationSubs.delete(name);
+      }
+    }
+    for (const name of follow) {
+      if (this._locationSubs.has(name)) continue;
+      this._locationSubs.set(
+        name,
+        this.mux.subscribe(`${name}/location`, {
+          onValue: (event) => this.located(event),
+          onSync: () => {
+            if (!this._fitted && this.poses.size) this.fit(); // the first snapshot: everyone in sight
+            this._fitted = true;
+          },
+          onError: () => {
+            this.stale.add(name);
+            this.drawRobot(name);
+          },
+        }),
+      );
+    }
     for (const name of [...this.poses.keys()]) if (!names.has(name)) this.poses.delete(name);
+    for (const s of list) {
+      if (follow.has(s.name)) continue;
+      this.stale.add(s.name);
+      if (Array.isArray(s.location) && s.location.length >= 2) this.poses.set(s.name, s.location);
+    }
     for (const [selector, unsubscribe] of this._markerSubs) {
       if (!names.has(selector.split('/')[0])) {
         unsubscribe();
@@ -331,6 +366,7 @@ export class RobotMap {
     const s = 1 / this.view.scale; // shapes keep their size in pixels when zooming
     g.setAttribute('transform', `translate(${x} ${y})`);
     g.classList.toggle('selected', name === this.selected());
+    g.classList.toggle('stale', this.stale.has(name));
     g.querySelector('title').textContent = `${name} (${type}) at x ${x.toFixed(2)} y ${y.toFixed(2)}`;
     g.querySelector('.shape').setAttribute('transform', `scale(${s}) rotate(${(yaw * 180) / Math.PI})`);
     g.querySelector('text').setAttribute('transform', `translate(${12 * s} ${10 * s}) scale(${s} ${-s})`);

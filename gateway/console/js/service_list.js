@@ -55,7 +55,10 @@ export class ServiceList {
     this._unsubscribe = this.mux.subscribe(`${name}/revision`, {
       onValue: () => this.refreshSoon(),
       onSync: () => this.refreshSoon(), // after a reconnect: what changed meanwhile
-      onError: (e) => this.status(`cannot follow the registry: ${e.code}: ${e.message}`),
+      onError: (e) => {
+        this.status(`cannot follow the registry: ${e.code}: ${e.message}`);
+        this.refreshSoon(); // what changed may be why: a service that went away
+      },
     });
   }
 

@@ -35,6 +35,14 @@ export class ServiceView {
       this.root.replaceChildren(h('p', { class: 'muted' }, 'Select a service to see its properties.'));
       return;
     }
+    if (service.state !== 'up') {
+      // A service that is not up cannot describe itself; its view is built when it comes up.
+      this.root.replaceChildren(
+        this.header(service),
+        h('p', { class: 'muted notice' }, `${service.name} is ${service.state ?? 'unknown'}: its properties show when it is up.`),
+      );
+      return;
+    }
     this.root.replaceChildren(this.header(service), h('p', { class: 'muted' }, 'Loading the model…'));
     let model;
     try {
@@ -174,7 +182,13 @@ export class ServiceView {
   /** The service's state changed in the list. */
   updateState(service) {
     if (!this.service || service?.name !== this.service.name) return;
+    const was = this.service.state;
     this.service = service;
+    this.root.classList.toggle('service-down', service.state !== 'up');
+    if (was !== 'up' && service.state === 'up') {
+      this.show(service); // back: its model and values anew
+      return;
+    }
     const badge = this.root.querySelector('.view-head .badge');
     if (badge) {
       badge.dataset.state = service.state ?? 'unknown';
