@@ -430,6 +430,13 @@ def test_a_service_registered_at_run_time_appears_goes_down_and_goes(page: Any, 
         device.wait(5)
         wait_for(page, lambda d: state(d) == "down", '[data-service="probe1"][data-state="down"] once dead')
         assert client.get("registry", "services.probe1.state") == "down"
+        # The dead device takes nothing else down: the page still hears scout1.
+        select(page, "scout1")
+        client.set("scout1", "speed", 0.55)
+        try:
+            wait_for(page, lambda d: shown(d, "speed") == "0.55", "scout1's speed set while probe1 is down")
+        finally:
+            client.set("scout1", "speed", 0.5)
         assert client.set("registry", "services.probe1", "") == ""
         wait_for(page, lambda d: state(d) is None, "probe1 gone from the list once unregistered")
     assert "probe1" not in parse_names(client.get("registry", "services"))
