@@ -273,6 +273,31 @@ def test_a_click_on_the_map_drives_a_group_in_the_chosen_formation(page: Any, cl
         eventually(lambda n=name: velocity(client, n), lambda v: not v.any(), f"{name} stopped")
 
 
+@pytest.mark.parametrize("selected", ["scout1", "swarm"])
+def test_the_stop_button_ends_a_moveto(page: Any, client: Client, selected: str) -> None:
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    robots = ("scout1", "scout2") if selected == "swarm" else (selected,)
+    select(page, selected)
+    ActionChains(page).move_to_element_with_offset(page.find_element(CSS, "#map"), 150, 100).click().perform()
+    try:
+        for name in robots:
+            eventually(lambda n=name: velocity(client, n), lambda v: v.any(), f"{name} on its way")
+        page.find_element(CSS, "#teleop-stop").click()
+        for name in robots:
+            eventually(
+                lambda n=name: velocity(client, n),
+                lambda v: not v.any(),
+                f"{name} stopped by the Stop button",
+                within=STOP_WITHIN,
+            )
+        still = {name: client.get(name, "location") for name in robots}
+        time.sleep(0.3)  # a robot still on its way would have moved meanwhile
+        assert {name: client.get(name, "location") for name in robots} == still, "and stays stopped"
+    finally:
+        client.set("swarm", "behaviors.stop", "")
+
+
 def test_a_set_from_grpcurl_shows_up_on_the_page(
     page: Any, client: Client, grpcurl: str, console_gateway: ConsoleGateway
 ) -> None:
