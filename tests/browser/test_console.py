@@ -401,6 +401,28 @@ def test_the_joystick_drives_and_letting_go_stops(page: Any, client: Client) -> 
         client.set("scout2", "velocity_timeout", 0.5)
 
 
+def test_a_robot_selected_after_a_group_drives_along_its_heading(page: Any, client: Client) -> None:
+    """docs/console.md: "along the heading" is a robot's default, "as on the map" a group's."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+
+    select(page, "swarm")
+    select(page, "scout2")
+    assert page.find_element(CSS, "#teleop-mode").get_attribute("value") == "heading"
+    blur(page)
+    try:
+        ActionChains(page).key_down(Keys.ARROW_UP).perform()
+        v = eventually(lambda: velocity(client, "scout2"), lambda v: v.any(), "scout2 drives")
+        yaw = float(np.asarray(client.get_vector("scout2", "location"))[5])
+        heading = np.array([np.cos(yaw), np.sin(yaw)])
+        assert float(v[:2] @ heading) > 0 and abs(float(np.cross(heading, v[:2]))) < 0.05, (
+            f"velocity {v[:2]} is not along the heading {heading}"
+        )
+    finally:
+        ActionChains(page).key_up(Keys.ARROW_UP).perform()
+    eventually(lambda: velocity(client, "scout2"), lambda v: not v.any(), "scout2 stops", within=STOP_WITHIN)
+
+
 @pytest.mark.parametrize("how", ["navigate away", "close the tab"])
 def test_losing_the_page_stops_a_teleoperated_robot(
     page: Any, client: Client, console_gateway: ConsoleGateway, how: str
