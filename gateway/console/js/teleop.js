@@ -45,6 +45,11 @@ export class Teleop {
     this._bindKeys();
     this._bindPage();
     els.stop.addEventListener('click', () => this.release(true));
+    // Until the operator picks a stick mode, each selection gets its kind's default.
+    this.modeChosen = false;
+    els.mode.addEventListener('change', () => {
+      this.modeChosen = true;
+    });
   }
 
   target() {
@@ -60,7 +65,9 @@ export class Teleop {
     const t = this.target();
     this.els.target.textContent = t ? `${t.name} (${t.type === 'group' ? 'group' : 'robot'})` : 'no robot selected';
     this.els.root.classList.toggle('disabled', !t);
+    // A group has no heading; a robot drives along its own unless the operator chose the map.
     if (t?.type === 'group' && this.els.mode.value === 'heading') this.els.mode.value = 'map';
+    else if (t?.type === 'mobile_robot' && !this.modeChosen) this.els.mode.value = 'heading';
   }
 
   // -- input ---------------------------------------------------------------------------------
