@@ -415,7 +415,7 @@ def test_a_robot_selected_after_a_group_drives_along_its_heading(page: Any, clie
         v = eventually(lambda: velocity(client, "scout2"), lambda v: v.any(), "scout2 drives")
         yaw = float(np.asarray(client.get_vector("scout2", "location"))[5])
         heading = np.array([np.cos(yaw), np.sin(yaw)])
-        assert float(v[:2] @ heading) > 0 and abs(float(np.cross(heading, v[:2]))) < 0.05, (
+        assert float(v[:2] @ heading) > 0 and abs(float(heading[0] * v[1] - heading[1] * v[0])) < 0.05, (
             f"velocity {v[:2]} is not along the heading {heading}"
         )
     finally:
