@@ -2,7 +2,8 @@
 
 * ``console_gateway`` (per module): ``psgateway serve`` with a small world
   (``console_support.CONFIG``: scout1, scout2, thermo1 and the group ``swarm``)
-  and ``--http 127.0.0.1:0``; ``.address`` is the gRPC address, ``.url`` the console's.
+  and ``--http 127.0.0.1:0``; ``.address`` is the gRPC address, ``.url`` the console's;
+  ``client`` (per module) the SDK's blocking client of it.
 * ``browser`` (per session): the Selenium driver of Debian's Chromium
   (``PS_CHROMIUM`` and ``PS_CHROMEDRIVER`` name other paths). When Chromium,
   chromedriver or Selenium is missing, every test here skips, and the skip
@@ -29,11 +30,20 @@ from console_support import (
     wait_for,
 )
 
+from clients.sync import Client
+
 
 @pytest.fixture(scope="module")
 def console_gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ConsoleGateway]:
     with console_gateway_process(tmp_path_factory.mktemp("console")) as gw:
         yield gw
+
+
+@pytest.fixture(scope="module")
+def client(console_gateway: ConsoleGateway) -> Iterator[Client]:
+    """The SDK's blocking client of the module's gateway: how a test checks what the page did."""
+    with Client(console_gateway.address, timeout=10.0) as c:
+        yield c
 
 
 @pytest.fixture(scope="session")

@@ -20,7 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numpy as np
 from support.gateway_process import GatewayProcess, start_gateway
+
+from clients.sync import Client
 
 ROOT = Path(__file__).resolve().parents[2]
 #: Debian's paths; PS_CHROMIUM and PS_CHROMEDRIVER name others (a Chromium and its matching driver).
@@ -77,6 +80,10 @@ options = { query = { type = "mobile_robot" } }
 """
 
 T = TypeVar("T")
+CSS = "css selector"
+#: Seconds within which the page must stop a robot (a key let go, the Stop button, the page
+#: gone) whose velocity command would otherwise hold much longer: only the page can have done it.
+STOP_WITHIN = 3.0
 
 
 def missing_browser(chromium: Path = CHROMIUM, chromedriver: Path = CHROMEDRIVER) -> str | None:
@@ -222,3 +229,91 @@ def device_process(*args: str) -> Iterator[tuple[subprocess.Popen[str], str]]:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(5)
+
+
+# -- the page, through the DOM hooks of the console's contract ------------------------------------
+
+
+def service(driver: Any, name: str) -> Any:
+    return driver.find_element(CSS, f'#services [data-service="{name}"]')
+
+
+def select(driver: Any, name: str) -> None:
+    """Click a service in the list and wait for its properties in the service view."""
+    # The list is drawn anew when the registry changes: a click on an element just replaced
+    # is stale, and the wait tries again.
+    wait_for(driver, lambda d: service(d, name).click() or True, f"a click on {name} in the service list")
+    wait_for(
+        driver,
+        lambda d: d.find_elements(CSS, "#service-view [data-property]"),
+        f"the properties of {name} in #service-view",
+    )
+
+
+def prop(driver: Any, path: str) -> Any:
+    return driver.find_element(CSS, f'#service-view [data-property="{path}"]')
+
+
+def shown(driver: Any, path: str) -> str:
+    """The value text the service view shows for ``path``."""
+    text: str = prop(driver, path).find_element(CSS, ".value").text
+    return text.strip()
+
+
+def set_from_page(driver: Any, path: str, text: str) -> None:
+    """Type ``text`` into the property's input and press its Set button."""
+    widget = wait_for(driver, lambda d: prop(d, path), f"[data-property={path}] in #service-view")
+    field = widget.find_element(CSS, "input, select, textarea")
+    field.clear()
+    field.send_keys(text)
+    widget.find_element(CSS, '[data-action="set"]').click()
+
+
+def pose_on_map(driver: Any, robot: str) -> str | None:
+    """The ``transform`` of the robot's ``<g>`` on the map (read in one script: the map redraws it)."""
+    found: str | None = driver.execute_script(
+        'const g = document.querySelector(`#map [data-robot="${arguments[0]}"]`);'
+        "return g ? g.getAttribute('transform') : null",
+        robot,
+    )
+    return found
+
+
+def target_on_map(driver: Any, robot: str) -> str | None:
+    """The ``transform`` of the mark of where a map click sent the robot."""
+    found: str | None = driver.execute_script(
+        'const g = document.querySelector(`#map [data-target="${arguments[0]}"]`);'
+        "return g ? g.getAttribute('transform') : null",
+        robot,
+    )
+    return found
+
+
+def translation(transform: str) -> np.ndarray:
+    """(x, y) of an SVG ``translate(x y)``."""
+    m = re.fullmatch(r"translate\(\s*(\S+?)[\s,]+(\S+?)\s*\)", transform.strip())
+    assert m, transform
+    return np.array([float(m.group(1)), float(m.group(2))])
+
+
+def blur(driver: Any) -> None:
+    """Take the focus off any input, so that keys go to the page (teleop)."""
+    driver.execute_script("document.activeElement && document.activeElement.blur()")
+
+
+# -- the robots, through gRPC ---------------------------------------------------------------------
+
+
+def velocity(client: Client, robot: str) -> np.ndarray:
+    return np.asarray(client.get_vector(robot, "velocity"))
+
+
+def forward(client: Client, robot: str) -> float:
+    """The robot's speed along its heading (velocity is in the world frame, yaw in its location)."""
+    v = velocity(client, robot)
+    yaw = float(np.asarray(client.get_vector(robot, "location"))[5])
+    return float(v[0] * np.cos(yaw) + v[1] * np.sin(yaw))
+
+
+def xy(client: Client, robot: str) -> np.ndarray:
+    return np.asarray(client.get_vector(robot, "location"))[:2]

@@ -23,19 +23,10 @@ def test_a_missing_chromium_or_driver_is_named(tmp_path: Path) -> None:
     assert str(not_executable) in reason
 
 
-def test_the_console_tests_skip_saying_why(tmp_path: Path) -> None:
-    """A pytest run of the console tests with no driver: every test skips, and the reason is shown."""
+def test_the_browser_tests_skip_saying_why(tmp_path: Path) -> None:
+    """A pytest run of the browser tests with no driver: every one skips, and the reason is shown."""
     done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pytest",
-            "-q",
-            "-rs",
-            "-p",
-            "no:cacheprovider",
-            "tests/browser/test_console.py",
-        ],
+        [sys.executable, "-m", "pytest", "-q", "-rs", "-m", "browser", "tests/browser"],
         cwd=ROOT,
         env={**os.environ, "PS_CHROMEDRIVER": str(tmp_path / "no-chromedriver")},
         capture_output=True,
