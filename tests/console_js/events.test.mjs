@@ -317,6 +317,8 @@ test('the names an error message points at', () => {
   const selectors = ['rover1/speed', 'scout1/speed', 'swarm/robots.rover1.location', '*/location'];
   assert.deepEqual(namedSelectors(unplugged, selectors), ['rover1/speed', 'swarm/robots.rover1.location']);
   assert.deepEqual(namedSelectors('the gateway is shutting down', selectors), []);
+  // rover1 is named by no selector but the wildcard service reached it.
+  assert.deepEqual(namedSelectors(unplugged, ['scout1/speed', '*/location']), ['*/location']);
 });
 
 test('a service that goes away is left out for a growing while, and the rest of the page stays live', () => {
@@ -351,4 +353,58 @@ test('a service that goes away is left out for a growing while, and the rest of 
   last().emit('sync', {}); // back: a later failure starts from 5 s again
   assert.equal(m._quarantine.size, 0);
   assert.equal(m.subscriptions.size, 2, 'nobody lost a subscription');
+});
+
+test('a gateway that allows fewer selectors says so, and the page takes its word', () => {
+  let told = null;
+  const { m, timers, last } = mux({ onLimit: (n) => (told = n) });
+  m.subscribe('a/x', {});
+  timers.advance(50);
+  last().emit('open');
+  last().emit('sync', {});
+  const refused = [];
+  m.subscribe('a/y', { onError: (e) => refused.push(e.code) });
+  m.subscribe('a/z', { onError: (e) => refused.push(e.code) });
+  timers.advance(50);
+  last().emit('error', { code: 'RESOURCE_EXHAUSTED', message: 'a Listen may have at most 2 selectors, this one has 3' });
+  assert.equal(m.maxSelectors, 2);
+  assert.equal(told, 2);
+  assert.deepEqual(refused, ['RESOURCE_EXHAUSTED', 'RESOURCE_EXHAUSTED'], 'the newest subscriptions hear why');
+  timers.advance(0);
+  assert.deepEqual(last().selectors(), ['a/x']);
+});
+
+test('of many new selectors only the one the error names is left out', () => {
+  const { m, timers, last } = mux();
+  m.subscribe('registry/revision', {});
+  timers.advance(50);
+  last().emit('open');
+  last().emit('sync', {});
+  const errors = [];
+  for (const path of ['location', 'robots.scout1', 'robots.rover1', 'robots.scout1.location']) {
+    m.subscribe(`swarm/${path}`, { onError: (e) => errors.push([path, e.code]) });
+  }
+  timers.advance(50);
+  last().emit('error', { code: 'UNAVAILABLE', message: 'device rover1 at tcp://127.0.0.1:1 is not connected' });
+  assert.deepEqual(errors, [['robots.rover1', 'UNAVAILABLE']]);
+  timers.advance(0);
+  assert.deepEqual(last().selectors(), [
+    'registry/revision',
+    'swarm/location',
+    'swarm/robots.scout1',
+    'swarm/robots.scout1.location',
+  ]);
+  assert.ok(m.subscriptions.has('swarm/robots.rover1'), 'kept, to be tried again');
+});
+
+test('a property that does not exist is dropped by the path its error names', () => {
+  const { m, timers, last } = mux();
+  const errors = [];
+  m.subscribe('swarm/sensors', { onError: (e) => errors.push(['sensors', e.code]) });
+  m.subscribe('swarm/sensors.battery', { onError: (e) => errors.push(['battery', e.code]) });
+  timers.advance(50);
+  last().emit('error', { code: 'NOT_FOUND', message: 'unknown property `sensors.battery`: `sensors` has no `battery`' });
+  assert.deepEqual(errors, [['battery', 'NOT_FOUND']]);
+  assert.ok(!m.subscriptions.has('swarm/sensors.battery'));
+  assert.ok(m.subscriptions.has('swarm/sensors'));
 });

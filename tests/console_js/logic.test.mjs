@@ -34,3 +34,26 @@ test('services are grouped by the 5 m square they stand in', () => {
   assert.equal(areaOf(null), 'No location');
   assert.equal(areaOf([]), 'No location');
 });
+
+test('a property gets the widget of its .gui, else of its access and type, and a registered one wins', async () => {
+  await import('../../gateway/console/js/builtin_widgets.js');
+  const { registerWidget, widgetFor, widgetNames } = await import('../../gateway/console/js/widgets.js');
+  const named = (prop) => widgetFor(prop).name;
+  assert.equal(named({ name: 'speed', type: 'number', access: 'read-write', gui: 'slider' }), 'sliderWidget');
+  assert.equal(named({ name: 'data', type: 'number', access: 'read', gui: 'plot' }), 'plotWidget');
+  assert.equal(named({ name: 'led', type: 'boolean', access: 'read-write', gui: '' }), 'switchWidget');
+  assert.equal(named({ name: 'x', type: 'vectors', access: 'read', gui: 'nosuch' }), 'listWidget');
+  assert.equal(named({ name: 'odd', type: 'bytes', access: 'read', gui: '' }), 'textWidget');
+  assert.equal(named({ name: 'behaviors.moveto', type: 'none', access: 'action', gui: 'button' }), 'buttonWidget');
+  assert.equal(named({ name: 'find', type: 'names', access: 'query', gui: 'names' }), 'queryWidget');
+  function cameraWidget() {
+    return { element: null };
+  }
+  registerWidget('camera', cameraWidget);
+  assert.equal(named({ name: 'frame', type: 'bytes', access: 'read', gui: 'camera' }), 'cameraWidget');
+  registerWidget('pose', cameraWidget); // a registered widget replaces the built-in one
+  assert.equal(named({ name: 'location', type: 'vector', access: 'read', gui: 'pose' }), 'cameraWidget');
+  assert.ok(widgetNames().includes('camera'));
+  assert.throws(() => registerWidget('bad name', cameraWidget), /1 to 64 letters/);
+  assert.throws(() => registerWidget('x', 'not a function'), /must be a function/);
+});

@@ -13,8 +13,11 @@
 import { Backoff } from './backoff.js';
 
 export const EVENTS_URL = '/api/v1/events';
-/** Selectors one page follows at most: the gateway bounds the topics of one Listen too. */
-export const MAX_SELECTORS = 256;
+/**
+ * Selectors one page follows at most: the gateway's default `[limits] max_selectors` for one
+ * Listen. A gateway configured lower says so in its error, and the page takes its word.
+ */
+export const MAX_SELECTORS = 64;
 /** Latest events kept for subscribers that join a selector the stream already follows. */
 export const MAX_CACHED = 4096;
 /** Native errors in a row before the watchdog replaces EventSource's own fixed-delay retry. */
@@ -51,19 +54,29 @@ export function selectorMatches(selector, service, path) {
  */
 export function namesIn(message) {
   const names = new Set();
-  for (const m of String(message ?? '').matchAll(/'([A-Za-z0-9_.-]{1,256})'|\b(?:device|service)\s+([A-Za-z0-9_-]{1,64})/g)) {
-    names.add(m[1] ?? m[2]);
-  }
+  const pattern = /'([A-Za-z0-9_.-]{1,256})'|`([A-Za-z0-9_.-]{1,256})`|\b(?:device|service)\s+([A-Za-z0-9_-]{1,64})/g;
+  for (const m of String(message ?? '').matchAll(pattern)) names.add(m[1] ?? m[2] ?? m[3]);
   return names;
 }
 
-/** The selectors an error message names: by their service, or by a segment of their path. */
+/**
+ * The selectors an error message names: those whose whole path it names if any, else those
+ * whose service or a segment of whose path it names.
+ */
 export function namedSelectors(message, selectors) {
   const names = namesIn(message);
-  return [...selectors].filter((selector) => {
-    const [service, path] = splitSelector(selector);
-    return names.has(service) || path.split('.').some((segment) => segment !== '*' && names.has(segment));
-  });
+  const all = [...selectors].map((selector) => [selector, ...splitSelector(selector)]);
+  const exact = all.filter(([, , path]) => !path.includes('*') && names.has(path));
+  // "`sensors.battery`: `sensors` has no `battery`" names the deeper one: a namespace named
+  // beside a property under it is where the property was looked for, not what failed.
+  const deepest = exact.filter(([, , path]) => !exact.some(([, , other]) => other.startsWith(`${path}.`)));
+  if (deepest.length) return deepest.map(([selector]) => selector);
+  const named = all.filter(
+    ([, service, path]) => names.has(service) || path.split('.').some((seg) => seg !== '*' && names.has(seg)),
+  );
+  if (named.length || !names.size) return named.map(([selector]) => selector);
+  // A name no selector spells: a wildcard service (*/location) reached it.
+  return all.filter(([, service]) => service === '*').map(([selector]) => selector);
 }
 
 /** The stream's URL for these selectors, in a stable order. */
@@ -88,8 +101,11 @@ export class EventMux {
     onState = () => {},
     timers = globalThis,
     clock = () => Date.now(),
+    onLimit = () => {},
   } = {}) {
     Object.assign(this, { url, EventSourceImpl, fetchImpl, debounceMs, maxSelectors, backoff, onState, timers, clock });
+    /** Hears the gateway's selector limit when a stream was refused for passing it. */
+    this.onLimit = onLimit;
     /** selector -> {until, backoff}: left out of the stream for a while (its service failed). */
     this._quarantine = new Map();
     this._readmitTimer = null;
@@ -109,7 +125,8 @@ export class EventMux {
 
   /**
    * Follow `selector`; returns a function that ends this subscription. Handlers:
-   * onValue({service, path, value, gap, removed, time}), onSync(), onError({code, message}).
+   * onValue({service, path, value, gap, removed, time}), onSync(), and onError({code, message},
+   * {dropped}): `dropped` when the subscription has ended (else it is tried again later).
    */
   subscribe(selector, { onValue = () => {}, onSync = () => {}, onError = () => {} } = {}) {
     splitSelector(selector);
@@ -355,38 +372,47 @@ export class EventMux {
 
   _failed(error) {
     this._closeSource();
+    const limit = /at most (\d+) selectors/.exec(error?.message ?? '');
+    if (error?.code === 'RESOURCE_EXHAUSTED' && limit) {
+      this.maxSelectors = Math.max(1, Number(limit[1])); // the newest (the suspects) go below
+      this.onLimit(this.maxSelectors);
+    }
+    // The culprits: the selectors the error names (a Listen error names the service or the
+    // property that failed), else those added since the last good snapshot.
+    const named = namedSelectors(error?.message, this._streamSelectors);
     const suspects = [...this._streamSelectors].filter((s) => !this._confirmed.has(s));
-    if (suspects.length) {
-      for (const selector of suspects) {
-        const subs = this.subscriptions.get(selector);
-        this.subscriptions.delete(selector);
-        for (const sub of subs ?? []) sub.onError(error);
-      }
-      this._schedule(0);
+    let culprits = named.length < this._streamSelectors.size ? named : [];
+    if (!culprits.length) culprits = suspects;
+    if (!culprits.length) {
+      for (const subs of this.subscriptions.values()) for (const sub of subs) sub.onError(error);
+      this._retryLater();
       return;
     }
-    // A service that went away (a device unplugged) fails every Listen naming it: leave the
-    // selectors its error names out for a growing while, and keep the rest of the page live.
-    const named = namedSelectors(error?.message, this._streamSelectors);
-    if (named.length && named.length < this._streamSelectors.size) {
-      const now = this.clock();
-      for (const selector of named) {
+    // A service that cannot be reached now (a device unplugged) is left out for a growing while
+    // and tried again; anything else (no such property, not allowed) is dropped: its
+    // subscribers hear why, and the rest of the page stays live.
+    const transient = ['UNAVAILABLE', 'DEADLINE_EXCEEDED'].includes(error?.code);
+    const now = this.clock();
+    for (const selector of culprits) {
+      const subs = this.subscriptions.get(selector);
+      if (transient) {
         const q = this._quarantine.get(selector) ?? {
           backoff: new Backoff({ initial: 5000, max: 60000, random: this.backoff.random }),
         };
         q.until = now + q.backoff.next();
         this._quarantine.set(selector, q);
-        for (const sub of this.subscriptions.get(selector) ?? []) sub.onError(error);
+      } else {
+        this.subscriptions.delete(selector);
+        this._quarantine.delete(selector);
       }
-      if (this._readmitTimer !== null) this.timers.clearTimeout(this._readmitTimer);
-      this._readmitTimer = null;
-      const soonest = Math.min(...named.map((sel) => this._quarantine.get(sel).until));
-      this._readmitTimer = this.timers.setTimeout(() => this._readmit(), soonest - now);
-      this._schedule(0);
-      return;
+      for (const sub of subs ?? []) sub.onError(error, { dropped: !transient });
     }
-    for (const subs of this.subscriptions.values()) for (const sub of subs) sub.onError(error);
-    this._retryLater();
+    if (transient) {
+      if (this._readmitTimer !== null) this.timers.clearTimeout(this._readmitTimer);
+      const soonest = Math.min(...[...this._quarantine.values()].map((q) => q.until).filter((u) => u > now));
+      this._readmitTimer = this.timers.setTimeout(() => this._readmit(), soonest - now);
+    }
+    this._schedule(0);
   }
 
   _onConnectionError(url) {

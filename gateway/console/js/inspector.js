@@ -100,9 +100,9 @@ export class Inspector {
       this.unlisten = this.mux.subscribe(selector, {
         onValue: (event) => this.logEvent(event),
         onSync: () => this.logLine('sync', 'snapshot complete; changes follow'),
-        onError: (e) => {
-          this.logLine('error', `${e.code}: ${e.message}`);
-          this.stopListening(false);
+        onError: (e, { dropped = true } = {}) => {
+          this.logLine('error', `${e.code}: ${e.message}${dropped ? '' : ' (tried again shortly)'}`);
+          if (dropped) this.stopListening(false);
         },
       });
     } catch (e) {

@@ -22,6 +22,8 @@ const connection = $('#connection');
 const CONNECTION_TEXT = { open: 'live', connecting: 'connecting…', closed: 'disconnected' };
 
 const mux = new EventMux({
+  // The gateway allows fewer selectors per Listen than the page asked for: lay the view out again.
+  onLimit: () => setTimeout(() => selected() && view.show(selected()), 0),
   onState(state, detail) {
     connection.dataset.state = state;
     const retry = detail?.retryInSeconds ? ` · retry in ${detail.retryInSeconds} s` : '';
@@ -90,7 +92,7 @@ const teleop = new Teleop(
     stop: $('#teleop-stop'),
     target: $('#teleop-target'),
   },
-  { selected, poseOf: (name) => map.poses.get(name) ?? null },
+  { selected, poseOf: (name) => map.poses.get(name) ?? null, onDrive: (name) => map.forgetTarget(name) },
 );
 
 const inspector = new Inspector(

@@ -16,6 +16,8 @@ const MAX_MARKER_PROPERTIES = 32;
 const CLICK_SLOP_PX = 5;
 /** A target counts as reached within this distance (m); its marker then goes. */
 const ARRIVED_M = 0.05;
+/** A target not reached in this long (a group's centroid need not land on it) is no longer drawn. */
+const TARGET_TTL_MS = 120000;
 const MOVABLE_TYPES = new Set(['mobile_robot', 'group']);
 /** Types that have a location by their standard property set, even before the registry saw one. */
 const LOCATED_TYPES = new Set(['mobile_robot', 'group', 'sensor']);
@@ -79,7 +81,8 @@ export class RobotMap {
     else this.poses.delete(service);
     this.stale.delete(service);
     const target = this.targets.get(service);
-    if (target && pose && Math.hypot(pose[0] - target[0], pose[1] - target[1]) < ARRIVED_M) {
+    const arrived = target && pose && Math.hypot(pose[0] - target[0], pose[1] - target[1]) < ARRIVED_M;
+    if (target && (arrived || this.clock() - target.at > TARGET_TTL_MS)) {
       this.targets.delete(service);
       this.drawTargets();
     }
@@ -96,9 +99,10 @@ export class RobotMap {
    */
   servicesChanged(list) {
     const names = new Set(list.map((s) => s.name));
-    const follow = new Set(
-      list.filter((s) => s.state === 'up' && (s.location !== null || LOCATED_TYPES.has(s.type))).map((s) => s.name),
-    );
+    const located = list.filter((s) => s.state === 'up' && (s.location !== null || LOCATED_TYPES.has(s.type)));
+    // Many services: one wildcard selector instead of one each (the stream's selectors are bounded).
+    const many = located.length > Math.floor(this.mux.maxSelectors / 2);
+    const follow = new Set(many ? ['*'] : located.map((s) => s.name));
     for (const [name, unsubscribe] of this._locationSubs) {
       if (!follow.has(name)) {
         unsubscribe();
@@ -124,7 +128,7 @@ export class RobotMap {
     }
     for (const name of [...this.poses.keys()]) if (!names.has(name)) this.poses.delete(name);
     for (const s of list) {
-      if (follow.has(s.name)) continue;
+      if (follow.has(s.name) || (many && s.state === 'up')) continue;
       this.stale.add(s.name);
       if (Array.isArray(s.location) && s.location.length >= 2) this.poses.set(s.name, s.location);
     }
@@ -177,6 +181,15 @@ export class RobotMap {
     this.markers.set(selector, shown);
     if (first && shown.length && !this._userMoved) this.fit(); // new things to see, and nobody chose a view
     else this.drawMarkers();
+  }
+
+  clock() {
+    return Date.now();
+  }
+
+  /** `name` is driven by hand now: its click-to-go target is over. */
+  forgetTarget(name) {
+    if (this.targets.delete(name)) this.drawTargets();
   }
 
   typeOf(name) {
@@ -271,7 +284,7 @@ export class RobotMap {
       this.status('Select a robot or a group first: a click on the map sends it there.');
       return;
     }
-    const target = [Number(x.toFixed(2)), Number(y.toFixed(2))];
+    const target = Object.assign([Number(x.toFixed(2)), Number(y.toFixed(2))], { at: this.clock() });
     const parameters = {};
     if (type === 'group') {
       const { formation, spacing } = this.formation();

@@ -6,8 +6,12 @@ import { describe, getProperty, setProperty } from './api.js';
 import { h } from './dom.js';
 import { propertyView } from './widgets.js';
 
-/** Properties one view follows at most; the rest show a note (a group of many robots is big). */
-export const MAX_FOLLOWED = 150;
+/** Selectors a view follows at least, however full the page's stream is. */
+const MIN_FOLLOWED = 8;
+/** Selectors kept free for what comes after the view (the inspector's Listen, new services on the map). */
+const RESERVED_SELECTORS = 6;
+/** Wildcard Gets one view sends to read what it does not follow. */
+const MAX_READ_PATTERNS = 32;
 const LISTENABLE = new Set(['read', 'read-write', 'unknown']);
 
 function namespaceOf(path) {
@@ -82,8 +86,8 @@ export class ServiceView {
     for (const ns of listed) box(ns);
     for (const prop of all) if (prop.type !== 'namespace') box(namespaceOf(prop.name)).leaves.push(prop);
 
-    let followed = 0;
-    const skipped = [];
+    // What is shown gets an update function; which of them are followed live is decided after.
+    const targets = new Map(); // path -> {update(event), error(e)}
     const leafView = (ns, prop) => {
       const view = propertyView(service.name, prop, {
         setProperty,
@@ -91,24 +95,25 @@ export class ServiceView {
         label: ns ? prop.name.slice(ns.length + 1) : prop.name,
       });
       this._views.set(prop.name, view);
-      if (LISTENABLE.has(prop.access)) {
-        if (followed < MAX_FOLLOWED) {
-          followed += 1;
-          this.follow(`${service.name}/${prop.name}`, view);
-        } else {
-          skipped.push(prop.name);
-        }
-      }
+      if (LISTENABLE.has(prop.access)) targets.set(prop.name, leafTarget(view));
       return view.element;
     };
+    const byName = new Map(all.map((p) => [p.name, p]));
     const fieldset = (ns, parent) => {
       const { leaves, subs } = boxes.get(ns);
       const attrs = { class: 'namespace', dataset: { namespace: ns } };
-      if (listed.has(ns)) Object.assign(attrs.dataset, { property: ns, type: 'namespace' });
+      let value = null;
+      if (listed.has(ns)) {
+        // A namespace has a value of its own too (its children's names, a registry entry's URL).
+        const prop = byName.get(ns);
+        Object.assign(attrs.dataset, { property: ns, type: 'namespace', access: prop.access ?? '' });
+        value = h('output', { class: 'value ns-value' });
+        if (LISTENABLE.has(prop.access)) targets.set(ns, outputTarget(value));
+      }
       return h(
         'fieldset',
         attrs,
-        h('legend', {}, parent ? ns.slice(parent.length + 1) : ns),
+        h('legend', { title: byName.get(ns)?.doc || ns }, parent ? ns.slice(parent.length + 1) : ns, value),
         leaves.map((prop) => leafView(ns, prop)),
         subs.sort().map((sub) => fieldset(sub, ns)),
       );
@@ -126,9 +131,25 @@ export class ServiceView {
       );
     }
     for (const ns of top.subs.sort()) sections.push(fieldset(ns, ''));
-    const note = skipped.length
-      ? h('p', { class: 'muted' }, `${skipped.length} more properties are not followed live (limit ${MAX_FOLLOWED}).`)
-      : null;
+    // The gateway bounds the selectors of one Listen ([limits] max_selectors): the view follows
+    // the shallowest properties live within what the page's stream has left, one exact selector
+    // each (so that a member that goes away costs only its own), and reads the rest once.
+    const budget = Math.max(MIN_FOLLOWED, this.mux.maxSelectors - this.mux.subscriptions.size - RESERVED_SELECTORS);
+    const order = [...targets.keys()].sort((a, b) => a.split('.').length - b.split('.').length);
+    const live = order.slice(0, budget);
+    const rest = order.slice(budget);
+    for (const path of live) this.follow(`${service.name}/${path}`, targets.get(path));
+    let note = null;
+    if (rest.length) {
+      const refresh = () => this.readOnce(service.name, rest, targets);
+      note = h(
+        'p',
+        { class: 'muted notice' },
+        `${rest.length} deeper properties are read once, not followed live (the stream's limit is ${this.mux.maxSelectors} selectors). `,
+        h('button', { type: 'button', dataset: { action: 'refresh' }, onclick: refresh }, 'Read again'),
+      );
+      refresh();
+    }
     // replaceChildren, unlike h(), writes a null as the text "null": leave the absent ones out.
     const parts = [
       this.header(service),
@@ -144,23 +165,32 @@ export class ServiceView {
     );
   }
 
-  follow(selector, view) {
+  follow(selector, target) {
     this._unsubscribe.push(
       this.mux.subscribe(selector, {
-        onValue: (event) => {
-          if (view.element.classList.contains('unfollowed')) {
-            view.element.classList.remove('unfollowed'); // followed again after a failure
-            view.element.querySelector('.error').hidden = true;
-          }
-          if (event.removed) view.removed();
-          else view.update(event.value, event);
-        },
-        onError: (e) => {
-          view.element.classList.add('unfollowed');
-          showListenError(view, e);
-        },
+        onValue: (event) => target.update(event),
+        onError: (e) => target.error(e),
       }),
     );
+  }
+
+  /** Read `paths` once with a wildcard Get per namespace (a few requests, not one per property). */
+  async readOnce(service, paths, targets) {
+    const generation = this._generation;
+    const patterns = [...new Set(paths.map((p) => (namespaceOf(p) ? `${namespaceOf(p)}.*` : '*')))];
+    for (const pattern of patterns.slice(0, MAX_READ_PATTERNS)) {
+      let answer;
+      try {
+        answer = await getProperty(service, pattern);
+      } catch (e) {
+        for (const path of paths) if (namespaceOf(path) === namespaceOf(`${pattern}`)) targets.get(path)?.error(e);
+        continue;
+      }
+      if (generation !== this._generation) return;
+      for (const { path, value } of answer.values ?? []) {
+        if (paths.includes(path)) targets.get(path)?.update({ service, path, value });
+      }
+    }
   }
 
   /**
@@ -205,6 +235,38 @@ export class ServiceView {
     this._reloadTimer = null;
     this._propertiesText = null;
   }
+}
+
+/** What a property view does with an event of its path, or with a failure to follow it. */
+function leafTarget(view) {
+  return {
+    update(event) {
+      if (view.element.classList.contains('unfollowed')) {
+        view.element.classList.remove('unfollowed'); // followed again after a failure
+        view.element.querySelector('.error').hidden = true;
+      }
+      if (event.removed) view.removed();
+      else view.update(event.value, event);
+    },
+    error(e) {
+      view.element.classList.add('unfollowed');
+      showListenError(view, e);
+    },
+  };
+}
+
+/** The same for a namespace's own value, shown in its legend. */
+function outputTarget(output) {
+  return {
+    update(event) {
+      output.textContent = event.removed ? '' : event.value;
+      output.title = output.textContent;
+      output.classList.remove('unfollowed');
+    },
+    error() {
+      output.classList.add('unfollowed');
+    },
+  };
 }
 
 function showListenError(view, e) {

@@ -31,10 +31,11 @@ export function velocityFor({ forward, turn, mode, yaw = 0, speed, turnRate }) {
 export class Teleop {
   /**
    * `els`: {root, joystick, knob, status, speed, turn, mode, stop, target}; `selected()` the
-   * selected service ({name, type}); `poseOf(name)` its last location vector.
+   * selected service ({name, type}); `poseOf(name)` its last location vector; `onDrive(name)`
+   * hears when driving a service begins (a velocity command ends its moveto).
    */
-  constructor(els, { selected, poseOf }) {
-    Object.assign(this, { els, selected, poseOf });
+  constructor(els, { selected, poseOf, onDrive = () => {}, setVelocity = sendVelocity, page = globalThis }) {
+    Object.assign(this, { els, selected, poseOf, onDrive, setVelocity, page });
     this.keys = new Set();
     this.stick = null; // {forward, turn} while the joystick is held
     this.timer = null;
@@ -118,7 +119,7 @@ export class Teleop {
   }
 
   _bindKeys() {
-    window.addEventListener('keydown', (e) => {
+    this.page.addEventListener('keydown', (e) => {
       const key = KEYS[e.key.toLowerCase()];
       if (!key || e.ctrlKey || e.metaKey || e.altKey || isTyping(e.target) || !this.target()) return;
       e.preventDefault(); // arrows would scroll the page
@@ -126,7 +127,7 @@ export class Teleop {
       this.keys.add(key);
       this.hold();
     });
-    window.addEventListener('keyup', (e) => {
+    this.page.addEventListener('keyup', (e) => {
       const key = KEYS[e.key.toLowerCase()];
       if (!key || !this.keys.delete(key)) return;
       if (this.keys.size || this.stick) this.hold();
@@ -142,10 +143,10 @@ export class Teleop {
       // Only a robot this page drives is stopped: losing focus must not end another's moveto.
       this.release(false, true);
     };
-    window.addEventListener('blur', lost);
-    window.addEventListener('pagehide', lost);
-    document.addEventListener('visibilitychange', () => {
-      if (document.visibilityState === 'hidden') lost();
+    this.page.addEventListener('blur', lost);
+    this.page.addEventListener('pagehide', lost);
+    this.page.document?.addEventListener('visibilitychange', () => {
+      if (this.page.document.visibilityState === 'hidden') lost();
     });
   }
 
@@ -189,6 +190,7 @@ export class Teleop {
     }
     // One request at a time: a slow gateway gets the latest command next tick, never a queue.
     if (this.inFlight) return;
+    if (this.driving !== t.name) this.onDrive(t.name);
     this.driving = t.name;
     this.send(t.name, velocity);
   }
@@ -198,7 +200,7 @@ export class Teleop {
     const stopping = velocity.every((v) => v === 0);
     if (!stopping) this.inFlight = true;
     try {
-      await setProperty(name, 'velocity', text, {}, { keepalive });
+      await this.setVelocity(name, text, keepalive);
       this.lastSent = text;
       this.showStatus(`${stopping ? 'stopped' : 'driving'} ${name}: velocity ${text}`, false);
     } catch (e) {
@@ -230,6 +232,11 @@ export class Teleop {
   }
 }
 
+/** Set `velocity` of `name` (keepalive: the request outlives the page). */
+function sendVelocity(name, text, keepalive) {
+  return setProperty(name, 'velocity', text, {}, { keepalive });
+}
+
 function isTyping(el) {
-  return el instanceof HTMLElement && (el.isContentEditable || ['INPUT', 'TEXTAREA', 'SELECT'].includes(el.tagName));
+  return Boolean(el?.isContentEditable) || ['INPUT', 'TEXTAREA', 'SELECT'].includes(el?.tagName);
 }
