@@ -129,6 +129,16 @@ def test_a_robot_selected_after_a_group_drives_along_its_heading(page: Any, clie
     eventually(lambda: velocity(client, "scout2"), lambda v: not v.any(), "scout2 stops", within=STOP_WITHIN)
 
 
+def test_a_stick_mode_the_operator_picks_stays(page: Any) -> None:
+    from selenium.webdriver.support.ui import Select
+
+    select(page, "scout2")
+    Select(page.find_element(CSS, "#teleop-mode")).select_by_value("map")
+    select(page, "swarm")
+    select(page, "scout1")
+    assert page.find_element(CSS, "#teleop-mode").get_attribute("value") == "map"
+
+
 @pytest.mark.parametrize("how", ["navigate away", "close the tab"])
 def test_losing_the_page_stops_a_teleoperated_robot(
     page: Any, client: Client, console_gateway: ConsoleGateway, how: str
