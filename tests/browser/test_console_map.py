@@ -110,3 +110,21 @@ def test_the_stop_button_ends_a_moveto(page: Any, client: Client, selected: str)
         assert {name: client.get(name, "location") for name in robots} == still, "and stays stopped"
     finally:
         client.set("swarm", "behaviors.stop", "")
+
+
+def test_the_map_grid_labels_do_not_overlap(page: Any) -> None:
+    wait_for(page, lambda d: d.find_elements(CSS, "#map .grid-label"), "the map's grid labels")
+    for _ in range(2):  # as drawn first, and after Fit zoomed to the robots
+        overlaps = page.execute_script(
+            """const boxes = [...document.querySelectorAll('#map .grid-label')]
+                 .map(e => [e.textContent, e.getBoundingClientRect()]);
+               const out = [];
+               boxes.forEach(([a, p], i) => boxes.slice(i + 1).forEach(([b, q]) => {
+                 const apart = p.right <= q.left || q.right <= p.left
+                   || p.bottom <= q.top || q.bottom <= p.top;
+                 if (!apart) out.push([a, b]);
+               }));
+               return out;"""
+        )
+        assert overlaps == [], f"grid labels drawn over each other: {overlaps}"
+        page.find_element(CSS, "#map-fit").click()
