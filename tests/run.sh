@@ -12,6 +12,18 @@ if ! command -v node >/dev/null || ! command -v npm >/dev/null; then
   if [ "$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi
   $SUDO apt-get update -qq && $SUDO apt-get install -y -qq nodejs npm >/dev/null
 fi
+# The browser tests (tests/browser) drive Debian's Chromium through chromedriver; install both if
+# missing. A failure is a note: those tests then skip, saying why.
+if [ ! -x /usr/bin/chromium ] || [ ! -x /usr/bin/chromedriver ]; then
+  echo "== installing chromium and chromium-driver (Debian packages)"
+  if [ "$(id -u)" = 0 ]; then SUDO=""; elif command -v sudo >/dev/null; then SUDO="sudo -n"; else SUDO="none"; fi
+  if [ "$SUDO" = none ]; then
+    echo "note: not root and no sudo: chromium and chromium-driver not installed; the browser tests will skip"
+  elif ! apt_log=$({ $SUDO apt-get update -qq && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver; } 2>&1); then
+    echo "note: could not install chromium and chromium-driver; the browser tests will skip:"
+    echo "$apt_log" | tail -n 5
+  fi
+fi
 echo "== ruff check"; python -m ruff check .
 echo "== ruff format --check"; python -m ruff format --check .
 echo "== mypy"; python -m mypy

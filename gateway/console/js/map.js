@@ -339,13 +339,15 @@ export class RobotMap {
     const [y0, y1] = [cy - height / 2 / scale, cy + height / 2 / scale];
     const lines = [];
     const px = 1 / scale; // one pixel, in metres
+    // The x labels run along the bottom edge and the y labels up the left one: each leaves the
+    // bottom-left corner to the other (a label is at most about 30 px wide and 14 px high).
     for (let x = Math.ceil(x0 / step) * step; x <= x1; x += step) {
       lines.push(svg('line', { x1: x, y1: y0, x2: x, y2: y1, class: Math.abs(x) < step / 2 ? 'axis' : '', 'stroke-width': px }));
-      lines.push(this.label(`${Number(x.toFixed(6))}`, x + 3 * px, y0 + 4 * px, 'grid-label'));
+      if (x - x0 >= 32 * px) lines.push(this.label(`${Number(x.toFixed(6))}`, x + 3 * px, y0 + 4 * px, 'grid-label'));
     }
     for (let y = Math.ceil(y0 / step) * step; y <= y1; y += step) {
       lines.push(svg('line', { x1: x0, y1: y, x2: x1, y2: y, class: Math.abs(y) < step / 2 ? 'axis' : '', 'stroke-width': px }));
-      lines.push(this.label(`${Number(y.toFixed(6))}`, x0 + 3 * px, y + 3 * px, 'grid-label'));
+      if (y - y0 >= 18 * px) lines.push(this.label(`${Number(y.toFixed(6))}`, x0 + 3 * px, y + 3 * px, 'grid-label'));
     }
     this.layers.grid.replaceChildren(...lines);
   }

@@ -46,6 +46,10 @@ export class Teleop {
     this._bindKeys();
     this._bindPage();
     els.stop.addEventListener('click', () => this.release(true));
+    // Until the operator picks a stick mode, each selection gets its kind's default: a mode that
+    // differs from the one a selection last set is the operator's, and stays.
+    this.modeSet = els.mode.value;
+    this.modeChosen = false;
   }
 
   target() {
@@ -61,7 +65,11 @@ export class Teleop {
     const t = this.target();
     this.els.target.textContent = t ? `${t.name} (${t.type === 'group' ? 'group' : 'robot'})` : 'no robot selected';
     this.els.root.classList.toggle('disabled', !t);
+    // A group has no heading; a robot drives along its own unless the operator chose the map.
+    if (this.els.mode.value !== this.modeSet) this.modeChosen = true;
     if (t?.type === 'group' && this.els.mode.value === 'heading') this.els.mode.value = 'map';
+    else if (t?.type === 'mobile_robot' && !this.modeChosen) this.els.mode.value = 'heading';
+    this.modeSet = this.els.mode.value;
   }
 
   // -- input ---------------------------------------------------------------------------------
