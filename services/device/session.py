@@ -93,7 +93,8 @@ class DeviceSession:
         self._receiver = LineReceiver(max_line=greeting.max_line)
         self._outbox = Outbox()
         self._subscriptions: dict[str, Subscription] = {}
-        self._in_flight = asyncio.Semaphore(MAX_IN_FLIGHT)
+        # A device that states inflight=N takes no more than N requests at once (§4.2).
+        self._in_flight = asyncio.Semaphore(min(greeting.inflight or MAX_IN_FLIGHT, MAX_IN_FLIGHT))
         self._tasks: set[asyncio.Task[None]] = set()
         #: SETs running now by tag, so that a CANCEL can stop one still waiting on its backend.
         self._running_sets: dict[str, asyncio.Task[None]] = {}

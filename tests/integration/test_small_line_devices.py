@@ -17,7 +17,7 @@ from contextlib import asynccontextmanager
 
 import grpc
 import pytest
-from line_device_support import LineClient
+from line_device_support import LineClient, tcp_device
 from scripted_device import ScriptedDevice, pty_scripted, tcp_scripted
 from support.waiting import eventually, wait_until
 
@@ -259,7 +259,8 @@ async def test_a_refused_greeting_is_an_err_line_to_the_device_and_a_clear_statu
         with pytest.raises(PropertyServiceError) as info:
             await client.set("registry", "services.dev", url)
         assert info.value.code == status, info.value
-        assert cause in info.value.message and "not connected yet" not in info.value.message
+        assert cause in info.value.message and "was refused" in info.value.message
+        assert "not connected yet" not in info.value.message
         err = await asyncio.wait_for(device.replies.get(), WAIT)
         assert err.startswith(line_start), err
 
@@ -341,3 +342,28 @@ async def test_a_device_that_dialled_in_and_hung_up_is_waited_for_not_reconnecte
         assert not [
             r for r in caplog.records if "roamer" in r.getMessage() and "reconnecting" in r.getMessage()
         ]
+
+
+# -- the Python device side speaks 1.1 -----------------------------------------
+
+
+async def test_the_python_device_states_its_flow_control_and_mirrors_checksums() -> None:
+    with tcp_device("--service", "sim-robot", "--name", "bot", "--inflight", "1", "--rxbuf", "48") as (
+        host,
+        port,
+    ):
+        raw = await LineClient.tcp(host, port)
+        try:
+            greeting = await raw.line()
+            assert greeting.startswith("HELLO 1 name=bot ") and greeting.endswith("inflight=1 rxbuf=48")
+            await raw.send(b"$#1 GET speed*00\n")  # damaged: the ERR is untagged, and checksummed
+            damaged = await raw.line()
+            assert checksum_ok(damaged) and damaged[1:].startswith("ERR 15 checksum mismatch")
+            await raw.send(b"HELLO\n", b"  GET speed\n")  # a plain HELLO, a line with leading spaces
+            assert await raw.replies(2) == [greeting, "OK 0.5"]  # plain: checksum mode never began
+        finally:
+            await raw.close()
+        async with proxy_for(f"tcp://{host}:{port}") as proxy:
+            await proxy.wait_connected(WAIT)
+            assert proxy.hello is not None and (proxy.hello.inflight, proxy.hello.rxbuf) == (1, 48)
+            assert await asyncio.gather(*(proxy.get("speed") for _ in range(5))) == ["0.5"] * 5
