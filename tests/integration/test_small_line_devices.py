@@ -72,9 +72,24 @@ def checksum_ok(line: str) -> bool:
 # -- a restart in the middle of a session --------------------------------------
 
 
-async def test_a_device_that_restarts_mid_session_gets_its_listens_back_and_the_next_value_is_a_gap() -> None:
-    device = ScriptedDevice(THERM, {"temp": "21.5", "rate": "1"})
-    async with tcp_scripted(device) as url, proxy_for(url) as proxy:
+@asynccontextmanager
+async def scripted_on(transport: str, device: ScriptedDevice) -> AsyncIterator[str]:
+    """``device`` on a real TCP socket, or on a real pty (there it greets when asked or after a reset)."""
+    if transport == "tcp":
+        async with tcp_scripted(device) as url:
+            yield url
+    else:
+        device.greet_first = False
+        async with pty_scripted(device) as path:
+            yield path
+
+
+@pytest.mark.parametrize("transport", ["tcp", "serial"])
+async def test_a_device_that_restarts_mid_session_gets_its_listens_back_and_the_next_value_is_a_gap(
+    transport: str,
+) -> None:
+    device = ScriptedDevice(f"{THERM} inflight=4", {"temp": "21.5", "rate": "1", "slow": "x"})
+    async with scripted_on(transport, device) as url, proxy_for(url) as proxy:
         await proxy.wait_connected(WAIT)
         temps: asyncio.Queue[Change] = asyncio.Queue()
         rates: asyncio.Queue[Change] = asyncio.Queue()
@@ -83,8 +98,17 @@ async def test_a_device_that_restarts_mid_session_gets_its_listens_back_and_the_
         device.change("temp", "21.6")
         assert (await next_change(temps)).value == "21.6"
 
+        device.delay = 0.5  # a request on its way when the device resets is lost with its RAM
+        lost = asyncio.ensure_future(proxy.get("slow"))
+        await wait_until(
+            lambda: bool(device.seen("GET slow")), within=WAIT, what="the GET reached the device"
+        )
+        device.delay = 0.0
         device.props["temp"] = "21.7"  # the value moved on while it rebooted: nobody heard it
         device.restart()  # its subscriptions are gone with its RAM; it greets unasked
+        with pytest.raises(PropertyError) as info:
+            await asyncio.wait_for(lost, WAIT)
+        assert info.value.code == Code.UNAVAILABLE and "restarted" in info.value.message
         await wait_until(
             lambda: device.subscribed == {"temp", "rate"}, within=WAIT, what="LISTENs sent again"
         )
@@ -96,6 +120,7 @@ async def test_a_device_that_restarts_mid_session_gets_its_listens_back_and_the_
         after = await next_change(temps)
         assert (after.value, after.gap) == ("21.8", False)
         assert device.connections == 1  # the same connection all along
+        assert await proxy.get("rate") == "1"
 
 
 # -- a property that goes and comes back ---------------------------------------
