@@ -121,6 +121,8 @@ class Registry(Resource):
             what="registry",
         )
         self._table.want_location = self._want_location
+        #: Services not reached yet (a proxy before its device greets), each awaited by one task.
+        self._reaching: dict[str, asyncio.Task[None]] = {}
         self._unwatch: Callable[[], None] | None = None
 
     # -- the plain methods the gateway calls ------------------------------
@@ -207,6 +209,11 @@ class Registry(Resource):
         await self._liveness.stop()
         if self._file is not None:
             await self._file.flush()
+        reaching = list(self._reaching.values())
+        self._reaching.clear()
+        for task in reaching:
+            task.cancel()
+        await asyncio.gather(*reaching, return_exceptions=True)
         await self._locations.aclose()
 
     def _on_directory(self, name: str, backend: Backend | None) -> None:
@@ -215,7 +222,30 @@ class Registry(Resource):
             return
         self.add(name, backend.info)
         # Its location is followed only once somebody asks (find near=, services.NAME.location):
-        # a LISTEN nobody asked for doubles the traffic on a slow serial line.
+        # a LISTEN nobody asked for doubles the traffic on a slow serial line. Its type and
+        # "up" come as soon as it is reached, which costs the device nothing (no request).
+        if name not in self._reaching:
+            task = asyncio.get_running_loop().create_task(self._reach(name, backend), name=f"reach {name}")
+            self._reaching[name] = task
+            task.add_done_callback(lambda done: self._reached(name, done))
+
+    async def _reach(self, name: str, backend: Backend) -> None:
+        """Wait until ``backend`` is connected (a proxy: its device greeted), then learn its type."""
+        pause = 0.05
+        while True:
+            try:
+                await backend.wait_connected(max(1.0, self.period))
+                break
+            except PropertyError:
+                await asyncio.sleep(pause)
+                pause = min(pause * 2, max(1.0, self.period))
+        self._learn_type(name, backend)
+
+    def _reached(self, name: str, task: asyncio.Task[None]) -> None:
+        if self._reaching.get(name) is task:
+            del self._reaching[name]
+        if not task.cancelled() and task.exception() is not None:
+            log.error("waiting for %s failed", name, exc_info=task.exception())
 
     def _want_location(self, name: str) -> None:
         """Somebody asked where ``name`` is: follow its location from now on (once; on demand)."""
@@ -229,6 +259,9 @@ class Registry(Resource):
             return
 
     def _forget(self, name: str) -> None:
+        reaching = self._reaching.pop(name, None)
+        if reaching is not None:
+            reaching.cancel()
         if not self._table.forget(name):
             return
         self._locations.forget(name)
