@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from services.errors import Code
 from services.line_protocol._errors import LineProtocolError
-from services.line_protocol._frames import MAX_LINE, BadLine, Frame
+from services.line_protocol._frames import MAX_LINE, BadLine, Frame, HelloRequest
 from services.line_protocol._reader import decode_line, tag_of
 
 
@@ -43,6 +43,7 @@ class LineReceiver:
             Code.RESOURCE_EXHAUSTED,
             f"line too long: more than {self.max_line} bytes; discarded up to the next newline",
             tag_of(head[:16]),
+            head[:1] == b"$",
         )
 
     def receive_data(self, data: bytes | bytearray | memoryview) -> list[Frame | BadLine]:
@@ -100,10 +101,15 @@ class LineReceiver:
             line = line[:-1]
         if not line.strip(b" "):
             return
+        checked = line.lstrip(b" ").startswith(b"$")
         try:
-            out.append(decode_line(line))
+            frame = decode_line(line)
         except LineProtocolError as exc:
-            out.append(BadLine(exc.code, exc.message, exc.tag))
-        else:
-            if line.startswith(b"$"):
-                self.saw_checksum = True
+            out.append(BadLine(exc.code, exc.message, exc.tag, checked, exc.greeting))
+            return
+        out.append(frame)
+        if checked:
+            self.saw_checksum = True
+        elif type(frame) is HelloRequest:
+            # A plain HELLO: the client starts afresh, checksum mode ends (docs/line-protocol.md §6).
+            self.saw_checksum = False

@@ -120,6 +120,7 @@ class Registry(Resource):
             on_answer=self._learn_type,
             what="registry",
         )
+        self._table.want_location = self._want_location
         self._unwatch: Callable[[], None] | None = None
 
     # -- the plain methods the gateway calls ------------------------------
@@ -213,7 +214,19 @@ class Registry(Resource):
             self._forget(name)
             return
         self.add(name, backend.info)
-        self._locations.follow(name, backend)
+        # Its location is followed only once somebody asks (find near=, services.NAME.location):
+        # a LISTEN nobody asked for doubles the traffic on a slow serial line.
+
+    def _want_location(self, name: str) -> None:
+        """Somebody asked where ``name`` is: follow its location from now on (once; on demand)."""
+        directory = self._directory
+        if directory is None or self._table.get(name) is None:
+            return
+        try:
+            backend = directory.backend(name)
+            self._locations.follow(name, backend)
+        except (PropertyError, RuntimeError):  # not served (any more), or no event loop to follow in
+            return
 
     def _forget(self, name: str) -> None:
         if not self._table.forget(name):
@@ -254,7 +267,9 @@ class Registry(Resource):
         given = {"type": type, "near": near, "radius": radius, "state": state, "limit": limit, "where": where}
         query = Query.parse({k: v for k, v in given.items() if v != ""})
         if query.near is not None:
-            # Services that joined a moment ago: their locations are on the way.
+            for name in self._table.names():
+                self._want_location(name)
+            # Services followed just now, or that joined a moment ago: their locations are on the way.
             await self._locations.settled(self.timeout)
         names = self._table.index.select(query)
         if query.props:

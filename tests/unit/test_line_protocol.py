@@ -42,7 +42,9 @@ names = st.from_regex(r"\A[A-Za-z0-9_.-]{1,12}\Z")
 texts = st.text(max_size=60)
 params = st.dictionaries(names, texts, max_size=3)
 hello_extra = st.dictionaries(
-    names.filter(lambda k: k not in {"name", "type", "push", "maxline"}), texts, max_size=2
+    names.filter(lambda k: k not in {"name", "type", "push", "maxline", "inflight", "rxbuf"}),
+    texts,
+    max_size=2,
 )
 
 frames: st.SearchStrategy[Frame] = st.one_of(
@@ -62,6 +64,8 @@ frames: st.SearchStrategy[Frame] = st.one_of(
         version=st.integers(0, 9999),
         extra=hello_extra,
         tag=tags,
+        inflight=st.none() | st.integers(1, 4096),
+        rxbuf=st.none() | st.integers(16, 65536),
     ),
     st.builds(Ok, texts, tags),
     st.builds(ErrorReply, st.integers(0, 999), texts, tags),
