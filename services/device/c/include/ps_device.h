@@ -67,6 +67,7 @@ enum ps_code {
     PS_NOT_FOUND = 5,
     PS_RESOURCE_EXHAUSTED = 8,
     PS_FAILED_PRECONDITION = 9,
+    PS_OUT_OF_RANGE = 11,
     PS_UNIMPLEMENTED = 12,
     PS_INTERNAL = 13,
     PS_UNAVAILABLE = 14,
@@ -91,7 +92,7 @@ typedef struct ps_meta {
     const char *unit; /* words: "degC" */
     const char *doc;  /* words, no parentheses: "board temperature" */
     const char *gui;  /* the preferred widget, answered to GET NAME.gui */
-    ps_fixed minimum; /* in the property's fixed-point scale; checked on SET when has_range */
+    ps_fixed minimum; /* in the property's fixed-point scale; a SET outside is ERR 11 when has_range */
     ps_fixed maximum;
     uint8_t has_range;
 } ps_meta;
@@ -159,7 +160,7 @@ typedef struct ps_device {
 /* ---- the core's entry points ------------------------------------------------------------------ */
 
 /* Start (or restart) a session: a new connection, a reset, power-up. Clears every subscription
- * and the checksum mode and sends the greeting. */
+ * and the checksum mode and sends the greeting (§4.4: a greeting mid-session means "started afresh"). */
 void ps_begin(ps_device *dev, const ps_config *config);
 /* Bytes received by the transport: every complete line is answered before ps_feed returns. */
 void ps_feed(ps_device *dev, const uint8_t *bytes, size_t count);
@@ -195,5 +196,6 @@ uint8_t ps_format_double(double value, uint8_t decimals, char *out);
 #define PS_FLAG_CHECKSUM 0x04 /* a good '$' line came: every line sent carries a checksum */
 #define PS_FLAG_LIST 0x08     /* someone listens to `properties` */
 #define PS_FLAG_LIST_DUE 0x10 /* the `properties` list changed since its last EVENT */
+#define PS_FLAG_MIRROR 0x20   /* answering a '$' line: its reply carries a checksum (§6) */
 
 #endif

@@ -1,6 +1,6 @@
 /*
  * The protocol core of ps_device: reads request lines, answers them through the byte sink.
- * Section numbers (§) are those of docs/line-protocol.md.
+ * Section numbers (§) are those of docs/line-protocol.md, version 1.1.
  */
 #include <string.h>
 
@@ -57,7 +57,7 @@ static void put_escaped(ps_device *dev, const char *text) {
 }
 
 static void line_begin(ps_device *dev, const request *req) {
-    if (dev->flags & PS_FLAG_CHECKSUM) dev->config->put(dev->config->context, '$');
+    if (dev->flags & (PS_FLAG_CHECKSUM | PS_FLAG_MIRROR)) dev->config->put(dev->config->context, '$');
     dev->crc = 0;
     if (req && req->tag) {
         put(dev, '#');
@@ -67,7 +67,7 @@ static void line_begin(ps_device *dev, const request *req) {
 }
 
 static void line_end(ps_device *dev) {
-    if (dev->flags & PS_FLAG_CHECKSUM) {
+    if (dev->flags & (PS_FLAG_CHECKSUM | PS_FLAG_MIRROR)) {
         static const char hex[] PS_FLASH = "0123456789ABCDEF";
         uint8_t crc = dev->crc;
         dev->config->put(dev->config->context, '*');
@@ -253,10 +253,10 @@ static void greet(ps_device *dev, const request *req) {
 
 /* ---- requests (§3) ----------------------------------------------------------------------------- */
 
-enum { W_GET, W_SET, W_LISTEN, W_UNLISTEN, W_PING, W_HELLO, W_CANCEL, W_REPLY, W_UNKNOWN };
+enum { W_GET, W_SET, W_LISTEN, W_UNLISTEN, W_PING, W_HELLO, W_CANCEL, W_PONG, W_REPLY, W_UNKNOWN };
 
 static uint8_t word_of(const char *text, size_t length) {
-    static const char words[] PS_FLASH = "GET\0SET\0LISTEN\0UNLISTEN\0PING\0HELLO\0CANCEL\0OK\0ERR\0PONG\0EVENT\0GONE\0";
+    static const char words[] PS_FLASH = "GET\0SET\0LISTEN\0UNLISTEN\0PING\0HELLO\0CANCEL\0PONG\0OK\0ERR\0EVENT\0GONE\0";
     const char *w = words;
     for (uint8_t i = 0; ps_flash_byte(w); i++) {
         if (same_word(text, length, w)) return i < W_REPLY ? i : W_REPLY;
@@ -287,9 +287,9 @@ static uint8_t parse_vector(const char *text, size_t length, const ps_property *
         size_t start = i;
         while (i < length && text[i] != ' ' && text[i] != ')') i++;
         ps_fixed value;
-        if (count == p->size || ps_parse_fixed(text + start, i - start, p->decimals, &value) != PS_OK ||
-            !in_range(p, value))
+        if (count == p->size || ps_parse_fixed(text + start, i - start, p->decimals, &value) != PS_OK)
             return PS_INVALID_ARGUMENT;
+        if (!in_range(p, value)) return PS_OUT_OF_RANGE;
         if (store) store[count] = value;
         count++;
     }
@@ -307,27 +307,32 @@ static uint8_t store(const ps_property *p, uint8_t part, uint8_t element, char *
     }
     if (p->type == PS_VECTOR && part == WHOLE) {
         /* check everything first: a refused SET leaves the vector as it was */
-        if (parse_vector(value, length, p, 0) != PS_OK) return PS_INVALID_ARGUMENT;
-        return parse_vector(value, length, p, (ps_fixed *)p->data);
+        uint8_t code = parse_vector(value, length, p, 0);
+        return code != PS_OK ? code : parse_vector(value, length, p, (ps_fixed *)p->data);
     }
     ps_fixed number;
-    if (ps_parse_fixed(value, length, p->decimals, &number) != PS_OK || !in_range(p, number))
-        return PS_INVALID_ARGUMENT;
+    if (ps_parse_fixed(value, length, p->decimals, &number) != PS_OK) return PS_INVALID_ARGUMENT;
+    if (!in_range(p, number)) return PS_OUT_OF_RANGE;
     ((ps_fixed *)p->data)[part == ELEMENT ? element : 0] = number;
     return PS_OK;
 }
 
 static void answer(ps_device *dev, const request *req, uint8_t word, char *rest, size_t length) {
     size_t i = 0;
-    while (i < length && rest[i] == ' ') i++;
-    char *path = rest + i;
-    while (i < length && rest[i] != ' ') i++;
-    size_t path_length = (size_t)(rest + i - path);
-    for (size_t k = 0; k < path_length; k++) {
-        if (path[k] == '=') {
+    char *path;
+    size_t path_length;
+    for (;;) { /* NAME=VALUE fields come before the path (§2.1) */
+        while (i < length && rest[i] == ' ') i++;
+        path = rest + i;
+        while (i < length && rest[i] != ' ') i++;
+        path_length = (size_t)(rest + i - path);
+        if (!memchr(path, '=', path_length)) break;
+        if (word != W_UNLISTEN) { /* §3.4: UNLISTEN accepts and ignores them */
             reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("this device takes no parameters"));
             return;
         }
+    }
+    for (size_t k = 0; k < path_length; k++) {
         if (!is_name_char(path[k]) && !(path[k] == '.' && k && k + 1 < path_length && path[k + 1] != '.')) {
             reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("bad path"));
             return;
@@ -339,11 +344,13 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
     }
     char *value = rest + length; /* SET: the rest of the line after one space (§2) */
     size_t value_length = 0;
-    if (i < length) {
+    if (word == W_SET && i < length) {
         value = rest + i + 1;
         value_length = length - i - 1;
-        if (word != W_SET) {
-            reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("extra fields after the path"));
+    } else {
+        while (i < length && rest[i] == ' ') i++; /* trailing spaces are not a field */
+        if (i < length) {
+            reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("unexpected text after the path"));
             return;
         }
     }
@@ -386,7 +393,9 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
             uint8_t code = store(&p, part, element, value, value_length);
             if (code != PS_OK) {
                 reply_error(dev, req, code,
-                            code == PS_RESOURCE_EXHAUSTED ? PS_F("text too long") : PS_F("bad value"));
+                            code == PS_RESOURCE_EXHAUSTED ? PS_F("text too long")
+                            : code == PS_OUT_OF_RANGE     ? PS_F("out of range")
+                                                          : PS_F("bad value"));
                 return;
             }
             dev->pending |= dev->listening & BIT(index);
@@ -473,34 +482,36 @@ static void answer_line(ps_device *dev) {
     size_t length = dev->length;
     uint8_t flags = dev->flags;
     request req = {0, 0};
+    size_t i = 0;
     dev->flags &= (uint8_t)~(PS_FLAG_OVERFLOW | PS_FLAG_LOST);
     dev->length = 0;
+    if (length && text[length - 1] == '\r') length--;
+    while (i < length && text[i] == ' ') i++;
+    if (i == length && !(flags & (PS_FLAG_OVERFLOW | PS_FLAG_LOST))) return; /* §1: blank: no reply */
+    if (text[i] == '$') dev->flags |= PS_FLAG_MIRROR; /* §6: the reply to a '$' line is checked */
     if (flags & PS_FLAG_LOST) { /* the tag may be what was lost: answer untagged */
         reply_error(dev, 0, PS_DATA_LOSS, PS_F("bytes lost: the receive buffer was full"));
         return;
     }
-    if (length && text[length - 1] == '\r') length--;
-    if (!(flags & PS_FLAG_OVERFLOW) && text[0] == '$') {
-        uint8_t high = length >= 4 ? hex_digit(text[length - 2]) : 255;
-        uint8_t low = length >= 4 ? hex_digit(text[length - 1]) : 255;
+    if (!(flags & PS_FLAG_OVERFLOW) && text[i] == '$') {
+        /* §2.1: "*HH" are the last three bytes; the CRC covers what lies between '$' and '*' */
+        uint8_t high = length - i >= 4 ? hex_digit(text[length - 2]) : 255;
+        uint8_t low = length - i >= 4 ? hex_digit(text[length - 1]) : 255;
         if (high == 255 || low == 255 || text[length - 3] != '*' ||
-            ps_crc8((const uint8_t *)text + 1, length - 4) != (uint8_t)(high << 4 | low)) {
-            reply_error(dev, 0, PS_DATA_LOSS, PS_F("checksum mismatch")); /* §5: untagged */
+            ps_crc8((const uint8_t *)text + i + 1, length - i - 4) != (uint8_t)(high << 4 | low)) {
+            reply_error(dev, 0, PS_DATA_LOSS, PS_F("checksum mismatch")); /* §6: untagged */
             return;
         }
-        dev->flags |= PS_FLAG_CHECKSUM;
-        text++;
-        length -= 4;
+        dev->flags |= PS_FLAG_CHECKSUM; /* checksum mode: only a line that checks out turns it on */
+        i++;
+        length -= 3;
     }
     text[length] = 0;
-    size_t i = 0;
-    while (i < length && text[i] == ' ') i++;
-    if (i == length && !(flags & PS_FLAG_OVERFLOW)) return; /* §1: blank lines are ignored */
-    if (text[i] == '#') {
+    if (text[i] == '#') { /* an over-long '$' line still starts with '$': its tag is not trusted */
         size_t start = ++i;
         while (i < length && is_name_char(text[i])) i++;
-        if (i == start || i - start > TAG_MAX || (i < length && text[i] != ' ')) {
-            reply_error(dev, 0, PS_INVALID_ARGUMENT, PS_F("bad tag"));
+        if (i == start || i - start > TAG_MAX || i == length || text[i] != ' ') {
+            reply_error(dev, 0, PS_INVALID_ARGUMENT, PS_F("bad tag")); /* §2.1: untagged */
             return;
         }
         req.tag = text + start;
@@ -511,15 +522,14 @@ static void answer_line(ps_device *dev) {
         reply_error(dev, &req, PS_RESOURCE_EXHAUSTED, PS_F("line too long"));
         return;
     }
-    for (size_t k = i; k < length; k++)
-        if ((uint8_t)text[k] < 0x20 || text[k] == 0x7f) {
-            reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("control character in the line"));
-            return;
-        }
+    if (memchr(text + i, '\r', length - i)) {
+        reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("raw CR in the line; write \\r"));
+        return;
+    }
     size_t start = i;
     while (i < length && text[i] != ' ') i++;
     if (i == start) {
-        reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("a tag but no word"));
+        reply_error(dev, 0, PS_INVALID_ARGUMENT, PS_F("bad tag"));
         return;
     }
     uint8_t word = word_of(text + start, i - start);
@@ -534,7 +544,15 @@ static void answer_line(ps_device *dev) {
         break;
     case W_HELLO:
         while (rest_length && *rest == ' ') rest++, rest_length--;
-        if (!rest_length) greet(dev, &req); /* HELLO with a version is a peer's greeting: no reply */
+        if (!rest_length) {
+            /* §6: a plain HELLO starts afresh without checksums; $HELLO*35 keeps them */
+            if (!(dev->flags & PS_FLAG_MIRROR)) dev->flags &= (uint8_t)~PS_FLAG_CHECKSUM;
+            greet(dev, &req);
+        } else if (*rest < '0' || *rest > '9') { /* a greeting (a version follows) is never answered */
+            reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("unexpected text after HELLO"));
+        }
+        break;
+    case W_PONG: /* the answer to a PING of ours: nothing to do */
         break;
     case W_CANCEL: /* every SET is answered before the next line is read: nothing is left to stop */
         break;
@@ -564,7 +582,8 @@ void ps_feed(ps_device *dev, const uint8_t *bytes, size_t count) {
         uint8_t c = *bytes++;
         if (c == '\n') {
             answer_line(dev);
-            flush_events(dev); /* an EVENT a SET caused goes after the SET's OK */
+            dev->flags &= (uint8_t)~PS_FLAG_MIRROR;
+            flush_events(dev); /* §3.4: an EVENT a SET caused goes after the SET's OK */
         } else if (dev->length < PS_MAXLINE - 1) {
             dev->line[dev->length++] = (char)c; /* a line is at most PS_MAXLINE bytes, LF included */
         } else {

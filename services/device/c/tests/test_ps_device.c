@@ -139,10 +139,15 @@ static void test_greeting_and_words(void) {
     EXCHANGE("#toolongtag GET temp\n", "ERR 3 bad tag\n");
     EXCHANGE("# GET temp\n", "ERR 3 bad tag\n");
     EXCHANGE("#x!y GET temp\n", "ERR 3 bad tag\n");
-    EXCHANGE("#t\n", "#t ERR 3 a tag but no word\n");
-    EXCHANGE("#t GET\ttemp\n", "#t ERR 3 control character in the line\n");
-    EXCHANGE("GET te\rmp\n", "ERR 3 control character in the line\n");
+    EXCHANGE("#t\n", "ERR 3 bad tag\n"); /* a tag with no word is a bad tag (§2.1) */
+    EXCHANGE("#t \n", "ERR 3 bad tag\n");
+    EXCHANGE("#t GET\ttemp\n", "#t ERR 12 unknown word\n"); /* a TAB is no separator (§1) */
+    EXCHANGE("#t GET temp\t\n", "#t ERR 3 bad path\n");
+    EXCHANGE("GET te\rmp\n", "ERR 3 raw CR in the line; write \\r\n");
     EXCHANGE("#c CANCEL\n", "");
+    EXCHANGE("PONG 5\n", ""); /* the answer to a PING of the device's: nothing to answer */
+    EXCHANGE("#e EVENT temp 3\n", "#e ERR 3 a reply; send a request\n");
+    EXCHANGE("HELLO there\n", "ERR 3 unexpected text after HELLO\n");
 }
 
 static void test_get_and_set(void) {
@@ -154,12 +159,15 @@ static void test_get_and_set(void) {
     EXCHANGE("GET Temp\n", "ERR 5 no such property\n"); /* paths are case-sensitive */
     EXCHANGE("GET te..mp\n", "ERR 3 bad path\n");
     EXCHANGE("GET unit=K temp\n", "ERR 3 this device takes no parameters\n");
-    EXCHANGE("GET temp extra\n", "ERR 3 extra fields after the path\n");
+    EXCHANGE("GET temp extra\n", "ERR 3 unexpected text after the path\n");
+    EXCHANGE("GET temp   \n", "OK 21.5\n"); /* trailing spaces are not a field */
+    EXCHANGE("GET\n", "ERR 3 bad path\n");
+    EXCHANGE("UNLISTEN frame=world temp\n", "OK\n"); /* §3.4: UNLISTEN ignores parameters */
     EXCHANGE("SET temp 3\n", "ERR 9 read-only\n");
     int before = sets_seen;
     EXCHANGE("SET setpoint 22.5\n", "OK 22.5\n");
     CHECK(setpoint == 225 && sets_seen == before + 1);
-    EXCHANGE("SET setpoint 99\n", "ERR 3 bad value\n");
+    EXCHANGE("SET setpoint 99\n", "ERR 11 out of range\n");
     EXCHANGE("SET setpoint 22.25\n", "ERR 3 bad value\n");
     EXCHANGE("SET setpoint abc\n", "ERR 3 bad value\n");
     EXCHANGE("SET setpoint\n", "ERR 3 bad value\n");
@@ -173,6 +181,7 @@ static void test_get_and_set(void) {
     EXCHANGE("SET pose (1 2)\n", "ERR 3 bad value\n");
     EXCHANGE("SET pose (1 2 3 4)\n", "ERR 3 bad value\n");
     EXCHANGE("SET pose (1 x 3)\n", "ERR 3 bad value\n");
+    EXCHANGE("SET label tab\there\n", "OK tab\there\n"); /* inside a value a TAB is data */
     EXCHANGE("SET pose.x 7\n", "OK 7\n");
     EXCHANGE("GET pose\n", "OK (7 2 3.5)\n");
     EXCHANGE("SET label a\\nb \\\\ c\n", "OK a\\nb \\\\ c\n");
@@ -198,7 +207,9 @@ static void test_get_and_set(void) {
 }
 
 static void test_line_limits(void) {
-    char line[200];
+    char line[200], mismatch_8[40];
+    snprintf(mismatch_8, sizeof mismatch_8, "$ERR 8 line too long*%02X\n",
+             ps_crc8((const uint8_t *)"ERR 8 line too long", 19));
     start();
     memset(line, 'x', sizeof line);
     memcpy(line, "#L SET label ", 13);
@@ -217,6 +228,9 @@ static void test_line_limits(void) {
     line[0] = ' ';
     line[65] = 0;
     EXCHANGE(line, "ERR 8 line too long\n");
+    line[1] = '$';
+    line[2] = '#';
+    EXCHANGE(line, mismatch_8); /* an over-long '$' line: mirrored checksum, untagged */
     send_text("#1 GET te");
     ps_lost(&dev);
     EXCHANGE("mp\n", "ERR 15 bytes lost: the receive buffer was full\n");
@@ -224,20 +238,28 @@ static void test_line_limits(void) {
 }
 
 static void test_checksums(void) {
+    char request[40], reply[40], mismatch[40];
     start();
-    EXCHANGE("$GET temp*00\n", "ERR 15 checksum mismatch\n");
-    EXCHANGE("$#1 GET temp\n", "ERR 15 checksum mismatch\n");
-    EXCHANGE("$\n", "ERR 15 checksum mismatch\n");
+    /* The reply to a '$' line always carries a checksum, the ERR 15 of a damaged one too (§6). */
+    snprintf(mismatch, sizeof mismatch, "$ERR 15 checksum mismatch*%02X\n",
+             ps_crc8((const uint8_t *)"ERR 15 checksum mismatch", 24));
+    CHECK(strcmp(mismatch, "$ERR 15 checksum mismatch*C7\n") == 0); /* the spec's own example */
+    EXCHANGE("$GET temp*00\n", mismatch);
+    EXCHANGE("$#1 GET temp\n", mismatch);
+    EXCHANGE("$\n", mismatch);
     EXCHANGE("GET temp\n", "OK 21.5\n"); /* a bad '$' line does not turn checksums on */
-    char request[32], reply[32];
+    EXCHANGE("$GET location*54\n", "$ERR 5 no such property*14\n");
+    EXCHANGE("HELLO\n", "HELLO 1 name=t1 type=sensor push=1 maxline=64 inflight=1 rxbuf=32\n"); /* mode off */
+    EXCHANGE("GET temp\n", "OK 21.5\n");
     snprintf(request, sizeof request, "$#1 GET temp*%02x\n", ps_crc8((const uint8_t *)"#1 GET temp", 11));
     snprintf(reply, sizeof reply, "$#1 OK 21.5*%02X\n", ps_crc8((const uint8_t *)"#1 OK 21.5", 10));
     EXCHANGE(request, reply);
     snprintf(reply, sizeof reply, "$OK 21.5*%02X\n", ps_crc8((const uint8_t *)"OK 21.5", 7));
     EXCHANGE("GET temp\n", reply); /* from now on every line carries one */
-    snprintf(reply, sizeof reply, "$ERR 15 checksum mismatch*%02X\n",
-             ps_crc8((const uint8_t *)"ERR 15 checksum mismatch", 24));
-    EXCHANGE("$#2 GET dat?*B3\n", reply);
+    EXCHANGE("$#2 GET dat?*B3\n", mismatch);
+    EXCHANGE("$HELLO*35\n", "$HELLO 1 name=t1 type=sensor push=1 maxline=64 inflight=1 rxbuf=32*6B\n");
+    snprintf(reply, sizeof reply, "$OK 21.5*%02X\n", ps_crc8((const uint8_t *)"OK 21.5", 7));
+    EXCHANGE("GET temp\n", reply); /* $HELLO keeps the mode on */
     reset_out();
     ps_begin(&dev, &config); /* a new session starts without */
     CHECK(out[0] == 'H');
