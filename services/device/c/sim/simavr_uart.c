@@ -4,7 +4,12 @@
  *
  * Prints "serial port /dev/pts/N" once the firmware runs: give the gateway
  * serial:///dev/pts/N. SIGUSR1 resets the MCU (the firmware starts again and greets);
- * SIGTERM and SIGINT end the run. */
+ * SIGTERM and SIGINT end the run.
+ *
+ * RAM use: before the firmware starts, every SRAM byte is painted with 0xA5; at the end the
+ * harness prints the longest run of bytes still painted ("untouched SRAM: N bytes"): the gap
+ * between the end of .bss and the deepest the stack ever went. 2048 - N is the most RAM the
+ * firmware used at once, static data and stack together. */
 #include <signal.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -14,7 +19,23 @@
 #include "sim_elf.h"
 #include "uart_pty.h"
 
+#define PAINT 0xA5
+
 static volatile sig_atomic_t reset_requested, stop_requested;
+
+static void print_untouched(const avr_t *avr, uint16_t sram_start) {
+    unsigned best = 0, best_at = 0, run = 0;
+    for (unsigned a = sram_start; a <= avr->ramend; a++) {
+        run = avr->data[a] == PAINT ? run + 1 : 0;
+        if (run > best) {
+            best = run;
+            best_at = a + 1 - run;
+        }
+    }
+    printf("untouched SRAM: %u bytes (0x%04X-0x%04X of 0x%04X-0x%04X)\n", best, best_at, best_at + best - 1,
+           sram_start, avr->ramend);
+    fflush(stdout);
+}
 
 static void on_signal(int sig) {
     if (sig == SIGUSR1) reset_requested = 1;
@@ -45,6 +66,8 @@ int main(int argc, char **argv) {
     avr_init(avr);
     avr->log = LOG_ERROR;
     avr_load_firmware(avr, &firmware);
+    const uint16_t sram_start = 0x100; /* after the registers and I/O space of an ATmega328P */
+    memset(avr->data + sram_start, PAINT, avr->ramend + 1 - sram_start);
 
     static uart_pty_t uart;
     uart_pty_init(avr, &uart);
@@ -67,6 +90,7 @@ int main(int argc, char **argv) {
         }
         state = avr_run(avr);
     }
+    print_untouched(avr, sram_start);
     uart_pty_stop(&uart);
     if (state == cpu_Crashed) {
         fprintf(stderr, "simavr_uart: the firmware crashed\n");
