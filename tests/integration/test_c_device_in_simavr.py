@@ -27,7 +27,8 @@ WAIT = 20.0
 RXBUF = 32
 ATMEGA328P_SRAM = 2048
 RAM_BUDGET = 1024
-OPTIONS = "{ timeout = 5.0, backoff_initial = 0.05, backoff_max = 0.5 }"
+# A keep-alive PING every second: under inflight=1 it queues behind requests like any other.
+OPTIONS = "{ timeout = 5.0, backoff_initial = 0.05, backoff_max = 0.5, keepalive = 1.0 }"
 
 
 @pytest.fixture(scope="module")
@@ -141,6 +142,7 @@ async def test_the_firmware_in_simavr_through_the_gateway(
         # request bytes on the wire than the device said it can hold.
         assert "ERR 15" not in transcript, transcript
         assert "inflight=1 rxbuf=32" in transcript
+        assert re.search(r"^< #\w+ PONG", transcript, re.M), "the device answered the gateway's keep-alive"
         assert 0 < tap.most_unanswered_bytes() <= RXBUF, transcript
     mcu.stop()
     untouched = re.search(r"untouched SRAM: (\d+) bytes", mcu.output)

@@ -113,6 +113,12 @@ static void test_values(void) {
     CHECK(ps_format_fixed(0, 3, text) == 1 && strcmp(text, "0") == 0);
     CHECK(ps_format_fixed(-2147483647 - 1, 0, text) == 11 && strcmp(text, "-2147483648") == 0);
     CHECK(ps_format_fixed(1050, 2, text) == 4 && strcmp(text, "10.5") == 0);
+#ifdef PS_WITH_FLOAT
+    CHECK(ps_format_double(2.25, 1, text) == 3 && strcmp(text, "2.3") == 0); /* half away from zero */
+    CHECK(ps_format_double(-2.25, 1, text) == 4 && strcmp(text, "-2.3") == 0);
+    CHECK(ps_format_double(0.5, 0, text) == 1 && strcmp(text, "1") == 0);
+    CHECK(ps_format_double(1e12, 2, text) == 3 && strcmp(text, "nan") == 0);
+#endif
     char escaped[] = "a\\nb\\\\c\\sd\\r";
     size_t n = strlen(escaped);
     CHECK(ps_unescape(escaped, &n) == PS_OK && n == 8 && memcmp(escaped, "a\nb\\c d\r", 8) == 0);
