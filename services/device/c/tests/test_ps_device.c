@@ -316,6 +316,35 @@ static void test_listen(void) {
     CHECK(out[0] == 0);
 }
 
+/* Noise: random bytes (a fixed seed) never crash the core, every line it sends is whole and
+ * within bounds, and after an LF it answers a good request again (§1 resynchronisation). */
+static void test_noise(void) {
+    static const char alphabet[] = "GETSLINUPHOC#$*=.\\ \n\r\t01x(-)";
+    uint32_t seed = 12345;
+    start();
+    for (int round = 0; round < 2000; round++) {
+        uint8_t noise[96];
+        size_t n = 1 + round % sizeof noise;
+        for (size_t i = 0; i < n; i++) {
+            seed = seed * 1103515245u + 12345u;
+            uint8_t r = (uint8_t)(seed >> 16);
+            noise[i] = (r & 1) ? (uint8_t)alphabet[(r >> 1) % (sizeof alphabet - 1)] : r;
+        }
+        reset_out();
+        ps_feed(&dev, noise, n);
+        size_t line_start = 0;
+        for (size_t i = 0; i < out_length; i++)
+            if (out[i] == '\n') {
+                CHECK(i - line_start < 400);
+                line_start = i + 1;
+            }
+        CHECK(line_start == out_length); /* nothing half-sent */
+        if (dev.absent & 1) ps_back(&dev, 0);
+        send_text("\n#z GET setpoint\n");
+        CHECK(strstr(out, "#z OK ") != 0 || strstr(out, "$#z OK ") != 0);
+    }
+}
+
 int main(void) {
     test_values();
     test_greeting_and_words();
@@ -323,6 +352,7 @@ int main(void) {
     test_line_limits();
     test_checksums();
     test_listen();
+    test_noise();
     printf("%d checks, %d failed\n", checks, failures);
     return failures ? 1 : 0;
 }
