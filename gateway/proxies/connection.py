@@ -75,10 +75,8 @@ _TAG_MASK = 0xFFFFFFFF
 
 
 #: What a device that asks the gateway something on a connection the gateway opened is told.
-_NOT_SERVED = (
-    "this connection serves no requests: the gateway is the client here; "
-    "open a connection to its line listener to ask it"
-)
+#: Short: it must fit the smallest line limit (64 bytes) with a tag and a checksum.
+_NOT_SERVED = "not served: the gateway is the client here"
 
 
 class _Pending:
@@ -407,8 +405,9 @@ class LineConnection:
                         reason = "the device closed the connection in the middle of a line"
                     break
                 self._last_data = time.monotonic()
-                for frame in self._receiver.receive_data(data):
-                    self._handle(frame)
+                frames = self._receiver.receive_data(data)
+                for frame, checked in zip(frames, self._receiver.last_checked, strict=True):
+                    self._handle(frame, checked)
         except (ConnectionError, OSError) as exc:
             reason = f"connection lost: {exc}"
         except asyncio.CancelledError:
@@ -417,7 +416,7 @@ class LineConnection:
             log.warning("%s: %s", self.label, reason)
         self.close(reason)
 
-    def _handle(self, frame: Frame | BadLine) -> None:
+    def _handle(self, frame: Frame | BadLine, checked: bool = False) -> None:
         kind = type(frame)
         if kind is Ok or kind is ErrorReply or kind is Pong or kind is Hello:
             reply: Ok | ErrorReply | Pong | Hello = frame  # type: ignore[assignment]
@@ -438,7 +437,7 @@ class LineConnection:
                 log.exception("%s: event handler failed on %r", self.label, frame)
             return
         elif kind is Ping:
-            self._answer(Pong(frame.data, frame.tag))  # type: ignore[union-attr]
+            self._answer(Pong(frame.data, frame.tag), checked)  # type: ignore[union-attr]
             return
         elif kind is BadLine:
             self._bad_line(frame)  # type: ignore[arg-type]
@@ -449,15 +448,20 @@ class LineConnection:
             log.info(
                 "%s: the device sent a request (%s); told it is not served here", self.label, kind.__name__
             )
-            self._answer(ErrorReply(int(Code.UNIMPLEMENTED), _NOT_SERVED, tag))
+            self._answer(ErrorReply(int(Code.UNIMPLEMENTED), _NOT_SERVED, tag), checked)
             return
         log.warning("%s: unexpected line from the device ignored: %r", self.label, frame)
 
     def _answer(self, reply: Pong | ErrorReply, checksummed: bool = False) -> None:
         """Answer a line of the device: with a checksum when the device uses them (mirrored, §6)."""
-        checksum = self._checksum or checksummed or self._receiver.saw_checksum
-        with contextlib.suppress(LineProtocolError):
-            self._write_line(encode(reply, checksum=checksum, max_line=self._line_limit()))
+        checksum = self._checksum or checksummed
+        try:
+            line = encode(reply, checksum=checksum, max_line=self._line_limit())
+        except LineProtocolError:  # too long for the device: the code alone still fits
+            if type(reply) is not ErrorReply:
+                return
+            line = encode(ErrorReply(reply.code, "", reply.tag), checksum=checksum)
+        self._write_line(line)
 
     def _resolve(self, reply: Ok | ErrorReply | Pong | Hello, tag: str) -> None:
         if type(reply) is Hello:
