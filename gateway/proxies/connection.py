@@ -70,6 +70,8 @@ from services.line_protocol import (
 log = logging.getLogger(__name__)
 
 _READ_SIZE = 65536
+#: How long after the gateway's untagged HELLO a greeting is taken as its answer (§4.4).
+ASKED_GREETING_WINDOW_S = 2.0
 #: Tags are the request counter in hex, at most 8 digits.
 _TAG_MASK = 0xFFFFFFFF
 
@@ -139,6 +141,11 @@ class LineConnection:
         self._close_reason = "connection closed"
         self._last_data = time.monotonic()
         self.hello: asyncio.Future[Hello] = self._loop.create_future()
+        #: Greetings asked for with an untagged HELLO and not yet matched, and until when they may
+        #: come: each such greeting is an answer, not a restart (§4.4). A serial device greets when
+        #: it boots and again when asked; both may arrive after the gateway's HELLO went out.
+        self._asked_greetings = 0
+        self._asked_until = 0.0
         #: Longest line the device accepts (from its greeting).
         self.max_line = MAX_LINE
         self._task = asyncio.create_task(self._read_loop(), name=f"line-connection {label}")
@@ -388,10 +395,25 @@ class LineConnection:
                 silent_for,
             )
 
-    def ask_hello(self) -> None:
-        """Ask the device to introduce itself (a serial device greeted long before the port was opened)."""
+    def ask_hello(self, answer_within: float = ASKED_GREETING_WINDOW_S) -> None:
+        """Ask the device to introduce itself (a serial device greeted long before the port was opened).
+
+        An untagged greeting within ``answer_within`` seconds, and before the device has
+        answered any other request, is taken as the answer (even after the device greeted by
+        itself), never as a restart.
+        """
         with contextlib.suppress(LineProtocolError):
             self._send(HelloRequest())
+            self._asked_greetings += 1
+            self._asked_until = self._loop.time() + answer_within
+
+    def _answers_a_hello(self) -> bool:
+        """Whether an untagged greeting, arriving now, answers a HELLO the gateway sent."""
+        if self._asked_greetings and self._loop.time() <= self._asked_until:
+            self._asked_greetings -= 1
+            return True
+        self._asked_greetings = 0
+        return False
 
     # -- receiving ---------------------------------------------------------
 
@@ -466,6 +488,10 @@ class LineConnection:
     def _resolve(self, reply: Ok | ErrorReply | Pong | Hello, tag: str) -> None:
         if type(reply) is Hello:
             self._greeted(reply)
+        else:
+            # A device answers in order: once it answered a later request, the answer to the
+            # gateway's HELLO is behind, and an untagged greeting from now on is a restart.
+            self._asked_greetings = 0
         pending = self._pending.pop(tag, None)
         if pending is None:
             if type(reply) is not Hello:
@@ -491,7 +517,7 @@ class LineConnection:
                 hello.tag,
             )
             return
-        restarted = self.hello.done() and hello.tag is None
+        restarted = self.hello.done() and hello.tag is None and not self._answers_a_hello()
         if restarted:
             self._lost_everything("the device restarted (it greeted again)")
         self.max_line = hello.max_line

@@ -25,6 +25,7 @@ from support.board import BOARD_TYPE
 from support.certs import CertificateFiles, certificates
 from support.gateway_process import ROOT, GatewayProcess, StartGateway, start_gateway
 from support.sse import SseReader
+from support.waiting import eventually
 
 from clients import AsyncClient
 
@@ -100,7 +101,14 @@ async def test_services_lists_what_the_registry_knows(
         "location": None,
     }
     assert rows["thermo1"]["type"] == "sensor"
-    assert rows["thermo1"]["location"] == [2.0, 3.0, 0.0, 0.0, 0.0, 0.0]
+
+    # The registry follows a service's location from the first time it is read (on demand).
+    async def thermo1_location() -> object:
+        _, later, _ = await call(http, "GET", "/api/v1/services")
+        return {row["name"]: row for row in later["services"]}["thermo1"]["location"]
+
+    location = await eventually(thermo1_location, lambda loc: loc is not None, what="thermo1's location")
+    assert location == [2.0, 3.0, 0.0, 0.0, 0.0, 0.0]
     assert rows["scout1"]["type"] == "mobile_robot" and rows["scout1"]["state"] == "up"
     assert rows["registry"]["type"] == "registry"
 

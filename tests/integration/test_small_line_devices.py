@@ -123,6 +123,21 @@ async def test_a_device_that_restarts_mid_session_gets_its_listens_back_and_the_
         assert await proxy.get("rate") == "1"
 
 
+async def test_a_boot_greeting_and_the_answer_to_hello_are_not_a_restart() -> None:
+    # A serial device greets when it boots and again when the gateway, having opened the
+    # port, asks with HELLO. When the boot greeting comes first, the gateway is connected
+    # and sends requests before the answer to its HELLO arrives: that answer must not
+    # fail them as if the device had restarted.
+    device = ScriptedDevice(f"{THERM} inflight=4", {"temp": "21.5"}, delay=0.5, greet_first=False)
+    async with pty_scripted(device) as path, proxy_for(path) as proxy:
+        await wait_until(lambda: bool(device.seen("HELLO")), within=WAIT, what="the gateway's HELLO")
+        device.send(device.greeting)  # it booted just now; HELLO is answered 0.5 s later
+        await proxy.wait_connected(WAIT)
+        assert await proxy.get("temp") == "21.5"  # sent before the answer to HELLO arrives
+        assert len(device.seen("GET temp")) == 1
+        assert await proxy.get("temp") == "21.5"
+
+
 # -- a property that goes and comes back ---------------------------------------
 
 
