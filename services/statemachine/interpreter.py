@@ -128,7 +128,12 @@ def _matches(descriptors: Iterable[str], name: str) -> bool:
 
 @dataclass(eq=False)
 class Interpreter:
-    """One run of a chart; ``on_change`` is called when the configuration or the variables changed."""
+    """One run of a chart; ``on_change`` is called when a macrostep ended (a new stable configuration).
+
+    :attr:`stable` is the configuration at the end of the latest macrostep (W3C SCXML: only
+    that one is stable; those passed through by eventless transitions and internal events
+    inside a macrostep are not). ``M.state`` shows it; the journal gets every transition.
+    """
 
     chart: Chart
     binding: PropertyBinding
@@ -141,6 +146,8 @@ class Interpreter:
     variables: dict[str, Any] = field(default_factory=dict)
     status: str = "stopped"
     reason: str = ""
+    #: The active state ids, outermost first, at the end of the latest macrostep.
+    stable: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         self._external: asyncio.Queue[Event | None] = asyncio.Queue(MAX_QUEUED_EVENTS)
@@ -231,11 +238,13 @@ class Interpreter:
             await self._macrostep()
             if self._finished():
                 return
+            moved = self._settle()
             self._retest_listens()
-            self.on_change()
-            if not self._external.empty():
-                # The get below will not wait: a chart that sends itself events without a delay,
-                # forever, would hold the event loop. Let the rest of the gateway (and a stop) in.
+            if (moved and self.watched()) or not self._external.empty():
+                # One turn of the event loop: a Listen stream on `state` takes this configuration
+                # before the next macrostep replaces it (a stream conflates what it has not taken
+                # yet). And when the get below would not wait, a chart that sends itself events
+                # without a delay, forever, would hold the event loop: let the gateway (and a stop) in.
                 await asyncio.sleep(0)
                 if self._stopping:
                     return
@@ -247,6 +256,14 @@ class Interpreter:
             enabled = self._select_transitions(event)
             if enabled:
                 await self._microstep(enabled, event)
+
+    def _settle(self) -> bool:
+        """A macrostep ended: its configuration is the stable one. True when it differs from the last."""
+        now = tuple(self.active_ids())
+        moved = now != self.stable
+        self.stable = now
+        self.on_change()
+        return moved
 
     def _finished(self) -> bool:
         return self._stopping or self.status != "running"
@@ -280,6 +297,7 @@ class Interpreter:
             await self._close_listens(state)
         if self.status != "done":  # a finished machine keeps showing where it ended
             self.configuration.clear()
+        self.stable = tuple(self.active_ids())
         if self.status == "running":
             self.status = "stopped"
 
@@ -345,12 +363,6 @@ class Interpreter:
         if before != after or any(t.targets for t in enabled):  # a state left and entered again too
             on = f" on {trigger.name}" if trigger is not None else ""
             self.journal(f"{' '.join(before) or '()'} -> {' '.join(after) or '()'}{on}")
-        if before != after:
-            self.on_change()
-            if self.watched():
-                # One turn of the event loop: a Listen stream on `state` takes this configuration
-                # before the next one replaces it (a stream conflates what it has not taken yet).
-                await asyncio.sleep(0)
 
     def _effective_targets(self, t: Transition) -> list[State]:
         targets: list[State] = []

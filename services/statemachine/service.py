@@ -11,7 +11,7 @@ property                  meaning
 ``M.remove``              action: remove the machine (stopped) and its stored chart
 ``M.events``              action: a Set sends the event named by the value (``data=`` parameter:
                           the event's data)
-``M.state``               the active configuration, ``(patrol goto)``; a Listen is the live view
+``M.state``               the stable configuration (at the end of the latest macrostep), ``(patrol goto)``
 ``M.status``              ``stopped``, ``running``, ``done`` or ``failed: why``
 ``M.variables``           the chart's variables as JSON
 ``M.log``                 the latest transitions, actions and errors, one a line (bounded)
@@ -153,8 +153,8 @@ class Machine(Resource):
     @property
     def state(
         self,
-    ) -> Annotated[str, Prop(doc="the active states, outermost first; a Listen is the live view")]:
-        return format_names(self._run.active_ids() if self._run is not None else [])
+    ) -> Annotated[str, Prop(doc="the active states at the end of the latest macrostep")]:
+        return format_names(self._run.stable if self._run is not None else ())
 
     @property
     def status(self) -> Annotated[str, Prop(doc="stopped, running, done, or failed: why")]:
@@ -179,7 +179,7 @@ class Machine(Resource):
     def diagram(self) -> Annotated[str, Prop(gui="statechart", doc="SVG of the chart, active states marked")]:
         if self._chart is None:
             return ""
-        active = self._run.active_ids() if self._run is not None else []
+        active = list(self._run.stable) if self._run is not None else []
         return render_svg(self._chart, active)
 
     # -- inside ------------------------------------------------------------------------
