@@ -49,8 +49,11 @@ __all__ = [
 MAX_STATES = 256
 #: Most transitions in one chart.
 MAX_TRANSITIONS = 1024
-#: Longest delay of a ``send`` and longest timeout of an action, seconds (a day).
+#: Longest delay of a ``send``, seconds: a day (a mission waits hours, not weeks).
 MAX_DELAY = 86400.0
+#: Longest ``timeout`` of an action (``ps:set``, ``ps:get``), seconds: ten minutes, the gateway's
+#: longest call; an action's timeout is more than 0 (``timeout="0"`` is refused at load: it would
+#: fail every action that waits, yet pass one that an in-process service answers at once).
 MAX_TIMEOUT = 600.0
 #: Most iterations of one ``foreach``.
 MAX_FOREACH = 1000
@@ -312,6 +315,17 @@ def _duration(node: Node, attr: str, limit: float) -> float:
     return seconds
 
 
+def _timeout(node: Node) -> float | None:
+    """An action's ``timeout``: more than 0, at most :data:`MAX_TIMEOUT`; None when not given."""
+    if "timeout" not in node.attrs:
+        return None
+    seconds = _duration(node, "timeout", MAX_TIMEOUT)
+    if seconds <= 0:
+        text = node.attrs["timeout"]
+        raise node.fail(f"timeout={text!r}: an action's timeout is more than 0 s (at most {MAX_TIMEOUT:g} s)")
+    return seconds
+
+
 def _events(node: Node, text: str) -> tuple[str, ...]:
     events = tuple(text.split())
     for event in events:
@@ -409,8 +423,9 @@ class _Compiler:
         if node.tag == "ps:get":
             _check_attrs(node, ("property", "location", "timeout"))
             service, path = _property(node)
-            timeout = _duration(node, "timeout", MAX_TIMEOUT) if "timeout" in node.attrs else None
-            return PropertyGet(service, path, _variable(node, "location"), _params(node), timeout, node.where)
+            return PropertyGet(
+                service, path, _variable(node, "location"), _params(node), _timeout(node), node.where
+            )
         if node.tag in _STATE_TAGS or node.tag in ("transition", "onentry", "onexit"):
             raise node.fail("a state element is not executable content (is it in the wrong place?)")
         raise node.fail(f"unknown element; executable content is one of {', '.join(_EXECUTABLE)}")
@@ -480,7 +495,7 @@ class _Compiler:
             value=node.attrs.get("value"),
             expr=_expr(node, "expr") if "expr" in node.attrs else None,
             params=_params(node),
-            timeout=_duration(node, "timeout", MAX_TIMEOUT) if "timeout" in node.attrs else None,
+            timeout=_timeout(node),
             done=_event(node, "done") if "done" in node.attrs else "",
             where=node.where,
         )

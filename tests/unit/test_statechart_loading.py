@@ -134,6 +134,12 @@ def test_scxml_json_and_yaml_of_the_same_chart_give_the_same_model() -> None:
         (OPEN + "\n<datamodel><data id='n' expr='0'/></datamodel>\n<state id='a'><onentry>\n"
          "<assign location='n' expr='n + _value'/></onentry></state></scxml>",
          "line 4", "'_value' is known only in the cond of a <ps:listen>"),
+        (OPEN + "\n<state id='a'><onentry>\n<ps:set xmlns:ps='urn:propertyservice:scxml'"
+         " property='scout1/speed' value='1' timeout='0'/></onentry></state></scxml>",
+         "line 3", "timeout='0': an action's timeout is more than 0 s (at most 600 s)"),
+        (OPEN + "\n<state id='a'><onentry>\n<ps:get xmlns:ps='urn:propertyservice:scxml'"
+         " property='scout1/speed' location='x' timeout='601'/></onentry></state></scxml>",
+         "line 3", "timeout='601': at most 600 s"),
         (OPEN + "\n<state id='a'>\n<transition event='go' cond=\"In('nowhere')\" target='a'/>"
          "</state></scxml>",
          "line 3", "In('nowhere'): no state with id 'nowhere'"),

@@ -596,3 +596,56 @@ async def test_the_log_shows_a_transition_that_leaves_and_reenters_its_own_state
         "sample -> sample on tick",
         "sample -> end on tick",
     ], lines
+
+
+@pytest.mark.parametrize(
+    ("event", "rule"),
+    [
+        ("error.action", "raised by the machine itself"),
+        ("error", "raised by the machine itself"),
+        ("done.state.a", "raised by the machine itself"),
+        ("done", "raised by the machine itself"),
+        ("*", "'*' is a pattern"),
+        ("go.*", "'*' is a pattern"),
+        ("", "an event is one name"),
+        ("two words", "an event is one name"),
+        ("a..b", "an event is one name"),
+        (".go", "an event is one name"),
+        ("x" * 129, "at most 128"),
+    ],
+)
+async def test_a_client_cannot_send_an_event_the_machine_raises_itself(event: str, rule: str) -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="a">
+  <state id="a"><transition event="error done *" target="b"/></state>
+  <state id="b"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(a)")
+    with pytest.raises(InvalidArgument) as refused:
+        await sm.set("m.events", event)
+    assert rule in refused.value.message
+    # Names that only begin like a reserved one are the chart's own.
+    await sm.set("m.events", "doneness")
+    await state_becomes(sm, "m", "(b)")
+
+
+async def test_a_stored_chart_whose_file_name_is_no_machine_name_is_skipped_with_a_warning(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    directory = MemoryDirectory()
+    storage = FolderBackend()
+    chart = HEAD + ' initial="a"><state id="a"/></scxml>'
+    storage.content = {"statecharts/my.chart.scxml": chart, "statecharts/fine.scxml": chart}
+    await directory.add("store", storage)
+    with caplog.at_level("WARNING", logger="services.statemachine.service"):
+        sm, _ = await service(directory, storage="store")
+        await sm.start()
+    assert await sm.get("machines") == "(fine)"
+    (warning,) = [r.getMessage() for r in caplog.records if "my.chart" in r.getMessage()]
+    assert "'my.chart' is not a machine name" in warning
+    assert "1 to 64 letters, digits, '_' or '-'" in warning
