@@ -25,6 +25,7 @@ from services.statemachine.document import ChartError, Node, read_document
 from services.statemachine.expressions import FUNCTIONS, Expression, compile_expression
 
 __all__ = [
+    "MAX_FOLLOWED",
     "MAX_STATES",
     "MAX_TIMEOUT",
     "MAX_TRANSITIONS",
@@ -55,6 +56,9 @@ MAX_DELAY = 86400.0
 #: longest call; an action's timeout is more than 0 (``timeout="0"`` is refused at load: it would
 #: fail every action that waits, yet pass one that an in-process service answers at once).
 MAX_TIMEOUT = 600.0
+#: Most properties one chart reads with ``value('SERVICE/PATH')``: the machine holds one Listen on
+#: each while it runs.
+MAX_FOLLOWED = 32
 #: Most iterations of one ``foreach``.
 MAX_FOREACH = 1000
 
@@ -239,6 +243,8 @@ class Chart:
     ordered: list[State]
     data: list[tuple[str, Expression | None]]
     transitions: list[Transition]
+    #: The properties the chart reads with ``value('SERVICE/PATH')``: (service, path), in order.
+    followed: tuple[tuple[str, str], ...] = ()
 
     def state(self, state_id: str) -> State:
         return self.states[state_id]
@@ -268,7 +274,7 @@ def _check_attrs(node: Node, allowed: tuple[str, ...]) -> None:
 _COMPILED: ContextVar[list[tuple[Expression, Node, str, str]] | None] = ContextVar("_COMPILED", default=None)
 #: Names every expression may read besides the chart's variables and functions.
 _BUILT_IN_NAMES = frozenset(
-    {"_event", "_name", "true", "True", "false", "False", "null", "None", *FUNCTIONS, "In"}
+    {"_event", "_name", "true", "True", "false", "False", "null", "None", *FUNCTIONS, "In", "value"}
 )
 
 
@@ -351,15 +357,37 @@ def _variable(node: Node, attr: str) -> str:
 def _property(node: Node) -> tuple[str, str]:
     """``property="scout1/behaviors.moveto"``: the service and the property path."""
     text = node.attrs.get("property", "")
-    service, sep, path = text.partition("/")
-    if not sep:
-        raise node.fail(f"property={text!r}: expected SERVICE/PATH, like 'scout1/behaviors.moveto'")
     try:
-        validate_service_name(service)
-        validate_path(path)
+        return split_property(text)
     except InvalidArgument as e:
         raise node.fail(f"property={text!r}: {e.message}") from None
+
+
+def split_property(text: str) -> tuple[str, str]:
+    """``SERVICE/PATH`` as (service, path); InvalidArgument saying what is wrong."""
+    service, sep, path = text.partition("/")
+    if not sep:
+        raise InvalidArgument("expected SERVICE/PATH, like 'scout1/behaviors.moveto'")
+    validate_service_name(service)
+    validate_path(path)
     return service, path
+
+
+def _followed(compiled: list[tuple[Expression, Node, str, str]]) -> tuple[tuple[str, str], ...]:
+    """The properties the chart's expressions read with ``value(...)``, each checked, at most MAX_FOLLOWED."""
+    found: dict[tuple[str, str], None] = {}
+    for expression, node, attr, source in compiled:
+        for text in expression.text_arguments("value"):
+            try:
+                key = split_property(text)
+            except InvalidArgument as e:
+                raise node.fail(f"{attr}={source[:60]!r}: value({text!r}): {e.message}") from None
+            found[key] = None
+            if len(found) > MAX_FOLLOWED:
+                raise node.fail(
+                    f"{attr}={source[:60]!r}: a chart reads at most {MAX_FOLLOWED} properties with value()"
+                )
+    return tuple(found)
 
 
 def _params(node: Node) -> list[tuple[str, str | Expression]]:
@@ -683,6 +711,7 @@ def compile_chart(name: str, text: str) -> Chart:
         for state_id in expression.text_arguments("In"):
             if state_id not in compiler.states:
                 raise at.fail(f"{attr}={source[:60]!r}: In({state_id!r}): no state with id {state_id!r}")
+    followed = _followed(compiled)
     if not any(c.kind != "history" for c in root.children):
         raise node.fail("a chart needs at least one <state>, <parallel> or <final>")
     if root.transitions or root.listens or root.onentry or root.onexit:
@@ -693,4 +722,4 @@ def compile_chart(name: str, text: str) -> Chart:
     compiler.transitions.append(root.initial)
     compiler.resolve(root)
     states, ordered = compiler.states, compiler.ordered
-    return Chart(name, fmt, text, root, states, ordered, compiler.data, compiler.transitions)
+    return Chart(name, fmt, text, root, states, ordered, compiler.data, compiler.transitions, followed)

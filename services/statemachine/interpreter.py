@@ -20,13 +20,14 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import functools
 import logging
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 from services.backend import Change, Subscription, close_quietly
-from services.errors import PropertyError, ResourceExhausted
+from services.errors import NotFound, PropertyError, ResourceExhausted
 from services.statemachine.binding import PropertyBinding
 from services.statemachine.chart import (
     MAX_FOREACH,
@@ -86,6 +87,27 @@ class Event:
 
     def record(self) -> Record:
         return Record({"name": self.name, "data": self.data, "type": self.kind, "origin": self.origin})
+
+
+class _FollowFailed(EvaluationError):
+    """``value('SERVICE/PATH')`` of a property the machine could not follow: ``error.action``."""
+
+    def __init__(self, service: str, path: str, error: PropertyError) -> None:
+        super().__init__(f"value('{service}/{path}'): {error.code.name}: {error.message}")
+        self.service = service
+        self.path = path
+        self.error = error
+
+
+@dataclass(eq=False, slots=True)
+class _Follow:
+    """One property the chart reads with ``value(...)``: its Listen and its latest value."""
+
+    service: str
+    path: str
+    subscription: Subscription | None = None
+    value: Any = None
+    error: PropertyError | None = None
 
 
 class _BlockFailed(Exception):
@@ -161,7 +183,8 @@ class Interpreter:
         self._event: Event | None = None
         #: Actions run in the current macrostep (MAX_ACTIONS).
         self._actions = 0
-        self._functions = {**FUNCTIONS, "In": self._in}
+        self._follows: dict[str, _Follow] = {}
+        self._functions = {**FUNCTIONS, "In": self._in, "value": self._followed_value}
         self.transitions = 0
 
     # -- outside ---------------------------------------------------------------
@@ -211,6 +234,7 @@ class Interpreter:
     async def _run(self) -> None:
         try:
             self._actions = 0
+            await self._open_follows()
             self._init_data()
             await self._microstep([self.chart.root.initial] if self.chart.root.initial else [], None)
             await self._main_loop()
@@ -298,6 +322,7 @@ class Interpreter:
         if self.status != "done":  # a finished machine keeps showing where it ended
             self.configuration.clear()
         self.stable = tuple(self.active_ids())
+        await self._close_follows()
         if self.status == "running":
             self.status = "stopped"
 
@@ -326,7 +351,7 @@ class Interpreter:
         try:
             return bool(self._evaluate(t.cond))
         except EvaluationError as e:
-            self._error_execution(str(e), t.where)
+            self._expression_failed(e, t.where)
             return False
 
     def _remove_conflicts(self, enabled: list[Transition]) -> list[Transition]:
@@ -520,6 +545,8 @@ class Interpreter:
                 continue
             try:
                 self.variables[name] = check_size(self._evaluate(expr))
+            except _FollowFailed as e:
+                self._expression_failed(e, "")
             except EvaluationError as e:
                 self._error_execution(f"data {name}: {e}", "")
 
@@ -541,6 +568,13 @@ class Interpreter:
         self.journal(f"error.execution: {where + ': ' if where else ''}{message}")
         data = Record({"message": message, "where": where})
         self._queue_internal(Event("error.execution", data, "platform"))
+
+    def _expression_failed(self, e: EvaluationError, where: str) -> None:
+        """An expression failed: error.action when it read a property not followed, else error.execution."""
+        if isinstance(e, _FollowFailed):
+            self._error_action(e.service, e.path, e.error, where)
+        else:
+            self._error_execution(str(e), where)
 
     def _error_action(self, service: str, path: str, e: PropertyError, where: str) -> None:
         self.journal(f"error.action: {service}/{path}: {e.code.name}: {e.message}")
@@ -571,7 +605,7 @@ class Interpreter:
         try:
             return self._evaluate(expr, extra)
         except EvaluationError as e:
-            self._error_execution(str(e), where)
+            self._expression_failed(e, where)
             raise _BlockFailed from None
 
     async def _act(self, action: Action) -> None:
@@ -701,6 +735,50 @@ class Interpreter:
             self._error_action(action.service, action.path, e, action.where)
             raise _BlockFailed from None
         self.variables[action.location] = parse_chart_value(text)
+
+    # -- properties read by value(...) --------------------------------------------------
+
+    async def _open_follows(self) -> None:
+        """One Listen (and a Get of the current value) on each property the chart reads with value()."""
+        for service, path in self.chart.followed:
+            follow = _Follow(service, path)
+            self._follows[f"{service}/{path}"] = follow
+            try:
+                follow.subscription = await self.binding.listen(
+                    service, path, functools.partial(self._follow_changed, follow)
+                )
+                text = await self.binding.get(service, path)
+            except PropertyError as e:
+                follow.error = e
+                self.journal(f"follow {service}/{path}: {e.code.name}: {e.message}")
+                log.warning("machine %s: cannot follow %s/%s: %s", self.name, service, path, e.message)
+                continue
+            if follow.error is None and follow.value is None:
+                follow.value = parse_chart_value(text)
+
+    @staticmethod
+    def _follow_changed(follow: _Follow, change: Change) -> None:
+        if change.removed:
+            follow.error = NotFound(f"{follow.service}/{follow.path} was removed")
+            follow.value = None
+        else:
+            follow.error = None
+            follow.value = parse_chart_value(change.value)
+
+    async def _close_follows(self) -> None:
+        follows, self._follows = self._follows, {}
+        for follow in follows.values():
+            if follow.subscription is not None:
+                await close_quietly(follow.subscription)
+
+    def _followed_value(self, prop: Any) -> Any:
+        """``value('SERVICE/PATH')``: the latest value heard, read without waiting."""
+        follow = self._follows.get(str(prop))
+        if follow is None:  # the chart's properties are followed from the start: a stopped machine
+            raise EvaluationError(f"value({prop!r}): the machine does not follow it now")
+        if follow.error is not None:
+            raise _FollowFailed(follow.service, follow.path, follow.error)
+        return follow.value
 
     # -- listens -------------------------------------------------------------------------
 

@@ -140,6 +140,16 @@ def test_scxml_json_and_yaml_of_the_same_chart_give_the_same_model() -> None:
         (OPEN + "\n<state id='a'><onentry>\n<ps:get xmlns:ps='urn:propertyservice:scxml'"
          " property='scout1/speed' location='x' timeout='601'/></onentry></state></scxml>",
          "line 3", "timeout='601': at most 600 s"),
+        (OPEN + "\n<datamodel><data id='p' expr=\"'thermo1/data'\"/></datamodel><state id='a'>\n"
+         "<transition event='go' cond='value(p) &gt; 3' target='a'/></state></scxml>",
+         "line 3", "value() takes the property written as text, like value('thermo1/data')"),
+        (OPEN + "\n<state id='a'>\n<transition event='go' cond=\"value('thermo1') &gt; 3\" target='a'/>"
+         "</state></scxml>", "line 3", "value('thermo1'): expected SERVICE/PATH"),
+        (OPEN + "\n<state id='a'>\n<transition event='go' cond=\"value('a/b', 'c/d')\" target='a'/>"
+         "</state></scxml>", "line 3", "value() takes the property written as text"),
+        (OPEN + "\n<state id='a'>\n<transition event='go' cond=\""
+         + " + ".join(f"value('s{i}/data')" for i in range(33)) + "\" target='a'/></state></scxml>",
+         "line 3", "a chart reads at most 32 properties with value()"),
         (OPEN + "\n<state id='a'>\n<transition event='go' cond=\"In('nowhere')\" target='a'/>"
          "</state></scxml>",
          "line 3", "In('nowhere'): no state with id 'nowhere'"),
