@@ -30,6 +30,7 @@ from services.backend import Change, Subscription, close_quietly
 from services.errors import NotFound, PropertyError, ResourceExhausted
 from services.statemachine.binding import PropertyBinding
 from services.statemachine.chart import (
+    MAX_DELAY,
     MAX_FOREACH,
     Action,
     Assign,
@@ -670,8 +671,8 @@ class Interpreter:
         delay = action.delay
         if action.delayexpr is not None:
             raw = self._value(action.delayexpr, action.where)
-            if isinstance(raw, bool) or not isinstance(raw, int | float) or not 0 <= raw <= 86400:
-                bad = f"delayexpr gave {raw!r}, not seconds between 0 and 86400"
+            if isinstance(raw, bool) or not isinstance(raw, int | float) or not 0 <= raw <= MAX_DELAY:
+                bad = f"delayexpr gave {raw!r}, not seconds between 0 and {MAX_DELAY:g}"
                 self._error_execution(bad, action.where)
                 raise _BlockFailed
             delay = float(raw)
