@@ -25,6 +25,7 @@ from services.statemachine.document import ChartError, Node, read_document
 from services.statemachine.expressions import FUNCTIONS, Expression, compile_expression
 
 __all__ = [
+    "MAX_FOLLOWED",
     "MAX_STATES",
     "MAX_TIMEOUT",
     "MAX_TRANSITIONS",
@@ -49,9 +50,15 @@ __all__ = [
 MAX_STATES = 256
 #: Most transitions in one chart.
 MAX_TRANSITIONS = 1024
-#: Longest delay of a ``send`` and longest timeout of an action, seconds (a day).
+#: Longest delay of a ``send``, seconds: a day (a mission waits hours, not weeks).
 MAX_DELAY = 86400.0
+#: Longest ``timeout`` of an action (``ps:set``, ``ps:get``), seconds: ten minutes, the gateway's
+#: longest call; an action's timeout is more than 0 (``timeout="0"`` is refused at load: it would
+#: fail every action that waits, yet pass one that an in-process service answers at once).
 MAX_TIMEOUT = 600.0
+#: Most properties one chart reads with ``value('SERVICE/PATH')``: the machine holds one Listen on
+#: each while it runs.
+MAX_FOLLOWED = 32
 #: Most iterations of one ``foreach``.
 MAX_FOREACH = 1000
 
@@ -236,6 +243,8 @@ class Chart:
     ordered: list[State]
     data: list[tuple[str, Expression | None]]
     transitions: list[Transition]
+    #: The properties the chart reads with ``value('SERVICE/PATH')``: (service, path), in order.
+    followed: tuple[tuple[str, str], ...] = ()
 
     def state(self, state_id: str) -> State:
         return self.states[state_id]
@@ -265,7 +274,7 @@ def _check_attrs(node: Node, allowed: tuple[str, ...]) -> None:
 _COMPILED: ContextVar[list[tuple[Expression, Node, str, str]] | None] = ContextVar("_COMPILED", default=None)
 #: Names every expression may read besides the chart's variables and functions.
 _BUILT_IN_NAMES = frozenset(
-    {"_event", "_name", "true", "True", "false", "False", "null", "None", *FUNCTIONS, "In"}
+    {"_event", "_name", "true", "True", "false", "False", "null", "None", *FUNCTIONS, "In", "value"}
 )
 
 
@@ -312,6 +321,17 @@ def _duration(node: Node, attr: str, limit: float) -> float:
     return seconds
 
 
+def _timeout(node: Node) -> float | None:
+    """An action's ``timeout``: more than 0, at most :data:`MAX_TIMEOUT`; None when not given."""
+    if "timeout" not in node.attrs:
+        return None
+    seconds = _duration(node, "timeout", MAX_TIMEOUT)
+    if seconds <= 0:
+        text = node.attrs["timeout"]
+        raise node.fail(f"timeout={text!r}: an action's timeout is more than 0 s (at most {MAX_TIMEOUT:g} s)")
+    return seconds
+
+
 def _events(node: Node, text: str) -> tuple[str, ...]:
     events = tuple(text.split())
     for event in events:
@@ -337,15 +357,37 @@ def _variable(node: Node, attr: str) -> str:
 def _property(node: Node) -> tuple[str, str]:
     """``property="scout1/behaviors.moveto"``: the service and the property path."""
     text = node.attrs.get("property", "")
-    service, sep, path = text.partition("/")
-    if not sep:
-        raise node.fail(f"property={text!r}: expected SERVICE/PATH, like 'scout1/behaviors.moveto'")
     try:
-        validate_service_name(service)
-        validate_path(path)
+        return split_property(text)
     except InvalidArgument as e:
         raise node.fail(f"property={text!r}: {e.message}") from None
+
+
+def split_property(text: str) -> tuple[str, str]:
+    """``SERVICE/PATH`` as (service, path); InvalidArgument saying what is wrong."""
+    service, sep, path = text.partition("/")
+    if not sep:
+        raise InvalidArgument("expected SERVICE/PATH, like 'scout1/behaviors.moveto'")
+    validate_service_name(service)
+    validate_path(path)
     return service, path
+
+
+def _followed(compiled: list[tuple[Expression, Node, str, str]]) -> tuple[tuple[str, str], ...]:
+    """The properties the chart's expressions read with ``value(...)``, each checked, at most MAX_FOLLOWED."""
+    found: dict[tuple[str, str], None] = {}
+    for expression, node, attr, source in compiled:
+        for text in expression.text_arguments("value"):
+            try:
+                key = split_property(text)
+            except InvalidArgument as e:
+                raise node.fail(f"{attr}={source[:60]!r}: value({text!r}): {e.message}") from None
+            found[key] = None
+            if len(found) > MAX_FOLLOWED:
+                raise node.fail(
+                    f"{attr}={source[:60]!r}: a chart reads at most {MAX_FOLLOWED} properties with value()"
+                )
+    return tuple(found)
 
 
 def _params(node: Node) -> list[tuple[str, str | Expression]]:
@@ -409,8 +451,9 @@ class _Compiler:
         if node.tag == "ps:get":
             _check_attrs(node, ("property", "location", "timeout"))
             service, path = _property(node)
-            timeout = _duration(node, "timeout", MAX_TIMEOUT) if "timeout" in node.attrs else None
-            return PropertyGet(service, path, _variable(node, "location"), _params(node), timeout, node.where)
+            return PropertyGet(
+                service, path, _variable(node, "location"), _params(node), _timeout(node), node.where
+            )
         if node.tag in _STATE_TAGS or node.tag in ("transition", "onentry", "onexit"):
             raise node.fail("a state element is not executable content (is it in the wrong place?)")
         raise node.fail(f"unknown element; executable content is one of {', '.join(_EXECUTABLE)}")
@@ -480,7 +523,7 @@ class _Compiler:
             value=node.attrs.get("value"),
             expr=_expr(node, "expr") if "expr" in node.attrs else None,
             params=_params(node),
-            timeout=_duration(node, "timeout", MAX_TIMEOUT) if "timeout" in node.attrs else None,
+            timeout=_timeout(node),
             done=_event(node, "done") if "done" in node.attrs else "",
             where=node.where,
         )
@@ -668,6 +711,7 @@ def compile_chart(name: str, text: str) -> Chart:
         for state_id in expression.text_arguments("In"):
             if state_id not in compiler.states:
                 raise at.fail(f"{attr}={source[:60]!r}: In({state_id!r}): no state with id {state_id!r}")
+    followed = _followed(compiled)
     if not any(c.kind != "history" for c in root.children):
         raise node.fail("a chart needs at least one <state>, <parallel> or <final>")
     if root.transitions or root.listens or root.onentry or root.onexit:
@@ -678,4 +722,4 @@ def compile_chart(name: str, text: str) -> Chart:
     compiler.transitions.append(root.initial)
     compiler.resolve(root)
     states, ordered = compiler.states, compiler.ordered
-    return Chart(name, fmt, text, root, states, ordered, compiler.data, compiler.transitions)
+    return Chart(name, fmt, text, root, states, ordered, compiler.data, compiler.transitions, followed)

@@ -6,7 +6,10 @@ parses the text with :mod:`ast` and accepts only the node types listed in
 ``_ALLOWED``: literals, names of chart variables, arithmetic, comparisons,
 ``and``/``or``/``not``, ``x if c else y``, indexing, tuples and lists, ``a.b``
 on records (the event: ``_event.name``, ``_event.data``) and calls of the
-functions in :data:`FUNCTIONS` by their bare name. Anything else (attribute
+functions in :data:`FUNCTIONS` by their bare name, ``In('state')`` and
+``value('SERVICE/PATH')`` (the latest value of a property the machine follows: its
+one argument must be written as text, so every property a chart reads is known at
+load). Anything else (attribute
 access on other values, lambdas, comprehensions, ``**``, keyword arguments,
 names starting with ``__``) is refused at load time with the reason.
 
@@ -28,6 +31,7 @@ from services.values import MAX_VALUE_LENGTH, format_number, parse_number, parse
 
 __all__ = [
     "FUNCTIONS",
+    "LITERAL_ARGUMENTS",
     "MAX_EXPRESSION_LENGTH",
     "MAX_RESULT_LENGTH",
     "EvaluationError",
@@ -130,6 +134,11 @@ FUNCTIONS: dict[str, Callable[..., Any]] = {
     "marker": _marker,
 }
 
+#: Functions whose arguments must be written as text (literals), with how many they take: the
+#: chart is checked against them at load (``In``: a state the chart has; ``value``: a property
+#: the machine follows while it runs).
+LITERAL_ARGUMENTS: dict[str, int] = {"value": 1}
+
 _BINARY: dict[type[ast.operator], Callable[[Any, Any], Any]] = {
     ast.Add: operator.add,
     ast.Sub: operator.sub,
@@ -199,6 +208,16 @@ def _check(tree: ast.Expression, functions: Sequence[str]) -> None:
                 raise _refuse(node, f"only these functions can be called: {', '.join(functions)}")
             if node.keywords or any(isinstance(a, ast.Starred) for a in node.args):
                 raise _refuse(node, "functions take positional arguments only")
+            wanted = LITERAL_ARGUMENTS.get(node.func.id)
+            if wanted is not None and (
+                len(node.args) != wanted
+                or not all(isinstance(a, ast.Constant) and isinstance(a.value, str) for a in node.args)
+            ):
+                raise _refuse(
+                    node,
+                    f"{node.func.id}() takes the property written as text, like "
+                    f"{node.func.id}('thermo1/data'), so that it is known when the chart is loaded",
+                )
 
 
 class Expression:
@@ -239,7 +258,7 @@ class Expression:
             raise EvaluationError(f"{type(e).__name__}: {e}") from None
 
 
-def compile_expression(text: str, functions: Sequence[str] = (*FUNCTIONS, "In")) -> Expression:
+def compile_expression(text: str, functions: Sequence[str] = (*FUNCTIONS, "In", "value")) -> Expression:
     """Parse and check ``text``; InvalidArgument saying what is not allowed."""
     if len(text) > MAX_EXPRESSION_LENGTH:
         raise InvalidArgument(f"the expression is longer than {MAX_EXPRESSION_LENGTH} characters")

@@ -20,15 +20,17 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import functools
 import logging
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 from services.backend import Change, Subscription, close_quietly
-from services.errors import PropertyError, ResourceExhausted
+from services.errors import NotFound, PropertyError, ResourceExhausted
 from services.statemachine.binding import PropertyBinding
 from services.statemachine.chart import (
+    MAX_DELAY,
     MAX_FOREACH,
     Action,
     Assign,
@@ -88,6 +90,27 @@ class Event:
         return Record({"name": self.name, "data": self.data, "type": self.kind, "origin": self.origin})
 
 
+class _FollowFailed(EvaluationError):
+    """``value('SERVICE/PATH')`` of a property the machine could not follow: ``error.action``."""
+
+    def __init__(self, service: str, path: str, error: PropertyError) -> None:
+        super().__init__(f"value('{service}/{path}'): {error.code.name}: {error.message}")
+        self.service = service
+        self.path = path
+        self.error = error
+
+
+@dataclass(eq=False, slots=True)
+class _Follow:
+    """One property the chart reads with ``value(...)``: its Listen and its latest value."""
+
+    service: str
+    path: str
+    subscription: Subscription | None = None
+    value: Any = None
+    error: PropertyError | None = None
+
+
 class _BlockFailed(Exception):
     """Executable content failed; the rest of its block is skipped (the error event is already queued)."""
 
@@ -128,7 +151,12 @@ def _matches(descriptors: Iterable[str], name: str) -> bool:
 
 @dataclass(eq=False)
 class Interpreter:
-    """One run of a chart; ``on_change`` is called when the configuration or the variables changed."""
+    """One run of a chart; ``on_change`` is called when a macrostep ended (a new stable configuration).
+
+    :attr:`stable` is the configuration at the end of the latest macrostep (W3C SCXML: only
+    that one is stable; those passed through by eventless transitions and internal events
+    inside a macrostep are not). ``M.state`` shows it; the journal gets every transition.
+    """
 
     chart: Chart
     binding: PropertyBinding
@@ -141,6 +169,8 @@ class Interpreter:
     variables: dict[str, Any] = field(default_factory=dict)
     status: str = "stopped"
     reason: str = ""
+    #: The active state ids, outermost first, at the end of the latest macrostep.
+    stable: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         self._external: asyncio.Queue[Event | None] = asyncio.Queue(MAX_QUEUED_EVENTS)
@@ -154,7 +184,8 @@ class Interpreter:
         self._event: Event | None = None
         #: Actions run in the current macrostep (MAX_ACTIONS).
         self._actions = 0
-        self._functions = {**FUNCTIONS, "In": self._in}
+        self._follows: dict[str, _Follow] = {}
+        self._functions = {**FUNCTIONS, "In": self._in, "value": self._followed_value}
         self.transitions = 0
 
     # -- outside ---------------------------------------------------------------
@@ -204,6 +235,7 @@ class Interpreter:
     async def _run(self) -> None:
         try:
             self._actions = 0
+            await self._open_follows()
             self._init_data()
             await self._microstep([self.chart.root.initial] if self.chart.root.initial else [], None)
             await self._main_loop()
@@ -231,11 +263,13 @@ class Interpreter:
             await self._macrostep()
             if self._finished():
                 return
+            moved = self._settle()
             self._retest_listens()
-            self.on_change()
-            if not self._external.empty():
-                # The get below will not wait: a chart that sends itself events without a delay,
-                # forever, would hold the event loop. Let the rest of the gateway (and a stop) in.
+            if (moved and self.watched()) or not self._external.empty():
+                # One turn of the event loop: a Listen stream on `state` takes this configuration
+                # before the next macrostep replaces it (a stream conflates what it has not taken
+                # yet). And when the get below would not wait, a chart that sends itself events
+                # without a delay, forever, would hold the event loop: let the gateway (and a stop) in.
                 await asyncio.sleep(0)
                 if self._stopping:
                     return
@@ -247,6 +281,14 @@ class Interpreter:
             enabled = self._select_transitions(event)
             if enabled:
                 await self._microstep(enabled, event)
+
+    def _settle(self) -> bool:
+        """A macrostep ended: its configuration is the stable one. True when it differs from the last."""
+        now = tuple(self.active_ids())
+        moved = now != self.stable
+        self.stable = now
+        self.on_change()
+        return moved
 
     def _finished(self) -> bool:
         return self._stopping or self.status != "running"
@@ -280,6 +322,8 @@ class Interpreter:
             await self._close_listens(state)
         if self.status != "done":  # a finished machine keeps showing where it ended
             self.configuration.clear()
+        self.stable = tuple(self.active_ids())
+        await self._close_follows()
         if self.status == "running":
             self.status = "stopped"
 
@@ -308,7 +352,7 @@ class Interpreter:
         try:
             return bool(self._evaluate(t.cond))
         except EvaluationError as e:
-            self._error_execution(str(e), t.where)
+            self._expression_failed(e, t.where)
             return False
 
     def _remove_conflicts(self, enabled: list[Transition]) -> list[Transition]:
@@ -345,12 +389,6 @@ class Interpreter:
         if before != after or any(t.targets for t in enabled):  # a state left and entered again too
             on = f" on {trigger.name}" if trigger is not None else ""
             self.journal(f"{' '.join(before) or '()'} -> {' '.join(after) or '()'}{on}")
-        if before != after:
-            self.on_change()
-            if self.watched():
-                # One turn of the event loop: a Listen stream on `state` takes this configuration
-                # before the next one replaces it (a stream conflates what it has not taken yet).
-                await asyncio.sleep(0)
 
     def _effective_targets(self, t: Transition) -> list[State]:
         targets: list[State] = []
@@ -508,6 +546,8 @@ class Interpreter:
                 continue
             try:
                 self.variables[name] = check_size(self._evaluate(expr))
+            except _FollowFailed as e:
+                self._expression_failed(e, "")
             except EvaluationError as e:
                 self._error_execution(f"data {name}: {e}", "")
 
@@ -529,6 +569,13 @@ class Interpreter:
         self.journal(f"error.execution: {where + ': ' if where else ''}{message}")
         data = Record({"message": message, "where": where})
         self._queue_internal(Event("error.execution", data, "platform"))
+
+    def _expression_failed(self, e: EvaluationError, where: str) -> None:
+        """An expression failed: error.action when it read a property not followed, else error.execution."""
+        if isinstance(e, _FollowFailed):
+            self._error_action(e.service, e.path, e.error, where)
+        else:
+            self._error_execution(str(e), where)
 
     def _error_action(self, service: str, path: str, e: PropertyError, where: str) -> None:
         self.journal(f"error.action: {service}/{path}: {e.code.name}: {e.message}")
@@ -559,7 +606,7 @@ class Interpreter:
         try:
             return self._evaluate(expr, extra)
         except EvaluationError as e:
-            self._error_execution(str(e), where)
+            self._expression_failed(e, where)
             raise _BlockFailed from None
 
     async def _act(self, action: Action) -> None:
@@ -624,8 +671,8 @@ class Interpreter:
         delay = action.delay
         if action.delayexpr is not None:
             raw = self._value(action.delayexpr, action.where)
-            if isinstance(raw, bool) or not isinstance(raw, int | float) or not 0 <= raw <= 86400:
-                bad = f"delayexpr gave {raw!r}, not seconds between 0 and 86400"
+            if isinstance(raw, bool) or not isinstance(raw, int | float) or not 0 <= raw <= MAX_DELAY:
+                bad = f"delayexpr gave {raw!r}, not seconds between 0 and {MAX_DELAY:g}"
                 self._error_execution(bad, action.where)
                 raise _BlockFailed
             delay = float(raw)
@@ -689,6 +736,50 @@ class Interpreter:
             self._error_action(action.service, action.path, e, action.where)
             raise _BlockFailed from None
         self.variables[action.location] = parse_chart_value(text)
+
+    # -- properties read by value(...) --------------------------------------------------
+
+    async def _open_follows(self) -> None:
+        """One Listen (and a Get of the current value) on each property the chart reads with value()."""
+        for service, path in self.chart.followed:
+            follow = _Follow(service, path)
+            self._follows[f"{service}/{path}"] = follow
+            try:
+                follow.subscription = await self.binding.listen(
+                    service, path, functools.partial(self._follow_changed, follow)
+                )
+                text = await self.binding.get(service, path)
+            except PropertyError as e:
+                follow.error = e
+                self.journal(f"follow {service}/{path}: {e.code.name}: {e.message}")
+                log.warning("machine %s: cannot follow %s/%s: %s", self.name, service, path, e.message)
+                continue
+            if follow.error is None and follow.value is None:
+                follow.value = parse_chart_value(text)
+
+    @staticmethod
+    def _follow_changed(follow: _Follow, change: Change) -> None:
+        if change.removed:
+            follow.error = NotFound(f"{follow.service}/{follow.path} was removed")
+            follow.value = None
+        else:
+            follow.error = None
+            follow.value = parse_chart_value(change.value)
+
+    async def _close_follows(self) -> None:
+        follows, self._follows = self._follows, {}
+        for follow in follows.values():
+            if follow.subscription is not None:
+                await close_quietly(follow.subscription)
+
+    def _followed_value(self, prop: Any) -> Any:
+        """``value('SERVICE/PATH')``: the latest value heard, read without waiting."""
+        follow = self._follows.get(str(prop))
+        if follow is None:  # the chart's properties are followed from the start: a stopped machine
+            raise EvaluationError(f"value({prop!r}): the machine does not follow it now")
+        if follow.error is not None:
+            raise _FollowFailed(follow.service, follow.path, follow.error)
+        return follow.value
 
     # -- listens -------------------------------------------------------------------------
 

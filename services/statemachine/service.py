@@ -11,7 +11,7 @@ property                  meaning
 ``M.remove``              action: remove the machine (stopped) and its stored chart
 ``M.events``              action: a Set sends the event named by the value (``data=`` parameter:
                           the event's data)
-``M.state``               the active configuration, ``(patrol goto)``; a Listen is the live view
+``M.state``               the stable configuration (at the end of the latest macrostep), ``(patrol goto)``
 ``M.status``              ``stopped``, ``running``, ``done`` or ``failed: why``
 ``M.variables``           the chart's variables as JSON
 ``M.log``                 the latest transitions, actions and errors, one a line (bounded)
@@ -33,6 +33,7 @@ import importlib.resources
 import json
 import logging
 import math
+import re
 import time
 from collections.abc import Iterable, Mapping
 from typing import Annotated, Any
@@ -145,16 +146,14 @@ class Machine(Resource):
         run = self._run
         if run is None or not run.running:
             raise FailedPrecondition(f"machine {self._name} is not running: Set {self._name}.start first")
-        event = name.strip()
-        if not event or any(c.isspace() for c in event) or len(event) > 128:
-            raise InvalidArgument(f"an event is one name like 'go' or 'sensor.hot', got {name[:40]!r}")
+        event = check_client_event(name)
         run.send(event, parse_chart_value(data) if data else None, origin="Set")
 
     @property
     def state(
         self,
-    ) -> Annotated[str, Prop(doc="the active states, outermost first; a Listen is the live view")]:
-        return format_names(self._run.active_ids() if self._run is not None else [])
+    ) -> Annotated[str, Prop(doc="the active states at the end of the latest macrostep")]:
+        return format_names(self._run.stable if self._run is not None else ())
 
     @property
     def status(self) -> Annotated[str, Prop(doc="stopped, running, done, or failed: why")]:
@@ -179,7 +178,7 @@ class Machine(Resource):
     def diagram(self) -> Annotated[str, Prop(gui="statechart", doc="SVG of the chart, active states marked")]:
         if self._chart is None:
             return ""
-        active = self._run.active_ids() if self._run is not None else []
+        active = list(self._run.stable) if self._run is not None else []
         return render_svg(self._chart, active)
 
     # -- inside ------------------------------------------------------------------------
@@ -221,6 +220,36 @@ class Machine(Resource):
     def _refresh(self) -> None:
         for name in ("state", "status", "variables", "diagram"):
             self.changed(name)
+
+
+#: An event a client may send: dotted names of letters, digits, ``_`` and ``-`` (as a chart's).
+_CLIENT_EVENT = re.compile(r"[A-Za-z0-9_-]+(?:\.[A-Za-z0-9_-]+)*")
+#: First segments of the events the machine raises itself (W3C SCXML 5.10.2 reserves error.* and
+#: done.*; a chart's transitions trust them to come from the machine, with their data).
+RESERVED_EVENT_PREFIXES = ("error", "done")
+#: What a machine name is, for a stored chart whose file name is none.
+MACHINE_NAME_RULE = "1 to 64 letters, digits, '_' or '-' (one path segment, no dots)"
+
+
+def check_client_event(name: str) -> str:
+    """``name`` when a client may send it as an event; InvalidArgument naming the rule it breaks."""
+    event = name.strip()
+    if "*" in event:
+        raise InvalidArgument(
+            f"event {event[:40]!r} refused: '*' is a pattern of a transition's event attribute, not an event"
+        )
+    if not event or len(event) > 128 or _CLIENT_EVENT.fullmatch(event) is None:
+        raise InvalidArgument(
+            "an event is one name of at most 128 letters, digits, '_' or '-', in dotted parts "
+            f"like 'go' or 'sensor.hot'; got {name[:40]!r}"
+        )
+    first = event.split(".", 1)[0]
+    if first in RESERVED_EVENT_PREFIXES:
+        raise InvalidArgument(
+            f"event {event!r} refused: names starting with 'error' or 'done' are raised by the machine "
+            "itself (error.execution, error.action, done.state.ID) and cannot be sent"
+        )
+    return event
 
 
 def _jsonable(value: Any) -> Any:
@@ -390,9 +419,19 @@ class StateMachineService(Resource):
                         or "/" in stem
                     ):
                         continue
-                    text = await backend.get("file", {"name": rel})
                     try:
                         validate_service_name(stem)
+                    except InvalidArgument:
+                        log.warning(
+                            "statemachine: stored chart %s skipped: %r is not a machine name; a machine "
+                            "name is %s",
+                            rel,
+                            stem,
+                            MACHINE_NAME_RULE,
+                        )
+                        continue
+                    text = await backend.get("file", {"name": rel})
+                    try:
                         self._put(stem, compile_chart(stem, text))
                     except PropertyError as e:
                         log.warning("statemachine: stored chart %s not loaded: %s", rel, e.message)

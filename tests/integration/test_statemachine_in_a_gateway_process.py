@@ -223,3 +223,41 @@ async def test_charts_survive_a_gateway_restart_through_the_storage_service(
         await client.set("missions", "errand.remove", "")
         assert await client.get_names("store", "files") == []
         assert await client.get_names("missions", "machines") == []
+
+
+THERMOSTAT = """<scxml xmlns="http://www.w3.org/2005/07/scxml" initial="idle">
+  <datamodel><data id="code" expr="''"/></datamodel>
+  <state id="idle">
+    <transition event="check" cond="value('thermo1/data') &gt; 30" target="hot"/>
+    <transition event="check" cond="value('thermo1/data') &gt; 10" target="mild"/>
+    <transition event="check" target="cold"/>
+  </state>
+  <state id="mild">
+    <transition event="probe" cond="value('ghost/data') &gt; 0" target="hot"/>
+    <transition event="error.action" target="blind">
+      <assign location="code" expr="_event.data.code"/>
+    </transition>
+  </state>
+  <state id="hot"/>
+  <state id="cold"/>
+  <state id="blind"/>
+</scxml>
+"""
+
+
+@pytest.mark.timeout(60)
+async def test_a_guard_on_a_sensor_reading_chooses_the_transition(gateway_process: Any) -> None:
+    gw = gateway_process(CONFIG)  # thermo1 reads 20: not above 30, above 10
+    async with AsyncClient(gw.address) as client:
+        await client.set("missions", "thermostat.definition", THERMOSTAT)
+        await client.set("missions", "thermostat.start", "")
+        await eventually(lambda: client.get("missions", "thermostat.state"), lambda s: s == "(idle)")
+        await client.set("missions", "thermostat.events", "check")
+        await eventually(lambda: client.get("missions", "thermostat.state"), lambda s: s == "(mild)")
+        # A property that cannot be followed: its guard raises error.action, which the chart handles.
+        await client.set("missions", "thermostat.events", "probe")
+        await eventually(lambda: client.get("missions", "thermostat.state"), lambda s: s == "(blind)")
+        assert (await _variables(client, "thermostat"))["code"] == "NOT_FOUND"
+        log = await client.get("missions", "thermostat.log")
+        assert "follow ghost/data: NOT_FOUND" in log
+        assert "error.action: ghost/data: NOT_FOUND" in log

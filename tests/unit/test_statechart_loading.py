@@ -134,6 +134,22 @@ def test_scxml_json_and_yaml_of_the_same_chart_give_the_same_model() -> None:
         (OPEN + "\n<datamodel><data id='n' expr='0'/></datamodel>\n<state id='a'><onentry>\n"
          "<assign location='n' expr='n + _value'/></onentry></state></scxml>",
          "line 4", "'_value' is known only in the cond of a <ps:listen>"),
+        (OPEN + "\n<state id='a'><onentry>\n<ps:set xmlns:ps='urn:propertyservice:scxml'"
+         " property='scout1/speed' value='1' timeout='0'/></onentry></state></scxml>",
+         "line 3", "timeout='0': an action's timeout is more than 0 s (at most 600 s)"),
+        (OPEN + "\n<state id='a'><onentry>\n<ps:get xmlns:ps='urn:propertyservice:scxml'"
+         " property='scout1/speed' location='x' timeout='601'/></onentry></state></scxml>",
+         "line 3", "timeout='601': at most 600 s"),
+        (OPEN + "\n<datamodel><data id='p' expr=\"'thermo1/data'\"/></datamodel><state id='a'>\n"
+         "<transition event='go' cond='value(p) &gt; 3' target='a'/></state></scxml>",
+         "line 3", "value() takes the property written as text, like value('thermo1/data')"),
+        (OPEN + "\n<state id='a'>\n<transition event='go' cond=\"value('thermo1') &gt; 3\" target='a'/>"
+         "</state></scxml>", "line 3", "value('thermo1'): expected SERVICE/PATH"),
+        (OPEN + "\n<state id='a'>\n<transition event='go' cond=\"value('a/b', 'c/d')\" target='a'/>"
+         "</state></scxml>", "line 3", "value() takes the property written as text"),
+        (OPEN + "\n<state id='a'>\n<transition event='go' cond=\""
+         + " + ".join(f"value('s{i}/data')" for i in range(33)) + "\" target='a'/></state></scxml>",
+         "line 3", "a chart reads at most 32 properties with value()"),
         (OPEN + "\n<state id='a'>\n<transition event='go' cond=\"In('nowhere')\" target='a'/>"
          "</state></scxml>",
          "line 3", "In('nowhere'): no state with id 'nowhere'"),

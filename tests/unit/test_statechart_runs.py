@@ -596,3 +596,100 @@ async def test_the_log_shows_a_transition_that_leaves_and_reenters_its_own_state
         "sample -> sample on tick",
         "sample -> end on tick",
     ], lines
+
+
+@pytest.mark.parametrize(
+    ("event", "rule"),
+    [
+        ("error.action", "raised by the machine itself"),
+        ("error", "raised by the machine itself"),
+        ("done.state.a", "raised by the machine itself"),
+        ("done", "raised by the machine itself"),
+        ("*", "'*' is a pattern"),
+        ("go.*", "'*' is a pattern"),
+        ("", "an event is one name"),
+        ("two words", "an event is one name"),
+        ("a..b", "an event is one name"),
+        (".go", "an event is one name"),
+        ("x" * 129, "at most 128"),
+    ],
+)
+async def test_a_client_cannot_send_an_event_the_machine_raises_itself(event: str, rule: str) -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="a">
+  <state id="a"><transition event="error done *" target="b"/></state>
+  <state id="b"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(a)")
+    with pytest.raises(InvalidArgument) as refused:
+        await sm.set("m.events", event)
+    assert rule in refused.value.message
+    # Names that only begin like a reserved one are the chart's own.
+    await sm.set("m.events", "doneness")
+    await state_becomes(sm, "m", "(b)")
+
+
+async def test_a_stored_chart_whose_file_name_is_no_machine_name_is_skipped_with_a_warning(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    directory = MemoryDirectory()
+    storage = FolderBackend()
+    chart = HEAD + ' initial="a"><state id="a"/></scxml>'
+    storage.content = {"statecharts/my.chart.scxml": chart, "statecharts/fine.scxml": chart}
+    await directory.add("store", storage)
+    with caplog.at_level("WARNING", logger="services.statemachine.service"):
+        sm, _ = await service(directory, storage="store")
+        await sm.start()
+    assert await sm.get("machines") == "(fine)"
+    (warning,) = [r.getMessage() for r in caplog.records if "my.chart" in r.getMessage()]
+    assert "'my.chart' is not a machine name" in warning
+    assert "1 to 64 letters, digits, '_' or '-'" in warning
+
+
+async def test_a_guard_reads_a_followed_property_and_one_it_cannot_follow_is_error_action() -> None:
+    directory = MemoryDirectory()
+    thermo = Thermometer()
+    await directory.add("thermo1", LocalService(thermo))
+    sm, _ = await service(directory)
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="idle">
+  <datamodel><data id="first" expr="value('thermo1/data')"/><data id="code" expr="''"/></datamodel>
+  <state id="idle">
+    <transition event="check" cond="value('thermo1/data') &gt; 30" target="hot"/>
+    <transition event="check" target="idle"/>
+    <transition event="ghost" cond="value('ghost/data') &gt; 0" target="hot"/>
+    <transition event="error.action" target="failed">
+      <assign location="code" expr="_event.data.code"/>
+    </transition>
+  </state>
+  <state id="hot"><transition event="ghost" target="idle"/></state>
+  <state id="failed"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(idle)")
+    assert (await variables(sm, "m"))["first"] == 20.0
+    await sm.set("m.events", "check")  # 20: not above 30
+    await eventually(lambda: sm.get("m.log"), lambda log: "idle -> idle on check" in log)
+    thermo.data = 31.0  # read by the next guard without a Get
+    await sm.set("m.events", "check")
+    await state_becomes(sm, "m", "(hot)")
+    await sm.set("m.events", "ghost")
+    await state_becomes(sm, "m", "(idle)")
+    await sm.set("m.events", "ghost")
+    await state_becomes(sm, "m", "(failed)")
+    assert (await variables(sm, "m"))["code"] == "NOT_FOUND"
+    log = await sm.get("m.log")
+    assert "follow ghost/data: NOT_FOUND" in log
+    assert "error.action: ghost/data: NOT_FOUND" in log
+    # The machine follows thermo1's data while it runs (the sensor's attribute is watched), not after.
+    assert len(thermo._ps_watch.get("data", [])) == 1
+    await sm.set("m.stop", "")
+    assert thermo._ps_watch.get("data", []) == []

@@ -1,10 +1,12 @@
 // The built-in widgets, one per `.gui` word the services use (services/core: number, slider,
-// switch, text, vector, pose, gauge, plot, list, marker, button, group) and one per data type.
+// switch, text, vector, pose, gauge, plot, list, marker, button, group; statechart, a state
+// machine's diagram, from statechart.js) and one per data type.
 // Every writable widget has one input or select and a button [data-action=set]; an action has
 // an input per parameter [data-param=NAME], a value input [data-value] when it takes a value,
 // and a button [data-action=invoke].
 
 import { registerBuiltin, registerTypeWidget } from './widgets.js';
+import { statechartWidget } from './statechart.js';
 import { findMarkers, formatNumber, markerFromInput, parseVector, valueFromInput } from './values.js';
 
 /** Points a plot keeps: a minute at the simulated sensor's 2 Hz is well inside. */
@@ -500,6 +502,7 @@ registerBuiltin('marker', markerWidget);
 registerBuiltin('button', buttonWidget);
 registerBuiltin('query', queryWidget);
 registerBuiltin('group', namespaceWidget);
+registerBuiltin('statechart', statechartWidget);
 
 registerTypeWidget('number', numberWidget);
 registerTypeWidget('integer', numberWidget);

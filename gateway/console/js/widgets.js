@@ -4,6 +4,7 @@
 //   prop   the property's model (name, type, access, unit, minimum, maximum, choices, length,
 //          gui, doc, parameters), as GET /api/v1/services/{service}/model gives it;
 //   ctx    {service, path, writable, set(text, parameters) -> Promise<reply|null>,
+//           setPath(path, text, parameters) (another property of the service, the same way),
 //           get(parameters) -> Promise<value|null>, showValue(text), h, svg}
 //   update is called with the value text on every change (and once with the current value).
 // The frame (`[data-property=PATH]`) shows the name, unit and access, the current value text in
@@ -128,6 +129,20 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
         frame.classList.remove('busy');
       }
     },
+    /** A Set of another property of the same service (a machine's `M.start` beside `M.diagram`). */
+    async setPath(path, text, parameters = {}) {
+      clearError();
+      frame.classList.add('busy');
+      try {
+        const reply = await setProperty(service, path, text, parameters);
+        return reply?.value ?? '';
+      } catch (e) {
+        showError(e);
+        return null;
+      } finally {
+        frame.classList.remove('busy');
+      }
+    },
     async get(parameters = {}) {
       clearError();
       try {
@@ -148,6 +163,8 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
     console.error(`the widget for ${prop.name} (gui "${prop.gui}") failed:`, e);
     widget = { element: h('span', { class: 'muted' }, `widget "${prop.gui}" failed: ${e.message}`) };
   }
+  // A widget that shows the value its own way (a statechart's SVG) hides the value text.
+  if (widget.hidesValue) value.hidden = true;
   frame.append(h('div', { class: 'prop-body' }, value, widget.element ?? ''), error);
   return {
     element: frame,
