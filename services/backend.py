@@ -96,7 +96,7 @@ class Backend(abc.ABC):
     backends have are declared here with defaults that do without them, so
     that callers never ask which kind of backend they hold:
     :attr:`answers_inline`, :meth:`start_get`, :meth:`wait_connected`,
-    :meth:`serves`.
+    :meth:`serves`, :meth:`wake`.
     """
 
     info: BackendInfo
@@ -177,6 +177,13 @@ class Backend(abc.ABC):
     def serves(self, obj: object) -> bool:
         """True when this backend serves ``obj`` itself (a group refuses itself as a member)."""
         return False
+
+    async def wake(self) -> None:  # noqa: B027 - optional hook, at once by default
+        """Start the service if it is dormant (declared, not running) and return once it serves.
+
+        The registry's ``wake`` (a call or the scheduler needs a dormant
+        provider). A backend that always runs returns at once.
+        """
 
     async def start(self) -> None:  # noqa: B027 - optional hook, empty by default
         """Start background work (simulation ticks, connections). Called once by the gateway."""

@@ -35,7 +35,20 @@ connection is made; a URL naming the gateway itself is a loop and refused.
 Configured services cannot be unregistered from outside, reserved names
 cannot be taken, and at most ``max_registrations`` registrations are held.
 
-Modules: ``urls`` (which URLs may be registered), ``allow`` (which addresses), ``entry`` (one service's
+**Service states** (the SOA layer): ``services.<name>.availability`` is
+``death`` (down), ``dormant`` (declared, not running: :meth:`Registry.wake`
+starts it), ``ready`` or ``active`` (a licence is held on it,
+``services.<name>.licence``). ``state`` keeps its meaning (up, down, connecting).
+
+**Licences**: exclusive use of a service or a subtree for a while
+(:mod:`services.registry.licences`): actions ``acquire`` (parameters
+``service``, ``duration``, ``subtree``; answers the licence id), ``renew``
+(``licence``, ``duration``), ``release`` (``licence``); ``licences`` lists
+the ids held, ``licences.<id>`` is a marker a Listen follows. A licence's
+deadline is a :class:`Lease`, the same as a registered service's lease.
+
+Modules: ``lease`` (the deadline both share), ``licences`` (the licences),
+``urls`` (which URLs may be registered), ``allow`` (which addresses), ``entry`` (one service's
 row, its state and lease), ``table`` (the rows and the search index),
 ``registration`` (register and unregister through the directory),
 ``liveness`` (checks, down, removal after ``grace``), ``persistence`` (the
@@ -45,23 +58,40 @@ registrations file), ``service`` (:class:`Registry` and
 """
 
 from services.registry.allow import DEFAULT_ALLOW, AllowList, parse_allow_entry
-from services.registry.entry import STATES, ServiceEntry, ServiceList
+from services.registry.entry import AVAILABILITIES, STATES, ServiceEntry, ServiceList
+from services.registry.lease import Lease
+from services.registry.licences import (
+    DEFAULT_LICENCE_DURATION,
+    DEFAULT_MAX_LICENCE_DURATION,
+    DEFAULT_MAX_LICENCES,
+    Licence,
+    Licences,
+)
 from services.registry.registration import (
     DEFAULT_MAX_REGISTRATIONS,
     DEFAULT_REGISTER_TIMEOUT,
     RESERVED_SERVICE_NAMES,
 )
-from services.registry.service import Registry, RegistryService
+from services.registry.service import Caller, CallerSource, Registry, RegistryService
 from services.registry.urls import REGISTRABLE_SCHEMES, check_url
 
 __all__ = [
+    "AVAILABILITIES",
     "DEFAULT_ALLOW",
+    "DEFAULT_LICENCE_DURATION",
+    "DEFAULT_MAX_LICENCES",
+    "DEFAULT_MAX_LICENCE_DURATION",
     "DEFAULT_MAX_REGISTRATIONS",
     "DEFAULT_REGISTER_TIMEOUT",
     "REGISTRABLE_SCHEMES",
     "RESERVED_SERVICE_NAMES",
     "STATES",
     "AllowList",
+    "Caller",
+    "CallerSource",
+    "Lease",
+    "Licence",
+    "Licences",
     "Registry",
     "RegistryService",
     "ServiceEntry",

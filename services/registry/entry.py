@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-import time
 from collections.abc import Callable
 from typing import Annotated
 
@@ -11,41 +9,31 @@ import numpy as np
 
 from services.backend import BackendInfo
 from services.core import Prop, Resource
-from services.errors import InvalidArgument, Unavailable
-from services.values import Vector, format_number, parse_number
+from services.errors import Unavailable
+from services.registry.lease import MAX_LEASE, Lease, check_lease, now, parse_lease, wall_clock
+from services.values import Vector
 
-__all__ = ["MAX_LEASE", "STATES", "ServiceEntry", "ServiceList", "check_lease", "parse_lease"]
+__all__ = [
+    "AVAILABILITIES",
+    "MAX_LEASE",
+    "STATES",
+    "ServiceEntry",
+    "ServiceList",
+    "check_lease",
+    "now",
+    "parse_lease",
+    "wall_clock",
+]
 
 #: What ``services.<name>.state`` can be: "connecting" until a service of unknown type (a proxy)
 #: is first reached, then "up", or "down" after missed checks.
 STATES = ("up", "down", "connecting")
-#: A lease longer than a day is a mistake rather than a plan.
-MAX_LEASE = 86_400.0
 
-
-def now() -> float:
-    """The clock of leases and of time spent down (monotonic seconds)."""
-    return time.monotonic()
-
-
-def wall_clock() -> float:
-    """``last_seen``: unix seconds, to the millisecond."""
-    return round(time.time(), 3)
-
-
-def check_lease(seconds: float) -> float:
-    """``seconds`` as a lease length, or InvalidArgument."""
-    if not (math.isfinite(seconds) and 0 <= seconds <= MAX_LEASE):
-        raise InvalidArgument(f"a lease is 0 to {format_number(MAX_LEASE)} seconds, got {seconds}")
-    return float(seconds)
-
-
-def parse_lease(text: str) -> float:
-    """The ``lease`` request parameter of a registration."""
-    try:
-        return check_lease(parse_number(text))
-    except InvalidArgument as e:
-        raise InvalidArgument(f"bad parameter lease: {e.message}") from None
+#: What ``services.<name>.availability`` can be (the service states of the SOA layer):
+#: "death" (down: it is logged off after ``grace``), "dormant" (declared but not running, or
+#: not reached yet: woken when a call or the scheduler needs it), "ready" (running, free),
+#: "active" (running, held under a licence: nobody else may invoke it).
+AVAILABILITIES = ("death", "dormant", "ready", "active")
 
 
 class ServiceEntry(Resource):
@@ -59,6 +47,7 @@ class ServiceEntry(Resource):
     last_seen: Annotated[float, Prop(readonly=True, doc="when it was last heard of, unix seconds")]
     misses: Annotated[int, Prop(readonly=True, doc="liveness checks missed in a row")]
     location: Annotated[Vector, Prop(readonly=True, gui="pose", doc="the service's own location; () if none")]
+    licence: Annotated[str, Prop(readonly=True, doc="id of a licence held on it (or a subtree); empty: none")]
 
     def __init__(
         self,
@@ -73,10 +62,12 @@ class ServiceEntry(Resource):
         self.last_seen = wall_clock()
         self.misses = 0
         self.location = np.zeros(0)
+        self.licence = ""
         self._name = name
         self._renew = renew
-        self._lease_until: float | None = None  # now()
+        self._lease = Lease()
         self._down_since: float | None = None  # now()
+        self._dormant = False
 
     def _value(self) -> str:
         return self.url
@@ -85,9 +76,7 @@ class ServiceEntry(Resource):
     def lease(
         self,
     ) -> Annotated[float, Prop(doc="seconds left on the lease; 0: no lease (polled). Set to renew")]:
-        if self._lease_until is None:
-            return 0.0
-        return round(max(0.0, self._lease_until - now()), 3)
+        return round(self._lease.left(), 3)
 
     @lease.setter
     def lease(self, seconds: float) -> None:
@@ -95,7 +84,37 @@ class ServiceEntry(Resource):
             raise Unavailable("this registry holds no leases")
         self._renew(self._name, seconds)
 
+    @property
+    def availability(
+        self,
+    ) -> Annotated[
+        str,
+        Prop(
+            choices=AVAILABILITIES,
+            doc="death (down), dormant (not running: woken on demand), ready (free), active (licensed)",
+        ),
+    ]:
+        if self.state == "down":
+            return "death"
+        if self._dormant or self.state == "connecting":
+            return "dormant"
+        return "active" if self.licence else "ready"
+
     # -- what the registry changes (plain methods: not properties) ----------
+
+    def set_dormant(self, dormant: bool) -> bool:
+        """The service is declared but not running (True), or running (False); True when it changed."""
+        if self._dormant == dormant:
+            return False
+        self._dormant = dormant
+        self.changed("availability")
+        return True
+
+    def set_licence(self, licence_id: str) -> None:
+        """The licence held on this service now ("" for none)."""
+        if self.licence != licence_id:
+            self.licence = licence_id
+            self.changed("availability")
 
     def is_local(self) -> bool:
         """Served inside the gateway (from the config): never checked, never unregistered."""
@@ -103,15 +122,18 @@ class ServiceEntry(Resource):
 
     def has_lease(self) -> bool:
         """The service renews a lease rather than being polled."""
-        return self._lease_until is not None
+        return self._lease.held
 
     def lease_lapsed(self, at: float) -> bool:
         """The service has a lease and it ran out before ``at`` (a :func:`now` time)."""
-        return self._lease_until is not None and at > self._lease_until
+        return self._lease.lapsed(at)
 
     def set_lease(self, seconds: float) -> None:
         """A lease of ``seconds`` from now; 0 ends it (the service is polled again)."""
-        self._lease_until = None if seconds == 0 else now() + seconds
+        if seconds == 0:
+            self._lease.end()
+        else:
+            self._lease.renew(seconds)
 
     def seen(self) -> None:
         """The service answered: no misses, ``last_seen`` now."""
@@ -124,6 +146,7 @@ class ServiceEntry(Resource):
             return False
         self.state = state
         self._down_since = now() if state == "down" else None
+        self.changed("availability")
         return True
 
     def down_for(self, at: float) -> float | None:

@@ -12,13 +12,20 @@ from pathlib import Path
 from typing import Annotated
 
 from services.backend import NO_PARAMS, Backend, BackendInfo
-from services.core import LocalService, Prop, Resource, query
+from services.core import LocalService, Prop, Resource, action, query
 from services.directory import Directory
 from services.errors import InvalidArgument, PropertyError, Unavailable
 from services.location_following import LocationFollower
 from services.query import Query, values_equal
 from services.registry.allow import AllowList
 from services.registry.entry import ServiceList
+from services.registry.licences import (
+    DEFAULT_LICENCE_DURATION,
+    DEFAULT_MAX_LICENCE_DURATION,
+    DEFAULT_MAX_LICENCES,
+    Licence,
+    Licences,
+)
 from services.registry.liveness import Liveness
 from services.registry.persistence import RegistrationsFile
 from services.registry.registration import (
@@ -28,15 +35,43 @@ from services.registry.registration import (
     Registrations,
 )
 from services.registry.table import ServiceTable
-from services.values import Vector
+from services.values import Vector, format_names
 from services.worker_pool import run_bounded
 
-__all__ = ["Registry", "RegistryService"]
+__all__ = ["Caller", "CallerSource", "Registry", "RegistryService"]
 
 log = logging.getLogger(__name__)
 
 #: Property Gets running at once for a ``find`` with ``where``.
 MAX_CONCURRENT_PROPERTY_GETS = 256
+
+#: Who is asking for (or renewing, or releasing) a licence: (holder, session). ``holder`` is the
+#: caller's proven identity, or a name bound to its Session; ``session`` is the Session the
+#: request came on ("" for a unary call), which the licence ends with.
+Caller = tuple[str, str]
+#: Answers :data:`Caller` for the request being carried out; the gateway installs one.
+CallerSource = Callable[[], Caller]
+
+
+def _local_caller() -> Caller:
+    return ("local", "")
+
+
+class LicenceView(Resource):
+    """One licence as the ``licences.<id>`` property shows it (a marker; Listen to follow it)."""
+
+    def __init__(self, licence: Licence) -> None:
+        self._licence = licence
+
+    def _value(self) -> str:
+        return self._licence.marker()
+
+
+class LicenceList(Resource):
+    """The licences held now, one child namespace each; its own value lists their ids."""
+
+    def _value(self) -> str:
+        return format_names(self.children())
 
 
 class Registry(Resource):
@@ -52,6 +87,7 @@ class Registry(Resource):
     revision: Annotated[
         int, Prop(readonly=True, doc="counts joins, leaves and changes of type or state (Listen to follow)")
     ]
+    licences: LicenceList
 
     def __init__(
         self,
@@ -66,10 +102,13 @@ class Registry(Resource):
         persist: str | os.PathLike[str] | None = None,
         allow: AllowList | None = None,
         max_registrations: int = DEFAULT_MAX_REGISTRATIONS,
+        max_licences: int = DEFAULT_MAX_LICENCES,
+        max_licence_duration: float = DEFAULT_MAX_LICENCE_DURATION,
     ) -> None:
         """``static`` names come from the gateway's config: they are never removed for being down,
         nor unregistered or replaced from outside (see :meth:`set_admin_check`). ``allow`` says
-        which addresses a registration may reach (default: loopback and USB serial adapters)."""
+        which addresses a registration may reach (default: loopback and USB serial adapters).
+        ``max_licences`` and ``max_licence_duration`` bound the licences (:attr:`licences`)."""
         for what, value in (("period", period), ("grace", grace)):
             if not (math.isfinite(value) and value >= 0):
                 raise InvalidArgument(f"{what} must be zero or a positive number of seconds, got {value}")
@@ -85,8 +124,18 @@ class Registry(Resource):
         self.misses = misses
         self.grace = float(grace)
         self.revision = 0
+        self.licences = LicenceList()
         self._directory = directory
         self._table = ServiceTable(self.services, self._bump)
+        #: The licences (exclusive use of a service for a while); see :mod:`services.registry.licences`.
+        self.licensing = Licences(
+            lambda name: self._table.get(name) is not None,
+            max_licences=max_licences,
+            max_duration=max_licence_duration,
+        )
+        self.licensing.watch(self._on_licence)
+        self._caller: CallerSource = _local_caller
+        self._table.watch_states(self._on_state_for_licences)
         self._registrations = Registrations(
             self._table,
             directory,
@@ -130,7 +179,7 @@ class Registry(Resource):
 
     def add(self, name: str, info: BackendInfo) -> None:
         """Record service ``name``, or refresh it: new type and URL, state up, ``last_seen`` now."""
-        self._table.add(name, info, self.renew)
+        self._table.add(name, info, self.renew_lease)
 
     def remove(self, name: str) -> None:
         """Forget service ``name``; NotFound if it is not known."""
@@ -153,7 +202,7 @@ class Registry(Resource):
         """Record where ``name`` is (None: nowhere); the registry also follows ``location`` itself."""
         self._table.set_location(name, location)
 
-    def renew(self, name: str, seconds: float) -> None:
+    def renew_lease(self, name: str, seconds: float) -> None:
         """Give ``name`` a lease of ``seconds`` from now (0 ends the lease: it is polled again)."""
         self._table.renew(name, seconds)
 
@@ -183,6 +232,79 @@ class Registry(Resource):
         """One round of liveness checks (the loop runs it every ``period``; tests call it directly)."""
         await self._liveness.check_all()
 
+    # -- service states and licences (the SOA layer) ----------------------------
+
+    def availability_of(self, name: str) -> str:
+        """death, dormant, ready or active (see ``services.<name>.availability``); NotFound when unknown."""
+        return self._table.entry(name).availability
+
+    def set_dormant(self, name: str, dormant: bool) -> None:
+        """Record that ``name`` is declared but not running (True) or running again (False)."""
+        entry = self._table.get(name)
+        if entry is not None and entry.set_dormant(dormant):
+            self._bump()
+
+    async def wake(self, name: str) -> None:
+        """Start ``name`` when it is dormant, and return once it is ready (at once when it runs).
+
+        Raises NotFound (unknown), Unavailable (it cannot be started, or it is down).
+        """
+        entry = self._table.entry(name)
+        if entry.state == "down":
+            raise Unavailable(f"service {name!r} is down (death): it cannot be woken")
+        directory = self._directory
+        if directory is None:
+            raise Unavailable("this registry cannot start services: it has no directory")
+        await directory.backend(name).wake()
+        self.set_dormant(name, False)
+
+    def set_caller(self, caller: CallerSource) -> None:
+        """Install what tells who the current request comes from (the holder of licences it acquires)."""
+        self._caller = caller
+
+    @action(doc="acquire an exclusive licence on `service` (or `subtree`) for `duration` s; answers its id")
+    async def acquire(
+        self, *, service: str, duration: float = DEFAULT_LICENCE_DURATION, subtree: str = ""
+    ) -> str:
+        """Acquire a licence for the caller; its id is the Set's answer (see :meth:`Licences.grant`)."""
+        holder, session = self._caller()
+        licence = await self.licensing.grant(service, holder, duration, subtree, session=session)
+        return licence.id
+
+    @action(doc="hold licence `licence` for `duration` s from now (its holder only)")
+    async def renew(self, *, licence: str, duration: float = DEFAULT_LICENCE_DURATION) -> str:
+        """Renew a licence of the caller's; answers its new expiry (ISO 8601 UTC)."""
+        from services.registry.licences import format_time
+
+        holder, _ = self._caller()
+        renewed = await self.licensing.renew(licence, duration, holder=holder)
+        return format_time(renewed.expires_at)
+
+    @action(doc="end licence `licence` now (its holder only)")
+    async def release(self, *, licence: str) -> None:
+        """Release a licence of the caller's."""
+        holder, _ = self._caller()
+        await self.licensing.release(licence, holder=holder)
+
+    def _on_licence(self, licence: Licence, event: str) -> None:
+        """Keep ``licences`` and ``services.<name>.licence`` in step with the licences."""
+        view = self.licences.children().get(licence.id)
+        if event == "granted":
+            self.licences.attach(licence.id, LicenceView(licence))
+        elif isinstance(view, LicenceView):
+            view.changed()
+            if event not in ("renewed",):
+                self.licences.detach(licence.id)
+        entry = self._table.get(licence.service)
+        if entry is not None:
+            held = self.licensing.holder_of(licence.service)
+            entry.set_licence(held.id if held is not None else "")
+
+    def _on_state_for_licences(self, name: str, state: str) -> None:
+        """A holder that is a registered service and goes down (death) loses its licences."""
+        if state == "down":
+            self.licensing.release_holder(name)
+
     # -- following the directory --------------------------------------------
 
     async def start(self) -> None:
@@ -200,6 +322,7 @@ class Registry(Resource):
         self._liveness.start()
 
     async def stop(self) -> None:
+        self.licensing.close()
         if self._unwatch is not None:
             self._unwatch()
             self._unwatch = None
@@ -218,6 +341,8 @@ class Registry(Resource):
     def _forget(self, name: str) -> None:
         if not self._table.forget(name):
             return
+        self.licensing.release_holder(name)
+        self.licensing.release_service(name)
         self._locations.forget(name)
         self._registrations.drop(name)
 
