@@ -18,6 +18,7 @@ from services.errors import InvalidArgument, PropertyError, Unavailable
 from services.location_following import LocationFollower
 from services.query import Query, values_equal
 from services.registry.allow import AllowList
+from services.registry.dispatch import Dispatcher, QosView
 from services.registry.entry import ServiceList
 from services.registry.licences import (
     DEFAULT_LICENCE_DURATION,
@@ -33,6 +34,12 @@ from services.registry.registration import (
     DEFAULT_REGISTER_TIMEOUT,
     AdminCheck,
     Registrations,
+)
+from services.registry.scheduling import (
+    DEFAULT_MAX_QUEUED,
+    DEFAULT_TOUT,
+    DEFAULT_TR,
+    check_capabilities,
 )
 from services.registry.table import ServiceTable
 from services.values import Vector, format_names
@@ -88,6 +95,9 @@ class Registry(Resource):
         int, Prop(readonly=True, doc="counts joins, leaves and changes of type or state (Listen to follow)")
     ]
     licences: LicenceList
+    qos: QosView
+    tout: Annotated[float, Prop(readonly=True, unit="s", doc="longest allocation of the scheduler (Tout)")]
+    tr: Annotated[float, Prop(readonly=True, unit="s", doc="longest wait of a queued request (Tr)")]
 
     def __init__(
         self,
@@ -104,11 +114,18 @@ class Registry(Resource):
         max_registrations: int = DEFAULT_MAX_REGISTRATIONS,
         max_licences: int = DEFAULT_MAX_LICENCES,
         max_licence_duration: float = DEFAULT_MAX_LICENCE_DURATION,
+        features: Mapping[str, Iterable[str]] | None = None,
+        tout: float = DEFAULT_TOUT,
+        tr: float = DEFAULT_TR,
+        max_queued: int = DEFAULT_MAX_QUEUED,
     ) -> None:
         """``static`` names come from the gateway's config: they are never removed for being down,
         nor unregistered or replaced from outside (see :meth:`set_admin_check`). ``allow`` says
         which addresses a registration may reach (default: loopback and USB serial adapters).
-        ``max_licences`` and ``max_licence_duration`` bound the licences (:attr:`licences`)."""
+        ``max_licences`` and ``max_licence_duration`` bound the licences (:attr:`licences`).
+        ``features`` gives configured services their capabilities for the scheduler; ``tout``
+        (longest allocation, at most ``max_licence_duration``), ``tr`` (longest wait) and
+        ``max_queued`` (requests waiting) set the scheduler (:mod:`services.registry.dispatch`)."""
         for what, value in (("period", period), ("grace", grace)):
             if not (math.isfinite(value) and value >= 0):
                 raise InvalidArgument(f"{what} must be zero or a positive number of seconds, got {value}")
@@ -117,7 +134,16 @@ class Registry(Resource):
                 raise InvalidArgument(f"{what} must be a positive number of seconds, got {value}")
         if isinstance(misses, bool) or not isinstance(misses, int) or misses < 1:
             raise InvalidArgument(f"misses must be a positive whole number, got {misses!r}")
+        tout = min(float(tout), float(max_licence_duration))
+        for what, value in (("tout", tout), ("tr", tr)):
+            if not (math.isfinite(value) and value > 0):
+                raise InvalidArgument(f"{what} must be a positive number of seconds, got {value}")
+        if isinstance(max_queued, bool) or not isinstance(max_queued, int) or max_queued < 1:
+            raise InvalidArgument(f"max_queued must be a positive whole number, got {max_queued!r}")
         static = frozenset(static)
+        self._features = {
+            name: check_capabilities(caps, f"features of {name}") for name, caps in (features or {}).items()
+        }
         self.services = ServiceList()
         self.period = float(period)
         self.timeout = float(timeout)
@@ -125,6 +151,9 @@ class Registry(Resource):
         self.grace = float(grace)
         self.revision = 0
         self.licences = LicenceList()
+        self.qos = QosView()
+        self.tout = tout
+        self.tr = float(tr)
         self._directory = directory
         self._table = ServiceTable(self.services, self._bump)
         #: The licences (exclusive use of a service for a while); see :mod:`services.registry.licences`.
@@ -170,6 +199,20 @@ class Registry(Resource):
             what="registry",
         )
         self._unwatch: Callable[[], None] | None = None
+        self._dispatcher = Dispatcher(
+            self._table,
+            self.licensing,
+            wake=self.wake,
+            directory=lambda: self._directory,
+            features=self.features_of,
+            changed=self.changed,
+            qos=self.qos,
+            timeout=self.timeout,
+            tout=self.tout,
+            tr=self.tr,
+            max_queued=max_queued,
+        )
+        self.licensing.watch(self._dispatcher.on_licence)
 
     # -- the plain methods the gateway calls ------------------------------
 
@@ -280,11 +323,91 @@ class Registry(Resource):
         renewed = await self.licensing.renew(licence, duration, holder=holder)
         return format_time(renewed.expires_at)
 
-    @action(doc="end licence `licence` now (its holder only)")
-    async def release(self, *, licence: str) -> None:
-        """Release a licence of the caller's."""
+    @action(
+        doc="end licence `licence` now (its holder only); or end scheduler allocation `allocation`, "
+        "recording `qos` ((provider score) ...), scores 0 to 1"
+    )
+    async def release(
+        self, *, licence: str = "", allocation: str = "", qos: str = "", consumer: str = ""
+    ) -> str:
+        """Release a licence of the caller's, or an allocation of the scheduler's with its assessments."""
         holder, _ = self._caller()
-        await self.licensing.release(licence, holder=holder)
+        if bool(licence) == bool(allocation):
+            raise InvalidArgument("release takes one of the parameters licence or allocation")
+        if licence:
+            if qos or consumer:
+                raise InvalidArgument("qos and consumer go with allocation, not with licence")
+            await self.licensing.release(licence, holder=holder)
+            return ""
+        return await self._dispatcher.release(allocation, consumer=consumer, holder=holder, qos=qos)
+
+    # -- the scheduler --------------------------------------------------------------
+
+    def features_of(self, name: str) -> frozenset[str]:
+        """The capabilities ``name`` declared (config ``features`` or registration parameter)."""
+        declared = self._features.get(name)
+        if declared is not None:
+            return declared
+        return self._registrations.declared_features(name)
+
+    @action(
+        doc="ask for providers of capabilities (survey) or (video ptz mobile); answers "
+        "(ID granted ((provider licence) ...)) or (ID queued ())"
+    )
+    async def request(
+        self,
+        capabilities: str,
+        *,
+        consumer: str = "",
+        location: str = "",
+        count: int = 1,
+        duration: float = 0.0,
+        wait: float = -1.0,
+        exclude: str = "",
+        cost: str = "",
+        weight: float = 0.5,
+    ) -> str:
+        """Choose providers for ``capabilities`` and license them to the caller (see
+        :mod:`services.registry.dispatch`). ``consumer``: the robot asking (default: the caller);
+        ``location`` (x y): where the work is (default: the consumer's location); ``count``: that many
+        providers each offering all capabilities; ``duration`` (0: ``tout``); ``wait``: seconds to
+        queue when all are busy (-1: ``tr``; 0: refuse at once); ``exclude``: providers the consumer
+        rejects; ``cost``: a property each provider publishes its cost in (default: drive distance);
+        ``weight``: cost against QoS, 0 to 1."""
+        holder, session = self._caller()
+        return await self._dispatcher.request(
+            capabilities,
+            consumer=consumer,
+            holder=holder,
+            session=session,
+            location=location,
+            count=count,
+            duration=duration,
+            wait=wait,
+            exclude=exclude,
+            cost=cost,
+            weight=weight,
+        )
+
+    @property
+    def requests(
+        self,
+    ) -> Annotated[str, Prop(doc="waiting requests: ((ID consumer (capabilities) count deadline) ...)")]:
+        return self._dispatcher.requests_text()
+
+    @property
+    def allocations(
+        self,
+    ) -> Annotated[
+        str, Prop(doc="live allocations: ((ID consumer (capabilities) ((provider licence) ...) expires) ...)")
+    ]:
+        return self._dispatcher.allocations_text()
+
+    @property
+    def unserved(
+        self,
+    ) -> Annotated[str, Prop(doc="requests no provider could serve: ((consumer (caps)) ...)")]:
+        return self._dispatcher.unserved_text()
 
     def _on_licence(self, licence: Licence, event: str) -> None:
         """Keep ``licences`` and ``services.<name>.licence`` in step with the licences."""
@@ -308,6 +431,7 @@ class Registry(Resource):
     # -- following the directory --------------------------------------------
 
     async def start(self) -> None:
+        self._dispatcher.start()
         directory = self._directory
         if directory is None:
             return
@@ -322,6 +446,7 @@ class Registry(Resource):
         self._liveness.start()
 
     async def stop(self) -> None:
+        await self._dispatcher.stop()
         self.licensing.close()
         if self._unwatch is not None:
             self._unwatch()
@@ -348,6 +473,7 @@ class Registry(Resource):
 
     def _bump(self) -> None:
         self.revision += 1
+        self._dispatcher.table_changed()
 
     def _learn_type(self, name: str, backend: Backend) -> None:
         """Take the type a device told in its greeting, unless the registration declared one.

@@ -72,12 +72,18 @@ class Allocation:
     licences: dict[str, str]  # provider -> licence id
     granted_at: float
     expires_at: float
-    #: "active", then "released" or "expired".
+    #: "active", then "released", "expired" or "lost" (every licence ended otherwise than by release).
     status: str = "active"
+    #: Providers whose licence ended before the allocation did, and how (expired, lost, released).
+    ended: dict[str, str] = field(default_factory=dict)
 
     @property
     def providers(self) -> tuple[str, ...]:
         return tuple(self.licences)
+
+    def live(self) -> list[str]:
+        """The providers still held."""
+        return [p for p in self.licences if p not in self.ended] if self.status == "active" else []
 
 
 @dataclass(frozen=True, slots=True)

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import itertools
 from collections import deque
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 
 from services.errors import FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted, Unavailable
 from services.registry.scheduling.cost import drive_distance, rank_scores
@@ -90,7 +90,7 @@ class Scheduler:
     def holder(self, provider: str) -> str | None:
         """The consumer a provider serves (or the plan reserving it), None when it is free."""
         for allocation in self.allocations.values():
-            if provider in allocation.licences:
+            if provider in allocation.live():
                 return allocation.consumer
         plan = self._reserved.get(provider)
         return self._plans[plan].request.consumer if plan is not None else None
@@ -98,7 +98,7 @@ class Scheduler:
     def _busy(self) -> set[str]:
         busy = set(self._reserved)
         for allocation in self.allocations.values():
-            busy.update(allocation.licences)
+            busy.update(allocation.live())
         return busy
 
     def _consumers(self) -> set[str]:
@@ -309,8 +309,7 @@ class Scheduler:
             )
         records = {p: self.qos.record(p, s) for p, s in assessments.items()}
         if allocation.status == "active":
-            del self.allocations[id]
-            self.ended.append(allocation)
+            self._end(allocation, "released")
         allocation.status = "released"
         return allocation, records
 
@@ -318,25 +317,44 @@ class Scheduler:
         """End the allocations whose licences ran out (``Tout``); their providers are free."""
         gone = [a for a in self.allocations.values() if a.expires_at <= now]
         for allocation in gone:
-            del self.allocations[allocation.id]
-            allocation.status = "expired"
-            self.ended.append(allocation)
+            for provider in allocation.live():
+                allocation.ended[provider] = "expired"
+            self._end(allocation, "expired")
         return gone
+
+    def end_licence(self, licence_id: str, how: str) -> Allocation | None:
+        """A licence of an allocation ended outside a release (``expired``, ``lost``, ``released``):
+        its provider is free; the allocation ends with its last licence. None when no allocation has it."""
+        for allocation in self.allocations.values():
+            for provider, held in allocation.licences.items():
+                if held == licence_id and provider not in allocation.ended:
+                    allocation.ended[provider] = how
+                    if not allocation.live():
+                        self._end(allocation, "expired" if how == "expired" else "lost")
+                    return allocation
+        return None
+
+    def _end(self, allocation: Allocation, status: str) -> None:
+        self.allocations.pop(allocation.id, None)
+        allocation.status = status
+        self.ended.append(allocation)
 
     # -- step 4: the queue ------------------------------------------------------------
 
-    def retry(self, providers: Iterable[Provider], now: float) -> tuple[list[Plan], list[Waiting]]:
-        """Try the waiting requests again, first come first served.
+    def retry(
+        self, providers: Callable[[Waiting], Iterable[Provider]], now: float
+    ) -> tuple[list[Plan], list[Waiting]]:
+        """Try the waiting requests again, first come first served; ``providers(waiting)`` gives
+        the providers as that request sees them (with the costs it asked for).
 
         Returns the plans made (reserved, taken off the queue) and the requests dropped: overdue,
         or no longer possible (an error recorded in :attr:`unserved`).
         """
         dropped = self.queue.overdue(now)
-        snapshot = list(providers)
         plans: list[Plan] = []
         for waiting in self.queue:
             try:
-                plan = self._plan(waiting.id, waiting.request, snapshot)
+                plan = self._plan(waiting.id, waiting.request, list(providers(waiting)))
             except (NotFound, Unavailable):
                 self.queue.remove(waiting.id)
                 dropped.append(waiting)
