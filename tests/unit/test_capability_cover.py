@@ -61,7 +61,11 @@ def test_the_exact_cover_is_as_small_as_brute_force_finds(universe, offers, scor
 
 
 def test_among_smallest_covers_the_exact_one_has_the_lowest_score() -> None:
-    offers = {"cheap": frozenset({"video", "ptz"}), "dear": frozenset({"video", "ptz"}), "m": frozenset({"mobile"})}
+    offers = {
+        "cheap": frozenset({"video", "ptz"}),
+        "dear": frozenset({"video", "ptz"}),
+        "m": frozenset({"mobile"}),
+    }
     chosen = exact_cover(frozenset({"video", "ptz", "mobile"}), offers, {"cheap": 0.1, "dear": 0.9, "m": 0.5})
     assert sorted(chosen or []) == ["cheap", "m"]
 
