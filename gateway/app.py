@@ -262,6 +262,10 @@ class Gateway:
             persist=settings.persist or None,
             allow=self.allow,
             max_registrations=settings.max_registrations,
+            features={e.name: e.features for e in self.config.services if e.features},
+            tout=settings.tout,
+            tr=settings.tr,
+            max_queued=settings.max_queued,
         )
         # Only an admin (by the rules) may unregister or replace a configured service.
         self.registry.set_admin_check(self.guard.may_administer)

@@ -26,12 +26,12 @@ from typing import Annotated
 from services.core import Prop, Resource
 from services.directory import Directory
 from services.errors import FailedPrecondition, InvalidArgument, NotFound, PropertyError, Unavailable
+from services.registry.candidates import Candidates, provider_state
 from services.registry.licences import Licence, Licences, format_time
 from services.registry.scheduling import (
     Allocation,
     Plan,
     Provider,
-    ProviderState,
     Request,
     Scheduler,
     Waiting,
@@ -58,13 +58,6 @@ log = logging.getLogger(__name__)
 MAX_ATTEMPTS = 3
 #: Providers asked for a published cost at once.
 MAX_CONCURRENT_COST_GETS = 64
-
-_STATES = {
-    "ready": ProviderState.READY,
-    "dormant": ProviderState.DORMANT,
-    "active": ProviderState.BUSY,
-    "death": ProviderState.DOWN,
-}
 
 
 class QosEntry(Resource):
@@ -116,6 +109,7 @@ class Dispatcher:
         wake: Callable[[str], Awaitable[None]],
         directory: Callable[[], Directory | None],
         features: Callable[[str], frozenset[str]],
+        revision: Callable[[], int],
         changed: Callable[[str], None],
         qos: QosView,
         timeout: float,
@@ -129,6 +123,8 @@ class Dispatcher:
         self._wake = wake
         self._directory = directory
         self._features = features
+        self._revision = revision
+        self._candidates = Candidates(table, features)
         self._changed = changed
         self._qos = qos
         self._timeout = timeout
@@ -152,12 +148,22 @@ class Dispatcher:
                 Provider(
                     name,
                     self._features(name) | {entry.type},
-                    _STATES.get(entry.availability, ProviderState.DOWN),
+                    provider_state(entry.availability),
                     location,
                     None if published is None else published.get(name),
                 )
             )
         return found
+
+    def providers_for(
+        self, request: Request, published: dict[str, float] | None
+    ) -> tuple[list[Provider], float]:
+        """The providers the scheduler needs to see for ``request`` (narrowed as
+        :mod:`services.registry.candidates` says) and the cost that scores 1 among them all."""
+        if published is not None:
+            return self.providers(published), max(published.values(), default=0.0)
+        unsure = self.scheduler.unsure(request) | {lic.service for lic in self._licensing.held()}
+        return self._candidates.narrow(request, self._revision(), self.scheduler.qos.means(), unsure)
 
     def location_of(self, name: str) -> Vector | None:
         entry = self._table.get(name)
@@ -225,7 +231,9 @@ class Dispatcher:
         rejected: set[str] = set()
         for _ in range(MAX_ATTEMPTS):
             asked = replace(request, exclude=request.exclude | rejected) if rejected else request
-            decided = self.scheduler.submit(asked, self.providers(published), time.monotonic())
+            providers, scale = self.providers_for(asked, published)
+            asked = replace(asked, cost_scale=scale)
+            decided = self.scheduler.submit(asked, providers, time.monotonic())
             if isinstance(decided, Waiting):
                 self._waiting_callers[decided.id] = (holder, session)
                 if published is not None:
@@ -359,7 +367,7 @@ class Dispatcher:
         if not len(self.scheduler.queue):
             return
         plans, dropped = self.scheduler.retry(
-            lambda w: self.providers(self._published.get(w.id)), time.monotonic()
+            lambda w: self.providers_for(w.request, self._published.get(w.id))[0], time.monotonic()
         )
         for waiting in dropped:
             self._forget_waiting(waiting.id)

@@ -205,6 +205,7 @@ class Registry(Resource):
             wake=self.wake,
             directory=lambda: self._directory,
             features=self.features_of,
+            revision=lambda: self.revision,
             changed=self.changed,
             qos=self.qos,
             timeout=self.timeout,

@@ -51,15 +51,19 @@ def odometry_distance(samples: Iterable[tuple[float, float, float]]) -> float:
 
 
 def rank_scores(
-    costs: Mapping[str, float], qos: Mapping[str, float], weight: float = DEFAULT_WEIGHT
+    costs: Mapping[str, float],
+    qos: Mapping[str, float],
+    weight: float = DEFAULT_WEIGHT,
+    scale: float | None = None,
 ) -> dict[str, float]:
-    """Score of each provider, lower is better: ``weight · cost/max_cost + (1 − weight) · (1 − qos)``.
+    """Score of each provider, lower is better: ``weight · cost/scale + (1 − weight) · (1 − qos)``.
 
-    Costs are scaled by the largest among the candidates (all zero: cost does not count), so the
-    two terms are on the same 0–1 scale whatever unit the cost is in; a provider without a QoS
-    record counts as :data:`DEFAULT_QOS`.
+    ``scale`` is the largest cost of every provider that could serve (default: the largest in
+    ``costs``; zero: cost does not count), so the two terms are on the same 0–1 scale whatever
+    unit the cost is in, and a provider's score does not depend on which others are asked about;
+    a provider without a QoS record counts as :data:`DEFAULT_QOS`.
     """
-    top = max(costs.values(), default=0.0)
+    top = max(costs.values(), default=0.0) if scale is None else scale
     scores = {}
     for name, cost in costs.items():
         relative = cost / top if top > 0 else 0.0

@@ -47,6 +47,9 @@ class Request:
     wait: float = 0.0
     exclude: frozenset[str] = frozenset()
     weight: float = 0.5
+    #: The cost that scores 1 (the largest of every provider that could serve); None: the largest
+    #: among those offered to the scheduler.
+    cost_scale: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -95,6 +95,11 @@ class Scheduler:
         plan = self._reserved.get(provider)
         return self._plans[plan].request.consumer if plan is not None else None
 
+    def unsure(self, request: Request) -> set[str]:
+        """Providers the scheduler would not give ``request`` whatever their state: busy ones,
+        consumers, the consumer itself and those it excludes."""
+        return self._busy() | self._consumers() | {request.consumer} | request.exclude
+
     def _busy(self) -> set[str]:
         busy = set(self._reserved)
         for allocation in self.allocations.values():
@@ -232,7 +237,9 @@ class Scheduler:
             p.name: (p.cost if p.cost is not None else drive_distance(p.location, request.location))
             for p in pool
         }
-        scores = rank_scores(costs, self.qos.means(), request.weight)
+        qos = self.qos
+        means = {name: r.mean for name in costs if (r := qos.get(name)) is not None}
+        scores = rank_scores(costs, means, request.weight, request.cost_scale)
         if request.count > 1:
             whole = sorted(
                 (p.name for p in pool if request.capabilities <= p.capabilities), key=lambda n: (scores[n], n)
