@@ -32,7 +32,9 @@ from grpc_reflection.v1alpha import reflection
 from gateway.backends import open_backend, open_proxy
 from gateway.config import REGISTRY_NAME, Config, ConfigError, ServiceEntry
 from gateway.devices import DeviceProcess, start_device
+from gateway.dormant import DormantBackend
 from gateway.guard import Guard
+from gateway.licensing import current_caller
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
@@ -131,14 +133,14 @@ class Gateway:
             plain = [e for e in self.config.services if not _needs_directory(e) and not e.dials_in]
             for entry in plain:
                 backend = self._open(entry)
-                await self._add(entry.name, backend, entry.url or f"type {entry.type}")
+                await self._add(entry.name, backend, _described(entry))
             for name, backend in self._extra.items():
                 await self._add(name, backend, backend.info.url)
             await self._start_devices()
             for entry in self.config.services:
                 if _needs_directory(entry):
                     self._warn_missing_members(entry)
-                    await self._add(entry.name, self._open(entry), f"type {entry.type}")
+                    await self._add(entry.name, self._open(entry), _described(entry))
             await self._start_line_listener()
             self._server = self._make_server()
             await self._server.start()
@@ -169,11 +171,31 @@ class Gateway:
             raise ConfigError(*problems)
 
     def _open(self, entry: ServiceEntry) -> Backend:
-        """The backend of a ``[[services]]`` entry; one that cannot be built is a config error."""
+        """The backend of a ``[[services]]`` entry; one that cannot be built is a config error.
+
+        A dormant one is built here once (so that a bad entry fails now, and its type is known)
+        but served by a :class:`DormantBackend`, which builds and starts it when a call needs it.
+        """
         try:
-            return open_backend(entry, self.router.directory)
+            backend = open_backend(entry, self.router.directory)
         except PropertyError as exc:
             raise ConfigError(f"{self.config.source}: services ({entry.name}): {exc.message}") from None
+        if not entry.dormant:
+            return backend
+        directory = self.router.directory
+        return DormantBackend(
+            entry.name,
+            lambda: open_backend(entry, directory),
+            info=backend.info,
+            idle_stop=entry.idle_stop,
+            awake=self._awake,
+            connect_wait=DEVICE_CONNECT_WAIT,
+            held=lambda name: self.registry.licensing.holder_of(name) is not None,
+        )
+
+    def _awake(self, name: str, running: bool) -> None:
+        """A dormant service started (a call needed it) or stopped (idle): the registry shows it."""
+        self.registry.set_dormant(name, not running)
 
     async def _add(self, name: str, backend: Backend, what: str) -> None:
         try:
@@ -182,6 +204,8 @@ class Gateway:
         except BaseException:
             await backend.aclose()
             raise
+        if backend.on_demand:
+            self.registry.set_dormant(name, True)
         log.info("service %s started (%s)", name, what)
 
     def _launch_devices(self) -> None:
@@ -262,6 +286,8 @@ class Gateway:
             persist=settings.persist or None,
             allow=self.allow,
             max_registrations=settings.max_registrations,
+            max_licences=settings.max_licences,
+            max_licence_duration=settings.max_licence_duration,
             features={e.name: e.features for e in self.config.services if e.features},
             tout=settings.tout,
             tr=settings.tr,
@@ -269,6 +295,9 @@ class Gateway:
         )
         # Only an admin (by the rules) may unregister or replace a configured service.
         self.registry.set_admin_check(self.guard.may_administer)
+        # Licences are held by the caller's identity (or its Session); every Set is checked against them.
+        self.registry.set_caller(current_caller)
+        self.servicer.calls.licences = self.registry.licensing
         await self._add(REGISTRY_NAME, RegistryService(self.registry), "built in")
         self._unwatch_registry = self.registry.watch_states(self._on_state)
 
@@ -428,6 +457,11 @@ class Gateway:
     async def wait_stopped(self) -> None:
         """Return once :meth:`stop` was called."""
         await self._stopped.wait()
+
+
+def _described(entry: ServiceEntry) -> str:
+    what = entry.url or f"type {entry.type}"
+    return f"{what}, dormant: started on demand" if entry.dormant else what
 
 
 def _needs_directory(entry: ServiceEntry) -> bool:

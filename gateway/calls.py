@@ -22,6 +22,12 @@ subject before its backend is asked: each path of a Get (``more`` included;
 a pattern's matches that the subject may not read are skipped), and each Set
 as the operation it is (write, invoke, register, unregister, admin). Every
 Set's outcome is audited.
+
+Every Set is also checked against the licences the registry holds
+(:mod:`gateway.licensing`): a Set or an action on a service (or subtree) that
+someone else holds a licence on is FAILED_PRECONDITION naming the holder and the
+expiry, whether the service is in-process, a proxy or another gateway's. Reads
+are never refused for a licence.
 """
 
 from __future__ import annotations
@@ -31,8 +37,9 @@ import functools
 from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from typing import Any
 
-from gateway.guard import CALLER, Guard
+from gateway.guard import CALLER, REGISTRY, Guard
 from gateway.identity import ANONYMOUS
+from gateway.licensing import check_set
 from gateway.router import Router, bounded_call, check_path, finish_call
 from gateway.rules import Operation, Subject
 from gateway.sizes import check_fits
@@ -43,6 +50,7 @@ from services.eager import Started, step
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, ResourceExhausted
 from services.model import ServiceModel
 from services.paths import compile_pattern, is_pattern, validate_pattern
+from services.registry import Licences
 
 #: What starting a call gives; see the module docstring.
 Begun = str | asyncio.Future[Answer] | Awaitable[str]
@@ -88,6 +96,13 @@ class Calls:
         self.timeout = call_timeout
         self.max_get_paths = max_get_paths
         self.guard = guard or Guard()
+        #: The registry's licences every Set is checked against; None: no licences (no registry yet).
+        self.licences: Licences | None = None
+
+    def session_ended(self, subject: Subject) -> None:
+        """The Session of ``subject`` ended: the licences acquired on it are lost."""
+        if self.licences is not None and subject.session:
+            self.licences.release_session(subject.session)
 
     def _backend(self, service: str, verb: str) -> Backend:
         if not service:
@@ -129,14 +144,17 @@ class Calls:
             backend = self._backend(service, "Set")
             path = check_path(request.property)
             operation = guard.set_operation(subject, service, path, request.value)
+            check_set(self.licences, subject, service, path)
         except PropertyError as exc:
             if exc.code not in (Code.PERMISSION_DENIED, Code.UNAUTHENTICATED):  # already audited
                 guard.audited(subject, service, request.property, Operation.WRITE, exc)
             raise
         if operation is None:
             return self._set_after_model(request, backend, path, time_limit, subject)
-        if operation is Operation.UNREGISTER or operation is Operation.REGISTER:
-            CALLER.set(subject)  # the registry asks whether this caller is an admin (configured names)
+        if service == REGISTRY:
+            # The registry asks whether this caller is an admin (configured names), and who holds
+            # the licences it acquires, renews or releases.
+            CALLER.set(subject)
         try:
             begun = self._start_set(request, backend, path, time_limit)
         except Exception as exc:

@@ -22,7 +22,14 @@ from gateway.identity import Authenticator, AuthSection
 from gateway.rules import Rule
 from services.errors import InvalidArgument, PropertyError
 from services.paths import validate_service_name
-from services.registry import DEFAULT_ALLOW, DEFAULT_MAX_REGISTRATIONS, parse_allow_entry
+from services.registry import (
+    DEFAULT_ALLOW,
+    DEFAULT_MAX_LICENCE_DURATION,
+    DEFAULT_MAX_LICENCES,
+    DEFAULT_MAX_REGISTRATIONS,
+    parse_allow_entry,
+)
+from services.registry.lease import MAX_LEASE
 from services.registry.scheduling import DEFAULT_MAX_QUEUED, DEFAULT_TOUT, DEFAULT_TR, check_capabilities
 
 #: The service every gateway hosts itself; a config may not define it.
@@ -188,6 +195,14 @@ class RegistrySection:
     allow: tuple[str, ...] = DEFAULT_ALLOW
     #: Registrations by Set held at once.
     max_registrations: int = DEFAULT_MAX_REGISTRATIONS
+    #: Licences held at once (``acquire``); one more is RESOURCE_EXHAUSTED.
+    max_licences: int = DEFAULT_MAX_LICENCES
+    #: Longest licence in seconds (a longer ``duration`` is INVALID_ARGUMENT); a longer job renews.
+    max_licence_duration: float = DEFAULT_MAX_LICENCE_DURATION
+
+
+#: Seconds a woken dormant service stays unused before it is stopped again, by default.
+DEFAULT_IDLE_STOP = 60.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -203,6 +218,11 @@ class ServiceEntry:
     #: A device that dials in (``url = "tcp-in://"``): the file holding the secret its greeting
     #: must carry (``secret=...``); absolute once parsed. Nobody else may take its name.
     secret_file: str = ""
+    #: Declared but not started: the gateway starts it when a call (or the registry's ``wake``)
+    #: needs it, and stops it again after ``idle_stop`` seconds without use.
+    dormant: bool = False
+    #: Seconds a woken dormant service may stay unused before it is stopped; 0 = never stopped.
+    idle_stop: float = DEFAULT_IDLE_STOP
 
     @property
     def dials_in(self) -> bool:
@@ -594,6 +614,14 @@ def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
     def checks(section: RegistrySection, found_here: list[str]) -> RegistrySection:
         found_here.extend(found)
         section = replace(section, allow=allow)
+        if section.max_licences < 1:
+            found_here.append(f"{where}.max_licences: must be at least 1, got {section.max_licences}")
+        longest = section.max_licence_duration
+        if not (math.isfinite(longest) and 0 < longest <= MAX_LEASE):
+            found_here.append(
+                f"{where}.max_licence_duration: must be more than 0 and at most {MAX_LEASE:g} seconds, "
+                f"got {longest}"
+            )
         if section.max_registrations < 1:
             found_here.append(
                 f"{where}.max_registrations: must be at least 1, got {section.max_registrations}"
@@ -717,7 +745,12 @@ def _name(entry: Any, where: str, known: tuple[str, ...], seen: set[str]) -> str
 
 
 def _service(entry: Any, where: str, seen: set[str], folder: Path | None = None) -> ServiceEntry:
-    name = _name(entry, where, ("name", "type", "url", "options", "secret_file", "features"), seen)
+    name = _name(
+        entry,
+        where,
+        ("name", "type", "url", "options", "secret_file", "dormant", "idle_stop", "features"),
+        seen,
+    )
     where = f"{where} ({name})"
     kind = _typed(entry.get("type", ""), str, f"{where}.type")
     url = _typed(entry.get("url", ""), str, f"{where}.url")
@@ -733,6 +766,7 @@ def _service(entry: Any, where: str, seen: set[str], folder: Path | None = None)
     service = ServiceEntry(
         name=name, type=kind, url=url, options=_paths_resolved(kind, options, folder), features=features
     )
+    service = _dormancy(service, entry, where)
     if service.dials_in or secret_file:
         service = replace(service, secret_file=_secret_file(service, secret_file, where, folder))
     return service
@@ -745,6 +779,23 @@ def _features(value: Any, where: str) -> tuple[str, ...]:
         return tuple(sorted(check_capabilities(value, "features")))
     except InvalidArgument as exc:
         raise ConfigError(f"{where}: {exc.message}") from None
+
+
+def _dormancy(service: ServiceEntry, entry: Mapping[str, Any], where: str) -> ServiceEntry:
+    """``dormant`` and ``idle_stop`` of a ``[[services]]`` entry, checked."""
+    dormant = _typed(entry.get("dormant", False), bool, f"{where}.dormant")
+    if dormant and service.dials_in:
+        raise ConfigError(f"{where}.dormant: a device that dials in starts itself; it cannot be dormant")
+    if "idle_stop" not in entry:
+        return replace(service, dormant=dormant)
+    if not dormant:
+        raise ConfigError(f"{where}.idle_stop: only a dormant service (dormant = true) is stopped when idle")
+    idle = entry["idle_stop"]
+    if isinstance(idle, bool) or not isinstance(idle, int | float) or not math.isfinite(idle) or idle < 0:
+        raise ConfigError(
+            f"{where}.idle_stop: must be zero (never stopped) or a number of seconds, got {idle!r}"
+        )
+    return replace(service, dormant=True, idle_stop=float(idle))
 
 
 def _paths_resolved(kind: str, options: Mapping[str, Any], folder: Path | None) -> dict[str, Any]:

@@ -8,7 +8,8 @@ touch a backend. What a request does is an :class:`~gateway.rules.Operation`:
 * Get (values and queries), Listen and Describe read (Describe asks about the
   service itself: the empty path, which only a ``**`` rule path matches);
 * a Set on the registry of ``services.NAME`` registers (a URL) or unregisters
-  (nothing); any other Set on the registry is ``admin``;
+  (nothing); ``acquire``, ``renew`` and ``release`` (licences) invoke; any
+  other Set on the registry is ``admin``;
 * any other Set writes a value or invokes an action. Only when the rules tell
   the two apart for this subject and path does the guard read the service's
   model to know which; otherwise the Set is ``write``.
@@ -33,6 +34,9 @@ from services.model import Access, ServiceModel
 #: The service whose ``services.NAME`` Sets register and unregister (gateway.config.REGISTRY_NAME).
 REGISTRY = "registry"
 _SERVICES_PREFIX = "services."
+#: The registry's licence actions: invoked by any consumer that the rules let invoke them,
+#: not an administration of the registry.
+LICENCE_ACTIONS = frozenset({"acquire", "renew", "release"})
 
 
 #: The subject of the Set being carried out, for checks made deep inside a service (the
@@ -45,6 +49,8 @@ def registry_operation(path: str, value: str) -> Operation:
     """What a Set of ``path`` to ``value`` on the registry does."""
     if path.startswith(_SERVICES_PREFIX) and "." not in path[len(_SERVICES_PREFIX) :]:
         return Operation.REGISTER if value else Operation.UNREGISTER
+    if path in LICENCE_ACTIONS:
+        return Operation.INVOKE
     return Operation.ADMIN
 
 

@@ -122,6 +122,9 @@ class Subject:
     scopes: Scopes | None = None
     #: How the name was proven: "certificate", "token", "secret" (a device), or "" (not at all).
     via: str = ""
+    #: The Session stream the request came on ("" for a unary call or HTTP): an anonymous caller
+    #: holds licences under it, and loses them when it ends (:mod:`gateway.licensing`).
+    session: str = ""
 
 
 @dataclass(frozen=True, slots=True)

@@ -13,8 +13,10 @@ written; beyond either, the reader stops reading (backpressure).
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import functools
 import logging
+import secrets
 from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any
@@ -52,7 +54,8 @@ class Session:
         subject: Subject = ANONYMOUS,
     ) -> None:
         """``subject``: who opened the Session; every request in it is checked as theirs."""
-        self._subject = subject
+        #: Marked with this Session's token: an anonymous caller holds licences under it.
+        self._subject = dataclasses.replace(subject, session=secrets.token_hex(8))
         self._calls = calls
         self._hub = hub
         self._context = context
@@ -91,6 +94,8 @@ class Session:
                 stream.close()
             self._listens.clear()
             await asyncio.gather(reader, *self._tasks.values(), return_exceptions=True)
+            # Its holder vanished: the licences acquired on this Session end with it.
+            self._calls.session_ended(self._subject)
 
     async def _write_loop(self) -> None:
         context = self._context

@@ -96,7 +96,7 @@ class Backend(abc.ABC):
     backends have are declared here with defaults that do without them, so
     that callers never ask which kind of backend they hold:
     :attr:`answers_inline`, :meth:`start_get`, :meth:`wait_connected`,
-    :meth:`serves`, :meth:`wake`.
+    :meth:`serves`, :meth:`wake`, :attr:`on_demand`.
     """
 
     info: BackendInfo
@@ -106,6 +106,10 @@ class Backend(abc.ABC):
     #: pay for a task or a timer only when it has to wait. False for a proxy, whose
     #: calls always wait and may arm timeouts that must belong to the task awaiting them.
     answers_inline: ClassVar[bool] = False
+
+    #: The service is started on demand (a dormant service, :meth:`wake`): a watcher that only
+    #: follows it (the registry's locations) must not call it, or it would never sleep again.
+    on_demand: ClassVar[bool] = False
 
     @abc.abstractmethod
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:

@@ -25,7 +25,14 @@ from typing import Annotated
 
 from services.core import Prop, Resource
 from services.directory import Directory
-from services.errors import FailedPrecondition, InvalidArgument, NotFound, PropertyError, Unavailable
+from services.errors import (
+    FailedPrecondition,
+    InvalidArgument,
+    NotFound,
+    PermissionDenied,
+    PropertyError,
+    Unavailable,
+)
 from services.registry.candidates import Candidates, provider_state
 from services.registry.licences import Licence, Licences, format_time
 from services.registry.scheduling import (
@@ -277,7 +284,9 @@ class Dispatcher:
         if refused:
             await self._undo(plan, granted)
             return None, refused
-        allocation = self.scheduler.commit(plan, {lic.service: lic.id for lic in granted}, time.monotonic())
+        allocation = self.scheduler.commit(
+            plan, {lic.service: lic.id for lic in granted}, time.monotonic(), holder
+        )
         self._changed("allocations")
         log.info("scheduler: %s for %s: %s", plan.id, plan.request.consumer, _granted(allocation))
         return allocation, set()
@@ -292,15 +301,20 @@ class Dispatcher:
 
     # -- a release ----------------------------------------------------------------------
 
-    async def release(self, allocation_id: str, *, consumer: str, holder: str, qos: str) -> str:
+    async def release(self, allocation_id: str, *, holder: str, qos: str) -> str:
         """End an allocation and record the consumer's assessments; answers ``((B 0.86) ...)``,
         the new mean of each provider assessed."""
         assessments = parse_assessments(qos)
         found = self.scheduler.find(allocation_id)
         if found is None:
             raise NotFound(f"no allocation {allocation_id[:40]!r} (it may have ended long ago)")
+        if found.holder != holder:
+            raise PermissionDenied(
+                f"allocation {allocation_id} of {found.consumer} was granted to {found.holder}; "
+                f"only it may release it (you are {holder})"
+            )
         live = [found.licences[p] for p in found.live()]
-        allocation, records = self.scheduler.release(allocation_id, consumer or found.consumer, assessments)
+        allocation, records = self.scheduler.release(allocation_id, found.consumer, assessments)
         for licence_id in live:
             self._ours.add(licence_id)
             try:

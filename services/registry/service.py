@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import asyncio
+import collections
 import logging
 import math
 import os
@@ -51,6 +52,8 @@ log = logging.getLogger(__name__)
 
 #: Property Gets running at once for a ``find`` with ``where``.
 MAX_CONCURRENT_PROPERTY_GETS = 256
+#: Ended licences still shown under ``licences.<id>`` (their status says how they ended).
+MAX_ENDED_SHOWN = 64
 
 #: Who is asking for (or renewing, or releasing) a licence: (holder, session). ``holder`` is the
 #: caller's proven identity, or a name bound to its Session; ``session`` is the Session the
@@ -75,10 +78,13 @@ class LicenceView(Resource):
 
 
 class LicenceList(Resource):
-    """The licences held now, one child namespace each; its own value lists their ids."""
+    """The licences: one child namespace each, held or ended lately; its own value lists those held."""
+
+    def __init__(self, licensing: Licences) -> None:
+        self._licensing = licensing
 
     def _value(self) -> str:
-        return format_names(self.children())
+        return format_names(lic.id for lic in self._licensing.held())
 
 
 class Registry(Resource):
@@ -150,7 +156,6 @@ class Registry(Resource):
         self.misses = misses
         self.grace = float(grace)
         self.revision = 0
-        self.licences = LicenceList()
         self.qos = QosView()
         self.tout = tout
         self.tr = float(tr)
@@ -162,6 +167,9 @@ class Registry(Resource):
             max_licences=max_licences,
             max_duration=max_licence_duration,
         )
+        self.licences = LicenceList(self.licensing)
+        #: Ids of ended licences still shown under ``licences`` (how they ended), oldest first.
+        self._ended_views: collections.deque[str] = collections.deque()
         self.licensing.watch(self._on_licence)
         self._caller: CallerSource = _local_caller
         self._table.watch_states(self._on_state_for_licences)
@@ -310,8 +318,17 @@ class Registry(Resource):
     async def acquire(
         self, *, service: str, duration: float = DEFAULT_LICENCE_DURATION, subtree: str = ""
     ) -> str:
-        """Acquire a licence for the caller; its id is the Set's answer (see :meth:`Licences.grant`)."""
+        """Acquire a licence for the caller; its id is the Set's answer (see :meth:`Licences.grant`).
+
+        A dormant provider is woken first: a licence is granted on a service that serves. The
+        registry itself (this one, or another gateway's) is never licensed.
+        """
         holder, session = self._caller()
+        entry = self._table.get(service)
+        if entry is not None and entry.type == self.resource_type:
+            raise InvalidArgument(f"{service!r} is a registry: a registry is never licensed")
+        if entry is not None and entry.availability == "dormant":
+            await self.wake(service)
         licence = await self.licensing.grant(service, holder, duration, subtree, session=session)
         return licence.id
 
@@ -328,19 +345,17 @@ class Registry(Resource):
         doc="end licence `licence` now (its holder only); or end scheduler allocation `allocation`, "
         "recording `qos` ((provider score) ...), scores 0 to 1"
     )
-    async def release(
-        self, *, licence: str = "", allocation: str = "", qos: str = "", consumer: str = ""
-    ) -> str:
+    async def release(self, *, licence: str = "", allocation: str = "", qos: str = "") -> str:
         """Release a licence of the caller's, or an allocation of the scheduler's with its assessments."""
         holder, _ = self._caller()
         if bool(licence) == bool(allocation):
             raise InvalidArgument("release takes one of the parameters licence or allocation")
         if licence:
-            if qos or consumer:
-                raise InvalidArgument("qos and consumer go with allocation, not with licence")
+            if qos:
+                raise InvalidArgument("qos goes with allocation, not with licence")
             await self.licensing.release(licence, holder=holder)
             return ""
-        return await self._dispatcher.release(allocation, consumer=consumer, holder=holder, qos=qos)
+        return await self._dispatcher.release(allocation, holder=holder, qos=qos)
 
     # -- the scheduler --------------------------------------------------------------
 
@@ -417,8 +432,15 @@ class Registry(Resource):
             self.licences.attach(licence.id, LicenceView(licence))
         elif isinstance(view, LicenceView):
             view.changed()
-            if event not in ("renewed",):
-                self.licences.detach(licence.id)
+        if event not in ("granted", "renewed"):
+            # An ended licence stays readable (a Listen's last event says how it ended) until
+            # MAX_ENDED_SHOWN later ones have ended; ``licences`` itself lists the held ones.
+            self.licences.changed()
+            self._ended_views.append(licence.id)
+            while len(self._ended_views) > MAX_ENDED_SHOWN:
+                old = self._ended_views.popleft()
+                if old in self.licences.children():
+                    self.licences.detach(old)
         entry = self._table.get(licence.service)
         if entry is not None:
             held = self.licensing.holder_of(licence.service)
@@ -462,7 +484,8 @@ class Registry(Resource):
             self._forget(name)
             return
         self.add(name, backend.info)
-        self._locations.follow(name, backend)
+        if not backend.on_demand:  # following a dormant service's location would keep it awake
+            self._locations.follow(name, backend)
 
     def _forget(self, name: str) -> None:
         if not self._table.forget(name):

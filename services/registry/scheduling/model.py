@@ -75,6 +75,8 @@ class Allocation:
     licences: dict[str, str]  # provider -> licence id
     granted_at: float
     expires_at: float
+    #: Who the licences were granted to (the caller that asked; releases are its alone).
+    holder: str = ""
     #: "active", then "released", "expired" or "lost" (every licence ended otherwise than by release).
     status: str = "active"
     #: Providers whose licence ended before the allocation did, and how (expired, lost, released).

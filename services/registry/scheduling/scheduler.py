@@ -257,8 +257,9 @@ class Scheduler:
 
     # -- after the plan -------------------------------------------------------------
 
-    def commit(self, plan: Plan, licences: Mapping[str, str], now: float) -> Allocation:
-        """The plan's licences were all granted: it becomes an allocation until ``now + duration``."""
+    def commit(self, plan: Plan, licences: Mapping[str, str], now: float, holder: str = "") -> Allocation:
+        """The plan's licences were all granted (to ``holder``): it becomes an allocation until
+        ``now + duration``."""
         self._unreserve(plan)
         if set(licences) != set(plan.providers):
             raise InvalidArgument("an allocation needs one licence for each provider of its plan")
@@ -269,6 +270,7 @@ class Scheduler:
             {p: licences[p] for p in plan.providers},
             now,
             now + plan.request.duration,
+            holder,
         )
         self.allocations[plan.id] = allocation
         return allocation

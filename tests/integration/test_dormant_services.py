@@ -1,0 +1,94 @@
+"""Dormant services through a real gateway process: declared, woken by a call, stopped when idle.
+
+A ``[[services]]`` entry with ``dormant = true`` is listed by the registry as
+``dormant`` and not started; the first Get starts it (``ready``); after
+``idle_stop`` seconds without use it is stopped (``dormant`` again); a licence
+acquired on it wakes it too, and keeps it running while held.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import subprocess
+import sys
+from pathlib import Path
+
+from support.gateway_process import ROOT
+from support.waiting import eventually, wait_until
+
+from clients import AsyncClient
+
+CONFIG = """
+[[services]]
+name = "scout"
+type = "sim-robot"
+
+[[services]]
+name = "spare"
+type = "sim-robot"
+dormant = true
+idle_stop = 1
+"""
+
+STARTED = "service spare: dormant, starting it for a call"
+STOPPED = "service spare: idle for 1 s, stopping it (dormant)"
+
+
+async def test_a_dormant_service_is_woken_by_a_get_and_stopped_after_its_idle_time(gateway_process) -> None:  # type: ignore[no-untyped-def]
+    gw = gateway_process(CONFIG)
+    async with AsyncClient(gw.address) as client:
+        assert await client.get("registry", "services.spare.availability") == "dormant"
+        assert await client.get("registry", "services.spare.state") == "up"  # the old meaning holds
+        assert await client.get("registry", "services.scout.availability") == "ready"
+        assert STARTED not in gw.output
+        seen: list[str] = []
+
+        async def follow() -> None:
+            async for event in client.listen("registry", "services.spare.availability"):
+                seen.append(event.value)
+
+        follower = asyncio.ensure_future(follow())
+        try:
+            await wait_until(lambda: seen == ["dormant"], what="the current availability")
+            assert await client.get("spare", "location")  # the call wakes it and is answered
+            assert STARTED in gw.output
+            assert await client.get("registry", "services.spare.availability") == "ready"
+            await wait_until(lambda: STOPPED in gw.output, within=10, what="the idle stop")
+            await wait_until(lambda: seen[-1:] == ["dormant"] and len(seen) >= 3, what="dormant again")
+            assert seen[:3] == ["dormant", "ready", "dormant"], seen
+            # Woken again by the next call: a fresh start.
+            await client.set("spare", "velocity", "(0.1 0)")
+            assert gw.output.count(STARTED) == 2
+        finally:
+            follower.cancel()
+
+
+async def test_a_licence_wakes_a_dormant_service_and_keeps_it_running(gateway_process) -> None:  # type: ignore[no-untyped-def]
+    gw = gateway_process(CONFIG)
+    async with AsyncClient(gw.address) as client, client.session() as session:
+        licence = await session.set("registry", "acquire", "", service="spare", duration="3")
+        assert STARTED in gw.output
+        assert await client.get("registry", "services.spare.availability") == "active"
+        await asyncio.sleep(2)  # past idle_stop, with nobody calling: the licence keeps it running
+        assert STOPPED not in gw.output
+        await session.set("registry", "release", "", licence=licence)
+        await eventually(
+            lambda: client.get("registry", "services.spare.availability"), lambda v: v == "dormant", within=10
+        )
+        assert STOPPED in gw.output
+
+
+def test_check_config_reports_bad_dormancy_and_licence_limits(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text(
+        "[registry]\nmax_licences = 0\nmax_licence_duration = 100000\n"
+        '[[services]]\nname = "spare"\ntype = "sim-robot"\nidle_stop = 5\n'
+    )
+    done = subprocess.run(
+        [sys.executable, "-m", "gateway.cli", "check-config", str(bad)],
+        cwd=ROOT, check=False, capture_output=True, text=True, timeout=30,
+    )  # fmt: skip
+    assert done.returncode == 2
+    assert "registry.max_licences: must be at least 1, got 0" in done.stderr, done.stderr
+    assert "registry.max_licence_duration: must be more than 0 and at most 86400 seconds" in done.stderr
+    assert "idle_stop: only a dormant service (dormant = true) is stopped when idle" in done.stderr

