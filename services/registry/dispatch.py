@@ -23,6 +23,8 @@ from collections.abc import Awaitable, Callable
 from dataclasses import replace
 from typing import Annotated
 
+import numpy as np
+
 from services.core import Prop, Resource
 from services.directory import Directory
 from services.errors import (
@@ -221,9 +223,14 @@ class Dispatcher:
             consumer = holder
         try:
             where = parse_vector(location) if location else self.location_of(consumer)
+        except ValueFormatError as e:
+            raise InvalidArgument(f"bad parameter location: {e.message}") from None
+        if where is not None and not (where.size >= 2 and np.all(np.isfinite(where))):
+            raise InvalidArgument("bad parameter location: give at least x and y, e.g. (3 4)")
+        try:
             excluded = frozenset(parse_names(exclude)) if exclude else frozenset()
         except ValueFormatError as e:
-            raise InvalidArgument(e.message) from None
+            raise InvalidArgument(f"bad parameter exclude: {e.message}") from None
         request = Request(
             consumer=consumer,
             capabilities=wanted,
