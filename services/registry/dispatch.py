@@ -170,7 +170,9 @@ class Dispatcher:
         """The providers the scheduler needs to see for ``request`` (narrowed as
         :mod:`services.registry.candidates` says) and the cost that scores 1 among them all."""
         if published is not None:
-            return self.providers(published), max(published.values(), default=0.0)
+            # Only those that published a cost can be ranked by it.
+            priced = [p for p in self.providers(published) if p.cost is not None]
+            return priced, max(published.values(), default=0.0)
         unsure = self.scheduler.unsure(request) | {lic.service for lic in self._licensing.held()}
         return self._candidates.narrow(request, self._revision(), self.scheduler.qos.means(), unsure)
 

@@ -1,0 +1,115 @@
+"""The registry's scheduler in one process: composition, published costs, all-or-nothing licensing."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from typing import Annotated
+
+import pytest
+
+from gateway.router import Router
+from services.core import LocalService, Prop, Resource
+from services.registry import Registry, RegistryService
+from services.registry.scheduling import Plan
+from services.simulators import SimRobot
+from services.values import parse_list
+
+
+class Camera(Resource):
+    """A fixed camera that publishes what using it costs."""
+
+    resource_type = "sensor"
+    price: Annotated[float, Prop(doc="what using it costs")]
+
+    def __init__(self, price: float) -> None:
+        self.price = price
+
+
+FEATURES = {
+    "cam1": ("video", "ptz"),
+    "cam2": ("video", "ptz"),
+    "cart": ("mobile", "power"),
+    "radio": ("communication",),
+    "rover": ("video", "ptz", "mobile", "power", "communication"),
+}
+
+
+@pytest.fixture
+async def registry() -> AsyncIterator[tuple[Registry, RegistryService]]:
+    router = Router()
+    services: dict[str, Resource] = {
+        "cam1": Camera(5.0),
+        "cam2": Camera(1.0),
+        "cart": SimRobot(start=(1.0, 0.0), tick_hz=0.1),
+        "radio": Camera(0.0),
+        "rover": SimRobot(start=(1.0, 0.0), tick_hz=0.1),
+    }
+    backends = []
+    for name, obj in services.items():
+        backend = LocalService(obj)
+        await backend.start()
+        router.add(name, backend)
+        backends.append(backend)
+    registry = Registry(directory=router, period=0, features=FEATURES)
+    service = RegistryService(registry)
+    await service.start()
+    try:
+        yield registry, service
+    finally:
+        await service.aclose()
+        for backend in backends:
+            await backend.aclose()
+
+
+def providers(answer: str) -> list[str]:
+    _, status, pairs = parse_list(answer)
+    assert status == "granted", answer
+    return [p for p, _ in pairs]
+
+
+async def test_a_minterm_is_covered_by_as_few_providers_as_possible(
+    registry: tuple[Registry, RegistryService],
+) -> None:
+    _, service = registry
+    minterm = "(video ptz mobile communication power)"
+    assert providers(await service.set("request", minterm, {"consumer": "A"})) == ["rover"]
+    # The rover is busy: three providers cover it now (of the two equal cameras, the first by name).
+    answer = await service.set("request", minterm, {"consumer": "B"})
+    assert sorted(providers(answer)) == ["cam1", "cart", "radio"]
+
+
+async def test_a_published_cost_ranks_providers(registry: tuple[Registry, RegistryService]) -> None:
+    _, service = registry
+    assert providers(
+        await service.set("request", "(video)", {"consumer": "A", "cost": "price", "weight": "1"})
+    ) == ["cam2"]
+    # cam2 is busy; cam1 (5) costs less than the rover, which publishes no price and is left out.
+    assert providers(
+        await service.set("request", "(ptz)", {"consumer": "B", "cost": "price", "weight": "1"})
+    ) == ["cam1"]
+
+
+async def test_a_provider_that_refuses_its_licence_is_left_out_and_nothing_stays_held(
+    registry: tuple[Registry, RegistryService],
+) -> None:
+    reg, service = registry
+    dispatcher = reg._dispatcher
+    request = dispatcher.scheduler
+    # A plan is made for cam1 and cam2 (both video cameras, as a team of two) ...
+    from services.registry.scheduling import Request
+
+    plan = request.submit(
+        Request("A", frozenset({"video"}), count=2, duration=10.0, weight=0.0), dispatcher.providers(), 0.0
+    )
+    assert isinstance(plan, Plan)
+    # ... and before its licences are granted someone licenses the second one directly.
+    second = plan.providers[1]
+    outside = await reg.licensing.grant(second, "someone", 10.0)
+    allocation, refused = await dispatcher._carry_out(plan, "A", "")
+    assert allocation is None and refused == {second}
+    # All or nothing: the first licence was released again and both are free in the scheduler.
+    assert [lic.id for lic in reg.licensing.held()] == [outside.id]
+    assert request.holder(plan.providers[0]) is None and request.allocations == {}
+    # The request made through the registry chooses around it (rule d), licensing the rest.
+    answer = await service.set("request", "(video)", {"consumer": "A", "count": "2"})
+    assert second not in providers(answer)
