@@ -113,3 +113,26 @@ async def test_a_provider_that_refuses_its_licence_is_left_out_and_nothing_stays
     # The request made through the registry chooses around it (rule d), licensing the rest.
     answer = await service.set("request", "(video)", {"consumer": "A", "count": "2"})
     assert second not in providers(answer)
+
+
+async def test_a_registration_declares_its_features_and_bad_ones_register_nothing() -> None:
+    from support.group_support import MemoryDirectory, sim_robot
+
+    from services.errors import InvalidArgument
+
+    directory = MemoryDirectory()
+    directory.devices["tcp://127.0.0.1:7001"] = lambda: sim_robot(5, 5)
+    registry = Registry(directory=directory, period=0)
+    service = RegistryService(registry)
+    await directory.add("registry", service)
+    try:
+        with pytest.raises(InvalidArgument, match="bad parameter features"):
+            await service.set("services.scout", "tcp://127.0.0.1:7001", {"features": "(laser"})
+        assert "scout" not in registry.names()
+        await service.set(
+            "services.scout", "tcp://127.0.0.1:7001", {"type": "mobile_robot", "features": "(laser)"}
+        )
+        assert registry.features_of("scout") == frozenset({"laser"})
+        assert providers(await service.set("request", "(laser mobile_robot)", {"consumer": "A"})) == ["scout"]
+    finally:
+        await directory.aclose()
