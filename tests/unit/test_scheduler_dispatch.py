@@ -136,3 +136,30 @@ async def test_a_registration_declares_its_features_and_bad_ones_register_nothin
         assert providers(await service.set("request", "(laser mobile_robot)", {"consumer": "A"})) == ["scout"]
     finally:
         await directory.aclose()
+
+
+async def test_listeners_of_requests_and_allocations_hear_the_queue_move(
+    registry: tuple[Registry, RegistryService],
+) -> None:
+    from support.waiting import wait_until
+
+    _, service = registry
+    heard: dict[str, list[str]] = {"requests": [], "allocations": []}
+    subs = [
+        await service.listen(path, lambda change, path=path: heard[path].append(change.value))
+        for path in heard
+    ]
+    try:
+        first = parse_list(
+            await service.set("request", "(communication)", {"consumer": "A", "exclude": "(rover)"})
+        )[0]
+        only_radio = {"consumer": "B", "wait": "5", "exclude": "(rover)"}
+        waiting = parse_list(await service.set("request", "(communication)", only_radio))
+        assert waiting[1] == "queued"
+        await wait_until(lambda: any(f"({waiting[0]} B" in v for v in heard["requests"]), what="queued")
+        await service.set("release", "", {"allocation": first})
+        await wait_until(lambda: heard["requests"][-1:] == ["()"], what="the queue emptied")
+        await wait_until(lambda: any(f"({waiting[0]} B" in v for v in heard["allocations"]), what="served")
+    finally:
+        for sub in subs:
+            await sub.close()
