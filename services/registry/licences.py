@@ -177,6 +177,8 @@ class Licences:
         self.max_duration = float(max_duration)
         self._known = known
         self._held: dict[str, Licence] = {}
+        #: The held licences by service: a Set's check looks only at its service's (a few).
+        self._by_service: dict[str, list[Licence]] = {}
         self._ended: collections.OrderedDict[str, Licence] = collections.OrderedDict()
         self._listeners: list[LicenceListener] = []
         self._timer: asyncio.TimerHandle | None = None
@@ -205,18 +207,19 @@ class Licences:
 
     def holder_of(self, service: str, path: str = "") -> Licence | None:
         """The licence that covers a Set of ``path`` on ``service`` (any, for ``path`` ""); None when free."""
-        if not self._held:
+        on_service = self._by_service.get(service)
+        if not on_service:
             return None
-        self._expire_due()
-        for licence in self._held.values():
-            if licence.service == service and (not path or licence.covers(service, path)):
+        for licence in on_service:
+            if licence.lease.lapsed():
+                self._expire_due()
+                return self.holder_of(service, path)
+            if not path or licence.covers(service, path):
                 return licence
         return None
 
     def check_set(self, service: str, path: str, holder: str) -> None:
         """Raise FailedPrecondition naming holder and expiry when another holds ``service``/``path``."""
-        if not self._held:
-            return
         licence = self.holder_of(service, path)
         if licence is not None and licence.holder != holder:
             raise FailedPrecondition(
@@ -246,7 +249,7 @@ class Licences:
             except InvalidArgument as e:
                 raise InvalidArgument(f"bad subtree: {e.message}") from None
         duration = self._duration(duration)
-        for licence in self._held.values():
+        for licence in self._by_service.get(service, ()):
             if licence.overlaps(service, subtree):
                 if licence.holder == holder:
                     raise FailedPrecondition(
@@ -268,6 +271,7 @@ class Licences:
             lease=Lease(duration),
         )
         self._held[licence.id] = licence
+        self._by_service.setdefault(service, []).append(licence)
         self._schedule()
         self._tell(licence, "granted")
         return licence
@@ -342,6 +346,11 @@ class Licences:
     def _end(self, licence: Licence, how: str) -> None:
         if self._held.pop(licence.id, None) is None:
             return
+        on_service = self._by_service.get(licence.service, [])
+        if licence in on_service:
+            on_service.remove(licence)
+        if not on_service:
+            self._by_service.pop(licence.service, None)
         licence.status = how
         self._ended[licence.id] = licence
         while len(self._ended) > _ENDED_KEPT:

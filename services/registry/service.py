@@ -98,7 +98,8 @@ class Registry(Resource):
     misses: Annotated[int, Prop(readonly=True, doc="missed checks in a row before a service is down")]
     grace: Annotated[float, Prop(readonly=True, doc="seconds a registered service may stay down")]
     revision: Annotated[
-        int, Prop(readonly=True, doc="counts joins, leaves and changes of type or state (Listen to follow)")
+        int,
+        Prop(readonly=True, doc="counts joins, leaves, changes of type, state, dormancy (Listen to follow)"),
     ]
     licences: LicenceList
     qos: QosView

@@ -221,3 +221,26 @@ def test_grpcurl_user_sees_the_holder_and_the_expiry(secured: GatewayProcess) ->
     assert "FailedPrecondition" in refused.stderr and "held by alice until" in refused.stderr, refused.stderr
     read = call("bob", "Get", '{"service": "spare", "property": "velocity"}')
     assert read.returncode == 0, read.stderr
+
+
+async def test_the_http_front_end_refuses_a_non_holder_too(secured: GatewayProcess) -> None:
+    import aiohttp
+
+    url = f"{secured.http_url}api/v1/services/scout/properties/velocity"
+    async with client(secured, "alice") as alice, aiohttp.ClientSession() as http:
+        licence = await alice.set("registry", "acquire", "", service="scout")
+        bob = {"Authorization": f"Bearer {token('bob')}"}
+        async with http.put(url, json={"value": "(0.1 0)"}, headers=bob) as refused:
+            body = await refused.text()
+            assert refused.status == 400 and "FAILED_PRECONDITION" in body, body
+            assert f"licence {licence} on scout is held by alice until" in body, body
+        async with http.get(url, headers=bob) as read:
+            assert read.status == 200  # reads stay open
+        mine = {"Authorization": f"Bearer {token('alice')}"}
+        async with http.put(url, json={"value": "(0.1 0)"}, headers=mine) as allowed:
+            assert allowed.status == 200, await allowed.text()
+        # Nothing ties an anonymous HTTP request to the next one: it cannot hold a licence.
+        acquire = f"{secured.http_url}api/v1/services/registry/properties/acquire"
+        async with http.put(acquire, json={"value": "", "parameters": {"service": "spare"}}) as anonymous:
+            text = await anonymous.text()
+            assert anonymous.status == 400 and "only on a Session" in text, text
