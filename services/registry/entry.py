@@ -47,6 +47,9 @@ class ServiceEntry(Resource):
     last_seen: Annotated[float, Prop(readonly=True, doc="when it was last heard of, unix seconds")]
     misses: Annotated[int, Prop(readonly=True, doc="liveness checks missed in a row")]
     location: Annotated[Vector, Prop(readonly=True, gui="pose", doc="the service's own location; () if none")]
+    features: Annotated[
+        list[str], Prop(readonly=True, doc="capabilities it offers the scheduler beside its type; () if none")
+    ]
     licence: Annotated[str, Prop(readonly=True, doc="id of a licence held on it (or a subtree); empty: none")]
 
     def __init__(
@@ -62,6 +65,7 @@ class ServiceEntry(Resource):
         self.last_seen = wall_clock()
         self.misses = 0
         self.location = np.zeros(0)
+        self.features = []
         self.licence = ""
         self._name = name
         self._renew = renew

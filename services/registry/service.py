@@ -233,6 +233,7 @@ class Registry(Resource):
     def add(self, name: str, info: BackendInfo) -> None:
         """Record service ``name``, or refresh it: new type and URL, state up, ``last_seen`` now."""
         self._table.add(name, info, self.renew_lease)
+        self._show_features(name)
 
     def remove(self, name: str) -> None:
         """Forget service ``name``; NotFound if it is not known."""
@@ -266,7 +267,19 @@ class Registry(Resource):
         (name taken by another URL), Unavailable or DeadlineExceeded (the
         device does not answer; nothing stays registered).
         """
-        return await self._registrations.register(name, url, params)
+        url = await self._registrations.register(name, url, params)
+        if self._show_features(name):
+            self._bump()  # the scheduler reads capabilities anew
+        return url
+
+    def _show_features(self, name: str) -> bool:
+        """Put the capabilities ``name`` declared in ``services.<name>.features``; True when they changed."""
+        entry = self._table.get(name)
+        features = sorted(self.features_of(name))
+        if entry is None or entry.features == features:
+            return False
+        entry.features = features
+        return True
 
     async def unregister(self, name: str) -> None:
         """Remove service ``name`` (what a Set of ``services.<name>`` to the empty value does)."""

@@ -103,6 +103,7 @@ async def test_the_seed_scenario(site: GatewayProcess) -> None:
     async with robot(site, "A") as a, robot(site, "F") as f:
         for name in ("D", "E"):
             assert await a.get("registry", f"services.{name}.availability") == "dormant"
+        assert await a.get("registry", "services.B.features") == "(survey)"
         # A's location is followed by the registry: the request's cost is the drive from there.
         await eventually(lambda: a.get("registry", "services.B.location"), lambda v: v.startswith("(1 0"))
 

@@ -129,10 +129,12 @@ async def test_a_registration_declares_its_features_and_bad_ones_register_nothin
         with pytest.raises(InvalidArgument, match="bad parameter features"):
             await service.set("services.scout", "tcp://127.0.0.1:7001", {"features": "(laser"})
         assert "scout" not in registry.names()
+        assert await service.get("services.registry.features") == "()"
         await service.set(
             "services.scout", "tcp://127.0.0.1:7001", {"type": "mobile_robot", "features": "(laser)"}
         )
         assert registry.features_of("scout") == frozenset({"laser"})
+        assert await service.get("services.scout.features") == "(laser)"
         assert providers(await service.set("request", "(laser mobile_robot)", {"consumer": "A"})) == ["scout"]
     finally:
         await directory.aclose()
