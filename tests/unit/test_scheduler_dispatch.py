@@ -165,3 +165,12 @@ async def test_listeners_of_requests_and_allocations_hear_the_queue_move(
     finally:
         for sub in subs:
             await sub.close()
+
+
+def test_a_request_is_invoked_like_the_licence_actions_not_an_administration() -> None:
+    from gateway.guard import registry_operation
+    from gateway.rules import Operation
+
+    assert registry_operation("request", "(survey)") is Operation.INVOKE
+    assert registry_operation("release", "") is Operation.INVOKE
+    assert registry_operation("period", "1") is Operation.ADMIN
