@@ -950,6 +950,7 @@ def _scheduler_table(out: TextIO, results: Results) -> None:
                     _fmt(d["find_p50_us"], 1),
                     _fmt(d["find_p99_us"], 1),
                     _fmt(d["ratio_p50"], 2),
+                    _fmt(d["first_request_us"], 1),
                 ]
                 for d in scheduler["sizes"]
             ],

@@ -20,7 +20,6 @@ from collections.abc import Callable, Mapping
 import numpy as np
 import numpy.typing as npt
 
-from services.formations import natural_key
 from services.registry.scheduling import DEFAULT_QOS, Provider, ProviderState, Request
 from services.registry.table import ServiceTable
 
@@ -74,9 +73,7 @@ class Candidates:
         self._names, self._caps, self._not_ready = names, caps, not_ready
         self._by_cap = {c: np.asarray(p, dtype=np.intp) for c, p in by_cap.items()}
         self._slots = self._table.index.slots_of(names)
-        order = sorted(range(len(names)), key=lambda i: natural_key(names[i]))
-        self._rank = np.empty(len(names), dtype=np.intp)
-        self._rank[np.asarray(order, dtype=np.intp)] = np.arange(len(names))
+        self._rank = self._table.index.rank_at(self._slots)
         self._position = {n: i for i, n in enumerate(names)}
         self._revision = revision
 
