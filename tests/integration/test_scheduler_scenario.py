@@ -224,3 +224,22 @@ async def test_bad_requests_get_clear_statuses_and_nothing_stays_allocated(site:
             await a.set("registry", "release", "", allocation="r999")
         with pytest.raises(InvalidArgument, match="one of the parameters licence or allocation"):
             await a.set("registry", "release", "")
+
+
+async def test_an_anonymous_consumer_holds_its_allocation_on_its_session_and_loses_it_with_it(
+    site: GatewayProcess,
+) -> None:
+    async with AsyncClient(site.address) as anonymous, robot(site, "F") as f:
+        async with anonymous.session() as session:
+            allocation, chosen = granted(
+                await session.set("registry", "request", "(survey)", consumer="scout", location="(1 0)")
+            )
+            assert list(chosen) == ["B"]
+            await session.set("B", "velocity", "(0.1 0)")  # the holder: its own Session
+            with pytest.raises(FailedPrecondition, match=r"held by session-[0-9a-f]{16} until"):
+                await f.set("B", "velocity", "(0 0)")
+            assert f"({allocation} scout (survey)" in await f.get("registry", "allocations")
+        # The Session ended: its licences were lost, the allocation with them, and B is free.
+        await eventually(lambda: f.get("registry", "allocations"), lambda v: v == "()")
+        assert await f.get("registry", "services.B.availability") == "ready"
+        assert list(granted(await f.set("registry", "request", "(survey)", location="(1 0)"))[1]) == ["B"]
