@@ -402,10 +402,21 @@ class Dispatcher:
             )
         for plan in plans:
             holder, session = self._waiting_callers.get(plan.id, (plan.request.consumer, ""))
+            published = self._published.get(plan.id)
             self._forget_waiting(plan.id)
             allocation, refused = await self._carry_out(plan, holder, session)
             if allocation is None:
-                log.info("scheduler: waiting request %s not served: %s rejected", plan.id, " ".join(refused))
+                again = self.scheduler.requeue(plan, refused, time.monotonic())
+                log.info(
+                    "scheduler: waiting request %s: %s rejected it; %s",
+                    plan.id,
+                    " ".join(sorted(refused)),
+                    "it waits again without them" if again else "its time is up",
+                )
+                if again is not None:
+                    self._waiting_callers[plan.id] = (holder, session)
+                    if published is not None:
+                        self._published[plan.id] = published
         if plans or dropped:
             self._changed("requests")
 

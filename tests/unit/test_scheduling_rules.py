@@ -219,3 +219,22 @@ def test_bad_capability_lists_are_refused(text: str) -> None:
 def test_bad_assessments_are_refused(text: str) -> None:
     with pytest.raises(InvalidArgument):
         parse_assessments(text)
+
+
+def test_a_waiting_request_rejected_by_its_providers_waits_again_without_them() -> None:
+    s = Scheduler()
+    robots = seed_robots()[:2]
+    granted(s, ask(count=2), robots)
+    waiting = s.submit(ask("F", wait=10.0), robots, 0.0)
+    assert isinstance(waiting, Waiting)
+    s.release("r1", "A", {})
+    plans, _ = s.retry(lambda w: robots, 1.0)
+    assert [p.providers for p in plans] == [("B",)]
+    s.abort(plans[0])  # B refused its licence (rule d)
+    again = s.requeue(plans[0], {"B"}, 2.0)
+    assert again is not None and again.deadline == waiting.deadline and again.request.exclude == {"B"}
+    plans, _ = s.retry(lambda w: robots, 3.0)
+    assert [p.providers for p in plans] == [("C",)]
+    s.abort(plans[0])
+    assert s.requeue(plans[0], {"C"}, 11.0) is None  # past its deadline: not queued again
+    assert len(s.queue) == 0

@@ -47,6 +47,13 @@ class RequestQueue:
         self._waiting[id] = waiting
         return waiting
 
+    def put_back(self, waiting: Waiting) -> bool:
+        """Queue a request again with its own deadline (its providers rejected it); False when full."""
+        if len(self._waiting) >= self.limit:
+            return False
+        self._waiting[waiting.id] = waiting
+        return True
+
     def get(self, id: str) -> Waiting | None:
         return self._waiting.get(id)
 

@@ -34,6 +34,7 @@ from __future__ import annotations
 import itertools
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
+from dataclasses import replace
 
 from services.errors import FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted, Unavailable
 from services.registry.scheduling.cost import drive_distance, rank_scores
@@ -83,6 +84,7 @@ class Scheduler:
         self.unserved: deque[tuple[str, frozenset[str], str]] = deque(maxlen=MAX_UNSERVED)
         self._reserved: dict[str, str] = {}  # provider -> plan id
         self._plans: dict[str, Plan] = {}
+        self._retried: dict[str, Waiting] = {}  # plan id -> the waiting request it came from
         self._ids = itertools.count(1)
 
     # -- who is busy ---------------------------------------------------------------
@@ -261,6 +263,7 @@ class Scheduler:
         """The plan's licences were all granted (to ``holder``): it becomes an allocation until
         ``now + duration``."""
         self._unreserve(plan)
+        self._retried.pop(plan.id, None)
         if set(licences) != set(plan.providers):
             raise InvalidArgument("an allocation needs one licence for each provider of its plan")
         allocation = Allocation(
@@ -278,6 +281,16 @@ class Scheduler:
     def abort(self, plan: Plan) -> None:
         """Waking or licensing failed: the plan's providers are free again."""
         self._unreserve(plan)
+
+    def requeue(self, plan: Plan, refused: Iterable[str], now: float) -> Waiting | None:
+        """A plan made for a waiting request was aborted because ``refused`` rejected it (rule d):
+        the request waits again, without them, until its own deadline. None when it is past."""
+        waiting = self._retried.pop(plan.id, None)
+        if waiting is None or waiting.deadline <= now:
+            return None
+        request = replace(waiting.request, exclude=waiting.request.exclude | frozenset(refused))
+        again = replace(waiting, request=request)
+        return again if self.queue.put_back(again) else None
 
     def _unreserve(self, plan: Plan) -> None:
         self._plans.pop(plan.id, None)
@@ -370,6 +383,7 @@ class Scheduler:
                 continue
             if plan is not None:
                 self.queue.remove(waiting.id)
+                self._retried[plan.id] = waiting
                 plans.append(plan)
         return plans, dropped
 
