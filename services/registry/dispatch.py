@@ -35,6 +35,7 @@ from services.errors import (
     PropertyError,
     Unavailable,
 )
+from services.paths import validate_path
 from services.registry.candidates import Candidates, provider_state
 from services.registry.licences import Licence, Licences, format_time
 from services.registry.scheduling import (
@@ -212,8 +213,8 @@ class Dispatcher:
         session: str,
         location: str,
         count: int,
-        duration: float,
-        wait: float,
+        duration: float | None,
+        wait: float | None,
         exclude: str,
         cost: str,
         weight: float,
@@ -238,11 +239,16 @@ class Dispatcher:
             capabilities=wanted,
             count=count,
             location=where,
-            duration=duration if duration > 0 else self.scheduler.tout,
-            wait=wait if wait >= 0 else self.scheduler.tr,
+            duration=self.scheduler.tout if duration is None else duration,
+            wait=self.scheduler.tr if wait is None else wait,
             exclude=excluded,
             weight=weight,
         )
+        if cost:
+            try:
+                validate_path(cost)
+            except InvalidArgument as e:
+                raise InvalidArgument(f"bad parameter cost: {e.message}") from None
         published = await self._published_costs(cost, wanted) if cost else None
         rejected: set[str] = set()
         for _ in range(MAX_ATTEMPTS):

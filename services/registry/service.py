@@ -391,8 +391,8 @@ class Registry(Resource):
         consumer: str = "",
         location: str = "",
         count: int = 1,
-        duration: float = 0.0,
-        wait: float = -1.0,
+        duration: float | None = None,
+        wait: float | None = None,
         exclude: str = "",
         cost: str = "",
         weight: float = 0.5,
@@ -400,8 +400,8 @@ class Registry(Resource):
         """Choose providers for ``capabilities`` and license them to the caller (see
         :mod:`services.registry.dispatch`). ``consumer``: the robot asking (default: the caller);
         ``location`` (x y): where the work is (default: the consumer's location); ``count``: that many
-        providers each offering all capabilities; ``duration`` (0: ``tout``); ``wait``: seconds to
-        queue when all are busy (-1: ``tr``; 0: refuse at once); ``exclude``: providers the consumer
+        providers each offering all capabilities; ``duration`` (default ``tout``); ``wait``: seconds
+        to queue when all are busy (default ``tr``; 0: refuse at once); ``exclude``: providers the consumer
         rejects; ``cost``: a property each provider publishes its cost in (default: drive distance);
         ``weight``: cost against QoS, 0 to 1."""
         holder, session = self._caller()
