@@ -48,6 +48,7 @@ from services.registry.scheduling import (
     parse_assessments,
     parse_capabilities,
 )
+from services.registry.scheduling.qos import MAX_QOS_PROVIDERS
 from services.registry.table import ServiceTable
 from services.values import (
     ValueFormatError,
@@ -344,6 +345,10 @@ class Dispatcher:
                 view = QosEntry()
                 self._qos.attach(name, view)
             view.update(record.count, record.mean, record.last)
+        if len(self._qos.children()) > MAX_QOS_PROVIDERS:
+            kept = {name for name, _ in self.scheduler.qos.items()}
+            for name in [n for n in self._qos.children() if n not in kept]:
+                self._qos.detach(name)  # the book dropped it (least recently assessed)
         if records:
             self._qos.changed()
         self._changed("allocations")
