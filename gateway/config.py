@@ -801,16 +801,26 @@ def _dormancy(service: ServiceEntry, entry: Mapping[str, Any], where: str) -> Se
 def _paths_resolved(kind: str, options: Mapping[str, Any], folder: Path | None) -> dict[str, Any]:
     """``options`` with the relative paths among them (``services.catalog.PATH_OPTIONS``) taken from
     the config file's folder, as every path in a config is."""
-    from services.catalog import PATH_OPTIONS
+    from services.catalog import PATH_OPTIONS, PATH_TABLE_OPTIONS
+
+    def resolve(value: str) -> str:
+        path = Path(value).expanduser()
+        if not path.is_absolute():
+            path = (folder if folder is not None else Path.cwd()) / path
+        return str(path)
 
     resolved = dict(options)
     for key in PATH_OPTIONS.get(kind, ()):
         value = resolved.get(key)
         if isinstance(value, str) and value:
-            path = Path(value).expanduser()
-            if not path.is_absolute():
-                path = (folder if folder is not None else Path.cwd()) / path
-            resolved[key] = str(path)
+            resolved[key] = resolve(value)
+    for key, other in PATH_TABLE_OPTIONS.get(kind, ()):
+        table = resolved.get(key)
+        if isinstance(table, Mapping):  # anything else is the service's own error to report
+            resolved[key] = {
+                name: resolve(v) if isinstance(v, str) and v and not v.startswith(other) else v
+                for name, v in table.items()
+            }
     return resolved
 
 

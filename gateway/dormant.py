@@ -168,6 +168,20 @@ class DormantBackend(Backend):
             raise
         return _Held(self, sub)
 
+    async def listen_current(
+        self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS
+    ) -> tuple[Subscription, str]:
+        # The running service's own way (a line device's LISTEN brings the value: no Get after it).
+        self._users += 1
+        try:
+            backend = await self._running()
+            sub, value = await backend.listen_current(path, notify, params)
+        except BaseException:
+            self._users -= 1
+            self._last_used = time.monotonic()
+            raise
+        return _Held(self, sub), value
+
     async def check(self) -> None:
         """Alive when dormant (nothing to check: a call would start it); else the service's own check."""
         backend = self._backend

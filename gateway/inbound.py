@@ -30,6 +30,8 @@ class InboundProxy(LineProxy):
     greets, the next when the same device dials in again after a drop.
     """
 
+    dials = False
+
     def __init__(self, name: str, url: str, options: ProxyOptions = INBOUND_OPTIONS) -> None:
         super().__init__(name, url, options)
         self._streams: asyncio.Queue[tuple[asyncio.StreamReader, asyncio.StreamWriter]] = asyncio.Queue(1)

@@ -49,13 +49,24 @@ from services.device import DeviceServer
 from services.errors import (
     AlreadyExists,
     Code,
+    FailedPrecondition,
     InvalidArgument,
     PropertyError,
     ReadOnly,
     ResourceExhausted,
     Unauthenticated,
+    error_for,
 )
-from services.line_protocol import MAX_LINE, ErrorReply, Hello, LineReceiver, encode
+from services.line_protocol import (
+    MAX_LINE,
+    PROTOCOL_REVISION,
+    PROTOCOL_VERSION,
+    BadLine,
+    ErrorReply,
+    Hello,
+    LineReceiver,
+    encode,
+)
 from services.paths import validate_service_name
 from services.values import format_names
 
@@ -180,7 +191,10 @@ class _FirstLine(asyncio.StreamReader):
         self._head = b""
         self._decided = False
         self._released = asyncio.Event()
-        self.device: asyncio.Future[tuple[Hello, bytes]] = asyncio.get_running_loop().create_future()
+        #: The greeting (or the greeting that cannot be accepted) and every byte read so far.
+        self.device: asyncio.Future[tuple[Hello | BadLine, bytes]] = (
+            asyncio.get_running_loop().create_future()
+        )
 
     def release(self) -> None:
         """Let the session see the end of the stream (the device's connection ended)."""
@@ -201,14 +215,22 @@ class _FirstLine(asyncio.StreamReader):
                 continue  # the first line is not complete yet
             self._decided = True
             frames = LineReceiver().receive_data(self._head[: end + 1]) if end >= 0 else []
-            if frames and isinstance(frames[0], Hello) and frames[0].tag is None and not self.device.done():
-                self.device.set_result((frames[0], self._head))
+            greeting = frames[0] if frames else None
+            if isinstance(greeting, Hello | BadLine) and _is_greeting(greeting) and not self.device.done():
+                self.device.set_result((greeting, self._head))
                 self._head = b""
                 await self._released.wait()
                 return b""
             head, self._head = self._head, b""
             return head
         return await self._inner.read(n)
+
+
+def _is_greeting(frame: Hello | BadLine) -> bool:
+    """A first line that makes the peer a device: an untagged greeting, good or refused."""
+    if isinstance(frame, Hello):
+        return frame.tag is None
+    return isinstance(frame, BadLine) and frame.greeting and frame.tag is None
 
 
 class _Heard(asyncio.StreamReader):
@@ -326,8 +348,11 @@ class _ListenerServer(DeviceServer):
             waits: list[asyncio.Future[object]] = [run, first.device]  # type: ignore[list-item]
             await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
             if first.device.done() and not first.device.cancelled():
-                hello, head = first.device.result()
-                await self._listener.serve_device(hello, _Prefixed(reader, head), writer, peer)
+                greeting, head = first.device.result()
+                checksummed = head.lstrip(b" ").startswith(b"$")
+                await self._listener.serve_device(
+                    greeting, _Prefixed(reader, head), writer, peer, checksummed=checksummed
+                )
         finally:
             first.release()
             await asyncio.gather(run, return_exceptions=True)
@@ -384,41 +409,76 @@ class LineListener:
         self._device_secrets = dict(device_secrets or {})
 
     async def serve_device(
-        self, hello: Hello, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str
+        self,
+        greeting: Hello | BadLine,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        peer: str,
+        *,
+        checksummed: bool = False,
     ) -> None:
-        """Serve the device that greeted on this connection as service ``hello.name``, until it hangs up."""
+        """Serve the device that greeted on this connection as service ``hello.name``, until it hangs up.
+
+        A greeting that cannot be accepted (another protocol version, a bad
+        field) is refused at once with an ERR line (docs/line-protocol.md §4.3),
+        checksummed when the greeting was.
+        """
         from gateway.inbound import INBOUND_SCHEME
 
+        if isinstance(greeting, BadLine):
+            await self._refuse(None, writer, peer, error_for(greeting.code, greeting.message), checksummed)
+            return
+        hello = greeting
+        if hello.version != PROTOCOL_VERSION:
+            refusal = FailedPrecondition(
+                f"line protocol version {hello.version} is not supported; "
+                f"this gateway speaks version {PROTOCOL_VERSION} ({PROTOCOL_REVISION})"
+            )
+            await self._refuse(hello, writer, peer, refusal, checksummed)
+            return
         url = f"{INBOUND_SCHEME}://{peer}"
         source = peer.rpartition(":")[0]
         try:
             self.bounds.greet(source)
         except PropertyError as exc:
-            await self._refuse(hello, writer, peer, exc)
+            await self._refuse(hello, writer, peer, exc, checksummed)
             return
         try:
-            await self._serve_greeted(hello, reader, writer, url, peer)
+            await self._serve_greeted(hello, reader, writer, url, peer, checksummed=checksummed)
         finally:
             self.bounds.farewell(source)
 
     async def _refuse(
-        self, hello: Hello, writer: asyncio.StreamWriter, peer: str, exc: PropertyError
+        self,
+        hello: Hello | None,
+        writer: asyncio.StreamWriter,
+        peer: str,
+        exc: PropertyError,
+        checksummed: bool = False,
     ) -> None:
-        log.warning("line listener: device %r at %s refused: %s", hello.name, peer, exc.message)
+        who = repr(hello.name) if hello is not None else "(bad greeting)"
+        log.warning("line listener: device %s at %s refused: %s", who, peer, exc.message)
         try:
-            writer.write(encode(ErrorReply.from_exception(exc)))
+            writer.write(encode(ErrorReply.from_exception(exc), checksum=checksummed))
             await writer.drain()
         except OSError as gone:  # it hung up first: it would not have read the reason anyway
             log.debug("line listener: could not tell %s why: %s", peer, gone)
         writer.close()
 
     async def _serve_greeted(
-        self, hello: Hello, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, url: str, peer: str
+        self,
+        hello: Hello,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        url: str,
+        peer: str,
+        *,
+        checksummed: bool,
     ) -> None:
         try:
             proxy = await self._take_up(hello, reader, writer, url)
         except PropertyError as exc:
-            await self._refuse(hello, writer, peer, exc)
+            await self._refuse(hello, writer, peer, exc, checksummed)
             return
         log.info("service %s joined by greeting from %s (%s)", hello.name, peer, proxy.info.type)
         try:

@@ -95,8 +95,8 @@ class Backend(abc.ABC):
     Besides the calls every backend answers, a few capabilities only some
     backends have are declared here with defaults that do without them, so
     that callers never ask which kind of backend they hold:
-    :attr:`answers_inline`, :meth:`start_get`, :meth:`wait_connected`,
-    :meth:`serves`, :meth:`wake`, :attr:`on_demand`.
+    :attr:`answers_inline`, :meth:`start_get`, :meth:`listen_current`,
+    :meth:`wait_connected`, :meth:`serves`, :meth:`wake`, :attr:`on_demand`.
     """
 
     info: BackendInfo
@@ -128,6 +128,23 @@ class Backend(abc.ABC):
         unknown path. ``listen("properties", ...)`` reports changes of the
         property list itself.
         """
+
+    async def listen_current(
+        self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS
+    ) -> tuple[Subscription, str]:
+        """Listen to ``path`` and return the subscription with the value current once it is in place.
+
+        The default Listens, then Gets (no change can fall between the two).
+        A backend whose listen already brings the value (a line-protocol
+        device answers LISTEN with it) overrides this and spares the Get.
+        """
+        sub = await self.listen(path, notify, params)
+        try:
+            value = await self.get(path, params)
+        except BaseException:
+            await close_quietly(sub)
+            raise
+        return sub, value
 
     async def properties(self) -> list[str]:
         """The property names the service offers right now (the ``properties`` property)."""

@@ -30,7 +30,15 @@ from services.simulators import SimRobot, SimSensor
 from services.statemachine import StateMachineService
 from services.storage import Storage
 
-__all__ = ["CATALOG", "PATH_OPTIONS", "build", "create", "factory_of", "needs_directory"]
+__all__ = [
+    "CATALOG",
+    "PATH_OPTIONS",
+    "PATH_TABLE_OPTIONS",
+    "build",
+    "create",
+    "factory_of",
+    "needs_directory",
+]
 
 CATALOG: dict[str, Callable[..., Resource]] = {
     "group": Group,
@@ -43,6 +51,9 @@ CATALOG: dict[str, Callable[..., Resource]] = {
 #: Options of a kind that name a file or folder: a configuration takes a relative one from its
 #: own folder (``gateway.config``), as it does for every other path it holds.
 PATH_OPTIONS: dict[str, tuple[str, ...]] = {"storage": ("directory",)}
+#: Options of a kind that are tables of name → file, taken from the config's folder alike; a value
+#: with the given prefix names something else (``builtin:patrol``, a chart shipped with the package).
+PATH_TABLE_OPTIONS: dict[str, tuple[tuple[str, str], ...]] = {"statemachine": (("charts", "builtin:"),)}
 
 #: The keyword a factory declares to be handed the gateway's directory.
 _DIRECTORY = "directory"

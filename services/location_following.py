@@ -2,7 +2,8 @@
 
 The registry keeps each service's location for ``find near=...``; a group keeps
 its members' locations for its centroid. Both Listen on every service's
-``location``, Get its current value once the Listen is in place, and hand each
+``location`` (the Listen brings the current value: a device's LISTEN answers
+with it, so no Get follows; :meth:`Backend.listen_current`), and hand each
 parsed vector on. :class:`LocationFollower` is that piece; what the holder does
 with a location is its callback.
 """
@@ -110,29 +111,25 @@ class LocationFollower:
                 self._heard.add(name)
                 self._hand_on(name, "" if change.removed else change.value)
 
-        sub = await self._listen(name, backend, on_change)
-        if sub is None:
+        opened = await self._listen(name, backend, on_change)
+        if opened is None:
             return
+        sub, value = opened
         if self._tasks.get(name) is not mine:  # forgotten while the Listen was on its way
             await close_quietly(sub)
             return
         self._subscriptions[name] = sub
-        try:
-            async with asyncio.timeout(self._timeout()):
-                value = await backend.get("location")
-        except (PropertyError, TimeoutError):
-            return
-        if name not in self._heard and self._tasks.get(name) is mine:
+        if name not in self._heard:
             self._hand_on(name, value)
 
     async def _listen(
         self, name: str, backend: Backend, on_change: Callable[[Change], None]
-    ) -> Subscription | None:
+    ) -> tuple[Subscription, str] | None:
         pause = _FIRST_RETRY
         while True:
             try:
                 async with asyncio.timeout(self._timeout()):
-                    sub = await backend.listen("location", on_change)
+                    opened = await backend.listen_current("location", on_change)
                 break
             except TimeoutError:
                 if self._retry_max is None:
@@ -146,7 +143,7 @@ class LocationFollower:
             await asyncio.sleep(pause)
             pause = min(pause * 2, self._retry_max)
         self._answered(name, backend)
-        return sub
+        return opened
 
     def _answered(self, name: str, backend: Backend) -> None:
         if self._on_answer is not None:

@@ -75,6 +75,11 @@ class _Share(Subscription, Generic[E]):
         self._entry = entry
         self._token = token
 
+    @property
+    def entry(self) -> E:
+        """The shared listen this listener holds a place in."""
+        return self._entry
+
     async def close(self) -> None:
         await self._table.leave(self._entry, self._token)
 
@@ -103,7 +108,7 @@ class SharedListens(Generic[E]):
         self._by_path: dict[str, dict[ListenKey, E]] = {}
         self._tokens = itertools.count()
 
-    async def listen(self, path: str, notify: Notify, params: Mapping[str, str]) -> Subscription:
+    async def listen(self, path: str, notify: Notify, params: Mapping[str, str]) -> _Share[E]:
         """Add ``notify`` to the shared listen of (``path``, ``params``), opening it if it is the first."""
         key = listen_key(path, params)
         entry = self._entries.get(key)

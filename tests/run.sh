@@ -6,12 +6,49 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python -m pip install --quiet --disable-pip-version-check --root-user-action=ignore -e '.[test]'
-# The interop tests drive the example Node.js client; install node and npm if the machine lacks them.
+
+# System tools some tests need, from Debian's packages, installed when missing. A failure is a
+# printed note, never a failed run: the tests that need the tool then skip, each saying why (-ra).
+if [ "$(id -u)" = 0 ]; then SUDO=""; elif command -v sudo >/dev/null; then SUDO="sudo -n"; else SUDO="none"; fi
+apt_updated=""
+apt_install() {  # apt_install "what it is for" PACKAGE...
+  local why="$1"; shift
+  echo "== installing $* (Debian packages, for $why)"
+  if [ "$SUDO" = none ]; then
+    echo "note: not root and no sudo: $* not installed; the tests for $why will skip"
+    return 0
+  fi
+  local log
+  # shellcheck disable=SC2086  # SUDO is empty or "sudo -n"
+  if ! log=$({ [ -n "$apt_updated" ] || $SUDO apt-get update -qq; } 2>&1 \
+      && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" 2>&1); then
+    echo "note: could not install $*; the tests for $why will skip:"
+    echo "$log" | tail -n 5
+    return 0
+  fi
+  apt_updated=1
+}
+# The interop tests drive the example Node.js client.
 if ! command -v node >/dev/null || ! command -v npm >/dev/null; then
-  echo "== installing nodejs and npm (Debian packages)"
-  if [ "$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi
-  $SUDO apt-get update -qq && $SUDO apt-get install -y -qq nodejs npm >/dev/null
+  apt_install "the Node.js client" nodejs npm
 fi
+# The browser tests (tests/browser) drive Debian's Chromium through chromedriver.
+if [ ! -x /usr/bin/chromium ] || [ ! -x /usr/bin/chromedriver ]; then
+  apt_install "the browser console" chromium chromium-driver
+fi
+# The C device library (services/device/c): its unit tests and the host example need gcc and make,
+# the ATmega328P firmware gcc-avr and avr-libc, the simavr run simavr and libsimavr-dev.
+c_missing=()
+command -v gcc >/dev/null || c_missing+=(gcc)
+command -v make >/dev/null || c_missing+=(make)
+command -v avr-gcc >/dev/null || c_missing+=(gcc-avr)
+[ -f /usr/lib/avr/include/avr/io.h ] || c_missing+=(avr-libc)
+command -v simavr >/dev/null || c_missing+=(simavr)
+[ -f /usr/include/simavr/sim_avr.h ] || c_missing+=(libsimavr-dev)
+if [ "${#c_missing[@]}" -gt 0 ]; then
+  apt_install "the C device library" "${c_missing[@]}"
+fi
+
 echo "== ruff check"; python -m ruff check .
 echo "== ruff format --check"; python -m ruff format --check .
 echo "== mypy"; python -m mypy

@@ -1,7 +1,8 @@
 """Topics: one backend subscription per (service, path, parameters), shared by every stream.
 
-A topic is opened by the first stream that wants it (a Listen on the backend,
-then a Get of the current value, so no change falls between the two), caches
+A topic is opened by the first stream that wants it (a Listen on the backend
+that brings the current value, :meth:`Backend.listen_current`: a device's
+LISTEN answers with it, other backends Get it once the Listen is in place), caches
 the latest value, so a stream joining a busy topic needs no backend call, and
 is closed when its last sink leaves.
 """
@@ -36,6 +37,7 @@ class Topic:
     __slots__ = (
         "backend",
         "dead",
+        "heard",
         "key",
         "opening",
         "params",
@@ -58,6 +60,8 @@ class Topic:
         #: The last change was the property's removal (every sink has been told).
         self.removed = False
         self.dead = False
+        #: A change came from the backend: it is newer than the value the opening Listen brought.
+        self.heard = False
         self.opening: asyncio.Task[None] | None = None
 
     def notify(self, change: Change) -> None:
@@ -66,6 +70,7 @@ class Topic:
             return
         self.value = change.value
         self.removed = change.removed
+        self.heard = True
         seen = time.time_ns()
         for sink in list(self.sinks):
             try:
@@ -122,12 +127,13 @@ class Topics:
         backend, path, params = topic.backend, topic.path, topic.params
         timeout = self.call_timeout
         try:
-            topic.subscription = await bounded_call(
-                backend.listen(path, topic.notify, params), timeout, lambda: f"{topic.service}: listen {path}"
+            topic.subscription, value = await bounded_call(
+                backend.listen_current(path, topic.notify, params),
+                timeout,
+                lambda: f"{topic.service}: listen {path}",
             )
-            topic.value = await bounded_call(
-                backend.get(path, params), timeout, lambda: f"{topic.service}: get {path}"
-            )
+            if not topic.heard:
+                topic.value = value
         except BaseException as exc:
             if self._topics.get(topic.key) is topic:
                 del self._topics[topic.key]

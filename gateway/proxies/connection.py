@@ -11,7 +11,16 @@ Whatever the device sends wrong affects only the request it belongs to:
 * a malformed or over-long reply line that begins with a tag → an error for
   that call; without a tag → a log line;
 * the stream ends (even mid-reply) → UNAVAILABLE at once for every
-  outstanding call, and for every later one.
+  outstanding call, and for every later one;
+* it greets again unasked (it restarted) → UNAVAILABLE for every outstanding
+  call, and ``on_restart`` tells the proxy (docs/line-protocol.md §4.4);
+* a greeting it cannot accept (another version, a bad field) → an ERR line to
+  the device and the ``hello`` future fails with that refusal (§4.3).
+
+Flow control (§4.2, §8): the connection never has more unanswered requests
+than the device's ``inflight`` (1 on a serial line that states nothing), nor
+more bytes of them than its ``rxbuf``; a request that finds no room waits for
+it in order.
 """
 
 from __future__ import annotations
@@ -27,6 +36,7 @@ from services.errors import (
     Code,
     DataLoss,
     DeadlineExceeded,
+    FailedPrecondition,
     PropertyError,
     ResourceExhausted,
     Unavailable,
@@ -34,6 +44,8 @@ from services.errors import (
 )
 from services.line_protocol import (
     MAX_LINE,
+    PROTOCOL_REVISION,
+    PROTOCOL_VERSION,
     BadLine,
     Cancel,
     ErrorReply,
@@ -62,15 +74,24 @@ _READ_SIZE = 65536
 _TAG_MASK = 0xFFFFFFFF
 
 
+#: What a device that asks the gateway something on a connection the gateway opened is told.
+#: Short: it must fit the smallest line limit (64 bytes) with a tag and a checksum.
+_NOT_SERVED = "not served: the gateway is the client here"
+
+
 class _Pending:
-    """One request waiting for its reply: its future, its timer, its time limit."""
+    """One request waiting for its reply: its future, its timer, its time limit, its size."""
 
-    __slots__ = ("cancel_when_abandoned", "future", "timeout", "timer")
+    __slots__ = ("cancel_when_abandoned", "future", "size", "timeout", "timer")
 
-    def __init__(self, future: asyncio.Future[Frame], timer: asyncio.TimerHandle, timeout: float) -> None:
+    def __init__(
+        self, future: asyncio.Future[Frame], timer: asyncio.TimerHandle, timeout: float, size: int
+    ) -> None:
         self.future = future
         self.timer = timer
         self.timeout = timeout
+        #: Bytes of its line on the wire, counted against the device's ``rxbuf`` until answered.
+        self.size = size
         #: A SET: when nobody waits for its reply any more, the device is told to drop it.
         self.cancel_when_abandoned = False
 
@@ -87,19 +108,30 @@ class LineConnection:
         on_event: Callable[[Event | Gone], None],
         checksum: bool = False,
         max_in_flight: int = 256,
+        serial: bool = False,
+        on_restart: Callable[[Hello], None] | None = None,
     ) -> None:
         self.label = label
         self._reader = reader
         self._writer = writer
         self._on_event = on_event
+        self._on_restart = on_restart
         self._checksum = checksum
         self._receiver = LineReceiver()
         self._loop = asyncio.get_running_loop()
         self._pending: dict[str, _Pending] = {}
         self._next_tag = 0
-        #: Free request slots, and the requests waiting for one (oldest first).
-        self._free = max_in_flight
-        self._slot_waiters: deque[asyncio.Future[None]] = deque()
+        #: The proxy's own ceiling on unanswered requests, and whether the stream is a serial line.
+        self._ceiling = max_in_flight
+        self._serial = serial
+        #: Flow control (§4.2): the most unanswered requests, and bytes of them, the device takes.
+        #: Until the greeting a serial device is taken to handle one request at a time.
+        self.inflight_limit = 1 if serial else max_in_flight
+        self.rxbuf: int | None = None
+        self._in_flight = 0
+        self._in_flight_bytes = 0
+        #: Requests waiting for room, oldest first: (waiter, bytes of the line).
+        self._room_waiters: deque[tuple[asyncio.Future[None], int]] = deque()
         #: Lines queued in this loop iteration after the first one went out; see _write_line.
         self._outgoing: list[bytes] = []
         self._flush_due = False
@@ -123,6 +155,16 @@ class LineConnection:
         return self._close_reason
 
     @property
+    def flow_controlled(self) -> bool:
+        """The device stated ``inflight`` or ``rxbuf``, or is on a serial line: no CANCEL lines (§3.3)."""
+        return self._serial or self.rxbuf is not None or self.inflight_limit < self._ceiling
+
+    @property
+    def in_flight(self) -> tuple[int, int]:
+        """Unanswered requests on the wire now: (count, bytes)."""
+        return self._in_flight, self._in_flight_bytes
+
+    @property
     def last_heard(self) -> float:
         """``time.monotonic()`` when the device last sent anything."""
         return self._last_data
@@ -141,10 +183,10 @@ class LineConnection:
             if not pending.future.done():
                 pending.future.set_exception(Unavailable(f"{self.label}: {reason}"))
         self._pending.clear()
-        for waiter in self._slot_waiters:
+        for waiter, _ in self._room_waiters:
             if not waiter.done():
                 waiter.set_exception(Unavailable(f"{self.label}: {reason}"))
-        self._slot_waiters.clear()
+        self._room_waiters.clear()
         self._outgoing.clear()
         if not self.hello.done():
             self.hello.set_exception(Unavailable(f"{self.label}: {reason}"))
@@ -193,16 +235,15 @@ class LineConnection:
         The future fails with the PropertyError of an ERR reply, with
         DeadlineExceeded when no reply came in ``deadline_s`` seconds, with
         Unavailable when the connection closes. Returns None, sending
-        nothing, when every request slot is taken (:meth:`request` waits for
-        one). Raises Unavailable on a closed connection and PropertyError for
-        a frame that cannot be written.
+        nothing, when the device has no room for it now (:meth:`request`
+        waits for room). Raises Unavailable on a closed connection and
+        PropertyError for a frame that cannot be written.
         """
-        if self._free <= 0 or self._slot_waiters:
-            if self._closed.is_set():
-                raise Unavailable(f"{self.label}: {self._close_reason}")
+        tag, line = self._prepare(frame)
+        if not self._fits(len(line)):
             return None
-        self._free -= 1
-        return self._issue(frame, deadline_s, self._loop.time() + deadline_s)
+        self._take(len(line))
+        return self._issue(frame, tag, line, deadline_s, self._loop.time() + deadline_s)
 
     async def request(self, frame: Request, deadline_s: float) -> Frame:
         """Send ``frame`` under a fresh tag and return the reply frame (Ok, Pong or Hello).
@@ -211,30 +252,56 @@ class LineConnection:
         ``deadline_s`` seconds raises DeadlineExceeded; a closed connection
         raises Unavailable.
         """
-        future = self.start_request(frame, deadline_s)
-        if future is None:
-            deadline = self._loop.time() + deadline_s
-            await self._wait_slot(deadline, deadline_s)
-            future = self._issue(frame, deadline_s, deadline)
-        return await future
+        tag, line = self._prepare(frame)
+        deadline = self._loop.time() + deadline_s
+        if self._fits(len(line)):
+            self._take(len(line))
+        else:
+            await self._wait_room(len(line), deadline, deadline_s)
+        return await self._issue(frame, tag, line, deadline_s, deadline)
 
-    def _issue(self, frame: Request, timeout: float, deadline: float) -> asyncio.Future[Frame]:
-        """Send ``frame`` in the slot the caller holds; the reply or the timeout frees the slot."""
+    def _line_limit(self) -> int:
+        """The longest line the device takes: min(maxline, rxbuf) (§4.2)."""
+        return self.max_line if self.rxbuf is None else min(self.max_line, self.rxbuf)
+
+    def _prepare(self, frame: Request) -> tuple[str, bytes]:
+        """A fresh tag and the line of ``frame`` under it; PropertyError when it cannot be sent."""
         if self._closed.is_set():
-            self._release_slot()
             raise Unavailable(f"{self.label}: {self._close_reason}")
         self._next_tag = tag_number = (self._next_tag + 1) & _TAG_MASK
         tag = format(tag_number, "x")
         try:
-            line = encode(_with_tag(frame, tag), checksum=self._checksum, max_line=self.max_line)
+            line = encode(_with_tag(frame, tag), checksum=self._checksum, max_line=self._line_limit())
         except LineProtocolError as exc:
-            self._release_slot()
             raise error_for(exc.code, f"{self.label}: cannot send the request: {exc.message}") from None
+        return tag, line
+
+    def _fits(self, size: int) -> bool:
+        if self._room_waiters:
+            return False  # others wait already: they go first
+        return self._room_for(size)
+
+    def _room_for(self, size: int) -> bool:
+        if self._in_flight >= self.inflight_limit:
+            return False
+        return self.rxbuf is None or self._in_flight == 0 or self._in_flight_bytes + size <= self.rxbuf
+
+    def _take(self, size: int) -> None:
+        self._in_flight += 1
+        self._in_flight_bytes += size
+
+    def _issue(
+        self, frame: Request, tag: str, line: bytes, timeout: float, deadline: float
+    ) -> asyncio.Future[Frame]:
+        """Send ``line`` in the room the caller holds; the reply or the timeout frees the room."""
+        if self._closed.is_set():
+            self._release(len(line))
+            raise Unavailable(f"{self.label}: {self._close_reason}")
         loop = self._loop
         future: asyncio.Future[Frame] = loop.create_future()
-        pending = _Pending(future, loop.call_at(deadline, self._expire, tag), timeout)
+        pending = _Pending(future, loop.call_at(deadline, self._expire, tag), timeout, len(line))
         self._pending[tag] = pending
-        if type(frame) is Set:
+        if type(frame) is Set and not self.flow_controlled:
             pending.cancel_when_abandoned = True
             future.add_done_callback(lambda done: self._abandoned(done, tag))
         self._write_line(line)
@@ -249,7 +316,7 @@ class LineConnection:
     def _send_cancel(self, pending: _Pending, tag: str) -> None:
         # The client is told DEADLINE_EXCEEDED; a device that has not started the SET
         # yet (it was frozen, or busy) must not apply it when it gets to it
-        # (docs/line-protocol.md, CANCEL). Once per request.
+        # (docs/line-protocol.md §3.3). Once per request; never under flow control.
         if not pending.cancel_when_abandoned or self._closed.is_set():
             return
         pending.cancel_when_abandoned = False
@@ -260,7 +327,8 @@ class LineConnection:
         pending = self._pending.pop(tag, None)
         if pending is None:
             return
-        self._release_slot()
+        # A request not answered in time is taken as lost: its room is free again (§4.2).
+        self._release(pending.size)
         self._send_cancel(pending, tag)
         if not pending.future.done():
             self._drop_stale_half_line(pending.timeout)
@@ -268,10 +336,11 @@ class LineConnection:
                 DeadlineExceeded(f"{self.label}: no reply within {pending.timeout:g} s")
             )
 
-    async def _wait_slot(self, deadline: float, limit_s: float) -> None:
+    async def _wait_room(self, size: int, deadline: float, limit_s: float) -> None:
         loop = self._loop
         waiter: asyncio.Future[None] = loop.create_future()
-        self._slot_waiters.append(waiter)
+        entry = (waiter, size)
+        self._room_waiters.append(entry)
         timer = loop.call_at(deadline, _time_out, waiter)
         try:
             await waiter
@@ -279,19 +348,32 @@ class LineConnection:
             raise DeadlineExceeded(f"{self.label}: too many requests in flight for {limit_s:g} s") from None
         except BaseException:
             if waiter.done() and not waiter.cancelled() and waiter.exception() is None:
-                self._release_slot()  # handed a slot just as the caller gave up: pass it on
+                self._release(size)  # handed room just as the caller gave up: pass it on
             raise
         finally:
             timer.cancel()
+            with contextlib.suppress(ValueError):
+                self._room_waiters.remove(entry)
+            self._hand_room()
 
-    def _release_slot(self) -> None:
-        waiters = self._slot_waiters
+    def _release(self, size: int) -> None:
+        self._in_flight = max(0, self._in_flight - 1)
+        self._in_flight_bytes = max(0, self._in_flight_bytes - size)
+        self._hand_room()
+
+    def _hand_room(self) -> None:
+        """Give the room there is to the waiting requests, oldest first."""
+        waiters = self._room_waiters
         while waiters:
-            waiter = waiters.popleft()
-            if not waiter.done():
-                waiter.set_result(None)
+            waiter, size = waiters[0]
+            if waiter.done():
+                waiters.popleft()
+                continue
+            if not self._room_for(size):
                 return
-        self._free += 1
+            waiters.popleft()
+            self._take(size)
+            waiter.set_result(None)
 
     def _drop_stale_half_line(self, timeout: float) -> None:
         # A device that sent half a line and fell silent would otherwise glue
@@ -323,8 +405,9 @@ class LineConnection:
                         reason = "the device closed the connection in the middle of a line"
                     break
                 self._last_data = time.monotonic()
-                for frame in self._receiver.receive_data(data):
-                    self._handle(frame)
+                frames = self._receiver.receive_data(data)
+                for frame, checked in zip(frames, self._receiver.last_checked, strict=True):
+                    self._handle(frame, checked)
         except (ConnectionError, OSError) as exc:
             reason = f"connection lost: {exc}"
         except asyncio.CancelledError:
@@ -333,7 +416,7 @@ class LineConnection:
             log.warning("%s: %s", self.label, reason)
         self.close(reason)
 
-    def _handle(self, frame: Frame | BadLine) -> None:
+    def _handle(self, frame: Frame | BadLine, checked: bool = False) -> None:
         kind = type(frame)
         if kind is Ok or kind is ErrorReply or kind is Pong or kind is Hello:
             reply: Ok | ErrorReply | Pong | Hello = frame  # type: ignore[assignment]
@@ -354,13 +437,31 @@ class LineConnection:
                 log.exception("%s: event handler failed on %r", self.label, frame)
             return
         elif kind is Ping:
-            with contextlib.suppress(LineProtocolError):
-                self._send(Pong(frame.data, frame.tag))  # type: ignore[union-attr]
+            self._answer(Pong(frame.data, frame.tag), checked)  # type: ignore[union-attr]
             return
         elif kind is BadLine:
             self._bad_line(frame)  # type: ignore[arg-type]
             return
+        elif kind is Get or kind is Set or kind is Listen or kind is Unlisten or kind is HelloRequest:
+            # The device asks something on a connection where the gateway is the client (§3.2).
+            tag = frame.tag  # type: ignore[union-attr]
+            log.info(
+                "%s: the device sent a request (%s); told it is not served here", self.label, kind.__name__
+            )
+            self._answer(ErrorReply(int(Code.UNIMPLEMENTED), _NOT_SERVED, tag), checked)
+            return
         log.warning("%s: unexpected line from the device ignored: %r", self.label, frame)
+
+    def _answer(self, reply: Pong | ErrorReply, checksummed: bool = False) -> None:
+        """Answer a line of the device: with a checksum when the device uses them (mirrored, §6)."""
+        checksum = self._checksum or checksummed
+        try:
+            line = encode(reply, checksum=checksum, max_line=self._line_limit())
+        except LineProtocolError:  # too long for the device: the code alone still fits
+            if type(reply) is not ErrorReply:
+                return
+            line = encode(ErrorReply(reply.code, "", reply.tag), checksum=checksum)
+        self._write_line(line)
 
     def _resolve(self, reply: Ok | ErrorReply | Pong | Hello, tag: str) -> None:
         if type(reply) is Hello:
@@ -371,7 +472,7 @@ class LineConnection:
                 log.info("%s: reply for tag #%s came too late or was not asked for; ignored", self.label, tag)
             return
         pending.timer.cancel()
-        self._release_slot()
+        self._release(pending.size)
         future = pending.future
         if future.done():
             return
@@ -381,15 +482,69 @@ class LineConnection:
             future.set_result(reply)
 
     def _greeted(self, hello: Hello) -> None:
+        if hello.version != PROTOCOL_VERSION:
+            self._refuse(
+                FailedPrecondition(
+                    f"line protocol version {hello.version} is not supported; "
+                    f"this gateway speaks version {PROTOCOL_VERSION} ({PROTOCOL_REVISION})"
+                ),
+                hello.tag,
+            )
+            return
+        restarted = self.hello.done() and hello.tag is None
+        if restarted:
+            self._lost_everything("the device restarted (it greeted again)")
         self.max_line = hello.max_line
+        ceiling = self._ceiling
+        if hello.inflight is not None:
+            self.inflight_limit = min(hello.inflight, ceiling)
+        else:
+            # A serial device that states neither field gets one request at a time (§4.2).
+            self.inflight_limit = 1 if self._serial and hello.rxbuf is None else ceiling
+        self.rxbuf = hello.rxbuf
+        self._hand_room()
         if not self.hello.done():
             self.hello.set_result(hello)
+        elif restarted:
+            log.warning("%s: the device restarted; its listens are restored", self.label)
+            if self._on_restart is not None:
+                try:
+                    self._on_restart(hello)
+                except Exception:
+                    log.exception("%s: restart handler failed", self.label)
+
+    def _lost_everything(self, reason: str) -> None:
+        """Every unanswered request is lost (the device restarted): fail them, free their room."""
+        pending, self._pending = self._pending, {}
+        for entry in pending.values():
+            entry.timer.cancel()
+            if not entry.future.done():
+                entry.future.set_exception(Unavailable(f"{self.label}: {reason}"))
+        self._in_flight = 0
+        self._in_flight_bytes = 0
+
+    def _refuse(self, error: PropertyError, tag: str | None, checksummed: bool = False) -> None:
+        """Refuse the device's greeting: an ERR line to it, the refusal to whoever waits, then close."""
+        log.error("%s: refused: %s", self.label, error.message)
+        self._answer(ErrorReply.from_exception(error, tag), checksummed)
+        refusal = error_for(error.code, f"{self.label}: the device was refused: {error.message}")
+        if not self.hello.done():
+            self.hello.set_exception(refusal)
+        # Close once the ERR line is on its way (close() would drop lines not flushed yet).
+        self._loop.call_soon(self._close_after_refusal, error.message)
+
+    def _close_after_refusal(self, message: str) -> None:
+        self._flush()
+        self.close(f"the device was refused: {message}")
 
     def _bad_line(self, bad: BadLine) -> None:
+        if bad.greeting:
+            self._refuse(error_for(bad.code, bad.message), bad.tag, bad.checksummed)
+            return
         pending = self._pending.pop(bad.tag, None) if bad.tag is not None else None
         if pending is not None:
             pending.timer.cancel()
-            self._release_slot()
+            self._release(pending.size)
         future = pending.future if pending is not None else None
         log.warning(
             "%s: bad line from the device%s: %s",

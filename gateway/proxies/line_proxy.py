@@ -16,7 +16,14 @@ subclass only says how to open the stream. The proxy
   property is gone (GONE, or NOT_FOUND on a poll or a LISTEN after a
   reconnect), then asks for it every ``poll_interval`` while they stay, and
   hands them its value when it is back;
-* pings an idle device and reconnects when it stops answering.
+* pings the device every ``keepalive`` seconds and reconnects when a PONG
+  does not come within ``keepalive_timeout``;
+* when the device greets again unasked (it restarted and forgot its
+  subscriptions) listens again and hands every listener the current value as
+  a ``Change(gap=True)``;
+* refuses a greeting it cannot accept with an ERR line to the device, and
+  tells whoever waits for the device (a registration) why
+  (docs/line-protocol.md §4.3).
 """
 
 from __future__ import annotations
@@ -43,9 +50,8 @@ from services.backend import (
     Notify,
     Subscription,
 )
-from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable
+from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable, error_for
 from services.line_protocol import (
-    PROTOCOL_VERSION,
     Event,
     Get,
     Gone,
@@ -78,6 +84,8 @@ class ProxyOptions:
     poll_interval: float = 0.5
     #: Seconds of a healthy connection between PINGs (0 = never).
     keepalive: float = 15.0
+    #: Seconds the device has to answer a keep-alive PING before the connection is dropped.
+    keepalive_timeout: float = 5.0
     #: Send a CRC-8 checksum on every line.
     checksum: bool = False
     #: Calls that may be in flight on the connection at once.
@@ -107,7 +115,8 @@ class ProxyOptions:
             except (TypeError, ValueError):
                 raise InvalidArgument(f"bad proxy option {key}={raw!r}") from None
             if values[key] < 0 or (
-                key in ("timeout", "connect_timeout", "poll_interval") and values[key] <= 0
+                key in ("timeout", "connect_timeout", "poll_interval", "keepalive_timeout")
+                and values[key] <= 0
             ):
                 raise InvalidArgument(f"bad proxy option {key}={raw!r}: must be positive")
             _check_range(key, values[key], raw)
@@ -124,6 +133,7 @@ OPTION_RANGES: Mapping[str, tuple[float, float]] = {
     "backoff_max": (0.01, 3600.0),
     "poll_interval": (0.01, 3600.0),
     "keepalive": (0.5, 3600.0),  # or 0: never
+    "keepalive_timeout": (0.01, 600.0),
     "max_in_flight": (1, 4096),
 }
 
@@ -164,6 +174,10 @@ class LineProxy(Backend):
 
     #: Ask for the greeting after opening (a serial device greeted at its reset, long ago).
     ask_hello_first = False
+    #: The stream is a serial line: a device that states no flow control gets ``inflight=1``.
+    serial_line = False
+    #: The proxy opens the stream itself; False for a device that dials in (the proxy waits for it).
+    dials = True
     #: Seconds since the device last sent anything within which :meth:`check` counts it alive
     #: without asking (the registry's default period); after that a PING has to come back.
     heard_within = 5.0
@@ -183,6 +197,9 @@ class LineProxy(Backend):
         )
         self._tasks: set[asyncio.Task[None]] = set()
         self._last_error = "not connected yet"
+        #: Why the device's last greeting was refused (another version, a bad field); None once it is served.
+        self.refusal: PropertyError | None = None
+        self._refused = asyncio.Event()
         self._closing = False
 
     def __repr__(self) -> str:
@@ -218,14 +235,28 @@ class LineProxy(Backend):
             await self._conn.aclose("proxy closed")
 
     async def wait_connected(self, wait_s: float) -> None:
-        """Wait until the device is connected and has greeted (tests, startup); Unavailable on timeout."""
-        try:
-            async with asyncio.timeout(wait_s):
-                await self._connected.wait()
-        except TimeoutError:
-            raise Unavailable(
-                f"{self._label()}: not connected after {wait_s:g} s ({self._last_error})"
-            ) from None
+        """Wait until the device is connected and has greeted (tests, startup).
+
+        Raises the refusal (FAILED_PRECONDITION for another protocol version,
+        INVALID_ARGUMENT for a bad greeting) as soon as the device's greeting
+        was refused, and Unavailable, saying why, on timeout.
+        """
+        if not self._connected.is_set():
+            try:
+                async with asyncio.timeout(wait_s):
+                    connected = asyncio.ensure_future(self._connected.wait())
+                    refused = asyncio.ensure_future(self._refused.wait())
+                    try:
+                        await asyncio.wait([connected, refused], return_when=asyncio.FIRST_COMPLETED)
+                    finally:
+                        connected.cancel()
+                        refused.cancel()
+            except TimeoutError:
+                raise Unavailable(
+                    f"{self._label()}: not connected after {wait_s:g} s ({self._last_error})"
+                ) from None
+        if not self._connected.is_set() and self.refusal is not None:
+            raise error_for(self.refusal.code, self.refusal.message)
 
     @property
     def connected(self) -> bool:
@@ -247,12 +278,21 @@ class LineProxy(Backend):
                 continue
             failures = 0
             self._conn = conn
+            self.refusal = None
+            self._refused.clear()
             self._connected.set()
             self._spawn(self._resubscribe(conn))
             await self._supervise(conn)
             self._connected.clear()
             self._last_error = conn.close_reason
-            log.warning("%s: disconnected (%s); reconnecting", self._label(), conn.close_reason)
+            if self.dials:
+                log.warning("%s: disconnected (%s); reconnecting", self._label(), conn.close_reason)
+            else:
+                log.warning(
+                    "%s: disconnected (%s); it cannot be dialled: waiting for it to dial in again",
+                    self._label(),
+                    conn.close_reason,
+                )
             # Pollers and listeners stay; the next connection picks them up.
             await asyncio.sleep(self.options.backoff_initial * random.uniform(0.5, 1.0))
 
@@ -271,6 +311,8 @@ class LineProxy(Backend):
             on_event=self._on_event,
             checksum=self.options.checksum,
             max_in_flight=self.options.max_in_flight,
+            serial=self.serial_line,
+            on_restart=self._restarted,
         )
         try:
             async with asyncio.timeout(self.options.connect_timeout):
@@ -282,21 +324,36 @@ class LineProxy(Backend):
                     if not done:  # a device that greeted before we listened; ask again
                         conn.ask_hello()
                     hello = await conn.hello
-        except (TimeoutError, PropertyError) as exc:
-            self._last_error = f"no greeting from the device: {exc or 'timed out'}"
+        except PropertyError as exc:
+            if exc.code == Code.UNAVAILABLE:
+                self._last_error = f"no greeting from the device: {exc.message}"
+                log.warning("%s: %s", self._label(), self._last_error)
+            else:  # refused: the connection told the device with an ERR line (§4.3)
+                self._last_error = exc.message
+                self.refusal = exc
+                self._refused.set()
+            await conn.aclose(self._last_error)
+            return None
+        except TimeoutError:
+            self._last_error = "no greeting from the device: timed out"
             log.warning("%s: %s", self._label(), self._last_error)
             await conn.aclose(self._last_error)
             return None
-        if hello.version != PROTOCOL_VERSION:
-            self._last_error = f"device speaks line protocol {hello.version}, this gateway {PROTOCOL_VERSION}"
-            log.error("%s: %s", self._label(), self._last_error)
-            await conn.aclose(self._last_error)
-            return None
+        self._take_greeting(hello)
+        log.info("%s: connected (%s, push=%d)", self._label(), hello.name or "unnamed", hello.push)
+        return conn
+
+    def _take_greeting(self, hello: Hello) -> None:
         self.hello = hello
         self.info.type = hello.type or "resource"
         self.info.extra.update({"device_name": hello.name, "push": "1" if hello.push else "0"})
-        log.info("%s: connected (%s, push=%d)", self._label(), hello.name or "unnamed", hello.push)
-        return conn
+
+    def _restarted(self, hello: Hello) -> None:
+        """The device greeted again unasked: it forgot its subscriptions; listen again, marked as a gap."""
+        conn = self._conn
+        self._take_greeting(hello)
+        if conn is not None and not conn.closed:
+            self._spawn(self._resubscribe(conn))
 
     async def _supervise(self, conn: LineConnection) -> None:
         keepalive = self.options.keepalive
@@ -309,7 +366,7 @@ class LineProxy(Backend):
                     await conn.wait_closed()
                 return
             try:
-                await conn.request(Ping(), self.options.timeout)
+                await conn.request(Ping(), self.options.keepalive_timeout)
             except PropertyError as exc:
                 if exc.code == Code.UNAVAILABLE:
                     return
@@ -394,6 +451,20 @@ class LineProxy(Backend):
 
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
         return await self.shared_listens.listen(path, notify, params)
+
+    async def listen_current(
+        self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS
+    ) -> tuple[Subscription, str]:
+        """Listen, and take the current value from the LISTEN's OK: no GET after it (§3.1)."""
+        share = await self.shared_listens.listen(path, notify, params)
+        last = share.entry.last
+        if last is None:  # the property went meanwhile: what is there now (NOT_FOUND if nothing)
+            try:
+                last = await self.get(path, params)
+            except BaseException:
+                await share.close()
+                raise
+        return share, last
 
     async def _subscribe(self, entry: _DeviceListen) -> None:
         self._live()

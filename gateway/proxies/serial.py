@@ -23,6 +23,7 @@ class SerialProxy(LineProxy):
     """
 
     ask_hello_first = True
+    serial_line = True
 
     def __init__(self, name: str, url: str, port: str, baudrate: int, options: ProxyOptions) -> None:
         super().__init__(name, url, options)

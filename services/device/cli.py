@@ -25,13 +25,13 @@ import json
 import logging
 import signal
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from services.backend import Backend
 from services.device.server import DeviceServer
 from services.errors import PropertyError
-from services.line_protocol import MAX_LINE
+from services.line_protocol import MAX_INFLIGHT, MAX_LINE, MAX_RXBUF, MIN_RXBUF
 
 __all__ = ["DESCRIPTION", "add_arguments", "main", "run", "serve"]
 
@@ -106,6 +106,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--max-line", type=int, default=MAX_LINE, help=f"longest line accepted (default {MAX_LINE})"
     )
     parser.add_argument(
+        "--inflight",
+        type=_bounded("inflight", 1, MAX_INFLIGHT),
+        help="state inflight=N in the greeting: requests taken at once (docs/line-protocol.md §4.2)",
+    )
+    parser.add_argument(
+        "--rxbuf",
+        type=_bounded("rxbuf", MIN_RXBUF, MAX_RXBUF),
+        help="state rxbuf=N in the greeting: bytes of unanswered requests the device holds",
+    )
+    parser.add_argument(
         "--exit-with-parent",
         action="store_true",
         help="stop when stdin reaches its end (a device process that must end with the one that started it)",
@@ -116,6 +126,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "configures this device",
     )
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+
+
+def _bounded(what: str, low: int, high: int) -> Callable[[str], int]:
+    """An argparse type: an integer from ``low`` to ``high`` (the greeting's bounds, §4.2)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be a number, not {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{what} must be from {low} to {high}")
+        return value
+
+    return parse
 
 
 def _make_backend(kind: str, options: Mapping[str, Any]) -> Backend:
@@ -141,6 +166,8 @@ async def serve(args: argparse.Namespace) -> None:
         push=not args.no_push,
         checksum=args.checksum,
         max_line=args.max_line,
+        inflight=getattr(args, "inflight", None),
+        rxbuf=getattr(args, "rxbuf", None),
         secret=_read_secret(args.secret_file) if getattr(args, "secret_file", None) else "",
     )
     stop = asyncio.Event()

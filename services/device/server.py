@@ -45,11 +45,22 @@ class DeviceServer:
         call_timeout: float = CALL_TIMEOUT,
         max_connections: int = 64,
         secret: str = "",
+        inflight: int | None = None,
+        rxbuf: int | None = None,
     ) -> None:
         """``secret``: carried in the greeting (``secret=...``) for a gateway that configures this
-        device by name; it proves the device is the one configured (docs/line-protocol.md §4)."""
+        device by name; it proves the device is the one configured (docs/line-protocol.md §4).
+        ``inflight`` and ``rxbuf``: the flow control the greeting states (§4.2); with
+        ``inflight`` a connection also takes at most that many requests at once."""
         self.backend = backend
-        self.greeting = Hello(name=name, type=type or backend.info.type, push=push, max_line=max_line)
+        self.greeting = Hello(
+            name=name,
+            type=type or backend.info.type,
+            push=push,
+            max_line=max_line,
+            inflight=inflight,
+            rxbuf=rxbuf,
+        )
         #: The greeting on a connection this device dialled: only there does it carry the secret.
         self.dial_greeting = replace(self.greeting, extra={"secret": secret}) if secret else self.greeting
         self.checksum = checksum

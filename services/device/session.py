@@ -93,23 +93,29 @@ class DeviceSession:
         self._receiver = LineReceiver(max_line=greeting.max_line)
         self._outbox = Outbox()
         self._subscriptions: dict[str, Subscription] = {}
-        self._in_flight = asyncio.Semaphore(MAX_IN_FLIGHT)
+        # A device that states inflight=N takes no more than N requests at once (§4.2).
+        self._in_flight = asyncio.Semaphore(min(greeting.inflight or MAX_IN_FLIGHT, MAX_IN_FLIGHT))
         self._tasks: set[asyncio.Task[None]] = set()
         #: SETs running now by tag, so that a CANCEL can stop one still waiting on its backend.
         self._running_sets: dict[str, asyncio.Task[None]] = {}
         self._step_gets = backend.answers_inline
+        #: A good $-line came, and no plain HELLO since: every line goes out checksummed (§6).
+        self._checksum_mode = False
 
     # -- writing ---------------------------------------------------------
 
-    def _encode(self, frame: Frame) -> bytes:
-        return encode(frame, checksum=self.checksum or self._receiver.saw_checksum)
+    def _encode(self, frame: Frame, checksummed: bool = False) -> bytes:
+        # Checksum mode (after a good $-line), or the reply to a $-line: mirrored (docs/line-protocol.md §6).
+        return encode(frame, checksum=self.checksum or self._checksum_mode or checksummed)
 
-    def _reply(self, frame: Frame) -> None:
+    def _reply(self, frame: Frame, checksummed: bool = False) -> None:
         try:
-            line = self._encode(frame)
+            line = self._encode(frame, checksummed)
         except LineProtocolError as exc:
             tag = getattr(frame, "tag", None)
-            line = self._encode(ErrorReply(int(exc.code), f"cannot send the reply: {exc.message}", tag))
+            line = self._encode(
+                ErrorReply(int(exc.code), f"cannot send the reply: {exc.message}", tag), checksummed
+            )
         self._outbox.reply(line)
 
     async def _write_loop(self) -> None:
@@ -145,8 +151,10 @@ class DeviceSession:
                     break
                 if not data:
                     break
-                for frame in self._not_cancelled(self._receiver.receive_data(data)):
-                    await self._dispatch(frame)
+                frames = self._receiver.receive_data(data)
+                checked = dict(zip(map(id, frames), self._receiver.last_checked, strict=True))
+                for frame in self._not_cancelled(frames):
+                    await self._dispatch(frame, checked[id(frame)])
                 while len(self._outbox.replies) >= MAX_QUEUED_REPLIES and not writer_task.done():
                     self._outbox.room.clear()
                     await self._outbox.room.wait()  # set by the writer when it takes replies or stops
@@ -200,14 +208,18 @@ class DeviceSession:
         except OSError as exc:  # the connection is gone already
             log.debug("%s: closing: %s", self.peer, exc)
 
-    async def _dispatch(self, frame: Frame | BadLine) -> None:
+    async def _dispatch(self, frame: Frame | BadLine, checked: bool = False) -> None:
+        if checked and not isinstance(frame, BadLine):
+            self._checksum_mode = True
+        elif not checked and isinstance(frame, HelloRequest):
+            self._checksum_mode = False  # a client starting afresh, e.g. a serial port opened again
         if isinstance(frame, BadLine):
             log.info("%s: bad line: %s", self.peer, frame.message)
-            self._reply(ErrorReply(int(frame.code), frame.message, frame.tag))
+            self._reply(ErrorReply(int(frame.code), frame.message, frame.tag), checked)
         elif isinstance(frame, Ping):
-            self._reply(Pong(frame.data, frame.tag))
+            self._reply(Pong(frame.data, frame.tag), checked)
         elif isinstance(frame, HelloRequest):
-            self._reply(dataclasses.replace(self.greeting, tag=frame.tag))
+            self._reply(dataclasses.replace(self.greeting, tag=frame.tag), checked)
         elif isinstance(frame, Get | Set | Listen | Unlisten):
             if frame.tag is None:
                 await self._answer(frame)

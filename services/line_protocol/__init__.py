@@ -10,8 +10,12 @@ from services.line_protocol._checksum import crc8
 from services.line_protocol._errors import LineProtocolError
 from services.line_protocol._escaping import escape_field, escape_value, unescape
 from services.line_protocol._frames import (
+    MAX_INFLIGHT,
     MAX_LINE,
+    MAX_RXBUF,
     MIN_MAX_LINE,
+    MIN_RXBUF,
+    PROTOCOL_REVISION,
     PROTOCOL_VERSION,
     TAGGED,
     BadLine,
@@ -37,8 +41,12 @@ from services.line_protocol._receivebuffer import LineReceiver
 from services.line_protocol._writer import encode
 
 __all__ = [
+    "MAX_INFLIGHT",
     "MAX_LINE",
+    "MAX_RXBUF",
     "MIN_MAX_LINE",
+    "MIN_RXBUF",
+    "PROTOCOL_REVISION",
     "PROTOCOL_VERSION",
     "TAGGED",
     "BadLine",

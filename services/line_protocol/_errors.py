@@ -17,6 +17,10 @@ class LineProtocolError(PropertyError):
 
     default_code = Code.INVALID_ARGUMENT
 
-    def __init__(self, message: str, code: Code | None = None, tag: str | None = None) -> None:
+    def __init__(
+        self, message: str, code: Code | None = None, tag: str | None = None, *, greeting: bool = False
+    ) -> None:
         super().__init__(message, code)
         self.tag = tag
+        #: The line was a greeting whose fields cannot be accepted (a refusal, not noise).
+        self.greeting = greeting

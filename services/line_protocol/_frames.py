@@ -7,8 +7,11 @@ from dataclasses import dataclass, field
 
 from services.errors import Code, PropertyError, code_for, error_for
 
-#: Protocol version sent in the greeting.
+#: Wire version sent in the greeting: 1 for protocol 1.0 and 1.1 (1.1 only adds
+#: greeting fields a 1.0 peer ignores; docs/line-protocol.md §4.3).
 PROTOCOL_VERSION = 1
+#: The protocol revision this codec implements, for messages and docs.
+PROTOCOL_REVISION = "1.1"
 
 #: Longest line, first byte to LF inclusive. It fits every value of the standard
 #: property sets (6-vector ~60 bytes, marker ~150, a 40-name ``properties`` list
@@ -20,6 +23,13 @@ MAX_LINE = 1024
 #: Smallest ``maxline`` a device may announce: a GET of a short path and an
 #: ERR reply with a short message must still fit.
 MIN_MAX_LINE = 64
+
+#: Bounds of the flow-control fields of a greeting (docs/line-protocol.md §4.2).
+#: ``inflight`` at most the proxies' own ceiling (``max_in_flight``); ``rxbuf`` at
+#: least what a short tagged GET needs (``#1 GET speed`` and its LF are 13 bytes).
+MAX_INFLIGHT = 4096
+MIN_RXBUF = 16
+MAX_RXBUF = 65536
 
 _Params = Mapping[str, str]
 
@@ -108,6 +118,10 @@ class Hello:
     #: Further ``KEY=VALUE`` fields, kept for the application.
     extra: _Params = field(default_factory=_no_params)
     tag: str | None = None
+    #: Requests the device takes at once (``inflight=``); None when it does not say.
+    inflight: int | None = None
+    #: Bytes of unanswered requests its receive buffer holds (``rxbuf=``); None when it does not say.
+    rxbuf: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -167,6 +181,10 @@ class BadLine:
     code: Code
     message: str
     tag: str | None = None
+    #: The line began with ``$``: a reply to it carries a checksum (docs/line-protocol.md §6).
+    checksummed: bool = False
+    #: The line was a greeting (``HELLO`` and a version) that cannot be accepted.
+    greeting: bool = False
 
 
 Request = Get | Set | Listen | Unlisten | Ping | HelloRequest

@@ -9,8 +9,11 @@ from services.line_protocol._checksum import crc8
 from services.line_protocol._errors import LineProtocolError
 from services.line_protocol._escaping import unescape
 from services.line_protocol._frames import (
+    MAX_INFLIGHT,
     MAX_LINE,
+    MAX_RXBUF,
     MIN_MAX_LINE,
+    MIN_RXBUF,
     Cancel,
     ErrorReply,
     Event,
@@ -105,9 +108,26 @@ def _no_more(fields: _Fields, word: str) -> None:
         )
 
 
+def _bad_greeting(message: str) -> LineProtocolError:
+    return LineProtocolError(f"bad greeting: {message}", greeting=True)
+
+
+def _number_field(values: dict[str, str], key: str, low: int, high: int) -> int | None:
+    text = values.pop(key, None)
+    if text is None:
+        return None
+    if not text.isascii() or not text.isdigit() or len(text) > 7:
+        raise _bad_greeting(f"{key}={_show(text)} is not a number")
+    number = int(text)
+    if not low <= number <= high:
+        raise _bad_greeting(f"{key}={number} is outside {low}..{high}")
+    return number
+
+
 def _hello(fields: _Fields, tag: str | None) -> Hello | HelloRequest:
     version = fields.next()
     if not version:
+        _no_more(fields, "HELLO")
         return HelloRequest(tag)
     if not VERSION.fullmatch(version):
         raise LineProtocolError(f"bad protocol version {_show(version)} in greeting")
@@ -115,27 +135,26 @@ def _hello(fields: _Fields, tag: str | None) -> Hello | HelloRequest:
     while token := fields.next():
         key, eq, value = token.partition("=")
         if not eq or not PARAM_NAME.fullmatch(key):
-            raise LineProtocolError(f"bad greeting field {_show(token)}: expected KEY=VALUE")
+            raise _bad_greeting(f"field {_show(token)} is not KEY=VALUE")
         if key in values:
-            raise LineProtocolError(f"greeting field {key!r} given twice")
+            raise _bad_greeting(f"field {key!r} given twice")
         values[key] = unescape(value)
     push = values.pop("push", "0")
     if push not in ("0", "1"):
-        raise LineProtocolError(f"bad greeting field push={_show(push)}: expected 0 or 1")
-    max_line_text = values.pop("maxline", str(MAX_LINE))
-    if not max_line_text.isascii() or not max_line_text.isdigit() or len(max_line_text) > 7:
-        raise LineProtocolError(f"bad greeting field maxline={_show(max_line_text)}")
-    max_line = int(max_line_text)
-    if max_line < MIN_MAX_LINE:
-        raise LineProtocolError(f"greeting says maxline={max_line}; the least allowed is {MIN_MAX_LINE}")
+        raise _bad_greeting(f"push={_show(push)}: expected 0 or 1")
+    max_line = _number_field(values, "maxline", MIN_MAX_LINE, 9_999_999)
+    inflight = _number_field(values, "inflight", 1, MAX_INFLIGHT)
+    rxbuf = _number_field(values, "rxbuf", MIN_RXBUF, MAX_RXBUF)
     return Hello(
         name=values.pop("name", ""),
         type=values.pop("type", ""),
         push=push == "1",
-        max_line=max_line,
+        max_line=MAX_LINE if max_line is None else max_line,
         version=int(version),
         extra=values,
         tag=tag,
+        inflight=inflight,
+        rxbuf=rxbuf,
     )
 
 
@@ -213,6 +232,8 @@ def decode_line(line: bytes | bytearray) -> Frame:
     raw = line if type(line) is bytes else bytes(line)
     if raw.endswith(b"\r"):
         raw = raw[:-1]
+    if raw.startswith(b" "):
+        raw = raw.lstrip(b" ")  # spaces before the first field are skipped (§1)
     if len(raw) + 1 > MAX_LINE:
         raise LineProtocolError(
             f"line too long: {len(raw) + 1} bytes, the limit is {MAX_LINE}",

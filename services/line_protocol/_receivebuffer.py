@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from services.errors import Code
 from services.line_protocol._errors import LineProtocolError
-from services.line_protocol._frames import MAX_LINE, BadLine, Frame
+from services.line_protocol._frames import MAX_LINE, BadLine, Frame, HelloRequest
 from services.line_protocol._reader import decode_line, tag_of
 
 
@@ -23,8 +23,11 @@ class LineReceiver:
         self._buffer = bytearray()
         self._scanned = 0
         self._discarding = False
-        #: A line with a valid checksum has been received: a device answers with checksums from then on.
+        #: A line with a valid checksum has been received (and no plain HELLO since): a device
+        #: answers with checksums from then on (docs/line-protocol.md §6).
         self.saw_checksum = False
+        #: For each item the last :meth:`receive_data` returned: whether its line began with ``$``.
+        self.last_checked: list[bool] = []
 
     @property
     def pending(self) -> int:
@@ -43,11 +46,13 @@ class LineReceiver:
             Code.RESOURCE_EXHAUSTED,
             f"line too long: more than {self.max_line} bytes; discarded up to the next newline",
             tag_of(head[:16]),
+            head[:1] == b"$",
         )
 
     def receive_data(self, data: bytes | bytearray | memoryview) -> list[Frame | BadLine]:
         """Take the next bytes of the stream; return the frames of the lines they complete."""
         out: list[Frame | BadLine] = []
+        self.last_checked = []
         chunk = data if type(data) is bytes else bytes(data)
         if not self._buffer and not self._discarding:
             # The usual case: nothing held back, so the chunk's whole lines are read
@@ -58,6 +63,7 @@ class LineReceiver:
                 line = chunk[start:end]
                 if end + 1 - start > max_line:
                     out.append(self._too_long(line))
+                    self.last_checked.append(line[:1] == b"$")
                 else:
                     self._line(line, out)
                 start = end + 1
@@ -82,6 +88,7 @@ class LineReceiver:
             if newline < 0:
                 if len(buffer) >= self.max_line:
                     out.append(self._too_long(buffer))
+                    self.last_checked.append(buffer[:1] == b"$")
                     buffer.clear()
                     self._discarding = True
                 self._scanned = len(buffer)
@@ -91,6 +98,7 @@ class LineReceiver:
             self._scanned = 0
             if newline + 1 > self.max_line:
                 out.append(self._too_long(line))
+                self.last_checked.append(line[:1] == b"$")
                 continue
             self._line(line, out)
 
@@ -100,10 +108,17 @@ class LineReceiver:
             line = line[:-1]
         if not line.strip(b" "):
             return
+        checked = line.lstrip(b" ").startswith(b"$")
         try:
-            out.append(decode_line(line))
+            frame = decode_line(line)
         except LineProtocolError as exc:
-            out.append(BadLine(exc.code, exc.message, exc.tag))
-        else:
-            if line.startswith(b"$"):
-                self.saw_checksum = True
+            out.append(BadLine(exc.code, exc.message, exc.tag, checked, exc.greeting))
+            self.last_checked.append(checked)
+            return
+        out.append(frame)
+        self.last_checked.append(checked)
+        if checked:
+            self.saw_checksum = True
+        elif type(frame) is HelloRequest:
+            # A plain HELLO: the client starts afresh, checksum mode ends (docs/line-protocol.md §6).
+            self.saw_checksum = False

@@ -27,7 +27,7 @@ from services.line_protocol._frames import (
 )
 from services.line_protocol._syntax import ERROR_CODE, PARAM_NAME, PATH, TAG
 
-_HELLO_KEYS = frozenset({"name", "type", "push", "maxline"})
+_HELLO_KEYS = frozenset({"name", "type", "push", "maxline", "inflight", "rxbuf"})
 
 
 def _tag(tag: str | None) -> str:
@@ -77,7 +77,7 @@ def _body(frame: Frame) -> str:
             if tag is None:
                 raise LineProtocolError("CANCEL names the request it cancels by its tag: #TAG CANCEL")
             return f"{_tag(tag)}CANCEL"
-        case Hello(name, type_, push, max_line, version, extra, tag):
+        case Hello(name, type_, push, max_line, version, extra, tag, inflight, rxbuf):
             clash = _HELLO_KEYS.intersection(extra)
             if clash:
                 raise LineProtocolError(f"greeting field {sorted(clash)[0]!r} is not an extra field")
@@ -86,6 +86,10 @@ def _body(frame: Frame) -> str:
                 del fields["name"]
             if not type_:
                 del fields["type"]
+            if inflight is not None:
+                fields["inflight"] = str(inflight)
+            if rxbuf is not None:
+                fields["rxbuf"] = str(rxbuf)
             fields.update(extra)
             return f"{_tag(tag)}HELLO {int(version)} {_params(fields)}".rstrip(" ")
         case Ok(value, tag):

@@ -77,6 +77,16 @@ class Candidates:
         self._position = {n: i for i, n in enumerate(names)}
         self._revision = revision
 
+    def offering(self, capabilities: frozenset[str], revision: int) -> list[str]:
+        """The names of the services offering any of ``capabilities``."""
+        self._refresh(revision)
+        found: set[int] = set()
+        for capability in capabilities:
+            positions = self._by_cap.get(capability)
+            if positions is not None:
+                found.update(positions.tolist())
+        return [self._names[i] for i in sorted(found)]
+
     def narrow(
         self, request: Request, revision: int, qos: Mapping[str, float], unsure: set[str]
     ) -> tuple[list[Provider], float]:
@@ -96,8 +106,9 @@ class Candidates:
         if relevant.size == 0:
             return [], 0.0
         slots = self._slots[relevant]
+        places = self._table.index.planar_at(slots)
         if request.location is not None and request.location.size >= 2:
-            offset = self._table.index.planar_at(slots) - request.location[:2]
+            offset = places - request.location[:2]
             distance = np.nan_to_num(np.hypot(offset[:, 0], offset[:, 1]), nan=0.0)
         else:
             distance = np.zeros(relevant.size)
@@ -119,13 +130,14 @@ class Candidates:
         grouped = masks[by_mask]
         starts = np.flatnonzero(np.r_[True, grouped[1:] != grouped[:-1]])
         place = np.arange(grouped.size) - np.repeat(starts, np.diff(np.r_[starts, grouped.size]))
-        kept = relevant[best[by_mask[place < limit]]]
+        chosen = best[by_mask[place < limit]]  # positions in ``relevant``
+        known = np.all(np.isfinite(places), axis=1)
         providers = []
-        for at in kept.tolist():
+        for i, at in zip(chosen.tolist(), relevant[chosen].tolist(), strict=True):
             name = self._names[at]
             entry = self._table.get(name)
             if entry is None:
                 continue
-            location = entry.location if entry.location.size >= 2 else None
+            location = places[i] if known[i] else None
             providers.append(Provider(name, self._caps[at], provider_state(entry.availability), location))
         return providers, scale

@@ -118,6 +118,7 @@ class Dispatcher:
         licensing: Licences,
         *,
         wake: Callable[[str], Awaitable[None]],
+        locate: Callable[[list[str]], Awaitable[None]],
         directory: Callable[[], Directory | None],
         features: Callable[[str], frozenset[str]],
         revision: Callable[[], int],
@@ -132,10 +133,13 @@ class Dispatcher:
         self._table = table
         self._licensing = licensing
         self._wake = wake
+        self._locate = locate
         self._directory = directory
         self._features = features
         self._revision = revision
         self._candidates = Candidates(table, features)
+        self._located_at = -1
+        self._located_for: set[frozenset[str]] = set()
         self._changed = changed
         self._qos = qos
         self._timeout = timeout
@@ -150,17 +154,17 @@ class Dispatcher:
 
     def providers(self, published: dict[str, float] | None = None) -> list[Provider]:
         """Every registered service but registries, with its capabilities, state and location."""
+        entries = [(name, entry) for name, entry in self._table.entries() if entry.type != "registry"]
+        index = self._table.index
+        places = index.planar_at(index.slots_of(name for name, _ in entries))
         found = []
-        for name, entry in self._table.entries():
-            if entry.type == "registry":
-                continue
-            location = entry.location if entry.location.size >= 2 else None
+        for (name, entry), place in zip(entries, places, strict=True):
             found.append(
                 Provider(
                     name,
                     self._features(name) | {entry.type},
                     provider_state(entry.availability),
-                    location,
+                    place if bool(np.all(np.isfinite(place))) else None,
                     None if published is None else published.get(name),
                 )
             )
@@ -177,6 +181,18 @@ class Dispatcher:
             return priced, max(published.values(), default=0.0)
         unsure = self.scheduler.unsure(request) | {lic.service for lic in self._licensing.held()}
         return self._candidates.narrow(request, self._revision(), self.scheduler.qos.means(), unsure)
+
+    def _to_locate(self, wanted: frozenset[str], by_distance: bool) -> list[str]:
+        """The providers of ``wanted`` whose locations a request needs, once per capability set and
+        table revision: locations are followed from the first time they are needed (a device's
+        location is never listened to before someone asks), and the table changes when one joins."""
+        revision = self._revision()
+        if revision != self._located_at:
+            self._located_at, self._located_for = revision, set()
+        if not by_distance or wanted in self._located_for:
+            return []
+        self._located_for.add(wanted)
+        return self._candidates.offering(wanted, revision)
 
     def location_of(self, name: str) -> Vector | None:
         entry = self._table.get(name)
@@ -226,7 +242,7 @@ class Dispatcher:
         if not consumer:
             consumer = holder
         try:
-            where = parse_vector(location) if location else self.location_of(consumer)
+            where = parse_vector(location) if location else None
         except ValueFormatError as e:
             raise InvalidArgument(f"bad parameter location: {e.message}") from None
         if where is not None and not (where.size >= 2 and np.all(np.isfinite(where))):
@@ -251,6 +267,9 @@ class Dispatcher:
             except InvalidArgument as e:
                 raise InvalidArgument(f"bad parameter cost: {e.message}") from None
         published = await self._published_costs(cost, wanted) if cost else None
+        await self._locate([consumer, *self._to_locate(wanted, published is None)])
+        if where is None:
+            request = replace(request, location=self.location_of(consumer))
         rejected: set[str] = set()
         for _ in range(MAX_ATTEMPTS):
             asked = replace(request, exclude=request.exclude | rejected) if rejected else request

@@ -46,7 +46,6 @@ class ServiceEntry(Resource):
     state: Annotated[str, Prop(readonly=True, doc="up, down, or connecting (never reached yet)")]
     last_seen: Annotated[float, Prop(readonly=True, doc="when it was last heard of, unix seconds")]
     misses: Annotated[int, Prop(readonly=True, doc="liveness checks missed in a row")]
-    location: Annotated[Vector, Prop(readonly=True, gui="pose", doc="the service's own location; () if none")]
     features: Annotated[
         list[str], Prop(readonly=True, doc="capabilities it offers the scheduler beside its type; () if none")
     ]
@@ -58,15 +57,17 @@ class ServiceEntry(Resource):
         info: BackendInfo,
         state: str = "up",
         renew: Callable[[str, float], None] | None = None,
+        want_location: Callable[[str], None] | None = None,
     ) -> None:
         self.type = info.type
         self.url = info.url
         self.state = state
         self.last_seen = wall_clock()
         self.misses = 0
-        self.location = np.zeros(0)
         self.features = []
         self.licence = ""
+        self._location: Vector = np.zeros(0)
+        self._want_location = want_location
         self._name = name
         self._renew = renew
         self._lease = Lease()
@@ -75,6 +76,27 @@ class ServiceEntry(Resource):
 
     def _value(self) -> str:
         return self.url
+
+    @property
+    def location(
+        self,
+    ) -> Annotated[
+        Vector,
+        Prop(
+            gui="pose",
+            doc="the service's own location; () if none or not known yet (followed from the first ask)",
+        ),
+    ]:
+        # Followed on demand: a device's location is listened to only once somebody
+        # asks for it (docs/line-protocol.md §5), never at connect.
+        if self._want_location is not None:
+            self._want_location(self._name)
+        return self._location
+
+    def store_location(self, location: Vector) -> None:
+        """Record the location the registry heard (a plain method, not a property)."""
+        self._location = location
+        self.changed("location")
 
     @property
     def lease(

@@ -51,6 +51,8 @@ def _nobody_is_admin(name: str) -> bool:
 DEFAULT_REGISTER_TIMEOUT = 10.0
 
 _REGISTER_PARAMS = ("type", "lease", "features")
+#: Codes with which a device's greeting is refused (docs/line-protocol.md §4.3).
+_REFUSALS = (Code.FAILED_PRECONDITION, Code.INVALID_ARGUMENT)
 
 
 def parse_features(text: str) -> frozenset[str]:
@@ -249,8 +251,11 @@ class Registrations:
                 raise DeadlineExceeded(
                     f"registering {name!r}: {url} did not answer within {timeout:g} s; nothing was registered"
                 ) from None
+            # A device that answered with a greeting the gateway refused (another protocol
+            # version, a bad field) did answer: say it was refused, and why.
+            verb = "was refused" if last.code in _REFUSALS else "does not answer"
             raise type(last)(
-                f"registering {name!r}: {url} does not answer ({last.message}); nothing was registered",
+                f"registering {name!r}: {url} {verb} ({last.message}); nothing was registered",
                 last.code,
             ) from None
         if self.table.get(name) is None:  # the directory does not tell its watchers before returning

@@ -207,11 +207,17 @@ class Registry(Resource):
             on_answer=self._learn_type,
             what="registry",
         )
+        self._table.want_location = self._want_location
+        #: Services not reached yet (a proxy before its device greets), each awaited by one task.
+        self._reaching: dict[str, asyncio.Task[None]] = {}
         self._unwatch: Callable[[], None] | None = None
+        #: Services whose location the scheduler had followed (see :meth:`_locate`).
+        self._located: set[str] = set()
         self._dispatcher = Dispatcher(
             self._table,
             self.licensing,
             wake=self.wake,
+            locate=self._locate,
             directory=lambda: self._directory,
             features=self.features_of,
             revision=lambda: self.revision,
@@ -491,6 +497,11 @@ class Registry(Resource):
         await self._liveness.stop()
         if self._file is not None:
             await self._file.flush()
+        reaching = list(self._reaching.values())
+        self._reaching.clear()
+        for task in reaching:
+            task.cancel()
+        await asyncio.gather(*reaching, return_exceptions=True)
         await self._locations.aclose()
 
     def _on_directory(self, name: str, backend: Backend | None) -> None:
@@ -498,15 +509,70 @@ class Registry(Resource):
             self._forget(name)
             return
         self.add(name, backend.info)
-        if not backend.on_demand:  # following a dormant service's location would keep it awake
+        # Its location is followed only once somebody asks (find near=, services.NAME.location):
+        # a LISTEN nobody asked for doubles the traffic on a slow serial line. Its type and
+        # "up" come as soon as it is reached, which costs the device nothing (no request).
+        if name not in self._reaching:
+            task = asyncio.get_running_loop().create_task(self._reach(name, backend), name=f"reach {name}")
+            self._reaching[name] = task
+            task.add_done_callback(lambda done: self._reached(name, done))
+
+    async def _reach(self, name: str, backend: Backend) -> None:
+        """Wait until ``backend`` is connected (a proxy: its device greeted), then learn its type."""
+        pause = 0.05
+        while True:
+            try:
+                await backend.wait_connected(max(1.0, self.period))
+                break
+            except PropertyError:
+                await asyncio.sleep(pause)
+                pause = min(pause * 2, max(1.0, self.period))
+        self._learn_type(name, backend)
+
+    def _reached(self, name: str, task: asyncio.Task[None]) -> None:
+        if self._reaching.get(name) is task:
+            del self._reaching[name]
+        if not task.cancelled() and task.exception() is not None:
+            log.error("waiting for %s failed", name, exc_info=task.exception())
+
+    def _want_location(self, name: str) -> None:
+        """Somebody asked where ``name`` is: follow its location from now on (once; on demand)."""
+        self._follow_location(name)
+
+    def _follow_location(self, name: str) -> bool:
+        """:meth:`_want_location`; True when ``name``'s location is followed now."""
+        directory = self._directory
+        if directory is None or self._table.get(name) is None:
+            return False
+        try:
+            backend = directory.backend(name)
+            if backend.on_demand:  # following a dormant service's location would keep it awake
+                return False
             self._locations.follow(name, backend)
+        except (PropertyError, RuntimeError):  # not served (any more), or no event loop to follow in
+            return False
+        return True
+
+    async def _locate(self, names: Iterable[str]) -> None:
+        """The scheduler needs to know where ``names`` are: follow those not followed yet, and wait
+        (at most ``timeout``) for the locations on the way. Each name is looked at once."""
+        if self._directory is None:
+            return
+        for name in names:
+            if name not in self._located and self._follow_location(name):
+                self._located.add(name)
+        await self._locations.settled(self.timeout)
 
     def _forget(self, name: str) -> None:
+        reaching = self._reaching.pop(name, None)
+        if reaching is not None:
+            reaching.cancel()
         if not self._table.forget(name):
             return
         self.licensing.release_holder(name)
         self.licensing.release_service(name)
         self._locations.forget(name)
+        self._located.discard(name)
         self._registrations.drop(name)
 
     def _bump(self) -> None:
@@ -543,7 +609,9 @@ class Registry(Resource):
         given = {"type": type, "near": near, "radius": radius, "state": state, "limit": limit, "where": where}
         query = Query.parse({k: v for k, v in given.items() if v != ""})
         if query.near is not None:
-            # Services that joined a moment ago: their locations are on the way.
+            for name in self._table.names():
+                self._want_location(name)
+            # Services followed just now, or that joined a moment ago: their locations are on the way.
             await self._locations.settled(self.timeout)
         names = self._table.index.select(query)
         if query.props:

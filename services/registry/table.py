@@ -34,6 +34,8 @@ class ServiceTable:
         self.index = ServiceIndex()
         self._bump = bump
         self._state_watchers: list[Callable[[str, str], None]] = []
+        #: Called with a service's name when its location is asked for (the registry follows it then).
+        self.want_location: Callable[[str], None] | None = None
 
     # -- reading -------------------------------------------------------------
 
@@ -78,7 +80,7 @@ class ServiceTable:
                 existing.changed()
             self._bump()
             return
-        self.services.attach(name, ServiceEntry(name, info, state, renew=renew))
+        self.services.attach(name, ServiceEntry(name, info, state, renew=renew, want_location=self._wanted))
         self.index.put(name, info.type, state == "up")
         self._bump()
 
@@ -146,12 +148,16 @@ class ServiceTable:
             entry.seen()
             self._mark(name, entry, "up")
 
+    def _wanted(self, name: str) -> None:
+        if self.want_location is not None:
+            self.want_location(name)
+
     def set_location(self, name: str, location: Vector | None) -> None:
         """The service's own location (None: it has none); nothing for an unknown name."""
         entry = self.get(name)
         if entry is None:
             return
-        entry.location = location if location is not None else np.zeros(0)
+        entry.store_location(location if location is not None else np.zeros(0))
         self.index.set_location(name, location if location is not None and location.size >= 2 else None)
 
     # -- watching states -------------------------------------------------------

@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import math
 import re
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 from typing import Literal
 
 from services.errors import InvalidArgument
 from services.paths import validate_path, validate_service_name
 from services.statemachine.document import ChartError, Node, read_document
-from services.statemachine.expressions import Expression, compile_expression
+from services.statemachine.expressions import FUNCTIONS, Expression, compile_expression
 
 __all__ = [
     "MAX_STATES",
@@ -259,12 +260,44 @@ def _check_attrs(node: Node, allowed: tuple[str, ...]) -> None:
             raise node.fail(f"unknown attribute {key!r}{hint}")
 
 
+#: The expressions of the chart being compiled, with their element and attribute: the names they
+#: read are checked once every variable is known (:func:`_check_names`).
+_COMPILED: ContextVar[list[tuple[Expression, Node, str, str]] | None] = ContextVar("_COMPILED", default=None)
+#: Names every expression may read besides the chart's variables and functions.
+_BUILT_IN_NAMES = frozenset(
+    {"_event", "_name", "true", "True", "false", "False", "null", "None", *FUNCTIONS, "In"}
+)
+
+
 def _expr(node: Node, attr: str, text: str | None = None) -> Expression:
     source = node.attrs[attr] if text is None else text
     try:
-        return compile_expression(source)
+        expression = compile_expression(source)
     except InvalidArgument as e:
         raise node.fail(f"{attr}={source[:60]!r}: {e.message}") from None
+    compiled = _COMPILED.get()
+    if compiled is not None:
+        compiled.append((expression, node, attr, source))
+    return expression
+
+
+def _check_names(compiled: list[tuple[Expression, Node, str, str]], declared: set[str]) -> None:
+    """Every name an expression reads is a variable (``<data>``, a ``foreach`` item or index), an
+    event's or a listen's value, or a function: a misspelt name is refused at load, not at run."""
+    known = declared | _BUILT_IN_NAMES
+    for _, node, _, _ in compiled:
+        if node.tag == "foreach":
+            known |= {node.attrs.get("item", ""), node.attrs.get("index", "")} - {""}
+    for expression, node, attr, source in compiled:
+        for name in sorted(expression.names() - known):
+            if name == "_value" and node.tag == "ps:listen" and attr == "cond":
+                continue
+            why = (
+                "'_value' is known only in the cond of a <ps:listen>"
+                if name == "_value"
+                else f"{name!r} is not declared in <datamodel>"
+            )
+            raise node.fail(f"{attr}={source[:60]!r}: {why}")
 
 
 def _duration(node: Node, attr: str, limit: float) -> float:
@@ -624,7 +657,17 @@ def compile_chart(name: str, text: str) -> Chart:
         raise node.fail('only binding="early" is supported: every variable is set when the machine starts')
     compiler = _Compiler()
     root = State("", "root", node.where)
-    compiler.contents(node, root)
+    compiled: list[tuple[Expression, Node, str, str]] = []
+    token = _COMPILED.set(compiled)
+    try:
+        compiler.contents(node, root)
+    finally:
+        _COMPILED.reset(token)
+    _check_names(compiled, {name for name, _ in compiler.data})
+    for expression, at, attr, source in compiled:
+        for state_id in expression.text_arguments("In"):
+            if state_id not in compiler.states:
+                raise at.fail(f"{attr}={source[:60]!r}: In({state_id!r}): no state with id {state_id!r}")
     if not any(c.kind != "history" for c in root.children):
         raise node.fail("a chart needs at least one <state>, <parallel> or <final>")
     if root.transitions or root.listens or root.onentry or root.onexit:

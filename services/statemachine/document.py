@@ -10,13 +10,16 @@ name) whose value holds the attributes and a ``children`` list::
         {"state": {"id": "idle", "children": [{"transition": {"event": "go", "target": "busy"}}]}},
         {"final": {"id": "busy"}}]}}
 
-An error in those names the element's place (``scxml.children[0].state``).
+An error in those names the element's place (``scxml.children[0].state``), in YAML
+after the line the element starts on (``line 7 (scxml.children[0].state)``); the json
+module keeps no lines.
 """
 
 from __future__ import annotations
 
 import json
 import xml.parsers.expat
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -92,12 +95,28 @@ def read_document(text: str) -> tuple[str, Node]:
     return fmt, _from_mapping(data, "", 0, [0])
 
 
+class _LinedDict(dict[Any, Any]):
+    """A YAML mapping that knows the line it starts on (1-based)."""
+
+    line = 0
+
+
 def _load_yaml(text: str) -> Any:
     import yaml
 
+    class Loader(yaml.SafeLoader):
+        """The safe loader (only plain mappings, lists and scalars: no tags that make objects);
+        each mapping keeps its line, so an error names it."""
+
+    def mapping(loader: yaml.SafeLoader, node: yaml.MappingNode) -> Iterator[_LinedDict]:
+        data = _LinedDict()
+        data.line = node.start_mark.line + 1
+        yield data
+        data.update(loader.construct_mapping(node))
+
+    Loader.add_constructor("tag:yaml.org,2002:map", mapping)
     try:
-        # The safe loader builds only plain mappings, lists and scalars: no tags that make objects.
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=Loader)  # a SafeLoader: no tags that make objects
     except yaml.MarkedYAMLError as e:
         mark = e.problem_mark
         line = f"line {mark.line + 1}: " if mark is not None else ""
@@ -108,26 +127,30 @@ def _load_yaml(text: str) -> Any:
 
 def _from_mapping(data: Any, where: str, depth: int, count: list[int]) -> Node:
     here = where or "the document"
+    if isinstance(data, _LinedDict):
+        here = f"line {data.line} ({here})"
     if not isinstance(data, dict) or len(data) != 1:
         raise ChartError(f"{here}: an element is a mapping of one key, its name (like {{'state': {{...}}}})")
     ((tag, body),) = data.items()
     path = f"{where}.{tag}" if where else str(tag)
+    #: What an error names: the element's place, after its line where the format keeps lines.
+    shown = f"line {data.line} ({path})" if isinstance(data, _LinedDict) else path
     if depth > MAX_DEPTH:
-        raise ChartError(f"{path}: elements nest deeper than {MAX_DEPTH} levels")
+        raise ChartError(f"{shown}: elements nest deeper than {MAX_DEPTH} levels")
     count[0] += 1
     if count[0] > MAX_ELEMENTS:
-        raise ChartError(f"{path}: the chart has more than {MAX_ELEMENTS} elements")
+        raise ChartError(f"{shown}: the chart has more than {MAX_ELEMENTS} elements")
     if body is None:
         body = {}
     if not isinstance(body, dict):
-        raise ChartError(f"{path}: expected a mapping of attributes (and children), got {body!r:.40}")
+        raise ChartError(f"{shown}: expected a mapping of attributes (and children), got {body!r:.40}")
     attrs: dict[str, str] = {}
     children: list[Node] = []
     text = ""
     for key, value in body.items():
         if key == "children":
             if not isinstance(value, list):
-                raise ChartError(f"{path}.children: expected a list of elements")
+                raise ChartError(f"{shown}: children: expected a list of elements")
             children = [
                 _from_mapping(c, f"{path}.children[{i}]", depth + 1, count) for i, c in enumerate(value)
             ]
@@ -138,8 +161,8 @@ def _from_mapping(data: Any, where: str, depth: int, count: list[int]) -> Node:
         elif isinstance(value, str | int | float):
             attrs[str(key)] = str(value)
         else:
-            raise ChartError(f"{path}.{key}: an attribute is text or a number, got {type(value).__name__}")
-    return Node(str(tag), attrs, path, children, text)
+            raise ChartError(f"{shown}: {key}: an attribute is text or a number, got {type(value).__name__}")
+    return Node(str(tag), attrs, shown, children, text)
 
 
 def _read_scxml(text: str) -> Node:

@@ -217,6 +217,16 @@ class Expression:
         """The variable and function names the expression reads."""
         return {n.id for n in ast.walk(self._tree) if isinstance(n, ast.Name)}
 
+    def text_arguments(self, function: str) -> list[str]:
+        """The arguments written as text in calls of ``function`` (``In('goto')``: ``goto``)."""
+        return [
+            a.value
+            for n in ast.walk(self._tree)
+            if isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id == function
+            for a in n.args
+            if isinstance(a, ast.Constant) and isinstance(a.value, str)
+        ]
+
     def evaluate(self, variables: Mapping[str, Any], functions: Mapping[str, Callable[..., Any]]) -> Any:
         """The value; EvaluationError when it cannot be computed."""
         try:
@@ -352,7 +362,15 @@ class _Evaluator:
 
     @staticmethod
     def _check_repeat(op: ast.operator, left: Any, right: Any) -> None:
-        """``"ab" * n`` and ``[0] * n``: refuse before building something too long."""
+        """``"ab" * n`` and ``[0] * n``: refuse before building something too long.
+
+        ``%`` is the remainder of two numbers only: on a text it would be printf-style
+        formatting, whose width or precision (``'%999999999d' % 1``) builds a string of any
+        size before its length could be checked.
+        """
+        if isinstance(op, ast.Mod) and not (isinstance(left, int | float) and isinstance(right, int | float)):
+            kinds = f"a {type(left).__name__} and a {type(right).__name__}"
+            raise EvaluationError(f"% takes two numbers (the remainder), not {kinds}")
         if not isinstance(op, ast.Mult):
             return
         for seq, count in ((left, right), (right, left)):

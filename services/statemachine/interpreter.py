@@ -55,7 +55,7 @@ from services.statemachine.expressions import (
     parse_chart_value,
 )
 
-__all__ = ["MAX_MICROSTEPS", "MAX_QUEUED_EVENTS", "MAX_TIMERS", "Event", "Interpreter"]
+__all__ = ["MAX_ACTIONS", "MAX_MICROSTEPS", "MAX_QUEUED_EVENTS", "MAX_TIMERS", "Event", "Interpreter"]
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +69,12 @@ MAX_TIMERS = 1000
 MAX_MICROSTEPS = 1000
 #: Steps run before the machine lets other tasks of the event loop run.
 _STEPS_PER_TURN = 100
+#: Actions (executable content: an assign, a log, a ps:set, ...) one macrostep may run before the
+#: machine is stopped: nested ``foreach`` loops multiply (a thousand items each), and no bound on
+#: steps catches what runs inside one step.
+MAX_ACTIONS = 100_000
+#: Actions run before the machine lets other tasks of the event loop run.
+_ACTIONS_PER_TURN = 100
 
 
 @dataclass(frozen=True, slots=True)
@@ -146,6 +152,8 @@ class Interpreter:
         self._task: asyncio.Task[None] | None = None
         self._stopping = False
         self._event: Event | None = None
+        #: Actions run in the current macrostep (MAX_ACTIONS).
+        self._actions = 0
         self._functions = {**FUNCTIONS, "In": self._in}
         self.transitions = 0
 
@@ -195,8 +203,9 @@ class Interpreter:
 
     async def _run(self) -> None:
         try:
+            self._actions = 0
             self._init_data()
-            await self._microstep([self.chart.root.initial] if self.chart.root.initial else [])
+            await self._microstep([self.chart.root.initial] if self.chart.root.initial else [], None)
             await self._main_loop()
             if self.status == "done":
                 self.journal("done")
@@ -224,13 +233,20 @@ class Interpreter:
                 return
             self._retest_listens()
             self.on_change()
+            if not self._external.empty():
+                # The get below will not wait: a chart that sends itself events without a delay,
+                # forever, would hold the event loop. Let the rest of the gateway (and a stop) in.
+                await asyncio.sleep(0)
+                if self._stopping:
+                    return
             event = await self._external.get()
             if event is None or self._stopping:
                 return
             self._event = event
+            self._actions = 0  # a new macrostep
             enabled = self._select_transitions(event)
             if enabled:
-                await self._microstep(enabled)
+                await self._microstep(enabled, event)
 
     def _finished(self) -> bool:
         return self._stopping or self.status != "running"
@@ -238,14 +254,15 @@ class Interpreter:
     async def _macrostep(self) -> None:
         steps = 0
         while not self._finished():
+            trigger: Event | None = None  # an eventless transition; `_event` keeps the last event
             enabled = self._select_transitions(None)
             if not enabled:
                 if not self._internal:
                     return
-                self._event = self._internal.popleft()
+                self._event = trigger = self._internal.popleft()
                 enabled = self._select_transitions(self._event)
             if enabled:
-                await self._microstep(enabled)
+                await self._microstep(enabled, trigger)
             steps += 1
             if steps >= MAX_MICROSTEPS:
                 raise _Stopped(
@@ -255,6 +272,7 @@ class Interpreter:
                 await asyncio.sleep(0)
 
     async def _exit_interpreter(self, *, run_onexit: bool = True) -> None:
+        self._actions = 0  # the exit is a step of its own
         for state in sorted(self.configuration, key=lambda s: s.order, reverse=True):
             if run_onexit:
                 for block in state.onexit:
@@ -315,7 +333,8 @@ class Interpreter:
 
     # -- one microstep ---------------------------------------------------------------
 
-    async def _microstep(self, enabled: list[Transition]) -> None:
+    async def _microstep(self, enabled: list[Transition], trigger: Event | None) -> None:
+        """Take ``enabled``; ``trigger`` is the event that selected them (None: eventless), for the log."""
         self.transitions += 1
         before = self.active_ids()
         await self._exit_states(enabled)
@@ -323,9 +342,10 @@ class Interpreter:
             await self._run_block(t.actions)
         await self._enter_states(enabled)
         after = self.active_ids()
+        if before != after or any(t.targets for t in enabled):  # a state left and entered again too
+            on = f" on {trigger.name}" if trigger is not None else ""
+            self.journal(f"{' '.join(before) or '()'} -> {' '.join(after) or '()'}{on}")
         if before != after:
-            trigger = f" on {self._event.name}" if self._event is not None else ""
-            self.journal(f"{' '.join(before) or '()'} -> {' '.join(after) or '()'}{trigger}")
             self.on_change()
             if self.watched():
                 # One turn of the event loop: a Listen stream on `state` takes this configuration
@@ -543,6 +563,11 @@ class Interpreter:
             raise _BlockFailed from None
 
     async def _act(self, action: Action) -> None:
+        self._actions += 1
+        if self._actions > MAX_ACTIONS:
+            raise _Stopped(f"more than {MAX_ACTIONS} actions without waiting for an event (an endless loop?)")
+        if self._actions % _ACTIONS_PER_TURN == 0:
+            await asyncio.sleep(0)
         if isinstance(action, Raise):
             self._queue_internal(Event(action.event, None, "internal"))
         elif isinstance(action, Assign):

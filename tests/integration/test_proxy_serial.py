@@ -82,7 +82,8 @@ async def fake_serial_device(client: LineClient, *, checksum: bool) -> None:
             line = line[1:-3]
         tag, _, rest = line.partition(" ")
         if tag == "HELLO":
-            reply = "HELLO 1 name=mcu type=sensor push=0 maxline=128"
+            # It answers pipelined requests and says so (one that says nothing gets one at a time).
+            reply = "HELLO 1 name=mcu type=sensor push=0 maxline=128 inflight=3"
         elif rest == "GET garbage":
             await client.send(b"\x01\x02~~ noise\n")
             continue

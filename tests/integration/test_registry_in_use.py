@@ -32,6 +32,17 @@ async def value_becomes(stub: pb_grpc.PropertyServiceStub, service: str, prop: s
     )
 
 
+async def members_become(stub: pb_grpc.PropertyServiceStub, want: set[str]) -> list[str]:
+    """The swarm's robots once they are ``want`` (in whatever order they joined); fails after WAIT seconds."""
+    robots = await eventually(
+        lambda: get(stub, "swarm", "robots"),
+        lambda v: set(v.strip("()").split()) == want,
+        within=WAIT,
+        what="swarm robots",
+    )
+    return robots.strip("()").split()
+
+
 async def test_demo_devices_are_mobile_robots_in_the_swarm(demo_gateway: GatewayProcess) -> None:
     async with grpc.aio.insecure_channel(demo_gateway.address) as channel:
         stub = pb_grpc.PropertyServiceStub(channel)
@@ -40,8 +51,8 @@ async def test_demo_devices_are_mobile_robots_in_the_swarm(demo_gateway: Gateway
             assert await value_becomes(stub, "registry", f"services.{rover}.type", "mobile_robot") == (
                 "mobile_robot"
             )
-        robots = await value_becomes(stub, "swarm", "robots", "(scout1 scout2 rover1 rover2)")
-        assert sorted(robots.strip("()").split()) == ["rover1", "rover2", "scout1", "scout2"]
+        robots = await members_become(stub, {"scout1", "scout2", "rover1", "rover2"})
+        assert sorted(robots) == ["rover1", "rover2", "scout1", "scout2"]
         reply = await stub.Get(
             pb.GetRequest(service="registry", property="find", parameters={"type": "mobile_robot"}),
             timeout=WAIT,
@@ -107,7 +118,7 @@ async def test_a_wildcard_listen_hears_a_member_leave_once(demo_gateway: Gateway
             await stub.Set(
                 pb.SetRequest(service="registry", property="services.scout7", value=url), timeout=WAIT
             )
-            await value_becomes(stub, "swarm", "robots", "(scout1 scout2 rover1 rover2 scout7)")
+            await members_become(stub, {"scout1", "scout2", "rover1", "rover2", "scout7"})
             call = stub.Listen(pb.ListenRequest(service="swarm", property="robots.*.location"))
             try:
                 async with asyncio.timeout(WAIT):

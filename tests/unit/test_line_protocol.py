@@ -42,7 +42,9 @@ names = st.from_regex(r"\A[A-Za-z0-9_.-]{1,12}\Z")
 texts = st.text(max_size=60)
 params = st.dictionaries(names, texts, max_size=3)
 hello_extra = st.dictionaries(
-    names.filter(lambda k: k not in {"name", "type", "push", "maxline"}), texts, max_size=2
+    names.filter(lambda k: k not in {"name", "type", "push", "maxline", "inflight", "rxbuf"}),
+    texts,
+    max_size=2,
 )
 
 frames: st.SearchStrategy[Frame] = st.one_of(
@@ -62,6 +64,8 @@ frames: st.SearchStrategy[Frame] = st.one_of(
         version=st.integers(0, 9999),
         extra=hello_extra,
         tag=tags,
+        inflight=st.none() | st.integers(1, 4096),
+        rxbuf=st.none() | st.integers(16, 65536),
     ),
     st.builds(Ok, texts, tags),
     st.builds(ErrorReply, st.integers(0, 999), texts, tags),
@@ -203,3 +207,56 @@ def test_every_session_line_in_the_specification_decodes() -> None:
                 decode_line(raw)
         elif not raw.startswith(b"FROB"):
             decode_line(raw)
+
+
+# -- protocol 1.1 -------------------------------------------------------------
+
+
+def test_a_greeting_states_flow_control_and_a_1_0_greeting_states_none() -> None:
+    hello = decode_line(b"HELLO 1 name=avr type=sensor push=1 maxline=64 inflight=1 rxbuf=32")
+    assert isinstance(hello, Hello)
+    assert (hello.max_line, hello.inflight, hello.rxbuf, dict(hello.extra)) == (64, 1, 32, {})
+    old = decode_line(b"HELLO 1 name=avr type=sensor push=1 maxline=64")
+    assert isinstance(old, Hello) and (old.inflight, old.rxbuf) == (None, None)
+    assert encode(hello) == b"HELLO 1 name=avr type=sensor push=1 maxline=64 inflight=1 rxbuf=32\n"
+
+
+@pytest.mark.parametrize(
+    ("line", "says"),
+    [
+        (b"HELLO 1 maxline=32", "maxline=32 is outside 64.."),
+        (b"HELLO 1 inflight=0", "inflight=0 is outside 1..4096"),
+        (b"HELLO 1 rxbuf=8", "rxbuf=8 is outside 16..65536"),
+        (b"HELLO 1 rxbuf=lots", "rxbuf='lots' is not a number"),
+        (b"HELLO 1 push=2", "push='2'"),
+        (b"HELLO 1 name=a name=b", "field 'name' given twice"),
+    ],
+)
+def test_a_greeting_that_cannot_be_accepted_is_a_bad_greeting_not_noise(line: bytes, says: str) -> None:
+    (bad,) = LineReceiver().receive_data(line + b"\n")
+    assert isinstance(bad, BadLine) and bad.greeting and bad.code == Code.INVALID_ARGUMENT
+    assert bad.message.startswith("bad greeting: ") and says in bad.message
+
+
+def test_leading_spaces_are_skipped_before_a_tag_and_a_checksum_too() -> None:
+    assert decode_line(b"   #7 GET x") == Get("x", {}, "7")
+    body = b"#8 GET x"
+    assert decode_line(b"  $" + body + b"*%02X" % crc8(body)) == Get("x", {}, "8")
+    assert decode_line(b"HELLO  ") == HelloRequest()
+    with pytest.raises(LineProtocolError) as info:
+        decode_line(b"HELLO x")
+    assert info.value.code == Code.INVALID_ARGUMENT
+
+
+def test_the_receiver_says_which_lines_were_checksummed_and_a_plain_hello_ends_checksum_mode() -> None:
+    receiver = LineReceiver()
+    good = b"$GET x*%02X\n" % crc8(b"GET x")
+    frames = receiver.receive_data(b"GET a\n" + good + b"$GET y*00\n")
+    assert [type(f) for f in frames] == [Get, Get, BadLine]
+    assert receiver.last_checked == [False, True, True]
+    assert isinstance(frames[2], BadLine) and frames[2].checksummed and frames[2].code == Code.DATA_LOSS
+    assert receiver.saw_checksum
+    receiver.receive_data(b"HELLO\n")
+    assert not receiver.saw_checksum
+    receiver.receive_data(b"$HELLO*%02X\n" % crc8(b"HELLO"))
+    assert receiver.saw_checksum

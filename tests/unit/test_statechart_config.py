@@ -49,3 +49,25 @@ options = { charts = { patrol = "builtin:patrol" }, autostart = ["patrol"] }
     )
     assert main(["check-config", str(config)]) == 0
     assert "fine (1 services" in capsys.readouterr().out
+
+
+def test_a_relative_chart_path_starts_at_the_config_files_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    site = tmp_path / "site"
+    (site / "charts").mkdir(parents=True)
+    (site / "charts" / "dock.scxml").write_text(
+        '<scxml xmlns="http://www.w3.org/2005/07/scxml" initial="a"><state id="a"/></scxml>\n'
+    )
+    config = site / "site.toml"
+    config.write_text(
+        """
+[[services]]
+name = "missions"
+type = "statemachine"
+options = { charts = { dock = "charts/dock.scxml", patrol = "builtin:patrol" } }
+"""
+    )
+    monkeypatch.chdir(tmp_path)  # the gateway runs elsewhere: the chart is still found beside the config
+    assert main(["check-config", str(config)]) == 0, capsys.readouterr().err
+    assert "fine (1 services" in capsys.readouterr().out

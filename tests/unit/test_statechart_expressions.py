@@ -80,6 +80,11 @@ def test_unsafe_or_unsupported_expressions_are_refused_when_compiled(text: str, 
         ("record.nothing", {"record": Record({"a": 1})}, "no field"),
         ("text.upper", {"text": "abc"}, "has no field"),
         ("w[5]", {"w": [1]}, "IndexError"),
+        # % is the remainder of two numbers: on a text it would be printf-style formatting, whose
+        # width and precision build a string of any size before its length could be checked.
+        ("'%999999999d' % 1", {}, "% takes two numbers"),
+        ("'%.999999999f' % 1.0", {}, "% takes two numbers"),
+        ("'%s' % x", {"x": "a"}, "% takes two numbers"),
     ],
 )
 def test_runtime_failures_are_evaluation_errors_not_crashes(

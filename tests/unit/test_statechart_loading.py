@@ -129,6 +129,20 @@ def test_scxml_json_and_yaml_of_the_same_chart_give_the_same_model() -> None:
         ('{"scxml": {"children": [{"state": {"id": "a", "children": [{"script": {}}]}}]}}',
          "scxml.children[0].state.children[0].script", "<script> runs code"),
         ("scxml:\n  children:\n  - state: {id: a\n", "line 4", "not valid YAML"),
+        (OPEN + "\n<state id='a'>\n<transition event='go' cond='n &lt; 3' target='a'/></state></scxml>",
+         "line 3", "'n' is not declared in <datamodel>"),
+        (OPEN + "\n<datamodel><data id='n' expr='0'/></datamodel>\n<state id='a'><onentry>\n"
+         "<assign location='n' expr='n + _value'/></onentry></state></scxml>",
+         "line 4", "'_value' is known only in the cond of a <ps:listen>"),
+        (OPEN + "\n<state id='a'>\n<transition event='go' cond=\"In('nowhere')\" target='a'/>"
+         "</state></scxml>",
+         "line 3", "In('nowhere'): no state with id 'nowhere'"),
+        ("scxml:\n  initial: a\n  children:\n  - state:\n      id: a\n      children:\n"
+         "      - transition: {event: go, cond: \"open('x')\", target: a}\n",
+         "line 7 (scxml.children[0].state.children[0].transition)", "only these functions"),
+        ("scxml:\n  initial: a\n  children:\n  - state: {id: a}\n  - state:\n      id: b\n"
+         "      children:\n      - transition: {event: go, target: nowhere}\n",
+         "line 8 (scxml.children[1].state.children[0].transition)", "no state with id 'nowhere'"),
     ],
 )  # fmt: skip
 def test_a_bad_chart_is_refused_naming_where_and_why(text: str, where: str, why: str) -> None:

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Annotated, Any
 
 import pytest
@@ -22,7 +24,7 @@ from services.backend import NO_PARAMS
 from services.core import LocalService, Prop, Resource, action, query
 from services.errors import FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted
 from services.statemachine import StateMachineService
-from services.statemachine.interpreter import MAX_QUEUED_EVENTS
+from services.statemachine.interpreter import MAX_ACTIONS, MAX_QUEUED_EVENTS
 
 HEAD = '<scxml xmlns="http://www.w3.org/2005/07/scxml" xmlns:ps="urn:propertyservice:scxml"'
 
@@ -268,6 +270,62 @@ async def test_an_eventless_loop_stops_the_machine_instead_of_hanging_the_gatewa
     assert status.startswith("failed: more than 1000 steps")
 
 
+async def test_nested_foreach_loops_neither_stall_the_event_loop_nor_run_without_end() -> None:
+    sm, _ = await service()
+    await sm.set(
+        "m.definition",
+        HEAD
+        + """ initial="a">
+  <datamodel><data id="w" expr="[0] * 1000"/><data id="x" expr="0"/><data id="y" expr="0"/>
+    <data id="n" expr="0"/></datamodel>
+  <state id="a"><onentry>
+    <foreach array="w" item="x"><foreach array="w" item="y"><assign location="n" expr="n + 1"/>
+    </foreach></foreach>
+  </onentry></state>
+</scxml>""",
+    )
+    stalls: list[float] = []
+
+    async def ticker() -> None:
+        last = time.perf_counter()
+        while True:
+            await asyncio.sleep(0.005)
+            now = time.perf_counter()
+            stalls.append(now - last)
+            last = now
+
+    ticking = asyncio.create_task(ticker())
+    try:
+        await sm.set("m.start", "")
+        status = await eventually(lambda: sm.get("m.status"), lambda s: s != "running", within=30)
+    finally:
+        ticking.cancel()
+    assert status.startswith(f"failed: more than {MAX_ACTIONS} actions"), status
+    assert max(stalls) < 0.5, f"the event loop stood still for {max(stalls):.2f} s"
+
+
+async def test_a_chart_that_sends_itself_events_without_end_lets_the_gateway_run() -> None:
+    sm, _ = await service()
+    await sm.set(
+        "m.definition",
+        HEAD
+        + """ initial="a">
+  <datamodel><data id="n" expr="0"/></datamodel>
+  <state id="a">
+    <onentry><assign location="n" expr="n + 1"/><send event="again"/></onentry>
+    <transition event="again" target="a"/>
+  </state>
+</scxml>""",
+    )
+    await sm.set("m.start", "")
+    started = time.perf_counter()
+    await asyncio.wait_for(asyncio.sleep(0.2), 2)  # the event loop still runs other tasks
+    assert time.perf_counter() - started < 1.0
+    assert (await variables(sm, "m"))["n"] > 1
+    await asyncio.wait_for(sm.set("m.stop", ""), 5)
+    assert await sm.get("m.status") == "stopped"
+
+
 async def test_the_event_queue_is_bounded() -> None:
     sm, _ = await service()
     await run(
@@ -470,3 +528,71 @@ async def test_internal_and_external_transitions_and_conflicts_between_regions()
     await sm.set("m.events", "leave")
     await state_becomes(sm, "m", "(one)")
     assert (await variables(sm, "m"))["winner"] == "r1"
+
+
+#: The first YAML example of docs/statemachine.md (read at import: no blocking file I/O in a test's loop).
+DOCS_YAML_EXAMPLE = (
+    (Path(__file__).resolve().parents[2] / "docs" / "statemachine.md")
+    .read_text(encoding="utf-8")
+    .split("```yaml\n", 1)[1]
+    .split("```", 1)[0]
+)
+
+
+async def test_the_yaml_example_of_the_docs_runs_without_an_error() -> None:
+    example = DOCS_YAML_EXAMPLE
+    sm, _ = await service()
+    await run(sm, "m", example)
+    await state_becomes(sm, "m", "(idle)")
+    await sm.set("m.events", "go")
+    await state_becomes(sm, "m", "(busy)")
+    assert "error" not in await sm.get("m.log")
+
+
+async def test_the_log_names_no_event_for_an_eventless_transition() -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="s0">
+  <state id="s0"><transition event="go" target="a"/></state>
+  <state id="a"><transition target="b"/></state>
+  <state id="b"><onentry><raise event="next"/></onentry><transition event="next" target="c"/></state>
+  <state id="c"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(s0)")
+    await sm.set("m.events", "go")
+    await state_becomes(sm, "m", "(c)")
+    lines = [line.split(" ", 1)[1] for line in (await sm.get("m.log")).splitlines()]
+    assert lines[-3:] == ["s0 -> a on go", "a -> b", "b -> c on next"], lines
+
+
+async def test_the_log_shows_a_transition_that_leaves_and_reenters_its_own_state() -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="sample">
+  <datamodel><data id="n" expr="0"/></datamodel>
+  <state id="sample">
+    <onentry><assign location="n" expr="n + 1"/></onentry>
+    <transition event="tick" cond="n &lt; 3" target="sample"/>
+    <transition event="tick" target="end"/>
+  </state>
+  <final id="end"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(sample)")
+    for _ in range(3):
+        await sm.set("m.events", "tick")
+    await state_becomes(sm, "m", "(end)")
+    assert (await variables(sm, "m"))["n"] == 3
+    lines = [line.split(" ", 1)[1] for line in (await sm.get("m.log")).splitlines()]
+    assert [line for line in lines if "->" in line][-3:] == [
+        "sample -> sample on tick",
+        "sample -> sample on tick",
+        "sample -> end on tick",
+    ], lines

@@ -1,0 +1,513 @@
+// The built-in widgets, one per `.gui` word the services use (services/core: number, slider,
+// switch, text, vector, pose, gauge, plot, list, marker, button, group) and one per data type.
+// Every writable widget has one input or select and a button [data-action=set]; an action has
+// an input per parameter [data-param=NAME], a value input [data-value] when it takes a value,
+// and a button [data-action=invoke].
+
+import { registerBuiltin, registerTypeWidget } from './widgets.js';
+import { findMarkers, formatNumber, markerFromInput, parseVector, valueFromInput } from './values.js';
+
+/** Points a plot keeps: a minute at the simulated sensor's 2 Hz is well inside. */
+const PLOT_POINTS = 120;
+const POSE_AXES = ['x', 'y', 'z', 'roll', 'pitch', 'yaw'];
+
+function finite(x) {
+  return typeof x === 'number' && Number.isFinite(x);
+}
+
+function round(x, digits = 3) {
+  return finite(x) ? formatNumber(Number(x.toFixed(digits))) : String(x);
+}
+
+/**
+ * An input and its Set button. `read()` turns the input into value text (throws a
+ * ValueFormatError for a malformed one, shown as INVALID_ARGUMENT); `show(text)` puts a
+ * value into the input unless the operator is editing it.
+ */
+function editor(
+  ctx,
+  input,
+  { read = () => input.value, show = (text) => (input.value = text), whileFocused = false } = {},
+) {
+  let dirty = false;
+  input.addEventListener('input', () => (dirty = true));
+  const send = async () => {
+    let text;
+    try {
+      text = read();
+    } catch (e) {
+      ctx.showError(e);
+      return;
+    }
+    const reply = await ctx.set(text);
+    if (reply !== null) dirty = false;
+  };
+  if (input.tagName === 'INPUT') {
+    input.addEventListener('keydown', (e) => {
+      if (e.key === 'Enter') send();
+    });
+  }
+  const button = ctx.h('button', { type: 'button', class: 'set', dataset: { action: 'set' }, onclick: send }, 'Set');
+  return {
+    element: ctx.h('div', { class: 'editor' }, input, button),
+    send,
+    show(text) {
+      if (!dirty && (whileFocused || document.activeElement !== input)) show(text);
+    },
+  };
+}
+
+function choicesSelect(ctx, prop) {
+  const select = ctx.h('select', { 'aria-label': prop.name });
+  for (const choice of prop.choices) select.append(ctx.h('option', { value: choice }, choice));
+  const ed = editor(ctx, select);
+  select.addEventListener('change', ed.send);
+  return { element: ed.element, update: (text) => ed.show(text) };
+}
+
+function textWidget(prop, ctx) {
+  if (!ctx.writable) return { element: null };
+  if (prop.choices?.length) return choicesSelect(ctx, prop);
+  const input = ctx.h('input', { type: 'text', 'aria-label': prop.name, spellcheck: 'false' });
+  const ed = editor(ctx, input, { read: () => valueFromInput(prop.type, input.value) });
+  return { element: ed.element, update: (text) => ed.show(text) };
+}
+
+function numberInput(ctx, prop) {
+  return ctx.h('input', {
+    type: 'number',
+    'aria-label': prop.name,
+    step: prop.type === 'integer' ? '1' : 'any',
+    min: finite(prop.minimum) ? prop.minimum : null,
+    max: finite(prop.maximum) ? prop.maximum : null,
+  });
+}
+
+function numberWidget(prop, ctx) {
+  if (!ctx.writable) return { element: null };
+  if (prop.choices?.length) return choicesSelect(ctx, prop);
+  const input = numberInput(ctx, prop);
+  const ed = editor(ctx, input, { read: () => valueFromInput(prop.type, input.value) });
+  return { element: ed.element, update: (text) => ed.show(text) };
+}
+
+/**
+ * A slider between the property's bounds: a drawn track (not a second <input>, so the
+ * number box stays the one input) that moves the number box and sets on release.
+ */
+function sliderWidget(prop, ctx) {
+  if (!finite(prop.minimum) || !finite(prop.maximum) || !(prop.maximum > prop.minimum)) {
+    return numberWidget(prop, ctx);
+  }
+  const { minimum: lo, maximum: hi } = prop;
+  const fill = ctx.h('div', { class: 'slider-fill' });
+  const thumb = ctx.h('div', { class: 'slider-thumb' });
+  const track = ctx.h(
+    'div',
+    {
+      class: 'slider',
+      role: 'slider',
+      tabindex: ctx.writable ? '0' : null,
+      'aria-label': prop.name,
+      'aria-valuemin': lo,
+      'aria-valuemax': hi,
+    },
+    fill,
+    thumb,
+  );
+  const place = (x) => {
+    const f = Math.min(1, Math.max(0, (x - lo) / (hi - lo)));
+    fill.style.width = `${f * 100}%`;
+    thumb.style.left = `${f * 100}%`;
+    track.setAttribute('aria-valuenow', String(x));
+  };
+  const scale = ctx.h('div', { class: 'slider-scale' }, ctx.h('span', {}, formatNumber(lo)), ctx.h('span', {}, formatNumber(hi)));
+  if (!ctx.writable) {
+    return {
+      element: ctx.h('div', { class: 'slider-box' }, track, scale),
+      update(text) {
+        const x = Number(text);
+        if (finite(x)) place(x);
+      },
+    };
+  }
+  const input = numberInput(ctx, prop);
+  const ed = editor(ctx, input, { read: () => valueFromInput(prop.type, input.value) });
+  // Snap to a round step: a thousandth of the range, or whole numbers for an integer.
+  const step = prop.type === 'integer' ? 1 : Number(((hi - lo) / 1000).toPrecision(1));
+  const at = (clientX) => {
+    const rect = track.getBoundingClientRect();
+    const f = Math.min(1, Math.max(0, (clientX - rect.left) / rect.width));
+    const x = Math.round((lo + f * (hi - lo)) / step) * step;
+    return Number(Math.min(hi, Math.max(lo, x)).toPrecision(12));
+  };
+  const move = (x) => {
+    input.value = formatNumber(x);
+    input.dispatchEvent(new Event('input'));
+    place(x);
+  };
+  let pointer = null;
+  track.addEventListener('pointerdown', (e) => {
+    pointer = e.pointerId;
+    try {
+      track.setPointerCapture(e.pointerId);
+    } catch {
+      // a synthetic pointer: followed while it stays over the track
+    }
+    move(at(e.clientX));
+  });
+  track.addEventListener('pointermove', (e) => {
+    if (e.pointerId === pointer) move(at(e.clientX));
+  });
+  const release = (e) => {
+    if (e.pointerId !== pointer) return;
+    pointer = null;
+    if (e.type === 'pointerup') ed.send();
+  };
+  track.addEventListener('pointerup', release);
+  track.addEventListener('pointercancel', release);
+  track.addEventListener('keydown', (e) => {
+    const delta = { ArrowRight: step, ArrowUp: step, ArrowLeft: -step, ArrowDown: -step }[e.key];
+    if (delta === undefined) return;
+    e.preventDefault();
+    const now = Number(input.value);
+    move(Math.min(hi, Math.max(lo, (finite(now) ? now : lo) + delta)));
+    ed.send();
+  });
+  return {
+    element: ctx.h('div', { class: 'slider-box' }, track, scale, ed.element),
+    update(text) {
+      ed.show(text);
+      const x = Number(text);
+      if (finite(x)) place(x);
+    },
+  };
+}
+
+function switchWidget(prop, ctx) {
+  const box = ctx.h('input', {
+    type: 'checkbox',
+    role: 'switch',
+    class: 'switch',
+    'aria-label': prop.name,
+    disabled: !ctx.writable,
+  });
+  const show = (text) => {
+    box.checked = ['true', '1', 'on', 'yes'].includes(text.trim().toLowerCase());
+  };
+  if (!ctx.writable) return { element: box, update: show };
+  const ed = editor(ctx, box, { read: () => (box.checked ? 'true' : 'false'), show, whileFocused: true });
+  // A switch acts when flipped; the Set button sends the state shown again.
+  box.addEventListener('change', ed.send);
+  return { element: ed.element, update: (text) => ed.show(text) };
+}
+
+function elementNames(prop, n) {
+  if (n === 6 && (prop.gui === 'pose' || prop.name.endsWith('location'))) return POSE_AXES;
+  if (n === 6 && prop.name.endsWith('velocity')) return ['vx', 'vy', 'vz', 'wx', 'wy', 'wz'];
+  return Array.from({ length: n }, (_, i) => String(i));
+}
+
+function vectorTable(ctx, prop) {
+  const table = ctx.h('div', { class: 'vector' });
+  return {
+    table,
+    show(text) {
+      let numbers;
+      try {
+        numbers = parseVector(text);
+      } catch {
+        table.replaceChildren();
+        return;
+      }
+      const names = elementNames(prop, numbers.length);
+      table.replaceChildren(
+        ...numbers.map((x, i) =>
+          ctx.h('span', { class: 'cell' }, ctx.h('small', {}, names[i]), ctx.h('span', {}, round(x))),
+        ),
+      );
+    },
+  };
+}
+
+function vectorWidget(prop, ctx) {
+  const view = vectorTable(ctx, prop);
+  if (!ctx.writable) return { element: view.table, update: view.show };
+  const input = ctx.h('input', {
+    type: 'text',
+    'aria-label': prop.name,
+    spellcheck: 'false',
+    placeholder: prop.length ? `(${Array(prop.length).fill('0').join(' ')})` : '(1 2 3)',
+  });
+  const ed = editor(ctx, input, { read: () => valueFromInput('vector', input.value) });
+  return {
+    element: ctx.h('div', {}, view.table, ed.element),
+    update(text) {
+      view.show(text);
+      ed.show(text);
+    },
+  };
+}
+
+/** A pose: x, y and the heading in degrees, with a compass needle. */
+function poseWidget(prop, ctx) {
+  const needle = ctx.svg('path', { d: 'M0,-9 L5,6 L0,3 L-5,6 Z', class: 'needle' });
+  const compass = ctx.svg(
+    'svg',
+    { viewBox: '-12 -12 24 24', class: 'compass', 'aria-hidden': 'true' },
+    ctx.svg('circle', { r: 11 }),
+    needle,
+  );
+  const text = ctx.h('span', { class: 'pose-text' });
+  const box = ctx.h('div', { class: 'pose' }, compass, text);
+  const rest = ctx.writable ? vectorWidget(prop, ctx) : null;
+  return {
+    element: rest ? ctx.h('div', {}, box, rest.element) : box,
+    update(value) {
+      rest?.update(value);
+      let v;
+      try {
+        v = parseVector(value);
+      } catch {
+        text.textContent = '';
+        return;
+      }
+      if (v.length < 2) {
+        text.textContent = 'nowhere';
+        return;
+      }
+      const yaw = v.length >= 6 ? v[5] : 0;
+      // Map north is +y; the needle points along the heading (counter-clockwise from +x).
+      needle.setAttribute('transform', `rotate(${90 - (yaw * 180) / Math.PI})`);
+      text.textContent = `x ${round(v[0], 2)}  y ${round(v[1], 2)}  heading ${round((yaw * 180) / Math.PI, 1)}°`;
+    },
+  };
+}
+
+function gaugeWidget(prop, ctx) {
+  const lo = finite(prop.minimum) ? prop.minimum : 0;
+  const hi = finite(prop.maximum) && prop.maximum > lo ? prop.maximum : 1;
+  const bar = ctx.h('div', { class: 'gauge-bar' });
+  const label = ctx.h('span', { class: 'gauge-label' });
+  const gauge = ctx.h('div', { class: 'gauge', role: 'meter', 'aria-valuemin': lo, 'aria-valuemax': hi }, bar, label);
+  const rest = ctx.writable ? numberWidget(prop, ctx) : null;
+  return {
+    element: rest ? ctx.h('div', {}, gauge, rest.element) : gauge,
+    update(text) {
+      rest?.update(text);
+      const x = Number(text);
+      if (!finite(x)) return;
+      const f = Math.min(1, Math.max(0, (x - lo) / (hi - lo)));
+      bar.style.width = `${f * 100}%`;
+      gauge.classList.toggle('low', f < 0.2);
+      gauge.setAttribute('aria-valuenow', String(x));
+      label.textContent = `${Math.round(f * 100)} %`;
+    },
+  };
+}
+
+/** A number over time: the last PLOT_POINTS values as a line, with the range seen. */
+function plotWidget(prop, ctx) {
+  const points = [];
+  const line = ctx.svg('polyline', { class: 'plot-line', points: '' });
+  const chart = ctx.svg('svg', { class: 'plot', viewBox: '0 0 240 60', preserveAspectRatio: 'none' }, line);
+  const range = ctx.h('small', { class: 'plot-range' });
+  return {
+    element: ctx.h('div', { class: 'plot-box' }, chart, range),
+    update(text) {
+      const x = Number(text);
+      if (!finite(x)) return;
+      points.push(x);
+      if (points.length > PLOT_POINTS) points.shift();
+      const lo = Math.min(...points);
+      const hi = Math.max(...points);
+      const span = hi - lo || 1;
+      line.setAttribute(
+        'points',
+        points
+          .map((y, i) => `${((i / (PLOT_POINTS - 1)) * 240).toFixed(1)},${(56 - ((y - lo) / span) * 52).toFixed(1)}`)
+          .join(' '),
+      );
+      range.textContent = `${round(lo)} … ${round(hi)}${prop.unit ? ` ${prop.unit}` : ''} (last ${points.length})`;
+    },
+  };
+}
+
+function listWidget(prop, ctx) {
+  // Read-only, `.value` shows it (its title holds the whole text when it is clipped).
+  if (!ctx.writable) return { element: null };
+  const area = ctx.h('textarea', { rows: 2, 'aria-label': prop.name, spellcheck: 'false' });
+  const ed = editor(ctx, area);
+  return {
+    element: ctx.h('div', {}, ed.element),
+    update: (text) => ed.show(text),
+  };
+}
+
+function markerFields(ctx, marker) {
+  return ctx.h(
+    'dl',
+    { class: 'marker' },
+    Object.entries(marker.fields).flatMap(([name, value]) => [
+      ctx.h('dt', {}, name),
+      ctx.h('dd', {}, typeof value === 'string' ? value : '<…>'),
+    ]),
+  );
+}
+
+function markerWidget(prop, ctx) {
+  const view = ctx.h('div', { class: 'markers' });
+  const show = (text) => view.replaceChildren(...findMarkers(text, 20).map((m) => markerFields(ctx, m)));
+  if (!ctx.writable) return { element: view, update: show };
+  const area = ctx.h('textarea', {
+    rows: 2,
+    'aria-label': prop.name,
+    spellcheck: 'false',
+    placeholder: '<marker><location>(1 2)</location></marker>',
+  });
+  const ed = editor(ctx, area, { read: () => markerFromInput(area.value) });
+  return {
+    element: ctx.h('div', {}, view, ed.element),
+    update(text) {
+      show(text);
+      ed.show(text);
+    },
+  };
+}
+
+function valueReader(type, input) {
+  if (type === 'marker') return () => markerFromInput(input.value);
+  if (type === 'number' || type === 'integer' || type === 'boolean' || type === 'vector') {
+    return () => (input.value.trim() === '' ? '' : valueFromInput(type, input.value));
+  }
+  return () => input.value;
+}
+
+const PLACEHOLDERS = {
+  marker: 'x y  or  <marker><location>(x y)</location></marker>',
+  vector: '(1 2 3)',
+  number: '0.5',
+  integer: '42',
+  boolean: 'true',
+  list: '((1 2) (a b))',
+  names: '(a b)',
+  vectors: '((1 0) (2 1))',
+};
+
+/** The inputs of a request's parameters: one [data-param=NAME] each, default as placeholder. */
+function parameterInputs(ctx, prop) {
+  const inputs = new Map();
+  const rows = (prop.parameters ?? []).map((p) => {
+    const input = ctx.h('input', {
+      type: 'text',
+      spellcheck: 'false',
+      dataset: { param: p.name },
+      'aria-label': `${prop.name} ${p.name}`,
+      placeholder: p.default ? `${p.default} (default)` : (PLACEHOLDERS[p.type] ?? p.type ?? ''),
+      required: p.required && !p.default,
+    });
+    inputs.set(p.name, input);
+    return ctx.h(
+      'label',
+      { class: 'param', title: p.doc || p.name },
+      ctx.h('span', {}, p.name, p.type ? ctx.h('small', {}, ` ${p.type}`) : null),
+      input,
+    );
+  });
+  const read = () => {
+    const parameters = {};
+    for (const [name, input] of inputs) if (input.value.trim() !== '') parameters[name] = input.value.trim();
+    return parameters;
+  };
+  return { rows, read };
+}
+
+/**
+ * An action: a form with its value (typed by `prop.value.type` when the model names it; an
+ * action whose model says `value: null` takes none) and its parameters, and an Invoke button.
+ * The reply of the Set shows in `.value`.
+ */
+function buttonWidget(prop, ctx) {
+  const valueModel = prop.value;
+  const takesValue = valueModel !== null;
+  const valueType = valueModel?.type ?? '';
+  let valueInput = null;
+  const rows = [];
+  if (takesValue) {
+    valueInput = ctx.h('input', {
+      type: 'text',
+      spellcheck: 'false',
+      dataset: { value: '' },
+      'aria-label': `${prop.name} value`,
+      placeholder: PLACEHOLDERS[valueType] ?? (valueType ? valueType : 'value (empty: none)'),
+    });
+    rows.push(
+      ctx.h(
+        'label',
+        { class: 'param' },
+        ctx.h('span', {}, valueModel?.name ?? 'value', valueType ? ctx.h('small', {}, ` ${valueType}`) : null),
+        valueInput,
+      ),
+    );
+  }
+  const params = parameterInputs(ctx, prop);
+  const readValue = valueInput ? valueReader(valueType, valueInput) : () => '';
+  const invoke = async () => {
+    let text;
+    try {
+      text = readValue();
+    } catch (e) {
+      ctx.showError(e);
+      return;
+    }
+    const reply = await ctx.set(text, params.read());
+    if (reply !== null) ctx.showValue(reply === '' ? 'done' : reply);
+  };
+  valueInput?.addEventListener('keydown', (e) => e.key === 'Enter' && invoke());
+  const button = ctx.h(
+    'button',
+    { type: 'button', class: 'invoke', dataset: { action: 'invoke' }, onclick: invoke },
+    prop.name.split('.').pop(),
+  );
+  return { element: ctx.h('div', { class: 'action-form' }, rows, params.rows, button) };
+}
+
+/** A query: its parameters and a Get button; the answer shows in `.value`. */
+function queryWidget(prop, ctx) {
+  const params = parameterInputs(ctx, prop);
+  const ask = async () => {
+    const answer = await ctx.get(params.read());
+    if (answer !== null) ctx.showValue(answer);
+  };
+  const button = ctx.h('button', { type: 'button', dataset: { action: 'get' }, onclick: ask }, 'Get');
+  return { element: ctx.h('div', { class: 'action-form' }, params.rows, button) };
+}
+
+function namespaceWidget() {
+  return { element: null };
+}
+
+registerBuiltin('text', textWidget);
+registerBuiltin('number', numberWidget);
+registerBuiltin('slider', sliderWidget);
+registerBuiltin('switch', switchWidget);
+registerBuiltin('vector', vectorWidget);
+registerBuiltin('pose', poseWidget);
+registerBuiltin('gauge', gaugeWidget);
+registerBuiltin('plot', plotWidget);
+registerBuiltin('list', listWidget);
+registerBuiltin('marker', markerWidget);
+registerBuiltin('button', buttonWidget);
+registerBuiltin('query', queryWidget);
+registerBuiltin('group', namespaceWidget);
+
+registerTypeWidget('number', numberWidget);
+registerTypeWidget('integer', numberWidget);
+registerTypeWidget('boolean', switchWidget);
+registerTypeWidget('text', textWidget);
+registerTypeWidget('vector', vectorWidget);
+registerTypeWidget('marker', markerWidget);
+registerTypeWidget('list', listWidget);
+registerTypeWidget('names', listWidget);
+registerTypeWidget('vectors', listWidget);
+registerTypeWidget('namespace', namespaceWidget);

@@ -1,0 +1,193 @@
+// The console's entry point: builds the views, wires them to the page's one event stream, and
+// exposes window.PropertyConsole (the widget extension point; docs/console.md).
+
+import * as api from './api.js';
+import './builtin_widgets.js';
+import { EventMux } from './events.js';
+import { Inspector } from './inspector.js';
+import { RobotMap } from './map.js';
+import { ServiceList } from './service_list.js';
+import { ServiceView } from './service_view.js';
+import { Teleop } from './teleop.js';
+import * as values from './values.js';
+import { registerWidget, widgetNames } from './widgets.js';
+
+const $ = (selector) => {
+  const el = document.querySelector(selector);
+  if (!el) throw new Error(`the page lacks ${selector}`);
+  return el;
+};
+
+const connection = $('#connection');
+const CONNECTION_TEXT = { open: 'live', connecting: 'connecting…', closed: 'disconnected' };
+
+const mux = new EventMux({
+  // The gateway allows fewer selectors per Listen than the page asked for: lay the view out again.
+  onLimit: () => setTimeout(() => selected() && view.show(selected()), 0),
+  onState(state, detail) {
+    connection.dataset.state = state;
+    const retry = detail?.retryInSeconds ? ` · retry in ${detail.retryInSeconds} s` : '';
+    connection.querySelector('.connection-text').textContent = `${CONNECTION_TEXT[state] ?? state}${retry}`;
+  },
+});
+
+function status(text, isError = false) {
+  const el = $('#status');
+  el.textContent = text;
+  el.classList.toggle('error-text', isError);
+}
+
+let selectedName = null;
+// A page opened as /#scout1 selects scout1 once the list holds it.
+let pendingSelect = decodeURIComponent(location.hash.slice(1)) || null;
+const selected = () => (selectedName ? list.byName(selectedName) : null);
+
+const list = new ServiceList($('#services'), {
+  mux,
+  status: (text) => status(text, Boolean(text)),
+  onSelect: (name) => select(name),
+  onChange: (services) => {
+    map.servicesChanged(services);
+    if (pendingSelect && services.some((s) => s.name === pendingSelect)) {
+      const name = pendingSelect;
+      pendingSelect = null;
+      select(name);
+    }
+    if (selectedName && !services.some((s) => s.name === selectedName)) {
+      select(null); // it left: its view and its subscriptions go
+    } else {
+      view.updateState(selected());
+      map.drawAll();
+    }
+    fillDatalist(services);
+  },
+  locationOf: (name) => map.poses.get(name) ?? null,
+});
+
+const view = new ServiceView($('#service-view'), { mux });
+
+const map = new RobotMap($('#map'), {
+  mux,
+  services: () => list.services,
+  selected: () => selectedName,
+  onSelect: (name) => select(name),
+  formation: () => ({ formation: $('#formation').value, spacing: $('#spacing').value.trim() }),
+  status: (text, isError = false) => {
+    const el = $('#map-status');
+    el.textContent = text;
+    el.classList.toggle('error-text', isError);
+  },
+  onPose: (name) => list.moved(name),
+});
+
+const teleop = new Teleop(
+  {
+    root: $('#teleop'),
+    joystick: $('#joystick'),
+    knob: $('#joystick .knob'),
+    status: $('#teleop-status'),
+    speed: $('#teleop-speed'),
+    turn: $('#teleop-turn'),
+    mode: $('#teleop-mode'),
+    stop: $('#teleop-stop'),
+    target: $('#teleop-target'),
+  },
+  { selected, poseOf: (name) => map.poses.get(name) ?? null, onDrive: (name) => map.forgetTarget(name) },
+);
+
+const inspector = new Inspector(
+  {
+    service: $('#inspector-service'),
+    path: $('#inspector-path'),
+    value: $('#inspector-value'),
+    params: $('#inspector-params'),
+    get: $('#inspector-get'),
+    set: $('#inspector-set'),
+    listen: $('#inspector-listen'),
+    output: $('#inspector-output'),
+    log: $('#inspector-log'),
+    paths: $('#inspector-paths'),
+  },
+  { mux },
+);
+
+function select(name) {
+  if (name === selectedName) return;
+  selectedName = name;
+  list.select(name);
+  map.drawAll();
+  const service = selected();
+  view.show(service);
+  teleop.selectionChanged();
+  $('#formation-box').hidden = service?.type !== 'group';
+  const movable = service?.type === 'mobile_robot' || service?.type === 'group';
+  $('#map-target').textContent = movable ? `${service.name} (${service.type === 'group' ? 'group' : 'robot'})` : 'a robot or group you select';
+  if (service) inspector.use(service.name);
+  const url = new URL(location.href);
+  if (name) url.hash = encodeURIComponent(name);
+  else url.hash = '';
+  history.replaceState(null, '', url);
+}
+
+function fillDatalist(services) {
+  $('#inspector-services').replaceChildren(
+    ...services.map((s) => Object.assign(document.createElement('option'), { value: s.name })),
+  );
+}
+
+// -- header controls --------------------------------------------------------------------------
+
+$('#group-by').addEventListener('change', (e) => list.setGrouping(e.target.value));
+$('#map-fit').addEventListener('click', () => map.fit());
+$('#token-form').addEventListener('submit', (e) => {
+  e.preventDefault();
+  api.setToken($('#token').value);
+  $('#token').value = '';
+  $('#token-state').textContent = api.token() ? 'token set' : 'no token';
+  mux.reconnect(); // the stream carries the token in its cookie: open it again
+  list.refresh();
+  if (selected()) view.show(selected());
+});
+$('#token-state').textContent = api.token() ? 'token set' : 'no token';
+
+// Views can be folded away (the inspector starts folded on a small screen).
+for (const button of document.querySelectorAll('[data-fold]')) {
+  button.addEventListener('click', () => {
+    const panel = document.getElementById(button.dataset.fold);
+    const folded = panel.classList.toggle('folded');
+    button.setAttribute('aria-expanded', String(!folded));
+  });
+}
+
+// A page kept in the back-forward cache holds no stream; shown again, it follows everything anew.
+window.addEventListener('pagehide', () => mux.suspend());
+window.addEventListener('pageshow', (e) => {
+  if (e.persisted) {
+    mux.reconnect();
+    list.refresh();
+  }
+});
+
+// -- the extension point ------------------------------------------------------------------------
+
+window.PropertyConsole = Object.freeze({
+  /** registerWidget(gui, factory): the widget for every property whose `.gui` is `gui`. */
+  registerWidget(gui, factory) {
+    registerWidget(gui, factory);
+    // Properties already shown get the new widget when their view is built again.
+    if (selected()) view.show(selected());
+  },
+  widgetNames,
+  /** subscribe("SERVICE/PATH", {onValue, onSync, onError}) on the page's one stream. */
+  subscribe: (selector, handlers) => mux.subscribe(selector, handlers),
+  api: Object.freeze({ ...api }),
+  values: Object.freeze({ ...values }),
+  select,
+  selected: () => selectedName,
+});
+
+list.start();
+map.start();
+map.draw();
+view.show(null);
+teleop.selectionChanged();

@@ -1,0 +1,437 @@
+// The map (#map): an SVG of the plane in metres (north = +y), with a grid, every robot as a
+// triangle pointing along its heading with its name, sensors and group centroids, markers
+// (the targets sent from here and every marker-typed property of the services), zoom (wheel),
+// pan (drag) and click-to-go: a click on the plane sends behaviors.moveto to the selected robot
+// or group (groups with the formation and spacing chosen beside the map).
+
+import { describe, setProperty } from './api.js';
+import { clear, svg } from './dom.js';
+import { findMarkers, markerAt, markerLocation, parseVector } from './values.js';
+
+/** Services whose models the map reads for marker properties; a larger system keeps the first. */
+const MAX_DESCRIBED = 64;
+/** Marker properties the map follows at most. */
+const MAX_MARKER_PROPERTIES = 32;
+/** A pointer that moved further than this (px) between down and up dragged the map, not clicked. */
+const CLICK_SLOP_PX = 5;
+/** A target counts as reached within this distance (m); its marker then goes. */
+const ARRIVED_M = 0.05;
+/** A target not reached in this long (a group's centroid need not land on it) is no longer drawn. */
+const TARGET_TTL_MS = 120000;
+const MOVABLE_TYPES = new Set(['mobile_robot', 'group']);
+/** Types that have a location by their standard property set, even before the registry saw one. */
+const LOCATED_TYPES = new Set(['mobile_robot', 'group', 'sensor']);
+
+function colorOf(text) {
+  try {
+    const rgb = parseVector(text);
+    if (rgb.length >= 3) return `rgb(${rgb.slice(0, 3).map((c) => Math.round(Math.min(1, Math.max(0, c)) * 255)).join(' ')})`;
+  } catch {
+    // not a colour vector: the default colour
+  }
+  return null;
+}
+
+export class RobotMap {
+  /**
+   * `svgRoot` is the #map <svg>; `services()` the current list; `selected()` the selected
+   * service; `onSelect(name)` for a click on a robot; `formation()` gives {formation, spacing}.
+   */
+  constructor(svgRoot, { mux, services, selected, onSelect, formation, status, onPose = () => {} }) {
+    Object.assign(this, { root: svgRoot, mux, services, selected, onSelect, formation, status, onPose });
+    this.poses = new Map(); // service -> [x y z roll pitch yaw]
+    this.targets = new Map(); // service -> [x, y]
+    this.markers = new Map(); // "service/path" -> [{location, label, color}]
+    this.stale = new Set(); // services shown where last seen: not up, or their Listen failed
+    this._locationSubs = new Map(); // service -> unsubscribe
+    this._described = new Set();
+    this._markerSubs = new Map();
+    this.view = { cx: 2, cy: 0, scale: 60 }; // metres at the centre; pixels per metre
+    this._drag = null;
+    this._userMoved = false; // the operator zoomed or panned: the map no longer fits by itself
+    this.layers = {
+      grid: svg('g', { class: 'grid' }),
+      markers: svg('g', { class: 'markers' }),
+      targets: svg('g', { class: 'targets' }),
+      others: svg('g', { class: 'others' }), // sensors and group centroids, under the robots
+      robots: svg('g', { class: 'robots' }),
+    };
+    this.world = svg('g', { class: 'world' }, ...Object.values(this.layers));
+    clear(this.root).append(this.world);
+    this._bind();
+    new ResizeObserver(() => this.draw()).observe(this.root);
+  }
+
+  start() {
+    this._fitted = false;
+  }
+
+  // -- data ----------------------------------------------------------------------------------
+
+  located({ service, value, removed }) {
+    let pose = null;
+    if (!removed) {
+      try {
+        pose = parseVector(value);
+      } catch {
+        pose = null;
+      }
+    }
+    if (pose && pose.length >= 2) this.poses.set(service, pose);
+    else this.poses.delete(service);
+    this.stale.delete(service);
+    const target = this.targets.get(service);
+    const arrived = target && pose && Math.hypot(pose[0] - target[0], pose[1] - target[1]) < ARRIVED_M;
+    if (target && (arrived || this.clock() - target.at > TARGET_TTL_MS)) {
+      this.targets.delete(service);
+      this.drawTargets();
+    }
+    this.drawRobot(service);
+    this.onPose(service);
+  }
+
+  /** The list of services changed: drop the gone, read the models of the new for markers. */
+  /**
+   * The list of services changed. The map follows `NAME/location` of every service that is up
+   * (one selector per service, so that one that goes away costs only its own); one that is not
+   * up stays where the registry last saw it, greyed. It drops the gone, and reads the models of
+   * the new for marker properties.
+   */
+  servicesChanged(list) {
+    const names = new Set(list.map((s) => s.name));
+    const located = list.filter((s) => s.state === 'up' && (s.location !== null || LOCATED_TYPES.has(s.type)));
+    // Many services: one wildcard selector instead of one each (the stream's selectors are bounded).
+    const many = located.length > Math.floor(this.mux.maxSelectors / 2);
+    const follow = new Set(many ? ['*'] : located.map((s) => s.name));
+    for (const [name, unsubscribe] of this._locationSubs) {
+      if (!follow.has(name)) {
+        unsubscribe();
+        this._locationSubs.delete(name);
+      }
+    }
+    for (const name of follow) {
+      if (this._locationSubs.has(name)) continue;
+      this._locationSubs.set(
+        name,
+        this.mux.subscribe(`${name}/location`, {
+          onValue: (event) => this.located(event),
+          onSync: () => {
+            if (!this._fitted && this.poses.size) this.fit(); // the first snapshot: everyone in sight
+            this._fitted = true;
+          },
+          onError: () => {
+            this.stale.add(name);
+            this.drawRobot(name);
+          },
+        }),
+      );
+    }
+    for (const name of [...this.poses.keys()]) if (!names.has(name)) this.poses.delete(name);
+    for (const s of list) {
+      if (follow.has(s.name) || (many && s.state === 'up')) continue;
+      this.stale.add(s.name);
+      if (Array.isArray(s.location) && s.location.length >= 2) this.poses.set(s.name, s.location);
+    }
+    for (const [selector, unsubscribe] of this._markerSubs) {
+      if (!names.has(selector.split('/')[0])) {
+        unsubscribe();
+        this._markerSubs.delete(selector);
+        this.markers.delete(selector);
+      }
+    }
+    this.drawAll();
+    this._describeNew(list);
+  }
+
+  async _describeNew(list) {
+    for (const service of list) {
+      if (this._described.has(service.name) || this._described.size >= MAX_DESCRIBED) continue;
+      this._described.add(service.name);
+      let model;
+      try {
+        model = await describe(service.name);
+      } catch {
+        this._described.delete(service.name); // asked again with the next list
+        continue;
+      }
+      for (const prop of model.properties ?? []) {
+        const isMarker = prop.type === 'marker' || prop.gui === 'marker' || prop.gui === 'markers';
+        if (!isMarker || !['read', 'read-write'].includes(prop.access)) continue;
+        if (this._markerSubs.size >= MAX_MARKER_PROPERTIES) return;
+        const selector = `${service.name}/${prop.name}`;
+        this._markerSubs.set(
+          selector,
+          this.mux.subscribe(selector, { onValue: (event) => this.markerChanged(selector, event) }),
+        );
+      }
+    }
+  }
+
+  markerChanged(selector, { value, removed }) {
+    const found = removed ? [] : findMarkers(value, 200);
+    const shown = [];
+    for (const marker of found) {
+      const location = markerLocation(marker);
+      if (!location || location.length < 2) continue;
+      const f = marker.fields;
+      const label = typeof f.name === 'string' ? f.name : typeof f.label === 'string' ? f.label : typeof f.id === 'string' ? f.id : '';
+      shown.push({ location, label, color: typeof f.color === 'string' ? colorOf(f.color) : null });
+    }
+    const first = !this.markers.has(selector);
+    this.markers.set(selector, shown);
+    if (first && shown.length && !this._userMoved) this.fit(); // new things to see, and nobody chose a view
+    else this.drawMarkers();
+  }
+
+  clock() {
+    return Date.now();
+  }
+
+  /** `name` is driven by hand now: its click-to-go target is over. */
+  forgetTarget(name) {
+    if (this.targets.delete(name)) this.drawTargets();
+  }
+
+  typeOf(name) {
+    return this.services().find((s) => s.name === name)?.type ?? '';
+  }
+
+  // -- coordinates ---------------------------------------------------------------------------
+
+  size() {
+    const rect = this.root.getBoundingClientRect();
+    return { width: rect.width || 600, height: rect.height || 400 };
+  }
+
+  /** The world point (m) under a client point (px). */
+  toWorld(clientX, clientY) {
+    const rect = this.root.getBoundingClientRect();
+    const { width, height } = this.size();
+    return [
+      this.view.cx + (clientX - rect.left - width / 2) / this.view.scale,
+      this.view.cy - (clientY - rect.top - height / 2) / this.view.scale,
+    ];
+  }
+
+  /** Zoom and pan so that every robot and marker is in sight. */
+  fit() {
+    const points = [...this.poses.values(), ...[...this.markers.values()].flat().map((m) => m.location)];
+    if (!points.length) return;
+    const xs = points.map((p) => p[0]);
+    const ys = points.map((p) => p[1]);
+    const [x0, x1, y0, y1] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
+    const { width, height } = this.size();
+    this.view.cx = (x0 + x1) / 2;
+    this.view.cy = (y0 + y1) / 2;
+    this.view.scale = Math.min(200, Math.max(5, Math.min(width / (x1 - x0 + 3), height / (y1 - y0 + 3))));
+    this.draw();
+  }
+
+  // -- input ---------------------------------------------------------------------------------
+
+  _bind() {
+    this.root.addEventListener('wheel', (e) => {
+      e.preventDefault();
+      this._userMoved = true;
+      const before = this.toWorld(e.clientX, e.clientY);
+      this.view.scale = Math.min(400, Math.max(2, this.view.scale * (e.deltaY < 0 ? 1.2 : 1 / 1.2)));
+      const after = this.toWorld(e.clientX, e.clientY);
+      this.view.cx += before[0] - after[0];
+      this.view.cy += before[1] - after[1];
+      this.draw();
+    }, { passive: false });
+    this.root.addEventListener('pointerdown', (e) => {
+      if (e.button !== 0) return;
+      this._drag = { x: e.clientX, y: e.clientY, cx: this.view.cx, cy: this.view.cy, moved: false, id: e.pointerId };
+    });
+    this.root.addEventListener('pointermove', (e) => {
+      const d = this._drag;
+      if (!d || d.id !== e.pointerId) return;
+      if (!d.moved && Math.hypot(e.clientX - d.x, e.clientY - d.y) > CLICK_SLOP_PX) {
+        d.moved = true;
+        this._userMoved = true;
+        try {
+          this.root.setPointerCapture(e.pointerId);
+        } catch {
+          // a synthetic pointer: the drag goes on while it stays over the map
+        }
+        this.root.classList.add('panning');
+      }
+      if (d.moved) {
+        this.view.cx = d.cx - (e.clientX - d.x) / this.view.scale;
+        this.view.cy = d.cy + (e.clientY - d.y) / this.view.scale;
+        this.draw();
+      }
+    });
+    const end = (e) => {
+      const d = this._drag;
+      this._drag = null;
+      this.root.classList.remove('panning');
+      if (!d || d.id !== e.pointerId || d.moved || e.type === 'pointercancel') return;
+      const robot = e.target.closest?.('[data-robot], [data-group]');
+      if (robot) this.onSelect(robot.dataset.robot ?? robot.dataset.group);
+      else this.clickToGo(this.toWorld(e.clientX, e.clientY));
+    };
+    this.root.addEventListener('pointerup', end);
+    this.root.addEventListener('pointercancel', end);
+  }
+
+  /** Send the selected robot or group to `point` (world metres). */
+  async clickToGo([x, y]) {
+    const name = this.selected();
+    const type = this.typeOf(name);
+    if (!name || !MOVABLE_TYPES.has(type)) {
+      this.status('Select a robot or a group first: a click on the map sends it there.');
+      return;
+    }
+    const target = Object.assign([Number(x.toFixed(2)), Number(y.toFixed(2))], { at: this.clock() });
+    const parameters = {};
+    if (type === 'group') {
+      const { formation, spacing } = this.formation();
+      parameters.formation = formation;
+      if (spacing) parameters.spacing = spacing;
+    }
+    this.targets.set(name, target);
+    this.drawTargets();
+    this.status(`${name}: moving to (${target.join(' ')})…`);
+    try {
+      const reply = await setProperty(name, 'behaviors.moveto', markerAt(target), parameters);
+      const members = reply?.value ? ` ${reply.value}` : '';
+      this.status(`${name}: behaviors.moveto (${target.join(' ')}) accepted${members}`);
+    } catch (e) {
+      this.targets.delete(name);
+      this.drawTargets();
+      this.status(`${name}: ${e.code}: ${e.message}`, true);
+    }
+  }
+
+  // -- drawing -------------------------------------------------------------------------------
+
+  draw() {
+    const { width, height } = this.size();
+    const { cx, cy, scale } = this.view;
+    this.root.setAttribute('viewBox', `0 0 ${width} ${height}`);
+    // World metres to pixels: x right, y up.
+    this.world.setAttribute(
+      'transform',
+      `translate(${width / 2 - cx * scale} ${height / 2 + cy * scale}) scale(${scale} ${-scale})`,
+    );
+    this.drawGrid(width, height);
+    this.drawAll();
+  }
+
+  drawAll() {
+    this.drawMarkers();
+    this.drawTargets();
+    for (const layer of [this.layers.robots, this.layers.others]) {
+      for (const g of [...layer.children]) if (!this.poses.has(g.dataset.service)) g.remove();
+    }
+    for (const name of this.poses.keys()) this.drawRobot(name);
+  }
+
+  drawGrid(width, height) {
+    const { cx, cy, scale } = this.view;
+    // A step of 1, 2 or 5 times a power of ten that leaves at least 40 px between lines.
+    const raw = 40 / scale;
+    const power = 10 ** Math.floor(Math.log10(raw));
+    const step = [1, 2, 5, 10].map((m) => m * power).find((s) => s >= raw);
+    const [x0, x1] = [cx - width / 2 / scale, cx + width / 2 / scale];
+    const [y0, y1] = [cy - height / 2 / scale, cy + height / 2 / scale];
+    const lines = [];
+    const px = 1 / scale; // one pixel, in metres
+    // The x labels run along the bottom edge and the y labels up the left one: each leaves the
+    // bottom-left corner to the other (a label is at most about 30 px wide and 14 px high).
+    for (let x = Math.ceil(x0 / step) * step; x <= x1; x += step) {
+      lines.push(svg('line', { x1: x, y1: y0, x2: x, y2: y1, class: Math.abs(x) < step / 2 ? 'axis' : '', 'stroke-width': px }));
+      if (x - x0 >= 32 * px) lines.push(this.label(`${Number(x.toFixed(6))}`, x + 3 * px, y0 + 4 * px, 'grid-label'));
+    }
+    for (let y = Math.ceil(y0 / step) * step; y <= y1; y += step) {
+      lines.push(svg('line', { x1: x0, y1: y, x2: x1, y2: y, class: Math.abs(y) < step / 2 ? 'axis' : '', 'stroke-width': px }));
+      if (y - y0 >= 18 * px) lines.push(this.label(`${Number(y.toFixed(6))}`, x0 + 3 * px, y + 3 * px, 'grid-label'));
+    }
+    this.layers.grid.replaceChildren(...lines);
+  }
+
+  /** Text at world (x, y), upright and of a constant size in pixels. */
+  label(text, x, y, cls = 'label') {
+    const s = 1 / this.view.scale;
+    return svg('text', { class: cls, transform: `translate(${x} ${y}) scale(${s} ${-s})` }, text);
+  }
+
+  /** Draw `name` at its pose: its <g> is kept and moved (a script holding it sees it move). */
+  drawRobot(name) {
+    const selector = `[data-service="${CSS.escape(name)}"]`;
+    let g = this.layers.robots.querySelector(selector) ?? this.layers.others.querySelector(selector);
+    const pose = this.poses.get(name);
+    if (!pose) {
+      g?.remove();
+      return;
+    }
+    const type = this.typeOf(name) || 'unknown';
+    if (g && g.dataset.kind !== type) {
+      g.remove(); // its type became known: drawn anew as what it is
+      g = null;
+    }
+    if (!g) {
+      g = this.robotShape(name, type);
+      (type === 'mobile_robot' ? this.layers.robots : this.layers.others).append(g);
+    }
+    const [x, y] = pose;
+    const yaw = pose.length >= 6 ? pose[5] : 0;
+    const s = 1 / this.view.scale; // shapes keep their size in pixels when zooming
+    g.setAttribute('transform', `translate(${x} ${y})`);
+    g.classList.toggle('selected', name === this.selected());
+    g.classList.toggle('stale', this.stale.has(name));
+    g.querySelector('title').textContent = `${name} (${type}) at x ${x.toFixed(2)} y ${y.toFixed(2)}`;
+    g.querySelector('.shape').setAttribute('transform', `scale(${s}) rotate(${(yaw * 180) / Math.PI})`);
+    g.querySelector('text').setAttribute('transform', `translate(${12 * s} ${10 * s}) scale(${s} ${-s})`);
+  }
+
+  robotShape(name, type) {
+    const attrs = { class: `thing ${type}`, dataset: { service: name, kind: type } };
+    let body;
+    if (type === 'mobile_robot') {
+      attrs.dataset.robot = name;
+      body = svg('path', { d: 'M14,0 L-9,8 L-5,0 L-9,-8 Z', class: 'robot-body' });
+    } else if (type === 'group') {
+      attrs.dataset.group = name;
+      body = svg('path', { d: 'M0,10 L10,0 L0,-10 L-10,0 Z', class: 'group-body' });
+    } else {
+      body = svg('circle', { r: 6, class: 'sensor-body' });
+    }
+    return svg('g', attrs, svg('title', {}), svg('g', { class: 'shape' }, body), this.label(name, 0, 0));
+  }
+
+  drawTargets() {
+    const s = 1 / this.view.scale;
+    this.layers.targets.replaceChildren(
+      ...[...this.targets].map(([name, [x, y]]) =>
+        svg(
+          'g',
+          { class: 'target', dataset: { target: name }, transform: `translate(${x} ${y})` },
+          svg('g', { transform: `scale(${s})` }, svg('circle', { r: 8 }), svg('path', { d: 'M-12,0 H12 M0,-12 V12' })),
+          this.label(`→ ${name}`, 10 * s, -16 * s, 'label target-label'),
+        ),
+      ),
+    );
+  }
+
+  drawMarkers() {
+    const s = 1 / this.view.scale;
+    const shapes = [];
+    for (const [selector, markers] of this.markers) {
+      for (const { location, label, color } of markers) {
+        shapes.push(
+          svg(
+            'g',
+            { class: 'marker', dataset: { marker: selector }, transform: `translate(${location[0]} ${location[1]})` },
+            svg('title', {}, `${selector}${label ? `: ${label}` : ''}`),
+            svg('g', { transform: `scale(${s})` }, svg('rect', { x: -5, y: -5, width: 10, height: 10, style: color ? `fill: ${color}` : null })),
+            label ? this.label(label, 8 * s, 8 * s) : null,
+          ),
+        );
+      }
+    }
+    this.layers.markers.replaceChildren(...shapes);
+  }
+}

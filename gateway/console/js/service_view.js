@@ -1,0 +1,278 @@
+// The selected service (#service-view): its properties laid out by their model (`.gui`, type,
+// access, unit, range), grouped by namespace, each following its value through the page's one
+// event stream. A change of the service's `properties` list loads the model again.
+
+import { describe, getProperty, setProperty } from './api.js';
+import { h } from './dom.js';
+import { propertyView } from './widgets.js';
+
+/** Selectors a view follows at least, however full the page's stream is. */
+const MIN_FOLLOWED = 8;
+/** Selectors kept free for what comes after the view (the inspector's Listen, new services on the map). */
+const RESERVED_SELECTORS = 6;
+/** Wildcard Gets one view sends to read what it does not follow. */
+const MAX_READ_PATTERNS = 32;
+const LISTENABLE = new Set(['read', 'read-write', 'unknown']);
+
+function namespaceOf(path) {
+  const dot = path.lastIndexOf('.');
+  return dot < 0 ? '' : path.slice(0, dot);
+}
+
+export class ServiceView {
+  constructor(root, { mux }) {
+    Object.assign(this, { root, mux });
+    this.service = null;
+    this._views = new Map(); // path -> property view
+    this._unsubscribe = [];
+    this._generation = 0;
+    this._reloadTimer = null;
+    this._propertiesText = null;
+  }
+
+  /** Show `service` ({name, type, state, address}), or nothing for null. */
+  async show(service) {
+    this._close();
+    const generation = ++this._generation;
+    this.service = service;
+    if (!service) {
+      this.root.replaceChildren(h('p', { class: 'muted' }, 'Select a service to see its properties.'));
+      return;
+    }
+    if (service.state !== 'up') {
+      // A service that is not up cannot describe itself; its view is built when it comes up.
+      this.root.replaceChildren(
+        this.header(service),
+        h('p', { class: 'muted notice' }, `${service.name} is ${service.state ?? 'unknown'}: its properties show when it is up.`),
+      );
+      return;
+    }
+    this.root.replaceChildren(this.header(service), h('p', { class: 'muted' }, 'Loading the model…'));
+    let model;
+    try {
+      model = await describe(service.name);
+    } catch (e) {
+      if (generation !== this._generation) return;
+      this.root.replaceChildren(this.header(service), h('div', { class: 'error' }, `${e.code}: ${e.message}`));
+      return;
+    }
+    if (generation !== this._generation) return; // another service was selected meanwhile
+    this.render(service, model);
+  }
+
+  header(service) {
+    return h(
+      'header',
+      { class: 'view-head' },
+      h('h2', {}, service.name),
+      h('span', { class: 'badge', dataset: { state: service.state ?? 'unknown' } }, service.state ?? 'unknown'),
+      h('span', { class: 'muted' }, `${service.type ?? ''}${service.address ? ` · ${service.address}` : ''}`),
+    );
+  }
+
+  render(service, model) {
+    const all = (model?.properties ?? []).filter((p) => p.name !== 'properties');
+    // A namespace (actuators, robots.scout1) is a box of its properties and of the namespaces
+    // under it; one the model lists is itself [data-property=NAME], like every property.
+    const listed = new Set(all.filter((p) => p.type === 'namespace').map((p) => p.name));
+    const boxes = new Map([['', { leaves: [], subs: [] }]]);
+    const box = (ns) => {
+      if (!boxes.has(ns)) {
+        boxes.set(ns, { leaves: [], subs: [] });
+        box(namespaceOf(ns)).subs.push(ns);
+      }
+      return boxes.get(ns);
+    };
+    for (const ns of listed) box(ns);
+    for (const prop of all) if (prop.type !== 'namespace') box(namespaceOf(prop.name)).leaves.push(prop);
+
+    // What is shown gets an update function; which of them are followed live is decided after.
+    const targets = new Map(); // path -> {update(event), error(e)}
+    const leafView = (ns, prop) => {
+      const view = propertyView(service.name, prop, {
+        setProperty,
+        getProperty,
+        label: ns ? prop.name.slice(ns.length + 1) : prop.name,
+      });
+      this._views.set(prop.name, view);
+      if (LISTENABLE.has(prop.access)) targets.set(prop.name, leafTarget(view));
+      return view.element;
+    };
+    const byName = new Map(all.map((p) => [p.name, p]));
+    const fieldset = (ns, parent) => {
+      const { leaves, subs } = boxes.get(ns);
+      const attrs = { class: 'namespace', dataset: { namespace: ns } };
+      let value = null;
+      if (listed.has(ns)) {
+        // A namespace has a value of its own too (its children's names, a registry entry's URL).
+        const prop = byName.get(ns);
+        Object.assign(attrs.dataset, { property: ns, type: 'namespace', access: prop.access ?? '' });
+        value = h('output', { class: 'value ns-value' });
+        if (LISTENABLE.has(prop.access)) targets.set(ns, outputTarget(value));
+      }
+      return h(
+        'fieldset',
+        attrs,
+        h('legend', { title: byName.get(ns)?.doc || ns }, parent ? ns.slice(parent.length + 1) : ns, value),
+        leaves.map((prop) => leafView(ns, prop)),
+        subs.sort().map((sub) => fieldset(sub, ns)),
+      );
+    };
+    const top = boxes.get('');
+    const sections = [];
+    if (top.leaves.length) {
+      sections.push(
+        h(
+          'fieldset',
+          { class: 'namespace', dataset: { namespace: '' } },
+          h('legend', {}, 'properties'),
+          top.leaves.map((prop) => leafView('', prop)),
+        ),
+      );
+    }
+    for (const ns of top.subs.sort()) sections.push(fieldset(ns, ''));
+    // The gateway bounds the selectors of one Listen ([limits] max_selectors): the view follows
+    // the shallowest properties live within what the page's stream has left, one exact selector
+    // each (so that a member that goes away costs only its own), and reads the rest once.
+    const budget = Math.max(MIN_FOLLOWED, this.mux.maxSelectors - this.mux.subscriptions.size - RESERVED_SELECTORS);
+    const order = [...targets.keys()].sort((a, b) => a.split('.').length - b.split('.').length);
+    const live = order.slice(0, budget);
+    const rest = order.slice(budget);
+    for (const path of live) this.follow(`${service.name}/${path}`, targets.get(path));
+    let note = null;
+    if (rest.length) {
+      const refresh = () => this.readOnce(service.name, rest, targets);
+      note = h(
+        'p',
+        { class: 'muted notice' },
+        `${rest.length} deeper properties are read once, not followed live (the stream's limit is ${this.mux.maxSelectors} selectors). `,
+        h('button', { type: 'button', dataset: { action: 'refresh' }, onclick: refresh }, 'Read again'),
+      );
+      refresh();
+    }
+    // replaceChildren, unlike h(), writes a null as the text "null": leave the absent ones out.
+    const parts = [
+      this.header(service),
+      model?.doc ? h('p', { class: 'doc' }, model.doc) : null,
+      note,
+      h('div', { class: 'namespaces' }, sections),
+    ];
+    this.root.replaceChildren(...parts.filter((part) => part !== null));
+    this._unsubscribe.push(
+      this.mux.subscribe(`${service.name}/properties`, {
+        onValue: (event) => this.propertiesChanged(event.value),
+      }),
+    );
+  }
+
+  follow(selector, target) {
+    this._unsubscribe.push(
+      this.mux.subscribe(selector, {
+        onValue: (event) => target.update(event),
+        onError: (e) => target.error(e),
+      }),
+    );
+  }
+
+  /** Read `paths` once with a wildcard Get per namespace (a few requests, not one per property). */
+  async readOnce(service, paths, targets) {
+    const generation = this._generation;
+    const patterns = [...new Set(paths.map((p) => (namespaceOf(p) ? `${namespaceOf(p)}.*` : '*')))];
+    for (const pattern of patterns.slice(0, MAX_READ_PATTERNS)) {
+      let answer;
+      try {
+        answer = await getProperty(service, pattern);
+      } catch (e) {
+        for (const path of paths) if (namespaceOf(path) === namespaceOf(`${pattern}`)) targets.get(path)?.error(e);
+        continue;
+      }
+      if (generation !== this._generation) return;
+      for (const { path, value } of answer.values ?? []) {
+        if (paths.includes(path)) targets.get(path)?.update({ service, path, value });
+      }
+    }
+  }
+
+  /**
+   * The service's `properties` list: the first value is the list the model was read with; a
+   * different one later (a tool plugged in) loads the model again.
+   */
+  propertiesChanged(value) {
+    if (this._propertiesText === null) {
+      this._propertiesText = value;
+      return;
+    }
+    if (value === this._propertiesText || this._reloadTimer !== null) return;
+    this._reloadTimer = setTimeout(() => {
+      this._reloadTimer = null;
+      if (this.service) this.show(this.service);
+    }, 300);
+  }
+
+  /** The service's state changed in the list. */
+  updateState(service) {
+    if (!this.service || service?.name !== this.service.name) return;
+    const was = this.service.state;
+    this.service = service;
+    this.root.classList.toggle('service-down', service.state !== 'up');
+    if (was !== 'up' && service.state === 'up') {
+      this.show(service); // back: its model and values anew
+      return;
+    }
+    const badge = this.root.querySelector('.view-head .badge');
+    if (badge) {
+      badge.dataset.state = service.state ?? 'unknown';
+      badge.textContent = service.state ?? 'unknown';
+    }
+  }
+
+  _close() {
+    for (const unsubscribe of this._unsubscribe) unsubscribe();
+    this._unsubscribe = [];
+    for (const view of this._views.values()) view.dispose();
+    this._views.clear();
+    if (this._reloadTimer !== null) clearTimeout(this._reloadTimer);
+    this._reloadTimer = null;
+    this._propertiesText = null;
+  }
+}
+
+/** What a property view does with an event of its path, or with a failure to follow it. */
+function leafTarget(view) {
+  return {
+    update(event) {
+      if (view.element.classList.contains('unfollowed')) {
+        view.element.classList.remove('unfollowed'); // followed again after a failure
+        view.element.querySelector('.error').hidden = true;
+      }
+      if (event.removed) view.removed();
+      else view.update(event.value, event);
+    },
+    error(e) {
+      view.element.classList.add('unfollowed');
+      showListenError(view, e);
+    },
+  };
+}
+
+/** The same for a namespace's own value, shown in its legend. */
+function outputTarget(output) {
+  return {
+    update(event) {
+      output.textContent = event.removed ? '' : event.value;
+      output.title = output.textContent;
+      output.classList.remove('unfollowed');
+    },
+    error() {
+      output.classList.add('unfollowed');
+    },
+  };
+}
+
+function showListenError(view, e) {
+  const error = view.element.querySelector('.error');
+  if (error) {
+    error.textContent = `${e.code}: ${e.message}`;
+    error.hidden = false;
+  }
+}

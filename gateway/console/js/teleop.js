@@ -1,0 +1,243 @@
+// Teleoperation (#teleop): an on-screen joystick and the keyboard (WASD / arrows) drive the
+// selected robot or group by Setting `velocity` (vx vy vz wx wy wz, world frame). A robot stops
+// by itself `velocity_timeout` (0.5 s) after the last Set, so the command is sent again every
+// SEND_PERIOD_MS while held; releasing sends zeros at once, and so does losing the page (blur,
+// hidden, pagehide: a keepalive request that outlives the page).
+
+import { setProperty } from './api.js';
+import { formatVector } from './values.js';
+
+/** Resend period while held: five renewals per default velocity_timeout of 0.5 s. */
+export const SEND_PERIOD_MS = 100;
+const ZERO = [0, 0, 0, 0, 0, 0];
+const KEYS = {
+  w: 'forward', arrowup: 'forward',
+  s: 'back', arrowdown: 'back',
+  a: 'left', arrowleft: 'left',
+  d: 'right', arrowright: 'right',
+};
+
+/**
+ * The velocity 6-vector for a stick deflection. `forward` and `turn` are -1..1 (forward and
+ * counter-clockwise positive). In "heading" mode the robot drives along its heading `yaw` and
+ * turns; in "map" mode the stick is the map: up is +y, right is +x, no turning.
+ */
+export function velocityFor({ forward, turn, mode, yaw = 0, speed, turnRate }) {
+  const round = (x) => Number(x.toFixed(4)) + 0; // + 0 turns -0 into 0
+  if (mode === 'map') return [round(-turn * speed), round(forward * speed), 0, 0, 0, 0];
+  return [round(Math.cos(yaw) * forward * speed), round(Math.sin(yaw) * forward * speed), 0, 0, 0, round(turn * turnRate)];
+}
+
+export class Teleop {
+  /**
+   * `els`: {root, joystick, knob, status, speed, turn, mode, stop, target}; `selected()` the
+   * selected service ({name, type}); `poseOf(name)` its last location vector; `onDrive(name)`
+   * hears when driving a service begins (a velocity command ends its moveto).
+   */
+  constructor(els, { selected, poseOf, onDrive = () => {}, setVelocity = sendVelocity, page = globalThis }) {
+    Object.assign(this, { els, selected, poseOf, onDrive, setVelocity, page });
+    this.keys = new Set();
+    this.stick = null; // {forward, turn} while the joystick is held
+    this.timer = null;
+    this.inFlight = false;
+    this.driving = null; // the service the last non-zero command went to
+    this.lastSent = null;
+    this._bindJoystick();
+    this._bindKeys();
+    this._bindPage();
+    els.stop.addEventListener('click', () => this.release(true));
+    // Until the operator picks a stick mode, each selection gets its kind's default: a mode that
+    // differs from the one a selection last set is the operator's, and stays.
+    this.modeSet = els.mode.value;
+    this.modeChosen = false;
+  }
+
+  target() {
+    const s = this.selected();
+    return s && (s.type === 'mobile_robot' || s.type === 'group') ? s : null;
+  }
+
+  /** The selection changed: stop what was driven, show what will be. */
+  selectionChanged() {
+    this.keys.clear();
+    this.stick = null;
+    this.release();
+    const t = this.target();
+    this.els.target.textContent = t ? `${t.name} (${t.type === 'group' ? 'group' : 'robot'})` : 'no robot selected';
+    this.els.root.classList.toggle('disabled', !t);
+    // A group has no heading; a robot drives along its own unless the operator chose the map.
+    if (this.els.mode.value !== this.modeSet) this.modeChosen = true;
+    if (t?.type === 'group' && this.els.mode.value === 'heading') this.els.mode.value = 'map';
+    else if (t?.type === 'mobile_robot' && !this.modeChosen) this.els.mode.value = 'heading';
+    this.modeSet = this.els.mode.value;
+  }
+
+  // -- input ---------------------------------------------------------------------------------
+
+  _bindJoystick() {
+    const { joystick, knob } = this.els;
+    let pointer = null; // the pointer holding the stick
+    const update = (e) => {
+      const rect = joystick.getBoundingClientRect();
+      const radius = rect.width / 2;
+      let dx = (e.clientX - rect.left - radius) / radius;
+      let dy = (e.clientY - rect.top - radius) / radius;
+      const length = Math.hypot(dx, dy);
+      if (length > 1) {
+        dx /= length;
+        dy /= length;
+      }
+      knob.style.transform = `translate(${dx * radius * 0.6}px, ${dy * radius * 0.6}px)`;
+      this.stick = { forward: -dy, turn: -dx };
+      this.hold();
+    };
+    joystick.addEventListener('pointerdown', (e) => {
+      if (!this.target() || pointer !== null) return;
+      pointer = e.pointerId;
+      try {
+        joystick.setPointerCapture(e.pointerId); // keep the stick while the pointer leaves it
+      } catch {
+        // a pointer the browser does not track (a synthetic event): held all the same
+      }
+      joystick.classList.add('active');
+      update(e);
+    });
+    joystick.addEventListener('pointermove', (e) => {
+      if (e.pointerId === pointer) update(e);
+    });
+    const end = (e) => {
+      if (e.pointerId !== pointer) return;
+      pointer = null;
+      joystick.classList.remove('active');
+      knob.style.transform = '';
+      this.stick = null;
+      if (this.keys.size) this.hold();
+      else this.release();
+    };
+    joystick.addEventListener('pointerup', end);
+    joystick.addEventListener('pointercancel', end);
+    joystick.addEventListener('lostpointercapture', end);
+  }
+
+  _bindKeys() {
+    this.page.addEventListener('keydown', (e) => {
+      const key = KEYS[e.key.toLowerCase()];
+      if (!key || e.ctrlKey || e.metaKey || e.altKey || isTyping(e.target) || !this.target()) return;
+      e.preventDefault(); // arrows would scroll the page
+      if (this.keys.has(key)) return; // the key's auto-repeat: the timer already resends
+      this.keys.add(key);
+      this.hold();
+    });
+    this.page.addEventListener('keyup', (e) => {
+      const key = KEYS[e.key.toLowerCase()];
+      if (!key || !this.keys.delete(key)) return;
+      if (this.keys.size || this.stick) this.hold();
+      else this.release();
+    });
+  }
+
+  _bindPage() {
+    const lost = () => {
+      this.keys.clear();
+      this.stick = null;
+      this.els.knob.style.transform = '';
+      // Only a robot this page drives is stopped: losing focus must not end another's moveto.
+      this.release(false, true);
+    };
+    this.page.addEventListener('blur', lost);
+    this.page.addEventListener('pagehide', lost);
+    this.page.document?.addEventListener('visibilitychange', () => {
+      if (this.page.document.visibilityState === 'hidden') lost();
+    });
+  }
+
+  // -- commands ------------------------------------------------------------------------------
+
+  /** The command held now, or null when nothing is held. */
+  command() {
+    let forward = 0;
+    let turn = 0;
+    if (this.stick) ({ forward, turn } = this.stick);
+    if (this.keys.has('forward')) forward += 1;
+    if (this.keys.has('back')) forward -= 1;
+    if (this.keys.has('left')) turn += 1;
+    if (this.keys.has('right')) turn -= 1;
+    if (!this.stick && !this.keys.size) return null;
+    const t = this.target();
+    if (!t) return null;
+    const pose = this.poseOf(t.name);
+    return velocityFor({
+      forward: Math.max(-1, Math.min(1, forward)),
+      turn: Math.max(-1, Math.min(1, turn)),
+      mode: this.els.mode.value,
+      yaw: pose && pose.length >= 6 ? pose[5] : 0,
+      speed: Number(this.els.speed.value) || 0,
+      turnRate: Number(this.els.turn.value) || 0,
+    });
+  }
+
+  /** Something is held: send now, and every SEND_PERIOD_MS until released. */
+  hold() {
+    this.tick();
+    if (this.timer === null) this.timer = setInterval(() => this.tick(), SEND_PERIOD_MS);
+  }
+
+  tick() {
+    const velocity = this.command();
+    const t = this.target();
+    if (!velocity || !t) {
+      this.release();
+      return;
+    }
+    // One request at a time: a slow gateway gets the latest command next tick, never a queue.
+    if (this.inFlight) return;
+    if (this.driving !== t.name) this.onDrive(t.name);
+    this.driving = t.name;
+    this.send(t.name, velocity);
+  }
+
+  async send(name, velocity, keepalive = false) {
+    const text = formatVector(velocity);
+    const stopping = velocity.every((v) => v === 0);
+    if (!stopping) this.inFlight = true;
+    try {
+      await this.setVelocity(name, text, keepalive);
+      this.lastSent = text;
+      this.showStatus(`${stopping ? 'stopped' : 'driving'} ${name}: velocity ${text}`, false);
+    } catch (e) {
+      this.showStatus(`${name}: velocity ${text}: ${e.code}: ${e.message}`, true);
+    } finally {
+      if (!stopping) {
+        this.inFlight = false;
+        // A command that was still on its way when the operator let go may land after the
+        // stop: stop once more, so the robot is not left driving until its timeout.
+        if (this.timer === null && this.driving === null) this.send(name, ZERO, keepalive);
+      }
+    }
+  }
+
+  /** Nothing is held: stop the resends and send zeros at once (also when `force`d). */
+  release(force = false, keepalive = false) {
+    if (this.timer !== null) {
+      clearInterval(this.timer);
+      this.timer = null;
+    }
+    const name = this.driving ?? (force ? this.target()?.name : null);
+    this.driving = null;
+    if (name) this.send(name, ZERO, keepalive);
+  }
+
+  showStatus(text, isError) {
+    this.els.status.textContent = text;
+    this.els.status.classList.toggle('error-text', isError);
+  }
+}
+
+/** Set `velocity` of `name` (keepalive: the request outlives the page). */
+function sendVelocity(name, text, keepalive) {
+  return setProperty(name, 'velocity', text, {}, { keepalive });
+}
+
+function isTyping(el) {
+  return Boolean(el?.isContentEditable) || ['INPUT', 'TEXTAREA', 'SELECT'].includes(el?.tagName);
+}

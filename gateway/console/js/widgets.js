@@ -1,0 +1,171 @@
+// Widgets keyed by `.gui` and by data type, and the frame every property widget sits in.
+//
+// A widget factory is `factory(prop, ctx)` -> `{element, update(value, event), dispose()}`:
+//   prop   the property's model (name, type, access, unit, minimum, maximum, choices, length,
+//          gui, doc, parameters), as GET /api/v1/services/{service}/model gives it;
+//   ctx    {service, path, writable, set(text, parameters) -> Promise<reply|null>,
+//           get(parameters) -> Promise<value|null>, showValue(text), h, svg}
+//   update is called with the value text on every change (and once with the current value).
+// The frame (`[data-property=PATH]`) shows the name, unit and access, the current value text in
+// `.value` and the error of a failed Set in `.error` ("CODE: message"); ctx.set fills both.
+//
+// The extension point is window.PropertyConsole.registerWidget(gui, factory): a factory
+// registered there wins over the built-in one for that `.gui` word (docs/console.md).
+
+import { h, svg } from './dom.js';
+
+const GUI_NAME = /^[A-Za-z0-9_.-]{1,64}$/;
+const builtins = new Map(); // gui word -> factory
+const builtinTypes = new Map(); // data type -> factory
+const extensions = new Map(); // gui word -> factory, from registerWidget
+
+function checked(gui, factory) {
+  if (typeof gui !== 'string' || !GUI_NAME.test(gui)) {
+    throw new TypeError(`a widget's gui name is 1 to 64 letters, digits, "_", "." or "-", got ${JSON.stringify(gui)}`);
+  }
+  if (typeof factory !== 'function') throw new TypeError(`the widget factory for "${gui}" must be a function`);
+}
+
+/** The extension point: use `factory` for every property whose `.gui` is `gui`. */
+export function registerWidget(gui, factory) {
+  checked(gui, factory);
+  extensions.set(gui, factory);
+}
+
+/** Built-in widgets register here (an extension of the same gui word still wins). */
+export function registerBuiltin(gui, factory) {
+  checked(gui, factory);
+  builtins.set(gui, factory);
+}
+
+/** The built-in widget for a data type whose `.gui` names no widget. */
+export function registerTypeWidget(type, factory) {
+  checked(type, factory);
+  builtinTypes.set(type, factory);
+}
+
+/** The gui words that have a widget: built in, then registered. */
+export function widgetNames() {
+  return [...new Set([...builtins.keys(), ...extensions.keys()])].sort();
+}
+
+/** The factory for a property: a registered `.gui`, else the built-in by access, gui and type. */
+export function widgetFor(prop) {
+  if (prop.gui && extensions.has(prop.gui)) return extensions.get(prop.gui);
+  if (prop.access === 'action') return builtins.get('button');
+  if (prop.access === 'query') return builtins.get('query');
+  return builtins.get(prop.gui) ?? builtinTypes.get(prop.type) ?? builtins.get('text');
+}
+
+const ACCESS_SHORT = {
+  read: 'read',
+  write: 'write',
+  'read-write': 'read/write',
+  action: 'action',
+  query: 'query',
+  unknown: 'unknown',
+};
+
+/**
+ * The frame of one property of `service` and its widget. `setProperty(service, path, text,
+ * parameters)` and `getProperty(...)` are the API calls (js/api.js). Returns
+ * {element, update(value, event), dispose()}.
+ */
+export function propertyView(service, prop, { setProperty, getProperty, label = prop.name }) {
+  const writable = ['write', 'read-write', 'action', 'unknown'].includes(prop.access);
+  const value = h('output', { class: 'value', 'aria-live': 'off' });
+  const error = h('div', { class: 'error', role: 'alert', hidden: true });
+  const unit = prop.unit ? h('span', { class: 'unit' }, prop.unit) : null;
+  const frame = h(
+    'div',
+    {
+      class: `property access-${prop.access}`,
+      dataset: { property: prop.name, type: prop.type ?? '', access: prop.access ?? '', gui: prop.gui ?? '' },
+    },
+    h(
+      'div',
+      { class: 'prop-head' },
+      h('span', { class: 'prop-name', title: prop.doc || prop.name }, label),
+      unit,
+      h('span', { class: 'prop-access' }, ACCESS_SHORT[prop.access] ?? prop.access ?? ''),
+    ),
+  );
+
+  const showValue = (text) => {
+    value.textContent = text;
+    value.title = text;
+  };
+  const showError = (e) => {
+    error.textContent = `${e?.code ?? 'UNKNOWN'}: ${e?.message ?? e}`;
+    error.hidden = false;
+    frame.classList.add('has-error');
+  };
+  const clearError = () => {
+    error.textContent = '';
+    error.hidden = true;
+    frame.classList.remove('has-error');
+  };
+
+  const ctx = {
+    service,
+    path: prop.name,
+    writable,
+    h,
+    svg,
+    showValue,
+    showError,
+    clearError,
+    async set(text, parameters = {}) {
+      clearError();
+      frame.classList.add('busy');
+      try {
+        const reply = await setProperty(service, prop.name, text, parameters);
+        return reply?.value ?? '';
+      } catch (e) {
+        showError(e);
+        return null;
+      } finally {
+        frame.classList.remove('busy');
+      }
+    },
+    async get(parameters = {}) {
+      clearError();
+      try {
+        const reply = await getProperty(service, prop.name, parameters);
+        return reply?.value ?? '';
+      } catch (e) {
+        showError(e);
+        return null;
+      }
+    },
+  };
+
+  let widget;
+  try {
+    widget = widgetFor(prop)(prop, ctx);
+  } catch (e) {
+    // A broken extension widget costs its own property, not the page.
+    console.error(`the widget for ${prop.name} (gui "${prop.gui}") failed:`, e);
+    widget = { element: h('span', { class: 'muted' }, `widget "${prop.gui}" failed: ${e.message}`) };
+  }
+  frame.append(h('div', { class: 'prop-body' }, value, widget.element ?? ''), error);
+  return {
+    element: frame,
+    update(text, event = {}) {
+      showValue(text);
+      frame.classList.toggle('gap', Boolean(event.gap));
+      try {
+        widget.update?.(text, event);
+      } catch (e) {
+        console.error(`the widget for ${prop.name} could not show ${JSON.stringify(text)}:`, e);
+      }
+    },
+    removed() {
+      showValue('');
+      frame.classList.add('removed');
+    },
+    dispose() {
+      widget.dispose?.();
+    },
+  };
+}

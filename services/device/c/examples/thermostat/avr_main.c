@@ -1,0 +1,64 @@
+/* The example device on an ATmega328P at 16 MHz: USART0 at 115200 baud, a 32-byte receive ring
+ * filled by the RX interrupt (stated as rxbuf=32 in the greeting), Timer1 ticking every 0.5 s.
+ * Sending is polled: while a reply goes out the ring keeps receiving, which is why the gateway
+ * must never have more than 32 unanswered bytes on the wire. */
+#include <avr/interrupt.h>
+#include <avr/io.h>
+
+#include "thermostat.h"
+
+#define BAUD 115200UL
+#define RING 32 /* a power of two */
+
+static volatile uint8_t ring[RING];
+static volatile uint8_t head, count;
+/* When the ring overflowed: how many bytes received before the lost one are still to be fed;
+ * the line being read once they are is the damaged one (0: nothing lost). */
+static volatile uint8_t lost_after;
+
+ISR(USART_RX_vect) {
+    uint8_t byte = UDR0;
+    if (count < RING) {
+        ring[(uint8_t)(head + count) & (RING - 1)] = byte;
+        count++;
+    } else if (!lost_after) {
+        lost_after = RING;
+    }
+}
+
+static void put_byte(void *context, uint8_t byte) {
+    (void)context;
+    while (!(UCSR0A & _BV(UDRE0))) {
+    }
+    UDR0 = byte;
+}
+
+static ps_device dev;
+
+int main(void) {
+    UCSR0A = _BV(U2X0);
+    UBRR0 = (uint16_t)(F_CPU / (8 * BAUD) - 1);
+    UCSR0B = _BV(RXEN0) | _BV(TXEN0) | _BV(RXCIE0);
+    UCSR0C = _BV(UCSZ01) | _BV(UCSZ00); /* 8N1 */
+    TCCR1B = _BV(WGM12) | _BV(CS12) | _BV(CS10); /* CTC, clock / 1024 */
+    OCR1A = (uint16_t)(F_CPU / 1024 / 2 - 1);     /* 0.5 s */
+    sei();
+    thermostat_start(&dev, put_byte, 0); /* after reset: the greeting (docs/line-protocol.md §4) */
+    for (;;) {
+        if (count) {
+            cli();
+            uint8_t byte = ring[head];
+            head = (uint8_t)(head + 1) & (RING - 1);
+            count--;
+            uint8_t report = lost_after && --lost_after == 0;
+            sei();
+            ps_feed(&dev, &byte, 1);
+            if (report) ps_lost(&dev);
+        }
+        if (TIFR1 & _BV(OCF1A)) {
+            TIFR1 = _BV(OCF1A);
+            thermostat_tick(&dev);
+        }
+        ps_poll(&dev);
+    }
+}

@@ -1,0 +1,70 @@
+/* The example device's property table and behaviour (see thermostat.h). */
+#include <string.h>
+
+#include "thermostat.h"
+
+static ps_fixed temp, setpoint, location[6];
+static int8_t step;
+static char label[16];
+static ps_config config;
+
+static const char name_temp[] PS_FLASH = "temp";
+static const char name_setpoint[] PS_FLASH = "setpoint";
+static const char name_location[] PS_FLASH = "location";
+static const char name_label[] PS_FLASH = "label";
+static const char name_probe[] PS_FLASH = "probe";
+static const char degc[] PS_FLASH = "degC";
+static const char doc_temp[] PS_FLASH = "board temperature";
+static const char doc_setpoint[] PS_FLASH = "temperature to hold";
+static const char doc_probe[] PS_FLASH = "in or out: plug or unplug the probe";
+static const char gui_gauge[] PS_FLASH = "gauge";
+static const char gui_pose[] PS_FLASH = "pose";
+
+static const ps_meta temp_meta PS_FLASH = {degc, doc_temp, gui_gauge, -400, 1250, 1};
+static const ps_meta setpoint_meta PS_FLASH = {degc, doc_setpoint, 0, 50, 350, 1};
+static const ps_meta location_meta PS_FLASH = {0, 0, gui_pose, 0, 0, 0};
+static const ps_meta probe_meta PS_FLASH = {0, doc_probe, 0, 0, 0, 0};
+
+static uint8_t probe(ps_device *dev, uint8_t index, const char *argument) {
+    (void)index;
+    if (strcmp(argument, "out") == 0) ps_gone(dev, THERMOSTAT_TEMP);
+    else if (strcmp(argument, "in") == 0) ps_back(dev, THERMOSTAT_TEMP);
+    else return PS_INVALID_ARGUMENT;
+    return PS_OK;
+}
+
+static const ps_property table[] PS_FLASH = {
+    PS_NUMBER_PROPERTY(name_temp, temp, 1, PS_READ, &temp_meta),
+    PS_NUMBER_PROPERTY(name_setpoint, setpoint, 1, PS_READ_WRITE, &setpoint_meta),
+    PS_VECTOR_PROPERTY(name_location, location, 2, PS_READ_WRITE, &location_meta),
+    PS_TEXT_PROPERTY(name_label, label, PS_READ_WRITE, 0),
+    PS_ACTION_PROPERTY(name_probe, probe, &probe_meta),
+};
+
+static const char device_name[] PS_FLASH = "thermo1";
+static const char device_type[] PS_FLASH = "sensor";
+
+void thermostat_start(ps_device *dev, ps_put_fn put, void *context) {
+    memset(dev, 0, sizeof *dev);
+    temp = 215;
+    setpoint = 200;
+    memset(location, 0, sizeof location);
+    step = 1;
+    strcpy(label, "bench");
+    config.name = device_name;
+    config.type = device_type;
+    config.properties = table;
+    config.count = sizeof table / sizeof table[0];
+    config.put = put;
+    config.context = context;
+    config.on_set = 0;
+    ps_begin(dev, &config);
+}
+
+void thermostat_tick(ps_device *dev) {
+    /* a sawtooth of 0.1 degC steps within 1 degC of the setpoint */
+    if (temp >= setpoint + 10) step = -1;
+    else if (temp <= setpoint - 10) step = 1;
+    temp += step;
+    ps_changed(dev, THERMOSTAT_TEMP);
+}

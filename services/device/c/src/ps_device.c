@@ -1,0 +1,612 @@
+/*
+ * The protocol core of ps_device: reads request lines, answers them through the byte sink.
+ * Section numbers (§) are those of docs/line-protocol.md, version 1.1.
+ */
+#include <string.h>
+
+#include "ps_device.h"
+
+#define BIT(i) ((ps_mask)1 << (i))
+#define TAG_MAX 8
+#define PATH_MAX_LENGTH 256
+
+/* What a path names besides a property's whole value. */
+enum { WHOLE, LIST, MODEL, GUI, PARAMETERS, ELEMENT };
+
+typedef struct request {
+    const char *tag; /* in the line buffer, not NUL-terminated; NULL when untagged */
+    uint8_t tag_length;
+} request;
+
+/* ---- output: every byte goes through put(), which keeps the line's CRC ------------------------ */
+
+static uint8_t crc_step(uint8_t crc, uint8_t byte) {
+    crc ^= byte;
+    for (uint8_t bit = 0; bit < 8; bit++) crc = (crc & 0x80) ? (uint8_t)((crc << 1) ^ 0x07) : (uint8_t)(crc << 1);
+    return crc;
+}
+
+static void put(ps_device *dev, uint8_t byte) {
+    dev->crc = crc_step(dev->crc, byte);
+    dev->config->put(dev->config->context, byte);
+}
+
+static void put_ram(ps_device *dev, const char *text, size_t length) {
+    while (length--) put(dev, (uint8_t)*text++);
+}
+
+static void put_flash(ps_device *dev, const char *text) {
+    for (uint8_t c; (c = ps_flash_byte(text)) != 0; text++) put(dev, c);
+}
+
+static void put_number(ps_device *dev, ps_fixed value, uint8_t decimals) {
+    char text[13];
+    put_ram(dev, text, ps_format_fixed(value, decimals, text));
+}
+
+/* §2: a value escapes backslash, LF and CR. */
+static void put_escaped(ps_device *dev, const char *text) {
+    for (; *text; text++) {
+        char c = *text;
+        if (c == '\\' || c == '\n' || c == '\r') {
+            put(dev, '\\');
+            c = c == '\n' ? 'n' : c == '\r' ? 'r' : '\\';
+        }
+        put(dev, (uint8_t)c);
+    }
+}
+
+static void line_begin(ps_device *dev, const request *req) {
+    if (dev->flags & (PS_FLAG_CHECKSUM | PS_FLAG_MIRROR)) dev->config->put(dev->config->context, '$');
+    dev->crc = 0;
+    if (req && req->tag) {
+        put(dev, '#');
+        put_ram(dev, req->tag, req->tag_length);
+        put(dev, ' ');
+    }
+}
+
+static void line_end(ps_device *dev) {
+    if (dev->flags & (PS_FLAG_CHECKSUM | PS_FLAG_MIRROR)) {
+        static const char hex[] PS_FLASH = "0123456789ABCDEF";
+        uint8_t crc = dev->crc;
+        dev->config->put(dev->config->context, '*');
+        dev->config->put(dev->config->context, ps_flash_byte(&hex[crc >> 4]));
+        dev->config->put(dev->config->context, ps_flash_byte(&hex[crc & 15]));
+    }
+    dev->config->put(dev->config->context, '\n');
+}
+
+static void reply_error(ps_device *dev, const request *req, uint8_t code, const char *message) {
+    line_begin(dev, req);
+    put_flash(dev, PS_F("ERR "));
+    put_number(dev, code, 0);
+    put(dev, ' ');
+    put_flash(dev, message);
+    line_end(dev);
+}
+
+/* ---- the property table ------------------------------------------------------------------------ */
+
+static void load(const ps_device *dev, uint8_t index, ps_property *out) {
+    ps_flash_copy(out, &dev->config->properties[index], sizeof *out);
+}
+
+static uint8_t flash_length(const char *text) {
+    uint8_t n = 0;
+    while (ps_flash_byte(text + n)) n++;
+    return n;
+}
+
+static uint8_t lower(uint8_t c) { return (c >= 'A' && c <= 'Z') ? (uint8_t)(c + 32) : c; }
+
+/* Does text[0..length) equal the flash string word, ignoring case? */
+static uint8_t same_word(const char *text, size_t length, const char *word) {
+    size_t i = 0;
+    for (; i < length; i++) {
+        uint8_t c = ps_flash_byte(word + i);
+        if (!c || lower((uint8_t)text[i]) != lower(c)) return 0;
+    }
+    return ps_flash_byte(word + i) == 0;
+}
+
+static uint8_t same_prefix(const char *text, const char *flash, uint8_t length) {
+    for (uint8_t i = 0; i < length; i++)
+        if ((uint8_t)text[i] != ps_flash_byte(flash + i)) return 0;
+    return 1;
+}
+
+static const char element_names[] PS_FLASH = "x\0y\0z\0roll\0pitch\0yaw\0";
+
+/* Element `suffix` of a vector of `size` elements: an index or x y z roll pitch yaw; 255 if none. */
+static uint8_t element_of(const char *suffix, size_t length, uint8_t size) {
+    uint16_t index = 0;
+    size_t i = 0;
+    for (; i < length && i < 3 && suffix[i] >= '0' && suffix[i] <= '9'; i++) index = (uint16_t)(index * 10 + (uint16_t)(suffix[i] - '0'));
+    if (i && i == length) return index < size ? (uint8_t)index : 255;
+    const char *name = element_names;
+    for (uint8_t i = 0; i < 6; i++) {
+        uint8_t n = flash_length(name);
+        if (n == length && same_prefix(suffix, name, n)) return i < size ? i : 255;
+        name += n + 1;
+    }
+    return 255;
+}
+
+/* Resolve path: which property (*index) and which part of it (the return value); 255 = none. */
+static uint8_t resolve(const ps_device *dev, const char *path, size_t length, uint8_t *index, uint8_t *element) {
+    if (length == 10 && same_prefix(path, PS_F("properties"), 10)) return LIST;
+    if (length == 16 && same_prefix(path, PS_F("properties.model"), 16)) return MODEL;
+    for (uint8_t i = 0; i < dev->config->count; i++) {
+        ps_property p;
+        load(dev, i, &p);
+        uint8_t n = flash_length(p.name);
+        if (length < n || !same_prefix(path, p.name, n) || (dev->absent & BIT(i))) continue;
+        *index = i;
+        if (length == n) return WHOLE;
+        if (path[n] != '.') continue;
+        const char *suffix = path + n + 1;
+        size_t rest = length - n - 1;
+        if (rest == 3 && same_prefix(suffix, PS_F("gui"), 3)) return GUI;
+        if (rest == 10 && same_prefix(suffix, PS_F("parameters"), 10)) return PARAMETERS;
+        if (p.type == PS_VECTOR && (*element = element_of(suffix, rest, p.size)) != 255) return ELEMENT;
+    }
+    return 255;
+}
+
+static void put_value(ps_device *dev, const ps_property *p) {
+    if (p->type == PS_TEXT) {
+        put_escaped(dev, (const char *)p->data);
+    } else if (p->type == PS_NUMBER) {
+        put_number(dev, *(const ps_fixed *)p->data, p->decimals);
+    } else if (p->type == PS_VECTOR) {
+        put(dev, '(');
+        for (uint8_t i = 0; i < p->size; i++) {
+            if (i) put(dev, ' ');
+            put_number(dev, ((const ps_fixed *)p->data)[i], p->decimals);
+        }
+        put(dev, ')');
+    }
+}
+
+static void put_names(ps_device *dev) {
+    put(dev, '(');
+    uint8_t first = 1;
+    for (uint8_t i = 0; i < dev->config->count; i++) {
+        if (dev->absent & BIT(i)) continue;
+        ps_property p;
+        load(dev, i, &p);
+        if (!first) put(dev, ' ');
+        first = 0;
+        put_flash(dev, p.name);
+    }
+    put(dev, ')');
+}
+
+/* The n-th of the NUL-separated strings in packed. */
+static const char *nth(const char *packed, uint8_t n) {
+    for (; n; n--) packed += flash_length(packed) + 1;
+    return packed;
+}
+
+static void put_words(ps_device *dev, const char *words) {
+    put(dev, '(');
+    if (words) put_flash(dev, words);
+    put(dev, ')');
+}
+
+/* §3 "A device that describes itself": (name type access (unit) minimum maximum (doc)) each. */
+static void put_model(ps_device *dev) {
+    static const char types[] PS_FLASH = "number\0vector\0text\0none\0integer";
+    static const char access[] PS_FLASH = "read\0write\0read-write\0action";
+    put(dev, '(');
+    uint8_t first = 1;
+    for (uint8_t i = 0; i < dev->config->count; i++) {
+        if (dev->absent & BIT(i)) continue;
+        ps_property p;
+        ps_meta meta;
+        load(dev, i, &p);
+        if (p.meta) ps_flash_copy(&meta, p.meta, sizeof meta);
+        else memset(&meta, 0, sizeof meta);
+        if (!first) put(dev, ' ');
+        first = 0;
+        put(dev, '(');
+        put_flash(dev, p.name);
+        put(dev, ' ');
+        put_flash(dev, nth(types, (p.type == PS_NUMBER && p.decimals == 0) ? 4 : p.type));
+        put(dev, ' ');
+        put_flash(dev, nth(access, p.access == PS_INVOKE ? 3 : (uint8_t)(p.access - 1)));
+        put(dev, ' ');
+        put_words(dev, meta.unit);
+        for (uint8_t bound = 0; bound < 2; bound++) {
+            put(dev, ' ');
+            if (meta.has_range) put_number(dev, bound ? meta.maximum : meta.minimum, p.decimals);
+            else put(dev, '-');
+        }
+        put(dev, ' ');
+        put_words(dev, meta.doc);
+        put(dev, ')');
+    }
+    put(dev, ')');
+}
+
+/* ---- the greeting (§4) ------------------------------------------------------------------------- */
+
+static void put_field(ps_device *dev, const char *name, uint16_t value) {
+    put_flash(dev, name);
+    put_number(dev, value, 0);
+}
+
+static void greet(ps_device *dev, const request *req) {
+    line_begin(dev, req);
+    put_flash(dev, PS_F("HELLO 1 name="));
+    put_flash(dev, dev->config->name);
+    put_flash(dev, PS_F(" type="));
+    put_flash(dev, dev->config->type);
+    put_field(dev, PS_F(" push=1 maxline="), PS_MAXLINE);
+    put_field(dev, PS_F(" inflight="), PS_INFLIGHT);
+#if PS_RXBUF > 0
+    put_field(dev, PS_F(" rxbuf="), PS_RXBUF);
+#endif
+    line_end(dev);
+}
+
+/* ---- requests (§3) ----------------------------------------------------------------------------- */
+
+enum { W_GET, W_SET, W_LISTEN, W_UNLISTEN, W_PING, W_HELLO, W_CANCEL, W_PONG, W_REPLY, W_UNKNOWN };
+
+static uint8_t word_of(const char *text, size_t length) {
+    static const char words[] PS_FLASH = "GET\0SET\0LISTEN\0UNLISTEN\0PING\0HELLO\0CANCEL\0PONG\0OK\0ERR\0EVENT\0GONE\0";
+    const char *w = words;
+    for (uint8_t i = 0; ps_flash_byte(w); i++) {
+        if (same_word(text, length, w)) return i < W_REPLY ? i : W_REPLY;
+        w += flash_length(w) + 1;
+    }
+    return W_UNKNOWN;
+}
+
+static uint8_t is_name_char(char c) {
+    return (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') || c == '_' || c == '-';
+}
+
+static uint8_t in_range(const ps_property *p, ps_fixed value) {
+    if (!p->meta) return 1;
+    ps_meta meta;
+    ps_flash_copy(&meta, p->meta, sizeof meta);
+    return !meta.has_range || (value >= meta.minimum && value <= meta.maximum);
+}
+
+static uint8_t parse_vector(const char *text, size_t length, const ps_property *p, ps_fixed *store) {
+    size_t i = 0;
+    uint8_t count = 0;
+    while (i < length && text[i] == ' ') i++;
+    if (i == length || text[i++] != '(') return PS_INVALID_ARGUMENT;
+    for (;;) {
+        while (i < length && text[i] == ' ') i++;
+        if (i < length && text[i] == ')') break;
+        size_t start = i;
+        while (i < length && text[i] != ' ' && text[i] != ')') i++;
+        ps_fixed value;
+        if (count == p->size || ps_parse_fixed(text + start, i - start, p->decimals, &value) != PS_OK)
+            return PS_INVALID_ARGUMENT;
+        if (!in_range(p, value)) return PS_OUT_OF_RANGE;
+        if (store) store[count] = value;
+        count++;
+    }
+    for (i++; i < length; i++)
+        if (text[i] != ' ') return PS_INVALID_ARGUMENT;
+    return count == p->size ? PS_OK : PS_INVALID_ARGUMENT;
+}
+
+/* SET of a whole number, vector or text, or of a vector element: store it or say why not. */
+static uint8_t store(const ps_property *p, uint8_t part, uint8_t element, char *value, size_t length) {
+    if (p->type == PS_TEXT) {
+        if (length >= p->size) return PS_RESOURCE_EXHAUSTED;
+        memcpy(p->data, value, length + 1);
+        return PS_OK;
+    }
+    if (p->type == PS_VECTOR && part == WHOLE) {
+        /* check everything first: a refused SET leaves the vector as it was */
+        uint8_t code = parse_vector(value, length, p, 0);
+        return code != PS_OK ? code : parse_vector(value, length, p, (ps_fixed *)p->data);
+    }
+    ps_fixed number;
+    if (ps_parse_fixed(value, length, p->decimals, &number) != PS_OK) return PS_INVALID_ARGUMENT;
+    if (!in_range(p, number)) return PS_OUT_OF_RANGE;
+    ((ps_fixed *)p->data)[part == ELEMENT ? element : 0] = number;
+    return PS_OK;
+}
+
+static void answer(ps_device *dev, const request *req, uint8_t word, char *rest, size_t length) {
+    size_t i = 0;
+    char *path;
+    size_t path_length;
+    for (;;) { /* NAME=VALUE fields come before the path (§2.1) */
+        while (i < length && rest[i] == ' ') i++;
+        path = rest + i;
+        while (i < length && rest[i] != ' ') i++;
+        path_length = (size_t)(rest + i - path);
+        if (!memchr(path, '=', path_length)) break;
+        if (word != W_UNLISTEN) { /* §3.4: UNLISTEN accepts and ignores them */
+            reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("this device takes no parameters"));
+            return;
+        }
+    }
+    for (size_t k = 0; k < path_length; k++) {
+        if (!is_name_char(path[k]) && !(path[k] == '.' && k && k + 1 < path_length && path[k + 1] != '.')) {
+            reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("bad path"));
+            return;
+        }
+    }
+    if (!path_length || path_length > PATH_MAX_LENGTH) {
+        reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("bad path"));
+        return;
+    }
+    char *value = rest + length; /* SET: the rest of the line after one space (§2) */
+    size_t value_length = 0;
+    if (word == W_SET && i < length) {
+        value = rest + i + 1;
+        value_length = length - i - 1;
+    } else {
+        while (i < length && rest[i] == ' ') i++; /* trailing spaces are not a field */
+        if (i < length) {
+            reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("unexpected text after the path"));
+            return;
+        }
+    }
+    uint8_t index = 0, element = 0;
+    uint8_t part = resolve(dev, path, path_length, &index, &element);
+    if (word == W_UNLISTEN) {
+        if (part == LIST) dev->flags &= (uint8_t)~(PS_FLAG_LIST | PS_FLAG_LIST_DUE);
+        else if (part == WHOLE) {
+            dev->listening &= ~BIT(index);
+            dev->pending &= ~BIT(index);
+        }
+        line_begin(dev, req);
+        put_flash(dev, PS_F("OK"));
+        line_end(dev);
+        return;
+    }
+    if (part == 255) {
+        reply_error(dev, req, PS_NOT_FOUND, PS_F("no such property"));
+        return;
+    }
+    ps_property p;
+    if (part == LIST || part == MODEL) memset(&p, 0, sizeof p);
+    else load(dev, index, &p);
+    if (word == W_SET) {
+        if (ps_unescape(value, &value_length) != PS_OK) {
+            reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("bad escape"));
+            return;
+        }
+        if (part == WHOLE && p.type == PS_ACTION) {
+            uint8_t code = p.action(dev, index, value);
+            if (code != PS_OK) {
+                reply_error(dev, req, code, PS_F("the action failed"));
+                return;
+            }
+        } else {
+            if ((part != WHOLE && part != ELEMENT) || !(p.access & PS_WRITE)) {
+                reply_error(dev, req, PS_FAILED_PRECONDITION, PS_F("read-only"));
+                return;
+            }
+            uint8_t code = store(&p, part, element, value, value_length);
+            if (code != PS_OK) {
+                reply_error(dev, req, code,
+                            code == PS_RESOURCE_EXHAUSTED ? PS_F("text too long")
+                            : code == PS_OUT_OF_RANGE     ? PS_F("out of range")
+                                                          : PS_F("bad value"));
+                return;
+            }
+            dev->pending |= dev->listening & BIT(index);
+            if (dev->config->on_set) dev->config->on_set(dev, index);
+        }
+        line_begin(dev, req);
+        put_flash(dev, PS_F("OK"));
+        if (p.type != PS_ACTION && (p.access & PS_READ)) {
+            put(dev, ' ');
+            if (part == ELEMENT) put_number(dev, ((const ps_fixed *)p.data)[element], p.decimals);
+            else put_value(dev, &p);
+        }
+        line_end(dev);
+        return;
+    }
+    /* GET and LISTEN */
+    if (word == W_LISTEN && part != WHOLE && part != LIST) {
+        reply_error(dev, req, PS_UNIMPLEMENTED, PS_F("listen to a whole property"));
+        return;
+    }
+    if ((part == WHOLE || part == ELEMENT) && (p.type == PS_ACTION || !(p.access & PS_READ))) {
+        reply_error(dev, req, PS_FAILED_PRECONDITION,
+                    p.type == PS_ACTION ? PS_F("an action: SET it, reads never act") : PS_F("write-only"));
+        return;
+    }
+    if (word == W_LISTEN) {
+        if (part == LIST) dev->flags |= PS_FLAG_LIST;
+        else dev->listening |= BIT(index);
+    }
+    line_begin(dev, req);
+    put_flash(dev, PS_F("OK "));
+    if (part == LIST) put_names(dev);
+    else if (part == MODEL) put_model(dev);
+    else if (part == PARAMETERS) put_flash(dev, PS_F("()"));
+    else if (part == GUI) {
+        if (p.meta) {
+            ps_meta meta;
+            ps_flash_copy(&meta, p.meta, sizeof meta);
+            if (meta.gui) put_flash(dev, meta.gui);
+        }
+    } else if (part == ELEMENT) put_number(dev, ((const ps_fixed *)p.data)[element], p.decimals);
+    else put_value(dev, &p);
+    line_end(dev);
+}
+
+static void flush_events(ps_device *dev) {
+    ps_mask due = dev->pending;
+    dev->pending = 0;
+    for (uint8_t i = 0; due && i < dev->config->count; i++) {
+        if (!(due & BIT(i))) continue;
+        due &= ~BIT(i);
+        ps_property p;
+        load(dev, i, &p);
+        line_begin(dev, 0);
+        if (dev->absent & BIT(i)) {
+            put_flash(dev, PS_F("GONE "));
+            put_flash(dev, p.name);
+            dev->listening &= ~BIT(i); /* §3: the subscription ends */
+        } else {
+            put_flash(dev, PS_F("EVENT "));
+            put_flash(dev, p.name);
+            put(dev, ' ');
+            put_value(dev, &p);
+        }
+        line_end(dev);
+    }
+    if ((dev->flags & (PS_FLAG_LIST | PS_FLAG_LIST_DUE)) == (PS_FLAG_LIST | PS_FLAG_LIST_DUE)) {
+        line_begin(dev, 0);
+        put_flash(dev, PS_F("EVENT properties "));
+        put_names(dev);
+        line_end(dev);
+    }
+    dev->flags &= (uint8_t)~PS_FLAG_LIST_DUE;
+}
+
+static uint8_t hex_digit(char c) {
+    if (c >= '0' && c <= '9') return (uint8_t)(c - '0');
+    c = (char)lower((uint8_t)c);
+    return (c >= 'a' && c <= 'f') ? (uint8_t)(c - 'a' + 10) : 255;
+}
+
+static void answer_line(ps_device *dev) {
+    char *text = dev->line;
+    size_t length = dev->length;
+    uint8_t flags = dev->flags;
+    request req = {0, 0};
+    size_t i = 0;
+    dev->flags &= (uint8_t)~(PS_FLAG_OVERFLOW | PS_FLAG_LOST);
+    dev->length = 0;
+    if (length && text[length - 1] == '\r') length--;
+    while (i < length && text[i] == ' ') i++;
+    if (i == length && !(flags & (PS_FLAG_OVERFLOW | PS_FLAG_LOST))) return; /* §1: blank: no reply */
+    if (text[i] == '$') dev->flags |= PS_FLAG_MIRROR; /* §6: the reply to a '$' line is checked */
+    if (flags & PS_FLAG_LOST) { /* the tag may be what was lost: answer untagged */
+        reply_error(dev, 0, PS_DATA_LOSS, PS_F("bytes lost: the receive buffer was full"));
+        return;
+    }
+    if (!(flags & PS_FLAG_OVERFLOW) && text[i] == '$') {
+        /* §2.1: "*HH" are the last three bytes; the CRC covers what lies between '$' and '*' */
+        uint8_t high = length - i >= 4 ? hex_digit(text[length - 2]) : 255;
+        uint8_t low = length - i >= 4 ? hex_digit(text[length - 1]) : 255;
+        if (high == 255 || low == 255 || text[length - 3] != '*' ||
+            ps_crc8((const uint8_t *)text + i + 1, length - i - 4) != (uint8_t)(high << 4 | low)) {
+            reply_error(dev, 0, PS_DATA_LOSS, PS_F("checksum mismatch")); /* §6: untagged */
+            return;
+        }
+        dev->flags |= PS_FLAG_CHECKSUM; /* checksum mode: only a line that checks out turns it on */
+        i++;
+        length -= 3;
+    }
+    text[length] = 0;
+    if (text[i] == '#') { /* an over-long '$' line still starts with '$': its tag is not trusted */
+        size_t start = ++i;
+        while (i < length && is_name_char(text[i])) i++;
+        if (i == start || i - start > TAG_MAX || i == length || text[i] != ' ') {
+            reply_error(dev, 0, PS_INVALID_ARGUMENT, PS_F("bad tag")); /* §2.1: untagged */
+            return;
+        }
+        req.tag = text + start;
+        req.tag_length = (uint8_t)(i - start);
+        while (i < length && text[i] == ' ') i++;
+    }
+    if (flags & PS_FLAG_OVERFLOW) {
+        reply_error(dev, &req, PS_RESOURCE_EXHAUSTED, PS_F("line too long"));
+        return;
+    }
+    if (memchr(text + i, '\r', length - i)) {
+        reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("raw CR in the line; write \\r"));
+        return;
+    }
+    size_t start = i;
+    while (i < length && text[i] != ' ') i++;
+    if (i == start) {
+        reply_error(dev, 0, PS_INVALID_ARGUMENT, PS_F("bad tag"));
+        return;
+    }
+    uint8_t word = word_of(text + start, i - start);
+    char *rest = text + i;
+    size_t rest_length = length - i;
+    switch (word) {
+    case W_PING:
+        line_begin(dev, &req);
+        put_flash(dev, PS_F("PONG"));
+        put_ram(dev, rest, rest_length); /* the data as it came, its space included */
+        line_end(dev);
+        break;
+    case W_HELLO:
+        while (rest_length && *rest == ' ') rest++, rest_length--;
+        if (!rest_length) {
+            /* §6: a plain HELLO starts afresh without checksums; $HELLO*35 keeps them */
+            if (!(dev->flags & PS_FLAG_MIRROR)) dev->flags &= (uint8_t)~PS_FLAG_CHECKSUM;
+            greet(dev, &req);
+        } else if (*rest < '0' || *rest > '9') { /* a greeting (a version follows) is never answered */
+            reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("unexpected text after HELLO"));
+        }
+        break;
+    case W_PONG: /* the answer to a PING of ours: nothing to do */
+        break;
+    case W_CANCEL: /* every SET is answered before the next line is read: nothing is left to stop */
+        break;
+    case W_REPLY:
+        reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("a reply; send a request"));
+        break;
+    case W_UNKNOWN:
+        reply_error(dev, &req, PS_UNIMPLEMENTED, PS_F("unknown word"));
+        break;
+    default:
+        answer(dev, &req, word, rest, rest_length);
+    }
+}
+
+/* ---- entry points ------------------------------------------------------------------------------ */
+
+void ps_begin(ps_device *dev, const ps_config *config) {
+    dev->config = config;
+    dev->listening = dev->pending = 0;
+    dev->length = 0;
+    dev->flags = 0;
+    greet(dev, 0);
+}
+
+void ps_feed(ps_device *dev, const uint8_t *bytes, size_t count) {
+    while (count--) {
+        uint8_t c = *bytes++;
+        if (c == '\n') {
+            answer_line(dev);
+            dev->flags &= (uint8_t)~PS_FLAG_MIRROR;
+            flush_events(dev); /* §3.4: an EVENT a SET caused goes after the SET's OK */
+        } else if (dev->length < PS_MAXLINE - 1) {
+            dev->line[dev->length++] = (char)c; /* a line is at most PS_MAXLINE bytes, LF included */
+        } else {
+            dev->flags |= PS_FLAG_OVERFLOW; /* §1: drop bytes up to the LF, then ERR 8 */
+        }
+    }
+}
+
+void ps_lost(ps_device *dev) { dev->flags |= PS_FLAG_LOST; }
+
+void ps_changed(ps_device *dev, uint8_t index) { dev->pending |= dev->listening & BIT(index); }
+
+void ps_poll(ps_device *dev) { flush_events(dev); }
+
+void ps_gone(ps_device *dev, uint8_t index) {
+    if (dev->absent & BIT(index)) return;
+    dev->absent |= BIT(index);
+    dev->pending |= dev->listening & BIT(index); /* flush_events sends GONE */
+    dev->flags |= PS_FLAG_LIST_DUE;
+}
+
+void ps_back(ps_device *dev, uint8_t index) {
+    if (!(dev->absent & BIT(index))) return;
+    dev->absent &= ~BIT(index);
+    dev->flags |= PS_FLAG_LIST_DUE;
+}

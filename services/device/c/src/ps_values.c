@@ -1,0 +1,100 @@
+/* Value pieces of ps_device: CRC-8 (docs/line-protocol.md §5), fixed-point numbers, escapes (§2). */
+#include <string.h>
+
+#include "ps_device.h"
+
+uint8_t ps_crc8(const uint8_t *bytes, size_t count) {
+    uint8_t crc = 0;
+    while (count--) {
+        crc ^= *bytes++;
+        for (uint8_t bit = 0; bit < 8; bit++)
+            crc = (crc & 0x80) ? (uint8_t)((crc << 1) ^ 0x07) : (uint8_t)(crc << 1);
+    }
+    return crc;
+}
+
+#define FIXED_LIMIT 2147483647UL
+
+uint8_t ps_parse_fixed(const char *text, size_t length, uint8_t decimals, ps_fixed *out) {
+    size_t i = 0;
+    uint8_t negative = 0, seen_digit = 0, point = 0, fraction = 0;
+    uint32_t value = 0;
+    if (i < length && (text[i] == '-' || text[i] == '+')) negative = text[i++] == '-';
+    for (; i < length; i++) {
+        char c = text[i];
+        if (c == '.' && !point) {
+            point = 1;
+            continue;
+        }
+        if (c < '0' || c > '9') return PS_INVALID_ARGUMENT;
+        seen_digit = 1;
+        if (point) {
+            /* Digits past the device's precision must be zeros: "21.50" is 21.5, "21.25" is refused
+             * with one decimal rather than silently rounded. */
+            if (fraction == decimals) {
+                if (c != '0') return PS_INVALID_ARGUMENT;
+                continue;
+            }
+            fraction++;
+        }
+        if (value > (FIXED_LIMIT - (uint32_t)(c - '0')) / 10) return PS_INVALID_ARGUMENT;
+        value = value * 10 + (uint32_t)(c - '0');
+    }
+    if (!seen_digit) return PS_INVALID_ARGUMENT;
+    for (; fraction < decimals; fraction++) {
+        if (value > FIXED_LIMIT / 10) return PS_INVALID_ARGUMENT;
+        value *= 10;
+    }
+    *out = negative ? -(ps_fixed)value : (ps_fixed)value;
+    return PS_OK;
+}
+
+uint8_t ps_format_fixed(ps_fixed value, uint8_t decimals, char *out) {
+    char digits[11]; /* least significant first; 2^31 has 10 digits, one more for "0.x" */
+    uint8_t n = 0, length = 0, skip = 0;
+    uint32_t u = value < 0 ? (uint32_t)(-(value + 1)) + 1 : (uint32_t)value;
+    do {
+        digits[n++] = (char)('0' + u % 10);
+        u /= 10;
+    } while ((u || n <= decimals) && n < sizeof digits);
+    while (skip < decimals && digits[skip] == '0') skip++; /* no trailing zeros: "21.5", "3" */
+    if (value < 0) out[length++] = '-';
+    for (uint8_t i = n; i-- > skip;) {
+        out[length++] = digits[i];
+        if (i == decimals && skip < decimals) out[length++] = '.';
+    }
+    out[length] = 0;
+    return length;
+}
+
+uint8_t ps_unescape(char *text, size_t *length) {
+    size_t from = 0, to = 0, n = *length;
+    while (from < n) {
+        char c = text[from++];
+        if (c == '\\') {
+            if (from == n) return PS_INVALID_ARGUMENT;
+            c = text[from++];
+            if (c == 'n') c = '\n';
+            else if (c == 'r') c = '\r';
+            else if (c == 's') c = ' ';
+            else if (c != '\\') return PS_INVALID_ARGUMENT;
+        }
+        text[to++] = c;
+    }
+    text[to] = 0;
+    *length = to;
+    return PS_OK;
+}
+
+#ifdef PS_WITH_FLOAT
+uint8_t ps_format_double(double value, uint8_t decimals, char *out) {
+    double scaled = value;
+    for (uint8_t i = 0; i < decimals; i++) scaled *= 10;
+    scaled += scaled < 0 ? -0.5 : 0.5;
+    if (scaled > 2147483647.0 || scaled < -2147483647.0) {
+        memcpy(out, "nan", 4); /* out of the fixed-point range: not a number this device sends */
+        return 3;
+    }
+    return ps_format_fixed((ps_fixed)scaled, decimals, out);
+}
+#endif

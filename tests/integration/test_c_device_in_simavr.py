@@ -1,0 +1,156 @@
+"""The example device's ATmega328P firmware, run in simavr with USART0 on a host pty, driven by a real
+gateway's serial proxy: Get, Set, Listen, a reset, and a 32-byte receive ring that loses nothing
+because the gateway keeps to the device's flow control (inflight=1 rxbuf=32)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import select
+import time
+import tty
+from collections.abc import Iterator
+from pathlib import Path
+
+import grpc
+import pytest
+from support.c_device import CProgram, build
+from support.gateway_process import StartGateway
+from support.psctl import psctl
+from support.serial_tap import WireTap
+
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+
+WAIT = 20.0
+RXBUF = 32
+ATMEGA328P_SRAM = 2048
+RAM_BUDGET = 1024
+# A keep-alive PING every second: under inflight=1 it queues behind requests like any other.
+OPTIONS = "{ timeout = 5.0, backoff_initial = 0.05, backoff_max = 0.5, keepalive = 1.0 }"
+
+
+@pytest.fixture(scope="module")
+def firmware(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(the simavr harness, the firmware ELF)."""
+    into = tmp_path_factory.mktemp("avr-build")
+    build("avr", into)
+    build("sim", into)
+    return into / "sim" / "simavr_uart", into / "avr" / "thermostat.elf"
+
+
+@pytest.fixture
+def mcu(firmware: tuple[Path, Path]) -> Iterator[CProgram]:
+    harness, elf = firmware
+    with CProgram([str(harness), str(elf)]) as program:
+        yield program
+
+
+def read_for(fd: int, seconds: float) -> str:
+    """Everything the device sends within ``seconds``."""
+    out = b""
+    deadline = time.monotonic() + seconds
+    while (left := deadline - time.monotonic()) > 0:
+        if select.select([fd], [], [], left)[0]:
+            out += os.read(fd, 4096)
+    return out.decode()
+
+
+def test_the_ring_overflows_without_flow_control_and_says_so(mcu: CProgram) -> None:
+    """The control experiment: requests pipelined past 32 bytes while the device is still sending a
+    long reply overflow its ring; the device answers the damaged line ERR 15 instead of merging it."""
+    fd = os.open(mcu.where, os.O_RDWR | os.O_NOCTTY)
+    try:
+        tty.setraw(fd)
+        assert "HELLO 1 name=thermo1" in (os.write(fd, b"HELLO\n"), read_for(fd, 1.0))[1]
+        burst = b"GET properties.model\n" + b"".join(b"#%d GET setpoint\n" % n for n in range(1, 6))
+        os.write(fd, burst)
+        answer = read_for(fd, 1.5)
+        assert "#1 OK 20" in answer and "#5 OK 20" not in answer, answer
+        # The LF of the damaged line was among the bytes lost: the next LF ends it, and the device
+        # answers it ERR 15 (untagged: the tag may be what was lost), never a merged request.
+        os.write(fd, b"\n")
+        answer += read_for(fd, 1.0)
+        assert "ERR 15 bytes lost" in answer and "#5 OK" not in answer, answer
+        os.write(fd, b"#9 GET setpoint\n")
+        assert "#9 OK 20" in read_for(fd, 1.0), "the next line is read afresh"
+    finally:
+        os.close(fd)
+
+
+def run_psctl(address: str, transcript: list[str], *args: str) -> str:
+    result = psctl(address, *args, timeout=WAIT)
+    transcript += [f"$ psctl {' '.join(args)}", *result.stdout.rstrip("\n").split("\n")]
+    assert result.returncode == 0, f"psctl {args}: {result.stdout}{result.stderr}"
+    return result.stdout
+
+
+async def test_the_firmware_in_simavr_through_the_gateway(
+    gateway_process: StartGateway, mcu: CProgram, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with WireTap(mcu.where) as tap:
+        gw = gateway_process(
+            f'[[services]]\nname = "thermo"\nurl = "serial://{tap.path}?baudrate=115200"\n'
+            f"options = {OPTIONS}\n"
+        )
+        shown: list[str] = []
+        run = lambda *args: asyncio.to_thread(run_psctl, gw.address, shown, *args)  # noqa: E731
+        assert "temp" in await run("get", "thermo", "properties")
+        # Five paths in one Get: the gateway would send them all at once; the device takes one.
+        five = await run("get", "thermo", "temp", "setpoint", "location", "label", "temp.gui")
+        assert "setpoint = 20\n" in five and "label = bench" in five and "temp.gui = gauge" in five, five
+        assert "23.5" in await run("set", "thermo", "setpoint", "23.5")
+        assert "shelf 2" in await run("set", "thermo", "label", "shelf 2")
+        events = await run("listen", "thermo", "temp", "--count", "3")
+        assert len(re.findall(r"temp", events)) >= 3, events
+        async with grpc.aio.insecure_channel(gw.address) as channel:
+            stub = pb_grpc.PropertyServiceStub(channel)
+            for _ in range(3):  # three-property Listens, each at once
+                stream = stub.Listen(
+                    pb.ListenRequest(
+                        service="thermo",
+                        property="temp",
+                        more=[pb.PropertyRef(property="setpoint"), pb.PropertyRef(property="label")],
+                    )
+                )
+                seen: dict[str, str] = {}
+                async with asyncio.timeout(WAIT):
+                    while len(seen) < 3:
+                        msg = await stream.read()
+                        assert msg is not grpc.aio.EOF
+                        seen.update({e.property: e.value for e in msg.events})
+                assert seen["setpoint"] == "23.5" and seen["label"] == "shelf 2"
+                stream.cancel()
+            # A reset mid-session (SIGUSR1 to the harness: avr_reset): the firmware starts afresh
+            # and greets; the gateway LISTENs again and marks the next event as a gap.
+            stream = stub.Listen(pb.ListenRequest(service="thermo", property="temp"))
+            async with asyncio.timeout(WAIT):
+                assert (await stream.read()).events
+                mcu.reset()
+                while True:
+                    msg = await stream.read()
+                    assert msg is not grpc.aio.EOF
+                    if any(e.gap for e in msg.events):
+                        break
+                assert (await stream.read()).events, "events flow after the reset"
+            stream.cancel()
+            reply = await stub.Get(pb.GetRequest(service="thermo", property="setpoint"), timeout=WAIT)
+            assert reply.value == "20", "the reset set every value back"
+        transcript = tap.transcript()
+        # The 32-byte ring never overflowed: no line was damaged, and the gateway never had more
+        # request bytes on the wire than the device said it can hold.
+        assert "ERR 15" not in transcript, transcript
+        assert "inflight=1 rxbuf=32" in transcript
+        assert re.search(r"^< #\w+ PONG", transcript, re.M), "the device answered the gateway's keep-alive"
+        assert 0 < tap.most_unanswered_bytes() <= RXBUF, transcript
+    mcu.stop()
+    untouched = re.search(r"untouched SRAM: (\d+) bytes", mcu.output)
+    assert untouched, mcu.output
+    used = ATMEGA328P_SRAM - int(untouched.group(1))
+    assert used <= RAM_BUDGET
+    with capsys.disabled():
+        print("\n--- psctl against the gateway, the firmware in simavr ---")
+        print("\n".join(shown))
+        print(f"--- the serial line (> gateway, < device), {len(tap.record())} lines; RAM used: {used} B")
+        print("\n".join(transcript.split("\n")[:40]))
