@@ -174,3 +174,29 @@ def test_a_request_is_invoked_like_the_licence_actions_not_an_administration() -
     assert registry_operation("request", "(survey)") is Operation.INVOKE
     assert registry_operation("release", "") is Operation.INVOKE
     assert registry_operation("period", "1") is Operation.ADMIN
+
+
+async def test_the_locations_a_request_needs_are_followed_from_its_first_ask() -> None:
+    router = Router()
+    robots = {
+        "a_far": SimRobot(start=(9.0, 0.0), tick_hz=0.1),
+        "z_near": SimRobot(start=(1.0, 0.0), tick_hz=0.1),
+    }
+    backends = []
+    for name, obj in robots.items():
+        backend = LocalService(obj)
+        await backend.start()
+        router.add(name, backend)
+        backends.append(backend)
+    registry = Registry(directory=router, period=0)
+    service = RegistryService(registry)
+    await service.start()
+    try:
+        # Nobody asked where they are yet: the request does, and waits for the answers.
+        assert providers(
+            await service.set("request", "(mobile_robot)", {"consumer": "A", "location": "(0 0)"})
+        ) == ["z_near"]
+    finally:
+        await service.aclose()
+        for backend in backends:
+            await backend.aclose()
