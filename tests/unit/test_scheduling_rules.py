@@ -238,3 +238,21 @@ def test_a_waiting_request_rejected_by_its_providers_waits_again_without_them() 
     s.abort(plans[0])
     assert s.requeue(plans[0], {"C"}, 11.0) is None  # past its deadline: not queued again
     assert len(s.queue) == 0
+
+
+def test_ready_providers_are_used_before_dormant_ones_are_woken_even_when_farther() -> None:
+    s = Scheduler()
+    robots = [robot("far", 9), robot("D", 1, DORMANT), robot("E", 2, DORMANT)]
+    plan = s.submit(ask(count=2), robots, 0.0)
+    assert isinstance(plan, Plan) and set(plan.providers) == {"far", "D"} and plan.wake == ("D",)
+    # A composition takes as few dormant providers as a smallest cover allows.
+    s2 = Scheduler()
+    parts = [
+        Provider("cam", frozenset({"video"}), READY, np.array([9.0, 0])),
+        Provider("dcam", frozenset({"video", "mobile"}), DORMANT, np.array([0.0, 0])),
+        Provider("cart", frozenset({"mobile"}), DORMANT, np.array([0.0, 0])),
+    ]
+    plan = s2.submit(ask(caps=frozenset({"video", "mobile"})), parts, 0.0)
+    assert isinstance(plan, Plan) and plan.providers == ("dcam",)  # one provider beats two
+    plan = s2.submit(ask("F", caps=frozenset({"video"})), parts, 0.0)
+    assert isinstance(plan, Plan) and plan.providers == ("cam",)

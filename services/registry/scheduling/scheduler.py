@@ -53,6 +53,9 @@ __all__ = [
     "Scheduler",
 ]
 
+#: Added to a dormant provider's score (scores are 0 to 1): a smallest cover takes as few dormant
+#: providers as it can, and a team takes every free ready one before waking any.
+DORMANT_PENALTY = 2.0
 #: Seconds a licence lasts at most (the seed's ``Tout``) unless the config says otherwise.
 DEFAULT_TOUT = 600.0
 #: Seconds a request may wait for a busy provider (the seed's ``Tr``) unless the config says otherwise.
@@ -188,7 +191,7 @@ class Scheduler:
         dormant = [p for p in free if p.state is ProviderState.DORMANT]
         # Step 5: ready ones first; the dormant are woken only when the ready cannot serve.
         for pool in (ready, ready + dormant):
-            chosen, costs = self._choose(request, pool)
+            chosen, costs = self._choose(request, pool, {d.name for d in dormant})
             if chosen is not None:
                 wake = tuple(p for p in chosen if p in {d.name for d in dormant})
                 plan = Plan(id, request, tuple(chosen), wake, costs)
@@ -232,7 +235,11 @@ class Scheduler:
                 why += f", not counting those excluded ({' '.join(sorted(request.exclude))})"
             raise NotFound(why)
 
-    def _choose(self, request: Request, pool: list[Provider]) -> tuple[list[str] | None, dict[str, float]]:
+    def _choose(
+        self, request: Request, pool: list[Provider], dormant: set[str] | None = None
+    ) -> tuple[list[str] | None, dict[str, float]]:
+        """The providers of ``pool`` for ``request`` and their costs; None when the pool cannot serve.
+        ``dormant`` ones score :data:`DORMANT_PENALTY` more: a ready one is used before any is woken."""
         if not pool:
             return None, {}
         costs = {
@@ -242,6 +249,9 @@ class Scheduler:
         qos = self.qos
         means = {name: r.mean for name in costs if (r := qos.get(name)) is not None}
         scores = rank_scores(costs, means, request.weight, request.cost_scale)
+        for name in dormant or ():
+            if name in scores:
+                scores[name] += DORMANT_PENALTY
         if request.count > 1:
             whole = sorted(
                 (p.name for p in pool if request.capabilities <= p.capabilities), key=lambda n: (scores[n], n)
