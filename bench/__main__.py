@@ -26,6 +26,7 @@ from bench.line import run_line
 from bench.listen import run_listen
 from bench.memory import run_memory, run_session_memory
 from bench.register import run_register
+from bench.scheduler import run_scheduler
 from bench.servers import ServerProcess
 from bench.session import run_session
 from bench.sse import run_sse
@@ -37,7 +38,18 @@ from bench.unary import run_unary
 
 #: Parts (a)-(d) compare the gateway with the bare server; (e)-(h) are the line protocol and registry parts.
 SERVER_PARTS = ("unary", "session", "listen", "batched", "memory")
-PARTS = (*SERVER_PARTS, "line", "group", "find", "register", "tls", "storage", "sse", "statemachine")
+PARTS = (
+    *SERVER_PARTS,
+    "line",
+    "group",
+    "find",
+    "register",
+    "tls",
+    "storage",
+    "sse",
+    "statemachine",
+    "scheduler",
+)
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
     "gateway": ["bench.gateway_server", "--listen", "127.0.0.1:0"],
@@ -61,6 +73,8 @@ PROFILES: dict[str, dict[str, Any]] = {
         "register_sizes": (100, 1_000),
         "storage_calls": 1_000,
         "transitions": 20_000,
+        "scheduler_sizes": (100, 10_000),
+        "scheduler_rounds": 1_000,
     },
     "quick": {
         "calls": 2_000,
@@ -78,6 +92,8 @@ PROFILES: dict[str, dict[str, Any]] = {
         "register_sizes": (100,),
         "storage_calls": 200,
         "transitions": 2_000,
+        "scheduler_sizes": (100, 10_000),
+        "scheduler_rounds": 100,
     },
 }
 
@@ -206,6 +222,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     sizes.add_argument(
         "--transitions", type=_positive, help=f"(l) chart transitions, each with a Set {both('transitions')}"
+    )
+    sizes.add_argument(
+        "--scheduler-sizes",
+        type=_sizes,
+        help=f"(m) registry entries the scheduler picks from {listed('scheduler_sizes')}",
+    )
+    sizes.add_argument(
+        "--scheduler-rounds",
+        type=_positive,
+        help=f"(m) requests (and finds) per size {both('scheduler_rounds')}",
     )
     sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
     sizes.add_argument(
@@ -394,6 +420,12 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
         results.setdefault("in-process", {})["statemachine"] = await _timed(
             f"statemachine, {args.transitions:,} transitions each with a Set, and as many bare Sets",
             lambda: run_statemachine(args.transitions, args.time_limit),
+        )
+    if "scheduler" in args.parts:
+        results.setdefault("in-process", {})["scheduler"] = await _timed(
+            f"scheduler, {_listing(args.scheduler_sizes)} entries, "
+            f"{args.scheduler_rounds:,} requests and finds each",
+            lambda: run_scheduler(args.scheduler_sizes, args.scheduler_rounds, args.time_limit),
         )
     if "register" in args.parts:
         results.setdefault("gateway", {})["register"] = await _timed(

@@ -379,6 +379,29 @@ TARGETS += (
 )
 
 
+def _scheduler_ratio(r: Results) -> float:
+    sizes = r["in-process"]["scheduler"]["sizes"]
+    largest = max(sizes, key=lambda d: d["entries"])
+    return float(largest["request_p50_us"] / largest["find_p50_us"])
+
+
+TARGETS += (
+    # A plain ``find`` over the same registry is the registry's cheapest look-up of candidates
+    # (numpy over type, state and location); a decision also ranks by cost and QoS, covers the
+    # capability set, applies the rules and grants a licence. Bound: at most 5 finds' worth at the
+    # largest size (10,000 entries in a full run).
+    Target(
+        "scheduler",
+        "scheduler request p50 / registry find p50, same registry, largest size",
+        _scheduler_ratio,
+        "max",
+        5.0,
+        "x",
+        (("in-process", "scheduler"),),
+    ),
+)
+
+
 def evaluate(results: Results) -> list[dict[str, Any]]:
     """Each target's figure, bound and verdict (PASS, FAIL, or why it could not be judged)."""
     verdicts = []
@@ -830,6 +853,7 @@ def _issue_tables(out: TextIO, results: Results) -> None:
         _table(out, "(j) storage", ["where", "figures"], [_error_row("gateway", storage)])
     _sse_table(out, results)
     _statemachine_table(out, results)
+    _scheduler_table(out, results)
 
 
 def _sse_table(out: TextIO, results: Results) -> None:
@@ -898,6 +922,37 @@ def _statemachine_table(out: TextIO, results: Results) -> None:
                     _fmt(machine["us_per_bare_set"], 1),
                     str(machine["complete"]),
                 ]
+            ],
+        )
+
+
+def _scheduler_table(out: TextIO, results: Results) -> None:
+    scheduler = results.get("in-process", {}).get("scheduler")
+    if scheduler and "error" not in scheduler:
+        _table(
+            out,
+            "(m) scheduler: a request (decision and licence) beside a plain find, same registry",
+            [
+                "entries",
+                "rounds",
+                "request p50 µs",
+                "request p99 µs",
+                "find p50 µs",
+                "find p99 µs",
+                "ratio p50",
+            ],
+            [
+                [
+                    f"{d['entries']:,}",
+                    f"{d['rounds']:,}",
+                    _fmt(d["request_p50_us"], 1),
+                    _fmt(d["request_p99_us"], 1),
+                    _fmt(d["find_p50_us"], 1),
+                    _fmt(d["find_p99_us"], 1),
+                    _fmt(d["ratio_p50"], 2),
+                    _fmt(d["first_request_us"], 1),
+                ]
+                for d in scheduler["sizes"]
             ],
         )
 

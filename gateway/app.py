@@ -288,6 +288,10 @@ class Gateway:
             max_registrations=settings.max_registrations,
             max_licences=settings.max_licences,
             max_licence_duration=settings.max_licence_duration,
+            features={e.name: e.features for e in self.config.services if e.features},
+            tout=settings.tout,
+            tr=settings.tr,
+            max_queued=settings.max_queued,
         )
         # Only an admin (by the rules) may unregister or replace a configured service.
         self.registry.set_admin_check(self.guard.may_administer)

@@ -30,6 +30,7 @@ from services.registry import (
     parse_allow_entry,
 )
 from services.registry.lease import MAX_LEASE
+from services.registry.scheduling import DEFAULT_MAX_QUEUED, DEFAULT_TOUT, DEFAULT_TR, check_capabilities
 
 #: The service every gateway hosts itself; a config may not define it.
 REGISTRY_NAME = "registry"
@@ -184,6 +185,11 @@ class RegistrySection:
     #: JSON file keeping the registrations made by Set across restarts; empty = not kept.
     #: A relative path is taken from the config file's folder (absolute once parsed).
     persist: str = ""
+    #: The scheduler: longest allocation in seconds (the seed's ``Tout``; at most the longest
+    #: licence), longest wait of a queued request (``Tr``), requests waiting at once.
+    tout: float = DEFAULT_TOUT
+    tr: float = DEFAULT_TR
+    max_queued: int = DEFAULT_MAX_QUEUED
     #: Addresses a registration may reach: networks with optional ports, serial path globs
     #: (``services.registry.allow``); default: loopback and USB serial adapters.
     allow: tuple[str, ...] = DEFAULT_ALLOW
@@ -207,6 +213,8 @@ class ServiceEntry:
     type: str = ""
     url: str = ""
     options: Mapping[str, Any] = field(default_factory=dict)
+    #: Capabilities it offers the registry's scheduler, beside its type (``["survey", "video"]``).
+    features: tuple[str, ...] = ()
     #: A device that dials in (``url = "tcp-in://"``): the file holding the secret its greeting
     #: must carry (``secret=...``); absolute once parsed. Nobody else may take its name.
     secret_file: str = ""
@@ -625,6 +633,12 @@ def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
             found_here.append(f"{where}.timeout: must be positive, got {section.timeout}")
         if section.misses < 1:
             found_here.append(f"{where}.misses: must be at least 1, got {section.misses}")
+        for key in ("tout", "tr"):
+            value = getattr(section, key)
+            if not (math.isfinite(value) and value > 0):
+                found_here.append(f"{where}.{key}: must be a positive number of seconds, got {value}")
+        if section.max_queued < 1:
+            found_here.append(f"{where}.max_queued: must be at least 1, got {section.max_queued}")
         if section.persist:
             path = Path(section.persist).expanduser()
             if not path.is_absolute():
@@ -732,7 +746,10 @@ def _name(entry: Any, where: str, known: tuple[str, ...], seen: set[str]) -> str
 
 def _service(entry: Any, where: str, seen: set[str], folder: Path | None = None) -> ServiceEntry:
     name = _name(
-        entry, where, ("name", "type", "url", "options", "secret_file", "dormant", "idle_stop"), seen
+        entry,
+        where,
+        ("name", "type", "url", "options", "secret_file", "dormant", "idle_stop", "features"),
+        seen,
     )
     where = f"{where} ({name})"
     kind = _typed(entry.get("type", ""), str, f"{where}.type")
@@ -745,11 +762,23 @@ def _service(entry: Any, where: str, seen: set[str], folder: Path | None = None)
     if not isinstance(options, Mapping):
         raise ConfigError(f"{where}.options: expected a table like {{ speed = 0.5 }}")
     secret_file = _typed(entry.get("secret_file", ""), str, f"{where}.secret_file")
-    service = ServiceEntry(name=name, type=kind, url=url, options=_paths_resolved(kind, options, folder))
+    features = _features(entry.get("features", []), f"{where}.features")
+    service = ServiceEntry(
+        name=name, type=kind, url=url, options=_paths_resolved(kind, options, folder), features=features
+    )
     service = _dormancy(service, entry, where)
     if service.dials_in or secret_file:
         service = replace(service, secret_file=_secret_file(service, secret_file, where, folder))
     return service
+
+
+def _features(value: Any, where: str) -> tuple[str, ...]:
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise ConfigError(f'{where}: expected an array of capability names like ["survey", "video"]')
+    try:
+        return tuple(sorted(check_capabilities(value, "features")))
+    except InvalidArgument as exc:
+        raise ConfigError(f"{where}: {exc.message}") from None
 
 
 def _dormancy(service: ServiceEntry, entry: Mapping[str, Any], where: str) -> ServiceEntry:

@@ -8,7 +8,8 @@ touch a backend. What a request does is an :class:`~gateway.rules.Operation`:
 * Get (values and queries), Listen and Describe read (Describe asks about the
   service itself: the empty path, which only a ``**`` rule path matches);
 * a Set on the registry of ``services.NAME`` registers (a URL) or unregisters
-  (nothing); ``acquire``, ``renew`` and ``release`` (licences) invoke; any
+  (nothing); ``acquire``, ``renew`` and ``release`` (licences) and ``request`` (the
+  scheduler, which licenses what it chooses to the caller) invoke; any
   other Set on the registry is ``admin``;
 * any other Set writes a value or invokes an action. Only when the rules tell
   the two apart for this subject and path does the guard read the service's
@@ -34,9 +35,10 @@ from services.model import Access, ServiceModel
 #: The service whose ``services.NAME`` Sets register and unregister (gateway.config.REGISTRY_NAME).
 REGISTRY = "registry"
 _SERVICES_PREFIX = "services."
-#: The registry's licence actions: invoked by any consumer that the rules let invoke them,
-#: not an administration of the registry.
-LICENCE_ACTIONS = frozenset({"acquire", "renew", "release"})
+#: The registry's actions of consumers — licences, and the scheduler's ``request``, which licenses
+#: what it chooses to the caller: invoked by any consumer that the rules let invoke them, not an
+#: administration of the registry.
+LICENCE_ACTIONS = frozenset({"acquire", "renew", "release", "request"})
 
 
 #: The subject of the Set being carried out, for checks made deep inside a service (the

@@ -259,6 +259,26 @@ class ServiceIndex:
         names = self._names
         return [names[i] for i in hits]  # type: ignore[misc]
 
+    def slots_of(self, names: Iterable[str]) -> npt.NDArray[np.intp]:
+        """The slots of ``names`` (all known), for :meth:`planar_at` and :meth:`up_at`.
+
+        A slot stays the same while its name is known; callers keep them until names change.
+        """
+        slots = self._slots
+        return np.fromiter((slots[n] for n in names), dtype=np.intp)
+
+    def planar_at(self, slots: npt.NDArray[np.intp]) -> npt.NDArray[np.float64]:
+        """x y of the services at ``slots`` (rows of NaN where unknown)."""
+        return self._loc[slots, :2]
+
+    def rank_at(self, slots: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
+        """Places of the services at ``slots`` in natural name order (``scout2`` before ``scout10``)."""
+        return self._rank()[slots]
+
+    def up_at(self, slots: npt.NDArray[np.intp]) -> npt.NDArray[np.bool_]:
+        """Whether the services at ``slots`` are up."""
+        return self._up[slots]
+
     # -- internals -------------------------------------------------------
 
     def _code(self, type: str) -> int:

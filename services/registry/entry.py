@@ -46,6 +46,9 @@ class ServiceEntry(Resource):
     state: Annotated[str, Prop(readonly=True, doc="up, down, or connecting (never reached yet)")]
     last_seen: Annotated[float, Prop(readonly=True, doc="when it was last heard of, unix seconds")]
     misses: Annotated[int, Prop(readonly=True, doc="liveness checks missed in a row")]
+    features: Annotated[
+        list[str], Prop(readonly=True, doc="capabilities it offers the scheduler beside its type; () if none")
+    ]
     licence: Annotated[str, Prop(readonly=True, doc="id of a licence held on it (or a subtree); empty: none")]
 
     def __init__(
@@ -61,6 +64,7 @@ class ServiceEntry(Resource):
         self.state = state
         self.last_seen = wall_clock()
         self.misses = 0
+        self.features = []
         self.licence = ""
         self._location: Vector = np.zeros(0)
         self._want_location = want_location

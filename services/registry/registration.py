@@ -24,6 +24,7 @@ from services.paths import validate_service_name
 from services.registry.allow import AllowList
 from services.registry.entry import parse_lease
 from services.registry.persistence import Registration
+from services.registry.scheduling import parse_capabilities
 from services.registry.table import ServiceTable
 from services.registry.urls import check_url
 
@@ -49,9 +50,14 @@ def _nobody_is_admin(name: str) -> bool:
 #: when its call timeout is shorter, so that the caller hears why nothing was registered).
 DEFAULT_REGISTER_TIMEOUT = 10.0
 
-_REGISTER_PARAMS = ("type", "lease")
+_REGISTER_PARAMS = ("type", "lease", "features")
 #: Codes with which a device's greeting is refused (docs/line-protocol.md §4.3).
 _REFUSALS = (Code.FAILED_PRECONDITION, Code.INVALID_ARGUMENT)
+
+
+def parse_features(text: str) -> frozenset[str]:
+    """The ``features`` parameter of a registration: ``(video ptz mobile)``, the capabilities it offers."""
+    return parse_capabilities(text, "bad parameter features")
 
 
 class Registrations:
@@ -101,6 +107,12 @@ class Registrations:
         record = self.records.get(name)
         return record[1].get("type", "") if record else ""
 
+    def declared_features(self, name: str) -> frozenset[str]:
+        """The capabilities the registration of ``name`` declared (``features``); empty when none."""
+        record = self.records.get(name)
+        text = record[1].get("features", "") if record else ""
+        return parse_features(text) if text else frozenset()
+
     def drop(self, name: str) -> None:
         """Forget the registration record of ``name`` (it left)."""
         if self.records.pop(name, None) is not None:
@@ -127,6 +139,9 @@ class Registrations:
                     f"(known: {', '.join(_REGISTER_PARAMS)})"
                 )
         lease = parse_lease(params["lease"]) if "lease" in params else None
+        features = params.get("features", "").strip()
+        if features:
+            parse_features(features)  # checked before anything is made
         directory = self.require_directory()
         existing = self.table.get(name)
         if name in self._busy:
@@ -174,6 +189,8 @@ class Registrations:
         if lease is not None:
             self.table.renew(name, lease)
         options = {"type": declared} if declared else {}
+        if features:
+            options["features"] = features
         self.records[name] = (url, options)
         self._saved()
         return url

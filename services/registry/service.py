@@ -19,6 +19,7 @@ from services.errors import InvalidArgument, PropertyError, Unavailable
 from services.location_following import LocationFollower
 from services.query import Query, values_equal
 from services.registry.allow import AllowList
+from services.registry.dispatch import Dispatcher, QosView
 from services.registry.entry import ServiceList
 from services.registry.licences import (
     DEFAULT_LICENCE_DURATION,
@@ -34,6 +35,12 @@ from services.registry.registration import (
     DEFAULT_REGISTER_TIMEOUT,
     AdminCheck,
     Registrations,
+)
+from services.registry.scheduling import (
+    DEFAULT_MAX_QUEUED,
+    DEFAULT_TOUT,
+    DEFAULT_TR,
+    check_capabilities,
 )
 from services.registry.table import ServiceTable
 from services.values import Vector, format_names
@@ -95,6 +102,9 @@ class Registry(Resource):
         Prop(readonly=True, doc="counts joins, leaves, changes of type, state, dormancy (Listen to follow)"),
     ]
     licences: LicenceList
+    qos: QosView
+    tout: Annotated[float, Prop(readonly=True, unit="s", doc="longest allocation of the scheduler (Tout)")]
+    tr: Annotated[float, Prop(readonly=True, unit="s", doc="longest wait of a queued request (Tr)")]
 
     def __init__(
         self,
@@ -111,11 +121,18 @@ class Registry(Resource):
         max_registrations: int = DEFAULT_MAX_REGISTRATIONS,
         max_licences: int = DEFAULT_MAX_LICENCES,
         max_licence_duration: float = DEFAULT_MAX_LICENCE_DURATION,
+        features: Mapping[str, Iterable[str]] | None = None,
+        tout: float = DEFAULT_TOUT,
+        tr: float = DEFAULT_TR,
+        max_queued: int = DEFAULT_MAX_QUEUED,
     ) -> None:
         """``static`` names come from the gateway's config: they are never removed for being down,
         nor unregistered or replaced from outside (see :meth:`set_admin_check`). ``allow`` says
         which addresses a registration may reach (default: loopback and USB serial adapters).
-        ``max_licences`` and ``max_licence_duration`` bound the licences (:attr:`licences`)."""
+        ``max_licences`` and ``max_licence_duration`` bound the licences (:attr:`licences`).
+        ``features`` gives configured services their capabilities for the scheduler; ``tout``
+        (longest allocation, at most ``max_licence_duration``), ``tr`` (longest wait) and
+        ``max_queued`` (requests waiting) set the scheduler (:mod:`services.registry.dispatch`)."""
         for what, value in (("period", period), ("grace", grace)):
             if not (math.isfinite(value) and value >= 0):
                 raise InvalidArgument(f"{what} must be zero or a positive number of seconds, got {value}")
@@ -124,13 +141,25 @@ class Registry(Resource):
                 raise InvalidArgument(f"{what} must be a positive number of seconds, got {value}")
         if isinstance(misses, bool) or not isinstance(misses, int) or misses < 1:
             raise InvalidArgument(f"misses must be a positive whole number, got {misses!r}")
+        tout = min(float(tout), float(max_licence_duration))
+        for what, value in (("tout", tout), ("tr", tr)):
+            if not (math.isfinite(value) and value > 0):
+                raise InvalidArgument(f"{what} must be a positive number of seconds, got {value}")
+        if isinstance(max_queued, bool) or not isinstance(max_queued, int) or max_queued < 1:
+            raise InvalidArgument(f"max_queued must be a positive whole number, got {max_queued!r}")
         static = frozenset(static)
+        self._features = {
+            name: check_capabilities(caps, f"features of {name}") for name, caps in (features or {}).items()
+        }
         self.services = ServiceList()
         self.period = float(period)
         self.timeout = float(timeout)
         self.misses = misses
         self.grace = float(grace)
         self.revision = 0
+        self.qos = QosView()
+        self.tout = tout
+        self.tr = float(tr)
         self._directory = directory
         self._table = ServiceTable(self.services, self._bump)
         #: The licences (exclusive use of a service for a while); see :mod:`services.registry.licences`.
@@ -182,6 +211,24 @@ class Registry(Resource):
         #: Services not reached yet (a proxy before its device greets), each awaited by one task.
         self._reaching: dict[str, asyncio.Task[None]] = {}
         self._unwatch: Callable[[], None] | None = None
+        #: Services whose location the scheduler had followed (see :meth:`_locate`).
+        self._located: set[str] = set()
+        self._dispatcher = Dispatcher(
+            self._table,
+            self.licensing,
+            wake=self.wake,
+            locate=self._locate,
+            directory=lambda: self._directory,
+            features=self.features_of,
+            revision=lambda: self.revision,
+            changed=self.changed,
+            qos=self.qos,
+            timeout=self.timeout,
+            tout=self.tout,
+            tr=self.tr,
+            max_queued=max_queued,
+        )
+        self.licensing.watch(self._dispatcher.on_licence)
 
     # -- the plain methods the gateway calls ------------------------------
 
@@ -192,6 +239,7 @@ class Registry(Resource):
     def add(self, name: str, info: BackendInfo) -> None:
         """Record service ``name``, or refresh it: new type and URL, state up, ``last_seen`` now."""
         self._table.add(name, info, self.renew_lease)
+        self._show_features(name)
 
     def remove(self, name: str) -> None:
         """Forget service ``name``; NotFound if it is not known."""
@@ -225,7 +273,19 @@ class Registry(Resource):
         (name taken by another URL), Unavailable or DeadlineExceeded (the
         device does not answer; nothing stays registered).
         """
-        return await self._registrations.register(name, url, params)
+        url = await self._registrations.register(name, url, params)
+        if self._show_features(name):
+            self._bump()  # the scheduler reads capabilities anew
+        return url
+
+    def _show_features(self, name: str) -> bool:
+        """Put the capabilities ``name`` declared in ``services.<name>.features``; True when they changed."""
+        entry = self._table.get(name)
+        features = sorted(self.features_of(name))
+        if entry is None or entry.features == features:
+            return False
+        entry.features = features
+        return True
 
     async def unregister(self, name: str) -> None:
         """Remove service ``name`` (what a Set of ``services.<name>`` to the empty value does)."""
@@ -301,11 +361,89 @@ class Registry(Resource):
         renewed = await self.licensing.renew(licence, duration, holder=holder)
         return format_time(renewed.expires_at)
 
-    @action(doc="end licence `licence` now (its holder only)")
-    async def release(self, *, licence: str) -> None:
-        """Release a licence of the caller's."""
+    @action(
+        doc="end licence `licence` now (its holder only); or end scheduler allocation `allocation`, "
+        "recording `qos` ((provider score) ...), scores 0 to 1"
+    )
+    async def release(self, *, licence: str = "", allocation: str = "", qos: str = "") -> str:
+        """Release a licence of the caller's, or an allocation of the scheduler's with its assessments."""
         holder, _ = self._caller()
-        await self.licensing.release(licence, holder=holder)
+        if bool(licence) == bool(allocation):
+            raise InvalidArgument("release takes one of the parameters licence or allocation")
+        if licence:
+            if qos:
+                raise InvalidArgument("qos goes with allocation, not with licence")
+            await self.licensing.release(licence, holder=holder)
+            return ""
+        return await self._dispatcher.release(allocation, holder=holder, qos=qos)
+
+    # -- the scheduler --------------------------------------------------------------
+
+    def features_of(self, name: str) -> frozenset[str]:
+        """The capabilities ``name`` declared (config ``features`` or registration parameter)."""
+        declared = self._features.get(name)
+        if declared is not None:
+            return declared
+        return self._registrations.declared_features(name)
+
+    @action(
+        doc="ask for providers of capabilities (survey) or (video ptz mobile); answers "
+        "(ID granted ((provider licence) ...)) or (ID queued ())"
+    )
+    async def request(
+        self,
+        capabilities: str,
+        *,
+        consumer: str = "",
+        location: str = "",
+        count: int = 1,
+        duration: float | None = None,
+        wait: float | None = None,
+        exclude: str = "",
+        cost: str = "",
+        weight: float = 0.5,
+    ) -> str:
+        """Choose providers for ``capabilities`` and license them to the caller (see
+        :mod:`services.registry.dispatch`). ``consumer``: the robot asking (default: the caller);
+        ``location`` (x y): where the work is (default: the consumer's location); ``count``: that many
+        providers each offering all capabilities; ``duration`` (default ``tout``); ``wait``: seconds
+        to queue when all are busy (default ``tr``; 0: refuse at once); ``exclude``: providers the consumer
+        rejects; ``cost``: a property each provider publishes its cost in (default: drive distance);
+        ``weight``: cost against QoS, 0 to 1."""
+        holder, session = self._caller()
+        return await self._dispatcher.request(
+            capabilities,
+            consumer=consumer,
+            holder=holder,
+            session=session,
+            location=location,
+            count=count,
+            duration=duration,
+            wait=wait,
+            exclude=exclude,
+            cost=cost,
+            weight=weight,
+        )
+
+    @property
+    def requests(
+        self,
+    ) -> Annotated[str, Prop(doc="waiting requests: ((ID consumer (capabilities) count deadline) ...)")]:
+        return self._dispatcher.requests_text()
+
+    @property
+    def allocations(
+        self,
+    ) -> Annotated[
+        str, Prop(doc="live allocations: ((ID consumer (capabilities) ((provider licence) ...) expires) ...)")
+    ]:
+        return self._dispatcher.allocations_text()
+
+    @property
+    def unserved(
+        self,
+    ) -> Annotated[str, Prop(doc="requests no provider could serve: ((consumer (caps)) ...)")]:
+        return self._dispatcher.unserved_text()
 
     def _on_licence(self, licence: Licence, event: str) -> None:
         """Keep ``licences`` and ``services.<name>.licence`` in step with the licences."""
@@ -336,6 +474,7 @@ class Registry(Resource):
     # -- following the directory --------------------------------------------
 
     async def start(self) -> None:
+        self._dispatcher.start()
         directory = self._directory
         if directory is None:
             return
@@ -350,6 +489,7 @@ class Registry(Resource):
         self._liveness.start()
 
     async def stop(self) -> None:
+        await self._dispatcher.stop()
         self.licensing.close()
         if self._unwatch is not None:
             self._unwatch()
@@ -397,16 +537,31 @@ class Registry(Resource):
 
     def _want_location(self, name: str) -> None:
         """Somebody asked where ``name`` is: follow its location from now on (once; on demand)."""
+        self._follow_location(name)
+
+    def _follow_location(self, name: str) -> bool:
+        """:meth:`_want_location`; True when ``name``'s location is followed now."""
         directory = self._directory
         if directory is None or self._table.get(name) is None:
-            return
+            return False
         try:
             backend = directory.backend(name)
             if backend.on_demand:  # following a dormant service's location would keep it awake
-                return
+                return False
             self._locations.follow(name, backend)
         except (PropertyError, RuntimeError):  # not served (any more), or no event loop to follow in
+            return False
+        return True
+
+    async def _locate(self, names: Iterable[str]) -> None:
+        """The scheduler needs to know where ``names`` are: follow those not followed yet, and wait
+        (at most ``timeout``) for the locations on the way. Each name is looked at once."""
+        if self._directory is None:
             return
+        for name in names:
+            if name not in self._located and self._follow_location(name):
+                self._located.add(name)
+        await self._locations.settled(self.timeout)
 
     def _forget(self, name: str) -> None:
         reaching = self._reaching.pop(name, None)
@@ -417,10 +572,12 @@ class Registry(Resource):
         self.licensing.release_holder(name)
         self.licensing.release_service(name)
         self._locations.forget(name)
+        self._located.discard(name)
         self._registrations.drop(name)
 
     def _bump(self) -> None:
         self.revision += 1
+        self._dispatcher.table_changed()
 
     def _learn_type(self, name: str, backend: Backend) -> None:
         """Take the type a device told in its greeting, unless the registration declared one.

@@ -37,6 +37,7 @@ TARGETS = (
     "sse-latency-p50",
     "sse-latency-p99",
     "statemachine",
+    "scheduler",
 )
 
 
@@ -103,6 +104,9 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     # The state machine part ran every transition of its chart, each with its Set.
     machine = payload["results"]["in-process"]["statemachine"]
     assert machine["complete"] and machine["transitions"] == 2000, machine
+    # The scheduler part decided at 100 and 10,000 entries, every request granted.
+    scheduler = payload["results"]["in-process"]["scheduler"]
+    assert [d["entries"] for d in scheduler["sizes"]] == [100, 10_000] and scheduler["complete"], scheduler
     titles = (
         "(e) Get of",
         "(f) group behaviors.moveto",
@@ -112,6 +116,7 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         "(j) storage",
         "(k) fan-out to",
         "(l) a chart",
+        "(m) scheduler",
     )
     for title in titles:
         assert title in out, f"no table {title!r}:\n{out}"
