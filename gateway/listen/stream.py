@@ -60,6 +60,14 @@ RETRY_MAX_S = 10.0
 WILDCARD_SKIPS = MISSING | UNREACHABLE
 
 
+def retry_pauses() -> Iterator[float]:
+    """The pauses before each new try of a skipped part: ``RETRY_FIRST_S``, doubled up to ``RETRY_MAX_S``."""
+    pause = RETRY_FIRST_S
+    while True:
+        yield pause
+        pause = min(pause * 2, RETRY_MAX_S)
+
+
 class _Expansion:
     """A path pattern expanded against one service's ``properties``; follows its changes.
 
@@ -359,11 +367,10 @@ class ListenStream:
     async def _retry(self, key: tuple[Selector, str], retry: _Retry) -> None:
         """Try the skipped parts again, less and less often, until they answer or the stream ends."""
         sel, service = key
-        pause = RETRY_FIRST_S
+        pauses = retry_pauses()
         try:
             while retry.pending:
-                await asyncio.sleep(pause)
-                pause = min(pause * 2, RETRY_MAX_S)
+                await asyncio.sleep(next(pauses))
                 if self.closed or not self._serves(service, retry.backend):
                     return
                 whole, paths = retry.whole, retry.paths
