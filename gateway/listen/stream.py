@@ -42,6 +42,7 @@ from gateway.router import Router
 from gateway.sizes import MAX_MESSAGE_BYTES
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, Change
+from services.backoff import pauses
 from services.conflation import ConflatingQueue
 from services.errors import Code, PropertyError, ResourceExhausted
 from services.paths import WILDCARD, compile_pattern, is_pattern
@@ -62,10 +63,7 @@ WILDCARD_SKIPS = MISSING | UNREACHABLE
 
 def retry_pauses() -> Iterator[float]:
     """The pauses before each new try of a skipped part: ``RETRY_FIRST_S``, doubled up to ``RETRY_MAX_S``."""
-    pause = RETRY_FIRST_S
-    while True:
-        yield pause
-        pause = min(pause * 2, RETRY_MAX_S)
+    return pauses(RETRY_FIRST_S, RETRY_MAX_S)
 
 
 class _Expansion:
