@@ -238,12 +238,12 @@ class LocalService(Backend):
             watch.close()
             if self._watches.get(watch.path) is watch:
                 del self._watches[watch.path]
-            if watch.path == "properties" and self._remote_lists:
+            if watch.path == "properties" and (self._remote_lists or self._remote_list_retries):
                 self._spawn(self._sync_remote_lists(), "stop following remote property lists")
 
     def _on_tree(self, path: str, removed: bool) -> None:
         self._targets.clear()
-        if "properties" in self._watches or self._remote_lists:
+        if "properties" in self._watches or self._remote_lists or self._remote_list_retries:
             self._spawn(self._sync_remote_lists(), "follow remote property lists")
         if not removed:
             return
