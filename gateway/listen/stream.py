@@ -23,7 +23,10 @@ could not follow is skipped and tried again in the background (one task per
 (selector, service), pauses from ``RETRY_FIRST_S`` doubling to ``RETRY_MAX_S``,
 only while the stream is open and the service is still the router's); once it
 answers, its current values are queued marked ``gap`` and followed from then on.
-An exact selector (no ``*`` anywhere) fails with the service's error instead.
+An exact selector (no ``*`` anywhere) fails with the service's error instead;
+when its service joins the router again while it cannot answer yet (a proxy
+still connecting), it is tried the same way for ``JOIN_RETRY_S`` before the
+stream fails.
 """
 
 from __future__ import annotations
@@ -57,6 +60,10 @@ PROPERTIES = "properties"
 #: of its proxy reconnecting, and a device that stays away costs one try per 10 s per stream.
 RETRY_FIRST_S = 0.5
 RETRY_MAX_S = 10.0
+#: Seconds an exact selector keeps trying its service when it joins the router again while it
+#: cannot answer yet (a proxy still connecting to its device) before the stream fails with the
+#: service's error; the registry's register_timeout.
+JOIN_RETRY_S = 10.0
 #: What a wildcard skips: a property that is not there, and a service that cannot be reached.
 WILDCARD_SKIPS = MISSING | UNREACHABLE
 
@@ -123,10 +130,12 @@ class _Retry:
     """What a wildcard skipped on one service because it could not be reached, and the task
     that tries it again (see :meth:`ListenStream._retry`)."""
 
-    __slots__ = ("backend", "paths", "task", "whole")
+    __slots__ = ("backend", "give_up_at", "paths", "task", "whole")
 
-    def __init__(self, backend: Backend) -> None:
+    def __init__(self, backend: Backend, give_up_at: float | None) -> None:
         self.backend = backend
+        #: Loop time after which a try that fails ends the stream (an exact selector); None: never.
+        self.give_up_at = give_up_at
         #: The selector's whole part on the service: an exact path, or the ``properties`` list.
         self.whole = False
         #: Matched paths of the service's expansion that could not be joined.
@@ -345,8 +354,18 @@ class ListenStream:
 
     # -- parts skipped because their service could not be reached ----------
 
-    def _skipped(self, sel: Selector, service: str, backend: Backend, path: str | None) -> None:
-        """Remember a part ``sel`` could not follow on ``service`` (None: all of it); try it later."""
+    def _skipped(
+        self,
+        sel: Selector,
+        service: str,
+        backend: Backend,
+        path: str | None,
+        give_up_after: float | None = None,
+    ) -> None:
+        """Remember a part ``sel`` could not follow on ``service`` (None: all of it); try it later.
+
+        ``give_up_after``: seconds after which a try that still fails ends the stream.
+        """
         if self.closed:
             return
         key = (sel, service)
@@ -354,7 +373,8 @@ class ListenStream:
         if retry is None or retry.backend is not backend:
             if retry is not None and retry.task is not None:
                 retry.task.cancel()
-            retry = _Retry(backend)
+            give_up_at = None if give_up_after is None else asyncio.get_running_loop().time() + give_up_after
+            retry = _Retry(backend, give_up_at)
             self._retries[key] = retry
             retry.task = self._topics.spawn(self._retry(key, retry))
         if path is None:
@@ -366,6 +386,7 @@ class ListenStream:
         """Try the skipped parts again, less and less often, until they answer or the stream ends."""
         sel, service = key
         pauses = retry_pauses()
+        loop = asyncio.get_running_loop()
         try:
             while retry.pending:
                 await asyncio.sleep(next(pauses))
@@ -373,15 +394,22 @@ class ListenStream:
                     return
                 whole, paths = retry.whole, retry.paths
                 retry.whole, retry.paths = False, set()
-                # What fails again is put back into ``retry`` by ``_skipped`` (the same entry).
-                if whole:
-                    await self._expand(sel, service, retry.backend, gap=True)
-                else:
-                    exp = self._expansion(sel, service)
-                    if exp is not None:
-                        await self._join_many(exp, sorted(paths & exp.matched), gap=True)
-        except PropertyError as exc:
-            self.fail(exc)  # a limit passed now that the service answers
+                # What a wildcard fails on again is put back into ``retry`` by ``_skipped``.
+                try:
+                    if whole:
+                        await self._expand(sel, service, retry.backend, gap=True)
+                    else:
+                        exp = self._expansion(sel, service)
+                        if exp is not None:
+                            await self._join_many(exp, sorted(paths & exp.matched), gap=True)
+                except PropertyError as exc:
+                    # An exact selector raises; it is tried again until it gives up.
+                    give_up_at = retry.give_up_at
+                    if exc.code in UNREACHABLE and give_up_at is not None and loop.time() < give_up_at:
+                        retry.whole = True
+                        continue
+                    self.fail(exc)  # or a limit passed now that the service answers
+                    return
         finally:
             if self._retries.get(key) is retry:
                 del self._retries[key]
@@ -461,6 +489,11 @@ class ListenStream:
         try:
             await self._expand(sel, name, backend)
         except PropertyError as exc:
+            if exc.code in UNREACHABLE and sel.service != WILDCARD and not is_pattern(sel.path):
+                # The named service joined again, its proxy still connecting: the stream waits
+                # for it a while (a wildcard skips it and waits as long as the stream is open).
+                self._skipped(sel, name, backend, None, give_up_after=JOIN_RETRY_S)
+                return
             self.fail(exc)
 
     def _serves(self, name: str, backend: Backend) -> bool:

@@ -242,3 +242,34 @@ async def test_a_wildcard_still_fails_on_an_error_that_is_not_about_reach(
     reader.stream.close()  # the skipped "down" was being tried again: that ends too
     await wait_until(lambda: retry_tasks() == [], what="the retry task ends with the stream")
     await hub.aclose()
+
+
+async def test_an_exact_selector_waits_a_while_for_its_service_to_come_back_connecting(
+    hub: ListenHub, router: Router
+) -> None:
+    reader = Reader(hub, Selector("up", "a"))
+    await reader.start()
+    router.remove("up")
+    again = DictBackend({"a": "again"}, unreachable=True)  # registered again, its proxy still connecting
+    router.add("up", again)
+    await wait_until(lambda: reader.stream.retrying == 1, what="the named service is tried again")
+    again.unreachable = False
+    await reader.until(("up", "a", "again", True))
+    assert reader.stream.error is None
+    reader.stream.close()
+    await hub.aclose()
+
+
+async def test_an_exact_selector_fails_when_its_service_comes_back_but_never_answers(
+    hub: ListenHub, router: Router, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(stream_module, "JOIN_RETRY_S", 0.1)
+    reader = Reader(hub, Selector("up", "a"))
+    await reader.start()
+    router.remove("up")
+    router.add("up", DictBackend({"a": "again"}, unreachable=True))
+    await wait_until(lambda: reader.stream.error is not None, what="the stream fails")
+    assert reader.stream.error is not None and reader.stream.error.code == Code.UNAVAILABLE
+    reader.stream.close()
+    await wait_until(lambda: retry_tasks() == [], what="no retry is left")
+    await hub.aclose()
