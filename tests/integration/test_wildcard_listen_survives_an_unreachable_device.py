@@ -158,6 +158,28 @@ async def next_event(items: AsyncIterator[Event | Mark], service: str, path: str
     raise AssertionError("the stream ended")
 
 
+async def test_a_device_already_followed_that_goes_away_comes_back_as_a_gap(
+    rig: Rig, client: AsyncClient
+) -> None:
+    # As before: the proxy reconnects and marks the value after the outage as a gap; nothing in
+    # between (no `removed`), and the stream stays open.
+    rig.restart_device()
+    items = client.listen("*", "location", marks=True)
+    try:
+        async with asyncio.timeout(WAIT):
+            first = await next_event(items, "rover")  # in the snapshot, or once the retry reaches it
+            rig.kill_device()
+            assert rig.restarted is not None
+            rig.restarted.__exit__(None, None, None)
+            await expect_unavailable(client)
+            rig.restart_device()
+            back = await next_event(items, "rover")
+            assert (back.value, back.gap, back.removed) == (first.value, True, False)
+            assert back.sequence > first.sequence
+    finally:
+        await items.aclose()
+
+
 async def test_a_group_wildcard_listen_skips_the_dead_member_and_follows_it_once_back(
     rig: Rig, client: AsyncClient
 ) -> None:
