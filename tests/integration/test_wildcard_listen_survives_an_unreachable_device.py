@@ -205,6 +205,30 @@ async def test_a_group_wildcard_listen_skips_the_dead_member_and_follows_it_once
         await items.aclose()
 
 
+async def test_a_group_listing_that_changes_while_a_member_is_away_removes_it_until_it_is_back(
+    rig: Rig, client: AsyncClient
+) -> None:
+    rig.restart_device()
+    await eventually(lambda: client.get("rover", "location"), retry_on=(Unavailable,), within=WAIT)
+    items = client.listen("swarm", "robots.*.location", marks=True)
+    try:
+        async with asyncio.timeout(WAIT):
+            await next_event(items, "swarm", "robots.rover.location")
+            rig.kill_device()
+            assert rig.restarted is not None
+            rig.restarted.__exit__(None, None, None)
+            await expect_unavailable(client)
+            # The group's property list changes while the member is away: it lists only what it reaches.
+            await client.set("swarm", "subgroup", "pair", members="(scout1)")
+            gone = await next_event(items, "swarm", "robots.rover.location")
+            assert gone.removed
+            rig.restart_device()
+            back = await next_event(items, "swarm", "robots.rover.location")
+            assert (back.value, back.gap, back.removed) == ("(3 0 0 0 0 0)", True, False)
+    finally:
+        await items.aclose()
+
+
 async def test_an_event_stream_over_http_skips_the_dead_device_and_follows_it_once_back(
     rig: Rig, client: AsyncClient
 ) -> None:
@@ -240,3 +264,15 @@ async def test_an_event_stream_over_http_skips_the_dead_device_and_follows_it_on
                 if message.data["service"] == "rover":
                     break
         assert not message.data["gap"] and xy(message.data["value"]) != (3.0, 0.0)
+
+
+async def test_an_exact_selector_in_an_event_stream_on_the_dead_device_is_an_error_event(
+    rig: Rig, client: AsyncClient
+) -> None:
+    async with (
+        aiohttp.ClientSession(base_url=rig.gateway.http_url) as http,
+        http.get(EVENTS, params=[("sel", "rover/location")]) as response,
+    ):
+        error = await SseReader(response).next(within=WAIT)
+    assert error.event == "error" and error.data["code"] == "UNAVAILABLE"
+    assert "rover" in error.data["message"]
