@@ -134,7 +134,8 @@ class _Retry:
 
     def __init__(self, backend: Backend, give_up_at: float | None) -> None:
         self.backend = backend
-        #: Loop time after which a try that fails ends the stream (an exact selector); None: never.
+        #: Loop time after which a try that fails ends the stream (an exact selector whose
+        #: service joined again); None: never (a wildcard).
         self.give_up_at = give_up_at
         #: The selector's whole part on the service: an exact path, or the ``properties`` list.
         self.whole = False
@@ -263,15 +264,22 @@ class ListenStream:
             self._heartbeat_timer = loop.call_later(self.options.heartbeat_interval, self._heartbeat_check)
         self._signal()
 
-    async def _expand(self, sel: Selector, service: str, backend: Backend, gap: bool = False) -> None:
-        """Follow what ``sel`` matches on ``service``; ``gap``: its first values are marked so."""
+    async def _expand(
+        self, sel: Selector, service: str, backend: Backend, gap: bool = False, rejoined: bool = False
+    ) -> None:
+        """Follow what ``sel`` matches on ``service``; ``gap``: its first values are marked so.
+
+        ``rejoined``: a named service that joined the router again while the stream is open;
+        what it does not have is skipped then, as a wildcard skips it, not an error.
+        """
         if self.closed:
             return
         named = sel.service != WILDCARD
         if not is_pattern(sel.path):
             # An exact selector was checked when the stream opened; a wildcard service skips.
             if named:
-                await self._join((service, sel.path, sel.params), backend, NOTHING, gap)
+                skips = MISSING if rejoined else NOTHING
+                await self._join((service, sel.path, sel.params), backend, skips, gap)
             elif self.may_read(service, sel.path):
                 skipped = await self._join((service, sel.path, sel.params), backend, WILDCARD_SKIPS, gap)
                 if skipped is not None:
@@ -279,7 +287,7 @@ class ListenStream:
             return
         exp = _Expansion(self, sel, service)
         # A named service's list must exist; only a service that cannot be reached is skipped.
-        skip = UNREACHABLE if named else WILDCARD_SKIPS
+        skip = UNREACHABLE if named and not rejoined else WILDCARD_SKIPS
         list_topic = await self._topics.subscribe(exp, (service, PROPERTIES, ()), backend, skip)
         if not isinstance(list_topic, Topic):
             if list_topic.code in UNREACHABLE:
@@ -397,7 +405,8 @@ class ListenStream:
                 # What a wildcard fails on again is put back into ``retry`` by ``_skipped``.
                 try:
                     if whole:
-                        await self._expand(sel, service, retry.backend, gap=True)
+                        rejoined = retry.give_up_at is not None
+                        await self._expand(sel, service, retry.backend, gap=True, rejoined=rejoined)
                     else:
                         exp = self._expansion(sel, service)
                         if exp is not None:
@@ -487,7 +496,7 @@ class ListenStream:
     async def _expand_later(self, sel: Selector, name: str, backend: Backend) -> None:
         """Follow a service that joined; one that cannot be reached yet is tried again later."""
         try:
-            await self._expand(sel, name, backend)
+            await self._expand(sel, name, backend, rejoined=True)
         except PropertyError as exc:
             if exc.code in UNREACHABLE and sel.service != WILDCARD and not is_pattern(sel.path):
                 # The named service joined again, its proxy still connecting: the stream waits

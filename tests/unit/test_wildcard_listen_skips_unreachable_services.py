@@ -55,13 +55,15 @@ class Reader:
         await wait_until(lambda: event in self.events, what=f"event {event}")
 
 
+def running(qualname: str) -> list[asyncio.Task[object]]:
+    """The tasks alive in this event loop that run the coroutine ``qualname``."""
+    tasks = [t for t in asyncio.all_tasks() if not t.done()]
+    return [t for t in tasks if getattr(t.get_coro(), "__qualname__", "") == qualname]
+
+
 def retry_tasks() -> list[asyncio.Task[object]]:
     """The stream retry tasks alive in this event loop."""
-    return [
-        t
-        for t in asyncio.all_tasks()
-        if not t.done() and getattr(t.get_coro(), "__qualname__", "") == "ListenStream._retry"
-    ]
+    return running("ListenStream._retry")
 
 
 @pytest.fixture
@@ -273,3 +275,35 @@ async def test_an_exact_selector_fails_when_its_service_comes_back_but_never_ans
     reader.stream.close()
     await wait_until(lambda: retry_tasks() == [], what="no retry is left")
     await hub.aclose()
+
+
+async def test_an_exact_selector_whose_service_comes_back_without_the_property_stays_open(
+    hub: ListenHub, router: Router
+) -> None:
+    reader = Reader(hub, Selector("up", "a"))
+    await reader.start()
+    router.remove("up")
+    again = Asked({"b": "no a here"})
+    router.add("up", again)
+    await wait_until(
+        lambda: "a" in again.asked and not running("ListenStream._expand_later"),
+        what="the stream has asked the service that joined again",
+    )
+    await wait_until(lambda: ("up", "a", "", False) in reader.events, what="the removal")
+    assert reader.stream.error is None and reader.stream.retrying == 0
+    reader.stream.close()
+    await hub.aclose()
+
+
+class Asked(DictBackend):
+    """Remembers which paths were asked to be listened to (after the answer is decided)."""
+
+    def __init__(self, values: Mapping[str, str]) -> None:
+        super().__init__(values)
+        self.asked: list[str] = []
+
+    async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
+        try:
+            return await super().listen(path, notify, params)
+        finally:
+            self.asked.append(path)
