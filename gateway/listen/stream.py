@@ -45,7 +45,7 @@ from gateway.router import Router
 from gateway.sizes import MAX_MESSAGE_BYTES
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, Change
-from services.backoff import pauses
+from services.backoff import pauses, wait_to_retry
 from services.conflation import ConflatingQueue
 from services.errors import Code, PropertyError, ResourceExhausted
 from services.paths import WILDCARD, compile_pattern, is_pattern
@@ -397,7 +397,7 @@ class ListenStream:
         loop = asyncio.get_running_loop()
         try:
             while retry.pending:
-                await asyncio.sleep(next(pauses))
+                await wait_to_retry(retry.backend, next(pauses))
                 if self.closed or not self._serves(service, retry.backend):
                     return
                 whole, paths = retry.whole, retry.paths

@@ -9,7 +9,7 @@ from collections.abc import Coroutine, Mapping
 from typing import Any
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
-from services.backoff import pauses
+from services.backoff import pauses, wait_to_retry
 from services.core.describe import describe_tree
 from services.core.metadata import class_spec
 from services.core.resource import Resource, start_tree, stop_tree
@@ -311,7 +311,7 @@ class LocalService(Backend):
         mine = asyncio.current_task()
         try:
             for pause in pauses(REMOTE_LIST_RETRY_FIRST_S, REMOTE_LIST_RETRY_MAX_S):
-                await asyncio.sleep(pause)
+                await wait_to_retry(backend, pause)
                 try:
                     sub = await backend.listen("properties", self._remote_list_changed)
                 except PropertyError as e:

@@ -20,6 +20,7 @@ from gateway.listen import ListenHub, ListenStream, Selector, StreamOptions
 from gateway.listen import stream as stream_module
 from gateway.router import Router
 from services.backend import NO_PARAMS, Notify, Subscription
+from services.backoff import pauses
 from services.errors import Code, PropertyError, ResourceExhausted, Unavailable
 
 Seen = tuple[str, str, str, bool]
@@ -307,3 +308,45 @@ class Asked(DictBackend):
             return await super().listen(path, notify, params)
         finally:
             self.asked.append(path)
+
+
+class Connecting(DictBackend):
+    """A proxy-like service: unreachable until the test connects it, and says when it is connected."""
+
+    def __init__(self, values: Mapping[str, str]) -> None:
+        super().__init__(values, unreachable=True)
+        self.link = asyncio.Event()
+
+    def connect(self) -> None:
+        self.unreachable = False
+        self.link.set()
+
+    async def wait_connected(self, wait_s: float) -> None:
+        try:
+            async with asyncio.timeout(wait_s):
+                await self.link.wait()
+        except TimeoutError:
+            raise Unavailable(f"not connected after {wait_s} s") from None
+
+
+async def test_a_proxy_that_connects_again_is_tried_at_once_not_at_the_end_of_the_pause(
+    hub: ListenHub, router: Router, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(stream_module, "RETRY_FIRST_S", 600.0)  # far beyond any wait of this test
+    monkeypatch.setattr(stream_module, "RETRY_MAX_S", 600.0)
+    device = Connecting({"a": "back"})
+    router.add("device", device)
+    reader = Reader(hub, Selector("*", "a"))
+    await reader.start()
+    assert ("device", "a", "back", True) not in reader.events and reader.stream.retrying == 2
+    device.connect()
+    await reader.until(("device", "a", "back", True))
+    reader.stream.close()
+    await hub.aclose()
+
+
+def test_backoff_pauses_refuse_a_shape_that_would_not_pause() -> None:
+    with pytest.raises(ValueError, match="first <= longest"):
+        next(pauses(0.0, 10.0))
+    with pytest.raises(ValueError, match="first <= longest"):
+        next(pauses(20.0, 10.0))
