@@ -22,7 +22,7 @@ import pytest
 from line_device_support import device_process
 from support.gateway_process import GatewayProcess, StartGateway
 from support.sse import SseReader
-from support.waiting import eventually
+from support.waiting import eventually, wait_until
 
 from clients import SYNC, AsyncClient, Event, Mark, Unavailable
 
@@ -109,6 +109,11 @@ async def expect_unavailable(client: AsyncClient) -> None:
     )
 
 
+async def in_log(rig: Rig, text: str) -> None:
+    """Wait until the gateway's output (read by a thread of the test) shows ``text``."""
+    await wait_until(lambda: text in rig.gateway.output, what=f"the log line {text!r}")
+
+
 def xy(value: str) -> tuple[float, float]:
     x, y = (float(t) for t in value.strip("()").split()[:2])
     return x, y
@@ -135,7 +140,7 @@ async def test_a_wildcard_service_listen_skips_the_dead_device_and_follows_it_on
                 snapshot.append(item)
             assert {e.service for e in snapshot} == {"scout1", "swarm"}
             assert not any(e.gap for e in snapshot)
-            assert "rover cannot be reached (UNAVAILABLE" in rig.gateway.output
+            await in_log(rig, "rover cannot be reached (UNAVAILABLE")
 
             rig.restart_device()
             back = await next_event(items, "rover")
@@ -148,7 +153,7 @@ async def test_a_wildcard_service_listen_skips_the_dead_device_and_follows_it_on
             assert not moved.gap and xy(moved.value) != (3.0, 0.0)
     finally:
         await items.aclose()
-    assert "rover answers again" in rig.gateway.output
+    await in_log(rig, "rover answers again")
 
 
 async def next_event(items: AsyncIterator[Event | Mark], service: str, path: str = "location") -> Event:
