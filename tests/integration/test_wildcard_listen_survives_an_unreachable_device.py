@@ -14,8 +14,8 @@ import os
 import signal
 import subprocess
 from collections.abc import AsyncIterator, Iterator
-from contextlib import AbstractContextManager
-from dataclasses import dataclass
+from contextlib import ExitStack
+from dataclasses import dataclass, field
 
 import aiohttp
 import pytest
@@ -34,21 +34,22 @@ MOVETO = "<marker><location>(4 1)</location></marker>"
 
 @dataclass
 class Rig:
+    """The gateway, the device's port, and the device process of the moment."""
+
     gateway: GatewayProcess
     port: int
-    device: subprocess.Popen[str] | None = None
-    restarted: AbstractContextManager[tuple[subprocess.Popen[str], str]] | None = None
+    device: subprocess.Popen[str]
+    #: Every device process started again; each is ended when the test ends.
+    restarts: ExitStack = field(default_factory=ExitStack)
 
     def kill_device(self) -> None:
         """The device dies: a power cut, no goodbye."""
-        assert self.device is not None
         os.kill(self.device.pid, signal.SIGKILL)
         self.device.wait(5)
 
     def restart_device(self) -> None:
         """The device comes back on the same port."""
-        self.restarted = device_process(*rover_args(f"127.0.0.1:{self.port}"))
-        self.device, _ = self.restarted.__enter__()
+        self.device, _ = self.restarts.enter_context(device_process(*rover_args(f"127.0.0.1:{self.port}")))
 
 
 def rover_args(address: str) -> list[str]:
@@ -81,11 +82,8 @@ def rig(gateway_process: StartGateway) -> Iterator[Rig]:
         """)
         rig = Rig(gw, port, proc)
         rig.kill_device()
-        try:
+        with rig.restarts:
             yield rig
-        finally:
-            if rig.restarted is not None:
-                rig.restarted.__exit__(None, None, None)
 
 
 @pytest.fixture
@@ -174,8 +172,6 @@ async def test_a_device_already_followed_that_goes_away_comes_back_as_a_gap(
         async with asyncio.timeout(WAIT):
             first = await next_event(items, "rover")  # in the snapshot, or once the retry reaches it
             rig.kill_device()
-            assert rig.restarted is not None
-            rig.restarted.__exit__(None, None, None)
             await expect_unavailable(client)
             rig.restart_device()
             back = await next_event(items, "rover")
@@ -220,8 +216,6 @@ async def test_a_group_listing_that_changes_while_a_member_is_away_removes_it_un
         async with asyncio.timeout(WAIT):
             await next_event(items, "swarm", "robots.rover.location")
             rig.kill_device()
-            assert rig.restarted is not None
-            rig.restarted.__exit__(None, None, None)
             await expect_unavailable(client)
             # The group's property list changes while the member is away: it lists only what it reaches.
             await client.set("swarm", "subgroup", "pair", members="(scout1)")
