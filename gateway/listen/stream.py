@@ -397,7 +397,10 @@ class ListenStream:
         loop = asyncio.get_running_loop()
         try:
             while retry.pending:
-                await wait_to_retry(retry.backend, next(pauses))
+                pause = next(pauses)
+                if retry.give_up_at is not None:  # the last try comes when it gives up, not later
+                    pause = min(pause, max(retry.give_up_at - loop.time(), 0.0))
+                await wait_to_retry(retry.backend, pause)
                 if self.closed or not self._serves(service, retry.backend):
                     return
                 whole, paths = retry.whole, retry.paths
