@@ -3,8 +3,9 @@
 * :mod:`~gateway.listen.requests` — a Listen request parsed: selectors, options.
 * :mod:`~gateway.listen.topics` — one shared backend subscription per
   (service, path, parameters), with its latest value.
-* :mod:`~gateway.listen.stream` — one client's Listen: wildcard expansion, the
-  conflating queue, pacing (throttle, sampling, heartbeat), ``take``.
+* :mod:`~gateway.listen.stream` — one client's Listen: wildcard expansion (a service that
+  cannot be reached is skipped and tried again), the conflating queue, pacing (throttle,
+  sampling, heartbeat), ``take``.
 * :mod:`~gateway.listen.encoding` — events into ``ListenResponse`` messages, batched by bytes.
 * :mod:`~gateway.listen.hub` — the hub that owns topics and streams.
 """

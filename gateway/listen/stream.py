@@ -16,6 +16,17 @@ expanded against the service's ``properties`` and follows a listen on
 ``properties``. A selector with ``*`` (service or path) matches only what a
 Listen may follow: actions and queries are skipped silently, as the service's
 model (``Backend.describe``, read once per service per expansion) says.
+
+A wildcard never fails because a service cannot be reached (UNAVAILABLE,
+DEADLINE_EXCEEDED) when the stream opens or when it expands later: the part it
+could not follow is skipped and tried again in the background (one task per
+(selector, service), pauses from ``RETRY_FIRST_S`` doubling to ``RETRY_MAX_S``,
+only while the stream is open and the service is still the router's); once it
+answers, its current values are queued marked ``gap`` and followed from then on.
+An exact selector (no ``*`` anywhere) fails with the service's error instead;
+when its service joins the router again while it cannot answer yet (a proxy
+still connecting), it is tried the same way for ``JOIN_RETRY_S`` before the
+stream fails.
 """
 
 from __future__ import annotations
@@ -29,11 +40,12 @@ from itertools import islice
 from gateway.config import Limits
 from gateway.listen.encoding import Ready, encode_events, within
 from gateway.listen.requests import Selector, StreamOptions
-from gateway.listen.topics import Topic, TopicKey, Topics
+from gateway.listen.topics import MISSING, NOTHING, UNREACHABLE, Topic, TopicKey, Topics
 from gateway.router import Router
 from gateway.sizes import MAX_MESSAGE_BYTES
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, Change
+from services.backoff import pauses, wait_to_retry
 from services.conflation import ConflatingQueue
 from services.errors import Code, PropertyError, ResourceExhausted
 from services.paths import WILDCARD, compile_pattern, is_pattern
@@ -42,9 +54,23 @@ from services.values import parse_names
 log = logging.getLogger(__name__)
 
 PROPERTIES = "properties"
-#: Seconds a Listen keeps trying a service that joined but cannot answer yet (a proxy still
-#: connecting to its device) before the stream fails; the registry's register_timeout.
+#: Seconds before a wildcard tries again a part it skipped because its service could not be
+#: reached, doubled after each failed try up to ``RETRY_MAX_S``: the shape of the proxies' own
+#: reconnect backoff (0.2 s to 10 s), so a device that is back is followed within about 10 s
+#: of its proxy reconnecting, and a device that stays away costs one try per 10 s per stream.
+RETRY_FIRST_S = 0.5
+RETRY_MAX_S = 10.0
+#: Seconds an exact selector keeps trying its service when it joins the router again while it
+#: cannot answer yet (a proxy still connecting to its device) before the stream fails with the
+#: service's error; the registry's register_timeout.
 JOIN_RETRY_S = 10.0
+#: What a wildcard skips: a property that is not there, and a service that cannot be reached.
+WILDCARD_SKIPS = MISSING | UNREACHABLE
+
+
+def retry_pauses() -> Iterator[float]:
+    """The pauses before each new try of a skipped part: ``RETRY_FIRST_S``, doubled up to ``RETRY_MAX_S``."""
+    return pauses(RETRY_FIRST_S, RETRY_MAX_S)
 
 
 class _Expansion:
@@ -95,7 +121,31 @@ class _Expansion:
     def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None:
         if change.removed:
             return
-        self.stream.reconcile(self, self.paths(change.value))
+        # A list that comes after a gap (a device reconnected): what is new in it may have been
+        # there a while, so its first values are marked as a gap too.
+        self.stream.reconcile(self, self.paths(change.value), gap=change.gap)
+
+
+class _Retry:
+    """What a wildcard skipped on one service because it could not be reached, and the task
+    that tries it again (see :meth:`ListenStream._retry`)."""
+
+    __slots__ = ("backend", "give_up_at", "paths", "task", "whole")
+
+    def __init__(self, backend: Backend, give_up_at: float | None) -> None:
+        self.backend = backend
+        #: Loop time after which a try that fails ends the stream (an exact selector whose
+        #: service joined again); None: never (a wildcard).
+        self.give_up_at = give_up_at
+        #: The selector's whole part on the service: an exact path, or the ``properties`` list.
+        self.whole = False
+        #: Matched paths of the service's expansion that could not be joined.
+        self.paths: set[str] = set()
+        self.task: asyncio.Task[None] | None = None
+
+    @property
+    def pending(self) -> bool:
+        return self.whole or bool(self.paths)
 
 
 class ListenStream:
@@ -114,6 +164,7 @@ class ListenStream:
         "_on_ready",
         "_pending",
         "_refs",
+        "_retries",
         "_router",
         "_sample_flush",
         "_sample_timer",
@@ -155,6 +206,8 @@ class ListenStream:
         self._pending: ConflatingQueue[Topic, str] = ConflatingQueue()
         self._refs: dict[Topic, int] = {}
         self._expansions: list[_Expansion] = []
+        #: One per (selector, service) with a skipped part that is tried again; cancelled at close.
+        self._retries: dict[tuple[Selector, str], _Retry] = {}
         self._last_emit: dict[Topic, float] | None = {} if options.min_interval else None
         self._sequence = 0
         self._signalled = False
@@ -184,15 +237,20 @@ class ListenStream:
         """Expand the selectors, subscribe, read current values; then the stream is live.
 
         Raises NOT_FOUND for an unknown service or a concrete path that does
-        not exist, RESOURCE_EXHAUSTED when a limit is passed.
+        not exist, RESOURCE_EXHAUSTED when a limit is passed, and for an exact
+        selector the service's own error (UNAVAILABLE when it cannot be reached).
         """
         router = self._router
         for sel in self.selectors:
             if sel.service == WILDCARD:
                 for name, backend in router.items():
-                    await self._expand(sel, name, backend, strict=False)
+                    await self._expand(sel, name, backend)
+            elif is_pattern(sel.path):
+                # A wildcard path skips a service the registry marked down, as it skips any it
+                # cannot reach: the lookup that ignores the mark, and the service answers itself.
+                await self._expand(sel, sel.service, router.lookup(sel.service))
             else:
-                await self._expand(sel, sel.service, router.backend(sel.service), strict=True)
+                await self._expand(sel, sel.service, router.backend(sel.service))
         if self.closed:
             return
         self._live = True
@@ -206,17 +264,34 @@ class ListenStream:
             self._heartbeat_timer = loop.call_later(self.options.heartbeat_interval, self._heartbeat_check)
         self._signal()
 
-    async def _expand(self, sel: Selector, service: str, backend: Backend, strict: bool) -> None:
+    async def _expand(
+        self, sel: Selector, service: str, backend: Backend, gap: bool = False, rejoined: bool = False
+    ) -> None:
+        """Follow what ``sel`` matches on ``service``; ``gap``: its first values are marked so.
+
+        ``rejoined``: a named service that joined the router again while the stream is open;
+        what it does not have is skipped then, as a wildcard skips it, not an error.
+        """
         if self.closed:
             return
+        named = sel.service != WILDCARD
         if not is_pattern(sel.path):
             # An exact selector was checked when the stream opened; a wildcard service skips.
-            if strict or self.may_read(service, sel.path):
-                await self._join((service, sel.path, sel.params), backend, strict)
+            if named:
+                skips = MISSING if rejoined else NOTHING
+                await self._join((service, sel.path, sel.params), backend, skips, gap)
+            elif self.may_read(service, sel.path):
+                skipped = await self._join((service, sel.path, sel.params), backend, WILDCARD_SKIPS, gap)
+                if skipped is not None:
+                    self._skipped(sel, service, backend, None)
             return
         exp = _Expansion(self, sel, service)
-        list_topic = await self._topics.subscribe(exp, (service, PROPERTIES, ()), backend, strict)
-        if list_topic is None:
+        # A named service's list must exist; only a service that cannot be reached is skipped.
+        skip = UNREACHABLE if named and not rejoined else WILDCARD_SKIPS
+        list_topic = await self._topics.subscribe(exp, (service, PROPERTIES, ()), backend, skip)
+        if not isinstance(list_topic, Topic):
+            if list_topic.code in UNREACHABLE:
+                self._skipped(sel, service, backend, None)
             return
         if self.closed:
             self._topics.unsubscribe(exp, list_topic)
@@ -228,47 +303,139 @@ class ListenStream:
         exp.list_topic = list_topic
         self._expansions.append(exp)
         exp.matched = exp.paths(list_topic.value)
-        await self._join_many(exp, sorted(exp.matched))
+        await self._join_many(exp, sorted(exp.matched), gap)
 
-    async def _join_many(self, exp: _Expansion, paths: Iterable[str]) -> None:
+    async def _join_many(self, exp: _Expansion, paths: Iterable[str], gap: bool) -> None:
         backend = exp.list_topic.backend if exp.list_topic else None
         if backend is None:
             return
         keys = [(exp.service, p, exp.selector.params) for p in paths]
         if len(keys) == 1:
-            await self._join(keys[0], backend, strict=False)
+            results = [await self._join(keys[0], backend, WILDCARD_SKIPS, gap)]
         elif keys:
-            await asyncio.gather(*(self._join(k, backend, strict=False) for k in keys))
-
-    async def _join(self, key: TopicKey, backend: Backend, strict: bool) -> None:
-        """Share the topic ``key``; queue its current value unless updates only."""
-        if self.closed:
+            results = await asyncio.gather(*(self._join(k, backend, WILDCARD_SKIPS, gap) for k in keys))
+        else:
             return
+        for key, skipped in zip(keys, results, strict=True):
+            if skipped is not None:
+                self._skipped(exp.selector, exp.service, backend, key[1])
+
+    async def _join(
+        self, key: TopicKey, backend: Backend, skip: frozenset[Code], gap: bool = False
+    ) -> PropertyError | None:
+        """Share the topic ``key``; queue its current value unless updates only.
+
+        Returns the error for which it was skipped when that says the service cannot be
+        reached (the caller tries it again later); None when joined, or skipped for good.
+        ``gap``: the value is queued marked as a gap, also with updates only (the client
+        missed the time the service could not be reached).
+        """
+        if self.closed:
+            return None
         topic = self._topics.get(key)
         if topic is not None and topic in self._refs:
             self._refs[topic] += 1
-            return
+            return None
         limit = self._limits.max_stream_properties
         if len(self._refs) >= limit:
             raise self._too_many()
-        topic = await self._topics.subscribe(self, key, backend, strict)
-        if topic is None:
-            return
+        joined = await self._topics.subscribe(self, key, backend, skip)
+        if not isinstance(joined, Topic):
+            return joined if joined.code in UNREACHABLE else None
+        topic = joined
         if self.closed or topic.dead:
             self._topics.unsubscribe(self, topic)
-            return
+            return None
         if topic in self._refs:  # joined twice concurrently
             self._refs[topic] += 1
             self._topics.unsubscribe(self, topic)
-            return
+            return None
         if len(self._refs) >= limit:
             self._topics.unsubscribe(self, topic)
             raise self._too_many()
         self._refs[topic] = 1
-        if not self.options.updates_only and topic not in self._pending:
-            self._pending.put(topic, topic.value, time.time_ns())
+        if (gap or not self.options.updates_only) and topic not in self._pending:
+            self._pending.put(topic, topic.value, time.time_ns(), gap)
             if self._live:
                 self._signal()
+        return None
+
+    # -- parts skipped because their service could not be reached ----------
+
+    def _skipped(
+        self,
+        sel: Selector,
+        service: str,
+        backend: Backend,
+        path: str | None,
+        give_up_after: float | None = None,
+    ) -> None:
+        """Remember a part ``sel`` could not follow on ``service`` (None: all of it); try it later.
+
+        ``give_up_after``: seconds after which a try that still fails ends the stream.
+        """
+        if self.closed:
+            return
+        key = (sel, service)
+        retry = self._retries.get(key)
+        if retry is None or retry.backend is not backend:
+            if retry is not None and retry.task is not None:
+                retry.task.cancel()
+            give_up_at = None if give_up_after is None else asyncio.get_running_loop().time() + give_up_after
+            retry = _Retry(backend, give_up_at)
+            self._retries[key] = retry
+            retry.task = self._topics.spawn(self._retry(key, retry))
+        if path is None:
+            retry.whole = True
+        else:
+            retry.paths.add(path)
+
+    async def _retry(self, key: tuple[Selector, str], retry: _Retry) -> None:
+        """Try the skipped parts again, less and less often, until they answer or the stream ends."""
+        sel, service = key
+        pauses = retry_pauses()
+        loop = asyncio.get_running_loop()
+        try:
+            while retry.pending:
+                pause = next(pauses)
+                if retry.give_up_at is not None:  # the last try comes when it gives up, not later
+                    pause = min(pause, max(retry.give_up_at - loop.time(), 0.0))
+                await wait_to_retry(retry.backend, pause)
+                if self.closed or not self._serves(service, retry.backend):
+                    return
+                whole, paths = retry.whole, retry.paths
+                retry.whole, retry.paths = False, set()
+                # What a wildcard fails on again is put back into ``retry`` by ``_skipped``.
+                try:
+                    if whole:
+                        rejoined = retry.give_up_at is not None
+                        await self._expand(sel, service, retry.backend, gap=True, rejoined=rejoined)
+                    else:
+                        exp = self._expansion(sel, service)
+                        if exp is not None:
+                            await self._join_many(exp, sorted(paths & exp.matched), gap=True)
+                except PropertyError as exc:
+                    # An exact selector raises; it is tried again until it gives up.
+                    give_up_at = retry.give_up_at
+                    if exc.code in UNREACHABLE and give_up_at is not None and loop.time() < give_up_at:
+                        retry.whole = True
+                        continue
+                    self.fail(exc)  # or a limit passed now that the service answers
+                    return
+        finally:
+            if self._retries.get(key) is retry:
+                del self._retries[key]
+
+    def _expansion(self, sel: Selector, service: str) -> _Expansion | None:
+        for exp in self._expansions:
+            if exp.selector == sel and exp.service == service:
+                return exp
+        return None
+
+    @property
+    def retrying(self) -> int:
+        """How many (selector, service) parts skipped as unreachable are being tried again."""
+        return len(self._retries)
 
     def _too_many(self) -> ResourceExhausted:
         limit = self._limits.max_stream_properties
@@ -290,7 +457,7 @@ class ListenStream:
         elif not topic.removed:  # else the backend's own removal is queued or sent already
             self._enqueue(topic, "", time.time_ns(), gap=False, removed=True)
 
-    def reconcile(self, exp: _Expansion, paths: set[str]) -> None:
+    def reconcile(self, exp: _Expansion, paths: set[str], gap: bool = False) -> None:
         """The service's properties changed: join new matches, leave the ones gone."""
         if self.closed:
             return
@@ -302,15 +469,15 @@ class ListenStream:
             if topic is not None:
                 self._leave(topic, announce=True)
         if new:
-            self._topics.spawn(self._join_new(exp, sorted(new)))
+            self._topics.spawn(self._join_new(exp, sorted(new), gap))
 
-    async def _join_new(self, exp: _Expansion, paths: list[str]) -> None:
+    async def _join_new(self, exp: _Expansion, paths: list[str], gap: bool) -> None:
         try:
             if exp.list_topic is not None and any(p not in exp.known for p in paths):
                 # Properties the model has not seen (a member joined a group): ask it again.
                 await exp.learn_model(exp.list_topic.backend)
                 exp.matched -= exp.skipped
-            await self._join_many(exp, [p for p in paths if p in exp.matched])
+            await self._join_many(exp, [p for p in paths if p in exp.matched], gap)
         except PropertyError as exc:
             self.fail(exc)
             return
@@ -330,25 +497,16 @@ class ListenStream:
                 self._topics.spawn(self._expand_later(sel, name, backend))
 
     async def _expand_later(self, sel: Selector, name: str, backend: Backend) -> None:
-        """Follow a service that joined; one whose device is not connected yet is asked again."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + JOIN_RETRY_S
-        pause = 0.05
-        while True:
-            try:
-                await self._expand(sel, name, backend, strict=False)
+        """Follow a service that joined; one that cannot be reached yet is tried again later."""
+        try:
+            await self._expand(sel, name, backend, rejoined=True)
+        except PropertyError as exc:
+            if exc.code in UNREACHABLE and sel.service != WILDCARD and not is_pattern(sel.path):
+                # The named service joined again, its proxy still connecting: the stream waits
+                # for it a while (a wildcard skips it and waits as long as the stream is open).
+                self._skipped(sel, name, backend, None, give_up_after=JOIN_RETRY_S)
                 return
-            except PropertyError as exc:
-                transient = exc.code in (Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED)
-                # Only a try that set nothing up can be repeated as a whole.
-                untouched = not any(e.selector == sel and e.service == name for e in self._expansions)
-                if not (transient and untouched) or loop.time() + pause > deadline:
-                    self.fail(exc)
-                    return
-            await asyncio.sleep(pause)
-            pause = min(pause * 2, 1.0)
-            if self.closed or not self._serves(name, backend):
-                return
+            self.fail(exc)
 
     def _serves(self, name: str, backend: Backend) -> bool:
         try:
@@ -361,6 +519,10 @@ class ListenStream:
         for topic in [t for t in self._refs if t.service == name]:
             del self._refs[topic]
         self._expansions = [e for e in self._expansions if e.service != name]
+        for key in [k for k in self._retries if k[1] == name]:
+            task = self._retries.pop(key).task
+            if task is not None:
+                task.cancel()
 
     # -- receiving -------------------------------------------------------
 
@@ -531,6 +693,10 @@ class ListenStream:
             if timer is not None:
                 timer.cancel()
         self._throttle_timer = self._sample_timer = self._heartbeat_timer = None
+        for retry in self._retries.values():
+            if retry.task is not None:
+                retry.task.cancel()
+        self._retries.clear()
         topics = self._topics
         for topic in self._refs:
             topics.unsubscribe(self, topic)

@@ -5,6 +5,10 @@ that brings the current value, :meth:`Backend.listen_current`: a device's
 LISTEN answers with it, other backends Get it once the Listen is in place), caches
 the latest value, so a stream joining a busy topic needs no backend call, and
 is closed when its last sink leaves.
+
+A wildcard does not fail on what it cannot follow: :meth:`Topics.subscribe` takes the codes
+to skip (``MISSING``: not there or not listenable; ``UNREACHABLE``: the service cannot be
+reached now, which the stream tries again later) and hands back the error instead of raising.
 """
 
 from __future__ import annotations
@@ -12,7 +16,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Coroutine, Mapping
+from collections.abc import Collection, Coroutine, Mapping
 from typing import Any, Protocol
 
 from gateway.router import bounded_call
@@ -23,6 +27,13 @@ from services.errors import Code, PropertyError
 log = logging.getLogger(__name__)
 
 TopicKey = tuple[str, str, tuple[tuple[str, str], ...]]
+
+#: A wildcard skips a property that is not there (or cannot be listened to) for good.
+MISSING: frozenset[Code] = frozenset({Code.NOT_FOUND, Code.INVALID_ARGUMENT})
+#: A wildcard skips a service that cannot be reached now, and tries it again in the background.
+UNREACHABLE: frozenset[Code] = frozenset({Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED})
+#: An exact selector skips nothing: the caller asked for exactly that.
+NOTHING: frozenset[Code] = frozenset()
 
 
 class Sink(Protocol):
@@ -89,6 +100,9 @@ class Topics:
         self.call_timeout = call_timeout
         self._topics: dict[TopicKey, Topic] = {}
         self._tasks: set[asyncio.Task[Any]] = set()
+        #: Services a wildcard skipped as unreachable, until one of their topics opens again: the
+        #: log says so once per service, not once per stream. At most one entry per service.
+        self._unreachable: set[str] = set()
 
     def __len__(self) -> int:
         return len(self._topics)
@@ -97,8 +111,14 @@ class Topics:
         """The open topic ``key``, or None."""
         return self._topics.get(key)
 
-    async def subscribe(self, sink: Sink, key: TopicKey, backend: Backend, strict: bool) -> Topic | None:
-        """Add ``sink`` to topic ``key``, opening it if needed; None when it does not exist (not strict)."""
+    async def subscribe(
+        self, sink: Sink, key: TopicKey, backend: Backend, skip: Collection[Code]
+    ) -> Topic | PropertyError:
+        """Add ``sink`` to topic ``key``, opening it if needed.
+
+        An error whose code is in ``skip`` is handed back instead of raised (the topic was
+        skipped, ``sink`` is not in it); any other error is raised.
+        """
         topic = self._topics.get(key)
         if topic is None or topic.dead:
             topic = Topic(key, backend)
@@ -114,14 +134,28 @@ class Topics:
                 opening.result()
         except PropertyError as exc:
             self.unsubscribe(sink, topic)
-            if strict or exc.code not in (Code.NOT_FOUND, Code.INVALID_ARGUMENT):
+            if exc.code not in skip:
                 raise
-            log.debug("skipping %s %s: %s", key[0], key[1], exc.message)
-            return None
+            if exc.code in UNREACHABLE:
+                self._note_unreachable(key[0], exc)
+            else:
+                log.debug("skipping %s %s: %s", key[0], key[1], exc.message)
+            return exc
         except BaseException:
             self.unsubscribe(sink, topic)
             raise
         return topic
+
+    def _note_unreachable(self, service: str, exc: PropertyError) -> None:
+        if service in self._unreachable:
+            return
+        self._unreachable.add(service)
+        log.info(
+            "%s cannot be reached (%s: %s): wildcard Listens skip it and try it again in the background",
+            service,
+            exc.code.name,
+            exc.message,
+        )
 
     async def _open(self, topic: Topic) -> None:
         backend, path, params = topic.backend, topic.path, topic.params
@@ -143,6 +177,9 @@ class Topics:
             if isinstance(exc, PropertyError | asyncio.CancelledError):
                 raise
             raise to_property_error(exc, f"{topic.service}: listen {path}") from exc
+        if topic.service in self._unreachable:
+            self._unreachable.discard(topic.service)
+            log.info("%s answers again: wildcard Listens that skipped it follow it now", topic.service)
         if not topic.sinks or topic.dead:
             self.drop(topic)
 
@@ -162,6 +199,7 @@ class Topics:
 
     def service_removed(self, name: str) -> None:
         """Service ``name`` left the router: every sink of its topics hears ``removed``; they close."""
+        self._unreachable.discard(name)
         gone = [t for t in self._topics.values() if t.service == name]
         for topic in gone:
             del self._topics[topic.key]
@@ -180,11 +218,12 @@ class Topics:
         except Exception:
             log.warning("closing the listen on %s %s failed", topic.service, topic.path, exc_info=True)
 
-    def spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+    def spawn(self, coro: Coroutine[Any, Any, None]) -> asyncio.Task[None]:
         """Run ``coro`` in a task the hub waits for at shutdown; a failure is logged."""
         task = asyncio.get_running_loop().create_task(coro)
         self._tasks.add(task)
         task.add_done_callback(self._task_done)
+        return task
 
     def _task_done(self, task: asyncio.Task[Any]) -> None:
         self._tasks.discard(task)

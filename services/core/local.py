@@ -9,11 +9,12 @@ from collections.abc import Coroutine, Mapping
 from typing import Any
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
+from services.backoff import pauses, wait_to_retry
 from services.core.describe import describe_tree
 from services.core.metadata import class_spec
 from services.core.resource import Resource, start_tree, stop_tree
 from services.core.tree import NeedsAwait, RemoteTarget, Target, all_properties, remote_children, resolve
-from services.errors import NotFound, PropertyError
+from services.errors import Code, NotFound, PropertyError
 from services.model import ServiceModel
 from services.paths import validate_path
 
@@ -23,6 +24,13 @@ log = logging.getLogger(__name__)
 
 #: Resolved paths kept per service; a client naming ever new paths cannot grow it without bound.
 _MAX_CACHED_PATHS = 4096
+#: Seconds before the property list of a Backend child that could not be reached (a member
+#: device that is away) is asked for again, doubled up to the second: as the gateway's
+#: wildcard Listens try a service again (gateway.listen.stream.RETRY_FIRST_S, RETRY_MAX_S).
+REMOTE_LIST_RETRY_FIRST_S = 0.5
+REMOTE_LIST_RETRY_MAX_S = 10.0
+#: Codes that mean "not now": the child may answer later.
+_TRANSIENT = (Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED)
 
 
 def _compile_tree(obj: Resource) -> None:
@@ -36,7 +44,7 @@ def _compile_tree(obj: Resource) -> None:
 class _Watch:
     """Every listener of one path; fires them when the formatted value really changed."""
 
-    __slots__ = ("_pending", "_service", "_unhook", "last", "listeners", "path", "target")
+    __slots__ = ("_gap", "_pending", "_service", "_unhook", "last", "listeners", "path", "target")
 
     def __init__(self, service: LocalService, path: str, target: Target) -> None:
         self._service = service
@@ -44,6 +52,8 @@ class _Watch:
         self.target = target
         self.listeners: dict[int, Notify] = {}
         self._pending: asyncio.Task[None] | None = None
+        #: The value a pending fire delivers follows a gap (see :meth:`fire`).
+        self._gap = False
         try:
             self.last: str | None = target.peek()
         except NeedsAwait:
@@ -52,16 +62,18 @@ class _Watch:
             self.last = ""
         self._unhook = target.hook(self.fire)
 
-    def fire(self) -> None:
+    def fire(self, gap: bool = False) -> None:
+        """The value may have changed; ``gap``: changes before it may have been missed."""
         try:
             value = self.target.peek()
         except NeedsAwait:
+            self._gap = self._gap or gap
             if self._pending is None or self._pending.done():
                 self._pending = asyncio.get_running_loop().create_task(self._fire_later())
             return
         except PropertyError:
             value = ""  # e.g. a marker field that is gone for now
-        self.deliver(value)
+        self.deliver(value, gap=gap)
 
     async def _fire_later(self) -> None:
         await asyncio.sleep(0)  # coalesce the burst of changes that scheduled this
@@ -69,13 +81,14 @@ class _Watch:
             value = await self.target.get(NO_PARAMS)
         except PropertyError:
             value = ""
-        self.deliver(value)
+        gap, self._gap = self._gap, False
+        self.deliver(value, gap=gap)
 
-    def deliver(self, value: str, *, removed: bool = False) -> None:
+    def deliver(self, value: str, *, removed: bool = False, gap: bool = False) -> None:
         if value == self.last and not removed:
             return
         self.last = value
-        change = Change(self.path, value, removed=removed)
+        change = Change(self.path, value, gap=gap, removed=removed)
         for token, notify in list(self.listeners.items()):
             try:
                 notify(change)
@@ -153,6 +166,8 @@ class LocalService(Backend):
         # While `properties` has listeners: a listen on `properties` of every remote child.
         self._remote_lists: dict[int, tuple[Backend, Subscription]] = {}
         self._remote_lists_lock = asyncio.Lock()
+        # Remote children whose list could not be followed (not reachable): one retry task each.
+        self._remote_list_retries: dict[int, asyncio.Task[None]] = {}
         self._tasks: set[asyncio.Task[None]] = set()
         obj._ps_tree_watchers.append(self._on_tree)
 
@@ -223,12 +238,12 @@ class LocalService(Backend):
             watch.close()
             if self._watches.get(watch.path) is watch:
                 del self._watches[watch.path]
-            if watch.path == "properties" and self._remote_lists:
+            if watch.path == "properties" and (self._remote_lists or self._remote_list_retries):
                 self._spawn(self._sync_remote_lists(), "stop following remote property lists")
 
     def _on_tree(self, path: str, removed: bool) -> None:
         self._targets.clear()
-        if "properties" in self._watches or self._remote_lists:
+        if "properties" in self._watches or self._remote_lists or self._remote_list_retries:
             self._spawn(self._sync_remote_lists(), "follow remote property lists")
         if not removed:
             return
@@ -245,7 +260,7 @@ class LocalService(Backend):
             if sub.inner is not None:
                 self.obj._ps_spawn(sub.inner.close(), f"close listen on {sub.path}")
 
-    def _spawn(self, coro: Coroutine[Any, Any, None], what: str) -> None:
+    def _spawn(self, coro: Coroutine[Any, Any, None], what: str) -> asyncio.Task[None]:
         task = asyncio.get_running_loop().create_task(coro, name=what)
         self._tasks.add(task)
 
@@ -255,11 +270,12 @@ class LocalService(Backend):
                 log.error("%s failed", what, exc_info=t.exception())
 
         task.add_done_callback(done)
+        return task
 
     def _remote_list_changed(self, change: Change) -> None:
         watch = self._watches.get("properties")
         if watch is not None:
-            watch.fire()
+            watch.fire(gap=change.gap)
 
     async def _sync_remote_lists(self) -> None:
         """While ``properties`` is listened to, follow ``properties`` of every remote child."""
@@ -269,15 +285,57 @@ class LocalService(Backend):
             for key in [k for k in self._remote_lists if k not in wanted]:
                 _, sub = self._remote_lists.pop(key)
                 await sub.close()
+            for key in [k for k in self._remote_list_retries if k not in wanted]:
+                self._remote_list_retries.pop(key).cancel()
             for key, backend in wanted.items():
-                if key in self._remote_lists:
+                if key in self._remote_lists or key in self._remote_list_retries:
                     continue
                 try:
                     sub = await backend.listen("properties", self._remote_list_changed)
                 except PropertyError as e:
                     log.debug("cannot follow the property list of %r: %s", backend, e.message)
+                    if e.code in _TRANSIENT:
+                        self._remote_list_retries[key] = self._spawn(
+                            self._follow_remote_list_later(key, backend), f"follow the list of {backend!r}"
+                        )
                     continue
                 self._remote_lists[key] = (backend, sub)
+
+    async def _follow_remote_list_later(self, key: int, backend: Backend) -> None:
+        """Ask a remote child that could not be reached for its list again, less and less often.
+
+        Once it answers, its names join ``properties``, delivered marked as a gap (the listing
+        may have missed changes meanwhile). Ends when it answers, or refuses for good, or is no
+        longer a child, or nobody listens to ``properties`` (cancelled by the sync).
+        """
+        mine = asyncio.current_task()
+        try:
+            for pause in pauses(REMOTE_LIST_RETRY_FIRST_S, REMOTE_LIST_RETRY_MAX_S):
+                await wait_to_retry(backend, pause)
+                try:
+                    sub = await backend.listen("properties", self._remote_list_changed)
+                except PropertyError as e:
+                    if e.code in _TRANSIENT:
+                        continue
+                    log.debug("cannot follow the property list of %r: %s", backend, e.message)
+                    return
+                async with self._remote_lists_lock:
+                    wanted = (
+                        "properties" in self._watches
+                        and not self._closed
+                        and key not in self._remote_lists
+                        and any(b is backend for b in remote_children(self.obj))
+                    )
+                    if wanted:
+                        self._remote_lists[key] = (backend, sub)
+                if not wanted:
+                    await sub.close()
+                    return
+                self._remote_list_changed(Change("properties", "", gap=True))
+                return
+        finally:
+            if self._remote_list_retries.get(key) is mine:
+                del self._remote_list_retries[key]
 
     async def properties(self) -> list[str]:
         return await all_properties(self.obj)
