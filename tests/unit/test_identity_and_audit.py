@@ -26,7 +26,8 @@ def hs256(claims: dict[str, object], secret: str = SECRET) -> str:
 
 
 def fresh(**claims: object) -> dict[str, object]:
-    return {"sub": "alice", "exp": int(time.time()) + 600, **claims}
+    # Made when the tests are collected, which may be long before they run: a day outlives any run.
+    return {"sub": "alice", "exp": int(time.time()) + 86_400, **claims}
 
 
 @pytest.fixture
