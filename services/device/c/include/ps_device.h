@@ -58,7 +58,7 @@
 #define ps_flash_copy(dst, src, n) memcpy((dst), (src), (n))
 #endif
 
-/* ---- status codes: the gRPC numbers (docs/line-protocol.md §6) ---------------------------- */
+/* ---- status codes: the gRPC numbers (docs/line-protocol.md §7) ---------------------------- */
 
 enum ps_code {
     PS_OK = 0,

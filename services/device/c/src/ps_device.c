@@ -555,6 +555,11 @@ static void answer_line(ps_device *dev) {
     case W_PONG: /* the answer to a PING of ours: nothing to do */
         break;
     case W_CANCEL: /* every SET is answered before the next line is read: nothing is left to stop */
+        while (rest_length && *rest == ' ') rest++, rest_length--;
+        if (!req.tag) /* §2.1: CANCEL names the request it cancels by its tag */
+            reply_error(dev, 0, PS_INVALID_ARGUMENT, PS_F("CANCEL needs a tag"));
+        else if (rest_length) /* §2.1: CANCEL takes nothing after the word */
+            reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("unexpected text after CANCEL"));
         break;
     case W_REPLY:
         reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("a reply; send a request"));

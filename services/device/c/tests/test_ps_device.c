@@ -151,6 +151,9 @@ static void test_greeting_and_words(void) {
     EXCHANGE("#t GET temp\t\n", "#t ERR 3 bad path\n");
     EXCHANGE("GET te\rmp\n", "ERR 3 raw CR in the line; write \\r\n");
     EXCHANGE("#c CANCEL\n", "");
+    EXCHANGE("#c CANCEL  \n", ""); /* trailing spaces are not a field */
+    EXCHANGE("CANCEL\n", "ERR 3 CANCEL needs a tag\n");
+    EXCHANGE("#c CANCEL x\n", "#c ERR 3 unexpected text after CANCEL\n"); /* §2.1: extra field */
     EXCHANGE("PONG 5\n", ""); /* the answer to a PING of the device's: nothing to answer */
     EXCHANGE("#e EVENT temp 3\n", "#e ERR 3 a reply; send a request\n");
     EXCHANGE("HELLO there\n", "ERR 3 unexpected text after HELLO\n");
