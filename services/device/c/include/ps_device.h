@@ -31,7 +31,8 @@
 #ifndef PS_RXBUF
 #define PS_RXBUF 0
 #endif
-/* At most this many properties per device: one bit each in the listen masks. */
+/* The properties that can be listened to or go: one bit each in the masks. A longer table serves
+ * the rest, but a LISTEN of one of them is ERR 8 and ps_gone ignores them. */
 #ifndef PS_MAX_PROPERTIES
 #define PS_MAX_PROPERTIES 16
 #endif

@@ -6,6 +6,7 @@
 
 #include "ps_device.h"
 
+/* Only properties below PS_MAX_PROPERTIES have a bit: the entry points check the index. */
 #define BIT(i) ((ps_mask)1 << (i))
 #define TAG_MAX 8
 #define PATH_MAX_LENGTH 256
@@ -422,8 +423,14 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
         return;
     }
     if (word == W_LISTEN) {
-        if (part == LIST) dev->flags |= PS_FLAG_LIST;
-        else dev->listening |= BIT(index);
+        if (part == LIST) {
+            dev->flags |= PS_FLAG_LIST;
+        } else if (index >= PS_MAX_PROPERTIES) { /* §3.1: no bit in the masks for this one */
+            reply_error(dev, req, PS_RESOURCE_EXHAUSTED, PS_F("subscription table full"));
+            return;
+        } else {
+            dev->listening |= BIT(index);
+        }
     }
     line_begin(dev, req);
     put_flash(dev, PS_F("OK "));
@@ -599,19 +606,21 @@ void ps_feed(ps_device *dev, const uint8_t *bytes, size_t count) {
 
 void ps_lost(ps_device *dev) { dev->flags |= PS_FLAG_LOST; }
 
-void ps_changed(ps_device *dev, uint8_t index) { dev->pending |= dev->listening & BIT(index); }
+void ps_changed(ps_device *dev, uint8_t index) {
+    if (index < PS_MAX_PROPERTIES) dev->pending |= dev->listening & BIT(index);
+}
 
 void ps_poll(ps_device *dev) { flush_events(dev); }
 
 void ps_gone(ps_device *dev, uint8_t index) {
-    if (dev->absent & BIT(index)) return;
+    if (index >= PS_MAX_PROPERTIES || dev->absent & BIT(index)) return;
     dev->absent |= BIT(index);
     dev->pending |= dev->listening & BIT(index); /* flush_events sends GONE */
     dev->flags |= PS_FLAG_LIST_DUE;
 }
 
 void ps_back(ps_device *dev, uint8_t index) {
-    if (!(dev->absent & BIT(index))) return;
+    if (index >= PS_MAX_PROPERTIES || !(dev->absent & BIT(index))) return;
     dev->absent &= ~BIT(index);
     dev->flags |= PS_FLAG_LIST_DUE;
 }
