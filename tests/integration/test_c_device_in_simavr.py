@@ -8,6 +8,7 @@ import asyncio
 import os
 import re
 import select
+import subprocess
 import time
 import tty
 from collections.abc import Iterator
@@ -55,6 +56,34 @@ def read_for(fd: int, seconds: float) -> str:
         if select.select([fd], [], [], left)[0]:
             out += os.read(fd, 4096)
     return out.decode()
+
+
+def test_the_harness_ends_on_sigterm(firmware: tuple[Path, Path], tmp_path: Path) -> None:
+    """SIGTERM ends the run at once, its output going to a file as when started in the background:
+    the SRAM figure printed, exit code 0. A few runs: stopping simavr's pty thread could hang."""
+    harness, elf = firmware
+    for run in range(5):
+        log = tmp_path / f"simavr{run}.log"
+        with log.open("w") as out:
+            proc = subprocess.Popen(
+                [str(harness), str(elf)], stdin=subprocess.DEVNULL, stdout=out, stderr=out
+            )
+        try:
+            deadline = time.monotonic() + WAIT
+            while "serial port" not in log.read_text() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(0.1 * run)
+            proc.terminate()
+            try:
+                code = proc.wait(3.0)
+            except subprocess.TimeoutExpired:
+                code = None
+            assert code == 0, f"run {run}: {log.read_text()}"
+            assert "untouched SRAM:" in log.read_text()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(5)
 
 
 def test_the_ring_overflows_without_flow_control_and_says_so(mcu: CProgram) -> None:

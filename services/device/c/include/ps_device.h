@@ -31,7 +31,8 @@
 #ifndef PS_RXBUF
 #define PS_RXBUF 0
 #endif
-/* At most this many properties per device: one bit each in the listen masks. */
+/* The properties that can be listened to or go: one bit each in the masks. A longer table serves
+ * the rest, but a LISTEN of one of them is ERR 8 and ps_gone ignores them. */
 #ifndef PS_MAX_PROPERTIES
 #define PS_MAX_PROPERTIES 16
 #endif
@@ -58,7 +59,7 @@
 #define ps_flash_copy(dst, src, n) memcpy((dst), (src), (n))
 #endif
 
-/* ---- status codes: the gRPC numbers (docs/line-protocol.md §6) ---------------------------- */
+/* ---- status codes: the gRPC numbers (docs/line-protocol.md §7) ---------------------------- */
 
 enum ps_code {
     PS_OK = 0,

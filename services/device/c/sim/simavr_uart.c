@@ -91,7 +91,8 @@ int main(int argc, char **argv) {
         state = avr_run(avr);
     }
     print_untouched(avr, sram_start);
-    uart_pty_stop(&uart);
+    /* No uart_pty_stop: it signals simavr's pty thread and joins it, which can wait for ever when
+     * the signal comes while that thread is outside its select(); ending the process ends it. */
     if (state == cpu_Crashed) {
         fprintf(stderr, "simavr_uart: the firmware crashed\n");
         return 1;

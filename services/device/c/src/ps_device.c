@@ -6,7 +6,15 @@
 
 #include "ps_device.h"
 
-#define BIT(i) ((ps_mask)1 << (i))
+/* Only properties below PS_MAX_PROPERTIES have a bit; the others get none (and no shift past the
+ * mask's width). */
+#ifdef __GNUC__
+__attribute__((noinline)) /* one copy: smaller on AVR than a shift at every use */
+#endif
+static ps_mask bit_of(uint8_t index) {
+    return index < PS_MAX_PROPERTIES ? (ps_mask)((ps_mask)1 << index) : (ps_mask)0;
+}
+#define BIT(i) bit_of(i)
 #define TAG_MAX 8
 #define PATH_MAX_LENGTH 256
 
@@ -422,8 +430,14 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
         return;
     }
     if (word == W_LISTEN) {
-        if (part == LIST) dev->flags |= PS_FLAG_LIST;
-        else dev->listening |= BIT(index);
+        if (part == LIST) {
+            dev->flags |= PS_FLAG_LIST;
+        } else if (!BIT(index)) { /* §3.1: no bit in the masks for this one */
+            reply_error(dev, req, PS_RESOURCE_EXHAUSTED, PS_F("subscription table full"));
+            return;
+        } else {
+            dev->listening |= BIT(index);
+        }
     }
     line_begin(dev, req);
     put_flash(dev, PS_F("OK "));
@@ -555,6 +569,11 @@ static void answer_line(ps_device *dev) {
     case W_PONG: /* the answer to a PING of ours: nothing to do */
         break;
     case W_CANCEL: /* every SET is answered before the next line is read: nothing is left to stop */
+        while (rest_length && *rest == ' ') rest++, rest_length--;
+        if (!req.tag) /* §2.1: CANCEL names the request it cancels by its tag */
+            reply_error(dev, 0, PS_INVALID_ARGUMENT, PS_F("CANCEL needs a tag"));
+        else if (rest_length) /* §2.1: CANCEL takes nothing after the word */
+            reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("unexpected text after CANCEL"));
         break;
     case W_REPLY:
         reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("a reply; send a request"));
@@ -594,12 +613,14 @@ void ps_feed(ps_device *dev, const uint8_t *bytes, size_t count) {
 
 void ps_lost(ps_device *dev) { dev->flags |= PS_FLAG_LOST; }
 
-void ps_changed(ps_device *dev, uint8_t index) { dev->pending |= dev->listening & BIT(index); }
+void ps_changed(ps_device *dev, uint8_t index) {
+    dev->pending |= dev->listening & BIT(index);
+}
 
 void ps_poll(ps_device *dev) { flush_events(dev); }
 
 void ps_gone(ps_device *dev, uint8_t index) {
-    if (dev->absent & BIT(index)) return;
+    if (!BIT(index) || dev->absent & BIT(index)) return;
     dev->absent |= BIT(index);
     dev->pending |= dev->listening & BIT(index); /* flush_events sends GONE */
     dev->flags |= PS_FLAG_LIST_DUE;

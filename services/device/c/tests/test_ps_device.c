@@ -151,6 +151,9 @@ static void test_greeting_and_words(void) {
     EXCHANGE("#t GET temp\t\n", "#t ERR 3 bad path\n");
     EXCHANGE("GET te\rmp\n", "ERR 3 raw CR in the line; write \\r\n");
     EXCHANGE("#c CANCEL\n", "");
+    EXCHANGE("#c CANCEL  \n", ""); /* trailing spaces are not a field */
+    EXCHANGE("CANCEL\n", "ERR 3 CANCEL needs a tag\n");
+    EXCHANGE("#c CANCEL x\n", "#c ERR 3 unexpected text after CANCEL\n"); /* §2.1: extra field */
     EXCHANGE("PONG 5\n", ""); /* the answer to a PING of the device's: nothing to answer */
     EXCHANGE("#e EVENT temp 3\n", "#e ERR 3 a reply; send a request\n");
     EXCHANGE("HELLO there\n", "ERR 3 unexpected text after HELLO\n");
@@ -345,6 +348,32 @@ static void test_noise(void) {
     }
 }
 
+/* A table longer than PS_MAX_PROPERTIES: the properties past the listen masks are served, but a
+ * LISTEN of one is refused (ERR 8, §3.1) instead of answered OK and never followed by an EVENT. */
+static ps_fixed many[PS_MAX_PROPERTIES + 1];
+static const char many_first[] = "m0", many_last[] = "mlast";
+#define MANY(i) PS_NUMBER_PROPERTY(many_first, many[i], 0, PS_READ_WRITE, 0)
+static const ps_property many_table[PS_MAX_PROPERTIES + 1] = {
+    MANY(0), MANY(1), MANY(2), MANY(3), MANY(4), MANY(5), MANY(6), MANY(7), MANY(8), MANY(9),
+    MANY(10), MANY(11), MANY(12), MANY(13), MANY(14), MANY(15),
+    PS_NUMBER_PROPERTY(many_last, many[PS_MAX_PROPERTIES], 0, PS_READ_WRITE, 0),
+};
+static const ps_config many_config = {"t2", "sensor", many_table, PS_MAX_PROPERTIES + 1, sink, 0, 0};
+
+static void test_more_properties_than_the_masks(void) {
+    memset(&dev, 0, sizeof dev);
+    reset_out();
+    ps_begin(&dev, &many_config);
+    EXCHANGE("#1 LISTEN mlast\n", "#1 ERR 8 subscription table full\n");
+    EXCHANGE("#2 SET mlast 4\n", "#2 OK 4\n");
+    EXCHANGE("#3 GET mlast\n", "#3 OK 4\n");
+    reset_out();
+    ps_changed(&dev, PS_MAX_PROPERTIES); /* no bit to set: nothing, and no undefined shift */
+    ps_gone(&dev, PS_MAX_PROPERTIES);
+    ps_poll(&dev);
+    CHECK(out_length == 0);
+}
+
 int main(void) {
     test_values();
     test_greeting_and_words();
@@ -353,6 +382,7 @@ int main(void) {
     test_checksums();
     test_listen();
     test_noise();
+    test_more_properties_than_the_masks();
     printf("%d checks, %d failed\n", checks, failures);
     return failures ? 1 : 0;
 }
