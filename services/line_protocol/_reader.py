@@ -77,6 +77,10 @@ class _Fields:
         """The value: everything after the single space that follows the last field read."""
         return unescape(self.text[self.pos + 1 :])
 
+    def raw_rest(self) -> str:
+        """The rest of the line as sent, escapes and all (PING and PONG data: echoed byte for byte)."""
+        return self.text[self.pos + 1 :]
+
     def at_end(self) -> bool:
         return not self.text[self.pos :].strip(" ")
 
@@ -203,9 +207,9 @@ def _parse(text: str) -> Frame:
             raise LineProtocolError("CANCEL names the request it cancels by its tag: #TAG CANCEL")
         return Cancel(tag)
     if verb == "PING":
-        return Ping(fields.rest(), tag)
+        return Ping(fields.raw_rest(), tag)
     if verb == "PONG":
-        return Pong(fields.rest(), tag)
+        return Pong(fields.raw_rest(), tag)
     if verb == "HELLO":
         return _hello(fields, tag)
     if verb in ("EVENT", "GONE"):

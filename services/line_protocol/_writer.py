@@ -57,6 +57,12 @@ def _rest(text: str) -> str:
     return f" {escape_value(text)}" if text else ""
 
 
+def _raw(text: str) -> str:
+    if "\n" in text or "\r" in text:
+        raise LineProtocolError("PING and PONG data cannot hold a line break")
+    return f" {text}" if text else ""
+
+
 def _body(frame: Frame) -> str:
     match frame:
         case Get(path, params, tag):
@@ -67,10 +73,11 @@ def _body(frame: Frame) -> str:
             return f"{_tag(tag)}LISTEN {_params(params)}{_path(path)}"
         case Unlisten(path, params, tag):
             return f"{_tag(tag)}UNLISTEN {_params(params)}{_path(path)}"
+        # PING data is opaque: echoed byte for byte, never escaped or decoded (§3.1).
         case Ping(data, tag):
-            return f"{_tag(tag)}PING{_rest(data)}"
+            return f"{_tag(tag)}PING{_raw(data)}"
         case Pong(data, tag):
-            return f"{_tag(tag)}PONG{_rest(data)}"
+            return f"{_tag(tag)}PONG{_raw(data)}"
         case HelloRequest(tag):
             return f"{_tag(tag)}HELLO"
         case Cancel(tag):

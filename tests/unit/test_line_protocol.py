@@ -40,6 +40,8 @@ tags = st.none() | st.from_regex(r"\A[A-Za-z0-9_-]{1,8}\Z")
 paths = st.from_regex(r"\A[A-Za-z0-9_-]{1,12}(\.[A-Za-z0-9_-]{1,12}){0,3}\Z")
 names = st.from_regex(r"\A[A-Za-z0-9_.-]{1,12}\Z")
 texts = st.text(max_size=60)
+#: PING and PONG data travel as sent (no escapes), so they hold no control characters.
+ping_data = st.text(st.characters(exclude_categories=("Cc", "Cs")), max_size=60)
 params = st.dictionaries(names, texts, max_size=3)
 hello_extra = st.dictionaries(
     names.filter(lambda k: k not in {"name", "type", "push", "maxline", "inflight", "rxbuf"}),
@@ -52,8 +54,8 @@ frames: st.SearchStrategy[Frame] = st.one_of(
     st.builds(Set, paths, texts, params, tags),
     st.builds(Listen, paths, params, tags),
     st.builds(Unlisten, paths, params, tags),
-    st.builds(Ping, texts, tags),
-    st.builds(Pong, texts, tags),
+    st.builds(Ping, ping_data, tags),
+    st.builds(Pong, ping_data, tags),
     st.builds(HelloRequest, tags),
     st.builds(
         Hello,
@@ -260,3 +262,12 @@ def test_the_receiver_says_which_lines_were_checksummed_and_a_plain_hello_ends_c
     assert not receiver.saw_checksum
     receiver.receive_data(b"$HELLO*%02X\n" % crc8(b"HELLO"))
     assert receiver.saw_checksum
+
+
+def test_ping_data_is_echoed_byte_for_byte() -> None:
+    # PING data is opaque (docs/line-protocol.md §3.1): no escape is decoded, so none is refused.
+    for raw in (b"PING a\\qb\n", b"#1 PING a\\sb  \n"):
+        (ping,) = LineReceiver().receive_data(raw)
+        assert isinstance(ping, Ping)
+        echoed = encode(Pong(ping.data, ping.tag)).rstrip(b"\n")
+        assert echoed.endswith(raw.rstrip(b"\n").split(b"PING", 1)[1])
