@@ -16,12 +16,12 @@ import json
 import logging
 from collections.abc import Awaitable, Callable
 
-from aiohttp import web
+from aiohttp import HttpVersion11, hdrs, web
 
 from gateway.calls import Calls
 from gateway.config import Config, is_loopback
 from gateway.guard import Guard
-from gateway.http.api import Api
+from gateway.http.api import Api, body_too_large
 from gateway.http.console import CONSOLE_ROOT, Console
 from gateway.http.errors import PAYLOAD_TOO_LARGE, error_response
 from gateway.http.events import EventStreams
@@ -30,7 +30,7 @@ from gateway.http.safety import check_request
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, port_holder
 from gateway.tls import HttpsCredentials
-from services.errors import Code, PropertyError, ResourceExhausted, error_for
+from services.errors import Code, InvalidArgument, PropertyError, ResourceExhausted, error_for
 
 log = logging.getLogger("gateway.http")
 
@@ -72,8 +72,8 @@ class HttpFront:
         add("GET", "/api/v1/services", api.services)
         add("GET", "/api/v1/services/{service}/model", api.model)
         add("GET", "/api/v1/services/{service}/properties/{path}", api.get)
-        add("PUT", "/api/v1/services/{service}/properties/{path}", api.set)
-        add("POST", "/api/v1/services/{service}/properties/{path}", api.set)
+        add("PUT", "/api/v1/services/{service}/properties/{path}", api.set, expect_handler=self._expect)
+        add("POST", "/api/v1/services/{service}/properties/{path}", api.set, expect_handler=self._expect)
         add("GET", "/api/v1/events", self.events.events)
         add("GET", "/api/v1/health", api.health)
 
@@ -85,6 +85,24 @@ class HttpFront:
             add("GET", "/", self.console.file)
             add("GET", "/console/{file:.*}", self.console.file)
         return app
+
+    async def _expect(self, request: web.Request) -> web.StreamResponse | None:
+        """``Expect: 100-continue``: a body announced over ``max_body`` is refused before it is sent
+        (aiohttp's own handler says 100 Continue first, and the client sends it all)."""
+        length = request.content_length
+        if length is not None and length > self.settings.max_body:
+            return body_too_large(length, self.settings.max_body)
+        if (
+            request.version == HttpVersion11
+            and request.headers.get(hdrs.EXPECT, "").lower() == "100-continue"
+        ):
+            await request.writer.write(b"HTTP/1.1 100 Continue\r\n\r\n")
+            request.writer.output_size = 0  # the answer proper has not begun
+            return None
+        expect = request.headers.get(hdrs.EXPECT, "")[:100]
+        return error_response(
+            InvalidArgument(f"unknown Expect: {expect!r} (known: 100-continue)"), status=417
+        )
 
     @web.middleware
     async def _middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:

@@ -73,6 +73,42 @@ async def put(http: aiohttp.ClientSession, url: str, data: bytes, headers: dict[
         return response.status, await response.json()
 
 
+async def test_a_body_announced_too_large_is_413_before_it_is_sent(gateway: GatewayProcess) -> None:
+    """``Expect: 100-continue`` (curl sends it for bodies over 1 MB): 413 at once, no 100 Continue."""
+    port = port_of(gateway)
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    try:
+        writer.write(
+            (
+                f"PUT {NOTE} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
+                f"Content-Length: {2 * 1024 * 1024}\r\nExpect: 100-continue\r\n\r\n"
+            ).encode()
+        )
+        await writer.drain()
+        async with asyncio.timeout(10):
+            status_line = await reader.readline()
+            head = (await reader.readuntil(b"\r\n\r\n")).decode("latin-1")
+        assert status_line.split()[1] == b"413", f"the answer to the announced body: {status_line!r}"
+        length = int(
+            next(line for line in head.split("\r\n") if line.lower().startswith("content-length")).split(":")[
+                1
+            ]
+        )
+        async with asyncio.timeout(10):
+            error = json.loads(await reader.readexactly(length))["error"]
+        assert error["code"] == "RESOURCE_EXHAUSTED" and "http.max_body" in error["message"], error
+    finally:
+        writer.close()
+    # An expectation the front end does not know is a JSON error too.
+    head = (
+        f"PUT {NOTE} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
+        "Content-Length: 2\r\nExpect: bogus"
+    )
+    status, _, payload = await raw_request(port, head, b"{}")
+    assert status == 417
+    assert json.loads(payload)["error"]["code"] == "INVALID_ARGUMENT"
+
+
 @pytest.mark.parametrize(
     ("body", "named"),
     [

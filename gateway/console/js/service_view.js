@@ -4,7 +4,7 @@
 
 import { describe, getProperty, setProperty } from './api.js';
 import { h } from './dom.js';
-import { propertyView } from './widgets.js';
+import { needsParameters, propertyView } from './widgets.js';
 
 /** Selectors a view follows at least, however full the page's stream is. */
 const MIN_FOLLOWED = 8;
@@ -95,7 +95,8 @@ export class ServiceView {
         label: ns ? prop.name.slice(ns.length + 1) : prop.name,
       });
       this._views.set(prop.name, view);
-      if (LISTENABLE.has(prop.access)) targets.set(prop.name, leafTarget(view));
+      // One that needs a parameter (a file's name) cannot be followed: its form reads it.
+      if (LISTENABLE.has(prop.access) && !needsParameters(prop)) targets.set(prop.name, leafTarget(view));
       return view.element;
     };
     const byName = new Map(all.map((p) => [p.name, p]));

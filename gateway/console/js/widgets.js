@@ -19,6 +19,7 @@ const GUI_NAME = /^[A-Za-z0-9_.-]{1,64}$/;
 const builtins = new Map(); // gui word -> factory
 const builtinTypes = new Map(); // data type -> factory
 const extensions = new Map(); // gui word -> factory, from registerWidget
+let addressedFactory = null; // the built-in form of a property that needs parameters to be read
 
 function checked(gui, factory) {
   if (typeof gui !== 'string' || !GUI_NAME.test(gui)) {
@@ -45,6 +46,21 @@ export function registerTypeWidget(type, factory) {
   builtinTypes.set(type, factory);
 }
 
+/**
+ * A readable or writable property that cannot be read without a request parameter (a storage
+ * service's `file` needs `name`): the page cannot follow it, only read it with parameters given.
+ */
+export function needsParameters(prop) {
+  if (prop.access === 'action' || prop.access === 'query') return false;
+  return (prop.parameters ?? []).some((p) => p.required && (p.default === null || p.default === undefined));
+}
+
+/** The built-in widget of a property that needs parameters (see needsParameters). */
+export function registerAddressedWidget(factory) {
+  checked('addressed', factory);
+  addressedFactory = factory;
+}
+
 /** The gui words that have a widget: built in, then registered. */
 export function widgetNames() {
   return [...new Set([...builtins.keys(), ...extensions.keys()])].sort();
@@ -55,6 +71,7 @@ export function widgetFor(prop) {
   if (prop.gui && extensions.has(prop.gui)) return extensions.get(prop.gui);
   if (prop.access === 'action') return builtins.get('button');
   if (prop.access === 'query') return builtins.get('query');
+  if (addressedFactory && needsParameters(prop)) return addressedFactory;
   return builtins.get(prop.gui) ?? builtinTypes.get(prop.type) ?? builtins.get('text');
 }
 
