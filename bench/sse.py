@@ -164,26 +164,41 @@ async def run_sse_listen(
 
 #: Seconds the gateway gets to settle before its memory is read.
 SETTLE_S = 1.0
+#: Idle streams opened from one loopback address (below http.max_streams_per_client, 64).
+IDLE_PER_SOURCE = 50
 
 
 async def idle_memory(streams: int) -> dict[str, Any]:
     """RSS of a fresh gateway before and after ``streams`` idle event streams; KiB per stream."""
     server = await ServerProcess.start("gateway with HTTP", ARGV)
-    connector = aiohttp.TCPConnector(limit=0, force_close=True)
     url = f"{http_url(server)}api/v1/events?sel={SERVICE}/{VALUE_PROPERTY}"
     responses: list[aiohttp.ClientResponse] = []
+    # Streams from several loopback addresses (127.0.0.10, .11, ...), each under
+    # http.max_streams_per_client, as many clients would open them.
+    sources = [f"127.0.0.{10 + n}" for n in range(math.ceil(streams / IDLE_PER_SOURCE))]
     try:
-        async with aiohttp.ClientSession(
-            connector=connector, timeout=aiohttp.ClientTimeout(total=None)
-        ) as http:
+        async with contextlib.AsyncExitStack() as stack:
+            sessions = [
+                await stack.enter_async_context(
+                    aiohttp.ClientSession(
+                        connector=aiohttp.TCPConnector(limit=0, force_close=True, local_addr=(source, 0)),
+                        timeout=aiohttp.ClientTimeout(total=None),
+                    )
+                )
+                for source in sources
+            ]
             # One stream first: the first request's one-time allocations are not counted.
-            first = await http.get(url)
+            first = await sessions[0].get(url)
             await _SseSubscriber(first, Run(expected=0)).wait_sync()
             await asyncio.sleep(SETTLE_S)
             before = server.rss_bytes()
             try:
                 async with asyncio.timeout(CALL_TIMEOUT * 3):
-                    responses = list(await asyncio.gather(*(http.get(url) for _ in range(streams))))
+                    responses = list(
+                        await asyncio.gather(
+                            *(sessions[(n + 1) % len(sessions)].get(url) for n in range(streams))
+                        )
+                    )
                     await asyncio.gather(*(_SseSubscriber(r, Run(expected=0)).wait_sync() for r in responses))
                 await asyncio.sleep(SETTLE_S)
                 after = server.rss_bytes()

@@ -14,6 +14,7 @@ from __future__ import annotations
 import errno
 import json
 import logging
+import resource
 from collections.abc import Awaitable, Callable
 
 from aiohttp import HttpVersion11, hdrs, web
@@ -38,6 +39,29 @@ Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 #: HTTP errors aiohttp raises itself, as the code each stands for (others: by their class of status).
 _HTTP_CODES = {404: Code.NOT_FOUND, 413: Code.RESOURCE_EXHAUSTED}
+
+
+#: Descriptors the gateway needs beside its event streams: gRPC connections, proxies, logs.
+FILES_BESIDE_STREAMS = 1024
+
+
+def room_for_files(wanted: int) -> None:
+    """Raise the soft limit on open files towards ``wanted`` (at most the hard limit): many
+    systems start processes with 1,024, fewer than ``http.max_streams`` connections need."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= wanted:
+        return
+    new = wanted if hard == resource.RLIM_INFINITY else min(wanted, hard)
+    if new > soft:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (new, hard))
+        log.debug("open files limit raised from %d to %d for http.max_streams", soft, new)
+    if new < wanted:
+        log.warning(
+            "open files are limited to %d (hard limit), fewer than http.max_streams needs (%d):"
+            " connections beyond are refused by the system",
+            new,
+            wanted,
+        )
 
 
 class HttpFront:
@@ -134,6 +158,7 @@ class HttpFront:
 
     async def start(self) -> None:
         """Listen; raises PortInUse (one line naming the holder) when the port is taken."""
+        room_for_files(self.settings.max_streams + FILES_BESIDE_STREAMS)
         host, _, port_text = self.settings.listen.rpartition(":")
         host = host.strip("[]")
         port = int(port_text)
