@@ -228,7 +228,9 @@ class Gateway:
         proxies: list[tuple[str, Backend]] = []
         for entry, device in zip(self.config.devices, self._devices, strict=True):
             if device.url.startswith("serial://"):
+                # The link's path and the pseudo-terminal's (now and after each restart).
                 self.allow.reserve(urlsplit(device.url).path)
+                device.on_restart = lambda url: self.allow.reserve(urlsplit(url).path)
             backend = open_proxy(entry.name, device.url, entry.proxy)
             await self._add(entry.name, backend, f"device process {device.pid} at {device.url}")
             proxies.append((entry.name, backend))

@@ -42,6 +42,7 @@ import shutil
 import signal
 import sys
 import tempfile
+from collections.abc import Callable
 from urllib.parse import urlsplit
 
 from gateway.config import DeviceEntry
@@ -186,6 +187,8 @@ class SupervisedDevice:
         self.steady_s = steady_s
         #: Restarts so far.
         self.restarts = 0
+        #: Called with the device's own URL after each restart (the gateway reserves a new serial line).
+        self.on_restart: Callable[[str], None] | None = None
         self._closing = False
         self._link_dir = ""
         parts = urlsplit(device.url)
@@ -249,6 +252,8 @@ class SupervisedDevice:
                 self.device = device
                 self.restarts += 1
                 self._relink()
+                if self.on_restart is not None:
+                    self.on_restart(device.url)
                 log.info(
                     "device %s: started again (pid %d, restart %d)", self.name, device.pid, self.restarts
                 )
