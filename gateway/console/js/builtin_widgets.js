@@ -5,7 +5,7 @@
 // an input per parameter [data-param=NAME], a value input [data-value] when it takes a value,
 // and a button [data-action=invoke]; a property that needs parameters to be read, a form of them.
 
-import { registerAddressedWidget, registerBuiltin, registerTypeWidget } from './widgets.js';
+import { needsConfirmation, registerAddressedWidget, registerBuiltin, registerTypeWidget } from './widgets.js';
 import { statechartWidget } from './statechart.js';
 import { findMarkers, formatNumber, markerFromInput, parseVector, valueFromInput } from './values.js';
 
@@ -73,6 +73,26 @@ function textWidget(prop, ctx) {
   const input = ctx.h('input', { type: 'text', 'aria-label': prop.name, spellcheck: 'false' });
   const ed = editor(ctx, input, { read: () => valueFromInput(prop.type, input.value) });
   return { element: ed.element, update: (text) => ed.show(text) };
+}
+
+/** A long text (`.gui` `text-area`, or `code`: a chart, a script): a text area of several lines. */
+function textAreaWidget(prop, ctx) {
+  if (!ctx.writable) return { element: null };
+  const code = prop.gui === 'code';
+  const area = ctx.h('textarea', {
+    rows: code ? 12 : 6,
+    class: code ? 'code' : 'long-text',
+    'aria-label': prop.name,
+    spellcheck: code ? 'false' : 'true',
+    dataset: { value: '' },
+  });
+  const ed = editor(ctx, area);
+  return { element: ed.element, update: (text) => ed.show(text) };
+}
+
+/** Unix seconds (`.gui` `time`): `.value` shows the date and time (js/widgets.js displayValue). */
+function timeWidget(prop, ctx) {
+  return ctx.writable ? numberWidget(prop, ctx) : { element: null };
 }
 
 function numberInput(ctx, prop) {
@@ -462,6 +482,10 @@ function buttonWidget(prop, ctx) {
       ctx.showError(e);
       return;
     }
+    if (needsConfirmation(prop)) {
+      const ask = ctx.confirm ?? ((question) => globalThis.confirm(question));
+      if (!ask(`${prop.name} of ${ctx.service}: ${prop.doc || 'invoke it'}. Go ahead?`)) return;
+    }
     const reply = await ctx.set(text, params.read());
     if (reply !== null) ctx.showValue(reply === '' ? 'done' : reply);
   };
@@ -560,6 +584,9 @@ registerBuiltin('button', buttonWidget);
 registerBuiltin('query', queryWidget);
 registerBuiltin('group', namespaceWidget);
 registerBuiltin('statechart', statechartWidget);
+registerBuiltin('text-area', textAreaWidget);
+registerBuiltin('code', textAreaWidget);
+registerBuiltin('time', timeWidget);
 registerAddressedWidget(addressedWidget);
 
 registerTypeWidget('number', numberWidget);

@@ -14,6 +14,30 @@
 // registered there wins over the built-in one for that `.gui` word (docs/console.md).
 
 import { h, svg } from './dom.js';
+import { formatTime } from './values.js';
+
+/** `.gui` words of a text shown in a text area of several lines (a chart, a script, a note). */
+export const TEXT_AREA_GUIS = new Set(['text-area', 'code']);
+/** Actions that undo work (their path's last name): the console asks before it invokes them. */
+export const CONFIRMED_ACTIONS = new Set(['remove', 'delete', 'stop-all', 'stop_all']);
+
+/** Whether invoking action `prop` asks for confirmation first: by its name, or `.gui` `confirm`. */
+export function needsConfirmation(prop) {
+  if (prop.access !== 'action') return false;
+  return prop.gui === 'confirm' || CONFIRMED_ACTIONS.has(prop.name.split('.').pop());
+}
+
+/**
+ * The text shown for a value of `prop`, and its tooltip: a `.gui` `time` (Unix seconds, the
+ * registry's `last_seen`) shows as a local date and time with the number in the tooltip.
+ */
+export function displayValue(prop, text) {
+  if (prop.gui === 'time') {
+    const time = formatTime(text);
+    if (time !== null) return { text: time, title: `${text} (Unix seconds)` };
+  }
+  return { text, title: text };
+}
 
 const GUI_NAME = /^[A-Za-z0-9_.-]{1,64}$/;
 const builtins = new Map(); // gui word -> factory
@@ -110,8 +134,9 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
   );
 
   const showValue = (text) => {
-    value.textContent = text;
-    value.title = text;
+    const shown = displayValue(prop, text);
+    value.textContent = shown.text;
+    value.title = shown.title;
   };
   const showError = (e) => {
     error.textContent = `${e?.code ?? 'UNKNOWN'}: ${e?.message ?? e}`;
