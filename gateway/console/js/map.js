@@ -147,18 +147,22 @@ export class RobotMap {
       }
     }
     this.drawAll();
+    // A service that is not up is described again once it is (its model may have changed).
+    for (const service of list) if (service.state !== 'up') this._described.delete(service.name);
     this._describeNew(list);
   }
 
   async _describeNew(list) {
     for (const service of list) {
+      // Only a service that is up can describe itself; one that fails is asked again after it
+      // was down and is up again, never with every change of the list.
+      if (service.state !== 'up') continue;
       if (this._described.has(service.name) || this._described.size >= MAX_DESCRIBED) continue;
       this._described.add(service.name);
       let model;
       try {
         model = await describe(service.name);
       } catch {
-        this._described.delete(service.name); // asked again with the next list
         continue;
       }
       for (const prop of model.properties ?? []) {

@@ -32,7 +32,7 @@ export class ServiceView {
   }
 
   /** Show `service` ({name, type, state, address}), or nothing for null. */
-  async show(service) {
+  async show(service, { fresh = false } = {}) {
     this._close();
     const generation = ++this._generation;
     this.service = service;
@@ -51,7 +51,7 @@ export class ServiceView {
     this.root.replaceChildren(this.header(service), h('p', { class: 'muted' }, 'Loading the model…'));
     let model;
     try {
-      model = await this.describe(service.name);
+      model = await this.describe(service.name, { fresh });
     } catch (e) {
       if (generation !== this._generation) return;
       if (e.code === 'UNAVAILABLE') {
@@ -217,7 +217,7 @@ export class ServiceView {
     if (value === this._propertiesText || this._reloadTimer !== null) return;
     this._reloadTimer = setTimeout(() => {
       this._reloadTimer = null;
-      if (this.service) this.show(this.service);
+      if (this.service) this.show(this.service, { fresh: true }); // the model changed: read it anew
     }, 300);
   }
 
