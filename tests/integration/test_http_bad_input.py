@@ -431,6 +431,7 @@ async def test_a_reader_that_never_reads_is_cut_after_the_write_deadline(
 
             await eventually(set_and_see, lambda out: "http.write_timeout" in out, within=30)
             assert "event stream to 127.0.0.1 ended" in gw.output
+            assert "Traceback" not in gw.output
             # The reading client goes on.
             await client.set("board", "note", "after the cut")
             event = await fast.until("value")

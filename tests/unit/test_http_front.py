@@ -303,3 +303,18 @@ def test_check_config_checks_and_names_the_http_section(
     errors = capsys.readouterr().err.splitlines()
     assert sum("http.max_body" in line for line in errors) == 1
     assert sum("http.heartbeat" in line for line in errors) == 1
+
+
+def test_the_open_files_limit_is_raised_for_max_streams() -> None:
+    import resource
+
+    from gateway.http.front import room_for_files
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard != resource.RLIM_INFINITY and soft >= hard:
+        pytest.skip(f"the soft limit on open files is already the hard limit ({hard})")
+    wanted = soft + 16
+    room_for_files(wanted)
+    assert resource.getrlimit(resource.RLIMIT_NOFILE) == (wanted, hard)
+    room_for_files(soft)  # never lowered
+    assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == wanted
