@@ -311,10 +311,16 @@ def test_the_open_files_limit_is_raised_for_max_streams() -> None:
     from gateway.http.front import room_for_files
 
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if hard != resource.RLIM_INFINITY and soft >= hard:
-        pytest.skip(f"the soft limit on open files is already the hard limit ({hard})")
-    wanted = soft + 16
-    room_for_files(wanted)
-    assert resource.getrlimit(resource.RLIMIT_NOFILE) == (wanted, hard)
-    room_for_files(soft)  # never lowered
-    assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == wanted
+    top = soft if hard == resource.RLIM_INFINITY else hard
+    low = top - 100
+    try:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (low, hard))  # a soft limit under the hard one
+        room_for_files(low + 50)
+        assert resource.getrlimit(resource.RLIMIT_NOFILE) == (low + 50, hard)
+        room_for_files(low)  # never lowered
+        assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == low + 50
+        if hard != resource.RLIM_INFINITY:
+            room_for_files(hard + 1000)  # at most the hard limit (and a warning)
+            assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == hard
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
