@@ -6,10 +6,11 @@ The same setter (one gRPC client, one unary Set at a time, the value being
 
 * ``grpc``: ``subscribers`` gRPC Listen streams on ``bench/value`` (part (c)'s one-by-one run);
 * ``sse``: ``subscribers`` event streams (``GET /api/v1/events?sel=bench/value``), each on its
-  own HTTP connection, as that many browser tabs would hold them.
+  own HTTP connection, as that many browser tabs would hold them (from several loopback
+  addresses, 50 each, below the front end's ``max_streams_per_client``).
 
 Then, on a fresh gateway, ``idle`` event streams are opened and left idle (below the front
-end's ``max_streams``, 256): the gateway's RSS before and after, divided by the streams, is the
+end's ``max_streams``, 4,096): the gateway's RSS before and after, divided by the streams, is the
 memory one idle SSE client costs (its connection, its request, its stream of the hub).
 
 A subscriber subtracts the value from its own ``perf_counter_ns`` when an event arrives
@@ -93,6 +94,27 @@ class _SseSubscriber:
             self.check_done()
 
 
+#: Event streams opened from one loopback address (below http.max_streams_per_client, 64).
+STREAMS_PER_SOURCE = 50
+
+
+async def sessions_from_sources(
+    stack: contextlib.AsyncExitStack, streams: int
+) -> list[aiohttp.ClientSession]:
+    """HTTP sessions from several loopback addresses (127.0.0.10, .11, ...), enough for ``streams``
+    event streams at STREAMS_PER_SOURCE each, as that many clients would open them."""
+    sources = [f"127.0.0.{10 + n}" for n in range(math.ceil(streams / STREAMS_PER_SOURCE))]
+    return [
+        await stack.enter_async_context(
+            aiohttp.ClientSession(
+                connector=aiohttp.TCPConnector(limit=0, force_close=True, local_addr=(source, 0)),
+                timeout=aiohttp.ClientTimeout(total=None),
+            )
+        )
+        for source in sources
+    ]
+
+
 async def run_sse_listen(
     server: ServerProcess, base_url: str, *, subscribers: int, sets: int, set_rate: float, time_limit: float
 ) -> ListenResult:
@@ -108,22 +130,24 @@ async def run_sse_listen(
     )
     run = Run(expected=sets)
     deadline = time.monotonic() + time_limit
-    connector = aiohttp.TCPConnector(limit=0, force_close=True)
     url = f"{base_url}api/v1/events?sel={SERVICE}/{VALUE_PROPERTY}"
     subs: list[_SseSubscriber] = []
     tasks: list[asyncio.Task[None]] = []
     first_set_ns = 0
     async with (
-        aiohttp.ClientSession(connector=connector, timeout=aiohttp.ClientTimeout(total=None)) as http,
+        contextlib.AsyncExitStack() as stack,
         grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) as setter_channel,
     ):
+        sessions = await sessions_from_sources(stack, subscribers)
         try:
             setter = pb_grpc.PropertyServiceStub(setter_channel)
             await setter.Set(
                 pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value="0"), timeout=CALL_TIMEOUT
             )
             async with asyncio.timeout(CALL_TIMEOUT * 3):
-                responses = await asyncio.gather(*(http.get(url) for _ in range(subscribers)))
+                responses = await asyncio.gather(
+                    *(sessions[n % len(sessions)].get(url) for n in range(subscribers))
+                )
                 subs = [_SseSubscriber(response, run) for response in responses]
                 await asyncio.gather(*(sub.wait_sync() for sub in subs))
             tasks = [asyncio.create_task(sub.consume()) for sub in subs]
@@ -169,21 +193,23 @@ SETTLE_S = 1.0
 async def idle_memory(streams: int) -> dict[str, Any]:
     """RSS of a fresh gateway before and after ``streams`` idle event streams; KiB per stream."""
     server = await ServerProcess.start("gateway with HTTP", ARGV)
-    connector = aiohttp.TCPConnector(limit=0, force_close=True)
     url = f"{http_url(server)}api/v1/events?sel={SERVICE}/{VALUE_PROPERTY}"
     responses: list[aiohttp.ClientResponse] = []
     try:
-        async with aiohttp.ClientSession(
-            connector=connector, timeout=aiohttp.ClientTimeout(total=None)
-        ) as http:
+        async with contextlib.AsyncExitStack() as stack:
+            sessions = await sessions_from_sources(stack, streams + 1)
             # One stream first: the first request's one-time allocations are not counted.
-            first = await http.get(url)
+            first = await sessions[0].get(url)
             await _SseSubscriber(first, Run(expected=0)).wait_sync()
             await asyncio.sleep(SETTLE_S)
             before = server.rss_bytes()
             try:
                 async with asyncio.timeout(CALL_TIMEOUT * 3):
-                    responses = list(await asyncio.gather(*(http.get(url) for _ in range(streams))))
+                    responses = list(
+                        await asyncio.gather(
+                            *(sessions[(n + 1) % len(sessions)].get(url) for n in range(streams))
+                        )
+                    )
                     await asyncio.gather(*(_SseSubscriber(r, Run(expected=0)).wait_sync() for r in responses))
                 await asyncio.sleep(SETTLE_S)
                 after = server.rss_bytes()

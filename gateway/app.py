@@ -31,7 +31,7 @@ from grpc_reflection.v1alpha import reflection
 
 from gateway.backends import open_backend, open_proxy
 from gateway.config import REGISTRY_NAME, Config, ConfigError, ServiceEntry
-from gateway.devices import DeviceProcess, start_device
+from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
 from gateway.guard import Guard
 from gateway.licensing import current_caller
@@ -87,8 +87,8 @@ class Gateway:
         self._unwatch_registry: object | None = None
         #: The resource service, served as ``registry`` (built in :meth:`start`).
         self.registry: Registry = Registry()
-        self._devices: list[DeviceProcess] = []
-        self._launch: asyncio.Future[list[DeviceProcess | BaseException]] | None = None
+        self._devices: list[SupervisedDevice] = []
+        self._launch: asyncio.Future[list[SupervisedDevice | BaseException]] | None = None
         #: "host:port" the gRPC server listens on (the real port when 0 was asked), or "unix:PATH".
         self.address = ""
         #: "host:port" of the line-protocol listener (the real port when 0 was asked); "" when off.
@@ -212,7 +212,7 @@ class Gateway:
         """Start every ``[[devices]]`` process at once; they boot while the gateway starts the rest."""
         if self.config.devices and self._launch is None:
             self._launch = asyncio.ensure_future(
-                asyncio.gather(*(start_device(e) for e in self.config.devices), return_exceptions=True)
+                asyncio.gather(*(start_supervised(e) for e in self.config.devices), return_exceptions=True)
             )
 
     async def _start_devices(self) -> None:
@@ -221,14 +221,16 @@ class Gateway:
             return
         started = await self._launch
         self._launch = None
-        self._devices = [d for d in started if isinstance(d, DeviceProcess)]
+        self._devices = [d for d in started if isinstance(d, SupervisedDevice)]
         for outcome in started:
             if isinstance(outcome, BaseException):
                 raise outcome
         proxies: list[tuple[str, Backend]] = []
         for entry, device in zip(self.config.devices, self._devices, strict=True):
             if device.url.startswith("serial://"):
+                # The link's path and the pseudo-terminal's (now and after each restart).
                 self.allow.reserve(urlsplit(device.url).path)
+                device.on_restart = lambda url: self.allow.reserve(urlsplit(url).path)
             backend = open_proxy(entry.name, device.url, entry.proxy)
             await self._add(entry.name, backend, f"device process {device.pid} at {device.url}")
             proxies.append((entry.name, backend))
@@ -240,7 +242,7 @@ class Gateway:
             # Waited for, never cancelled here: a start_device cut short could leave its process behind.
             await asyncio.wait([launch])
             started = [] if launch.cancelled() else launch.result()
-            self._devices = [d for d in started if isinstance(d, DeviceProcess)]
+            self._devices = [d for d in started if isinstance(d, SupervisedDevice)]
         devices, self._devices = self._devices, []
         await asyncio.gather(*(d.aclose() for d in devices), return_exceptions=True)
 

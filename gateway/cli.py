@@ -22,14 +22,18 @@ EXIT_CONFIG = 2
 
 EXAMPLES = """\
 examples:
-  psgateway                                   serve the demo (robots, a sensor, a swarm) on 127.0.0.1:50051
+  psgateway                                   serve the demo (robots, a sensor, a swarm, files, missions)
+                                              on 127.0.0.1:50051, its console on http://127.0.0.1:8080/
   psgateway serve --config site.toml          serve the services a config file lists
   psgateway serve --listen 127.0.0.1:0        pick a free port (printed as "listening on HOST:PORT")
   psgateway serve --http 127.0.0.1:8080       the HTTP/JSON API and browser console on that port ('' = off)
+  psgateway serve --listen 127.0.0.1:50052 --http 127.0.0.1:8081
+                                              the demo beside a gateway that holds the usual ports
   psgateway check-config site.toml            check a config file and exit (0 = fine, 2 = errors)
 
 then, from another shell:
   grpcurl -plaintext 127.0.0.1:50051 list
+  curl -s 127.0.0.1:8080/api/v1/services
   grpcurl -plaintext -d '{"service":"scout1","property":"location"}' \\
       127.0.0.1:50051 propertyservice.v1.PropertyService/Get
 """
@@ -77,7 +81,10 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``psgateway`` argument parser with every installed subcommand."""
     parser = argparse.ArgumentParser(
         prog="psgateway",
-        description="The Property Service gateway: Get, Set and Listen on robots and sensors over gRPC.",
+        description=(
+            "The Property Service gateway: Get, Set and Listen on robots and sensors over gRPC,\n"
+            "and over HTTP/JSON with a browser console."
+        ),
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -162,8 +162,15 @@ class HttpSection:
     console: bool = True
     #: Most bytes of a request body; beyond, 413.
     max_body: int = DEFAULT_HTTP_MAX_BODY
-    #: Server-Sent-Events streams open at once; beyond, 503.
-    max_streams: int = 256
+    #: Server-Sent-Events streams open at once; beyond, 503. An idle stream costs about 13 KiB of
+    #: gateway memory (bench/sse.py, docs/performance.md), so 4,096 of them about 52 MiB.
+    max_streams: int = 4096
+    #: Server-Sent-Events streams one client address may hold at once; beyond, 429 (one client
+    #: cannot take every place).
+    max_streams_per_client: int = 64
+    #: Seconds one write to an event stream may wait for the client to read; beyond, the
+    #: stream ends (a client that reads nothing for that long is gone).
+    write_timeout: float = 30.0
     #: Seconds between heartbeat comments on an idle event stream.
     heartbeat: float = 15.0
     #: Serve HTTPS with the ``[tls]`` section's certificate (and client CA).
@@ -570,9 +577,13 @@ def _http(data: Any, where: str, gw: GatewaySection, tls: TlsSection, limits: Li
             except ConfigError as exc:
                 found.extend(exc.problems)
                 return replace(http, listen="")
-        for key in ("max_body", "max_streams"):
+        for key in ("max_body", "max_streams", "max_streams_per_client"):
             if getattr(http, key) < 1:
                 found.append(f"{where}.{key}: must be at least 1")
+        if not (math.isfinite(http.write_timeout) and http.write_timeout > 0):
+            found.append(
+                f"{where}.write_timeout: must be a positive number of seconds, got {http.write_timeout!r}"
+            )
         if not (math.isfinite(http.heartbeat) and http.heartbeat >= limits.min_interval_floor):
             found.append(
                 f"{where}.heartbeat: must be a number of seconds of at least limits.min_interval_floor"

@@ -13,6 +13,13 @@ line (bounded wait), then reaches the device through its ``tcp://`` or
 ``serial://`` proxy like any other device, and ends the child by its PID at
 shutdown (SIGTERM, a bounded wait, then SIGKILL).
 
+A child that ends while the gateway runs is started again (:class:`SupervisedDevice`):
+after 0.5 s, doubling up to 30 s while it keeps failing, back to 0.5 s once a process
+has run for a minute; each exit and restart is logged. The proxy's address does not
+change: a TCP device is started again on the port it had, and a serial one is reached
+through a link in a private folder that is pointed at each new pseudo-terminal. The
+proxy reconnects by itself, as it does to any device that went away.
+
 On a pseudo-terminal the child plays the microcontroller's end of the cable:
 it serves the master side and reports the slave's path, which the gateway's
 serial proxy opens with pyserial (:meth:`services.device.DeviceServer.serve_pty`).
@@ -26,11 +33,17 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import logging
+import os
 import re
+import shutil
 import signal
 import sys
+import tempfile
+from collections.abc import Callable
+from urllib.parse import urlsplit
 
 from gateway.config import DeviceEntry
 from services.errors import Unavailable
@@ -41,6 +54,12 @@ log = logging.getLogger(__name__)
 START_TIMEOUT = 10.0
 #: Seconds a device process gets to end after SIGTERM before SIGKILL.
 STOP_TIMEOUT = 3.0
+
+#: Seconds before the first restart of a device process that ended, doubled after each
+#: restart that did not last, up to RESTART_MAX_S; reset once a process ran RESTART_STEADY_S.
+RESTART_INITIAL_S = 0.5
+RESTART_MAX_S = 30.0
+RESTART_STEADY_S = 60.0
 
 _TCP_LINE = re.compile(r"listening on (\S+):(\d+)")
 _PTY_LINE = re.compile(r"serial port (/\S+)")
@@ -145,4 +164,122 @@ async def start_device(entry: DeviceEntry, *, wait_s: float = START_TIMEOUT) -> 
     return device
 
 
-__all__ = ["START_TIMEOUT", "STOP_TIMEOUT", "DeviceProcess", "device_command", "start_device"]
+class SupervisedDevice:
+    """A device process kept running: started again with capped backoff whenever it ends.
+
+    :attr:`url` stays the same across restarts (see the module's docstring), so the proxy
+    built on it reconnects by itself. :meth:`aclose` stops the supervision and the process.
+    """
+
+    def __init__(
+        self,
+        entry: DeviceEntry,
+        device: DeviceProcess,
+        *,
+        initial_s: float = RESTART_INITIAL_S,
+        max_s: float = RESTART_MAX_S,
+        steady_s: float = RESTART_STEADY_S,
+    ) -> None:
+        self.name = entry.name
+        self.device = device
+        self.initial_s = initial_s
+        self.max_s = max_s
+        self.steady_s = steady_s
+        #: Restarts so far.
+        self.restarts = 0
+        #: Called with the device's own URL after each restart (the gateway reserves a new serial line).
+        self.on_restart: Callable[[str], None] | None = None
+        self._closing = False
+        self._link_dir = ""
+        parts = urlsplit(device.url)
+        if parts.scheme == "tcp":
+            # Started again on the port it had, so the proxy's URL still reaches it.
+            self._again = dataclasses.replace(entry, tcp=parts.netloc)
+            self.url = device.url
+        else:
+            self._again = entry
+            self._link_dir = tempfile.mkdtemp(prefix="psgateway-device-")
+            self._link = os.path.join(self._link_dir, "tty")
+            self._relink()
+            self.url = f"serial://{self._link}?{parts.query}"
+        self._task = asyncio.create_task(self._watch(), name=f"device {self.name} supervisor")
+
+    @property
+    def pid(self) -> int:
+        """The process id of the current device process."""
+        return self.device.pid
+
+    def _relink(self) -> None:
+        if not self._link_dir:
+            return
+        target = urlsplit(self.device.url).path
+        temporary = f"{self._link}.new"
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temporary)
+        os.symlink(target, temporary)
+        os.replace(temporary, self._link)  # atomic: the proxy never finds the link missing
+
+    async def _watch(self) -> None:
+        loop = asyncio.get_running_loop()
+        delay = self.initial_s
+        while True:
+            began = loop.time()
+            await self.device.process.wait()
+            if self._closing:
+                return
+            ran = loop.time() - began
+            if ran >= self.steady_s:
+                delay = self.initial_s
+            log.warning(
+                "device %s: its process %d ended (exit %s) after %.1f s; starting it again in %g s",
+                self.name,
+                self.device.pid,
+                self.device.process.returncode,
+                ran,
+                delay,
+            )
+            await self.device.aclose()
+            while True:
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, self.max_s)
+                try:
+                    device = await start_device(self._again)
+                except Exception as exc:  # any failure is logged and tried again
+                    log.warning(
+                        "device %s: could not start it again (%s); next try in %g s", self.name, exc, delay
+                    )
+                    continue
+                self.device = device
+                self.restarts += 1
+                self._relink()
+                if self.on_restart is not None:
+                    self.on_restart(device.url)
+                log.info(
+                    "device %s: started again (pid %d, restart %d)", self.name, device.pid, self.restarts
+                )
+                break
+
+    async def aclose(self) -> None:
+        """Stop supervising and end the process (SIGTERM, then SIGKILL). Idempotent."""
+        self._closing = True
+        self._task.cancel()
+        await asyncio.gather(self._task, return_exceptions=True)
+        await self.device.aclose()
+        if self._link_dir:
+            shutil.rmtree(self._link_dir, ignore_errors=True)
+
+
+async def start_supervised(entry: DeviceEntry) -> SupervisedDevice:
+    """:func:`start_device`, then kept running by a :class:`SupervisedDevice`."""
+    return SupervisedDevice(entry, await start_device(entry))
+
+
+__all__ = [
+    "START_TIMEOUT",
+    "STOP_TIMEOUT",
+    "DeviceProcess",
+    "SupervisedDevice",
+    "device_command",
+    "start_device",
+    "start_supervised",
+]

@@ -15,6 +15,17 @@ one list value, an entry per property::
 lists of words (the grammar has no quoting: a word holds no space or
 parenthesis, and the parentheses of a text are dropped). Every field after
 ``access`` may be left out.
+
+After the doc, an entry may carry tagged lists, in any order::
+
+    (gui WORD) (length N) (choices WORD ...)
+    (value NAME TYPE required|optional (DEFAULT) (doc words))
+    (param NAME TYPE required|optional (DEFAULT) (doc words))   one per parameter
+
+``DEFAULT`` is the default's value text inside a list (``()`` for none; a vector
+default ``(0 0)`` is ``((0 0))``). A reader skips a tag it does not know, and an
+older reader reads only the first seven fields, so a model with tags still parses
+there and one without them (the C library's) still parses here.
 """
 
 from __future__ import annotations
@@ -125,22 +136,61 @@ def _bound(x: float | None) -> Any:
     return "-" if x is None or not math.isfinite(x) else x
 
 
-def model_to_text(model: ServiceModel, *, docs: bool = True) -> str:
-    """The line form of ``model`` (see the module docstring); ``docs=False`` leaves the docs out."""
-    return format_list(
-        [
-            [
-                p.name,
-                p.type,
-                p.access.value,
-                _words(p.unit),
-                _bound(p.minimum),
-                _bound(p.maximum),
-                *([_words(p.doc)] if docs else []),
-            ]
-            for p in model.properties
+def _is_word(text: str) -> bool:
+    return bool(text) and not any(c.isspace() or c in "()" for c in text)
+
+
+def _default_items(text: str) -> list[Any]:
+    """A default's value text as the items of a list (``()`` for none); words when it does not parse."""
+    if not text:
+        return []
+    try:
+        return parse_list(f"({text})")
+    except ValueError:
+        return _words(text)
+
+
+def _parameter_tail(param: ParameterModel, docs: bool) -> list[Any]:
+    return [
+        param.type,
+        "required" if param.required else "optional",
+        _default_items(param.default),
+        _words(param.doc) if docs else [],
+    ]
+
+
+def _tags(p: PropertyModel, docs: bool) -> list[Any]:
+    tags: list[Any] = []
+    if _is_word(p.gui):
+        tags.append(["gui", p.gui])
+    if p.length:
+        tags.append(["length", p.length])
+    if p.choices and all(_is_word(c) for c in p.choices):
+        tags.append(["choices", *p.choices])
+    if p.value is not None:
+        tags.append(["value", p.value.name, *_parameter_tail(p.value, docs)])
+    tags.extend(["param", q.name, *_parameter_tail(q, docs)] for q in p.parameters if _is_word(q.name))
+    return tags
+
+
+def model_to_text(model: ServiceModel, *, docs: bool = True, tags: bool = True) -> str:
+    """The line form of ``model`` (see the module docstring); ``docs=False`` leaves the docs out,
+    ``tags=False`` the tagged lists (gui, length, choices, value, parameters)."""
+    entries = []
+    for p in model.properties:
+        entry: list[Any] = [
+            p.name,
+            p.type,
+            p.access.value,
+            _words(p.unit),
+            _bound(p.minimum),
+            _bound(p.maximum),
         ]
-    )
+        extra = _tags(p, docs) if tags else []
+        if docs or extra:
+            entry.append(_words(p.doc) if docs else [])
+        entries.append(entry + extra)
+    return format_list(entries)
 
 
 def _text_of(item: Any) -> str:
@@ -169,7 +219,8 @@ def model_from_text(text: str, service_type: str) -> ServiceModel:
             access = Access(access_word)
         except ValueError:
             access = Access.UNKNOWN
-        rest = entry[3:] + [[]] * (4 - len(entry[3:]))
+        rest = entry[3:7] + [[]] * (4 - len(entry[3:7]))
+        tagged = _read_tags(entry[7:])
         properties.append(
             PropertyModel(
                 name=name,
@@ -179,6 +230,50 @@ def model_from_text(text: str, service_type: str) -> ServiceModel:
                 minimum=_number_or_none(rest[1], where),
                 maximum=_number_or_none(rest[2], where),
                 doc=_text_of(rest[3]),
+                **tagged,
             )
         )
     return ServiceModel(type=service_type, properties=tuple(properties))
+
+
+def _type_word(item: Any) -> str:
+    return item if isinstance(item, str) and item in DATA_TYPES else "unknown"
+
+
+def _parameter_from_items(name: str, items: list[Any]) -> ParameterModel:
+    items = items + [[]] * (4 - len(items))
+    default = items[2]
+    if isinstance(default, list):
+        default_text = format_list(default)[1:-1]
+    else:
+        default_text = "" if default == "-" else str(default)
+    return ParameterModel(
+        name=name,
+        type=_type_word(items[0]),
+        required=items[1] != "optional",
+        default=default_text,
+        doc=_text_of(items[3]),
+    )
+
+
+def _read_tags(items: list[Any]) -> dict[str, Any]:
+    """The tagged lists after an entry's doc (see the module docstring); unknown tags are skipped."""
+    found: dict[str, Any] = {}
+    parameters: list[ParameterModel] = []
+    for item in items:
+        if not isinstance(item, list) or not item or not isinstance(item[0], str):
+            continue
+        tag, args = item[0], item[1:]
+        if tag == "gui" and args and isinstance(args[0], str):
+            found["gui"] = args[0]
+        elif tag == "length" and args and isinstance(args[0], str) and args[0].isdigit():
+            found["length"] = int(args[0]) or None
+        elif tag == "choices":
+            found["choices"] = tuple(a for a in args if isinstance(a, str))
+        elif tag == "value" and args and isinstance(args[0], str):
+            found["value"] = _parameter_from_items(args[0], args[1:])
+        elif tag == "param" and args and isinstance(args[0], str):
+            parameters.append(_parameter_from_items(args[0], args[1:]))
+    if parameters:
+        found["parameters"] = tuple(parameters)
+    return found

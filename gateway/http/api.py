@@ -159,11 +159,11 @@ class Api:
         path = request.match_info["path"]
         length = request.content_length
         if length is not None and length > self.max_body:
-            return self._too_large(length)
+            return body_too_large(length, self.max_body)
         try:
             raw = await request.read()
         except web.HTTPRequestEntityTooLarge:
-            return self._too_large(None)
+            return body_too_large(None, self.max_body)
         if request.query_string:
             raise InvalidArgument('a Set takes its request parameters in the body: {"parameters": {...}}')
         body = parse_set_body(raw)
@@ -175,9 +175,9 @@ class Api:
         answer = await self.calls.set(set_request, self.calls.timeout, subject)
         return json_response({"service": service, "path": path, "value": answer.value})
 
-    def _too_large(self, length: int | None) -> web.Response:
-        size = f"{length} bytes" if length is not None else "larger"
-        err = ResourceExhausted(
-            f"the request body is {size}, more than http.max_body ({self.max_body} bytes)"
-        )
-        return error_response(err, status=PAYLOAD_TOO_LARGE)
+
+def body_too_large(length: int | None, max_body: int) -> web.Response:
+    """413 RESOURCE_EXHAUSTED for a body of ``length`` bytes (None: found while reading it)."""
+    size = f"{length} bytes, " if length is not None else ""
+    err = ResourceExhausted(f"the request body is {size}more than http.max_body ({max_body} bytes)")
+    return error_response(err, status=PAYLOAD_TOO_LARGE)

@@ -39,10 +39,12 @@ HTTP_STATUS: Final[dict[Code, int]] = {
 
 assert len(HTTP_STATUS) == len(Code), "every Code has an HTTP status"
 
-#: A body over ``http.max_body`` and a stream over ``http.max_streams`` are RESOURCE_EXHAUSTED
-#: with the status HTTP has for each: 413 (the request is too large) and 503 (come back later).
+#: A body over ``http.max_body``, a stream over ``http.max_streams`` and one over
+#: ``http.max_streams_per_client`` are RESOURCE_EXHAUSTED with the status HTTP has for each:
+#: 413 (the request is too large), 503 (come back later) and 429 (this client asks too much).
 PAYLOAD_TOO_LARGE = 413
 TOO_MANY_STREAMS = 503
+TOO_MANY_REQUESTS = 429
 
 
 def error_json(err: PropertyError) -> dict[str, str]:

@@ -14,13 +14,21 @@ what :func:`gateway.listen.drain.responses` yields:
 A request with ``Last-Event-ID`` (EventSource resuming) gets the snapshot with
 ``gap: true`` on each value: changes in between may be lost. A client that does not read
 makes ``write`` wait (the transport buffers at most its high-water mark); meanwhile the
-stream's queue keeps only the latest value of each property.
+stream's queue keeps only the latest value of each property. A write that waits longer than
+``http.write_timeout`` ends the stream (the connection is dropped): a client that reads
+nothing for that long is gone.
+
+Bounds on open streams: ``http.max_streams`` in all (503 beyond) and
+``http.max_streams_per_client`` from one client address (429 beyond), so that one client
+cannot take every place.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
+from collections import Counter
 from contextlib import aclosing
 
 from aiohttp import hdrs, web
@@ -28,7 +36,7 @@ from google.protobuf.duration_pb2 import Duration
 
 from gateway.config import HttpSection, Limits
 from gateway.guard import Guard
-from gateway.http.errors import TOO_MANY_STREAMS, error_json, error_response
+from gateway.http.errors import TOO_MANY_REQUESTS, TOO_MANY_STREAMS, error_json, error_response
 from gateway.http.safety import identify
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.listen.drain import Wake, responses
@@ -96,8 +104,12 @@ class EventStreams:
         self.guard = guard
         self.limits = limits
         self.max_streams = settings.max_streams
+        self.max_per_client = settings.max_streams_per_client
+        self.write_timeout = settings.write_timeout
         self.options = pb.ListenOptions(heartbeat_interval=_duration(settings.heartbeat))
         self.open: set[ListenStream] = set()
+        #: Open streams by client address (an address leaves the map with its last stream).
+        self.per_client: Counter[str] = Counter()
 
     async def events(self, request: web.Request) -> web.StreamResponse:
         unknown = [key for key in request.query if key != SELECTOR_KEY]
@@ -107,6 +119,13 @@ class EventStreams:
         selectors = parse_selectors(listen, self.limits)
         options = parse_options(self.options, self.limits)
         subject = identify(request, self.guard)
+        peer = request.remote or "?"
+        if self.per_client[peer] >= self.max_per_client:
+            return _too_many(
+                f"too many event streams open from {peer[:100]} ({self.max_per_client},"
+                " http.max_streams_per_client)",
+                TOO_MANY_REQUESTS,
+            )
         if len(self.open) >= self.max_streams:
             return _too_many(f"too many event streams open ({self.max_streams}, http.max_streams)")
         wake = Wake()
@@ -115,13 +134,19 @@ class EventStreams:
         except ResourceExhausted as exc:
             return _too_many(exc.message)
         self.open.add(stream)
+        self.per_client[peer] += 1
         try:
-            return await self._serve(request, stream, wake)
+            return await self._serve(request, stream, wake, peer)
         finally:
             stream.close()
             self.open.discard(stream)
+            self.per_client[peer] -= 1
+            if self.per_client[peer] <= 0:
+                del self.per_client[peer]
 
-    async def _serve(self, request: web.Request, stream: ListenStream, wake: Wake) -> web.StreamResponse:
+    async def _serve(
+        self, request: web.Request, stream: ListenStream, wake: Wake, peer: str
+    ) -> web.StreamResponse:
         response = web.StreamResponse(
             headers={
                 hdrs.CONTENT_TYPE: "text/event-stream; charset=utf-8",
@@ -136,7 +161,19 @@ class EventStreams:
         try:
             async with aclosing(responses(stream, wake)) as ready:
                 async for answer in ready:
-                    await response.write(encode(answer, resumed and snapshot))
+                    try:
+                        async with asyncio.timeout(self.write_timeout):
+                            await response.write(encode(answer, resumed and snapshot))
+                    except TimeoutError:
+                        log.info(
+                            "event stream to %s ended: it read nothing for %g s (http.write_timeout)",
+                            peer,
+                            self.write_timeout,
+                        )
+                        # Dropped, not finished: finishing would wait on the same full buffer.
+                        if request.transport is not None:
+                            request.transport.abort()
+                        return response
                     if answer.sync:
                         snapshot = False
         except ConnectionError:
@@ -155,5 +192,5 @@ def _duration(seconds: float) -> Duration:
     return d
 
 
-def _too_many(message: str) -> web.Response:
-    return error_response(ResourceExhausted(message), status=TOO_MANY_STREAMS)
+def _too_many(message: str, status: int = TOO_MANY_STREAMS) -> web.Response:
+    return error_response(ResourceExhausted(message), status=status)

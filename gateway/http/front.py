@@ -14,14 +14,15 @@ from __future__ import annotations
 import errno
 import json
 import logging
+import resource
 from collections.abc import Awaitable, Callable
 
-from aiohttp import web
+from aiohttp import HttpVersion11, hdrs, web
 
 from gateway.calls import Calls
 from gateway.config import Config, is_loopback
 from gateway.guard import Guard
-from gateway.http.api import Api
+from gateway.http.api import Api, body_too_large
 from gateway.http.console import CONSOLE_ROOT, Console
 from gateway.http.errors import PAYLOAD_TOO_LARGE, error_response
 from gateway.http.events import EventStreams
@@ -30,7 +31,7 @@ from gateway.http.safety import check_request
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, port_holder
 from gateway.tls import HttpsCredentials
-from services.errors import Code, PropertyError, ResourceExhausted, error_for
+from services.errors import Code, InvalidArgument, PropertyError, ResourceExhausted, error_for
 
 log = logging.getLogger("gateway.http")
 
@@ -38,6 +39,29 @@ Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 #: HTTP errors aiohttp raises itself, as the code each stands for (others: by their class of status).
 _HTTP_CODES = {404: Code.NOT_FOUND, 413: Code.RESOURCE_EXHAUSTED}
+
+
+#: Descriptors the gateway needs beside its event streams: gRPC connections, proxies, logs.
+FILES_BESIDE_STREAMS = 1024
+
+
+def room_for_files(wanted: int) -> None:
+    """Raise the soft limit on open files towards ``wanted`` (at most the hard limit): many
+    systems start processes with 1,024, fewer than ``http.max_streams`` connections need."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= wanted:
+        return
+    new = wanted if hard == resource.RLIM_INFINITY else min(wanted, hard)
+    if new > soft:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (new, hard))
+        log.debug("open files limit raised from %d to %d for http.max_streams", soft, new)
+    if new < wanted:
+        log.warning(
+            "open files are limited to %d (hard limit), fewer than http.max_streams needs (%d):"
+            " connections beyond are refused by the system",
+            new,
+            wanted,
+        )
 
 
 class HttpFront:
@@ -72,8 +96,8 @@ class HttpFront:
         add("GET", "/api/v1/services", api.services)
         add("GET", "/api/v1/services/{service}/model", api.model)
         add("GET", "/api/v1/services/{service}/properties/{path}", api.get)
-        add("PUT", "/api/v1/services/{service}/properties/{path}", api.set)
-        add("POST", "/api/v1/services/{service}/properties/{path}", api.set)
+        add("PUT", "/api/v1/services/{service}/properties/{path}", api.set, expect_handler=self._expect)
+        add("POST", "/api/v1/services/{service}/properties/{path}", api.set, expect_handler=self._expect)
         add("GET", "/api/v1/events", self.events.events)
         add("GET", "/api/v1/health", api.health)
 
@@ -85,6 +109,24 @@ class HttpFront:
             add("GET", "/", self.console.file)
             add("GET", "/console/{file:.*}", self.console.file)
         return app
+
+    async def _expect(self, request: web.Request) -> web.StreamResponse | None:
+        """``Expect: 100-continue``: a body announced over ``max_body`` is refused before it is sent
+        (aiohttp's own handler says 100 Continue first, and the client sends it all)."""
+        length = request.content_length
+        if length is not None and length > self.settings.max_body:
+            return body_too_large(length, self.settings.max_body)
+        if (
+            request.version == HttpVersion11
+            and request.headers.get(hdrs.EXPECT, "").lower() == "100-continue"
+        ):
+            await request.writer.write(b"HTTP/1.1 100 Continue\r\n\r\n")
+            request.writer.output_size = 0  # the answer proper has not begun
+            return None
+        expect = request.headers.get(hdrs.EXPECT, "")[:100]
+        return error_response(
+            InvalidArgument(f"unknown Expect: {expect!r} (known: 100-continue)"), status=417
+        )
 
     @web.middleware
     async def _middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
@@ -116,6 +158,7 @@ class HttpFront:
 
     async def start(self) -> None:
         """Listen; raises PortInUse (one line naming the holder) when the port is taken."""
+        room_for_files(self.settings.max_streams + FILES_BESIDE_STREAMS)
         host, _, port_text = self.settings.listen.rpartition(":")
         host = host.strip("[]")
         port = int(port_text)

@@ -311,12 +311,14 @@ class DeviceSession:
     def _model_reply(self, model: ServiceModel) -> str:
         """The device describes itself (docs/line-protocol.md): the model in one reply line.
 
-        A model too long for a line goes without its docs; one still too long
-        is NOT_FOUND, as from a device that does not describe itself.
+        A model too long for a line goes without its docs, then without its tags (gui,
+        length, choices, value, parameters); one still too long is NOT_FOUND, as from a
+        device that does not describe itself.
         """
         room = MAX_LINE - _REPLY_OVERHEAD
-        for docs in (True, False):
-            text = model_to_text(model, docs=docs)
+        # Widest first: docs and tags; then tags without docs; then the names, types and bounds alone.
+        for docs, tags in ((True, True), (False, True), (False, False)):
+            text = model_to_text(model, docs=docs, tags=tags)
             if len(text) <= room:
                 return text
         raise NotFound(f"{MODEL_PATH}: a model of {len(model.properties)} properties does not fit in a line")

@@ -44,7 +44,9 @@ class ServiceEntry(Resource):
         str, Prop(readonly=True, doc="contact URL: local, tcp://host:port, serial://..., grpc://...")
     ]
     state: Annotated[str, Prop(readonly=True, doc="up, down, or connecting (never reached yet)")]
-    last_seen: Annotated[float, Prop(readonly=True, doc="when it was last heard of, unix seconds")]
+    last_seen: Annotated[
+        float, Prop(readonly=True, gui="time", doc="when it was last heard of, unix seconds")
+    ]
     misses: Annotated[int, Prop(readonly=True, doc="liveness checks missed in a row")]
     features: Annotated[
         list[str], Prop(readonly=True, doc="capabilities it offers the scheduler beside its type; () if none")

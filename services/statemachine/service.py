@@ -106,7 +106,9 @@ class Machine(Resource):
 
     # -- what clients see ------------------------------------------------------------
 
-    @read_write(doc="the chart (SCXML, JSON or YAML): a Set loads it, or replaces it while stopped")
+    @read_write(
+        gui="code", doc="the chart (SCXML, JSON or YAML): a Set loads it, or replaces it while stopped"
+    )
     async def definition(self, text: str | None = None, /) -> str:
         """Get: the chart's text; Set: load it (the machine must be stopped)."""
         if text is None:

@@ -47,6 +47,19 @@ test('a property gets the widget of its .gui, else of its access and type, and a
   assert.equal(named({ name: 'behaviors.moveto', type: 'none', access: 'action', gui: 'button' }), 'buttonWidget');
   assert.equal(named({ name: 'find', type: 'names', access: 'query', gui: 'names' }), 'queryWidget');
   assert.equal(named({ name: 'patrol.diagram', type: 'text', access: 'read', gui: 'statechart' }), 'statechartWidget');
+  // A property that cannot be read without a parameter (a storage service's file and its name)
+  // is a form of its parameters; a parameter with a default, or an optional one, does not count.
+  const name = { name: 'name', type: 'text', required: true, default: null };
+  assert.equal(named({ name: 'file', type: 'text', access: 'read-write', gui: 'text', parameters: [name] }), 'addressedWidget');
+  assert.equal(named({ name: 'file', type: 'text', access: 'read', gui: 'text', parameters: [name] }), 'addressedWidget');
+  assert.equal(
+    named({ name: 'file', type: 'text', access: 'read', gui: 'text', parameters: [{ ...name, default: 'a' }] }),
+    'textWidget',
+  );
+  assert.equal(
+    named({ name: 'info', type: 'marker', access: 'read', gui: 'text', parameters: [{ ...name, required: false }] }),
+    'textWidget',
+  );
   function cameraWidget() {
     return { element: null };
   }

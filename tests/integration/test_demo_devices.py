@@ -13,6 +13,7 @@ import psutil
 import pytest
 from line_device_support import device_process
 from support.gateway_process import GatewayProcess, StartGateway
+from support.waiting import eventually
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -43,7 +44,9 @@ async def test_registry_lists_the_devices_with_their_urls(demo_gateway: GatewayP
         rover1 = await get(stub, "registry", "services.rover1.url")
         rover2 = await get(stub, "registry", "services.rover2.url")
     assert re.fullmatch(r"tcp://127\.0\.0\.1:\d+", rover1)
-    assert re.fullmatch(r"serial:///dev/pts/\d+\?baudrate=115200", rover2)
+    # A serial device is reached through a link to its pseudo-terminal, pointed anew when it restarts.
+    match = re.fullmatch(r"serial://(/\S+/tty)\?baudrate=115200", rover2)
+    assert match and re.fullmatch(r"/dev/pts/\d+", os.readlink(match.group(1))), rover2
     # Each URL is logged with the device's start, and each device is a process of its own.
     pids = device_pids(demo_gateway)
     assert set(pids) == set(ROVERS)
@@ -177,3 +180,38 @@ async def test_a_listen_stream_survives_a_device_reconnect(gateway_process: Star
                     assert [(e.value, e.gap) for e in after] == [("0.9", False)]
                     assert again.poll() is None
             call.cancel()
+
+
+RESTARTED = re.compile(r"device (\S+): started again \(pid (\d+), restart (\d+)\)")
+
+
+@pytest.mark.parametrize(("rover", "where"), [("wifi1", "data"), ("uart1", "location")])
+async def test_a_device_process_that_dies_is_started_again(
+    gateway_process: StartGateway, rover: str, where: str
+) -> None:
+    gw = gateway_process(DEVICES_CONFIG)
+    pid = device_pids(gw)[rover]
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        await get(stub, rover, where)
+        os.kill(pid, signal.SIGKILL)  # the device dies: no goodbye
+        assert gone(pid, 5)
+        # The gateway starts it again; the proxy reconnects; the registry says up; a Get answers.
+        await eventually(
+            lambda: asyncio.sleep(0, gw.output), lambda out: bool(RESTARTED.search(out)), within=WAIT
+        )
+
+        async def state_and_value() -> tuple[str, str]:
+            return await get(stub, "registry", f"services.{rover}.state"), await get(stub, rover, where)
+
+        _, value = await eventually(
+            state_and_value, lambda got: got[0] == "up", within=WAIT, retry_on=(grpc.aio.AioRpcError,)
+        )
+        assert value
+        restarted = {m.group(1): int(m.group(2)) for m in RESTARTED.finditer(gw.output)}
+        assert restarted[rover] != pid
+        assert psutil.Process(restarted[rover]).ppid() == gw.proc.pid
+        assert f"device {rover}: its process {pid} ended" in gw.output
+    # The restarted process ends with the gateway too.
+    assert gw.stop() == 0
+    assert gone(restarted[rover], 5)

@@ -73,6 +73,42 @@ async def put(http: aiohttp.ClientSession, url: str, data: bytes, headers: dict[
         return response.status, await response.json()
 
 
+async def test_a_body_announced_too_large_is_413_before_it_is_sent(gateway: GatewayProcess) -> None:
+    """``Expect: 100-continue`` (curl sends it for bodies over 1 MB): 413 at once, no 100 Continue."""
+    port = port_of(gateway)
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    try:
+        writer.write(
+            (
+                f"PUT {NOTE} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
+                f"Content-Length: {2 * 1024 * 1024}\r\nExpect: 100-continue\r\n\r\n"
+            ).encode()
+        )
+        await writer.drain()
+        async with asyncio.timeout(10):
+            status_line = await reader.readline()
+            head = (await reader.readuntil(b"\r\n\r\n")).decode("latin-1")
+        assert status_line.split()[1] == b"413", f"the answer to the announced body: {status_line!r}"
+        length = int(
+            next(line for line in head.split("\r\n") if line.lower().startswith("content-length")).split(":")[
+                1
+            ]
+        )
+        async with asyncio.timeout(10):
+            error = json.loads(await reader.readexactly(length))["error"]
+        assert error["code"] == "RESOURCE_EXHAUSTED" and "http.max_body" in error["message"], error
+    finally:
+        writer.close()
+    # An expectation the front end does not know is a JSON error too.
+    head = (
+        f"PUT {NOTE} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
+        "Content-Length: 2\r\nExpect: bogus"
+    )
+    status, _, payload = await raw_request(port, head, b"{}")
+    assert status == 417
+    assert json.loads(payload)["error"]["code"] == "INVALID_ARGUMENT"
+
+
 @pytest.mark.parametrize(
     ("body", "named"),
     [
@@ -273,7 +309,7 @@ async def test_a_reader_that_never_reads_is_conflated_and_slows_no_one(gateway: 
 async def test_streams_beyond_max_streams_are_refused_and_nobody_else_notices(
     gateway_process: StartGateway,
 ) -> None:
-    gw = gateway_process(CONFIG + "\n[http]\nmax_streams = 256\n")
+    gw = gateway_process(CONFIG + "\n[http]\nmax_streams = 256\nmax_streams_per_client = 1000\n")
     port = port_of(gw)
     request = f"GET /api/v1/events?sel=board/note HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode()
     connections: list[tuple[asyncio.StreamReader, asyncio.StreamWriter]] = []
@@ -343,3 +379,138 @@ async def test_a_reader_that_never_reads_does_not_hold_up_shutdown(gateway_proce
         assert "Traceback" not in gw.output
     finally:
         slow.close()
+
+
+def stream_request(port: int) -> bytes:
+    return f"GET /api/v1/events?sel=board/note HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode()
+
+
+async def open_from(source: str, port: int) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    """An event-stream request sent from the loopback address ``source`` (one peer of several)."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port, local_addr=(source, 0))
+    writer.write(stream_request(port))
+    return reader, writer
+
+
+async def error_of(reader: asyncio.StreamReader) -> tuple[int, dict[str, str]]:
+    """The status and JSON error of a refused request (its whole answer)."""
+    async with asyncio.timeout(30):
+        answer = await reader.read(1 << 16)
+    head, _, body = answer.partition(b"\r\n\r\n")
+    return int(head.split()[1]), json.loads(body)["error"]
+
+
+async def test_a_reader_that_never_reads_is_cut_after_the_write_deadline(
+    gateway_process: StartGateway,
+) -> None:
+    gw = gateway_process(CONFIG + "\n[http]\nwrite_timeout = 1.0\n", ("--log-level", "info"))
+    port = port_of(gw)
+    slow = socket.socket()
+    slow.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    slow.connect(("127.0.0.1", port))
+    slow.sendall(stream_request(port))
+    try:
+        async with (
+            AsyncClient(gw.address, timeout=10) as client,
+            aiohttp.ClientSession(base_url=gw.http_url) as http,
+            http.get("/api/v1/events", params={"sel": "board/note"}) as fast_response,
+        ):
+            fast = SseReader(fast_response)
+            await fast.values_until_sync()
+            # Far more than the sockets buffer: the slow stream's write waits, then passes its deadline.
+            i = 0
+
+            async def set_and_see() -> str:
+                nonlocal i
+                i += 1
+                await client.set("board", "note", f"{'w' * 60_000}{i}")
+                event = await fast.until("value")
+                while not event.data["value"].endswith(f"w{i}"):
+                    event = await fast.until("value")
+                return gw.output
+
+            await eventually(set_and_see, lambda out: "http.write_timeout" in out, within=30)
+            assert "event stream to 127.0.0.1 ended" in gw.output
+            assert "Traceback" not in gw.output
+            # The reading client goes on.
+            await client.set("board", "note", "after the cut")
+            event = await fast.until("value")
+            while event.data["value"] != "after the cut":
+                event = await fast.until("value")
+        # The cut stream's connection is closed: reading it comes to its end (what was buffered, then EOF).
+        slow.setblocking(False)
+        loop = asyncio.get_running_loop()
+        async with asyncio.timeout(20):
+            while True:
+                try:
+                    chunk = await loop.sock_recv(slow, 1 << 20)
+                except ConnectionResetError:
+                    break
+                if not chunk:
+                    break
+        async with aiohttp.ClientSession(base_url=gw.http_url) as http, http.get("/api/v1/health") as health:
+            assert health.status == 200
+    finally:
+        slow.close()
+
+
+async def test_one_clients_many_streams_do_not_keep_another_out(gateway_process: StartGateway) -> None:
+    gw = gateway_process(CONFIG + "\n[http]\nmax_streams = 8\nmax_streams_per_client = 4\n")
+    port = port_of(gw)
+    greedy = [await open_from("127.0.0.2", port) for _ in range(4)]
+    try:
+        assert [await first_line(reader) for reader, _ in greedy] == [200] * 4
+        reader, writer = await open_from("127.0.0.2", port)
+        greedy.append((reader, writer))
+        status, error = await error_of(reader)
+        assert status == 429
+        assert error["code"] == "RESOURCE_EXHAUSTED"
+        assert "http.max_streams_per_client" in error["message"] and "127.0.0.2" in error["message"]
+        # Another client still gets its streams, up to its own share of the rest.
+        other = [await open_from("127.0.0.3", port) for _ in range(4)]
+        greedy.extend(other)
+        assert [await first_line(reader) for reader, _ in other] == [200] * 4
+        # Now every place is taken: a third client is told so, naming the total bound.
+        reader, writer = await open_from("127.0.0.4", port)
+        greedy.append((reader, writer))
+        status, error = await error_of(reader)
+        assert status == 503 and "http.max_streams" in error["message"], error
+        # A stream closed frees its client's place.
+        greedy[0][1].close()
+
+        async def reopen() -> int:
+            r, w = await open_from("127.0.0.2", port)
+            greedy.append((r, w))
+            return await first_line(r)
+
+        await eventually(reopen, lambda status: status == 200)
+    finally:
+        for _, writer in greedy:
+            with contextlib.suppress(Exception):
+                writer.close()
+
+
+async def test_a_thousand_idle_streams_from_several_clients_are_served(gateway_process: StartGateway) -> None:
+    """The defaults serve 1,000 idle event streams from 20 clients (50 each) and everyone else goes on."""
+    gw = gateway_process(CONFIG)
+    port = port_of(gw)
+    sources = [f"127.0.0.{10 + n}" for n in range(20)]
+    connections: list[tuple[asyncio.StreamReader, asyncio.StreamWriter]] = []
+    try:
+        for n in range(1000):
+            connections.append(await open_from(sources[n % len(sources)], port))
+        statuses = await asyncio.gather(*(first_line(reader) for reader, _ in connections))
+        assert statuses == [200] * 1000
+        async with (
+            aiohttp.ClientSession(base_url=gw.http_url) as http,
+            AsyncClient(gw.address, timeout=10) as client,
+        ):
+            await client.set("board", "note", "a thousand listen")
+            async with http.get("/api/v1/services/board/properties/note") as got:
+                assert (await got.json())["value"] == "a thousand listen"
+            assert await client.get("board", "note") == "a thousand listen"
+            await eventually(lambda: read_some(connections[-1][0]), lambda text: b"a thousand listen" in text)
+    finally:
+        for _, writer in connections:
+            with contextlib.suppress(Exception):
+                writer.close()

@@ -8,16 +8,18 @@ describe itself.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import subprocess
 import sys
 import time
 
+import aiohttp
 import pytest
 from support.gateway_process import GatewayProcess, StartGateway
 
 from clients import AsyncClient, Client
-from services.model import Access
+from services.model import Access, PropertyModel
 
 PSCTL = [sys.executable, "-m", "clients.cli"]
 FAR = "<marker><location>(500 0 0 0 0 0)</location></marker>"
@@ -148,6 +150,46 @@ def test_a_line_device_describes_itself_through_the_proxy(target: str) -> None:
         assert props["speed"].minimum == 0.0
         done = psctl(target, "get", "rover1", "behaviors.stop")
         assert done.returncode == 1 and "is an action" in done.stderr
+
+
+@pytest.mark.parametrize("rover", ["rover1", "rover2"])
+async def test_a_line_device_has_the_same_model_as_an_in_process_robot(
+    demo_gateway: GatewayProcess, rover: str
+) -> None:
+    """rover1 (TCP) and rover2 (a serial line) are the same sim-robot as scout1, served in-process:
+    through the line protocol their models carry the same widgets, types, ranges, value and
+    parameters (the docs may be left out to fit the device's line)."""
+
+    def shape(p: PropertyModel) -> PropertyModel:
+        return dataclasses.replace(
+            p,
+            doc="",
+            value=p.value and dataclasses.replace(p.value, doc=""),
+            parameters=tuple(dataclasses.replace(q, doc="") for q in p.parameters),
+        )
+
+    async with AsyncClient(demo_gateway.address) as client:
+        scout = {p.name: shape(p) for p in (await client.describe("scout1")).properties}
+        device = {p.name: shape(p) for p in (await client.describe(rover)).properties}
+    assert device == scout
+    assert device["location"].gui == "pose" and device["speed"].gui == "slider"
+    moveto = device["behaviors.moveto"]
+    assert moveto.gui == "button" and moveto.value is not None and moveto.value.type == "marker"
+    assert [(q.name, q.type, q.required, q.default) for q in moveto.parameters] == [
+        ("frame", "text", False, "world")
+    ]
+    # The HTTP front end's model (what the console builds its widgets from) says the same.
+    async with (
+        aiohttp.ClientSession(base_url=demo_gateway.http_url) as http,
+        http.get(f"/api/v1/services/{rover}/model") as response,
+    ):
+        assert response.status == 200
+        model = await response.json()
+    props = {p["name"]: p for p in model["properties"]}
+    assert props["location"]["gui"] == "pose"
+    assert props["behaviors.moveto"]["gui"] == "button"
+    assert props["behaviors.moveto"]["value"]["type"] == "marker"
+    assert [q["name"] for q in props["behaviors.moveto"]["parameters"]] == ["frame"]
 
 
 async def test_a_line_device_that_does_not_describe_itself(gateway_process: StartGateway) -> None:

@@ -3,10 +3,13 @@ connection is made, with a bystander's Gets and the gateway's memory unaffected.
 
 from __future__ import annotations
 
+import asyncio
+import os
 import socket
 import time
 from collections.abc import AsyncIterator, Iterator
 from contextlib import contextmanager
+from urllib.parse import urlsplit
 
 import grpc
 import pytest
@@ -117,9 +120,13 @@ async def test_every_attack_is_refused_and_a_bystander_keeps_working(
         assert took < 1.0
 
     # A configured device's own serial line cannot be registered again (pty paths are allowed here).
-    assert rover_url.startswith("serial:///dev/pts/")
-    code, details, _ = await refused(stub, "services.thief", rover_url)
-    assert code == grpc.StatusCode.PERMISSION_DENIED and "config serves" in details
+    # The registry shows a link to its pseudo-terminal; neither the link nor the terminal may be taken.
+    link = urlsplit(rover_url).path
+    terminal = await asyncio.to_thread(os.readlink, link)
+    assert terminal.startswith("/dev/pts/")
+    for url in (rover_url, f"serial://{terminal}"):
+        code, details, _ = await refused(stub, "services.thief", url)
+        assert code == grpc.StatusCode.PERMISSION_DENIED and "config serves" in details, (url, details)
 
     # Reserved names: refused, and nothing left behind (no ghost service).
     for name in ("properties", "gui", "doc", "parameters"):

@@ -32,12 +32,15 @@ def test_http_is_off_unless_configured_and_the_demo_serves_it() -> None:
     assert loads_config("").http.listen == ""
     demo = default_config()
     assert demo.http.listen == "127.0.0.1:8080"
-    assert (demo.http.console, demo.http.max_body, demo.http.max_streams, demo.http.heartbeat) == (
+    http = demo.http
+    assert (http.console, http.max_body, http.max_streams, http.max_streams_per_client, http.heartbeat) == (
         True,
         1024 * 1024,
-        256,
+        4096,
+        64,
         15.0,
     )
+    assert http.write_timeout == 30.0
 
 
 def test_the_http_section_reads_back() -> None:
@@ -67,6 +70,9 @@ def test_the_http_section_reads_back() -> None:
         ("max_streams = -1", "http.max_streams: must not be negative"),
         ("heartbeat = 0", "http.heartbeat"),
         ('heartbeat = "often"', "http.heartbeat: expected a number"),
+        ("max_streams_per_client = 0", "http.max_streams_per_client: must be at least 1"),
+        ("write_timeout = 0", "http.write_timeout: must be a positive number of seconds"),
+        ("write_timeout = nan", "http.write_timeout: must be a positive number of seconds"),
         ("tls = true", "http.tls: HTTPS needs the [tls] section's cert and key"),
         ("colour = 1", "http.colour: unknown key"),
         ('listen = "0.0.0.0:8080"', "is reachable from other machines and is not encrypted"),
@@ -297,3 +303,24 @@ def test_check_config_checks_and_names_the_http_section(
     errors = capsys.readouterr().err.splitlines()
     assert sum("http.max_body" in line for line in errors) == 1
     assert sum("http.heartbeat" in line for line in errors) == 1
+
+
+def test_the_open_files_limit_is_raised_for_max_streams() -> None:
+    import resource
+
+    from gateway.http.front import room_for_files
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    top = soft if hard == resource.RLIM_INFINITY else hard
+    low = top - 100
+    try:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (low, hard))  # a soft limit under the hard one
+        room_for_files(low + 50)
+        assert resource.getrlimit(resource.RLIMIT_NOFILE) == (low + 50, hard)
+        room_for_files(low)  # never lowered
+        assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == low + 50
+        if hard != resource.RLIM_INFINITY:
+            room_for_files(hard + 1000)  # at most the hard limit (and a warning)
+            assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == hard
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))

@@ -123,9 +123,36 @@ export function listServices() {
   return request('GET', `${API_BASE}/services`);
 }
 
-/** The Describe model of a service: {service, type, properties: [...]}. */
-export function describe(service) {
-  return request('GET', `${API_BASE}/services/${encodeURIComponent(service)}/model`);
+/** Milliseconds a model read is shared: the views that open together ask the gateway once. */
+export const MODEL_SHARED_MS = 2000;
+/** Services whose last model read is remembered (the oldest is forgotten beyond). */
+const MODELS_KEPT = 256;
+const models = new Map(); // service -> {promise, pending, at}
+
+/**
+ * The Describe model of a service: {service, type, properties: [...]}. Callers that ask while a
+ * read is on its way, or within MODEL_SHARED_MS of one, share it (the service view, the map and
+ * the inspector all want it when a service is opened or comes up); `fresh` always reads anew.
+ */
+export function describe(service, { fresh = false } = {}) {
+  const known = models.get(service);
+  if (known && !fresh && (known.pending || Date.now() - known.at < MODEL_SHARED_MS)) return known.promise;
+  const entry = { pending: true, at: Date.now(), promise: null };
+  entry.promise = request('GET', `${API_BASE}/services/${encodeURIComponent(service)}/model`).then(
+    (model) => {
+      entry.pending = false;
+      entry.at = Date.now();
+      return model;
+    },
+    (e) => {
+      if (models.get(service) === entry) models.delete(service); // a failure is not shared later
+      throw e;
+    },
+  );
+  models.delete(service);
+  models.set(service, entry);
+  if (models.size > MODELS_KEPT) models.delete(models.keys().next().value);
+  return entry.promise;
 }
 
 /** Get: {service, path, value}, or {service, path, values: [{path, value}]} for a wildcard path. */

@@ -3,9 +3,9 @@
 // machine's diagram, from statechart.js) and one per data type.
 // Every writable widget has one input or select and a button [data-action=set]; an action has
 // an input per parameter [data-param=NAME], a value input [data-value] when it takes a value,
-// and a button [data-action=invoke].
+// and a button [data-action=invoke]; a property that needs parameters to be read, a form of them.
 
-import { registerBuiltin, registerTypeWidget } from './widgets.js';
+import { needsConfirmation, registerAddressedWidget, registerBuiltin, registerTypeWidget } from './widgets.js';
 import { statechartWidget } from './statechart.js';
 import { findMarkers, formatNumber, markerFromInput, parseVector, valueFromInput } from './values.js';
 
@@ -73,6 +73,26 @@ function textWidget(prop, ctx) {
   const input = ctx.h('input', { type: 'text', 'aria-label': prop.name, spellcheck: 'false' });
   const ed = editor(ctx, input, { read: () => valueFromInput(prop.type, input.value) });
   return { element: ed.element, update: (text) => ed.show(text) };
+}
+
+/** A long text (`.gui` `text-area`, or `code`: a chart, a script): a text area of several lines. */
+function textAreaWidget(prop, ctx) {
+  if (!ctx.writable) return { element: null };
+  const code = prop.gui === 'code';
+  const area = ctx.h('textarea', {
+    rows: code ? 12 : 6,
+    class: code ? 'code' : 'long-text',
+    'aria-label': prop.name,
+    spellcheck: code ? 'false' : 'true',
+    dataset: { value: '' },
+  });
+  const ed = editor(ctx, area);
+  return { element: ed.element, update: (text) => ed.show(text) };
+}
+
+/** Unix seconds (`.gui` `time`): `.value` shows the date and time (js/widgets.js displayValue). */
+function timeWidget(prop, ctx) {
+  return ctx.writable ? numberWidget(prop, ctx) : { element: null };
 }
 
 function numberInput(ctx, prop) {
@@ -462,6 +482,10 @@ function buttonWidget(prop, ctx) {
       ctx.showError(e);
       return;
     }
+    if (needsConfirmation(prop)) {
+      const ask = ctx.confirm ?? ((question) => globalThis.confirm(question));
+      if (!ask(`${prop.name} of ${ctx.service}: ${prop.doc || 'invoke it'}. Go ahead?`)) return;
+    }
     const reply = await ctx.set(text, params.read());
     if (reply !== null) ctx.showValue(reply === '' ? 'done' : reply);
   };
@@ -485,6 +509,63 @@ function queryWidget(prop, ctx) {
   return { element: ctx.h('div', { class: 'action-form' }, params.rows, button) };
 }
 
+/**
+ * A readable or writable property that needs request parameters to be read (a storage
+ * service's `file` and its `name`): an input per parameter, a Get button when it can be read,
+ * a text area [data-value] and a Set button when it can be written. It is not followed live
+ * (nothing says which parameters to follow it with); the value read, or the reply of a Set,
+ * shows in `.value`.
+ */
+function addressedWidget(prop, ctx) {
+  const params = parameterInputs(ctx, prop);
+  const readable = ['read', 'read-write', 'unknown'].includes(prop.access);
+  const valueType = prop.value?.type ?? prop.type ?? '';
+  let area = null;
+  const rows = [];
+  if (ctx.writable) {
+    area = ctx.h('textarea', {
+      rows: 3,
+      spellcheck: 'false',
+      dataset: { value: '' },
+      'aria-label': `${prop.name} value`,
+      placeholder: PLACEHOLDERS[valueType] ?? (valueType || 'value'),
+    });
+    rows.push(
+      ctx.h(
+        'label',
+        { class: 'param', title: prop.value?.doc || '' },
+        ctx.h('span', {}, prop.value?.name ?? 'value', valueType ? ctx.h('small', {}, ` ${valueType}`) : null),
+        area,
+      ),
+    );
+  }
+  const readValue = area ? valueReader(valueType, area) : () => '';
+  const get = async () => {
+    const answer = await ctx.get(params.read());
+    if (answer === null) return;
+    ctx.showValue(answer);
+    if (area) area.value = answer;
+  };
+  const set = async () => {
+    let text;
+    try {
+      text = readValue();
+    } catch (e) {
+      ctx.showError(e);
+      return;
+    }
+    const reply = await ctx.set(text, params.read());
+    if (reply !== null) ctx.showValue(reply === '' ? 'done' : reply);
+  };
+  const buttons = ctx.h(
+    'div',
+    { class: 'editor' },
+    readable ? ctx.h('button', { type: 'button', dataset: { action: 'get' }, onclick: get }, 'Get') : null,
+    area ? ctx.h('button', { type: 'button', class: 'set', dataset: { action: 'set' }, onclick: set }, 'Set') : null,
+  );
+  return { element: ctx.h('div', { class: 'action-form' }, params.rows, rows, buttons) };
+}
+
 function namespaceWidget() {
   return { element: null };
 }
@@ -503,6 +584,10 @@ registerBuiltin('button', buttonWidget);
 registerBuiltin('query', queryWidget);
 registerBuiltin('group', namespaceWidget);
 registerBuiltin('statechart', statechartWidget);
+registerBuiltin('text-area', textAreaWidget);
+registerBuiltin('code', textAreaWidget);
+registerBuiltin('time', timeWidget);
+registerAddressedWidget(addressedWidget);
 
 registerTypeWidget('number', numberWidget);
 registerTypeWidget('integer', numberWidget);

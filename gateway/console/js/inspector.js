@@ -27,8 +27,8 @@ export function parseParameters(text) {
 
 export class Inspector {
   /** `els`: {service, path, value, params, get, set, listen, output, log, paths (a datalist)}. */
-  constructor(els, { mux }) {
-    Object.assign(this, { els, mux });
+  constructor(els, { mux, isUp = () => true }) {
+    Object.assign(this, { els, mux, isUp });
     this.unlisten = null;
     this.listening = null;
     this._described = null;
@@ -152,6 +152,7 @@ export class Inspector {
   async suggestPaths() {
     const service = this.els.service.value.trim();
     if (!service || service === this._described || service.includes('*')) return;
+    if (!this.isUp(service)) return; // suggested when it is up (main.js calls again)
     this._described = service;
     try {
       const model = await describe(service);

@@ -58,6 +58,7 @@ const list = new ServiceList($('#services'), {
     } else {
       view.updateState(selected());
       map.drawAll();
+      inspector.suggestPaths(); // its service may have come up
     }
     fillDatalist(services);
   },
@@ -108,7 +109,8 @@ const inspector = new Inspector(
     log: $('#inspector-log'),
     paths: $('#inspector-paths'),
   },
-  { mux },
+  // A service listed as not up is not asked for its model (it cannot answer).
+  { mux, isUp: (name) => (list.byName(name)?.state ?? 'up') === 'up' },
 );
 
 function select(name) {

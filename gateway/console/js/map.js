@@ -21,6 +21,13 @@ const TARGET_TTL_MS = 120000;
 const MOVABLE_TYPES = new Set(['mobile_robot', 'group']);
 /** Types that have a location by their standard property set, even before the registry saw one. */
 const LOCATED_TYPES = new Set(['mobile_robot', 'group', 'sensor']);
+/**
+ * Where a thing's name goes, in pixels from its place (y up): a robot's above right, a group's
+ * below left (anchored at its end), anything else's (a sensor) below right, so that the names of
+ * things that stand together (a sensor on a robot, a group of one, a group between its robots)
+ * are not drawn over each other.
+ */
+const LABEL_AT = { mobile_robot: [12, 10], group: [-12, -20], other: [12, -20] };
 
 function colorOf(text) {
   try {
@@ -140,18 +147,22 @@ export class RobotMap {
       }
     }
     this.drawAll();
+    // A service that is not up is described again once it is (its model may have changed).
+    for (const service of list) if (service.state !== 'up') this._described.delete(service.name);
     this._describeNew(list);
   }
 
   async _describeNew(list) {
     for (const service of list) {
+      // Only a service that is up can describe itself; one that fails is asked again after it
+      // was down and is up again, never with every change of the list.
+      if (service.state !== 'up') continue;
       if (this._described.has(service.name) || this._described.size >= MAX_DESCRIBED) continue;
       this._described.add(service.name);
       let model;
       try {
         model = await describe(service.name);
       } catch {
-        this._described.delete(service.name); // asked again with the next list
         continue;
       }
       for (const prop of model.properties ?? []) {
@@ -384,7 +395,8 @@ export class RobotMap {
     g.classList.toggle('stale', this.stale.has(name));
     g.querySelector('title').textContent = `${name} (${type}) at x ${x.toFixed(2)} y ${y.toFixed(2)}`;
     g.querySelector('.shape').setAttribute('transform', `scale(${s}) rotate(${(yaw * 180) / Math.PI})`);
-    g.querySelector('text').setAttribute('transform', `translate(${12 * s} ${10 * s}) scale(${s} ${-s})`);
+    const [dx, dy] = LABEL_AT[type] ?? LABEL_AT.other;
+    g.querySelector(':scope > text').setAttribute('transform', `translate(${dx * s} ${dy * s}) scale(${s} ${-s})`);
   }
 
   robotShape(name, type) {
@@ -399,7 +411,9 @@ export class RobotMap {
     } else {
       body = svg('circle', { r: 6, class: 'sensor-body' });
     }
-    return svg('g', attrs, svg('title', {}), svg('g', { class: 'shape' }, body), this.label(name, 0, 0));
+    const label = this.label(name, 0, 0);
+    if (type === 'group') label.setAttribute('text-anchor', 'end'); // left of it: see LABEL_AT
+    return svg('g', attrs, svg('title', {}), svg('g', { class: 'shape' }, body), label);
   }
 
   drawTargets() {

@@ -4,7 +4,7 @@
 
 import { describe, getProperty, setProperty } from './api.js';
 import { h } from './dom.js';
-import { propertyView } from './widgets.js';
+import { needsParameters, propertyView } from './widgets.js';
 
 /** Selectors a view follows at least, however full the page's stream is. */
 const MIN_FOLLOWED = 8;
@@ -20,8 +20,9 @@ function namespaceOf(path) {
 }
 
 export class ServiceView {
-  constructor(root, { mux }) {
-    Object.assign(this, { root, mux });
+  constructor(root, { mux, describe: describeService = describe }) {
+    Object.assign(this, { root, mux, describe: describeService });
+    this._waiting = false; // its model could not be read: built again when the registry says up
     this.service = null;
     this._views = new Map(); // path -> property view
     this._unsubscribe = [];
@@ -31,7 +32,7 @@ export class ServiceView {
   }
 
   /** Show `service` ({name, type, state, address}), or nothing for null. */
-  async show(service) {
+  async show(service, { fresh = false } = {}) {
     this._close();
     const generation = ++this._generation;
     this.service = service;
@@ -50,9 +51,19 @@ export class ServiceView {
     this.root.replaceChildren(this.header(service), h('p', { class: 'muted' }, 'Loading the model…'));
     let model;
     try {
-      model = await describe(service.name);
+      model = await this.describe(service.name, { fresh });
     } catch (e) {
       if (generation !== this._generation) return;
+      if (e.code === 'UNAVAILABLE') {
+        // Listed as up but not answering (the registry has not noticed yet): no retries here;
+        // the view is built once the registry says it is up again (updateState).
+        this._waiting = true;
+        this.root.replaceChildren(
+          this.header(service),
+          h('p', { class: 'muted notice' }, `${service.name} does not answer (${e.message}): its properties show when it is up again.`),
+        );
+        return;
+      }
       this.root.replaceChildren(this.header(service), h('div', { class: 'error' }, `${e.code}: ${e.message}`));
       return;
     }
@@ -95,7 +106,8 @@ export class ServiceView {
         label: ns ? prop.name.slice(ns.length + 1) : prop.name,
       });
       this._views.set(prop.name, view);
-      if (LISTENABLE.has(prop.access)) targets.set(prop.name, leafTarget(view));
+      // One that needs a parameter (a file's name) cannot be followed: its form reads it.
+      if (LISTENABLE.has(prop.access) && !needsParameters(prop)) targets.set(prop.name, leafTarget(view));
       return view.element;
     };
     const byName = new Map(all.map((p) => [p.name, p]));
@@ -205,7 +217,7 @@ export class ServiceView {
     if (value === this._propertiesText || this._reloadTimer !== null) return;
     this._reloadTimer = setTimeout(() => {
       this._reloadTimer = null;
-      if (this.service) this.show(this.service);
+      if (this.service) this.show(this.service, { fresh: true }); // the model changed: read it anew
     }, 300);
   }
 
@@ -215,8 +227,9 @@ export class ServiceView {
     const was = this.service.state;
     this.service = service;
     this.root.classList.toggle('service-down', service.state !== 'up');
-    if (was !== 'up' && service.state === 'up') {
-      this.show(service); // back: its model and values anew
+    if (this._waiting && service.state !== 'up') this._waiting = 'down'; // the registry noticed
+    if (service.state === 'up' && (was !== 'up' || this._waiting === 'down')) {
+      this.show(service); // back: its model and values anew, read once
       return;
     }
     const badge = this.root.querySelector('.view-head .badge');
@@ -227,6 +240,7 @@ export class ServiceView {
   }
 
   _close() {
+    this._waiting = false;
     for (const unsubscribe of this._unsubscribe) unsubscribe();
     this._unsubscribe = [];
     for (const view of this._views.values()) view.dispose();

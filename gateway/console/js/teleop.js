@@ -28,6 +28,21 @@ export function velocityFor({ forward, turn, mode, yaw = 0, speed, turnRate }) {
   return [round(Math.cos(yaw) * forward * speed), round(Math.sin(yaw) * forward * speed), 0, 0, 0, round(turn * turnRate)];
 }
 
+/**
+ * Where the joystick's knob stands for the keys held: [dx, dy], each -1..1 of the stick's
+ * reach (right and down positive, as on the screen), a diagonal kept inside the circle.
+ */
+export function knobForKeys(keys) {
+  let dx = 0;
+  let dy = 0;
+  if (keys.has('forward')) dy -= 1;
+  if (keys.has('back')) dy += 1;
+  if (keys.has('left')) dx -= 1;
+  if (keys.has('right')) dx += 1;
+  const length = Math.hypot(dx, dy);
+  return length > 1 ? [dx / length, dy / length] : [dx + 0, dy + 0];
+}
+
 export class Teleop {
   /**
    * `els`: {root, joystick, knob, status, speed, turn, mode, stop, target}; `selected()` the
@@ -61,6 +76,7 @@ export class Teleop {
   selectionChanged() {
     this.keys.clear();
     this.stick = null;
+    this.showKeys();
     this.release();
     const t = this.target();
     this.els.target.textContent = t ? `${t.name} (${t.type === 'group' ? 'group' : 'robot'})` : 'no robot selected';
@@ -75,7 +91,7 @@ export class Teleop {
   // -- input ---------------------------------------------------------------------------------
 
   _bindJoystick() {
-    const { joystick, knob } = this.els;
+    const { joystick } = this.els;
     let pointer = null; // the pointer holding the stick
     const update = (e) => {
       const rect = joystick.getBoundingClientRect();
@@ -87,7 +103,7 @@ export class Teleop {
         dx /= length;
         dy /= length;
       }
-      knob.style.transform = `translate(${dx * radius * 0.6}px, ${dy * radius * 0.6}px)`;
+      this.moveKnob(dx, dy);
       this.stick = { forward: -dy, turn: -dx };
       this.hold();
     };
@@ -109,8 +125,8 @@ export class Teleop {
       if (e.pointerId !== pointer) return;
       pointer = null;
       joystick.classList.remove('active');
-      knob.style.transform = '';
       this.stick = null;
+      this.showKeys(); // the keys still held, or the centre
       if (this.keys.size) this.hold();
       else this.release();
     };
@@ -126,11 +142,13 @@ export class Teleop {
       e.preventDefault(); // arrows would scroll the page
       if (this.keys.has(key)) return; // the key's auto-repeat: the timer already resends
       this.keys.add(key);
+      this.showKeys();
       this.hold();
     });
     this.page.addEventListener('keyup', (e) => {
       const key = KEYS[e.key.toLowerCase()];
       if (!key || !this.keys.delete(key)) return;
+      this.showKeys();
       if (this.keys.size || this.stick) this.hold();
       else this.release();
     });
@@ -140,7 +158,7 @@ export class Teleop {
     const lost = () => {
       this.keys.clear();
       this.stick = null;
-      this.els.knob.style.transform = '';
+      this.showKeys();
       // Only a robot this page drives is stopped: losing focus must not end another's moveto.
       this.release(false, true);
     };
@@ -149,6 +167,21 @@ export class Teleop {
     this.page.document?.addEventListener('visibilitychange', () => {
       if (this.page.document.visibilityState === 'hidden') lost();
     });
+  }
+
+  /** Put the knob at [dx, dy] of the stick's reach (0, 0: the centre). */
+  moveKnob(dx, dy) {
+    const radius = (this.els.joystick.getBoundingClientRect?.().width ?? 0) / 2;
+    this.els.knob.style.transform =
+      dx === 0 && dy === 0 ? '' : `translate(${dx * radius * 0.6}px, ${dy * radius * 0.6}px)`;
+  }
+
+  /** Driving with the keys moves the knob as the stick would be held; the stick, when held, wins. */
+  showKeys() {
+    if (this.stick) return;
+    const [dx, dy] = knobForKeys(this.keys);
+    this.moveKnob(dx, dy);
+    this.els.joystick.classList?.toggle('keys', this.keys.size > 0);
   }
 
   // -- commands ------------------------------------------------------------------------------

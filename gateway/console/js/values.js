@@ -69,6 +69,22 @@ export function formatNumber(x) {
   return String(x);
 }
 
+/**
+ * Unix seconds (value text such as "1763862603.25") as the local date and time,
+ * "2026-11-23 01:50:03"; null when the text is not a finite number.
+ */
+export function formatTime(text) {
+  const seconds = Number(String(text).trim());
+  if (String(text).trim() === '' || !Number.isFinite(seconds)) return null;
+  const d = new Date(seconds * 1000);
+  if (Number.isNaN(d.getTime())) return null;
+  const two = (n) => String(n).padStart(2, '0');
+  return (
+    `${d.getFullYear()}-${two(d.getMonth() + 1)}-${two(d.getDate())} ` +
+    `${two(d.getHours())}:${two(d.getMinutes())}:${two(d.getSeconds())}`
+  );
+}
+
 const TRUE = new Set(['true', '1', 'on', 'yes']);
 const FALSE = new Set(['false', '0', 'off', 'no']);
 

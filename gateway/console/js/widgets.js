@@ -14,11 +14,36 @@
 // registered there wins over the built-in one for that `.gui` word (docs/console.md).
 
 import { h, svg } from './dom.js';
+import { formatTime } from './values.js';
+
+/** `.gui` words of a text shown in a text area of several lines (a chart, a script, a note). */
+export const TEXT_AREA_GUIS = new Set(['text-area', 'code']);
+/** Actions that undo work (their path's last name): the console asks before it invokes them. */
+export const CONFIRMED_ACTIONS = new Set(['remove', 'delete', 'stop-all', 'stop_all']);
+
+/** Whether invoking action `prop` asks for confirmation first: by its name, or `.gui` `confirm`. */
+export function needsConfirmation(prop) {
+  if (prop.access !== 'action') return false;
+  return prop.gui === 'confirm' || CONFIRMED_ACTIONS.has(prop.name.split('.').pop());
+}
+
+/**
+ * The text shown for a value of `prop`, and its tooltip: a `.gui` `time` (Unix seconds, the
+ * registry's `last_seen`) shows as a local date and time with the number in the tooltip.
+ */
+export function displayValue(prop, text) {
+  if (prop.gui === 'time') {
+    const time = formatTime(text);
+    if (time !== null) return { text: time, title: `${text} (Unix seconds)` };
+  }
+  return { text, title: text };
+}
 
 const GUI_NAME = /^[A-Za-z0-9_.-]{1,64}$/;
 const builtins = new Map(); // gui word -> factory
 const builtinTypes = new Map(); // data type -> factory
 const extensions = new Map(); // gui word -> factory, from registerWidget
+let addressedFactory = null; // the built-in form of a property that needs parameters to be read
 
 function checked(gui, factory) {
   if (typeof gui !== 'string' || !GUI_NAME.test(gui)) {
@@ -45,6 +70,21 @@ export function registerTypeWidget(type, factory) {
   builtinTypes.set(type, factory);
 }
 
+/**
+ * A readable or writable property that cannot be read without a request parameter (a storage
+ * service's `file` needs `name`): the page cannot follow it, only read it with parameters given.
+ */
+export function needsParameters(prop) {
+  if (prop.access === 'action' || prop.access === 'query') return false;
+  return (prop.parameters ?? []).some((p) => p.required && (p.default === null || p.default === undefined));
+}
+
+/** The built-in widget of a property that needs parameters (see needsParameters). */
+export function registerAddressedWidget(factory) {
+  checked('addressed', factory);
+  addressedFactory = factory;
+}
+
 /** The gui words that have a widget: built in, then registered. */
 export function widgetNames() {
   return [...new Set([...builtins.keys(), ...extensions.keys()])].sort();
@@ -55,6 +95,7 @@ export function widgetFor(prop) {
   if (prop.gui && extensions.has(prop.gui)) return extensions.get(prop.gui);
   if (prop.access === 'action') return builtins.get('button');
   if (prop.access === 'query') return builtins.get('query');
+  if (addressedFactory && needsParameters(prop)) return addressedFactory;
   return builtins.get(prop.gui) ?? builtinTypes.get(prop.type) ?? builtins.get('text');
 }
 
@@ -93,8 +134,9 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
   );
 
   const showValue = (text) => {
-    value.textContent = text;
-    value.title = text;
+    const shown = displayValue(prop, text);
+    value.textContent = shown.text;
+    value.title = shown.title;
   };
   const showError = (e) => {
     error.textContent = `${e?.code ?? 'UNKNOWN'}: ${e?.message ?? e}`;
