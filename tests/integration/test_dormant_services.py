@@ -92,3 +92,28 @@ def test_check_config_reports_bad_dormancy_and_licence_limits(tmp_path: Path) ->
     assert "registry.max_licences: must be at least 1, got 0" in done.stderr, done.stderr
     assert "registry.max_licence_duration: must be more than 0 and at most 86400 seconds" in done.stderr
     assert "idle_stop: only a dormant service (dormant = true) is stopped when idle" in done.stderr
+
+
+async def test_a_woken_dormant_provider_is_scheduled_from_where_it_is(gateway_process) -> None:  # type: ignore[no-untyped-def]
+    """Once awake, a dormant provider's location is read: it no longer counts as 0 away."""
+    gw = gateway_process(
+        """
+        [[services]]
+        name = "near"
+        type = "sim-robot"
+        features = ["survey"]
+        options = { start = [1.0, 0.0] }
+
+        [[services]]
+        name = "far"
+        type = "sim-robot"
+        features = ["survey"]
+        dormant = true
+        options = { start = [5.0, 0.0] }
+        """
+    )
+    async with AsyncClient(gw.address) as client, client.session() as session:
+        assert await client.get("far", "location") == "(5 0 0 0 0 0)"  # the call wakes it
+        assert await client.get("registry", "services.far.availability") == "ready"
+        granted = await session.set("registry", "request", "(survey)", location="(0 0)")
+        assert granted.startswith("(r1 granted ((near "), granted
