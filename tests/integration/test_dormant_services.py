@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import subprocess
 import sys
+from datetime import datetime
 from pathlib import Path
 
 from support.gateway_process import ROOT
@@ -117,3 +118,32 @@ async def test_a_woken_dormant_provider_is_scheduled_from_where_it_is(gateway_pr
         assert await client.get("registry", "services.far.availability") == "ready"
         granted = await session.set("registry", "request", "(survey)", location="(0 0)")
         assert granted.startswith("(r1 granted ((near "), granted
+
+
+async def test_the_idle_time_of_a_licensed_dormant_service_runs_from_the_licence_s_end(
+    gateway_process,
+) -> None:  # type: ignore[no-untyped-def]
+    gw = gateway_process(CONFIG.replace("idle_stop = 1", "idle_stop = 3"))
+    async with AsyncClient(gw.address) as client, client.session() as session:
+        changes: list[tuple[str, float]] = []
+
+        async def follow() -> None:
+            async for event in client.listen("registry", "services.spare.availability"):
+                changes.append((event.value, event.time.timestamp()))
+
+        follower = asyncio.ensure_future(follow())
+        try:
+            licence = await session.set("registry", "acquire", "", service="spare", duration="1")
+            await wait_until(
+                lambda: changes[-1:] and changes[-1][0] == "dormant" and len(changes) > 2,
+                within=15,
+                what="dormant again",
+            )
+        finally:
+            follower.cancel()
+        marker = await client.get("registry", f"licences.{licence}")
+        assert "<status>expired</status>" in marker
+        ended = datetime.fromisoformat(
+            marker.split("<expires>")[1].split("</expires>")[0].replace("Z", "+00:00")
+        )
+        assert changes[-1][1] - ended.timestamp() >= 3 - 0.1, (changes, marker)
