@@ -191,7 +191,8 @@ class Gateway:
             info=backend.info,
             idle_stop=entry.idle_stop,
             awake=self._awake,
-            connect_wait=DEVICE_CONNECT_WAIT,
+            # The call that starts it hears why the device did not answer, not a bare deadline.
+            connect_wait=min(DEVICE_CONNECT_WAIT, REGISTER_SHARE * self.config.gateway.call_timeout),
             held=lambda name: self.registry.licensing.holder_of(name) is not None,
         )
         return dormant

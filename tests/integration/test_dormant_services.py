@@ -9,15 +9,18 @@ acquired on it wakes it too, and keeps it running while held.
 from __future__ import annotations
 
 import asyncio
+import socket
 import subprocess
 import sys
 from datetime import datetime
 from pathlib import Path
 
+import pytest
 from support.gateway_process import ROOT
 from support.waiting import eventually, wait_until
 
 from clients import AsyncClient
+from clients.errors import Unavailable
 
 CONFIG = """
 [[services]]
@@ -147,3 +150,22 @@ async def test_the_idle_time_of_a_licensed_dormant_service_runs_from_the_licence
             marker.split("<expires>")[1].split("</expires>")[0].replace("Z", "+00:00")
         )
         assert changes[-1][1] - ended.timestamp() >= 3 - 0.1, (changes, marker)
+
+
+async def test_a_dormant_device_that_does_not_answer_is_unavailable_before_the_call_s_deadline(
+    gateway_process,
+) -> None:  # type: ignore[no-untyped-def]
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    gw = gateway_process(
+        f"""
+        [[services]]
+        name = "lost"
+        url = "tcp://127.0.0.1:{port}"
+        dormant = true
+        """
+    )
+    async with AsyncClient(gw.address) as client:
+        with pytest.raises(Unavailable, match="dormant and could not be started"):
+            await client.get("lost", "properties")
