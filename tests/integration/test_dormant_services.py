@@ -164,8 +164,19 @@ async def test_a_dormant_device_that_does_not_answer_is_unavailable_before_the_c
         name = "lost"
         url = "tcp://127.0.0.1:{port}"
         dormant = true
+        features = ["survey"]
+
+        [[services]]
+        name = "near"
+        type = "sim-robot"
+        features = ["survey"]
         """
     )
-    async with AsyncClient(gw.address) as client:
+    async with AsyncClient(gw.address) as client, client.session() as session:
         with pytest.raises(Unavailable, match="dormant and could not be started"):
             await client.get("lost", "properties")
+        # The scheduler cannot wake it either: the request is refused as unavailable, not as if
+        # nobody offered the service, and nothing stays allocated.
+        with pytest.raises(Unavailable, match=r"could not be woken \(lost\)"):
+            await session.set("registry", "request", "(survey)", count="2")
+        assert await client.get("registry", "licences") == "()"
