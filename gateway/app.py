@@ -45,7 +45,7 @@ from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, BackendInfo
 from services.catalog import build, needs_directory
 from services.errors import PropertyError
-from services.registry import DEFAULT_REGISTER_TIMEOUT, AllowList, Registry, RegistryService
+from services.registry import DEFAULT_REGISTER_TIMEOUT, AllowList, Licence, Registry, RegistryService
 from services.registry import ServiceEntry as RegistryEntry
 
 if TYPE_CHECKING:
@@ -88,6 +88,8 @@ class Gateway:
         #: The resource service, served as ``registry`` (built in :meth:`start`).
         self.registry: Registry = Registry()
         self._devices: list[SupervisedDevice] = []
+        #: The dormant services of the config, by name (their idle time follows their licences).
+        self._dormant: dict[str, DormantBackend] = {}
         self._launch: asyncio.Future[list[SupervisedDevice | BaseException]] | None = None
         #: "host:port" the gRPC server listens on (the real port when 0 was asked), or "unix:PATH".
         self.address = ""
@@ -183,15 +185,23 @@ class Gateway:
         if not entry.dormant:
             return backend
         directory = self.router.directory
-        return DormantBackend(
+        dormant = self._dormant[entry.name] = DormantBackend(
             entry.name,
             lambda: open_backend(entry, directory),
             info=backend.info,
             idle_stop=entry.idle_stop,
             awake=self._awake,
-            connect_wait=DEVICE_CONNECT_WAIT,
+            # The call that starts it hears why the device did not answer, not a bare deadline.
+            connect_wait=min(DEVICE_CONNECT_WAIT, REGISTER_SHARE * self.config.gateway.call_timeout),
             held=lambda name: self.registry.licensing.holder_of(name) is not None,
         )
+        return dormant
+
+    def _on_licence(self, licence: Licence, event: str) -> None:
+        """A licence changed: a dormant service's idle time runs from the end of its last licence."""
+        dormant = self._dormant.get(licence.service)
+        if dormant is not None:
+            dormant.touch()
 
     def _awake(self, name: str, running: bool) -> None:
         """A dormant service started (a call needed it) or stopped (idle): the registry shows it."""
@@ -300,6 +310,7 @@ class Gateway:
         # Licences are held by the caller's identity (or its Session); every Set is checked against them.
         self.registry.set_caller(current_caller)
         self.servicer.calls.licences = self.registry.licensing
+        self.registry.licensing.watch(self._on_licence)
         await self._add(REGISTRY_NAME, RegistryService(self.registry), "built in")
         self._unwatch_registry = self.registry.watch_states(self._on_state)
 

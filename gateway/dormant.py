@@ -109,6 +109,11 @@ class DormantBackend(Backend):
         self._awake(self.name, True)
         return backend
 
+    def touch(self) -> None:
+        """Count now as a use: a licence on it was granted, renewed or ended (its idle time runs
+        from the end of its last licence, not from its last call)."""
+        self._last_used = time.monotonic()
+
     async def _stop_when_idle(self) -> None:
         while True:
             quiet = time.monotonic() - self._last_used

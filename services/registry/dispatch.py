@@ -275,7 +275,17 @@ class Dispatcher:
             asked = replace(request, exclude=request.exclude | rejected) if rejected else request
             providers, scale = self.providers_for(asked, published)
             asked = replace(asked, cost_scale=scale)
-            decided = self.scheduler.submit(asked, providers, time.monotonic())
+            try:
+                decided = self.scheduler.submit(asked, providers, time.monotonic())
+            except NotFound as e:
+                if not rejected:
+                    raise
+                # Those left cannot serve it: it is the rejections that failed it, not step 3.
+                raise Unavailable(
+                    f"the providers chosen for {capabilities.strip()[:80]} rejected the allocation or "
+                    f"could not be woken ({' '.join(sorted(rejected))}), and the others cannot serve it "
+                    f"({e.message}); nothing was allocated"
+                ) from None
             if isinstance(decided, Waiting):
                 self._waiting_callers[decided.id] = (holder, session)
                 if published is not None:

@@ -43,7 +43,7 @@ from services.registry.scheduling import (
     check_capabilities,
 )
 from services.registry.table import ServiceTable
-from services.values import Vector, format_names
+from services.values import ValueFormatError, Vector, format_names, parse_vector
 from services.worker_pool import run_bounded
 
 __all__ = ["Caller", "CallerSource", "Registry", "RegistryService"]
@@ -314,6 +314,8 @@ class Registry(Resource):
         """Record that ``name`` is declared but not running (True) or running again (False)."""
         entry = self._table.get(name)
         if entry is not None and entry.set_dormant(dormant):
+            if dormant:  # where it was read while awake (see :meth:`_locate`) no longer counts
+                self._table.set_location(name, None)
             self._bump()
 
     async def wake(self, name: str) -> None:
@@ -558,10 +560,38 @@ class Registry(Resource):
         (at most ``timeout``) for the locations on the way. Each name is looked at once."""
         if self._directory is None:
             return
+        awake: list[str] = []
         for name in names:
             if name not in self._located and self._follow_location(name):
                 self._located.add(name)
-        await self._locations.settled(self.timeout)
+            elif self._awake_on_demand(name):
+                awake.append(name)
+        await asyncio.gather(self._locations.settled(self.timeout), *map(self._read_location, awake))
+
+    def _awake_on_demand(self, name: str) -> bool:
+        """True when ``name`` is a dormant service that runs now (woken by a call or the scheduler)."""
+        entry = self._table.get(name)
+        if entry is None or entry.availability in ("dormant", "death") or self._directory is None:
+            return False
+        try:
+            return self._directory.backend(name).on_demand
+        except PropertyError:
+            return False
+
+    async def _read_location(self, name: str) -> None:
+        """Read an awake dormant service's location once: a Listen would keep it from going dormant
+        again, and until read it would count as 0 away (nearer than every followed provider)."""
+        directory = self._directory
+        if directory is None:
+            return
+        try:
+            async with asyncio.timeout(self.timeout):
+                text = await directory.backend(name).get("location")
+            vector = parse_vector(text) if text else None
+        except (PropertyError, TimeoutError, ValueFormatError):
+            return
+        if self._awake_on_demand(name):
+            self._table.set_location(name, vector if vector is not None and vector.size else None)
 
     def _forget(self, name: str) -> None:
         reaching = self._reaching.pop(name, None)

@@ -256,3 +256,17 @@ def test_ready_providers_are_used_before_dormant_ones_are_woken_even_when_farthe
     assert isinstance(plan, Plan) and plan.providers == ("dcam",)  # one provider beats two
     plan = s2.submit(ask("F", caps=frozenset({"video"})), parts, 0.0)
     assert isinstance(plan, Plan) and plan.providers == ("cam",)
+
+
+def test_a_provider_that_is_a_consumer_now_is_busy_not_missing() -> None:
+    s = Scheduler()
+    robots = [robot("A", 0, caps=frozenset({"laser"})), *seed_robots()[:2]]
+    assert granted(s, ask("A"), robots) == ["B"]  # A is a consumer now (rule a)
+    waiting = s.submit(ask("F", caps=frozenset({"laser"}), wait=5.0), robots, 0.0)
+    assert isinstance(waiting, Waiting)  # A offers it once its allocation ends
+    with pytest.raises(Unavailable, match="busy"):
+        s.submit(ask("G", caps=frozenset({"mobile_robot"}), count=3, wait=0.0), robots, 0.0)
+    assert not s.unserved  # A, B and C exist: nothing unserved
+    s.release("r1", "A", {})
+    plans, _ = s.retry(lambda w: robots, 1.0)
+    assert [p.providers for p in plans] == [("A",)]

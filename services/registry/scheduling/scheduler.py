@@ -177,14 +177,16 @@ class Scheduler:
     def _plan(self, id: str, request: Request, providers: list[Provider]) -> Plan | None:
         """Steps 3–5: a reserved plan, None when the request must wait; raises when it cannot be served."""
         wanted = request.capabilities
-        # Rule (a) and the consumer itself: never a provider here. Rule (d): the consumer's refusals.
-        consumers = self._consumers() | {request.consumer}
-        relevant = [
+        # The consumer itself: never a provider here. Rule (d): the consumer's refusals.
+        offering = [
             p
             for p in providers
-            if p.name not in consumers and p.name not in request.exclude and p.capabilities & wanted
+            if p.name != request.consumer and p.name not in request.exclude and p.capabilities & wanted
         ]
-        self._check_possible(request, relevant)
+        self._check_possible(request, offering)
+        # Rule (a): a provider that is a consumer now is busy until its allocations end.
+        consumers = self._consumers()
+        relevant = [p for p in offering if p.name not in consumers]
         busy = self._busy()
         free = [p for p in relevant if p.name not in busy and p.state is not ProviderState.BUSY]
         ready = [p for p in free if p.state is ProviderState.READY]
@@ -200,9 +202,9 @@ class Scheduler:
                     self._reserved[name] = id
                 return plan
         # Step 4: could the providers that are busy (or down) serve it once free?
-        usable = [p for p in relevant if p.state is not ProviderState.DOWN]
+        usable = [p for p in offering if p.state is not ProviderState.DOWN]
         if self._choose(request, usable)[0] is None:
-            down = sorted(p.name for p in relevant if p.state is ProviderState.DOWN)
+            down = sorted(p.name for p in offering if p.state is ProviderState.DOWN)
             if request.wait > 0:
                 return None  # a provider coming back up is a table change: retried then
             raise Unavailable(
