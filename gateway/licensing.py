@@ -21,12 +21,9 @@ from __future__ import annotations
 from gateway.guard import CALLER, REGISTRY
 from gateway.rules import Subject
 from services.errors import FailedPrecondition
-from services.registry import Caller, Licences
+from services.registry import SESSION_HOLDER_PREFIX, Caller, Licences
 
 __all__ = ["SESSION_HOLDER_PREFIX", "caller_of", "check_set", "current_caller", "holder_of"]
-
-#: The holder name of an anonymous caller on a Session: this prefix and the Session's token.
-SESSION_HOLDER_PREFIX = "session-"
 
 
 def holder_of(subject: Subject) -> str:

@@ -72,7 +72,14 @@ from services.registry.registration import (
     DEFAULT_REGISTER_TIMEOUT,
     RESERVED_SERVICE_NAMES,
 )
-from services.registry.service import Caller, CallerSource, Registry, RegistryService
+from services.registry.service import (
+    SESSION_HOLDER_PREFIX,
+    Caller,
+    CallerSource,
+    Registry,
+    RegistryService,
+    proves_identity,
+)
 from services.registry.urls import REGISTRABLE_SCHEMES, check_url
 
 __all__ = [
@@ -85,6 +92,7 @@ __all__ = [
     "DEFAULT_REGISTER_TIMEOUT",
     "REGISTRABLE_SCHEMES",
     "RESERVED_SERVICE_NAMES",
+    "SESSION_HOLDER_PREFIX",
     "STATES",
     "AllowList",
     "Caller",
@@ -98,4 +106,5 @@ __all__ = [
     "ServiceList",
     "check_url",
     "parse_allow_entry",
+    "proves_identity",
 ]

@@ -15,7 +15,7 @@ from typing import Annotated
 from services.backend import NO_PARAMS, Backend, BackendInfo
 from services.core import LocalService, Prop, Resource, action, query
 from services.directory import Directory
-from services.errors import InvalidArgument, PropertyError, Unavailable
+from services.errors import InvalidArgument, PermissionDenied, PropertyError, Unavailable
 from services.location_following import LocationFollower
 from services.query import Query, values_equal
 from services.registry.allow import AllowList
@@ -61,6 +61,14 @@ MAX_ENDED_SHOWN = 64
 Caller = tuple[str, str]
 #: Answers :data:`Caller` for the request being carried out; the gateway installs one.
 CallerSource = Callable[[], Caller]
+#: The holder name of an anonymous caller on a Session: this prefix and the Session's token.
+SESSION_HOLDER_PREFIX = "session-"
+
+
+def proves_identity(caller: Caller) -> bool:
+    """Whether ``caller``'s holder name is an identity it proved (a token or a certificate)."""
+    holder, session = caller
+    return holder != "local" and holder != SESSION_HOLDER_PREFIX + session
 
 
 def _local_caller() -> Caller:
@@ -413,6 +421,13 @@ class Registry(Resource):
         rejects; ``cost``: a property each provider publishes its cost in (default: drive distance);
         ``weight``: cost against QoS, 0 to 1."""
         holder, session = self._caller()
+        if consumer and consumer != holder and proves_identity((holder, session)):
+            # A robot that proved who it is asks for itself: naming another would spend that
+            # robot's turn (rule e) and keep it from providing (rule a).
+            raise PermissionDenied(
+                f"{holder} may request only as itself: consumer={consumer} names another; "
+                f"leave consumer out, or call as {consumer}"
+            )
         return await self._dispatcher.request(
             capabilities,
             consumer=consumer,

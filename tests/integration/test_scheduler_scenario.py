@@ -200,6 +200,11 @@ async def test_bad_requests_get_clear_statuses_and_nothing_stays_allocated(long_
                 await a.set("registry", "request", "(survey)", **bad)
         with pytest.raises(InvalidArgument, match="capability name"):
             await a.set("registry", "request", "(bad!name)")
+        # A robot that proved who it is asks only for itself: naming another would spend that
+        # robot's turn (rule e) and keep it from providing (rule a).
+        with pytest.raises(PermissionDenied, match="G may request only as itself: consumer=B"):
+            await g.set("registry", "request", "(survey)", consumer="B")
+        assert await g.get("registry", "allocations") == "()"
         # An anonymous unary caller cannot hold licences.
         async with AsyncClient(site.address) as anonymous:
             with pytest.raises(FailedPrecondition, match="anonymous caller"):
