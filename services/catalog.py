@@ -164,12 +164,28 @@ def build(kind: str, options: Mapping[str, Any], directory: Directory | None = N
             raise InvalidArgument(f"a {kind!r} service reaches other services: it runs only inside a gateway")
         options[_DIRECTORY] = directory
     try:
-        bound = inspect.signature(factory).bind(**options)
+        signature: inspect.Signature | None = inspect.signature(factory)
+    except ValueError:
+        signature = None
+    if signature is not None:
+        # Said in the project's own words: Python's TypeError texts differ between versions.
+        missing = [
+            p.name
+            for p in signature.parameters.values()
+            if p.default is p.empty
+            and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
+            and p.name not in options
+        ]
+        if missing:
+            raise InvalidArgument(
+                f"bad options for {kind!r}: missing a required argument: {missing[0]!r}; "
+                f"it accepts: {_accepted(kind, factory)}"
+            )
+    try:
+        bound = inspect.signature(factory).bind(**options) if signature is not None else None
     except TypeError as e:
         accepted = _accepted(kind, factory)
         raise InvalidArgument(f"bad options for {kind!r}: {e}; it accepts: {accepted}") from None
-    except ValueError:
-        bound = None
     try:
         made = factory(**options) if bound is None else factory(*bound.args, **bound.kwargs)
     except InvalidArgument as e:
