@@ -13,7 +13,7 @@ import shutil
 import ssl
 import subprocess
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,12 +24,13 @@ import pytest
 from support.board import BOARD_TYPE
 from support.certs import CertificateFiles, certificates
 from support.gateway_process import ROOT, GatewayProcess, StartGateway, start_gateway
+from support.http_clients import grpc_client, http
 from support.sse import SseReader
 from support.waiting import eventually
 
 from clients import AsyncClient
 
-__all__ = ["certificates"]
+__all__ = ["certificates", "grpc_client", "http"]
 
 CONFIG = f"""
 [[services]]
@@ -54,18 +55,6 @@ def gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GatewayProcess
     gw = start_gateway(tmp_path_factory.mktemp("http"), CONFIG)
     yield gw
     gw.stop()
-
-
-@pytest.fixture
-async def http(gateway: GatewayProcess) -> AsyncIterator[aiohttp.ClientSession]:
-    async with aiohttp.ClientSession(base_url=gateway.http_url) as session:
-        yield session
-
-
-@pytest.fixture
-async def grpc_client(gateway: GatewayProcess) -> AsyncIterator[AsyncClient]:
-    async with AsyncClient(gateway.address, timeout=10) as client:
-        yield client
 
 
 async def call(

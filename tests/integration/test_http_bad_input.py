@@ -21,10 +21,13 @@ import psutil
 import pytest
 from support.board import BOARD_TYPE
 from support.gateway_process import GatewayProcess, StartGateway, start_gateway
+from support.http_clients import http
 from support.sse import SseReader
 from support.waiting import eventually
 
 from clients import AsyncClient
+
+__all__ = ["http"]  # fixtures used by name
 
 CONFIG = f"""
 [[services]]
@@ -40,12 +43,6 @@ def gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GatewayProcess
     gw = start_gateway(tmp_path_factory.mktemp("bad-input"), CONFIG)
     yield gw
     gw.stop()
-
-
-@pytest.fixture
-async def http(gateway: GatewayProcess) -> AsyncIterator[aiohttp.ClientSession]:
-    async with aiohttp.ClientSession(base_url=gateway.http_url) as session:
-        yield session
 
 
 def port_of(gw: GatewayProcess) -> int:

@@ -7,15 +7,18 @@ stream and the stream's sequence, snapshot and sync marker follow the gRPC contr
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import Iterator
 
 import aiohttp
 import pytest
 from support.board import BOARD_TYPE
 from support.gateway_process import GatewayProcess, StartGateway, start_gateway
+from support.http_clients import grpc_client, http
 from support.sse import SseReader
 
 from clients import AsyncClient
+
+__all__ = ["grpc_client", "http"]  # fixtures used by name
 
 CONFIG = f"""
 [http]
@@ -34,18 +37,6 @@ def gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GatewayProcess
     gw = start_gateway(tmp_path_factory.mktemp("sse"), CONFIG)
     yield gw
     gw.stop()
-
-
-@pytest.fixture
-async def http(gateway: GatewayProcess) -> AsyncIterator[aiohttp.ClientSession]:
-    async with aiohttp.ClientSession(base_url=gateway.http_url) as session:
-        yield session
-
-
-@pytest.fixture
-async def grpc_client(gateway: GatewayProcess) -> AsyncIterator[AsyncClient]:
-    async with AsyncClient(gateway.address, timeout=10) as client:
-        yield client
 
 
 async def test_current_values_then_sync_then_changes(
