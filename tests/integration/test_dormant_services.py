@@ -55,14 +55,15 @@ async def test_a_dormant_service_is_woken_by_a_get_and_stopped_after_its_idle_ti
         try:
             await wait_until(lambda: seen == ["dormant"], what="the current availability")
             assert await client.get("spare", "location")  # the call wakes it and is answered
-            assert STARTED in gw.output
+            # The gateway's log is read as it comes: wait for the line rather than assume it is in.
+            await wait_until(lambda: STARTED in gw.output, what="the start logged")
             assert await client.get("registry", "services.spare.availability") == "ready"
             await wait_until(lambda: STOPPED in gw.output, within=10, what="the idle stop")
             await wait_until(lambda: seen[-1:] == ["dormant"] and len(seen) >= 3, what="dormant again")
             assert seen[:3] == ["dormant", "ready", "dormant"], seen
             # Woken again by the next call: a fresh start.
             await client.set("spare", "velocity", "(0.1 0)")
-            assert gw.output.count(STARTED) == 2
+            await wait_until(lambda: gw.output.count(STARTED) == 2, what="the second start logged")
         finally:
             follower.cancel()
 
@@ -71,7 +72,7 @@ async def test_a_licence_wakes_a_dormant_service_and_keeps_it_running(gateway_pr
     gw = gateway_process(CONFIG)
     async with AsyncClient(gw.address) as client, client.session() as session:
         licence = await session.set("registry", "acquire", "", service="spare", duration="3")
-        assert STARTED in gw.output
+        await wait_until(lambda: STARTED in gw.output, what="the start logged")
         assert await client.get("registry", "services.spare.availability") == "active"
         await asyncio.sleep(2)  # past idle_stop, with nobody calling: the licence keeps it running
         assert STOPPED not in gw.output
@@ -79,7 +80,7 @@ async def test_a_licence_wakes_a_dormant_service_and_keeps_it_running(gateway_pr
         await eventually(
             lambda: client.get("registry", "services.spare.availability"), lambda v: v == "dormant", within=10
         )
-        assert STOPPED in gw.output
+        await wait_until(lambda: STOPPED in gw.output, what="the stop logged")
 
 
 def test_check_config_reports_bad_dormancy_and_licence_limits(tmp_path: Path) -> None:
