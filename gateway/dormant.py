@@ -17,7 +17,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import AsyncIterator, Callable, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, Notify, Subscription, close_quietly
 from services.errors import PropertyError, Unavailable
@@ -163,24 +163,22 @@ class DormantBackend(Backend):
             return await backend.properties()
 
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
-        self._users += 1
-        try:
-            backend = await self._running()
-            sub = await backend.listen(path, notify, params)
-        except BaseException:
-            self._users -= 1
-            self._last_used = time.monotonic()
-            raise
-        return _Held(self, sub)
+        sub, _ = await self._hold(lambda backend: _no_value(backend.listen(path, notify, params)))
+        return sub
 
     async def listen_current(
         self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS
     ) -> tuple[Subscription, str]:
         # The running service's own way (a line device's LISTEN brings the value: no Get after it).
+        return await self._hold(lambda backend: backend.listen_current(path, notify, params))
+
+    async def _hold(
+        self, open_listen: Callable[[Backend], Awaitable[tuple[Subscription, str]]]
+    ) -> tuple[Subscription, str]:
+        """Start the service if need be and open a Listen on it, which keeps it awake until closed."""
         self._users += 1
         try:
-            backend = await self._running()
-            sub, value = await backend.listen_current(path, notify, params)
+            sub, value = await open_listen(await self._running())
         except BaseException:
             self._users -= 1
             self._last_used = time.monotonic()
@@ -211,6 +209,10 @@ class DormantBackend(Backend):
     def _released(self) -> None:
         self._users -= 1
         self._last_used = time.monotonic()
+
+
+async def _no_value(opening: Awaitable[Subscription]) -> tuple[Subscription, str]:
+    return await opening, ""
 
 
 class _Held(Subscription):

@@ -182,7 +182,7 @@ def build(kind: str, options: Mapping[str, Any], directory: Directory | None = N
                 f"it accepts: {_accepted(kind, factory)}"
             )
     try:
-        bound = inspect.signature(factory).bind(**options) if signature is not None else None
+        bound = signature.bind(**options) if signature is not None else None
     except TypeError as e:
         accepted = _accepted(kind, factory)
         raise InvalidArgument(f"bad options for {kind!r}: {e}; it accepts: {accepted}") from None

@@ -148,7 +148,11 @@ async def test_a_file_changed_on_disk_is_heard_by_a_listen(client: AsyncClient, 
             sys.executable, "-c", f"open({str(path)!r}, 'w').write('running')"
         )
         assert await other.wait() == 0
-        assert (await next_event(events)).value == "running"
+        # Writing in place truncates first: a Listen may truly see the empty file before the text.
+        written = await next_event(events)
+        if written.value == "":
+            written = await next_event(events)
+        assert written.value == "running"
         await client.set("files", "file", "done", name="state.txt")
         assert (await next_event(events)).value == "done"
         path.unlink()
