@@ -389,7 +389,12 @@ class LineProxy(Backend):
     async def _call(self, frame: Get | Set | Listen | Unlisten) -> str:
         reply = await self._live().request(frame, self.options.timeout)
         assert isinstance(reply, Ok)
-        return reply.value
+        return self._text(reply.value)
+
+    def _text(self, value: str | bytes) -> str:
+        if isinstance(value, bytes):
+            raise InvalidArgument(f"{self._label()} sent a binary value; only text is served here")
+        return value
 
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
         return await self._call(Get(path, dict(params)))
@@ -502,6 +507,9 @@ class LineProxy(Backend):
             if isinstance(frame, Gone):
                 self._went(entry)
             else:
+                if isinstance(frame.value, bytes):
+                    log.warning("%s: binary EVENT for %s dropped", self._label(), frame.path)
+                    continue
                 entry.removed = False
                 entry.last = frame.value
                 entry.deliver(Change(frame.path, frame.value))

@@ -288,6 +288,8 @@ class DeviceSession:
                 return self._model_reply(await backend.describe())
             return await backend.get(frame.path, frame.params)
         if isinstance(frame, Set):
+            if isinstance(frame.value, bytes):
+                raise PropertyError(f"{frame.path}: text values only", Code.INVALID_ARGUMENT)
             return await backend.set(frame.path, frame.value, frame.params)
         if isinstance(frame, Unlisten):
             sub = self._subscriptions.pop(frame.path, None)
