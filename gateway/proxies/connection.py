@@ -112,6 +112,7 @@ class LineConnection:
         max_in_flight: int = 256,
         serial: bool = False,
         on_restart: Callable[[Hello], None] | None = None,
+        receive_limit: int = MAX_LINE,
     ) -> None:
         self.label = label
         self._reader = reader
@@ -119,7 +120,8 @@ class LineConnection:
         self._on_event = on_event
         self._on_restart = on_restart
         self._checksum = checksum
-        self._receiver = LineReceiver()
+        #: The longest line taken from the device (the proxy option ``maxline``); longer is a bad line.
+        self._receiver = LineReceiver(max_line=receive_limit)
         self._loop = asyncio.get_running_loop()
         self._pending: dict[str, _Pending] = {}
         self._next_tag = 0

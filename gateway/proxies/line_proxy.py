@@ -52,6 +52,8 @@ from services.backend import (
 )
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable, error_for
 from services.line_protocol import (
+    MAX_LINE,
+    MIN_MAX_LINE,
     Event,
     Get,
     Gone,
@@ -90,6 +92,9 @@ class ProxyOptions:
     checksum: bool = False
     #: Calls that may be in flight on the connection at once.
     max_in_flight: int = 256
+    #: The longest line accepted from the device, LF included (docs/line-protocol.md §1, §2.4):
+    #: raised for a device that sends large binary values.
+    maxline: int = MAX_LINE
 
     @classmethod
     def parse(cls, url: str, options: Mapping[str, Any], skip: frozenset[str] = frozenset()) -> ProxyOptions:
@@ -135,6 +140,8 @@ OPTION_RANGES: Mapping[str, tuple[float, float]] = {
     "keepalive": (0.5, 3600.0),  # or 0: never
     "keepalive_timeout": (0.01, 600.0),
     "max_in_flight": (1, 4096),
+    # 8 MiB: a line with the base64 of the largest value one gRPC message carries (4 MiB) fits.
+    "maxline": (MIN_MAX_LINE, 8 * 1024 * 1024),
 }
 
 
@@ -313,6 +320,7 @@ class LineProxy(Backend):
             max_in_flight=self.options.max_in_flight,
             serial=self.serial_line,
             on_restart=self._restarted,
+            receive_limit=self.options.maxline,
         )
         try:
             async with asyncio.timeout(self.options.connect_timeout):

@@ -91,6 +91,7 @@ class DeviceSession:
         self.call_timeout = call_timeout
         self.peer = peer or str(writer.get_extra_info("peername") or "?")
         self._receiver = LineReceiver(max_line=greeting.max_line)
+        self._send_limit = max(MAX_LINE, greeting.max_line)
         self._outbox = Outbox()
         self._subscriptions: dict[str, Subscription] = {}
         # A device that states inflight=N takes no more than N requests at once (§4.2).
@@ -106,7 +107,11 @@ class DeviceSession:
 
     def _encode(self, frame: Frame, checksummed: bool = False) -> bytes:
         # Checksum mode (after a good $-line), or the reply to a $-line: mirrored (docs/line-protocol.md §6).
-        return encode(frame, checksum=self.checksum or self._checksum_mode or checksummed)
+        # Lines out are bounded by the client's limit, which a device is not told: the protocol's
+        # 1024 bytes, or this device's own when larger (a peer that takes long lines, §2.4).
+        return encode(
+            frame, checksum=self.checksum or self._checksum_mode or checksummed, max_line=self._send_limit
+        )
 
     def _reply(self, frame: Frame, checksummed: bool = False) -> None:
         try:
