@@ -170,7 +170,7 @@ class _DeviceListen(SharedListen):
 
     def __init__(self, path: str, params: Mapping[str, str]) -> None:
         super().__init__(path, params)
-        self.last: str | None = None
+        self.last: Value | None = None
         #: The device said the property is gone (NOT_FOUND, GONE); the listeners were told once.
         self.removed = False
         #: Polls a device that cannot push; for one that can, asks again for a property that went.
@@ -395,17 +395,13 @@ class LineProxy(Backend):
             raise Unavailable(f"{self._label()} is not connected ({self._last_error})")
         return conn
 
-    async def _call(self, frame: Get | Set | Listen | Unlisten) -> str:
+    async def _call(self, frame: Get | Set | Listen | Unlisten) -> Value:
+        # A binary value comes as bytes (the codec reads ``\=`` and base64) and goes on as bytes.
         reply = await self._live().request(frame, self.options.timeout)
         assert isinstance(reply, Ok)
-        return self._text(reply.value)
+        return reply.value
 
-    def _text(self, value: str | bytes) -> str:
-        if isinstance(value, bytes):
-            raise InvalidArgument(f"{self._label()} sent a binary value; only text is served here")
-        return value
-
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         return await self._call(Get(path, dict(params)))
 
     async def check(self) -> None:
@@ -439,8 +435,19 @@ class LineProxy(Backend):
             self._live().start_request(frame, min(time_limit, self.options.timeout)),
         )
 
-    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> str:
-        return await self._call(Set(path, as_text(value, path), dict(params)))
+    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
+        try:
+            return await self._call(Set(path, value, dict(params)))
+        except InvalidArgument as exc:
+            # A device that knows no ``\=`` (line protocol 1.1), or whose property takes text,
+            # refuses a binary value as a bad escape (docs/line-protocol.md §2.4): say so plainly.
+            if isinstance(value, str) or "escape" not in exc.message:
+                raise
+            raise InvalidArgument(
+                f"{self._label()} does not take binary values for {path!r} (it answered: "
+                f"{exc.message}); a device takes bytes from line protocol 1.2 on, for a property "
+                "of type bytes"
+            ) from None
 
     async def describe(self) -> ServiceModel:
         """The device's own model when it describes itself (``GET properties.model``), else names only.
@@ -450,7 +457,7 @@ class LineProxy(Backend):
         type and access ``unknown`` (docs/line-protocol.md).
         """
         try:
-            text = await self.get(MODEL_PATH)
+            text = as_text(await self.get(MODEL_PATH), MODEL_PATH)
             return model_from_text(text, self.info.type)
         except PropertyError as e:
             if e.code not in (Code.NOT_FOUND, Code.INVALID_ARGUMENT, Code.RESOURCE_EXHAUSTED, Code.DATA_LOSS):
@@ -468,7 +475,7 @@ class LineProxy(Backend):
 
     async def listen_current(
         self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS
-    ) -> tuple[Subscription, str]:
+    ) -> tuple[Subscription, Value]:
         """Listen, and take the current value from the LISTEN's OK: no GET after it (§3.1)."""
         share = await self.shared_listens.listen(path, notify, params)
         last = share.entry.last
@@ -516,9 +523,6 @@ class LineProxy(Backend):
             if isinstance(frame, Gone):
                 self._went(entry)
             else:
-                if isinstance(frame.value, bytes):
-                    log.warning("%s: binary EVENT for %s dropped", self._label(), frame.path)
-                    continue
                 entry.removed = False
                 entry.last = frame.value
                 entry.deliver(Change(frame.path, frame.value))

@@ -40,7 +40,7 @@ from services.line_protocol import (
 )
 from services.model import ServiceModel
 from services.model_codec import MODEL_PATH, model_to_text
-from services.values import Value, ValueFormatError, as_text
+from services.values import Value
 
 __all__ = [
     "CALL_TIMEOUT",
@@ -240,10 +240,7 @@ class DeviceSession:
                     self._reply_failure(frame, exc)
                     return
                 if not isinstance(first, Started):
-                    try:
-                        self._reply(Ok(as_text(first, frame.path), frame.tag))
-                    except ValueFormatError as exc:
-                        self._reply_failure(frame, exc)
+                    self._reply(Ok(first, frame.tag))
                     return
                 started = first
             await self._in_flight.acquire()
@@ -272,7 +269,7 @@ class DeviceSession:
     ) -> None:
         try:
             async with asyncio.timeout(self.call_timeout):
-                value = as_text(await (self._call(frame) if started is None else started.rest()), frame.path)
+                value = await (self._call(frame) if started is None else started.rest())
         except TimeoutError:
             late = DeadlineExceeded(
                 f"{frame.path}: the service did not answer within {self.call_timeout:g} s"
@@ -297,8 +294,6 @@ class DeviceSession:
                 return self._model_reply(await backend.describe())
             return await backend.get(frame.path, frame.params)
         if isinstance(frame, Set):
-            if isinstance(frame.value, bytes):
-                raise PropertyError(f"{frame.path}: text values only", Code.INVALID_ARGUMENT)
             return await backend.set(frame.path, frame.value, frame.params)
         if isinstance(frame, Unlisten):
             sub = self._subscriptions.pop(frame.path, None)
@@ -342,11 +337,8 @@ class DeviceSession:
             if change.removed:
                 self._outbox.event(Gone(path))
                 self._spawn(self._subscriptions.pop(path).close())
-            elif isinstance(change.value, str):
-                self._outbox.event(Event(path, change.value))
             else:
-                # A line carries text only; a binary value cannot be sent as an event.
-                log.debug("%s: %s: binary value not sent on the line", self.peer, path)
+                self._outbox.event(Event(path, change.value))
 
         return notify
 

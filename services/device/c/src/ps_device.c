@@ -270,11 +270,11 @@ static void put_model(ps_device *dev) {
         }
         put(dev, ' ');
         put_words(dev, meta.doc);
-        if (p.type == PS_BYTES) { /* §3.6: (media TYPE/SUBTYPE) */
+        if (p.type == PS_BYTES) { /* §3.6: (media_type TYPE/SUBTYPE) */
             ps_bytes_source source;
             ps_flash_copy(&source, p.data, sizeof source);
             if (source.media_type) {
-                put_flash(dev, PS_F(" (media "));
+                put_flash(dev, PS_F(" (media_type "));
                 put_flash(dev, source.media_type);
                 put(dev, ')');
             }

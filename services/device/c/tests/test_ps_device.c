@@ -475,7 +475,7 @@ static void test_binary_values(void) {
     CHECK(strcmp(out, "EVENT blob \\=AAEC/g==\n") == 0);
     /* The model says bytes and the media type (§3.6). */
     EXCHANGE("GET properties.model\n",
-             "OK ((blob bytes read () - - () (media application/octet-stream)) (fifo bytes read () - - (camera "
+             "OK ((blob bytes read () - - () (media_type application/octet-stream)) (fifo bytes read () - - (camera "
              "image)) (label text read-write () - - ()))\n");
     EXCHANGE("GET fifo.gui\n", "OK image\n");
     /* This library sends binary values and takes none: a SET of one is read-only, and "\=" in a
