@@ -584,7 +584,8 @@ class LineConnection:
             return
         if bad.code == Code.RESOURCE_EXHAUSTED:
             error: PropertyError = ResourceExhausted(
-                f"{self.label}: the device's reply was too long: {bad.message}"
+                f"{self.label}: the device's reply was too long: {bad.message} (the proxy option "
+                f"maxline, now {self._receiver.max_line}, is the longest line taken from the device)"
             )
         else:
             error = DataLoss(f"{self.label}: the device sent a malformed reply: {bad.message}")
