@@ -6,6 +6,8 @@ checked as the device saw it. A value goes both ways byte for byte: a device's
 ``\\=`` value reaches a gRPC client as ``data``, a gRPC Set with ``data`` reaches
 the device as ``\\=`` and base64. Limits are counted on the encoded line, and a
 1.1 device that does not know the form is named in a clear INVALID_ARGUMENT.
+The Python device server and the gateway's own line listener serve a Python
+service's binary properties in the same form.
 """
 
 from __future__ import annotations
@@ -19,13 +21,17 @@ from pathlib import Path
 
 import grpc
 import pytest
-from line_device_support import tcp_device
+from line_device_support import LineClient, tcp_device
 from scripted_device import ScriptedDevice, pty_scripted, tcp_scripted
+from support.blobs import Blobs
 from support.gateway_process import GatewayProcess, StartGateway
 from support.waiting import eventually
 
+from gateway.line_listener import LineListener
+from gateway.router import Router
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+from services.core import LocalService
 from services.line_protocol import encode_value
 
 pytestmark = pytest.mark.slow
@@ -234,3 +240,40 @@ async def test_a_python_service_with_bytes_properties_served_as_a_line_device(
                     assert event.data[8:] == bytes([counter % 256]) * 4992
                     seen.add(counter)
             stream.cancel()
+
+
+async def test_the_line_listener_serves_a_services_binary_values_as_base64_lines() -> None:
+    # The gateway's own line listener is a device for every service behind it: a microcontroller
+    # that asks the gateway reads and writes a binary property in the \= form.
+    router = Router()
+    blobs = LocalService(Blobs())
+    await blobs.start()
+    router.add("blobs", blobs)
+    listener = LineListener(router)
+    host, port = await listener.start("127.0.0.1", 0)
+    try:
+        c = await LineClient.tcp(host, port)
+        await c.line()  # the greeting
+        await c.send("#1 SET blobs.small \\=AAEC/w==", "#2 GET blobs.small", "#3 LISTEN blobs.small")
+        assert await c.lines(3) == ["#1 OK \\=AAEC/w==", "#2 OK \\=AAEC/w==", "#3 OK \\=AAEC/w=="]
+        await blobs.set("small", b"")
+        assert await c.line() == "EVENT blobs.small \\="
+        await blobs.set("small", b"\xfb\xff")
+        assert await c.line() == "EVENT blobs.small \\=+/8="
+        await c.send("#4 SET blobs.small \\=QUJ$")
+        reply = await c.line()
+        assert reply.startswith("#4 ERR 3 bad base64 after '\\\\=': '$' at position 3"), reply
+        await c.send("#5 SET blobs.note \\=AA==")  # bytes to a text property: the service refuses
+        assert (await c.line()).startswith("#5 ERR 3 ")
+        await c.send("#6 SET blobs.small \\=" + base64.b64encode(bytes(17)).decode())
+        assert (await c.line()).startswith("#6 ERR 8 ")  # over the property's max_size of 16
+        # A value whose line would pass the listener's 1024 bytes is refused, not cut.
+        await blobs.set("picture", os.urandom(2000))
+        await c.send("#7 GET blobs.picture")
+        reply = await c.line()
+        assert reply.startswith("#7 ERR 8 cannot send the reply: line too long"), reply
+        assert await blobs.get("small") == b"\xfb\xff"
+        await c.close()
+    finally:
+        await listener.aclose()
+        await blobs.aclose()
