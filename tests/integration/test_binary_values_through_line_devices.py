@@ -15,6 +15,9 @@ from __future__ import annotations
 import asyncio
 import base64
 import os
+import re
+import subprocess
+import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -277,3 +280,20 @@ async def test_the_line_listener_serves_a_services_binary_values_as_base64_lines
     finally:
         await listener.aclose()
         await blobs.aclose()
+
+
+def test_the_binary_value_benchmark_runs_and_reads_every_value_back() -> None:
+    # A smoke run of `python -m bench.line_binary --quick`: every size measured, each Get's bytes
+    # compared with the file's (the benchmark stops on a difference); nothing about speed.
+    done = subprocess.run(
+        [sys.executable, "-m", "bench.line_binary", "--quick"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    rows = re.findall(r"^\s*([\d,]+)\s+([\d,]+)\s+\d+\s+[\d,]+\s+[\d.]+", done.stdout, re.M)
+    assert [size for size, _ in rows] == ["750", "40,000", "1,000,000"], done.stdout
+    assert [line for _, line in rows] == ["1,016", "53,352", "1,333,352"], done.stdout
