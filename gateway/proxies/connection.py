@@ -282,7 +282,14 @@ class LineConnection:
         try:
             line = encode(_with_tag(frame, tag), checksum=self._checksum, max_line=self._line_limit())
         except LineProtocolError as exc:
-            raise error_for(exc.code, f"{self.label}: cannot send the request: {exc.message}") from None
+            message = f"{self.label}: cannot send the request: {exc.message}"
+            value = frame.value if isinstance(frame, Set) else None
+            if isinstance(value, bytes) and exc.code == Code.RESOURCE_EXHAUSTED:
+                message += (
+                    f" (a binary value of {len(value)} bytes is {4 * -(-len(value) // 3)} characters "
+                    "of base64 on the line, docs/line-protocol.md §2.4)"
+                )
+            raise error_for(exc.code, message) from None
         return tag, line
 
     def _fits(self, size: int) -> bool:

@@ -169,6 +169,7 @@ async def test_a_binary_value_over_the_line_limit_is_refused_clearly(gateway_pro
             error = await refusal(set_(stub, "frame", bytes(800)))
             assert error.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
             assert "line too long" in error.details() and "the limit is 1024" in error.details()
+            assert "a binary value of 800 bytes is 1068 characters of base64" in error.details()
             assert len(device.seen("SET frame")) == 1
 
             # Too long for the gateway's own limit: that call fails, naming the proxy option.
