@@ -46,6 +46,7 @@ __all__ = [
     "CALL_TIMEOUT",
     "MAX_IN_FLIGHT",
     "MAX_QUEUED_REPLIES",
+    "MAX_QUEUED_REPLY_BYTES",
     "MAX_SUBSCRIPTIONS",
     "READ_SIZE",
     "DeviceSession",
@@ -61,6 +62,11 @@ MAX_SUBSCRIPTIONS = 256
 #: Replies waiting to be written before the session stops reading (a client
 #: that sends bad lines but never reads must not grow the outbox).
 MAX_QUEUED_REPLIES = 256
+#: The same in bytes: replies that carry binary values are long lines (docs/line-protocol.md
+#: §2.4), and 256 of them could hold a gigabyte. 8 MiB holds one line of the longest kind. What
+#: waits is then at most this, the batch the writer holds, and the replies of the requests
+#: running (MAX_IN_FLIGHT).
+MAX_QUEUED_REPLY_BYTES = 8 * 1024 * 1024
 #: A backend call that takes longer gets DEADLINE_EXCEEDED.
 CALL_TIMEOUT = 10.0
 #: Room a reply line needs besides its value: a tag, "OK ", escapes of the few
@@ -160,14 +166,25 @@ class DeviceSession:
                 frames = self._receiver.receive_data(data)
                 checked = dict(zip(map(id, frames), self._receiver.last_checked, strict=True))
                 for frame in self._not_cancelled(frames):
+                    # Room is checked line by line: one read may hold thousands of GETs, and each
+                    # reply may carry a long binary value.
+                    if not await self._room(writer_task):
+                        break
                     await self._dispatch(frame, checked[id(frame)])
-                while len(self._outbox.replies) >= MAX_QUEUED_REPLIES and not writer_task.done():
-                    self._outbox.room.clear()
-                    await self._outbox.room.wait()  # set by the writer when it takes replies or stops
-                if writer_task.done():
+                if not await self._room(writer_task):
                     break
         finally:
             await self._shutdown(writer_task)
+
+    async def _room(self, writer_task: asyncio.Task[None]) -> bool:
+        """Wait while the replies not yet written are too many or too long; False once the writer stopped."""
+        outbox = self._outbox
+        while (
+            len(outbox.replies) >= MAX_QUEUED_REPLIES or outbox.reply_bytes >= MAX_QUEUED_REPLY_BYTES
+        ) and not writer_task.done():
+            outbox.room.clear()
+            await outbox.room.wait()  # set by the writer when it takes replies or stops
+        return not writer_task.done()
 
     def _not_cancelled(self, frames: list[Frame | BadLine]) -> list[Frame | BadLine]:
         """The frames of one read, less every SET that a CANCEL in the same read takes back.
