@@ -112,6 +112,7 @@ class LineConnection:
         max_in_flight: int = 256,
         serial: bool = False,
         on_restart: Callable[[Hello], None] | None = None,
+        receive_limit: int = MAX_LINE,
     ) -> None:
         self.label = label
         self._reader = reader
@@ -119,7 +120,8 @@ class LineConnection:
         self._on_event = on_event
         self._on_restart = on_restart
         self._checksum = checksum
-        self._receiver = LineReceiver()
+        #: The longest line taken from the device (the proxy option ``maxline``); longer is a bad line.
+        self._receiver = LineReceiver(max_line=receive_limit)
         self._loop = asyncio.get_running_loop()
         self._pending: dict[str, _Pending] = {}
         self._next_tag = 0
@@ -280,7 +282,14 @@ class LineConnection:
         try:
             line = encode(_with_tag(frame, tag), checksum=self._checksum, max_line=self._line_limit())
         except LineProtocolError as exc:
-            raise error_for(exc.code, f"{self.label}: cannot send the request: {exc.message}") from None
+            message = f"{self.label}: cannot send the request: {exc.message}"
+            value = frame.value if isinstance(frame, Set) else None
+            if isinstance(value, bytes) and exc.code == Code.RESOURCE_EXHAUSTED:
+                message += (
+                    f" (a binary value of {len(value)} bytes is {4 * -(-len(value) // 3)} characters "
+                    "of base64 on the line, docs/line-protocol.md §2.4)"
+                )
+            raise error_for(exc.code, message) from None
         return tag, line
 
     def _fits(self, size: int) -> bool:
@@ -582,7 +591,8 @@ class LineConnection:
             return
         if bad.code == Code.RESOURCE_EXHAUSTED:
             error: PropertyError = ResourceExhausted(
-                f"{self.label}: the device's reply was too long: {bad.message}"
+                f"{self.label}: the device's reply was too long: {bad.message} (the proxy option "
+                f"maxline, now {self._receiver.max_line}, is the longest line taken from the device)"
             )
         else:
             error = DataLoss(f"{self.label}: the device sent a malformed reply: {bad.message}")

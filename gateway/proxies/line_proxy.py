@@ -52,6 +52,8 @@ from services.backend import (
 )
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable, error_for
 from services.line_protocol import (
+    MAX_LINE,
+    MIN_MAX_LINE,
     Event,
     Get,
     Gone,
@@ -91,6 +93,9 @@ class ProxyOptions:
     checksum: bool = False
     #: Calls that may be in flight on the connection at once.
     max_in_flight: int = 256
+    #: The longest line accepted from the device, LF included (docs/line-protocol.md §1, §2.4):
+    #: raised for a device that sends large binary values.
+    maxline: int = MAX_LINE
 
     @classmethod
     def parse(cls, url: str, options: Mapping[str, Any], skip: frozenset[str] = frozenset()) -> ProxyOptions:
@@ -136,6 +141,8 @@ OPTION_RANGES: Mapping[str, tuple[float, float]] = {
     "keepalive": (0.5, 3600.0),  # or 0: never
     "keepalive_timeout": (0.01, 600.0),
     "max_in_flight": (1, 4096),
+    # 8 MiB: a line with the base64 of the largest value one gRPC message carries (4 MiB) fits.
+    "maxline": (MIN_MAX_LINE, 8 * 1024 * 1024),
 }
 
 
@@ -163,7 +170,7 @@ class _DeviceListen(SharedListen):
 
     def __init__(self, path: str, params: Mapping[str, str]) -> None:
         super().__init__(path, params)
-        self.last: str | None = None
+        self.last: Value | None = None
         #: The device said the property is gone (NOT_FOUND, GONE); the listeners were told once.
         self.removed = False
         #: Polls a device that cannot push; for one that can, asks again for a property that went.
@@ -314,6 +321,7 @@ class LineProxy(Backend):
             max_in_flight=self.options.max_in_flight,
             serial=self.serial_line,
             on_restart=self._restarted,
+            receive_limit=self.options.maxline,
         )
         try:
             async with asyncio.timeout(self.options.connect_timeout):
@@ -387,12 +395,13 @@ class LineProxy(Backend):
             raise Unavailable(f"{self._label()} is not connected ({self._last_error})")
         return conn
 
-    async def _call(self, frame: Get | Set | Listen | Unlisten) -> str:
+    async def _call(self, frame: Get | Set | Listen | Unlisten) -> Value:
+        # A binary value comes as bytes (the codec reads ``\=`` and base64) and goes on as bytes.
         reply = await self._live().request(frame, self.options.timeout)
         assert isinstance(reply, Ok)
         return reply.value
 
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         return await self._call(Get(path, dict(params)))
 
     async def check(self) -> None:
@@ -426,8 +435,19 @@ class LineProxy(Backend):
             self._live().start_request(frame, min(time_limit, self.options.timeout)),
         )
 
-    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> str:
-        return await self._call(Set(path, as_text(value, path), dict(params)))
+    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
+        try:
+            return await self._call(Set(path, value, dict(params)))
+        except InvalidArgument as exc:
+            # A device that knows no ``\=`` (line protocol 1.1), or whose property takes text,
+            # refuses a binary value as a bad escape (docs/line-protocol.md §2.4): say so plainly.
+            if isinstance(value, str) or "escape" not in exc.message:
+                raise
+            raise InvalidArgument(
+                f"{self._label()} does not take binary values for {path!r} (it answered: "
+                f"{exc.message}); a device takes bytes from line protocol 1.2 on, for a property "
+                "of type bytes"
+            ) from None
 
     async def describe(self) -> ServiceModel:
         """The device's own model when it describes itself (``GET properties.model``), else names only.
@@ -437,7 +457,7 @@ class LineProxy(Backend):
         type and access ``unknown`` (docs/line-protocol.md).
         """
         try:
-            text = await self.get(MODEL_PATH)
+            text = as_text(await self.get(MODEL_PATH), MODEL_PATH)
             return model_from_text(text, self.info.type)
         except PropertyError as e:
             if e.code not in (Code.NOT_FOUND, Code.INVALID_ARGUMENT, Code.RESOURCE_EXHAUSTED, Code.DATA_LOSS):
@@ -455,7 +475,7 @@ class LineProxy(Backend):
 
     async def listen_current(
         self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS
-    ) -> tuple[Subscription, str]:
+    ) -> tuple[Subscription, Value]:
         """Listen, and take the current value from the LISTEN's OK: no GET after it (§3.1)."""
         share = await self.shared_listens.listen(path, notify, params)
         last = share.entry.last

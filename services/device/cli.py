@@ -31,11 +31,14 @@ from typing import Any
 from services.backend import Backend
 from services.device.server import DeviceServer
 from services.errors import PropertyError
-from services.line_protocol import MAX_INFLIGHT, MAX_LINE, MAX_RXBUF, MIN_RXBUF
+from services.line_protocol import MAX_INFLIGHT, MAX_LINE, MAX_RXBUF, MIN_MAX_LINE, MIN_RXBUF
 
 __all__ = ["DESCRIPTION", "add_arguments", "main", "run", "serve"]
 
 DESCRIPTION = "Serve any Property Service over the line protocol, on a TCP port or a serial port."
+#: The longest ``--max-line``: a line with the base64 of the largest value one gRPC message
+#: carries (4 MiB) fits, as the proxies' ``maxline`` option allows.
+MAX_LINE_LIMIT = 8 * 1024 * 1024
 
 
 async def _watch_stdin(stop: asyncio.Event) -> None:
@@ -103,7 +106,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-push", action="store_true", help="act as a device that cannot push events")
     parser.add_argument("--checksum", action="store_true", help="send a CRC-8 checksum on every line")
     parser.add_argument(
-        "--max-line", type=int, default=MAX_LINE, help=f"longest line accepted (default {MAX_LINE})"
+        "--max-line",
+        type=_bounded("max-line", MIN_MAX_LINE, MAX_LINE_LIMIT),
+        default=MAX_LINE,
+        help=f"longest line accepted, stated as maxline= (default {MAX_LINE}); lines sent may be as "
+        "long when it is larger: raise it (and the proxy's maxline) for large binary values "
+        "(docs/line-protocol.md §2.4)",
     )
     parser.add_argument(
         "--inflight",

@@ -21,6 +21,8 @@ class Outbox:
 
     def __init__(self) -> None:
         self.replies: deque[bytes] = deque()
+        #: Bytes of the replies waiting: a binary value makes one reply line as long as 8 MiB.
+        self.reply_bytes = 0
         self.events: ConflatingQueue[str, Event | Gone] = ConflatingQueue()
         self.wake = asyncio.Event()
         self.room = asyncio.Event()
@@ -28,6 +30,7 @@ class Outbox:
     def reply(self, line: bytes) -> None:
         """Queue an encoded reply line; replies are never conflated."""
         self.replies.append(line)
+        self.reply_bytes += len(line)
         self.wake.set()
 
     def event(self, frame: Event | Gone) -> None:
@@ -39,6 +42,7 @@ class Outbox:
         """Everything waiting: the replies, then one event per path (paths in the order they first waited)."""
         replies = list(self.replies)
         self.replies.clear()
+        self.reply_bytes = 0
         events = [slot.value for _, slot in self.events.take()]
         self.wake.clear()
         self.room.set()

@@ -40,12 +40,13 @@ from services.line_protocol import (
 )
 from services.model import ServiceModel
 from services.model_codec import MODEL_PATH, model_to_text
-from services.values import Value, ValueFormatError, as_text
+from services.values import Value
 
 __all__ = [
     "CALL_TIMEOUT",
     "MAX_IN_FLIGHT",
     "MAX_QUEUED_REPLIES",
+    "MAX_QUEUED_REPLY_BYTES",
     "MAX_SUBSCRIPTIONS",
     "READ_SIZE",
     "DeviceSession",
@@ -61,6 +62,11 @@ MAX_SUBSCRIPTIONS = 256
 #: Replies waiting to be written before the session stops reading (a client
 #: that sends bad lines but never reads must not grow the outbox).
 MAX_QUEUED_REPLIES = 256
+#: The same in bytes: replies that carry binary values are long lines (docs/line-protocol.md
+#: §2.4), and 256 of them could hold a gigabyte. 8 MiB holds one line of the longest kind. What
+#: waits is then at most this, the batch the writer holds, and the replies of the requests
+#: running (MAX_IN_FLIGHT).
+MAX_QUEUED_REPLY_BYTES = 8 * 1024 * 1024
 #: A backend call that takes longer gets DEADLINE_EXCEEDED.
 CALL_TIMEOUT = 10.0
 #: Room a reply line needs besides its value: a tag, "OK ", escapes of the few
@@ -92,6 +98,7 @@ class DeviceSession:
         self.call_timeout = call_timeout
         self.peer = peer or str(writer.get_extra_info("peername") or "?")
         self._receiver = LineReceiver(max_line=greeting.max_line)
+        self._send_limit = max(MAX_LINE, greeting.max_line)
         self._outbox = Outbox()
         self._subscriptions: dict[str, Subscription] = {}
         # A device that states inflight=N takes no more than N requests at once (§4.2).
@@ -107,7 +114,11 @@ class DeviceSession:
 
     def _encode(self, frame: Frame, checksummed: bool = False) -> bytes:
         # Checksum mode (after a good $-line), or the reply to a $-line: mirrored (docs/line-protocol.md §6).
-        return encode(frame, checksum=self.checksum or self._checksum_mode or checksummed)
+        # Lines out are bounded by the client's limit, which a device is not told: the protocol's
+        # 1024 bytes, or this device's own when larger (a peer that takes long lines, §2.4).
+        return encode(
+            frame, checksum=self.checksum or self._checksum_mode or checksummed, max_line=self._send_limit
+        )
 
     def _reply(self, frame: Frame, checksummed: bool = False) -> None:
         try:
@@ -155,14 +166,25 @@ class DeviceSession:
                 frames = self._receiver.receive_data(data)
                 checked = dict(zip(map(id, frames), self._receiver.last_checked, strict=True))
                 for frame in self._not_cancelled(frames):
+                    # Room is checked line by line: one read may hold thousands of GETs, and each
+                    # reply may carry a long binary value.
+                    if not await self._room(writer_task):
+                        break
                     await self._dispatch(frame, checked[id(frame)])
-                while len(self._outbox.replies) >= MAX_QUEUED_REPLIES and not writer_task.done():
-                    self._outbox.room.clear()
-                    await self._outbox.room.wait()  # set by the writer when it takes replies or stops
-                if writer_task.done():
+                if not await self._room(writer_task):
                     break
         finally:
             await self._shutdown(writer_task)
+
+    async def _room(self, writer_task: asyncio.Task[None]) -> bool:
+        """Wait while the replies not yet written are too many or too long; False once the writer stopped."""
+        outbox = self._outbox
+        while (
+            len(outbox.replies) >= MAX_QUEUED_REPLIES or outbox.reply_bytes >= MAX_QUEUED_REPLY_BYTES
+        ) and not writer_task.done():
+            outbox.room.clear()
+            await outbox.room.wait()  # set by the writer when it takes replies or stops
+        return not writer_task.done()
 
     def _not_cancelled(self, frames: list[Frame | BadLine]) -> list[Frame | BadLine]:
         """The frames of one read, less every SET that a CANCEL in the same read takes back.
@@ -235,10 +257,7 @@ class DeviceSession:
                     self._reply_failure(frame, exc)
                     return
                 if not isinstance(first, Started):
-                    try:
-                        self._reply(Ok(as_text(first, frame.path), frame.tag))
-                    except ValueFormatError as exc:
-                        self._reply_failure(frame, exc)
+                    self._reply(Ok(first, frame.tag))
                     return
                 started = first
             await self._in_flight.acquire()
@@ -267,7 +286,7 @@ class DeviceSession:
     ) -> None:
         try:
             async with asyncio.timeout(self.call_timeout):
-                value = as_text(await (self._call(frame) if started is None else started.rest()), frame.path)
+                value = await (self._call(frame) if started is None else started.rest())
         except TimeoutError:
             late = DeadlineExceeded(
                 f"{frame.path}: the service did not answer within {self.call_timeout:g} s"
@@ -335,11 +354,8 @@ class DeviceSession:
             if change.removed:
                 self._outbox.event(Gone(path))
                 self._spawn(self._subscriptions.pop(path).close())
-            elif isinstance(change.value, str):
-                self._outbox.event(Event(path, change.value))
             else:
-                # A line carries text only; a binary value cannot be sent as an event.
-                log.debug("%s: %s: binary value not sent on the line", self.peer, path)
+                self._outbox.event(Event(path, change.value))
 
         return notify
 

@@ -8,7 +8,14 @@ listener all drive this one codec.
 
 from services.line_protocol._checksum import crc8
 from services.line_protocol._errors import LineProtocolError
-from services.line_protocol._escaping import escape_field, escape_value, unescape
+from services.line_protocol._escaping import (
+    BINARY_PREFIX,
+    decode_value,
+    encode_value,
+    escape_field,
+    escape_value,
+    unescape,
+)
 from services.line_protocol._frames import (
     MAX_INFLIGHT,
     MAX_LINE,
@@ -27,6 +34,7 @@ from services.line_protocol._frames import (
     Gone,
     Hello,
     HelloRequest,
+    LineValue,
     Listen,
     Ok,
     Ping,
@@ -41,6 +49,7 @@ from services.line_protocol._receivebuffer import LineReceiver
 from services.line_protocol._writer import encode
 
 __all__ = [
+    "BINARY_PREFIX",
     "MAX_INFLIGHT",
     "MAX_LINE",
     "MAX_RXBUF",
@@ -60,6 +69,7 @@ __all__ = [
     "HelloRequest",
     "LineProtocolError",
     "LineReceiver",
+    "LineValue",
     "Listen",
     "Ok",
     "Ping",
@@ -70,7 +80,9 @@ __all__ = [
     "Unlisten",
     "crc8",
     "decode_line",
+    "decode_value",
     "encode",
+    "encode_value",
     "escape_field",
     "escape_value",
     "tag_of",

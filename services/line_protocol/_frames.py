@@ -7,11 +7,12 @@ from dataclasses import dataclass, field
 
 from services.errors import Code, PropertyError, code_for, error_for
 
-#: Wire version sent in the greeting: 1 for protocol 1.0 and 1.1 (1.1 only adds
-#: greeting fields a 1.0 peer ignores; docs/line-protocol.md §4.3).
+#: Wire version sent in the greeting: 1 for protocol 1.0, 1.1 and 1.2 (1.1 only adds
+#: greeting fields a 1.0 peer ignores; 1.2 only adds the ``\=`` form of a binary value,
+#: which a 1.1 peer refuses cleanly with ``ERR 3 bad escape``; docs/line-protocol.md §4.3).
 PROTOCOL_VERSION = 1
 #: The protocol revision this codec implements, for messages and docs.
-PROTOCOL_REVISION = "1.1"
+PROTOCOL_REVISION = "1.2"
 
 #: Longest line, first byte to LF inclusive. It fits every value of the standard
 #: property sets (6-vector ~60 bytes, marker ~150, a 40-name ``properties`` list
@@ -32,6 +33,8 @@ MIN_RXBUF = 16
 MAX_RXBUF = 65536
 
 _Params = Mapping[str, str]
+#: A value on the line: text, or bytes written ``\=`` and base64 (docs/line-protocol.md §2.3).
+LineValue = str | bytes
 
 
 def _no_params() -> dict[str, str]:
@@ -52,7 +55,7 @@ class Set:
     """``SET [PARAMS] PATH VALUE``: write a property or call a functional property."""
 
     path: str
-    value: str
+    value: LineValue
     params: _Params = field(default_factory=_no_params)
     tag: str | None = None
 
@@ -128,7 +131,7 @@ class Hello:
 class Ok:
     """``OK [VALUE]``: a request succeeded."""
 
-    value: str = ""
+    value: LineValue = ""
     tag: str | None = None
 
 
@@ -160,7 +163,7 @@ class Event:
     """``EVENT PATH [VALUE]``: a listened property changed."""
 
     path: str
-    value: str = ""
+    value: LineValue = ""
 
 
 @dataclass(frozen=True, slots=True)

@@ -7,7 +7,7 @@ import re
 from services.errors import Code
 from services.line_protocol._checksum import crc8
 from services.line_protocol._errors import LineProtocolError
-from services.line_protocol._escaping import unescape
+from services.line_protocol._escaping import decode_value, unescape
 from services.line_protocol._frames import (
     MAX_INFLIGHT,
     MAX_LINE,
@@ -74,8 +74,12 @@ class _Fields:
         return text[pos:end]
 
     def rest(self) -> str:
-        """The value: everything after the single space that follows the last field read."""
+        """The text after the single space that follows the last field read, unescaped (a message)."""
         return unescape(self.text[self.pos + 1 :])
+
+    def value(self) -> str | bytes:
+        """The value after the single space that follows the last field read: text, or ``\\=`` bytes."""
+        return decode_value(self.text[self.pos + 1 :])
 
     def raw_rest(self) -> str:
         """The rest of the line as sent, escapes and all (PING and PONG data: echoed byte for byte)."""
@@ -166,7 +170,7 @@ def _parse(text: str) -> Frame:
     if text.startswith("#"):
         match = _TAGGED_OK.match(text)
         if match is not None:
-            return Ok(unescape(text[match.end() + 1 :]), match.group(1))
+            return Ok(decode_value(text[match.end() + 1 :]), match.group(1))
         match = _TAGGED_GET.fullmatch(text)
         if match is not None:
             return Get(match.group(2), {}, match.group(1))
@@ -185,7 +189,7 @@ def _parse(text: str) -> Frame:
         return Get(path, params, tag)
     if verb == "SET":
         params, path = _params_and_path(fields, verb)
-        return Set(path, fields.rest(), params, tag)
+        return Set(path, fields.value(), params, tag)
     if verb == "LISTEN":
         params, path = _params_and_path(fields, verb)
         _no_more(fields, verb)
@@ -195,7 +199,7 @@ def _parse(text: str) -> Frame:
         _no_more(fields, verb)
         return Unlisten(path, params, tag)
     if verb == "OK":
-        return Ok(fields.rest(), tag)
+        return Ok(fields.value(), tag)
     if verb == "ERR":
         code = fields.next()
         if not ERROR_CODE.fullmatch(code):
@@ -221,26 +225,27 @@ def _parse(text: str) -> Frame:
         if verb == "GONE":
             _no_more(fields, verb)
             return Gone(path)
-        return Event(path, fields.rest())
+        return Event(path, fields.value())
     if not word:
         raise LineProtocolError("a tag but no word")
     raise LineProtocolError(f"unknown word {_show(word)}", Code.UNIMPLEMENTED)
 
 
-def decode_line(line: bytes | bytearray) -> Frame:
+def decode_line(line: bytes | bytearray, max_line: int = MAX_LINE) -> Frame:
     """Decode one line (without its LF; a trailing CR is ignored).
 
     Raises LineProtocolError, and nothing else, for any line that is not a
-    frame; its ``tag`` is set when the line's tag could be read.
+    frame or is longer than ``max_line`` bytes with its LF; its ``tag`` is set
+    when the line's tag could be read.
     """
     raw = line if type(line) is bytes else bytes(line)
     if raw.endswith(b"\r"):
         raw = raw[:-1]
     if raw.startswith(b" "):
         raw = raw.lstrip(b" ")  # spaces before the first field are skipped (§1)
-    if len(raw) + 1 > MAX_LINE:
+    if len(raw) + 1 > max_line:
         raise LineProtocolError(
-            f"line too long: {len(raw) + 1} bytes, the limit is {MAX_LINE}",
+            f"line too long: {len(raw) + 1} bytes, the limit is {max_line}",
             Code.RESOURCE_EXHAUSTED,
             tag_of(raw),
         )

@@ -110,7 +110,7 @@ class LineReceiver:
             return
         checked = line.lstrip(b" ").startswith(b"$")
         try:
-            frame = decode_line(line)
+            frame = decode_line(line, self.max_line)
         except LineProtocolError as exc:
             out.append(BadLine(exc.code, exc.message, exc.tag, checked, exc.greeting))
             self.last_checked.append(checked)

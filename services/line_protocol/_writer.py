@@ -7,7 +7,7 @@ from collections.abc import Mapping
 from services.errors import Code
 from services.line_protocol._checksum import crc8
 from services.line_protocol._errors import LineProtocolError
-from services.line_protocol._escaping import escape_field, escape_value
+from services.line_protocol._escaping import encode_value, escape_field, escape_value
 from services.line_protocol._frames import (
     MAX_LINE,
     Cancel,
@@ -53,7 +53,12 @@ def _params(params: Mapping[str, str]) -> str:
     return "".join(out)
 
 
-def _rest(text: str) -> str:
+def _rest(value: str | bytes) -> str:
+    # Empty text is left out (``OK``); empty bytes are still binary (``OK \=``).
+    return f" {encode_value(value)}" if value or type(value) is bytes else ""
+
+
+def _message(text: str) -> str:
     return f" {escape_value(text)}" if text else ""
 
 
@@ -104,7 +109,7 @@ def _body(frame: Frame) -> str:
         case ErrorReply(code, message, tag):
             if not ERROR_CODE.fullmatch(str(code)):
                 raise LineProtocolError(f"bad error code {code!r}: 0 to 999")
-            return f"{_tag(tag)}ERR {int(code)}{_rest(message)}"
+            return f"{_tag(tag)}ERR {int(code)}{_message(message)}"
         case Event(path, value):
             return f"EVENT {_path(path)}{_rest(value)}"
         case Gone(path):

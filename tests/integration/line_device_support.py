@@ -17,13 +17,16 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @contextmanager
-def device_process(*args: str) -> Iterator[tuple[subprocess.Popen[str], str]]:
+def device_process(
+    *args: str, env: dict[str, str] | None = None
+) -> Iterator[tuple[subprocess.Popen[str], str]]:
     """Run ``python -m services.device_server ARGS``; yield it and its first line of output."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "services.device_server", *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         text=True,
+        env=env,
     )
     try:
         assert proc.stdout is not None
@@ -40,9 +43,9 @@ def device_process(*args: str) -> Iterator[tuple[subprocess.Popen[str], str]]:
 
 
 @contextmanager
-def tcp_device(*args: str) -> Iterator[tuple[str, int]]:
+def tcp_device(*args: str, env: dict[str, str] | None = None) -> Iterator[tuple[str, int]]:
     """A device process on a free TCP port of 127.0.0.1; yields (host, port)."""
-    with device_process(*args, "--tcp", "127.0.0.1:0") as (_, first):
+    with device_process(*args, "--tcp", "127.0.0.1:0", env=env) as (_, first):
         match = re.fullmatch(r"listening on (.+):(\d+)", first)
         assert match, first
         yield match.group(1), int(match.group(2))

@@ -1,4 +1,4 @@
-"""A line-protocol device played by the test on a real TCP socket or a real pty.
+r"""A line-protocol device played by the test on a real TCP socket or a real pty.
 
 It is the kind of device docs/line-protocol.md describes for a small
 microcontroller: a table of properties, one subscription per path, requests
@@ -7,18 +7,24 @@ device takes), and, when it states ``rxbuf=N``, a receive buffer of N bytes
 that it records as overrun when the client puts more unanswered bytes on the
 wire. Everything it received is kept in :attr:`ScriptedDevice.lines`, so a
 test can say what the gateway sent and what it did not.
+
+Its values are kept as they travel on the line: a binary value (protocol 1.2)
+as ``\=`` and base64. With ``binary=False`` it is a 1.1 device: a SET whose
+value is ``\=...`` gets the ``ERR 3 bad escape`` a 1.1 codec answers.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from line_device_support import pty_client, pty_pair
 
 from services.line_protocol import (
+    MAX_LINE,
     BadLine,
     ErrorReply,
     Event,
@@ -34,7 +40,12 @@ from services.line_protocol import (
     Set,
     Unlisten,
     crc8,
+    encode_value,
+    escape_value,
 )
+
+#: The message of a 1.1 codec for ``\=`` in a value: an escape it does not know.
+ONE_ONE_BAD_ESCAPE = "bad escape: '\\=' (use \\n, \\r, \\\\ or \\s)"
 
 
 class ScriptedDevice:
@@ -49,6 +60,7 @@ class ScriptedDevice:
         rxbuf: int | None = None,
         greet_first: bool = True,
         answer_pings: bool = True,
+        binary: bool = True,
     ) -> None:
         self.greeting = greeting
         self.props = dict(props)
@@ -56,6 +68,7 @@ class ScriptedDevice:
         self.rxbuf = rxbuf
         self.greet_first = greet_first
         self.answer_pings = answer_pings
+        self.binary = binary
         #: Every line received (without LF), in order, over all connections.
         self.lines: list[str] = []
         #: Lines the client sent that are replies to the device's own requests.
@@ -88,8 +101,9 @@ class ScriptedDevice:
         self._unanswered = self._unanswered_bytes = 0
         self.send(self.greeting)
 
-    def change(self, path: str, value: str) -> None:
-        self.props[path] = value
+    def change(self, path: str, value: str | bytes) -> None:
+        """A new value (bytes are kept, and sent, as ``\\=`` and base64)."""
+        self.props[path] = value = encode_value(value) if isinstance(value, bytes) else value
         if path in self.subscribed:
             self.send(f"EVENT {path} {value}")
 
@@ -113,7 +127,10 @@ class ScriptedDevice:
         if self.greet_first:
             self.send(self.greeting)
         worker = asyncio.create_task(self._work())
-        receiver = LineReceiver()
+        # It takes lines as long as its greeting says (maxline=), and never fewer than 1024 bytes:
+        # the lines that refuse a greeting must reach the test whole.
+        stated = re.search(r"\bmaxline=(\d+)", self.greeting)
+        receiver = LineReceiver(max_line=max(int(stated.group(1)) if stated else 0, MAX_LINE))
         buffer = b""
         try:
             while data := await reader.read(4096):
@@ -166,6 +183,10 @@ class ScriptedDevice:
             case Set(path, value):
                 if path not in self.props:
                     return f"{head}ERR 5 no {path}"
+                if isinstance(value, bytes):
+                    if not self.binary:  # what a 1.1 codec says of "\=": an escape it does not know
+                        return f"{head}ERR 3 {escape_value(ONE_ONE_BAD_ESCAPE)}"
+                    value = encode_value(value)
                 self.props[path] = value
                 if path in self.subscribed:
                     self.send(f"{head}OK {value}")

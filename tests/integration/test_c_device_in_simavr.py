@@ -5,9 +5,11 @@ because the gateway keeps to the device's flow control (inflight=1 rxbuf=32)."""
 from __future__ import annotations
 
 import asyncio
+import itertools
 import os
 import re
 import select
+import struct
 import subprocess
 import time
 import tty
@@ -108,6 +110,14 @@ def test_the_ring_overflows_without_flow_control_and_says_so(mcu: CProgram) -> N
         os.close(fd)
 
 
+def assert_history(reply: pb.GetResponse) -> None:
+    """``history``: 8 readings of temp, int16 big-endian tenths of degC, one tick (0.1 degC) apart."""
+    assert reply.HasField("data") and len(reply.data) == 16, reply
+    readings = struct.unpack(">8h", reply.data)
+    assert all(150 <= r <= 250 for r in readings), readings
+    assert all(abs(a - b) <= 1 for a, b in itertools.pairwise(readings)), readings
+
+
 def run_psctl(address: str, transcript: list[str], *args: str) -> str:
     result = psctl(address, *args, timeout=WAIT)
     transcript += [f"$ psctl {' '.join(args)}", *result.stdout.rstrip("\n").split("\n")]
@@ -166,6 +176,9 @@ async def test_the_firmware_in_simavr_through_the_gateway(
             stream.cancel()
             reply = await stub.Get(pb.GetRequest(service="thermo", property="setpoint"), timeout=WAIT)
             assert reply.value == "20", "the reset set every value back"
+            # The binary value (line protocol 1.2), base64 written by the AVR as it reads the ring.
+            history = await stub.Get(pb.GetRequest(service="thermo", property="history"), timeout=WAIT)
+            assert_history(history)
         transcript = tap.transcript()
         # The 32-byte ring never overflowed: no line was damaged, and the gateway never had more
         # request bytes on the wire than the device said it can hold.

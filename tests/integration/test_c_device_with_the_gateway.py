@@ -5,6 +5,8 @@ checksums, a reset mid-session, and a property that is GONE and comes back."""
 from __future__ import annotations
 
 import asyncio
+import itertools
+import struct
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -20,7 +22,7 @@ from services.line_protocol import crc8
 
 WAIT = 15.0
 PROXY_OPTIONS = "{ timeout = 2.0, backoff_initial = 0.05, backoff_max = 0.5 }"
-NAMES = ["temp", "setpoint", "location", "label", "probe"]
+NAMES = ["temp", "setpoint", "location", "label", "probe", "history"]
 MORE_PATHS = ("label", "location.x", "setpoint", "temp.parameters")
 
 
@@ -105,6 +107,15 @@ async def check_get_set_and_errors(gw: GatewayProcess) -> None:
         setpoint = by_name["setpoint"]
         assert setpoint.unit == "degC" and (setpoint.minimum, setpoint.maximum) == (5, 35)
         assert by_name["probe"].access == pb.ACCESS_ACTION and by_name["temp"].access == pb.ACCESS_READ
+        history = by_name["history"]
+        assert (history.type, history.media_type) == ("bytes", "application/octet-stream")
+        # The binary value: the C library writes its base64 as it reads the ring (protocol 1.2).
+        reply = await stub.Get(pb.GetRequest(service="thermo", property="history"), timeout=WAIT)
+        assert reply.HasField("data") and len(reply.data) == 16
+        readings = struct.unpack(">8h", reply.data)
+        assert all(abs(a - b) <= 1 for a, b in itertools.pairwise(readings)), readings
+        temp = round(float(await get(stub, "temp")) * 10)
+        assert abs(readings[-1] - temp) <= 1, (readings, temp)  # the newest last (a tick may fall between)
 
 
 async def check_listen_reset_gone_and_return(gw: GatewayProcess, device: CProgram) -> None:

@@ -7,12 +7,15 @@ import os
 import re
 import sys
 from asyncio.subprocess import PIPE
+from collections.abc import Mapping
 
 from line_device_support import LineClient, device_process, pty_client, pty_pair, tcp_device
 from support.fake_backend import DictBackend
 
+from services.backend import NO_PARAMS
 from services.device import DeviceServer
-from services.line_protocol import Get, crc8, encode
+from services.line_protocol import BadLine, Frame, Get, LineReceiver, Ok, crc8, encode
+from services.values import Value
 
 
 async def test_a_whole_tcp_session() -> None:
@@ -171,5 +174,42 @@ async def test_slow_reader_gets_conflated_events_and_the_latest_value() -> None:
                 break
         assert len(received) < emitted
         await c.close()
+    finally:
+        await server.aclose()
+
+
+async def test_a_client_that_does_not_read_long_binary_replies_stops_the_device_reading() -> None:
+    # 300 GETs of a 1 MB binary value in one write, and nothing read: the device stops taking
+    # requests once about 8 MiB of replies wait (not 300 × 1.3 MB of base64 in memory), and
+    # answers every one of them, byte for byte, once the client reads.
+    value = os.urandom(1_000_000)
+    asked = 0
+
+    class Camera(DictBackend):
+        async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
+            nonlocal asked
+            asked += 1
+            return value
+
+    server = DeviceServer(Camera({"frame": ""}), name="camera", max_line=2 * 1024 * 1024)
+    host, port = await server.serve_tcp("127.0.0.1", 0)
+    try:
+        reader, writer = await asyncio.open_connection(host, port, limit=4 * 1024 * 1024)
+        await reader.readline()  # the greeting
+        writer.write(b"".join(encode(Get("frame", tag=str(i))) for i in range(300)))
+        await writer.drain()
+        await asyncio.sleep(1.0)  # the client reads nothing meanwhile
+        # Answered meanwhile: the 32 requests running at once, ~8 MiB waiting in the outbox and as
+        # much in the writer's hands, and what the sockets' and the client's buffers took (~60).
+        held_back = asked
+        assert held_back < 120, f"{held_back} of 300 GETs answered into a client that does not read"
+        receiver = LineReceiver(max_line=2 * 1024 * 1024)
+        replies: list[Frame | BadLine] = []
+        async with asyncio.timeout(60):
+            while len(replies) < 300:
+                replies += receiver.receive_data(await reader.read(1 << 20))
+        assert all(isinstance(r, Ok) and r.value == value for r in replies)
+        assert sorted(int(r.tag or "-1") for r in replies if isinstance(r, Ok)) == list(range(300))
+        writer.close()
     finally:
         await server.aclose()

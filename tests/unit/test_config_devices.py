@@ -33,6 +33,22 @@ def test_devices_are_read_with_their_defaults() -> None:
     assert device_command(two)[-1] == "--pty"
 
 
+def test_a_devices_proxy_maxline_is_its_processs_max_line_too() -> None:
+    # Large binary values (docs/line-protocol.md §2.4): both ends take the longer lines.
+    cfg = loads_config(
+        """
+        [[devices]]
+        name = "cam"
+        type = "sim-sensor"
+        tcp = "127.0.0.1:0"
+        proxy = { maxline = 1048576 }
+        """
+    )
+    (cam,) = cfg.devices
+    command = device_command(cam)
+    assert command[command.index("--max-line") + 1] == "1048576"
+
+
 def test_the_demo_has_a_tcp_and_a_serial_device() -> None:
     devices = default_config().devices
     assert [(d.name, bool(d.tcp), d.serial) for d in devices] == [

@@ -40,6 +40,8 @@ tags = st.none() | st.from_regex(r"\A[A-Za-z0-9_-]{1,8}\Z")
 paths = st.from_regex(r"\A[A-Za-z0-9_-]{1,12}(\.[A-Za-z0-9_-]{1,12}){0,3}\Z")
 names = st.from_regex(r"\A[A-Za-z0-9_.-]{1,12}\Z")
 texts = st.text(max_size=60)
+#: Values of SET, OK and EVENT: text, or bytes (the ``\=`` base64 form of protocol 1.2).
+values = texts | st.binary(max_size=60)
 #: PING and PONG data travel as sent (no escapes), so they hold no control characters.
 ping_data = st.text(st.characters(exclude_categories=("Cc", "Cs")), max_size=60)
 params = st.dictionaries(names, texts, max_size=3)
@@ -51,7 +53,7 @@ hello_extra = st.dictionaries(
 
 frames: st.SearchStrategy[Frame] = st.one_of(
     st.builds(Get, paths, params, tags),
-    st.builds(Set, paths, texts, params, tags),
+    st.builds(Set, paths, values, params, tags),
     st.builds(Listen, paths, params, tags),
     st.builds(Unlisten, paths, params, tags),
     st.builds(Ping, ping_data, tags),
@@ -69,9 +71,9 @@ frames: st.SearchStrategy[Frame] = st.one_of(
         inflight=st.none() | st.integers(1, 4096),
         rxbuf=st.none() | st.integers(16, 65536),
     ),
-    st.builds(Ok, texts, tags),
+    st.builds(Ok, values, tags),
     st.builds(ErrorReply, st.integers(0, 999), texts, tags),
-    st.builds(Event, paths, texts),
+    st.builds(Event, paths, values),
     st.builds(Gone, paths),
 )
 

@@ -83,7 +83,8 @@ enum ps_type {
     PS_NUMBER, /* data: ps_fixed*; "integer" in the model when decimals is 0 */
     PS_VECTOR, /* data: ps_fixed[size]; "(1 2.5 0)"; elements NAME.0.. or NAME.x y z roll pitch yaw */
     PS_TEXT,   /* data: char[size], NUL-terminated; the value is the rest of the line */
-    PS_ACTION  /* no data: a SET calls action(dev, index, argument); a GET or LISTEN is refused */
+    PS_ACTION, /* no data: a SET calls action(dev, index, argument); a GET or LISTEN is refused */
+    PS_BYTES   /* data: const ps_bytes_source* (PS_FLASH); read-only; sent as \= and base64 (1.2, §2.4) */
 };
 
 enum ps_access { PS_READ = 1, PS_WRITE = 2, PS_READ_WRITE = 3, PS_INVOKE = 4 };
@@ -122,6 +123,20 @@ typedef struct ps_property {
     { (name), PS_TEXT, (access), 0, (uint8_t)sizeof(buffer), (buffer), 0, (meta) }
 #define PS_ACTION_PROPERTY(name, fn, meta) \
     { (name), PS_ACTION, PS_INVOKE, 0, 0, 0, (fn), (meta) }
+
+/* A byte source: the byte at `position` (0, 1, 2, ... in order) of property `index`'s binary value,
+ * 0..255, or -1 after the last. The core asks for each byte once, in order, while it writes the
+ * line, so a source may ignore `position` and read a UART, an SPI FIFO or flash as it goes. */
+typedef int16_t (*ps_byte_fn)(struct ps_device *dev, uint8_t index, uint16_t position);
+
+/* A binary property's data (PS_BYTES): where its bytes come from and what they are. */
+typedef struct ps_bytes_source {
+    ps_byte_fn read;
+    const char *media_type; /* PS_FLASH: "image/jpeg", "application/octet-stream"; NULL for none */
+} ps_bytes_source;
+
+#define PS_BYTES_PROPERTY(name, source, meta) \
+    { (name), PS_BYTES, PS_READ, 0, 0, (void *)&(source), 0, (meta) }
 
 /* The byte sink: the core calls it for every byte of every line it sends, LF included. */
 typedef void (*ps_put_fn)(void *context, uint8_t byte);
@@ -185,7 +200,14 @@ uint8_t ps_parse_fixed(const char *text, size_t length, uint8_t decimals, ps_fix
 /* Format a fixed-point value into out (at least 13 bytes); trailing zeros of the fraction are left
  * out ("21.5", "3", "-0.05"). Returns the length. */
 uint8_t ps_format_fixed(ps_fixed value, uint8_t decimals, char *out);
-/* Undo the escapes \n \r \\ \s in place; PS_OK or PS_INVALID_ARGUMENT (any other escape). */
+/* Write "\=" and the standard base64 of the bytes read(dev, index, 0), read(dev, index, 1), ...
+ * up to the first -1 into the line being sent (through the sink, counted in its CRC), 4 characters
+ * for every 3 bytes, the last group padded with '='. Two bytes of state, whatever the length (the
+ * position passed to read wraps after 65535: a longer value needs a source that ignores it). The line must still fit the client's limit (1024 bytes unless the gateway's proxy option
+ * maxline raises it): at most 756 bytes after "#TAG OK " (docs/line-protocol.md §2.4). */
+void ps_put_base64(ps_device *dev, ps_byte_fn read, uint8_t index);
+/* Undo the escapes \n \r \\ \s in place; PS_OK or PS_INVALID_ARGUMENT (any other escape, "\=" too:
+ * this library takes no binary values, it only sends them). */
 uint8_t ps_unescape(char *text, size_t *length);
 #ifdef PS_WITH_FLOAT
 /* Optional: format a double with `decimals` digits, through ps_format_fixed. */

@@ -1,6 +1,6 @@
 /*
  * The protocol core of ps_device: reads request lines, answers them through the byte sink.
- * Section numbers (§) are those of docs/line-protocol.md, version 1.1.
+ * Section numbers (§) are those of docs/line-protocol.md, version 1.2.
  */
 #include <string.h>
 
@@ -61,6 +61,39 @@ static void put_escaped(ps_device *dev, const char *text) {
             c = c == '\n' ? 'n' : c == '\r' ? 'r' : '\\';
         }
         put(dev, (uint8_t)c);
+    }
+}
+
+/* One base64 character for a 6-bit value (RFC 4648 §4): arithmetic is smaller than a table on AVR. */
+static uint8_t base64_char(uint8_t v) {
+    return (uint8_t)(v < 26 ? 'A' + v : v < 52 ? 'a' + (v - 26) : v < 62 ? '0' + (v - 52) : v == 62 ? '+' : '/');
+}
+
+/* Bits go out 6 at a time as the bytes come: at most 4 bits wait between two bytes, so the state is
+ * two bytes, less than the 3-byte group of the textbook encoder and the same characters (§2.4). */
+void ps_put_base64(ps_device *dev, ps_byte_fn read, uint8_t index) {
+    uint16_t position = 0, bits = 0; /* bits: the waiting bits, low end; `waiting` of them */
+    uint8_t waiting = 0, written = 0;
+    int16_t c;
+    put(dev, '\\');
+    put(dev, '=');
+    while ((c = read(dev, index, position)) >= 0) {
+        position++;
+        bits = (uint16_t)(bits << 8 | (uint8_t)c);
+        waiting += 8;
+        while (waiting >= 6) {
+            waiting -= 6;
+            put(dev, base64_char((uint8_t)(bits >> waiting) & 63));
+            written++;
+        }
+    }
+    if (waiting) { /* the last bits, padded with zero bits */
+        put(dev, base64_char((uint8_t)(bits << (6 - waiting)) & 63));
+        written++;
+    }
+    while (written & 3) {
+        put(dev, '=');
+        written++;
     }
 }
 
@@ -162,8 +195,12 @@ static uint8_t resolve(const ps_device *dev, const char *path, size_t length, ui
     return 255;
 }
 
-static void put_value(ps_device *dev, const ps_property *p) {
-    if (p->type == PS_TEXT) {
+static void put_value(ps_device *dev, const ps_property *p, uint8_t index) {
+    if (p->type == PS_BYTES) {
+        ps_bytes_source source;
+        ps_flash_copy(&source, p->data, sizeof source);
+        ps_put_base64(dev, source.read, index);
+    } else if (p->type == PS_TEXT) {
         put_escaped(dev, (const char *)p->data);
     } else if (p->type == PS_NUMBER) {
         put_number(dev, *(const ps_fixed *)p->data, p->decimals);
@@ -205,7 +242,7 @@ static void put_words(ps_device *dev, const char *words) {
 
 /* §3 "A device that describes itself": (name type access (unit) minimum maximum (doc)) each. */
 static void put_model(ps_device *dev) {
-    static const char types[] PS_FLASH = "number\0vector\0text\0none\0integer";
+    static const char types[] PS_FLASH = "number\0vector\0text\0none\0bytes\0integer";
     static const char access[] PS_FLASH = "read\0write\0read-write\0action";
     put(dev, '(');
     uint8_t first = 1;
@@ -221,7 +258,7 @@ static void put_model(ps_device *dev) {
         put(dev, '(');
         put_flash(dev, p.name);
         put(dev, ' ');
-        put_flash(dev, nth(types, (p.type == PS_NUMBER && p.decimals == 0) ? 4 : p.type));
+        put_flash(dev, nth(types, (p.type == PS_NUMBER && p.decimals == 0) ? 5 : p.type));
         put(dev, ' ');
         put_flash(dev, nth(access, p.access == PS_INVOKE ? 3 : (uint8_t)(p.access - 1)));
         put(dev, ' ');
@@ -233,6 +270,15 @@ static void put_model(ps_device *dev) {
         }
         put(dev, ' ');
         put_words(dev, meta.doc);
+        if (p.type == PS_BYTES) { /* §3.6: (media_type TYPE/SUBTYPE) */
+            ps_bytes_source source;
+            ps_flash_copy(&source, p.data, sizeof source);
+            if (source.media_type) {
+                put_flash(dev, PS_F(" (media_type "));
+                put_flash(dev, source.media_type);
+                put(dev, ')');
+            }
+        }
         put(dev, ')');
     }
     put(dev, ')');
@@ -414,7 +460,7 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
         if (p.type != PS_ACTION && (p.access & PS_READ)) {
             put(dev, ' ');
             if (part == ELEMENT) put_number(dev, ((const ps_fixed *)p.data)[element], p.decimals);
-            else put_value(dev, &p);
+            else put_value(dev, &p, index);
         }
         line_end(dev);
         return;
@@ -451,7 +497,7 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
             if (meta.gui) put_flash(dev, meta.gui);
         }
     } else if (part == ELEMENT) put_number(dev, ((const ps_fixed *)p.data)[element], p.decimals);
-    else put_value(dev, &p);
+    else put_value(dev, &p, index);
     line_end(dev);
 }
 
@@ -472,7 +518,7 @@ static void flush_events(ps_device *dev) {
             put_flash(dev, PS_F("EVENT "));
             put_flash(dev, p.name);
             put(dev, ' ');
-            put_value(dev, &p);
+            put_value(dev, &p, i);
         }
         line_end(dev);
     }

@@ -374,6 +374,120 @@ static void test_more_properties_than_the_masks(void) {
     CHECK(out_length == 0);
 }
 
+/* ---- binary values (1.2, §2.4): "\=" and base64, streamed from a byte source -------------------- */
+
+static uint8_t blob[300];
+static uint16_t blob_length;
+static uint16_t reads_past_the_end;
+
+static int16_t read_blob(ps_device *d, uint8_t index, uint16_t position) {
+    (void)d;
+    (void)index;
+    if (position < blob_length) return blob[position];
+    reads_past_the_end++;
+    return -1;
+}
+
+/* A source that ignores the position, as a UART or a camera FIFO would: 4 bytes, then the end. */
+static uint8_t fifo_left;
+static int16_t read_fifo(ps_device *d, uint8_t index, uint16_t position) {
+    (void)d;
+    (void)index;
+    (void)position;
+    return fifo_left ? (int16_t)(0xF0 | fifo_left--) : -1;
+}
+
+static const ps_bytes_source blob_source = {read_blob, "application/octet-stream"};
+static const ps_bytes_source fifo_source = {read_fifo, 0};
+static const ps_meta frame_meta = {0, "camera image", "image", 0, 0, 0};
+static const ps_property bytes_table[] = {
+    PS_BYTES_PROPERTY("blob", blob_source, 0),
+    PS_BYTES_PROPERTY("fifo", fifo_source, &frame_meta),
+    PS_TEXT_PROPERTY("label", label, PS_READ_WRITE, 0),
+};
+static const ps_config bytes_config = {"cam", "sensor", bytes_table, 3, sink, 0, 0};
+
+/* A reference encoder written differently (bit by bit) from the library's. */
+static void reference_base64(const uint8_t *bytes, size_t n, char *text) {
+    static const char alphabet[] = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    size_t bits = n * 8, out_length = 0;
+    for (size_t bit = 0; bit < bits; bit += 6) {
+        uint8_t v = 0;
+        for (size_t k = bit; k < bit + 6; k++) {
+            uint8_t b = k < bits ? (uint8_t)((bytes[k / 8] >> (7 - k % 8)) & 1) : 0;
+            v = (uint8_t)(v << 1 | b);
+        }
+        text[out_length++] = alphabet[v];
+    }
+    while (out_length % 4) text[out_length++] = '=';
+    text[out_length] = 0;
+}
+
+static void test_binary_values(void) {
+    char want[600], encoded[500];
+    memset(&dev, 0, sizeof dev);
+    reset_out();
+    ps_begin(&dev, &bytes_config);
+    /* The spec's example: the first 10 bytes of a JPEG file. */
+    memcpy(blob, "\xff\xd8\xff\xe0\x00\x10JFIF", 10);
+    blob_length = 10;
+    EXCHANGE("#4 GET blob\n", "#4 OK \\=/9j/4AAQSkZJRg==\n");
+    /* Every length from 0 to 7 (no padding, one '=', two) and all 256 byte values. */
+    for (uint16_t n = 0; n <= 7; n++) {
+        for (uint16_t k = 0; k < n; k++) blob[k] = (uint8_t)(0xA5 ^ (k * 37));
+        blob_length = n;
+        reference_base64(blob, n, encoded);
+        snprintf(want, sizeof want, "OK \\=%s\n", encoded);
+        EXCHANGE("GET blob\n", want);
+    }
+    EXCHANGE("GET blob\n", want); /* the same bytes read again give the same line */
+    for (uint16_t k = 0; k < 256; k++) blob[k] = (uint8_t)k;
+    blob_length = 256;
+    reference_base64(blob, 256, encoded);
+    snprintf(want, sizeof want, "OK \\=%s\n", encoded);
+    EXCHANGE("GET blob\n", want);
+    CHECK(strlen(out) == 3 + 2 + 344 + 1); /* 256 bytes are 344 characters: longer than PS_MAXLINE */
+    /* Each byte is asked for once, in order, and the end once per group: a FIFO works too. */
+    reads_past_the_end = 0;
+    blob_length = 0;
+    EXCHANGE("GET blob\n", "OK \\=\n"); /* empty bytes are still binary */
+    CHECK(reads_past_the_end == 1);
+    fifo_left = 4;
+    EXCHANGE("GET fifo\n", "OK \\=9PPy8Q==\n"); /* F4 F3 F2 F1 */
+    /* In a checksummed line the CRC covers the base64 as it streams. */
+    blob[0] = 0;
+    blob[1] = 1;
+    blob[2] = 2;
+    blob[3] = 0xFF;
+    blob_length = 4;
+    char request[40], reply[40];
+    snprintf(request, sizeof request, "$#9 GET blob*%02X\n", ps_crc8((const uint8_t *)"#9 GET blob", 11));
+    snprintf(reply, sizeof reply, "$#9 OK \\=AAEC/w==*%02X\n", ps_crc8((const uint8_t *)"#9 OK \\=AAEC/w==", 16));
+    EXCHANGE(request, reply);
+    reset_out();
+    ps_begin(&dev, &bytes_config); /* checksum mode off again */
+    /* LISTEN, then a change: the EVENT carries the new bytes. */
+    EXCHANGE("#l LISTEN blob\n", "#l OK \\=AAEC/w==\n");
+    blob[3] = 0xFE;
+    reset_out();
+    ps_changed(&dev, 0);
+    ps_poll(&dev);
+    CHECK(strcmp(out, "EVENT blob \\=AAEC/g==\n") == 0);
+    /* The model says bytes and the media type (§3.6). */
+    EXCHANGE("GET properties.model\n",
+             "OK ((blob bytes read () - - () (media_type application/octet-stream)) (fifo bytes read () - - (camera "
+             "image)) (label text read-write () - - ()))\n");
+    EXCHANGE("GET fifo.gui\n", "OK image\n");
+    /* This library sends binary values and takes none: a SET of one is read-only, and "\=" in a
+     * text value is the bad escape a 1.1 device answers (§2.4). */
+    EXCHANGE("#s SET blob xyz\n", "#s ERR 9 read-only\n");
+    EXCHANGE("#t SET label \\=AAEC\n", "#t ERR 3 bad escape\n");
+    EXCHANGE("#u SET label a\\\\=b\n", "#u OK a\\\\=b\n");
+    char escaped[] = "\\=QUJD";
+    size_t n = strlen(escaped);
+    CHECK(ps_unescape(escaped, &n) == PS_INVALID_ARGUMENT);
+}
+
 int main(void) {
     test_values();
     test_greeting_and_words();
@@ -383,6 +497,7 @@ int main(void) {
     test_listen();
     test_noise();
     test_more_properties_than_the_masks();
+    test_binary_values();
     printf("%d checks, %d failed\n", checks, failures);
     return failures ? 1 : 0;
 }

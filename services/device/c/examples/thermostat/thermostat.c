@@ -5,6 +5,10 @@
 
 static ps_fixed temp, setpoint, location[6];
 static int8_t step;
+/* The last HISTORY readings of temp in tenths of a degree, a ring whose oldest is at `oldest`. */
+#define HISTORY 8 /* a power of two: the ring wraps with a mask */
+static int16_t history[HISTORY];
+static uint8_t oldest;
 static char label[16];
 static ps_config config;
 
@@ -13,17 +17,31 @@ static const char name_setpoint[] PS_FLASH = "setpoint";
 static const char name_location[] PS_FLASH = "location";
 static const char name_label[] PS_FLASH = "label";
 static const char name_probe[] PS_FLASH = "probe";
+static const char name_history[] PS_FLASH = "history";
 static const char degc[] PS_FLASH = "degC";
 static const char doc_temp[] PS_FLASH = "board temperature";
 static const char doc_setpoint[] PS_FLASH = "temperature to hold";
 static const char doc_probe[] PS_FLASH = "in or out: plug or unplug the probe";
 static const char gui_gauge[] PS_FLASH = "gauge";
 static const char gui_pose[] PS_FLASH = "pose";
+static const char doc_history[] PS_FLASH = "last 8 temps, int16 big-endian, 0.1 degC";
+static const char octets[] PS_FLASH = "application/octet-stream";
 
 static const ps_meta temp_meta PS_FLASH = {degc, doc_temp, gui_gauge, -400, 1250, 1};
 static const ps_meta setpoint_meta PS_FLASH = {degc, doc_setpoint, 0, 50, 350, 1};
 static const ps_meta location_meta PS_FLASH = {0, 0, gui_pose, 0, 0, 0};
 static const ps_meta probe_meta PS_FLASH = {0, doc_probe, 0, 0, 0, 0};
+static const ps_meta history_meta PS_FLASH = {0, doc_history, 0, 0, 0, 0};
+
+/* The history's bytes, one at a time as the core asks for them: nothing is copied. */
+static int16_t history_byte(ps_device *dev, uint8_t index, uint16_t position) {
+    (void)dev;
+    (void)index;
+    if (position >= 2 * HISTORY) return -1;
+    uint16_t reading = (uint16_t)history[(oldest + position / 2) & (HISTORY - 1)];
+    return (int16_t)(position & 1 ? reading & 0xFF : reading >> 8);
+}
+static const ps_bytes_source history_source PS_FLASH = {history_byte, octets};
 
 static uint8_t probe(ps_device *dev, uint8_t index, const char *argument) {
     (void)index;
@@ -39,6 +57,7 @@ static const ps_property table[] PS_FLASH = {
     PS_VECTOR_PROPERTY(name_location, location, 2, PS_READ_WRITE, &location_meta),
     PS_TEXT_PROPERTY(name_label, label, PS_READ_WRITE, 0),
     PS_ACTION_PROPERTY(name_probe, probe, &probe_meta),
+    PS_BYTES_PROPERTY(name_history, history_source, &history_meta),
 };
 
 static const char device_name[] PS_FLASH = "thermo1";
@@ -51,6 +70,8 @@ void thermostat_start(ps_device *dev, ps_put_fn put, void *context) {
     memset(location, 0, sizeof location);
     step = 1;
     strcpy(label, "bench");
+    for (uint8_t i = 0; i < HISTORY; i++) history[i] = (int16_t)temp;
+    oldest = 0;
     config.name = device_name;
     config.type = device_type;
     config.properties = table;
@@ -66,5 +87,8 @@ void thermostat_tick(ps_device *dev) {
     if (temp >= setpoint + 10) step = -1;
     else if (temp <= setpoint - 10) step = 1;
     temp += step;
+    history[oldest] = (int16_t)temp; /* the oldest goes, the newest comes last */
+    oldest = (oldest + 1) & (HISTORY - 1);
     ps_changed(dev, THERMOSTAT_TEMP);
+    ps_changed(dev, THERMOSTAT_HISTORY);
 }

@@ -1,17 +1,19 @@
-/* The example device: a thermostat board with five properties, transport-independent.
+/* The example device: a thermostat board with six properties, transport-independent.
  *   temp      number, read, degC, changes every tick (listen to it)
  *   setpoint  number, read-write, degC, 5..35: temp swings around it
  *   location  vector (x y z roll pitch yaw), read-write: where the board sits
  *   label     text, read-write, up to 15 bytes
  *   probe     action: SET probe out unplugs the temperature probe (temp is GONE), SET probe in
  *             plugs it back
+ *   history   bytes, read: the last 8 readings of temp, int16 big-endian tenths of degC (16 bytes,
+ *             sent as \= and base64: line protocol 1.2)
  * host_main.c runs it on TCP, a pty or a serial port; avr_main.c on an ATmega328P's USART0. */
 #ifndef THERMOSTAT_H
 #define THERMOSTAT_H
 
 #include "ps_device.h"
 
-enum { THERMOSTAT_TEMP, THERMOSTAT_SETPOINT, THERMOSTAT_LOCATION, THERMOSTAT_LABEL, THERMOSTAT_PROBE };
+enum { THERMOSTAT_TEMP, THERMOSTAT_SETPOINT, THERMOSTAT_LOCATION, THERMOSTAT_LABEL, THERMOSTAT_PROBE, THERMOSTAT_HISTORY };
 
 /* Power-up: every value to its default, then the greeting through put. */
 void thermostat_start(ps_device *dev, ps_put_fn put, void *context);
