@@ -181,7 +181,6 @@ class Camera(Resource):
         int,
         Prop(minimum=MIN_QUALITY, maximum=MAX_QUALITY, gui="slider", doc="JPEG quality of frame, 1 to 95"),
     ]
-    data: Annotated[int, Prop(readonly=True, gui="number", doc="the number of objects in view")]
     followed: Annotated[
         list[str],
         Prop(readonly=True, doc="the services whose location the camera follows (robots it may see)"),
@@ -239,7 +238,7 @@ class Camera(Resource):
             )
         self._max_followed = max_followed
         self.followed = []
-        self.data = 0
+        self._count = 0
         # What the camera sees.
         self._robots: dict[str, Thing] = {}
         self._sightings: list[Sighting] = []
@@ -392,7 +391,19 @@ class Camera(Resource):
         """The markers of the things in view, nearest first, located in ``frame`` (world or camera)."""
         if frame not in FRAMES:
             raise InvalidArgument(f"bad parameter `frame` for `markers`: {frame!r}; use world or camera")
+        self._settle()
         return self._markers[frame]
+
+    @property
+    def data(self) -> Annotated[int, Prop(readonly=True, gui="number", doc="the number of objects in view")]:
+        """How many things are in view now (the standard property of a sensor)."""
+        self._settle()
+        return self._count
+
+    def _settle(self) -> None:
+        """Bring what is seen up to date now when an update is due (a read right after a Set)."""
+        if self._update_pending:
+            self._update()
 
     # -- what is seen -----------------------------------------------------------------
 
@@ -421,7 +432,7 @@ class Camera(Resource):
             self._update()
             return
         self._update_pending = True
-        loop.call_soon(self._update)
+        loop.call_soon(self._settle)  # nothing to do if a read settled it meanwhile
 
     def _update(self) -> None:
         self._update_pending = False
@@ -429,8 +440,9 @@ class Camera(Resource):
         world = format_markers([s.marker("world") for s in self._sightings])
         camera = format_markers([s.marker("camera") for s in self._sightings])
         self._markers = {"world": world, "camera": camera}
-        if self.data != len(self._sightings):
-            self.data = len(self._sightings)
+        if self._count != len(self._sightings):
+            self._count = len(self._sightings)
+            self.changed("data")
         self.changed("markers")
         if self._camera_listeners:
             change = Change("markers", camera)
