@@ -607,6 +607,12 @@ class Camera(Resource):
         self.changed("frame")
         return frame
 
+    def render_once(self) -> bytes:
+        """Render and encode the current view here and now (a benchmark's baseline; the service
+        itself renders on its own thread and keeps the frame)."""
+        view, renderer = self._view()
+        return renderer.encode(view)
+
     def _view(self) -> tuple[View, Renderer]:
         """A snapshot of what to draw, taken on the loop (the thread that draws it sees no later change)."""
         eye = float(self.location[2])
