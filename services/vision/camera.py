@@ -34,7 +34,7 @@ from services.directory import Directory
 from services.errors import InvalidArgument, ReadOnly, ResourceExhausted
 from services.location_following import LocationFollower
 from services.paths import validate_service_name
-from services.values import Vector, format_number
+from services.values import Value, Vector, format_number
 from services.values.markers import format_markers
 from services.vision.geometry import mounted_pose
 from services.vision.render import Renderer, View
@@ -143,7 +143,7 @@ class CameraService(LocalService):
         super().__init__(obj, url)
         self.camera = obj
 
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Any:
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         if path == "frame":
             await self.camera.fresh_frame()
         return await super().get(path, params)
@@ -626,7 +626,7 @@ class Camera(Resource):
 
 def _only_changes(notify: Notify, first: str) -> Notify:
     """``notify``, called only when the value differs from the last one it was given."""
-    last = [first]
+    last: list[Value] = [first]
 
     def deliver(change: Change) -> None:
         if change.value != last[0]:
