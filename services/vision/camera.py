@@ -382,7 +382,10 @@ class Camera(Resource):
     @property
     def frame(
         self,
-    ) -> Annotated[bytes, Prop(readonly=True, gui="image", doc="what the camera sees, a JPEG image")]:
+    ) -> Annotated[
+        bytes,
+        Prop(readonly=True, media_type="image/jpeg", gui="image", doc="what the camera sees, a JPEG image"),
+    ]:
         """The latest frame rendered (JPEG)."""
         return self._frame
 

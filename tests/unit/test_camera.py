@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import io
 import math
 from collections.abc import AsyncIterator
@@ -171,3 +172,44 @@ async def test_options_are_checked() -> None:
     for options, message in bad:
         with pytest.raises(InvalidArgument, match=message):
             Camera(**options)
+
+
+async def test_frames_are_rendered_only_while_someone_listens() -> None:
+    camera = Camera(location=(0, 0, 1.2), objects=OBJECTS, resolution=(160, 120), rate_hz=60)
+    service = serve(camera)
+    await service.start()
+    try:
+        frame = await service.get("frame")  # nobody listens: a Get renders one frame
+        assert isinstance(frame, bytes) and Image.open(io.BytesIO(frame)).size == (160, 120)
+        rendered = camera._frames
+        for _ in range(5):
+            await asyncio.sleep(0.02)  # a few periods at 60 Hz: nothing renders by itself
+        assert camera._frames == rendered
+        frames: list[Change] = []
+        others: list[Change] = []
+        first = await service.listen("frame", others.append)
+        second = await service.listen("frame", frames.append)
+        await wait_until(lambda: len(frames) >= 6, what="frames arrive while two listen")
+        assert all(isinstance(c.value, bytes) for c in frames)
+        assert len({c.value for c in frames}) == len(frames)  # each frame differs (number, time)
+        assert {c.value for c in others} & {c.value for c in frames}  # both hear the same frames
+        await first.close()
+        count = len(frames)
+        await wait_until(lambda: len(frames) >= count + 2, what="frames go on while one listens")
+        await second.close()
+        await wait_until(lambda: camera._render_task is None, what="the render loop ends")
+        rendered = camera._frames
+        for _ in range(5):
+            await asyncio.sleep(0.02)
+        assert camera._frames == rendered
+    finally:
+        await service.aclose()
+
+
+async def test_describe_says_frame_is_a_jpeg() -> None:
+    service = serve(Camera())
+    model = {p.name: p for p in (await service.describe()).properties}
+    assert model["frame"].type == "bytes" and model["frame"].media_type == "image/jpeg"
+    assert model["frame"].access.value == "read"
+    assert model["markers"].gui == "markers"
+    assert [p.name for p in model["markers"].parameters] == ["frame"]
