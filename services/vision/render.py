@@ -29,6 +29,8 @@ from services.vision.scene import Sighting
 
 __all__ = ["Renderer", "View"]
 
+#: Labels drawn at most in one frame (the nearest): a crowd of thousands stays cheap and legible.
+MAX_LABELS = 64
 #: Closest a thing may be drawn, m in front of the lens: nearer, its size would divide by ~0.
 _NEAREST = 0.05
 _SKY_TOP = np.array([70, 120, 200], dtype=np.float32)
@@ -131,10 +133,7 @@ class Renderer:
         """The frame as JPEG at the view's quality, with the labels and the frame's number and time."""
         image = Image.fromarray(self.draw(view), "RGB")
         pen = ImageDraw.Draw(image)
-        for s in view.sightings:
-            box = self._box(s)
-            if box is None or box[2] < 0 or box[0] > self.width:
-                continue
+        for s, box in self._labelled(view.sightings):
             wide = pen.textlength(s.thing.id, font=self._font)
             x = min(max(0.0, (box[0] + box[2]) / 2 - wide / 2), self.width - wide)
             y = min(max(0.0, box[1] - 13), self.height - 12.0)
@@ -146,3 +145,23 @@ class Renderer:
         out = io.BytesIO()
         image.save(out, "JPEG", quality=view.quality)
         return out.getvalue()
+
+    def _labelled(
+        self, sightings: Sequence[Sighting]
+    ) -> list[tuple[Sighting, tuple[float, float, float, float]]]:
+        """The things whose label is drawn, nearest first: at most MAX_LABELS, and none whose
+        top is hidden behind a nearer thing (a label over another thing's face would lie)."""
+        shown: list[tuple[Sighting, tuple[float, float, float, float]]] = []
+        boxes: list[tuple[float, float, float, float]] = []
+        for s in sorted(sightings, key=lambda s: s.distance)[: 4 * MAX_LABELS]:  # bounded: N^2 below
+            box = self._box(s)
+            if box is None or box[2] < 0 or box[0] > self.width:
+                continue
+            top = ((box[0] + box[2]) / 2, box[1] + 1)
+            hidden = any(b[0] <= top[0] <= b[2] and b[1] <= top[1] <= b[3] for b in boxes)
+            boxes.append(box)
+            if not hidden:
+                shown.append((s, box))
+                if len(shown) >= MAX_LABELS:
+                    break
+        return shown
