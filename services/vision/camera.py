@@ -18,6 +18,7 @@ camera's frame (the class wrapper's Listens take no parameters).
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import itertools
 import logging
 import math
@@ -29,10 +30,11 @@ from typing import Annotated, Any
 import numpy as np
 
 from services.backend import NO_PARAMS, UNKNOWN_TYPE, Backend, Change, Notify, Subscription
-from services.core import LocalService, Prop, Resource, query
+from services.core import LocalService, Prop, Resource
 from services.directory import Directory
 from services.errors import InvalidArgument, ReadOnly, ResourceExhausted
 from services.location_following import LocationFollower
+from services.model import ParameterModel, ServiceModel
 from services.paths import validate_service_name
 from services.values import Value, Vector, format_number
 from services.values.markers import format_markers
@@ -146,6 +148,10 @@ class CameraService(LocalService):
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         if path == "frame":
             await self.camera.fresh_frame()
+        elif path == "markers":
+            return self.camera.markers_in(_frame_param(params))
+        elif path == "markers.parameters":
+            return MARKERS_PARAMETERS
         return await super().get(path, params)
 
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
@@ -156,6 +162,27 @@ class CameraService(LocalService):
             self.camera._watch_frames()
             return _FrameWatch(self.camera, sub)
         return await super().listen(path, notify, params)
+
+    async def describe(self) -> ServiceModel:
+        model = await super().describe()
+        properties = tuple(
+            dataclasses.replace(p, parameters=(FRAME_PARAMETER,)) if p.name == "markers" else p
+            for p in model.properties
+        )
+        return dataclasses.replace(model, properties=properties)
+
+
+#: ``markers`` takes a parameter, which a read property of the class wrapper cannot declare:
+#: CameraService reads it, says it in ``markers.parameters`` and in the model.
+MARKERS_DOC = "every thing in view as a marker (id, class, location, color, confidence), nearest first"
+MARKERS_PARAMETERS = "((frame text world))"
+FRAME_PARAMETER = ParameterModel(
+    "frame",
+    "text",
+    required=False,
+    default="world",
+    doc="the frame of the locations: world, or camera (x forward, y left, z up, from the camera)",
+)
 
 
 def _frame_param(params: Mapping[str, str]) -> str:
@@ -389,8 +416,12 @@ class Camera(Resource):
         """The latest frame rendered (JPEG)."""
         return self._frame
 
-    @query(gui="markers", doc="every object in view as a marker: id, class, location, color, confidence")
-    def markers(self, frame: str = "world") -> str:
+    @property
+    def markers(self) -> Annotated[str, Prop(readonly=True, gui="markers", doc=MARKERS_DOC)]:
+        """The markers of the things in view, nearest first, located in the world frame."""
+        return self.markers_in("world")
+
+    def markers_in(self, frame: str) -> str:
         """The markers of the things in view, nearest first, located in ``frame`` (world or camera)."""
         if frame not in FRAMES:
             raise InvalidArgument(f"bad parameter `frame` for `markers`: {frame!r}; use world or camera")

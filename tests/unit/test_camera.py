@@ -100,7 +100,7 @@ async def test_robots_found_in_the_directory_are_seen_and_leave_the_view(world: 
 
 async def test_markers_do_not_change_while_nothing_in_view_moves(world: MemoryDirectory) -> None:
     _, service = await camera_in(world, location=(0, 0, 1.0), objects=OBJECTS[:1])
-    await wait_until(lambda: "scout1" in ids(service.obj.markers()), what="scout1 seen")
+    await wait_until(lambda: "scout1" in ids(service.obj.markers), what="scout1 seen")
     changes: list[Change] = []
     sub = await service.listen("markers", changes.append)
     try:
@@ -115,7 +115,7 @@ async def test_markers_do_not_change_while_nothing_in_view_moves(world: MemoryDi
 
 async def test_a_listen_in_the_camera_frame_gets_camera_frame_markers(world: MemoryDirectory) -> None:
     _, service = await camera_in(world, location=(1, 0, 1.0))
-    await wait_until(lambda: "scout1" in ids(service.obj.markers()), what="scout1 seen")
+    await wait_until(lambda: "scout1" in ids(service.obj.markers), what="scout1 seen")
     changes: list[Change] = []
     sub = await service.listen("markers", changes.append, {"frame": "camera"})
     try:
@@ -211,5 +211,7 @@ async def test_describe_says_frame_is_a_jpeg() -> None:
     model = {p.name: p for p in (await service.describe()).properties}
     assert model["frame"].type == "bytes" and model["frame"].media_type == "image/jpeg"
     assert model["frame"].access.value == "read"
-    assert model["markers"].gui == "markers"
-    assert [p.name for p in model["markers"].parameters] == ["frame"]
+    markers = model["markers"]
+    assert markers.gui == "markers" and markers.access.value == "read" and not markers.needs_parameters
+    assert [(p.name, p.default) for p in markers.parameters] == [("frame", "world")]
+    assert await service.get("markers.parameters") == "((frame text world))"
