@@ -11,8 +11,8 @@ Frames cost CPU only while someone watches: a Listen of ``frame`` starts a
 render loop at ``rate_hz`` and the last Listen leaving stops it; a Get with
 nobody listening renders one frame (or answers the one rendered less than a
 period ago). :class:`CameraService`, the LocalService subclass that serves a
-Camera, sees those Gets and Listens, and the Listens of ``markers`` in the
-camera's frame (the class wrapper's Listens take no parameters).
+Camera, sees those Gets and Listens, and the Gets and Listens of ``markers``
+with its parameter ``frame`` (a read property of the class wrapper takes none).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import numpy as np
 from services.backend import NO_PARAMS, UNKNOWN_TYPE, Backend, Change, Notify, Subscription
 from services.core import LocalService, Prop, Resource
 from services.directory import Directory
-from services.errors import InvalidArgument, ReadOnly, ResourceExhausted
+from services.errors import InvalidArgument, PropertyError, ReadOnly, ResourceExhausted
 from services.location_following import LocationFollower
 from services.model import ParameterModel, ServiceModel
 from services.paths import validate_service_name
@@ -46,7 +46,8 @@ __all__ = ["Camera", "CameraService"]
 
 log = logging.getLogger(__name__)
 
-#: Frames per second at most: beyond, a camera would take the gateway's core for itself.
+#: Frames per second at most: what a display shows; each frame costs the gateway ~1.4 ms to draw
+#: and encode at 640x480 (docs/vision.md), so even 60 Hz leaves most of a core to the rest.
 MAX_RATE_HZ = 60.0
 MIN_RATE_HZ = 0.1
 DEFAULT_RATE_HZ = 15.0
@@ -536,8 +537,8 @@ class Camera(Resource):
         assert self._directory is not None
         try:
             backend = self._directory.backend(name)
-        except Exception:
-            return
+        except PropertyError:
+            return  # gone again already
         if backend.serves(self) or backend.on_demand:
             return  # itself; or a dormant service, which a mere watcher must not wake
         if name == self.mount:
@@ -620,10 +621,11 @@ class Camera(Resource):
             await asyncio.sleep(due - now)
 
     async def fresh_frame(self) -> bytes:
-        """A frame no older than one period: the render loop's latest, or one rendered now."""
-        if self._render_task is not None and self._frame:
-            return self._frame
-        if asyncio.get_running_loop().time() - self._frame_at < 1.0 / self._rate and self._frame:
+        """A frame no older than one period (two while the render loop runs, so that a Get
+        never renders a frame of its own between two of the loop's): the latest, or one now."""
+        age = asyncio.get_running_loop().time() - self._frame_at
+        periods = 2.0 if self._render_task is not None else 1.0
+        if self._frame and age < periods / self._rate:
             return self._frame
         return await self._render_now()
 
