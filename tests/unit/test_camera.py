@@ -107,8 +107,11 @@ async def test_markers_do_not_change_while_nothing_in_view_moves(world: MemoryDi
         await drive(world, "scout2", -2.0, 8.0)  # moves, but out of view all the way
         await drive(world, "scout2", 0.0, 6.0)
         assert changes == []
-        await drive(world, "scout1", 2.0, 0.0)  # moves in view: one change or more, never none
-        assert changes and parse_markers(changes[-1].value)[0].location.tolist()[:2] == [2.0, 0.0]
+        await drive(world, "scout1", 2.0, 0.0)  # moves in view: its marker moves with it
+        await wait_until(
+            lambda: bool(changes) and parse_markers(changes[-1].value)[0].location.tolist()[:2] == [2.0, 0.0],
+            what="the marker of scout1 at (2 0)",
+        )
     finally:
         await sub.close()
 
