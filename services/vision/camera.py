@@ -541,7 +541,12 @@ class Camera(Resource):
             if name == self.mount:
                 self._mount_follower.forget(name)
             if name in self.followed:
+                full = len(self.followed) >= self._max_followed
                 self._forget(name)
+                if full and self._directory is not None:  # a place is free: the next one takes it
+                    for other in self._directory.names():
+                        if other != name:
+                            self._consider(other)
         else:
             self._consider(name)
 

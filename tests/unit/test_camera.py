@@ -218,3 +218,13 @@ async def test_describe_says_frame_is_a_jpeg() -> None:
     assert markers.gui == "markers" and markers.access.value == "read" and not markers.needs_parameters
     assert [(p.name, p.default) for p in markers.parameters] == [("frame", "world")]
     assert await service.get("markers.parameters") == "((frame text world))"
+
+
+async def test_following_is_bounded_and_a_robot_that_leaves_is_forgotten(world: MemoryDirectory) -> None:
+    await world.add("scout3", robot(6.0, 0.0))
+    camera, service = await camera_in(world, location=(0, 0, 1.0), max_followed=2)
+    assert parse_names(await service.get("followed")) == ["scout1", "scout2"]  # scout3 is one too many
+    await wait_until(lambda: ids(camera.markers) == ["scout1"], what="scout1 seen, scout3 not followed")
+    await world.unregister("scout1")  # forgotten; its place goes to scout3
+    await wait_until(lambda: ids(camera.markers) == ["scout3"], what="scout1 forgotten, scout3 seen")
+    assert parse_names(await service.get("followed")) == ["scout2", "scout3"]
