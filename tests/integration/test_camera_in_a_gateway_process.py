@@ -108,3 +108,17 @@ async def test_a_frame_by_get_is_byte_for_byte_one_that_listen_delivered(gateway
             call.cancel()
         image = Image.open(io.BytesIO(reply.data))
         assert image.format == "JPEG" and image.size == (320, 240)
+
+
+async def test_the_sdk_gets_and_listens_to_frames_as_bytes(gateway: str) -> None:
+    async with AsyncClient(gateway, timeout=WAIT) as client:
+        events = client.listen("cam", "frame")
+        try:
+            heard = [(await anext(events)).value, (await anext(events)).value]
+            frame = await client.get_bytes("cam", "frame")
+            heard.append((await anext(events)).value)
+        finally:
+            await events.aclose()
+        assert all(isinstance(v, bytes) for v in heard)
+        assert frame in heard
+        assert Image.open(io.BytesIO(frame)).size == (320, 240)
