@@ -141,7 +141,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "protocol straight to the device; (f) group moveto, (g) registry find, (h) registration over raw "
         "TCP at growing sizes; (i) mTLS and a token; (j) a storage service's Get and Set beside plain file "
         "I/O; (k) Server-Sent-Events fan-out beside gRPC Listen; (l) chart transitions with a Set each; "
-        "(n) camera frames to 10 Listeners and the gateway's CPU. "
+        "(o) camera frames to 10 Listeners and the gateway's CPU. "
         "Prints figures, ratios and targets.",
     )
     parser.add_argument(
@@ -241,7 +241,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     sizes.add_argument(
         "--camera-seconds",
         type=float,
-        help=f"(n) seconds 10 Listeners count a 640x480 30 Hz camera's frames {both('camera_seconds')}",
+        help=f"(o) seconds 10 Listeners count a 640x480 30 Hz camera's frames {both('camera_seconds')}",
     )
     sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
     sizes.add_argument(

@@ -1,4 +1,4 @@
-"""Part (n): camera frames — a 640x480 camera at 30 Hz to 10 gRPC Listeners through one gateway.
+"""Part (o): camera frames — a 640x480 camera at 30 Hz to 10 gRPC Listeners through one gateway.
 
 A gateway process serves one ``camera`` (three objects in view); ten gRPC
 channels of this process each Listen on its ``frame`` (one HTTP/2 connection

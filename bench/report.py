@@ -892,7 +892,7 @@ def _camera_table(out: TextIO, results: Results) -> None:
     base = camera["baseline"]
     _table(
         out,
-        f"(n) camera: {camera['listeners']} gRPC Listeners on frame, {camera['resolution'][0]}x"
+        f"(o) camera: {camera['listeners']} gRPC Listeners on frame, {camera['resolution'][0]}x"
         f"{camera['resolution'][1]} JPEG q{camera['quality']} at {camera['rate_hz']} Hz, "
         f"{camera['window_s']} s; baseline: render+encode alone in this process",
         [

@@ -122,7 +122,7 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         "(k) fan-out to",
         "(l) a chart",
         "(m) scheduler",
-        "(n) camera",
+        "(o) camera",
     )
     for title in titles:
         assert title in out, f"no table {title!r}:\n{out}"
