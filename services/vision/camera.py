@@ -524,6 +524,7 @@ class Camera(Resource):
         if self._unwatch is not None:
             self._unwatch()
             self._unwatch = None
+        self._watchers = 0  # the service's Listens end with it
         if self._render_task is not None:
             self._render_task.cancel()
             await asyncio.gather(self._render_task, return_exceptions=True)
