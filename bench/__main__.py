@@ -20,6 +20,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from bench import report
+from bench.camera import run_camera
 from bench.groups import run_scaling
 from bench.line import WAYS as LINE_WAYS
 from bench.line import run_line
@@ -49,6 +50,7 @@ PARTS = (
     "sse",
     "statemachine",
     "scheduler",
+    "camera",
 )
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
@@ -75,6 +77,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "transitions": 20_000,
         "scheduler_sizes": (100, 10_000),
         "scheduler_rounds": 1_000,
+        "camera_seconds": 10.0,
     },
     "quick": {
         "calls": 2_000,
@@ -94,6 +97,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "transitions": 2_000,
         "scheduler_sizes": (100, 10_000),
         "scheduler_rounds": 100,
+        "camera_seconds": 3.0,
     },
 }
 
@@ -136,7 +140,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "(d) memory per idle Listen stream; (e) Get through the gateway's TCP proxy beside the line "
         "protocol straight to the device; (f) group moveto, (g) registry find, (h) registration over raw "
         "TCP at growing sizes; (i) mTLS and a token; (j) a storage service's Get and Set beside plain file "
-        "I/O; (k) Server-Sent-Events fan-out beside gRPC Listen; (l) chart transitions with a Set each. "
+        "I/O; (k) Server-Sent-Events fan-out beside gRPC Listen; (l) chart transitions with a Set each; "
+        "(o) camera frames to 10 Listeners and the gateway's CPU. "
         "Prints figures, ratios and targets.",
     )
     parser.add_argument(
@@ -232,6 +237,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--scheduler-rounds",
         type=_positive,
         help=f"(m) requests (and finds) per size {both('scheduler_rounds')}",
+    )
+    sizes.add_argument(
+        "--camera-seconds",
+        type=float,
+        help=f"(o) seconds 10 Listeners count a 640x480 30 Hz camera's frames {both('camera_seconds')}",
     )
     sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
     sizes.add_argument(
@@ -426,6 +436,11 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
             f"scheduler, {_listing(args.scheduler_sizes)} entries, "
             f"{args.scheduler_rounds:,} requests and finds each",
             lambda: run_scheduler(args.scheduler_sizes, args.scheduler_rounds, args.time_limit),
+        )
+    if "camera" in args.parts:
+        results.setdefault("gateway", {})["camera"] = await _timed(
+            f"camera: 10 gRPC Listens on a 640x480 camera's frame at 30 Hz for {args.camera_seconds:g} s",
+            lambda: run_camera(seconds=args.camera_seconds, time_limit=args.time_limit),
         )
     if "register" in args.parts:
         results.setdefault("gateway", {})["register"] = await _timed(

@@ -402,6 +402,34 @@ TARGETS += (
 )
 
 
+def _camera(results: Results, key: str) -> float:
+    return float(results["gateway"]["camera"][key])
+
+
+TARGETS += (
+    # The issue's anchor: a remote driver's video, 30 frames/s of 640x480 JPEG to 10 viewers, with
+    # the gateway (rendering and encoding included: the camera runs in it) under one core.
+    Target(
+        "camera-fps",
+        "frames/s received by the slowest of 10 gRPC Listeners on a 640x480 camera at 30 Hz",
+        lambda r: _camera(r, "fps_min"),
+        "min",
+        29.0,
+        "fps",
+        (("gateway", "camera"),),
+    ),
+    Target(
+        "camera-cores",
+        "gateway CPU while serving them (render, encode and 10 streams), cores",
+        lambda r: _camera(r, "gateway_cores"),
+        "max",
+        1.0,
+        "cores",
+        (("gateway", "camera"),),
+    ),
+)
+
+
 def evaluate(results: Results) -> list[dict[str, Any]]:
     """Each target's figure, bound and verdict (PASS, FAIL, or why it could not be judged)."""
     verdicts = []
@@ -854,6 +882,42 @@ def _issue_tables(out: TextIO, results: Results) -> None:
     _sse_table(out, results)
     _statemachine_table(out, results)
     _scheduler_table(out, results)
+    _camera_table(out, results)
+
+
+def _camera_table(out: TextIO, results: Results) -> None:
+    camera = results.get("gateway", {}).get("camera")
+    if not camera or "error" in camera:
+        return
+    base = camera["baseline"]
+    _table(
+        out,
+        f"(o) camera: {camera['listeners']} gRPC Listeners on frame, {camera['resolution'][0]}x"
+        f"{camera['resolution'][1]} JPEG q{camera['quality']} at {camera['rate_hz']} Hz, "
+        f"{camera['window_s']} s; baseline: render+encode alone in this process",
+        [
+            "fps min",
+            "fps mean",
+            "frame KiB",
+            "MiB/s out",
+            "gw cores",
+            "gw ms/frame",
+            "baseline fps",
+            "baseline ms/frame",
+        ],
+        [
+            [
+                _fmt(camera["fps_min"], 1),
+                _fmt(camera["fps_mean"], 1),
+                _fmt(camera["frame_bytes_mean"] / 1024, 1),
+                _fmt(camera["mib_per_s"], 1),
+                _fmt(camera["gateway_cores"], 2),
+                _fmt(camera["gateway_cpu_ms_per_frame"], 2),
+                _fmt(base["frames_per_s"]),
+                _fmt(base["ms_per_frame"], 2),
+            ]
+        ],
+    )
 
 
 def _sse_table(out: TextIO, results: Results) -> None:

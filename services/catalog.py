@@ -29,6 +29,7 @@ from services.group import Group
 from services.simulators import SimRobot, SimSensor
 from services.statemachine import StateMachineService
 from services.storage import Storage
+from services.vision import Camera
 
 __all__ = [
     "CATALOG",
@@ -41,6 +42,7 @@ __all__ = [
 ]
 
 CATALOG: dict[str, Callable[..., Resource]] = {
+    "camera": Camera,
     "group": Group,
     "sim-robot": SimRobot,
     "sim-sensor": SimSensor,

@@ -30,7 +30,7 @@ from services.values.grammar import (
     show,
 )
 
-__all__ = ["Marker", "format_marker", "parse_marker"]
+__all__ = ["Marker", "format_marker", "format_markers", "parse_marker", "parse_markers"]
 
 _MARKER_EXAMPLE = 'a marker like "<marker><location>(1 2)</location></marker>"'
 # Tag names are restricted so that a dotted path reaches every field and no
@@ -179,3 +179,44 @@ def _check_tag(tag: str) -> str:
     if not isinstance(tag, str) or _TAG.fullmatch(tag) is None:
         raise ValueFormatError(f"bad marker element name {tag!r}: use letters, digits, _ and - (max 64)")
     return tag
+
+
+_MARKERS_EXAMPLE = 'a list of markers like "(<marker><location>(1 2)</location></marker>)"'
+
+
+def format_markers(markers: Sequence[Marker]) -> str:
+    """A list of markers: ``(<marker>...</marker> <marker>...</marker>)``; ``()`` when empty."""
+    return "(" + " ".join(format_marker(m) for m in markers) + ")"
+
+
+def parse_markers(text: str) -> list[Marker]:
+    """Parse a list of markers (see :func:`format_markers`), each as :func:`parse_marker` does."""
+    check_length(text, _MARKERS_EXAMPLE)
+    inner = text.strip()
+    if not (inner.startswith("(") and inner.endswith(")")):
+        raise fail(_MARKERS_EXAMPLE, text, "a list is in parentheses")
+    inner = inner[1:-1]
+    if not inner.strip():
+        return []
+    # One document: the markers as the children of a root that no marker can name.
+    try:
+        root = DET.fromstring(f"<_>{inner}</_>", forbid_dtd=True, forbid_entities=True, forbid_external=True)
+    except defusedxml.DefusedXmlException:
+        raise fail(
+            _MARKERS_EXAMPLE, text, "declarations, entities and external references are not allowed"
+        ) from None
+    except (ET.ParseError, ValueError, RecursionError) as e:
+        raise fail(_MARKERS_EXAMPLE, text, f"not well-formed XML ({e})") from None
+    if root.text and root.text.strip():
+        raise fail(_MARKERS_EXAMPLE, text, "text between the markers")
+    found: list[Marker] = []
+    for child in root:
+        if child.tail and child.tail.strip():
+            raise fail(_MARKERS_EXAMPLE, text, "text between the markers")
+        node = _element(child, text, 1)
+        if isinstance(node, str):
+            if node.strip():
+                raise fail(_MARKERS_EXAMPLE, text, f"<{child.tag}> must hold fields, not text")
+            node = Marker(child.tag, {})
+        found.append(node)
+    return found

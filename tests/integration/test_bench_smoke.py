@@ -38,6 +38,8 @@ TARGETS = (
     "sse-latency-p99",
     "statemachine",
     "scheduler",
+    "camera-fps",
+    "camera-cores",
 )
 
 
@@ -107,6 +109,9 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     # The scheduler part decided at 100 and 10,000 entries, every request granted.
     scheduler = payload["results"]["in-process"]["scheduler"]
     assert [d["entries"] for d in scheduler["sizes"]] == [100, 10_000] and scheduler["complete"], scheduler
+    # The camera part: ten Listeners counted frames, and a Get's frame decoded to 640x480.
+    camera = payload["results"]["gateway"]["camera"]
+    assert camera["complete"] and camera["listeners"] == 10 and camera["baseline"]["frames"] > 0, camera
     titles = (
         "(e) Get of",
         "(f) group behaviors.moveto",
@@ -117,6 +122,7 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         "(k) fan-out to",
         "(l) a chart",
         "(m) scheduler",
+        "(o) camera",
     )
     for title in titles:
         assert title in out, f"no table {title!r}:\n{out}"
