@@ -119,7 +119,7 @@ class MarkerFusion:
     def __init__(
         self,
         *,
-        gate: float = 3.0,
+        gate: float = 4.0,
         max_distance: float = 1.0,
         ttl: float = 30.0,
         max_markers: int = 10_000,

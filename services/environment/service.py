@@ -172,7 +172,7 @@ class EnvironmentModel(Resource):
         readings: Sequence[Any] = (),
         grid: Mapping[str, Any] | None = None,
         ttl: float = 30.0,
-        gate: float = 3.0,
+        gate: float = 4.0,
         max_distance: float = 1.0,
         max_markers: int = 10_000,
         process_noise: float = DEFAULT_PROCESS_NOISE,
