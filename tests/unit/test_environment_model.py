@@ -1,4 +1,4 @@
-"""The environment model: grid layers, heat map and properties, alone and through a gateway in this process."""
+"""The environment model: grid layers, heat map and properties, alone and through an in-process gateway."""
 
 from __future__ import annotations
 
