@@ -251,6 +251,16 @@ class MarkerFusion:
             gone.append(self._remove(first.id))
         return gone
 
+    def touch(self, marker_id: str, now: float) -> bool:
+        """Count ``marker_id`` as seen at ``now`` without a new estimate (a source that would tell
+        of any change has told of none); False when there is no such marker."""
+        marker = self._markers.get(marker_id)
+        if marker is None:
+            return False
+        marker.last_seen = max(marker.last_seen, now)
+        self._markers.move_to_end(marker_id)
+        return True
+
     def remove(self, marker_id: str) -> FusedMarker | None:
         """Forget one marker; None when there is none of that id."""
         return self._remove(marker_id) if marker_id in self._markers else None

@@ -223,6 +223,8 @@ class EnvironmentModel(Resource):
         self.unplaced = 0
         self.unreadable = 0
         self._locations: dict[tuple[str, str], tuple[float, float]] = {}
+        # (service, path) of each robot location followed → the marker it feeds.
+        self._robot_markers: dict[tuple[str, str], str] = {}
         self._follows: list[Follow] = []
         self._depths: dict[int, int] = {}
         self._notices: dict[str, asyncio.TimerHandle] = {}
@@ -319,8 +321,14 @@ class EnvironmentModel(Resource):
         return placed
 
     def expire(self) -> list[str]:
-        """Forget the markers not seen for ``ttl`` seconds; returns their ids."""
-        gone = self.fusion.expire(self._clock())
+        """Forget the markers not seen for ``ttl`` seconds; returns their ids.
+
+        A robot whose location is followed counts as seen: its Listen would have told of a move.
+        """
+        now = self._clock()
+        for marker_id in set(self._robot_markers.values()):
+            self.fusion.touch(marker_id, now)
+        gone = self.fusion.expire(now)
         for marker in gone:
             self._detach_marker(marker.id)
         return [m.id for m in gone]
@@ -355,7 +363,7 @@ class EnvironmentModel(Resource):
                     sel.service,
                     _robot_pattern(sel),
                     self._robot_location(sel.service),
-                    _ignore,
+                    self._robot_gone(sel.service),
                     what=sel.pattern or "robots.*.location|location",
                 ),
                 directory,
@@ -437,9 +445,15 @@ class EnvironmentModel(Resource):
             segments = path.split(".")
             name = segments[-2] if len(segments) >= 2 else service
             obs = Observation.at("robot", where, self._robot_variance, name, id=name)
-            self.fuse(obs, occupancy=False)
+            self._robot_markers[(service, path)] = self.fuse(obs, occupancy=False).marker.id
 
         return on_value
+
+    def _robot_gone(self, service: str) -> Callable[[str], None]:
+        def on_gone(path: str) -> None:
+            self._robot_markers.pop((service, path), None)
+
+        return on_gone
 
     def _location_pattern(self, key: int, reading: Reading) -> Callable[[list[str]], str | None]:
         pattern = reading.selector.pattern

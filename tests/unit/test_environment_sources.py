@@ -1,0 +1,99 @@
+"""The environment model follows its sources through a real router: cameras, robots, readings, late ones."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+import pytest
+from support.waiting import eventually, wait_until
+
+from gateway.router import Router
+from services.core import LocalService, Prop, Resource
+from services.environment import EnvironmentModel
+from services.simulators import SimRobot
+from services.values import parse_list
+
+
+class ScriptedCamera(Resource):
+    """A camera whose ``markers`` the test writes."""
+
+    resource_type = "camera"
+    markers: Annotated[str, Prop(readonly=True, doc="markers in view, one after the other")]
+
+    def __init__(self) -> None:
+        self.markers = ""
+
+
+def sources(model: EnvironmentModel) -> dict[str, str]:
+    return {f"{service} {what}": state for service, what, state, _ in model.sources}
+
+
+@pytest.fixture
+async def router():
+    router = Router()
+    yield router
+    for name in list(router.names()):
+        await router.remove(name).aclose()
+
+
+async def test_a_camera_that_comes_later_is_followed_and_its_markers_fused(router: Router) -> None:
+    model = EnvironmentModel(directory=router, markers=["camera1"], ttl=60.0)
+    env = LocalService(model)
+    await env.start()
+    router.add("env", env)
+    try:
+        await wait_until(lambda: sources(model)["camera1 markers"] == "absent", what="camera1 is waited for")
+        camera = ScriptedCamera()
+        cam = LocalService(camera)
+        await cam.start()
+        router.add("camera1", cam)  # the directory says it joined: no waiting out a pause
+        await wait_until(lambda: sources(model)["camera1 markers"] == "following", what="camera1 followed")
+        camera.markers = (
+            "<marker><id>a</id><class>cube</class><location>(1 1)</location><colour>red</colour>"
+            "<confidence>0.5</confidence></marker> "
+            "<marker><id>b</id><class>ball</class><location>(1.05 1)</location></marker>"
+        )
+        await wait_until(lambda: len(model.fusion) == 2, what="both markers fused")
+        camera.markers = "<marker><id>a</id><class>cube</class><location>(1.02 1)</location></marker>"
+        await wait_until(lambda: model.fusion.get("a") is not None and model.fusion.get("a").count == 2)
+        cube = model.fusion.get("a")
+        assert cube is not None and cube.fields["colour"] == "red"
+        assert await env.get("grid.occupancy.info") != ""
+        info = dict(parse_list(await env.get("grid.occupancy.info")))
+        assert info["total"] == "3"
+        camera.markers = "not markers at all"  # a bad list is dropped, the model carries on
+        camera.markers = "<marker><id>c</id><class>cube</class><location>(5 5)</location></marker>"
+        await wait_until(lambda: "c" in model.fusion)
+    finally:
+        await env.aclose()
+
+
+async def test_robots_and_their_temperature_readings(router: Router) -> None:
+    robot = SimRobot(start=(0.25, 0.25), speed=10.0, temperature_hz=1000.0, seed=1)
+    bot = LocalService(robot)
+    await bot.start()
+    router.add("bot", bot)
+    model = EnvironmentModel(
+        directory=router,
+        robots=["bot"],
+        readings=[{"selector": "bot sensors.temperature"}],
+        grid={"origin": [0, 0], "cell": 0.5, "shape": [2, 8]},
+    )
+    env = LocalService(model)
+    await env.start()
+    router.add("env", env)
+    try:
+        await wait_until(lambda: "bot" in model.fusion, what="the robot's own marker")
+        await wait_until(lambda: all(s == "following" for s in sources(model).values()))
+        # Drive along the bottom row: every cell of it gets readings.
+        robot.drive_to(np.array([3.75, 0.25]), "world")
+        info = await eventually(
+            lambda: env.get("grid.temperature.info"), lambda v: dict(parse_list(v))["filled"] == "8"
+        )
+        assert dict(parse_list(info))["outside"] == "0"
+        marker = model.fusion.get("bot")
+        assert marker is not None and marker.cls == "robot" and marker.source == "bot"
+        assert float(marker.position[0]) == pytest.approx(3.75, abs=0.05)
+    finally:
+        await env.aclose()
