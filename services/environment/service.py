@@ -14,13 +14,15 @@ layers (:mod:`services.environment.grid`), and offers them as properties:
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 from typing import Annotated, Any
 
-from services.backend import NO_PARAMS
+from services.backend import NO_PARAMS, Change, Notify, Subscription
 from services.core import LocalService, Marker, Prop, Resource, action, query
 from services.directory import Directory
 from services.environment.fusion import MarkerFusion, Observation, Update
@@ -44,7 +46,8 @@ from services.environment.options import (
 from services.environment.options import readings as parse_readings
 from services.environment.sources import Follow, fixed
 from services.errors import InvalidArgument, PropertyError
-from services.values import ValueFormatError, Vector, parse_number, parse_vector
+from services.model import ServiceModel
+from services.values import Value, ValueFormatError, Vector, parse_number, parse_vector
 
 __all__ = ["EnvironmentModel", "EnvironmentService"]
 
@@ -63,6 +66,9 @@ EXPIRY_SWEEP_S = 1.0
 DEFAULT_CAMERA_VARIANCE = 0.01  # σ 10 cm
 DEFAULT_ROBOT_VARIANCE = 0.0025  # σ 5 cm: a robot's own odometry
 DEFAULT_PROCESS_NOISE = 0.05  # m²/s: an object walks about 22 cm in a second unseen
+#: Media types of a layer's value and of its image.
+NPY = "application/x-npy"
+PNG = "image/png"
 #: The layers every model has, with their units.
 TEMPERATURE = "temperature"
 OCCUPANCY = "occupancy"
@@ -91,13 +97,13 @@ class MarkerTable(Resource):
 
 
 class LayerNode(Resource):
-    """``grid.<layer>``: the layer as float32 ``.npy``; ``info`` and ``image`` beside it."""
+    """``grid.<layer>``: the layer as float32 ``.npy`` (served by :class:`EnvironmentService`),
+    with ``info`` and ``image`` beside it."""
 
     def __init__(self, layer: Layer) -> None:
         self._layer = layer
-
-    def _value(self) -> list[Any]:
-        return self._layer.info()
+        #: Listeners of the layer's own value (``grid.<layer>``), by token.
+        self.listeners: dict[int, Notify] = {}
 
     @property
     def info(
@@ -111,9 +117,22 @@ class LayerNode(Resource):
     ]:
         return self._layer.info()
 
-    def layer_changed(self) -> None:
-        self.changed()
+    @property
+    def image(self) -> Annotated[bytes, Prop(media_type=PNG, doc="the layer as a heat map, north up")]:
+        return self.png()
+
+    def layer_changed(self, path: str) -> None:
+        """Tell the listeners of the layer, of ``info`` and of ``image`` that it changed."""
         self.changed("info")
+        self.changed("image")
+        if self.listeners:
+            change = Change(path, self.npy())
+            for token, notify in list(self.listeners.items()):
+                try:
+                    notify(change)
+                except Exception:
+                    log.exception("a listener of %s raised; it is dropped", path)
+                    self.listeners.pop(token, None)
 
     def npy(self) -> bytes:
         """The layer's values (float32, NaN where a mean has no value yet) as ``numpy.save`` writes them."""
@@ -134,19 +153,69 @@ class GridLayers(Resource):
         return list(self._model.layers)
 
 
-class EnvironmentService(LocalService):
-    """Serves an :class:`EnvironmentModel`: the class wrapper, and ``find``'s ``class`` parameter.
+class _LayerSubscription(Subscription):
+    __slots__ = ("_node", "_token")
 
-    ``class`` is a word Python keeps for itself, so the query's keyword is ``kind``; a Get of
-    ``find`` with ``class=...`` is taken as ``kind=...``.
+    def __init__(self, node: LayerNode, token: int) -> None:
+        self._node = node
+        self._token = token
+
+    async def close(self) -> None:
+        self._node.listeners.pop(self._token, None)
+
+
+class EnvironmentService(LocalService):
+    """Serves an :class:`EnvironmentModel`: the class wrapper, and what it cannot say alone.
+
+    * ``grid.<layer>`` is a namespace (``info``, ``image`` under it) whose own value is binary,
+      the layer as ``.npy``: this class answers its Get, Listen, ``media_type`` and model.
+    * ``class`` is a word Python keeps for itself, so ``find``'s keyword is ``kind``; a Get of
+      ``find`` with ``class=...`` is taken as ``kind=...``.
     """
 
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    obj: EnvironmentModel
+
+    def __init__(self, obj: Resource, url: str = "local") -> None:
+        super().__init__(obj, url)
+        self._layer_tokens = itertools.count()
+
+    def _layer(self, path: str) -> LayerNode | None:
+        head, _, name = path.partition(".")
+        return self.obj.layer_nodes.get(name) if head == "grid" else None
+
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
+        node = self._layer(path)
+        if node is not None:
+            if params:
+                raise InvalidArgument(f"`{path}` takes no parameters")
+            return node.npy()
+        if path.endswith(".media_type") and self._layer(path.removesuffix(".media_type")) is not None:
+            return NPY
         if path == "find" and "class" in params:
             if "kind" in params:
                 raise InvalidArgument("`find`: give class or kind, not both")
             params = {("kind" if k == "class" else k): v for k, v in params.items()}
         return await super().get(path, params)
+
+    async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
+        node = self._layer(path)
+        if node is None:
+            return await super().listen(path, notify, params)
+        token = next(self._layer_tokens)
+        node.listeners[token] = notify
+        return _LayerSubscription(node, token)
+
+    async def describe(self) -> ServiceModel:
+        model = await super().describe()
+        doc = "the layer: float32 .npy (numpy.load reads it), row 0 at the origin's y, NaN where no value"
+        layers = {f"grid.{name}" for name in self.obj.layer_nodes}
+        return replace(
+            model,
+            properties=tuple(
+                replace(p, type="bytes", media_type=NPY, doc=doc, gui="bytes") if p.name in layers else p
+                for p in model.properties
+            ),
+        )
 
 
 class EnvironmentModel(Resource):
@@ -215,8 +284,8 @@ class EnvironmentModel(Resource):
         self.count = 0
         self.markers = MarkerTable(self)
         self.grid = GridLayers(self)
-        self._layer_nodes = {name: LayerNode(layer) for name, layer in self.layers.items()}
-        for name, node in self._layer_nodes.items():
+        self.layer_nodes = {name: LayerNode(layer) for name, layer in self.layers.items()}
+        for name, node in self.layer_nodes.items():
             self.grid.attach(name, node)
         self._marker_nodes: dict[str, MarkerNode] = {}
         #: Readings that came before their location was known, and readings that were not numbers.
@@ -514,9 +583,9 @@ class EnvironmentModel(Resource):
         self._notice("", LIST_NOTICE_S, self.markers.changed)
 
     def _notice_layer(self, name: str) -> None:
-        node = self._layer_nodes.get(name)
+        node = self.layer_nodes.get(name)
         if node is not None:
-            self._notice(name, GRID_NOTICE_S, node.layer_changed)
+            self._notice(name, GRID_NOTICE_S, lambda: node.layer_changed(f"grid.{name}"))
 
     def _notice(self, key: str, delay: float, fire: Callable[[], None]) -> None:
         """Call ``fire`` within ``delay`` seconds, once for however many notices come meanwhile."""
@@ -535,7 +604,7 @@ class EnvironmentModel(Resource):
         self._notices[key] = loop.call_later(delay, later)
 
     def _layer_node(self, layer: str) -> LayerNode:
-        node = self._layer_nodes.get(layer)
+        node = self.layer_nodes.get(layer)
         if node is None:
             raise InvalidArgument(f"no layer {layer!r}: the layers are {', '.join(self.layers)}")
         return node

@@ -23,7 +23,7 @@ from services.backend import Backend, Change, Subscription, close_quietly
 from services.backoff import pauses, wait_to_retry
 from services.errors import Code, DeadlineExceeded, NotFound, PropertyError
 from services.paths import compile_pattern
-from services.values import parse_names
+from services.values import Value, parse_names
 
 __all__ = ["CALL_TIMEOUT_S", "MAX_PATHS", "RETRY_FIRST_S", "RETRY_MAX_S", "Follow"]
 
@@ -219,7 +219,7 @@ class Follow:
                     self._on_gone(path)
                     return
                 heard = True
-                self._on_value(path, change.value)
+                self._hand_on(path, change.value)
 
             try:
                 async with asyncio.timeout(self._timeout):
@@ -234,11 +234,17 @@ class Follow:
             else:
                 try:
                     if not heard:
-                        self._on_value(path, value)
+                        self._hand_on(path, value)
                     await asyncio.Event().wait()  # held until cancelled
                 finally:
                     await close_quietly(sub)
             await wait_to_retry(backend, next(delays))
+
+    def _hand_on(self, path: str, value: Value) -> None:
+        if isinstance(value, bytes):  # every source here is text: a binary value says nothing
+            log.debug("%s: %s/%s is binary; not read", self.what, self.service, path)
+            return
+        self._on_value(path, value)
 
     def _drop(self, path: str) -> None:
         task = self._paths.pop(path, None)
@@ -255,8 +261,8 @@ class Follow:
             await asyncio.gather(*tasks, return_exceptions=True)
 
 
-def _names(text: str) -> list[str]:
+def _names(text: Value) -> list[str]:
     try:
-        return parse_names(text) if text else []
+        return parse_names(text) if isinstance(text, str) and text else []
     except PropertyError:
         return []

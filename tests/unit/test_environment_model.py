@@ -7,11 +7,14 @@ import io
 import numpy as np
 import pytest
 from PIL import Image
+from support.waiting import wait_until
 
 from clients import AsyncClient
 from clients.errors import InvalidArgument as InvalidArgumentError
 from gateway.testing import serve
+from services.backend import Change
 from services.catalog import create
+from services.core import serve as serve_backend
 from services.environment import EnvironmentModel, GridSpec, HitLayer, MeanLayer, heat_map_png, to_npy
 from services.errors import InvalidArgument
 from services.values import parse_list, parse_marker
@@ -172,3 +175,33 @@ async def client_model():
     model = EnvironmentModel(grid={"origin": [0, 0], "cell": 0.5, "shape": [4, 4]})
     async with serve(model, name="env") as client:
         yield client, model
+
+
+async def test_a_layer_is_binary_npy_with_its_media_type_and_listeners() -> None:
+    model = EnvironmentModel(grid={"origin": [0, 0], "cell": 1.0, "shape": [2, 2]})
+    backend = serve_backend(model)
+    await backend.start()
+    try:
+        heard: list[Change] = []
+        sub = await backend.listen("grid.temperature", heard.append)
+        model.record("temperature", 1.5, 0.5, 25.0)
+        await wait_until(lambda: bool(heard), what="the layer's listener hears of the reading")
+        assert heard[0].path == "grid.temperature"
+        value = await backend.get("grid.temperature")
+        assert isinstance(value, bytes) and value == heard[-1].value
+        array = np.load(io.BytesIO(value), allow_pickle=False)
+        assert array.dtype == np.float32 and array[0, 1] == 25.0 and np.isnan(array[1, 1])
+        await sub.close()
+        assert await backend.get("grid.temperature.media_type") == "application/x-npy"
+        assert await backend.get("grid.temperature.image.media_type") == "image/png"
+        png = await backend.get("grid.temperature.image")
+        assert isinstance(png, bytes) and png.startswith(b"\x89PNG\r\n\x1a\n")
+        described = {p.name: p for p in (await backend.describe()).properties}
+        layer = described["grid.temperature"]
+        assert (layer.type, layer.media_type) == ("bytes", "application/x-npy")
+        assert (described["grid.occupancy.image"].type, described["grid.occupancy.image"].media_type) == (
+            "bytes",
+            "image/png",
+        )
+    finally:
+        await backend.aclose()
