@@ -307,11 +307,11 @@ class EnvironmentModel(Resource):
     ) -> Annotated[
         list[Any],
         Prop(
-            doc="each source: (service pattern state paths), state one of "
-            "starting absent retrying idle following"
+            doc="each source: (service role pattern state paths); role: markers, robots, readings or "
+            "locations (of the readings); state: starting, absent, retrying, idle or following"
         ),
     ]:
-        return [[f.service, f.what, f.state, f.following] for f in self._follows]
+        return [[f.service, f.role, f.pattern or "-", f.state, f.following] for f in self._follows]
 
     @query(
         doc="markers by class, inside area (x0 y0 x1 y1), nearest to near (x y) first; "
@@ -422,7 +422,7 @@ class EnvironmentModel(Resource):
                     fixed(sel.pattern or "markers"),
                     self._camera_markers(sel.service),
                     _ignore,
-                    what=sel.pattern or "markers",
+                    role="markers",
                 ),
                 directory,
             )
@@ -433,7 +433,7 @@ class EnvironmentModel(Resource):
                     _robot_pattern(sel),
                     self._robot_location(sel.service),
                     self._robot_gone(sel.service),
-                    what=sel.pattern or "robots.*.location|location",
+                    role="robots",
                 ),
                 directory,
             )
@@ -448,13 +448,17 @@ class EnvironmentModel(Resource):
                     self._location_pattern(key, reading),
                     self._location_of(service),
                     self._location_gone(service),
-                    what=f"location of {pattern}",
+                    role="locations",
                 ),
                 directory,
             )
             self._start(
                 Follow(
-                    service, fixed(pattern), self._reading(service, key, reading.layer), _ignore, what=pattern
+                    service,
+                    fixed(pattern),
+                    self._reading(service, key, reading.layer),
+                    _ignore,
+                    role="readings",
                 ),
                 directory,
             )
@@ -479,7 +483,7 @@ class EnvironmentModel(Resource):
 
     def _start(self, follow: Follow, directory: Directory) -> None:
         self._follows.append(follow)
-        self._ps_spawn(follow.run(directory.backend), f"environment: follow {follow.service} {follow.what}")
+        self._ps_spawn(follow.run(directory.backend), f"environment: follow {follow.service} {follow.role}")
 
     async def _expire_loop(self) -> None:
         period = min(self.ttl / 4, EXPIRY_SWEEP_S)

@@ -64,12 +64,13 @@ class Follow:
         on_value: OnValue,
         on_gone: OnGone,
         *,
-        what: str,
+        role: str,
         timeout_s: float = CALL_TIMEOUT_S,
         max_paths: int = MAX_PATHS,
     ) -> None:
         self.service = service
-        self.what = what
+        #: What the paths are to the follower (one word: markers, robots, readings, locations).
+        self.role = role
         self._choose = choose
         self._on_value = on_value
         self._on_gone = on_gone
@@ -86,6 +87,11 @@ class Follow:
         self.reason = ""
         #: Paths the service lists that match, beyond ``max_paths``: not followed.
         self.dropped = 0
+
+    @property
+    def pattern(self) -> str | None:
+        """The pattern followed now (None until the service's list chose one)."""
+        return self._pattern
 
     @property
     def following(self) -> int:
@@ -118,7 +124,7 @@ class Follow:
                 except PropertyError as e:
                     self.state = "retrying"
                     self.reason = e.message
-                    log.debug("%s: %s/properties: %s", self.what, self.service, e.message)
+                    log.debug("%s: %s/properties: %s", self.role, self.service, e.message)
                 finally:
                     await self._drop_all()
             pause = next(delays)
@@ -188,7 +194,7 @@ class Follow:
             self.dropped = len(wanted) - self._max_paths
             log.warning(
                 "%s: %s lists %d paths matching %s; following the first %d",
-                self.what,
+                self.role,
                 self.service,
                 len(wanted),
                 pattern,
@@ -203,7 +209,7 @@ class Follow:
         for path in wanted:
             if path not in self._paths:
                 self._paths[path] = asyncio.get_running_loop().create_task(
-                    self._follow_path(backend, path), name=f"{self.what}: {self.service}/{path}"
+                    self._follow_path(backend, path), name=f"{self.role}: {self.service}/{path}"
                 )
         self.state = "following"
 
@@ -225,12 +231,12 @@ class Follow:
                 async with asyncio.timeout(self._timeout):
                     sub, value = await backend.listen_current(path, on_change)
             except TimeoutError:
-                log.debug("%s: Listen to %s/%s: no answer", self.what, self.service, path)
+                log.debug("%s: Listen to %s/%s: no answer", self.role, self.service, path)
             except PropertyError as e:
                 if e.code not in _TRANSIENT:
-                    log.debug("%s: %s/%s refused: %s", self.what, self.service, path, e.message)
+                    log.debug("%s: %s/%s refused: %s", self.role, self.service, path, e.message)
                     return
-                log.debug("%s: %s/%s: %s", self.what, self.service, path, e.message)
+                log.debug("%s: %s/%s: %s", self.role, self.service, path, e.message)
             else:
                 try:
                     if not heard:
@@ -242,7 +248,7 @@ class Follow:
 
     def _hand_on(self, path: str, value: Value) -> None:
         if isinstance(value, bytes):  # every source here is text: a binary value says nothing
-            log.debug("%s: %s/%s is binary; not read", self.what, self.service, path)
+            log.debug("%s: %s/%s is binary; not read", self.role, self.service, path)
             return
         self._on_value(path, value)
 

@@ -26,7 +26,7 @@ class ScriptedCamera(Resource):
 
 
 def sources(model: EnvironmentModel) -> dict[str, str]:
-    return {f"{service} {what}": state for service, what, state, _ in model.sources}
+    return {f"{service} {role}": state for service, role, _, state, _ in model.sources}
 
 
 @pytest.fixture
