@@ -20,6 +20,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from bench import report
+from bench.fusion import run_fusion
 from bench.groups import run_scaling
 from bench.line import WAYS as LINE_WAYS
 from bench.line import run_line
@@ -49,6 +50,7 @@ PARTS = (
     "sse",
     "statemachine",
     "scheduler",
+    "fusion",
 )
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
@@ -75,6 +77,8 @@ PROFILES: dict[str, dict[str, Any]] = {
         "transitions": 20_000,
         "scheduler_sizes": (100, 10_000),
         "scheduler_rounds": 1_000,
+        "fusion_sizes": (100, 10_000),
+        "fusion_observations": 20_000,
     },
     "quick": {
         "calls": 2_000,
@@ -94,6 +98,8 @@ PROFILES: dict[str, dict[str, Any]] = {
         "transitions": 2_000,
         "scheduler_sizes": (100, 10_000),
         "scheduler_rounds": 100,
+        "fusion_sizes": (100, 10_000),
+        "fusion_observations": 2_000,
     },
 }
 
@@ -136,7 +142,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "(d) memory per idle Listen stream; (e) Get through the gateway's TCP proxy beside the line "
         "protocol straight to the device; (f) group moveto, (g) registry find, (h) registration over raw "
         "TCP at growing sizes; (i) mTLS and a token; (j) a storage service's Get and Set beside plain file "
-        "I/O; (k) Server-Sent-Events fan-out beside gRPC Listen; (l) chart transitions with a Set each. "
+        "I/O; (k) Server-Sent-Events fan-out beside gRPC Listen; (l) chart transitions with a Set each; "
+        "(m) scheduler decisions; (n) environment model fusion per observation, growing numbers of markers. "
         "Prints figures, ratios and targets.",
     )
     parser.add_argument(
@@ -232,6 +239,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--scheduler-rounds",
         type=_positive,
         help=f"(m) requests (and finds) per size {both('scheduler_rounds')}",
+    )
+    sizes.add_argument(
+        "--fusion-sizes",
+        type=_sizes,
+        help=f"(n) markers the environment model holds {listed('fusion_sizes')}",
+    )
+    sizes.add_argument(
+        "--fusion-observations",
+        type=_positive,
+        help=f"(n) observations fused per size {both('fusion_observations')}",
     )
     sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
     sizes.add_argument(
@@ -426,6 +443,11 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
             f"scheduler, {_listing(args.scheduler_sizes)} entries, "
             f"{args.scheduler_rounds:,} requests and finds each",
             lambda: run_scheduler(args.scheduler_sizes, args.scheduler_rounds, args.time_limit),
+        )
+    if "fusion" in args.parts:
+        results.setdefault("in-process", {})["fusion"] = await _timed(
+            f"fusion, {_listing(args.fusion_sizes)} markers, {args.fusion_observations:,} observations each",
+            lambda: run_fusion(args.fusion_sizes, args.fusion_observations, args.time_limit),
         )
     if "register" in args.parts:
         results.setdefault("gateway", {})["register"] = await _timed(

@@ -402,6 +402,30 @@ TARGETS += (
 )
 
 
+def _fusion_scaling(r: Results) -> float:
+    sizes = r["in-process"]["fusion"]["sizes"]
+    smallest = min(sizes, key=lambda d: d["markers"])
+    largest = max(sizes, key=lambda d: d["markers"])
+    return float(largest["us_per_observation"] / smallest["us_per_observation"])
+
+
+TARGETS += (
+    # The environment model associates through a spatial hash: an observation looks at the 3×3
+    # cells around it, whatever the number of markers, so its cost should stay flat from 100 to
+    # 10,000 markers (a scan of every marker grows a hundredfold). Bound: at most 3× (cache
+    # misses of a larger table, and the machine's noise).
+    Target(
+        "fusion-scaling",
+        "environment model µs per observation at the largest size / at the smallest (100 markers)",
+        _fusion_scaling,
+        "max",
+        3.0,
+        "x",
+        (("in-process", "fusion"),),
+    ),
+)
+
+
 def evaluate(results: Results) -> list[dict[str, Any]]:
     """Each target's figure, bound and verdict (PASS, FAIL, or why it could not be judged)."""
     verdicts = []
@@ -854,6 +878,7 @@ def _issue_tables(out: TextIO, results: Results) -> None:
     _sse_table(out, results)
     _statemachine_table(out, results)
     _scheduler_table(out, results)
+    _fusion_table(out, results)
 
 
 def _sse_table(out: TextIO, results: Results) -> None:
@@ -955,6 +980,41 @@ def _scheduler_table(out: TextIO, results: Results) -> None:
                 for d in scheduler["sizes"]
             ],
         )
+
+
+def _fusion_table(out: TextIO, results: Results) -> None:
+    fusion = results.get("in-process", {}).get("fusion")
+    if fusion and "error" not in fusion:
+        _table(
+            out,
+            "(n) environment model: one observation fused (association and update) beside a bare numpy "
+            "distance (baseline) and a numpy scan of every marker",
+            [
+                "markers",
+                "observations",
+                "µs/observation",
+                "baseline µs",
+                "scan µs",
+                "ratio to baseline",
+                "new markers",
+            ],
+            [
+                [
+                    f"{d['markers']:,}",
+                    f"{d['observations']:,}",
+                    _fmt(d["us_per_observation"], 2),
+                    _fmt(d["baseline_us"], 2),
+                    _fmt(d["scan_us"], 2),
+                    _fmt(d["ratio_to_baseline"], 2),
+                    f"{d['created']:,}",
+                ]
+                for d in fusion["sizes"]
+            ],
+        )
+        if fusion.get("scaling") is not None:
+            print(
+                f"  µs per observation at the largest size / at the smallest: {fusion['scaling']}", file=out
+            )
 
 
 def _psutil() -> Any:

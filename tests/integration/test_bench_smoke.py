@@ -38,6 +38,7 @@ TARGETS = (
     "sse-latency-p99",
     "statemachine",
     "scheduler",
+    "fusion-scaling",
 )
 
 
@@ -107,6 +108,10 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     # The scheduler part decided at 100 and 10,000 entries, every request granted.
     scheduler = payload["results"]["in-process"]["scheduler"]
     assert [d["entries"] for d in scheduler["sizes"]] == [100, 10_000] and scheduler["complete"], scheduler
+    # The fusion part fused at 100 and 10,000 markers, every marker indexed, beside its baseline.
+    fusion = payload["results"]["in-process"]["fusion"]
+    assert [d["markers"] for d in fusion["sizes"]] == [100, 10_000] and fusion["complete"], fusion
+    assert all(d["baseline_us"] > 0 and d["us_per_observation"] > 0 for d in fusion["sizes"]), fusion
     titles = (
         "(e) Get of",
         "(f) group behaviors.moveto",
@@ -117,6 +122,7 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         "(k) fan-out to",
         "(l) a chart",
         "(m) scheduler",
+        "(n) environment model",
     )
     for title in titles:
         assert title in out, f"no table {title!r}:\n{out}"

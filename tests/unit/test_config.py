@@ -58,6 +58,7 @@ def test_the_demo_config() -> None:
         ("swarm", "group"),
         ("files", "storage"),
         ("missions", "statemachine"),
+        ("environment", "environment"),
     ]
     assert [(d.name, d.tcp or d.serial) for d in cfg.devices] == [
         ("rover1", "127.0.0.1:0"),
