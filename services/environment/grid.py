@@ -119,8 +119,9 @@ class Layer:
         """What ``grid.<layer>.info`` says, as a list of (key value) pairs for the value grammar."""
         values = self.values()
         seen = values[np.isfinite(values)] if self.filled else values[:0]
-        low: Any = float(seen.min()) if seen.size else []
-        high: Any = float(seen.max()) if seen.size else []
+        # float32 values, shown to the precision they hold (7 significant digits), not as float64 noise.
+        low: Any = float(f"{seen.min():.7g}") if seen.size else []
+        high: Any = float(f"{seen.max():.7g}") if seen.size else []
         return [
             ["kind", self.kind],
             ["origin", list(self.spec.origin)],
