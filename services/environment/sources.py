@@ -250,7 +250,10 @@ class Follow:
         if isinstance(value, bytes):  # every source here is text: a binary value says nothing
             log.debug("%s: %s/%s is binary; not read", self.role, self.service, path)
             return
-        self._on_value(path, value)
+        try:
+            self._on_value(path, value)
+        except Exception:  # a listener's callback must not raise into the backend
+            log.exception("%s: %s/%s: the value could not be taken in", self.role, self.service, path)
 
     def _drop(self, path: str) -> None:
         task = self._paths.pop(path, None)

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Annotated
 
 import numpy as np
 import pytest
 from support.waiting import eventually, wait_until
 
+import services.environment.sources as sources_module
 from gateway.router import Router
+from services.backend import NO_PARAMS, Notify, Subscription
 from services.core import LocalService, Prop, Resource
 from services.environment import EnvironmentModel
+from services.errors import Unavailable
 from services.simulators import SimRobot
 from services.values import parse_list
 
@@ -95,5 +99,44 @@ async def test_robots_and_their_temperature_readings(router: Router) -> None:
         marker = model.fusion.get("bot")
         assert marker is not None and marker.cls == "robot" and marker.source == "bot"
         assert float(marker.position[0]) == pytest.approx(3.75, abs=0.05)
+    finally:
+        await env.aclose()
+
+
+class FlakyService(LocalService):
+    """A robot whose first Listens of ``location`` fail as a device out of reach answers."""
+
+    def __init__(self, obj: Resource, failures: int) -> None:
+        super().__init__(obj)
+        self.failures = failures
+
+    async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
+        if path == "location" and self.failures > 0:
+            self.failures -= 1
+            raise Unavailable("device out of reach")
+        return await super().listen(path, notify, params)
+
+
+async def test_a_source_that_fails_is_tried_again_and_the_others_carry_on(
+    router: Router, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(sources_module, "RETRY_FIRST_S", 0.01)
+    flaky = FlakyService(SimRobot(start=(1.0, 1.0)), failures=3)
+    steady = LocalService(SimRobot(start=(5.0, 5.0)))
+    for name, backend in (("flaky", flaky), ("steady", steady)):
+        await backend.start()
+        router.add(name, backend)
+    model = EnvironmentModel(directory=router, robots=["flaky", "steady"])
+    env = LocalService(model)
+    await env.start()
+    router.add("env", env)
+    try:
+        await wait_until(lambda: "steady" in model.fusion, what="the steady robot, while the other fails")
+        await wait_until(lambda: "flaky" in model.fusion, what="the flaky robot, once it answers")
+        assert flaky.failures == 0
+        assert {s: state for s, _, _, state, _ in model.sources} == {
+            "flaky": "following",
+            "steady": "following",
+        }
     finally:
         await env.aclose()
