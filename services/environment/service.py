@@ -69,6 +69,12 @@ DEFAULT_PROCESS_NOISE = 0.05  # m²/s: an object walks about 22 cm in a second u
 #: Media types of a layer's value and of its image.
 NPY = "application/x-npy"
 PNG = "image/png"
+#: What ``grid.<layer>.media_type``, ``.gui`` and ``.doc`` answer (the layer's own value is bytes).
+_LAYER_META = {
+    "media_type": NPY,
+    "gui": "bytes",
+    "doc": "the layer: float32 .npy (numpy.load reads it), row 0 at the origin's y, NaN where no value",
+}
 #: The layers every model has, with their units.
 TEMPERATURE = "temperature"
 OCCUPANCY = "occupancy"
@@ -189,8 +195,11 @@ class EnvironmentService(LocalService):
             if params:
                 raise InvalidArgument(f"`{path}` takes no parameters")
             return node.npy()
-        if path.endswith(".media_type") and self._layer(path.removesuffix(".media_type")) is not None:
-            return NPY
+        head, _, meta = path.rpartition(".")
+        if meta in _LAYER_META and self._layer(head) is not None:
+            if params:
+                raise InvalidArgument(f"`{path}` takes no parameters")
+            return _LAYER_META[meta]
         if path == "find" and "class" in params:
             if "kind" in params:
                 raise InvalidArgument("`find`: give class or kind, not both")
@@ -207,7 +216,7 @@ class EnvironmentService(LocalService):
 
     async def describe(self) -> ServiceModel:
         model = await super().describe()
-        doc = "the layer: float32 .npy (numpy.load reads it), row 0 at the origin's y, NaN where no value"
+        doc = _LAYER_META["doc"]
         layers = {f"grid.{name}" for name in self.obj.layer_nodes}
         return replace(
             model,

@@ -193,6 +193,7 @@ async def test_a_layer_is_binary_npy_with_its_media_type_and_listeners() -> None
         assert array.dtype == np.float32 and array[0, 1] == 25.0 and np.isnan(array[1, 1])
         await sub.close()
         assert await backend.get("grid.temperature.media_type") == "application/x-npy"
+        assert await backend.get("grid.temperature.gui") == "bytes"
         assert await backend.get("grid.temperature.image.media_type") == "image/png"
         png = await backend.get("grid.temperature.image")
         assert isinstance(png, bytes) and png.startswith(b"\x89PNG\r\n\x1a\n")
