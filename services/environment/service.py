@@ -14,20 +14,17 @@ layers (:mod:`services.environment.grid`), and offers them as properties:
 from __future__ import annotations
 
 import asyncio
-import itertools
 import logging
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import replace
 from typing import Annotated, Any
 
-from services.backend import NO_PARAMS, Change, Notify, Subscription
-from services.core import LocalService, Marker, Prop, Resource, action, query
+from services.core import Marker, Prop, Resource, action, query
 from services.directory import Directory
 from services.environment.fusion import MarkerFusion, Observation, Update
-from services.environment.grid import GridSpec, HitLayer, Layer, MeanLayer, to_npy
-from services.environment.heatmap import heat_map_png
+from services.environment.grid import GridSpec, HitLayer, Layer, MeanLayer
+from services.environment.nodes import GridLayers, LayerNode, MarkerNode, MarkerTable
 from services.environment.observations import (
     fused_marker,
     observation_of,
@@ -44,12 +41,12 @@ from services.environment.options import (
     selectors,
 )
 from services.environment.options import readings as parse_readings
+from services.environment.serving import EnvironmentService
 from services.environment.sources import Follow, fixed
 from services.errors import InvalidArgument, PropertyError
-from services.model import ServiceModel
-from services.values import Value, ValueFormatError, Vector, parse_number, parse_vector
+from services.values import ValueFormatError, Vector, parse_number, parse_vector
 
-__all__ = ["EnvironmentModel", "EnvironmentService"]
+__all__ = ["EnvironmentModel"]
 
 log = logging.getLogger(__name__)
 
@@ -66,165 +63,9 @@ EXPIRY_SWEEP_S = 1.0
 DEFAULT_CAMERA_VARIANCE = 0.01  # σ 10 cm
 DEFAULT_ROBOT_VARIANCE = 0.0025  # σ 5 cm: a robot's own odometry
 DEFAULT_PROCESS_NOISE = 0.05  # m²/s: an object walks about 22 cm in a second unseen
-#: Media types of a layer's value and of its image.
-NPY = "application/x-npy"
-PNG = "image/png"
-#: What ``grid.<layer>.media_type``, ``.gui`` and ``.doc`` answer (the layer's own value is bytes).
-_LAYER_META = {
-    "media_type": NPY,
-    "gui": "bytes",
-    "doc": "the layer: float32 .npy (numpy.load reads it), row 0 at the origin's y, NaN where no value",
-}
 #: The layers every model has, with their units.
 TEMPERATURE = "temperature"
 OCCUPANCY = "occupancy"
-
-
-class MarkerNode(Resource):
-    """One fused marker; its value is the marker."""
-
-    def __init__(self, model: EnvironmentModel, marker_id: str) -> None:
-        self._model = model
-        self._id = marker_id
-
-    def _value(self) -> Marker:
-        marker = self._model.fusion.get(self._id)
-        return fused_marker(marker) if marker is not None else Marker("marker", {})
-
-
-class MarkerTable(Resource):
-    """``markers``: its value lists the ids; ``markers.<id>`` is each fused marker."""
-
-    def __init__(self, model: EnvironmentModel) -> None:
-        self._model = model
-
-    def _value(self) -> list[str]:
-        return self._model.fusion.ids()
-
-
-class LayerNode(Resource):
-    """``grid.<layer>``: the layer as float32 ``.npy`` (served by :class:`EnvironmentService`),
-    with ``info`` and ``image`` beside it."""
-
-    def __init__(self, layer: Layer) -> None:
-        self._layer = layer
-        #: Listeners of the layer's own value (``grid.<layer>``), by token.
-        self.listeners: dict[int, Notify] = {}
-
-    @property
-    def info(
-        self,
-    ) -> Annotated[
-        list[Any],
-        Prop(
-            doc="kind, origin (x0 y0), cell (m), shape (rows cols), min, max, filled cells, "
-            "values in all, values outside, unit"
-        ),
-    ]:
-        return self._layer.info()
-
-    @property
-    def image(self) -> Annotated[bytes, Prop(media_type=PNG, doc="the layer as a heat map, north up")]:
-        return self.png()
-
-    def layer_changed(self, path: str) -> None:
-        """Tell the listeners of the layer, of ``info`` and of ``image`` that it changed."""
-        self.changed("info")
-        self.changed("image")
-        if self.listeners:
-            change = Change(path, self.npy())
-            for token, notify in list(self.listeners.items()):
-                try:
-                    notify(change)
-                except Exception:
-                    log.exception("a listener of %s raised; it is dropped", path)
-                    self.listeners.pop(token, None)
-
-    def npy(self) -> bytes:
-        """The layer's values (float32, NaN where a mean has no value yet) as ``numpy.save`` writes them."""
-        return to_npy(self._layer.values())
-
-    def png(self) -> bytes:
-        """The layer as a PNG heat map, north up."""
-        return heat_map_png(self._layer.values())
-
-
-class GridLayers(Resource):
-    """``grid``: its value lists the layers; ``grid.<layer>`` is each layer."""
-
-    def __init__(self, model: EnvironmentModel) -> None:
-        self._model = model
-
-    def _value(self) -> list[str]:
-        return list(self._model.layers)
-
-
-class _LayerSubscription(Subscription):
-    __slots__ = ("_node", "_token")
-
-    def __init__(self, node: LayerNode, token: int) -> None:
-        self._node = node
-        self._token = token
-
-    async def close(self) -> None:
-        self._node.listeners.pop(self._token, None)
-
-
-class EnvironmentService(LocalService):
-    """Serves an :class:`EnvironmentModel`: the class wrapper, and what it cannot say alone.
-
-    * ``grid.<layer>`` is a namespace (``info``, ``image`` under it) whose own value is binary,
-      the layer as ``.npy``: this class answers its Get, Listen, ``media_type`` and model.
-    * ``class`` is a word Python keeps for itself, so ``find``'s keyword is ``kind``; a Get of
-      ``find`` with ``class=...`` is taken as ``kind=...``.
-    """
-
-    obj: EnvironmentModel
-
-    def __init__(self, obj: Resource, url: str = "local") -> None:
-        super().__init__(obj, url)
-        self._layer_tokens = itertools.count()
-
-    def _layer(self, path: str) -> LayerNode | None:
-        head, _, name = path.partition(".")
-        return self.obj.layer_nodes.get(name) if head == "grid" else None
-
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
-        node = self._layer(path)
-        if node is not None:
-            if params:
-                raise InvalidArgument(f"`{path}` takes no parameters")
-            return node.npy()
-        head, _, meta = path.rpartition(".")
-        if meta in _LAYER_META and self._layer(head) is not None:
-            if params:
-                raise InvalidArgument(f"`{path}` takes no parameters")
-            return _LAYER_META[meta]
-        if path == "find" and "class" in params:
-            if "kind" in params:
-                raise InvalidArgument("`find`: give class or kind, not both")
-            params = {("kind" if k == "class" else k): v for k, v in params.items()}
-        return await super().get(path, params)
-
-    async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
-        node = self._layer(path)
-        if node is None:
-            return await super().listen(path, notify, params)
-        token = next(self._layer_tokens)
-        node.listeners[token] = notify
-        return _LayerSubscription(node, token)
-
-    async def describe(self) -> ServiceModel:
-        model = await super().describe()
-        doc = _LAYER_META["doc"]
-        layers = {f"grid.{name}" for name in self.obj.layer_nodes}
-        return replace(
-            model,
-            properties=tuple(
-                replace(p, type="bytes", media_type=NPY, doc=doc, gui="bytes") if p.name in layers else p
-                for p in model.properties
-            ),
-        )
 
 
 class EnvironmentModel(Resource):
@@ -291,8 +132,8 @@ class EnvironmentModel(Resource):
         for reading in self._readings:
             self.layers.setdefault(reading.layer, MeanLayer(reading.layer, self.spec))
         self.count = 0
-        self.markers = MarkerTable(self)
-        self.grid = GridLayers(self)
+        self.markers = MarkerTable(self.fusion)
+        self.grid = GridLayers(self.layers)
         self.layer_nodes = {name: LayerNode(layer) for name, layer in self.layers.items()}
         for name, node in self.layer_nodes.items():
             self.grid.attach(name, node)
@@ -372,7 +213,7 @@ class EnvironmentModel(Resource):
             self._detach_marker(gone.id)
         marker = update.marker
         if update.created:
-            node = MarkerNode(self, marker.id)
+            node = MarkerNode(self.fusion, marker.id)
             self._marker_nodes[marker.id] = node
             self.markers.attach(marker.id, node)
             self.count = len(self.fusion)

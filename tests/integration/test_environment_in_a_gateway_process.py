@@ -30,7 +30,8 @@ from services.temperature_field import DEFAULT_FIELD
 from services.values import parse_list, parse_marker
 
 WAIT = 15.0
-ROBOT = "speed = 10.0, tick_hz = 50, temperature_hz = 50, temperature_noise = 0.05"
+# Steps of at most 0.5 m (5 ticks of a late loop): no cell of 1 m is stepped over.
+ROBOT = "speed = 5.0, tick_hz = 50, temperature_hz = 50, temperature_noise = 0.05"
 CONFIG = f"""
 [[services]]
 name = "scout1"
