@@ -170,14 +170,21 @@ class MarkerFusion:
         near: tuple[float, float] | None = None,
         area: tuple[float, float, float, float] | None = None,
         count: int = 10,
+        fields: Mapping[str, str] | None = None,
     ) -> list[FusedMarker]:
-        """Up to ``count`` markers of class ``cls`` ("" for any) inside ``area`` (x0 y0 x1 y1),
-        nearest to ``near`` first (without ``near``: most recently seen first)."""
+        """Up to ``count`` markers of class ``cls`` ("" for any) inside ``area`` (x0 y0 x1 y1) whose
+        ``fields`` (``source`` among them) have the given values, nearest to ``near`` first (without
+        ``near``: most recently seen first)."""
         if count < 1:
             return []
         chosen: list[FusedMarker] = []
         for m in self._markers.values():
             if cls and m.cls != cls:
+                continue
+            if fields and any(
+                (m.source if name == "source" else m.fields.get(name)) != value
+                for name, value in fields.items()
+            ):
                 continue
             if area is not None:
                 x0, y0, x1, y1 = area

@@ -164,10 +164,12 @@ class EnvironmentModel(Resource):
         return [[f.service, f.role, f.pattern or "-", f.state, f.following] for f in self._follows]
 
     @query(
-        doc="markers by class, inside area (x0 y0 x1 y1), nearest to near (x y) first; "
-        "class is also accepted for kind"
+        doc="markers by class, inside area (x0 y0 x1 y1), with fields where=colour=red&..., "
+        "nearest to near (x y) first; class is also accepted for kind"
     )
-    def find(self, *, kind: str = "", near: str = "", area: str = "", count: int = 10) -> str:
+    def find(
+        self, *, kind: str = "", near: str = "", area: str = "", where: str = "", count: int = 10
+    ) -> str:
         """Up to ``count`` fused markers, one after the other (count=1: one marker, ready for moveto)."""
         if not 1 <= count <= MAX_FIND:
             raise InvalidArgument(f"count must be from 1 to {MAX_FIND}, got {count}")
@@ -178,6 +180,7 @@ class EnvironmentModel(Resource):
             None if centre is None else (centre[0], centre[1]),
             None if box is None else (box[0], box[1], box[2], box[3]),
             count,
+            _fields(where),
         )
         return write_marker_list([fused_marker(m) for m in found])
 
@@ -491,6 +494,17 @@ def _position(text: str) -> tuple[float, float, float] | None:
         return None
     z = float(vector[2]) if len(vector) >= 3 else 0.0
     return float(vector[0]), float(vector[1]), z
+
+
+def _fields(where: str) -> dict[str, str]:
+    """``colour=red&source=camera1`` → the fields a marker must have (each equal)."""
+    wanted: dict[str, str] = {}
+    for pair in where.split("&") if where else ():
+        name, equals, value = pair.partition("=")
+        if not equals or not name.strip():
+            raise InvalidArgument(f"where is field=value pairs joined by &, got {where!r}")
+        wanted[name.strip()] = value.strip()
+    return wanted
 
 
 def _numbers(text: str, n: int, what: str, form: str) -> list[float]:

@@ -6,7 +6,7 @@ locations and temperatures and by ``camera1``'s markers, a camera that is not th
 robots drive along two rows of the grid; ``grid.temperature`` (read as bytes with the
 generated stub, decoded with numpy) holds the world's temperature in the cells they crossed;
 ``grid.temperature.image`` is a PNG; a marker observed by hand appears on a ``markers.*``
-Listen and expires after the ttl.
+Listen and expires after the ttl; a robot drives to the nearest red marker ``find`` names.
 """
 
 from __future__ import annotations
@@ -133,3 +133,16 @@ async def test_robots_fill_the_temperature_grid_and_markers_come_and_go(gateway_
         assert sorted(await client.get_names("environment", "markers")) == ["scout1", "scout2"]
         found = await client.get("environment", "find", **{"class": "robot", "near": "(5 3)", "count": "1"})
         assert parse_marker(found).get("id") == "scout2"
+
+        # "Move to the nearest red marker": find's answer with count=1 is a target for moveto.
+        for place, colour in (("(1 3)", "red"), ("(4 3.5)", "red"), ("(5 1)", "blue")):
+            seen = (
+                f"<marker><class>cone</class><location>{place}</location><colour>{colour}</colour></marker>"
+            )
+            await client.set("environment", "observe", seen)
+        target = await client.get("environment", "find", near="(5.5 0.5)", where="colour=red", count="1")
+        assert parse_marker(target).get("location") == "(4 3.5 0)"
+        await client.set("scout1", "behaviors.moveto", target)
+        await eventually(
+            lambda: client.get_vector("scout1", "location"), lambda v: bool(np.allclose(v[:2], [4, 3.5]))
+        )

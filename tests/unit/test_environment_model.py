@@ -146,6 +146,17 @@ async def test_find_answers_markers_nearest_first() -> None:
         assert [m.split("</id>")[0] for m in two.split("<id>")[1:]] == ["m3", "m1"]
         inside = await client.get("env", "find", area="(2 -1 4 1)")
         assert sorted(m.split("</id>")[0] for m in inside.split("<id>")[1:]) == ["m1", "m2"]
+        # "The nearest red marker": a field of the sightings, here colour.
+        await client.set(
+            "env",
+            "observe",
+            "<marker><class>box</class><location>(9 0)</location><colour>red</colour></marker>",
+        )
+        red = await client.get("env", "find", near="(0 0)", where="colour=red", count="1")
+        assert parse_marker(red).get("location") == "(9 0 0)"
+        assert await client.get("env", "find", where="colour=blue") == ""
+        with pytest.raises(InvalidArgumentError, match="where is field=value pairs"):
+            await client.get("env", "find", where="colour")
         with pytest.raises(InvalidArgumentError, match="near is"):
             await client.get("env", "find", near="(1 2 3)")
         with pytest.raises(InvalidArgumentError, match="count must be from 1 to 100"):
