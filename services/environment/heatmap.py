@@ -2,9 +2,9 @@
 
 North is up: the image's top row is the grid's last row (largest y), as on a map. Values run
 from the layer's smallest (dark blue) to its largest (dark red) through cyan, green and yellow;
-cells without a value are transparent. Each cell is drawn as a square of whole pixels, so a
-small grid is still big enough to see (at least :data:`MIN_SIDE` pixels on its long side,
-unless that would pass :data:`MAX_SIDE`).
+cells without a value are transparent. Each cell is drawn as a square of whole pixels, as many as
+keep the image's long side within :data:`MIN_SIDE` pixels, so that a small grid is still big
+enough to see; a grid longer than that is drawn one pixel a cell.
 """
 
 from __future__ import annotations
@@ -15,12 +15,10 @@ import numpy as np
 import numpy.typing as npt
 from PIL import Image
 
-__all__ = ["MAX_SIDE", "MIN_SIDE", "heat_map_png"]
+__all__ = ["MIN_SIDE", "heat_map_png"]
 
-#: The long side of the image is scaled up to at least this many pixels.
+#: A small grid's image is scaled up by whole pixels a cell toward this many on its long side.
 MIN_SIDE = 320
-#: ... and never past this many (a grid already this large is drawn one pixel a cell).
-MAX_SIDE = 1024
 
 # Colour stops of the ramp, low to high: blue, cyan, green, yellow, red.
 _STOPS = np.array(
@@ -54,7 +52,7 @@ def heat_map_png(values: npt.NDArray[np.float32]) -> bytes:
     low, high = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
     rgba = _colours(np.flipud(values), low, high)
     rows, cols = values.shape
-    scale = max(1, min(MIN_SIDE // max(rows, cols), MAX_SIDE // max(rows, cols)))
+    scale = max(1, MIN_SIDE // max(rows, cols))
     image = Image.fromarray(rgba)
     if scale > 1:
         image = image.resize((cols * scale, rows * scale), Image.Resampling.NEAREST)
