@@ -138,9 +138,9 @@ class EnvironmentModel(Resource):
         for name, node in self.layer_nodes.items():
             self.grid.attach(name, node)
         self._marker_nodes: dict[str, MarkerNode] = {}
-        #: Readings that came before their location was known, and readings that were not numbers.
-        self.unplaced = 0
-        self.unreadable = 0
+        # Readings that came before their location was known, and readings that were not numbers.
+        self._unplaced = 0
+        self._unreadable = 0
         self._locations: dict[tuple[str, str], tuple[float, float]] = {}
         # (service, path) of each robot location followed → the marker it feeds.
         self._robot_markers: dict[tuple[str, str], str] = {}
@@ -162,6 +162,18 @@ class EnvironmentModel(Resource):
         ),
     ]:
         return [[f.service, f.role, f.pattern or "-", f.state, f.following] for f in self._follows]
+
+    @property
+    def skipped(
+        self,
+    ) -> Annotated[
+        list[Any],
+        Prop(
+            doc="readings put on no layer: (unplaced N) came before their location, (unreadable N) were "
+            "not numbers"
+        ),
+    ]:
+        return [["unplaced", self._unplaced], ["unreadable", self._unreadable]]
 
     @query(
         doc="markers by class, inside area (x0 y0 x1 y1), with fields where=colour=red&..., "
@@ -417,12 +429,14 @@ class EnvironmentModel(Resource):
             try:
                 reading = parse_number(value)
             except PropertyError:
-                self.unreadable += 1
+                self._unreadable += 1
+                self.changed("skipped")
                 return
             depth = self._depths.get(key)
             where = None if depth is None else self._locations.get((service, location_path(path, depth)))
             if where is None:
-                self.unplaced += 1
+                self._unplaced += 1
+                self.changed("skipped")
                 return
             self.record(layer, where[0], where[1], reading)
 

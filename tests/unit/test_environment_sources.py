@@ -97,6 +97,8 @@ async def test_robots_and_their_temperature_readings(router: Router) -> None:
             lambda: env.get("grid.temperature.info"), lambda v: dict(parse_list(v))["filled"] == "8"
         )
         assert dict(parse_list(info))["outside"] == "0"
+        skipped = dict(parse_list(await env.get("skipped")))
+        assert set(skipped) == {"unplaced", "unreadable"} and skipped["unreadable"] == "0"
         marker = model.fusion.get("bot")
         assert marker is not None and marker.cls == "robot" and marker.source == "bot"
         # Its marker follows it to where it stops (within the filter's lag behind the last report).
