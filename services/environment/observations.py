@@ -5,9 +5,9 @@ A marker seen (``services.values.markers``) names the object with ``id``, ``clas
 the variance of the observation is the marker's own ``variance``, or the source's default
 divided by the confidence. Its other fields (``colour``, ...) are kept on the fused marker.
 
-A list of markers is written as the markers one after the other, separated by spaces; a
-reader also takes them inside parentheses or inside a ``<markers>`` element, so a camera
-may send any of the three.
+A list of markers is written in parentheses, the markers separated by spaces:
+``(<marker>..</marker> <marker>..</marker>)``, ``()`` when empty, as a camera's ``markers`` is. A
+reader also takes them without the parentheses or inside a ``<markers>`` element.
 """
 
 from __future__ import annotations
@@ -68,8 +68,8 @@ def parse_marker_list(text: str) -> list[Marker]:
 
 
 def write_marker_list(markers: list[Marker]) -> str:
-    """Markers one after the other, separated by a space (one marker: exactly that marker)."""
-    return " ".join(format_marker(m) for m in markers)
+    """``(<marker>..</marker> <marker>..</marker>)``; ``()`` when there is none."""
+    return "(" + " ".join(format_marker(m) for m in markers) + ")"
 
 
 def _text(marker: Marker, name: str) -> str:

@@ -176,13 +176,13 @@ class EnvironmentModel(Resource):
         return [["unplaced", self._unplaced], ["unreadable", self._unreadable]]
 
     @query(
-        doc="markers by class, inside area (x0 y0 x1 y1), with fields where=colour=red&..., "
+        doc="markers by class, inside area (x0 y0 x1 y1), with fields where=color=(1 0 0)&..., "
         "nearest to near (x y) first; class is also accepted for kind"
     )
     def find(
         self, *, kind: str = "", near: str = "", area: str = "", where: str = "", count: int = 10
     ) -> str:
-        """Up to ``count`` fused markers, one after the other (count=1: one marker, ready for moveto)."""
+        """Up to ``count`` fused markers as a list of markers, ``(<marker>..</marker> ...)``."""
         if not 1 <= count <= MAX_FIND:
             raise InvalidArgument(f"count must be from 1 to {MAX_FIND}, got {count}")
         centre = _numbers(near, 2, "near", "(x y)") if near else None

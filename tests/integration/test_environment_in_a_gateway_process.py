@@ -26,6 +26,7 @@ from support.waiting import eventually
 from clients.aio import AsyncClient
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+from services.environment.observations import parse_marker_list
 from services.temperature_field import DEFAULT_FIELD
 from services.values import parse_list, parse_marker
 
@@ -132,17 +133,16 @@ async def test_robots_fill_the_temperature_grid_and_markers_come_and_go(gateway_
         # The robots, standing but followed, stay.
         assert sorted(await client.get_names("environment", "markers")) == ["scout1", "scout2"]
         found = await client.get("environment", "find", **{"class": "robot", "near": "(5 3)", "count": "1"})
-        assert parse_marker(found).get("id") == "scout2"
+        assert [m.get("id") for m in parse_marker_list(found)] == ["scout2"]
 
-        # "Move to the nearest red marker": find's answer with count=1 is a target for moveto.
-        for place, colour in (("(1 3)", "red"), ("(4 3.5)", "red"), ("(5 1)", "blue")):
-            seen = (
-                f"<marker><class>cone</class><location>{place}</location><colour>{colour}</colour></marker>"
-            )
+        # "Move to the nearest red marker": the marker find names is a target for moveto.
+        for place, rgb in (("(1 3)", "(1 0 0)"), ("(4 3.5)", "(1 0 0)"), ("(5 1)", "(0 0 1)")):
+            seen = f"<marker><class>cone</class><location>{place}</location><color>{rgb}</color></marker>"
             await client.set("environment", "observe", seen)
-        target = await client.get("environment", "find", near="(5.5 0.5)", where="colour=red", count="1")
-        assert parse_marker(target).get("location") == "(4 3.5 0)"
-        await client.set("scout1", "behaviors.moveto", target)
+        found = await client.get("environment", "find", near="(5.5 0.5)", where="color=(1 0 0)", count="1")
+        (target,) = parse_marker_list(found)
+        assert target.get("location") == "(4 3.5 0)"
+        await client.set("scout1", "behaviors.moveto", target.to_xml())
         await eventually(
             lambda: client.get_vector("scout1", "location"), lambda v: bool(np.allclose(v[:2], [4, 3.5]))
         )

@@ -16,6 +16,7 @@ from services.backend import Change
 from services.catalog import create
 from services.core import serve as serve_backend
 from services.environment import EnvironmentModel, GridSpec, HitLayer, MeanLayer, heat_map_png, to_npy
+from services.environment.observations import parse_marker_list
 from services.errors import InvalidArgument
 from services.values import parse_list, parse_marker
 
@@ -113,13 +114,13 @@ async def test_markers_appear_and_expire_on_the_injected_clock() -> None:
         try:
             marker = (
                 "<marker><id>crate</id><class>box</class><location>(1 2)</location>"
-                "<colour>red</colour></marker>"
+                "<color>(1 0 0)</color></marker>"
             )
             assert await client.set("env", "observe", marker, source="camera9") == "crate"
             event = await anext(events)
             assert event.property == "markers.crate" and not event.removed
             fused = parse_marker(event.value)
-            assert fused.get("class") == "box" and fused.get("colour") == "red"
+            assert fused.get("class") == "box" and fused.get("color") == "(1 0 0)"
             assert fused.get("source") == "camera9" and fused.get("count") == "1"
             assert fused.get("location") == "(1 2 0)"
             assert await client.get("env", "markers") == "(crate)"
@@ -141,22 +142,22 @@ async def test_find_answers_markers_nearest_first() -> None:
             marker = f"<marker><id>m{i}</id><class>{kind}</class><location>({x} 0)</location></marker>"
             await client.set("env", "observe", marker)
         one = await client.get("env", "find", **{"class": "box", "near": "(3.4 0)", "count": "1"})
-        assert parse_marker(one).get("id") == "m1"  # one marker: ready for behaviors.moveto
+        assert [m.get("id") for m in parse_marker_list(one)] == ["m1"]
         two = await client.get("env", "find", kind="box", near="(5 0)", count="2")
         assert [m.split("</id>")[0] for m in two.split("<id>")[1:]] == ["m3", "m1"]
         inside = await client.get("env", "find", area="(2 -1 4 1)")
         assert sorted(m.split("</id>")[0] for m in inside.split("<id>")[1:]) == ["m1", "m2"]
-        # "The nearest red marker": a field of the sightings, here colour.
+        # "The nearest red marker": a field of the sightings, here color.
         await client.set(
             "env",
             "observe",
-            "<marker><class>box</class><location>(9 0)</location><colour>red</colour></marker>",
+            "<marker><class>box</class><location>(9 0)</location><color>(1 0 0)</color></marker>",
         )
-        red = await client.get("env", "find", near="(0 0)", where="colour=red", count="1")
-        assert parse_marker(red).get("location") == "(9 0 0)"
-        assert await client.get("env", "find", where="colour=blue") == ""
+        red = await client.get("env", "find", near="(0 0)", where="color=(1 0 0)", count="1")
+        assert [m.get("location") for m in parse_marker_list(red)] == ["(9 0 0)"]
+        assert await client.get("env", "find", where="color=(0 0 1)") == "()"
         with pytest.raises(InvalidArgumentError, match="where is field=value pairs"):
-            await client.get("env", "find", where="colour")
+            await client.get("env", "find", where="color")
         with pytest.raises(InvalidArgumentError, match="near is"):
             await client.get("env", "find", near="(1 2 3)")
         with pytest.raises(InvalidArgumentError, match="count must be from 1 to 100"):

@@ -54,15 +54,15 @@ async def test_a_camera_that_comes_later_is_followed_and_its_markers_fused(route
         router.add("camera1", cam)  # the directory says it joined: no waiting out a pause
         await wait_until(lambda: sources(model)["camera1 markers"] == "following", what="camera1 followed")
         camera.markers = (
-            "<marker><id>a</id><class>cube</class><location>(1 1)</location><colour>red</colour>"
+            "(<marker><id>a</id><class>cube</class><location>(1 1)</location><color>(1 0 0)</color>"
             "<confidence>0.5</confidence></marker> "
-            "<marker><id>b</id><class>ball</class><location>(1.05 1)</location></marker>"
+            "<marker><id>b</id><class>ball</class><location>(1.05 1)</location></marker>)"
         )
         await wait_until(lambda: len(model.fusion) == 2, what="both markers fused")
         camera.markers = "<marker><id>a</id><class>cube</class><location>(1.02 1)</location></marker>"
         await wait_until(lambda: model.fusion.get("a") is not None and model.fusion.get("a").count == 2)
         cube = model.fusion.get("a")
-        assert cube is not None and cube.fields["colour"] == "red"
+        assert cube is not None and cube.fields["color"] == "(1 0 0)"
         assert await env.get("grid.occupancy.info") != ""
         info = dict(parse_list(await env.get("grid.occupancy.info")))
         assert info["total"] == "3"
