@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import io
-import os
-from pathlib import Path
 from typing import Any
 
 import grpc
@@ -56,8 +54,6 @@ options = {{ robots = ["swarm"], markers = ["camera1"], ttl = 1.0, \
 readings = [{{ selector = "swarm robots.*.sensors.temperature", layer = "temperature" }}], \
 grid = {{ origin = [0, 0], cell = 1.0, shape = [4, 6] }} }}
 """
-#: Where the figure of docs/environment.md is written when this variable names a folder.
-PICTURE_DIR = os.environ.get("ENVIRONMENT_PICTURE_DIR", "")
 
 
 async def binary(stub: pb_grpc.PropertyServiceStub, prop: str) -> bytes:
@@ -113,8 +109,6 @@ async def test_robots_fill_the_temperature_grid_and_markers_come_and_go(gateway_
         png = await binary(stub, "grid.temperature.image")
         image = Image.open(io.BytesIO(png))
         assert image.format == "PNG" and image.size[0] / image.size[1] == pytest.approx(6 / 4)
-        if PICTURE_DIR:
-            await asyncio.to_thread(Path(PICTURE_DIR, "environment-temperature.png").write_bytes, png)
 
         # A marker seen by hand appears on a Listen, and expires after the ttl (1 s).
         events = client.listen("environment", "markers.*")
