@@ -16,7 +16,7 @@ from services.backend import Change
 from services.catalog import create
 from services.core import serve as serve_backend
 from services.environment import EnvironmentModel, GridSpec, HitLayer, MeanLayer, heat_map_png, to_npy
-from services.environment.observations import parse_marker_list
+from services.environment.observations import parse_marker_list, write_marker_list
 from services.errors import InvalidArgument
 from services.values import parse_list, parse_marker
 
@@ -218,3 +218,18 @@ async def test_a_layer_is_binary_npy_with_its_media_type_and_listeners() -> None
         )
     finally:
         await backend.aclose()
+
+
+def test_marker_lists_in_every_form_a_camera_may_send() -> None:
+    one = "<marker><id>a</id><class>box</class><location>(1 2)</location></marker>"
+    two = "<marker><id>b</id><class>ball</class><location>(3 4 0.5)</location></marker>"
+    for text in (f"({one} {two})", f"{one} {two}", f"<markers>{one}{two}</markers>", f"  ( {one}\n{two} )  "):
+        assert [m.get("id") for m in parse_marker_list(text)] == ["a", "b"], text
+    assert parse_marker_list("()") == [] and parse_marker_list("") == []
+    assert write_marker_list(parse_marker_list(f"{one} {two}")) == f"({one} {two})"
+    with pytest.raises(InvalidArgument, match="holds something else"):
+        parse_marker_list(f"({one} stray words)")
+    with pytest.raises(InvalidArgument, match="the limit is 1000"):
+        parse_marker_list("(" + " ".join([one] * 1001) + ")")
+    with pytest.raises(InvalidArgument, match="a marker of the list is bad"):
+        parse_marker_list("(<marker><id>a</id><id>b</id></marker>)")
