@@ -21,6 +21,7 @@ from typing import Any
 
 from bench import report
 from bench.camera import run_camera
+from bench.fusion import run_fusion
 from bench.groups import run_scaling
 from bench.line import WAYS as LINE_WAYS
 from bench.line import run_line
@@ -51,6 +52,7 @@ PARTS = (
     "statemachine",
     "scheduler",
     "camera",
+    "fusion",
 )
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
@@ -78,6 +80,8 @@ PROFILES: dict[str, dict[str, Any]] = {
         "scheduler_sizes": (100, 10_000),
         "scheduler_rounds": 1_000,
         "camera_seconds": 10.0,
+        "fusion_sizes": (100, 10_000),
+        "fusion_observations": 20_000,
     },
     "quick": {
         "calls": 2_000,
@@ -98,6 +102,8 @@ PROFILES: dict[str, dict[str, Any]] = {
         "scheduler_sizes": (100, 10_000),
         "scheduler_rounds": 100,
         "camera_seconds": 3.0,
+        "fusion_sizes": (100, 10_000),
+        "fusion_observations": 2_000,
     },
 }
 
@@ -142,6 +148,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "TCP at growing sizes; (i) mTLS and a token; (j) a storage service's Get and Set beside plain file "
         "I/O; (k) Server-Sent-Events fan-out beside gRPC Listen; (l) chart transitions with a Set each; "
         "(o) camera frames to 10 Listeners and the gateway's CPU. "
+        "(m) scheduler decisions; (n) environment model fusion per observation, growing numbers of markers. "
         "Prints figures, ratios and targets.",
     )
     parser.add_argument(
@@ -242,6 +249,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--camera-seconds",
         type=float,
         help=f"(o) seconds 10 Listeners count a 640x480 30 Hz camera's frames {both('camera_seconds')}",
+        "--fusion-sizes",
+        type=_sizes,
+        help=f"(n) markers the environment model holds {listed('fusion_sizes')}",
+    )
+    sizes.add_argument(
+        "--fusion-observations",
+        type=_positive,
+        help=f"(n) observations fused per size {both('fusion_observations')}",
     )
     sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
     sizes.add_argument(
@@ -441,6 +456,10 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
         results.setdefault("gateway", {})["camera"] = await _timed(
             f"camera: 10 gRPC Listens on a 640x480 camera's frame at 30 Hz for {args.camera_seconds:g} s",
             lambda: run_camera(seconds=args.camera_seconds, time_limit=args.time_limit),
+    if "fusion" in args.parts:
+        results.setdefault("in-process", {})["fusion"] = await _timed(
+            f"fusion, {_listing(args.fusion_sizes)} markers, {args.fusion_observations:,} observations each",
+            lambda: run_fusion(args.fusion_sizes, args.fusion_observations, args.time_limit),
         )
     if "register" in args.parts:
         results.setdefault("gateway", {})["register"] = await _timed(

@@ -426,6 +426,26 @@ TARGETS += (
         1.0,
         "cores",
         (("gateway", "camera"),),
+def _fusion_scaling(r: Results) -> float:
+    sizes = r["in-process"]["fusion"]["sizes"]
+    smallest = min(sizes, key=lambda d: d["markers"])
+    largest = max(sizes, key=lambda d: d["markers"])
+    return float(largest["us_per_observation"] / smallest["us_per_observation"])
+
+
+TARGETS += (
+    # The environment model associates through a spatial hash: an observation looks at the 3×3
+    # cells around it, whatever the number of markers, so its cost should stay flat from 100 to
+    # 10,000 markers (a scan of every marker grows a hundredfold). Bound: at most 3× (cache
+    # misses of a larger table, and the machine's noise).
+    Target(
+        "fusion-scaling",
+        "environment model µs per observation at the largest size / at the smallest (100 markers)",
+        _fusion_scaling,
+        "max",
+        3.0,
+        "x",
+        (("in-process", "fusion"),),
     ),
 )
 
@@ -883,6 +903,7 @@ def _issue_tables(out: TextIO, results: Results) -> None:
     _statemachine_table(out, results)
     _scheduler_table(out, results)
     _camera_table(out, results)
+    _fusion_table(out, results)
 
 
 def _camera_table(out: TextIO, results: Results) -> None:
@@ -1019,6 +1040,41 @@ def _scheduler_table(out: TextIO, results: Results) -> None:
                 for d in scheduler["sizes"]
             ],
         )
+
+
+def _fusion_table(out: TextIO, results: Results) -> None:
+    fusion = results.get("in-process", {}).get("fusion")
+    if fusion and "error" not in fusion:
+        _table(
+            out,
+            "(n) environment model: one observation fused (association and update) beside a bare numpy "
+            "distance (baseline) and a numpy scan of every marker",
+            [
+                "markers",
+                "observations",
+                "µs/observation",
+                "baseline µs",
+                "scan µs",
+                "ratio to baseline",
+                "new markers",
+            ],
+            [
+                [
+                    f"{d['markers']:,}",
+                    f"{d['observations']:,}",
+                    _fmt(d["us_per_observation"], 2),
+                    _fmt(d["baseline_us"], 2),
+                    _fmt(d["scan_us"], 2),
+                    _fmt(d["ratio_to_baseline"], 2),
+                    f"{d['created']:,}",
+                ]
+                for d in fusion["sizes"]
+            ],
+        )
+        if fusion.get("scaling") is not None:
+            print(
+                f"  µs per observation at the largest size / at the smallest: {fusion['scaling']}", file=out
+            )
 
 
 def _psutil() -> Any:

@@ -24,6 +24,7 @@ from typing import Any
 
 from services.core import Resource
 from services.directory import Directory
+from services.environment import EnvironmentModel
 from services.errors import InvalidArgument
 from services.group import Group
 from services.simulators import SimRobot, SimSensor
@@ -43,6 +44,7 @@ __all__ = [
 
 CATALOG: dict[str, Callable[..., Resource]] = {
     "camera": Camera,
+    "environment": EnvironmentModel,
     "group": Group,
     "sim-robot": SimRobot,
     "sim-sensor": SimSensor,
@@ -60,7 +62,7 @@ PATH_TABLE_OPTIONS: dict[str, tuple[tuple[str, str], ...]] = {"statemachine": ((
 #: The keyword a factory declares to be handed the gateway's directory.
 _DIRECTORY = "directory"
 #: Keywords of a factory that are for the service's own use, never options from a config.
-_INTERNAL: dict[str, tuple[str, ...]] = {"group": ("within",)}
+_INTERNAL: dict[str, tuple[str, ...]] = {"environment": ("clock",), "group": ("within",)}
 
 
 def _parameters(factory: Callable[..., Resource]) -> dict[str, inspect.Parameter]:

@@ -6,6 +6,11 @@ standard property sets: every mobile robot has ``location``, ``velocity``,
 every sensor has ``location`` and ``data``. All changes happen by attribute
 assignment on the event loop, so a Listen hears each of them.
 
+A robot carries a temperature sensor (``sensors.temperature``) that reads the simulated
+world's temperature field (:mod:`services.temperature_field`) where the robot is, with
+seeded Gaussian noise, ``temperature_hz`` times a second while it moves and once where it
+starts: a standing robot changes nothing.
+
 A robot is driven in one of two ways, and each cancels the other: toward a
 target (``behaviors.moveto``) or by a velocity command (a Set of ``velocity``,
 the teleoperation of a joystick or a web page). Both move it in the world
@@ -16,13 +21,14 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Sequence
-from typing import Annotated
+from collections.abc import Mapping, Sequence
+from typing import Annotated, Any
 
 import numpy as np
 
 from services.core import Prop, Resource, functional
 from services.errors import InvalidArgument
+from services.temperature_field import TemperatureField
 from services.values import Marker, Vector, format_number
 
 __all__ = ["Actuators", "Behaviors", "Sensors", "SimRobot", "SimSensor"]
@@ -46,6 +52,10 @@ MIN_VELOCITY_TIMEOUT = 0.05
 MAX_VELOCITY_TIMEOUT = 60.0
 #: Distance between the left and right wheels, m: turns the commanded turn rate into wheel speeds.
 WHEEL_TRACK = 0.3
+#: Readings a second of a robot's temperature sensor while it moves: the rate of a SimSensor.
+DEFAULT_TEMPERATURE_HZ = 5.0
+#: Standard deviation of the temperature sensor's noise, degrees Celsius (a cheap digital sensor).
+DEFAULT_TEMPERATURE_NOISE = 0.05
 
 
 def _six(values: Sequence[float] | Vector, what: str, axes: str) -> Vector:
@@ -138,9 +148,16 @@ class Sensors(Resource):
 
     battery: Annotated[float, Prop(readonly=True, gui="gauge", minimum=0, maximum=1, doc="charge left")]
     bumper: Annotated[bool, Prop(readonly=True, doc="true while the bumper touches something")] = False
+    temperature: Annotated[
+        float,
+        Prop(
+            readonly=True, gui="plot", unit="degC", doc="air temperature where the robot is, degrees Celsius"
+        ),
+    ]
 
-    def __init__(self, battery: float = 1.0) -> None:
+    def __init__(self, battery: float = 1.0, temperature: float = 20.0) -> None:
         self.battery = battery
+        self.temperature = temperature
 
 
 class Behaviors(Resource):
@@ -182,6 +199,11 @@ class SimRobot(Resource):
     holds only while it is renewed: ``velocity_timeout`` seconds after the
     last Set the robot stops by itself. Each of the two cancels the other.
     A standing robot changes nothing (and sends nothing to listeners).
+
+    ``sensors.temperature`` reads ``temperature`` (a field ``{ base, spots }``, see
+    :class:`services.temperature_field.TemperatureField`; by default the demo world's) where
+    the robot is, with noise of ``temperature_noise`` degC (seeded by ``seed``), every
+    ``1 / temperature_hz`` seconds of driving.
     """
 
     resource_type = "mobile_robot"
@@ -235,7 +257,13 @@ class SimRobot(Resource):
         max_speed: float = 1.0,
         max_turn_rate: float = 2.0,
         velocity_timeout: float = DEFAULT_VELOCITY_TIMEOUT,
+        temperature: Mapping[str, Any] | None = None,
+        temperature_hz: float = DEFAULT_TEMPERATURE_HZ,
+        temperature_noise: float = DEFAULT_TEMPERATURE_NOISE,
+        seed: int | None = None,
     ) -> None:
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
+            raise InvalidArgument(f"seed must be an integer, got {seed!r}")
         self.location = _pose(start, "start")
         self._velocity = np.zeros(6)
         self.speed = _rate(speed, "speed", 0.0, MAX_SPEED)
@@ -244,8 +272,14 @@ class SimRobot(Resource):
         self.velocity_timeout = _rate(
             velocity_timeout, "velocity_timeout", MIN_VELOCITY_TIMEOUT, MAX_VELOCITY_TIMEOUT
         )
+        self._field = TemperatureField.from_options(temperature)
+        self._reading_period = 1.0 / _rate(temperature_hz, "temperature_hz", 0.1, MAX_TICK_HZ)
+        self._temperature_noise = _rate(temperature_noise, "temperature_noise", 0.0, 1e3)
+        self._rng = np.random.default_rng(seed)
+        # Seconds driven since the last temperature reading.
+        self._since_reading = 0.0
         self.actuators = Actuators()
-        self.sensors = Sensors()
+        self.sensors = Sensors(temperature=self._read_temperature())
         self.behaviors = Behaviors(self)
         self._tick_hz = _rate(tick_hz, "tick_hz", 0.1, MAX_TICK_HZ)
         self._charge = 1.0
@@ -360,6 +394,18 @@ class SimRobot(Resource):
             self._coast(dt)
         elif self._target is not None:
             self._step(dt)
+        else:
+            return
+        self._since_reading += dt
+        if self._since_reading >= self._reading_period:
+            self._since_reading = 0.0
+            self.sensors.temperature = self._read_temperature()
+
+    def _read_temperature(self) -> float:
+        """The temperature sensor's reading where the robot is now, to 0.01 degC."""
+        true = self._field.at(float(self.location[0]), float(self.location[1]))
+        noise = float(self._rng.normal(0.0, self._temperature_noise)) if self._temperature_noise else 0.0
+        return round(true + noise, 2)
 
     async def _drive(self) -> None:
         ticker = _Ticker(self._tick_hz)

@@ -69,9 +69,6 @@ MAX_QUEUED_REPLIES = 256
 MAX_QUEUED_REPLY_BYTES = 8 * 1024 * 1024
 #: A backend call that takes longer gets DEADLINE_EXCEEDED.
 CALL_TIMEOUT = 10.0
-#: Room a reply line needs besides its value: a tag, "OK ", escapes of the few
-#: characters that need them, a checksum and the LF.
-_REPLY_OVERHEAD = 64
 #: Bytes asked of a stream per read (and the stream reader's buffer limit).
 READ_SIZE = 65536
 
@@ -308,7 +305,7 @@ class DeviceSession:
         backend = self.backend
         if isinstance(frame, Get):
             if frame.path == MODEL_PATH and not frame.params:
-                return self._model_reply(await backend.describe())
+                return self._model_reply(await backend.describe(), frame.tag)
             return await backend.get(frame.path, frame.params)
         if isinstance(frame, Set):
             return await backend.set(frame.path, frame.value, frame.params)
@@ -331,19 +328,22 @@ class DeviceSession:
                 self._subscriptions[frame.path] = sub
         return await backend.get(frame.path, frame.params)
 
-    def _model_reply(self, model: ServiceModel) -> str:
+    def _model_reply(self, model: ServiceModel, tag: str | None) -> str:
         """The device describes itself (docs/line-protocol.md): the model in one reply line.
 
         A model too long for a line goes without its docs, then without its tags (gui,
         length, choices, value, parameters); one still too long is NOT_FOUND, as from a
-        device that does not describe itself.
+        device that does not describe itself. Each form is measured as the reply line it
+        becomes (this tag, a checksum whether or not one is asked for), not against a guess.
         """
-        room = MAX_LINE - _REPLY_OVERHEAD
         # Widest first: docs and tags; then tags without docs; then the names, types and bounds alone.
         for docs, tags in ((True, True), (False, True), (False, False)):
             text = model_to_text(model, docs=docs, tags=tags)
-            if len(text) <= room:
-                return text
+            try:
+                encode(Ok(text, tag), checksum=True, max_line=MAX_LINE)
+            except LineProtocolError:
+                continue
+            return text
         raise NotFound(f"{MODEL_PATH}: a model of {len(model.properties)} properties does not fit in a line")
 
     def _notifier(self, path: str) -> Callable[[Change], None]:

@@ -40,6 +40,7 @@ TARGETS = (
     "scheduler",
     "camera-fps",
     "camera-cores",
+    "fusion-scaling",
 )
 
 
@@ -112,6 +113,10 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     # The camera part: ten Listeners counted frames, and a Get's frame decoded to 640x480.
     camera = payload["results"]["gateway"]["camera"]
     assert camera["complete"] and camera["listeners"] == 10 and camera["baseline"]["frames"] > 0, camera
+    # The fusion part fused at 100 and 10,000 markers, every marker indexed, beside its baseline.
+    fusion = payload["results"]["in-process"]["fusion"]
+    assert [d["markers"] for d in fusion["sizes"]] == [100, 10_000] and fusion["complete"], fusion
+    assert all(d["baseline_us"] > 0 and d["us_per_observation"] > 0 for d in fusion["sizes"]), fusion
     titles = (
         "(e) Get of",
         "(f) group behaviors.moveto",
@@ -123,6 +128,7 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         "(l) a chart",
         "(m) scheduler",
         "(o) camera",
+        "(n) environment model",
     )
     for title in titles:
         assert title in out, f"no table {title!r}:\n{out}"

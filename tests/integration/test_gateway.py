@@ -151,7 +151,7 @@ async def test_wildcard_listen_over_every_service(demo_gateway: GatewayProcess) 
         assert {(e.service, e.property) for e in events} == {
             (robot, prop)
             for robot in ("scout1", "scout2", "rover1", "rover2")
-            for prop in ("sensors.battery", "sensors.bumper")
+            for prop in ("sensors.battery", "sensors.bumper", "sensors.temperature")
         }
         call.cancel()
 
