@@ -147,8 +147,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "protocol straight to the device; (f) group moveto, (g) registry find, (h) registration over raw "
         "TCP at growing sizes; (i) mTLS and a token; (j) a storage service's Get and Set beside plain file "
         "I/O; (k) Server-Sent-Events fan-out beside gRPC Listen; (l) chart transitions with a Set each; "
+        "(m) scheduler decisions; (n) environment model fusion per observation, growing numbers of markers; "
         "(o) camera frames to 10 Listeners and the gateway's CPU. "
-        "(m) scheduler decisions; (n) environment model fusion per observation, growing numbers of markers. "
         "Prints figures, ratios and targets.",
     )
     parser.add_argument(
@@ -249,6 +249,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--camera-seconds",
         type=float,
         help=f"(o) seconds 10 Listeners count a 640x480 30 Hz camera's frames {both('camera_seconds')}",
+    )
+    sizes.add_argument(
         "--fusion-sizes",
         type=_sizes,
         help=f"(n) markers the environment model holds {listed('fusion_sizes')}",
@@ -456,6 +458,7 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
         results.setdefault("gateway", {})["camera"] = await _timed(
             f"camera: 10 gRPC Listens on a 640x480 camera's frame at 30 Hz for {args.camera_seconds:g} s",
             lambda: run_camera(seconds=args.camera_seconds, time_limit=args.time_limit),
+        )
     if "fusion" in args.parts:
         results.setdefault("in-process", {})["fusion"] = await _timed(
             f"fusion, {_listing(args.fusion_sizes)} markers, {args.fusion_observations:,} observations each",

@@ -426,6 +426,10 @@ TARGETS += (
         1.0,
         "cores",
         (("gateway", "camera"),),
+    ),
+)
+
+
 def _fusion_scaling(r: Results) -> float:
     sizes = r["in-process"]["fusion"]["sizes"]
     smallest = min(sizes, key=lambda d: d["markers"])
