@@ -323,7 +323,7 @@ class ListenStream:
     async def _join(
         self, key: TopicKey, backend: Backend, skip: frozenset[Code], gap: bool = False
     ) -> PropertyError | None:
-        """Share the topic ``key``; queue its current value unless updates only.
+        """Share the topic ``key``; queue its current value unless updates only (and not yet live).
 
         Returns the error for which it was skipped when that says the service cannot be
         reached (the caller tries it again later); None when joined, or skipped for good.
@@ -354,7 +354,9 @@ class ListenStream:
             self._topics.unsubscribe(self, topic)
             raise self._too_many()
         self._refs[topic] = 1
-        if (gap or not self.options.updates_only) and topic not in self._pending:
+        # With updates only, a property that appears once the stream is live is a change (from
+        # absent to its first value), as its going is (``removed``): it is sent.
+        if (gap or self._live or not self.options.updates_only) and topic not in self._pending:
             self._pending.put(topic, topic.value, time.time_ns(), gap)
             if self._live:
                 self._signal()

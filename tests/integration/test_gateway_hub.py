@@ -169,6 +169,21 @@ async def test_wildcard_path_follows_the_property_list(stub, dev) -> None:
     call.cancel()
 
 
+async def test_updates_only_sends_a_property_that_appears_later(stub, dev) -> None:
+    """Only changes, and a property coming into being is one: its first value is sent."""
+    opts = pb.ListenOptions(updates_only=True)
+    call = stub.Listen(pb.ListenRequest(service="dev", property="arm.*", options=opts))
+    msg = await read(call)
+    assert msg.sync and not msg.events
+    dev.add("arm.z", "5")
+    msg = await read(call)
+    assert [(e.property, e.value, e.removed) for e in msg.events] == [("arm.z", "5", False)]
+    dev.remove("arm.z")
+    msg = await read(call)
+    assert [(e.property, e.value, e.removed) for e in msg.events] == [("arm.z", "", True)]
+    call.cancel()
+
+
 async def test_wildcard_service_follows_services_coming_and_going(stub, dev) -> None:
     gw: Gateway = stub.gateway
     call = stub.Listen(pb.ListenRequest(service="*", property="a"))
