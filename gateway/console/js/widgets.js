@@ -43,6 +43,7 @@ const GUI_NAME = /^[A-Za-z0-9_.-]{1,64}$/;
 const builtins = new Map(); // gui word -> factory
 const builtinTypes = new Map(); // data type -> factory
 const extensions = new Map(); // gui word -> factory, from registerWidget
+const builtinMedia = new Map(); // media type ("image/png") or family ("image/*") -> factory
 let addressedFactory = null; // the built-in form of a property that needs parameters to be read
 
 function checked(gui, factory) {
@@ -70,6 +71,24 @@ export function registerTypeWidget(type, factory) {
   builtinTypes.set(type, factory);
 }
 
+const MEDIA_TYPE = /^[a-z0-9.+-]{1,64}\/(\*|[a-z0-9.+-]{1,64})$/;
+
+/** The built-in widget of a binary property by its media type: `image/*` (a family) or `image/png`. */
+export function registerMediaWidget(mediaType, factory) {
+  if (typeof mediaType !== 'string' || !MEDIA_TYPE.test(mediaType)) {
+    throw new TypeError(`a media type is TYPE/SUBTYPE or TYPE/*, got ${JSON.stringify(mediaType)}`);
+  }
+  if (typeof factory !== 'function') throw new TypeError(`the widget factory for "${mediaType}" must be a function`);
+  builtinMedia.set(mediaType, factory);
+}
+
+/** The widget registered for a media type (parameters and case ignored), else for its family. */
+export function mediaWidgetFor(mediaType) {
+  const essence = String(mediaType ?? '').split(';')[0].trim().toLowerCase();
+  if (!essence.includes('/')) return undefined;
+  return builtinMedia.get(essence) ?? builtinMedia.get(`${essence.split('/')[0]}/*`);
+}
+
 /**
  * A readable or writable property that cannot be read without a request parameter (a storage
  * service's `file` needs `name`): the page cannot follow it, only read it with parameters given.
@@ -90,13 +109,22 @@ export function widgetNames() {
   return [...new Set([...builtins.keys(), ...extensions.keys()])].sort();
 }
 
-/** The factory for a property: a registered `.gui`, else the built-in by access, gui and type. */
+/**
+ * The factory for a property: a registered `.gui`, else the built-in by access, then (a binary
+ * property) by its media type, then by `.gui` and by type.
+ */
 export function widgetFor(prop) {
   if (prop.gui && extensions.has(prop.gui)) return extensions.get(prop.gui);
   if (prop.access === 'action') return builtins.get('button');
   if (prop.access === 'query') return builtins.get('query');
   if (addressedFactory && needsParameters(prop)) return addressedFactory;
-  return builtins.get(prop.gui) ?? builtinTypes.get(prop.type) ?? builtins.get('text');
+  const media = prop.type === 'bytes' ? mediaWidgetFor(prop.media_type) : undefined;
+  return media ?? builtins.get(prop.gui) ?? builtinTypes.get(prop.type) ?? builtins.get('text');
+}
+
+/** Whether the page's event stream follows the property: a binary one is read its own way. */
+export function followedOnStream(prop) {
+  return prop.type !== 'bytes';
 }
 
 const ACCESS_SHORT = {
