@@ -44,6 +44,7 @@ from gateway.router import Router, bounded_call, check_path, finish_call
 from gateway.rules import Operation, Subject
 from gateway.sizes import check_fits
 from gateway.status import to_property_error
+from gateway.wire_values import put, received
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS, Answer, Backend
 from services.eager import Started, step
@@ -51,9 +52,10 @@ from services.errors import Code, InvalidArgument, NotFound, PropertyError, Reso
 from services.model import ServiceModel
 from services.paths import compile_pattern, is_pattern, validate_pattern
 from services.registry import Licences
+from services.values import Value
 
 #: What starting a call gives; see the module docstring.
-Begun = str | asyncio.Future[Answer] | Awaitable[str]
+Begun = str | bytes | asyncio.Future[Answer] | Awaitable[Value]
 
 #: (service, path, parameters, backend) of one path a Get reads.
 _Ref = tuple[str, str, Mapping[str, str], Backend]
@@ -77,9 +79,9 @@ def _params(params: Mapping[str, str]) -> Mapping[str, str]:
     return dict(params) if params else NO_PARAMS
 
 
-async def outcome(begun: Begun) -> str:
+async def outcome(begun: Begun) -> Value:
     """Wait for a started call's value, whichever way it was started."""
-    if isinstance(begun, str):
+    if isinstance(begun, str | bytes):
         return begun
     if isinstance(begun, asyncio.Future):
         return (await begun).value
@@ -143,38 +145,50 @@ class Calls:
         try:
             backend = self._backend(service, "Set")
             path = check_path(request.property)
-            operation = guard.set_operation(subject, service, path, request.value)
+            value = received(request)
+            operation = guard.set_operation(subject, service, path, value)
             check_set(self.licences, subject, service, path)
         except PropertyError as exc:
             if exc.code not in (Code.PERMISSION_DENIED, Code.UNAUTHENTICATED):  # already audited
                 guard.audited(subject, service, request.property, Operation.WRITE, exc)
             raise
         if operation is None:
-            return self._set_after_model(request, backend, path, time_limit, subject)
+            return self._set_after_model(
+                request, value, backend, path, time_limit=time_limit, subject=subject
+            )
         if service == REGISTRY:
             # The registry asks whether this caller is an admin (configured names), and who holds
             # the licences it acquires, renews or releases.
             CALLER.set(subject)
         try:
-            begun = self._start_set(request, backend, path, time_limit)
+            begun = self._start_set(request, value, backend, path, time_limit)
         except Exception as exc:
             guard.audited(subject, service, path, operation, exc)
             raise
-        if isinstance(begun, str):
+        if isinstance(begun, str | bytes):
             guard.audited(subject, service, path, operation, None)
             return begun
         return _audited(begun, functools.partial(guard.audited, subject, service, path, operation))
 
-    def _start_set(self, request: pb.SetRequest, backend: Backend, path: str, time_limit: float) -> Begun:
+    def _start_set(
+        self, request: pb.SetRequest, value: Value, backend: Backend, path: str, time_limit: float
+    ) -> Begun:
         service = request.service
-        call = backend.set(path, request.value, _params(request.parameters))
+        call = backend.set(path, value, _params(request.parameters))
         if backend.answers_inline:
             return _inline(call, time_limit, service, "set", path)
         return bounded_call(call, time_limit, functools.partial("{}: set {}".format, service, path))
 
     async def _set_after_model(
-        self, request: pb.SetRequest, backend: Backend, path: str, time_limit: float, subject: Subject
-    ) -> str:
+        self,
+        request: pb.SetRequest,
+        value: Value,
+        backend: Backend,
+        path: str,
+        *,
+        time_limit: float,
+        subject: Subject,
+    ) -> Value:
         """A Set the rules treat differently as a write and as an action: the model tells which it is."""
         service = request.service
         describe = bounded_call(
@@ -182,12 +196,12 @@ class Calls:
         )
         operation = await self.guard.set_operation_from_model(subject, service, path, describe)
         try:
-            value = await outcome(self._start_set(request, backend, path, time_limit))
+            answer = await outcome(self._start_set(request, value, backend, path, time_limit))
         except Exception as exc:
             self.guard.audited(subject, service, path, operation, exc)
             raise
         self.guard.audited(subject, service, path, operation, None)
-        return value
+        return answer
 
     async def get(
         self, request: pb.GetRequest, time_limit: float, subject: Subject = ANONYMOUS
@@ -196,13 +210,15 @@ class Calls:
         if is_snapshot(request):
             response = pb.GetResponse(more=await self._snapshot(request, time_limit, subject))
         elif not request.more:
-            response = pb.GetResponse(value=await outcome(self.start_get(request, time_limit, subject)))
+            response = pb.GetResponse()
+            put(response, await outcome(self.start_get(request, time_limit, subject)))
         else:
             # Every path is resolved (and counted) first, so that a bad one fails the call
             # before any backend is asked.
             refs = self._resolve_more(request, subject)
             value = await outcome(self.start_get(request, time_limit, subject))
-            response = pb.GetResponse(value=value, more=await self._read(refs, time_limit))
+            response = pb.GetResponse(more=await self._read(refs, time_limit))
+            put(response, value)
         check_fits(
             response,
             lambda: (
@@ -216,8 +232,9 @@ class Calls:
         self, request: pb.SetRequest, time_limit: float, subject: Subject = ANONYMOUS
     ) -> pb.SetResponse:
         """Write the request's value; the response carries the service's answer."""
+        response = pb.SetResponse()
         # A service method that returns nothing answers an empty value.
-        response = pb.SetResponse(value=await outcome(self.start_set(request, time_limit, subject)) or "")
+        put(response, await outcome(self.start_set(request, time_limit, subject)) or "")
         check_fits(response, lambda: f"{request.service}: set {request.property}")
         return response
 
@@ -309,7 +326,7 @@ class Calls:
         groups: dict[int, list[int]] = {}
         for i, (_, _, _, backend) in enumerate(refs):
             groups.setdefault(id(backend), []).append(i)
-        values: list[str | BaseException] = [""] * len(refs)
+        values: list[Value | BaseException] = [""] * len(refs)
 
         async def read_group(indexes: list[int]) -> None:
             # One backend's paths are read one after another, as a device would answer them.
@@ -334,11 +351,13 @@ class Calls:
             if isinstance(value, BaseException):
                 err = to_property_error(value, f"{service}: get {path}")
                 raise type(err)(f"{service}/{path}: {err.message}", err.code) from None
-            out.append(pb.PropertyValue(service=service, property=path, value=value))
+            entry = pb.PropertyValue(service=service, property=path)
+            put(entry, value)
+            out.append(entry)
         return out
 
 
-def _inline(call: Coroutine[Any, Any, str], time_limit: float, service: str, verb: str, path: str) -> Begun:
+def _inline(call: Coroutine[Any, Any, Value], time_limit: float, service: str, verb: str, path: str) -> Begun:
     """Step an in-process call here, in the caller's task: an answer at once costs no task and no timer."""
     first = step(call)
     if isinstance(first, Started):
@@ -346,7 +365,7 @@ def _inline(call: Coroutine[Any, Any, str], time_limit: float, service: str, ver
     return first if first is not None else ""
 
 
-async def _audited(begun: Begun, record: Callable[[BaseException | None], None]) -> str:
+async def _audited(begun: Begun, record: Callable[[BaseException | None], None]) -> Value:
     """A started Set's value, its outcome recorded (``record``: see :meth:`Guard.audited`)."""
     try:
         value = await outcome(begun)

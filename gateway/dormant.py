@@ -22,6 +22,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from services.backend import NO_PARAMS, Backend, BackendInfo, Notify, Subscription, close_quietly
 from services.errors import PropertyError, Unavailable
 from services.model import ServiceModel
+from services.values import Value
 
 __all__ = ["DormantBackend"]
 
@@ -146,11 +147,11 @@ class DormantBackend(Backend):
 
     # -- the calls -------------------------------------------------------------------
 
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         async with self._use() as backend:
             return await backend.get(path, params)
 
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
         async with self._use() as backend:
             return await backend.set(path, value, params)
 
@@ -168,13 +169,13 @@ class DormantBackend(Backend):
 
     async def listen_current(
         self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS
-    ) -> tuple[Subscription, str]:
+    ) -> tuple[Subscription, Value]:
         # The running service's own way (a line device's LISTEN brings the value: no Get after it).
         return await self._hold(lambda backend: backend.listen_current(path, notify, params))
 
     async def _hold(
-        self, open_listen: Callable[[Backend], Awaitable[tuple[Subscription, str]]]
-    ) -> tuple[Subscription, str]:
+        self, open_listen: Callable[[Backend], Awaitable[tuple[Subscription, Value]]]
+    ) -> tuple[Subscription, Value]:
         """Start the service if need be and open a Listen on it, which keeps it awake until closed."""
         self._users += 1
         try:
@@ -211,7 +212,7 @@ class DormantBackend(Backend):
         self._last_used = time.monotonic()
 
 
-async def _no_value(opening: Awaitable[Subscription]) -> tuple[Subscription, str]:
+async def _no_value(opening: Awaitable[Subscription]) -> tuple[Subscription, Value]:
     return await opening, ""
 
 

@@ -31,6 +31,7 @@ from gateway.identity import ANONYMOUS, Authenticator, AuthSection
 from gateway.rules import Decision, Operation, Rules, Subject, refusal
 from services.errors import PropertyError
 from services.model import Access, ServiceModel
+from services.values import Value
 
 #: The service whose ``services.NAME`` Sets register and unregister (gateway.config.REGISTRY_NAME).
 REGISTRY = "registry"
@@ -47,7 +48,7 @@ LICENCE_ACTIONS = frozenset({"acquire", "renew", "release", "request"})
 CALLER: contextvars.ContextVar[Subject] = contextvars.ContextVar("caller", default=ANONYMOUS)
 
 
-def registry_operation(path: str, value: str) -> Operation:
+def registry_operation(path: str, value: Value) -> Operation:
     """What a Set of ``path`` to ``value`` on the registry does."""
     if path.startswith(_SERVICES_PREFIX) and "." not in path[len(_SERVICES_PREFIX) :]:
         return Operation.REGISTER if value else Operation.UNREGISTER
@@ -117,7 +118,7 @@ class Guard:
             return None
         return lambda service, path: self.may(subject, service, path, Operation.READ)
 
-    def set_operation(self, subject: Subject, service: str, path: str, value: str) -> Operation | None:
+    def set_operation(self, subject: Subject, service: str, path: str, value: Value) -> Operation | None:
         """The Set's operation, checked (raises when refused); None when only the model can tell."""
         if service == REGISTRY:
             operation = registry_operation(path, value)

@@ -68,7 +68,7 @@ from services.line_protocol import (
     encode,
 )
 from services.paths import validate_service_name
-from services.values import format_names
+from services.values import Value, format_names
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -122,14 +122,14 @@ class RouterBackend(Backend):
             raise InvalidArgument(f"{path!r} names a service; name one of its properties: {service}.PROPERTY")
         return backend, service, rest
 
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         if path == "properties":
             return format_names(self.router.names())
         backend, service, rest = self._split(path)
         self.guard.require(self.subject, service, rest, Operation.READ)
         return await backend.get(rest, params)
 
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
         if path == "properties":
             raise ReadOnly("properties (the list of services) is read-only")
         backend, service, rest = self._split(path)

@@ -34,6 +34,7 @@ from gateway.status import abort, status_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Answer
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable
+from services.values import Value, value_size
 
 log = logging.getLogger(__name__)
 
@@ -251,7 +252,7 @@ class Session:
         except Exception as exc:
             self._fail(rid, exc, f"{request.service}: get {request.property}")
             return
-        if type(begun) is str:  # answered inline: the commonest case, no description built
+        if type(begun) is str or type(begun) is bytes:  # answered inline: the commonest case
             self._answer(rid, "get", begun)
         else:
             self._follow(rid, begun, "get", request.service, request.property)
@@ -262,14 +263,14 @@ class Session:
         except Exception as exc:
             self._fail(rid, exc, f"{request.service}: set {request.property}")
             return
-        if type(begun) is str:
+        if type(begun) is str or type(begun) is bytes:
             self._answer(rid, "set", begun)
         else:
             self._follow(rid, begun, "set", request.service, request.property)
 
     def _follow(self, rid: int, begun: Begun, kind: str, service: str, path: str) -> None:
         """Answer request ``rid`` from a started call: now, when its future is done, or from a task."""
-        if isinstance(begun, str):
+        if isinstance(begun, str | bytes):
             self._answer(rid, kind, begun)
             return
         what = functools.partial("{}: {} {}".format, service, kind, path)
@@ -306,7 +307,7 @@ class Session:
         except Exception as exc:
             self._fail(rid, exc, "Get")
 
-    async def _finish(self, rid: int, kind: str, call: Awaitable[str], what: Callable[[], str]) -> None:
+    async def _finish(self, rid: int, kind: str, call: Awaitable[Value], what: Callable[[], str]) -> None:
         try:
             value = await call
         except Exception as exc:
@@ -314,13 +315,16 @@ class Session:
             return
         self._answer(rid, kind, value)
 
-    def _answer(self, rid: int, kind: str, value: str | None) -> None:
+    def _answer(self, rid: int, kind: str, value: Value | None) -> None:
         if value is None:
             value = ""
         # Filled in place: building the answer apart would copy it into the reply.
         reply = pb.Reply(id=rid)
         response: pb.GetResponse | pb.SetResponse = reply.get if kind == "get" else reply.set
-        response.value = value
+        if isinstance(value, str):
+            response.value = value
+        else:
+            response.data = value
         if len(value) > SURELY_FITS_CHARS:
             try:
                 check_fits(response, lambda: f"request {rid} ({kind})")
@@ -328,7 +332,7 @@ class Session:
                 self._fail(rid, exc, kind)
                 return
         # The value's bytes and at most 21 of envelope (id, oneof and value tags and lengths).
-        self._push(reply, (len(value) if value.isascii() else len(value.encode())) + 24)
+        self._push(reply, value_size(value) + 24)
 
     def _spawn(self, rid: int, coro: Coroutine[Any, Any, None], listen: bool = False) -> None:
         task = asyncio.get_running_loop().create_task(coro)

@@ -12,10 +12,20 @@ from collections.abc import Callable
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import ResourceExhausted
+from services.values.binary import MAX_BINARY_SIZE, MAX_MESSAGE_BYTES
 
-#: The largest message a gRPC client accepts unless it asks for more (grpc's default); the
-#: gateway's own receive limit is the same, so one value a client could Set always fits.
-MAX_MESSAGE_BYTES = 4 * 1024 * 1024
+__all__ = [
+    "BATCH_BYTES",
+    "MAX_ANSWER_BYTES",
+    "MAX_BINARY_SIZE",
+    "MAX_MESSAGE_BYTES",
+    "SURELY_FITS_CHARS",
+    "check_fits",
+]
+
+# MAX_MESSAGE_BYTES: the largest message a gRPC client accepts unless it asks for more (grpc's
+# default); the gateway's own receive limit is the same, so one value a client could Set always
+# fits. MAX_BINARY_SIZE: the default max_size of a binary property (one message's worth).
 #: Batching (events in one ListenResponse, replies in one SessionResponse) stops at about this
 #: many bytes, well under MAX_MESSAGE_BYTES: a batch of values that fit one by one must never
 #: add up to a message the client refuses (it would drop the whole stream).
@@ -23,7 +33,8 @@ BATCH_BYTES = 1024 * 1024
 #: The largest Get or Set answer sent: a client's limit less room for a Session's envelope.
 MAX_ANSWER_BYTES = MAX_MESSAGE_BYTES - 1024
 #: An answer carrying one value of at most this many characters fits whatever they are (UTF-8
-#: takes at most 4 bytes a character): such an answer need not be measured.
+#: takes at most 4 bytes a character; a binary value's length is its size): such an answer
+#: need not be measured.
 SURELY_FITS_CHARS = (MAX_ANSWER_BYTES - 16) // 4
 
 
@@ -33,5 +44,5 @@ def check_fits(answer: pb.GetResponse | pb.SetResponse, what: Callable[[], str])
     if size > MAX_ANSWER_BYTES:
         raise ResourceExhausted(
             f"{what()}: the answer is {size} bytes, more than one message may carry "
-            f"({MAX_ANSWER_BYTES} bytes); read fewer paths per Get"
+            f"({MAX_ANSWER_BYTES} bytes); read fewer paths per Get, or ask for a smaller value"
         )

@@ -21,6 +21,7 @@ from types import MappingProxyType
 from typing import ClassVar, Protocol
 
 from services.model import Access, PropertyModel, ServiceModel
+from services.values.binary import Value
 
 NO_PARAMS: Mapping[str, str] = MappingProxyType({})
 
@@ -32,7 +33,8 @@ class Change:
     """One change of one property, pushed by a backend to a listener."""
 
     path: str
-    value: str
+    #: Text, or bytes for a binary property.
+    value: Value
     #: Values may have been lost before this one (a device reconnected);
     #: ``value`` is the current value.
     gap: bool = False
@@ -81,7 +83,7 @@ class Answer(Protocol):
     """A reply that carries a value (a line-protocol ``OK`` frame, say)."""
 
     @property
-    def value(self) -> str: ...
+    def value(self) -> Value: ...
 
 
 class Backend(abc.ABC):
@@ -112,12 +114,16 @@ class Backend(abc.ABC):
     on_demand: ClassVar[bool] = False
 
     @abc.abstractmethod
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        """Return the value of ``path`` as text."""
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
+        """Return the value of ``path``: text, or bytes for a binary property."""
 
     @abc.abstractmethod
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        """Write ``value`` to ``path`` (or call a functional property); return the service's answer."""
+    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
+        """Write ``value`` to ``path`` (or call a functional property); return the service's answer.
+
+        ``value`` is bytes for a binary property; text on a binary property, or bytes on a
+        text one, is INVALID_ARGUMENT.
+        """
 
     @abc.abstractmethod
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
@@ -131,7 +137,7 @@ class Backend(abc.ABC):
 
     async def listen_current(
         self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS
-    ) -> tuple[Subscription, str]:
+    ) -> tuple[Subscription, Value]:
         """Listen to ``path`` and return the subscription with the value current once it is in place.
 
         The default Listens, then Gets (no change can fall between the two).
@@ -148,9 +154,9 @@ class Backend(abc.ABC):
 
     async def properties(self) -> list[str]:
         """The property names the service offers right now (the ``properties`` property)."""
-        from services.values import parse_names
+        from services.values import as_text, parse_names
 
-        return parse_names(await self.get("properties"))
+        return parse_names(as_text(await self.get("properties"), "properties"))
 
     async def describe(self) -> ServiceModel:
         """The typed model of every property the service offers right now (one call).

@@ -57,7 +57,9 @@ from services.paths import validate_service_name
 from services.query import Query
 from services.values import (
     Marker,
+    Value,
     Vector,
+    as_text,
     format_marker,
     format_value,
     parse_names,
@@ -156,7 +158,7 @@ class GroupBehaviors(Resource):
     async def stop(self) -> list[str]:  # type: ignore[override]
         """Stop every member; returns the members that stopped."""
 
-        def stop(name: str, backend: Backend) -> Awaitable[str]:
+        def stop(name: str, backend: Backend) -> Awaitable[Value]:
             return backend.set("behaviors.stop", "")
 
         return await self._group.fan_out("behaviors.stop", stop)
@@ -279,7 +281,7 @@ class Group(Resource):
             level = logging.WARNING if self._started else logging.DEBUG
             log.log(level, "group query: the registry %r refused it: %s", self._registry, e.message)
             return
-        self._wanted = set(parse_names(text))
+        self._wanted = set(parse_names(as_text(text, "find")))
         self._sync()
 
     async def _follow_registry(self, registry: Backend) -> None:
@@ -479,7 +481,7 @@ class Group(Resource):
         places = formation_targets(names + self._missing(), location, formation, spacing)
         markers = {name: format_marker(target.with_field("location", places[name])) for name in names}
 
-        def send(name: str, backend: Backend) -> Awaitable[str]:
+        def send(name: str, backend: Backend) -> Awaitable[Value]:
             return backend.set("behaviors.moveto", markers[name])
 
         return await self.fan_out("behaviors.moveto", send, names)
@@ -502,7 +504,7 @@ class Group(Resource):
         found: dict[str, Vector] = {}
 
         async def ask(name: str, backend: Backend) -> None:
-            found[name] = parse_vector(await backend.get("velocity"))
+            found[name] = parse_vector(as_text(await backend.get("velocity"), "velocity"))
 
         try:
             await self.fan_out("velocity", ask)
@@ -524,7 +526,7 @@ class Group(Resource):
             raise InvalidArgument("a velocity command is a vector like (vx vy [vz [wx wy wz]])")
         text = format_value(command)
 
-        def send(name: str, backend: Backend) -> Awaitable[str]:
+        def send(name: str, backend: Backend) -> Awaitable[Value]:
             return backend.set("velocity", text)
 
         return await self.fan_out("velocity", send)

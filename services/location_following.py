@@ -17,7 +17,7 @@ from typing import Any
 
 from services.backend import Backend, Change, Subscription, close_quietly
 from services.errors import Code, PropertyError
-from services.values import ValueFormatError, Vector, parse_vector
+from services.values import Value, ValueFormatError, Vector, as_text, parse_vector
 
 __all__ = ["LocationFollower"]
 
@@ -124,7 +124,7 @@ class LocationFollower:
 
     async def _listen(
         self, name: str, backend: Backend, on_change: Callable[[Change], None]
-    ) -> tuple[Subscription, str] | None:
+    ) -> tuple[Subscription, Value] | None:
         pause = _FIRST_RETRY
         while True:
             try:
@@ -149,9 +149,9 @@ class LocationFollower:
         if self._on_answer is not None:
             self._on_answer(name, backend)
 
-    def _hand_on(self, name: str, text: str) -> None:
+    def _hand_on(self, name: str, text: Value) -> None:
         try:
-            vector: Vector | None = parse_vector(text) if text else None
+            vector: Vector | None = parse_vector(as_text(text, "location")) if text else None
         except ValueFormatError:
             vector = None
         if vector is not None and vector.size == 0:

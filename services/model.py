@@ -50,7 +50,8 @@ class Access(enum.StrEnum):
         return self in (Access.WRITE, Access.READ_WRITE, Access.ACTION, Access.UNKNOWN)
 
 
-#: Data type words, as ``NAME.parameters`` and the Describe RPC spell them.
+#: Data type words, as ``NAME.parameters`` and the Describe RPC spell them. A ``bytes`` value is
+#: binary: it travels as raw bytes (the contract's ``data`` field), never as text.
 DATA_TYPES = frozenset(
     {"number", "integer", "boolean", "text", "vector", "list", "names", "vectors", "marker", "bytes", "none"}
     | {"namespace", "unknown"}
@@ -96,6 +97,10 @@ class PropertyModel:
     #: Actions and queries (and a property read with a parameter, a storage service's
     #: ``file``): the request parameters they accept.
     parameters: tuple[ParameterModel, ...] = ()
+    #: Type ``bytes``: what the bytes are (``image/jpeg``, ``application/x-npy``); "" when unknown.
+    media_type: str = ""
+    #: Type ``bytes``: the most bytes a Set may carry (0: the gateway's default, one message).
+    max_size: int = 0
 
     @property
     def needs_parameters(self) -> bool:

@@ -18,7 +18,7 @@ parenthesis, and the parentheses of a text are dropped). Every field after
 
 After the doc, an entry may carry tagged lists, in any order::
 
-    (gui WORD) (length N) (choices WORD ...)
+    (gui WORD) (length N) (choices WORD ...) (media_type WORD) (max_size N)
     (value NAME TYPE required|optional (DEFAULT) (doc words))
     (param NAME TYPE required|optional (DEFAULT) (doc words))   one per parameter
 
@@ -84,6 +84,8 @@ def _property_to_proto(prop: PropertyModel) -> pb.PropertyInfo:
         doc=prop.doc,
         gui=prop.gui,
         parameters=[_parameter_to_proto(p) for p in prop.parameters],
+        media_type=prop.media_type,
+        max_size=prop.max_size,
     )
     if prop.minimum is not None:
         info.minimum = prop.minimum
@@ -109,6 +111,8 @@ def _property_from_proto(info: pb.PropertyInfo) -> PropertyModel:
         gui=info.gui,
         value=_parameter_from_proto(info.value) if info.HasField("value") else None,
         parameters=tuple(_parameter_from_proto(p) for p in info.parameters),
+        media_type=info.media_type,
+        max_size=info.max_size,
     )
 
 
@@ -167,6 +171,10 @@ def _tags(p: PropertyModel, docs: bool) -> list[Any]:
         tags.append(["length", p.length])
     if p.choices and all(_is_word(c) for c in p.choices):
         tags.append(["choices", *p.choices])
+    if _is_word(p.media_type):
+        tags.append(["media_type", p.media_type])
+    if p.max_size:
+        tags.append(["max_size", p.max_size])
     if p.value is not None:
         tags.append(["value", p.value.name, *_parameter_tail(p.value, docs)])
     tags.extend(["param", q.name, *_parameter_tail(q, docs)] for q in p.parameters if _is_word(q.name))
@@ -268,6 +276,10 @@ def _read_tags(items: list[Any]) -> dict[str, Any]:
             found["gui"] = args[0]
         elif tag == "length" and args and isinstance(args[0], str) and args[0].isdigit():
             found["length"] = int(args[0]) or None
+        elif tag == "media_type" and args and isinstance(args[0], str):
+            found["media_type"] = args[0]
+        elif tag == "max_size" and args and isinstance(args[0], str) and args[0].isdigit():
+            found["max_size"] = int(args[0])
         elif tag == "choices":
             found["choices"] = tuple(a for a in args if isinstance(a, str))
         elif tag == "value" and args and isinstance(args[0], str):

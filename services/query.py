@@ -33,7 +33,7 @@ import numpy.typing as npt
 from services.errors import InvalidArgument
 from services.formations import natural_key
 from services.paths import validate_path
-from services.values import ValueFormatError, parse_int, parse_list, parse_number, parse_vector
+from services.values import Value, ValueFormatError, parse_int, parse_list, parse_number, parse_vector
 
 __all__ = ["QUERY_PARAMETERS", "Query", "ServiceIndex", "parse_where", "values_equal"]
 
@@ -148,8 +148,13 @@ def _parse_types(text: str) -> frozenset[str]:
     return frozenset(str(i) for i in items)
 
 
-def values_equal(expected: str, actual: str) -> bool:
-    """Whether a property's ``actual`` text equals the ``expected`` one: by value for numbers and vectors."""
+def values_equal(expected: str, actual: Value) -> bool:
+    """Whether a property's ``actual`` text equals the ``expected`` one: by value for numbers and vectors.
+
+    A binary value never equals a text.
+    """
+    if isinstance(actual, bytes):
+        return False
     a, b = expected.strip(), actual.strip()
     if a == b:
         return True

@@ -8,16 +8,18 @@ from gateway.listen.topics import Topic
 from gateway.sizes import BATCH_BYTES
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.conflation import Slot
+from services.values import Value, value_size
 
 #: One event ready to go: the topic it is about and what waits for it.
-Ready = tuple[Topic, Slot[str]]
+Ready = tuple[Topic, Slot[Value]]
 
 
-def event_size(topic: Topic, entry: Slot[str]) -> int:
-    """About the bytes ``entry`` takes as an Event (exact for the value, which is what can be big)."""
-    value = entry.value
-    n = len(value) if value.isascii() else len(value.encode())
-    return n + len(topic.service) + len(topic.path) + 40
+def event_size(topic: Topic, entry: Slot[Value]) -> int:
+    """About the bytes ``entry`` takes as an Event (exact for the value, which is what can be big).
+
+    A binary value counts its bytes (it travels in ``data``).
+    """
+    return value_size(entry.value) + len(topic.service) + len(topic.path) + 40
 
 
 def within(items: Iterable[Ready]) -> tuple[list[Ready], int]:
@@ -41,14 +43,26 @@ def encode_events(ready: list[Ready], sequence: int) -> pb.ListenResponse:
     seq = sequence
     for topic, entry in ready:
         seq += 1
-        ev = add(
-            service=topic.service,
-            property=topic.path,
-            value=entry.value,
-            sequence=seq,
-            conflated=entry.conflated,
-            gap=entry.gap,
-            removed=entry.removed,
-        )
+        value = entry.value
+        if isinstance(value, str):
+            ev = add(
+                service=topic.service,
+                property=topic.path,
+                value=value,
+                sequence=seq,
+                conflated=entry.conflated,
+                gap=entry.gap,
+                removed=entry.removed,
+            )
+        else:
+            ev = add(
+                service=topic.service,
+                property=topic.path,
+                data=value,
+                sequence=seq,
+                conflated=entry.conflated,
+                gap=entry.gap,
+                removed=entry.removed,
+            )
         ev.time.seconds, ev.time.nanos = divmod(entry.stamp, 1_000_000_000)
     return response

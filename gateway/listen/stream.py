@@ -49,7 +49,7 @@ from services.backoff import pauses, wait_to_retry
 from services.conflation import ConflatingQueue
 from services.errors import Code, PropertyError, ResourceExhausted
 from services.paths import WILDCARD, compile_pattern, is_pattern
-from services.values import parse_names
+from services.values import Value, as_text, parse_names
 
 log = logging.getLogger(__name__)
 
@@ -107,9 +107,9 @@ class _Expansion:
             p.name for p in model.properties if not p.access.listenable or p.needs_parameters
         )
 
-    def paths(self, listing: str) -> set[str]:
+    def paths(self, listing: Value) -> set[str]:
         try:
-            names = parse_names(listing)
+            names = parse_names(as_text(listing, "properties"))
         except PropertyError as exc:
             log.warning("%s: cannot read its properties list: %s", self.service, exc.message)
             return set(self.matched)
@@ -203,7 +203,7 @@ class ListenStream:
         self.selectors = tuple(selectors)
         self.options = options
         self._on_ready = on_ready
-        self._pending: ConflatingQueue[Topic, str] = ConflatingQueue()
+        self._pending: ConflatingQueue[Topic, Value] = ConflatingQueue()
         self._refs: dict[Topic, int] = {}
         self._expansions: list[_Expansion] = []
         #: One per (selector, service) with a skipped part that is tried again; cancelled at close.
@@ -531,7 +531,7 @@ class ListenStream:
         if topic in self._refs:
             self._enqueue(topic, change.value, seen_ns, change.gap, change.removed)
 
-    def _enqueue(self, topic: Topic, value: str, seen: int, gap: bool, removed: bool) -> None:
+    def _enqueue(self, topic: Topic, value: Value, seen: int, gap: bool, removed: bool) -> None:
         self._pending.put(topic, value, seen, gap, removed)
         if self._live and not self._sample_flush:
             self._signal()

@@ -23,6 +23,7 @@ from gateway.router import bounded_call
 from gateway.status import to_property_error
 from services.backend import NO_PARAMS, Backend, Change, Subscription
 from services.errors import Code, PropertyError
+from services.values import Value
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +68,7 @@ class Topic:
         self.backend = backend
         self.sinks: set[Sink] = set()
         self.subscription: Subscription | None = None
-        self.value = ""
+        self.value: Value = ""
         #: The last change was the property's removal (every sink has been told).
         self.removed = False
         self.dead = False

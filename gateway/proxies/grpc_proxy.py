@@ -8,7 +8,8 @@ Federation: gateway A serves ``far1 = grpc://b:50051/scout1`` and its clients
 reach ``scout1`` of gateway B as if it were local. The proxy
 
 * keeps one grpc.aio channel to the remote gateway; Get and Set are unary
-  calls under the per-call timeout, and the remote's status codes come back
+  calls under the per-call timeout (a binary value travels in ``data`` both
+  ways, and so do Listen events), and the remote's status codes come back
   1:1 as :class:`~services.errors.PropertyError` with the remote's message,
   prefixed by which remote said it;
 * holds one remote Listen (``updates_only``) per (path, parameters), shared
@@ -38,6 +39,7 @@ from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stub
 
 from gateway.federation import outgoing
 from gateway.status import error_from_status
+from gateway.wire_values import put, received
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.backend import NO_PARAMS, UNKNOWN_TYPE, Backend, BackendInfo, Change, Notify, Subscription
@@ -46,6 +48,7 @@ from services.model import ServiceModel
 from services.model_codec import model_from_proto
 from services.paths import validate_service_name
 from services.sharing import SharedListen, SharedListens
+from services.values import Value
 
 log = logging.getLogger(__name__)
 
@@ -278,23 +281,24 @@ class GrpcProxy(Backend):
             details = f"no answer within {self.options.timeout:g} s"
         return error_from_status(status, f"{self._label()}: {details}")
 
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         await self._type_learned()
         request = pb.GetRequest(service=self.remote, property=path, parameters=dict(params))
         try:
             reply = await self._get_stub().Get(request, timeout=self.options.timeout, metadata=outgoing())
         except grpc.aio.AioRpcError as exc:
             raise self._error(exc) from None
-        return str(reply.value)
+        return received(reply)
 
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
         await self._type_learned()
-        request = pb.SetRequest(service=self.remote, property=path, value=value, parameters=dict(params))
+        request = pb.SetRequest(service=self.remote, property=path, parameters=dict(params))
+        put(request, value)
         try:
             reply = await self._get_stub().Set(request, timeout=self.options.timeout, metadata=outgoing())
         except grpc.aio.AioRpcError as exc:
             raise self._error(exc) from None
-        return str(reply.value)
+        return received(reply)
 
     async def describe(self) -> ServiceModel:
         """The remote service's model, from the remote gateway's Describe (names only from an older one)."""
@@ -370,7 +374,8 @@ class GrpcProxy(Backend):
 
     def _forward(self, shared: _RemoteListen, response: pb.ListenResponse) -> None:
         for event in response.events:
-            shared.deliver(Change(shared.path, event.value, gap=event.gap, removed=event.removed))
+            value = event.data if event.HasField("data") else event.value
+            shared.deliver(Change(shared.path, value, gap=event.gap, removed=event.removed))
 
     async def _follow(self, shared: _RemoteListen) -> None:
         """Read the remote Listen; when it breaks, open it again with backoff and report a gap."""
@@ -408,7 +413,7 @@ class GrpcProxy(Backend):
                 shared.deliver(Change(shared.path, value, gap=True))
                 break
 
-    async def _reopen(self, shared: _RemoteListen) -> str:
+    async def _reopen(self, shared: _RemoteListen) -> Value:
         """Open the remote Listen again, then read the current value (the caller reports it as a gap)."""
         call = await self._open_remote(shared)
         try:

@@ -65,6 +65,7 @@ from services.line_protocol import (
 from services.model import ServiceModel
 from services.model_codec import MODEL_PATH, model_from_text
 from services.sharing import SharedListen, SharedListens
+from services.values import Value, as_text
 
 log = logging.getLogger(__name__)
 
@@ -425,8 +426,8 @@ class LineProxy(Backend):
             self._live().start_request(frame, min(time_limit, self.options.timeout)),
         )
 
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
-        return await self._call(Set(path, value, dict(params)))
+    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> str:
+        return await self._call(Set(path, as_text(value, path), dict(params)))
 
     async def describe(self) -> ServiceModel:
         """The device's own model when it describes itself (``GET properties.model``), else names only.

@@ -68,6 +68,8 @@ def _member_model(path: str, member: Member) -> PropertyModel:
             gui=member.gui,
             value=_parameter(value) if value is not None else None,
             parameters=tuple(_parameter(p) for p in member.params.values()),
+            media_type=member.media_type,
+            max_size=member.max_size,
         )
     return PropertyModel(
         name=path,
@@ -80,6 +82,8 @@ def _member_model(path: str, member: Member) -> PropertyModel:
         choices=member.choices,
         doc=member.doc,
         gui=member.gui,
+        media_type=member.media_type,
+        max_size=member.max_size,
     )
 
 

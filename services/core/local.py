@@ -17,6 +17,7 @@ from services.core.tree import NeedsAwait, RemoteTarget, Target, all_properties,
 from services.errors import Code, NotFound, PropertyError
 from services.model import ServiceModel
 from services.paths import validate_path
+from services.values import Value
 
 __all__ = ["LocalService", "serve"]
 
@@ -55,7 +56,7 @@ class _Watch:
         #: The value a pending fire delivers follows a gap (see :meth:`fire`).
         self._gap = False
         try:
-            self.last: str | None = target.peek()
+            self.last: Value | None = target.peek()
         except NeedsAwait:
             self.last = None
         except PropertyError:
@@ -84,7 +85,7 @@ class _Watch:
         gap, self._gap = self._gap, False
         self.deliver(value, gap=gap)
 
-    def deliver(self, value: str, *, removed: bool = False, gap: bool = False) -> None:
+    def deliver(self, value: Value, *, removed: bool = False, gap: bool = False) -> None:
         if value == self.last and not removed:
             return
         self.last = value
@@ -189,11 +190,11 @@ class LocalService(Backend):
             self._targets[path] = target
         return target
 
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         target = self._targets.get(path) or self._target(path)
         return await target.get(params)
 
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
         try:
             target = self._target(path)
         except NotFound:

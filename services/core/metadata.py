@@ -81,6 +81,10 @@ class Prop:
     choices: tuple[Any, ...] | None = None
     #: Elements of a vector, when fixed (6 for a pose).
     length: int | None = None
+    #: A ``bytes`` value: what the bytes are (``image/jpeg``, ``image/png``, ``application/x-npy``).
+    media_type: str | None = None
+    #: A ``bytes`` value: the most bytes a Set may carry (None: what one message can carry).
+    max_size: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -193,7 +197,8 @@ class Param:
 
     name: str
     type: Any
-    parse: Callable[[str], Any]
+    #: Reads a request's text (or, for a ``bytes`` value, its bytes).
+    parse: Callable[[Any], Any]
     #: ``inspect.Parameter.empty`` when required.
     default: Any = inspect.Parameter.empty
 
@@ -212,7 +217,8 @@ class Member:
     name: str
     kind: MemberKind
     type: Any = str
-    parse: Callable[[str], Any] | None = None
+    #: Reads a Set's text (or, for a binary property, its bytes).
+    parse: Callable[[Any], Any] | None = None
     readonly: bool = False
     gui: str = "text"
     doc: str = ""
@@ -233,6 +239,12 @@ class Member:
     #: The values allowed, as value text; empty when any value of the type is.
     choices: tuple[str, ...] = ()
     length: int | None = None
+    #: A Set carries bytes (the value's type, or an action's value type, is ``bytes``).
+    binary: bool = False
+    #: A binary value or answer: its media type ("" when unknown), and the most bytes a Set
+    #: may carry (0: what one message can carry).
+    media_type: str = ""
+    max_size: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -256,6 +268,7 @@ _GUI_BY_TYPE = {
     "list": "list",
     "names": "list",
     "vectors": "list",
+    "bytes": "bytes",
 }
 
 
@@ -406,13 +419,16 @@ def _functional_member(cls: type, name: str, fn: Callable[..., Any], opts: _Func
             accepted[value_param.name] = value_param
         accepted.update(keyword)
         value_param, keyword = None, accepted
-    result = hints.get("return", inspect.Parameter.empty)
+    result, result_meta = _split_annotated(hints.get("return", inspect.Parameter.empty))
+    value_meta = _split_annotated(value_param.type)[1] if value_param is not None else None
+    binary_meta = value_meta if value_meta is not None and value_meta.media_type else result_meta
+    media_type = (binary_meta.media_type or "") if binary_meta else ""
     return Member(
         name=name,
         kind=MemberKind.FUNCTIONAL,
         type=value_param.type if value_param else type(None),
         readonly=False,
-        gui=opts.gui or ("button" if opts.access is Access.ACTION else _gui_for(result)),
+        gui=opts.gui or ("button" if opts.access is Access.ACTION else _gui_for(result, media_type)),
         doc=opts.doc or _first_line(fn.__doc__),
         access=opts.access,
         value_param=value_param,
@@ -421,10 +437,24 @@ def _functional_member(cls: type, name: str, fn: Callable[..., Any], opts: _Func
         is_async=inspect.iscoroutinefunction(fn),
         parameters_text=_parameters_text(keyword.values()),
         unit=opts.unit or "",
+        binary=value_param is not None and _type_word(value_param.type) == "bytes",
+        media_type=media_type,
+        max_size=_max_size(where, value_meta),
     )
 
 
-def _gui_for(tp: Any) -> str:
+def _max_size(where: str, meta: Prop | None) -> int:
+    size = meta.max_size if meta is not None else None
+    if size is None:
+        return 0
+    if not isinstance(size, int) or size <= 0:
+        raise TypeError(f"{where}: max_size must be a positive number of bytes, not {size!r}")
+    return size
+
+
+def _gui_for(tp: Any, media_type: str = "") -> str:
+    if media_type.startswith("image/"):
+        return "image"
     return _GUI_BY_TYPE.get(_type_word(tp), "text")
 
 
@@ -436,13 +466,17 @@ def _value_member(
     choices: tuple[str, ...] = ()
     if meta is not None and meta.choices:
         choices = tuple(c if isinstance(c, str) else format_value(c) for c in meta.choices)
+    binary = _type_word(tp) == "bytes"
+    media_type = (meta.media_type or "") if meta else ""
+    if (media_type or (meta is not None and meta.max_size is not None)) and not binary:
+        raise TypeError(f"{where}: media_type and max_size are for a bytes value, not {_type_word(tp)}")
     return Member(
         name=name,
         kind=kind,
         type=tp,
         parse=None if readonly else _parser(tp, where),
         readonly=readonly,
-        gui=(meta.gui if meta and meta.gui else _gui_for(tp)),
+        gui=(meta.gui if meta and meta.gui else _gui_for(tp, media_type)),
         doc=(meta.doc if meta and meta.doc else doc),
         access=Access.READ if readonly else Access.READ_WRITE,
         minimum=meta.minimum if meta else None,
@@ -450,6 +484,9 @@ def _value_member(
         unit=(meta.unit or "") if meta else "",
         choices=choices,
         length=meta.length if meta else None,
+        binary=binary,
+        media_type=media_type,
+        max_size=_max_size(where, meta),
     )
 
 

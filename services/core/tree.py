@@ -14,9 +14,22 @@ import numpy as np
 from services.backend import Backend
 from services.core.metadata import META_NAMES, Member, MemberKind, Param, class_spec
 from services.core.resource import Resource
-from services.errors import Code, InvalidArgument, NotFound, PropertyError, ReadOnly
+from services.errors import Code, InvalidArgument, NotFound, PropertyError, ReadOnly, ResourceExhausted
 from services.model import Access
-from services.values import Marker, format_names, format_number, format_value, parse_number, vector_index
+from services.values import (
+    MAX_BINARY_SIZE,
+    Marker,
+    Value,
+    as_text,
+    format_names,
+    format_number,
+    format_result,
+    format_value,
+    loggable,
+    parse_number,
+    type_name,
+    vector_index,
+)
 
 __all__ = ["NeedsAwait", "Target", "all_properties", "direct_names", "resolve"]
 
@@ -109,6 +122,37 @@ def _bad_value(path: str, e: PropertyError) -> InvalidArgument:
     return InvalidArgument(f"bad value for `{path}`: {e.message}")
 
 
+def check_form(path: str, member: Member, value: Value) -> None:
+    """A Set's value in the form the property takes: bytes for a binary one (within its
+    max_size), text for any other; INVALID_ARGUMENT saying which form to send."""
+    if member.binary:
+        if isinstance(value, str):
+            media = f", {member.media_type}" if member.media_type else ""
+            raise InvalidArgument(
+                f"`{path}` is binary (type bytes{media}): send its value as bytes (the `data` field), "
+                "not as text"
+            )
+        limit = member.max_size or MAX_BINARY_SIZE
+        if len(value) > limit:
+            raise ResourceExhausted(
+                f"`{path}`: a value of {len(value)} bytes is more than `{path}` takes ({limit} bytes)"
+            )
+    elif isinstance(value, bytes):
+        word = type_word_of(member)
+        raise InvalidArgument(
+            f"`{path}` is text (type {word}): send its value as text (the `value` field), not as bytes"
+        )
+
+
+def type_word_of(member: Member) -> str:
+    """The type word of what a Set of ``member`` takes (its value, or an action's value)."""
+    tp = member.value_param.type if member.value_param is not None else member.type
+    try:
+        return type_name(tp)
+    except TypeError:
+        return "text"
+
+
 def _check_range(path: str, member: Member, value: Any) -> None:
     """Bounds of a number, or of each element of a vector."""
     if isinstance(value, np.ndarray):
@@ -134,13 +178,13 @@ class Target:
     def __init__(self, path: str) -> None:
         self.path = path
 
-    async def get(self, params: Mapping[str, str]) -> str:
+    async def get(self, params: Mapping[str, str]) -> Value:
         return self.peek()
 
-    async def set(self, value: str, params: Mapping[str, str]) -> str:
+    async def set(self, value: Value, params: Mapping[str, str]) -> Value:
         raise ReadOnly(f"`{self.path}` is read-only")
 
-    def peek(self) -> str:
+    def peek(self) -> Value:
         """The current value, synchronously (for change detection); NeedsAwait if it cannot be."""
         raise NeedsAwait
 
@@ -193,12 +237,12 @@ class MemberTarget(Target):
         self.owner = owner
         self.member = member
 
-    async def get(self, params: Mapping[str, str]) -> str:
+    async def get(self, params: Mapping[str, str]) -> Value:
         member = self.member
         if member.kind is not MemberKind.FUNCTIONAL:
             if params:
                 self._no_params(params)
-            return format_value(getattr(self.owner, member.name))
+            return format_result(getattr(self.owner, member.name))
         if member.access is Access.ACTION:
             raise self.is_action()
         return await self._call(None, params)
@@ -212,7 +256,7 @@ class MemberTarget(Target):
     def listen_refused(self) -> PropertyError | None:
         return self.is_action() if self.member.access is Access.ACTION else None
 
-    async def set(self, value: str, params: Mapping[str, str]) -> str:
+    async def set(self, value: Value, params: Mapping[str, str]) -> Value:
         member = self.member
         if member.kind is MemberKind.FUNCTIONAL:
             if member.access is Access.QUERY:
@@ -226,6 +270,7 @@ class MemberTarget(Target):
         if member.readonly:
             raise ReadOnly(f"`{self.path}` is read-only")
         self._no_params(params)
+        check_form(self.path, member, value)
         assert member.parse is not None
         try:
             parsed = member.parse(value)
@@ -238,17 +283,17 @@ class MemberTarget(Target):
         if member.minimum is not None or member.maximum is not None:
             _check_range(self.path, member, parsed)
         setattr(self.owner, member.name, parsed)
-        return format_value(getattr(self.owner, member.name))
+        return format_result(getattr(self.owner, member.name))
 
-    def peek(self) -> str:
+    def peek(self) -> Value:
         member = self.member
         if member.kind is not MemberKind.FUNCTIONAL:
-            return format_value(getattr(self.owner, member.name))
+            return format_result(getattr(self.owner, member.name))
         if member.access is Access.ACTION:
             return ""
         if member.is_async:
             raise NeedsAwait
-        return format_value(getattr(self.owner, member.name)())
+        return format_result(getattr(self.owner, member.name)())
 
     def hook(self, callback: Callable[[], None]) -> Callable[[], None] | None:
         return _watch_key(self.owner, self.member.name, callback)
@@ -259,7 +304,7 @@ class MemberTarget(Target):
         except InvalidArgument as e:
             raise InvalidArgument(f"bad parameter `{param.name}` for `{self.path}`: {e.message}") from None
 
-    async def _call(self, value: str | None, params: Mapping[str, str]) -> str:
+    async def _call(self, value: Value | None, params: Mapping[str, str]) -> Value:
         member = self.member
         accepted = member.params
         kwargs: dict[str, Any] = {}
@@ -273,11 +318,12 @@ class MemberTarget(Target):
         value_param = member.value_param
         if value_param is None:
             if value:
-                shown = value if len(value) <= 40 else value[:40] + "..."
+                shown = loggable(value) if len(value) <= 40 else loggable(value[:40]) + "..."
                 raise InvalidArgument(
                     f"bad value for `{self.path}`: it takes no value (got {shown!r}); Set it to ''"
                 )
-        elif value is not None and (value != "" or value_param.required):
+        elif value is not None and (value not in ("", b"") or value_param.required):
+            check_form(self.path, member, value)
             try:
                 args.append(value_param.parse(value))
             except InvalidArgument as e:
@@ -288,7 +334,7 @@ class MemberTarget(Target):
         result = getattr(self.owner, member.name)(*args, **kwargs)
         if member.is_async or inspect.isawaitable(result):
             result = await result
-        return format_value(result)
+        return format_result(result)
 
 
 class SubTarget(Target):
@@ -310,7 +356,7 @@ class SubTarget(Target):
         except NotFound as e:
             raise NotFound(f"`{self.path}`: {e.message}") from None
 
-    def peek(self) -> str:
+    def peek(self) -> Value:
         value = getattr(self.owner, self.member.name)
         if isinstance(value, np.ndarray):
             return format_number(float(value[self._index(value)]))
@@ -321,12 +367,12 @@ class SubTarget(Target):
                 raise NotFound(f"`{self.path}`: {e.message}") from None
         raise NotFound(f"`{self.path}`: `{self.member.name}` has no sub-properties")
 
-    async def get(self, params: Mapping[str, str]) -> str:
+    async def get(self, params: Mapping[str, str]) -> Value:
         if params:
             self._no_params(params)
         return self.peek()
 
-    async def set(self, value: str, params: Mapping[str, str]) -> str:
+    async def set(self, value: Value, params: Mapping[str, str]) -> Value:
         member = self.member
         current = getattr(self.owner, member.name)
         if not isinstance(current, np.ndarray):
@@ -335,8 +381,9 @@ class SubTarget(Target):
         if member.readonly:
             raise ReadOnly(f"`{self.path}` is read-only")
         self._no_params(params)
+        check_form(self.path, member, value)
         try:
-            x = parse_number(value)
+            x = parse_number(as_text(value))
         except InvalidArgument as e:
             raise _bad_value(self.path, e) from None
         new = current.copy()
@@ -378,7 +425,7 @@ class NamespaceTarget(Target):
         names = await node.properties()
         return format_names([n for n in names if "." not in n])
 
-    async def set(self, value: str, params: Mapping[str, str]) -> str:
+    async def set(self, value: Value, params: Mapping[str, str]) -> Value:
         raise ReadOnly(f"`{self.path}` is a namespace and cannot be set; see `{self.path}.properties`")
 
     def peek(self) -> str:
@@ -437,10 +484,10 @@ class RemoteTarget(Target):
         self.prefix = prefix
         self.rest = rest
 
-    async def get(self, params: Mapping[str, str]) -> str:
+    async def get(self, params: Mapping[str, str]) -> Value:
         return await self.backend.get(self.rest, params)
 
-    async def set(self, value: str, params: Mapping[str, str]) -> str:
+    async def set(self, value: Value, params: Mapping[str, str]) -> Value:
         return await self.backend.set(self.rest, value, params)
 
 
@@ -453,11 +500,21 @@ def _namespace_meta(path: str, meta: str, doc: str) -> MetaTarget:
 
 
 def _member_meta(path: str, member: Member, meta: str) -> MetaTarget:
+    if meta == MEDIA_TYPE:
+        return MetaTarget(path, member.media_type)
     if meta == "parameters":
         return MetaTarget(path, member.parameters_text)
     if meta == "gui":
         return MetaTarget(path, member.gui)
     return MetaTarget(path, member.doc)
+
+
+#: ``NAME.media_type``: the media type of a binary property (or of a binary answer).
+MEDIA_TYPE = "media_type"
+
+
+def _has_media(member: Member) -> bool:
+    return member.binary or bool(member.media_type) or member.result_type is bytes
 
 
 def resolve(root: Resource, path: str) -> Target:
@@ -504,7 +561,7 @@ def resolve(root: Resource, path: str) -> Target:
         if i == last:
             return MemberTarget(path, node, member)
         rest = segments[i + 1 :]
-        if len(rest) == 1 and rest[0] in META_NAMES:
+        if len(rest) == 1 and (rest[0] in META_NAMES or (rest[0] == MEDIA_TYPE and _has_media(member))):
             return _member_meta(path, member, rest[0])
         if member.kind is MemberKind.FUNCTIONAL:
             raise NotFound(

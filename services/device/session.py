@@ -40,6 +40,7 @@ from services.line_protocol import (
 )
 from services.model import ServiceModel
 from services.model_codec import MODEL_PATH, model_to_text
+from services.values import Value, ValueFormatError, as_text
 
 __all__ = [
     "CALL_TIMEOUT",
@@ -224,7 +225,7 @@ class DeviceSession:
             if frame.tag is None:
                 await self._answer(frame)
                 return
-            started: Started[str] | None = None
+            started: Started[Value] | None = None
             if type(frame) is Get and self._step_gets and frame.path != MODEL_PATH:
                 # An in-process service usually answers a GET without waiting:
                 # step it here and reply at once, with no task and no timer.
@@ -234,7 +235,10 @@ class DeviceSession:
                     self._reply_failure(frame, exc)
                     return
                 if not isinstance(first, Started):
-                    self._reply(Ok(first, frame.tag))
+                    try:
+                        self._reply(Ok(as_text(first, frame.path), frame.tag))
+                    except ValueFormatError as exc:
+                        self._reply_failure(frame, exc)
                     return
                 started = first
             await self._in_flight.acquire()
@@ -259,11 +263,11 @@ class DeviceSession:
     async def _answer(
         self,
         frame: Get | Set | Listen | Unlisten,
-        started: Started[str] | None = None,
+        started: Started[Value] | None = None,
     ) -> None:
         try:
             async with asyncio.timeout(self.call_timeout):
-                value = await (self._call(frame) if started is None else started.rest())
+                value = as_text(await (self._call(frame) if started is None else started.rest()), frame.path)
         except TimeoutError:
             late = DeadlineExceeded(
                 f"{frame.path}: the service did not answer within {self.call_timeout:g} s"
@@ -281,7 +285,7 @@ class DeviceSession:
         log.error("%s: service failed on %r", self.peer, frame, exc_info=exc)
         self._reply(ErrorReply(int(Code.INTERNAL), f"{frame.path}: internal error in the service", frame.tag))
 
-    async def _call(self, frame: Get | Set | Listen | Unlisten) -> str:
+    async def _call(self, frame: Get | Set | Listen | Unlisten) -> Value:
         backend = self.backend
         if isinstance(frame, Get):
             if frame.path == MODEL_PATH and not frame.params:
@@ -331,8 +335,11 @@ class DeviceSession:
             if change.removed:
                 self._outbox.event(Gone(path))
                 self._spawn(self._subscriptions.pop(path).close())
-            else:
+            elif isinstance(change.value, str):
                 self._outbox.event(Event(path, change.value))
+            else:
+                # A line carries text only; a binary value cannot be sent as an event.
+                log.debug("%s: %s: binary value not sent on the line", self.peer, path)
 
         return notify
 

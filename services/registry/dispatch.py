@@ -53,6 +53,7 @@ from services.registry.table import ServiceTable
 from services.values import (
     ValueFormatError,
     Vector,
+    as_text,
     format_list,
     format_number,
     parse_names,
@@ -210,7 +211,7 @@ class Dispatcher:
         async def ask(name: str) -> None:
             try:
                 async with asyncio.timeout(self._timeout):
-                    value = parse_number(await directory.backend(name).get(prop))
+                    value = parse_number(as_text(await directory.backend(name).get(prop), prop))
             except (PropertyError, TimeoutError):
                 return
             if math.isfinite(value) and value >= 0:

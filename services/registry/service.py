@@ -43,7 +43,7 @@ from services.registry.scheduling import (
     check_capabilities,
 )
 from services.registry.table import ServiceTable
-from services.values import ValueFormatError, Vector, format_names, parse_vector
+from services.values import Value, ValueFormatError, Vector, as_text, format_names, parse_vector
 from services.worker_pool import run_bounded
 
 __all__ = ["Caller", "CallerSource", "Registry", "RegistryService"]
@@ -602,7 +602,7 @@ class Registry(Resource):
         try:
             async with asyncio.timeout(self.timeout):
                 text = await directory.backend(name).get("location")
-            vector = parse_vector(text) if text else None
+            vector = parse_vector(as_text(text, "location")) if text else None
         except (PropertyError, TimeoutError, ValueFormatError):
             return
         if self._awake_on_demand(name):
@@ -714,9 +714,10 @@ class RegistryService(LocalService):
         super().__init__(registry, url)
         self.registry = registry
 
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
         head, dot, name = path.partition(".")
         if head == "services" and dot and "." not in name:
+            value = as_text(value, path)
             if value.strip() == "":
                 if params:
                     raise InvalidArgument(f"unregistering {name!r} takes no parameters")

@@ -17,6 +17,7 @@ from services.backend import NO_PARAMS, Backend, Notify, Subscription
 from services.directory import Directory
 from services.eager import Started, step
 from services.errors import DeadlineExceeded
+from services.values import Value
 
 T = TypeVar("T")
 
@@ -37,17 +38,17 @@ class PropertyBinding:
         self,
         service: str,
         path: str,
-        value: str,
+        value: Value,
         params: Mapping[str, str] = NO_PARAMS,
         limit_s: float | None = None,
-    ) -> str:
+    ) -> Value:
         limit = self.timeout if limit_s is None else limit_s
         backend = self.directory.backend(service)
         return await _bounded(backend, backend.set(path, value, params), limit, f"Set of {service}/{path}")
 
     async def get(
         self, service: str, path: str, params: Mapping[str, str] = NO_PARAMS, limit_s: float | None = None
-    ) -> str:
+    ) -> Value:
         limit = self.timeout if limit_s is None else limit_s
         backend = self.directory.backend(service)
         return await _bounded(backend, backend.get(path, params), limit, f"Get of {service}/{path}")

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from services.errors import InvalidArgument
-from services.values import MAX_VALUE_LENGTH, format_number, parse_number, parse_vector
+from services.values import MAX_VALUE_LENGTH, Value, format_number, parse_number, parse_vector
 
 __all__ = [
     "FUNCTIONS",
@@ -438,8 +438,13 @@ def check_size(value: Any) -> Any:
     return value
 
 
-def parse_chart_value(text: str) -> Any:
-    """A property's text as a chart value: a number, a vector (as a tuple of numbers), or the text itself."""
+def parse_chart_value(text: Value) -> Any:
+    """A property's text as a chart value: a number, a vector (as a tuple of numbers), or the text itself.
+
+    A binary value stays bytes (a chart may compare it or take its ``len``).
+    """
+    if isinstance(text, bytes):
+        return text
     stripped = text.strip()
     if stripped.startswith("(") and stripped.endswith(")"):
         try:

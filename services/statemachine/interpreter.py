@@ -56,6 +56,7 @@ from services.statemachine.expressions import (
     format_chart_value,
     parse_chart_value,
 )
+from services.values import Value
 
 __all__ = ["MAX_ACTIONS", "MAX_MICROSTEPS", "MAX_QUEUED_EVENTS", "MAX_TIMERS", "Event", "Interpreter"]
 
@@ -125,7 +126,7 @@ class _ActiveListen:
     subscription: Subscription | None = None
     active: bool = True
     last: bool = False
-    value: str | None = None
+    value: Value | None = None
 
 
 @dataclass(slots=True)
@@ -820,7 +821,7 @@ class Interpreter:
                 if active.active and active.value is not None and active.spec.cond is not None:
                     self._test(active, active.value)
 
-    def _test(self, active: _ActiveListen, text: str) -> None:
+    def _test(self, active: _ActiveListen, text: Value) -> None:
         active.value = text
         spec = active.spec
         value = parse_chart_value(text)

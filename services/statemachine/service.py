@@ -54,7 +54,7 @@ from services.statemachine.chart import Chart, compile_chart
 from services.statemachine.diagram import render_svg
 from services.statemachine.expressions import format_chart_value, parse_chart_value
 from services.statemachine.interpreter import Interpreter
-from services.values import format_names, parse_names
+from services.values import as_text, format_names, parse_names
 
 __all__ = ["MAX_LOG_ENTRIES", "MAX_MACHINES", "Machine", "StateMachineService", "shipped_chart"]
 
@@ -410,7 +410,7 @@ class StateMachineService(Resource):
         try:
             backend = self._directory.backend(self._storage)
             async with asyncio.timeout(self.binding.timeout):
-                files = parse_names(await backend.get("files"))
+                files = parse_names(as_text(await backend.get("files"), "files"))
                 prefix = self._folder + "/"
                 for rel in files:
                     stem, dot, ext = rel[len(prefix) :].rpartition(".")
@@ -432,8 +432,9 @@ class StateMachineService(Resource):
                             MACHINE_NAME_RULE,
                         )
                         continue
-                    text = await backend.get("file", {"name": rel})
+                    stored = await backend.get("file", {"name": rel})
                     try:
+                        text = as_text(stored, rel)
                         self._put(stem, compile_chart(stem, text))
                     except PropertyError as e:
                         log.warning("statemachine: stored chart %s not loaded: %s", rel, e.message)

@@ -41,7 +41,7 @@ from services.storage.disk import FileInfo, Folder
 from services.storage.find import FindQuery, format_time, glob_matcher
 from services.storage.names import check_name
 from services.storage.watcher import DirectoryWatcher
-from services.values import Marker
+from services.values import Marker, Value
 
 __all__ = ["MAX_FILE_SIZE", "MAX_LISTED", "Storage", "StorageService"]
 
@@ -123,13 +123,15 @@ class StorageService(LocalService):
         super().__init__(obj, url)
         self.storage = obj
 
-    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         if path == "file.parameters":
             return FILE_PARAMETERS  # `name` is required, which a query's parameters cannot say
         return await super().get(path, params)
 
-    async def set(self, path: str, value: str, params: Mapping[str, str] = NO_PARAMS) -> str:
+    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
         if path == "file":
+            if isinstance(value, bytes):
+                raise InvalidArgument("`file` holds text: send its value as text, or Set `blob` for bytes")
             return await self.storage.store(_file_name(params), value)
         return await super().set(path, value, params)
 

@@ -1,4 +1,4 @@
-"""Value formats of the Property Service: every value travels as text.
+"""Value formats of the Property Service: values travel as text, binary properties as bytes.
 
 The text grammar is part of the contract, and both sides use this one
 package: the services and the gateway, and the client SDK (``clients``).
@@ -10,12 +10,23 @@ It imports nothing of the project but :mod:`services.errors`.
 * :mod:`~services.values.formatting`: :func:`format_value`, by runtime type
 * :mod:`~services.values.annotations`: :func:`parser_for` / :func:`parse_as`
   turn a type annotation into a parser (used by the class wrapper)
+* :mod:`~services.values.binary`: :data:`Value` (``str | bytes``), sizes and
+  log-safe views of binary values
 * :mod:`~services.values.vector_elements`: :func:`vector_index`, the
   sub-property names of a vector's elements
 """
 
 from services.values.annotations import parse_as, parser_for, type_name
-from services.values.formatting import format_value
+from services.values.binary import (
+    MAX_BINARY_SIZE,
+    MAX_MESSAGE_BYTES,
+    Value,
+    as_text,
+    kind_word,
+    loggable,
+    value_size,
+)
+from services.values.formatting import format_result, format_value
 from services.values.grammar import (
     MAX_LIST_DEPTH,
     MAX_VALUE_LENGTH,
@@ -39,19 +50,26 @@ from services.values.markers import Marker, format_marker, parse_marker
 from services.values.vector_elements import vector_index
 
 __all__ = [
+    "MAX_BINARY_SIZE",
     "MAX_LIST_DEPTH",
+    "MAX_MESSAGE_BYTES",
     "MAX_VALUE_LENGTH",
     "Marker",
+    "Value",
     "ValueFormatError",
     "Vector",
+    "as_text",
     "format_bool",
     "format_list",
     "format_marker",
     "format_names",
     "format_number",
+    "format_result",
     "format_value",
     "format_vector",
     "format_vectors",
+    "kind_word",
+    "loggable",
     "parse_as",
     "parse_bool",
     "parse_int",
@@ -63,5 +81,6 @@ __all__ = [
     "parse_vectors",
     "parser_for",
     "type_name",
+    "value_size",
     "vector_index",
 ]

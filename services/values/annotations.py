@@ -2,8 +2,8 @@
 
 :func:`parser_for` turns an annotation (``float``, ``Vector``,
 ``list[str]``, ``Optional[Marker]``, ``Annotated[int, ...]``) into the
-parser of the value grammar that reads it; :func:`type_name` gives the word
-for it in ``NAME.parameters`` and docs.
+parser of the value grammar that reads it (``bytes``, a binary value, is taken as
+it is); :func:`type_name` gives the word for it in ``NAME.parameters`` and docs.
 
 A type alias (``type Pose = NDArray[np.float64]``, and numpy's own
 ``NDArray`` since numpy 2.5, where ``NDArray[np.float64]`` is a subscripted
@@ -37,6 +37,11 @@ __all__ = ["parse_as", "parser_for", "type_name"]
 
 def _identity(text: str) -> str:
     return text
+
+
+def _bytes_identity(data: Any) -> bytes:
+    # The class wrapper hands a binary property only bytes (it refuses text before parsing).
+    return bytes(data)
 
 
 def _parse_floats(text: str) -> list[float]:
@@ -124,6 +129,8 @@ def _build_parser(tp: Any) -> Callable[[str], Any]:
         return parse_bool
     if tp is str or tp is Any or tp is inspect.Parameter.empty:
         return _identity
+    if tp is bytes:
+        return _bytes_identity
     if _is_vector_type(tp):
         return parse_vector
     if tp is Marker:
@@ -134,7 +141,7 @@ def _build_parser(tp: Any) -> Callable[[str], Any]:
     inner = _optional_inner(tp)
     if inner is not None:
         inner_parser = parser_for(inner)
-        text_inner = inner is str
+        text_inner = inner is str or inner is bytes
 
         def parse_optional(text: str) -> Any:
             if text == "" or (not text_inner and not text.strip()):
@@ -181,6 +188,8 @@ def type_name(tp: Any) -> str:
         return "number"
     if tp is str or tp is Any or tp is inspect.Parameter.empty:
         return "text"
+    if tp is bytes:
+        return "bytes"
     if _is_vector_type(tp):
         return "vector"
     if tp is Marker:

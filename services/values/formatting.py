@@ -7,7 +7,7 @@ from typing import Any
 from services.values.grammar import format_float, format_plain
 from services.values.markers import Marker, format_marker
 
-__all__ = ["format_value"]
+__all__ = ["format_result", "format_value"]
 
 
 def format_value(obj: Any) -> str:
@@ -27,3 +27,11 @@ def format_value(obj: Any) -> str:
     if isinstance(obj, Marker):
         return format_marker(obj)
     return format_plain(obj)
+
+
+def format_result(obj: Any) -> str | bytes:
+    """A property's value or a method's answer as it travels: bytes (a binary value) as they
+    are, anything else as :func:`format_value` writes it."""
+    if isinstance(obj, bytes | bytearray | memoryview):
+        return bytes(obj)
+    return format_value(obj)

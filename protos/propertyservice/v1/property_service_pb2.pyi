@@ -63,25 +63,29 @@ class GetRequest(_message.Message):
     def __init__(self, service: _Optional[str] = ..., property: _Optional[str] = ..., parameters: _Optional[_Mapping[str, str]] = ..., more: _Optional[_Iterable[_Union[PropertyRef, _Mapping]]] = ...) -> None: ...
 
 class GetResponse(_message.Message):
-    __slots__ = ("value", "more")
+    __slots__ = ("value", "more", "data")
     VALUE_FIELD_NUMBER: _ClassVar[int]
     MORE_FIELD_NUMBER: _ClassVar[int]
+    DATA_FIELD_NUMBER: _ClassVar[int]
     value: str
     more: _containers.RepeatedCompositeFieldContainer[PropertyValue]
-    def __init__(self, value: _Optional[str] = ..., more: _Optional[_Iterable[_Union[PropertyValue, _Mapping]]] = ...) -> None: ...
+    data: bytes
+    def __init__(self, value: _Optional[str] = ..., more: _Optional[_Iterable[_Union[PropertyValue, _Mapping]]] = ..., data: _Optional[bytes] = ...) -> None: ...
 
 class PropertyValue(_message.Message):
-    __slots__ = ("service", "property", "value")
+    __slots__ = ("service", "property", "value", "data")
     SERVICE_FIELD_NUMBER: _ClassVar[int]
     PROPERTY_FIELD_NUMBER: _ClassVar[int]
     VALUE_FIELD_NUMBER: _ClassVar[int]
+    DATA_FIELD_NUMBER: _ClassVar[int]
     service: str
     property: str
     value: str
-    def __init__(self, service: _Optional[str] = ..., property: _Optional[str] = ..., value: _Optional[str] = ...) -> None: ...
+    data: bytes
+    def __init__(self, service: _Optional[str] = ..., property: _Optional[str] = ..., value: _Optional[str] = ..., data: _Optional[bytes] = ...) -> None: ...
 
 class SetRequest(_message.Message):
-    __slots__ = ("service", "property", "parameters", "value")
+    __slots__ = ("service", "property", "parameters", "value", "data")
     class ParametersEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -93,17 +97,21 @@ class SetRequest(_message.Message):
     PROPERTY_FIELD_NUMBER: _ClassVar[int]
     PARAMETERS_FIELD_NUMBER: _ClassVar[int]
     VALUE_FIELD_NUMBER: _ClassVar[int]
+    DATA_FIELD_NUMBER: _ClassVar[int]
     service: str
     property: str
     parameters: _containers.ScalarMap[str, str]
     value: str
-    def __init__(self, service: _Optional[str] = ..., property: _Optional[str] = ..., parameters: _Optional[_Mapping[str, str]] = ..., value: _Optional[str] = ...) -> None: ...
+    data: bytes
+    def __init__(self, service: _Optional[str] = ..., property: _Optional[str] = ..., parameters: _Optional[_Mapping[str, str]] = ..., value: _Optional[str] = ..., data: _Optional[bytes] = ...) -> None: ...
 
 class SetResponse(_message.Message):
-    __slots__ = ("value",)
+    __slots__ = ("value", "data")
     VALUE_FIELD_NUMBER: _ClassVar[int]
+    DATA_FIELD_NUMBER: _ClassVar[int]
     value: str
-    def __init__(self, value: _Optional[str] = ...) -> None: ...
+    data: bytes
+    def __init__(self, value: _Optional[str] = ..., data: _Optional[bytes] = ...) -> None: ...
 
 class ListenOptions(_message.Message):
     __slots__ = ("updates_only", "min_interval", "sample_interval", "heartbeat_interval", "max_batch")
@@ -141,7 +149,7 @@ class ListenRequest(_message.Message):
     def __init__(self, service: _Optional[str] = ..., property: _Optional[str] = ..., parameters: _Optional[_Mapping[str, str]] = ..., more: _Optional[_Iterable[_Union[PropertyRef, _Mapping]]] = ..., options: _Optional[_Union[ListenOptions, _Mapping]] = ...) -> None: ...
 
 class Event(_message.Message):
-    __slots__ = ("service", "property", "value", "sequence", "time", "conflated", "gap", "removed")
+    __slots__ = ("service", "property", "value", "sequence", "time", "conflated", "gap", "removed", "data")
     SERVICE_FIELD_NUMBER: _ClassVar[int]
     PROPERTY_FIELD_NUMBER: _ClassVar[int]
     VALUE_FIELD_NUMBER: _ClassVar[int]
@@ -150,6 +158,7 @@ class Event(_message.Message):
     CONFLATED_FIELD_NUMBER: _ClassVar[int]
     GAP_FIELD_NUMBER: _ClassVar[int]
     REMOVED_FIELD_NUMBER: _ClassVar[int]
+    DATA_FIELD_NUMBER: _ClassVar[int]
     service: str
     property: str
     value: str
@@ -158,7 +167,8 @@ class Event(_message.Message):
     conflated: int
     gap: bool
     removed: bool
-    def __init__(self, service: _Optional[str] = ..., property: _Optional[str] = ..., value: _Optional[str] = ..., sequence: _Optional[int] = ..., time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., conflated: _Optional[int] = ..., gap: _Optional[bool] = ..., removed: _Optional[bool] = ...) -> None: ...
+    data: bytes
+    def __init__(self, service: _Optional[str] = ..., property: _Optional[str] = ..., value: _Optional[str] = ..., sequence: _Optional[int] = ..., time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., conflated: _Optional[int] = ..., gap: _Optional[bool] = ..., removed: _Optional[bool] = ..., data: _Optional[bytes] = ...) -> None: ...
 
 class ListenResponse(_message.Message):
     __slots__ = ("events", "sync", "heartbeat")
@@ -241,7 +251,7 @@ class DescribeResponse(_message.Message):
     def __init__(self, type: _Optional[str] = ..., properties: _Optional[_Iterable[_Union[PropertyInfo, _Mapping]]] = ..., doc: _Optional[str] = ...) -> None: ...
 
 class PropertyInfo(_message.Message):
-    __slots__ = ("name", "type", "access", "length", "unit", "minimum", "maximum", "choices", "doc", "gui", "value", "parameters")
+    __slots__ = ("name", "type", "access", "length", "unit", "minimum", "maximum", "choices", "doc", "gui", "value", "parameters", "media_type", "max_size")
     NAME_FIELD_NUMBER: _ClassVar[int]
     TYPE_FIELD_NUMBER: _ClassVar[int]
     ACCESS_FIELD_NUMBER: _ClassVar[int]
@@ -254,6 +264,8 @@ class PropertyInfo(_message.Message):
     GUI_FIELD_NUMBER: _ClassVar[int]
     VALUE_FIELD_NUMBER: _ClassVar[int]
     PARAMETERS_FIELD_NUMBER: _ClassVar[int]
+    MEDIA_TYPE_FIELD_NUMBER: _ClassVar[int]
+    MAX_SIZE_FIELD_NUMBER: _ClassVar[int]
     name: str
     type: str
     access: Access
@@ -266,7 +278,9 @@ class PropertyInfo(_message.Message):
     gui: str
     value: ParameterInfo
     parameters: _containers.RepeatedCompositeFieldContainer[ParameterInfo]
-    def __init__(self, name: _Optional[str] = ..., type: _Optional[str] = ..., access: _Optional[_Union[Access, str]] = ..., length: _Optional[int] = ..., unit: _Optional[str] = ..., minimum: _Optional[float] = ..., maximum: _Optional[float] = ..., choices: _Optional[_Iterable[str]] = ..., doc: _Optional[str] = ..., gui: _Optional[str] = ..., value: _Optional[_Union[ParameterInfo, _Mapping]] = ..., parameters: _Optional[_Iterable[_Union[ParameterInfo, _Mapping]]] = ...) -> None: ...
+    media_type: str
+    max_size: int
+    def __init__(self, name: _Optional[str] = ..., type: _Optional[str] = ..., access: _Optional[_Union[Access, str]] = ..., length: _Optional[int] = ..., unit: _Optional[str] = ..., minimum: _Optional[float] = ..., maximum: _Optional[float] = ..., choices: _Optional[_Iterable[str]] = ..., doc: _Optional[str] = ..., gui: _Optional[str] = ..., value: _Optional[_Union[ParameterInfo, _Mapping]] = ..., parameters: _Optional[_Iterable[_Union[ParameterInfo, _Mapping]]] = ..., media_type: _Optional[str] = ..., max_size: _Optional[int] = ...) -> None: ...
 
 class ParameterInfo(_message.Message):
     __slots__ = ("name", "type", "required", "default", "doc")
