@@ -34,7 +34,7 @@ from gateway.http.bodies import BodyTooLarge, SetBody, parse_set_body, query_par
 from gateway.http.errors import PAYLOAD_TOO_LARGE, error_response
 from gateway.http.safety import JSON_TYPE, identify
 from gateway.rules import Subject
-from gateway.sizes import DEFAULT_MAX_SIZE
+from gateway.sizes import MAX_BINARY_SIZE
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import InvalidArgument, NotFound, PropertyError, ResourceExhausted
 from services.model import ParameterModel, PropertyModel, ServiceModel
@@ -82,7 +82,7 @@ def property_json(p: PropertyModel) -> dict[str, Any]:
         "gui": _or_none(p.gui),
         "doc": _or_none(p.doc),
         "media_type": _or_none(p.media_type),
-        "max_size": (p.max_size or DEFAULT_MAX_SIZE) if p.type == "bytes" else None,
+        "max_size": (p.max_size or MAX_BINARY_SIZE) if p.type == "bytes" else None,
         "value": parameter_json(p.value) if p.value is not None else None,
         "parameters": [parameter_json(q) for q in p.parameters],
     }
@@ -223,6 +223,17 @@ class Api:
             media_type = await MediaTypes(self.calls, subject).of(service, path)
         return json_response({"service": service, "path": path, **value_json("", answer.data, media_type)})
 
+    async def raw_limit(self, request: web.Request) -> int | None:
+        """The most bytes a raw Set of the request's property may carry; None when that is not known
+        (no such property, not binary, a model that cannot be read: the Set itself says why)."""
+        service = request.match_info.get("service", "")
+        path = request.match_info.get("path", "")
+        try:
+            subject = identify(request, self.guard, always=True)
+            return max_size(await self._binary_property(service, path, subject))
+        except PropertyError:
+            return None
+
     async def _binary_property(
         self, service: str, path: str, subject: Subject, content_type: str | None = None
     ) -> PropertyModel:
@@ -248,7 +259,7 @@ class Api:
 
 def max_size(prop: PropertyModel) -> int:
     """The most bytes a Set of binary ``prop`` may carry (its own bound, else the gateway's)."""
-    return prop.max_size or DEFAULT_MAX_SIZE
+    return prop.max_size or MAX_BINARY_SIZE
 
 
 def _check_size(service: str, prop: PropertyModel, size: int) -> None:

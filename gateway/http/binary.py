@@ -73,7 +73,9 @@ def encode_data(data: bytes) -> str:
 def decode_data(text: Any, where: str = "'data'") -> bytes:
     """The bytes of a JSON ``data`` (standard base64 with padding); InvalidArgument naming what is wrong."""
     if not isinstance(text, str):
-        raise InvalidArgument(f"{where} must be a string of standard base64 (RFC 4648), not {type(text).__name__}")
+        raise InvalidArgument(
+            f"{where} must be a string of standard base64 (RFC 4648), not {type(text).__name__}"
+        )
     try:
         return base64.b64decode(text, validate=True)
     except (binascii.Error, ValueError) as exc:

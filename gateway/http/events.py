@@ -117,6 +117,7 @@ class EventStreams:
         self,
         hub: ListenHub,
         calls: Calls,
+        *,
         guard: Guard,
         limits: Limits,
         settings: HttpSection,

@@ -33,7 +33,6 @@ from gateway.http.places import StreamPlaces
 from gateway.http.safety import JSON_TYPE, check_request
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, port_holder
-from gateway.sizes import MAX_MESSAGE_BYTES
 from gateway.tls import HttpsCredentials
 from services.errors import Code, InvalidArgument, PropertyError, ResourceExhausted, error_for
 
@@ -75,12 +74,14 @@ class HttpFront:
         self.settings = config.http
         self.config = config
         self.api = Api(calls, guard, self.settings.max_body)
-        #: The largest raw body any binary Set may carry (each property has its own max_size below).
-        self.raw_limit = max(self.settings.max_body, MAX_MESSAGE_BYTES)
         #: Event streams and live images share the bounds on open streams.
         self.places = StreamPlaces(self.settings)
-        self.events = EventStreams(hub, calls, guard, config.limits, self.settings, self.places)
-        self.images = ImageStreams(hub, calls, guard, config.limits, self.settings, self.places)
+        self.events = EventStreams(
+            hub, calls, guard=guard, limits=config.limits, settings=self.settings, places=self.places
+        )
+        self.images = ImageStreams(
+            hub, calls, guard=guard, limits=config.limits, settings=self.settings, places=self.places
+        )
         self.console = Console(CONSOLE_ROOT)
         #: Whether Host headers must be loopback names (DNS rebinding): the front end listens on loopback.
         self.loopback_only = is_loopback(self.settings.listen)
@@ -121,16 +122,16 @@ class HttpFront:
         return app
 
     async def _expect(self, request: web.Request) -> web.StreamResponse | None:
-        """``Expect: 100-continue``: a body announced over ``max_body`` (JSON) or over what one
-        message can carry (the raw bytes of a binary property) is refused before it is sent
-        (aiohttp's own handler says 100 Continue first, and the client sends it all)."""
+        """``Expect: 100-continue``: a body announced over ``max_body`` (JSON) or over the property's
+        ``max_size`` (the raw bytes of a binary property) is refused before it is sent (aiohttp's
+        own handler says 100 Continue first, and the client sends it all)."""
         length = request.content_length
-        if request.content_type == JSON_TYPE:
-            limit, bound = self.settings.max_body, "http.max_body"
-        else:
-            limit, bound = self.raw_limit, "the largest binary value"
-        if length is not None and length > limit:
-            return body_too_large(length, limit, bound)
+        if length is not None and request.content_type == JSON_TYPE and length > self.settings.max_body:
+            return body_too_large(length, self.settings.max_body)
+        if length is not None and request.content_type != JSON_TYPE:
+            limit = await self.api.raw_limit(request)
+            if limit is not None and length > limit:
+                return body_too_large(length, limit, "the property's max_size")
         if (
             request.version == HttpVersion11
             and request.headers.get(hdrs.EXPECT, "").lower() == "100-continue"

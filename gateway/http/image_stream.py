@@ -72,6 +72,7 @@ class ImageStreams:
         self,
         hub: ListenHub,
         calls: Calls,
+        *,
         guard: Guard,
         limits: Limits,
         settings: HttpSection,

@@ -38,6 +38,7 @@ def _errors(*codes: str) -> dict[str, Any]:
     return {code: _ERROR for code in codes}
 
 
+_BINARY = {"type": "string", "format": "binary"}
 _BASE64 = {
     "type": "string",
     "contentEncoding": "base64",
@@ -46,7 +47,7 @@ _BASE64 = {
 _SET = {
     "summary": "Set a property (or invoke an action)",
     "description": (
-        "JSON `{\"value\": TEXT}` for a text property, `{\"data\": BASE64}` for a binary one; or the"
+        'JSON `{"value": TEXT}` for a text property, `{"data": BASE64}` for a binary one; or the'
         " raw bytes of a binary value as the body, with the property's media type or"
         " `application/octet-stream` as its content type and the request parameters in the query"
         " string. A body over `http.max_body` (JSON) or the property's `max_size` (bytes) is 413."
@@ -81,7 +82,7 @@ _SET = {
             },
             "application/octet-stream": {
                 "schema": {"type": "string", "format": "binary"},
-                "description": "The raw bytes of a binary value (or the property's own media type, e.g. image/png).",
+                "description": "The raw bytes of a binary value (or with the property's media type).",
             },
         },
     },
@@ -149,7 +150,7 @@ DOCUMENT: dict[str, Any] = {
                 ],
                 "responses": {
                     "200": {
-                        "description": "The value, or every match of a wildcard path; with `raw`, the value itself",
+                        "description": "The value, or every match of a wildcard path; `raw`: the value",
                         "content": {
                             "application/json": {
                                 "schema": {
@@ -159,8 +160,8 @@ DOCUMENT: dict[str, Any] = {
                                     ]
                                 }
                             },
-                            "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
-                            "image/*": {"schema": {"type": "string", "format": "binary"}},
+                            "application/octet-stream": {"schema": _BINARY},
+                            "image/*": {"schema": _BINARY},
                             "text/plain": {"schema": {"type": "string"}},
                         },
                     },
@@ -195,7 +196,7 @@ DOCUMENT: dict[str, Any] = {
                 "responses": {
                     "200": {
                         "description": "The parts, boundary `psframe`",
-                        "content": {"multipart/x-mixed-replace": {"schema": {"type": "string", "format": "binary"}}},
+                        "content": {"multipart/x-mixed-replace": {"schema": _BINARY}},
                     },
                     **_errors("400", "401", "403", "404", "429", "503", "504"),
                 },

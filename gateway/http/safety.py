@@ -74,13 +74,17 @@ def check_request(request: web.Request, loopback: bool, routed: bool = True) -> 
                 f"origin {origin[:100]!r} is not this front end's own ({own[:100]!r}): requests from"
                 " pages of other origins are refused"
             )
-    if routed and request.method in (hdrs.METH_PUT, hdrs.METH_POST):
-        if hdrs.CONTENT_TYPE not in request.headers or request.content_type in SIMPLE_TYPES:
-            given = request.content_type if hdrs.CONTENT_TYPE in request.headers else "none"
-            raise InvalidArgument(
-                f"a {request.method} needs Content-Type: {JSON_TYPE} (or, with the raw bytes of a binary"
-                f" property, its media type or application/octet-stream), not {given!r}"
-            )
+    typed = hdrs.CONTENT_TYPE in request.headers
+    if (
+        routed
+        and request.method in (hdrs.METH_PUT, hdrs.METH_POST)
+        and (not typed or request.content_type in SIMPLE_TYPES)
+    ):
+        given = request.content_type if typed else "none"
+        raise InvalidArgument(
+            f"a {request.method} needs Content-Type: {JSON_TYPE} (or, with the raw bytes of a binary"
+            f" property, its media type or application/octet-stream), not {given!r}"
+        )
 
 
 def certificate_names(peercert: Mapping[str, Any] | None) -> dict[str, Sequence[bytes]]:
