@@ -4,7 +4,7 @@
 import assert from 'node:assert/strict';
 import { test } from 'node:test';
 
-import { FrameStream, frameCaption, rawUrl, streamUrl } from '../../gateway/console/js/image_widget.js';
+import { FrameStream, frameCaption, rawUrl, streamUrl, uploadType } from '../../gateway/console/js/image_widget.js';
 import {
   MultipartError,
   MultipartReader,
@@ -227,4 +227,12 @@ test('a binary property gets the image widget by media type or gui, other bytes 
   assert.throws(() => registerMediaWidget('png', npyWidget), /TYPE\/SUBTYPE/);
   assert.ok(!followedOnStream({ name: 'frame', type: 'bytes' }));
   assert.ok(followedOnStream({ name: 'location', type: 'vector' }));
+});
+
+test('a file is sent with the property\'s media type when it has that type, else as octet-stream', () => {
+  assert.equal(uploadType({ media_type: 'image/png' }, 'image/png'), 'image/png');
+  assert.equal(uploadType({ media_type: 'image/png; x=1' }, 'IMAGE/PNG'), 'image/png');
+  assert.equal(uploadType({ media_type: 'image/png' }, 'image/jpeg'), 'application/octet-stream');
+  assert.equal(uploadType({ media_type: '' }, ''), 'application/octet-stream');
+  assert.equal(uploadType({}, 'image/png'), 'application/octet-stream');
 });

@@ -3,7 +3,7 @@
 // value. Neither follows its property on the page's event stream: a frame is read once, as bytes,
 // on its own connection, never as base64 text through the shared stream.
 
-import { API_BASE, token } from './api.js';
+import { API_BASE, setPropertyBytes, token } from './api.js';
 import { Backoff } from './backoff.js';
 import { MultipartReader, boundaryOf, formatSize, isImageType } from './multipart.js';
 
@@ -154,6 +154,7 @@ export function imageWidget(prop, ctx) {
       else if (state === 'live') ctx.clearError();
     },
   }).start();
+  if (ctx.writable) element.append(uploader(prop, ctx));
   return {
     element,
     hidesValue: true,
@@ -165,11 +166,49 @@ export function imageWidget(prop, ctx) {
   };
 }
 
+/**
+ * The content type a file is sent with to `prop`: the property's media type when the file says it
+ * is of that type, else application/octet-stream (the gateway refuses any other label).
+ */
+export function uploadType(prop, fileType) {
+  const own = String(prop.media_type ?? '').split(';')[0].trim().toLowerCase();
+  return own && String(fileType ?? '').toLowerCase() === own ? own : 'application/octet-stream';
+}
+
+/** A file input that sets a writable binary property to the chosen file's bytes. */
+function uploader(prop, ctx) {
+  const input = ctx.h('input', {
+    type: 'file',
+    'aria-label': `a file for ${prop.name}`,
+    accept: prop.media_type || null,
+    dataset: { action: 'upload' },
+  });
+  input.addEventListener('change', async () => {
+    const file = input.files?.[0];
+    if (!file) return;
+    ctx.clearError();
+    if (prop.max_size && file.size > prop.max_size) {
+      ctx.showError({ code: 'RESOURCE_EXHAUSTED', message: `${file.name} is ${formatSize(file.size)}, more than ${formatSize(prop.max_size)}` });
+      return;
+    }
+    try {
+      await setPropertyBytes(ctx.service, prop.name, file, uploadType(prop, file.type));
+    } catch (e) {
+      ctx.showError(e);
+    } finally {
+      input.value = '';
+    }
+  });
+  return ctx.h('label', { class: 'upload' }, 'Set from a file: ', input);
+}
+
 /** Any other binary property: what it holds and a link to its raw bytes (not followed live). */
 export function bytesWidget(prop, ctx) {
   if (isImageType(prop.media_type)) return imageWidget(prop, ctx);
   const what = prop.media_type || 'application/octet-stream';
   const limit = prop.max_size ? ` · at most ${formatSize(prop.max_size)}` : '';
   const link = ctx.h('a', { href: rawUrl(ctx.service, prop.name), target: '_blank', rel: 'noopener', dataset: { action: 'raw' } }, 'raw bytes');
-  return { element: ctx.h('div', { class: 'bytes-view muted' }, `${what}${limit} · `, link), hidesValue: true };
+  const element = ctx.h('div', { class: 'bytes-view muted' }, `${what}${limit} · `, link);
+  if (ctx.writable) element.append(uploader(prop, ctx));
+  return { element, hidesValue: true };
 }
