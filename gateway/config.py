@@ -163,8 +163,9 @@ class HttpSection:
     #: Most bytes of a JSON request body; beyond, 413 (a binary property's raw bytes are bounded
     #: by its own ``max_size`` instead).
     max_body: int = DEFAULT_HTTP_MAX_BODY
-    #: Server-Sent-Events and live image streams open at once; beyond, 503. An idle stream costs about 13 KiB of
-    #: gateway memory (bench/sse.py, docs/performance.md), so 4,096 of them about 52 MiB.
+    #: Server-Sent-Events and live image streams open at once; beyond, 503. An idle event stream
+    #: costs about 13 KiB of gateway memory (bench/sse.py, docs/performance.md), so 4,096 of them
+    #: about 52 MiB.
     max_streams: int = 4096
     #: Server-Sent-Events and live image streams one client address may hold at once; beyond,
     #: 429 (one client cannot take every place).
