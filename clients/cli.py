@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import base64
 import json
 import math
 import os
@@ -21,7 +22,7 @@ from typing import Any, TextIO
 from clients.aio import DEFAULT_TARGET, DEFAULT_TIMEOUT, HEARTBEAT, SYNC, AsyncClient, Event, Mark, Selector
 from clients.credentials import ENVIRONMENT, ClientCredentials
 from clients.errors import GatewayUnreachable, NotFound, PropertyServiceError
-from clients.values import ValueFormatError
+from clients.values import Value, ValueFormatError
 from services.model import ParameterModel, PropertyModel
 
 __all__ = ["EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_UNREACHABLE", "EXIT_USAGE", "main"]
@@ -45,6 +46,8 @@ examples:
   psctl get swarm 'robots.*.location'         every match of a pattern, "path = value" lines
   psctl get registry find -p type=sensor      with a request parameter
   psctl set scout1 behaviors.moveto '<marker><location>(2 1 0 0 0 0)</location></marker>'
+  psctl get cam1 frame --output frame.jpg     a binary value (type bytes) into a file
+  psctl set store blob -p name=a.png --file a.png    a file's bytes (or: ... blob @a.png)
   psctl listen thermo1 data --count 10        ten readings of the sensor (it changes by itself)
   psctl listen scout1 location --duration 5   scout1's pose for five seconds
   psctl listen scout1 location --also scout2:location --min-interval 0.1 --duration 5
@@ -183,17 +186,32 @@ def build_parser() -> argparse.ArgumentParser:
     )
     get.add_argument("service")
     get.add_argument("paths", nargs="+", metavar="PATH", help="dotted property path, e.g. location.x")
+    get.add_argument(
+        "-o",
+        "--output",
+        metavar="FILE",
+        help="write the value (one PATH) into FILE, bytes as they are ('-': to stdout); a binary "
+        "value is never written to a terminal without it",
+    )
     _param_option(get)
 
     set_ = commands.add_parser(
         "set",
         parents=[common],
         help="write a property (or call a functional property)",
-        description="Write VALUE (text; '-' reads it from stdin) and print what the service answered.",
+        description="Write VALUE (text; '-' reads it from stdin; @FILE sends FILE, as --file does; "
+        "@@TEXT is the text @TEXT) and print what the service answered.",
     )
     set_.add_argument("service")
     set_.add_argument("path")
-    set_.add_argument("value")
+    set_.add_argument("value", nargs="?")
+    set_.add_argument(
+        "-f",
+        "--file",
+        metavar="FILE",
+        help="send FILE's content instead of VALUE: its bytes for a binary property (type bytes), its "
+        "UTF-8 text for a text one",
+    )
     _param_option(set_)
 
     listen = commands.add_parser(
@@ -269,13 +287,13 @@ def _emit_json(obj: Any) -> None:
 
 
 async def _gather_optional(client: AsyncClient, refs: list[tuple[str, str]]) -> list[str | None]:
-    """Values of ``refs``, None for each that does not exist."""
+    """Values of ``refs`` (as text: a binary one as ``<N bytes>``), None for each that does not exist."""
     limit = asyncio.Semaphore(_LS_CONCURRENCY)
 
     async def one(service: str, prop: str) -> str | None:
         async with limit:
             try:
-                return await client.get(service, prop)
+                return _shown(await client.get(service, prop))
             except NotFound:
                 return None
 
@@ -366,13 +384,73 @@ async def _ls(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> i
     return EXIT_OK
 
 
+async def _media_type(client: AsyncClient, service: str, path: str) -> str:
+    """``PATH.media_type`` of a binary property; "" when the service does not say."""
+    try:
+        media = await client.get(service, f"{path}.media_type")
+    except PropertyServiceError:
+        return ""
+    return media if isinstance(media, str) else ""
+
+
+def _shown(value: Value, media_type: str = "") -> str:
+    """A value on a line: text as it is, bytes as ``<N bytes MEDIA>``."""
+    if isinstance(value, str):
+        return value
+    return f"<{len(value)} bytes {media_type}>" if media_type else f"<{len(value)} bytes>"
+
+
+def _json_value(value: Value) -> dict[str, str]:
+    """A value in JSON: ``{"value": TEXT}``, or ``{"data": BASE64}`` for bytes."""
+    if isinstance(value, str):
+        return {"value": value}
+    return {"data": base64.b64encode(value).decode("ascii")}
+
+
+def _write_output(name: str, value: Value) -> int:
+    """Write ``value`` into file ``name`` ('-': stdout), bytes as they are; the bytes written."""
+    data = value if isinstance(value, bytes) else value.encode()
+    if name == "-":
+        sys.stdout.flush()
+        sys.stdout.buffer.write(data)
+        sys.stdout.buffer.flush()
+        return len(data)
+    try:
+        with open(name, "wb") as out:
+            out.write(data)
+    except OSError as e:
+        raise _UsageError(f"--output {name}: {e.strerror}") from None
+    return len(data)
+
+
+async def _print_binary(client: AsyncClient, service: str, path: str, value: bytes) -> None:
+    """A binary value without --output: to a pipe or a file as it is, never to a terminal."""
+    if sys.stdout.isatty():
+        media = await _media_type(client, service, path)
+        kind = f" of {media}" if media else ""
+        raise _UsageError(
+            f"{service} {path} is binary ({len(value)} bytes{kind}): not written to a terminal; "
+            f"use --output FILE (or --output - to write it here anyway)"
+        )
+    _write_output("-", value)
+
+
 async def _get(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
     params = _parse_params(args.param)
     service: str = args.service
     paths: list[str] = args.paths
+    if args.output is not None:
+        if len(paths) != 1 or "*" in paths[0]:
+            raise _UsageError("--output takes the value of one PATH (no pattern)")
+        value = await client.get(service, paths[0], **params)
+        size = _write_output(args.output, value)
+        if as_json and args.output != "-":
+            _emit_json({"service": service, "property": paths[0], "output": args.output, "size": size})
+        return EXIT_OK
+    values: list[Value]
     if any("*" in path for path in paths):
         # A pattern reads a snapshot of every match: "path = value" lines, one per match.
-        found: dict[str, str] = {}
+        found: dict[str, Value] = {}
         for path in paths:
             if "*" in path:
                 found.update(await client.get_matching(service, path, **params))
@@ -380,29 +458,85 @@ async def _get(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> 
                 found[path] = await client.get(service, path, **params)
         paths, values = list(found), list(found.values())
         if not as_json and len(paths) == 1:
-            _out(f"{paths[0]} = {values[0]}")
+            _out(f"{paths[0]} = {_shown(values[0])}")
             return EXIT_OK
     elif len(paths) == 1:
         values = [await client.get(service, paths[0], **params)]
     else:
         values = await client.get_many([(service, path, params) for path in paths])
     if as_json:
-        objs = [{"service": service, "property": p, "value": v} for p, v in zip(paths, values, strict=True)]
+        objs = [
+            {"service": service, "property": p, **_json_value(v)} for p, v in zip(paths, values, strict=True)
+        ]
         _emit_json(objs[0] if len(objs) == 1 else objs)
     elif len(paths) == 1:
-        _out(values[0])
+        value = values[0]
+        if isinstance(value, bytes):
+            await _print_binary(client, service, paths[0], value)
+        else:
+            _out(value)
     else:
         for path, value in zip(paths, values, strict=True):
-            _out(f"{path} = {value}")
+            _out(f"{path} = {_shown(value)}")
     return EXIT_OK
+
+
+def _read_file(name: str) -> bytes:
+    try:
+        with open(name, "rb") as f:
+            return f.read()
+    except OSError as e:
+        raise _UsageError(f"cannot read {name!r}: {e.strerror}") from None
+
+
+async def _file_value(client: AsyncClient, service: str, path: str, name: str) -> Value:
+    """FILE's content as the property takes it: bytes for a binary one (or one the service does
+    not describe), UTF-8 text for a text one."""
+    data = _read_file(name)
+    try:
+        model = await client.describe(service)
+    except PropertyServiceError:
+        return data
+    prop = next((p for p in model.properties if p.name == path), None)
+    if prop is None:
+        return data
+    word = prop.value.type if prop.value is not None else prop.type
+    if word in ("bytes", "unknown"):
+        return data
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise _UsageError(
+            f"{service} {path} takes text (type {word}), and {name!r} is not UTF-8 text"
+        ) from None
+
+
+async def _set_value(client: AsyncClient, args: argparse.Namespace) -> Value:
+    """What ``set`` sends: VALUE, stdin ('-'), or a file (--file FILE, @FILE)."""
+    text: str | None = args.value
+    if args.file is not None:
+        if text is not None:
+            raise _UsageError("give VALUE or --file FILE, not both")
+        return await _file_value(client, args.service, args.path, args.file)
+    if text is None:
+        raise _UsageError("set needs a VALUE (or --file FILE)")
+    if text == "-":
+        return sys.stdin.read().rstrip("\n")
+    if text.startswith("@@"):
+        return text[1:]
+    if text.startswith("@") and len(text) > 1:
+        return await _file_value(client, args.service, args.path, text[1:])
+    return text
 
 
 async def _set(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
     params = _parse_params(args.param)
-    value: str = sys.stdin.read().rstrip("\n") if args.value == "-" else args.value
+    value = await _set_value(client, args)
     answer = await client.set(args.service, args.path, value, **params)
     if as_json:
-        _emit_json({"service": args.service, "property": args.path, "value": answer})
+        _emit_json({"service": args.service, "property": args.path, **_json_value(answer)})
+    elif isinstance(answer, bytes):
+        _out(_shown(answer))
     elif answer:
         _out(answer)
     return EXIT_OK
@@ -413,7 +547,7 @@ def _clock(t: datetime) -> str:
 
 
 def _event_line(ev: Event) -> str:
-    line = f"{_clock(ev.time)} {ev.service} {ev.property} = {ev.value}"
+    line = f"{_clock(ev.time)} {ev.service} {ev.property} = {_shown(ev.value)}"
     if ev.conflated:
         line += f" [conflated {ev.conflated}]"
     if ev.gap:
@@ -427,7 +561,7 @@ def _event_json(ev: Event) -> dict[str, Any]:
     return {
         "service": ev.service,
         "property": ev.property,
-        "value": ev.value,
+        **_json_value(ev.value),
         "sequence": ev.sequence,
         "time": ev.time.isoformat(),
         "conflated": ev.conflated,

@@ -28,7 +28,7 @@ from clients.aio import (
 from clients.aio import Session as AsyncSession
 from clients.credentials import ClientCredentials
 from clients.errors import DeadlineExceeded
-from clients.values import Marker, Vector
+from clients.values import Marker, Value, Vector
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.model import ServiceModel
 
@@ -143,19 +143,19 @@ class _BlockingCalls(_ClosedOnExit, ListenCalls[ListenIterator[Event], ListenIte
         self._runner = runner
         self._calls = calls
 
-    def get(self, service: str, prop: str, /, **params: Any) -> str:
+    def get(self, service: str, prop: str, /, **params: Any) -> Value:
         """See :meth:`clients.aio.AsyncClient.get`."""
         return self._runner.call(self._calls.get(service, prop, **params))
 
-    def get_matching(self, service: str, pattern: str, /, **params: Any) -> dict[str, str]:
+    def get_matching(self, service: str, pattern: str, /, **params: Any) -> dict[str, Value]:
         """See :meth:`clients.aio.AsyncClient.get_matching`."""
         return self._runner.call(self._calls.get_matching(service, pattern, **params))
 
-    def get_many(self, refs: Iterable[Selector]) -> list[str]:
+    def get_many(self, refs: Iterable[Selector]) -> list[Value]:
         """See :meth:`clients.aio.AsyncClient.get_many`."""
         return self._runner.call(self._calls.get_many(list(refs)))
 
-    def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
+    def set(self, service: str, prop: str, value: Any, /, **params: Any) -> Value:
         """See :meth:`clients.aio.AsyncClient.set`."""
         return self._runner.call(self._calls.set(service, prop, value, **params))
 
@@ -195,6 +195,10 @@ class Client(_BlockingCalls):
         if self._runner.loop.is_running():
             self._runner.run(self._aio.close(), _GRACE)
         self._runner.stop()
+
+    def get_bytes(self, service: str, prop: str, /, **params: Any) -> bytes:
+        """See :meth:`AsyncClient.get_bytes`."""
+        return self._runner.call(self._aio.get_bytes(service, prop, **params))
 
     def get_number(self, service: str, prop: str, /, **params: Any) -> float:
         """See :meth:`AsyncClient.get_number`."""

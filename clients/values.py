@@ -1,7 +1,9 @@
 """Typed decoding and encoding of property values on the client side.
 
 Values travel as text, in the grammar the services use too
-(:mod:`services.values`); this module is the SDK's view of it:
+(:mod:`services.values`); this module is the SDK's view of it. A binary
+property (Describe type ``bytes``: a JPEG frame, a numpy grid) reads as
+``bytes`` and is Set from ``bytes`` (:data:`Value` is ``str | bytes``).
 
 * number ``0.5`` → ``float`` (finite only)
 * vector ``(1 2 3)`` → 1-D ``numpy`` float64 array
@@ -23,6 +25,7 @@ import numpy as np
 from services import values as grammar
 from services.values import (
     Marker,
+    Value,
     ValueFormatError,
     Vector,
     parse_marker,
@@ -34,9 +37,11 @@ from services.values import (
 
 __all__ = [
     "Marker",
+    "Value",
     "ValueFormatError",
     "Vector",
     "format_value",
+    "outgoing_value",
     "parse_marker",
     "parse_names",
     "parse_number",
@@ -61,3 +66,11 @@ def format_value(value: Any) -> str:
     if isinstance(value, Sequence) and not isinstance(value, str | list | tuple):
         value = list(value)
     return grammar.format_value(value)
+
+
+def outgoing_value(value: Any) -> Value:
+    """What a Set sends for ``value``: bytes (``bytes``, ``bytearray``, ``memoryview``) as they
+    are, for a binary property; anything else as text (:func:`format_value`)."""
+    if isinstance(value, bytes | bytearray | memoryview):
+        return bytes(value)
+    return format_value(value)

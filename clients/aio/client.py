@@ -16,19 +16,22 @@ from clients.aio.events import Event, Mark, listen_items
 from clients.aio.listen import ListenCalls
 from clients.aio.requests import (
     Selector,
+    binary,
     decode,
     format_params,
     get_many_request,
     get_many_values,
     matching_values,
+    set_request,
+    value_of,
 )
 from clients.aio.session import DEFAULT_SESSION_QUEUE, Session
 from clients.credentials import ClientCredentials
 from clients.errors import DeadlineExceeded, PropertyServiceError, error_from_rpc
 from clients.values import (
     Marker,
+    Value,
     Vector,
-    format_value,
     parse_marker,
     parse_names,
     parse_number,
@@ -161,14 +164,17 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
             ) from None
         return None if self.timeout is None else max(self.timeout - (loop.time() - start), 1e-3)
 
-    async def get(self, service: str, prop: str, /, **params: Any) -> str:
-        """The value of ``prop`` of ``service`` as text; keyword arguments are request parameters."""
+    async def get(self, service: str, prop: str, /, **params: Any) -> Value:
+        """The value of ``prop`` of ``service``: text, or ``bytes`` for a binary property (type
+        ``bytes``); keyword arguments are request parameters."""
         request = pb.GetRequest(service=service, property=prop, parameters=format_params(params))
-        resp = await self._unary("Get", request, service, prop)
-        value: str = resp.value
-        return value
+        return value_of(await self._unary("Get", request, service, prop))
 
-    async def get_many(self, refs: Iterable[Selector]) -> list[str]:
+    async def get_bytes(self, service: str, prop: str, /, **params: Any) -> bytes:
+        """The value of a binary property; ValueFormatError when it is text."""
+        return binary(await self.get(service, prop, **params), service, prop)
+
+    async def get_many(self, refs: Iterable[Selector]) -> list[Value]:
         """Values of several ``(service, property[, params])`` in one call, in order; all or nothing."""
         refs = list(refs)
         if not refs:
@@ -176,7 +182,7 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         resp = await self._unary("Get", get_many_request(refs))
         return get_many_values(resp, len(refs))
 
-    async def get_matching(self, service: str, pattern: str, /, **params: Any) -> dict[str, str]:
+    async def get_matching(self, service: str, pattern: str, /, **params: Any) -> dict[str, Value]:
         """Path → value of every readable property of ``service`` that ``pattern`` matches, in one Get.
 
         ``*`` in ``pattern`` stands for one segment (``robots.*.location``); no match is NOT_FOUND.
@@ -184,14 +190,11 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         request = pb.GetRequest(service=service, property=pattern, parameters=format_params(params))
         return matching_values(await self._unary("Get", request, service, pattern))
 
-    async def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
-        """Write ``value`` (text, number, bool, vector, list, :class:`Marker`); return the answer."""
-        request = pb.SetRequest(
-            service=service, property=prop, value=format_value(value), parameters=format_params(params)
-        )
-        resp = await self._unary("Set", request, service, prop)
-        answer: str = resp.value
-        return answer
+    async def set(self, service: str, prop: str, value: Any, /, **params: Any) -> Value:
+        """Write ``value`` (text, number, bool, vector, list, :class:`Marker`, or ``bytes`` for a
+        binary property); return the answer (``bytes`` when the answer is binary)."""
+        request = set_request(service, prop, value, params)
+        return value_of(await self._unary("Set", request, service, prop))
 
     async def get_number(self, service: str, prop: str, /, **params: Any) -> float:
         """The value as a float."""

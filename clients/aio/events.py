@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.values import Value
 
 __all__ = ["HEARTBEAT", "SYNC", "Event", "Mark", "listen_items"]
 
@@ -17,7 +18,8 @@ class Event:
 
     service: str
     property: str
-    value: str
+    #: Text, or ``bytes`` for a binary property.
+    value: Value
     #: Per-stream sequence number, from 1, without holes.
     sequence: int
     #: When the gateway saw the change (timezone-aware, UTC).
@@ -47,7 +49,7 @@ def _event(ev: pb.Event) -> Event:
     return Event(
         ev.service,
         ev.property,
-        ev.value,
+        ev.data if ev.HasField("data") else ev.value,
         ev.sequence,
         ev.time.ToDatetime(tzinfo=UTC),
         ev.conflated,

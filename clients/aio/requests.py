@@ -3,22 +3,26 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, TypedDict, TypeVar
+from typing import Any, Protocol, TypedDict, TypeVar
 
 from google.protobuf.duration_pb2 import Duration
 
 from clients.errors import Unknown
-from clients.values import ValueFormatError, format_value
+from clients.values import Value, ValueFormatError, format_value, outgoing_value
 from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.values import as_text
 
 __all__ = [
     "ListenOptions",
     "Selector",
+    "binary",
     "decode",
     "format_params",
     "get_many_request",
     "get_many_values",
     "listen_request",
+    "set_request",
+    "value_of",
 ]
 
 T = TypeVar("T")
@@ -36,6 +40,29 @@ class ListenOptions(TypedDict, total=False):
     sample_interval: float | None
     heartbeat: float | None
     max_batch: int
+
+
+class _Carrier(Protocol):
+    value: str
+    data: bytes
+
+    def HasField(self, field_name: str) -> bool: ...
+
+
+def value_of(message: _Carrier) -> Value:
+    """The value a reply or an event carries: bytes (``data``) for a binary property, else text."""
+    return message.data if message.HasField("data") else message.value
+
+
+def set_request(service: str, prop: str, value: Any, params: Mapping[str, Any]) -> pb.SetRequest:
+    """The SetRequest writing ``value``: bytes in ``data``, anything else as text in ``value``."""
+    request = pb.SetRequest(service=service, property=prop, parameters=format_params(params))
+    sent = outgoing_value(value)
+    if isinstance(sent, bytes):
+        request.data = sent
+    else:
+        request.value = sent
+    return request
 
 
 def format_params(params: Mapping[str, Any]) -> dict[str, str]:
@@ -99,21 +126,28 @@ def get_many_request(refs: Sequence[Selector]) -> pb.GetRequest:
     )
 
 
-def get_many_values(resp: pb.GetResponse, n: int) -> list[str]:
+def get_many_values(resp: pb.GetResponse, n: int) -> list[Value]:
     """The ``n`` values of a GetResponse to :func:`get_many_request`, in order."""
     if len(resp.more) != n - 1:
         raise Unknown(None, f"the gateway answered {len(resp.more) + 1} values for {n} paths")
-    return [resp.value, *(v.value for v in resp.more)]
+    return [value_of(resp), *(value_of(v) for v in resp.more)]
 
 
-def matching_values(resp: pb.GetResponse) -> dict[str, str]:
+def matching_values(resp: pb.GetResponse) -> dict[str, Value]:
     """Path → value of every match of a Get with a ``*`` pattern (the gateway lists them in ``more``)."""
-    return {v.property: v.value for v in resp.more}
+    return {v.property: value_of(v) for v in resp.more}
 
 
-def decode(parse: Callable[[str], T], text: str, service: str, prop: str) -> T:
+def decode(parse: Callable[[str], T], text: Value, service: str, prop: str) -> T:
     """``parse(text)``; a :class:`ValueFormatError` names the property the value came from."""
     try:
-        return parse(text)
+        return parse(as_text(text))
     except ValueFormatError as e:
         raise ValueFormatError(f"{service} {prop}: {e}") from None
+
+
+def binary(value: Value, service: str, prop: str) -> bytes:
+    """``value`` when it is bytes; a :class:`ValueFormatError` for text (not a binary property)."""
+    if isinstance(value, bytes):
+        return value
+    raise ValueFormatError(f"{service} {prop}: the value is text, not bytes (not a binary property)")

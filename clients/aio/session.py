@@ -16,7 +16,15 @@ from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stub
 from clients.aio.events import Event, Mark
 from clients.aio.listen import ListenCalls
 from clients.aio.listen_buffer import ListenBuffer
-from clients.aio.requests import Selector, format_params, get_many_request, get_many_values, matching_values
+from clients.aio.requests import (
+    Selector,
+    format_params,
+    get_many_request,
+    get_many_values,
+    matching_values,
+    set_request,
+    value_of,
+)
 from clients.errors import (
     Cancelled,
     PropertyServiceError,
@@ -25,7 +33,7 @@ from clients.errors import (
     error_for_code,
     error_from_rpc,
 )
-from clients.values import format_value
+from clients.values import Value
 from protos.propertyservice.v1 import property_service_pb2 as pb
 
 __all__ = ["DEFAULT_SESSION_QUEUE", "MAX_SESSION_BATCH", "Session"]
@@ -231,22 +239,21 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
                 )
             )
 
-    async def get(self, service: str, prop: str, /, **params: Any) -> str:
+    async def get(self, service: str, prop: str, /, **params: Any) -> Value:
         """Like :meth:`AsyncClient.get`, over the session."""
         request = pb.Request(
             get=pb.GetRequest(service=service, property=prop, parameters=format_params(params))
         )
         reply = await self._call_one(request, service, prop)
-        value: str = reply.get.value
-        return value
+        return value_of(reply.get)
 
-    async def get_matching(self, service: str, pattern: str, /, **params: Any) -> dict[str, str]:
+    async def get_matching(self, service: str, pattern: str, /, **params: Any) -> dict[str, Value]:
         """Like :meth:`AsyncClient.get_matching`, over the session."""
         request = pb.GetRequest(service=service, property=pattern, parameters=format_params(params))
         reply = await self._call_one(pb.Request(get=request), service, pattern)
         return matching_values(reply.get)
 
-    async def get_many(self, refs: Iterable[Selector]) -> list[str]:
+    async def get_many(self, refs: Iterable[Selector]) -> list[Value]:
         """Like :meth:`AsyncClient.get_many`, over the session."""
         refs = list(refs)
         if not refs:
@@ -254,16 +261,11 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
         reply = await self._call_one(pb.Request(get=get_many_request(refs)), "", "")
         return get_many_values(reply.get, len(refs))
 
-    async def set(self, service: str, prop: str, value: Any, /, **params: Any) -> str:
+    async def set(self, service: str, prop: str, value: Any, /, **params: Any) -> Value:
         """Like :meth:`AsyncClient.set`, over the session."""
-        request = pb.Request(
-            set=pb.SetRequest(
-                service=service, property=prop, value=format_value(value), parameters=format_params(params)
-            )
-        )
+        request = pb.Request(set=set_request(service, prop, value, params))
         reply = await self._call_one(request, service, prop)
-        answer: str = reply.set.value
-        return answer
+        return value_of(reply.set)
 
     async def start_listen(
         self, request: pb.ListenRequest, marks: bool, resume: bool = False

@@ -2,10 +2,11 @@
 
 :class:`Storage` is the Resource: ``files`` (the live list), ``info``,
 ``find``, ``remove`` and the read-only settings, served by the class wrapper.
-``file`` is read, written and followed with the parameter ``name``, which the
-class wrapper cannot express for a Set or a Listen: :class:`StorageService`,
-the LocalService subclass that serves a Storage (``Storage.served_by``),
-takes those two calls on ``file`` and declares ``file`` in the model.
+``file`` (a file as text) and ``blob`` (a file as bytes, a binary value) are
+read, written and followed with the parameter ``name``, which the class wrapper
+cannot express for a Set or a Listen: :class:`StorageService`, the LocalService
+subclass that serves a Storage (``Storage.served_by``), takes those two calls
+on ``file`` and ``blob`` and declares both in the model.
 
 Disk work runs on the service's own worker threads (:data:`WORKERS`), never
 on the event loop; changes made by others on disk arrive through
@@ -65,24 +66,29 @@ MAX_FOLLOWED = 1024
 
 
 class _Unreadable:
-    """A followed file that exists but cannot be carried as text (binary, too big, a link)."""
+    """A followed file that exists but cannot be carried (not text for ``file``, too big, a link)."""
 
     def __repr__(self) -> str:
         return "unreadable"
 
 
 _UNREADABLE = _Unreadable()
-#: What a follower knows of its file: the text, None (no such file) or _UNREADABLE.
-_State = str | None | _Unreadable
+#: What a follower knows of its file: the text (``file``) or the bytes (``blob``), None (no such
+#: file) or _UNREADABLE.
+_State = Value | None | _Unreadable
+#: The two properties a file is read, written and followed through.
+FILE = "file"
+BLOB = "blob"
 
 
 class _Followed:
-    """The listens of one file, and what they last heard."""
+    """The listens of one file through one property (``file`` or ``blob``), and what they last heard."""
 
-    __slots__ = ("again", "last", "listeners", "name", "reading")
+    __slots__ = ("again", "last", "listeners", "name", "prop", "reading")
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, prop: str) -> None:
         self.name = name
+        self.prop = prop
         self.listeners: dict[int, Notify] = {}
         self.last: _State = _UNREADABLE
         self.reading = False
@@ -124,39 +130,53 @@ class StorageService(LocalService):
         self.storage = obj
 
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
-        if path == "file.parameters":
+        if path in ("file.parameters", "blob.parameters"):
             return FILE_PARAMETERS  # `name` is required, which a query's parameters cannot say
+        if path == "blob.media_type":
+            # The media type of the file `name` names (by its extension); "" without one.
+            return media_type(_file_name(params, "blob.media_type")) if params else ""
         return await super().get(path, params)
 
     async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
-        if path == "file":
+        if path == FILE:
             if isinstance(value, bytes):
-                raise InvalidArgument("`file` holds text: send its value as text, or Set `blob` for bytes")
-            return await self.storage.store(_file_name(params), value)
+                raise InvalidArgument(
+                    "`file` holds text: send its value as text, or Set `blob` (same `name`) to store bytes"
+                )
+            return await self.storage.store(_file_name(params, path), value)
+        if path == BLOB:
+            if isinstance(value, str):
+                raise InvalidArgument(
+                    "`blob` is binary (type bytes): send its value as bytes (the `data` field), "
+                    "or Set `file` (same `name`) to store text"
+                )
+            return await self.storage.store_bytes(_file_name(params, path), value)
         return await super().set(path, value, params)
 
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
-        if path == "file":
-            return await self.storage.follow(_file_name(params), notify)
+        if path in (FILE, BLOB):
+            return await self.storage.follow(_file_name(params, path), notify, path)
         return await super().listen(path, notify, params)
 
     async def describe(self) -> ServiceModel:
         model = await super().describe()
-        properties = tuple(FILE_MODEL if p.name == "file" else p for p in model.properties)
+        blob = dataclasses.replace(BLOB_MODEL, max_size=self.storage.max_file_size)
+        fixed = {FILE: FILE_MODEL, BLOB: blob}
+        properties = tuple(fixed.get(p.name, p) for p in model.properties)
         return dataclasses.replace(model, properties=properties)
 
 
-def _file_name(params: Mapping[str, str]) -> str:
+def _file_name(params: Mapping[str, str], prop: str = FILE) -> str:
     extra = sorted(k for k in params if k != "name")
     if extra:
-        raise InvalidArgument(f"`file` has no parameter `{extra[0]}`; it accepts: `name`")
+        raise InvalidArgument(f"`{prop}` has no parameter `{extra[0]}`; it accepts: `name`")
     name = params.get("name")
     if name is None:
-        raise InvalidArgument("`file` needs the parameter `name` (the file's relative path)")
+        raise InvalidArgument(f"`{prop}` needs the parameter `name` (the file's relative path)")
     return check_name(name)
 
 
-#: ``file.parameters``: one required parameter.
+#: ``file.parameters`` and ``blob.parameters``: one required parameter.
 FILE_PARAMETERS = "((name text -))"
 FILE_MODEL = PropertyModel(
     name="file",
@@ -165,6 +185,18 @@ FILE_MODEL = PropertyModel(
     doc='the content of file `name` (UTF-8 text); a Set stores it atomically, a Set of "" removes it',
     gui="text",
     value=ParameterModel("value", "text", required=False, doc='the new content; "" removes the file'),
+    parameters=(
+        ParameterModel("name", "text", required=True, doc="the file's relative path, / between directories"),
+    ),
+)
+BLOB_MODEL = PropertyModel(
+    name="blob",
+    type="bytes",
+    access=Access.READ_WRITE,
+    doc="the content of file `name` as bytes (any file: an image, an array); a Set stores it atomically; "
+    "the media type follows the name's extension (`blob.media_type` with `name`)",
+    gui="bytes",
+    value=ParameterModel("value", "bytes", required=True, doc="the new content, bytes"),
     parameters=(
         ParameterModel("name", "text", required=True, doc="the file's relative path, / between directories"),
     ),
@@ -217,7 +249,7 @@ class Storage(Resource):
         self._pool: ThreadPoolExecutor | None = None
         self._waiting = 0
         self._watcher: DirectoryWatcher | None = None
-        self._followed: dict[str, _Followed] = {}
+        self._followed: dict[tuple[str, str], _Followed] = {}
         self._tokens = itertools.count()
         self._refreshing = False
         self._refresh_again = False
@@ -293,6 +325,13 @@ class Storage(Resource):
         data = await self._disk(self._folder.read, self._readable(name), self.max_file_size)
         return _text(name, data)
 
+    @query(doc="the content of file `name` as bytes (any file); Set it to store bytes")
+    async def blob(self, *, name: str = "") -> bytes:
+        """The content of file ``name`` as bytes, whatever it holds."""
+        if not name:
+            raise InvalidArgument("`blob` needs the parameter `name` (the file's relative path)")
+        return await self._disk(self._folder.read, self._readable(name), self.max_file_size)
+
     async def store(self, name: str, value: str) -> str:
         """Store ``value`` as file ``name`` (what a Set of ``file`` does); "" removes it."""
         self._writable(name)
@@ -311,7 +350,16 @@ class Storage(Resource):
         if len(data) > limit:
             raise _too_big(name, len(data), limit)
         await self._disk(self._folder.write, name, data)
-        self._stored(name, value)
+        self._stored(name, data)
+        return ""
+
+    async def store_bytes(self, name: str, data: bytes) -> str:
+        """Store ``data`` as file ``name`` (what a Set of ``blob`` does; empty bytes make an empty file)."""
+        self._writable(name)
+        if len(data) > self.max_file_size:
+            raise _too_big(name, len(data), self.max_file_size)
+        await self._disk(self._folder.write, name, data)
+        self._stored(name, data)
         return ""
 
     @action(doc='remove file `name` (a Set of `file` to "" does the same)')
@@ -416,21 +464,23 @@ class Storage(Resource):
 
     # -- following files -----------------------------------------------------------
 
-    async def follow(self, name: str, notify: Notify) -> Subscription:
-        """Call ``notify`` with ``Change("file", text)`` whenever file ``name`` changes (what a Listen
-        of ``file`` does); ``Change(removed=True)`` when it is removed, its text again when it is back."""
+    async def follow(self, name: str, notify: Notify, prop: str = FILE) -> Subscription:
+        """Call ``notify`` with ``Change(prop, content)`` whenever file ``name`` changes (what a Listen
+        of ``file``, text, or ``blob``, bytes, does); ``Change(removed=True)`` when it is removed,
+        its content again when it is back."""
         self._readable(name)
-        entry = self._followed.get(name)
+        key = (name, prop)
+        entry = self._followed.get(key)
         if entry is None:
             if len(self._followed) >= MAX_FOLLOWED:
                 raise ResourceExhausted(f"cannot follow `{name}`: {MAX_FOLLOWED} files are followed already")
-            entry = self._followed[name] = _Followed(name)
+            entry = self._followed[key] = _Followed(name, prop)
             entry.reading = True
             try:
-                entry.last = await self._state(name)
+                entry.last = await self._state(name, prop)
             except BaseException:
-                if not entry.listeners and self._followed.get(name) is entry:
-                    del self._followed[name]
+                if not entry.listeners and self._followed.get(key) is entry:
+                    del self._followed[key]
                 raise
             finally:
                 entry.reading = False
@@ -442,16 +492,18 @@ class Storage(Resource):
 
     def _unfollow(self, entry: _Followed, token: int) -> None:
         gone = entry.listeners.pop(token, None) is not None and not entry.listeners
-        if gone and self._followed.get(entry.name) is entry:
-            del self._followed[entry.name]
+        key = (entry.name, entry.prop)
+        if gone and self._followed.get(key) is entry:
+            del self._followed[key]
 
-    async def _state(self, name: str) -> _State:
+    async def _state(self, name: str, prop: str) -> _State:
         try:
-            return _text(name, await self._disk(self._folder.read, name, self.max_file_size))
+            data = await self._disk(self._folder.read, name, self.max_file_size)
+            return data if prop == BLOB else _text(name, data)
         except NotFound:
             return None
         except PropertyError as exc:
-            log.debug("%s: not followed as text: %s", name, exc.message)
+            log.debug("%s: not followed through %s: %s", name, prop, exc.message)
             return _UNREADABLE
 
     async def _reread(self, entry: _Followed) -> None:
@@ -462,26 +514,36 @@ class Storage(Resource):
         try:
             while True:
                 entry.again = False
-                state = await self._state(entry.name)
+                state = await self._state(entry.name, entry.prop)
                 self._deliver(entry, state)
                 if not entry.again:
                     return
         finally:
             entry.reading = False
 
-    def _stored(self, name: str, value: str | None) -> None:
-        self._listed(name, value is not None)
-        entry = self._followed.get(name)
-        if entry is not None:
-            self._deliver(entry, value)
+    def _stored(self, name: str, data: bytes | None) -> None:
+        """Our own store (``data``) or removal (None) of ``name``: its followers hear it at once."""
+        self._listed(name, data is not None)
+        blob = self._followed.get((name, BLOB))
+        if blob is not None:
+            self._deliver(blob, data)
+        text = self._followed.get((name, FILE))
+        if text is not None:
+            state: _State = data
+            if data is not None:
+                try:
+                    state = data.decode("utf-8")
+                except UnicodeDecodeError:
+                    state = _UNREADABLE
+            self._deliver(text, state)
 
     def _deliver(self, entry: _Followed, state: _State) -> None:
         if state == entry.last:
             return
         entry.last = state
         if isinstance(state, _Unreadable):
-            return  # nothing a text value can say; the next text is heard
-        change = Change("file", "", removed=True) if state is None else Change("file", state)
+            return  # nothing the property can carry; the next content is heard
+        change = Change(entry.prop, "", removed=True) if state is None else Change(entry.prop, state)
         for notify in list(entry.listeners.values()):
             try:
                 notify(change)
@@ -498,8 +560,8 @@ def _text(name: str, data: bytes) -> str:
         return data.decode("utf-8")
     except UnicodeDecodeError:
         raise FailedPrecondition(
-            f"`{name}` is not UTF-8 text ({len(data)} bytes): binary values are not carried yet; "
-            "its `info` works"
+            f"`{name}` is not UTF-8 text ({len(data)} bytes): read it as bytes with `blob` "
+            f"(parameter name={name}), of media type {media_type(name)}"
         ) from None
 
 
