@@ -154,11 +154,6 @@ class MediaTypes:
         for prop in binary_properties(model.properties):
             self.known[(service, prop.name)] = prop.media_type or OCTET_STREAM
 
-    async def all_of(self, items: Iterable[tuple[str, str]]) -> None:
-        """Learn the media types of every (service, path) not known yet (one model read per service)."""
-        for service in {service for service, path in items if (service, path) not in self.known}:
-            await self.learn(service)
-
 
 def binary_properties(properties: Iterable[PropertyModel]) -> Iterable[PropertyModel]:
     """The properties of a model whose values are bytes."""

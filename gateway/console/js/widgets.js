@@ -6,6 +6,7 @@
 //   ctx    {service, path, writable, set(text, parameters) -> Promise<reply|null>,
 //           setPath(path, text, parameters) (another property of the service, the same way),
 //           get(parameters) -> Promise<value|null>, showValue(text), h, svg}
+//          (a binary reply reads as "[N bytes, media/type]", values.js shownValue)
 //   update is called with the value text on every change (and once with the current value).
 // The frame (`[data-property=PATH]`) shows the name, unit and access, the current value text in
 // `.value` and the error of a failed Set in `.error` ("CODE: message"); ctx.set fills both.
@@ -14,7 +15,7 @@
 // registered there wins over the built-in one for that `.gui` word (docs/console.md).
 
 import { h, svg } from './dom.js';
-import { formatTime } from './values.js';
+import { formatTime, shownValue } from './values.js';
 
 /** `.gui` words of a text shown in a text area of several lines (a chart, a script, a note). */
 export const TEXT_AREA_GUIS = new Set(['text-area', 'code']);
@@ -191,7 +192,7 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
       frame.classList.add('busy');
       try {
         const reply = await setProperty(service, prop.name, text, parameters);
-        return reply?.value ?? '';
+        return shownValue(reply);
       } catch (e) {
         showError(e);
         return null;
@@ -205,7 +206,7 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
       frame.classList.add('busy');
       try {
         const reply = await setProperty(service, path, text, parameters);
-        return reply?.value ?? '';
+        return shownValue(reply);
       } catch (e) {
         showError(e);
         return null;
@@ -217,7 +218,7 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
       clearError();
       try {
         const reply = await getProperty(service, prop.name, parameters);
-        return reply?.value ?? '';
+        return shownValue(reply);
       } catch (e) {
         showError(e);
         return null;
