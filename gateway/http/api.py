@@ -25,6 +25,7 @@ from gateway.http.binary import (
     MediaTypes,
     accepts_raw,
     essence,
+    property_model,
     raw_asked,
     raw_response,
     text_response,
@@ -33,7 +34,7 @@ from gateway.http.binary import (
 from gateway.http.bodies import BodyTooLarge, SetBody, parse_set_body, query_parameters, read_body
 from gateway.http.errors import PAYLOAD_TOO_LARGE, error_response
 from gateway.http.safety import JSON_TYPE, identify
-from gateway.rules import Subject
+from gateway.rules import Operation, Subject
 from gateway.sizes import MAX_BINARY_SIZE
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import InvalidArgument, NotFound, PropertyError, ResourceExhausted
@@ -174,7 +175,7 @@ class Api:
         if is_snapshot(get):
             if raw:
                 raise InvalidArgument("raw=1 reads one property: a path with '*' answers JSON only")
-            media_types = MediaTypes(self.calls, subject)
+            media_types = MediaTypes(self.calls)
             values = []
             for item in answer.more:
                 data = item.data if item.HasField("data") else None
@@ -185,7 +186,7 @@ class Api:
             if raw:
                 return text_response(answer.value)
             return json_response({"service": service, "path": path, "value": answer.value})
-        media_type = await MediaTypes(self.calls, subject).of(service, path)
+        media_type = await MediaTypes(self.calls).of(service, path)
         if raw or accepts_raw(request, media_type):
             return raw_response(answer.data, media_type)
         return json_response({"service": service, "path": path, **value_json("", answer.data, media_type)})
@@ -220,29 +221,38 @@ class Api:
             return json_response({"service": service, "path": path, "value": answer.value})
         media_type = binary.media_type if binary is not None else ""
         if not media_type:
-            media_type = await MediaTypes(self.calls, subject).of(service, path)
+            media_type = await MediaTypes(self.calls).of(service, path)
         return json_response({"service": service, "path": path, **value_json("", answer.data, media_type)})
 
     async def raw_limit(self, request: web.Request) -> int | None:
         """The most bytes a raw Set of the request's property may carry; None when that is not known
-        (no such property, not binary, a model that cannot be read: the Set itself says why)."""
+        (a caller who may not set it, no such property, not binary, a model that cannot be read:
+        the Set itself says why)."""
         service = request.match_info.get("service", "")
         path = request.match_info.get("path", "")
         try:
-            subject = identify(request, self.guard, always=True)
-            return max_size(await self._binary_property(service, path, subject))
+            if not self._may_set(identify(request, self.guard, always=True), service, path):
+                return None
+            prop = await property_model(self.calls, service, path)
         except PropertyError:
             return None
+        return max_size(prop) if prop.type == "bytes" else None
+
+    def _may_set(self, subject: Subject, service: str, path: str) -> bool:
+        """Whether the rules let ``subject`` write ``path`` or invoke it (the model tells which it is)."""
+        guard = self.guard
+        return guard.may(subject, service, path, Operation.WRITE) or guard.may(
+            subject, service, path, Operation.INVOKE
+        )
 
     async def _binary_property(
         self, service: str, path: str, subject: Subject, content_type: str | None = None
     ) -> PropertyModel:
         """The model of ``path``, a binary property; InvalidArgument when it is not one, or when
         ``content_type`` (a raw Set's) is neither its media type nor application/octet-stream."""
-        model = await self.calls.describe(service, self.calls.timeout, subject)
-        prop = next((p for p in model.properties if p.name == path), None)
-        if prop is None:
-            raise NotFound(f"{service} has no property `{path}` in its model")
+        if not self._may_set(subject, service, path):
+            self.guard.require(subject, service, path, Operation.WRITE)  # refused, named and audited
+        prop = await property_model(self.calls, service, path)
         if prop.type != "bytes":
             raise InvalidArgument(
                 f"{service}/{path} is not a binary property (its type is {prop.type}): send"

@@ -26,9 +26,9 @@ from typing import Any
 from aiohttp import hdrs, web
 
 from gateway.calls import Calls
-from gateway.rules import Subject
-from services.errors import InvalidArgument, PropertyError
-from services.model import PropertyModel
+from gateway.router import bounded_call
+from services.errors import InvalidArgument, NotFound, PropertyError
+from services.model import PropertyModel, ServiceModel
 
 log = logging.getLogger(__name__)
 
@@ -125,11 +125,12 @@ class MediaTypes:
     Each event stream holds one, so that a model is read once per service it sees binary values
     of, not per event; a path its service's model does not list (or a model that cannot be read)
     is ``application/octet-stream``. At most ``limit`` paths are kept (beyond, it starts afresh).
+    It is asked only about values the caller has just been allowed to read, so the model is read
+    without a rule check of its own.
     """
 
-    def __init__(self, calls: Calls, subject: Subject, limit: int = 10_000) -> None:
+    def __init__(self, calls: Calls, limit: int = 10_000) -> None:
         self.calls = calls
-        self.subject = subject
         self.limit = limit
         self.known: dict[tuple[str, str], str] = {}
 
@@ -147,7 +148,7 @@ class MediaTypes:
         if len(self.known) >= self.limit:
             self.known.clear()
         try:
-            model = await self.calls.describe(service, self.calls.timeout, self.subject)
+            model = await service_model(self.calls, service)
         except PropertyError as exc:
             log.debug("media types of %s unknown: %s", service, exc.message)
             return
@@ -158,3 +159,20 @@ class MediaTypes:
 def binary_properties(properties: Iterable[PropertyModel]) -> Iterable[PropertyModel]:
     """The properties of a model whose values are bytes."""
     return (p for p in properties if p.type == "bytes")
+
+
+async def service_model(calls: Calls, service: str) -> ServiceModel:
+    """``service``'s model, read through the router with the call time limit and no rule check:
+    the callers check the property itself first (a caller may read ``cam1/frame`` without being
+    allowed to read the whole service)."""
+    backend = calls.router.backend(service)
+    return await bounded_call(backend.describe(), calls.timeout, lambda: f"{service}: describe")
+
+
+async def property_model(calls: Calls, service: str, path: str) -> PropertyModel:
+    """The model of ``service``'s ``path`` (see :func:`service_model`); NotFound when it lists none."""
+    model = await service_model(calls, service)
+    found = next((p for p in model.properties if p.name == path), None)
+    if found is None:
+        raise NotFound(f"{service} has no property `{path}` in its model")
+    return found

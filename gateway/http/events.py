@@ -171,7 +171,7 @@ class EventStreams:
         await response.prepare(request)
         resumed = hdrs.LAST_EVENT_ID in request.headers
         snapshot = True
-        media_types = MediaTypes(self.calls, subject)
+        media_types = MediaTypes(self.calls)
         try:
             async with aclosing(responses(stream, wake)) as ready:
                 async for answer in ready:

@@ -29,16 +29,17 @@ from aiohttp import hdrs, web
 from gateway.calls import Calls
 from gateway.config import HttpSection, Limits
 from gateway.guard import Guard
-from gateway.http.binary import OCTET_STREAM, RAW_HEADERS, served_type
+from gateway.http.binary import OCTET_STREAM, RAW_HEADERS, property_model, served_type
 from gateway.http.bodies import query_parameters
 from gateway.http.errors import error_response
 from gateway.http.places import StreamPlaces, too_many
 from gateway.http.safety import identify
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.listen.drain import Wake, responses
+from gateway.rules import Operation
 from gateway.status import to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.errors import InvalidArgument, NotFound, PropertyError, ResourceExhausted
+from services.errors import InvalidArgument, PropertyError, ResourceExhausted
 from services.paths import WILDCARD, is_pattern, validate_path
 
 log = logging.getLogger(__name__)
@@ -94,10 +95,9 @@ class ImageStreams:
         validate_path(path)
         parameters = query_parameters(request.query)
         subject = identify(request, self.guard)
-        model = await self.calls.describe(service, self.calls.timeout, subject)
-        prop = next((p for p in model.properties if p.name == path), None)
-        if prop is None:
-            raise NotFound(f"{service} has no property `{path}` in its model")
+        # The property first (a caller may read it without being allowed the whole service's model).
+        self.guard.require(subject, service, path, Operation.READ)
+        prop = await property_model(self.calls, service, path)
         if prop.type != "bytes":
             raise InvalidArgument(
                 f"{service}/{path} is not a binary property (its type is {prop.type}): follow it with"

@@ -10,12 +10,14 @@ import base64
 import contextlib
 import itertools
 import socket
+import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
 import aiohttp
 import grpc
+import jwt
 import pytest
 from support.board import BOARD_TYPE
 from support.frames import FRAMES_TYPE, SNAPSHOT_MAX, frame_png, solid_png
@@ -424,3 +426,65 @@ async def test_the_frames_are_the_cameras_own(stub: pb_grpc.PropertyServiceStub)
     frame = await eventually(latest, lambda data: data.startswith(PNG_SIGNATURE))
     count = int((await stub.Get(pb.GetRequest(service="cam", property="count"), timeout=10)).value)
     assert frame in frames_up_to(count + 1)
+
+
+# -- rules -----------------------------------------------------------------------------------------
+
+SECRET = "a shared secret of the lab, long enough for HS256"
+RULES = f"""
+[auth]
+jwt_secret_file = "jwt.secret"
+issuer = "lab"
+
+[[services]]
+name = "cam"
+type = "{FRAMES_TYPE}"
+options = {{ rate_hz = 20.0 }}
+
+[[rules]]
+subject = "viewer"
+service = "cam"
+path = "camera.frame"
+operations = ["read"]
+effect = "permit"
+
+[[rules]]
+subject = "editor"
+service = "cam"
+path = "snapshot"
+operations = ["read", "write"]
+effect = "permit"
+"""
+
+
+def bearer(subject: str) -> dict[str, str]:
+    claims = {"sub": subject, "iss": "lab", "exp": int(time.time()) + 600}
+    return {"Authorization": f"Bearer {jwt.encode(claims, SECRET, algorithm='HS256')}"}
+
+
+async def test_the_rules_decide_on_the_property_not_the_whole_service(
+    gateway_process: StartGateway, tmp_path: Path
+) -> None:
+    """A caller allowed one binary property (and not the service's model) streams, reads and sets it
+    with its media type; one allowed nothing is refused before any part or any byte is read."""
+    (tmp_path / "jwt.secret").write_text(SECRET)
+    gw = gateway_process(RULES)
+    picture = solid_png(3, 3, (5, 6, 7))
+    async with aiohttp.ClientSession(base_url=gw.http_url) as session:
+        async with session.get(prop("cam", "camera.frame") + "/stream", headers=bearer("viewer")) as r:
+            assert r.status == 200
+            part = await PartReader(r.content, boundary_of(r.headers["Content-Type"])).next()
+            assert part is not None and part.body.startswith(PNG_SIGNATURE)
+        async with session.get(prop("cam", "camera.frame"), headers=bearer("viewer")) as r:
+            assert (await r.json())["media_type"] == "image/png"
+        async with session.get(prop("cam", "snapshot") + "/stream", headers=bearer("viewer")) as r:
+            assert r.status == 403
+        headers = {**bearer("editor"), "Content-Type": "image/png"}
+        async with session.put(prop("cam", "snapshot"), data=picture, headers=headers) as r:
+            assert r.status == 200, await r.text()
+        async with session.get(prop("cam", "snapshot") + "?raw=1", headers=bearer("editor")) as r:
+            assert r.headers["Content-Type"] == "image/png" and await r.read() == picture
+        headers = {**bearer("viewer"), "Content-Type": "image/png"}
+        async with session.put(prop("cam", "snapshot"), data=picture, headers=headers) as r:
+            assert r.status == 403
+            assert (await error_of(r))["code"] == "PERMISSION_DENIED"
