@@ -27,6 +27,7 @@ from support.multipart import Part, PartReader, boundary_of
 from support.sse import SseReader
 from support.waiting import eventually
 
+from bench import image_stream as image_stream_bench
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
@@ -488,3 +489,11 @@ async def test_the_rules_decide_on_the_property_not_the_whole_service(
         async with session.put(prop("cam", "snapshot"), data=picture, headers=headers) as r:
             assert r.status == 403
             assert (await error_of(r))["code"] == "PERMISSION_DENIED"
+
+
+async def test_the_image_stream_bench_runs() -> None:
+    """``python -m bench.image_stream`` at a small size: every reader gets parts, the figures are there."""
+    result = await image_stream_bench.run(readers=2, rate=20.0, frame_bytes=1000, seconds=0.5)
+    assert result["readers"] == 2 and result["made_per_s"] > 0
+    assert result["frames_per_s_per_reader"]["min"] > 0
+    assert {"gateway_cpu_of_one_core", "conflated", "mbytes_per_s"} <= set(result)
