@@ -497,3 +497,48 @@ async def test_the_image_stream_bench_runs() -> None:
     assert result["readers"] == 2 and result["made_per_s"] > 0
     assert result["frames_per_s_per_reader"]["min"] > 0
     assert {"gateway_cpu_of_one_core", "conflated", "mbytes_per_s"} <= set(result)
+
+
+async def test_a_reader_that_reads_nothing_is_cut_after_the_write_timeout(
+    gateway_process: StartGateway,
+) -> None:
+    """A 25 Hz camera of 197 KB frames and a client that never reads: once a write has waited
+    ``http.write_timeout`` the gateway drops the connection (logged), and another reader goes on."""
+    gw = gateway_process(
+        f'[[services]]\nname = "cam"\ntype = "{FRAMES_TYPE}"\n'
+        "options = { rate_hz = 25.0, width = 256, height = 256, noisy = true }\n"
+        "[http]\nwrite_timeout = 1.0\n"
+    )
+    host, port = gw.http_address.rsplit(":", 1)
+    stalled = socket.socket()
+    stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    stalled.connect((host, int(port)))
+    request = f"GET {prop('cam', 'camera.frame')}/stream HTTP/1.1\r\nHost: {gw.http_address}\r\n\r\n"
+    stalled.sendall(request.encode())
+    try:
+
+        async def output() -> str:
+            return gw.output
+
+        await eventually(output, lambda out: "http.write_timeout" in out, within=30)
+        assert "image stream to 127.0.0.1 ended" in gw.output
+        assert "Traceback" not in gw.output
+        async with (
+            aiohttp.ClientSession(base_url=gw.http_url) as session,
+            session.get(prop("cam", "camera.frame") + "/stream") as r,
+        ):
+            part = await PartReader(r.content, boundary_of(r.headers["Content-Type"])).next()
+            assert part is not None and part.body.startswith(PNG_SIGNATURE)
+        # The cut connection comes to its end: what was buffered, then EOF (or a reset).
+        stalled.setblocking(False)
+        loop = asyncio.get_running_loop()
+        async with asyncio.timeout(20):
+            while True:
+                try:
+                    chunk = await loop.sock_recv(stalled, 1 << 20)
+                except ConnectionResetError:
+                    break
+                if not chunk:
+                    break
+    finally:
+        stalled.close()
