@@ -384,10 +384,11 @@ async def _ls(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> i
     return EXIT_OK
 
 
-async def _media_type(client: AsyncClient, service: str, path: str) -> str:
-    """``PATH.media_type`` of a binary property; "" when the service does not say."""
+async def _media_type(client: AsyncClient, service: str, path: str, params: dict[str, str]) -> str:
+    """``PATH.media_type`` of a binary property (asked with the request's parameters: a storage
+    service's ``blob`` names its type by the file's ``name``); "" when the service does not say."""
     try:
-        media = await client.get(service, f"{path}.media_type")
+        media = await client.get(service, f"{path}.media_type", **params)
     except PropertyServiceError:
         return ""
     return media if isinstance(media, str) else ""
@@ -423,10 +424,12 @@ def _write_output(name: str, value: Value) -> int:
     return len(data)
 
 
-async def _print_binary(client: AsyncClient, service: str, path: str, value: bytes) -> None:
+async def _print_binary(
+    client: AsyncClient, service: str, path: str, params: dict[str, str], value: bytes
+) -> None:
     """A binary value without --output: to a pipe or a file as it is, never to a terminal."""
     if sys.stdout.isatty():
-        media = await _media_type(client, service, path)
+        media = await _media_type(client, service, path, params)
         kind = f" of {media}" if media else ""
         raise _UsageError(
             f"{service} {path} is binary ({len(value)} bytes{kind}): not written to a terminal; "
@@ -472,7 +475,7 @@ async def _get(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> 
     elif len(paths) == 1:
         value = values[0]
         if isinstance(value, bytes):
-            await _print_binary(client, service, paths[0], value)
+            await _print_binary(client, service, paths[0], params, value)
         else:
             _out(value)
     else:

@@ -272,7 +272,7 @@ async def test_sizes_binary_and_read_only(gateway_process: StartGateway, tmp_pat
         with pytest.raises(ResourceExhausted, match="5000 bytes"):
             await c.get("files", "file", name="huge.log")
         (store / "photo.jpg").write_bytes(b"\xff\xd8\xff\xe0 not text")
-        with pytest.raises(FailedPrecondition, match="read it as bytes with `blob`.*image/jpeg"):
+        with pytest.raises(FailedPrecondition, match=r"read it as bytes with `blob`.*image/jpeg"):
             await c.get("files", "file", name="photo.jpg")
         assert await c.get("files", "blob", name="photo.jpg") == b"\xff\xd8\xff\xe0 not text"
         with pytest.raises(ResourceExhausted, match="1001 bytes, over the limit of 1000"):

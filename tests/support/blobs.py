@@ -7,18 +7,49 @@ Named in a config by import path (``support.blobs:Blobs``, with ``tests/`` on ``
 * ``note``: text, as every property before binary values;
 * ``frame``: read-only bytes, ``image/jpeg``, renewed ``rate_hz`` times a second with
   ``frame_bytes`` bytes once ``stream`` is set to true (a fast, large, changing binary value);
-* ``checksum`` (query): the length and CRC-32 of the bytes a Set of ``digest`` stored;
+* ``checksum`` (query): the length and CRC-32 of ``picture``;
+* ``big`` (query): ``size`` zero bytes (an answer bigger than a message can carry);
 * ``echo`` (action): answers the bytes it is given, reversed.
+
+:func:`start_blobs` starts a real gateway process serving it as ``blobs``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
+import sys
 import zlib
-from typing import Annotated
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
 
 from services.core import Prop, Resource, action, query
+
+if TYPE_CHECKING:
+    from support.gateway_process import GatewayProcess
+
+#: The config serving :class:`Blobs` as ``blobs``.
+BLOBS_CONFIG = '[[services]]\nname = "blobs"\ntype = "support.blobs:Blobs"\n'
+
+
+def start_blobs(tmp: Path, config: str = BLOBS_CONFIG, *extra_args: str) -> GatewayProcess:
+    """A ready gateway process serving ``config`` (by default :class:`Blobs` as ``blobs``), with
+    ``tests/`` on its import path; the caller stops it."""
+    # Imported here: the gateway process imports this module for the class alone.
+    from support.gateway_process import ROOT, GatewayProcess
+
+    path = tmp / f"blobs-{len(list(tmp.glob('blobs-*.toml')))}.toml"
+    path.write_text(config)
+    args = [sys.executable, "-m", "gateway.cli", "serve", "--config", str(path), "--listen", "127.0.0.1:0"]
+    env = {"PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), str(ROOT)])}
+    gw = GatewayProcess([*args, *extra_args], env=env)
+    try:
+        gw.wait_ready()
+    except BaseException:
+        gw.stop()
+        raise
+    return gw
 
 
 class Blobs(Resource):
@@ -60,6 +91,11 @@ class Blobs(Resource):
     def checksum(self) -> str:
         """The length and CRC-32 of ``picture``."""
         return f"({len(self.picture)} {zlib.crc32(self.picture)})"
+
+    @query
+    def big(self, size: int = 0) -> bytes:
+        """``size`` zero bytes."""
+        return bytes(size)
 
     @action
     def echo(self, data: Annotated[bytes, Prop(media_type="application/octet-stream")]) -> bytes:
