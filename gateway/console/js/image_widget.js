@@ -17,6 +17,9 @@ export function rawUrl(service, path) {
   return `${API_BASE}/services/${encodeURIComponent(service)}/properties/${encodeURIComponent(path)}?raw=1`;
 }
 
+/** Pictures narrower than this many pixels are drawn larger, pixel for pixel (class `small`). */
+export const SMALL_WIDTH = 160;
+
 /** HTTP statuses after which trying again is pointless (the request itself is wrong or refused). */
 const FINAL_STATUSES = new Set([400, 401, 403, 404, 405, 413]);
 
@@ -134,6 +137,8 @@ export function imageWidget(prop, ctx) {
   let last = { frames: 0, bytes: 0, type: '' };
   const show = () => {
     caption.textContent = frameCaption({ ...last, width: img.naturalWidth, height: img.naturalHeight });
+    // A small picture (a grid layer's heat map, a cell a pixel) is drawn larger, cells kept sharp.
+    img.classList.toggle('small', img.naturalWidth > 0 && img.naturalWidth < SMALL_WIDTH);
   };
   img.addEventListener('load', show);
   const stream = new FrameStream(streamUrl(ctx.service, prop.name), {
