@@ -38,7 +38,7 @@ from gateway.rules import Operation, Subject
 from gateway.sizes import MAX_BINARY_SIZE
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import InvalidArgument, NotFound, PropertyError, ResourceExhausted
-from services.model import ParameterModel, PropertyModel, ServiceModel
+from services.model import Access, ParameterModel, PropertyModel, ServiceModel
 from services.paths import WILDCARD
 from services.values import parse_names, parse_vector
 
@@ -236,7 +236,7 @@ class Api:
             prop = await property_model(self.calls, service, path)
         except PropertyError:
             return None
-        return max_size(prop) if prop.type == "bytes" else None
+        return max_size(prop) if takes_bytes(prop) else None
 
     def _may_set(self, subject: Subject, service: str, path: str) -> bool:
         """Whether the rules let ``subject`` write ``path`` or invoke it (the model tells which it is)."""
@@ -253,9 +253,10 @@ class Api:
         if not self._may_set(subject, service, path):
             self.guard.require(subject, service, path, Operation.WRITE)  # refused, named and audited
         prop = await property_model(self.calls, service, path)
-        if prop.type != "bytes":
+        if not takes_bytes(prop):
+            kind = prop.value.type if prop.value is not None else prop.type
             raise InvalidArgument(
-                f"{service}/{path} is not a binary property (its type is {prop.type}): send"
+                f"{service}/{path} is not a binary property (it takes {kind}): send"
                 f' Content-Type: {JSON_TYPE} with {{"value": TEXT}}'
             )
         media_type = essence(prop.media_type or OCTET_STREAM)
@@ -265,6 +266,13 @@ class Api:
                 f' bytes), or {JSON_TYPE} ({{"data": BASE64}}), not {content_type[:100]!r}'
             )
         return prop
+
+
+def takes_bytes(prop: PropertyModel) -> bool:
+    """Whether a Set of ``prop`` carries bytes: a binary property, or an action or query whose value is."""
+    if prop.access in (Access.ACTION, Access.QUERY):
+        return prop.value is not None and prop.value.type == "bytes"
+    return prop.type == "bytes"
 
 
 def max_size(prop: PropertyModel) -> int:

@@ -171,6 +171,15 @@ async def test_a_json_set_of_base64_writes_the_bytes(
     assert await grpc_data(stub, "cam", "snapshot") == picture
 
 
+async def test_an_action_that_takes_bytes_takes_them_raw_or_in_base64(http: aiohttp.ClientSession) -> None:
+    headers = {"Content-Type": "application/octet-stream"}
+    async with http.post(prop("cam", "weigh"), data=b"\x07" * 300, headers=headers) as r:
+        assert r.status == 200, await r.text()
+        assert (await r.json())["value"] == "(300 7)"
+    async with http.post(prop("cam", "weigh"), json={"data": base64.b64encode(b"\x09\x00").decode()}) as r:
+        assert (await r.json())["value"] == "(2 9)"
+
+
 @pytest.mark.parametrize(
     ("body", "words"),
     [

@@ -4,9 +4,10 @@
 ``camera`` whose ``frame`` (bytes, ``image/png``, read-only) is a new picture ``rate_hz`` times a
 second while the service runs: :func:`frame_png` of the frame's number, a colour ramp that moves
 one column per frame (``noisy``: seeded noise, which zlib cannot shrink, for large frames).
-``snapshot`` is a writable binary property (``image/png``, at most ``SNAPSHOT_MAX`` bytes) for Sets;
-``unplug`` / ``plug`` (actions) detach and attach the camera, so that ``camera.frame`` goes away
-and comes back. ``count`` is how many frames were made.
+``snapshot`` is a writable binary property (``image/png``, at most ``SNAPSHOT_MAX`` bytes) for
+Sets; ``weigh`` (an action) takes bytes and answers their count and first byte; ``unplug`` and
+``plug`` (actions) detach and attach the camera, so that ``camera.frame`` goes away and comes
+back. ``count`` is how many frames were made.
 """
 
 from __future__ import annotations
@@ -110,6 +111,11 @@ class FrameSource(Resource):
     def count(self) -> int:
         """Frames made so far."""
         return self._camera._count
+
+    @action
+    def weigh(self, data: bytes) -> str:
+        """How many bytes were given, and their first one (an action that takes bytes)."""
+        return f"({len(data)} {data[0] if data else -1})"
 
     @action
     def unplug(self) -> str:
