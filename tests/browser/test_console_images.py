@@ -122,3 +122,28 @@ def test_a_picture_set_from_a_file_on_the_page(
     raw = console_gateway.url + "api/v1/services/cam1/properties/snapshot?raw=1"
     with urllib.request.urlopen(raw, timeout=10) as answer:
         assert answer.read() == picture, "the gateway holds the file's bytes"
+
+
+def test_a_plain_img_shows_the_stream_route_and_a_raw_read(page: Any) -> None:
+    """What docs/http-api.md promises a page of the gateway's own origin: `<img src=".../stream">`
+    (multipart/x-mixed-replace) and `<img src="...?raw=1">` both decode."""
+    page.execute_script(
+        """for (const [id, src] of [['plain-stream', '/api/v1/services/cam1/properties/camera.frame/stream'],
+                                   ['plain-raw', '/api/v1/services/cam1/properties/camera.frame?raw=1']]) {
+             const img = document.createElement('img');
+             img.id = id;
+             img.src = src;
+             document.body.append(img);
+           }"""
+    )
+    for element in ("plain-stream", "plain-raw"):
+        wait_for(
+            page,
+            lambda d, e=element: (
+                d.execute_script(f"return document.getElementById('{e}').naturalWidth") == 160
+            ),
+            f"#{element} decoded",
+        )
+    page.execute_script(
+        "for (const id of ['plain-stream', 'plain-raw']) document.getElementById(id)?.remove()"
+    )
