@@ -46,8 +46,8 @@ examples:
   psctl get swarm 'robots.*.location'         every match of a pattern, "path = value" lines
   psctl get registry find -p type=sensor      with a request parameter
   psctl set scout1 behaviors.moveto '<marker><location>(2 1 0 0 0 0)</location></marker>'
-  psctl get cam1 frame --output frame.jpg     a binary value (type bytes) into a file
-  psctl set store blob -p name=a.png --file a.png    a file's bytes (or: ... blob @a.png)
+  psctl set files blob -p name=copy.md --file README.md   a file's bytes (or: ... blob @README.md)
+  psctl get files blob -p name=copy.md --output -         a binary value (type bytes); -o FILE: into FILE
   psctl listen thermo1 data --count 10        ten readings of the sensor (it changes by itself)
   psctl listen scout1 location --duration 5   scout1's pose for five seconds
   psctl listen scout1 location --also scout2:location --min-interval 0.1 --duration 5

@@ -233,8 +233,9 @@ class Calls:
     ) -> pb.SetResponse:
         """Write the request's value; the response carries the service's answer."""
         response = pb.SetResponse()
-        # A service method that returns nothing answers an empty value.
-        put(response, await outcome(self.start_set(request, time_limit, subject)) or "")
+        answer = await outcome(self.start_set(request, time_limit, subject))
+        # A service method that returns nothing answers an empty value (empty bytes stay binary).
+        put(response, "" if answer is None else answer)
         check_fits(response, lambda: f"{request.service}: set {request.property}")
         return response
 

@@ -318,7 +318,10 @@ class MemberTarget(Target):
         value_param = member.value_param
         if value_param is None:
             if value:
-                shown = loggable(value) if len(value) <= 40 else loggable(value[:40]) + "..."
+                if isinstance(value, bytes):
+                    shown = loggable(value)
+                else:
+                    shown = value if len(value) <= 40 else value[:40] + "..."
                 raise InvalidArgument(
                     f"bad value for `{self.path}`: it takes no value (got {shown!r}); Set it to ''"
                 )

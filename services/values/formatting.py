@@ -32,6 +32,9 @@ def format_value(obj: Any) -> str:
 def format_result(obj: Any) -> str | bytes:
     """A property's value or a method's answer as it travels: bytes (a binary value) as they
     are, anything else as :func:`format_value` writes it."""
-    if isinstance(obj, bytes | bytearray | memoryview):
+    cls = type(obj)
+    if cls is bytes:
+        return obj  # type: ignore[no-any-return]
+    if cls is not str and cls is not float and isinstance(obj, bytes | bytearray | memoryview):
         return bytes(obj)
     return format_value(obj)

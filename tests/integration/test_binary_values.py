@@ -79,6 +79,8 @@ async def test_unary_get_and_set_carry_the_bytes_in_data(stub: pb_grpc.PropertyS
         pb.SetRequest(service="blobs", property="echo", data=b"\x00\x01\xff"), timeout=WAIT
     )
     assert echoed.data == b"\xff\x01\x00"
+    empty_answer = await stub.Set(pb.SetRequest(service="blobs", property="echo", data=b""), timeout=WAIT)
+    assert empty_answer.HasField("data") and empty_answer.data == b""  # empty, and still binary
     checksum = await stub.Get(pb.GetRequest(service="blobs", property="checksum"), timeout=WAIT)
     assert checksum.value.startswith(f"({len(EVERY_BYTE)} ")
 
