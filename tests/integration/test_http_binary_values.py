@@ -551,3 +551,20 @@ async def test_a_reader_that_reads_nothing_is_cut_after_the_write_timeout(
                     break
     finally:
         stalled.close()
+
+
+async def test_a_stream_ends_with_its_closing_boundary_when_the_gateway_stops(
+    gateway_process: StartGateway,
+) -> None:
+    gw = gateway_process(f'[[services]]\nname = "cam"\ntype = "{FRAMES_TYPE}"\n')
+    async with (
+        aiohttp.ClientSession(base_url=gw.http_url) as session,
+        session.get(prop("cam", "camera.frame") + "/stream") as r,
+    ):
+        reader = PartReader(r.content, boundary_of(r.headers["Content-Type"]))
+        assert await reader.next() is not None
+        stopped = asyncio.get_running_loop().run_in_executor(None, gw.stop)
+        while (part := await reader.next()) is not None:
+            assert part.body.startswith(PNG_SIGNATURE)
+        assert await stopped == 0
+    assert "Traceback" not in gw.output
