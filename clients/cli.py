@@ -307,10 +307,14 @@ def _table(rows: list[list[str]]) -> None:
 
 
 def _type_text(prop: PropertyModel) -> str:
+    if prop.media_type:
+        return f"{prop.type}({prop.media_type})"
     return f"{prop.type}[{prop.length}]" if prop.length else prop.type
 
 
 def _range_text(prop: PropertyModel) -> str:
+    if prop.max_size:
+        return f"at most {prop.max_size} bytes"
     if prop.choices:
         return "|".join(prop.choices)
     if prop.minimum is None and prop.maximum is None:
@@ -336,6 +340,8 @@ def _property_json(prop: PropertyModel) -> dict[str, Any]:
         "choices": list(prop.choices),
         "doc": prop.doc,
         "gui": prop.gui,
+        "media_type": prop.media_type,
+        "max_size": prop.max_size,
         "value": None if prop.value is None else {"name": prop.value.name, **_parameter_json(prop.value)},
         "parameters": {p.name: _parameter_json(p) for p in prop.parameters},
     }

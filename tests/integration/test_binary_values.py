@@ -385,6 +385,15 @@ def test_psctl_writes_a_binary_value_into_a_file_and_sends_a_files_bytes(
     assert base64.b64decode(as_json["data"]) == EVERY_BYTE and "value" not in as_json
 
 
+def test_psctl_shows_the_model_of_a_binary_property(gateway: GatewayProcess) -> None:
+    table = psctl(gateway.address, "ls", "-l", "blobs").stdout.splitlines()
+    picture = next(line.split() for line in table if line.startswith("picture "))
+    assert picture[:5] == ["picture", "bytes(image/png)", "read-write", "-", "at"]
+    rows = {r["name"]: r for r in json.loads(psctl(gateway.address, "--json", "ls", "-l", "blobs").stdout)}
+    assert (rows["picture"]["media_type"], rows["picture"]["max_size"]) == ("image/png", 8 * 1024 * 1024)
+    assert (rows["note"]["media_type"], rows["note"]["max_size"]) == ("", 0)
+
+
 def test_psctl_refuses_to_dump_a_binary_value_on_a_terminal(gateway: GatewayProcess) -> None:
     with Client(gateway.address, timeout=WAIT) as client:
         client.set("blobs", "picture", EVERY_BYTE)
