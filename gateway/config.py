@@ -160,13 +160,15 @@ class HttpSection:
     listen: str = ""
     #: Serve the static browser console (``gateway/console/``) at ``/``.
     console: bool = True
-    #: Most bytes of a request body; beyond, 413.
+    #: Most bytes of a JSON request body; beyond, 413 (a binary property's raw bytes are bounded
+    #: by its own ``max_size`` instead).
     max_body: int = DEFAULT_HTTP_MAX_BODY
-    #: Server-Sent-Events streams open at once; beyond, 503. An idle stream costs about 13 KiB of
-    #: gateway memory (bench/sse.py, docs/performance.md), so 4,096 of them about 52 MiB.
+    #: Server-Sent-Events and live image streams open at once; beyond, 503. An idle event stream
+    #: costs about 13 KiB of gateway memory (bench/sse.py, docs/performance.md), so 4,096 of them
+    #: about 52 MiB.
     max_streams: int = 4096
-    #: Server-Sent-Events streams one client address may hold at once; beyond, 429 (one client
-    #: cannot take every place).
+    #: Server-Sent-Events and live image streams one client address may hold at once; beyond,
+    #: 429 (one client cannot take every place).
     max_streams_per_client: int = 64
     #: Seconds one write to an event stream may wait for the client to read; beyond, the
     #: stream ends (a client that reads nothing for that long is gone).

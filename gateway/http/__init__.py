@@ -3,6 +3,9 @@
 * :mod:`~gateway.http.front` — :class:`HttpFront`: the aiohttp application, start and stop.
 * :mod:`~gateway.http.api` — the JSON routes: services, model, Get, Set, health.
 * :mod:`~gateway.http.events` — Listen as Server-Sent Events.
+* :mod:`~gateway.http.image_stream` — a binary property live, as ``multipart/x-mixed-replace``.
+* :mod:`~gateway.http.places` — the bound on open event and image streams.
+* :mod:`~gateway.http.binary` — binary values: base64 in JSON, raw answers, media types.
 * :mod:`~gateway.http.console` — the browser console's files.
 * :mod:`~gateway.http.bodies` — request bodies and parameters, checked.
 * :mod:`~gateway.http.safety` — Origin, Host and Content-Type checks; identity.

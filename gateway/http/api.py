@@ -1,5 +1,10 @@
 """The JSON routes: services, a service's model, Get (with wildcards), Set, health.
 
+A binary value is JSON ``{"data": BASE64, "media_type": TYPE}`` where text is ``{"value": TEXT}``;
+``?raw=1`` (or ``Accept`` naming the media type) reads its bytes, and a Set with the property's
+media type (or ``application/octet-stream``) as its content type writes them
+(:mod:`gateway.http.binary`).
+
 Every call goes through the gateway's one call layer (:class:`gateway.calls.Calls`): the
 same router, time limits, rules, audit and size checks as a gRPC Get, Set or Describe.
 """
@@ -14,12 +19,26 @@ from aiohttp import web
 from gateway.calls import Calls, is_snapshot
 from gateway.config import REGISTRY_NAME
 from gateway.guard import Guard
-from gateway.http.bodies import parse_set_body, query_parameters
+from gateway.http.binary import (
+    OCTET_STREAM,
+    RAW_KEY,
+    MediaTypes,
+    accepts_raw,
+    essence,
+    property_model,
+    raw_asked,
+    raw_response,
+    text_response,
+    value_json,
+)
+from gateway.http.bodies import BodyTooLarge, SetBody, parse_set_body, query_parameters, read_body
 from gateway.http.errors import PAYLOAD_TOO_LARGE, error_response
-from gateway.http.safety import identify
+from gateway.http.safety import JSON_TYPE, identify
+from gateway.rules import Operation, Subject
+from gateway.sizes import MAX_BINARY_SIZE
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import InvalidArgument, NotFound, PropertyError, ResourceExhausted
-from services.model import ParameterModel, PropertyModel, ServiceModel
+from services.model import Access, ParameterModel, PropertyModel, ServiceModel
 from services.paths import WILDCARD
 from services.values import parse_names, parse_vector
 
@@ -63,6 +82,8 @@ def property_json(p: PropertyModel) -> dict[str, Any]:
         "length": p.length,
         "gui": _or_none(p.gui),
         "doc": _or_none(p.doc),
+        "media_type": _or_none(p.media_type),
+        "max_size": (p.max_size or MAX_BINARY_SIZE) if p.type == "bytes" else None,
         "value": parameter_json(p.value) if p.value is not None else None,
         "parameters": [parameter_json(q) for q in p.parameters],
     }
@@ -146,38 +167,129 @@ class Api:
     async def get(self, request: web.Request) -> web.Response:
         service = self._service(request)
         path = request.match_info["path"]
+        raw = raw_asked(request.query)
         subject = identify(request, self.guard)
-        get = pb.GetRequest(service=service, property=path, parameters=query_parameters(request.query))
+        parameters = query_parameters(request.query, ignore=(RAW_KEY,))
+        get = pb.GetRequest(service=service, property=path, parameters=parameters)
         answer = await self.calls.get(get, self.calls.timeout, subject)
         if is_snapshot(get):
-            values = [{"path": item.property, "value": item.value} for item in answer.more]
+            if raw:
+                raise InvalidArgument("raw=1 reads one property: a path with '*' answers JSON only")
+            media_types = MediaTypes(self.calls)
+            values = []
+            for item in answer.more:
+                data = item.data if item.HasField("data") else None
+                media_type = await media_types.of(service, item.property) if data is not None else ""
+                values.append({"path": item.property, **value_json(item.value, data, media_type)})
             return json_response({"service": service, "path": path, "values": values})
-        return json_response({"service": service, "path": path, "value": answer.value})
+        if not answer.HasField("data"):
+            if raw:
+                return text_response(answer.value)
+            return json_response({"service": service, "path": path, "value": answer.value})
+        media_type = await MediaTypes(self.calls).of(service, path)
+        if raw or accepts_raw(request, media_type):
+            return raw_response(answer.data, media_type)
+        return json_response({"service": service, "path": path, **value_json("", answer.data, media_type)})
 
     async def set(self, request: web.Request) -> web.Response:
         service = self._service(request)
         path = request.match_info["path"]
-        length = request.content_length
-        if length is not None and length > self.max_body:
-            return body_too_large(length, self.max_body)
-        try:
-            raw = await request.read()
-        except web.HTTPRequestEntityTooLarge:
-            return body_too_large(None, self.max_body)
-        if request.query_string:
-            raise InvalidArgument('a Set takes its request parameters in the body: {"parameters": {...}}')
-        body = parse_set_body(raw)
         # Identified even when nothing is refused: the audit trail names who set what.
         subject = identify(request, self.guard, always=True)
-        set_request = pb.SetRequest(
-            service=service, property=path, value=body.value, parameters=body.parameters
-        )
+        binary: PropertyModel | None = None
+        if request.content_type == JSON_TYPE:
+            raw = await read_body(request, self.max_body, "http.max_body")
+            if request.query_string:
+                raise InvalidArgument('a Set takes its request parameters in the body: {"parameters": {...}}')
+            body = parse_set_body(raw)
+            if isinstance(body.value, bytes):
+                binary = await self._binary_property(service, path, subject)
+                _check_size(service, binary, len(body.value))
+        else:
+            # The raw bytes of a binary property: its media type (or octet-stream) says so, and
+            # the request parameters come in the query string (there is no JSON to carry them).
+            binary = await self._binary_property(service, path, subject, request.content_type)
+            data = await read_body(request, max_size(binary), f"the max_size of {service}/{path}")
+            body = SetBody(data, query_parameters(request.query))
+        set_request = pb.SetRequest(service=service, property=path, parameters=body.parameters)
+        if isinstance(body.value, bytes):
+            set_request.data = body.value
+        else:
+            set_request.value = body.value
         answer = await self.calls.set(set_request, self.calls.timeout, subject)
-        return json_response({"service": service, "path": path, "value": answer.value})
+        if not answer.HasField("data"):
+            return json_response({"service": service, "path": path, "value": answer.value})
+        media_type = binary.media_type if binary is not None else ""
+        if not media_type:
+            media_type = await MediaTypes(self.calls).of(service, path)
+        return json_response({"service": service, "path": path, **value_json("", answer.data, media_type)})
+
+    async def raw_limit(self, request: web.Request) -> int | None:
+        """The most bytes a raw Set of the request's property may carry; None when that is not known
+        (a caller who may not set it, no such property, not binary, a model that cannot be read:
+        the Set itself says why)."""
+        service = request.match_info.get("service", "")
+        path = request.match_info.get("path", "")
+        try:
+            if not self._may_set(identify(request, self.guard, always=True), service, path):
+                return None
+            prop = await property_model(self.calls, service, path)
+        except PropertyError:
+            return None
+        return max_size(prop) if takes_bytes(prop) else None
+
+    def _may_set(self, subject: Subject, service: str, path: str) -> bool:
+        """Whether the rules let ``subject`` write ``path`` or invoke it (the model tells which it is)."""
+        guard = self.guard
+        return guard.may(subject, service, path, Operation.WRITE) or guard.may(
+            subject, service, path, Operation.INVOKE
+        )
+
+    async def _binary_property(
+        self, service: str, path: str, subject: Subject, content_type: str | None = None
+    ) -> PropertyModel:
+        """The model of ``path``, a binary property; InvalidArgument when it is not one, or when
+        ``content_type`` (a raw Set's) is neither its media type nor application/octet-stream."""
+        if not self._may_set(subject, service, path):
+            self.guard.require(subject, service, path, Operation.WRITE)  # refused, named and audited
+        prop = await property_model(self.calls, service, path)
+        if not takes_bytes(prop):
+            kind = prop.value.type if prop.value is not None else prop.type
+            raise InvalidArgument(
+                f"{service}/{path} is not a binary property (it takes {kind}): send"
+                f' Content-Type: {JSON_TYPE} with {{"value": TEXT}}'
+            )
+        media_type = essence(prop.media_type or OCTET_STREAM)
+        if content_type is not None and content_type not in (media_type, OCTET_STREAM):
+            raise InvalidArgument(
+                f"a Set of {service}/{path} takes Content-Type: {media_type} or {OCTET_STREAM} (its raw"
+                f' bytes), or {JSON_TYPE} ({{"data": BASE64}}), not {content_type[:100]!r}'
+            )
+        return prop
 
 
-def body_too_large(length: int | None, max_body: int) -> web.Response:
+def takes_bytes(prop: PropertyModel) -> bool:
+    """Whether a Set of ``prop`` carries bytes: a binary property, or an action or query whose value is."""
+    if prop.access in (Access.ACTION, Access.QUERY):
+        return prop.value is not None and prop.value.type == "bytes"
+    return prop.type == "bytes"
+
+
+def max_size(prop: PropertyModel) -> int:
+    """The most bytes a Set of binary ``prop`` may carry (its own bound, else the gateway's)."""
+    return prop.max_size or MAX_BINARY_SIZE
+
+
+def _check_size(service: str, prop: PropertyModel, size: int) -> None:
+    limit = max_size(prop)
+    if size > limit:
+        raise BodyTooLarge(
+            f"{service}/{prop.name}: the value is {size} bytes, more than its max_size ({limit} bytes)"
+        )
+
+
+def body_too_large(length: int | None, limit: int, bound: str = "http.max_body") -> web.Response:
     """413 RESOURCE_EXHAUSTED for a body of ``length`` bytes (None: found while reading it)."""
     size = f"{length} bytes, " if length is not None else ""
-    err = ResourceExhausted(f"the request body is {size}more than http.max_body ({max_body} bytes)")
+    err = ResourceExhausted(f"the request body is {size}more than {bound} ({limit} bytes)")
     return error_response(err, status=PAYLOAD_TOO_LARGE)

@@ -1,6 +1,7 @@
-"""What an HTTP request carries, checked: a Set's JSON body, request parameters, and JSON values.
+"""What an HTTP request carries, checked: a Set's body, request parameters, and JSON values.
 
-A Set's body is ``{"value": TEXT, "parameters": {"name": "text"}}``. Values travel as text
+A Set's body is ``{"value": TEXT, "parameters": {"name": "text"}}``, or for a binary property
+``{"data": BASE64, "parameters": {...}}`` (or the raw bytes, :mod:`gateway.http.api`). Values travel as text
 (the value grammar of ``services.values``); for convenience a JSON number, boolean or array
 is formatted into that grammar here (``1.5`` → ``1.5``, ``true`` → ``true``, ``[1, 2]`` →
 ``(1 2)``), so that ``{"value": 0.5}`` and ``{"value": "0.5"}`` are the same Set. Anything
@@ -14,21 +15,45 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from aiohttp import web
 from multidict import MultiMapping
 
-from services.errors import InvalidArgument
+from gateway.http.binary import decode_data
+from services.errors import InvalidArgument, ResourceExhausted
 from services.values import format_bool, format_list, format_number
 
-_SET_KEYS = ("value", "parameters")
+_SET_KEYS = ("value", "data", "parameters")
 _EXAMPLE = '{"value": "(1 0 0)", "parameters": {"frame": "robot"}}'
+#: Bytes of a request body read at a time.
+_CHUNK = 64 * 1024
+
+
+class BodyTooLarge(ResourceExhausted):
+    """A request body over its bound: RESOURCE_EXHAUSTED, answered 413 (the request is too large)."""
 
 
 @dataclass(frozen=True, slots=True)
 class SetBody:
-    """A Set's body: the value text and the request parameters."""
+    """A Set's body: the value (text, or bytes for a binary property) and the request parameters."""
 
-    value: str
+    value: str | bytes
     parameters: Mapping[str, str]
+
+
+async def read_body(request: web.Request, limit: int, bound: str) -> bytes:
+    """The whole body of ``request``, at most ``limit`` bytes; BodyTooLarge naming ``bound`` beyond
+    (at once when Content-Length announces more, else as soon as more has come)."""
+    length = request.content_length
+    if length is not None and length > limit:
+        raise BodyTooLarge(f"the request body is {length} bytes, more than {bound} ({limit} bytes)")
+    chunks = []
+    size = 0
+    async for chunk in request.content.iter_chunked(_CHUNK):
+        size += len(chunk)
+        if size > limit:
+            raise BodyTooLarge(f"the request body is more than {bound} ({limit} bytes)")
+        chunks.append(chunk)
+    return b"".join(chunks)
 
 
 def value_text(value: Any, where: str) -> str:
@@ -64,10 +89,16 @@ def parse_set_body(body: bytes) -> SetBody:
         raise InvalidArgument(f"the body must be a JSON object like {_EXAMPLE}")
     unknown = [key for key in data if key not in _SET_KEYS]
     if unknown:
-        raise InvalidArgument(f"the body has an unknown key {unknown[0]!r} (known: value, parameters)")
-    if "value" not in data:
-        raise InvalidArgument(f"the body needs a 'value', like {_EXAMPLE}")
-    value = value_text(data["value"], "'value'")
+        raise InvalidArgument(f"the body has an unknown key {unknown[0]!r} (known: value, data, parameters)")
+    if "value" in data and "data" in data:
+        raise InvalidArgument("the body has both 'value' (text) and 'data' (base64 bytes): send one")
+    value: str | bytes
+    if "data" in data:
+        value = decode_data(data["data"])
+    elif "value" in data:
+        value = value_text(data["value"], "'value'")
+    else:
+        raise InvalidArgument(f"the body needs a 'value', like {_EXAMPLE} (or 'data', base64, for bytes)")
     raw = data.get("parameters", {})
     if raw is None:
         raw = {}

@@ -7,7 +7,8 @@ what :func:`gateway.listen.drain.responses` yields:
 
 * ``event: value`` with ``id: N`` (the stream's sequence) and ``data:`` a JSON object
   ``{"service", "path", "value", "gap", "removed", "conflated", "time"}``: first the current
-  value of every matched property, then ``event: sync`` (``data: {}``), then changes;
+  value of every matched property, then ``event: sync`` (``data: {}``), then changes; a binary
+  value has ``data`` (base64) and ``media_type`` instead of ``value`` (:mod:`gateway.http.binary`);
 * ``: heartbeat`` comment lines when the stream has been quiet for ``http.heartbeat`` seconds;
 * ``event: error`` (``data: {"code", "message"}``) when the Listen fails; the stream then ends.
 
@@ -19,8 +20,8 @@ stream's queue keeps only the latest value of each property. A write that waits 
 nothing for that long is gone.
 
 Bounds on open streams: ``http.max_streams`` in all (503 beyond) and
-``http.max_streams_per_client`` from one client address (429 beyond), so that one client
-cannot take every place.
+``http.max_streams_per_client`` from one client address (429 beyond), shared with the live
+image streams (:mod:`gateway.http.places`).
 """
 
 from __future__ import annotations
@@ -28,18 +29,22 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-from collections import Counter
+from collections.abc import Mapping
 from contextlib import aclosing
 
 from aiohttp import hdrs, web
 from google.protobuf.duration_pb2 import Duration
 
+from gateway.calls import Calls
 from gateway.config import HttpSection, Limits
 from gateway.guard import Guard
-from gateway.http.errors import TOO_MANY_REQUESTS, TOO_MANY_STREAMS, error_json, error_response
+from gateway.http.binary import OCTET_STREAM, MediaTypes, value_json
+from gateway.http.errors import error_json
+from gateway.http.places import StreamPlaces, too_many
 from gateway.http.safety import identify
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.listen.drain import Wake, responses
+from gateway.rules import Subject
 from gateway.status import to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import InvalidArgument, PropertyError, ResourceExhausted
@@ -68,26 +73,35 @@ def listen_request(selectors: list[str]) -> pb.ListenRequest:
     return pb.ListenRequest(service=first.service, property=first.property, more=refs[1:])
 
 
-def encode(response: pb.ListenResponse, gap: bool) -> bytes:
-    """One ListenResponse as SSE messages; ``gap`` marks every value (a resumed snapshot)."""
+def event_json(ev: pb.Event, gap: bool, media_type: str) -> dict[str, object]:
+    """One event as the JSON of its ``data:`` line: ``value``, or ``data`` and ``media_type`` when binary."""
+    item: dict[str, object] = {"service": ev.service, "path": ev.property}
+    item.update(value_json(ev.value, ev.data if ev.HasField("data") else None, media_type))
+    item.update(
+        gap=ev.gap or gap,
+        removed=ev.removed,
+        conflated=ev.conflated,
+        time=ev.time.seconds + ev.time.nanos / 1e9,
+    )
+    return item
+
+
+def binary_refs(response: pb.ListenResponse) -> list[tuple[str, str]]:
+    """(service, path) of each binary value in ``response``."""
+    return [(ev.service, ev.property) for ev in response.events if ev.HasField("data")]
+
+
+def encode(response: pb.ListenResponse, gap: bool, media_types: Mapping[tuple[str, str], str] = {}) -> bytes:
+    """One ListenResponse as SSE messages; ``gap`` marks every value (a resumed snapshot);
+    ``media_types`` names the media type of each binary value by (service, path)."""
     if response.sync:
         return SYNC
     if response.heartbeat and not response.events:
         return HEARTBEAT
     parts = []
     for ev in response.events:
-        data = json.dumps(
-            {
-                "service": ev.service,
-                "path": ev.property,
-                "value": ev.value,
-                "gap": ev.gap or gap,
-                "removed": ev.removed,
-                "conflated": ev.conflated,
-                "time": ev.time.seconds + ev.time.nanos / 1e9,
-            },
-            ensure_ascii=False,
-        )
+        media_type = media_types.get((ev.service, ev.property), OCTET_STREAM)
+        data = json.dumps(event_json(ev, gap, media_type), ensure_ascii=False)
         parts.append(f"id: {ev.sequence}\nevent: value\ndata: {data}\n\n")
     return "".join(parts).encode()
 
@@ -99,17 +113,24 @@ def error_event(err: PropertyError) -> bytes:
 class EventStreams:
     """The ``/api/v1/events`` handler and its bound on open streams."""
 
-    def __init__(self, hub: ListenHub, guard: Guard, limits: Limits, settings: HttpSection) -> None:
+    def __init__(
+        self,
+        hub: ListenHub,
+        calls: Calls,
+        *,
+        guard: Guard,
+        limits: Limits,
+        settings: HttpSection,
+        places: StreamPlaces,
+    ) -> None:
         self.hub = hub
+        self.calls = calls
         self.guard = guard
         self.limits = limits
-        self.max_streams = settings.max_streams
-        self.max_per_client = settings.max_streams_per_client
+        self.places = places
         self.write_timeout = settings.write_timeout
         self.options = pb.ListenOptions(heartbeat_interval=_duration(settings.heartbeat))
         self.open: set[ListenStream] = set()
-        #: Open streams by client address (an address leaves the map with its last stream).
-        self.per_client: Counter[str] = Counter()
 
     async def events(self, request: web.Request) -> web.StreamResponse:
         unknown = [key for key in request.query if key != SELECTOR_KEY]
@@ -120,32 +141,24 @@ class EventStreams:
         options = parse_options(self.options, self.limits)
         subject = identify(request, self.guard)
         peer = request.remote or "?"
-        if self.per_client[peer] >= self.max_per_client:
-            return _too_many(
-                f"too many event streams open from {peer[:100]} ({self.max_per_client},"
-                " http.max_streams_per_client)",
-                TOO_MANY_REQUESTS,
-            )
-        if len(self.open) >= self.max_streams:
-            return _too_many(f"too many event streams open ({self.max_streams}, http.max_streams)")
+        refused = self.places.refusal(peer)
+        if refused is not None:
+            return refused
         wake = Wake()
         try:
             stream = self.hub.open(selectors, options, wake.set, subject)
         except ResourceExhausted as exc:
-            return _too_many(exc.message)
+            return too_many(exc.message)
         self.open.add(stream)
-        self.per_client[peer] += 1
         try:
-            return await self._serve(request, stream, wake, peer)
+            with self.places.held(peer):
+                return await self._serve(request, stream, wake, peer, subject)
         finally:
             stream.close()
             self.open.discard(stream)
-            self.per_client[peer] -= 1
-            if self.per_client[peer] <= 0:
-                del self.per_client[peer]
 
     async def _serve(
-        self, request: web.Request, stream: ListenStream, wake: Wake, peer: str
+        self, request: web.Request, stream: ListenStream, wake: Wake, peer: str, subject: Subject
     ) -> web.StreamResponse:
         response = web.StreamResponse(
             headers={
@@ -158,12 +171,15 @@ class EventStreams:
         await response.prepare(request)
         resumed = hdrs.LAST_EVENT_ID in request.headers
         snapshot = True
+        media_types = MediaTypes(self.calls)
         try:
             async with aclosing(responses(stream, wake)) as ready:
                 async for answer in ready:
+                    for service, path in binary_refs(answer):
+                        await media_types.of(service, path)  # a model read the first time only
                     try:
                         async with asyncio.timeout(self.write_timeout):
-                            await response.write(encode(answer, resumed and snapshot))
+                            await response.write(encode(answer, resumed and snapshot, media_types.known))
                     except TimeoutError:
                         log.info(
                             "event stream to %s ended: it read nothing for %g s (http.write_timeout)",
@@ -190,7 +206,3 @@ def _duration(seconds: float) -> Duration:
     d = Duration()
     d.FromNanoseconds(round(seconds * 1e9))
     return d
-
-
-def _too_many(message: str, status: int = TOO_MANY_STREAMS) -> web.Response:
-    return error_response(ResourceExhausted(message), status=status)

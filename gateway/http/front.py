@@ -23,11 +23,14 @@ from gateway.calls import Calls
 from gateway.config import Config, is_loopback
 from gateway.guard import Guard
 from gateway.http.api import Api, body_too_large
+from gateway.http.bodies import BodyTooLarge
 from gateway.http.console import CONSOLE_ROOT, Console
 from gateway.http.errors import PAYLOAD_TOO_LARGE, error_response
 from gateway.http.events import EventStreams
+from gateway.http.image_stream import ImageStreams
 from gateway.http.openapi import document
-from gateway.http.safety import check_request
+from gateway.http.places import StreamPlaces
+from gateway.http.safety import JSON_TYPE, check_request
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, port_holder
 from gateway.tls import HttpsCredentials
@@ -71,7 +74,14 @@ class HttpFront:
         self.settings = config.http
         self.config = config
         self.api = Api(calls, guard, self.settings.max_body)
-        self.events = EventStreams(hub, guard, config.limits, self.settings)
+        #: Event streams and live images share the bounds on open streams.
+        self.places = StreamPlaces(self.settings)
+        self.events = EventStreams(
+            hub, calls, guard=guard, limits=config.limits, settings=self.settings, places=self.places
+        )
+        self.images = ImageStreams(
+            hub, calls, guard=guard, limits=config.limits, settings=self.settings, places=self.places
+        )
         self.console = Console(CONSOLE_ROOT)
         #: Whether Host headers must be loopback names (DNS rebinding): the front end listens on loopback.
         self.loopback_only = is_loopback(self.settings.listen)
@@ -96,6 +106,7 @@ class HttpFront:
         add("GET", "/api/v1/services", api.services)
         add("GET", "/api/v1/services/{service}/model", api.model)
         add("GET", "/api/v1/services/{service}/properties/{path}", api.get)
+        add("GET", "/api/v1/services/{service}/properties/{path}/stream", self.images.stream)
         add("PUT", "/api/v1/services/{service}/properties/{path}", api.set, expect_handler=self._expect)
         add("POST", "/api/v1/services/{service}/properties/{path}", api.set, expect_handler=self._expect)
         add("GET", "/api/v1/events", self.events.events)
@@ -111,11 +122,16 @@ class HttpFront:
         return app
 
     async def _expect(self, request: web.Request) -> web.StreamResponse | None:
-        """``Expect: 100-continue``: a body announced over ``max_body`` is refused before it is sent
-        (aiohttp's own handler says 100 Continue first, and the client sends it all)."""
+        """``Expect: 100-continue``: a body announced over ``max_body`` (JSON) or over the property's
+        ``max_size`` (the raw bytes of a binary property) is refused before it is sent (aiohttp's
+        own handler says 100 Continue first, and the client sends it all)."""
         length = request.content_length
-        if length is not None and length > self.settings.max_body:
+        if length is not None and request.content_type == JSON_TYPE and length > self.settings.max_body:
             return body_too_large(length, self.settings.max_body)
+        if length is not None and request.content_type != JSON_TYPE:
+            limit = await self.api.raw_limit(request)
+            if limit is not None and length > limit:
+                return body_too_large(length, limit, "the property's max_size")
         if (
             request.version == HttpVersion11
             and request.headers.get(hdrs.EXPECT, "").lower() == "100-continue"
@@ -134,6 +150,8 @@ class HttpFront:
         try:
             check_request(request, self.loopback_only, routed=request.match_info.http_exception is None)
             return await handler(request)
+        except BodyTooLarge as exc:
+            return error_response(exc, what, status=PAYLOAD_TOO_LARGE)
         except PropertyError as exc:
             return error_response(exc, what)
         except web.HTTPRequestEntityTooLarge:

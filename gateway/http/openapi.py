@@ -38,24 +38,52 @@ def _errors(*codes: str) -> dict[str, Any]:
     return {code: _ERROR for code in codes}
 
 
+_BINARY = {"type": "string", "format": "binary"}
+_BASE64 = {
+    "type": "string",
+    "contentEncoding": "base64",
+    "description": "The bytes of a binary value, standard base64 (RFC 4648, with padding).",
+}
 _SET = {
     "summary": "Set a property (or invoke an action)",
-    "parameters": [_SERVICE, _PATH],
+    "description": (
+        'JSON `{"value": TEXT}` for a text property, `{"data": BASE64}` for a binary one; or the'
+        " raw bytes of a binary value as the body, with the property's media type or"
+        " `application/octet-stream` as its content type and the request parameters in the query"
+        " string. A body over `http.max_body` (JSON) or the property's `max_size` (bytes) is 413."
+    ),
+    "parameters": [
+        _SERVICE,
+        _PATH,
+        {
+            "name": "parameters",
+            "in": "query",
+            "description": "A raw Set's request parameters (a JSON Set carries them in its body).",
+            "schema": {"type": "object", "additionalProperties": {"type": "string"}},
+            "style": "form",
+            "explode": True,
+        },
+    ],
     "requestBody": {
         "required": True,
         "content": {
             "application/json": {
                 "schema": {
                     "type": "object",
-                    "required": ["value"],
                     "additionalProperties": False,
+                    "oneOf": [{"required": ["value"]}, {"required": ["data"]}],
                     "properties": {
                         "value": _JSON_VALUE,
+                        "data": _BASE64,
                         "parameters": {"type": "object", "additionalProperties": _JSON_VALUE},
                     },
                 },
                 "example": {"value": "<marker><location>(2 1 0 0 0 0)</location></marker>"},
-            }
+            },
+            "application/octet-stream": {
+                "schema": {"type": "string", "format": "binary"},
+                "description": "The raw bytes of a binary value (or with the property's media type).",
+            },
         },
     },
     "responses": {
@@ -102,6 +130,16 @@ DOCUMENT: dict[str, Any] = {
                     _SERVICE,
                     _PATH,
                     {
+                        "name": "raw",
+                        "in": "query",
+                        "description": (
+                            "`1`: answer the value itself, a binary one as its bytes with its media type"
+                            " (also when `Accept` names that type or `application/octet-stream`), a text"
+                            " one as `text/plain`."
+                        ),
+                        "schema": {"enum": ["1", "true", "0", "false"]},
+                    },
+                    {
                         "name": "parameters",
                         "in": "query",
                         "description": "Request parameters, e.g. `?frame=robot`.",
@@ -111,20 +149,58 @@ DOCUMENT: dict[str, Any] = {
                     },
                 ],
                 "responses": {
-                    "200": _json(
-                        {
-                            "oneOf": [
-                                {"$ref": "#/components/schemas/Value"},
-                                {"$ref": "#/components/schemas/Snapshot"},
-                            ]
+                    "200": {
+                        "description": "The value, or every match of a wildcard path; `raw`: the value",
+                        "content": {
+                            "application/json": {
+                                "schema": {
+                                    "oneOf": [
+                                        {"$ref": "#/components/schemas/Value"},
+                                        {"$ref": "#/components/schemas/Snapshot"},
+                                    ]
+                                }
+                            },
+                            "application/octet-stream": {"schema": _BINARY},
+                            "image/*": {"schema": _BINARY},
+                            "text/plain": {"schema": {"type": "string"}},
                         },
-                        "The value, or every match of a wildcard path",
-                    ),
+                    },
                     **_errors("400", "401", "403", "404", "429", "500", "503", "504"),
                 },
             },
             "put": _SET,
             "post": _SET,
+        },
+        "/api/v1/services/{service}/properties/{path}/stream": {
+            "get": {
+                "summary": "A live image: every value of a binary property as multipart/x-mixed-replace",
+                "description": (
+                    "One part per value (MJPEG for image/jpeg), each with `Content-Type` (the"
+                    " property's media type), `Content-Length`, `X-Sequence` and `X-Conflated`; a slow"
+                    " reader gets the latest value only. The body ends with the closing boundary when"
+                    " the property goes away. Bounded like the event streams (`http.max_streams`,"
+                    " `http.max_streams_per_client`, `http.write_timeout`)."
+                ),
+                "parameters": [
+                    _SERVICE,
+                    _PATH,
+                    {
+                        "name": "parameters",
+                        "in": "query",
+                        "description": "Request parameters of the Listen.",
+                        "schema": {"type": "object", "additionalProperties": {"type": "string"}},
+                        "style": "form",
+                        "explode": True,
+                    },
+                ],
+                "responses": {
+                    "200": {
+                        "description": "The parts, boundary `psframe`",
+                        "content": {"multipart/x-mixed-replace": {"schema": _BINARY}},
+                    },
+                    **_errors("400", "401", "403", "404", "429", "503", "504"),
+                },
+            }
         },
         "/api/v1/events": {
             "get": {
@@ -210,11 +286,14 @@ DOCUMENT: dict[str, Any] = {
             },
             "Value": {
                 "type": "object",
-                "required": ["service", "path", "value"],
+                "description": "`value` for text; `data` and `media_type` for a binary value.",
+                "required": ["service", "path"],
                 "properties": {
                     "service": {"type": "string"},
                     "path": {"type": "string"},
                     "value": {"type": "string"},
+                    "data": _BASE64,
+                    "media_type": {"type": "string"},
                 },
             },
             "Snapshot": {
@@ -227,7 +306,12 @@ DOCUMENT: dict[str, Any] = {
                         "type": "array",
                         "items": {
                             "type": "object",
-                            "properties": {"path": {"type": "string"}, "value": {"type": "string"}},
+                            "properties": {
+                                "path": {"type": "string"},
+                                "value": {"type": "string"},
+                                "data": _BASE64,
+                                "media_type": {"type": "string"},
+                            },
                         },
                     },
                 },
@@ -283,6 +367,8 @@ DOCUMENT: dict[str, Any] = {
                                 "length": {"type": ["integer", "null"]},
                                 "gui": _NULLABLE_TEXT,
                                 "doc": _NULLABLE_TEXT,
+                                "media_type": _NULLABLE_TEXT,
+                                "max_size": {"type": ["integer", "null"]},
                                 "value": {
                                     "oneOf": [{"$ref": "#/components/schemas/Parameter"}, {"type": "null"}]
                                 },
@@ -301,6 +387,8 @@ DOCUMENT: dict[str, Any] = {
                     "service": {"type": "string"},
                     "path": {"type": "string"},
                     "value": {"type": "string"},
+                    "data": _BASE64,
+                    "media_type": {"type": "string"},
                     "gap": {"type": "boolean"},
                     "removed": {"type": "boolean"},
                     "conflated": {"type": "integer"},

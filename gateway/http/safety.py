@@ -4,9 +4,12 @@
   its answers; a request whose ``Origin`` header names another origin is refused as well
   (403 PERMISSION_DENIED), so such a page cannot make one either (a Set by a form or
   ``fetch`` with ``no-cors``).
-* **Content type.** A PUT or POST must say ``Content-Type: application/json``: a plain HTML
-  form cannot send that, and a cross-origin ``fetch`` that does needs a preflight, which
-  is never answered.
+* **Content type.** A PUT or POST must name its content type: ``application/json``, or for
+  the raw bytes of a binary property its media type or ``application/octet-stream``. The three
+  types a plain HTML form (or a ``no-cors`` ``fetch``) can send without a preflight —
+  ``text/plain``, ``application/x-www-form-urlencoded``, ``multipart/form-data`` — and a body
+  without a type are refused, so every accepted Set is one a cross-origin page could only make
+  after a preflight, which is never answered (no CORS headers).
 * **Host.** When the front end listens on a loopback address, a ``Host`` that is not a
   loopback name or address is refused (403): a DNS-rebinding page (``evil.example``
   resolving to 127.0.0.1) reaches the port but never with a loopback host name.
@@ -31,6 +34,9 @@ from services.errors import InvalidArgument, PermissionDenied
 #: The cookie the console keeps its bearer token in.
 TOKEN_COOKIE = "ps_token"
 JSON_TYPE = "application/json"
+#: The content types a request may carry across origins without a preflight (the CORS-safelisted
+#: request-header values of the Fetch standard): what an HTML form can send.
+SIMPLE_TYPES = frozenset({"text/plain", "application/x-www-form-urlencoded", "multipart/form-data"})
 
 
 def is_loopback_host(host: str) -> bool:
@@ -68,9 +74,16 @@ def check_request(request: web.Request, loopback: bool, routed: bool = True) -> 
                 f"origin {origin[:100]!r} is not this front end's own ({own[:100]!r}): requests from"
                 " pages of other origins are refused"
             )
-    if routed and request.method in (hdrs.METH_PUT, hdrs.METH_POST) and request.content_type != JSON_TYPE:
+    typed = hdrs.CONTENT_TYPE in request.headers
+    if (
+        routed
+        and request.method in (hdrs.METH_PUT, hdrs.METH_POST)
+        and (not typed or request.content_type in SIMPLE_TYPES)
+    ):
+        given = request.content_type if typed else "none"
         raise InvalidArgument(
-            f"a {request.method} needs Content-Type: {JSON_TYPE}, not {request.content_type!r}"
+            f"a {request.method} needs Content-Type: {JSON_TYPE} (or, with the raw bytes of a binary"
+            f" property, its media type or application/octet-stream), not {given!r}"
         )
 
 

@@ -43,7 +43,7 @@ test('a property gets the widget of its .gui, else of its access and type, and a
   assert.equal(named({ name: 'data', type: 'number', access: 'read', gui: 'plot' }), 'plotWidget');
   assert.equal(named({ name: 'led', type: 'boolean', access: 'read-write', gui: '' }), 'switchWidget');
   assert.equal(named({ name: 'x', type: 'vectors', access: 'read', gui: 'nosuch' }), 'listWidget');
-  assert.equal(named({ name: 'odd', type: 'bytes', access: 'read', gui: '' }), 'textWidget');
+  assert.equal(named({ name: 'odd', type: 'bytes', access: 'read', gui: '' }), 'bytesWidget');
   assert.equal(named({ name: 'behaviors.moveto', type: 'none', access: 'action', gui: 'button' }), 'buttonWidget');
   assert.equal(named({ name: 'find', type: 'names', access: 'query', gui: 'names' }), 'queryWidget');
   assert.equal(named({ name: 'patrol.diagram', type: 'text', access: 'read', gui: 'statechart' }), 'statechartWidget');

@@ -120,6 +120,8 @@ async def test_model_is_the_describe_model(http: aiohttp.ClientSession, grpc_cli
         "length": None,
         "gui": "number",
         "doc": None,
+        "media_type": None,
+        "max_size": None,
         "value": None,
         "parameters": [],
     }

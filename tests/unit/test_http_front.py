@@ -17,6 +17,7 @@ from support.board import Board
 from gateway.app import Gateway
 from gateway.config import Config, ConfigError, HttpSection, default_config, loads_config
 from gateway.http import HttpFront
+from gateway.http.binary import served_type
 from gateway.http.bodies import parse_set_body
 from gateway.http.console import Console, console_file
 from gateway.http.errors import HTTP_STATUS
@@ -137,6 +138,25 @@ def test_the_document_is_openapi_3_1_and_its_references_resolve() -> None:
         assert name in doc["components"][section], ref
 
 
+def test_binary_values_are_in_the_document() -> None:
+    doc = document(True)
+    stream = doc["paths"]["/api/v1/services/{service}/properties/{path}/stream"]["get"]
+    assert "multipart/x-mixed-replace" in stream["responses"]["200"]["content"]
+    get = doc["paths"]["/api/v1/services/{service}/properties/{path}"]["get"]
+    assert "raw" in [p["name"] for p in get["parameters"]]
+    assert {"application/json", "application/octet-stream", "image/*"} <= set(
+        get["responses"]["200"]["content"]
+    )
+    put = doc["paths"]["/api/v1/services/{service}/properties/{path}"]["put"]
+    assert {"application/json", "application/octet-stream"} <= set(put["requestBody"]["content"])
+    schemas = doc["components"]["schemas"]
+    for name in ("Value", "Event"):
+        assert schemas[name]["properties"]["data"]["contentEncoding"] == "base64"
+        assert "media_type" in schemas[name]["properties"]
+    model_property = schemas["Model"]["properties"]["properties"]["items"]["properties"]
+    assert {"media_type", "max_size"} <= set(model_property)
+
+
 # -- errors and bodies -------------------------------------------------------------------------
 
 
@@ -160,6 +180,41 @@ def test_error_statuses_follow_googles_mapping() -> None:
         "DATA_LOSS": 500,
         "UNAUTHENTICATED": 401,
     }
+
+
+def test_a_set_body_carries_text_or_base64_bytes() -> None:
+    assert parse_set_body(b'{"data": "AAEC/w=="}').value == b"\x00\x01\x02\xff"
+    assert parse_set_body(b'{"data": ""}').value == b""
+    assert parse_set_body(b'{"value": ""}').value == ""
+    for body, words in (
+        (b'{"data": "AAE"}', "base64"),
+        (b'{"data": "AA\\nAA=="}', "base64"),
+        (b'{"data": "AA-_"}', "base64"),
+        (b'{"data": null}', "base64"),
+        (b'{"data": "AA==", "value": "x"}', "both"),
+        (b"{}", "'value'"),
+    ):
+        with pytest.raises(InvalidArgument, match=words):
+            parse_set_body(body)
+
+
+@pytest.mark.parametrize(
+    ("declared", "served"),
+    [
+        ("image/png", "image/png"),
+        ("Image/JPEG; q=1", "image/jpeg"),
+        ("application/x-npy", "application/x-npy"),
+        ("video/mp4", "video/mp4"),
+        ("image/svg+xml", "application/octet-stream"),
+        ("text/html", "application/octet-stream"),
+        ("application/javascript", "application/octet-stream"),
+        ("application/xhtml+xml", "application/octet-stream"),
+        ("", "application/octet-stream"),
+        ("image/png\r\nX-Evil: 1", "application/octet-stream"),
+    ],
+)
+def test_a_raw_answer_is_served_only_as_a_type_a_browser_cannot_run(declared: str, served: str) -> None:
+    assert served_type(declared) == served
 
 
 def test_json_values_become_value_text() -> None:

@@ -89,14 +89,19 @@ async function errorOf(response) {
 
 /**
  * One request; resolves to the JSON answer or rejects with an ApiError. `keepalive` lets a
- * request outlive the page (the teleop's last stop on pagehide).
+ * request outlive the page (the teleop's last stop on pagehide); `raw` (a Blob or bytes) is sent
+ * as the body instead of JSON, with the content type `type`.
  */
-export async function request(method, url, body = undefined, { keepalive = false } = {}) {
+export async function request(method, url, body = undefined, { keepalive = false, raw = undefined, type = undefined } = {}) {
   const headers = { Accept: 'application/json' };
   const bearer = token();
   if (bearer) headers.Authorization = `Bearer ${bearer}`;
   const init = { method, headers, keepalive, credentials: 'same-origin' };
-  if (body !== undefined) {
+  if (raw !== undefined) {
+    // The bytes of a binary value as the body, labelled with their media type.
+    headers['Content-Type'] = type ?? 'application/octet-stream';
+    init.body = raw;
+  } else if (body !== undefined) {
     headers['Content-Type'] = 'application/json';
     init.body = JSON.stringify(body);
   }
@@ -165,4 +170,12 @@ export function setProperty(service, path, value, parameters = {}, options = {})
   const body = { value: String(value) };
   if (Object.keys(parameters).length) body.parameters = parameters;
   return request('PUT', propertyUrl(service, path), body, options);
+}
+
+/**
+ * Set a binary property to `bytes` (a Blob, a File or a Uint8Array), sent as they are with the
+ * content type `type` (the property's media type, or application/octet-stream).
+ */
+export function setPropertyBytes(service, path, bytes, type = 'application/octet-stream') {
+  return request('PUT', propertyUrl(service, path), undefined, { raw: bytes, type });
 }

@@ -1,11 +1,19 @@
 // The built-in widgets, one per `.gui` word the services use (services/core: number, slider,
 // switch, text, vector, pose, gauge, plot, list, marker, button, group; statechart, a state
-// machine's diagram, from statechart.js) and one per data type.
+// machine's diagram, from statechart.js; image and camera, a live image, from image_widget.js)
+// and one per data type (bytes: by its media type).
 // Every writable widget has one input or select and a button [data-action=set]; an action has
 // an input per parameter [data-param=NAME], a value input [data-value] when it takes a value,
 // and a button [data-action=invoke]; a property that needs parameters to be read, a form of them.
 
-import { needsConfirmation, registerAddressedWidget, registerBuiltin, registerTypeWidget } from './widgets.js';
+import { bytesWidget, imageWidget } from './image_widget.js';
+import {
+  needsConfirmation,
+  registerAddressedWidget,
+  registerBuiltin,
+  registerMediaWidget,
+  registerTypeWidget,
+} from './widgets.js';
 import { statechartWidget } from './statechart.js';
 import { findMarkers, formatNumber, markerFromInput, parseVector, valueFromInput } from './values.js';
 
@@ -587,6 +595,11 @@ registerBuiltin('statechart', statechartWidget);
 registerBuiltin('text-area', textAreaWidget);
 registerBuiltin('code', textAreaWidget);
 registerBuiltin('time', timeWidget);
+// Binary values: a live image by `.gui` or by media type (a camera's `frame`, a grid layer's PNG);
+// other bytes (a numpy grid) show their media type and a link to the raw value.
+registerBuiltin('image', imageWidget);
+registerBuiltin('camera', imageWidget);
+registerMediaWidget('image/*', imageWidget);
 registerAddressedWidget(addressedWidget);
 
 registerTypeWidget('number', numberWidget);
@@ -599,3 +612,4 @@ registerTypeWidget('list', listWidget);
 registerTypeWidget('names', listWidget);
 registerTypeWidget('vectors', listWidget);
 registerTypeWidget('namespace', namespaceWidget);
+registerTypeWidget('bytes', bytesWidget);

@@ -5,6 +5,7 @@
 import { describe, getProperty, setProperty } from './api.js';
 import { h } from './dom.js';
 import { splitSelector } from './events.js';
+import { shownValue } from './values.js';
 
 /** Events the log keeps; older ones are dropped from the bottom. */
 export const LOG_LIMIT = 200;
@@ -71,9 +72,9 @@ export class Inspector {
       this.show('…');
       const answer = await getProperty(service, path, parameters);
       if (Array.isArray(answer.values)) {
-        this.show(answer.values.map((v) => `${v.path} = ${v.value}`).join('\n') || '(no property matches)');
+        this.show(answer.values.map((v) => `${v.path} = ${shownValue(v)}`).join('\n') || '(no property matches)');
       } else {
-        this.show(answer.value);
+        this.show(shownValue(answer));
       }
     } catch (e) {
       this.showError(e);
@@ -85,7 +86,7 @@ export class Inspector {
       const { service, path, parameters } = this.fields();
       this.show('…');
       const answer = await setProperty(service, path, this.els.value.value, parameters);
-      this.show(`Set ${service}/${path}: ${answer.value === '' ? 'done' : answer.value}`);
+      this.show(`Set ${service}/${path}: ${shownValue(answer) === '' ? 'done' : shownValue(answer)}`);
     } catch (e) {
       this.showError(e);
     }
@@ -132,7 +133,7 @@ export class Inspector {
       { class: flags.join(' '), dataset: { service: event.service, path: event.path } },
       h('time', {}, timeOf(event.time)),
       h('span', { class: 'log-path' }, `${event.service}/${event.path}`),
-      h('span', { class: 'log-value' }, event.removed ? '(removed)' : event.value),
+      h('span', { class: 'log-value' }, event.removed ? '(removed)' : shownValue(event)),
       flags.length ? h('small', {}, ` ${flags.join(' ')}`) : null,
     );
     this.prepend(li);

@@ -4,7 +4,7 @@
 
 import { describe, getProperty, setProperty } from './api.js';
 import { h } from './dom.js';
-import { needsParameters, propertyView } from './widgets.js';
+import { followedOnStream, needsParameters, propertyView } from './widgets.js';
 
 /** Selectors a view follows at least, however full the page's stream is. */
 const MIN_FOLLOWED = 8;
@@ -107,7 +107,10 @@ export class ServiceView {
       });
       this._views.set(prop.name, view);
       // One that needs a parameter (a file's name) cannot be followed: its form reads it.
-      if (LISTENABLE.has(prop.access) && !needsParameters(prop)) targets.set(prop.name, leafTarget(view));
+      // A binary one (a camera's frame) is read by its widget, on a connection of its own.
+      if (LISTENABLE.has(prop.access) && !needsParameters(prop) && followedOnStream(prop)) {
+        targets.set(prop.name, leafTarget(view));
+      }
       return view.element;
     };
     const byName = new Map(all.map((p) => [p.name, p]));

@@ -347,3 +347,19 @@ export function valueFromInput(type, raw) {
       return text;
   }
 }
+
+/** Bytes in a standard base64 text (RFC 4648, with its `=` padding). */
+export function base64Size(text) {
+  const t = String(text ?? '');
+  const padding = t.endsWith('==') ? 2 : t.endsWith('=') ? 1 : 0;
+  return Math.max(0, Math.floor((t.length * 3) / 4) - padding);
+}
+
+/**
+ * The text shown for a value of the JSON API or an event: a text value as it is, a binary one
+ * (`{data: BASE64, media_type}`) as "[1234 bytes, image/png]".
+ */
+export function shownValue(item) {
+  if (item?.data === undefined || item?.data === null) return item?.value ?? '';
+  return `[${base64Size(item.data)} bytes, ${item.media_type || 'application/octet-stream'}]`;
+}

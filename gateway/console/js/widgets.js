@@ -6,6 +6,7 @@
 //   ctx    {service, path, writable, set(text, parameters) -> Promise<reply|null>,
 //           setPath(path, text, parameters) (another property of the service, the same way),
 //           get(parameters) -> Promise<value|null>, showValue(text), h, svg}
+//          (a binary reply reads as "[N bytes, media/type]", values.js shownValue)
 //   update is called with the value text on every change (and once with the current value).
 // The frame (`[data-property=PATH]`) shows the name, unit and access, the current value text in
 // `.value` and the error of a failed Set in `.error` ("CODE: message"); ctx.set fills both.
@@ -14,7 +15,7 @@
 // registered there wins over the built-in one for that `.gui` word (docs/console.md).
 
 import { h, svg } from './dom.js';
-import { formatTime } from './values.js';
+import { formatTime, shownValue } from './values.js';
 
 /** `.gui` words of a text shown in a text area of several lines (a chart, a script, a note). */
 export const TEXT_AREA_GUIS = new Set(['text-area', 'code']);
@@ -43,6 +44,7 @@ const GUI_NAME = /^[A-Za-z0-9_.-]{1,64}$/;
 const builtins = new Map(); // gui word -> factory
 const builtinTypes = new Map(); // data type -> factory
 const extensions = new Map(); // gui word -> factory, from registerWidget
+const builtinMedia = new Map(); // media type ("image/png") or family ("image/*") -> factory
 let addressedFactory = null; // the built-in form of a property that needs parameters to be read
 
 function checked(gui, factory) {
@@ -70,6 +72,24 @@ export function registerTypeWidget(type, factory) {
   builtinTypes.set(type, factory);
 }
 
+const MEDIA_TYPE = /^[a-z0-9.+-]{1,64}\/(\*|[a-z0-9.+-]{1,64})$/;
+
+/** The built-in widget of a binary property by its media type: `image/*` (a family) or `image/png`. */
+export function registerMediaWidget(mediaType, factory) {
+  if (typeof mediaType !== 'string' || !MEDIA_TYPE.test(mediaType)) {
+    throw new TypeError(`a media type is TYPE/SUBTYPE or TYPE/*, got ${JSON.stringify(mediaType)}`);
+  }
+  if (typeof factory !== 'function') throw new TypeError(`the widget factory for "${mediaType}" must be a function`);
+  builtinMedia.set(mediaType, factory);
+}
+
+/** The widget registered for a media type (parameters and case ignored), else for its family. */
+export function mediaWidgetFor(mediaType) {
+  const essence = String(mediaType ?? '').split(';')[0].trim().toLowerCase();
+  if (!essence.includes('/')) return undefined;
+  return builtinMedia.get(essence) ?? builtinMedia.get(`${essence.split('/')[0]}/*`);
+}
+
 /**
  * A readable or writable property that cannot be read without a request parameter (a storage
  * service's `file` needs `name`): the page cannot follow it, only read it with parameters given.
@@ -90,13 +110,22 @@ export function widgetNames() {
   return [...new Set([...builtins.keys(), ...extensions.keys()])].sort();
 }
 
-/** The factory for a property: a registered `.gui`, else the built-in by access, gui and type. */
+/**
+ * The factory for a property: a registered `.gui`, else the built-in by access, then (a binary
+ * property) by its media type, then by `.gui` and by type.
+ */
 export function widgetFor(prop) {
   if (prop.gui && extensions.has(prop.gui)) return extensions.get(prop.gui);
   if (prop.access === 'action') return builtins.get('button');
   if (prop.access === 'query') return builtins.get('query');
   if (addressedFactory && needsParameters(prop)) return addressedFactory;
-  return builtins.get(prop.gui) ?? builtinTypes.get(prop.type) ?? builtins.get('text');
+  const media = prop.type === 'bytes' ? mediaWidgetFor(prop.media_type) : undefined;
+  return media ?? builtins.get(prop.gui) ?? builtinTypes.get(prop.type) ?? builtins.get('text');
+}
+
+/** Whether the page's event stream follows the property: a binary one is read its own way. */
+export function followedOnStream(prop) {
+  return prop.type !== 'bytes';
 }
 
 const ACCESS_SHORT = {
@@ -163,7 +192,7 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
       frame.classList.add('busy');
       try {
         const reply = await setProperty(service, prop.name, text, parameters);
-        return reply?.value ?? '';
+        return shownValue(reply);
       } catch (e) {
         showError(e);
         return null;
@@ -177,7 +206,7 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
       frame.classList.add('busy');
       try {
         const reply = await setProperty(service, path, text, parameters);
-        return reply?.value ?? '';
+        return shownValue(reply);
       } catch (e) {
         showError(e);
         return null;
@@ -189,7 +218,7 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
       clearError();
       try {
         const reply = await getProperty(service, prop.name, parameters);
-        return reply?.value ?? '';
+        return shownValue(reply);
       } catch (e) {
         showError(e);
         return null;

@@ -1,0 +1,189 @@
+"""A live image: ``GET /api/v1/services/{service}/properties/{path}/stream``.
+
+One binary property, followed on the listen hub (the same rules, limits and conflating queue
+as a gRPC Listen), written as ``multipart/x-mixed-replace``: one part per value, each with its
+``Content-Type`` (the property's media type), ``Content-Length``, ``X-Sequence`` (the stream's
+sequence) and ``X-Conflated`` (values skipped for this reader since the last part). For
+``image/jpeg`` this is MJPEG, which an ``<img>`` shows as it comes; any image type works the
+same way. When the property goes away the body ends with the closing boundary.
+
+A reader slower than the property's rate gets the latest value only: while ``write`` waits on
+the client (the transport holds at most its high-water mark beyond the part being written), the
+stream's queue keeps one value for the property, and a response holding several events writes
+only its last. A write that waits longer than ``http.write_timeout`` drops the connection. Such
+a stream takes one of the places event streams take (:mod:`gateway.http.places`).
+
+A request that cannot start (no such service or property, a text property, refused by the rules)
+is a JSON error with its status, before any part.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncGenerator
+from contextlib import aclosing
+
+from aiohttp import hdrs, web
+
+from gateway.calls import Calls
+from gateway.config import HttpSection, Limits
+from gateway.guard import Guard
+from gateway.http.binary import OCTET_STREAM, RAW_HEADERS, property_model, served_type
+from gateway.http.bodies import query_parameters
+from gateway.http.errors import error_response
+from gateway.http.places import StreamPlaces, too_many
+from gateway.http.safety import identify
+from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
+from gateway.listen.drain import Wake, responses
+from gateway.rules import Operation
+from gateway.status import to_property_error
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.errors import InvalidArgument, PropertyError, ResourceExhausted
+from services.paths import WILDCARD, is_pattern, validate_path
+
+log = logging.getLogger(__name__)
+
+#: The boundary between parts; it never needs to be absent from a part: each has a Content-Length.
+BOUNDARY = "psframe"
+CONTENT_TYPE = f"multipart/x-mixed-replace; boundary={BOUNDARY}"
+END = f"--{BOUNDARY}--\r\n".encode()
+
+
+def part_head(media_type: str, size: int, sequence: int, conflated: int) -> bytes:
+    """The boundary and headers of one part of ``size`` bytes (the part's bytes and CRLF follow)."""
+    return (
+        f"--{BOUNDARY}\r\nContent-Type: {media_type}\r\nContent-Length: {size}\r\n"
+        f"X-Sequence: {sequence}\r\nX-Conflated: {conflated}\r\n\r\n"
+    ).encode("ascii")
+
+
+def latest(response: pb.ListenResponse) -> tuple[pb.Event | None, int]:
+    """The event of ``response`` to write (the last one) and how many values it replaces for the reader."""
+    if not response.events:
+        return None, 0
+    skipped = len(response.events) - 1 + sum(ev.conflated for ev in response.events[:-1])
+    return response.events[-1], skipped
+
+
+class ImageStreams:
+    """The ``/stream`` handler; streams take places of :class:`StreamPlaces` beside event streams."""
+
+    def __init__(
+        self,
+        hub: ListenHub,
+        calls: Calls,
+        *,
+        guard: Guard,
+        limits: Limits,
+        settings: HttpSection,
+        places: StreamPlaces,
+    ) -> None:
+        self.hub = hub
+        self.calls = calls
+        self.guard = guard
+        self.limits = limits
+        self.places = places
+        self.write_timeout = settings.write_timeout
+        self.open: set[ListenStream] = set()
+
+    async def stream(self, request: web.Request) -> web.StreamResponse:
+        service = request.match_info["service"]
+        path = request.match_info["path"]
+        if service == WILDCARD or is_pattern(path):
+            raise InvalidArgument("a live image follows one property: no '*' in its service or path")
+        validate_path(path)
+        parameters = query_parameters(request.query)
+        subject = identify(request, self.guard)
+        # The property first (a caller may read it without being allowed the whole service's model).
+        self.guard.require(subject, service, path, Operation.READ)
+        prop = await property_model(self.calls, service, path)
+        if prop.type != "bytes":
+            raise InvalidArgument(
+                f"{service}/{path} is not a binary property (its type is {prop.type}): follow it with"
+                f" /api/v1/events?sel={service}/{path}"
+            )
+        media_type = served_type(prop.media_type or OCTET_STREAM)
+        peer = request.remote or "?"
+        refused = self.places.refusal(peer)
+        if refused is not None:
+            return refused
+        listen = pb.ListenRequest(service=service, property=path, parameters=parameters)
+        selectors = parse_selectors(listen, self.limits)
+        options = parse_options(pb.ListenOptions(), self.limits)
+        wake = Wake()
+        try:
+            stream = self.hub.open(selectors, options, wake.set, subject)
+        except ResourceExhausted as exc:
+            return too_many(exc.message)
+        self.open.add(stream)
+        try:
+            with self.places.held(peer):
+                async with aclosing(responses(stream, wake)) as ready:
+                    return await self._serve(request, ready, media_type, peer)
+        finally:
+            stream.close()
+            self.open.discard(stream)
+
+    async def _serve(
+        self,
+        request: web.Request,
+        ready: AsyncGenerator[pb.ListenResponse, None],
+        media_type: str,
+        peer: str,
+    ) -> web.StreamResponse:
+        # The first answer (the current value) before the response begins: a Listen that cannot
+        # start is still a JSON error with its status.
+        try:
+            answer: pb.ListenResponse | None = await anext(ready)
+        except StopAsyncIteration:
+            answer = None
+        except PropertyError as exc:
+            return error_response(exc, f"stream {request.path[:200]}")
+        response = web.StreamResponse(
+            headers={
+                **RAW_HEADERS,
+                hdrs.CONTENT_TYPE: CONTENT_TYPE,
+                # Proxies such as nginx would otherwise hold parts back to fill a buffer.
+                "X-Accel-Buffering": "no",
+            }
+        )
+        await response.prepare(request)
+        skipped = 0
+        try:
+            while answer is not None:
+                event, conflated = latest(answer)
+                skipped += conflated
+                if event is not None and event.removed:
+                    break  # the property went away: the body ends
+                if event is not None and event.HasField("data"):
+                    data = event.data
+                    part = part_head(media_type, len(data), event.sequence, skipped + event.conflated)
+                    try:
+                        async with asyncio.timeout(self.write_timeout):
+                            await response.write(part + data + b"\r\n")
+                    except TimeoutError:
+                        log.info(
+                            "image stream to %s ended: it read nothing for %g s (http.write_timeout)",
+                            peer,
+                            self.write_timeout,
+                        )
+                        # Dropped, not finished: finishing would wait on the same full buffer.
+                        if request.transport is not None:
+                            request.transport.abort()
+                        return response
+                    skipped = 0
+                answer = await anext(ready, None)
+        except ConnectionError:
+            return response  # the client went away
+        except Exception as exc:
+            err = to_property_error(exc, f"stream {request.path[:200]}")
+            log.info("image stream to %s ended: %s %s", peer, err.code.name, err.message)
+        try:
+            async with asyncio.timeout(self.write_timeout):
+                await response.write(END)
+                await response.write_eof()
+        except (ConnectionError, TimeoutError):
+            if request.transport is not None:
+                request.transport.abort()
+        return response

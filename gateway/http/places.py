@@ -1,0 +1,60 @@
+"""The places for long-lived HTTP streams: Server-Sent Events and live images share one bound.
+
+An open stream holds a connection, a listen-hub stream and a buffer for as long as the client
+stays, so the front end bounds how many are open: ``http.max_streams`` in all (503 beyond) and
+``http.max_streams_per_client`` from one client address (429 beyond), so that one client cannot
+take every place. An event stream and an image stream each take one place of the same count:
+a page that shows a camera holds its event stream and one place per image it shows.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from aiohttp import web
+
+from gateway.config import HttpSection
+from gateway.http.errors import TOO_MANY_REQUESTS, TOO_MANY_STREAMS, error_response
+from services.errors import ResourceExhausted
+
+
+class StreamPlaces:
+    """Counts of open streams, in all and by client address (an address leaves with its last one)."""
+
+    def __init__(self, settings: HttpSection) -> None:
+        self.max_streams = settings.max_streams
+        self.max_per_client = settings.max_streams_per_client
+        self.open = 0
+        self.per_client: Counter[str] = Counter()
+
+    def refusal(self, peer: str) -> web.Response | None:
+        """The answer to a stream ``peer`` may not open now (429 or 503), or None when it may."""
+        if self.per_client[peer] >= self.max_per_client:
+            return too_many(
+                f"too many streams open from {peer[:100]} ({self.max_per_client},"
+                " http.max_streams_per_client; event and image streams together)",
+                TOO_MANY_REQUESTS,
+            )
+        if self.open >= self.max_streams:
+            return too_many(f"too many streams open ({self.max_streams}, http.max_streams)")
+        return None
+
+    @contextmanager
+    def held(self, peer: str) -> Iterator[None]:
+        """One place taken by ``peer`` while the block runs (check :meth:`refusal` first)."""
+        self.open += 1
+        self.per_client[peer] += 1
+        try:
+            yield
+        finally:
+            self.open -= 1
+            self.per_client[peer] -= 1
+            if self.per_client[peer] <= 0:
+                del self.per_client[peer]
+
+
+def too_many(message: str, status: int = TOO_MANY_STREAMS) -> web.Response:
+    """RESOURCE_EXHAUSTED as JSON with ``status`` (503: come back later; 429: this client asks too much)."""
+    return error_response(ResourceExhausted(message), status=status)
