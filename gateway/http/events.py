@@ -26,7 +26,6 @@ image streams (:mod:`gateway.http.places`).
 
 from __future__ import annotations
 
-import asyncio
 import json
 import logging
 from collections.abc import Mapping
@@ -40,7 +39,7 @@ from gateway.config import HttpSection, Limits
 from gateway.guard import Guard
 from gateway.http.binary import OCTET_STREAM, MediaTypes, value_json
 from gateway.http.errors import error_json
-from gateway.http.places import StreamPlaces, too_many
+from gateway.http.places import StreamPlaces, too_many, write_or_drop
 from gateway.http.safety import identify
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.listen.drain import Wake, responses
@@ -177,18 +176,10 @@ class EventStreams:
                 async for answer in ready:
                     for service, path in binary_refs(answer):
                         await media_types.of(service, path)  # a model read the first time only
-                    try:
-                        async with asyncio.timeout(self.write_timeout):
-                            await response.write(encode(answer, resumed and snapshot, media_types.known))
-                    except TimeoutError:
-                        log.info(
-                            "event stream to %s ended: it read nothing for %g s (http.write_timeout)",
-                            peer,
-                            self.write_timeout,
-                        )
-                        # Dropped, not finished: finishing would wait on the same full buffer.
-                        if request.transport is not None:
-                            request.transport.abort()
+                    chunk = encode(answer, resumed and snapshot, media_types.known)
+                    if not await write_or_drop(
+                        request, response, chunk, within_s=self.write_timeout, what="event stream", peer=peer
+                    ):
                         return response
                     if answer.sync:
                         snapshot = False

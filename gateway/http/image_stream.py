@@ -32,7 +32,7 @@ from gateway.guard import Guard
 from gateway.http.binary import OCTET_STREAM, RAW_HEADERS, property_model, served_type
 from gateway.http.bodies import query_parameters
 from gateway.http.errors import error_response
-from gateway.http.places import StreamPlaces, too_many
+from gateway.http.places import StreamPlaces, too_many, write_or_drop
 from gateway.http.safety import identify
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.listen.drain import Wake, responses
@@ -159,18 +159,10 @@ class ImageStreams:
                 if event is not None and event.HasField("data"):
                     data = event.data
                     part = part_head(media_type, len(data), event.sequence, skipped + event.conflated)
-                    try:
-                        async with asyncio.timeout(self.write_timeout):
-                            await response.write(part + data + b"\r\n")
-                    except TimeoutError:
-                        log.info(
-                            "image stream to %s ended: it read nothing for %g s (http.write_timeout)",
-                            peer,
-                            self.write_timeout,
-                        )
-                        # Dropped, not finished: finishing would wait on the same full buffer.
-                        if request.transport is not None:
-                            request.transport.abort()
+                    chunk = part + data + b"\r\n"
+                    if not await write_or_drop(
+                        request, response, chunk, within_s=self.write_timeout, what="image stream", peer=peer
+                    ):
                         return response
                     skipped = 0
                 answer = await anext(ready, None)

@@ -9,6 +9,8 @@ a page that shows a camera holds its event stream and one place per image it sho
 
 from __future__ import annotations
 
+import asyncio
+import logging
 from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -18,6 +20,8 @@ from aiohttp import web
 from gateway.config import HttpSection
 from gateway.http.errors import TOO_MANY_REQUESTS, TOO_MANY_STREAMS, error_response
 from services.errors import ResourceExhausted
+
+log = logging.getLogger(__name__)
 
 
 class StreamPlaces:
@@ -58,3 +62,22 @@ class StreamPlaces:
 def too_many(message: str, status: int = TOO_MANY_STREAMS) -> web.Response:
     """RESOURCE_EXHAUSTED as JSON with ``status`` (503: come back later; 429: this client asks too much)."""
     return error_response(ResourceExhausted(message), status=status)
+
+
+async def write_or_drop(
+    request: web.Request, response: web.StreamResponse, data: bytes, *, within_s: float, what: str, peer: str
+) -> bool:
+    """Write ``data`` to a stream within ``within_s`` seconds; False when the reader did not take it.
+
+    A reader that reads nothing for that long is dropped (its connection aborted), not finished:
+    finishing would wait on the same full buffer. ``what`` names the stream in the log line.
+    """
+    try:
+        async with asyncio.timeout(within_s):
+            await response.write(data)
+    except TimeoutError:
+        log.info("%s to %s ended: it read nothing for %g s (http.write_timeout)", what, peer, within_s)
+        if request.transport is not None:
+            request.transport.abort()
+        return False
+    return True

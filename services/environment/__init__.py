@@ -7,15 +7,14 @@
 * :mod:`~services.environment.options` — the service's options, checked
 * :mod:`~services.environment.sources` — following other services' properties, with backoff
 * :mod:`~services.environment.nodes` — the property tree: ``markers.<id>``, ``grid.<layer>``
-* :mod:`~services.environment.serving` — :class:`EnvironmentService`, what the wrapper cannot say alone
-* :mod:`~services.environment.service` — :class:`EnvironmentModel`, the service (config type ``environment``)
+* :mod:`~services.environment.service` — :class:`EnvironmentModel`, the service (config type
+  ``environment``), and :class:`EnvironmentService`, what the class wrapper cannot say alone
 """
 
 from services.environment.fusion import FusedMarker, MarkerFusion, Observation, Update
 from services.environment.grid import GridSpec, HitLayer, MeanLayer, to_npy
 from services.environment.heatmap import heat_map_png
-from services.environment.service import EnvironmentModel
-from services.environment.serving import EnvironmentService
+from services.environment.service import EnvironmentModel, EnvironmentService
 
 __all__ = [
     "EnvironmentModel",

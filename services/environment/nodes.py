@@ -3,7 +3,7 @@
 Each is a child Resource whose own value (``_value``) the class wrapper serves; a marker's node
 is attached when the marker is made and detached when it goes, so a Listen hears it come and
 go. A layer's own value is bytes, which a namespace cannot hold: its Get and Listen are
-answered by :class:`~services.environment.serving.EnvironmentService`.
+answered by :class:`~services.environment.service.EnvironmentService`.
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ class MarkerTable(Resource):
 
 class LayerNode(Resource):
     """``grid.<layer>``: the layer as float32 ``.npy`` (served by
-    :class:`~services.environment.serving.EnvironmentService`), with ``info`` and ``image`` beside it."""
+    :class:`~services.environment.service.EnvironmentService`), with ``info`` and ``image`` beside it."""
 
     def __init__(self, layer: Layer) -> None:
         self._layer = layer

@@ -14,17 +14,20 @@ layers (:mod:`services.environment.grid`), and offers them as properties:
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 from typing import Annotated, Any
 
-from services.core import Marker, Prop, Resource, action, query
+from services.backend import NO_PARAMS, Notify, Subscription
+from services.core import LocalService, Marker, Prop, Resource, action, query
 from services.directory import Directory
 from services.environment.fusion import MarkerFusion, Observation, Update
 from services.environment.grid import GridSpec, HitLayer, Layer, MeanLayer
-from services.environment.nodes import GridLayers, LayerNode, MarkerNode, MarkerTable
+from services.environment.nodes import LAYER_META, NPY, GridLayers, LayerNode, MarkerNode, MarkerTable
 from services.environment.observations import (
     fused_marker,
     observation_of,
@@ -41,12 +44,12 @@ from services.environment.options import (
     selectors,
 )
 from services.environment.options import readings as parse_readings
-from services.environment.serving import EnvironmentService
 from services.environment.sources import Follow, fixed
 from services.errors import InvalidArgument, PropertyError
-from services.values import ValueFormatError, Vector, parse_number, parse_vector
+from services.model import ServiceModel
+from services.values import Value, ValueFormatError, Vector, parse_number, parse_vector
 
-__all__ = ["EnvironmentModel"]
+__all__ = ["EnvironmentModel", "EnvironmentService"]
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +69,74 @@ DEFAULT_PROCESS_NOISE = 0.05  # m²/s: an object walks about 22 cm in a second u
 #: The layers every model has, with their units.
 TEMPERATURE = "temperature"
 OCCUPANCY = "occupancy"
+
+
+class _LayerSubscription(Subscription):
+    __slots__ = ("_node", "_token")
+
+    def __init__(self, node: LayerNode, token: int) -> None:
+        self._node = node
+        self._token = token
+
+    async def close(self) -> None:
+        self._node.listeners.pop(self._token, None)
+
+
+class EnvironmentService(LocalService):
+    """Serves an :class:`EnvironmentModel`: the class wrapper, and what it cannot say alone.
+
+    * ``grid.<layer>`` is a namespace (``info``, ``image`` under it) whose own value is binary,
+      the layer as ``.npy``: this class answers its Get, Listen, ``media_type`` and model.
+    * ``class`` is a word Python keeps for itself, so ``find``'s keyword is ``kind``; a Get of
+      ``find`` with ``class=...`` is taken as ``kind=...``.
+    """
+
+    obj: EnvironmentModel
+
+    def __init__(self, obj: Resource, url: str = "local") -> None:
+        super().__init__(obj, url)
+        self._layer_tokens = itertools.count()
+
+    def _layer(self, path: str) -> LayerNode | None:
+        head, _, name = path.partition(".")
+        return self.obj.layer_nodes.get(name) if head == "grid" else None
+
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
+        node = self._layer(path)
+        if node is not None:
+            if params:
+                raise InvalidArgument(f"`{path}` takes no parameters")
+            return node.npy()
+        head, _, meta = path.rpartition(".")
+        if meta in LAYER_META and self._layer(head) is not None:
+            if params:
+                raise InvalidArgument(f"`{path}` takes no parameters")
+            return LAYER_META[meta]
+        if path == "find" and "class" in params:
+            if "kind" in params:
+                raise InvalidArgument("`find`: give class or kind, not both")
+            params = {("kind" if k == "class" else k): v for k, v in params.items()}
+        return await super().get(path, params)
+
+    async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
+        node = self._layer(path)
+        if node is None:
+            return await super().listen(path, notify, params)
+        token = next(self._layer_tokens)
+        node.listeners[token] = notify
+        return _LayerSubscription(node, token)
+
+    async def describe(self) -> ServiceModel:
+        model = await super().describe()
+        doc = LAYER_META["doc"]
+        layers = {f"grid.{name}" for name in self.obj.layer_nodes}
+        return replace(
+            model,
+            properties=tuple(
+                replace(p, type="bytes", media_type=NPY, doc=doc, gui="bytes") if p.name in layers else p
+                for p in model.properties
+            ),
+        )
 
 
 class EnvironmentModel(Resource):
