@@ -144,6 +144,8 @@ class EnvironmentModel(Resource):
         self._locations: dict[tuple[str, str], tuple[float, float]] = {}
         # (service, path) of each robot location followed → the marker it feeds.
         self._robot_markers: dict[tuple[str, str], str] = {}
+        # (service, path) of each camera's markers followed → the markers its latest list fed.
+        self._camera_sightings: dict[tuple[str, str], tuple[str, ...]] = {}
         self._follows: list[Follow] = []
         self._depths: dict[int, int] = {}
         self._notices: dict[str, asyncio.TimerHandle] = {}
@@ -258,10 +260,15 @@ class EnvironmentModel(Resource):
         """Forget the markers not seen for ``ttl`` seconds; returns their ids.
 
         A robot whose location is followed counts as seen: its Listen would have told of a move.
+        So does a marker in a followed camera's latest list: a camera tells only of changes, and a
+        still scene is still in view.
         """
         now = self._clock()
         for marker_id in set(self._robot_markers.values()):
             self.fusion.touch(marker_id, now)
+        for sighted in self._camera_sightings.values():
+            for marker_id in sighted:
+                self.fusion.touch(marker_id, now)
         gone = self.fusion.expire(now)
         for marker in gone:
             self._detach_marker(marker.id)
@@ -286,7 +293,7 @@ class EnvironmentModel(Resource):
                     sel.service,
                     fixed(sel.pattern or "markers"),
                     self._camera_markers(sel.service),
-                    _ignore,
+                    self._camera_gone(sel.service),
                     role="markers",
                 ),
                 directory,
@@ -360,20 +367,29 @@ class EnvironmentModel(Resource):
 
     def _camera_markers(self, service: str) -> Callable[[str, str], None]:
         def on_value(path: str, value: str) -> None:
+            self._camera_sightings.pop((service, path), None)
             try:
                 seen = parse_marker_list(value)
             except PropertyError as e:
                 log.debug("environment: %s/%s: %s", service, path, e.message)
                 return
+            fed: list[str] = []
             for marker in seen:
                 try:
                     obs = observation_of(marker, service, self._camera_variance, "object")
                 except (PropertyError, ValueError) as e:
                     log.debug("environment: a marker of %s/%s: %s", service, path, e)
                     continue
-                self.fuse(obs, occupancy=True)
+                fed.append(self.fuse(obs, occupancy=True).marker.id)
+            self._camera_sightings[(service, path)] = tuple(fed)
 
         return on_value
+
+    def _camera_gone(self, service: str) -> Callable[[str], None]:
+        def on_gone(path: str) -> None:
+            self._camera_sightings.pop((service, path), None)
+
+        return on_gone
 
     def _robot_location(self, service: str) -> Callable[[str, str], None]:
         def on_value(path: str, value: str) -> None:

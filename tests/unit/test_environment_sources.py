@@ -144,3 +144,36 @@ async def test_a_source_that_fails_is_tried_again_and_the_others_carry_on(
         }
     finally:
         await env.aclose()
+
+
+async def test_what_a_camera_still_sees_does_not_expire(router: Router) -> None:
+    # A camera tells only of changes: a still scene sends nothing, and must not age out.
+    now = [1000.0]
+    model = EnvironmentModel(directory=router, markers=["camera1"], ttl=10.0, clock=lambda: now[0])
+    env = LocalService(model)
+    await env.start()
+    router.add("env", env)
+    camera = ScriptedCamera()
+    cam = LocalService(camera)
+    await cam.start()
+    router.add("camera1", cam)
+    try:
+        await wait_until(lambda: sources(model)["camera1 markers"] == "following", what="camera1 followed")
+        camera.markers = (
+            "(<marker><id>crate</id><class>box</class><location>(1 3)</location></marker> "
+            "<marker><id>ball</id><class>ball</class><location>(-1 1.5)</location></marker>)"
+        )
+        await wait_until(lambda: len(model.fusion) == 2, what="both markers fused")
+        cone = "<marker><id>cone</id><class>cone</class><location>(4 4)</location></marker>"
+        await env.set("observe", cone)
+        now[0] += 60.0
+        assert model.expire() == ["cone"]  # seen once, by no camera that still sees it
+        assert sorted(model.fusion.ids()) == ["ball", "crate"]
+        # The ball leaves the view: from then on it ages as any marker does.
+        camera.markers = "(<marker><id>crate</id><class>box</class><location>(1 3)</location></marker>)"
+        await wait_until(lambda: model.fusion.get("crate").count == 2, what="the second list fused")
+        now[0] += 60.0
+        assert model.expire() == ["ball"]
+        assert model.fusion.ids() == ["crate"]
+    finally:
+        await env.aclose()
