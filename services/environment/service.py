@@ -66,6 +66,9 @@ DEFAULT_PROCESS_NOISE = 0.05  # m²/s: an object walks about 22 cm in a second u
 #: The layers every model has, with their units.
 TEMPERATURE = "temperature"
 OCCUPANCY = "occupancy"
+#: The class of a robot's own marker: the resource type a camera gives a robot it sees, so that
+#: a camera's sighting of a robot and the robot's own report fuse into one marker.
+ROBOT_CLASS = "mobile_robot"
 
 
 class EnvironmentModel(Resource):
@@ -398,7 +401,7 @@ class EnvironmentModel(Resource):
                 return
             segments = path.split(".")
             name = segments[-2] if len(segments) >= 2 else service
-            obs = Observation.at("robot", where, self._robot_variance, name, id=name)
+            obs = Observation.at(ROBOT_CLASS, where, self._robot_variance, name, id=name)
             self._robot_markers[(service, path)] = self.fuse(obs, occupancy=False).marker.id
 
         return on_value
