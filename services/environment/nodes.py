@@ -34,6 +34,7 @@ LAYER_META = {
 }
 
 
+# The docstrings of these classes are the docs Describe gives their properties: plain text.
 class MarkerNode(Resource):
     """One fused marker; its value is the marker."""
 
@@ -47,7 +48,7 @@ class MarkerNode(Resource):
 
 
 class MarkerTable(Resource):
-    """``markers``: its value lists the ids; ``markers.<id>`` is each fused marker."""
+    """The ids of the fused markers; markers.<id> is each one."""
 
     def __init__(self, fusion: MarkerFusion) -> None:
         self._fusion = fusion
@@ -104,7 +105,7 @@ class LayerNode(Resource):
 
 
 class GridLayers(Resource):
-    """``grid``: its value lists the layers; ``grid.<layer>`` is each layer."""
+    """The names of the grid layers; grid.<layer> is each one."""
 
     def __init__(self, layers: Mapping[str, Layer]) -> None:
         self._layers = layers
