@@ -30,7 +30,8 @@ PNG = "image/png"
 LAYER_META = {
     "media_type": NPY,
     "gui": "bytes",
-    "doc": "the layer: float32 .npy (numpy.load reads it), row 0 at the origin's y, NaN where no value",
+    "doc": "the layer: float32 .npy (numpy.load reads it), row 0 at the origin's y; NaN where a mean"
+    " layer has no value, 0 where a hits layer has none",
 }
 
 
