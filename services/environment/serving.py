@@ -11,7 +11,7 @@ from services.backend import NO_PARAMS, Notify, Subscription
 from services.core import LocalService, Resource
 from services.environment.nodes import LAYER_META, NPY, LayerNode
 from services.errors import InvalidArgument
-from services.model import ServiceModel
+from services.model import PropertyModel, ServiceModel
 from services.values import Value
 
 if TYPE_CHECKING:
@@ -79,10 +79,16 @@ class EnvironmentService(LocalService):
         model = await super().describe()
         doc = LAYER_META["doc"]
         layers = {f"grid.{name}" for name in self.obj.layer_nodes}
-        return replace(
-            model,
-            properties=tuple(
-                replace(p, type="bytes", media_type=NPY, doc=doc, gui="bytes") if p.name in layers else p
-                for p in model.properties
-            ),
-        )
+
+        def typed(p: PropertyModel) -> PropertyModel:
+            # Nodes with a value of their own, which the class wrapper calls namespaces: typed,
+            # they are values a wildcard Get (`markers.*`) reads and a client knows how to parse.
+            if p.name in layers:
+                return replace(p, type="bytes", media_type=NPY, doc=doc, gui="bytes")
+            if p.name in ("markers", "grid"):
+                return replace(p, type="names", gui="list")
+            if p.name.startswith("markers.") and p.type == "namespace":
+                return replace(p, type="marker", gui="marker")
+            return p
+
+        return replace(model, properties=tuple(typed(p) for p in model.properties))
