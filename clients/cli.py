@@ -650,7 +650,14 @@ def _error(message: str) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``psctl`` with ``argv`` (default: the process arguments); return the exit code."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        # argparse gives a set's optional VALUE up once an option comes between it and the path
+        # (`psctl set files blob -p name=a.txt hello`): it is still the value.
+        if args.command == "set" and args.value is None and len(extra) == 1 and not extra[0].startswith("-"):
+            args.value = extra[0]
+        else:
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
     target = getattr(args, "target", None) or os.environ.get("PSCTL_TARGET") or DEFAULT_TARGET
     timeout: float | None = getattr(args, "timeout", DEFAULT_TIMEOUT)
     if timeout is not None and timeout <= 0:

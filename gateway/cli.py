@@ -22,7 +22,8 @@ EXIT_CONFIG = 2
 
 EXAMPLES = """\
 examples:
-  psgateway                                   serve the demo (robots, a sensor, a swarm, files, missions)
+  psgateway                                   serve the demo (robots, a sensor, a swarm, files, missions,
+                                              cameras, an environment model)
                                               on 127.0.0.1:50051, its console on http://127.0.0.1:8080/
   psgateway serve --config site.toml          serve the services a config file lists
   psgateway serve --listen 127.0.0.1:0        pick a free port (printed as "listening on HOST:PORT")

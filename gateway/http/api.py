@@ -249,7 +249,8 @@ class Api:
         self, service: str, path: str, subject: Subject, content_type: str | None = None
     ) -> PropertyModel:
         """The model of ``path``, a binary property; InvalidArgument when it is not one, or when
-        ``content_type`` (a raw Set's) is neither its media type nor application/octet-stream."""
+        ``content_type`` (a raw Set's) is neither its media type nor application/octet-stream (any
+        type will do for a property whose media type is application/octet-stream)."""
         if not self._may_set(subject, service, path):
             self.guard.require(subject, service, path, Operation.WRITE)  # refused, named and audited
         prop = await property_model(self.calls, service, path)
@@ -260,7 +261,13 @@ class Api:
                 f' Content-Type: {JSON_TYPE} with {{"value": TEXT}}'
             )
         media_type = essence(prop.media_type or OCTET_STREAM)
-        if content_type is not None and content_type not in (media_type, OCTET_STREAM):
+        # A property of any bytes (application/octet-stream: a store of files) takes them under
+        # any type; the types a form can send never get here (gateway.http.safety).
+        if (
+            content_type is not None
+            and media_type != OCTET_STREAM
+            and content_type not in (media_type, OCTET_STREAM)
+        ):
             raise InvalidArgument(
                 f"a Set of {service}/{path} takes Content-Type: {media_type} or {OCTET_STREAM} (its raw"
                 f' bytes), or {JSON_TYPE} ({{"data": BASE64}}), not {content_type[:100]!r}'

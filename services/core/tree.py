@@ -129,7 +129,8 @@ def check_form(path: str, member: Member, value: Value) -> None:
         if isinstance(value, str):
             media = f", {member.media_type}" if member.media_type else ""
             raise InvalidArgument(
-                f"`{path}` is binary (type bytes{media}): send its value as bytes (the `data` field), "
+                f"`{path}` is binary (type bytes{media}): send its value as bytes (the `data` field;"
+                " `\\=BASE64` on a line; `psctl set --file`), "
                 "not as text"
             )
         limit = member.max_size or MAX_BINARY_SIZE

@@ -30,10 +30,12 @@ PNG = "image/png"
 LAYER_META = {
     "media_type": NPY,
     "gui": "bytes",
-    "doc": "the layer: float32 .npy (numpy.load reads it), row 0 at the origin's y, NaN where no value",
+    "doc": "the layer: float32 .npy (numpy.load reads it), row 0 at the origin's y; NaN where a mean"
+    " layer has no value, 0 where a hits layer has none",
 }
 
 
+# The docstrings of these classes are the docs Describe gives their properties: plain text.
 class MarkerNode(Resource):
     """One fused marker; its value is the marker."""
 
@@ -47,7 +49,7 @@ class MarkerNode(Resource):
 
 
 class MarkerTable(Resource):
-    """``markers``: its value lists the ids; ``markers.<id>`` is each fused marker."""
+    """The ids of the fused markers; markers.<id> is each one."""
 
     def __init__(self, fusion: MarkerFusion) -> None:
         self._fusion = fusion
@@ -104,7 +106,7 @@ class LayerNode(Resource):
 
 
 class GridLayers(Resource):
-    """``grid``: its value lists the layers; ``grid.<layer>`` is each layer."""
+    """The names of the grid layers; grid.<layer> is each one."""
 
     def __init__(self, layers: Mapping[str, Layer]) -> None:
         self._layers = layers

@@ -46,7 +46,7 @@ from services.environment.options import (
 from services.environment.options import readings as parse_readings
 from services.environment.sources import Follow, fixed
 from services.errors import InvalidArgument, PropertyError
-from services.model import ServiceModel
+from services.model import PropertyModel, ServiceModel
 from services.values import Value, ValueFormatError, Vector, parse_number, parse_vector
 
 __all__ = ["EnvironmentModel", "EnvironmentService"]
@@ -69,6 +69,9 @@ DEFAULT_PROCESS_NOISE = 0.05  # m²/s: an object walks about 22 cm in a second u
 #: The layers every model has, with their units.
 TEMPERATURE = "temperature"
 OCCUPANCY = "occupancy"
+#: The class of a robot's own marker: the resource type a camera gives a robot it sees, so that
+#: a camera's sighting of a robot and the robot's own report fuse into one marker.
+ROBOT_CLASS = "mobile_robot"
 
 
 class _LayerSubscription(Subscription):
@@ -130,13 +133,19 @@ class EnvironmentService(LocalService):
         model = await super().describe()
         doc = LAYER_META["doc"]
         layers = {f"grid.{name}" for name in self.obj.layer_nodes}
-        return replace(
-            model,
-            properties=tuple(
-                replace(p, type="bytes", media_type=NPY, doc=doc, gui="bytes") if p.name in layers else p
-                for p in model.properties
-            ),
-        )
+
+        def typed(p: PropertyModel) -> PropertyModel:
+            # Nodes with a value of their own, which the class wrapper calls namespaces: typed,
+            # they are values a wildcard Get (`markers.*`) reads and a client knows how to parse.
+            if p.name in layers:
+                return replace(p, type="bytes", media_type=NPY, doc=doc, gui="bytes")
+            if p.name in ("markers", "grid"):
+                return replace(p, type="names", gui="list")
+            if p.name.startswith("markers.") and p.type == "namespace":
+                return replace(p, type="marker", gui="marker")
+            return p
+
+        return replace(model, properties=tuple(typed(p) for p in model.properties))
 
 
 class EnvironmentModel(Resource):
@@ -215,6 +224,8 @@ class EnvironmentModel(Resource):
         self._locations: dict[tuple[str, str], tuple[float, float]] = {}
         # (service, path) of each robot location followed → the marker it feeds.
         self._robot_markers: dict[tuple[str, str], str] = {}
+        # (service, path) of each camera's markers followed → the markers its latest list fed.
+        self._camera_sightings: dict[tuple[str, str], tuple[str, ...]] = {}
         self._follows: list[Follow] = []
         self._depths: dict[int, int] = {}
         self._notices: dict[str, asyncio.TimerHandle] = {}
@@ -329,10 +340,15 @@ class EnvironmentModel(Resource):
         """Forget the markers not seen for ``ttl`` seconds; returns their ids.
 
         A robot whose location is followed counts as seen: its Listen would have told of a move.
+        So does a marker in a followed camera's latest list: a camera tells only of changes, and a
+        still scene is still in view.
         """
         now = self._clock()
         for marker_id in set(self._robot_markers.values()):
             self.fusion.touch(marker_id, now)
+        for sighted in self._camera_sightings.values():
+            for marker_id in sighted:
+                self.fusion.touch(marker_id, now)
         gone = self.fusion.expire(now)
         for marker in gone:
             self._detach_marker(marker.id)
@@ -357,7 +373,7 @@ class EnvironmentModel(Resource):
                     sel.service,
                     fixed(sel.pattern or "markers"),
                     self._camera_markers(sel.service),
-                    _ignore,
+                    self._camera_gone(sel.service),
                     role="markers",
                 ),
                 directory,
@@ -431,20 +447,29 @@ class EnvironmentModel(Resource):
 
     def _camera_markers(self, service: str) -> Callable[[str, str], None]:
         def on_value(path: str, value: str) -> None:
+            self._camera_sightings.pop((service, path), None)
             try:
                 seen = parse_marker_list(value)
             except PropertyError as e:
                 log.debug("environment: %s/%s: %s", service, path, e.message)
                 return
+            fed: list[str] = []
             for marker in seen:
                 try:
                     obs = observation_of(marker, service, self._camera_variance, "object")
                 except (PropertyError, ValueError) as e:
                     log.debug("environment: a marker of %s/%s: %s", service, path, e)
                     continue
-                self.fuse(obs, occupancy=True)
+                fed.append(self.fuse(obs, occupancy=True).marker.id)
+            self._camera_sightings[(service, path)] = tuple(fed)
 
         return on_value
+
+    def _camera_gone(self, service: str) -> Callable[[str], None]:
+        def on_gone(path: str) -> None:
+            self._camera_sightings.pop((service, path), None)
+
+        return on_gone
 
     def _robot_location(self, service: str) -> Callable[[str, str], None]:
         def on_value(path: str, value: str) -> None:
@@ -453,7 +478,7 @@ class EnvironmentModel(Resource):
                 return
             segments = path.split(".")
             name = segments[-2] if len(segments) >= 2 else service
-            obs = Observation.at("robot", where, self._robot_variance, name, id=name)
+            obs = Observation.at(ROBOT_CLASS, where, self._robot_variance, name, id=name)
             self._robot_markers[(service, path)] = self.fuse(obs, occupancy=False).marker.id
 
         return on_value

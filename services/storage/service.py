@@ -147,7 +147,8 @@ class StorageService(LocalService):
         if path == BLOB:
             if isinstance(value, str):
                 raise InvalidArgument(
-                    "`blob` is binary (type bytes): send its value as bytes (the `data` field), "
+                    "`blob` is binary (type bytes): send its value as bytes (the `data` field;"
+                    " `\\=BASE64` on a line; `psctl set --file`), "
                     "or Set `file` (same `name`) to store text"
                 )
             return await self.storage.store_bytes(_file_name(params, path), value)

@@ -89,6 +89,18 @@ def test_set_then_get(demo_target: str) -> None:
         "-p",
         "frame=world",
     )
+    # The value after a parameter, as it reads naturally.
+    ok(
+        demo_target,
+        "set",
+        "scout2",
+        "behaviors.moveto",
+        "-p",
+        "frame=world",
+        "<marker><location>(1 0)</location></marker>",
+    )
+    done = psctl(demo_target, "set", "scout2", "speed", "-p", "a=b", "0.5", "extra")
+    assert done.returncode == 2 and "unrecognized arguments: 0.5 extra" in done.stderr, done.stderr
 
 
 def test_listen_count_and_json(demo_target: str) -> None:

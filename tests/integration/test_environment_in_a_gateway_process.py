@@ -82,10 +82,10 @@ async def test_robots_fill_the_temperature_grid_and_markers_come_and_go(gateway_
         )
         assert states(sources)["camera1 markers"] == "absent"  # not there: waited for, quietly
 
-        # Both robots are markers of class robot, from their own reports.
+        # Both robots are markers of class mobile_robot, from their own reports.
         for name in ("scout1", "scout2"):
             marker = parse_marker(await eventually(lambda n=name: client.get("environment", f"markers.{n}")))
-            assert marker.get("class") == "robot" and marker.get("source") == name
+            assert marker.get("class") == "mobile_robot" and marker.get("source") == name
 
         # Drive along rows 0 and 2 of the grid, from x = 0.5 to x = 5.5: twelve cells.
         await client.set("scout1", "behaviors.moveto", "<marker><location>(5.5 0.5)</location></marker>")
@@ -126,7 +126,9 @@ async def test_robots_fill_the_temperature_grid_and_markers_come_and_go(gateway_
             await events.aclose()
         # The robots, standing but followed, stay.
         assert sorted(await client.get_names("environment", "markers")) == ["scout1", "scout2"]
-        found = await client.get("environment", "find", **{"class": "robot", "near": "(5 3)", "count": "1"})
+        found = await client.get(
+            "environment", "find", **{"class": "mobile_robot", "near": "(5 3)", "count": "1"}
+        )
         assert [m.get("id") for m in parse_marker_list(found)] == ["scout2"]
 
         # "Move to the nearest red marker": the marker find names is a target for moveto.

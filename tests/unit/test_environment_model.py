@@ -233,3 +233,21 @@ def test_marker_lists_in_every_form_a_camera_may_send() -> None:
         parse_marker_list("(" + " ".join([one] * 1001) + ")")
     with pytest.raises(InvalidArgument, match="a marker of the list is bad"):
         parse_marker_list("(<marker><id>a</id><id>b</id></marker>)")
+
+
+async def test_markers_and_grid_are_typed_values_a_wildcard_get_reads(
+    client_model: tuple[AsyncClient, EnvironmentModel],
+) -> None:
+    client, _ = client_model
+    for seen in (
+        "<marker><id>crate</id><class>box</class><location>(1 1)</location></marker>",
+        "<marker><id>ball</id><class>ball</class><location>(1.5 0.5)</location></marker>",
+    ):
+        await client.set("env", "observe", seen)
+    described = {p.name: p for p in (await client.describe("env")).properties}
+    assert (described["markers"].type, described["grid"].type) == ("names", "names")
+    assert described["markers.crate"].type == "marker"
+    found = await client.get_matching("env", "markers.*")
+    assert sorted(found) == ["markers.ball", "markers.crate"]
+    crate = found["markers.crate"]
+    assert isinstance(crate, str) and parse_marker(crate).get("class") == "box"

@@ -100,7 +100,7 @@ async def test_robots_and_their_temperature_readings(router: Router) -> None:
         skipped = dict(parse_list(await env.get("skipped")))
         assert set(skipped) == {"unplaced", "unreadable"} and skipped["unreadable"] == "0"
         marker = model.fusion.get("bot")
-        assert marker is not None and marker.cls == "robot" and marker.source == "bot"
+        assert marker is not None and marker.cls == "mobile_robot" and marker.source == "bot"
         # Its marker follows it to where it stops (within the filter's lag behind the last report).
         await wait_until(lambda: abs(float(marker.position[0]) - 3.75) < 0.05, what="the marker at the end")
     finally:
@@ -142,5 +142,64 @@ async def test_a_source_that_fails_is_tried_again_and_the_others_carry_on(
             "flaky": "following",
             "steady": "following",
         }
+    finally:
+        await env.aclose()
+
+
+async def test_what_a_camera_still_sees_does_not_expire(router: Router) -> None:
+    # A camera tells only of changes: a still scene sends nothing, and must not age out.
+    now = [1000.0]
+    model = EnvironmentModel(directory=router, markers=["camera1"], ttl=10.0, clock=lambda: now[0])
+    env = LocalService(model)
+    await env.start()
+    router.add("env", env)
+    camera = ScriptedCamera()
+    cam = LocalService(camera)
+    await cam.start()
+    router.add("camera1", cam)
+    try:
+        await wait_until(lambda: sources(model)["camera1 markers"] == "following", what="camera1 followed")
+        camera.markers = (
+            "(<marker><id>crate</id><class>box</class><location>(1 3)</location></marker> "
+            "<marker><id>ball</id><class>ball</class><location>(-1 1.5)</location></marker>)"
+        )
+        await wait_until(lambda: len(model.fusion) == 2, what="both markers fused")
+        cone = "<marker><id>cone</id><class>cone</class><location>(4 4)</location></marker>"
+        await env.set("observe", cone)
+        now[0] += 60.0
+        assert model.expire() == ["cone"]  # seen once, by no camera that still sees it
+        assert sorted(model.fusion.ids()) == ["ball", "crate"]
+        # The ball leaves the view: from then on it ages as any marker does.
+        camera.markers = "(<marker><id>crate</id><class>box</class><location>(1 3)</location></marker>)"
+        await wait_until(lambda: model.fusion.get("crate").count == 2, what="the second list fused")
+        now[0] += 60.0
+        assert model.expire() == ["ball"]
+        assert model.fusion.ids() == ["crate"]
+    finally:
+        await env.aclose()
+
+
+async def test_a_camera_sighting_of_a_robot_and_its_own_report_are_one_marker(router: Router) -> None:
+    robot = SimRobot(start=(1.0, 2.0), tick_hz=50.0, seed=1)
+    bot = LocalService(robot)
+    await bot.start()
+    router.add("bot", bot)
+    camera = ScriptedCamera()
+    cam = LocalService(camera)
+    await cam.start()
+    router.add("camera1", cam)
+    model = EnvironmentModel(directory=router, robots=["bot"], markers=["camera1"])
+    env = LocalService(model)
+    await env.start()
+    router.add("env", env)
+    try:
+        await wait_until(lambda: all(s == "following" for s in sources(model).values()), what="both followed")
+        await wait_until(lambda: "bot" in model.fusion, what="the robot's own marker")
+        # What a camera says of a robot it sees: its name, the robot's resource type, near it.
+        camera.markers = (
+            "(<marker><id>bot</id><class>mobile_robot</class><location>(1.02 2 0)</location></marker>)"
+        )
+        await wait_until(lambda: model.fusion.get("bot").source == "camera1", what="the sighting fused")
+        assert model.fusion.ids() == ["bot"]
     finally:
         await env.aclose()

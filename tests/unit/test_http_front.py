@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Annotated
 
 import aiohttp
 import pytest
@@ -24,6 +25,7 @@ from gateway.http.errors import HTTP_STATUS
 from gateway.http.openapi import document
 from gateway.http.safety import is_loopback_host
 from gateway.testing import running_gateway
+from services.core import Prop, Resource
 from services.errors import Code, InvalidArgument, NotFound
 
 # -- configuration ---------------------------------------------------------------------------
@@ -379,3 +381,33 @@ def test_the_open_files_limit_is_raised_for_max_streams() -> None:
             assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == hard
     finally:
         resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+
+
+class Bins(Resource):
+    """A binary property of any bytes and one of PNG pictures."""
+
+    resource_type = "store"
+    blob: Annotated[bytes, Prop(doc="any bytes")] = b""
+    picture: Annotated[bytes, Prop(media_type="image/png", doc="a picture")] = b""
+
+
+async def test_a_raw_set_of_any_bytes_takes_any_content_type() -> None:
+    config = Config(http=HttpSection(listen="127.0.0.1:0", console=False))
+    async with running_gateway(Bins(), name="bins", config=config) as gateway:
+        assert gateway.http is not None
+        async with aiohttp.ClientSession(base_url=gateway.http.url) as http:
+            jpeg = b"\xff\xd8\xff\xe0 a picture"
+            path = "/api/v1/services/bins/properties/"
+            async with http.put(path + "blob", data=jpeg, headers={"Content-Type": "image/jpeg"}) as put:
+                assert put.status == 200, await put.text()
+            async with http.get(path + "blob", params={"raw": "1"}) as got:
+                assert await got.read() == jpeg
+            # A form's type is refused all the same (no cross-origin Set without a preflight).
+            async with http.put(path + "blob", data=jpeg, headers={"Content-Type": "text/plain"}) as put:
+                assert put.status == 400
+            # A property of one media type takes that one or octet-stream, and says so once each.
+            async with http.put(path + "picture", data=jpeg, headers={"Content-Type": "image/jpeg"}) as put:
+                assert put.status == 400
+                message = (await put.json())["error"]["message"]
+            assert "Content-Type: image/png or application/octet-stream" in message, message
+            assert message.count("application/octet-stream") == 1, message
