@@ -29,6 +29,7 @@ from services.environment.fusion import MarkerFusion, Observation, Update
 from services.environment.grid import GridSpec, HitLayer, Layer, MeanLayer
 from services.environment.nodes import LAYER_META, NPY, GridLayers, LayerNode, MarkerNode, MarkerTable
 from services.environment.observations import (
+    MAX_LIST_MARKERS,
     fused_marker,
     observation_of,
     parse_marker_list,
@@ -226,6 +227,8 @@ class EnvironmentModel(Resource):
         self._robot_markers: dict[tuple[str, str], str] = {}
         # (service, path) of each camera's markers followed → the markers its latest list fed.
         self._camera_sightings: dict[tuple[str, str], tuple[str, ...]] = {}
+        # The cell each object of a camera's last list was in, by the object's own id.
+        self._camera_cells: dict[tuple[str, str], dict[str, tuple[int, int] | None]] = {}
         self._follows: list[Follow] = []
         self._depths: dict[int, int] = {}
         self._notices: dict[str, asyncio.TimerHandle] = {}
@@ -454,20 +457,30 @@ class EnvironmentModel(Resource):
                 log.debug("environment: %s/%s: %s", service, path, e.message)
                 return
             fed: list[str] = []
+            # A camera sends its whole list whenever anything in view changes: an object that
+            # stays in its cell is not a new sighting of it and does not count on occupancy again.
+            before = self._camera_cells.pop((service, path), {})
+            cells: dict[str, tuple[int, int] | None] = {}
             for marker in seen:
                 try:
                     obs = observation_of(marker, service, self._camera_variance, "object")
                 except (PropertyError, ValueError) as e:
                     log.debug("environment: a marker of %s/%s: %s", service, path, e)
                     continue
-                fed.append(self.fuse(obs, occupancy=True).marker.id)
+                cell = self.spec.index(obs.position[0], obs.position[1])
+                fresh = not obs.id or obs.id not in before or before[obs.id] != cell
+                fed.append(self.fuse(obs, occupancy=fresh).marker.id)
+                if obs.id and len(cells) < MAX_LIST_MARKERS:
+                    cells[obs.id] = cell
             self._camera_sightings[(service, path)] = tuple(fed)
+            self._camera_cells[(service, path)] = cells
 
         return on_value
 
     def _camera_gone(self, service: str) -> Callable[[str], None]:
         def on_gone(path: str) -> None:
             self._camera_sightings.pop((service, path), None)
+            self._camera_cells.pop((service, path), None)
 
         return on_gone
 

@@ -65,7 +65,7 @@ async def test_a_camera_that_comes_later_is_followed_and_its_markers_fused(route
         assert cube is not None and cube.fields["color"] == "(1 0 0)"
         assert await env.get("grid.occupancy.info") != ""
         info = dict(parse_list(await env.get("grid.occupancy.info")))
-        assert info["total"] == "3"
+        assert info["total"] == "2"  # a and b; a seen again in the same cell is not a new hit
         camera.markers = "not markers at all"  # a bad list is dropped, the model carries on
         camera.markers = "<marker><id>c</id><class>cube</class><location>(5 5)</location></marker>"
         await wait_until(lambda: "c" in model.fusion)
@@ -201,5 +201,46 @@ async def test_a_camera_sighting_of_a_robot_and_its_own_report_are_one_marker(ro
         )
         await wait_until(lambda: model.fusion.get("bot").source == "camera1", what="the sighting fused")
         assert model.fusion.ids() == ["bot"]
+    finally:
+        await env.aclose()
+
+
+async def test_an_object_that_stays_in_its_cell_counts_once_on_occupancy(router: Router) -> None:
+    # A camera sends its whole list whenever anything in view moves: a crate that stays where it
+    # is must not pile up hits each time a robot drives past it.
+    model = EnvironmentModel(
+        directory=router, markers=["camera1"], grid={"origin": [0.0, 0.0], "cell": 1.0, "shape": [10, 10]}
+    )
+    env = LocalService(model)
+    await env.start()
+    router.add("env", env)
+    camera = ScriptedCamera()
+    cam = LocalService(camera)
+    await cam.start()
+    router.add("camera1", cam)
+    crate = "<marker><id>crate</id><class>box</class><location>(1.5 3.5)</location></marker>"
+
+    def robot_at(x: float) -> str:
+        return f"<marker><id>scout1</id><class>mobile_robot</class><location>({x} 5.5)</location></marker>"
+
+    def hits() -> np.ndarray:
+        return model.layers["occupancy"].values()
+
+    try:
+        await wait_until(lambda: sources(model)["camera1 markers"] == "following", what="camera1 followed")
+        for lists, x in enumerate((0.5, 0.7, 1.5, 1.6, 2.5), start=1):
+            camera.markers = f"({crate} {robot_at(x)})"
+            await wait_until(lambda n=lists: model.fusion.get("crate").count == n, what=f"list {lists} fused")
+        grid = hits()
+        assert grid[model.spec.index(1.5, 3.5)] == 1  # the crate: once, in five lists
+        # The robot: once per cell it entered (0.5 and 0.7 share one; 1.5 and 1.6 another).
+        assert [grid[model.spec.index(x, 5.5)] for x in (0.5, 1.5, 2.5)] == [1, 1, 1]
+        assert grid.sum() == 4
+        # Gone from view and back: a new sighting, counted again.
+        camera.markers = f"({robot_at(2.5)})"
+        await wait_until(lambda: model.fusion.get("scout1").count == 6, what="the crate left the view")
+        camera.markers = f"({crate} {robot_at(2.5)})"
+        await wait_until(lambda: model.fusion.get("crate").count == 6, what="the crate back in view")
+        assert hits()[model.spec.index(1.5, 3.5)] == 2
     finally:
         await env.aclose()
