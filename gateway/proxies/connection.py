@@ -273,6 +273,17 @@ class LineConnection:
         """The longest line the device takes: min(maxline, rxbuf) (§4.2)."""
         return self.max_line if self.rxbuf is None else min(self.max_line, self.rxbuf)
 
+    def largest_binary(self, path: str) -> int:
+        """The most bytes a value of ``path`` can carry, both ways: as ``\\=`` base64 on one line.
+
+        The longer of the two lines is the gateway's ``#TAG SET PATH \\=...`` (to the device, at most
+        its line limit) beside the device's ``#TAG OK \\=...`` (from it, at most ``maxline``),
+        each with room for a checksum and the LF.
+        """
+        overhead = len(f"#{2**32} SET {path} \\=") + len("*HH\n")
+        room = min(self._line_limit(), self._receiver.max_line) - overhead
+        return max(0, room // 4 * 3)
+
     def _prepare(self, frame: Request) -> tuple[str, bytes]:
         """A fresh tag and the line of ``frame`` under it; PropertyError when it cannot be sent."""
         if self._closed.is_set():

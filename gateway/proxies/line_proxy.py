@@ -35,7 +35,7 @@ import math
 import random
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, cast
 from urllib.parse import parse_qsl, urlsplit
 
@@ -458,12 +458,26 @@ class LineProxy(Backend):
         """
         try:
             text = as_text(await self.get(MODEL_PATH), MODEL_PATH)
-            return model_from_text(text, self.info.type)
+            return self._fit_the_line(model_from_text(text, self.info.type))
         except PropertyError as e:
             if e.code not in (Code.NOT_FOUND, Code.INVALID_ARGUMENT, Code.RESOURCE_EXHAUSTED, Code.DATA_LOSS):
                 raise
             log.debug("%s does not describe itself (%s)", self._label(), e.message)
         return await super().describe()
+
+    def _fit_the_line(self, model: ServiceModel) -> ServiceModel:
+        """A binary property's ``max_size`` at most what one line carries as base64 (§2.4)."""
+        conn = self._conn
+        if conn is None:
+            return model
+        fitted = []
+        for prop in model.properties:
+            if prop.type == "bytes":
+                most = conn.largest_binary(prop.name)
+                fitted.append(replace(prop, max_size=min(prop.max_size, most) if prop.max_size else most))
+            else:
+                fitted.append(prop)
+        return replace(model, properties=tuple(fitted))
 
     # -- listening ---------------------------------------------------------
 

@@ -226,6 +226,15 @@ async def test_a_python_service_with_bytes_properties_served_as_a_line_device(
             by_name = {p.name: p for p in model.properties}
             assert (by_name["picture"].type, by_name["picture"].media_type) == ("bytes", "image/png")
             assert by_name["small"].max_size == 16 and by_name["frame"].media_type == "image/jpeg"
+            # A property with no limit of its own may carry what one line of 1 MiB holds as base64,
+            # less the request around it: the model says so, not the 4 MiB of a gRPC message.
+            fits = by_name["picture"].max_size
+            assert 786_000 < fits < 1_048_576 * 3 // 4, fits
+            most = await set_(stub, "picture", bytes(fits))
+            assert most.data == bytes(fits)
+            # The limit keeps room for the longest tag and a checksum: a kilobyte more never fits.
+            over = await refusal(set_(stub, "picture", bytes(fits + 1024)))
+            assert over.code() == grpc.StatusCode.RESOURCE_EXHAUSTED, over.details()
             # Text to a bytes property and bytes to a text property: the service's own refusals.
             wrong = await refusal(set_(stub, "note", b"x"))
             assert wrong.code() == grpc.StatusCode.INVALID_ARGUMENT
