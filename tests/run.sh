@@ -61,12 +61,16 @@ if [ "${#cpp_missing[@]}" -gt 0 ]; then
 fi
 # The Go example client (clients/examples/go, tests/interop/test_go_client.py), built offline from
 # Debian's Go sources: the compiler, grpc-go and protobuf-go, and the two protoc plugins
-# (~95 MB of packages to download, most of it the Go 1.19 toolchain). golang-google-protobuf-dev
-# protobuf, the only one whose generator knows proto3 `optional`.
+# (~95 MB of packages to download, most of it the Go 1.19 toolchain). golang-google-protobuf-dev and
+# protoc-gen-go are the APIv2 protobuf, the only one whose generator knows proto3 `optional`.
 go_missing=()
 command -v go >/dev/null || go_missing+=(golang-go)
 [ -d /usr/share/gocode/src/google.golang.org/grpc ] || go_missing+=(golang-google-grpc-dev)
 [ -d /usr/share/gocode/src/google.golang.org/protobuf ] || go_missing+=(golang-google-protobuf-dev)
+# grpc-go's codec calls github.com/golang/protobuf: the 1.5 one (APIv2 underneath, registry.go) that
+# knows the generated messages, not the 1.3 one apt would pick first for golang-google-grpc-dev.
+[ -f /usr/share/gocode/src/github.com/golang/protobuf/proto/registry.go ] \
+  || go_missing+=(golang-github-golang-protobuf-1-5-dev)
 command -v protoc >/dev/null || go_missing+=(protobuf-compiler)
 command -v protoc-gen-go >/dev/null || go_missing+=(protoc-gen-go)
 command -v protoc-gen-go-grpc >/dev/null || go_missing+=(protoc-gen-go-grpc)

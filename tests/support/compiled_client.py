@@ -34,8 +34,8 @@ CALL_TIMEOUT = 30.0
 GO_SOURCES = Path("/usr/share/gocode/src")
 GO_HINT = (
     "tests/run.sh installs it with apt-get when missing (Debian packages golang-go, "
-    "golang-google-grpc-dev, golang-google-protobuf-dev, protobuf-compiler, protoc-gen-go, "
-    "protoc-gen-go-grpc)"
+    "golang-google-grpc-dev, golang-google-protobuf-dev, golang-github-golang-protobuf-1-5-dev, "
+    "protobuf-compiler, protoc-gen-go, protoc-gen-go-grpc)"
 )
 CPP_HINT = (
     "tests/run.sh installs it with apt-get when missing "
@@ -99,6 +99,7 @@ def build_go_client() -> CompiledClient:
             "protoc-gen-go-grpc": "protoc-gen-go-grpc",
             "grpc-go's sources": GO_SOURCES / "google.golang.org" / "grpc",
             "protobuf-go's sources": GO_SOURCES / "google.golang.org" / "protobuf",
+            "golang/protobuf 1.5's sources": GO_SOURCES / "github.com/golang/protobuf/proto/registry.go",
         },
         GO_HINT,
     )
