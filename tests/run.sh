@@ -49,6 +49,34 @@ if [ "${#c_missing[@]}" -gt 0 ]; then
   apt_install "the C device library" "${c_missing[@]}"
 fi
 
+# The C++ example client (clients/examples/cpp, tests/interop/test_cpp_client.py): CMake, gRPC C++
+# and its protoc plugin (~13 MB of packages to download where cmake and g++ are already there).
+cpp_missing=()
+command -v cmake >/dev/null || cpp_missing+=(cmake)
+command -v c++ >/dev/null || cpp_missing+=(g++)
+[ -f /usr/include/grpcpp/grpcpp.h ] || cpp_missing+=(libgrpc++-dev)
+command -v grpc_cpp_plugin >/dev/null || cpp_missing+=(protobuf-compiler-grpc)
+if [ "${#cpp_missing[@]}" -gt 0 ]; then
+  apt_install "the C++ client" "${cpp_missing[@]}"
+fi
+# The Go example client (clients/examples/go, tests/interop/test_go_client.py), built offline from
+# Debian's Go sources: the compiler, grpc-go and protobuf-go, and the two protoc plugins
+# (~95 MB of packages to download, most of it the Go 1.19 toolchain). golang-google-protobuf-dev and
+# protoc-gen-go are the APIv2 protobuf, the only one whose generator knows proto3 `optional`.
+go_missing=()
+command -v go >/dev/null || go_missing+=(golang-go)
+[ -d /usr/share/gocode/src/google.golang.org/grpc ] || go_missing+=(golang-google-grpc-dev)
+[ -d /usr/share/gocode/src/google.golang.org/protobuf ] || go_missing+=(golang-google-protobuf-dev)
+# grpc-go's codec calls github.com/golang/protobuf: the 1.5 one (APIv2 underneath, registry.go) that
+# knows the generated messages, not the 1.3 one apt would pick first for golang-google-grpc-dev.
+[ -f /usr/share/gocode/src/github.com/golang/protobuf/proto/registry.go ] \
+  || go_missing+=(golang-github-golang-protobuf-1-5-dev)
+command -v protoc >/dev/null || go_missing+=(protobuf-compiler)
+command -v protoc-gen-go >/dev/null || go_missing+=(protoc-gen-go)
+command -v protoc-gen-go-grpc >/dev/null || go_missing+=(protoc-gen-go-grpc)
+if [ "${#go_missing[@]}" -gt 0 ]; then
+  apt_install "the Go client" "${go_missing[@]}"
+fi
 echo "== ruff check"; python -m ruff check .
 echo "== ruff format --check"; python -m ruff format --check .
 echo "== mypy"; python -m mypy
