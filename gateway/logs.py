@@ -16,7 +16,7 @@ import logging
 import secrets
 import sys
 import time
-from contextvars import ContextVar
+from contextvars import Context, ContextVar, copy_context
 from typing import Final
 
 __all__ = [
@@ -30,6 +30,7 @@ __all__ = [
     "current_request",
     "current_request_id",
     "new_request_id",
+    "outside_requests",
     "request_id_from",
     "setup_logging",
 ]
@@ -68,6 +69,14 @@ class RequestContext:
 
 #: The request being served in this context; None outside any request.
 current_request: ContextVar[RequestContext | None] = ContextVar("current_request", default=None)
+
+
+def outside_requests() -> Context:
+    """A copy of the current context without a request: for a task that outlives the call that
+    starts it (a proxy's connection, a poll), whose lines belong to no one request."""
+    context = copy_context()
+    context.run(current_request.set, None)
+    return context
 
 
 def current_request_id() -> str | None:

@@ -32,7 +32,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 
-from gateway.logs import current_request_id
+from gateway.logs import current_request_id, outside_requests
 from services.errors import (
     Code,
     DataLoss,
@@ -155,7 +155,9 @@ class LineConnection:
         self._asked_until = 0.0
         #: Longest line the device accepts (from its greeting).
         self.max_line = MAX_LINE
-        self._task = asyncio.create_task(self._read_loop(), name=f"line-connection {label}")
+        self._task = asyncio.create_task(
+            self._read_loop(), name=f"line-connection {label}", context=outside_requests()
+        )
 
     # -- state -------------------------------------------------------------
 
