@@ -32,7 +32,13 @@ from gateway.http.openapi import document
 from gateway.http.places import StreamPlaces
 from gateway.http.safety import JSON_TYPE, check_request
 from gateway.listen import ListenHub
-from gateway.logs import REQUEST_ID_HEADER, RequestContext, current_request, request_id_from
+from gateway.logs import (
+    REQUEST_ID_HEADER,
+    RequestContext,
+    current_request,
+    current_request_id,
+    request_id_from,
+)
 from gateway.ports import PortInUse, port_holder
 from gateway.tls import HttpsCredentials
 from services.errors import Code, InvalidArgument, PropertyError, ResourceExhausted, error_for
@@ -44,13 +50,13 @@ Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 #: HTTP errors aiohttp raises itself, as the code each stands for (others: by their class of status).
 _HTTP_CODES = {404: Code.NOT_FOUND, 413: Code.RESOURCE_EXHAUSTED}
 
-#: Where a request keeps its id for the response's ``X-Request-Id`` header.
-_REQUEST_ID = "request_id"
-
 
 async def _echo_request_id(request: web.BaseRequest, response: web.StreamResponse) -> None:
-    """Every answer, an event stream's too, says which request it answers (headers go out first)."""
-    request_id = request.get(_REQUEST_ID)
+    """Every answer, an event stream's too, says which request it answers (headers go out first).
+
+    Prepared in the handler's task, where the middleware set the request's context.
+    """
+    request_id = current_request_id()
     if request_id is not None:
         response.headers["X-Request-Id"] = request_id
 
@@ -161,7 +167,6 @@ class HttpFront:
         what = f"{request.method} {request.path[:200]}"
         # The request's id in every log line of its handler (and of the proxy calls it makes).
         request_id = request_id_from(request.headers.get(REQUEST_ID_HEADER))
-        request[_REQUEST_ID] = request_id
         current_request.set(
             RequestContext(request_id, request.match_info.get("service"), request.match_info.get("path"))
         )
