@@ -171,3 +171,22 @@ async def test_text_lines_name_the_request_too(gateway_process: StartGateway, ro
 def test_a_bad_log_format_is_a_config_error(gateway_process: StartGateway) -> None:
     with pytest.raises(RuntimeError, match=r"log_format: expected one of text, json, got 'xml'"):
         gateway_process('[gateway]\nlog_format = "xml"\n')
+
+
+async def test_a_request_id_goes_on_to_the_next_gateway(gateway_process: StartGateway) -> None:
+    far = gateway_process(
+        '[gateway]\nlog_format = "json"\nlog_level = "debug"\n'
+        '[[services]]\nname = "scout"\ntype = "sim-robot"\n'
+    )
+    near = gateway_process(f'[[services]]\nname = "remote"\nurl = "grpc://{far.address}/scout"\n')
+    async with grpc.aio.insecure_channel(near.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        with pytest.raises(grpc.aio.AioRpcError) as failed:
+            await stub.Get(
+                pb.GetRequest(service="remote", property="nosuch"), metadata=(("x-request-id", "fed-1"),)
+            )
+        assert failed.value.code() == grpc.StatusCode.NOT_FOUND
+    # The far gateway logs the forwarded call under the id the client chose at the near one.
+    await wait_until(lambda: bool(with_id(far, "fed-1")), what="the far gateway's line of the call")
+    line = with_id(far, "fed-1")[0]
+    assert (line["service"], line["property"], line["code"]) == ("scout", "nosuch", "NOT_FOUND")
