@@ -26,7 +26,6 @@ from urllib.parse import urlsplit
 
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
-from grpc_health.v1.health import aio as health_aio  # type: ignore[attr-defined]
 from grpc_reflection.v1alpha import reflection
 
 from gateway.backends import open_backend, open_proxy
@@ -34,6 +33,7 @@ from gateway.config import REGISTRY_NAME, Config, ConfigError, ServiceEntry
 from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
 from gateway.guard import Guard
+from gateway.health import NOT_SERVING, SERVING, HealthService, state_status
 from gateway.licensing import current_caller
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
@@ -47,6 +47,7 @@ from services.catalog import build, needs_directory
 from services.errors import PropertyError
 from services.registry import DEFAULT_REGISTER_TIMEOUT, AllowList, Licence, Registry, RegistryService
 from services.registry import ServiceEntry as RegistryEntry
+from services.registry.table import GONE
 
 if TYPE_CHECKING:
     from gateway.http import HttpFront
@@ -79,12 +80,14 @@ class Gateway:
         self.hub = ListenHub(self.router, self.config.limits, self.config.gateway.call_timeout, self.guard)
         self._extra = dict(backends or {})
         self._server: grpc.aio.Server | None = None
-        self._health = health_aio.HealthServicer()
+        #: gRPC health: the whole gateway ("") and each service by name, following the registry.
+        self.health = HealthService()
         self._line_listener: LineListener | None = None
         #: The HTTP/JSON + SSE front end; None when ``[http] listen`` is empty.
         self.http: HttpFront | None = None
         self._stopped = asyncio.Event()
         self._unwatch_registry: object | None = None
+        self._unwatch_health: object | None = None
         #: The resource service, served as ``registry`` (built in :meth:`start`).
         self.registry: Registry = Registry()
         self._devices: list[SupervisedDevice] = []
@@ -126,8 +129,8 @@ class Gateway:
         """
         self._check_ports()
         self._check_devices()
-        await self._health.set("", health_pb2.HealthCheckResponse.NOT_SERVING)
-        await self._health.set(SERVICE_NAME, health_pb2.HealthCheckResponse.NOT_SERVING)
+        self.health.set("", NOT_SERVING)
+        self.health.set(SERVICE_NAME, NOT_SERVING)
         try:
             self._launch_devices()
             await self._start_registry()
@@ -150,8 +153,8 @@ class Gateway:
         except BaseException:
             await self.stop()
             raise
-        await self._health.set("", health_pb2.HealthCheckResponse.SERVING)
-        await self._health.set(SERVICE_NAME, health_pb2.HealthCheckResponse.SERVING)
+        self.health.set("", SERVING)
+        self.health.set(SERVICE_NAME, SERVING)
 
     def _check_ports(self) -> None:
         gw = self.config.gateway
@@ -216,7 +219,7 @@ class Gateway:
             raise
         if backend.on_demand:
             self.registry.set_dormant(name, True)
-        log.info("service %s started (%s)", name, what)
+        log.info("service %s started (%s)", name, what, extra={"service": name})
 
     def _launch_devices(self) -> None:
         """Start every ``[[devices]]`` process at once; they boot while the gateway starts the rest."""
@@ -313,13 +316,25 @@ class Gateway:
         self.registry.licensing.watch(self._on_licence)
         await self._add(REGISTRY_NAME, RegistryService(self.registry), "built in")
         self._unwatch_registry = self.registry.watch_states(self._on_state)
+        self._unwatch_health = self.registry.watch_states(self._health_follows, members=True)
+        for name, state in self.registry.states():
+            self._health_follows(name, state)
+
+    def _health_follows(self, name: str, state: str) -> None:
+        """A service joined, changed state or left: its gRPC health status follows."""
+        if name in ("", SERVICE_NAME):
+            return  # the gateway's own names
+        if state == GONE:
+            self.health.forget(name)
+        else:
+            self.health.set(name, state_status(state))
 
     def _on_state(self, name: str, state: str) -> None:
         """The registry marked ``name`` up, down or connecting: client calls follow."""
         if state != "down":
             # A service still connecting answers for itself (a proxy: UNAVAILABLE, saying why).
             self.router.set_down(name, None)
-            log.info("service %s is %s", name, state)
+            log.info("service %s is %s", name, state, extra={"service": name})
             return
         reason = f"service {name!r} is down"
         entry = self.registry.services.children().get(name)
@@ -327,7 +342,7 @@ class Gateway:
         if misses:
             reason += f": it missed {misses} liveness check{'s' if misses != 1 else ''}"
         self.router.set_down(name, reason)
-        log.warning("%s", reason)
+        log.warning("%s", reason, extra={"service": name})
 
     async def _start_line_listener(self) -> None:
         address = self.config.gateway.line_listen
@@ -393,7 +408,7 @@ class Gateway:
         server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])
         # Not the generated registration: a request that does not parse is INVALID_ARGUMENT.
         add_to_server(self.servicer, server)
-        health_pb2_grpc.add_HealthServicer_to_server(self._health, server)
+        health_pb2_grpc.add_HealthServicer_to_server(self.health, server)
         reflection.enable_server_reflection(
             (
                 SERVICE_NAME,
@@ -442,7 +457,7 @@ class Gateway:
             return
         self._stopped.set()
         grace = self.config.gateway.shutdown_grace if grace is None else grace
-        await self._health.enter_graceful_shutdown()
+        self.health.shut_down()
         self.hub.end_all()
         self.servicer.end_sessions()
         if self.http is not None:
@@ -452,6 +467,8 @@ class Gateway:
         await self.hub.aclose()
         if callable(self._unwatch_registry):
             self._unwatch_registry()
+        if callable(self._unwatch_health):
+            self._unwatch_health()
         if self._line_listener is not None:
             await self._line_listener.aclose()
         # Groups go first, so none of them asks the registry again once it is gone; then the

@@ -16,6 +16,7 @@ from typing import Any
 
 from gateway import device_cli
 from gateway.config import Config, ConfigError, default_config, load_config, load_config_partly
+from gateway.logs import LOG_FORMATS, setup_logging
 
 #: Exit code of a gateway that cannot start as configured: a config error or a port in use.
 EXIT_CONFIG = 2
@@ -30,6 +31,8 @@ examples:
   psgateway serve --http 127.0.0.1:8080       the HTTP/JSON API and browser console on that port ('' = off)
   psgateway serve --listen 127.0.0.1:50052 --http 127.0.0.1:8081
                                               the demo beside a gateway that holds the usual ports
+  psgateway serve --log-format json --log-level debug
+                                              one JSON object a log line, with request ids
   psgateway check-config site.toml            check a config file and exit (0 = fine, 2 = errors)
 
 then, from another shell:
@@ -76,6 +79,11 @@ def _serve_arguments(parser: argparse.ArgumentParser) -> None:
         choices=("debug", "info", "warning", "error", "critical"),
         help="override gateway.log_level: debug, info, warning, error, critical",
     )
+    parser.add_argument(
+        "--log-format",
+        choices=LOG_FORMATS,
+        help="override gateway.log_format: text, or json (one object a line)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -97,15 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _load(args: argparse.Namespace) -> Config:
     config = load_config(args.config) if args.config else default_config()
-    return config.with_overrides(listen=args.listen, log_level=args.log_level, http=args.http)
-
-
-def setup_logging(level: str) -> None:
-    """Log lines to stderr: time, level, logger, message."""
-    logging.basicConfig(
-        level=level.upper(),
-        stream=sys.stderr,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    return config.with_overrides(
+        listen=args.listen, log_level=args.log_level, http=args.http, log_format=args.log_format
     )
 
 
@@ -124,7 +125,7 @@ def _serve(args: argparse.Namespace) -> int:
         config = _load(args)
     except ConfigError as exc:
         return _config_errors(exc)
-    setup_logging(config.gateway.log_level)
+    setup_logging(config.gateway.log_level, config.gateway.log_format)
     log = logging.getLogger("gateway")
     log.info("starting gateway from %s", config.source)
     try:

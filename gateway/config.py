@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 
 from gateway.audit import AuditSection
 from gateway.identity import Authenticator, AuthSection
+from gateway.logs import LOG_FORMATS
 from gateway.rules import Rule
 from services.errors import InvalidArgument, PropertyError
 from services.paths import validate_service_name
@@ -73,6 +74,8 @@ class GatewaySection:
     #: Seconds any one backend call may take before DEADLINE_EXCEEDED.
     call_timeout: float = 5.0
     log_level: str = "info"
+    #: How log lines look: "text" (time level logger: message) or "json" (one object a line).
+    log_format: str = "text"
     #: Seconds Listen and Session streams get to end at shutdown.
     shutdown_grace: float = 2.0
     #: Listen on a non-loopback address without TLS (anyone who reaches the port reads and drives
@@ -293,7 +296,12 @@ class Config:
     source: str = "<config>"
 
     def with_overrides(
-        self, *, listen: str | None = None, log_level: str | None = None, http: str | None = None
+        self,
+        *,
+        listen: str | None = None,
+        log_level: str | None = None,
+        http: str | None = None,
+        log_format: str | None = None,
     ) -> Config:
         """A copy with command-line overrides applied (``http=""`` turns the HTTP front end off)."""
         gw = self.gateway
@@ -302,6 +310,8 @@ class Config:
             _check_exposure(gw, self.tls, f"{self.source}: --listen")
         if log_level is not None:
             gw = replace(gw, log_level=_check_log_level(log_level, f"{self.source}: --log-level"))
+        if log_format is not None:
+            gw = replace(gw, log_format=_check_log_format(log_format, f"{self.source}: --log-format"))
         web = self.http
         if http is not None:
             if http:
@@ -326,6 +336,12 @@ def _check_log_level(value: str, where: str) -> str:
     if value.lower() not in _LOG_LEVELS:
         raise ConfigError(f"{where}: expected one of {', '.join(_LOG_LEVELS)}, got {value!r}")
     return value.lower()
+
+
+def _check_log_format(value: str, where: str) -> str:
+    if value not in LOG_FORMATS:
+        raise ConfigError(f"{where}: expected one of {', '.join(LOG_FORMATS)}, got {value!r}")
+    return value
 
 
 def _typed(value: Any, kind: type, where: str) -> Any:
@@ -471,8 +487,9 @@ def _gateway(data: Any, where: str) -> GatewaySection:
         if gw.call_timeout <= 0:
             problems.found.append(f"{where}.call_timeout: must be positive, got {gw.call_timeout}")
         level = problems.attempt(lambda: _check_log_level(gw.log_level, f"{where}.log_level"), "info")
+        log_format = problems.attempt(lambda: _check_log_format(gw.log_format, f"{where}.log_format"), "text")
         found.extend(problems.found)
-        return replace(gw, log_level=level)
+        return replace(gw, log_level=level, log_format=log_format)
 
     return _checked_section(GatewaySection, data, where, checks)
 

@@ -17,6 +17,7 @@ import contextvars
 import secrets
 from collections.abc import Iterable
 
+from gateway.logs import REQUEST_ID_HEADER, current_request_id
 from services.errors import InvalidArgument
 
 #: The metadata key of the chain of gateways (comma-separated ids, the first gateway first).
@@ -53,6 +54,9 @@ def enter(metadata: Iterable[tuple[str, str | bytes]] | None, own_id: str) -> No
 
 
 def outgoing() -> tuple[tuple[str, str], ...]:
-    """The metadata a call to another gateway carries on behalf of the request being served."""
+    """The metadata a call to another gateway carries on behalf of the request being served:
+    the ``ps-via`` chain, and the request id, so the next gateway's log lines carry it too."""
     via = VIA.get()
-    return ((VIA_KEY, ",".join(via)),) if via else ()
+    metadata = ((VIA_KEY, ",".join(via)),) if via else ()
+    request_id = current_request_id()
+    return (*metadata, (REQUEST_ID_HEADER, request_id)) if request_id is not None else metadata

@@ -21,6 +21,7 @@ from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, parse_options, parse_selectors
 from gateway.listen.drain import Wake, responses
+from gateway.logs import REQUEST_ID_HEADER, RequestContext, current_request, request_id_from
 from gateway.router import Router
 from gateway.rules import Subject
 from gateway.session import Session
@@ -31,6 +32,27 @@ from services.errors import InvalidArgument
 from services.model_codec import model_to_proto
 
 Context = grpc.aio.ServicerContext[Any, Any]
+
+
+def request_id_of(context: Context) -> str:
+    """The call's request id: the client's ``x-request-id`` metadata when usable, else a new one."""
+    for key, value in context.invocation_metadata() or ():
+        if key == REQUEST_ID_HEADER:
+            return request_id_from(value)
+    return request_id_from(None)
+
+
+def _subject_name(subject: Subject) -> str | None:
+    return subject.name if subject is not ANONYMOUS else None
+
+
+def _begin_unary(context: Context, service: str, path: str) -> RequestContext:
+    """Give the call its request id (in the log context, and back to the client as a trailer)."""
+    request_id = request_id_of(context)
+    context.set_trailing_metadata(((REQUEST_ID_HEADER, request_id),))
+    request = RequestContext(request_id, service or None, path or None)
+    current_request.set(request)
+    return request
 
 
 def _lenient(message: type[Message]) -> Callable[[bytes], Message | Undecodable]:
@@ -115,9 +137,13 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
     async def Get(self, request: pb.GetRequest, context: Context) -> pb.GetResponse:
         try:
             if isinstance(request, Undecodable):
+                _begin_unary(context, "", "")
                 raise request.error
+            logged = _begin_unary(context, request.service, request.property)
             enter(context.invocation_metadata(), self.gateway_id)
-            return await self.calls.get(request, self._deadline(context), self._subject(context))
+            subject = self._subject(context)
+            logged.subject = _subject_name(subject)
+            return await self.calls.get(request, self._deadline(context), subject)
         except Exception as exc:
             await abort(context, exc, "Get")
             raise  # not reached: abort raises
@@ -125,10 +151,13 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
     async def Set(self, request: pb.SetRequest, context: Context) -> pb.SetResponse:
         try:
             if isinstance(request, Undecodable):
+                _begin_unary(context, "", "")
                 raise request.error
+            logged = _begin_unary(context, request.service, request.property)
             enter(context.invocation_metadata(), self.gateway_id)
             # Identified even when nothing is refused: the audit trail names who set what.
             subject = self.guard.identify_call(context)
+            logged.subject = _subject_name(subject)
             return await self.calls.set(request, self._deadline(context), subject)
         except Exception as exc:
             await abort(context, exc, "Set")
@@ -137,9 +166,12 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
     async def Describe(self, request: pb.DescribeRequest, context: Context) -> pb.DescribeResponse:
         try:
             if isinstance(request, Undecodable):
+                _begin_unary(context, "", "")
                 raise request.error
+            logged = _begin_unary(context, request.service, "")
             enter(context.invocation_metadata(), self.gateway_id)
             subject = self._subject(context)
+            logged.subject = _subject_name(subject)
             model = await self.calls.describe(request.service, self._deadline(context), subject)
             return model_to_proto(model)
         except Exception as exc:
@@ -152,14 +184,20 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         limits = self.config.limits
         wake = Wake()
         try:
+            logged = RequestContext(request_id_of(context))
+            current_request.set(logged)
+            # Sent at once: a Listen may wait long for its first event, and the client logs the id now.
+            await context.send_initial_metadata(((REQUEST_ID_HEADER, logged.request_id),))
             if isinstance(request, Undecodable):
                 raise request.error
             enter(context.invocation_metadata(), self.gateway_id)
+            subject = self._subject(context)
+            logged.subject = _subject_name(subject)
             stream = self.hub.open(
                 parse_selectors(request, limits),
                 parse_options(request.options, limits),
                 wake.set,
-                self._subject(context),
+                subject,
             )
         except Exception as exc:
             await abort(context, exc, "Listen")
@@ -175,12 +213,16 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
 
     async def Session(self, request_iterator: AsyncIterator[pb.SessionRequest], context: Context) -> None:
         try:
+            logged = RequestContext(request_id_of(context))
+            current_request.set(logged)
+            await context.send_initial_metadata(((REQUEST_ID_HEADER, logged.request_id),))
             enter(context.invocation_metadata(), self.gateway_id)
             subject = self._subject(context)
+            logged.subject = _subject_name(subject)
         except Exception as exc:
             await abort(context, exc, "Session")
             raise
-        session = Session(self.calls, self.hub, self.config.limits, context, subject)
+        session = Session(self.calls, self.hub, self.config.limits, context, subject, logged=logged)
         self.sessions.add(session)
         try:
             await session.run()

@@ -28,6 +28,7 @@ from gateway.config import Limits
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.listen.hub import SHUTTING_DOWN
+from gateway.logs import RequestContext, current_request
 from gateway.rules import Subject
 from gateway.sizes import BATCH_BYTES, SURELY_FITS_CHARS, check_fits
 from gateway.status import abort, status_message, to_property_error
@@ -53,8 +54,14 @@ class Session:
         limits: Limits,
         context: grpc.aio.ServicerContext[Any, Any],
         subject: Subject = ANONYMOUS,
+        *,
+        logged: RequestContext | None = None,
     ) -> None:
-        """``subject``: who opened the Session; every request in it is checked as theirs."""
+        """``subject``: who opened the Session; every request in it is checked as theirs.
+
+        ``logged``: the stream's log context; request ``N`` in it logs as ``STREAM_ID/N``.
+        """
+        self._logged = logged
         #: Marked with this Session's token: an anonymous caller holds licences under it.
         self._subject = dataclasses.replace(subject, session=secrets.token_hex(8))
         self._calls = calls
@@ -181,7 +188,10 @@ class Session:
         self._wake.set()
 
     def _fail(self, rid: int, exc: BaseException, what: str) -> None:
-        self._push(pb.Reply(id=rid, status=status_message(to_property_error(exc, what))))
+        err = to_property_error(exc, what)
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("request %d: %s: %s", rid, what, err.message, extra={"code": err.code.name})
+        self._push(pb.Reply(id=rid, status=status_message(err)))
 
     def stop(self) -> None:
         """The gateway is stopping: end listens, stop reading, flush, end with UNAVAILABLE."""
@@ -223,6 +233,19 @@ class Session:
     def _dispatch(self, request: pb.Request) -> None:
         rid = request.id
         which = request.WhichOneof("call")
+        logged = self._logged
+        if logged is not None:
+            # Set here, in the reader: the tasks and reply callbacks this request starts copy it,
+            # so every line they log (the proxy's line to the device too) names this request.
+            call = request.get if which == "get" else request.set if which == "set" else None
+            current_request.set(
+                RequestContext(
+                    f"{logged.request_id}/{rid}",
+                    call.service if call is not None else None,
+                    call.property if call is not None else None,
+                    logged.subject,
+                )
+            )
         if which == "cancel":
             self._cancel(rid, request.cancel.id)
             return

@@ -52,7 +52,7 @@ def to_property_error(exc: BaseException, what: str = "request") -> PropertyErro
     """
     if isinstance(exc, PropertyError):
         return exc
-    log.error("%s failed with an unexpected error", what, exc_info=exc)
+    log.error("%s failed with an unexpected error", what, exc_info=exc, extra={"code": "INTERNAL"})
     return Internal(f"internal error in {what}: {type(exc).__name__}")
 
 
@@ -72,4 +72,6 @@ def status_message(err: PropertyError) -> pb.Status:
 async def abort(context: grpc.aio.ServicerContext[object, object], exc: BaseException, what: str) -> None:
     """End the call with the status for ``exc``, its message clipped (never returns)."""
     err = to_property_error(exc, what)
+    if log.isEnabledFor(logging.DEBUG):
+        log.debug("%s: %s", what, err.message, extra={"code": err.code.name})
     await context.abort(GRPC_STATUS[err.code], clip_message(err.message))

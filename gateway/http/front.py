@@ -32,6 +32,13 @@ from gateway.http.openapi import document
 from gateway.http.places import StreamPlaces
 from gateway.http.safety import JSON_TYPE, check_request
 from gateway.listen import ListenHub
+from gateway.logs import (
+    REQUEST_ID_HEADER,
+    RequestContext,
+    current_request,
+    current_request_id,
+    request_id_from,
+)
 from gateway.ports import PortInUse, port_holder
 from gateway.tls import HttpsCredentials
 from services.errors import Code, InvalidArgument, PropertyError, ResourceExhausted, error_for
@@ -42,6 +49,16 @@ Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 #: HTTP errors aiohttp raises itself, as the code each stands for (others: by their class of status).
 _HTTP_CODES = {404: Code.NOT_FOUND, 413: Code.RESOURCE_EXHAUSTED}
+
+
+async def _echo_request_id(request: web.BaseRequest, response: web.StreamResponse) -> None:
+    """Every answer, an event stream's too, says which request it answers (headers go out first).
+
+    Prepared in the handler's task, where the middleware set the request's context.
+    """
+    request_id = current_request_id()
+    if request_id is not None:
+        response.headers["X-Request-Id"] = request_id
 
 
 #: Descriptors the gateway needs beside its event streams: gRPC connections, proxies, logs.
@@ -100,6 +117,7 @@ class HttpFront:
     def build_app(self) -> web.Application:
         """The aiohttp application with every route (also used to check the OpenAPI document)."""
         app = web.Application(middlewares=[self._middleware], client_max_size=self.settings.max_body)
+        app.on_response_prepare.append(_echo_request_id)
         api = self.api
         openapi = json.dumps(document(self.settings.console))
         add = app.router.add_route
@@ -147,6 +165,11 @@ class HttpFront:
     @web.middleware
     async def _middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         what = f"{request.method} {request.path[:200]}"
+        # The request's id in every log line of its handler (and of the proxy calls it makes).
+        request_id = request_id_from(request.headers.get(REQUEST_ID_HEADER))
+        current_request.set(
+            RequestContext(request_id, request.match_info.get("service"), request.match_info.get("path"))
+        )
         try:
             check_request(request, self.loopback_only, routed=request.match_info.http_exception is None)
             return await handler(request)

@@ -32,6 +32,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 
+from gateway.logs import current_request_id, outside_requests
 from services.errors import (
     Code,
     DataLoss,
@@ -70,6 +71,10 @@ from services.line_protocol import (
 log = logging.getLogger(__name__)
 
 _READ_SIZE = 65536
+#: Most bytes of a sent line shown on the debug line: enough for a path and a short value; a
+#: base64 image must not fill the log.
+LOGGED_LINE_BYTES = 200
+
 #: How long after the gateway's untagged HELLO a greeting is taken as its answer (§4.4).
 ASKED_GREETING_WINDOW_S = 2.0
 #: Tags are the request counter in hex, at most 8 digits.
@@ -150,7 +155,9 @@ class LineConnection:
         self._asked_until = 0.0
         #: Longest line the device accepts (from its greeting).
         self.max_line = MAX_LINE
-        self._task = asyncio.create_task(self._read_loop(), name=f"line-connection {label}")
+        self._task = asyncio.create_task(
+            self._read_loop(), name=f"line-connection {label}", context=outside_requests()
+        )
 
     # -- state -------------------------------------------------------------
 
@@ -331,6 +338,16 @@ class LineConnection:
         if type(frame) is Set and not self.flow_controlled:
             pending.cancel_when_abandoned = True
             future.add_done_callback(lambda done: self._abandoned(done, tag))
+        if log.isEnabledFor(logging.DEBUG):
+            # The tag ties the device's reply to this line, the request id to the client's call.
+            log.debug(
+                "%s: sent %r%s as tag %s for request %s",
+                self.label,
+                line[:LOGGED_LINE_BYTES],
+                f" ({len(line) - LOGGED_LINE_BYTES} more bytes)" if len(line) > LOGGED_LINE_BYTES else "",
+                tag,
+                current_request_id() or "(none)",
+            )
         self._write_line(line)
         return future
 

@@ -39,6 +39,7 @@ from dataclasses import dataclass, replace
 from typing import Any, cast
 from urllib.parse import parse_qsl, urlsplit
 
+from gateway.logs import outside_requests
 from gateway.proxies.connection import LineConnection
 from services.backend import (
     NO_PARAMS,
@@ -223,7 +224,9 @@ class LineProxy(Backend):
 
     async def start(self) -> None:
         if self._runner is None:
-            self._runner = asyncio.create_task(self._run(), name=f"proxy {self.name}")
+            self._runner = asyncio.create_task(
+                self._run(), name=f"proxy {self.name}", context=outside_requests()
+            )
 
     async def aclose(self) -> None:
         self._closing = True
@@ -507,7 +510,9 @@ class LineProxy(Backend):
             entry.last = await self._call(Listen(entry.path, dict(entry.params)))
         else:
             entry.last = await self._call(Get(entry.path, dict(entry.params)))
-            entry.poller = asyncio.create_task(self._poll(entry), name=f"poll {self.name}.{entry.path}")
+            entry.poller = asyncio.create_task(
+                self._poll(entry), name=f"poll {self.name}.{entry.path}", context=outside_requests()
+            )
 
     async def _close_listen(self, entry: _DeviceListen) -> None:
         """The last listener left: stop polling, or UNLISTEN when no listen of the path is left."""

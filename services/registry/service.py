@@ -262,9 +262,18 @@ class Registry(Resource):
         """``up`` or ``down``; NotFound when ``name`` is not known."""
         return self._table.entry(name).state
 
-    def watch_states(self, listener: Callable[[str, str], None]) -> Callable[[], None]:
-        """Call ``listener(name, state)`` on every change of state; returns a function that stops it."""
-        return self._table.watch_states(listener)
+    def watch_states(
+        self, listener: Callable[[str, str], None], *, members: bool = False
+    ) -> Callable[[], None]:
+        """Call ``listener(name, state)`` on every change of state; returns a function that stops it.
+
+        With ``members``, also on every join (its first state) and leave (state ``"gone"``).
+        """
+        return self._table.watch_states(listener, members=members)
+
+    def states(self) -> list[tuple[str, str]]:
+        """(name, state) of every known service, a snapshot."""
+        return [(name, entry.state) for name, entry in self._table.entries()]
 
     def set_location(self, name: str, location: Vector | None) -> None:
         """Record where ``name`` is (None: nowhere); the registry also follows ``location`` itself."""

@@ -14,12 +14,15 @@ from services.query import ServiceIndex
 from services.registry.entry import STATES, ServiceEntry, ServiceList, check_lease, wall_clock
 from services.values import Vector
 
-__all__ = ["PLACEHOLDER_TYPE", "ServiceTable"]
+__all__ = ["GONE", "PLACEHOLDER_TYPE", "ServiceTable"]
 
 log = logging.getLogger(__name__)
 
 #: The type a backend has before its device says what it is (a proxy before the greeting).
 PLACEHOLDER_TYPE = UNKNOWN_TYPE
+
+#: The "state" a member watcher hears when a service leaves the table.
+GONE = "gone"
 
 
 class ServiceTable:
@@ -34,6 +37,8 @@ class ServiceTable:
         self.index = ServiceIndex()
         self._bump = bump
         self._state_watchers: list[Callable[[str, str], None]] = []
+        #: Watchers that also hear joins (with their first state) and leaves (as state "gone").
+        self._member_watchers: list[Callable[[str, str], None]] = []
         #: Called with a service's name when its location is asked for (the registry follows it then).
         self.want_location: Callable[[str], None] | None = None
 
@@ -83,6 +88,7 @@ class ServiceTable:
         self.services.attach(name, ServiceEntry(name, info, state, renew=renew, want_location=self._wanted))
         self.index.put(name, info.type, state == "up")
         self._bump()
+        self._tell(self._member_watchers, name, state)
 
     def forget(self, name: str) -> bool:
         """Drop ``name``; False when it was not known."""
@@ -91,6 +97,7 @@ class ServiceTable:
         self.services.detach(name)
         self.index.remove(name)
         self._bump()
+        self._tell(self._member_watchers, name, GONE)
         return True
 
     def set_state(self, name: str, state: str) -> None:
@@ -162,13 +169,19 @@ class ServiceTable:
 
     # -- watching states -------------------------------------------------------
 
-    def watch_states(self, listener: Callable[[str, str], None]) -> Callable[[], None]:
-        """Call ``listener(name, state)`` on every change of state; returns a function that stops it."""
-        self._state_watchers.append(listener)
+    def watch_states(
+        self, listener: Callable[[str, str], None], *, members: bool = False
+    ) -> Callable[[], None]:
+        """Call ``listener(name, state)`` on every change of state; returns a function that stops it.
+
+        With ``members``, also on every join (its first state) and leave (state :data:`GONE`).
+        """
+        watchers = self._member_watchers if members else self._state_watchers
+        watchers.append(listener)
 
         def unwatch() -> None:
-            if listener in self._state_watchers:
-                self._state_watchers.remove(listener)
+            if listener in watchers:
+                watchers.remove(listener)
 
         return unwatch
 
@@ -177,7 +190,12 @@ class ServiceTable:
             return
         self.index.set_up(name, state == "up")
         self._bump()
-        for listener in list(self._state_watchers):
+        self._tell(self._state_watchers, name, state)
+        self._tell(self._member_watchers, name, state)
+
+    @staticmethod
+    def _tell(watchers: list[Callable[[str, str], None]], name: str, state: str) -> None:
+        for listener in list(watchers):
             try:
                 listener(name, state)
             except Exception:
