@@ -45,7 +45,7 @@ RUN --mount=type=bind,from=build,source=/wheels,target=/wheels \
       --find-links /wheels propertyservice-gateway \
  && /opt/psgateway/bin/pip uninstall --yes --disable-pip-version-check pip
 COPY containers/gateway.toml /etc/psgateway/gateway.toml
-USER psgateway:psgateway
+USER 10001:10001
 WORKDIR /var/lib/psgateway
 EXPOSE 50051/tcp 8080/tcp
 # The gateway as a whole, through grpc.health.v1 (service ""): SERVING once every configured

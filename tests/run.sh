@@ -49,6 +49,17 @@ if [ "${#c_missing[@]}" -gt 0 ]; then
   apt_install "the C device library" "${c_missing[@]}"
 fi
 
+# The container tests (tests/containers) build the gateway's image with podman (runc as its runtime)
+# on a base image that mmdebstrap makes here; setup.sh writes why they skip when it cannot.
+c_missing=()
+command -v podman >/dev/null || c_missing+=(podman)
+command -v runc >/dev/null || c_missing+=(runc)
+command -v mmdebstrap >/dev/null || c_missing+=(mmdebstrap)
+if [ "${#c_missing[@]}" -gt 0 ]; then
+  apt_install "the container image" "${c_missing[@]}"
+fi
+bash tests/containers/setup.sh
+
 echo "== ruff check"; python -m ruff check .
 echo "== ruff format --check"; python -m ruff format --check .
 echo "== mypy"; python -m mypy
