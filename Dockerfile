@@ -16,16 +16,27 @@ RUN python3 -m venv /opt/build
 WORKDIR /src
 # The dependencies first, read from pyproject.toml, so that a change to the code alone reuses
 # this layer. Binary wheels only: the image has no compiler, and needs none.
-COPY pyproject.toml README.md ./
+COPY pyproject.toml ./
 RUN python3 -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies']))" > requirements.txt \
  && /opt/build/bin/pip wheel --only-binary=:all: --wheel-dir /wheels -r requirements.txt
+COPY README.md ./
 COPY protos protos
 COPY gateway gateway
 COPY services services
 COPY clients clients
 RUN /opt/build/bin/pip wheel --no-deps --wheel-dir /wheels .
 
-# ---- stage 2: the wheels installed into a venv, run by an unprivileged user ---------------------
+# ---- stage 2: the wheels installed into a venv (no index: only what stage 1 built) --------------
+# COPY --from, not a RUN bind mount of stage 1: buildah keys its layer cache on what COPY brings,
+# but not on a mount's content, and would reuse an install of older wheels.
+FROM ${PYTHON_IMAGE} AS install
+COPY --from=build /wheels /wheels
+RUN python3 -m venv /opt/psgateway \
+ && /opt/psgateway/bin/pip install --no-cache-dir --disable-pip-version-check --no-index \
+      --find-links /wheels propertyservice-gateway \
+ && /opt/psgateway/bin/pip uninstall --yes --disable-pip-version-check pip
+
+# ---- stage 3: the venv alone on the same base, run by an unprivileged user ----------------------
 FROM ${PYTHON_IMAGE}
 LABEL org.opencontainers.image.title="psgateway" \
       org.opencontainers.image.description="Property Service gateway: Get, Set and Listen over gRPC and HTTP/JSON" \
@@ -38,12 +49,7 @@ ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PATH=/opt/psgateway/bin:$PATH
 RUN groupadd --system --gid 10001 psgateway \
  && useradd --system --uid 10001 --gid psgateway --home-dir /var/lib/psgateway --create-home \
       --shell /usr/sbin/nologin psgateway
-# The wheels come from stage 1 through a bind mount, so they take no layer of this image.
-RUN --mount=type=bind,from=build,source=/wheels,target=/wheels \
-    python3 -m venv /opt/psgateway \
- && /opt/psgateway/bin/pip install --no-cache-dir --disable-pip-version-check --no-index \
-      --find-links /wheels propertyservice-gateway \
- && /opt/psgateway/bin/pip uninstall --yes --disable-pip-version-check pip
+COPY --from=install /opt/psgateway /opt/psgateway
 COPY containers/gateway.toml /etc/psgateway/gateway.toml
 USER 10001:10001
 WORKDIR /var/lib/psgateway

@@ -82,12 +82,17 @@ for bundle in "${SSL_CERT_FILE:-}" /etc/ssl/certs/ca-certificates.crt; do
   fi
 done
 start=$(date +%s)
-if ! podman build --format docker --layers "${ca[@]}" --build-arg "PYTHON_IMAGE=$PYTHON_IMAGE" \
-    --tag "$image" . >>"$log" 2>&1; then
-  tail -n 15 "$log"; skip "podman build failed (see $log)"
-fi
+# The first two stages are tagged too (IMAGE-build, IMAGE-install): their layers are the cache of
+# the next run, and an untagged stage is what `podman image prune` removes below.
+for target in build install ""; do
+  tag="$image${target:+-$target}"
+  if ! podman build --format docker --layers "${ca[@]}" --build-arg "PYTHON_IMAGE=$PYTHON_IMAGE" \
+      ${target:+--target "$target"} --tag "$tag" . >>"$log" 2>&1; then
+    tail -n 15 "$log"; skip "podman build failed (see $log)"
+  fi
+done
 size=$(podman image inspect --format '{{.Size}}' "$image")
 echo "built $image in $(( $(date +%s) - start )) s: $(( size / 1000000 )) MB"
-# Dangling layers of earlier builds of the tag, so that the cache does not grow without bound.
+# The layers of earlier builds, no longer under any tag: the cache does not grow without bound.
 podman image prune --force >>"$log" 2>&1 || true
 printf 'ready: %s\n' "$image" >"$status"
