@@ -77,6 +77,17 @@ command -v protoc-gen-go-grpc >/dev/null || go_missing+=(protoc-gen-go-grpc)
 if [ "${#go_missing[@]}" -gt 0 ]; then
   apt_install "the Go client" "${go_missing[@]}"
 fi
+# The container tests (tests/containers) build the gateway's image with podman (runc as its runtime)
+# on a base image that mmdebstrap makes here; setup.sh writes why they skip when it cannot.
+container_missing=()
+command -v podman >/dev/null || container_missing+=(podman)
+command -v runc >/dev/null || container_missing+=(runc)
+command -v mmdebstrap >/dev/null || container_missing+=(mmdebstrap)
+if [ "${#container_missing[@]}" -gt 0 ]; then
+  apt_install "the container image" "${container_missing[@]}"
+fi
+bash tests/containers/setup.sh || echo "note: tests/containers/setup.sh failed; the container tests will skip"
+
 echo "== ruff check"; python -m ruff check .
 echo "== ruff format --check"; python -m ruff format --check .
 echo "== mypy"; python -m mypy
