@@ -53,8 +53,13 @@ class Session:
         limits: Limits,
         context: grpc.aio.ServicerContext[Any, Any],
         subject: Subject = ANONYMOUS,
+        *,
+        requests: dict[str, int] | None = None,
     ) -> None:
-        """``subject``: who opened the Session; every request in it is checked as theirs."""
+        """``subject``: who opened the Session; every request in it is checked as theirs.
+
+        ``requests``: counts of the requests read, by call (``get``, ``set``, ``listen``, ``cancel``,
+        ``none``), raised here for the metrics; None counts nothing."""
         #: Marked with this Session's token: an anonymous caller holds licences under it.
         self._subject = dataclasses.replace(subject, session=secrets.token_hex(8))
         self._calls = calls
@@ -78,6 +83,22 @@ class Session:
         self._stopping = False
         #: The call ends with this status (a message that did not parse).
         self._error: PropertyError | None = None
+        self._requests = requests
+
+    @property
+    def error(self) -> PropertyError | None:
+        """The status the call ends with when it is not OK (a message that did not parse)."""
+        return self._error
+
+    @property
+    def listen_count(self) -> int:
+        """Listens open in this Session."""
+        return len(self._listens)
+
+    @property
+    def queued_replies(self) -> int:
+        """Replies waiting to be written (bounded by ``limits.session_max_queued_replies``)."""
+        return len(self._replies)
 
     # -- the writer (the handler's task) ------------------------------------
 
@@ -223,6 +244,8 @@ class Session:
     def _dispatch(self, request: pb.Request) -> None:
         rid = request.id
         which = request.WhichOneof("call")
+        if self._requests is not None:
+            self._requests[which or "none"] += 1
         if which == "cancel":
             self._cancel(rid, request.cancel.id)
             return

@@ -11,11 +11,13 @@ unknown routes and wrong methods included.
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import json
 import logging
 import resource
 from collections.abc import Awaitable, Callable
+from time import perf_counter
 
 from aiohttp import HttpVersion11, hdrs, web
 
@@ -32,6 +34,7 @@ from gateway.http.openapi import document
 from gateway.http.places import StreamPlaces
 from gateway.http.safety import JSON_TYPE, check_request
 from gateway.listen import ListenHub
+from gateway.metrics.counts import HttpCounts
 from gateway.ports import PortInUse, port_holder
 from gateway.tls import HttpsCredentials
 from services.errors import Code, InvalidArgument, PropertyError, ResourceExhausted, error_for
@@ -42,6 +45,22 @@ Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 #: HTTP errors aiohttp raises itself, as the code each stands for (others: by their class of status).
 _HTTP_CODES = {404: Code.NOT_FOUND, 413: Code.RESOURCE_EXHAUSTED}
+
+
+#: The routes whose answer is a stream: counted, but their life is no latency.
+STREAM_ROUTES = frozenset(("GET /api/v1/events", "GET /api/v1/services/{service}/properties/{path}/stream"))
+
+#: The status counted for a request whose client went away before the answer (nginx's 499).
+CLIENT_CLOSED = 499
+
+
+def _route_of(request: web.Request) -> str:
+    """The route's template with its method, or ``unrouted``: a bounded set, whatever the path was."""
+    info = request.match_info
+    resource = info.route.resource if info.http_exception is None else None
+    if resource is None:
+        return "unrouted"
+    return f"{info.route.method} {resource.canonical}"
 
 
 #: Descriptors the gateway needs beside its event streams: gRPC connections, proxies, logs.
@@ -91,6 +110,10 @@ class HttpFront:
         #: "host:port" it listens on (the real port when 0 was asked); "" before start.
         self.address = ""
         self.scheme = "https" if self.settings.tls else "http"
+        #: Responses by route and status, and latencies; None when ``[metrics]`` is off.
+        self.counts = HttpCounts() if config.metrics.enabled else None
+        #: ``GET /metrics``, set by the gateway when metrics are on (before :meth:`start`).
+        self.metrics: Handler | None = None
 
     @property
     def url(self) -> str:
@@ -116,6 +139,8 @@ class HttpFront:
             return web.Response(text=openapi, content_type="application/json")
 
         add("GET", "/api/v1/openapi.json", openapi_json)
+        if self.metrics is not None:
+            add("GET", "/metrics", self.metrics)
         if self.settings.console:
             add("GET", "/", self.console.file)
             add("GET", "/console/{file:.*}", self.console.file)
@@ -146,6 +171,26 @@ class HttpFront:
 
     @web.middleware
     async def _middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        counts = self.counts
+        if counts is None:
+            return await self._answer(request, handler)
+        started = perf_counter()
+        status = 500
+        try:
+            response = await self._answer(request, handler)
+            status = response.status
+            return response
+        except web.HTTPException as exc:
+            status = exc.status
+            raise
+        except asyncio.CancelledError:
+            status = CLIENT_CLOSED
+            raise
+        finally:
+            route = _route_of(request)
+            counts.done(route, status, None if route in STREAM_ROUTES else perf_counter() - started)
+
+    async def _answer(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         what = f"{request.method} {request.path[:200]}"
         try:
             check_request(request, self.loopback_only, routed=request.match_info.http_exception is None)
