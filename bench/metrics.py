@@ -91,6 +91,11 @@ async def run_metrics(*, calls: int, inflight: int, rounds: int, time_limit: flo
         "pair_ratios": [round(r, 3) for r in ratios],
         "median_pair_ratio": round(statistics.median(ratios), 3),
         "scraped_get_calls": scraped,
+        # Server CPU per call is less swayed by other load than the rate: the median batch of each way.
+        "cpu_us_per_call": {
+            way: statistics.median(float(d["server_cpu_us_per_call"]) for d in results)
+            for way, results in figures.items()
+        },
         "counting_ns_per_call": counting_ns,
         # The counting's share of one core at the throughput without metrics: what it can cost at most.
         "counting_share": round(counting_ns * off / 1e9, 5),
