@@ -234,3 +234,44 @@ async def test_with_rules_only_who_may_read_the_registry_list_scrapes(gateway_pr
         async with aiohttp.ClientSession() as session, session.get(f"{gw.http_url}metrics") as response:
             assert response.status in (401, 403), await response.text()
             assert "registry" in await response.text()
+
+
+async def test_values_a_throttled_listen_never_saw_are_counted_as_conflated(
+    gateway_process: StartGateway,
+) -> None:
+    device = ScriptedDevice(THERM, {"a": "0"})
+    async with tcp_scripted(device) as url:
+        gw = await start(gateway_process, url)
+        metrics = f"{gw.http_url}metrics"
+        async with grpc.aio.insecure_channel(gw.address) as channel:
+            stub = pb_grpc.PropertyServiceStub(channel)
+            await connected(stub)
+            before = await scrape(metrics)
+            options = pb.ListenOptions()
+            options.min_interval.FromMilliseconds(1500)
+            listen = stub.Listen(pb.ListenRequest(service="therm", property="a", options=options), timeout=30)
+            events: list[pb.Event] = []
+
+            async def read_until(value_: str) -> None:
+                while not events or events[-1].value != value_:
+                    message = await listen.read()
+                    assert message is not grpc.aio.EOF
+                    events.extend(message.events)
+
+            await asyncio.wait_for(read_until("0"), WAIT)
+            for n in range(1, 7):  # one goes at once, the rest wait out the interval: only the last is sent
+                device.change("a", str(n))
+            await asyncio.wait_for(read_until("6"), WAIT)
+            after = await scrape(metrics)
+            listen.cancel()
+
+    conflated = sum(event.conflated for event in events)
+    assert conflated > 0, events
+    moved = value(after, "psgateway_listen_events_conflated_total") - value(
+        before, "psgateway_listen_events_conflated_total"
+    )
+    assert moved == conflated
+    sent = value(after, "psgateway_listen_events_sent_total") - value(
+        before, "psgateway_listen_events_sent_total"
+    )
+    assert sent == len(events)
