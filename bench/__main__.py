@@ -27,6 +27,7 @@ from bench.line import WAYS as LINE_WAYS
 from bench.line import run_line
 from bench.listen import run_listen
 from bench.memory import run_memory, run_session_memory
+from bench.metrics import run_metrics
 from bench.register import run_register
 from bench.scheduler import run_scheduler
 from bench.servers import ServerProcess
@@ -53,6 +54,7 @@ PARTS = (
     "scheduler",
     "camera",
     "fusion",
+    "metrics",
 )
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
@@ -148,7 +150,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "TCP at growing sizes; (i) mTLS and a token; (j) a storage service's Get and Set beside plain file "
         "I/O; (k) Server-Sent-Events fan-out beside gRPC Listen; (l) chart transitions with a Set each; "
         "(m) scheduler decisions; (n) environment model fusion per observation, growing numbers of markers; "
-        "(o) camera frames to 10 Listeners and the gateway's CPU. "
+        "(o) camera frames to 10 Listeners and the gateway's CPU; (p) unary Get with and without metrics. "
         "Prints figures, ratios and targets.",
     )
     parser.add_argument(
@@ -463,6 +465,16 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
         results.setdefault("in-process", {})["fusion"] = await _timed(
             f"fusion, {_listing(args.fusion_sizes)} markers, {args.fusion_observations:,} observations each",
             lambda: run_fusion(args.fusion_sizes, args.fusion_observations, args.time_limit),
+        )
+    if "metrics" in args.parts:
+        results.setdefault("gateway", {})["metrics"] = await _timed(
+            "metrics: unary Gets on gateways with and without metrics",
+            lambda: run_metrics(
+                calls=args.calls,
+                inflight=args.inflight,
+                rounds=max(args.rounds, 2),
+                time_limit=args.time_limit,
+            ),
         )
     if "register" in args.parts:
         results.setdefault("gateway", {})["register"] = await _timed(

@@ -41,16 +41,20 @@ class BenchTarget(Resource):
     v9: str = "0"
 
 
-async def serve(listen: str, config_file: str | None = None, http: str = "") -> None:
+async def serve(
+    listen: str, config_file: str | None = None, http: str = "", metrics: str | None = ""
+) -> None:
     """Run a gateway with :class:`BenchTarget` as service ``bench`` until stopped.
 
     ``config_file`` adds security sections (``[tls]``, ``[auth]``, ``[[rules]]``) to measure their cost;
-    ``http`` (HOST:PORT) turns the HTTP front end on, printed as ``HTTP front end and console on URL``.
+    ``http`` (HOST:PORT) turns the HTTP front end on, printed as ``HTTP front end and console on URL``;
+    ``metrics`` (HOST:PORT) serves ``/metrics`` there, printed as ``metrics on URL``; None turns the
+    metrics off (nothing counted), "" leaves them as the config says (on by default).
     """
     from dataclasses import replace
 
     from gateway.app import Gateway
-    from gateway.config import Config, GatewaySection, HttpSection, load_config
+    from gateway.config import Config, GatewaySection, HttpSection, MetricsSection, load_config
     from services.core import LocalService
 
     config = Config(gateway=GatewaySection(listen=listen, log_level="warning"))
@@ -59,10 +63,16 @@ async def serve(listen: str, config_file: str | None = None, http: str = "") -> 
         config = replace(loaded, gateway=replace(loaded.gateway, listen=listen, log_level="warning"))
     if http:
         config = replace(config, http=HttpSection(listen=http, console=False))
+    if metrics is None:
+        config = replace(config, metrics=MetricsSection(enabled=False))
+    elif metrics:
+        config = replace(config, metrics=MetricsSection(listen=metrics))
     gateway = Gateway(config, backends={SERVICE: LocalService(BenchTarget())})
     await gateway.start()
     if gateway.http is not None:
         print(f"HTTP front end and console on {gateway.http.url}", file=sys.stderr, flush=True)
+    if gateway.metrics_address:
+        print(f"metrics on http://{gateway.metrics_address}/metrics", file=sys.stderr, flush=True)
     print(f"listening on {gateway.address}", file=sys.stderr, flush=True)
     try:
         await until_stopped()
@@ -78,12 +88,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--listen", default="127.0.0.1:0", help="address to serve on (default %(default)s)")
     parser.add_argument("--config", metavar="FILE", help="a config whose [tls], [auth] and [[rules]] apply")
     parser.add_argument("--http", default="", metavar="HOST:PORT", help="serve the HTTP front end there too")
+    metrics = parser.add_mutually_exclusive_group()
+    metrics.add_argument("--metrics", default="", metavar="HOST:PORT", help="serve /metrics there too")
+    metrics.add_argument(
+        "--no-metrics",
+        action="store_true",
+        help="metrics off: no call is counted ([metrics] enabled = false)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.WARNING, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s"
     )
     with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(serve(args.listen, args.config, args.http))
+        asyncio.run(serve(args.listen, args.config, args.http, None if args.no_metrics else args.metrics))
     return 0
 
 

@@ -454,6 +454,19 @@ TARGETS += (
 )
 
 
+TARGETS += (
+    Target(
+        "metrics-unary",
+        "unary Get throughput, gateway with metrics / without (median of paired batches, same run)",
+        lambda r: float(r["gateway"]["metrics"]["ratio"]),
+        "min",
+        0.95,
+        "x",
+        (("gateway", "metrics"),),
+    ),
+)
+
+
 def evaluate(results: Results) -> list[dict[str, Any]]:
     """Each target's figure, bound and verdict (PASS, FAIL, or why it could not be judged)."""
     verdicts = []
@@ -908,6 +921,46 @@ def _issue_tables(out: TextIO, results: Results) -> None:
     _scheduler_table(out, results)
     _camera_table(out, results)
     _fusion_table(out, results)
+    _metrics_table(out, results)
+
+
+def _metrics_table(out: TextIO, results: Results) -> None:
+    metrics = results.get("gateway", {}).get("metrics")
+    if not metrics:
+        return
+    if "error" in metrics:
+        _table(out, "(p) metrics", ["where", "figures"], [_error_row("gateway", metrics)])
+        return
+    rows = [
+        [
+            way,
+            f"{metrics[way]['throughput_per_s']:,.0f}",
+            _fmt(metrics[way]["latency"]["p50_us"]),
+            _fmt(metrics[way]["latency"]["p99_us"]),
+            _fmt(metrics["cpu_us_per_call"][way], 1),
+        ]
+        for way in ("metrics-on", "metrics-off")
+    ]
+    _table(
+        out,
+        "(p) the cost of metrics: unary Gets (8 in flight) on a gateway with and without them",
+        ["way", "best Gets/s", "p50 µs", "p99 µs", "server CPU µs/call (median)"],
+        rows,
+    )
+    print(
+        f"  ratio of each pair of batches, with / without: {metrics['pair_ratios']}"
+        f" (median {metrics['ratio']}; of the best batches {metrics['best_batch_ratio']})",
+        file=out,
+    )
+    print(
+        f"  counting one call in-process: {metrics['counting_ns_per_call']} ns,"
+        f" {100 * metrics['counting_share']:.2f} % of one core at the Gets/s without metrics",
+        file=out,
+    )
+    print(
+        f"  OK Gets the scrape of the gateway with metrics counted: {metrics['scraped_get_calls']:,.0f}",
+        file=out,
+    )
 
 
 def _camera_table(out: TextIO, results: Results) -> None:

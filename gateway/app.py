@@ -51,6 +51,7 @@ from services.registry.table import GONE
 
 if TYPE_CHECKING:
     from gateway.http import HttpFront
+    from gateway.metrics.endpoint import MetricsEndpoint
 
 log = logging.getLogger("gateway")
 
@@ -101,6 +102,10 @@ class Gateway:
         self.servicer = PropertyServicer(self.router, self.hub, self.config)
         #: "host:port" of the HTTP front end (the real port when 0 was asked); "" when off.
         self.http_address = ""
+        #: ``/metrics`` (on the HTTP front end and/or ``[metrics] listen``); None when not served.
+        self.metrics: MetricsEndpoint | None = None
+        #: "host:port" of ``[metrics] listen`` (the real port when 0 was asked); "" when off.
+        self.metrics_address = ""
         #: The gRPC port's TLS credentials; None when it is plaintext.
         self.credentials: ServerCredentials | None = None
         #: The line listener's TLS, reloaded with the gRPC port's; None when it is plaintext.
@@ -150,6 +155,7 @@ class Gateway:
             self._server = self._make_server()
             await self._server.start()
             await self._start_http()
+            await self._start_metrics()
         except BaseException:
             await self.stop()
             raise
@@ -163,6 +169,8 @@ class Gateway:
             check_port_free(gw.line_listen, "gateway.line_listen")
         if self.config.http.listen:
             check_port_free(self.config.http.listen, "http.listen")
+        if self.config.metrics.enabled and self.config.metrics.listen:
+            check_port_free(self.config.metrics.listen, "metrics.listen")
 
     def _check_devices(self) -> None:
         """Build each ``[[devices]]`` service here as its process would, so bad options launch nothing."""
@@ -281,7 +289,8 @@ class Gateway:
     def _own_ports(self) -> list[int]:
         """The TCP ports this gateway listens on: a registration naming one would call itself."""
         ports = []
-        for address in (self.config.gateway.listen, self.address, self.line_address, self.http_address):
+        addresses = (self.address, self.line_address, self.http_address, self.metrics_address)
+        for address in (self.config.gateway.listen, *addresses):
             tail = address.rpartition(":")[2]
             if not address.startswith("unix:") and tail.isdigit() and int(tail):
                 ports.append(int(tail))
@@ -381,8 +390,26 @@ class Gateway:
         from gateway.http import HttpFront
 
         self.http = HttpFront(self.servicer.calls, self.hub, self.config, self.guard)
+        if self.config.metrics.enabled:
+            self.http.metrics = self._metrics_endpoint().guarded
         await self.http.start()
         self.http_address = self.http.address
+
+    def _metrics_endpoint(self) -> MetricsEndpoint:
+        if self.metrics is None:
+            from gateway.metrics.endpoint import MetricsEndpoint
+
+            self.metrics = MetricsEndpoint(self)
+        return self.metrics
+
+    async def _start_metrics(self) -> None:
+        """The listener of ``[metrics] listen``: ``/metrics`` alone, on a port of its own."""
+        settings = self.config.metrics
+        if settings.enabled and settings.listen:
+            endpoint = self._metrics_endpoint()
+            await endpoint.start(settings.listen, self.config.gateway.shutdown_grace)
+            self.metrics_address = endpoint.address
+            log.info("metrics on http://%s/metrics", endpoint.address)
 
     def _device_secrets(self) -> dict[str, str]:
         """Name → secret of each configured device that dials in (read at start, never logged)."""
@@ -462,6 +489,8 @@ class Gateway:
         self.servicer.end_sessions()
         if self.http is not None:
             await self.http.stop()
+        if self.metrics is not None:
+            await self.metrics.stop()
         if self._server is not None:
             await self._server.stop(grace)
         await self.hub.aclose()
@@ -525,6 +554,8 @@ async def serve(config: Config) -> int:
     if gateway.http is not None:
         # Printed whatever the log level, as the gRPC address is: tests and scripts read the port here.
         print(f"HTTP front end and console on {gateway.http.url}", flush=True, file=sys.stderr)
+    if gateway.metrics_address:
+        print(f"metrics on http://{gateway.metrics_address}/metrics", flush=True, file=sys.stderr)
     print(f"listening on {gateway.address}", flush=True, file=sys.stderr)
     await stopped
     log.info("shutting down")

@@ -189,6 +189,8 @@ def _check_config(args: argparse.Namespace) -> int:
     listening = config.gateway.listen
     if config.http.listen:
         listening += f", HTTP on {config.http.listen}"
+    if config.metrics.enabled and config.metrics.listen:
+        listening += f", metrics on {config.metrics.listen}"
     print(f"{config.source}: fine ({counted}, listening on {listening})")
     return 0
 

@@ -183,6 +183,17 @@ class HttpSection:
 
 
 @dataclass(frozen=True, slots=True)
+class MetricsSection:
+    """``[metrics]``: the Prometheus endpoint (docs/metrics.md)."""
+
+    #: Count calls, streams and events, and serve ``/metrics`` on the HTTP front end (when it is on).
+    enabled: bool = True
+    #: host:port of a plain-HTTP listener of its own serving only ``/metrics``; empty = none.
+    #: Like the HTTP front end, a plaintext address off loopback needs ``allow_insecure_remote``.
+    listen: str = ""
+
+
+@dataclass(frozen=True, slots=True)
 class RegistrySection:
     """``[registry]``: liveness checks of the services and where run-time registrations are kept."""
 
@@ -292,6 +303,8 @@ class Config:
     rules: tuple[Rule, ...] = ()
     #: ``[audit]``: how many audit lines may be written (docs/security.md, "Audit").
     audit: AuditSection = field(default_factory=AuditSection)
+    #: ``[metrics]``: the Prometheus endpoint (docs/metrics.md).
+    metrics: MetricsSection = field(default_factory=MetricsSection)
     #: Where it came from, for messages.
     source: str = "<config>"
 
@@ -423,7 +436,10 @@ def parse_config_partly(
     service or device is left out, so that ``check-config`` can go on to build
     what is left and report every problem of the file in one run.
     """
-    top = ("gateway", "limits", "registry", "tls", "http", "services", "devices", "auth", "rules", "audit")
+    top = (
+        *("gateway", "limits", "registry", "tls", "http", "services", "devices", "auth", "rules", "audit"),
+        "metrics",
+    )
     problems = _Problems()
     for key in data:
         if key not in top:
@@ -460,12 +476,16 @@ def parse_config_partly(
     auth = problems.attempt(lambda: _auth(data.get("auth", {}), f"{source}: auth", folder), AuthSection())
     rules: tuple[Rule, ...] = problems.attempt(lambda: _rules(data.get("rules", []), f"{source}: rules"), ())
     audit = problems.attempt(lambda: _section(AuditSection, data.get("audit", {}), f"{source}: audit"), None)
+    metrics: MetricsSection = problems.attempt(
+        lambda: _metrics(data.get("metrics", {}), f"{source}: metrics", gw), MetricsSection()
+    )
     if any(e.dials_in for e in services) and not gw.line_listen:
         problems.found.append(f"{source}: services: a device that dials in needs gateway.line_listen")
     config = Config(
         auth=auth,
         rules=rules,
         audit=audit or AuditSection(),
+        metrics=metrics,
         gateway=gw,
         limits=limits,
         registry=registry,
@@ -617,6 +637,26 @@ def _http(data: Any, where: str, gw: GatewaySection, tls: TlsSection, limits: Li
         return http
 
     return _checked_section(HttpSection, data, where, checks)
+
+
+def _metrics(data: Any, where: str, gw: GatewaySection) -> MetricsSection:
+    def checks(metrics: MetricsSection, found: list[str]) -> MetricsSection:
+        if not metrics.listen:
+            return metrics
+        try:
+            _check_address(metrics.listen, f"{where}.listen")
+        except ConfigError as exc:
+            found.extend(exc.problems)
+            return replace(metrics, listen="")
+        if not (gw.allow_insecure_remote or is_loopback(metrics.listen)):
+            found.append(
+                f"{where}.listen: {metrics.listen!r} is reachable from other machines and is plain HTTP:"
+                " anyone who reaches it reads the gateway's counters. Listen on 127.0.0.1, or set"
+                " [gateway] allow_insecure_remote = true to accept that on a network you trust"
+            )
+        return metrics
+
+    return _checked_section(MetricsSection, data, where, checks)
 
 
 def _limits(data: Any, where: str) -> Limits:

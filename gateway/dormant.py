@@ -19,7 +19,7 @@ import logging
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 
-from services.backend import NO_PARAMS, Backend, BackendInfo, Notify, Subscription, close_quietly
+from services.backend import NO_PARAMS, Backend, BackendInfo, LinkCounts, Notify, Subscription, close_quietly
 from services.errors import PropertyError, Unavailable
 from services.model import ServiceModel
 from services.values import Value
@@ -191,6 +191,10 @@ class DormantBackend(Backend):
         backend = self._backend
         if backend is not None:
             await backend.check()
+
+    def link_counts(self) -> LinkCounts | None:
+        backend = self._backend  # while dormant there is no connection to count
+        return backend.link_counts() if backend is not None else None
 
     def serves(self, obj: object) -> bool:
         backend = self._backend

@@ -31,6 +31,7 @@ class InboundProxy(LineProxy):
     """
 
     dials = False
+    transport = "dial-in"
 
     def __init__(self, name: str, url: str, options: ProxyOptions = INBOUND_OPTIONS) -> None:
         super().__init__(name, url, options)

@@ -7,8 +7,10 @@ come from the listen hub. Session lives in :mod:`gateway.session`.
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator, Callable
 from contextlib import aclosing
+from time import perf_counter
 from typing import Any
 
 import grpc
@@ -22,13 +24,14 @@ from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, parse_options, parse_selectors
 from gateway.listen.drain import Wake, responses
 from gateway.logs import REQUEST_ID_HEADER, RequestContext, current_request, request_id_from
+from gateway.metrics.counts import GrpcCounts, MethodCounts
 from gateway.router import Router
 from gateway.rules import Subject
 from gateway.session import Session
-from gateway.status import abort
+from gateway.status import abort, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.errors import InvalidArgument
+from services.errors import Code, InvalidArgument
 from services.model_codec import model_to_proto
 
 Context = grpc.aio.ServicerContext[Any, Any]
@@ -119,6 +122,14 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         self.sessions: set[Session] = set()
         #: This gateway's id in the ``ps-via`` chain of federated calls (gateway.federation).
         self.gateway_id = new_gateway_id()
+        #: Calls by method and code, latencies, Session requests; None when ``[metrics]`` is off.
+        self.counts = GrpcCounts() if config.metrics.enabled else None
+        methods = self.counts.methods if self.counts is not None else {}
+        self._get_counts: MethodCounts | None = methods.get("Get")
+        self._set_counts: MethodCounts | None = methods.get("Set")
+        self._describe_counts: MethodCounts | None = methods.get("Describe")
+        self._listen_counts: MethodCounts | None = methods.get("Listen")
+        self._session_counts: MethodCounts | None = methods.get("Session")
 
     def end_sessions(self) -> None:
         """Gateway shutdown: every Session flushes, ends its listens and ends with OK."""
@@ -135,6 +146,8 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         return remaining if remaining is not None and remaining < timeout else timeout
 
     async def Get(self, request: pb.GetRequest, context: Context) -> pb.GetResponse:
+        started = perf_counter()
+        counts = self._get_counts
         try:
             if isinstance(request, Undecodable):
                 _begin_unary(context, "", "")
@@ -143,12 +156,21 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             enter(context.invocation_metadata(), self.gateway_id)
             subject = self._subject(context)
             logged.subject = _subject_name(subject)
-            return await self.calls.get(request, self._deadline(context), subject)
+            response = await self.calls.get(request, self._deadline(context), subject)
         except Exception as exc:
-            await abort(context, exc, "Get")
+            await _failed(context, exc, "Get", counts, started)
             raise  # not reached: abort raises
+        except asyncio.CancelledError:
+            if counts is not None:
+                counts.done(Code.CANCELLED, None)
+            raise
+        if counts is not None:
+            counts.done(0, perf_counter() - started)
+        return response
 
     async def Set(self, request: pb.SetRequest, context: Context) -> pb.SetResponse:
+        started = perf_counter()
+        counts = self._set_counts
         try:
             if isinstance(request, Undecodable):
                 _begin_unary(context, "", "")
@@ -158,12 +180,20 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             # Identified even when nothing is refused: the audit trail names who set what.
             subject = self.guard.identify_call(context)
             logged.subject = _subject_name(subject)
-            return await self.calls.set(request, self._deadline(context), subject)
+            response = await self.calls.set(request, self._deadline(context), subject)
         except Exception as exc:
-            await abort(context, exc, "Set")
+            await _failed(context, exc, "Set", counts, started)
             raise
+        except asyncio.CancelledError:
+            if counts is not None:
+                counts.done(Code.CANCELLED, None)
+            raise
+        if counts is not None:
+            counts.done(0, perf_counter() - started)
+        return response
 
     async def Describe(self, request: pb.DescribeRequest, context: Context) -> pb.DescribeResponse:
+        started = perf_counter()
         try:
             if isinstance(request, Undecodable):
                 _begin_unary(context, "", "")
@@ -173,10 +203,13 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             subject = self._subject(context)
             logged.subject = _subject_name(subject)
             model = await self.calls.describe(request.service, self._deadline(context), subject)
-            return model_to_proto(model)
+            response = model_to_proto(model)
         except Exception as exc:
-            await abort(context, exc, "Describe")
+            await _failed(context, exc, "Describe", self._describe_counts, started)
             raise
+        if self._describe_counts is not None:
+            self._describe_counts.done(0, perf_counter() - started)
+        return response
 
     async def Listen(self, request: pb.ListenRequest, context: Context) -> AsyncIterator[pb.ListenResponse]:
         # Responses are yielded rather than written with context.write: grpc.aio
@@ -200,16 +233,26 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
                 subject,
             )
         except Exception as exc:
-            await abort(context, exc, "Listen")
+            await _failed(context, exc, "Listen", self._listen_counts, None)
             return
+        counts = self.counts
+        if counts is not None:
+            counts.listens_open += 1
+        code = Code.CANCELLED  # unless it ends otherwise: the client went away
         try:
             async with aclosing(responses(stream, wake)) as ready:
                 async for response in ready:
                     yield response
+            code = Code.OK
         except Exception as exc:
-            await abort(context, exc, "Listen")
+            err = to_property_error(exc, "Listen")
+            code = err.code
+            await abort(context, err, "Listen")
         finally:
             stream.close()
+            if counts is not None:
+                counts.listens_open -= 1
+                counts.methods["Listen"].done(code, None)
 
     async def Session(self, request_iterator: AsyncIterator[pb.SessionRequest], context: Context) -> None:
         try:
@@ -220,11 +263,31 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             subject = self._subject(context)
             logged.subject = _subject_name(subject)
         except Exception as exc:
-            await abort(context, exc, "Session")
+            await _failed(context, exc, "Session", self._session_counts, None)
             raise
-        session = Session(self.calls, self.hub, self.config.limits, context, subject, logged=logged)
+        requests = self.counts.session_requests if self.counts is not None else None
+        session = Session(
+            self.calls, self.hub, self.config.limits, context, subject, logged=logged, requests=requests
+        )
         self.sessions.add(session)
+        code = Code.CANCELLED  # unless it ends otherwise: the client went away
         try:
             await session.run()
+            code = Code.OK
+        except Exception as exc:
+            code = to_property_error(exc, "Session").code if session.error is None else session.error.code
+            raise
         finally:
             self.sessions.discard(session)
+            if self._session_counts is not None:
+                self._session_counts.done(code, None)
+
+
+async def _failed(
+    context: Context, exc: BaseException, what: str, counts: MethodCounts | None, started: float | None
+) -> None:
+    """Count the call as ended with ``exc``'s code, then end it with that status (never returns)."""
+    err = to_property_error(exc, what)
+    if counts is not None:
+        counts.done(err.code, None if started is None else perf_counter() - started)
+    await abort(context, err, what)

@@ -56,11 +56,13 @@ class Session:
         subject: Subject = ANONYMOUS,
         *,
         logged: RequestContext | None = None,
+        requests: dict[str, int] | None = None,
     ) -> None:
         """``subject``: who opened the Session; every request in it is checked as theirs.
 
         ``logged``: the stream's log context; request ``N`` in it logs as ``STREAM_ID/N``.
-        """
+        ``requests``: counts of the requests read, by call (``get``, ``set``, ``listen``, ``cancel``,
+        ``none``), raised here for the metrics; None counts nothing."""
         self._logged = logged
         #: Marked with this Session's token: an anonymous caller holds licences under it.
         self._subject = dataclasses.replace(subject, session=secrets.token_hex(8))
@@ -85,6 +87,22 @@ class Session:
         self._stopping = False
         #: The call ends with this status (a message that did not parse).
         self._error: PropertyError | None = None
+        self._requests = requests
+
+    @property
+    def error(self) -> PropertyError | None:
+        """The status the call ends with when it is not OK (a message that did not parse)."""
+        return self._error
+
+    @property
+    def listen_count(self) -> int:
+        """Listens open in this Session."""
+        return len(self._listens)
+
+    @property
+    def queued_replies(self) -> int:
+        """Replies waiting to be written (bounded by ``limits.session_max_queued_replies``)."""
+        return len(self._replies)
 
     # -- the writer (the handler's task) ------------------------------------
 
@@ -233,6 +251,8 @@ class Session:
     def _dispatch(self, request: pb.Request) -> None:
         rid = request.id
         which = request.WhichOneof("call")
+        if self._requests is not None:
+            self._requests[which or "none"] += 1
         logged = self._logged
         if logged is not None:
             # Set here, in the reader: the tasks and reply callbacks this request starts copy it,

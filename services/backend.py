@@ -86,6 +86,24 @@ class Answer(Protocol):
     def value(self) -> Value: ...
 
 
+@dataclass(slots=True)
+class LinkCounts:
+    """What a backend that keeps a connection to a device has seen of it (the metrics read it).
+
+    Plain counters, raised by the proxy where it connects, loses the device and misses a keep-alive.
+    """
+
+    #: How the device is reached: "tcp", "serial" or "dial-in" (a fixed, small set).
+    transport: str
+    connected: bool = False
+    #: Connections made (greeted), the first included.
+    connects: int = 0
+    #: Connections lost after they were made (each is followed by a reconnect or a wait for one).
+    disconnects: int = 0
+    #: Keep-alive PINGs that went unanswered in time (each drops the connection).
+    keepalive_failures: int = 0
+
+
 class Backend(abc.ABC):
     """One Property Service, whatever it runs on.
 
@@ -191,6 +209,10 @@ class Backend(abc.ABC):
         fails with the call's PropertyError (DEADLINE_EXCEEDED after at most
         ``time_limit``). The default has no shortcut and returns None.
         """
+        return None
+
+    def link_counts(self) -> LinkCounts | None:
+        """The counts of a backend that keeps a connection to a device; None for any other (the default)."""
         return None
 
     async def wait_connected(self, wait_s: float) -> None:  # noqa: B027 - optional hook, at once by default

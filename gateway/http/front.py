@@ -11,11 +11,13 @@ unknown routes and wrong methods included.
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import json
 import logging
 import resource
 from collections.abc import Awaitable, Callable
+from time import perf_counter
 
 from aiohttp import HttpVersion11, hdrs, web
 
@@ -39,6 +41,7 @@ from gateway.logs import (
     current_request_id,
     request_id_from,
 )
+from gateway.metrics.counts import HttpCounts
 from gateway.ports import PortInUse, port_holder
 from gateway.tls import HttpsCredentials
 from services.errors import Code, InvalidArgument, PropertyError, ResourceExhausted, error_for
@@ -59,6 +62,22 @@ async def _echo_request_id(request: web.BaseRequest, response: web.StreamRespons
     request_id = current_request_id()
     if request_id is not None:
         response.headers["X-Request-Id"] = request_id
+
+
+#: The routes whose answer is a stream: counted, but their life is no latency.
+STREAM_ROUTES = frozenset(("GET /api/v1/events", "GET /api/v1/services/{service}/properties/{path}/stream"))
+
+#: The status counted for a request whose client went away before the answer (nginx's 499).
+CLIENT_CLOSED = 499
+
+
+def _route_of(request: web.Request) -> str:
+    """The route's template with its method, or ``unrouted``: a bounded set, whatever the path was."""
+    info = request.match_info
+    resource = info.route.resource if info.http_exception is None else None
+    if resource is None:
+        return "unrouted"
+    return f"{info.route.method} {resource.canonical}"
 
 
 #: Descriptors the gateway needs beside its event streams: gRPC connections, proxies, logs.
@@ -108,6 +127,10 @@ class HttpFront:
         #: "host:port" it listens on (the real port when 0 was asked); "" before start.
         self.address = ""
         self.scheme = "https" if self.settings.tls else "http"
+        #: Responses by route and status, and latencies; None when ``[metrics]`` is off.
+        self.counts = HttpCounts() if config.metrics.enabled else None
+        #: ``GET /metrics``, set by the gateway when metrics are on (before :meth:`start`).
+        self.metrics: Handler | None = None
 
     @property
     def url(self) -> str:
@@ -134,6 +157,8 @@ class HttpFront:
             return web.Response(text=openapi, content_type="application/json")
 
         add("GET", "/api/v1/openapi.json", openapi_json)
+        if self.metrics is not None:
+            add("GET", "/metrics", self.metrics)
         if self.settings.console:
             add("GET", "/", self.console.file)
             add("GET", "/console/{file:.*}", self.console.file)
@@ -164,6 +189,26 @@ class HttpFront:
 
     @web.middleware
     async def _middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        counts = self.counts
+        if counts is None:
+            return await self._answer(request, handler)
+        started = perf_counter()
+        status = 500
+        try:
+            response = await self._answer(request, handler)
+            status = response.status
+            return response
+        except web.HTTPException as exc:
+            status = exc.status
+            raise
+        except asyncio.CancelledError:
+            status = CLIENT_CLOSED
+            raise
+        finally:
+            route = _route_of(request)
+            counts.done(route, status, None if route in STREAM_ROUTES else perf_counter() - started)
+
+    async def _answer(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         what = f"{request.method} {request.path[:200]}"
         # The request's id in every log line of its handler (and of the proxy calls it makes).
         request_id = request_id_from(request.headers.get(REQUEST_ID_HEADER))

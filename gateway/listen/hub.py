@@ -41,6 +41,9 @@ class ListenHub:
         self.limits = limits
         self.topics = Topics(call_timeout)
         self._streams: set[ListenStream] = set()
+        #: Events sent and values conflated by the streams already closed (the open ones keep their own).
+        self.closed_events_sent = 0
+        self.closed_conflated = 0
         self._closing = False
         self._unwatch = router.watch(self._service_changed)
 
@@ -84,11 +87,26 @@ class ListenHub:
             selectors=selectors,
             options=options,
             on_ready=on_ready,
-            on_close=self._streams.discard,
+            on_close=self._closed,
             may_read=guard.reader(subject),
         )
         self._streams.add(stream)
         return stream
+
+    def _closed(self, stream: ListenStream) -> None:
+        self._streams.discard(stream)
+        self.closed_events_sent += stream.events_sent
+        self.closed_conflated += stream.conflated
+
+    def counts(self) -> tuple[int, int, list[int]]:
+        """Events sent and values conflated by every stream so far, and what each open stream has queued."""
+        sent, conflated = self.closed_events_sent, self.closed_conflated
+        queued = []
+        for stream in self._streams:
+            sent += stream.events_sent
+            conflated += stream.conflated
+            queued.append(stream.queued)
+        return sent, conflated, queued
 
     def _service_changed(self, name: str, backend: Backend | None) -> None:
         if backend is not None:

@@ -175,8 +175,10 @@ class ListenStream:
         "_throttle_timer",
         "_topics",
         "closed",
+        "conflated",
         "ended",
         "error",
+        "events_sent",
         "options",
         "selectors",
     )
@@ -226,6 +228,9 @@ class ListenStream:
         self.ended = False
         #: Set when the stream must end with this error (e.g. a limit was passed).
         self.error: PropertyError | None = None
+        #: Events handed to the writer, and values replaced while waiting (read by the metrics).
+        self.events_sent = 0
+        self.conflated = 0
 
     def may_read(self, service: str, path: str) -> bool:
         """Whether the stream's subject may read ``service``/``path``: wildcards skip what it may not."""
@@ -435,6 +440,11 @@ class ListenStream:
         return None
 
     @property
+    def queued(self) -> int:
+        """Properties whose latest value waits to be sent (at most one entry per property)."""
+        return len(self._pending)
+
+    @property
     def retrying(self) -> int:
         """How many (selector, service) parts skipped as unreachable are being tried again."""
         return len(self._retries)
@@ -534,7 +544,8 @@ class ListenStream:
             self._enqueue(topic, change.value, seen_ns, change.gap, change.removed)
 
     def _enqueue(self, topic: Topic, value: Value, seen: int, gap: bool, removed: bool) -> None:
-        self._pending.put(topic, value, seen, gap, removed)
+        if not self._pending.put(topic, value, seen, gap, removed):
+            self.conflated += 1
         if self._live and not self._sample_flush:
             self._signal()
 
@@ -652,6 +663,7 @@ class ListenStream:
             return None
         response = encode_events(ready, self._sequence)
         self._sequence += len(ready)
+        self.events_sent += len(ready)
         return response
 
     def _ready_throttled(self, limit: int) -> tuple[list[Ready], int]:

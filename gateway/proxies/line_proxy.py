@@ -48,6 +48,7 @@ from services.backend import (
     Backend,
     BackendInfo,
     Change,
+    LinkCounts,
     Notify,
     Subscription,
 )
@@ -190,6 +191,8 @@ class LineProxy(Backend):
     #: Seconds since the device last sent anything within which :meth:`check` counts it alive
     #: without asking (the registry's default period); after that a PING has to come back.
     heard_within = 5.0
+    #: How the device is reached, as the metrics name it (a fixed, small set).
+    transport = "tcp"
 
     def __init__(self, name: str, url: str, options: ProxyOptions) -> None:
         self.name = name
@@ -210,6 +213,8 @@ class LineProxy(Backend):
         self.refusal: PropertyError | None = None
         self._refused = asyncio.Event()
         self._closing = False
+        #: Connections made and lost and keep-alives missed, read by the metrics at scrape time.
+        self.counts = LinkCounts(self.transport)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.name!r}, {self.url!r})"
@@ -273,6 +278,10 @@ class LineProxy(Backend):
     def connected(self) -> bool:
         return self._connected.is_set()
 
+    def link_counts(self) -> LinkCounts:
+        self.counts.connected = self._connected.is_set()
+        return self.counts
+
     def _label(self) -> str:
         return f"device {self.name} at {self.url}"
 
@@ -292,9 +301,12 @@ class LineProxy(Backend):
             self.refusal = None
             self._refused.clear()
             self._connected.set()
+            self.counts.connects += 1
             self._spawn(self._resubscribe(conn))
             await self._supervise(conn)
             self._connected.clear()
+            if not self._closing:
+                self.counts.disconnects += 1
             self._last_error = conn.close_reason
             if self.dials:
                 log.warning("%s: disconnected (%s); reconnecting", self._label(), conn.close_reason)
@@ -382,6 +394,7 @@ class LineProxy(Backend):
             except PropertyError as exc:
                 if exc.code == Code.UNAVAILABLE:
                     return
+                self.counts.keepalive_failures += 1
                 await conn.aclose(f"no answer to keep-alive: {exc.message}")
                 return
 

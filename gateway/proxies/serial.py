@@ -24,6 +24,7 @@ class SerialProxy(LineProxy):
 
     ask_hello_first = True
     serial_line = True
+    transport = "serial"
 
     def __init__(self, name: str, url: str, port: str, baudrate: int, options: ProxyOptions) -> None:
         super().__init__(name, url, options)

@@ -244,6 +244,17 @@ class Registry(Resource):
         """The known service names, in the order they joined."""
         return self._table.names()
 
+    def entry_states(self) -> dict[tuple[str, str], int]:
+        """How many entries are in each (state, availability): at most 3 x 4 keys (the metrics read it)."""
+        counts: dict[tuple[str, str], int] = {}
+        table = self._table
+        for name in table.names():
+            entry = table.get(name)
+            if entry is not None:
+                key = (entry.state, entry.availability)
+                counts[key] = counts.get(key, 0) + 1
+        return counts
+
     def add(self, name: str, info: BackendInfo) -> None:
         """Record service ``name``, or refresh it: new type and URL, state up, ``last_seen`` now."""
         self._table.add(name, info, self.renew_lease)

@@ -41,6 +41,7 @@ TARGETS = (
     "camera-fps",
     "camera-cores",
     "fusion-scaling",
+    "metrics-unary",
 )
 
 
@@ -117,6 +118,10 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     fusion = payload["results"]["in-process"]["fusion"]
     assert [d["markers"] for d in fusion["sizes"]] == [100, 10_000] and fusion["complete"], fusion
     assert all(d["baseline_us"] > 0 and d["us_per_observation"] > 0 for d in fusion["sizes"]), fusion
+    # The metrics part: pairs of batches on gateways with and without metrics, and the scrape saw the Gets.
+    metrics = payload["results"]["gateway"]["metrics"]
+    assert metrics["pairs"] >= 6 and len(metrics["pair_ratios"]) == metrics["pairs"], metrics
+    assert metrics["scraped_get_calls"] >= metrics["pairs"] // 2 * metrics["calls_per_batch"], metrics
     titles = (
         "(e) Get of",
         "(f) group behaviors.moveto",
@@ -129,6 +134,7 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         "(m) scheduler",
         "(o) camera",
         "(n) environment model",
+        "(p) the cost of metrics",
     )
     for title in titles:
         assert title in out, f"no table {title!r}:\n{out}"

@@ -1,0 +1,91 @@
+"""``/metrics``: the Prometheus text exposition, on the HTTP front end and on a port of its own.
+
+:class:`MetricsEndpoint` holds a registry of its own (never prometheus_client's
+global one, so several gateways in one process each report their own) with the
+gateway's collector. On the HTTP front end ``GET /metrics`` passes the front
+end's checks (Host header, and with ``[[rules]]`` or tokens: a caller that may
+read ``registry``/``services``); the listener of ``[metrics] listen`` serves
+only ``/metrics``, in plaintext, for a scraper beside the gateway.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+from typing import TYPE_CHECKING
+
+from aiohttp import web
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
+
+from gateway.config import REGISTRY_NAME
+from gateway.http.safety import identify
+from gateway.metrics.collector import GatewayCollector
+from gateway.ports import PortInUse, port_holder
+from gateway.rules import Operation
+
+if TYPE_CHECKING:
+    from gateway.app import Gateway
+
+log = logging.getLogger(__name__)
+
+#: The property a caller must be allowed to read to scrape the HTTP front end's ``/metrics`` when
+#: rules apply: the registry's listing, which tells as much about what the gateway serves.
+GUARDED_BY = (REGISTRY_NAME, "services")
+
+
+class MetricsEndpoint:
+    """The exposition of one gateway's metrics; see the module docstring."""
+
+    def __init__(self, gateway: Gateway) -> None:
+        self.gateway = gateway
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.registry.register(GatewayCollector(gateway))
+        self._runner: web.AppRunner | None = None
+        #: "host:port" of the listener of its own (the real port when 0 was asked); "" when none.
+        self.address = ""
+
+    def render(self) -> bytes:
+        """Every metric now, in the text exposition format."""
+        return generate_latest(self.registry)
+
+    def _response(self) -> web.Response:
+        response = web.Response(body=self.render())
+        response.headers["Content-Type"] = CONTENT_TYPE_LATEST
+        return response
+
+    async def guarded(self, request: web.Request) -> web.Response:
+        """``GET /metrics`` on the HTTP front end: with rules, only for who may read the registry's list."""
+        guard = self.gateway.guard
+        if guard.checks:
+            guard.require(identify(request, guard), *GUARDED_BY, Operation.READ)
+        return self._response()
+
+    async def _plain(self, request: web.Request) -> web.Response:
+        return self._response()
+
+    async def start(self, listen: str, shutdown_grace: float) -> None:
+        """Serve ``/metrics`` alone on ``listen`` (host:port); PortInUse naming the holder when taken."""
+        app = web.Application()
+        app.router.add_route("GET", "/metrics", self._plain)
+        runner = web.AppRunner(app, access_log=None, shutdown_timeout=shutdown_grace)
+        await runner.setup()
+        host, _, port_text = listen.rpartition(":")
+        port = int(port_text)
+        site = web.TCPSite(runner, host.strip("[]"), port, reuse_address=True)
+        try:
+            await site.start()
+        except OSError as exc:
+            await runner.cleanup()
+            if exc.errno != errno.EADDRINUSE:
+                raise
+            raise PortInUse(f"port {port} (metrics.listen) is in use by {port_holder(port)}") from None
+        self._runner = runner
+        bound = runner.addresses[0]
+        shown = f"[{bound[0]}]" if ":" in str(bound[0]) else str(bound[0])
+        self.address = f"{shown}:{bound[1]}"
+
+    async def stop(self) -> None:
+        """Stop the listener of its own (if any). Idempotent."""
+        runner, self._runner = self._runner, None
+        if runner is not None:
+            await runner.cleanup()
