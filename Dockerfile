@@ -1,7 +1,7 @@
 # The Property Service gateway as a container image.
 #
 #   podman build --format docker -t psgateway .        (or: docker build -t psgateway .)
-#   podman run --rm -p 50051:50051 -p 8080:8080 psgateway
+#   podman run --rm -p 127.0.0.1:50051:50051 -p 127.0.0.1:8080:8080 psgateway   (plaintext: loopback only)
 #
 # PYTHON_IMAGE picks the base: any slim image with python3 (3.11 or newer) and its venv module.
 # The default is the official slim image; a machine that cannot pull from a registry passes a base
