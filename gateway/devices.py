@@ -46,6 +46,7 @@ from collections.abc import Callable
 from urllib.parse import urlsplit
 
 from gateway.config import DeviceEntry
+from gateway.logs import outside_requests
 from services.errors import Unavailable
 
 log = logging.getLogger(__name__)
@@ -74,7 +75,7 @@ class DeviceProcess:
         self.process = process
         self._drain: asyncio.Task[None] | None = None
         if process.stdout is not None:
-            self._drain = asyncio.create_task(_drain(name, process.stdout))
+            self._drain = asyncio.create_task(_drain(name, process.stdout), context=outside_requests(name))
 
     @property
     def pid(self) -> int:
@@ -87,7 +88,13 @@ class DeviceProcess:
         if self._drain is not None:
             self._drain.cancel()
             await asyncio.gather(self._drain, return_exceptions=True)
-        log.info("device %s stopped (pid %d, exit %s)", self.name, self.pid, self.process.returncode)
+        log.info(
+            "device %s stopped (pid %d, exit %s)",
+            self.name,
+            self.pid,
+            self.process.returncode,
+            extra={"service": self.name},
+        )
 
 
 async def _drain(name: str, stream: asyncio.StreamReader) -> None:
@@ -164,7 +171,7 @@ async def start_device(entry: DeviceEntry, *, wait_s: float = START_TIMEOUT) -> 
             f" said {first!r}; its errors are in the log above)"
         )
     device = DeviceProcess(entry.name, url, process)
-    log.info("device %s started (pid %d) at %s", entry.name, device.pid, url)
+    log.info("device %s started (pid %d) at %s", entry.name, device.pid, url, extra={"service": entry.name})
     return device
 
 
@@ -206,7 +213,9 @@ class SupervisedDevice:
             self._link = os.path.join(self._link_dir, "tty")
             self._relink()
             self.url = f"serial://{self._link}?{parts.query}"
-        self._task = asyncio.create_task(self._watch(), name=f"device {self.name} supervisor")
+        self._task = asyncio.create_task(
+            self._watch(), name=f"device {self.name} supervisor", context=outside_requests(self.name)
+        )
 
     @property
     def pid(self) -> int:

@@ -27,6 +27,7 @@ __all__ = [
     "JsonFormatter",
     "RequestContext",
     "TextFormatter",
+    "background_service",
     "current_request",
     "current_request_id",
     "new_request_id",
@@ -71,11 +72,19 @@ class RequestContext:
 current_request: ContextVar[RequestContext | None] = ContextVar("current_request", default=None)
 
 
-def outside_requests() -> Context:
+#: The service a task outside any request works for (a proxy's connection, a device's process):
+#: its lines carry it as ``service``, so that one service's lines can be selected.
+background_service: ContextVar[str | None] = ContextVar("background_service", default=None)
+
+
+def outside_requests(service: str | None = None) -> Context:
     """A copy of the current context without a request: for a task that outlives the call that
-    starts it (a proxy's connection, a poll), whose lines belong to no one request."""
+    starts it (a proxy's connection, a poll), whose lines belong to no one request. With
+    ``service``, the task's lines (and those of the tasks it starts) name that service."""
     context = copy_context()
     context.run(current_request.set, None)
+    if service is not None:
+        context.run(background_service.set, service)
     return context
 
 
@@ -108,6 +117,10 @@ def _fields(record: logging.LogRecord) -> dict[str, str]:
             value = getattr(context, name)
             if value is not None:
                 found[name] = value
+    if "service" not in found:
+        service = background_service.get()
+        if service is not None:
+            found["service"] = service
     for name in FIELDS:
         value = record.__dict__.get(name)
         if value is not None:

@@ -230,7 +230,7 @@ class LineProxy(Backend):
     async def start(self) -> None:
         if self._runner is None:
             self._runner = asyncio.create_task(
-                self._run(), name=f"proxy {self.name}", context=outside_requests()
+                self._run(), name=f"proxy {self.name}", context=outside_requests(self.name)
             )
 
     async def aclose(self) -> None:
@@ -524,7 +524,7 @@ class LineProxy(Backend):
         else:
             entry.last = await self._call(Get(entry.path, dict(entry.params)))
             entry.poller = asyncio.create_task(
-                self._poll(entry), name=f"poll {self.name}.{entry.path}", context=outside_requests()
+                self._poll(entry), name=f"poll {self.name}.{entry.path}", context=outside_requests(self.name)
             )
 
     async def _close_listen(self, entry: _DeviceListen) -> None:

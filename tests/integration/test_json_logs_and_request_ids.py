@@ -13,7 +13,7 @@ from typing import Any
 import aiohttp
 import grpc
 import pytest
-from line_device_support import tcp_device
+from line_device_support import device_process, tcp_device
 from support.gateway_process import GatewayProcess, StartGateway
 from support.session_stream import replies_until
 from support.waiting import wait_until
@@ -71,6 +71,25 @@ async def test_every_log_line_is_one_json_object_with_the_fields(
         assert entry["level"] in ("debug", "info", "warning", "error", "critical")
     started = [e for e in entries if e["message"].startswith("service rover started")]
     assert started and started[0]["service"] == "rover"
+
+
+async def test_a_devices_connection_lines_name_its_service(gateway_process: StartGateway) -> None:
+    # The proxy's own lines (connecting, connected, disconnected) belong to no request, but to
+    # one service: `select(.service == "rover")` finds them.
+    args = ("--service", "sim-robot", "--name", "rover", "--tcp", "127.0.0.1:0")
+    with device_process(*args) as (device, first):
+        gw = gateway_process(config(int(first.rpartition(":")[2])))
+
+        def lines_with(text: str) -> list[dict[str, Any]]:
+            return [e for e in log_lines(gw) if text in e["message"]]
+
+        await wait_until(lambda: bool(lines_with(": connected (rover")), what="the connected line")
+        device.terminate()
+        await wait_until(lambda: bool(lines_with(": disconnected (")), what="the disconnected line")
+    for entry in lines_with(": connected (rover") + lines_with(": disconnected ("):
+        assert entry["logger"].startswith("gateway.proxies"), entry
+        assert entry["service"] == "rover", entry
+        assert "request_id" not in entry, entry
 
 
 async def test_a_session_request_id_ties_its_log_lines_and_the_proxy_line(

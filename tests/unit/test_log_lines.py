@@ -90,6 +90,19 @@ def test_a_task_outside_requests_logs_none() -> None:
         current_request.reset(token)
 
 
+def test_a_task_for_a_service_names_it_until_a_request_does(written: tuple) -> None:
+    logger, out, handler = written
+    handler.setFormatter(JsonFormatter())
+    background = outside_requests("rover")
+    background.run(logger.info, "connected")
+    background.run(current_request.set, RequestContext("r-4", service="scout1"))
+    background.run(logger.info, "a call")
+    first, second = (json.loads(line) for line in out.getvalue().splitlines())
+    assert first["service"] == "rover" and "request_id" not in first
+    assert second["service"] == "scout1" and second["request_id"] == "r-4"
+    assert "service" not in json.loads(JsonFormatter().format(logging.makeLogRecord({"msg": "x"})))
+
+
 @pytest.mark.parametrize("chosen", ["", "x" * 65, "caf\u00e9", "a\nb", "tab\there", "   "])
 def test_an_unusable_client_id_gets_a_fresh_one(chosen: str) -> None:
     fresh = request_id_from(chosen)
