@@ -27,3 +27,7 @@ def test_cpp_and_go_print_the_same_lines(demo_gateway: Any) -> None:
             by_go.stdout,
             by_go.stderr,
         ), call
+    for asked in ("-h", "--help"):  # the usage on stdout, exit 0; no "unknown command"
+        by_cpp, by_go = cpp.run(demo_gateway.address, asked), go.run(demo_gateway.address, asked)
+        assert (by_cpp.returncode, by_cpp.stderr) == (0, "") and by_cpp.stdout.startswith("usage: propctl")
+        assert (by_go.returncode, by_go.stdout, by_go.stderr) == (0, by_cpp.stdout, ""), asked

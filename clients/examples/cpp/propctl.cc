@@ -223,6 +223,10 @@ int main(int argc, char** argv) {
     std::cerr << kUsageText;
     return kUsage;
   }
+  if (args[0] == "-h" || args[0] == "--help") {
+    std::cout << kUsageText;
+    return 0;
+  }
   auto found = commands.find(args[0]);
   if (found == commands.end()) {
     std::cerr << "error: unknown command \"" << args[0] << "\"\n" << kUsageText;

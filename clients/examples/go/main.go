@@ -223,7 +223,12 @@ func run() int {
 		target = defaultTarget
 	}
 	flags.StringVar(&target, "t", target, "gateway address")
-	if err := flags.Parse(os.Args[1:]); err != nil || flags.NArg() == 0 {
+	err := flags.Parse(os.Args[1:])
+	if errors.Is(err, flag.ErrHelp) {
+		fmt.Print(usage)
+		return 0
+	}
+	if err != nil || flags.NArg() == 0 {
 		fmt.Fprint(os.Stderr, usage)
 		return exitUsage
 	}
