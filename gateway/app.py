@@ -409,7 +409,7 @@ class Gateway:
             endpoint = self._metrics_endpoint()
             await endpoint.start(settings.listen, self.config.gateway.shutdown_grace)
             self.metrics_address = endpoint.address
-            log.info("metrics on http://%s/metrics", endpoint.address)
+            log.debug("metrics on http://%s/metrics", endpoint.address)  # printed as well, below
 
     def _device_secrets(self) -> dict[str, str]:
         """Name → secret of each configured device that dials in (read at start, never logged)."""

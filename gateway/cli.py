@@ -40,6 +40,8 @@ then, from another shell:
   curl -s 127.0.0.1:8080/api/v1/services
   grpcurl -plaintext -d '{"service":"scout1","property":"location"}' \\
       127.0.0.1:50051 propertyservice.v1.PropertyService/Get
+  grpcurl -plaintext -d '{"service":"rover1"}' 127.0.0.1:50051 grpc.health.v1.Health/Check
+  curl -s 127.0.0.1:8080/metrics              Prometheus metrics (docs/metrics.md)
 """
 
 
