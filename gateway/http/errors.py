@@ -9,12 +9,15 @@ of either front end sees the same code for the same failure. Messages leave clip
 from __future__ import annotations
 
 import json
+import logging
 from typing import Final
 
 from aiohttp import web
 
 from gateway.status import clip_message, to_property_error
 from services.errors import Code, PropertyError
+
+log = logging.getLogger(__name__)
 
 #: Code → HTTP status, as google/rpc/code.proto maps them.
 HTTP_STATUS: Final[dict[Code, int]] = {
@@ -55,6 +58,8 @@ def error_json(err: PropertyError) -> dict[str, str]:
 def error_response(exc: BaseException, what: str = "request", status: int | None = None) -> web.Response:
     """The JSON error response for ``exc`` (anything but a PropertyError is INTERNAL, logged)."""
     err = to_property_error(exc, what)
+    if log.isEnabledFor(logging.DEBUG):  # as a failed gRPC call is (gateway.status.abort)
+        log.debug("%s: %s", what, err.message, extra={"code": err.code.name})
     body = json.dumps({"error": error_json(err)}, ensure_ascii=False)
     return web.Response(
         status=status or HTTP_STATUS[err.code],

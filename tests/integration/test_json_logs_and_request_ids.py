@@ -173,6 +173,14 @@ async def test_an_http_request_id_is_echoed_and_logged(gateway_process: StartGat
         assert answer.headers["X-Request-Id"] == "from-the-browser"
     await wait_until(lambda: bool(with_id(gw, "from-the-browser")), what="the HTTP request's proxy line")
     assert any("GET location" in e["message"] for e in with_id(gw, "from-the-browser"))
+    async with (
+        aiohttp.ClientSession() as http,
+        http.get(url.replace("/rover/", "/rover9/"), headers={"X-Request-Id": "web-2"}) as answer,
+    ):
+        assert answer.status == 404
+    await wait_until(lambda: bool(with_id(gw, "web-2")), what="the failed HTTP call's line")
+    failed = with_id(gw, "web-2")[0]
+    assert (failed["level"], failed["code"], failed["service"]) == ("debug", "NOT_FOUND", "rover9"), failed
 
 
 async def test_text_lines_name_the_request_too(gateway_process: StartGateway, rover: int) -> None:
