@@ -208,8 +208,10 @@ async def test_every_cell_of_subject_by_operation_by_path(secured) -> None:  # t
         assert code == grpc.StatusCode.FAILED_PRECONDITION, details
     assert not failures, "\n".join(failures)
     # Every Set and every refusal left one JSON audit line.
+    # The audit record is the JSON object in the line's message (a text line may end with its request).
+    decoder = json.JSONDecoder()
     audit = [
-        json.loads(line.split(" ", 3)[-1][line.split(" ", 3)[-1].index("{") :])
+        decoder.raw_decode(line, line.index("{"))[0]
         for line in gw.output.splitlines()
         if "gateway.audit" in line and "{" in line
     ]
