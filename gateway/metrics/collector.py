@@ -11,7 +11,7 @@ becomes a label.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from prometheus_client.core import (
     CounterMetricFamily,
@@ -26,7 +26,31 @@ from services.backend import LinkCounts
 from services.errors import Code
 
 if TYPE_CHECKING:
-    from gateway.app import Gateway
+    from gateway.guard import Guard
+    from gateway.http.front import HttpFront
+    from gateway.listen import ListenHub
+    from gateway.router import Router
+    from gateway.server import PropertyServicer
+    from services.registry import Registry
+
+
+class Measured(Protocol):
+    """What the metrics read of a gateway (``gateway.app.Gateway``), named here so that the
+    metrics never import the gateway that serves them."""
+
+    @property
+    def servicer(self) -> PropertyServicer: ...
+    @property
+    def http(self) -> HttpFront | None: ...
+    @property
+    def hub(self) -> ListenHub: ...
+    @property
+    def router(self) -> Router: ...
+    @property
+    def registry(self) -> Registry: ...
+    @property
+    def guard(self) -> Guard: ...
+
 
 #: The exported metrics' common prefix.
 PREFIX = "psgateway"
@@ -88,7 +112,7 @@ def _add(totals: list[int], counts: LinkCounts) -> None:
 class GatewayCollector(Collector):
     """Every metric of one gateway, read when collected; see the module docstring."""
 
-    def __init__(self, gateway: Gateway) -> None:
+    def __init__(self, gateway: Measured) -> None:
         self.gateway = gateway
         self.links = LinkTotals()
 

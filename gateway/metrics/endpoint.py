@@ -12,19 +12,15 @@ from __future__ import annotations
 
 import errno
 import logging
-from typing import TYPE_CHECKING
 
 from aiohttp import web
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 
 from gateway.config import REGISTRY_NAME
 from gateway.http.safety import identify
-from gateway.metrics.collector import GatewayCollector
+from gateway.metrics.collector import GatewayCollector, Measured
 from gateway.ports import PortInUse, port_holder
 from gateway.rules import Operation
-
-if TYPE_CHECKING:
-    from gateway.app import Gateway
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +32,7 @@ GUARDED_BY = (REGISTRY_NAME, "services")
 class MetricsEndpoint:
     """The exposition of one gateway's metrics; see the module docstring."""
 
-    def __init__(self, gateway: Gateway) -> None:
+    def __init__(self, gateway: Measured) -> None:
         self.gateway = gateway
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(GatewayCollector(gateway))
