@@ -15,7 +15,10 @@ import contextlib
 import errno
 import os
 import socket
+import ssl
 from pathlib import Path
+
+from aiohttp import web
 
 #: ``st`` of a listening socket in /proc/net/tcp (include/net/tcp_states.h: TCP_LISTEN).
 _TCP_LISTEN = "0A"
@@ -47,6 +50,27 @@ def check_port_free(address: str, what: str) -> None:
             if exc.errno != errno.EADDRINUSE:
                 return  # not ours to judge (a host that is not local): the server's own bind reports it
             raise PortInUse(f"port {port} ({what}) is in use by {port_holder(port)}") from None
+
+
+async def start_site(
+    runner: web.AppRunner, host: str, port: int, what: str, ssl_context: ssl.SSLContext | None = None
+) -> str:
+    """Listen with ``runner`` (set up) on ``host:port``; the address bound, ``HOST:PORT``.
+
+    The runner is cleaned up when it cannot listen; a port in use is :class:`PortInUse` naming
+    ``what`` (the option, ``http.listen``) and the holder.
+    """
+    site = web.TCPSite(runner, host, port, ssl_context=ssl_context, reuse_address=True)
+    try:
+        await site.start()
+    except OSError as exc:
+        await runner.cleanup()
+        if exc.errno != errno.EADDRINUSE:
+            raise
+        raise PortInUse(f"port {port} ({what}) is in use by {port_holder(port)}") from None
+    bound = runner.addresses[0]
+    shown = f"[{bound[0]}]" if ":" in str(bound[0]) else str(bound[0])
+    return f"{shown}:{bound[1]}"
 
 
 def port_holder(port: int) -> str:

@@ -12,7 +12,6 @@ unknown routes and wrong methods included.
 from __future__ import annotations
 
 import asyncio
-import errno
 import json
 import logging
 import resource
@@ -42,7 +41,7 @@ from gateway.logs import (
     request_id_from,
 )
 from gateway.metrics.counts import HttpCounts
-from gateway.ports import PortInUse, port_holder
+from gateway.ports import start_site
 from gateway.tls import HttpsCredentials
 from services.errors import Code, InvalidArgument, PropertyError, ResourceExhausted, error_for
 
@@ -260,18 +259,8 @@ class HttpFront:
             shutdown_timeout=self.config.gateway.shutdown_grace,
         )
         await runner.setup()
-        site = web.TCPSite(runner, host, port, ssl_context=ssl_context, reuse_address=True)
-        try:
-            await site.start()
-        except OSError as exc:
-            await runner.cleanup()
-            if exc.errno != errno.EADDRINUSE:
-                raise
-            raise PortInUse(f"port {port} (http.listen) is in use by {port_holder(port)}") from None
+        self.address = await start_site(runner, host, port, "http.listen", ssl_context)
         self._runner = runner
-        bound = runner.addresses[0]
-        shown = f"[{bound[0]}]" if ":" in str(bound[0]) else str(bound[0])
-        self.address = f"{shown}:{bound[1]}"
         log.debug("HTTP front end and console on %s", self.url)
 
     async def stop(self) -> None:

@@ -10,7 +10,6 @@ only ``/metrics``, in plaintext, for a scraper beside the gateway.
 
 from __future__ import annotations
 
-import errno
 import logging
 
 from aiohttp import web
@@ -19,7 +18,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_l
 from gateway.config import REGISTRY_NAME
 from gateway.http.safety import identify
 from gateway.metrics.collector import GatewayCollector, Measured
-from gateway.ports import PortInUse, port_holder
+from gateway.ports import start_site
 from gateway.rules import Operation
 
 log = logging.getLogger(__name__)
@@ -67,18 +66,8 @@ class MetricsEndpoint:
         await runner.setup()
         host, _, port_text = listen.rpartition(":")
         port = int(port_text)
-        site = web.TCPSite(runner, host.strip("[]"), port, reuse_address=True)
-        try:
-            await site.start()
-        except OSError as exc:
-            await runner.cleanup()
-            if exc.errno != errno.EADDRINUSE:
-                raise
-            raise PortInUse(f"port {port} (metrics.listen) is in use by {port_holder(port)}") from None
+        self.address = await start_site(runner, host.strip("[]"), port, "metrics.listen")
         self._runner = runner
-        bound = runner.addresses[0]
-        shown = f"[{bound[0]}]" if ":" in str(bound[0]) else str(bound[0])
-        self.address = f"{shown}:{bound[1]}"
 
     async def stop(self) -> None:
         """Stop the listener of its own (if any). Idempotent."""
