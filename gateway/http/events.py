@@ -39,7 +39,7 @@ from gateway.config import HttpSection, Limits
 from gateway.guard import Guard
 from gateway.http.binary import OCTET_STREAM, MediaTypes, value_json
 from gateway.http.errors import error_json
-from gateway.http.places import StreamPlaces, too_many, write_or_drop
+from gateway.http.places import StreamHandler, StreamPlaces, too_many, write_or_drop
 from gateway.http.safety import identify
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.listen.drain import Wake, responses
@@ -109,7 +109,7 @@ def error_event(err: PropertyError) -> bytes:
     return f"event: error\ndata: {json.dumps(error_json(err), ensure_ascii=False)}\n\n".encode()
 
 
-class EventStreams:
+class EventStreams(StreamHandler):
     """The ``/api/v1/events`` handler and its bound on open streams."""
 
     def __init__(
@@ -122,14 +122,8 @@ class EventStreams:
         settings: HttpSection,
         places: StreamPlaces,
     ) -> None:
-        self.hub = hub
-        self.calls = calls
-        self.guard = guard
-        self.limits = limits
-        self.places = places
-        self.write_timeout = settings.write_timeout
+        super().__init__(hub, calls, guard=guard, limits=limits, settings=settings, places=places)
         self.options = pb.ListenOptions(heartbeat_interval=_duration(settings.heartbeat))
-        self.open: set[ListenStream] = set()
 
     async def events(self, request: web.Request) -> web.StreamResponse:
         unknown = [key for key in request.query if key != SELECTOR_KEY]

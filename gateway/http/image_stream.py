@@ -26,15 +26,12 @@ from contextlib import aclosing
 
 from aiohttp import hdrs, web
 
-from gateway.calls import Calls
-from gateway.config import HttpSection, Limits
-from gateway.guard import Guard
 from gateway.http.binary import OCTET_STREAM, RAW_HEADERS, property_model, served_type
 from gateway.http.bodies import query_parameters
 from gateway.http.errors import error_response
-from gateway.http.places import StreamPlaces, too_many, write_or_drop
+from gateway.http.places import StreamHandler, too_many, write_or_drop
 from gateway.http.safety import identify
-from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
+from gateway.listen import parse_options, parse_selectors
 from gateway.listen.drain import Wake, responses
 from gateway.rules import Operation
 from gateway.status import to_property_error
@@ -66,26 +63,8 @@ def latest(response: pb.ListenResponse) -> tuple[pb.Event | None, int]:
     return response.events[-1], skipped
 
 
-class ImageStreams:
+class ImageStreams(StreamHandler):
     """The ``/stream`` handler; streams take places of :class:`StreamPlaces` beside event streams."""
-
-    def __init__(
-        self,
-        hub: ListenHub,
-        calls: Calls,
-        *,
-        guard: Guard,
-        limits: Limits,
-        settings: HttpSection,
-        places: StreamPlaces,
-    ) -> None:
-        self.hub = hub
-        self.calls = calls
-        self.guard = guard
-        self.limits = limits
-        self.places = places
-        self.write_timeout = settings.write_timeout
-        self.open: set[ListenStream] = set()
 
     async def stream(self, request: web.Request) -> web.StreamResponse:
         service = request.match_info["service"]

@@ -17,8 +17,11 @@ from contextlib import contextmanager
 
 from aiohttp import web
 
-from gateway.config import HttpSection
+from gateway.calls import Calls
+from gateway.config import HttpSection, Limits
+from gateway.guard import Guard
 from gateway.http.errors import TOO_MANY_REQUESTS, TOO_MANY_STREAMS, error_response
+from gateway.listen import ListenHub, ListenStream
 from services.errors import ResourceExhausted
 
 log = logging.getLogger(__name__)
@@ -57,6 +60,29 @@ class StreamPlaces:
             self.per_client[peer] -= 1
             if self.per_client[peer] <= 0:
                 del self.per_client[peer]
+
+
+class StreamHandler:
+    """What a handler of long-lived streams holds: the hub, the calls, the guard, the limits, the
+    shared places and the write deadline, and the listen-hub streams it has open."""
+
+    def __init__(
+        self,
+        hub: ListenHub,
+        calls: Calls,
+        *,
+        guard: Guard,
+        limits: Limits,
+        settings: HttpSection,
+        places: StreamPlaces,
+    ) -> None:
+        self.hub = hub
+        self.calls = calls
+        self.guard = guard
+        self.limits = limits
+        self.places = places
+        self.write_timeout = settings.write_timeout
+        self.open: set[ListenStream] = set()
 
 
 def too_many(message: str, status: int = TOO_MANY_STREAMS) -> web.Response:
