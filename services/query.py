@@ -276,10 +276,6 @@ class ServiceIndex:
         """x y of the services at ``slots`` (rows of NaN where unknown)."""
         return self._loc[slots, :2]
 
-    def rank_at(self, slots: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
-        """Places of the services at ``slots`` in natural name order (``scout2`` before ``scout10``)."""
-        return self._rank()[slots]
-
     def up_at(self, slots: npt.NDArray[np.intp]) -> npt.NDArray[np.bool_]:
         """Whether the services at ``slots`` are up."""
         return self._up[slots]

@@ -73,7 +73,8 @@ class Candidates:
         self._names, self._caps, self._not_ready = names, caps, not_ready
         self._by_cap = {c: np.asarray(p, dtype=np.intp) for c, p in by_cap.items()}
         self._slots = self._table.index.slots_of(names)
-        self._rank = self._table.index.rank_at(self._slots)
+        # The scheduler breaks ties of score by name (plain string order): so does the narrowing.
+        self._rank = np.argsort(np.argsort(np.asarray(names, dtype=object), kind="stable"))
         self._position = {n: i for i, n in enumerate(names)}
         self._revision = revision
 
@@ -122,7 +123,7 @@ class Candidates:
         score = request.weight * relative + (1.0 - request.weight) * (1.0 - quality)
         down = int(np.count_nonzero(~self._table.index.up_at(slots)))
         limit = request.count + down + len(self._not_ready) + len(unsure)
-        # Best first (score, then natural name order, as the scheduler breaks ties), then the
+        # Best first (score, then name, as the scheduler breaks ties), then the
         # first ``limit`` of each capability mask.
         best = np.lexsort((self._rank[relevant], score))
         masks = code[relevant][best]
