@@ -1,5 +1,13 @@
-"""Fixtures shared by every test folder (see tests/support/gateway_process.py)."""
+"""Fixtures shared by every test folder (see tests/support/gateway_process.py).
 
+Hypothesis runs without its per-example deadline: these machines are shared, and a slow example
+under load says nothing about the property being tested (speed lives in ``bench/``).
+"""
+
+from hypothesis import settings
 from support.gateway_process import demo_gateway, gateway_process
+
+settings.register_profile("shared-machine", deadline=None)
+settings.load_profile("shared-machine")
 
 __all__ = ["demo_gateway", "gateway_process"]
