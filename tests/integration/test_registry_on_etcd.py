@@ -37,12 +37,17 @@ async def store(etcd: EtcdServer) -> AsyncIterator[EtcdStore]:
     await store.aclose()
 
 
+async def serve_registry(directory: MemoryDirectory, store: EtcdStore) -> RegistryService:
+    """A registry keeping its registrations in ``store``, served in ``directory`` (and started)."""
+    service = RegistryService(Registry(directory=directory, period=0, store=store))
+    await directory.add("registry", service)
+    return service
+
+
 async def test_registrations_are_kept_in_etcd_and_come_back(
     world: MemoryDirectory, store: EtcdStore, etcd: EtcdServer
 ) -> None:
-    registry = Registry(directory=world, period=0, store=store)
-    service = RegistryService(registry)
-    await world.add("registry", service)
+    service = await serve_registry(world, store)
     assert await service.get("store") == etcd.url
 
     await service.set("services.scout1", "tcp://127.0.0.1:7001", {"type": "mobile_robot"})
@@ -60,8 +65,7 @@ async def test_registrations_are_kept_in_etcd_and_come_back(
     again = MemoryDirectory()
     again.devices = world.devices
     try:
-        second = RegistryService(Registry(directory=again, period=0, store=store))
-        await again.add("registry", second)
+        second = await serve_registry(again, store)
         assert "scout1" in again.names() and "scout2" not in again.names()
         assert await second.get("services.scout1.type") == "mobile_robot"
     finally:
@@ -71,9 +75,7 @@ async def test_registrations_are_kept_in_etcd_and_come_back(
 async def test_registrations_wait_while_etcd_is_away(
     world: MemoryDirectory, store: EtcdStore, etcd: EtcdServer
 ) -> None:
-    registry = Registry(directory=world, period=0, store=store)
-    service = RegistryService(registry)
-    await world.add("registry", service)
+    service = await serve_registry(world, store)
     heard: list[Change] = []
     await service.listen("store", heard.append)
 
