@@ -1,0 +1,229 @@
+"""What the peers' load loops share: a subscriber's tally, and the figures of one peer in one round.
+
+The peers (OPC UA through asyncua, Zenoh through its Python binding) are
+measured with the client patterns of parts (a)-(c) and (r), and their figures
+are kept in the same shapes (:class:`bench.unary.UnaryResult`,
+:class:`bench.listen.ListenResult`), so that the report reads them as it reads
+the gRPC servers'.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from bench.listen import ListenResult
+from bench.measure import Latencies, window
+from bench.servers import ServerProcess
+from bench.unary import UnaryResult
+
+#: The exceptions that make a call an error (counted) rather than end the run.
+Errors = tuple[type[BaseException], ...]
+
+#: The value written before the subscribers open: it marks them as caught up (the gRPC ``sync``).
+SYNC_VALUE = "sync"
+#: How long subscribers may keep reading after the last Set before the run is declared incomplete.
+DRAIN_TIMEOUT = 15.0
+#: How long every subscriber may take to see :data:`SYNC_VALUE`.
+SYNC_TIMEOUT = 30.0
+#: How often a waiting loop looks at the tallies: they are written by another thread (zenoh) or task.
+POLL_S = 0.005
+
+
+class Receiver:
+    """One subscriber: the events it read and the latest value.
+
+    Values are ``str(time.perf_counter_ns())`` written by the setter in this
+    process; each one's latency is taken on arrival into ``samples``, which
+    the subscribers of one run share (a list append is atomic in CPython, so
+    callbacks on several threads may append). :data:`SYNC_VALUE` only marks
+    the subscriber as caught up and is not counted.
+    """
+
+    __slots__ = ("events", "last_ns", "latest", "samples", "synced")
+
+    def __init__(self, samples: list[int]) -> None:
+        self.samples = samples
+        self.events = 0
+        self.latest = ""
+        self.last_ns = 0
+        self.synced = False
+
+    def note(self, value: str) -> None:
+        now = time.perf_counter_ns()
+        if value == SYNC_VALUE:
+            self.synced = True
+            return
+        self.events += 1
+        self.latest = value
+        self.last_ns = now
+        self.samples.append(now - int(value))
+
+    def caught_up(self, expected: int, final: str | None) -> bool:
+        """Whether it has read every Set, or at least the last value set."""
+        return self.events >= expected or (final is not None and self.latest == final)
+
+
+async def poll_until(check: Callable[[], bool], seconds: float) -> bool:
+    """Poll ``check`` until it holds or ``seconds`` pass; whether it held."""
+    deadline = time.monotonic() + seconds
+    while not check():
+        if time.monotonic() >= deadline:
+            return False
+        await asyncio.sleep(POLL_S)
+    return True
+
+
+async def drive_calls(
+    call: Callable[[], Awaitable[Any]], calls: int, inflight: int, deadline: float, errors: Errors
+) -> tuple[list[int], int, bool]:
+    """Make ``calls`` calls, ``inflight`` at a time, in this loop; latencies (ns), errors, all made.
+
+    The same loop as :func:`bench.unary._drive`, for a client whose calls are coroutines.
+    """
+    remaining = calls
+    failed = 0
+    samples: list[int] = []
+
+    async def worker() -> None:
+        nonlocal remaining, failed
+        while remaining > 0 and time.monotonic() < deadline:
+            remaining -= 1
+            start = time.perf_counter_ns()
+            try:
+                await call()
+            except errors:
+                failed += 1
+                continue
+            samples.append(time.perf_counter_ns() - start)
+
+    await asyncio.gather(*(worker() for _ in range(inflight)))
+    return samples, failed, remaining == 0
+
+
+async def drive_blocking(
+    call: Callable[[], Any], calls: int, inflight: int, deadline: float, errors: Errors
+) -> tuple[list[int], int, bool]:
+    """The same with a blocking client: ``inflight`` threads, each making one call after another."""
+    lock = threading.Lock()
+    remaining = calls
+    failed = 0
+    samples: list[int] = []
+
+    def worker() -> None:
+        nonlocal remaining, failed
+        while time.monotonic() < deadline:
+            with lock:
+                if remaining <= 0:
+                    return
+                remaining -= 1
+            start = time.perf_counter_ns()
+            try:
+                call()
+            except errors:
+                with lock:
+                    failed += 1
+                continue
+            samples.append(time.perf_counter_ns() - start)
+
+    await asyncio.gather(*(asyncio.to_thread(worker) for _ in range(inflight)))
+    return samples, failed, remaining == 0
+
+
+Driver = Callable[[int, int, float], Awaitable[tuple[list[int], int, bool]]]
+
+
+async def measure_calls(
+    server: ServerProcess, drive: Driver, *, calls: int, inflight: int, warmup: int, time_limit: float
+) -> UnaryResult:
+    """Warm up, then ``drive(calls, inflight, deadline)`` inside a measured window: part (a)'s figures."""
+    result = UnaryResult(calls=calls, inflight=inflight)
+    await drive(warmup, inflight, time.monotonic() + time_limit)
+    with window(server) as result.window:
+        samples, result.errors, result.complete = await drive(calls, inflight, time.monotonic() + time_limit)
+    result.done = len(samples) + result.errors
+    result.latency = Latencies.of(samples)
+    server.check_alive()
+    return result
+
+
+async def set_all(
+    write: Callable[[str], Awaitable[Any]],
+    *,
+    sets: int,
+    set_rate: float,
+    deadline: float,
+    result: ListenResult,
+    errors: Errors,
+) -> str | None:
+    """Write ``sets`` values one at a time (each awaited), paced at ``set_rate`` a second if not 0.
+
+    Returns the last value written, as :func:`bench.listen.set_all` does for the gRPC servers.
+    """
+    final = None
+    interval = 1.0 / set_rate if set_rate else 0.0
+    next_at = time.monotonic()
+    while result.sets_done < sets and time.monotonic() < deadline:
+        value = str(time.perf_counter_ns())
+        try:
+            await write(value)
+        except errors:
+            result.set_errors += 1
+        else:
+            final = value
+        result.sets_done += 1
+        if interval:
+            next_at += interval
+            await asyncio.sleep(max(next_at - time.monotonic(), 0.0))
+    return final
+
+
+def finish_fanout(
+    result: ListenResult,
+    receivers: Sequence[Receiver],
+    samples: list[int],
+    first_set_ns: int,
+    final: str | None,
+) -> None:
+    """Fill ``result``'s delivery figures from the receivers once the setter is done and they drained."""
+    last_ns = max((r.last_ns for r in receivers), default=0)
+    result.delivery_s = max(last_ns - first_set_ns, 0) / 1e9
+    result.events = sum(r.events for r in receivers)
+    # A peer's message may carry several events (OPC UA's Publish responses), or reach several
+    # subscribers at once (one zenoh message per session): events per message is not comparable.
+    result.messages = 0
+    result.complete_subscribers = sum(r.caught_up(result.sets, final) for r in receivers)
+    result.latency = Latencies.of(samples)
+
+
+@dataclass
+class PeerRound:
+    """The four patterns measured on one peer in one round, each in its gRPC part's shape."""
+
+    system: str
+    #: How the client talks to the peer, for the report.
+    client: str
+    sequential: UnaryResult
+    inflight: UnaryResult
+    fanout: ListenResult
+    paced: ListenResult
+    notes: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        parts = {
+            "sequential": self.sequential.as_dict(),
+            "unary": self.inflight.as_dict(),
+            "listen": self.fanout.as_dict(),
+            "paced": self.paced.as_dict(),
+        }
+        return {
+            "system": self.system,
+            "client": self.client,
+            **parts,
+            "complete": all(part["complete"] for part in parts.values()),
+            "notes": self.notes,
+        }
