@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -151,7 +151,7 @@ async def measure_calls(
     return result
 
 
-async def set_all(
+async def _set_all(
     write: Callable[[str], Awaitable[Any]],
     *,
     sets: int,
@@ -182,22 +182,63 @@ async def set_all(
     return final
 
 
-def finish_fanout(
-    result: ListenResult,
-    receivers: Sequence[Receiver],
-    samples: list[int],
-    first_set_ns: int,
-    final: str | None,
-) -> None:
-    """Fill ``result``'s delivery figures from the receivers once the setter is done and they drained."""
-    last_ns = max((r.last_ns for r in receivers), default=0)
-    result.delivery_s = max(last_ns - first_set_ns, 0) / 1e9
-    result.events = sum(r.events for r in receivers)
-    # A peer's message may carry several events (OPC UA's Publish responses), or reach several
-    # subscribers at once (one zenoh message per session): events per message is not comparable.
-    result.messages = 0
-    result.complete_subscribers = sum(r.caught_up(result.sets, final) for r in receivers)
-    result.latency = Latencies.of(samples)
+class Fanout:
+    """One fan-out run on a peer: its figures (part (c)'s shape) and its subscribers' tallies.
+
+    The peer's load opens its subscribers (one :class:`Receiver` each), waits
+    until every one is :attr:`Receiver.synced`, then calls :meth:`measure`.
+    """
+
+    def __init__(  # noqa: PLR0917
+        self, mode: str, subscribers: int, channels: int, sets: int, set_rate: float, time_limit: float
+    ) -> None:
+        self.result = ListenResult(
+            mode=mode,
+            subscribers=subscribers,
+            sets=sets,
+            properties=1,
+            burst=1,
+            set_rate=set_rate,
+            channels=channels,
+        )
+        self.deadline = time.monotonic() + time_limit
+        self.samples: list[int] = []
+        self.receivers = [Receiver(self.samples) for _ in range(subscribers)]
+
+    def synced(self) -> int:
+        """How many subscribers have seen :data:`SYNC_VALUE`."""
+        return sum(r.synced for r in self.receivers)
+
+    async def measure(
+        self, server: ServerProcess, write: Callable[[str], Awaitable[Any]], errors: Errors
+    ) -> ListenResult:
+        """Make the Sets with ``write``, let the subscribers drain, and fill in the figures."""
+        result, receivers, sets = self.result, self.receivers, self.result.sets
+        with window(server) as result.window:
+            first_set_ns = time.perf_counter_ns()
+            final = await _set_all(
+                write,
+                sets=sets,
+                set_rate=result.set_rate,
+                deadline=self.deadline,
+                result=result,
+                errors=errors,
+            )
+            result.setter_s = (time.perf_counter_ns() - first_set_ns) / 1e9
+            await poll_until(
+                lambda: all(r.caught_up(sets, final) for r in receivers),
+                min(DRAIN_TIMEOUT, max(self.deadline - time.monotonic(), 0.0)),
+            )
+        last_ns = max((r.last_ns for r in receivers), default=0)
+        result.delivery_s = max(last_ns - first_set_ns, 0) / 1e9
+        result.events = sum(r.events for r in receivers)
+        # A peer's message may carry several events (OPC UA's Publish responses), or reach several
+        # subscribers at once (one zenoh message per session): events per message is not comparable.
+        result.messages = 0
+        result.complete_subscribers = sum(r.caught_up(sets, final) for r in receivers)
+        result.latency = Latencies.of(self.samples)
+        server.check_alive()
+        return result
 
 
 @dataclass

@@ -22,23 +22,19 @@ Every latency is client side, from the Write's start (its value is
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Sequence
 from typing import Any
 
 from bench.listen import ListenResult
-from bench.measure import window
 from bench.peer_measure import (
-    DRAIN_TIMEOUT,
     SYNC_TIMEOUT,
     SYNC_VALUE,
+    Fanout,
     PeerRound,
     Receiver,
     drive_calls,
-    finish_fanout,
     measure_calls,
     poll_until,
-    set_all,
 )
 from bench.peer_opcua_server import ENDPOINT_PATH, NAMESPACE, VALUE_NODE
 from bench.servers import ServerProcess
@@ -70,38 +66,16 @@ def _quiet() -> None:
     logging.getLogger("asyncua").setLevel(logging.ERROR)
 
 
-async def _fanout(  # noqa: PLR0917
-    server: ServerProcess,
-    url: str,
-    write: Any,
-    mode: str,
-    subscribers: int,
-    channels: int,
-    sets: int,
-    set_rate: float,
-    time_limit: float,
-) -> ListenResult:
+async def _fanout(server: ServerProcess, url: str, write: Any, fanout: Fanout) -> ListenResult:
     from asyncua import Client, ua
 
-    result = ListenResult(
-        mode=mode,
-        subscribers=subscribers,
-        sets=sets,
-        properties=1,
-        burst=1,
-        set_rate=set_rate,
-        channels=channels,
-    )
-    deadline = time.monotonic() + time_limit
-    samples: list[int] = []
-    receivers = [Receiver(samples) for _ in range(subscribers)]
+    receivers = fanout.receivers
+    channels = fanout.result.channels
     await write(SYNC_VALUE)
-    clients = [Client(url, timeout=CALL_TIMEOUT) for _ in range(channels)]
     connected: list[Any] = []
-    first_set_ns = 0
-    final: str | None = None
     try:
-        for number, client in enumerate(clients):
+        for number in range(channels):
+            client = Client(url, timeout=CALL_TIMEOUT)
             await client.connect()
             connected.append(client)
             mine = receivers[number::channels]
@@ -110,31 +84,12 @@ async def _fanout(  # noqa: PLR0917
             await subscription.subscribe_data_change(
                 [client.get_node(ua.NodeId(VALUE_NODE, index))] * len(mine), queuesize=QUEUE_SIZE
             )
-        if not await poll_until(lambda: all(r.synced for r in receivers), SYNC_TIMEOUT):
-            raise RuntimeError(
-                f"{sum(r.synced for r in receivers)} of {subscribers} monitored items had their first value"
-            )
-        with window(server) as result.window:
-            first_set_ns = time.perf_counter_ns()
-            final = await set_all(
-                write,
-                sets=sets,
-                set_rate=set_rate,
-                deadline=deadline,
-                result=result,
-                errors=(ua.UaError, TimeoutError),
-            )
-            result.setter_s = (time.perf_counter_ns() - first_set_ns) / 1e9
-            await poll_until(
-                lambda: all(r.caught_up(sets, final) for r in receivers),
-                min(DRAIN_TIMEOUT, max(deadline - time.monotonic(), 0.0)),
-            )
+        if not await poll_until(lambda: fanout.synced() == len(receivers), SYNC_TIMEOUT):
+            raise RuntimeError(f"{fanout.synced()} of {len(receivers)} monitored items had their first value")
+        return await fanout.measure(server, write, (ua.UaError, TimeoutError))
     finally:
         for client in connected:
             await client.disconnect()
-    finish_fanout(result, receivers, samples, first_set_ns, final)
-    server.check_alive()
-    return result
 
 
 async def run_opcua(
@@ -172,9 +127,11 @@ async def run_opcua(
         concurrent = await measure_calls(
             server, drive, calls=calls, inflight=inflight, warmup=warmup, time_limit=time_limit
         )
-        fanout = await _fanout(server, url, write, "one-by-one", subscribers, channels, sets, 0.0, time_limit)
+        fanout = await _fanout(
+            server, url, write, Fanout("one-by-one", subscribers, channels, sets, 0.0, time_limit)
+        )
         paced = await _fanout(
-            server, url, write, "paced", subscribers, channels, paced_sets, set_rate, time_limit
+            server, url, write, Fanout("paced", subscribers, channels, paced_sets, set_rate, time_limit)
         )
     return PeerRound(
         system="opcua",

@@ -36,19 +36,15 @@ import time
 from typing import Any
 
 from bench.listen import ListenResult
-from bench.measure import window
 from bench.peer_measure import (
-    DRAIN_TIMEOUT,
     SYNC_TIMEOUT,
     SYNC_VALUE,
+    Fanout,
     PeerRound,
-    Receiver,
     drive_blocking,
     drive_calls,
-    finish_fanout,
     measure_calls,
     poll_until,
-    set_all,
 )
 from bench.peer_zenoh_server import KEY, QUERY_TIMEOUT, loopback_config
 from bench.servers import ServerProcess
@@ -72,34 +68,12 @@ def _network_thread_callback(on_reply: Any, on_end: Any) -> Any:
         return zenoh.handlers.Callback(on_reply, on_end)
 
 
-async def _fanout(  # noqa: PLR0917
-    server: ServerProcess,
-    endpoint: str,
-    publisher: Any,
-    mode: str,
-    subscribers: int,
-    channels: int,
-    sets: int,
-    set_rate: float,
-    time_limit: float,
-) -> ListenResult:
+async def _fanout(server: ServerProcess, endpoint: str, publisher: Any, fanout: Fanout) -> ListenResult:
     import zenoh
 
-    result = ListenResult(
-        mode=mode,
-        subscribers=subscribers,
-        sets=sets,
-        properties=1,
-        burst=1,
-        set_rate=set_rate,
-        channels=channels,
-    )
-    deadline = time.monotonic() + time_limit
-    samples: list[int] = []
-    receivers = [Receiver(samples) for _ in range(subscribers)]
+    receivers = fanout.receivers
+    channels = fanout.result.channels
     sessions: list[Any] = []
-    first_set_ns = 0
-    final: str | None = None
     try:
         for _ in range(channels):
             sessions.append(zenoh.open(loopback_config("client", connect=[endpoint])))
@@ -110,33 +84,22 @@ async def _fanout(  # noqa: PLR0917
             for number, receiver in enumerate(receivers)
         ]
         synced_by = time.monotonic() + SYNC_TIMEOUT
-        while not all(r.synced for r in receivers):
+        while fanout.synced() < len(receivers):
             if time.monotonic() >= synced_by:
-                raise RuntimeError(f"{sum(r.synced for r in receivers)} of {subscribers} subscribers synced")
+                raise RuntimeError(f"{fanout.synced()} of {len(receivers)} subscribers synced")
             publisher.put(SYNC_VALUE)
-            await poll_until(lambda: all(r.synced for r in receivers), SYNC_REPEAT_S)
+            await poll_until(lambda: fanout.synced() == len(receivers), SYNC_REPEAT_S)
 
         async def put(value: str) -> None:
             publisher.put(value)
 
-        with window(server) as result.window:
-            first_set_ns = time.perf_counter_ns()
-            final = await set_all(
-                put, sets=sets, set_rate=set_rate, deadline=deadline, result=result, errors=(zenoh.ZError,)
-            )
-            result.setter_s = (time.perf_counter_ns() - first_set_ns) / 1e9
-            await poll_until(
-                lambda: all(r.caught_up(sets, final) for r in receivers),
-                min(DRAIN_TIMEOUT, max(deadline - time.monotonic(), 0.0)),
-            )
+        result = await fanout.measure(server, put, (zenoh.ZError,))
         for subscriber in declared:
             subscriber.undeclare()
+        return result
     finally:
         for session in sessions:
             session.close()
-    finish_fanout(result, receivers, samples, first_set_ns, final)
-    server.check_alive()
-    return result
 
 
 async def run_zenoh(
@@ -213,10 +176,13 @@ async def run_zenoh(
             server, drive, calls=calls, inflight=inflight, warmup=warmup, time_limit=time_limit
         )
         fanout = await _fanout(
-            server, endpoint, publisher, "one-by-one", subscribers, channels, sets, 0.0, time_limit
+            server, endpoint, publisher, Fanout("one-by-one", subscribers, channels, sets, 0.0, time_limit)
         )
         paced = await _fanout(
-            server, endpoint, publisher, "paced", subscribers, channels, paced_sets, set_rate, time_limit
+            server,
+            endpoint,
+            publisher,
+            Fanout("paced", subscribers, channels, paced_sets, set_rate, time_limit),
         )
         querier.undeclare()
         publisher.undeclare()
