@@ -170,7 +170,7 @@ class BaselineServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             yield response
 
 
-def echo_handler(servicer: BaselineServicer) -> grpc.GenericRpcHandler:
+def echo_handler(servicer: BaselineServicer) -> grpc.GenericRpcHandler[Any, Any]:
     """The floor method: each request answered with its id and the stored value, one message per message.
 
     No oneof dispatch, no status, no Set: what is left is grpc.aio's own work

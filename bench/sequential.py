@@ -46,7 +46,7 @@ class SequentialResult:
     ways: dict[str, CallRun] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
-        ways = {
+        ways: dict[str, dict[str, Any]] = {
             name: {
                 "done": run.done,
                 "errors": run.errors,
@@ -102,7 +102,7 @@ async def _drive_stream(call: Any, calls: int, deadline: float) -> tuple[list[in
 
 
 async def _stream_way(
-    server: ServerProcess, open_call: Callable[[], Any], calls: int, warmup: int, deadline: float
+    server: ServerProcess, open_call: Callable[..., Any], calls: int, warmup: int, deadline: float
 ) -> CallRun:
     run = CallRun()
     call = open_call()
