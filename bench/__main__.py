@@ -30,6 +30,7 @@ from bench.line import run_line
 from bench.listen import run_listen
 from bench.memory import run_memory, run_session_memory
 from bench.metrics import run_metrics
+from bench.peer_measure import PeerSizes
 from bench.peer_ratios import compare as compare_with_peers
 from bench.peers import BY_NAME as PEERS_BY_NAME
 from bench.peers import run_peer
@@ -532,27 +533,23 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
 async def _peer_parts(args: argparse.Namespace, results: report.Results) -> None:
     """Part (s): each peer asked for (``peers``: both), on fresh servers; skipped without its client."""
     names = [name for name in PEERS_BY_NAME if name in args.parts or "peers" in args.parts]
+    sizes = PeerSizes(
+        calls=args.calls,
+        inflight=args.inflight,
+        warmup=args.warmup,
+        subscribers=args.subscribers,
+        channels=args.listen_channels,
+        sets=args.peer_sets,
+        paced_sets=args.paced_sets,
+        set_rate=args.paced_rate,
+        time_limit=args.time_limit,
+    )
     for name in names:
         peer = PEERS_BY_NAME[name]
-
-        async def measure(server: ServerProcess, run: Callable[..., Awaitable[Any]] = peer.run) -> Any:
-            return await run(
-                server,
-                calls=args.calls,
-                inflight=args.inflight,
-                warmup=args.warmup,
-                subscribers=args.subscribers,
-                channels=args.listen_channels,
-                sets=args.peer_sets,
-                paced_sets=args.paced_sets,
-                set_rate=args.paced_rate,
-                time_limit=args.time_limit,
-            )
-
         results.setdefault(name, {})["peers"] = await _timed(
             f"{peer.title}: Gets one at a time and {args.inflight} in flight, fan-out to "
             f"{args.subscribers} subscribers, paced Sets, {args.rounds} round(s)",
-            lambda peer=peer, measure=measure: run_peer(peer, args.rounds, measure),
+            lambda peer=peer: run_peer(peer, args.rounds, sizes),
         )
 
 

@@ -268,3 +268,43 @@ class PeerRound:
             "complete": all(part["complete"] for part in parts.values()),
             "notes": self.notes,
         }
+
+
+@dataclass(frozen=True)
+class PeerSizes:
+    """The sizes of part (s): those of parts (a) and (c), and of (r) for the paced Sets."""
+
+    calls: int
+    inflight: int
+    warmup: int
+    subscribers: int
+    channels: int
+    #: Unpaced Sets of the fan-out; ``paced_sets`` more at ``set_rate`` a second.
+    sets: int
+    paced_sets: int
+    set_rate: float
+    time_limit: float
+
+
+async def measure_patterns(
+    server: ServerProcess,
+    sizes: PeerSizes,
+    *,
+    drive: Driver,
+    fan_out: Callable[[Fanout], Awaitable[ListenResult]],
+    system: str,
+    client: str,
+) -> PeerRound:
+    """The four patterns on one peer: Gets one at a time and in flight with ``drive``, two fan-outs."""
+    calls = {"calls": sizes.calls, "warmup": sizes.warmup, "time_limit": sizes.time_limit}
+    sequential = await measure_calls(server, drive, inflight=1, **calls)
+    concurrent = await measure_calls(server, drive, inflight=sizes.inflight, **calls)
+    fanout = await fan_out(
+        Fanout("one-by-one", sizes.subscribers, sizes.channels, sizes.sets, 0.0, sizes.time_limit)
+    )
+    paced = await fan_out(
+        Fanout("paced", sizes.subscribers, sizes.channels, sizes.paced_sets, sizes.set_rate, sizes.time_limit)
+    )
+    return PeerRound(
+        system=system, client=client, sequential=sequential, inflight=concurrent, fanout=fanout, paced=paced
+    )

@@ -31,9 +31,10 @@ from bench.peer_measure import (
     SYNC_VALUE,
     Fanout,
     PeerRound,
+    PeerSizes,
     Receiver,
     drive_calls,
-    measure_calls,
+    measure_patterns,
     poll_until,
 )
 from bench.peer_opcua_server import ENDPOINT_PATH, NAMESPACE, VALUE_NODE
@@ -92,19 +93,7 @@ async def _fanout(server: ServerProcess, url: str, write: Any, fanout: Fanout) -
             await client.disconnect()
 
 
-async def run_opcua(
-    server: ServerProcess,
-    *,
-    calls: int,
-    inflight: int,
-    warmup: int,
-    subscribers: int,
-    channels: int,
-    sets: int,
-    paced_sets: int,
-    set_rate: float,
-    time_limit: float,
-) -> PeerRound:
+async def run_opcua(server: ServerProcess, sizes: PeerSizes) -> PeerRound:
     """Measure the OPC UA server ``server`` with the four patterns of part (s)."""
     from asyncua import Client, ua
 
@@ -121,23 +110,11 @@ async def run_opcua(
         async def drive(count: int, in_flight: int, deadline: float) -> tuple[list[int], int, bool]:
             return await drive_calls(node.read_value, count, in_flight, deadline, (ua.UaError, TimeoutError))
 
-        sequential = await measure_calls(
-            server, drive, calls=calls, inflight=1, warmup=warmup, time_limit=time_limit
+        return await measure_patterns(
+            server,
+            sizes,
+            drive=drive,
+            fan_out=lambda fanout: _fanout(server, url, write, fanout),
+            system="opcua",
+            client="asyncua Client: Read and Write; a subscription per connection (publishing interval 0)",
         )
-        concurrent = await measure_calls(
-            server, drive, calls=calls, inflight=inflight, warmup=warmup, time_limit=time_limit
-        )
-        fanout = await _fanout(
-            server, url, write, Fanout("one-by-one", subscribers, channels, sets, 0.0, time_limit)
-        )
-        paced = await _fanout(
-            server, url, write, Fanout("paced", subscribers, channels, paced_sets, set_rate, time_limit)
-        )
-    return PeerRound(
-        system="opcua",
-        client="asyncua Client: Read and Write; a subscription per connection (publishing interval 0)",
-        sequential=sequential,
-        inflight=concurrent,
-        fanout=fanout,
-        paced=paced,
-    )

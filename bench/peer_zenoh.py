@@ -41,9 +41,10 @@ from bench.peer_measure import (
     SYNC_VALUE,
     Fanout,
     PeerRound,
+    PeerSizes,
     drive_blocking,
     drive_calls,
-    measure_calls,
+    measure_patterns,
     poll_until,
 )
 from bench.peer_zenoh_server import KEY, QUERY_TIMEOUT, loopback_config
@@ -102,19 +103,7 @@ async def _fanout(server: ServerProcess, endpoint: str, publisher: Any, fanout: 
             session.close()
 
 
-async def run_zenoh(
-    server: ServerProcess,
-    *,
-    calls: int,
-    inflight: int,
-    warmup: int,
-    subscribers: int,
-    channels: int,
-    sets: int,
-    paced_sets: int,
-    set_rate: float,
-    time_limit: float,
-) -> PeerRound:
+async def run_zenoh(server: ServerProcess, sizes: PeerSizes) -> PeerRound:
     """Measure the zenoh peer ``server`` with the four patterns of part (s)."""
     import zenoh
 
@@ -169,30 +158,16 @@ async def run_zenoh(
                 raise RuntimeError("the zenoh peer never answered the value put to it")
             publisher.put("0")
             await asyncio.sleep(SYNC_REPEAT_S)
-        sequential = await measure_calls(
-            server, drive, calls=calls, inflight=1, warmup=warmup, time_limit=time_limit
-        )
-        concurrent = await measure_calls(
-            server, drive, calls=calls, inflight=inflight, warmup=warmup, time_limit=time_limit
-        )
-        fanout = await _fanout(
-            server, endpoint, publisher, Fanout("one-by-one", subscribers, channels, sets, 0.0, time_limit)
-        )
-        paced = await _fanout(
+        measured = await measure_patterns(
             server,
-            endpoint,
-            publisher,
-            Fanout("paced", subscribers, channels, paced_sets, set_rate, time_limit),
+            sizes,
+            drive=drive,
+            fan_out=lambda fanout: _fanout(server, endpoint, publisher, fanout),
+            system="zenoh",
+            client="zenoh client sessions: get through a querier, put with congestion control block",
         )
         querier.undeclare()
         publisher.undeclare()
     finally:
         session.close()
-    return PeerRound(
-        system="zenoh",
-        client="zenoh client sessions: get through a querier, put with congestion control block",
-        sequential=sequential,
-        inflight=concurrent,
-        fanout=fanout,
-        paced=paced,
-    )
+    return measured

@@ -25,7 +25,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
-from bench.peer_measure import PeerRound
+from bench.peer_measure import PeerRound, PeerSizes
 from bench.peer_opcua import run_opcua
 from bench.peer_zenoh import run_zenoh
 from bench.servers import ServerProcess
@@ -42,7 +42,7 @@ class Peer:
     distribution: str
     #: The server's module (run with ``python -m``) and the load (they import the client only when run).
     server: str
-    run: Callable[..., Awaitable[PeerRound]]
+    run: Callable[[ServerProcess, PeerSizes], Awaitable[PeerRound]]
 
 
 PEERS = (
@@ -84,10 +84,8 @@ def best_of(rounds: list[dict[str, Any]]) -> dict[str, Any]:
     return best
 
 
-async def run_peer(
-    peer: Peer, rounds: int, measure: Callable[[ServerProcess], Awaitable[PeerRound]]
-) -> dict[str, Any]:
-    """``rounds`` rounds of ``measure``, each on a fresh server; ``{"skipped": why}`` without the client."""
+async def run_peer(peer: Peer, rounds: int, sizes: PeerSizes) -> dict[str, Any]:
+    """``rounds`` rounds on fresh servers of ``peer``; ``{"skipped": why}`` without its client."""
     reason = missing(peer)
     if reason is not None:
         print(f" skipped: {reason}", end="", file=sys.stderr, flush=True)
@@ -96,7 +94,7 @@ async def run_peer(
     for _ in range(rounds):
         server = await ServerProcess.start(peer.name, [peer.server, "--listen", "127.0.0.1:0"])
         try:
-            seen.append((await measure(server)).as_dict())
+            seen.append((await peer.run(server, sizes)).as_dict())
         except Exception as exc:
             raise RuntimeError(f"{exc}\n{server.log_tail}") from exc
         finally:
