@@ -7,6 +7,13 @@ subscribers through plain bounded asyncio queues and sends one event per
 message. Session answers Gets and Sets, one reply message per request
 message. There are no parameters, wildcards, throttles or conflation.
 
+Beside the contract it serves one more method, ``/bench.Floor/Echo``
+(:data:`ECHO_METHOD`): a bidirectional stream of the Session's own messages
+that answers each request of a SessionRequest with a reply carrying its id and
+the stored value, and does nothing else. One request, one reply, one in
+flight over it is grpc.aio's floor for a call over a bidirectional stream,
+the yardstick of the gateway's Session Get (part (q) of ``python -m bench``).
+
 Run ``python -m bench.baseline --listen 127.0.0.1:0``; it prints
 ``listening on HOST:PORT`` to stderr, like ``psgateway serve``, and stops on
 SIGTERM or SIGINT.
@@ -30,6 +37,10 @@ from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
 Key = tuple[str, str]
+
+#: The floor: a bidirectional stream of SessionRequest in, SessionResponse out, on the bare server only.
+ECHO_SERVICE = "bench.Floor"
+ECHO_METHOD = f"/{ECHO_SERVICE}/Echo"
 
 #: Events a subscriber may have waiting; beyond this its stream ends with
 #: RESOURCE_EXHAUSTED. Large enough that no benchmark run ever reaches it.
@@ -159,6 +170,37 @@ class BaselineServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             yield response
 
 
+def echo_handler(servicer: BaselineServicer) -> grpc.GenericRpcHandler[Any, Any]:
+    """The floor method: each request answered with its id and the stored value, one message per message.
+
+    No oneof dispatch, no status, no Set: what is left is grpc.aio's own work
+    for a message each way over a stream, protobuf parsing and building, and
+    one dict look-up, which any Get must do.
+    """
+    values = servicer.values
+
+    async def echo(
+        request_iterator: AsyncIterator[pb.SessionRequest], context: grpc.aio.ServicerContext[Any, Any]
+    ) -> AsyncIterator[pb.SessionResponse]:
+        async for message in request_iterator:
+            response = pb.SessionResponse()
+            for request in message.requests:
+                reply = response.replies.add(id=request.id)
+                reply.get.value = values.get((request.get.service, request.get.property), "")
+            yield response
+
+    return grpc.method_handlers_generic_handler(
+        ECHO_SERVICE,
+        {
+            "Echo": grpc.stream_stream_rpc_method_handler(
+                echo,
+                request_deserializer=pb.SessionRequest.FromString,
+                response_serializer=pb.SessionResponse.SerializeToString,
+            )
+        },
+    )
+
+
 async def until_stopped() -> None:
     """Return on SIGTERM or SIGINT, or when stdin reaches end of file.
 
@@ -186,7 +228,9 @@ async def until_stopped() -> None:
 async def serve(listen: str) -> None:
     """Serve on ``listen`` until SIGTERM or SIGINT."""
     server = grpc.aio.server()
-    pb_grpc.add_PropertyServiceServicer_to_server(BaselineServicer(), server)
+    servicer = BaselineServicer()
+    pb_grpc.add_PropertyServiceServicer_to_server(servicer, server)
+    server.add_generic_rpc_handlers((echo_handler(servicer),))
     port = server.add_insecure_port(listen)
     host = listen.rsplit(":", 1)[0]
     await server.start()

@@ -13,6 +13,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any, TextIO
 
+from bench.peer_ratios import compare, measured_peers
+
 #: results[server][part] is a part's ``as_dict()``, or {"error": "..."}.
 Results = dict[str, dict[str, dict[str, Any]]]
 
@@ -467,6 +469,115 @@ TARGETS += (
 )
 
 
+def _one_at_a_time(results: Results, server: str, way: str, key: str = "p50_us") -> float:
+    return float(results[server]["sequential"]["ways"][way]["latency"][key])
+
+
+def each_round_ratios(results: Results, part: str, key: str) -> list[float]:
+    """Gateway / bare server of one top-level figure, round by round (the servers take turns in a round)."""
+    gateway = results["gateway"][part].get("each_round", [results["gateway"][part]])
+    bare = results["baseline"][part].get("each_round", [results["baseline"][part]])
+    return [float(g[key]) / float(b[key]) for g, b in zip(gateway, bare, strict=True)]
+
+
+def _proxy_allowance(results: Results) -> float:
+    """Session Get p50 through the TCP proxy / (grpc.aio's stream floor + 2 × the direct round trip)."""
+    direct = _line(results, "direct", "1")["latency"]["p50_us"]
+    through = _line(results, "gateway-session", "1")["latency"]["p50_us"]
+    return float(through) / (_one_at_a_time(results, "baseline", "echo") + 2 * float(direct))
+
+
+#: The floors, the unary tax, fan-out, the proxy path and memory, each against what the same run measured
+#: (docs/performance.md, "Floors and peers"). Every figure is judged in one run; the unary ones in every
+#: round of it, not only the best.
+TARGETS += (
+    Target(
+        "session-floor-p50",
+        "Get p50 one at a time over the gateway's Session / over the bare server's bidirectional echo",
+        lambda r: _one_at_a_time(r, "gateway", "session") / _one_at_a_time(r, "baseline", "echo"),
+        "max",
+        1.05,
+        "x",
+        (("gateway", "sequential"), ("baseline", "sequential")),
+    ),
+    Target(
+        "session-floor-p99",
+        "Get p99 one at a time over the gateway's Session / the bare server's echo p50",
+        lambda r: _one_at_a_time(r, "gateway", "session", "p99_us") / _one_at_a_time(r, "baseline", "echo"),
+        "max",
+        2.0,
+        "x",
+        (("gateway", "sequential"), ("baseline", "sequential")),
+    ),
+    Target(
+        "unary-p50-rounds",
+        "unary Get p50 one at a time, gateway / bare server, the worst round",
+        lambda r: max(each_round_ratios(r, "sequential", "unary_p50_us")),
+        "max",
+        1.10,
+        "x",
+        (("gateway", "sequential"), ("baseline", "sequential")),
+    ),
+    Target(
+        "unary-inflight-rounds",
+        "unary Gets/s with 8 in flight, gateway / bare server, the worst round",
+        lambda r: min(each_round_ratios(r, "unary", "throughput_per_s")),
+        "min",
+        0.90,
+        "x",
+        (("gateway", "unary"), ("baseline", "unary")),
+    ),
+    _ratio(
+        "fanout-unbatched",
+        "Listen events/s to 100 streams, one-by-one, gateway / bare server",
+        top=("gateway", "listen"),
+        bottom=("baseline", "listen"),
+        key="events_per_s",
+        kind="min",
+        bound=1.0,
+    ),
+    _ratio(
+        "fanout-batched-10x",
+        "Listen events/s to 100 streams, bursts (gateway batches), gateway / bare server",
+        top=("gateway", "batched"),
+        bottom=("baseline", "batched"),
+        key="events_per_s",
+        kind="min",
+        bound=10.0,
+    ),
+    Target(
+        "fanout-paced-p50",
+        "Set-to-delivery p50 to 100 streams with paced Sets, gateway / bare server",
+        lambda r: (
+            float(r["gateway"]["paced"]["latency"]["p50_us"])
+            / float(r["baseline"]["paced"]["latency"]["p50_us"])
+        ),
+        "max",
+        1.0,
+        "x",
+        (("gateway", "paced"), ("baseline", "paced")),
+    ),
+    Target(
+        "proxy-session-p50",
+        "Get p50 over a Session through the TCP proxy / (the echo floor's p50 + 2 × the direct line p50)",
+        _proxy_allowance,
+        "max",
+        1.0,
+        "x",
+        (("gateway-session", "line"), ("direct", "line"), ("baseline", "sequential")),
+    ),
+    Target(
+        "session-listen-memory",
+        "gateway RSS per idle Listen carried inside a Session",
+        lambda r: _get(r, "gateway", "memory_session", "per_stream_kib"),
+        "max",
+        2.0,
+        "KiB",
+        (("gateway", "memory_session"),),
+    ),
+)
+
+
 def evaluate(results: Results) -> list[dict[str, Any]]:
     """Each target's figure, bound and verdict (PASS, FAIL, or why it could not be judged)."""
     verdicts = []
@@ -649,6 +760,7 @@ def print_report(out: TextIO, info: dict[str, Any], results: Results, verdicts: 
     for part, label in (
         ("listen", "(c) Listen fan-out, one-by-one"),
         ("batched", "(c) Listen fan-out, batched"),
+        ("paced", "(r) Listen fan-out, paced"),
     ):
         rows = _rows(results, part, listen)
         if rows:
@@ -693,6 +805,8 @@ def print_report(out: TextIO, info: dict[str, Any], results: Results, verdicts: 
         )
 
     _issue_tables(out, results)
+    _one_at_a_time_table(out, results)
+    _peer_tables(out, results)
 
     print("", file=out)
     for v in verdicts:
@@ -922,6 +1036,134 @@ def _issue_tables(out: TextIO, results: Results) -> None:
     _camera_table(out, results)
     _fusion_table(out, results)
     _metrics_table(out, results)
+
+
+def _one_at_a_time_table(out: TextIO, results: Results) -> None:
+    """Table (q), and the unary ratios of every round (a target must hold in each)."""
+    rows: list[list[str]] = []
+    for server, parts in results.items():
+        data = parts.get("sequential")
+        if data is None:
+            continue
+        if "error" in data:
+            rows.append(_error_row(server, data))
+            continue
+        for way, d in data["ways"].items():
+            lat = d["latency"]
+            rows.append(
+                [
+                    server,
+                    "echo (the floor)" if way == "echo" else way,
+                    f"{d['done']:,}",
+                    _fmt(d["throughput_per_s"]),
+                    _fmt(lat["p50_us"]),
+                    _fmt(lat["p99_us"]),
+                    _fmt(d["server_cpu_us_per_call"]),
+                    str(d["errors"]),
+                ]
+            )
+    if not rows:
+        return
+    _table(
+        out,
+        "(q) Get one at a time: unary, over one Session stream (one request a message), and the bare "
+        "server's bidirectional echo",
+        ["server", "way", "calls", "Gets/s", "p50 µs", "p99 µs", "srv CPU µs/call", "errors"],
+        rows,
+    )
+    for label, part, key in (
+        ("unary Get p50 one at a time", "sequential", "unary_p50_us"),
+        ("unary Gets/s with 8 in flight", "unary", "throughput_per_s"),
+    ):
+        try:
+            ratios = each_round_ratios(results, part, key)
+        except (KeyError, TypeError, ValueError, ZeroDivisionError):
+            continue
+        print(
+            f"  {label}, gateway / bare server, each round: {', '.join(f'{x:.2f}' for x in ratios)}", file=out
+        )
+
+
+def _peer_tables(out: TextIO, results: Results) -> None:
+    """Table (s): each peer's figures; then the gateway's against them, way by way."""
+    rows: list[list[str]] = []
+    for name, parts in results.items():
+        data = parts.get("peers")
+        if data is None:
+            continue
+        if "error" in data:
+            rows.append(_error_row(name, data))
+            continue
+        if "skipped" in data:
+            rows.append([name, "skipped: " + data["skipped"]])
+            continue
+        seq, inflight, fan, paced = data["sequential"], data["unary"], data["listen"], data["paced"]
+        rows.append(
+            [
+                name,
+                _fmt(seq["latency"]["p50_us"]),
+                _fmt(seq["latency"]["p99_us"]),
+                _fmt(inflight["throughput_per_s"]),
+                f"{fan['events']:,}/{fan['expected_events']:,}",
+                _fmt(fan["events_per_s"]),
+                _fmt(fan["latency"]["p50_us"]),
+                _fmt(paced["latency"]["p50_us"]),
+                _fmt(paced["latency"]["p99_us"]),
+                _fmt(inflight["server_cpu_us_per_call"]),
+                _fmt(fan["server_cpu_us_per_event"], 1),
+            ]
+        )
+    if not rows:
+        return
+    first = next((p["peers"] for p in results.values() if "listen" in p.get("peers", {})), None)
+    sizes = (
+        f"{first['listen']['subscribers']} subscribers, {first['listen']['sets']} Sets unpaced, "
+        f"{first['paced']['sets']} at {first['paced']['set_rate_per_s']}/s"
+        if first
+        else ""
+    )
+    _table(
+        out,
+        f"(s) the peers with the same client patterns: Get one at a time and 8 in flight; fan-out, {sizes}",
+        [
+            "peer",
+            "Get p50 µs",
+            "Get p99 µs",
+            "Gets/s 8 in flight",
+            "events",
+            "events/s",
+            "fan-out p50 µs",
+            "paced p50 µs",
+            "paced p99 µs",
+            "srv CPU µs/Get",
+            "srv CPU µs/event",
+        ],
+        rows,
+    )
+    peers = sorted(measured_peers(results))
+    if not peers:
+        return
+    comparisons = compare(results)
+    _table(
+        out,
+        "(s) the gateway against the peers, same run: gateway / peer (a ratio below 1 is the gateway's "
+        "where lower is better, above 1 where higher is)",
+        ["figure", "gateway way", "bare", "gateway", *[c for n in peers for c in (n, f"gw/{n}")]],
+        [
+            [
+                row["figure"],
+                row["way"],
+                _fmt(row["baseline"]),
+                _fmt(row["gateway"]),
+                *[
+                    cell
+                    for n in peers
+                    for cell in (_fmt(row["peers"][n]), _fmt(row["gateway_over_peer"][n], 2))
+                ],
+            ]
+            for row in comparisons
+        ],
+    )
 
 
 def _metrics_table(out: TextIO, results: Results) -> None:

@@ -44,11 +44,23 @@ TARGETS = (
     "camera-cores",
     "fusion-scaling",
     "metrics-unary",
+    "session-floor-p50",
+    "session-floor-p99",
+    "unary-p50-rounds",
+    "unary-inflight-rounds",
+    "fanout-unbatched",
+    "fanout-batched-10x",
+    "fanout-paced-p50",
+    "proxy-session-p50",
+    "session-listen-memory",
 )
+#: The peers of part (s); each either ran every pattern or says why it was skipped.
+PEERS = ("opcua", "zenoh")
 
 
-# Every part of the bench, each once, on a shared 2-core machine: about a minute when it is quiet.
-@pytest.mark.timeout(300)
+# Every part of the bench, each once, on a shared 2-core machine: about 1.5 minutes when it is quiet, three
+# under load (the peers, OPC UA and Zenoh, add about 10 s to a quiet run).
+@pytest.mark.timeout(420)
 def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     saved = tmp_path / "bench.json"
     done = subprocess.run(
@@ -57,7 +69,7 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         stdin=subprocess.DEVNULL,
         capture_output=True,
         text=True,
-        timeout=280,
+        timeout=400,
         check=False,
     )
     assert done.returncode == 0, done.stdout + done.stderr
@@ -70,7 +82,7 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
 
     payload = json.loads(saved.read_text())
     for server in ("baseline", "gateway"):
-        for part in ("unary", "session", "listen", "batched", "memory"):
+        for part in ("unary", "session", "listen", "batched", "memory", "sequential", "paced"):
             figures = payload["results"][server][part]
             assert "error" not in figures, (server, part, figures)
     # Every Set reached every subscriber, on both servers (delivered or, for the gateway, conflated).
@@ -79,6 +91,46 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         assert listen["complete"], listen
         assert listen["events"] + listen["conflated"] == listen["expected_events"]
     assert payload["results"]["gateway"]["batched"]["events_per_message"] > 1
+    # Gets one at a time: unary and Session on both servers, and the bare server's echo floor; every call
+    # answered, each round's figures kept (the unary targets are judged per round).
+    for server, ways in (("baseline", ["unary", "session", "echo"]), ("gateway", ["unary", "session"])):
+        sequential = payload["results"][server]["sequential"]
+        assert list(sequential["ways"]) == ways, sequential
+        for figures in sequential["ways"].values():
+            assert figures["done"] == 2000 and figures["errors"] == 0 and figures["latency"]["p50_us"] > 0
+        assert [r["unary_p50_us"] > 0 for r in sequential["each_round"]] == [True], sequential
+    assert re.search(
+        r"^  unary Get p50 one at a time, gateway / bare server, each round: [\d.]+$", out, re.M
+    ), out
+    assert re.search(
+        r"^  unary Gets/s with 8 in flight, gateway / bare server, each round: [\d.]+$", out, re.M
+    )
+    # Paced fan-out: every paced Set reached every subscriber on both servers.
+    for server in ("baseline", "gateway"):
+        paced = payload["results"][server]["paced"]
+        assert paced["complete"] and paced["events"] + paced["conflated"] == paced["expected_events"], paced
+    # The peers: each measured with every pattern (every Get answered, every value delivered), or skipped
+    # with the reason printed; the gateway's figures are set against every one measured.
+    measured = []
+    for peer in PEERS:
+        figures = payload["results"][peer]["peers"]
+        assert "error" not in figures, (peer, figures)
+        if "skipped" in figures:
+            assert re.search(rf"^  {peer} +skipped: \S", out, re.MULTILINE), out
+            continue
+        measured.append(peer)
+        for pattern in ("sequential", "unary"):
+            assert figures[pattern]["errors"] == 0 and figures[pattern]["done"] == 2000, (peer, figures)
+        for pattern in ("listen", "paced"):
+            fan = figures[pattern]
+            assert fan["complete"] and fan["events"] == fan["expected_events"], (peer, pattern, fan)
+        assert re.search(rf"^  {peer} +[\d,]+ +[\d,]+ +[\d,]+ +[\d,]+/[\d,]+ ", out, re.MULTILINE), out
+    for row in payload["peer_ratios"]:
+        assert sorted(row["gateway_over_peer"]) == measured, row
+        if row["gateway"] is not None:
+            assert all(ratio is not None and ratio > 0 for ratio in row["gateway_over_peer"].values()), row
+    if measured:
+        assert "(s) the gateway against the peers" in out, out
     # The line-protocol part: the same Gets straight to the device and through the gateway (unary and
     # Session), 1 and 8 in flight.
     for way in ("direct", "gateway", "gateway-session"):
@@ -139,6 +191,9 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         "(o) camera",
         "(n) environment model",
         "(p) the cost of metrics",
+        "(q) Get one at a time",
+        "(r) Listen fan-out, paced",
+        "(s) the peers",
     )
     for title in titles:
         assert title in out, f"no table {title!r}:\n{out}"
