@@ -42,7 +42,7 @@ from services.registry.scheduling import (
     DEFAULT_TR,
     check_capabilities,
 )
-from services.registry.table import ServiceTable
+from services.registry.table import PLACEHOLDER_TYPE, ServiceTable
 from services.values import Value, ValueFormatError, Vector, as_text, format_names, parse_vector
 from services.worker_pool import run_bounded
 
@@ -204,7 +204,7 @@ class Registry(Resource):
             misses=misses,
             grace=self.grace,
             static=static,
-            busy=self._registrations.busy,
+            busy=self._left_alone,
             unregister=self.unregister,
             answered=self._learn_type,
         )
@@ -237,6 +237,8 @@ class Registry(Resource):
             max_queued=max_queued,
         )
         self.licensing.watch(self._dispatcher.on_licence)
+        #: Services whose state another gateway reports (it owns them): see :meth:`mirror`.
+        self._mirrored: set[str] = set()
 
     # -- the plain methods the gateway calls ------------------------------
 
@@ -268,6 +270,22 @@ class Registry(Resource):
     def set_state(self, name: str, state: str) -> None:
         """Mark ``name`` up or down; going (or staying) up also refreshes ``last_seen``."""
         self._table.set_state(name, state)
+
+    def mirror(self, name: str, state: str | None) -> None:
+        """``name`` is owned by another gateway of a cluster, which reports its ``state``: show that
+        state, and neither check it nor let its first answer here change it. None: this registry
+        follows ``name`` itself again (this gateway owns it now). Nothing for an unknown name."""
+        if state is None:
+            self._mirrored.discard(name)
+            return
+        if self._table.get(name) is None:
+            return
+        self._mirrored.add(name)
+        self._table.set_state(name, state)
+
+    def _left_alone(self, name: str) -> bool:
+        """Liveness leaves ``name`` alone: being (un)registered now, or its state is mirrored."""
+        return name in self._mirrored or self._registrations.busy(name)
 
     def state_of(self, name: str) -> str:
         """``up`` or ``down``; NotFound when ``name`` is not known."""
@@ -632,6 +650,7 @@ class Registry(Resource):
         reaching = self._reaching.pop(name, None)
         if reaching is not None:
             reaching.cancel()
+        self._mirrored.discard(name)
         if not self._table.forget(name):
             return
         self.licensing.release_holder(name)
@@ -650,6 +669,11 @@ class Registry(Resource):
         A proxy is served before its device greets, so the entry starts with
         the placeholder type; the device has greeted once it has answered.
         """
+        if name in self._mirrored:  # its owner says whether it is up; only its type is learned here
+            kind = backend.info.type
+            if kind and kind != PLACEHOLDER_TYPE and self._table.get(name) is not None:
+                self._table.set_type(name, kind)
+            return
         if not self._registrations.declared_type(name):
             self._table.learn_type(name, backend.info.type)
 
