@@ -146,7 +146,7 @@ class ClusterNode:
         # lease has not expired yet) are let go now: the services are taken over as orphans.
         for name, owner in (await self.store.read(Kind.OWNER)).items():
             if owner == self.me and name not in self.owned:
-                await self.store.replace(Kind.OWNER, name, self.me, None)
+                await self._let_go(Kind.OWNER, name, self.me)
         await self._announce()
         await self._read_all()
         self.joined = True
@@ -194,10 +194,10 @@ class ClusterNode:
 
     async def _leave(self) -> None:
         for name, registration in sorted(self.owned.items()):
-            await self.store.replace(Kind.OWNER, name, self.me, None)
-            await self.store.delete(Kind.STATE, name)
+            await self._let_go(Kind.OWNER, name, self.me)
+            await self._delete(Kind.STATE, name)
             if registration.dialled_in:
-                await self.store.delete(Kind.SERVICE, name)
+                await self._delete(Kind.SERVICE, name)
         await self.store.delete(Kind.GATEWAY, self.me)
 
     # -- what the store says ---------------------------------------------------
@@ -207,6 +207,25 @@ class ClusterNode:
             self._mark(name)
         if change.value is None and change.kind in (Kind.OWNER, Kind.GATEWAY):
             self._takeover.orphaned()
+
+    async def _create(self, kind: Kind, name: str, value: str, *, leased: bool = False) -> bool:
+        """Create a key when absent; this gateway's view has it at once (the watch confirms it later)."""
+        created = await self.store.create(kind, name, value, leased=leased)
+        if created:
+            self._on_change(Change(kind, name, value))
+        return created
+
+    async def _let_go(self, kind: Kind, name: str, expected: str) -> bool:
+        """Delete a key when it still holds ``expected``; the view has it gone at once."""
+        deleted = await self.store.replace(kind, name, expected, None)
+        if deleted:
+            self._on_change(Change(kind, name, None))
+        return deleted
+
+    async def _delete(self, kind: Kind, name: str) -> None:
+        """Delete a key; the view has it gone at once."""
+        await self.store.delete(kind, name)
+        self._on_change(Change(kind, name, None))
 
     def _mark(self, name: str) -> None:
         self._dirty[name] = None
@@ -222,7 +241,7 @@ class ClusterNode:
         try:
             await self._announce()
             for name, registration in sorted(self.owned.items()):
-                if not await self.store.create(Kind.OWNER, name, self.me, leased=True):
+                if not await self._create(Kind.OWNER, name, self.me, leased=True):
                     owner = (await self.store.read(Kind.OWNER)).get(name)
                     if owner != self.me:
                         log.info("cluster: %s is owned by %s now", name, owner)
@@ -230,7 +249,7 @@ class ClusterNode:
                     await self.store.put(Kind.OWNER, name, self.me, leased=True)  # bound to the new lease
                 leased = registration.dialled_in
                 value = registration.to_json()
-                if not await self.store.create(Kind.SERVICE, name, value, leased=leased) and leased:
+                if not await self._create(Kind.SERVICE, name, value, leased=leased) and leased:
                     await self.store.put(Kind.SERVICE, name, value, leased=True)  # bound to the new lease
                 if self.registry is not None and name in self.registry.services.children():
                     state = self.registry.state_of(name)
@@ -308,11 +327,11 @@ class ClusterNode:
 
     async def _claim(self, name: str, registration: Registration, *, leased: bool) -> None:
         """Create the owners key, then the services key; AlreadyExists (nothing left) when taken."""
-        if not await self.store.create(Kind.OWNER, name, self.me, leased=True):
+        if not await self._create(Kind.OWNER, name, self.me, leased=True):
             owner = self.view.owners.get(name, "another gateway")
             raise AlreadyExists(f"the name {name!r} is taken in the cluster (owned by gateway {owner})")
-        if not await self.store.create(Kind.SERVICE, name, registration.to_json(), leased=leased):
-            await self.store.replace(Kind.OWNER, name, self.me, None)
+        if not await self._create(Kind.SERVICE, name, registration.to_json(), leased=leased):
+            await self._let_go(Kind.OWNER, name, self.me)
             held = self.view.registrations.get(name)
             by = f"by {held.url}" if held is not None else "by another registration"
             raise AlreadyExists(f"the name {name!r} is taken in the cluster ({by}); unregister it first")
@@ -320,8 +339,8 @@ class ClusterNode:
     async def _release(self, name: str, registration: Registration) -> None:
         """Undo :meth:`_claim` (the proxy could not be made); never raises."""
         with contextlib.suppress(PropertyError):
-            await self.store.replace(Kind.SERVICE, name, registration.to_json(), None)
-            await self.store.replace(Kind.OWNER, name, self.me, None)
+            await self._let_go(Kind.SERVICE, name, registration.to_json())
+            await self._let_go(Kind.OWNER, name, self.me)
 
     def _own(self, name: str, registration: Registration) -> None:
         self.owned[name] = registration
@@ -345,10 +364,10 @@ class ClusterNode:
         self._writable()
         self._busy.add(name)
         try:
-            await self.store.delete(Kind.SERVICE, name)
+            await self._delete(Kind.SERVICE, name)
             if name in self.owned:
-                await self.store.replace(Kind.OWNER, name, self.me, None)
-                await self.store.delete(Kind.STATE, name)
+                await self._let_go(Kind.OWNER, name, self.me)
+                await self._delete(Kind.STATE, name)
             await self._drop(name)
         finally:
             self._busy.discard(name)
@@ -383,9 +402,9 @@ class ClusterNode:
     async def _unpublish(self, name: str) -> None:
         """A published device left this gateway's router: its keys go."""
         try:
-            await self.store.delete(Kind.SERVICE, name)
-            await self.store.replace(Kind.OWNER, name, self.me, None)
-            await self.store.delete(Kind.STATE, name)
+            await self._delete(Kind.SERVICE, name)
+            await self._let_go(Kind.OWNER, name, self.me)
+            await self._delete(Kind.STATE, name)
         except PropertyError as exc:
             log.info("cluster: %s left; its keys stay until the lease ends: %s", name, exc.message)
         self._count_changed()
@@ -423,8 +442,10 @@ class ClusterNode:
                     self._deferred[name] = None  # looked at again once the others wrote theirs again
                     return
                 await self._drop(name)
-            elif owner == self.me:
-                await self.store.replace(Kind.OWNER, name, self.me, None)  # a claim left behind
+            if owner == self.me:  # the registration left: so does this gateway's claim on it
+                await self._let_go(Kind.OWNER, name, self.me)
+                if name in self.view.states:
+                    await self._delete(Kind.STATE, name)
             return
         if name in self._dialled:
             if owner is not None and owner != self.me:
@@ -506,7 +527,7 @@ class ClusterNode:
             # This gateway holds the connection, but its owners key went (its lease lapsed while
             # the store was away): claim it again at once.
             with contextlib.suppress(PropertyError):
-                await self.store.create(Kind.OWNER, name, self.me, leased=True)
+                await self._create(Kind.OWNER, name, self.me, leased=True)
             return
         self._forwarding.pop(name, None)
         await switching.switch(
@@ -558,7 +579,7 @@ class ClusterNode:
                 log.warning("cluster: not taking %s over: %s", name, exc.message)
                 return
         try:
-            won = await self.store.create(Kind.OWNER, name, self.me, leased=True)
+            won = await self._create(Kind.OWNER, name, self.me, leased=True)
         except PropertyError as exc:
             log.info("cluster: cannot take %s over now: %s", name, exc.message)
             return

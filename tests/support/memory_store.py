@@ -65,6 +65,13 @@ class MemoryServer:
             if lease == gateway_id:
                 self.write(kind, name, None)
 
+    def kill(self, gateway_id: str) -> None:
+        """Gateway ``gateway_id`` died: its store hears and writes nothing more, and its lease ends."""
+        for store in self.stores:
+            if store.gateway_id == gateway_id:
+                store.dead = True
+        self.end_lease(gateway_id)
+
     def stop(self, reason: str = "connection refused") -> None:
         """The server cannot be reached from now on: every store is read-only."""
         self.down = reason
@@ -93,6 +100,8 @@ class MemoryStore:
         self._listeners: list[StoreListener] = []
         self._reconnect_listeners: list[Callable[[], None]] = []
         self.started = False
+        #: The gateway died (:meth:`MemoryServer.kill`): nothing reaches it, nothing it writes lands.
+        self.dead = False
         #: Writes made through this store (kind, name), in order: tests read what a gateway wrote.
         self.writes: list[tuple[str, Kind, str]] = []
 
@@ -103,7 +112,13 @@ class MemoryStore:
         return True
 
     @property
+    def location(self) -> str:
+        return "memory://test"
+
+    @property
     def read_only(self) -> str:
+        if self.dead:
+            return "this gateway is dead"
         down = self.server.down
         return f"the memory store cannot be reached ({down})" if down else ""
 
@@ -136,7 +151,7 @@ class MemoryStore:
     # -- SharedStore -----------------------------------------------------------
 
     def _reachable(self) -> None:
-        if self.server.down:
+        if self.server.down or self.dead:
             raise Unavailable(f"the registry is read-only: {self.read_only}")
 
     async def read(self, kind: Kind) -> dict[str, str]:
@@ -159,14 +174,16 @@ class MemoryStore:
         self.server.write(kind, name, value, self._gateway_id if leased else None)
         return True
 
-    async def replace(self, kind: Kind, name: str, expected: str, value: str | None) -> bool:
+    async def replace(
+        self, kind: Kind, name: str, expected: str, value: str | None, *, leased: bool = False
+    ) -> bool:
         await asyncio.sleep(0)
         self._reachable()
         held = self.server.keys.get((kind, name))
         if held is None or held[0] != expected:
             return False
         self.writes.append(("replace", kind, name))
-        self.server.write(kind, name, value, held[1])
+        self.server.write(kind, name, value, self._gateway_id if leased else None)
         return True
 
     async def delete(self, kind: Kind, name: str) -> None:
@@ -197,13 +214,20 @@ class MemoryStore:
 
     def deliver(self, change: Change) -> None:
         """Report ``change`` to the watchers a moment later, on the loop (as a watch stream does)."""
-        if not self._listeners:
+        if not self._listeners or self.dead or self.server.down:
             return
         loop = asyncio.get_running_loop()
         for listener in list(self._listeners):
             loop.call_soon(listener, change)
 
     def reconnected(self) -> None:
-        """The server is back: a new lease; the listeners write their leased keys again."""
+        """The server is back: every key is reported again (those gone as deleted, as etcd's store
+        does), then the reconnect listeners write their leased keys again."""
+        if self.dead:
+            return
+        for kind in Kind:
+            for name, value in self.server.folder(kind).items():
+                self.deliver(Change(kind, name, value))
+        loop = asyncio.get_running_loop()
         for listener in list(self._reconnect_listeners):
-            listener()
+            loop.call_soon(listener)
