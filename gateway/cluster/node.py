@@ -451,6 +451,8 @@ class ClusterNode:
             if owner is not None and owner != self.me:
                 log.warning("cluster: %s is owned by %s now; the device here is turned away", name, owner)
                 await self._drop(name)
+                return
+            self._show_owner(name)
             return
         switching = self._serve(name, registration)
         if switching is None:
@@ -462,6 +464,12 @@ class ClusterNode:
             await self._forward(name, owner, switching)
         else:
             await self._orphan(name, registration, switching)
+        self._show_owner(name)
+
+    def _show_owner(self, name: str) -> None:
+        """``services.NAME.owner`` in this gateway's registry: who holds the connection, as heard."""
+        if self.registry is not None:
+            self.registry.set_owner(name, self.view.owners.get(name, ""))
 
     def _serve(self, name: str, registration: Registration) -> SwitchingBackend | None:
         """The router entry of ``name``, made when missing; None when the name is this gateway's own."""

@@ -283,6 +283,13 @@ class Registry(Resource):
         self._mirrored.add(name)
         self._table.set_state(name, state)
 
+    def set_owner(self, name: str, owner: str) -> None:
+        """In a cluster of gateways: ``owner`` (a gateway id, "" for none) holds ``name``'s connection
+        (``services.NAME.owner``). Nothing for an unknown name."""
+        entry = self._table.get(name)
+        if entry is not None and entry.owner != owner:
+            entry.owner = owner
+
     def _left_alone(self, name: str) -> bool:
         """Liveness leaves ``name`` alone: being (un)registered now, or its state is mirrored."""
         return name in self._mirrored or self._registrations.busy(name)
