@@ -22,6 +22,7 @@ import collections
 import shutil
 import signal
 import subprocess
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -30,7 +31,7 @@ from pathlib import Path
 import pytest
 
 from support.certs import CertificateFiles
-from support.ports import free_ports
+from support.ports import stable_ports
 
 INSTALL_HINT = "bash tests/run.sh installs it (Debian: apt-get install etcd-server)"
 #: Seconds etcd may take to say it serves clients: it starts in well under a second when idle; a
@@ -40,6 +41,8 @@ STOP_TIMEOUT = 10.0
 #: What etcd logs once its client port answers: 3.4's zap logger says "serving client traffic
 #: insecurely" (or "securely"), its other logger and later versions "ready to serve client requests".
 _READY = ("serving client traffic", "ready to serve client requests")
+#: Starts tried on fresh ports when another process took one first.
+_PORT_TRIES = 3
 #: Output lines kept for a failure message: the last ones say why etcd did not start.
 _KEPT_LINES = 200
 
@@ -61,12 +64,18 @@ class EtcdServer:
     def __init__(self, folder: Path, *, tls: CertificateFiles | None = None) -> None:
         self.binary = etcd_binary()
         self.folder = folder
-        self.data_dir = folder / "data"
+        # etcd syncs its log to disk on every write; on a disk shared with busy neighbours one sync
+        # has been seen to take seconds, which delays lease expiry past any test's patience. A
+        # RAM-backed folder (Linux's /dev/shm) makes that cost nothing; the test removes it.
+        ram = Path("/dev/shm")
+        self._ram_folder = Path(tempfile.mkdtemp(prefix="etcd-test-", dir=ram)) if ram.is_dir() else None
+        self.data_dir = (self._ram_folder or folder) / "data"
         self.tls = tls
-        self.client_port, self.peer_port = free_ports(2)
+        self.client_port, self.peer_port = stable_ports(2)
         self.proc: subprocess.Popen[str] | None = None
         self._lines: collections.deque[str] = collections.deque(maxlen=_KEPT_LINES)
-        self._ready = threading.Event()
+        #: True once etcd has served on these ports: a later start must use the same ones.
+        self.started_once = False
 
     @property
     def endpoint(self) -> str:
@@ -119,8 +128,23 @@ class EtcdServer:
         assert not self.running, "etcd is already running"
         if wipe:
             shutil.rmtree(self.data_dir, ignore_errors=True)
-        self._ready.clear()
+        for _ in range(_PORT_TRIES):
+            if self._launch():
+                self.started_once = True
+                return
+            # Another process took a port between stable_ports and etcd's bind: before the first
+            # start nobody has been told the ports yet, so take new ones.
+            if self.started_once or "address already in use" not in self.output():
+                break
+            self.client_port, self.peer_port = stable_ports(2)
+        raise AssertionError(f"etcd did not start within {START_TIMEOUT} s:\n{self.output()}")
+
+    def _launch(self) -> bool:
+        """Run etcd; True once it serves clients, False (and no process) when it does not."""
         self._lines.clear()
+        # Each process has its own ready mark: the reader of a killed one may still be reading
+        # that one's old "serving" line.
+        ready = threading.Event()
         self.proc = subprocess.Popen(
             self._command(),
             cwd=self.folder,
@@ -130,19 +154,21 @@ class EtcdServer:
             text=True,
         )
         # A thread drains the output so etcd never blocks on a full pipe.
-        threading.Thread(target=self._read, args=(self.proc,), daemon=True).start()
+        threading.Thread(target=self._read, args=(self.proc, ready), daemon=True).start()
         deadline = time.monotonic() + START_TIMEOUT
-        while not self._ready.wait(0.05):
+        while not ready.wait(0.05):
             if self.proc.poll() is not None or time.monotonic() > deadline:
                 self.kill()
-                raise AssertionError(f"etcd did not start within {START_TIMEOUT} s:\n{self.output()}")
+                return False
+        return True
 
-    def _read(self, proc: subprocess.Popen[str]) -> None:
+    def _read(self, proc: subprocess.Popen[str], ready: threading.Event) -> None:
         assert proc.stdout is not None
         for line in proc.stdout:
-            self._lines.append(line.rstrip("\n"))
+            if proc is self.proc:
+                self._lines.append(line.rstrip("\n"))
             if any(mark in line for mark in _READY):
-                self._ready.set()
+                ready.set()
 
     def stop(self) -> None:
         """Stop etcd politely (SIGTERM), as an operator would; SIGKILL if it lingers."""
@@ -151,6 +177,13 @@ class EtcdServer:
     def kill(self) -> None:
         """SIGKILL etcd, as a crash would."""
         self._end(signal.SIGKILL)
+
+    def remove(self) -> None:
+        """Kill etcd and delete its data folder."""
+        self.kill()
+        shutil.rmtree(self.data_dir, ignore_errors=True)
+        if self._ram_folder is not None:
+            shutil.rmtree(self._ram_folder, ignore_errors=True)
 
     def _end(self, how: signal.Signals) -> None:
         proc = self.proc
@@ -178,7 +211,7 @@ def etcd_server(tmp_path: Path) -> Iterator[Callable[..., EtcdServer]]:
 
     yield start
     for server in servers:
-        server.kill()
+        server.remove()
 
 
 @pytest.fixture
