@@ -246,7 +246,7 @@ class ClusterNode:
                     if owner != self.me:
                         log.info("cluster: %s is owned by %s now", name, owner)
                         continue  # taken over meanwhile: the reconciler forwards to the new owner
-                    await self.store.put(Kind.OWNER, name, self.me, leased=True)  # bound to the new lease
+                    await self.store.replace(Kind.OWNER, name, self.me, self.me, leased=True)  # the new lease
                 leased = registration.dialled_in
                 value = registration.to_json()
                 if not await self._create(Kind.SERVICE, name, value, leased=leased) and leased:
@@ -462,6 +462,11 @@ class ClusterNode:
                 await self._open_owned(name, registration, switching)
         elif owner is not None:
             await self._forward(name, owner, switching)
+        elif name in self._forwarding and asyncio.get_running_loop().time() < self._settling_until:
+            # The store came back without its owners key yet: its owner is writing it again. The
+            # calls keep going to it meanwhile; looked at again once the store has settled.
+            self._deferred[name] = None
+            return
         else:
             await self._orphan(name, registration, switching)
         self._show_owner(name)

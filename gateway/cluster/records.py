@@ -18,6 +18,7 @@ import json
 from dataclasses import dataclass, field
 
 from services.registry import STATES
+from services.registry.store import decode_registration, encode_registration
 
 __all__ = [
     "DIAL_IN_PREFIX",
@@ -51,21 +52,17 @@ class Registration:
         return self.options.get("type", "")
 
     def to_json(self) -> str:
-        """The key's value."""
-        return json.dumps({"url": self.url, "options": self.options}, sort_keys=True)
+        """The key's value (written as the registry's store writes it)."""
+        return encode_registration(self.url, self.options)
 
 
 def read_registration(text: str) -> Registration | None:
     """The registration a ``services/NAME`` value holds; None when it is not one."""
     try:
-        data = json.loads(text)
-        url = data["url"]
-        options = data.get("options", {})
-    except (ValueError, KeyError, TypeError, AttributeError):
+        url, options = decode_registration(text)
+    except ValueError:
         return None
-    if not isinstance(url, str) or not url or not isinstance(options, dict):
-        return None
-    return Registration(url, {str(k): str(v) for k, v in options.items()})
+    return Registration(url, options) if url else None
 
 
 @dataclass(frozen=True, slots=True)

@@ -21,7 +21,7 @@ import pytest
 from line_device_support import device_process, tcp_device
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess, start_gateway
-from support.ports import free_port
+from support.ports import stable_ports
 from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
@@ -74,7 +74,7 @@ def _config(etcd: EtcdServer, gateway: str, line: str) -> str:
 def cluster(etcd_server: Callable[..., EtcdServer], tmp_path: Path) -> Iterator[Cluster]:
     etcd = etcd_server()
     (tmp_path / "jwt.secret").write_text(SECRET)
-    lines = {gateway: f"127.0.0.1:{free_port()}" for gateway in IDS}
+    lines = {gateway: f"127.0.0.1:{port}" for gateway, port in zip(IDS, stable_ports(len(IDS)), strict=True)}
     gateways: dict[str, GatewayProcess] = {}
     try:
         for gateway in IDS:
@@ -251,7 +251,7 @@ async def test_etcd_restarted_empty_gets_the_keys_back(
         assert "owners/thermo" in keys
         # Nobody took it over, nobody lost it.
         for gateway in IDS:
-            assert await _owner(clients[gateway], "thermo") == "gw-a"
+            await eventually(lambda g=gateway: _owner(clients[g], "thermo"), lambda o: o == "gw-a")  # type: ignore[misc]
         assert 10.0 < await clients["gw-b"].get_number("thermo", "data") < 30.0
         with tcp_device("--service", "sim-sensor") as other:
             await eventually(lambda: _register(clients["gw-b"], "after", other), retry_on=(Unavailable,))
@@ -261,7 +261,6 @@ async def _etcd_keys(etcd: EtcdServer) -> set[str]:
     """The keys under the default prefix, read with etcd's v3 API through the gateway's own store."""
     from gateway.stores.address import parse_store_url
     from gateway.stores.etcd import EtcdStore
-
     from services.registry.store import Kind
 
     store = EtcdStore(parse_store_url(etcd.url), gateway_id="test-reader")

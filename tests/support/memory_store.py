@@ -75,6 +75,8 @@ class MemoryServer:
     def stop(self, reason: str = "connection refused") -> None:
         """The server cannot be reached from now on: every store is read-only."""
         self.down = reason
+        for store in self.stores:
+            store.read_only_changed()
 
     def start(self, *, empty: bool = False) -> None:
         """The server runs again (``empty``: restarted without its data); every store reconnects."""
@@ -83,6 +85,7 @@ class MemoryServer:
             for kind, name in list(self.keys):
                 self.write(kind, name, None)
         for store in self.stores:
+            store.read_only_changed()
             if store.started:
                 store.reconnected()
 
@@ -99,6 +102,7 @@ class MemoryStore:
         self._gateway_id = gateway_id
         self._listeners: list[StoreListener] = []
         self._reconnect_listeners: list[Callable[[], None]] = []
+        self._read_only_listeners: list[Callable[[], None]] = []
         self.started = False
         #: The gateway died (:meth:`MemoryServer.kill`): nothing reaches it, nothing it writes lands.
         self.dead = False
@@ -200,6 +204,20 @@ class MemoryStore:
                 self._listeners.remove(listener)
 
         return unwatch
+
+    def watch_read_only(self, listener: Callable[[], None]) -> Callable[[], None]:
+        self._read_only_listeners.append(listener)
+
+        def forget() -> None:
+            if listener in self._read_only_listeners:
+                self._read_only_listeners.remove(listener)
+
+        return forget
+
+    def read_only_changed(self) -> None:
+        """The server stopped or started: tell who follows :attr:`read_only`."""
+        for listener in list(self._read_only_listeners):
+            listener()
 
     def on_reconnect(self, listener: Callable[[], None]) -> Callable[[], None]:
         self._reconnect_listeners.append(listener)
