@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
+import random
 import re
 import shutil
 import signal
@@ -126,15 +128,37 @@ class GatewayPorts:
         return f"127.0.0.1:{self.line}"
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
+#: Where Linux hands out the local ports of outgoing connections; free ports are picked below it,
+#: where no gateway's own connection (to etcd, to another gateway) can take one before its server.
+_EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+_LOWEST_PORT = 10000
 
 
-def _port(base: int, offset: int) -> int:
-    return _free_port() if base == 0 else base + offset
+class _FreePorts:
+    """Free loopback ports below the ephemeral range, all held open until the last is picked (the
+    kernel never hands out one twice, and no outgoing connection takes one meanwhile)."""
+
+    def __init__(self) -> None:
+        self._held = contextlib.ExitStack()
+        try:
+            high = int(_EPHEMERAL_RANGE.read_text().split()[0])
+        except (OSError, ValueError, IndexError):
+            high = 32768
+        self._candidates = random.sample(range(_LOWEST_PORT, max(high, _LOWEST_PORT + 1000)), 2000)
+
+    def take(self) -> int:
+        while self._candidates:
+            port = self._candidates.pop()
+            sock = self._held.enter_context(socket.socket())
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+        raise RuntimeError("no free loopback port below the ephemeral range")
+
+    def release(self) -> None:
+        self._held.close()
 
 
 class Cluster:
@@ -144,17 +168,26 @@ class Cluster:
         self.folder = folder
         self.args = args
         self.children: list[Child] = []
-        self.etcd_port = _port(args.etcd_port, 0)
-        self.etcd_peer_port = _port(args.etcd_port, 1) if args.etcd_port else _free_port()
-        self.gateways = [
-            GatewayPorts(
-                f"gw{i + 1}",
-                _port(args.base_port, i),
-                _port(args.line_port, i) if args.base_port else _free_port(),
-                _port(args.http_port, i) if args.base_port else _free_port(),
-            )
-            for i in range(args.gateways)
-        ]
+        free = _FreePorts()
+        fixed = args.base_port != 0
+
+        def port(base: int, offset: int, *, chosen: bool) -> int:
+            return base + offset if chosen else free.take()
+
+        try:
+            self.etcd_port = port(args.etcd_port, 0, chosen=args.etcd_port != 0)
+            self.etcd_peer_port = port(args.etcd_port, 1, chosen=args.etcd_port != 0)
+            self.gateways = [
+                GatewayPorts(
+                    f"gw{i + 1}",
+                    port(args.base_port, i, chosen=fixed),
+                    port(args.line_port, i, chosen=fixed),
+                    port(args.http_port, i, chosen=fixed),
+                )
+                for i in range(args.gateways)
+            ]
+        finally:
+            free.release()
         #: Device name → how it is reached ("tcp://..." or "dials in to gwN").
         self.devices: dict[str, str] = {}
 
@@ -230,15 +263,17 @@ period = 1.0
             await child.wait_for(rf"^listening on {re.escape(ports.address)}$")
 
     async def start_devices(self) -> None:
-        """Devices spread over the gateways: two in three registered by Set, one in three dialling in."""
+        """Devices spread over the gateways in turn: the first round registered by a Set on each
+        gateway, the next round dialling in to each gateway's line listener, and so on."""
         kinds = ("sim-sensor", "sim-robot")
         registering: list[tuple[str, str, GatewayPorts]] = []
         for i in range(self.args.devices):
             kind = kinds[i % len(kinds)]
             name = f"{'thermo' if kind == 'sim-sensor' else 'rover'}{i + 1}"
             gateway = self.gateways[i % len(self.gateways)]
+            dials_in = (i // len(self.gateways)) % 2 == 1
             command = [sys.executable, "-m", "services.device_server", "--service", kind, "--name", name]
-            if i % 3 == 2:
+            if dials_in:
                 command += ["--connect", gateway.line_address, "--exit-with-parent"]
                 self._spawn(f"device {name}", command, stdin=True)
                 self.devices[name] = f"dials in to {gateway.id}"

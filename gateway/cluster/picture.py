@@ -16,7 +16,7 @@ from gateway.cluster.records import GatewayRecord, Registration
 
 __all__ = ["draw_owners"]
 
-_COLUMN = 250
+_COLUMN = 290
 _MARGIN = 20
 _ROW = 22
 _TOP = 130
@@ -33,8 +33,9 @@ def draw_owners(
     owned = {gateway: sorted(n for n, o in owners.items() if o == gateway) for gateway in ids}
     orphans = sorted(n for n in registrations if owners.get(n) not in gateways)
     rows = max([len(names) for names in owned.values()] + [1])
+    box_height = 58 + rows * _ROW
     width = _MARGIN * 2 + _COLUMN * max(1, len(ids))
-    height = _TOP + 70 + rows * _ROW + (40 if orphans else 0) + 60
+    height = _TOP + box_height + 30 + (22 if orphans else 0) + 44
     parts = [
         f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
         f'viewBox="0 0 {width} {height}" font-family="sans-serif" font-size="13">',
@@ -51,30 +52,29 @@ def draw_owners(
             f'<line x1="{width / 2:g}" y1="{_MARGIN + 44}" x2="{middle:g}" y2="{_TOP}" '
             'stroke="#c79a1e" stroke-dasharray="4 3"/>'
         )
-        box_height = 58 + rows * _ROW
         parts.append(_box(left, _TOP, _COLUMN - 20, box_height, ("#e8f0fb", "#3b6db3")))
         parts.append(_text(middle, _TOP + 20, gateway, bold=True))
         line = f"gRPC {record.address}" + (f" · line {record.line}" if record.line else "")
         parts.append(_text(middle, _TOP + 38, line, size=11))
         for row, name in enumerate(owned[gateway]):
             registration = registrations.get(name)
-            how = "dialled in" if registration is not None and registration.dialled_in else "dialled"
+            dialled_in = registration is not None and registration.dialled_in
             url = registration.url if registration is not None else ""
             top = _TOP + 50 + row * _ROW
-            parts.append(_box(left + 10, top, _COLUMN - 40, _ROW - 4, ("#ffffff", "#8aa6cf")))
-            parts.append(_text(left + 18, top + 13, f"{name}  ({how} {url})", size=11, anchor="start"))
-    bottom = _TOP + 70 + rows * _ROW
+            colours = ("#eef8ee", "#5a9a5a") if dialled_in else ("#ffffff", "#8aa6cf")
+            parts.append(_box(left + 10, top, _COLUMN - 40, _ROW - 4, colours))
+            parts.append(_text(left + 18, top + 13, name, size=11, anchor="start", bold=True))
+            parts.append(_text(left + _COLUMN - 38, top + 13, url, size=10, anchor="end"))
+    bottom = _TOP + box_height + 28
     if orphans:
         parts.append(_text(width / 2, bottom, "owned by no live gateway: " + ", ".join(orphans), size=12))
-        bottom += 40
-    parts.append(
-        _text(
-            width / 2,
-            bottom,
-            "Every gateway serves every service: a call for one owned elsewhere is forwarded to its owner.",
-            size=12,
-        )
+        bottom += 22
+    notes = (
+        "white: registered by a Set on any gateway, dialled by its owner; green: dialled in to its owner.",
+        "Every gateway serves every service: a call for one owned elsewhere is forwarded to its owner.",
     )
+    for offset, note in enumerate(notes):
+        parts.append(_text(width / 2, bottom + offset * 18, note, size=12))
     parts.append("</svg>")
     return "\n".join(parts) + "\n"
 

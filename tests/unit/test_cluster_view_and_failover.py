@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from xml.etree import ElementTree
+
 from gateway.cluster import ClusterView, GatewayRecord, Registration, takeover_ranks
+from gateway.cluster.picture import draw_owners
 from gateway.cluster.records import read_gateway, read_registration
 from services.registry.store import Change, Kind
 
@@ -75,3 +78,22 @@ def test_orphans_are_dealt_to_the_least_loaded_first() -> None:
     assert sorted(plan["s1"] for plan in plans.values()) == [0, 1, 2]
     assert plans["gw-a"]["s1"] == 2
     assert takeover_ranks(["s1"], {"gw-a": 0}, "gw-z") == {}  # not a live gateway (yet)
+
+
+def test_the_picture_shows_each_gateway_with_what_it_owns() -> None:
+    gateways = {
+        "gw1": GatewayRecord("127.0.0.1:50061", line="127.0.0.1:7101"),
+        "gw2": GatewayRecord("127.0.0.1:50062"),
+    }
+    registrations = {
+        "thermo1": Registration("tcp://127.0.0.1:7001"),
+        "rover2": Registration("tcp-in://127.0.0.1:40000"),
+        "lost": Registration("tcp://127.0.0.1:7003"),
+    }
+    svg = draw_owners("etcd://127.0.0.1:2379", gateways, {"thermo1": "gw1", "rover2": "gw2"}, registrations)
+    root = ElementTree.fromstring(svg)  # well-formed SVG
+    texts = [t.text or "" for t in root.iter("{http://www.w3.org/2000/svg}text")]
+    assert "etcd://127.0.0.1:2379" in texts
+    assert "gRPC 127.0.0.1:50061 · line 127.0.0.1:7101" in texts
+    assert {"gw1", "gw2", "thermo1", "rover2", "tcp-in://127.0.0.1:40000"} <= set(texts)
+    assert "owned by no live gateway: lost" in texts
