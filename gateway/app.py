@@ -312,6 +312,8 @@ class Gateway:
         self.registry = Registry(
             # In a cluster, registrations go through the cluster (gateway.cluster.ClusterDirectory).
             directory=self.cluster.directory if self.cluster is not None else self.router.directory,
+            store=self.store,
+            restore=self.cluster is None,
             period=settings.period,
             timeout=settings.timeout,
             misses=settings.misses,

@@ -460,6 +460,8 @@ class ClusterNode:
         if owner == self.me:
             if name not in self.owned or switching.target is None:
                 await self._open_owned(name, registration, switching)
+            else:
+                self.owned[name] = registration  # as the key holds it now (the registry adds options)
         elif owner is not None:
             await self._forward(name, owner, switching)
         elif name in self._forwarding and asyncio.get_running_loop().time() < self._settling_until:
