@@ -30,7 +30,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
@@ -38,9 +38,11 @@ from typing import IO
 import grpc
 
 from gateway.cluster.picture import draw_owners
-from gateway.cluster.records import GatewayRecord, Registration
+from gateway.cluster.records import GatewayRecord, Ownership, Registration
+from gateway.stores.etcd import MAX_LEASE, MIN_LEASE
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+from services.device.cli import bounded_int
 from services.values import parse_names
 
 __all__ = ["DESCRIPTION", "main"]
@@ -301,7 +303,7 @@ period = 1.0
                     raise RuntimeError(f"{gateway.id} does not list {missing} after {START_TIMEOUT:g} s")
                 await asyncio.sleep(0.1)
 
-    async def owners(self) -> tuple[dict[str, GatewayRecord], dict[str, str], dict[str, Registration]]:
+    async def ownership(self) -> Ownership:
         """The gateways, who owns each device and where each is registered, as the first gateway says."""
         address = self.gateways[0].address
         gateways = {
@@ -314,7 +316,7 @@ period = 1.0
             owner = await _get(address, "registry", f"services.{name}.owner")
             if owner:
                 owners[name] = owner
-        return gateways, owners, registrations
+        return Ownership(self.store_url, gateways, owners, registrations)
 
     def stop(self) -> None:
         """Stop every process, devices first, etcd last, each by its PID."""
@@ -338,21 +340,16 @@ async def _get(address: str, service: str, path: str) -> str:
         return str(reply.value)
 
 
-def print_owners(
-    cluster: Cluster,
-    gateways: dict[str, GatewayRecord],
-    owners: dict[str, str],
-    registrations: dict[str, Registration],
-) -> None:
+def print_owners(ownership: Ownership, folder: Path) -> None:
     """Who owns what, as two tables on stdout."""
-    print(f"etcd: {cluster.store_url}   (logs in {cluster.folder})")
+    print(f"etcd: {ownership.store}   (logs in {folder})")
     print(f"{'gateway':8} {'gRPC':17} {'HTTP and console':26} {'line':17} owns")
-    for gateway, record in sorted(gateways.items()):
-        owned = ", ".join(sorted(n for n, o in owners.items() if o == gateway)) or "-"
+    for gateway, record in sorted(ownership.gateways.items()):
+        owned = ", ".join(ownership.owned_by(gateway)) or "-"
         print(f"{gateway:8} {record.address:17} {'http://' + record.http + '/':26} {record.line:17} {owned}")
     print(f"{'device':10} {'registered as':30} owner")
-    for name, registration in sorted(registrations.items()):
-        print(f"{name:10} {registration.url:30} {owners.get(name, '(none yet)')}")
+    for name, registration in sorted(ownership.registrations.items()):
+        print(f"{name:10} {registration.url:30} {ownership.owners.get(name, '(none yet)')}")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -374,35 +371,23 @@ then, from another shell (any gateway answers for any device):
       127.0.0.1:50061 propertyservice.v1.PropertyService/Listen
 """,
     )
-    parser.add_argument(
-        "--gateways", type=_bounded(1, MAX_GATEWAYS), default=3, help="gateways to start (default 3)"
+    # Whole numbers within bounds: (option, lowest, highest, default, what it is).
+    numbers = (
+        ("--gateways", 1, MAX_GATEWAYS, 3, "gateways to start"),
+        ("--devices", 0, MAX_DEVICES, 6, "simulated devices to start"),
+        ("--base-port", 0, 65000, 50061, "gRPC port of the first gateway, the others follow; 0: all free"),
+        ("--line-port", 1, 65000, 7101, "line listener of the first gateway"),
+        ("--http-port", 1, 65000, 8081, "HTTP port of the first gateway"),
+        ("--etcd-port", 0, 65000, 2379, "etcd's client port; 0: a free one"),
     )
-    parser.add_argument(
-        "--devices", type=_bounded(0, MAX_DEVICES), default=6, help="simulated devices to start (default 6)"
-    )
-    parser.add_argument(
-        "--base-port",
-        type=_bounded(0, 65000),
-        default=50061,
-        help="gRPC port of the first gateway, the others follow (default 50061); 0: every port a free one",
-    )
-    parser.add_argument(
-        "--line-port", type=_bounded(1, 65000), default=7101, help="first line listener (default 7101)"
-    )
-    parser.add_argument(
-        "--http-port", type=_bounded(1, 65000), default=8081, help="first HTTP port (default 8081)"
-    )
-    parser.add_argument(
-        "--etcd-port",
-        type=_bounded(0, 65000),
-        default=2379,
-        help="etcd's client port (default 2379; 0: a free one)",
-    )
+    for option, low, high, default, what in numbers:
+        kind = bounded_int(option.removeprefix("--"), low, high)
+        parser.add_argument(option, type=kind, default=default, help=f"{what} (default {default})")
     parser.add_argument(
         "--lease",
-        type=float,
+        type=_lease,
         default=3.0,
-        help="seconds of each gateway's lease: how soon a dead one's devices move",
+        help="seconds of each gateway's lease: how soon a dead one's devices move (default 3)",
     )
     parser.add_argument(
         "--picture", type=Path, help="write an SVG of who owns what to this file once the cluster is up"
@@ -414,17 +399,15 @@ then, from another shell (any gateway answers for any device):
     return parser
 
 
-def _bounded(low: int, high: int) -> Callable[[str], int]:
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, not {text!r}") from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"must be from {low} to {high}")
-        return value
-
-    return parse
+def _lease(text: str) -> float:
+    """``--lease``: seconds etcd can hold a lease for (it counts whole seconds, at least ~1.5)."""
+    try:
+        seconds = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"lease must be a number of seconds, not {text!r}") from None
+    if not MIN_LEASE <= seconds <= MAX_LEASE:
+        raise argparse.ArgumentTypeError(f"lease must be from {MIN_LEASE:g} to {MAX_LEASE:g} seconds")
+    return seconds
 
 
 async def run(args: argparse.Namespace) -> int:
@@ -450,10 +433,10 @@ async def run(args: argparse.Namespace) -> int:
             return 0
         stopping.cancel()
         starting.result()
-        gateways, owners, registrations = await cluster.owners()
-        print_owners(cluster, gateways, owners, registrations)
+        ownership = await cluster.ownership()
+        print_owners(ownership, cluster.folder)
         if args.picture is not None:
-            args.picture.write_text(draw_owners(cluster.store_url, gateways, owners, registrations))
+            args.picture.write_text(draw_owners(ownership))
             print(f"picture of who owns what: {args.picture}")
         pids = " ".join(f"{c.what.replace(' ', '-')}={c.pid}" for c in cluster.children)
         print(f"processes: {pids}")

@@ -9,10 +9,9 @@ text, no imaging library: it is small, diffs as text and renders in any browser.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from xml.sax.saxutils import escape
 
-from gateway.cluster.records import GatewayRecord, Registration
+from gateway.cluster.records import Ownership
 
 __all__ = ["draw_owners"]
 
@@ -22,16 +21,12 @@ _ROW = 22
 _TOP = 130
 
 
-def draw_owners(
-    store: str,
-    gateways: Mapping[str, GatewayRecord],
-    owners: Mapping[str, str],
-    registrations: Mapping[str, Registration],
-) -> str:
-    """The SVG text: ``store`` (its URL) above one column per gateway listing the services it owns."""
+def draw_owners(ownership: Ownership) -> str:
+    """The SVG text: the store (its URL) above one column per gateway listing the services it owns."""
+    store, gateways, registrations = ownership.store, ownership.gateways, ownership.registrations
     ids = sorted(gateways)
-    owned = {gateway: sorted(n for n, o in owners.items() if o == gateway) for gateway in ids}
-    orphans = sorted(n for n in registrations if owners.get(n) not in gateways)
+    owned = {gateway: ownership.owned_by(gateway) for gateway in ids}
+    orphans = ownership.orphans()
     rows = max([len(names) for names in owned.values()] + [1])
     box_height = 58 + rows * _ROW
     width = _MARGIN * 2 + _COLUMN * max(1, len(ids))

@@ -15,6 +15,7 @@ A value another program wrote badly is not trusted: :func:`read_registration` an
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from services.registry import STATES
@@ -23,6 +24,7 @@ from services.registry.store import decode_registration, encode_registration
 __all__ = [
     "DIAL_IN_PREFIX",
     "GatewayRecord",
+    "Ownership",
     "Registration",
     "read_gateway",
     "read_registration",
@@ -104,3 +106,23 @@ def read_gateway(text: str) -> GatewayRecord | None:
 def read_state(text: str) -> str | None:
     """A ``states/NAME`` value when it is a state the registry knows; None otherwise."""
     return text if text in STATES else None
+
+
+@dataclass(frozen=True, slots=True)
+class Ownership:
+    """Who owns what in a cluster at one moment, for people (the cluster command's table, its picture)."""
+
+    #: The shared store's URL.
+    store: str
+    gateways: Mapping[str, GatewayRecord]
+    #: Service name → the id of the gateway that owns it.
+    owners: Mapping[str, str]
+    registrations: Mapping[str, Registration]
+
+    def owned_by(self, gateway: str) -> list[str]:
+        """The services ``gateway`` owns, sorted."""
+        return sorted(name for name, owner in self.owners.items() if owner == gateway)
+
+    def orphans(self) -> list[str]:
+        """The registrations no live gateway owns, sorted."""
+        return sorted(name for name in self.registrations if self.owners.get(name) not in self.gateways)

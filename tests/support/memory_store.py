@@ -18,11 +18,14 @@ from __future__ import annotations
 import asyncio
 import json
 from collections.abc import Callable
+from typing import TypeVar
 
 from services.errors import Unavailable
 from services.registry.store import Change, Kind, StoreListener
 
 __all__ = ["MemoryServer", "MemoryStore"]
+
+T = TypeVar("T")
 
 
 class MemoryServer:
@@ -197,22 +200,10 @@ class MemoryStore:
         self.server.write(kind, name, None)
 
     def watch(self, listener: StoreListener) -> Callable[[], None]:
-        self._listeners.append(listener)
-
-        def unwatch() -> None:
-            if listener in self._listeners:
-                self._listeners.remove(listener)
-
-        return unwatch
+        return _listen(self._listeners, listener)
 
     def watch_read_only(self, listener: Callable[[], None]) -> Callable[[], None]:
-        self._read_only_listeners.append(listener)
-
-        def forget() -> None:
-            if listener in self._read_only_listeners:
-                self._read_only_listeners.remove(listener)
-
-        return forget
+        return _listen(self._read_only_listeners, listener)
 
     def read_only_changed(self) -> None:
         """The server stopped or started: tell who follows :attr:`read_only`."""
@@ -220,13 +211,7 @@ class MemoryStore:
             listener()
 
     def on_reconnect(self, listener: Callable[[], None]) -> Callable[[], None]:
-        self._reconnect_listeners.append(listener)
-
-        def forget() -> None:
-            if listener in self._reconnect_listeners:
-                self._reconnect_listeners.remove(listener)
-
-        return forget
+        return _listen(self._reconnect_listeners, listener)
 
     # -- what the server calls ---------------------------------------------------
 
@@ -249,3 +234,14 @@ class MemoryStore:
         loop = asyncio.get_running_loop()
         for listener in list(self._reconnect_listeners):
             loop.call_soon(listener)
+
+
+def _listen(listeners: list[T], listener: T) -> Callable[[], None]:
+    """Add ``listener`` to ``listeners``; the function that takes it out again."""
+    listeners.append(listener)
+
+    def forget() -> None:
+        if listener in listeners:
+            listeners.remove(listener)
+
+    return forget

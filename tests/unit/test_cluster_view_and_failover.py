@@ -6,7 +6,7 @@ from xml.etree import ElementTree
 
 from gateway.cluster import ClusterView, GatewayRecord, Registration, takeover_ranks
 from gateway.cluster.picture import draw_owners
-from gateway.cluster.records import read_gateway, read_registration
+from gateway.cluster.records import Ownership, read_gateway, read_registration
 from services.registry.store import Change, Kind
 
 
@@ -90,7 +90,8 @@ def test_the_picture_shows_each_gateway_with_what_it_owns() -> None:
         "rover2": Registration("tcp-in://127.0.0.1:40000"),
         "lost": Registration("tcp://127.0.0.1:7003"),
     }
-    svg = draw_owners("etcd://127.0.0.1:2379", gateways, {"thermo1": "gw1", "rover2": "gw2"}, registrations)
+    owners = {"thermo1": "gw1", "rover2": "gw2"}
+    svg = draw_owners(Ownership("etcd://127.0.0.1:2379", gateways, owners, registrations))
     root = ElementTree.fromstring(svg)  # well-formed SVG
     texts = [t.text or "" for t in root.iter("{http://www.w3.org/2000/svg}text")]
     assert "etcd://127.0.0.1:2379" in texts
