@@ -14,6 +14,7 @@ import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 
 import jwt
@@ -25,6 +26,7 @@ from support.ports import stable_ports
 from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
+from clients.aio import Event
 from clients.errors import FailedPrecondition, PropertyServiceError, Unavailable
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
@@ -132,6 +134,38 @@ async def test_a_registration_on_one_gateway_is_served_by_every_gateway(
             await events.aclose()
         assert [e.service for e in seen] == ["thermo"] * 3
         assert len({e.value for e in seen}) > 1  # live readings, not one value repeated
+
+
+async def test_every_gateway_hears_a_state_change_within_a_second(
+    cluster: Cluster, clients: dict[str, AsyncClient]
+) -> None:
+    with tcp_device("--service", "sim-sensor", "--name", "thermo") as address:
+        await _register(clients["gw-a"], "thermo", address)
+        for gateway in IDS:
+            await eventually(
+                lambda g=gateway: clients[g].get("registry", "services.thermo.state"),  # type: ignore[misc]
+                lambda state: state == "up",
+                retry_on=(PropertyServiceError,),
+            )
+        streams = {g: clients[g].listen("registry", "services.*.state", updates_only=True) for g in IDS}
+        downs = [asyncio.ensure_future(_first_down(streams[g])) for g in IDS]
+        await asyncio.sleep(0.5)  # the Listens are open
+        # The device goes away (the context ends): its owner's liveness checks find it down.
+    heard = dict(zip(IDS, await asyncio.gather(*downs), strict=True))
+    for stream in streams.values():
+        await stream.aclose()
+    lag = max(heard[g] for g in ("gw-b", "gw-c")) - heard["gw-a"]
+    print(f"a state change seen by the other gateways {lag.total_seconds() * 1000:.0f} ms after its owner")
+    assert lag.total_seconds() < 1.0
+
+
+async def _first_down(events: AsyncIterator[Event]) -> datetime:
+    """When the gateway of ``events`` saw ``thermo`` go down."""
+    async with asyncio.timeout(20):
+        async for event in events:
+            if event.property == "services.thermo.state" and event.value == "down":
+                return event.time
+    raise AssertionError("the stream ended before thermo went down")
 
 
 async def test_a_name_registered_anywhere_is_taken_everywhere(
