@@ -48,8 +48,9 @@ from services.errors import AlreadyExists, PropertyError, Unavailable
 from services.registry import AllowList, Registry
 from services.registry.store import Change, Kind, SharedStore
 from services.registry.table import GONE
+from services.worker_pool import run_bounded
 
-__all__ = ["FORWARD_OPTIONS", "LEAVE_WAIT", "ClusterNode"]
+__all__ = ["FORWARD_OPTIONS", "LEAVE_WAIT", "MAX_WRITES", "ClusterNode"]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +59,8 @@ log = logging.getLogger(__name__)
 FORWARD_OPTIONS: Mapping[str, Any] = {"backoff_initial": 0.1, "backoff_max": 2.0}
 #: Seconds a gateway that stops spends handing its services over (deleting its keys) at most.
 LEAVE_WAIT = 3.0
+#: Writes to the store at once when this gateway writes all its keys (coming back, leaving).
+MAX_WRITES = 64
 #: Folders read when joining and after a reconnect (licences are read when one is claimed).
 _FOLDERS = (Kind.GATEWAY, Kind.SERVICE, Kind.OWNER, Kind.STATE)
 
@@ -193,11 +196,14 @@ class ClusterNode:
         await self._writes.aclose()
 
     async def _leave(self) -> None:
-        for name, registration in sorted(self.owned.items()):
+        async def hand_over(name: str) -> None:
+            registration = self.owned.get(name)
             await self._let_go(Kind.OWNER, name, self.me)
             await self._delete(Kind.STATE, name)
-            if registration.dialled_in:
+            if registration is not None and registration.dialled_in:
                 await self._delete(Kind.SERVICE, name)
+
+        await run_bounded(sorted(self.owned), hand_over, MAX_WRITES)
         await self.store.delete(Kind.GATEWAY, self.me)
 
     # -- what the store says ---------------------------------------------------
@@ -240,20 +246,8 @@ class ClusterNode:
     async def _reassert(self) -> None:
         try:
             await self._announce()
-            for name, registration in sorted(self.owned.items()):
-                if not await self._create(Kind.OWNER, name, self.me, leased=True):
-                    owner = (await self.store.read(Kind.OWNER)).get(name)
-                    if owner != self.me:
-                        log.info("cluster: %s is owned by %s now", name, owner)
-                        continue  # taken over meanwhile: the reconciler forwards to the new owner
-                    await self.store.replace(Kind.OWNER, name, self.me, self.me, leased=True)  # the new lease
-                leased = registration.dialled_in
-                value = registration.to_json()
-                if not await self._create(Kind.SERVICE, name, value, leased=leased) and leased:
-                    await self.store.put(Kind.SERVICE, name, value, leased=True)  # bound to the new lease
-                if self.registry is not None and name in self.registry.services.children():
-                    state = self.registry.state_of(name)
-                    await self.store.put(Kind.STATE, name, state, leased=True)
+            owners = await self.store.read(Kind.OWNER)
+            await run_bounded(sorted(self.owned), lambda name: self._reassert_one(name, owners), MAX_WRITES)
             await self._read_all()
             self.joined = True
             log.info("cluster: the store is back; %d keys of this gateway written again", len(self.owned))
@@ -264,6 +258,24 @@ class ClusterNode:
         finally:
             self._resyncing = False
             self._wake.set()
+
+    async def _reassert_one(self, name: str, owners: Mapping[str, str]) -> None:
+        """Write the keys of one service this gateway owns again (the store came back)."""
+        registration = self.owned.get(name)
+        if registration is None:
+            return
+        if not await self._create(Kind.OWNER, name, self.me, leased=True):
+            owner = owners.get(name)
+            if owner != self.me:
+                log.info("cluster: %s is owned by %s now", name, owner)
+                return  # taken over meanwhile: the reconciler forwards to the new owner
+            await self.store.replace(Kind.OWNER, name, self.me, self.me, leased=True)  # the new lease
+        leased = registration.dialled_in
+        value = registration.to_json()
+        if not await self._create(Kind.SERVICE, name, value, leased=leased) and leased:
+            await self.store.put(Kind.SERVICE, name, value, leased=True)  # bound to the new lease
+        if self.registry is not None and name in self.registry.services.children():
+            await self.store.put(Kind.STATE, name, self.registry.state_of(name), leased=True)
 
     def _on_router(self, name: str, backend: Backend | None) -> None:
         """A device dialled in to this gateway's line listener: publish it to the cluster."""
