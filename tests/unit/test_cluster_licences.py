@@ -85,3 +85,14 @@ async def test_no_licence_while_the_store_cannot_be_reached() -> None:
     assert refused.value.code is Code.UNAVAILABLE
     assert "read-only" in refused.value.message
     assert a.held() == []
+
+
+async def test_a_licence_that_expires_deletes_its_key() -> None:
+    server = MemoryServer()
+    a = _licences(server, "gw-a")
+    await a.grant("arm", "alice", 0.2)
+    assert server.value(Kind.LICENCE, "arm") is not None
+    await wait_until(
+        lambda: server.value(Kind.LICENCE, "arm") is None, within=3.0, what="expiry deletes the key"
+    )
+    assert a.held() == []
