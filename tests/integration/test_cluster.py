@@ -112,7 +112,7 @@ async def test_a_registration_on_one_gateway_is_served_by_every_gateway(
         for gateway in IDS:
             client = clients[gateway]
             names = await eventually(
-                lambda c=client: c.get_names("registry", "services"),  # type: ignore[misc]
+                lambda c=client: c.get_names("registry", "services"),
                 lambda names: "thermo" in names,
                 what=f"{gateway} lists thermo",
             )
@@ -120,7 +120,7 @@ async def test_a_registration_on_one_gateway_is_served_by_every_gateway(
             assert await _owner(client, "thermo") == "gw-a"
             state = await eventually(
                 lambda c=client: c.get("registry", "services.thermo.state"), lambda s: s == "up"
-            )  # type: ignore[misc]
+            )
             assert state == "up"
             assert await client.get("registry", "services.thermo.url") == f"tcp://{address[0]}:{address[1]}"
         # Get, Set and Listen through gateways that do not own it reach the device owned by gw-a.
@@ -143,7 +143,7 @@ async def test_every_gateway_hears_a_state_change_within_a_second(
         await _register(clients["gw-a"], "thermo", address)
         for gateway in IDS:
             await eventually(
-                lambda g=gateway: clients[g].get("registry", "services.thermo.state"),  # type: ignore[misc]
+                lambda g=gateway: clients[g].get("registry", "services.thermo.state"),
                 lambda state: state == "up",
                 retry_on=(PropertyServiceError,),
             )
@@ -180,7 +180,7 @@ async def test_a_name_registered_anywhere_is_taken_everywhere(
         await clients["gw-c"].set("registry", "services.thermo", "")
         for gateway in IDS:
             await eventually(
-                lambda g=gateway: clients[g].get_names("registry", "services"),  # type: ignore[misc]
+                lambda g=gateway: clients[g].get_names("registry", "services"),
                 lambda names: "thermo" not in names,
                 what=f"{gateway} forgot thermo",
             )
@@ -197,7 +197,7 @@ async def test_killing_the_owner_moves_its_devices_and_a_listen_resumes_with_a_g
             address = stack.enter_context(tcp_device("--service", "sim-sensor", "--name", name))
             await _register(clients["gw-a"], name, address)
         for name in names:
-            await eventually(lambda n=name: _owner(clients["gw-b"], n), lambda o: o == "gw-a")  # type: ignore[misc]
+            await eventually(lambda n=name: _owner(clients["gw-b"], n), lambda o: o == "gw-a")
         events = clients["gw-b"].listen("thermo1", "data")
         first = await anext(events)
         assert not first.gap
@@ -246,7 +246,7 @@ async def test_a_device_that_dialled_in_goes_to_another_gateway_when_its_own_die
     ):
         for gateway in IDS:
             await eventually(
-                lambda g=gateway: clients[g].get_names("registry", "services"),  # type: ignore[misc]
+                lambda g=gateway: clients[g].get_names("registry", "services"),
                 lambda names: "rover" in names,
                 what=f"{gateway} lists the device that dialled in",
             )
@@ -285,7 +285,7 @@ async def test_etcd_restarted_empty_gets_the_keys_back(
         assert "owners/thermo" in keys
         # Nobody took it over, nobody lost it.
         for gateway in IDS:
-            await eventually(lambda g=gateway: _owner(clients[g], "thermo"), lambda o: o == "gw-a")  # type: ignore[misc]
+            await eventually(lambda g=gateway: _owner(clients[g], "thermo"), lambda o: o == "gw-a")
         assert 10.0 < await clients["gw-b"].get_number("thermo", "data") < 30.0
         with tcp_device("--service", "sim-sensor") as other:
             await eventually(lambda: _register(clients["gw-b"], "after", other), retry_on=(Unavailable,))
@@ -342,7 +342,7 @@ async def test_two_gateways_racing_for_one_licence_grant_it_once(cluster: Cluste
         await eventually(lambda: _owner(admin, "arm"), lambda o: o == "gw-a")
         racers = [cluster.client(gateway, who) for gateway, who in (("gw-b", "alice"), ("gw-c", "bob"))]
         for racer in racers:
-            await eventually(lambda r=racer: r.get_names("registry", "services"), lambda n: "arm" in n)  # type: ignore[misc]
+            await eventually(lambda r=racer: r.get_names("registry", "services"), lambda n: "arm" in n)
         try:
             outcomes = await asyncio.gather(
                 *(r.set("registry", "acquire", "", service="arm", duration="30") for r in racers),

@@ -92,7 +92,7 @@ async def test_one_command_starts_a_cluster_that_answers_everywhere_and_stops_it
         for name, (address, _) in gateways.items():
             async with AsyncClient(address) as client:
                 listed = await eventually(
-                    lambda c=client: c.get_names("registry", "services"),  # type: ignore[misc]
+                    lambda c=client: c.get_names("registry", "services"),
                     lambda names: set(devices) <= set(names),
                 )
                 assert set(devices) <= set(listed), name

@@ -48,7 +48,7 @@ async def _member(server: MemoryServer, gateway_id: str) -> Member:
     store = server.store(gateway_id)
     await store.start()
     node = ClusterNode(store, router, lease=LEASE)
-    registry = Registry(directory=node.directory, period=0, register_timeout=3.0)
+    registry = Registry(directory=node.directory, period=0, register_timeout=3.0, store=store, restore=False)
     await registry.start()
     await node.start(registry, address=f"127.0.0.1:{50050 + len(server.stores)}", line="127.0.0.1:7100")
     return Member(gateway_id, router, registry, node)
@@ -84,13 +84,13 @@ async def test_a_registration_on_one_gateway_is_served_by_every_gateway(
     assert a.target("thermo") == "owned here"
     assert await a.router.lookup("thermo").get("temperature") == "21.5"
     for other in (b, c):
-        await wait_until(lambda m=other: "thermo" in m.router, what=f"{other.id} serves thermo")  # type: ignore[misc]
+        await wait_until(lambda m=other: "thermo" in m.router, what=f"{other.id} serves thermo")
         assert other.target("thermo") == "forwarded to gateway gw-a at 127.0.0.1:50051"
         assert other.registry.services.children()["thermo"].url == device  # type: ignore[attr-defined]
     # The owner's state is every gateway's: it reports it, the others mirror it.
     await wait_until(lambda: server.value(Kind.STATE, "thermo") == "up", what="the owner reports up")
     for other in (b, c):
-        await wait_until(lambda m=other: m.registry.state_of("thermo") == "up", what="the state mirrored")  # type: ignore[misc]
+        await wait_until(lambda m=other: m.registry.state_of("thermo") == "up", what="the state mirrored")
     await wait_until(
         lambda: json.loads(server.value(Kind.GATEWAY, "gw-a") or "{}").get("owned") == 1,
         what="gw-a counts what it owns",
@@ -117,13 +117,13 @@ async def test_unregistering_on_any_gateway_removes_it_everywhere(
     await wait_until(lambda: "thermo" in b.router and "thermo" in c.router, what="everyone serves thermo")
     await b.registry.unregister("thermo")
     for member in (a, b, c):
-        await wait_until(lambda m=member: "thermo" not in m.router, what=f"{member.id} dropped thermo")  # type: ignore[misc]
+        await wait_until(lambda m=member: "thermo" not in m.router, what=f"{member.id} dropped thermo")
         await wait_until(
-            lambda m=member: "thermo" not in m.registry.services.children(),  # type: ignore[misc]
+            lambda m=member: "thermo" not in m.registry.services.children(),
             what=f"{member.id}'s registry forgot thermo",
         )
     for kind in (Kind.SERVICE, Kind.OWNER, Kind.STATE):
-        await wait_until(lambda k=kind: server.value(k, "thermo") is None, what=f"{kind} key deleted")  # type: ignore[misc]
+        await wait_until(lambda k=kind: server.value(k, "thermo") is None, what=f"{kind} key deleted")
 
 
 async def test_a_dead_owners_registration_is_taken_over_by_the_least_loaded(
@@ -173,7 +173,7 @@ async def test_a_store_restarted_empty_gets_every_key_again(
     await wait_until(lambda: server.value(Kind.SERVICE, "thermo") is not None, what="the registration again")
     await wait_until(lambda: server.value(Kind.STATE, "thermo") == "up", what="the state written again")
     for gateway in ("gw-a", "gw-b", "gw-c"):
-        await wait_until(lambda g=gateway: server.value(Kind.GATEWAY, g) is not None, what=f"{gateway} again")  # type: ignore[misc]
+        await wait_until(lambda g=gateway: server.value(Kind.GATEWAY, g) is not None, what=f"{gateway} again")
     # Nobody dropped it meanwhile, nor took it over.
     assert a.target("thermo") == "owned here"
     assert b.target("thermo").startswith("forwarded to gateway gw-a")
@@ -210,3 +210,24 @@ async def test_a_device_dialling_in_under_a_name_taken_in_the_cluster_is_turned_
     b.router.add("thermo", impostor)
     await wait_until(lambda: impostor.closed, what="the impostor hung up on")
     assert server.value(Kind.OWNER, "thermo") == "gw-a"
+
+
+async def test_a_gateway_started_without_its_store_joins_when_the_store_is_back(device: str) -> None:
+    server = MemoryServer()
+    server.stop("connection refused")
+    member = await _member(server, "gw-a")
+    try:
+        assert not member.node.joined
+        with pytest.raises(PropertyError, match="read-only") as refused:
+            await member.registry.register("thermo", device)
+        assert refused.value.code is Code.UNAVAILABLE
+        server.start()
+        await wait_until(lambda: member.node.joined, what="joined once the store is back")
+        assert server.value(Kind.GATEWAY, "gw-a") is not None
+        await member.registry.register("thermo", device)
+        assert server.value(Kind.OWNER, "thermo") == "gw-a"
+    finally:
+        await member.node.stop()
+        await member.registry.stop()
+        for name in member.router.names():
+            await member.router.remove(name).aclose()
