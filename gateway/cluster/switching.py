@@ -63,6 +63,8 @@ class _SwitchedListen(Subscription):
         #: The task that opens it on a new target (one at a time).
         self.resuming: asyncio.Task[None] | None = None
         self.closed = False
+        #: Its key in the owner's table of listens.
+        self.key = -1
 
     def forward_for(self, generation: int) -> Notify:
         """The notify handed to the target of ``generation``: it passes changes on while that is current."""
@@ -263,7 +265,8 @@ class SwitchingBackend(Backend):
     ) -> tuple[_SwitchedListen, Backend, int]:
         target = self._require()
         listen = _SwitchedListen(self, path, notify, params)
-        self._listens[next(self._ids)] = listen
+        listen.key = next(self._ids)
+        self._listens[listen.key] = listen
         return listen, target, listen.generation
 
     def _settle(self, listen: _SwitchedListen, sub: Subscription, generation: int) -> None:
@@ -280,9 +283,7 @@ class SwitchingBackend(Backend):
 
     def forget(self, listen: _SwitchedListen) -> None:
         """A Listen ended (its :meth:`_SwitchedListen.close`)."""
-        for key, held in list(self._listens.items()):
-            if held is listen:
-                del self._listens[key]
+        self._listens.pop(listen.key, None)
 
     @property
     def listens(self) -> int:
