@@ -105,7 +105,7 @@ class ClusterNode:
         #: Names looked at again once the store has settled after a reconnect.
         self._deferred: dict[str, None] = {}
         self._wake = asyncio.Event()
-        self._worker: asyncio.Task[None] | None = None
+        self._reconciler: asyncio.Task[None] | None = None
         self._tasks: set[asyncio.Task[None]] = set()
         self._writes = LatestWrites(store)
         self._takeover = Takeover(
@@ -134,7 +134,7 @@ class ClusterNode:
             self.router.watch(self._on_router),
             registry.watch_states(self._on_state, members=True),
         ]
-        self._worker = asyncio.get_running_loop().create_task(self._work(), name="cluster: reconciler")
+        self._reconciler = asyncio.get_running_loop().create_task(self._work(), name="cluster: reconciler")
         for name, backend in self.router.items():  # devices that dialled in before the node started
             self._on_router(name, backend)
         try:
@@ -176,10 +176,10 @@ class ClusterNode:
             stop()
         self._stops.clear()
         await self._takeover.aclose()
-        worker, self._worker = self._worker, None
-        if worker is not None:
-            worker.cancel()
-            await asyncio.gather(worker, return_exceptions=True)
+        reconciler, self._reconciler = self._reconciler, None
+        if reconciler is not None:
+            reconciler.cancel()
+            await asyncio.gather(reconciler, return_exceptions=True)
         tasks = list(self._tasks)
         for task in tasks:
             task.cancel()
