@@ -160,14 +160,14 @@ class LineConnection(asyncio.Protocol):
         #: The task reading a stream (read_from); None when the stream calls data_received itself.
         self._task: asyncio.Task[None] | None = None
         self._stream_writer: asyncio.StreamWriter | None = None
+        self._loop = asyncio.get_running_loop()
         #: Done when the stream reports itself closed.
-        self._lost: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._lost: asyncio.Future[None] = self._loop.create_future()
         self._on_event = on_event
         self._on_restart = on_restart
         self._checksum = checksum
         #: The longest line taken from the device (the proxy option ``maxline``); longer is a bad line.
         self._receiver = LineReceiver(max_line=receive_limit)
-        self._loop = asyncio.get_running_loop()
         self._pending: dict[str, _Pending] = {}
         #: (deadline, issue number, request): a heap over the requests in flight (and some answered
         #: ones, dropped lazily), with the one timer armed at its earliest live deadline.
@@ -276,6 +276,12 @@ class LineConnection(asyncio.Protocol):
     def in_flight(self) -> tuple[int, int]:
         """Unanswered requests on the wire now: (count, bytes)."""
         return self._in_flight, self._in_flight_bytes
+
+    @property
+    def deadlines_held(self) -> int:
+        """Deadlines the connection's timer keeps: of the requests in flight, and of answered ones
+        not dropped yet; never more than twice those in flight plus a few hundred."""
+        return len(self._deadlines)
 
     @property
     def last_heard(self) -> float:
