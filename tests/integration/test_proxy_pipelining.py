@@ -19,10 +19,11 @@ from contextlib import asynccontextmanager
 
 import grpc
 import pytest
+from line_device_support import started_tcp_proxy
 from support.session_stream import replies_until
 from support.waiting import WAIT, eventually
 
-from gateway.proxies import TcpProxy, open_tcp_backend
+from gateway.proxies import TcpProxy
 from gateway.proxies.connection import LineConnection
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -125,14 +126,9 @@ async def fake_device(
 
 @asynccontextmanager
 async def proxy_for(url: str, **options: object) -> AsyncIterator[TcpProxy]:
-    proxy = open_tcp_backend("dev", url, {**FAST, **options})
-    assert isinstance(proxy, TcpProxy)
-    await proxy.start()
-    try:
+    async with started_tcp_proxy(url, {**FAST, **options}) as proxy:
         await proxy.wait_connected(WAIT)
         yield proxy
-    finally:
-        await proxy.aclose()
 
 
 async def answer_each_read(
