@@ -12,7 +12,11 @@ Gets of the robot's ``speed`` are made two ways in the same run, taking turns:
   proxy turns each into a tagged line on its one connection to the device;
 * *gateway-session*: the same Gets over one Session stream of the gateway, batched as
   the client library does (:class:`clients.aio.Session`): the requests issued
-  in the same event-loop iteration go in one SessionRequest.
+  in the same event-loop iteration go in one SessionRequest;
+* *session-floor*: the same Gets over a Session of the same gateway, of the same
+  property of an in-process simulated robot (service ``local``): what a Session
+  Get costs with no device behind it, the floor the proxied Session Get is
+  judged against (it may cost at most this plus 2 × the direct round trip).
 
 Each is measured with 1 and with ``inflight`` calls in flight.
 """
@@ -41,11 +45,13 @@ from services.line_protocol import ErrorReply, Get, Hello, LineReceiver, Ok, enc
 #: The device's name in the gateway, and the property every call reads.
 DEVICE = "dev"
 PROPERTY = "speed"
+#: The in-process service of the same type in the same gateway: the Session floor.
+LOCAL = "local"
 CALL_TIMEOUT = 10.0
 GREETING_TIMEOUT = 10.0
 
 #: The ways each Get is made, in the order they take turns.
-WAYS = ("direct", "gateway", "gateway-session")
+WAYS = ("direct", "gateway", "gateway-session", "session-floor")
 
 DEVICE_ARGV = ["services.device_server", "--service", "sim-robot", "--name", DEVICE, "--tcp", "127.0.0.1:0"]
 
@@ -250,10 +256,12 @@ async def drive(
 
 
 def gateway_config(device_address: str) -> str:
-    """A gateway config that serves the device at ``device_address`` as service ``dev``."""
+    """A gateway config that serves the device at ``device_address`` as service ``dev``,
+    and the same simulated robot in-process as service ``local``."""
     return (
         '[gateway]\nlisten = "127.0.0.1:0"\nlog_level = "warning"\n\n'
-        f'[[services]]\nname = "{DEVICE}"\nurl = "tcp://{device_address}"\n'
+        f'[[services]]\nname = "{DEVICE}"\nurl = "tcp://{device_address}"\n\n'
+        f'[[services]]\nname = "{LOCAL}"\ntype = "sim-robot"\n'
     )
 
 
@@ -313,6 +321,7 @@ async def run_line(
                 "direct": straight,
                 "gateway": through_gateway,
                 "gateway-session": over_session,
+                "session-floor": functools.partial(session.get, LOCAL, PROPERTY),
             }
             for way in ways.values():  # the proxy may still be connecting: the warm-up waits for it
                 await _wait_answering(way)

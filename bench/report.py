@@ -206,6 +206,22 @@ TARGETS += (
         (("gateway-session", "line"), ("direct", "line")),
     ),
     Target(
+        "line-session-proxy-cost",
+        "Session Get p50 with 1 in flight through the TCP proxy minus the in-process Session Get p50 "
+        "(the floor, same gateway, same run), over the direct line-protocol p50",
+        lambda r: (
+            (
+                _line(r, "gateway-session", "1")["latency"]["p50_us"]
+                - _line(r, "session-floor", "1")["latency"]["p50_us"]
+            )
+            / _line(r, "direct", "1")["latency"]["p50_us"]
+        ),
+        "max",
+        2.0,
+        "x",
+        (("gateway-session", "line"), ("session-floor", "line"), ("direct", "line")),
+    ),
+    Target(
         "group-moveto",
         "group behaviors.moveto, time per member at the largest group",
         lambda r: _largest(r, "in-process", "group")["us_per_member"],
@@ -840,6 +856,7 @@ def _issue_tables(out: TextIO, results: Results) -> None:
         ("direct", "line protocol, direct"),
         ("gateway", "gRPC via gateway proxy"),
         ("gateway-session", "gRPC Session via gw proxy"),
+        ("session-floor", "gRPC Session, in-process"),
     ):
         data = results.get(way, {}).get("line")
         if data is None:

@@ -1,8 +1,23 @@
 """One live line-protocol connection to a device, with requests pipelined by tag.
 
-:class:`LineConnection` owns the reader task of one stream (a TCP socket or a
-serial port). Requests get a fresh tag each and may be in flight together;
-replies resolve them in any order. EVENT and GONE lines go to a callback.
+:class:`LineConnection` is the asyncio protocol of one stream to a device: a
+TCP socket it is connected to directly (:meth:`asyncio.loop.create_connection`),
+or a serial port or a dialled-in socket whose stream it reads in one task
+(:meth:`LineConnection.read_from`). Requests get a fresh tag each and may be
+in flight together; replies resolve them in any order. EVENT and GONE lines
+go to a callback.
+
+What one request costs (docs/performance.md, "Get through the TCP proxy"):
+
+* the lines of every request started in one turn of the event loop go out
+  in one ``write`` at the end of that turn, so a batch of Gets from one
+  Session message is one send to the device and, as the device answers a
+  batch in one write, one read back;
+* every complete line of one read is decoded and resolved right in
+  ``data_received``: no reader task to wake, no copy into a stream buffer;
+* one timer per connection, armed at the earliest deadline of the requests
+  in flight, instead of one per request.
+
 Whatever the device sends wrong affects only the request it belongs to:
 
 * a reply that does not arrive in time → DEADLINE_EXCEEDED for that call (a
@@ -27,10 +42,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import heapq
 import logging
 import time
 from collections import deque
 from collections.abc import Callable
+from typing import Protocol, cast
 
 from gateway.logs import current_request_id, outside_requests
 from services.errors import (
@@ -71,6 +88,11 @@ from services.line_protocol import (
 log = logging.getLogger(__name__)
 
 _READ_SIZE = 65536
+#: Seconds that aclose waits for the stream to report itself closed before it aborts it.
+_CLOSE_WAIT_S = 1.0
+#: Answered requests whose deadline is still ahead, beyond which the heap of deadlines is rebuilt
+#: from the requests in flight: it never holds more than about twice those, plus this.
+_STALE_DEADLINES = 256
 #: Most bytes of a sent line shown on the debug line: enough for a path and a short value; a
 #: base64 image must not fill the log.
 LOGGED_LINE_BYTES = 200
@@ -87,15 +109,16 @@ _NOT_SERVED = "not served: the gateway is the client here"
 
 
 class _Pending:
-    """One request waiting for its reply: its future, its timer, its time limit, its size."""
+    """One request waiting for its reply: its future, its deadline, its time limit, its size."""
 
-    __slots__ = ("cancel_when_abandoned", "future", "size", "timeout", "timer")
+    __slots__ = ("cancel_when_abandoned", "deadline", "future", "size", "tag", "timeout")
 
     def __init__(
-        self, future: asyncio.Future[Frame], timer: asyncio.TimerHandle, timeout: float, size: int
+        self, future: asyncio.Future[Frame], tag: str, deadline: float, timeout: float, size: int
     ) -> None:
         self.future = future
-        self.timer = timer
+        self.tag = tag
+        self.deadline = deadline
         self.timeout = timeout
         #: Bytes of its line on the wire, counted against the device's ``rxbuf`` until answered.
         self.size = size
@@ -103,13 +126,26 @@ class _Pending:
         self.cancel_when_abandoned = False
 
 
-class LineConnection:
-    """The client side of one line-protocol stream (see the module docstring)."""
+class LineSink(Protocol):
+    """Where a connection writes: an asyncio transport (a socket's, a serial port's)."""
+
+    def write(self, data: bytes) -> None: ...
+
+    def close(self) -> None: ...
+
+    def abort(self) -> None: ...
+
+
+class LineConnection(asyncio.Protocol):
+    """The client side of one line-protocol stream (see the module docstring).
+
+    Made before the stream is open; it begins to serve when the stream is
+    attached: by :meth:`asyncio.loop.create_connection` (``lambda: connection``)
+    or by :meth:`read_from`.
+    """
 
     def __init__(
         self,
-        reader: asyncio.StreamReader,
-        writer: asyncio.StreamWriter,
         *,
         label: str,
         on_event: Callable[[Event | Gone], None],
@@ -120,15 +156,25 @@ class LineConnection:
         receive_limit: int = MAX_LINE,
     ) -> None:
         self.label = label
-        self._reader = reader
-        self._writer = writer
+        self._transport: LineSink | None = None
+        #: The task reading a stream (read_from); None when the stream calls data_received itself.
+        self._task: asyncio.Task[None] | None = None
+        self._stream_writer: asyncio.StreamWriter | None = None
+        self._loop = asyncio.get_running_loop()
+        #: Done when the stream reports itself closed.
+        self._lost: asyncio.Future[None] = self._loop.create_future()
         self._on_event = on_event
         self._on_restart = on_restart
         self._checksum = checksum
         #: The longest line taken from the device (the proxy option ``maxline``); longer is a bad line.
         self._receiver = LineReceiver(max_line=receive_limit)
-        self._loop = asyncio.get_running_loop()
         self._pending: dict[str, _Pending] = {}
+        #: (deadline, issue number, request): a heap over the requests in flight (and some answered
+        #: ones, dropped lazily), with the one timer armed at its earliest live deadline.
+        self._deadlines: list[tuple[float, int, _Pending]] = []
+        self._issued = 0
+        self._timer: asyncio.TimerHandle | None = None
+        self._timer_at = 0.0
         self._next_tag = 0
         #: The proxy's own ceiling on unanswered requests, and whether the stream is a serial line.
         self._ceiling = max_in_flight
@@ -141,7 +187,7 @@ class LineConnection:
         self._in_flight_bytes = 0
         #: Requests waiting for room, oldest first: (waiter, bytes of the line).
         self._room_waiters: deque[tuple[asyncio.Future[None], int]] = deque()
-        #: Lines queued in this loop iteration after the first one went out; see _write_line.
+        #: Lines written in this turn of the event loop; they go out together at its end.
         self._outgoing: list[bytes] = []
         self._flush_due = False
         self._closed = asyncio.Event()
@@ -155,9 +201,60 @@ class LineConnection:
         self._asked_until = 0.0
         #: Longest line the device accepts (from its greeting).
         self.max_line = MAX_LINE
+
+    # -- the stream --------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        # A stream's transport: a socket's or a serial port's, both of which write.
+        self._transport = cast("LineSink", transport)
+
+    def read_from(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """Serve a stream opened elsewhere (a serial port, a socket that dialled in): one task reads it."""
+        self.connection_made(writer.transport)
+        # Held: a StreamWriter that is collected closes its transport.
+        self._stream_writer = writer
         self._task = asyncio.create_task(
-            self._read_loop(), name=f"line-connection {label}", context=outside_requests()
+            self._read_loop(reader), name=f"line-connection {self.label}", context=outside_requests()
         )
+
+    def data_received(self, data: bytes) -> None:
+        self._last_data = time.monotonic()
+        receiver = self._receiver
+        frames = receiver.receive_data(data)
+        for frame, checked in zip(frames, receiver.last_checked, strict=True):
+            self._handle(frame, checked)
+
+    def eof_received(self) -> bool:
+        self._ended(self._eof_reason())
+        return False
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._ended(f"connection lost: {exc}" if exc is not None else self._eof_reason())
+        if not self._lost.done():
+            self._lost.set_result(None)
+
+    def _eof_reason(self) -> str:
+        if self._receiver.pending:
+            return "the device closed the connection in the middle of a line"
+        return "the device closed the connection"
+
+    def _ended(self, reason: str) -> None:
+        if not self._closed.is_set():
+            log.warning("%s: %s", self.label, reason)
+        self.close(reason)
+
+    async def _read_loop(self, reader: asyncio.StreamReader) -> None:
+        try:
+            while data := await reader.read(_READ_SIZE):
+                self.data_received(data)
+            reason = self._eof_reason()
+        except (ConnectionError, OSError) as exc:
+            reason = f"connection lost: {exc}"
+        except asyncio.CancelledError:
+            reason = self._close_reason
+        self._ended(reason)
+        if not self._lost.done():
+            self._lost.set_result(None)
 
     # -- state -------------------------------------------------------------
 
@@ -181,6 +278,12 @@ class LineConnection:
         return self._in_flight, self._in_flight_bytes
 
     @property
+    def deadlines_held(self) -> int:
+        """Deadlines the connection's timer keeps: of the requests in flight, and of answered ones
+        not dropped yet; never more than twice those in flight plus a few hundred."""
+        return len(self._deadlines)
+
+    @property
     def last_heard(self) -> float:
         """``time.monotonic()`` when the device last sent anything."""
         return self._last_data
@@ -194,8 +297,9 @@ class LineConnection:
             return
         self._close_reason = reason
         self._closed.set()
+        self._stop_timer()
+        self._deadlines.clear()
         for pending in self._pending.values():
-            pending.timer.cancel()
             if not pending.future.done():
                 pending.future.set_exception(Unavailable(f"{self.label}: {reason}"))
         self._pending.clear()
@@ -206,21 +310,37 @@ class LineConnection:
         self._outgoing.clear()
         if not self.hello.done():
             self.hello.set_exception(Unavailable(f"{self.label}: {reason}"))
-        try:
-            self._writer.close()
-        except OSError as exc:  # the stream broke already: closing it is all that was left to do
-            log.debug("%s: closing the stream: %s", self.label, exc)
-        except Exception:
-            log.exception("%s: closing the stream failed", self.label)
-        if asyncio.current_task() is not self._task:
-            self._task.cancel()
+        transport = self._transport
+        if transport is None:  # never attached: nothing to close, and nobody waits for it
+            self._lost.cancel()
+        else:
+            try:
+                transport.close()
+            except OSError as exc:  # the stream broke already: closing it is all that was left to do
+                log.debug("%s: closing the stream: %s", self.label, exc)
+            except Exception:
+                log.exception("%s: closing the stream failed", self.label)
+        task = self._task
+        if task is not None and asyncio.current_task() is not task:
+            task.cancel()
 
     async def aclose(self, reason: str = "connection closed") -> None:
+        """Close, and wait (a bounded while) until the stream is closed and its reader has ended."""
         self.close(reason)
-        # The reader ends cancelled (expected); anything else it raised is a bug worth a traceback.
-        (outcome,) = await asyncio.gather(self._task, return_exceptions=True)
-        if isinstance(outcome, Exception):
-            log.error("%s: the reader failed", self.label, exc_info=outcome)
+        task = self._task
+        if task is not None:
+            # The reader ends cancelled (expected); anything else it raised is a bug worth a traceback.
+            (outcome,) = await asyncio.gather(task, return_exceptions=True)
+            if isinstance(outcome, Exception):
+                log.error("%s: the reader failed", self.label, exc_info=outcome)
+            return
+        if self._transport is None or self._lost.done():
+            return
+        # A device that does not read keeps the last lines in the send buffer: abort after a while.
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(asyncio.shield(self._lost), _CLOSE_WAIT_S)
+            return
+        self._transport.abort()
 
     # -- requests ----------------------------------------------------------
 
@@ -228,22 +348,22 @@ class LineConnection:
         self._write_line(encode(frame, checksum=self._checksum, max_line=self.max_line))
 
     def _write_line(self, line: bytes) -> None:
-        # The first line of a loop iteration goes out at once (no added latency);
-        # lines queued after it in the same iteration go out together in one send.
-        if self._flush_due:
-            self._outgoing.append(line)
-            return
-        self._flush_due = True
-        self._loop.call_soon(self._flush)
-        self._writer.write(line)
+        # Every line of this turn of the loop goes out in one write at its end: a Session message
+        # of many Gets is one send to the device (and, answered in one write, one read back).
+        self._outgoing.append(line)
+        if not self._flush_due:
+            self._flush_due = True
+            self._loop.call_soon(self._flush)
 
     def _flush(self) -> None:
         self._flush_due = False
         lines = self._outgoing
-        if lines:
-            self._outgoing = []
-            if not self._closed.is_set():
-                self._writer.write(b"".join(lines))
+        if not lines:
+            return
+        self._outgoing = []
+        transport = self._transport
+        if transport is not None and not self._closed.is_set():
+            transport.write(lines[0] if len(lines) == 1 else b"".join(lines))
 
     def start_request(self, frame: Request, deadline_s: float) -> asyncio.Future[Frame] | None:
         """Send ``frame`` now under a fresh tag; return the future of its reply (Ok, Pong or Hello).
@@ -331,10 +451,10 @@ class LineConnection:
         if self._closed.is_set():
             self._release(len(line))
             raise Unavailable(f"{self.label}: {self._close_reason}")
-        loop = self._loop
-        future: asyncio.Future[Frame] = loop.create_future()
-        pending = _Pending(future, loop.call_at(deadline, self._expire, tag), timeout, len(line))
+        future: asyncio.Future[Frame] = self._loop.create_future()
+        pending = _Pending(future, tag, deadline, timeout, len(line))
         self._pending[tag] = pending
+        self._add_deadline(pending)
         if type(frame) is Set and not self.flow_controlled:
             pending.cancel_when_abandoned = True
             future.add_done_callback(lambda done: self._abandoned(done, tag))
@@ -367,10 +487,48 @@ class LineConnection:
         with contextlib.suppress(LineProtocolError):
             self._send(Cancel(tag))
 
-    def _expire(self, tag: str) -> None:
-        pending = self._pending.pop(tag, None)
-        if pending is None:
-            return
+    # -- deadlines: one timer for the connection ------------------------------
+
+    def _add_deadline(self, pending: _Pending) -> None:
+        deadlines = self._deadlines
+        if len(deadlines) > 2 * len(self._pending) + _STALE_DEADLINES:
+            # Mostly answered requests: keep only those in flight (amortised: once per that many).
+            self._deadlines = deadlines = [entry for entry in deadlines if self._live(entry[2])]
+            heapq.heapify(deadlines)
+        self._issued += 1
+        heapq.heappush(deadlines, (pending.deadline, self._issued, pending))
+        if self._timer is None or pending.deadline < self._timer_at:
+            self._arm(pending.deadline)
+
+    def _live(self, pending: _Pending) -> bool:
+        return self._pending.get(pending.tag) is pending
+
+    def _arm(self, when: float) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+        self._timer = self._loop.call_at(when, self._expire_due)
+        self._timer_at = when
+
+    def _stop_timer(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+    def _expire_due(self) -> None:
+        """The timer: every request whose deadline has come fails; then the timer is armed again."""
+        self._timer = None
+        deadlines = self._deadlines
+        now = self._loop.time()
+        while deadlines and (deadlines[0][0] <= now or not self._live(deadlines[0][2])):
+            _, _, pending = heapq.heappop(deadlines)
+            if self._live(pending):
+                self._expire(pending)
+        if deadlines and self._timer is None and not self._closed.is_set():
+            self._arm(deadlines[0][0])
+
+    def _expire(self, pending: _Pending) -> None:
+        tag = pending.tag
+        del self._pending[tag]
         # A request not answered in time is taken as lost: its room is free again (§4.2).
         self._release(pending.size)
         self._send_cancel(pending, tag)
@@ -454,27 +612,6 @@ class LineConnection:
 
     # -- receiving ---------------------------------------------------------
 
-    async def _read_loop(self) -> None:
-        reason = "the device closed the connection"
-        try:
-            while True:
-                data = await self._reader.read(_READ_SIZE)
-                if not data:
-                    if self._receiver.pending:
-                        reason = "the device closed the connection in the middle of a line"
-                    break
-                self._last_data = time.monotonic()
-                frames = self._receiver.receive_data(data)
-                for frame, checked in zip(frames, self._receiver.last_checked, strict=True):
-                    self._handle(frame, checked)
-        except (ConnectionError, OSError) as exc:
-            reason = f"connection lost: {exc}"
-        except asyncio.CancelledError:
-            reason = self._close_reason
-        if not self._closed.is_set():
-            log.warning("%s: %s", self.label, reason)
-        self.close(reason)
-
     def _handle(self, frame: Frame | BadLine, checked: bool = False) -> None:
         kind = type(frame)
         if kind is Ok or kind is ErrorReply or kind is Pong or kind is Hello:
@@ -534,7 +671,6 @@ class LineConnection:
             if type(reply) is not Hello:
                 log.info("%s: reply for tag #%s came too late or was not asked for; ignored", self.label, tag)
             return
-        pending.timer.cancel()
         self._release(pending.size)
         future = pending.future
         if future.done():
@@ -579,8 +715,9 @@ class LineConnection:
     def _lost_everything(self, reason: str) -> None:
         """Every unanswered request is lost (the device restarted): fail them, free their room."""
         pending, self._pending = self._pending, {}
+        self._deadlines.clear()
+        self._stop_timer()
         for entry in pending.values():
-            entry.timer.cancel()
             if not entry.future.done():
                 entry.future.set_exception(Unavailable(f"{self.label}: {reason}"))
         self._in_flight = 0
@@ -606,7 +743,6 @@ class LineConnection:
             return
         pending = self._pending.pop(bad.tag, None) if bad.tag is not None else None
         if pending is not None:
-            pending.timer.cancel()
             self._release(pending.size)
         future = pending.future if pending is not None else None
         log.warning(

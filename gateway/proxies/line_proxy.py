@@ -225,6 +225,16 @@ class LineProxy(Backend):
         """Open the byte stream to the device (raise OSError when it cannot be opened)."""
         raise NotImplementedError
 
+    async def attach(self, connection: LineConnection) -> None:
+        """Open the stream to the device and serve ``connection`` on it (OSError when it cannot be opened).
+
+        By default over the stream of :meth:`open_stream`, read by a task of the
+        connection; a proxy that can open a transport for the connection's own
+        protocol (TCP) overrides this and saves that task and a copy per read.
+        """
+        reader, writer = await self.open_stream()
+        connection.read_from(reader, writer)
+
     # -- lifecycle ---------------------------------------------------------
 
     async def start(self) -> None:
@@ -320,16 +330,7 @@ class LineProxy(Backend):
             await asyncio.sleep(self.options.backoff_initial * random.uniform(0.5, 1.0))
 
     async def _connect(self) -> LineConnection | None:
-        try:
-            async with asyncio.timeout(self.options.connect_timeout):
-                reader, writer = await self.open_stream()
-        except (OSError, TimeoutError) as exc:
-            self._last_error = f"cannot connect: {exc or 'timed out'}"
-            log.info("%s: %s", self._label(), self._last_error)
-            return None
         conn = LineConnection(
-            reader,
-            writer,
             label=f"device {self.name}",
             on_event=self._on_event,
             checksum=self.options.checksum,
@@ -338,6 +339,15 @@ class LineProxy(Backend):
             on_restart=self._restarted,
             receive_limit=self.options.maxline,
         )
+        try:
+            async with asyncio.timeout(self.options.connect_timeout):
+                await self.attach(conn)
+        except (OSError, TimeoutError) as exc:
+            self._last_error = f"cannot connect: {exc or 'timed out'}"
+            log.info("%s: %s", self._label(), self._last_error)
+            conn.hello.cancel()  # nobody will wait for a greeting on a stream that never opened
+            await conn.aclose(self._last_error)
+            return None
         try:
             async with asyncio.timeout(self.options.connect_timeout):
                 if self.ask_hello_first:

@@ -7,6 +7,7 @@ from collections.abc import Mapping
 from typing import Any
 from urllib.parse import urlsplit
 
+from gateway.proxies.connection import LineConnection
 from gateway.proxies.line_proxy import LineProxy, ProxyOptions
 from services.backend import Backend
 from services.errors import InvalidArgument
@@ -20,8 +21,9 @@ class TcpProxy(LineProxy):
         self.host = host
         self.port = port
 
-    async def open_stream(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
-        return await asyncio.open_connection(self.host, self.port, limit=65536)
+    async def attach(self, connection: LineConnection) -> None:
+        # The connection is the socket's protocol: each read is decoded where it arrives.
+        await asyncio.get_running_loop().create_connection(lambda: connection, self.host, self.port)
 
 
 def open_tcp_backend(name: str, url: str, options: Mapping[str, Any]) -> Backend:

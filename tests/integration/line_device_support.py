@@ -1,4 +1,5 @@
-"""Start line-protocol devices as real processes, and talk to them with raw sockets and ptys."""
+"""Start line-protocol devices as real processes, talk to them with raw sockets and ptys, and
+proxy them with the gateway's TCP proxy."""
 
 from __future__ import annotations
 
@@ -9,9 +10,11 @@ import re
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import AsyncIterator, Iterator, Mapping
+from contextlib import asynccontextmanager, contextmanager
 from pathlib import Path
+
+from gateway.proxies import TcpProxy, open_tcp_backend
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -49,6 +52,18 @@ def tcp_device(*args: str, env: dict[str, str] | None = None) -> Iterator[tuple[
         match = re.fullmatch(r"listening on (.+):(\d+)", first)
         assert match, first
         yield match.group(1), int(match.group(2))
+
+
+@asynccontextmanager
+async def started_tcp_proxy(url: str, options: Mapping[str, object]) -> AsyncIterator[TcpProxy]:
+    """The gateway's proxy for the device at ``url`` (``tcp://HOST:PORT``), started; closed at the end."""
+    proxy = open_tcp_backend("dev", url, options)
+    assert isinstance(proxy, TcpProxy)
+    await proxy.start()
+    try:
+        yield proxy
+    finally:
+        await proxy.aclose()
 
 
 @contextmanager

@@ -25,6 +25,7 @@ TARGETS = (
     "line-get-inflight",
     "line-session-p50",
     "line-session-inflight",
+    "line-session-proxy-cost",
     "group-moveto",
     "group-scaling",
     "find-p99",
@@ -132,8 +133,8 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     if measured:
         assert "(s) the gateway against the peers" in out, out
     # The line-protocol part: the same Gets straight to the device and through the gateway (unary and
-    # Session), 1 and 8 in flight.
-    for way in ("direct", "gateway", "gateway-session"):
+    # Session), and over Session of the same property in-process (the floor), 1 and 8 in flight.
+    for way in ("direct", "gateway", "gateway-session", "session-floor"):
         line = payload["results"][way]["line"]
         assert "error" not in line, (way, line)
         assert sorted(line["inflight"], key=int) == ["1", "8"]

@@ -10,7 +10,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 
 import pytest
-from line_device_support import device_process, tcp_device
+from line_device_support import device_process, started_tcp_proxy, tcp_device
 from support.group_support import MemoryDirectory
 from support.ports import free_port
 
@@ -30,13 +30,8 @@ FAST = {
 
 @asynccontextmanager
 async def proxy_for(url: str, **options: object) -> AsyncIterator[TcpProxy]:
-    proxy = open_tcp_backend("dev", url, {**FAST, **options})
-    assert isinstance(proxy, TcpProxy)
-    await proxy.start()
-    try:
+    async with started_tcp_proxy(url, {**FAST, **options}) as proxy:
         yield proxy
-    finally:
-        await proxy.aclose()
 
 
 async def expect_error(code: Code, call: Awaitable[object]) -> PropertyError:
