@@ -76,7 +76,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "group_sizes": (100, 1_000, 10_000),
         "find_sizes": (100, 1_000, 10_000),
         "find_queries": 1_000,
-        "register_sizes": (100, 1_000),
+        "register_sizes": (1_000, 10_000),
         "storage_calls": 1_000,
         "transitions": 20_000,
         "scheduler_sizes": (100, 10_000),
@@ -98,7 +98,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "group_sizes": (100, 1_000),
         "find_sizes": (100, 1_000),
         "find_queries": 200,
-        "register_sizes": (100,),
+        "register_sizes": (1_000, 2_000),
         "storage_calls": 200,
         "transitions": 2_000,
         "scheduler_sizes": (100, 10_000),
@@ -480,7 +480,10 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
         results.setdefault("gateway", {})["register"] = await _timed(
             f"register over raw TCP, {_listing(args.register_sizes)} members",
             lambda: run_register(
-                args.register_sizes, concurrency=args.register_concurrency, time_limit=args.time_limit
+                args.register_sizes,
+                concurrency=args.register_concurrency,
+                time_limit=args.time_limit,
+                rounds=args.rounds,
             ),
         )
 

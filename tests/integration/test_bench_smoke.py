@@ -30,6 +30,7 @@ TARGETS = (
     "find-p99",
     "find-scaling",
     "register-rate",
+    "register-scaling",
     "register-memory",
     "tls-unary",
     "tls-session",
@@ -95,7 +96,7 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     assert [d["entries"] for d in find["sizes"]] == [100, 1000]
     assert all(d["indexed"] == d["entries"] for d in find["sizes"]), find
     register = payload["results"]["gateway"]["register"]
-    assert [d["members"] for d in register["sizes"]] == [100]
+    assert [d["members"] for d in register["sizes"]] == [1000, 2000]
     assert all(d["registered"] == d["members"] and d["last_member_answered"] for d in register["sizes"]), (
         register
     )
