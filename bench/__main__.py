@@ -21,6 +21,7 @@ from typing import Any
 
 from bench import report
 from bench.camera import run_camera
+from bench.cluster import run_cores
 from bench.fusion import run_fusion
 from bench.groups import run_scaling
 from bench.line import WAYS as LINE_WAYS
@@ -55,6 +56,7 @@ PARTS = (
     "camera",
     "fusion",
     "metrics",
+    "cluster",
 )
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
@@ -84,6 +86,10 @@ PROFILES: dict[str, dict[str, Any]] = {
         "camera_seconds": 10.0,
         "fusion_sizes": (100, 10_000),
         "fusion_observations": 20_000,
+        "cluster_gateways": (1, 2, 4),
+        "cluster_streams": 400,
+        "cluster_listeners": 4,
+        "cluster_seconds": 5.0,
     },
     "quick": {
         "calls": 2_000,
@@ -106,6 +112,10 @@ PROFILES: dict[str, dict[str, Any]] = {
         "camera_seconds": 3.0,
         "fusion_sizes": (100, 10_000),
         "fusion_observations": 2_000,
+        "cluster_gateways": (1, 2, 4),
+        "cluster_streams": 100,
+        "cluster_listeners": 2,
+        "cluster_seconds": 2.0,
     },
 }
 
@@ -140,6 +150,18 @@ def _sizes(text: str) -> tuple[int, ...]:
     return sizes
 
 
+def _gateway_counts(text: str) -> tuple[int, ...]:
+    try:
+        counts = tuple(int(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        counts = ()
+    if len(counts) < 2 or counts[0] != 1 or list(counts) != sorted(set(counts)) or counts[-1] > 16:
+        raise argparse.ArgumentTypeError(
+            "expected increasing numbers of gateways from 1 to at most 16, e.g. 1,2,4"
+        )
+    return counts
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="python -m bench",
@@ -150,7 +172,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "TCP at growing sizes; (i) mTLS and a token; (j) a storage service's Get and Set beside plain file "
         "I/O; (k) Server-Sent-Events fan-out beside gRPC Listen; (l) chart transitions with a Set each; "
         "(m) scheduler decisions; (n) environment model fusion per observation, growing numbers of markers; "
-        "(o) camera frames to 10 Listeners and the gateway's CPU; (p) unary Get with and without metrics. "
+        "(o) camera frames to 10 Listeners and the gateway's CPU; (p) unary Get with and without metrics; "
+        "(q) Listen fan-out from 1, 2 and 4 gateway processes, the others forwarding from the first. "
         "Prints figures, ratios and targets.",
     )
     parser.add_argument(
@@ -261,6 +284,24 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--fusion-observations",
         type=_positive,
         help=f"(n) observations fused per size {both('fusion_observations')}",
+    )
+    sizes.add_argument(
+        "--cluster-gateways",
+        type=_gateway_counts,
+        help=f"(q) gateway processes sharing the fan-out, in turn {listed('cluster_gateways')}",
+    )
+    sizes.add_argument(
+        "--cluster-streams", type=_positive, help=f"(q) Listen streams in all {both('cluster_streams')}"
+    )
+    sizes.add_argument(
+        "--cluster-listeners",
+        type=_positive,
+        help=f"(q) processes that open the Listen streams {both('cluster_listeners')}",
+    )
+    sizes.add_argument(
+        "--cluster-seconds",
+        type=float,
+        help=f"(q) seconds the listeners count events {both('cluster_seconds')}",
     )
     sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
     sizes.add_argument(
@@ -474,6 +515,20 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
                 inflight=args.inflight,
                 rounds=max(args.rounds, 2),
                 time_limit=args.time_limit,
+            ),
+        )
+    if "cluster" in args.parts:
+        results.setdefault("cluster", {})["cores"] = await _timed(
+            f"cluster: Listen fan-out of {args.cluster_streams} streams from "
+            f"{_listing(args.cluster_gateways)} gateway processes",
+            lambda: run_cores(
+                args.cluster_gateways,
+                streams=args.cluster_streams,
+                listeners=args.cluster_listeners,
+                seconds=args.cluster_seconds,
+                warmup=min(1.0, args.cluster_seconds / 2),
+                rounds=args.rounds,
+                time_limit=4 * args.time_limit,
             ),
         )
     if "register" in args.parts:

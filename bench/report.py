@@ -59,6 +59,8 @@ class Target:
     bound: float
     unit: str
     needs: tuple[tuple[str, str], ...]
+    #: A bound the results choose (the machine they ran on), in place of ``bound``.
+    bound_of: Callable[[Results], float] | None = None
 
 
 def _get(results: Results, server: str, part: str, key: str) -> float:
@@ -476,6 +478,27 @@ TARGETS += (
 )
 
 
+def _cores(results: Results) -> dict[str, Any]:
+    """The run of part (q) the cores target judges: K=4 on a machine with 4 free cores, else K=2."""
+    cores = results["cluster"]["cores"]
+    return next(size for size in cores["sizes"] if size["gateways"] == cores["judged_gateways"])
+
+
+TARGETS += (
+    Target(
+        "cluster-cores",
+        "Listen events/s from K gateway processes (K-1 forwarding from the first) / from one; "
+        "K=4 >= 3 x with 4 free cores, else K=2 >= 1.6 x",
+        lambda r: float(_cores(r)["ratio"]),
+        "min",
+        1.6,
+        "x",
+        (("cluster", "cores"),),
+        bound_of=lambda r: float(r["cluster"]["cores"]["judged_bound"]),
+    ),
+)
+
+
 def evaluate(results: Results) -> list[dict[str, Any]]:
     """Each target's figure, bound and verdict (PASS, FAIL, or why it could not be judged)."""
     verdicts = []
@@ -503,7 +526,9 @@ def evaluate(results: Results) -> list[dict[str, Any]]:
             except (ZeroDivisionError, KeyError, IndexError, ValueError):
                 figure = math.nan
             verdict["figure"] = round(figure, 3)
-            ok = figure >= target.bound if target.kind == "min" else figure <= target.bound
+            bound = target.bound if target.bound_of is None else target.bound_of(results)
+            verdict["bound"] = bound
+            ok = figure >= bound if target.kind == "min" else figure <= bound
             verdict["verdict"] = "PASS" if ok else "FAIL"
             if incomplete:
                 verdict["verdict"] += " (incomplete: " + ", ".join(incomplete) + ")"
@@ -935,6 +960,53 @@ def _issue_tables(out: TextIO, results: Results) -> None:
     _camera_table(out, results)
     _fusion_table(out, results)
     _metrics_table(out, results)
+    _cores_table(out, results)
+
+
+def _cores_table(out: TextIO, results: Results) -> None:
+    cores = results.get("cluster", {}).get("cores")
+    if not cores:
+        return
+    if "error" in cores:
+        _table(
+            out,
+            "(q) Listen fan-out from K gateway processes",
+            ["where", "error"],
+            [_error_row("cluster", cores)],
+        )
+        return
+    rows = [
+        [
+            str(d["gateways"]),
+            f"{d['streams']:,}",
+            str(d["listener_processes"]),
+            f"{d['events_per_s']:,.0f}",
+            _fmt(d["ratio"], 2),
+            f"{d['conflated']:,}",
+            f"{d['sets_per_s']:,.0f}",
+            " ".join(f"{c:.2f}" for c in d["gateway_cores"]),
+            str(d["rounds_events_per_s"]),
+        ]
+        for d in cores["sizes"]
+    ]
+    _table(
+        out,
+        "(q) Listen fan-out from K gateway processes, K-1 forwarding bench/value from the first (grpc://); "
+        f"{cores['cpu_count']} cores, {cores['usable_cores']} usable, {cores['free_cores']} free "
+        f"(load average {cores['load_average']})",
+        [
+            "K",
+            "streams",
+            "listener procs",
+            "events/s",
+            "x one",
+            "conflated",
+            "Sets/s",
+            "gateway cores",
+            "rounds",
+        ],
+        rows,
+    )
 
 
 def _metrics_table(out: TextIO, results: Results) -> None:

@@ -45,6 +45,7 @@ TARGETS = (
     "camera-cores",
     "fusion-scaling",
     "metrics-unary",
+    "cluster-cores",
 )
 
 
@@ -127,6 +128,11 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     metrics = payload["results"]["gateway"]["metrics"]
     assert metrics["pairs"] >= 6 and len(metrics["pair_ratios"]) == metrics["pairs"], metrics
     assert metrics["scraped_get_calls"] >= metrics["pairs"] // 2 * metrics["calls_per_batch"], metrics
+    # The cluster part: fan-out from 1, 2 and 4 gateway processes, every stream open to the end.
+    cores = payload["results"]["cluster"]["cores"]
+    assert [d["gateways"] for d in cores["sizes"]] == [1, 2, 4] and cores["complete"], cores
+    assert all(d["events"] > 0 and d["streams_ended"] == 0 for d in cores["sizes"]), cores
+    assert cores["usable_cores"] >= 1 and cores["judged_gateways"] in (2, 4), cores
     titles = (
         "(e) Get of",
         "(f) group behaviors.moveto",
@@ -140,6 +146,7 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         "(o) camera",
         "(n) environment model",
         "(p) the cost of metrics",
+        "(q) Listen fan-out from K gateway processes",
     )
     for title in titles:
         assert title in out, f"no table {title!r}:\n{out}"
