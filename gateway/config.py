@@ -21,6 +21,11 @@ from gateway.audit import AuditSection
 from gateway.identity import Authenticator, AuthSection
 from gateway.logs import LOG_FORMATS
 from gateway.rules import Rule
+from gateway.stores.address import parse_store_url
+from gateway.stores.etcd import DEFAULT_LEASE as DEFAULT_STORE_LEASE
+from gateway.stores.etcd import DEFAULT_PREFIX as DEFAULT_STORE_PREFIX
+from gateway.stores.etcd import MAX_LEASE as MAX_STORE_LEASE
+from gateway.stores.etcd import MIN_LEASE as MIN_STORE_LEASE
 from services.errors import InvalidArgument, PropertyError
 from services.paths import validate_service_name
 from services.registry import (
@@ -222,6 +227,24 @@ class RegistrySection:
     max_licences: int = DEFAULT_MAX_LICENCES
     #: Longest licence in seconds (a longer ``duration`` is INVALID_ARGUMENT); a longer job renews.
     max_licence_duration: float = DEFAULT_MAX_LICENCE_DURATION
+    #: Where the registry is kept: empty = embedded (this gateway's memory and ``persist``);
+    #: ``etcd://HOST:PORT[,HOST:PORT...]`` (``etcds://`` for TLS) = shared by many gateways.
+    store: str = ""
+    #: PEM files for ``etcds://``: the CA of etcd's certificate, this gateway's client certificate
+    #: and key (absolute once parsed; relative paths are taken from the config file's folder).
+    store_ca: str = ""
+    store_cert: str = ""
+    store_key: str = ""
+    #: The folder of every key this cluster writes in etcd.
+    store_prefix: str = DEFAULT_STORE_PREFIX
+    #: Seconds of this gateway's lease in etcd (kept alive every third of it): a gateway that dies
+    #: loses what it owned within this time.
+    store_lease: float = DEFAULT_STORE_LEASE
+    #: This gateway's id in the cluster; empty = made from the host name and the gRPC port.
+    gateway_id: str = ""
+    #: host:port the other gateways dial to reach this gateway's services; empty = the gRPC
+    #: listen address.
+    advertise: str = ""
 
 
 #: Seconds a woken dormant service stays unused before it is stopped again, by default.
@@ -709,6 +732,7 @@ def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
                 found_here.append(f"{where}.{key}: must be a positive number of seconds, got {value}")
         if section.max_queued < 1:
             found_here.append(f"{where}.max_queued: must be at least 1, got {section.max_queued}")
+        section = _store(section, where, folder, found_here)
         if section.persist:
             path = Path(section.persist).expanduser()
             if not path.is_absolute():
@@ -720,6 +744,73 @@ def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
 
     rest = {k: v for k, v in data.items() if k != "allow"}
     return _checked_section(RegistrySection, rest, where, checks)
+
+
+#: Longest gateway id: it is part of etcd keys and values, and of log lines.
+MAX_GATEWAY_ID = 128
+
+
+def _store(section: RegistrySection, where: str, folder: Path | None, found: list[str]) -> RegistrySection:
+    """The ``store*``, ``gateway_id`` and ``advertise`` keys checked; TLS files made absolute."""
+    tls = False
+    if section.store:
+        try:
+            tls = parse_store_url(section.store).tls
+        except ValueError as e:
+            found.append(f"{where}.store: {e}")
+        if section.persist:
+            found.append(
+                f"{where}.persist: keeps the embedded store's registrations; with store = "
+                f"{section.store!r} they are kept there: remove one of the two"
+            )
+    files: dict[str, str] = {}
+    for key in ("store_ca", "store_cert", "store_key"):
+        value = getattr(section, key)
+        if not value:
+            continue
+        if not tls:
+            found.append(f"{where}.{key}: TLS files need a store URL starting with etcds://")
+            continue
+        try:
+            files[key] = _config_file(value, f"{where}.{key}", folder)
+        except ConfigError as exc:
+            found.extend(exc.problems)
+    if bool(section.store_cert) != bool(section.store_key):
+        found.append(f"{where}: give both 'store_cert' and 'store_key' (this gateway's certificate for etcd)")
+    prefix = section.store_prefix.rstrip("/")
+    if not section.store_prefix.startswith("/") or not prefix or any(c.isspace() for c in prefix):
+        found.append(
+            f"{where}.store_prefix: expected a folder of keys like '/propertyservice', "
+            f"got {section.store_prefix!r}"
+        )
+    lease = section.store_lease
+    if not (math.isfinite(lease) and MIN_STORE_LEASE <= lease <= MAX_STORE_LEASE):
+        found.append(
+            f"{where}.store_lease: must be {MIN_STORE_LEASE:g} to {MAX_STORE_LEASE:g} seconds, got {lease}"
+        )
+    gateway_id = section.gateway_id
+    if gateway_id and (
+        len(gateway_id) > MAX_GATEWAY_ID
+        or "/" in gateway_id
+        or not gateway_id.isprintable()
+        or " " in gateway_id
+    ):
+        found.append(
+            f"{where}.gateway_id: 1 to {MAX_GATEWAY_ID} printable characters without '/' or spaces, "
+            f"got {gateway_id[:MAX_GATEWAY_ID]!r}"
+        )
+    if section.advertise:
+        try:
+            _check_address(section.advertise, f"{where}.advertise")
+        except ConfigError as exc:
+            found.extend(exc.problems)
+    return replace(
+        section,
+        store_prefix=prefix or section.store_prefix,
+        store_ca=files.get("store_ca", section.store_ca),
+        store_cert=files.get("store_cert", section.store_cert),
+        store_key=files.get("store_key", section.store_key),
+    )
 
 
 def _allow(value: Any, where: str) -> tuple[str, ...]:

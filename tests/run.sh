@@ -86,6 +86,12 @@ command -v mmdebstrap >/dev/null || container_missing+=(mmdebstrap)
 if [ "${#container_missing[@]}" -gt 0 ]; then
   apt_install "the container image" "${container_missing[@]}"
 fi
+# The shared registry store's tests (tests/integration/test_store_etcd.py and the cluster tests) start
+# real etcd servers: Debian's etcd-server (the `etcd` command; ~7 MB). Its service is not needed:
+# each test starts its own server on free loopback ports.
+if ! command -v etcd >/dev/null; then
+  apt_install "the shared registry store (etcd)" etcd-server
+fi
 bash tests/containers/setup.sh || echo "note: tests/containers/setup.sh failed; the container tests will skip"
 
 echo "== ruff check"; python -m ruff check .

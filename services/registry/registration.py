@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 from collections.abc import Callable, Mapping
 
 from services.backend import NO_PARAMS, Backend
@@ -25,10 +26,13 @@ from services.registry.allow import AllowList
 from services.registry.entry import parse_lease
 from services.registry.persistence import Registration
 from services.registry.scheduling import parse_capabilities
+from services.registry.store import RegistryStore
 from services.registry.table import ServiceTable
 from services.registry.urls import check_url
 
 __all__ = ["DEFAULT_MAX_REGISTRATIONS", "DEFAULT_REGISTER_TIMEOUT", "RESERVED_SERVICE_NAMES", "Registrations"]
+
+log = logging.getLogger(__name__)
 
 #: Registrations by Set the registry holds at once (``[registry] max_registrations``): each one
 #: is a proxy with a connection and tasks, so an unbounded number is a way to exhaust the gateway.
@@ -63,8 +67,9 @@ def parse_features(text: str) -> frozenset[str]:
 class Registrations:
     """Turns registrations into backends through a :class:`Directory`, and remembers them.
 
-    ``records`` holds the registrations made by Set (name → (url, options)),
-    what the registrations file keeps; ``saved()`` is called when they change.
+    ``records`` holds the registrations made by Set (name → (url, options)); ``store`` keeps
+    them (:mod:`services.registry.store`: this gateway's memory and file, or etcd). While the
+    store is read-only, registrations and unregistrations answer UNAVAILABLE with its reason.
     ``forget(name)`` drops a service from the registry; ``joined(name,
     backend)`` records one that the directory now serves.
     """
@@ -77,7 +82,7 @@ class Registrations:
         timeout: float,
         forget: Callable[[str], None],
         joined: Callable[[str, Backend], None],
-        saved: Callable[[], None],
+        store: RegistryStore,
         allow: AllowList | None = None,
         configured: frozenset[str] = frozenset(),
         max_registrations: int = DEFAULT_MAX_REGISTRATIONS,
@@ -94,9 +99,11 @@ class Registrations:
         self.records: dict[str, Registration] = {}
         self._forget = forget
         self._joined = joined
-        self._saved = saved
+        self.store = store
         self._busy: set[str] = set()  # names being registered or unregistered right now
         self._undoing: set[asyncio.Task[None]] = set()
+        #: Registrations being dropped from the store (a service that left), each one task.
+        self._dropping: set[asyncio.Task[None]] = set()
 
     def busy(self, name: str) -> bool:
         """``name`` is being registered or unregistered right now."""
@@ -114,9 +121,30 @@ class Registrations:
         return parse_features(text) if text else frozenset()
 
     def drop(self, name: str) -> None:
-        """Forget the registration record of ``name`` (it left)."""
+        """Forget the registration record of ``name`` (it left), here and in the store."""
         if self.records.pop(name, None) is not None:
-            self._saved()
+            task = asyncio.get_running_loop().create_task(
+                self._drop_kept(name), name=f"registry: drop {name}"
+            )
+            self._dropping.add(task)
+            task.add_done_callback(self._dropping.discard)
+
+    async def _drop_kept(self, name: str) -> None:
+        try:
+            await self.store.drop(name)
+        except PropertyError as e:
+            log.warning("the registry store still keeps %s: %s", name, e.message)
+
+    async def settle(self) -> None:
+        """Wait until every registration that left is dropped from the store (the registry stops)."""
+        while self._dropping:
+            await asyncio.gather(*self._dropping, return_exceptions=True)
+
+    def check_writable(self, doing: str) -> None:
+        """Raise UNAVAILABLE, saying why, while the store cannot keep a change."""
+        reason = self.store.read_only
+        if reason:
+            raise Unavailable(f"{doing}: the registry is read-only: {reason}")
 
     def keep(self, name: str, url: str, options: dict[str, str]) -> None:
         """Keep a registration that could not be restored, for the next start."""
@@ -154,6 +182,7 @@ class Registrations:
                 return url
             taken_by = existing.url if existing is not None else "another service"
             raise AlreadyExists(f"the name {name!r} is taken (by {taken_by}); unregister it first")
+        self.check_writable(f"registering {name!r}")
         declared = params.get("type", "").strip()
         if len(self.records) + len(self._busy) >= self.max_registrations:
             raise ResourceExhausted(
@@ -191,8 +220,16 @@ class Registrations:
         options = {"type": declared} if declared else {}
         if features:
             options["features"] = features
+        try:
+            await self.store.save(name, url, options)
+        except PropertyError as e:
+            # The store went read-only while the device was opened: a registration it does not
+            # keep would vanish at the next start, or from the other gateways' view.
+            await self._undo(directory, name)
+            raise Unavailable(
+                f"registering {name!r}: the registry is read-only: {e.message}; nothing was registered"
+            ) from None
         self.records[name] = (url, options)
-        self._saved()
         return url
 
     def _check_name(self, name: str, what: str) -> None:
@@ -280,6 +317,7 @@ class Registrations:
                 f"{name!r} runs inside the gateway and cannot be unregistered", Code.FAILED_PRECONDITION
             )
         directory = self.require_directory()
+        self.check_writable(f"unregistering {name!r}")
         self._busy.add(name)
         try:
             await directory.unregister(name)

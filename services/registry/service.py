@@ -20,6 +20,7 @@ from services.location_following import LocationFollower
 from services.query import Query, values_equal
 from services.registry.allow import AllowList
 from services.registry.dispatch import Dispatcher, QosView
+from services.registry.embedded import EmbeddedStore
 from services.registry.entry import ServiceList
 from services.registry.licences import (
     DEFAULT_LICENCE_DURATION,
@@ -29,7 +30,6 @@ from services.registry.licences import (
     Licences,
 )
 from services.registry.liveness import Liveness
-from services.registry.persistence import RegistrationsFile
 from services.registry.registration import (
     DEFAULT_MAX_REGISTRATIONS,
     DEFAULT_REGISTER_TIMEOUT,
@@ -42,6 +42,7 @@ from services.registry.scheduling import (
     DEFAULT_TR,
     check_capabilities,
 )
+from services.registry.store import RegistryStore
 from services.registry.table import ServiceTable
 from services.values import Value, ValueFormatError, Vector, as_text, format_names, parse_vector
 from services.worker_pool import run_bounded
@@ -125,6 +126,7 @@ class Registry(Resource):
         register_timeout: float = DEFAULT_REGISTER_TIMEOUT,
         static: Iterable[str] = (),
         persist: str | os.PathLike[str] | None = None,
+        store: RegistryStore | None = None,
         allow: AllowList | None = None,
         max_registrations: int = DEFAULT_MAX_REGISTRATIONS,
         max_licences: int = DEFAULT_MAX_LICENCES,
@@ -140,7 +142,10 @@ class Registry(Resource):
         ``max_licences`` and ``max_licence_duration`` bound the licences (:attr:`licences`).
         ``features`` gives configured services their capabilities for the scheduler; ``tout``
         (longest allocation, at most ``max_licence_duration``), ``tr`` (longest wait) and
-        ``max_queued`` (requests waiting) set the scheduler (:mod:`services.registry.dispatch`)."""
+        ``max_queued`` (requests waiting) set the scheduler (:mod:`services.registry.dispatch`).
+        ``store`` keeps the registrations made by Set (:mod:`services.registry.store`); without
+        one the registry makes the embedded store, written to the file ``persist`` when named,
+        and starts and closes it itself; a store handed in is started and closed by its maker."""
         for what, value in (("period", period), ("grace", grace)):
             if not (math.isfinite(value) and value >= 0):
                 raise InvalidArgument(f"{what} must be zero or a positive number of seconds, got {value}")
@@ -155,7 +160,15 @@ class Registry(Resource):
                 raise InvalidArgument(f"{what} must be a positive number of seconds, got {value}")
         if isinstance(max_queued, bool) or not isinstance(max_queued, int) or max_queued < 1:
             raise InvalidArgument(f"max_queued must be a positive whole number, got {max_queued!r}")
+        if store is not None and persist:
+            raise InvalidArgument("persist is the embedded store's file: give a store or persist, not both")
         static = frozenset(static)
+        #: Where the registrations made by Set are kept.
+        self._store: RegistryStore = (
+            store if store is not None else EmbeddedStore(Path(persist) if persist else None)
+        )
+        self._owns_store = store is None
+        self._unwatch_store: Callable[[], None] | None = None
         self._features = {
             name: check_capabilities(caps, f"features of {name}") for name, caps in (features or {}).items()
         }
@@ -188,13 +201,10 @@ class Registry(Resource):
             timeout=float(register_timeout),
             forget=self._forget,
             joined=self._on_directory,
-            saved=self._save_soon,
+            store=self._store,
             allow=allow,
             configured=static,
             max_registrations=max_registrations,
-        )
-        self._file = (
-            RegistrationsFile(Path(persist), lambda: self._registrations.records) if persist else None
         )
         self._liveness = Liveness(
             self._table,
@@ -512,6 +522,9 @@ class Registry(Resource):
 
     async def start(self) -> None:
         self._dispatcher.start()
+        if self._owns_store:
+            await self._store.start()
+        self._unwatch_store = self._store.watch_read_only(lambda: self.changed("store"))
         directory = self._directory
         if directory is None:
             return
@@ -521,8 +534,7 @@ class Registry(Resource):
                 self._on_directory(name, directory.backend(name))
             except PropertyError:
                 continue
-        if self._file is not None:
-            await self._restore(self._file)
+        await self._restore()
         self._liveness.start()
 
     async def stop(self) -> None:
@@ -532,8 +544,12 @@ class Registry(Resource):
             self._unwatch()
             self._unwatch = None
         await self._liveness.stop()
-        if self._file is not None:
-            await self._file.flush()
+        if self._unwatch_store is not None:
+            self._unwatch_store()
+            self._unwatch_store = None
+        await self._registrations.settle()
+        if self._owns_store:
+            await self._store.aclose()
         reaching = list(self._reaching.values())
         self._reaching.clear()
         for task in reaching:
@@ -706,13 +722,24 @@ class Registry(Resource):
         await run_bounded(names, match, MAX_CONCURRENT_PROPERTY_GETS)
         return [n for n in names if n in matching]
 
-    # -- persistence ---------------------------------------------------------
+    # -- the store -------------------------------------------------------------
 
-    def _save_soon(self) -> None:
-        if self._file is not None:
-            self._file.save_soon()
+    @property
+    def store(
+        self,
+    ) -> Annotated[
+        str,
+        Prop(
+            doc="where registrations are kept: embedded, or etcd://HOST:PORT (read-only: why) "
+            "while they cannot change"
+        ),
+    ]:
+        store = self._store
+        return f"{store.location} (read-only: {store.read_only})" if store.read_only else store.location
 
-    async def _restore(self, file: RegistrationsFile) -> None:
+    async def _restore(self) -> None:
+        """Register again what the store keeps (the embedded store: the ``persist`` file)."""
+
         async def one(name: str, url: str, options: dict[str, str]) -> None:
             try:
                 await self.register(name, url, options)
@@ -720,7 +747,12 @@ class Registry(Resource):
                 log.warning("cannot restore the registration of %s at %s: %s", name, url, e.message)
                 self._registrations.keep(name, url, options)  # kept for the next start
 
-        await asyncio.gather(*(one(*item) for item in await file.load()))
+        try:
+            kept = await self._store.load()
+        except PropertyError as e:
+            log.warning("cannot read the registrations kept in %s: %s", self._store.location, e.message)
+            return
+        await asyncio.gather(*(one(*item) for item in kept))
 
 
 class RegistryService(LocalService):

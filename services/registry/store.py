@@ -17,12 +17,25 @@ the gateway (``gateway.stores``), so that ``services`` needs no etcd client.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Protocol, runtime_checkable
 
-__all__ = ["Change", "Kind", "RegistryStore", "SharedStore", "StoreListener"]
+__all__ = [
+    "EMBEDDED",
+    "Change",
+    "Kind",
+    "RegistryStore",
+    "SharedStore",
+    "StoreListener",
+    "decode_registration",
+    "encode_registration",
+]
+
+#: The ``location`` of the embedded store.
+EMBEDDED = "embedded"
 
 
 class Kind(StrEnum):
@@ -65,10 +78,20 @@ class RegistryStore(Protocol):
         ...
 
     @property
+    def location(self) -> str:
+        """Where the registrations are kept, for people: ``embedded``, or the shared store's URL
+        (``etcd://127.0.0.1:2379``)."""
+        ...
+
+    @property
     def read_only(self) -> str:
         """Why registrations cannot be changed now (the store's server is unreachable); empty
         when they can. A registry whose store is read-only refuses registrations with UNAVAILABLE
         and this reason, and keeps serving what it has."""
+        ...
+
+    def watch_read_only(self, listener: Callable[[], None]) -> Callable[[], None]:
+        """Call ``listener`` each time :attr:`read_only` changes; returns the unwatch."""
         ...
 
     async def start(self) -> None:
@@ -114,8 +137,11 @@ class SharedStore(RegistryStore, Protocol):
         """Write a key only when it is absent (one transaction); False when it exists."""
         ...
 
-    async def replace(self, kind: Kind, name: str, expected: str, value: str | None) -> bool:
-        """Compare-and-set: write ``value`` (delete when None) only when the key holds ``expected``."""
+    async def replace(
+        self, kind: Kind, name: str, expected: str, value: str | None, *, leased: bool = False
+    ) -> bool:
+        """Compare-and-set: write ``value`` (delete when None) only when the key holds ``expected``;
+        ``leased`` binds the new value to this gateway's lease (as for :meth:`put`)."""
         ...
 
     async def delete(self, kind: Kind, name: str) -> None:
@@ -131,3 +157,21 @@ class SharedStore(RegistryStore, Protocol):
         """Call ``listener`` after the store reconnected with a new lease, so that the gateway
         writes its leased keys again (the old lease, and the keys bound to it, may be gone)."""
         ...
+
+
+def encode_registration(url: str, options: dict[str, str]) -> str:
+    """The value of a ``services`` key: JSON ``{"url": ..., "options": {...}}``."""
+    return json.dumps({"url": url, "options": options}, sort_keys=True, separators=(",", ":"))
+
+
+def decode_registration(value: str) -> tuple[str, dict[str, str]]:
+    """(url, options) of a ``services`` key's value; raises ValueError when it is not one."""
+    try:
+        data = json.loads(value)
+        url = data["url"]
+        options = data.get("options", {})
+    except (ValueError, KeyError, TypeError, AttributeError) as e:
+        raise ValueError(f"not a registration: {value[:80]!r} ({e})") from None
+    if not isinstance(url, str) or not isinstance(options, dict):
+        raise ValueError(f"not a registration: {value[:80]!r}")
+    return url, {str(k): str(v) for k, v in options.items()}
