@@ -29,6 +29,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from gateway.backends import open_backend, open_proxy
+from gateway.cluster import ClusterNode
 from gateway.config import REGISTRY_NAME, Config, ConfigError, ServiceEntry
 from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
@@ -40,6 +41,7 @@ from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
 from gateway.router import Router
 from gateway.server import PropertyServicer, add_to_server
+from gateway.stores import open_store
 from gateway.tls import LineCredentials, ServerCredentials
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, BackendInfo
@@ -47,6 +49,7 @@ from services.catalog import build, needs_directory
 from services.errors import PropertyError
 from services.registry import DEFAULT_REGISTER_TIMEOUT, AllowList, Licence, Registry, RegistryService
 from services.registry import ServiceEntry as RegistryEntry
+from services.registry.store import SharedStore
 from services.registry.table import GONE
 
 if TYPE_CHECKING:
@@ -110,6 +113,10 @@ class Gateway:
         self.credentials: ServerCredentials | None = None
         #: The line listener's TLS, reloaded with the gRPC port's; None when it is plaintext.
         self._line_credentials: LineCredentials | None = None
+        #: The shared registry store (``[registry] store = "etcd://..."``); None: the embedded one.
+        self.store: SharedStore | None = None
+        #: This gateway's part in the cluster that shares :attr:`store`; None without one.
+        self.cluster: ClusterNode | None = None
         #: What registrations may reach (``[registry] allow``) and what is this gateway itself.
         self.allow = AllowList(self.config.registry.allow, own_ports=self._own_ports)
         for entry in self.config.services:
@@ -138,6 +145,9 @@ class Gateway:
         self.health.set(SERVICE_NAME, NOT_SERVING)
         try:
             self._launch_devices()
+            # The gRPC port is bound first: in a cluster its address names this gateway.
+            self._server = self._make_server()
+            await self._join_store()
             await self._start_registry()
             # Services that reach others (groups) start last, once the services they name are there.
             plain = [e for e in self.config.services if not _needs_directory(e) and not e.dials_in]
@@ -152,10 +162,10 @@ class Gateway:
                     self._warn_missing_members(entry)
                     await self._add(entry.name, self._open(entry), _described(entry))
             await self._start_line_listener()
-            self._server = self._make_server()
             await self._server.start()
             await self._start_http()
             await self._start_metrics()
+            await self._start_cluster()
         except BaseException:
             await self.stop()
             raise
@@ -300,7 +310,10 @@ class Gateway:
         settings = self.config.registry
         static = [e.name for e in self.config.services] + [d.name for d in self.config.devices]
         self.registry = Registry(
-            directory=self.router.directory,
+            # In a cluster, registrations go through the cluster (gateway.cluster.ClusterDirectory).
+            directory=self.cluster.directory if self.cluster is not None else self.router.directory,
+            store=self.store,
+            restore=self.cluster is None,
             period=settings.period,
             timeout=settings.timeout,
             misses=settings.misses,
@@ -328,6 +341,37 @@ class Gateway:
         self._unwatch_health = self.registry.watch_states(self._health_follows, members=True)
         for name, state in self.registry.states():
             self._health_follows(name, state)
+
+    async def _join_store(self) -> None:
+        """Open the shared registry store a config names (``[registry] store``), and this gateway's
+        cluster node on it; nothing for the embedded store. An etcd that cannot be reached now is
+        no error: the gateway starts read-only and joins when etcd answers (docs/scale-out.md)."""
+        if not self.config.registry.store:
+            return
+        store = open_store(self.config, listen=self.address)
+        if not isinstance(store, SharedStore):  # pragma: no cover - a store URL names a shared store
+            raise ConfigError(f"{self.config.source}: registry.store: {store.location} is not shared")
+        await store.start()
+        self.store = store
+        self.cluster = ClusterNode(
+            store, self.router, lease=self.config.registry.store_lease, allow=self.allow
+        )
+
+    async def _start_cluster(self) -> None:
+        """Join the cluster, now that every port this gateway serves is known."""
+        if self.cluster is None:
+            return
+        await self.cluster.start(
+            self.registry,
+            address=self.config.registry.advertise or self.address,
+            http=self.http_address,
+            line=self.line_address,
+        )
+        log.info("cluster: joined as %s through %s", self.cluster.me, self.config.registry.store)
+
+    def _alternates(self) -> list[str]:
+        """The other gateways' line listeners, which the line listener's greeting names."""
+        return self.cluster.alternates() if self.cluster is not None else []
 
     def _health_follows(self, name: str, state: str) -> None:
         """A service joined, changed state or left: its gRPC health status follows."""
@@ -370,6 +414,7 @@ class Gateway:
                 idle_timeout=self.config.limits.line_idle_timeout,
                 max_greetings_per_source=self.config.limits.max_greetings_per_source,
                 device_secrets=self._device_secrets(),
+                alternates=self._alternates,
             )
         except OSError as exc:
             if exc.errno != errno.EADDRINUSE:
@@ -493,6 +538,8 @@ class Gateway:
             await self.metrics.stop()
         if self._server is not None:
             await self._server.stop(grace)
+        if self.cluster is not None:
+            await self.cluster.stop()  # its services are handed over before their proxies close
         await self.hub.aclose()
         if callable(self._unwatch_registry):
             self._unwatch_registry()
@@ -512,6 +559,8 @@ class Gateway:
             except Exception:
                 log.warning("closing service %s failed", name, exc_info=True)
         await self._stop_devices()
+        if self.store is not None:
+            await self.store.aclose()
 
     async def wait_stopped(self) -> None:
         """Return once :meth:`stop` was called."""

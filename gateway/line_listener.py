@@ -35,6 +35,7 @@ subject, exactly as on the gRPC port; a refusal is an ``ERR 16``
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import hmac
 import logging
 import ssl
@@ -46,6 +47,7 @@ from gateway.identity import ANONYMOUS
 from gateway.rules import Operation, Subject
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.device import DeviceServer
+from services.device.alternates import ALTERNATES_FIELD, format_alternates
 from services.errors import (
     AlreadyExists,
     Code,
@@ -342,7 +344,8 @@ class _ListenerServer(DeviceServer):
         first = _FirstLine(reader)
         # Each connection asks as its own subject: its own view of the router.
         shared = self._router_backend
-        session = self.session(first, writer, peer, RouterBackend(shared.router, shared.guard))
+        view = RouterBackend(shared.router, shared.guard)
+        session = self.session(first, writer, peer, view, greeting=self._listener.greeting())
         run = asyncio.create_task(session.run(), name=f"line listener {peer}")
         try:
             waits: list[asyncio.Future[object]] = [run, first.device]  # type: ignore[list-item]
@@ -386,8 +389,12 @@ class LineListener:
         idle_timeout: float = LINE_IDLE_TIMEOUT,
         max_greetings_per_source: int = MAX_GREETINGS_PER_SOURCE,
         device_secrets: Mapping[str, str] | None = None,
+        alternates: Callable[[], list[str]] | None = None,
     ) -> None:
-        """``guard`` checks every request of every connection (default: nothing is refused);
+        """``alternates()`` names the line listeners of the other gateways of this one's cluster: the
+        greeting tells them to every peer (``alternates=``), so that a device that dialled in knows
+        where to go when this gateway is gone (docs/line-protocol.md §4.5);
+        ``guard`` checks every request of every connection (default: nothing is refused);
         ``device_secrets`` (name → secret) are the configured devices that dial in: each name is
         taken only by a greeting that carries ``secret=`` with its secret;
         ``device_options`` tune the proxies of devices that dial in (default ``INBOUND_OPTIONS``);
@@ -407,6 +414,15 @@ class LineListener:
         self.address: tuple[str, int] | None = None
         self._reaper: asyncio.Task[None] | None = None
         self._device_secrets = dict(device_secrets or {})
+        self._alternates = alternates
+
+    def greeting(self) -> Hello:
+        """The listener's greeting now: with the other gateways of its cluster, when it has any."""
+        greeting = self.server.greeting
+        others = format_alternates(self._alternates()) if self._alternates is not None else ""
+        if not others:
+            return greeting
+        return dataclasses.replace(greeting, extra={**greeting.extra, ALTERNATES_FIELD: others})
 
     async def serve_device(
         self,
@@ -572,9 +588,10 @@ async def start_line_listener(
     idle_timeout: float = LINE_IDLE_TIMEOUT,
     max_greetings_per_source: int = MAX_GREETINGS_PER_SOURCE,
     device_secrets: Mapping[str, str] | None = None,
+    alternates: Callable[[], list[str]] | None = None,
 ) -> LineListener:
     """Start a :class:`LineListener` on ``address`` ("HOST:PORT") for ``router``, checked by ``guard``;
-    TLS with ``ssl_context``."""
+    TLS with ``ssl_context``; ``alternates``: see :class:`LineListener`."""
     listener = LineListener(
         router,
         on_rejoin=on_rejoin,
@@ -582,6 +599,7 @@ async def start_line_listener(
         idle_timeout=idle_timeout,
         max_greetings_per_source=max_greetings_per_source,
         device_secrets=device_secrets,
+        alternates=alternates,
     )
     await listener.start(*parse_address(address), ssl_context=ssl_context)
     return listener

@@ -33,7 +33,7 @@ from services.device.server import DeviceServer
 from services.errors import PropertyError
 from services.line_protocol import MAX_INFLIGHT, MAX_LINE, MAX_RXBUF, MIN_MAX_LINE, MIN_RXBUF
 
-__all__ = ["DESCRIPTION", "add_arguments", "main", "run", "serve"]
+__all__ = ["DESCRIPTION", "add_arguments", "bounded_int", "main", "run", "serve"]
 
 DESCRIPTION = "Serve any Property Service over the line protocol, on a TCP port or a serial port."
 #: The longest ``--max-line``: a line with the base64 of the largest value one gRPC message
@@ -107,7 +107,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checksum", action="store_true", help="send a CRC-8 checksum on every line")
     parser.add_argument(
         "--max-line",
-        type=_bounded("max-line", MIN_MAX_LINE, MAX_LINE_LIMIT),
+        type=bounded_int("max-line", MIN_MAX_LINE, MAX_LINE_LIMIT),
         default=MAX_LINE,
         help=f"longest line accepted, stated as maxline= (default {MAX_LINE}); lines sent may be as "
         "long when it is larger: raise it (and the proxy's maxline) for large binary values "
@@ -115,12 +115,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--inflight",
-        type=_bounded("inflight", 1, MAX_INFLIGHT),
+        type=bounded_int("inflight", 1, MAX_INFLIGHT),
         help="state inflight=N in the greeting: requests taken at once (docs/line-protocol.md §4.2)",
     )
     parser.add_argument(
         "--rxbuf",
-        type=_bounded("rxbuf", MIN_RXBUF, MAX_RXBUF),
+        type=bounded_int("rxbuf", MIN_RXBUF, MAX_RXBUF),
         help="state rxbuf=N in the greeting: bytes of unanswered requests the device holds",
     )
     parser.add_argument(
@@ -136,8 +136,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
 
 
-def _bounded(what: str, low: int, high: int) -> Callable[[str], int]:
-    """An argparse type: an integer from ``low`` to ``high`` (the greeting's bounds, §4.2)."""
+def bounded_int(what: str, low: int, high: int) -> Callable[[str], int]:
+    """An argparse type: an integer from ``low`` to ``high`` (here, the greeting's bounds, §4.2)."""
 
     def parse(text: str) -> int:
         try:

@@ -14,9 +14,11 @@ import contextlib
 import logging
 import os
 import ssl
+from collections.abc import Callable
 from dataclasses import replace
 
 from services.backend import Backend
+from services.device.alternates import ALTERNATES_FIELD, GatewayAddresses
 from services.device.session import CALL_TIMEOUT, READ_SIZE, DeviceSession
 from services.device.transports import open_pty, open_serial, pipe_streams
 from services.errors import Code
@@ -83,11 +85,13 @@ class DeviceServer:
         writer: asyncio.StreamWriter,
         peer: str,
         backend: Backend | None = None,
+        *,
         greeting: Hello | None = None,
+        on_greeting: Callable[[Hello], None] | None = None,
     ) -> DeviceSession:
         """The protocol session of one connection, with this server's greeting, checksum and timeout;
         ``backend`` serves this connection instead of the server's (a per-connection view of it),
-        ``greeting`` replaces the server's."""
+        ``greeting`` replaces the server's; ``on_greeting`` hears the peer's greeting."""
         return DeviceSession(
             backend if backend is not None else self.backend,
             reader,
@@ -96,6 +100,7 @@ class DeviceServer:
             checksum=self.checksum,
             call_timeout=self.call_timeout,
             peer=peer,
+            on_greeting=on_greeting,
         )
 
     async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -130,30 +135,46 @@ class DeviceServer:
         """Dial ``host:port`` (a gateway's line listener) and serve that connection; dial again when it ends.
 
         The greeting, sent first as on every connection, registers the device
-        there. Runs until cancelled; the pause between attempts doubles from
-        ``retry_initial`` up to ``retry_max`` seconds while dialling fails or
-        the connection is refused at once.
+        there. Runs until cancelled. A gateway of a cluster names the other
+        gateways in its greeting (``alternates=``): when the connection ends or
+        cannot be made, the next of them is dialled, in turn
+        (:class:`~services.device.alternates.GatewayAddresses`). The pause before a
+        new round of attempts doubles from ``retry_initial`` up to ``retry_max``
+        seconds while dialling fails or the connection is refused at once.
         """
+        gateways = GatewayAddresses((host, port))
         pause = retry_initial
         loop = asyncio.get_running_loop()
         while True:
+            (host, port), new_round = gateways.take()
+            if new_round and gateways.tried:
+                await asyncio.sleep(pause)
+                pause = min(pause * 2, retry_max)
+            gateways.tried = True
             began = loop.time()
             try:
                 reader, writer = await asyncio.open_connection(host, port, limit=READ_SIZE)
             except OSError as exc:
                 log.warning("cannot reach %s:%d: %s", host, port, exc)
-            else:
-                log.info("connected to %s:%d", host, port)
-                self._sessions.add(writer)
-                try:
-                    await self.session(reader, writer, f"{host}:{port}", greeting=self.dial_greeting).run()
-                finally:
-                    self._sessions.discard(writer)
-                log.warning("connection to %s:%d ended", host, port)
-                if loop.time() - began > retry_max:
-                    pause = retry_initial  # it was up for a while: a fresh drop, not a refusal
-            await asyncio.sleep(pause)
-            pause = min(pause * 2, retry_max)
+                continue
+            log.info("connected to %s:%d", host, port)
+            self._sessions.add(writer)
+            here = (host, port)
+
+            def greeted(hello: Hello, here: tuple[str, int] = here) -> None:
+                gateways.connected(here, hello.extra.get(ALTERNATES_FIELD, ""))
+
+            try:
+                session = self.session(
+                    reader, writer, f"{host}:{port}", greeting=self.dial_greeting, on_greeting=greeted
+                )
+                await session.run()
+            finally:
+                self._sessions.discard(writer)
+            log.warning("connection to %s:%d ended", host, port)
+            if loop.time() - began > retry_max:
+                pause = retry_initial  # it was up for a while: a fresh drop, not a refusal
+                gateways.tried = False  # the next address at once, without a pause
 
     async def serve_serial(self, port: str, baudrate: int = 115200, *, reopen_delay: float = 1.0) -> None:
         """Open the serial ``port`` (OSError if it cannot be opened) and serve it in the background.

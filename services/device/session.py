@@ -86,7 +86,10 @@ class DeviceSession:
         checksum: bool = False,
         call_timeout: float = CALL_TIMEOUT,
         peer: str = "",
+        on_greeting: Callable[[Hello], None] | None = None,
     ) -> None:
+        """``on_greeting`` hears the peer's greeting (a gateway's line listener greets a device that
+        dialled it, and may name other gateways to dial when it is gone, docs/line-protocol.md §4.5)."""
         self.backend = backend
         self.reader = reader
         self.writer = writer
@@ -94,6 +97,7 @@ class DeviceSession:
         self.checksum = checksum
         self.call_timeout = call_timeout
         self.peer = peer or str(writer.get_extra_info("peername") or "?")
+        self._on_greeting = on_greeting
         self._receiver = LineReceiver(max_line=greeting.max_line)
         self._send_limit = max(MAX_LINE, greeting.max_line)
         self._outbox = Outbox()
@@ -265,8 +269,11 @@ class DeviceSession:
                 self._track_set(frame.tag, task)
         elif isinstance(frame, Cancel):
             self._cancel(frame.tag)  # no reply: the client has stopped waiting for this tag
-        elif isinstance(frame, Pong | Hello):
-            pass  # answer to a PING of ours / a client introducing itself: nothing to do
+        elif isinstance(frame, Hello):
+            if self._on_greeting is not None:  # a client introducing itself: nothing to answer
+                self._on_greeting(frame)
+        elif isinstance(frame, Pong):
+            pass  # answer to a PING of ours
         else:
             word = type(frame).__name__.upper().replace("ERRORREPLY", "ERR")
             tag = getattr(frame, "tag", None)

@@ -52,6 +52,13 @@ class ServiceEntry(Resource):
         list[str], Prop(readonly=True, doc="capabilities it offers the scheduler beside its type; () if none")
     ]
     licence: Annotated[str, Prop(readonly=True, doc="id of a licence held on it (or a subtree); empty: none")]
+    owner: Annotated[
+        str,
+        Prop(
+            readonly=True,
+            doc="in a cluster of gateways: the id of the gateway holding its connection; else empty",
+        ),
+    ]
 
     def __init__(
         self,
@@ -68,6 +75,7 @@ class ServiceEntry(Resource):
         self.misses = 0
         self.features = []
         self.licence = ""
+        self.owner = ""
         self._location: Vector = np.zeros(0)
         self._want_location = want_location
         self._name = name

@@ -26,6 +26,7 @@ import math
 import secrets
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 from services.errors import (
     FailedPrecondition,
@@ -43,6 +44,7 @@ __all__ = [
     "DEFAULT_MAX_LICENCES",
     "DEFAULT_MAX_LICENCE_DURATION",
     "Licence",
+    "LicenceClaims",
     "LicenceListener",
     "Licences",
     "format_time",
@@ -154,6 +156,24 @@ def _escape(text: str) -> str:
 LicenceListener = Callable[[Licence, str], None]
 
 
+class LicenceClaims(Protocol):
+    """Where a licence is claimed beyond this registry too: the shared store of a cluster of
+    gateways, so that two gateways never grant the same licence (``gateway.cluster``)."""
+
+    async def claim(self, licence: Licence) -> None:
+        """Claim ``licence`` (not granted yet): FailedPrecondition, naming the holder, when another
+        gateway holds an overlapping one; Unavailable when the claim cannot be made now."""
+        ...
+
+    async def renew(self, licence: Licence, seconds: float) -> None:
+        """``licence`` is to hold ``seconds`` from now: say so where it is claimed (Unavailable if not)."""
+        ...
+
+    def release(self, licence: Licence) -> None:
+        """``licence`` ended: let go of its claim (in the background; it never fails the caller)."""
+        ...
+
+
 class Licences:
     """The licences a registry holds; see the module docstring.
 
@@ -183,6 +203,11 @@ class Licences:
         self._listeners: list[LicenceListener] = []
         self._timer: asyncio.TimerHandle | None = None
         self._serial = itertools.count(1)
+        self._claims: LicenceClaims | None = None
+
+    def set_claims(self, claims: LicenceClaims | None) -> None:
+        """Claim every licence there too before it is granted (a cluster's shared store); None: only here."""
+        self._claims = claims
 
     # -- reading ---------------------------------------------------------------
 
@@ -249,18 +274,7 @@ class Licences:
             except InvalidArgument as e:
                 raise InvalidArgument(f"bad subtree: {e.message}") from None
         duration = self._duration(duration)
-        for licence in self._by_service.get(service, ()):
-            if licence.overlaps(service, subtree):
-                if licence.holder == holder:
-                    raise FailedPrecondition(
-                        f"{holder} already holds licence {licence.id} on {licence.where()} until "
-                        f"{format_time(licence.expires_at)}: renew or release it rather than acquire again"
-                    )
-                raise FailedPrecondition(f"{service}: {licence.describe()}")
-        if len(self._held) >= self.max_licences:
-            raise ResourceExhausted(
-                f"the registry holds {self.max_licences} licences already ([registry] max_licences)"
-            )
+        self._check_free(service, subtree, holder)
         licence = Licence(
             id=f"L{next(self._serial)}-{secrets.token_hex(3)}",
             service=service,
@@ -270,6 +284,13 @@ class Licences:
             session=session,
             lease=Lease(duration),
         )
+        if self._claims is not None:
+            await self._claims.claim(licence)
+            try:
+                self._check_free(service, subtree, holder)  # granted here while the claim was made
+            except BaseException:
+                self._claims.release(licence)
+                raise
         self._held[licence.id] = licence
         self._by_service.setdefault(service, []).append(licence)
         self._schedule()
@@ -280,7 +301,10 @@ class Licences:
         """Hold ``licence_id`` for ``duration`` seconds from now; ``holder``: only that holder may."""
         licence = self.get(licence_id)
         self._check_holder(licence, holder, "renew")
-        licence.lease.renew(self._duration(duration))
+        seconds = self._duration(duration)
+        if self._claims is not None:
+            await self._claims.renew(licence, seconds)
+        licence.lease.renew(seconds)
         self._schedule()
         self._tell(licence, "renewed")
         return licence
@@ -339,6 +363,22 @@ class Licences:
             raise InvalidArgument("a licence's duration must be more than 0 seconds")
         return seconds
 
+    def _check_free(self, service: str, subtree: str, holder: str) -> None:
+        """FailedPrecondition when a licence held here overlaps ``service``/``subtree``;
+        ResourceExhausted when ``max_licences`` are held."""
+        for licence in self._by_service.get(service, ()):
+            if licence.overlaps(service, subtree):
+                if licence.holder == holder:
+                    raise FailedPrecondition(
+                        f"{holder} already holds licence {licence.id} on {licence.where()} until "
+                        f"{format_time(licence.expires_at)}: renew or release it rather than acquire again"
+                    )
+                raise FailedPrecondition(f"{service}: {licence.describe()}")
+        if len(self._held) >= self.max_licences:
+            raise ResourceExhausted(
+                f"the registry holds {self.max_licences} licences already ([registry] max_licences)"
+            )
+
     def _check_holder(self, licence: Licence, holder: str | None, verb: str) -> None:
         if holder is not None and holder != licence.holder:
             raise PermissionDenied(f"only its holder may {verb} it: {licence.describe()}; you are {holder}")
@@ -352,6 +392,8 @@ class Licences:
         if not on_service:
             self._by_service.pop(licence.service, None)
         licence.status = how
+        if self._claims is not None:
+            self._claims.release(licence)
         self._ended[licence.id] = licence
         while len(self._ended) > _ENDED_KEPT:
             self._ended.popitem(last=False)

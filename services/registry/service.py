@@ -43,7 +43,7 @@ from services.registry.scheduling import (
     check_capabilities,
 )
 from services.registry.store import RegistryStore
-from services.registry.table import ServiceTable
+from services.registry.table import PLACEHOLDER_TYPE, ServiceTable
 from services.values import Value, ValueFormatError, Vector, as_text, format_names, parse_vector
 from services.worker_pool import run_bounded
 
@@ -127,6 +127,7 @@ class Registry(Resource):
         static: Iterable[str] = (),
         persist: str | os.PathLike[str] | None = None,
         store: RegistryStore | None = None,
+        restore: bool = True,
         allow: AllowList | None = None,
         max_registrations: int = DEFAULT_MAX_REGISTRATIONS,
         max_licences: int = DEFAULT_MAX_LICENCES,
@@ -145,7 +146,9 @@ class Registry(Resource):
         ``max_queued`` (requests waiting) set the scheduler (:mod:`services.registry.dispatch`).
         ``store`` keeps the registrations made by Set (:mod:`services.registry.store`); without
         one the registry makes the embedded store, written to the file ``persist`` when named,
-        and starts and closes it itself; a store handed in is started and closed by its maker."""
+        and starts and closes it itself; a store handed in is started and closed by its maker.
+        ``restore``: register at start what the store keeps; False when the gateways of a cluster
+        serve a shared store's registrations themselves (``gateway.cluster``)."""
         for what, value in (("period", period), ("grace", grace)):
             if not (math.isfinite(value) and value >= 0):
                 raise InvalidArgument(f"{what} must be zero or a positive number of seconds, got {value}")
@@ -168,6 +171,7 @@ class Registry(Resource):
             store if store is not None else EmbeddedStore(Path(persist) if persist else None)
         )
         self._owns_store = store is None
+        self._restores = restore
         self._unwatch_store: Callable[[], None] | None = None
         self._features = {
             name: check_capabilities(caps, f"features of {name}") for name, caps in (features or {}).items()
@@ -214,7 +218,7 @@ class Registry(Resource):
             misses=misses,
             grace=self.grace,
             static=static,
-            busy=self._registrations.busy,
+            busy=self._left_alone,
             unregister=self.unregister,
             answered=self._learn_type,
         )
@@ -247,6 +251,8 @@ class Registry(Resource):
             max_queued=max_queued,
         )
         self.licensing.watch(self._dispatcher.on_licence)
+        #: Services whose state another gateway reports (it owns them): see :meth:`mirror`.
+        self._mirrored: set[str] = set()
 
     # -- the plain methods the gateway calls ------------------------------
 
@@ -278,6 +284,29 @@ class Registry(Resource):
     def set_state(self, name: str, state: str) -> None:
         """Mark ``name`` up or down; going (or staying) up also refreshes ``last_seen``."""
         self._table.set_state(name, state)
+
+    def mirror(self, name: str, state: str | None) -> None:
+        """``name`` is owned by another gateway of a cluster, which reports its ``state``: show that
+        state, and neither check it nor let its first answer here change it. None: this registry
+        follows ``name`` itself again (this gateway owns it now). Nothing for an unknown name."""
+        if state is None:
+            self._mirrored.discard(name)
+            return
+        if self._table.get(name) is None:
+            return
+        self._mirrored.add(name)
+        self._table.set_state(name, state)
+
+    def set_owner(self, name: str, owner: str) -> None:
+        """In a cluster of gateways: ``owner`` (a gateway id, "" for none) holds ``name``'s connection
+        (``services.NAME.owner``). Nothing for an unknown name."""
+        entry = self._table.get(name)
+        if entry is not None and entry.owner != owner:
+            entry.owner = owner
+
+    def _left_alone(self, name: str) -> bool:
+        """Liveness leaves ``name`` alone: being (un)registered now, or its state is mirrored."""
+        return name in self._mirrored or self._registrations.busy(name)
 
     def state_of(self, name: str) -> str:
         """``up`` or ``down``; NotFound when ``name`` is not known."""
@@ -534,7 +563,8 @@ class Registry(Resource):
                 self._on_directory(name, directory.backend(name))
             except PropertyError:
                 continue
-        await self._restore()
+        if self._restores:
+            await self._restore()
         self._liveness.start()
 
     async def stop(self) -> None:
@@ -648,6 +678,7 @@ class Registry(Resource):
         reaching = self._reaching.pop(name, None)
         if reaching is not None:
             reaching.cancel()
+        self._mirrored.discard(name)
         if not self._table.forget(name):
             return
         self.licensing.release_holder(name)
@@ -666,6 +697,11 @@ class Registry(Resource):
         A proxy is served before its device greets, so the entry starts with
         the placeholder type; the device has greeted once it has answered.
         """
+        if name in self._mirrored:  # its owner says whether it is up; only its type is learned here
+            kind = backend.info.type
+            if kind and kind != PLACEHOLDER_TYPE and self._table.get(name) is not None:
+                self._table.set_type(name, kind)
+            return
         if not self._registrations.declared_type(name):
             self._table.learn_type(name, backend.info.type)
 

@@ -1,0 +1,44 @@
+"""The registry's directory on a gateway of a cluster: (un)registrations go through the cluster.
+
+The registry turns a Set of ``services.NAME`` into ``directory.register(NAME, URL)``. On a gateway
+of a cluster it is handed a :class:`ClusterDirectory`: the same live set of services as the router's
+own directory, but registering claims the name in the shared store first (its ``owners`` and
+``services`` keys, see :meth:`gateway.cluster.node.ClusterNode.register`), and unregistering
+deletes them, on whichever gateway the Set arrives.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
+
+from services.backend import Backend, BackendInfo
+from services.directory import DirectoryListener
+
+if TYPE_CHECKING:
+    from gateway.cluster.node import ClusterNode
+
+__all__ = ["ClusterDirectory"]
+
+
+class ClusterDirectory:
+    """A :class:`services.directory.Directory` whose changes go through a :class:`ClusterNode`."""
+
+    def __init__(self, node: ClusterNode) -> None:
+        self._node = node
+        self._router = node.router.directory
+
+    def names(self) -> list[str]:
+        return self._router.names()
+
+    def backend(self, name: str) -> Backend:
+        return self._router.backend(name)
+
+    def watch(self, listener: DirectoryListener) -> Callable[[], None]:
+        return self._router.watch(listener)
+
+    async def register(self, name: str, url: str, options: Mapping[str, Any] | None = None) -> BackendInfo:
+        return await self._node.register(name, url, options)
+
+    async def unregister(self, name: str) -> None:
+        await self._node.unregister(name)

@@ -1,0 +1,628 @@
+"""One gateway in a cluster: it joins, serves every registration of the cluster, and takes over orphans.
+
+A :class:`ClusterNode` is what a gateway runs when its registry's store is shared
+(``[registry] store = "etcd://..."``; docs/scale-out.md):
+
+* **Joining.** It writes its ``gateways/ID`` key (leased: it goes when the gateway dies), reads
+  every registration, owner, state and gateway, and watches the store from then on.
+* **Serving.** Every registration of the cluster is one router entry here, a
+  :class:`~gateway.cluster.switching.SwitchingBackend`: on the owner its target is the service's own
+  proxy, on the others a gRPC proxy to the owner's advertised address (calls are forwarded, and the
+  federation's ``ps-via`` guard stops a loop), and nothing while nobody owns it. A device that
+  dialled in to this gateway's line listener is published (its ``services`` key bound to this
+  gateway's lease) and served by its own proxy.
+* **Registering.** A Set of ``services.NAME`` on any gateway reaches :meth:`ClusterNode.register`
+  through the registry's :class:`~gateway.cluster.directory.ClusterDirectory`: the ``owners`` key is
+  created for this gateway, then the ``services`` key, then the proxy is opened; a failure undoes
+  them. The owners key goes first, so that no gateway mistakes the new registration for an orphan.
+* **States.** The owner runs the liveness checks and writes ``states/NAME``; the others mirror it
+  into their registry (``Registry.mirror``), so ``services.*.state`` is the same everywhere.
+* **Failover.** A registration whose ``owners`` key expired is taken over by the least-loaded
+  live gateway (:mod:`gateway.cluster.failover`); Listens through every gateway resume with a gap.
+* **Read-only.** While the store cannot be reached, everything owned and forwarded is served as
+  before and registrations are refused (UNAVAILABLE, saying why). When it is back, with a new lease,
+  the node writes its leased keys and the registrations it owns again (:meth:`_reassert`), and for
+  one lease time lets the other gateways do the same before it believes a registration gone.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable, Coroutine, Mapping
+from typing import Any
+
+from gateway.backends import open_proxy
+from gateway.cluster.directory import ClusterDirectory
+from gateway.cluster.failover import Takeover
+from gateway.cluster.licences import ClusterLicences
+from gateway.cluster.records import DIAL_IN_PREFIX, GatewayRecord, Registration
+from gateway.cluster.switching import SwitchingBackend
+from gateway.cluster.view import ClusterView
+from gateway.cluster.writer import LatestWrites
+from gateway.proxies.grpc_proxy import open_grpc_backend
+from gateway.router import Router
+from services.backend import Backend, BackendInfo
+from services.errors import AlreadyExists, PropertyError, Unavailable
+from services.registry import AllowList, Registry
+from services.registry.store import Change, Kind, SharedStore
+from services.registry.table import GONE
+from services.worker_pool import run_bounded
+
+__all__ = ["FORWARD_OPTIONS", "LEAVE_WAIT", "MAX_WRITES", "ClusterNode"]
+
+log = logging.getLogger(__name__)
+
+#: Options of the gRPC proxies that forward calls to an owner: a dead owner is replaced within a
+#: lease, so its proxy need not wait long between attempts to reach it again.
+FORWARD_OPTIONS: Mapping[str, Any] = {"backoff_initial": 0.1, "backoff_max": 2.0}
+#: Seconds a gateway that stops spends handing its services over (deleting its keys) at most.
+LEAVE_WAIT = 3.0
+#: Writes to the store at once when this gateway writes all its keys (coming back, leaving).
+MAX_WRITES = 64
+#: Folders read when joining and after a reconnect (licences are read when one is claimed).
+_FOLDERS = (Kind.GATEWAY, Kind.SERVICE, Kind.OWNER, Kind.STATE)
+
+
+class ClusterNode:
+    """This gateway's part in a cluster sharing one registry store (see the module docstring)."""
+
+    def __init__(
+        self,
+        store: SharedStore,
+        router: Router,
+        *,
+        lease: float,
+        allow: AllowList | None = None,
+    ) -> None:
+        """``lease``: seconds of the store's lease (a dead gateway's keys go within it); ``allow``: what
+        this gateway may dial when it takes a registration over (the registry's allow-list)."""
+        self.store = store
+        self.router = router
+        self.lease = lease
+        self.allow = allow
+        #: This gateway's id in the cluster (the value of the owners keys it writes).
+        self.me = store.gateway_id
+        self.view = ClusterView()
+        #: The directory the registry is given (registrations go through :meth:`register`).
+        self.directory = ClusterDirectory(self)
+        #: The licence claims the registry's licences are checked against.
+        self.licences = ClusterLicences(store)
+        self.registry: Registry | None = None
+        self.record = GatewayRecord(address="")
+        #: The router entries of the cluster's registrations, by name.
+        self.served: dict[str, SwitchingBackend] = {}
+        #: Registrations whose connection this gateway holds, with what their key holds.
+        self.owned: dict[str, Registration] = {}
+        #: Devices that dialled in here and were published, by name.
+        self._dialled: dict[str, Backend] = {}
+        #: name → the owner address its forwarding proxy dials.
+        self._forwarding: dict[str, str] = {}
+        #: Names being registered, unregistered or published now: the reconciler leaves them alone.
+        self._busy: set[str] = set()
+        self._dirty: dict[str, None] = {}
+        #: Names looked at again once the store has settled after a reconnect.
+        self._deferred: dict[str, None] = {}
+        self._wake = asyncio.Event()
+        self._worker: asyncio.Task[None] | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._writes = LatestWrites(store)
+        self._takeover = Takeover(
+            self.me, step=min(0.5, lease / 10), plan=self._takeover_plan, attempt=self._take_over
+        )
+        self._stops: list[Callable[[], None]] = []
+        #: Until this loop time, a registration missing from the store is not believed gone (after
+        #: a reconnect the other gateways write theirs again) and nothing is taken over.
+        self._settling_until = 0.0
+        self._resyncing = False
+        self.joined = False
+        self._stopped = False
+
+    # -- joining and leaving ---------------------------------------------------
+
+    async def start(self, registry: Registry, *, address: str, http: str = "", line: str = "") -> None:
+        """Join: this gateway serves gRPC at ``address`` (as the others dial it), HTTP at ``http`` and
+        the line protocol at ``line`` ("" when off). A store that cannot be reached now is joined
+        when it is back (the gateway serves read-only until then)."""
+        self.registry = registry
+        self.record = GatewayRecord(address=address, http=http, line=line)
+        registry.licensing.set_claims(self.licences)
+        self._stops += [
+            self.store.watch(self._on_change),
+            self.store.on_reconnect(self._on_reconnect),
+            self.router.watch(self._on_router),
+            registry.watch_states(self._on_state, members=True),
+        ]
+        self._worker = asyncio.get_running_loop().create_task(self._work(), name="cluster: reconciler")
+        for name, backend in self.router.items():  # devices that dialled in before the node started
+            self._on_router(name, backend)
+        try:
+            await self._join()
+        except PropertyError as exc:
+            log.warning(
+                "cluster: cannot join now (%s); serving read-only until the store is back", exc.message
+            )
+
+    async def _join(self) -> None:
+        # Owners keys that name this gateway but belong to an earlier run of it (the same id; its
+        # lease has not expired yet) are let go now: the services are taken over as orphans.
+        for name, owner in (await self.store.read(Kind.OWNER)).items():
+            if owner == self.me and name not in self.owned:
+                await self._let_go(Kind.OWNER, name, self.me)
+        await self._announce()
+        await self._read_all()
+        self.joined = True
+
+    async def _announce(self) -> None:
+        self.record = GatewayRecord(
+            self.record.address, self.record.http, self.record.line, owned=len(self.owned)
+        )
+        await self.store.put(Kind.GATEWAY, self.me, self.record.to_json(), leased=True)
+
+    async def _read_all(self) -> None:
+        folders = {kind: await self.store.read(kind) for kind in _FOLDERS}
+        self.view.replace(folders)
+        for name in sorted({*self.view.registrations, *self.served, *self._dialled}):
+            self._mark(name)
+        self._takeover.orphaned()
+
+    async def stop(self) -> None:
+        """Leave: hand over what this gateway owns (its keys go now, not at the end of the lease)."""
+        if self._stopped:
+            return
+        self._stopped = True
+        for stop in self._stops:
+            stop()
+        self._stops.clear()
+        await self._takeover.aclose()
+        worker, self._worker = self._worker, None
+        if worker is not None:
+            worker.cancel()
+            await asyncio.gather(worker, return_exceptions=True)
+        tasks = list(self._tasks)
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        if self.registry is not None:
+            self.registry.licensing.set_claims(None)
+        await self.licences.aclose()
+        if not self.store.read_only:
+            try:
+                async with asyncio.timeout(LEAVE_WAIT):
+                    await self._leave()
+            except (TimeoutError, PropertyError) as exc:
+                log.info("cluster: left without handing over (%s); the lease ends it", exc)
+        await self._writes.aclose()
+
+    async def _leave(self) -> None:
+        async def hand_over(name: str) -> None:
+            registration = self.owned.get(name)
+            await self._let_go(Kind.OWNER, name, self.me)
+            await self._delete(Kind.STATE, name)
+            if registration is not None and registration.dialled_in:
+                await self._delete(Kind.SERVICE, name)
+
+        await run_bounded(sorted(self.owned), hand_over, MAX_WRITES)
+        await self.store.delete(Kind.GATEWAY, self.me)
+
+    # -- what the store says ---------------------------------------------------
+
+    def _on_change(self, change: Change) -> None:
+        for name in self.view.apply(change):
+            self._mark(name)
+        if change.value is None and change.kind in (Kind.OWNER, Kind.GATEWAY):
+            self._takeover.orphaned()
+
+    async def _create(self, kind: Kind, name: str, value: str, *, leased: bool = False) -> bool:
+        """Create a key when absent; this gateway's view has it at once (the watch confirms it later)."""
+        created = await self.store.create(kind, name, value, leased=leased)
+        if created:
+            self._on_change(Change(kind, name, value))
+        return created
+
+    async def _let_go(self, kind: Kind, name: str, expected: str) -> bool:
+        """Delete a key when it still holds ``expected``; the view has it gone at once."""
+        deleted = await self.store.replace(kind, name, expected, None)
+        if deleted:
+            self._on_change(Change(kind, name, None))
+        return deleted
+
+    async def _delete(self, kind: Kind, name: str) -> None:
+        """Delete a key; the view has it gone at once."""
+        await self.store.delete(kind, name)
+        self._on_change(Change(kind, name, None))
+
+    def _mark(self, name: str) -> None:
+        self._dirty[name] = None
+        self._wake.set()
+
+    def _on_reconnect(self) -> None:
+        """The store is back with a new lease: write what this gateway holds again (in a task)."""
+        self._resyncing = True
+        self._settling_until = asyncio.get_running_loop().time() + self.lease
+        self._spawn(self._reassert(), "cluster: write the keys again")
+
+    async def _reassert(self) -> None:
+        try:
+            await self._announce()
+            owners = await self.store.read(Kind.OWNER)
+            await run_bounded(sorted(self.owned), lambda name: self._reassert_one(name, owners), MAX_WRITES)
+            await self._read_all()
+            self.joined = True
+            log.info("cluster: the store is back; %d keys of this gateway written again", len(self.owned))
+        except PropertyError as exc:
+            log.warning(
+                "cluster: writing the keys again failed (%s); trying at the next reconnect", exc.message
+            )
+        finally:
+            self._resyncing = False
+            self._wake.set()
+
+    async def _reassert_one(self, name: str, owners: Mapping[str, str]) -> None:
+        """Write the keys of one service this gateway owns again (the store came back)."""
+        registration = self.owned.get(name)
+        if registration is None:
+            return
+        if not await self._create(Kind.OWNER, name, self.me, leased=True):
+            owner = owners.get(name)
+            if owner != self.me:
+                log.info("cluster: %s is owned by %s now", name, owner)
+                return  # taken over meanwhile: the reconciler forwards to the new owner
+            await self.store.replace(Kind.OWNER, name, self.me, self.me, leased=True)  # the new lease
+        leased = registration.dialled_in
+        value = registration.to_json()
+        if not await self._create(Kind.SERVICE, name, value, leased=leased) and leased:
+            await self.store.put(Kind.SERVICE, name, value, leased=True)  # bound to the new lease
+        if self.registry is not None and name in self.registry.services.children():
+            await self.store.put(Kind.STATE, name, self.registry.state_of(name), leased=True)
+
+    def _on_router(self, name: str, backend: Backend | None) -> None:
+        """A device dialled in to this gateway's line listener: publish it to the cluster."""
+        if backend is None:
+            dialled = self._dialled.pop(name, None)
+            if dialled is not None and name not in self._busy:
+                self.owned.pop(name, None)
+                self._spawn(self._unpublish(name), f"cluster: unpublish {name}")
+            return
+        if backend.info.url.startswith(DIAL_IN_PREFIX) and name not in self.served and name not in self._busy:
+            self._spawn(self._publish(name, backend), f"cluster: publish {name}")
+
+    def _on_state(self, name: str, state: str) -> None:
+        """The registry's state of a service: the owner reports it to the others."""
+        if name in self.owned and state != GONE:
+            self._writes.put(Kind.STATE, name, state)
+
+    def _spawn(self, coro: Coroutine[Any, Any, None], name: str) -> None:
+        task = asyncio.get_running_loop().create_task(coro, name=name)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    # -- registering, unregistering, publishing ---------------------------------
+
+    def _writable(self) -> None:
+        reason = self.store.read_only
+        if reason:
+            raise Unavailable(f"the registry is read-only: {reason}")
+        if not self.joined:
+            raise Unavailable("the registry is read-only: this gateway has not joined its cluster yet")
+
+    async def register(self, name: str, url: str, options: Mapping[str, Any] | None = None) -> BackendInfo:
+        """Register ``name`` at ``url`` in the cluster and own it here (the registry's directory calls).
+
+        AlreadyExists when another gateway owns the name or another registration holds it;
+        Unavailable when the store is read-only.
+        """
+        self._writable()
+        if name in self._busy or name in self.router:
+            raise AlreadyExists(f"a service named {name!r} already exists")
+        registration = Registration(url)
+        self._busy.add(name)
+        try:
+            await self._claim(name, registration, leased=False)
+            try:
+                proxy = open_proxy(name, url, options or {})
+                await proxy.start()
+            except BaseException:
+                await self._release(name, registration)
+                raise
+            switching = SwitchingBackend(name, url, declared_type=registration.declared_type)
+            await switching.switch(proxy, "owned here")
+            self.router.add(name, switching)
+            self.served[name] = switching
+            self._own(name, registration)
+            log.info("cluster: service %s registered at %s, owned here", name, url)
+            return switching.info
+        finally:
+            self._busy.discard(name)
+            self._mark(name)
+
+    async def _claim(self, name: str, registration: Registration, *, leased: bool) -> None:
+        """Create the owners key, then the services key; AlreadyExists (nothing left) when taken."""
+        if not await self._create(Kind.OWNER, name, self.me, leased=True):
+            owner = self.view.owners.get(name, "another gateway")
+            raise AlreadyExists(f"the name {name!r} is taken in the cluster (owned by gateway {owner})")
+        if not await self._create(Kind.SERVICE, name, registration.to_json(), leased=leased):
+            await self._let_go(Kind.OWNER, name, self.me)
+            held = self.view.registrations.get(name)
+            by = f"by {held.url}" if held is not None else "by another registration"
+            raise AlreadyExists(f"the name {name!r} is taken in the cluster ({by}); unregister it first")
+
+    async def _release(self, name: str, registration: Registration) -> None:
+        """Undo :meth:`_claim` (the proxy could not be made); never raises."""
+        with contextlib.suppress(PropertyError):
+            await self._let_go(Kind.SERVICE, name, registration.to_json())
+            await self._let_go(Kind.OWNER, name, self.me)
+
+    def _own(self, name: str, registration: Registration) -> None:
+        self.owned[name] = registration
+        self._forwarding.pop(name, None)
+        if self.registry is not None:
+            self.registry.mirror(name, None)
+        self._count_changed()
+
+    def _count_changed(self) -> None:
+        self.record = GatewayRecord(
+            self.record.address, self.record.http, self.record.line, owned=len(self.owned)
+        )
+        self._writes.put(Kind.GATEWAY, self.me, self.record.to_json())
+
+    async def unregister(self, name: str) -> None:
+        """Remove ``name`` from the cluster (on whichever gateway owns it); Unavailable when read-only."""
+        registration = self.view.registrations.get(name) or self.owned.get(name)
+        if registration is None and name not in self.served and name not in self._dialled:
+            await self.router.unregister(name)  # not the cluster's: this gateway's own
+            return
+        self._writable()
+        self._busy.add(name)
+        try:
+            await self._delete(Kind.SERVICE, name)
+            if name in self.owned:
+                await self._let_go(Kind.OWNER, name, self.me)
+                await self._delete(Kind.STATE, name)
+            await self._drop(name)
+        finally:
+            self._busy.discard(name)
+            self._mark(name)
+
+    async def _publish(self, name: str, backend: Backend) -> None:
+        """Publish a device that dialled in here: its keys bound to this gateway's lease."""
+        registration = Registration(
+            backend.info.url, {"type": backend.info.type} if backend.info.type else {}
+        )
+        self._busy.add(name)
+        try:
+            self._writable()
+            await self._claim(name, registration, leased=True)
+        except PropertyError as exc:
+            if isinstance(exc, AlreadyExists):
+                log.warning(
+                    "cluster: device %s dialled in here, but %s; it is turned away", name, exc.message
+                )
+                with contextlib.suppress(PropertyError):
+                    await self.router.unregister(name)
+                return
+            log.warning("cluster: device %s served here, not published yet: %s", name, exc.message)
+        finally:
+            self._busy.discard(name)
+        self._dialled[name] = backend
+        self._own(name, registration)
+        if self.registry is not None and name in self.registry.services.children():
+            self._writes.put(Kind.STATE, name, self.registry.state_of(name))
+        self._mark(name)
+
+    async def _unpublish(self, name: str) -> None:
+        """A published device left this gateway's router: its keys go."""
+        try:
+            await self._delete(Kind.SERVICE, name)
+            await self._let_go(Kind.OWNER, name, self.me)
+            await self._delete(Kind.STATE, name)
+        except PropertyError as exc:
+            log.info("cluster: %s left; its keys stay until the lease ends: %s", name, exc.message)
+        self._count_changed()
+
+    # -- reconciling: what the router serves follows the view ------------------
+
+    async def _work(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            if self._deferred and loop.time() >= self._settling_until:
+                self._dirty.update(self._deferred)
+                self._deferred.clear()
+            if self._resyncing:
+                continue  # the reassert wakes it when done
+            while self._dirty and not self._resyncing:
+                name = next(iter(self._dirty))
+                del self._dirty[name]
+                if name in self._busy:
+                    continue  # marked again when the registration or unregistration is done
+                try:
+                    await self._reconcile(name)
+                except Exception:
+                    log.exception("cluster: serving %s failed", name)
+            if self._deferred:
+                loop.call_later(max(0.0, self._settling_until - loop.time()), self._wake.set)
+
+    async def _reconcile(self, name: str) -> None:
+        registration = self.view.registrations.get(name)
+        owner = self.view.owners.get(name)
+        if registration is None:
+            if name in self.served or name in self._dialled:
+                if asyncio.get_running_loop().time() < self._settling_until:
+                    self._deferred[name] = None  # looked at again once the others wrote theirs again
+                    return
+                await self._drop(name)
+            if owner == self.me:  # the registration left: so does this gateway's claim on it
+                await self._let_go(Kind.OWNER, name, self.me)
+                if name in self.view.states:
+                    await self._delete(Kind.STATE, name)
+            return
+        if name in self._dialled:
+            if owner is not None and owner != self.me:
+                log.warning("cluster: %s is owned by %s now; the device here is turned away", name, owner)
+                await self._drop(name)
+                return
+            self._show_owner(name)
+            return
+        switching = self._serve(name, registration)
+        if switching is None:
+            return
+        if owner == self.me:
+            if name not in self.owned or switching.target is None:
+                await self._open_owned(name, registration, switching)
+            else:
+                self.owned[name] = registration  # as the key holds it now (the registry adds options)
+        elif owner is not None:
+            await self._forward(name, owner, switching)
+        elif name in self._forwarding and asyncio.get_running_loop().time() < self._settling_until:
+            # The store came back without its owners key yet: its owner is writing it again. The
+            # calls keep going to it meanwhile; looked at again once the store has settled.
+            self._deferred[name] = None
+            return
+        else:
+            await self._orphan(name, registration, switching)
+        self._show_owner(name)
+
+    def _show_owner(self, name: str) -> None:
+        """``services.NAME.owner`` in this gateway's registry: who holds the connection, as heard."""
+        if self.registry is not None:
+            self.registry.set_owner(name, self.view.owners.get(name, ""))
+
+    def _serve(self, name: str, registration: Registration) -> SwitchingBackend | None:
+        """The router entry of ``name``, made when missing; None when the name is this gateway's own."""
+        switching = self.served.get(name)
+        if switching is not None:
+            return switching
+        if name in self.router:
+            log.warning(
+                "cluster: %s is registered in the cluster, but this gateway serves its own %s", name, name
+            )
+            return None
+        switching = SwitchingBackend(name, registration.url, declared_type=registration.declared_type)
+        self.served[name] = switching
+        self.router.add(name, switching)
+        if self.registry is not None:
+            self.registry.mirror(name, self.view.states.get(name, "connecting"))
+        return switching
+
+    async def _open_owned(self, name: str, registration: Registration, switching: SwitchingBackend) -> None:
+        """This gateway owns ``name`` now (it took it over): open the device."""
+        try:
+            proxy = open_proxy(name, registration.url, {})
+            await proxy.start()
+        except PropertyError as exc:
+            log.error("cluster: cannot open %s at %s: %s", name, registration.url, exc.message)
+            return
+        await switching.switch(proxy, "owned here")
+        self._own(name, registration)
+        log.info("cluster: %s is owned here now (%s)", name, registration.url)
+        self._spawn(self._reach(name, switching), f"cluster: reach {name}")
+
+    async def _reach(self, name: str, switching: SwitchingBackend) -> None:
+        """Tell the registry once the device taken over answers (it checks it itself from now on)."""
+        registry = self.registry
+        if registry is None:
+            return
+        with contextlib.suppress(PropertyError):
+            await switching.wait_connected(max(1.0, registry.timeout))
+            if name in self.owned and name in registry.services.children():
+                registry.add(name, switching.info)
+
+    async def _forward(self, name: str, owner: str, switching: SwitchingBackend) -> None:
+        record = self.view.gateways.get(owner)
+        if name in self.owned:
+            log.info("cluster: %s is owned by %s now", name, owner)
+            self.owned.pop(name, None)
+            self._count_changed()
+        if record is None:
+            self._forwarding.pop(name, None)
+            await switching.switch(
+                None, reason=f"service {name!r} is owned by gateway {owner}, which is not in the cluster now"
+            )
+        elif self._forwarding.get(name) != record.address:
+            proxy = open_grpc_backend(name, f"grpc://{record.address}/{name}", FORWARD_OPTIONS)
+            await proxy.start()
+            self._forwarding[name] = record.address
+            await switching.switch(proxy, f"forwarded to gateway {owner} at {record.address}")
+        if self.registry is not None:
+            self.registry.mirror(name, self.view.states.get(name, "connecting"))
+
+    async def _orphan(self, name: str, registration: Registration, switching: SwitchingBackend) -> None:
+        if name in self.owned:
+            # This gateway holds the connection, but its owners key went (its lease lapsed while
+            # the store was away): claim it again at once.
+            with contextlib.suppress(PropertyError):
+                await self._create(Kind.OWNER, name, self.me, leased=True)
+            return
+        self._forwarding.pop(name, None)
+        await switching.switch(
+            None,
+            reason=f"service {name!r} has no owner now: its gateway left the cluster, and another "
+            f"takes it over within {self.lease:g} s",
+        )
+        if self.registry is not None:
+            self.registry.mirror(name, "connecting")
+        self._takeover.orphaned()
+
+    async def _drop(self, name: str) -> None:
+        """Stop serving ``name`` (its registration left the cluster); a device that dialled in here
+        is hung up on (it dials again, and is registered again)."""
+        switching = self.served.pop(name, None)
+        dialled = self._dialled.pop(name, None)
+        self._forwarding.pop(name, None)
+        if name in self.owned:
+            self.owned.pop(name, None)
+            self._count_changed()
+        for backend in (switching, dialled):
+            if backend is not None and name in self.router and self.router.lookup(name) is backend:
+                self.router.remove(name)
+        if switching is not None:
+            await switching.aclose()
+        if dialled is not None:
+            await dialled.aclose()
+
+    # -- failover --------------------------------------------------------------
+
+    def _takeover_plan(self) -> tuple[list[str], dict[str, int]]:
+        if self._resyncing or asyncio.get_running_loop().time() < self._settling_until:
+            self._spawn(self._replan_later(), "cluster: plan later")
+            return [], {}
+        return self.view.orphans(), self.view.loads()
+
+    async def _replan_later(self) -> None:
+        await asyncio.sleep(max(0.05, self._settling_until - asyncio.get_running_loop().time()))
+        self._takeover.orphaned()
+
+    async def _take_over(self, name: str) -> None:
+        registration = self.view.registrations.get(name)
+        if registration is None or name in self.view.owners or registration.dialled_in or self._stopped:
+            return
+        if self.allow is not None:
+            try:
+                await self.allow.check(name, registration.url)
+            except PropertyError as exc:
+                log.warning("cluster: not taking %s over: %s", name, exc.message)
+                return
+        try:
+            won = await self._create(Kind.OWNER, name, self.me, leased=True)
+        except PropertyError as exc:
+            log.info("cluster: cannot take %s over now: %s", name, exc.message)
+            return
+        if won:
+            log.info("cluster: taking %s over (%s)", name, registration.url)
+
+    # -- for devices and people ---------------------------------------------------
+
+    def alternates(self) -> list[str]:
+        """The line-protocol addresses of the other live gateways (where a device may dial in)."""
+        return sorted(
+            record.line
+            for gateway, record in self.view.gateways.items()
+            if gateway != self.me and record.line
+        )
+
+    def owners(self) -> dict[str, str]:
+        """Service name → owning gateway id, as this gateway sees it."""
+        return dict(self.view.owners)

@@ -1,0 +1,128 @@
+"""What the cluster's keys hold: the JSON of a registration and of a gateway, read and written.
+
+Key layout (``PREFIX`` is ``[registry] store_prefix``)::
+
+    PREFIX/services/NAME   {"url": URL, "options": {"type": ..., "features": ...}}
+    PREFIX/owners/NAME     the owning gateway's id                                   (leased)
+    PREFIX/states/NAME     up | down | connecting, as the owner sees it              (leased)
+    PREFIX/gateways/ID     {"address": HOST:PORT, "http": ..., "line": ..., "owned": N}  (leased)
+    PREFIX/licences/NAME   [{"id": ..., "subtree": ..., "holder": ..., ...}, ...]   (see licences)
+
+A value another program wrote badly is not trusted: :func:`read_registration` and
+:func:`read_gateway` answer None for it, and the cluster logs and skips the key.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from services.registry import STATES
+from services.registry.store import decode_registration, encode_registration
+
+__all__ = [
+    "DIAL_IN_PREFIX",
+    "GatewayRecord",
+    "Ownership",
+    "Registration",
+    "read_gateway",
+    "read_registration",
+    "read_state",
+]
+
+#: A registration whose URL starts so is a device that dialled in to a gateway's line listener:
+#: its key is bound to that gateway's lease, and nobody else can dial it (it dials again elsewhere).
+DIAL_IN_PREFIX = "tcp-in://"
+
+
+@dataclass(frozen=True, slots=True)
+class Registration:
+    """One ``services/NAME`` key: where the service is, and what its registration declared."""
+
+    url: str
+    options: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def dialled_in(self) -> bool:
+        """A device that dialled in: it leaves with its gateway and is never taken over."""
+        return self.url.startswith(DIAL_IN_PREFIX)
+
+    @property
+    def declared_type(self) -> str:
+        """The type the registration declared; empty when none."""
+        return self.options.get("type", "")
+
+    def to_json(self) -> str:
+        """The key's value (written as the registry's store writes it)."""
+        return encode_registration(self.url, self.options)
+
+
+def read_registration(text: str) -> Registration | None:
+    """The registration a ``services/NAME`` value holds; None when it is not one."""
+    try:
+        url, options = decode_registration(text)
+    except ValueError:
+        return None
+    return Registration(url, options) if url else None
+
+
+@dataclass(frozen=True, slots=True)
+class GatewayRecord:
+    """One ``gateways/ID`` key: where a live gateway of the cluster is reached."""
+
+    #: host:port of its gRPC port, as the other gateways dial it (``[registry] advertise``).
+    address: str
+    #: host:port of its HTTP front end ("" when off).
+    http: str = ""
+    #: host:port of its line-protocol listener ("" when off): devices dial it.
+    line: str = ""
+    #: Services it owns (``owners`` keys naming it), as it last counted them.
+    owned: int = 0
+
+    def to_json(self) -> str:
+        """The key's value."""
+        return json.dumps(
+            {"address": self.address, "http": self.http, "line": self.line, "owned": self.owned},
+            sort_keys=True,
+        )
+
+
+def read_gateway(text: str) -> GatewayRecord | None:
+    """The gateway a ``gateways/ID`` value holds; None when it is not one."""
+    try:
+        data = json.loads(text)
+        address = data["address"]
+        http = data.get("http", "")
+        line = data.get("line", "")
+        owned = data.get("owned", 0)
+    except (ValueError, KeyError, TypeError, AttributeError):
+        return None
+    if not isinstance(address, str) or not address or not isinstance(owned, int):
+        return None
+    return GatewayRecord(address, str(http or ""), str(line or ""), owned)
+
+
+def read_state(text: str) -> str | None:
+    """A ``states/NAME`` value when it is a state the registry knows; None otherwise."""
+    return text if text in STATES else None
+
+
+@dataclass(frozen=True, slots=True)
+class Ownership:
+    """Who owns what in a cluster at one moment, for people (the cluster command's table, its picture)."""
+
+    #: The shared store's URL.
+    store: str
+    gateways: Mapping[str, GatewayRecord]
+    #: Service name → the id of the gateway that owns it.
+    owners: Mapping[str, str]
+    registrations: Mapping[str, Registration]
+
+    def owned_by(self, gateway: str) -> list[str]:
+        """The services ``gateway`` owns, sorted."""
+        return sorted(name for name, owner in self.owners.items() if owner == gateway)
+
+    def orphans(self) -> list[str]:
+        """The registrations no live gateway owns, sorted."""
+        return sorted(name for name in self.registrations if self.owners.get(name) not in self.gateways)

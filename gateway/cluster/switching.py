@@ -1,0 +1,303 @@
+"""One service of the cluster as this gateway serves it: a stable router entry whose target can change.
+
+A service registered on a shared store has one owner, the gateway that holds its connection. Every
+gateway serves it under one router entry, a :class:`SwitchingBackend`, whose *target* is what
+reaches the service now:
+
+* on the owner, the service's own proxy (``tcp://``, ``serial://``, ``grpc://``);
+* on every other gateway, a gRPC proxy to the owner (``grpc://OWNER/NAME``): calls are forwarded;
+* while no gateway owns it (its owner died and nobody has taken it over yet), nothing: calls get
+  UNAVAILABLE saying why.
+
+When the owner changes, :meth:`SwitchingBackend.switch` moves every Listen to the new target and
+hands each listener the current value as a ``Change(gap=True)``: values may have been missed in
+between, and the listener hears that it may have. The router entry, and so the listen hub's topics
+and every client stream on them, stay as they are.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+import random
+from collections.abc import Mapping
+
+from services.backend import (
+    NO_PARAMS,
+    UNKNOWN_TYPE,
+    Backend,
+    BackendInfo,
+    Change,
+    LinkCounts,
+    Notify,
+    Subscription,
+    close_quietly,
+)
+from services.errors import Code, PropertyError, Unavailable
+from services.model import ServiceModel
+from services.values import Value
+
+__all__ = ["RESUME_BACKOFF_INITIAL", "RESUME_BACKOFF_MAX", "SwitchingBackend"]
+
+log = logging.getLogger(__name__)
+
+#: First and longest pause between attempts to listen again on a new target that cannot be
+#: listened to yet (the new owner is still connecting to the device); doubled per failure, jittered.
+RESUME_BACKOFF_INITIAL = 0.1
+RESUME_BACKOFF_MAX = 2.0
+
+
+class _SwitchedListen(Subscription):
+    """One listener of a :class:`SwitchingBackend`: its place on the current target, moved on a switch."""
+
+    def __init__(self, owner: SwitchingBackend, path: str, notify: Notify, params: Mapping[str, str]) -> None:
+        self.owner = owner
+        self.path = path
+        self.notify = notify
+        self.params = dict(params)
+        #: The subscription on the target it was opened on; None while it is being moved.
+        self.sub: Subscription | None = None
+        #: Counts the targets this listen was opened on: a change from an older one is dropped.
+        self.generation = 0
+        #: The task that opens it on a new target (one at a time).
+        self.resuming: asyncio.Task[None] | None = None
+        self.closed = False
+
+    def forward_for(self, generation: int) -> Notify:
+        """The notify handed to the target of ``generation``: it passes changes on while that is current."""
+
+        def forward(change: Change) -> None:
+            if self.generation == generation and not self.closed:
+                self.notify(change)
+
+        return forward
+
+    async def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self.owner.forget(self)
+        resuming, self.resuming = self.resuming, None
+        if resuming is not None and resuming is not asyncio.current_task():
+            resuming.cancel()
+            await asyncio.gather(resuming, return_exceptions=True)
+        sub, self.sub = self.sub, None
+        if sub is not None:
+            await close_quietly(sub)
+
+
+class SwitchingBackend(Backend):
+    """A cluster service's router entry on one gateway; its target follows the owner (module docstring)."""
+
+    def __init__(self, name: str, url: str, *, declared_type: str = "", reason: str = "") -> None:
+        """``url`` is the registration's URL (what every gateway's registry shows); ``declared_type``
+        the type the registration declared; ``reason`` why there is no target yet."""
+        self.name = name
+        self.info = BackendInfo(type=declared_type or UNKNOWN_TYPE, url=url)
+        self._declared_type = declared_type
+        self._target: Backend | None = None
+        #: What the target is, for messages ("owned here", "forwarded to gateway gw2 at ...").
+        self.target_label = ""
+        self._reason = reason or f"service {name!r} has no owner in the cluster yet"
+        self._listens: dict[int, _SwitchedListen] = {}
+        self._ids = itertools.count()
+        self._has_target = asyncio.Event()
+        #: Subscriptions being closed because they were opened on a target that is gone.
+        self._dropping: set[asyncio.Task[None]] = set()
+        self._closed = False
+
+    def __repr__(self) -> str:
+        return f"SwitchingBackend({self.name!r}, {self.target_label or self._reason!r})"
+
+    @property
+    def target(self) -> Backend | None:
+        """What reaches the service now; None while nobody owns it."""
+        return self._target
+
+    # -- switching ---------------------------------------------------------
+
+    async def switch(self, target: Backend | None, label: str = "", reason: str = "") -> None:
+        """Reach the service through ``target`` (started) from now on; None: through nothing, because of
+        ``reason``. The old target is closed; every Listen moves to the new one with a gap."""
+        old = self._target
+        if target is old:
+            return
+        if self._closed:
+            if target is not None:
+                await target.aclose()
+            return
+        self._target = target
+        self.target_label = label if target is not None else ""
+        if reason:
+            self._reason = reason
+        if target is None:
+            self._has_target.clear()
+        else:
+            self._has_target.set()
+            self._learn_type(target)
+        listens = list(self._listens.values())
+        for listen in listens:
+            listen.generation += 1
+        # The old subscriptions go first (their proxy is about to close); then each Listen opens
+        # again on the new target in its own task, which retries while the new owner connects.
+        await asyncio.gather(*(self._detach(listen) for listen in listens))
+        for listen in listens:
+            self._resume(listen)
+        if old is not None:
+            await old.aclose()
+
+    async def _detach(self, listen: _SwitchedListen) -> None:
+        resuming, listen.resuming = listen.resuming, None
+        if resuming is not None:
+            resuming.cancel()
+            await asyncio.gather(resuming, return_exceptions=True)
+        sub, listen.sub = listen.sub, None
+        if sub is not None:
+            await close_quietly(sub)
+
+    def _resume(self, listen: _SwitchedListen) -> None:
+        if self._target is None or listen.closed:
+            return  # resumed by the switch that brings a target
+        listen.resuming = asyncio.get_running_loop().create_task(
+            self._listen_again(listen, self._target, listen.generation),
+            name=f"cluster {self.name}: listen again to {listen.path}",
+        )
+
+    async def _listen_again(self, listen: _SwitchedListen, target: Backend, generation: int) -> None:
+        """Open ``listen`` on ``target`` (retrying while it cannot be reached yet), then report a gap."""
+        failures = 0
+        while listen.generation == generation and not listen.closed:
+            try:
+                sub, value = await target.listen_current(
+                    listen.path, listen.forward_for(generation), listen.params
+                )
+            except PropertyError as exc:
+                if exc.code is Code.NOT_FOUND:
+                    listen.notify(Change(listen.path, "", removed=True))
+                    return
+                failures += 1
+                level = logging.INFO if failures == 1 else logging.DEBUG
+                log.log(level, "%s: cannot listen to %s again yet: %s", self.name, listen.path, exc.message)
+                delay = min(RESUME_BACKOFF_MAX, RESUME_BACKOFF_INITIAL * 2 ** min(failures - 1, 30))
+                await asyncio.sleep(delay * random.uniform(0.5, 1.0))
+                continue
+            if listen.generation != generation or listen.closed:
+                await close_quietly(sub)
+                return
+            listen.sub = sub
+            listen.resuming = None
+            listen.notify(Change(listen.path, value, gap=True))
+            return
+
+    # -- calls -------------------------------------------------------------
+
+    def _require(self) -> Backend:
+        target = self._target
+        if target is None:
+            raise Unavailable(self._reason)
+        return target
+
+    def _learn_type(self, target: Backend) -> None:
+        if not self._declared_type and target.info.type != UNKNOWN_TYPE:
+            self.info.type = target.info.type
+
+    async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
+        return await self._require().get(path, params)
+
+    async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
+        return await self._require().set(path, value, params)
+
+    async def describe(self) -> ServiceModel:
+        return await self._require().describe()
+
+    async def properties(self) -> list[str]:
+        return await self._require().properties()
+
+    async def check(self) -> None:
+        target = self._require()
+        await target.check()
+        self._learn_type(target)
+
+    def link_counts(self) -> LinkCounts | None:
+        target = self._target
+        return target.link_counts() if target is not None else None
+
+    async def wait_connected(self, wait_s: float) -> None:
+        """Wait for a target, then for it to be connected; Unavailable, saying why, after ``wait_s``."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + wait_s
+        try:
+            async with asyncio.timeout_at(deadline):
+                await self._has_target.wait()
+        except TimeoutError:
+            raise Unavailable(self._reason) from None
+        target = self._require()
+        await target.wait_connected(max(0.0, deadline - loop.time()))
+        self._learn_type(target)
+
+    async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
+        listen, target, generation = self._place(path, notify, params)
+        try:
+            sub = await target.listen(path, listen.forward_for(generation), params)
+        except BaseException:
+            await listen.close()
+            raise
+        self._settle(listen, sub, generation)
+        return listen
+
+    async def listen_current(
+        self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS
+    ) -> tuple[Subscription, Value]:
+        listen, target, generation = self._place(path, notify, params)
+        try:
+            sub, value = await target.listen_current(path, listen.forward_for(generation), params)
+        except BaseException:
+            await listen.close()
+            raise
+        self._settle(listen, sub, generation)
+        return listen, value
+
+    def _place(
+        self, path: str, notify: Notify, params: Mapping[str, str]
+    ) -> tuple[_SwitchedListen, Backend, int]:
+        target = self._require()
+        listen = _SwitchedListen(self, path, notify, params)
+        self._listens[next(self._ids)] = listen
+        return listen, target, listen.generation
+
+    def _settle(self, listen: _SwitchedListen, sub: Subscription, generation: int) -> None:
+        if listen.generation == generation and not listen.closed:
+            listen.sub = sub
+            return
+        # The target changed while the Listen was being opened: the switch found no subscription to
+        # move and has already set it to open again on the new target; this one is dropped.
+        task = asyncio.get_running_loop().create_task(
+            close_quietly(sub), name=f"cluster {self.name}: drop a listen"
+        )
+        self._dropping.add(task)
+        task.add_done_callback(self._dropping.discard)
+
+    def forget(self, listen: _SwitchedListen) -> None:
+        """A Listen ended (its :meth:`_SwitchedListen.close`)."""
+        for key, held in list(self._listens.items()):
+            if held is listen:
+                del self._listens[key]
+
+    @property
+    def listens(self) -> int:
+        """Listens held now (for tests and metrics)."""
+        return len(self._listens)
+
+    # -- lifecycle ---------------------------------------------------------
+
+    async def aclose(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        await asyncio.gather(*(listen.close() for listen in list(self._listens.values())))
+        await asyncio.gather(*self._dropping, return_exceptions=True)
+        target, self._target = self._target, None
+        self._has_target.clear()
+        if target is not None:
+            await target.aclose()

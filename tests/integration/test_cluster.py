@@ -1,0 +1,358 @@
+"""A cluster of three real gateway processes sharing one registry in a real etcd.
+
+Each test starts etcd (``tests/support/etcd.py``) and three gateways (``gw-a``, ``gw-b``, ``gw-c``)
+whose ``[registry] store`` names it, with short leases, and real line-protocol devices as processes
+(``python -m services.device_server``). Users act as they would: the asyncio SDK against any
+gateway. Without the ``etcd`` command the tests skip, saying so.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import AsyncIterator, Callable, Iterator
+from contextlib import ExitStack
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+
+import jwt
+import pytest
+from line_device_support import device_process, tcp_device
+from support.etcd import EtcdServer
+from support.gateway_process import GatewayProcess, start_gateway
+from support.ports import stable_ports
+from support.waiting import eventually
+
+from clients import AsyncClient, ClientCredentials
+from clients.aio import Event
+from clients.errors import FailedPrecondition, PropertyServiceError, Unavailable
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
+
+#: Seconds of each gateway's lease: short, so that failover is quick to watch (etcd's floor is ~1.5 s).
+LEASE = 2.0
+SECRET = "a shared secret of the cluster, long enough for HS256"
+IDS = ("gw-a", "gw-b", "gw-c")
+
+
+@dataclass
+class Cluster:
+    """Three gateways on one etcd; ``gateways[id]`` is a running process."""
+
+    etcd: EtcdServer
+    gateways: dict[str, GatewayProcess]
+    lines: dict[str, str]
+    folder: Path
+
+    def client(self, gateway: str, who: str | None = None) -> AsyncClient:
+        credentials = ClientCredentials(token=_token(who)) if who else None
+        return AsyncClient(self.gateways[gateway].address, credentials=credentials)
+
+
+def _token(subject: str) -> str:
+    return jwt.encode({"sub": subject, "exp": int(time.time()) + 600}, SECRET, algorithm="HS256")
+
+
+def _config(etcd: EtcdServer, gateway: str, line: str) -> str:
+    return f"""
+        [gateway]
+        line_listen = "{line}"
+
+        [auth]
+        jwt_secret_file = "jwt.secret"
+
+        [registry]
+        store = "{etcd.url}"
+        store_lease = {LEASE}
+        gateway_id = "{gateway}"
+        period = 0.5
+        timeout = 1.0
+        """
+
+
+@pytest.fixture
+def cluster(etcd_server: Callable[..., EtcdServer], tmp_path: Path) -> Iterator[Cluster]:
+    etcd = etcd_server()
+    (tmp_path / "jwt.secret").write_text(SECRET)
+    lines = {gateway: f"127.0.0.1:{port}" for gateway, port in zip(IDS, stable_ports(len(IDS)), strict=True)}
+    gateways: dict[str, GatewayProcess] = {}
+    try:
+        for gateway in IDS:
+            gateways[gateway] = start_gateway(tmp_path, _config(etcd, gateway, lines[gateway]))
+        yield Cluster(etcd, gateways, lines, tmp_path)
+    finally:
+        for gw in gateways.values():
+            gw.stop()
+
+
+@pytest.fixture
+async def clients(cluster: Cluster) -> AsyncIterator[dict[str, AsyncClient]]:
+    opened = {gateway: cluster.client(gateway) for gateway in IDS}
+    yield opened
+    for client in opened.values():
+        await client.close()
+
+
+async def _register(client: AsyncClient, name: str, address: tuple[str, int]) -> None:
+    host, port = address
+    await client.set("registry", f"services.{name}", f"tcp://{host}:{port}")
+
+
+async def _owner(client: AsyncClient, name: str) -> str:
+    return str(await client.get("registry", f"services.{name}.owner"))
+
+
+async def test_a_registration_on_one_gateway_is_served_by_every_gateway(
+    cluster: Cluster, clients: dict[str, AsyncClient]
+) -> None:
+    with tcp_device("--service", "sim-sensor", "--name", "thermo") as address:
+        await _register(clients["gw-a"], "thermo", address)
+        for gateway in IDS:
+            client = clients[gateway]
+            names = await eventually(
+                lambda c=client: c.get_names("registry", "services"),
+                lambda names: "thermo" in names,
+                what=f"{gateway} lists thermo",
+            )
+            assert "thermo" in names
+            assert await _owner(client, "thermo") == "gw-a"
+            state = await eventually(
+                lambda c=client: c.get("registry", "services.thermo.state"), lambda s: s == "up"
+            )
+            assert state == "up"
+            assert await client.get("registry", "services.thermo.url") == f"tcp://{address[0]}:{address[1]}"
+        # Get, Set and Listen through gateways that do not own it reach the device owned by gw-a.
+        assert 10.0 < await clients["gw-b"].get_number("thermo", "data") < 30.0
+        assert await clients["gw-c"].set("thermo", "rate_hz", "20") == "20"
+        assert await clients["gw-a"].get("thermo", "rate_hz") == "20"
+        events = clients["gw-c"].listen("thermo", "data")
+        try:
+            seen = [await anext(events) for _ in range(3)]
+        finally:
+            await events.aclose()
+        assert [e.service for e in seen] == ["thermo"] * 3
+        assert len({e.value for e in seen}) > 1  # live readings, not one value repeated
+
+
+async def test_every_gateway_hears_a_state_change_within_a_second(
+    cluster: Cluster, clients: dict[str, AsyncClient]
+) -> None:
+    with tcp_device("--service", "sim-sensor", "--name", "thermo") as address:
+        await _register(clients["gw-a"], "thermo", address)
+        for gateway in IDS:
+            await eventually(
+                lambda g=gateway: clients[g].get("registry", "services.thermo.state"),
+                lambda state: state == "up",
+                retry_on=(PropertyServiceError,),
+            )
+        streams = {g: clients[g].listen("registry", "services.*.state", updates_only=True) for g in IDS}
+        downs = [asyncio.ensure_future(_first_down(streams[g])) for g in IDS]
+        await asyncio.sleep(0.5)  # the Listens are open
+        # The device goes away (the context ends): its owner's liveness checks find it down.
+    heard = dict(zip(IDS, await asyncio.gather(*downs), strict=True))
+    for stream in streams.values():
+        await stream.aclose()
+    lag = max(heard[g] for g in ("gw-b", "gw-c")) - heard["gw-a"]
+    print(f"a state change seen by the other gateways {lag.total_seconds() * 1000:.0f} ms after its owner")
+    assert lag.total_seconds() < 1.0
+
+
+async def _first_down(events: AsyncIterator[Event]) -> datetime:
+    """When the gateway of ``events`` saw ``thermo`` go down."""
+    async with asyncio.timeout(20):
+        async for event in events:
+            if event.property == "services.thermo.state" and event.value == "down":
+                return event.time
+    raise AssertionError("the stream ended before thermo went down")
+
+
+async def test_a_name_registered_anywhere_is_taken_everywhere(
+    cluster: Cluster, clients: dict[str, AsyncClient]
+) -> None:
+    with tcp_device("--service", "sim-sensor") as first, tcp_device("--service", "sim-sensor") as second:
+        await _register(clients["gw-a"], "thermo", first)
+        await eventually(lambda: clients["gw-b"].get_names("registry", "services"), lambda n: "thermo" in n)
+        with pytest.raises(PropertyServiceError, match="taken"):
+            await _register(clients["gw-b"], "thermo", second)
+        # Unregistered on a gateway that does not own it: it leaves every gateway.
+        await clients["gw-c"].set("registry", "services.thermo", "")
+        for gateway in IDS:
+            await eventually(
+                lambda g=gateway: clients[g].get_names("registry", "services"),
+                lambda names: "thermo" not in names,
+                what=f"{gateway} forgot thermo",
+            )
+        await _register(clients["gw-b"], "thermo", second)
+        await eventually(lambda: _owner(clients["gw-a"], "thermo"), lambda o: o == "gw-b")
+
+
+async def test_killing_the_owner_moves_its_devices_and_a_listen_resumes_with_a_gap(
+    cluster: Cluster, clients: dict[str, AsyncClient]
+) -> None:
+    names = ("thermo1", "thermo2", "thermo3")
+    with ExitStack() as stack:
+        for name in names:
+            address = stack.enter_context(tcp_device("--service", "sim-sensor", "--name", name))
+            await _register(clients["gw-a"], name, address)
+        for name in names:
+            await eventually(lambda n=name: _owner(clients["gw-b"], n), lambda o: o == "gw-a")
+        events = clients["gw-b"].listen("thermo1", "data")
+        first = await anext(events)
+        assert not first.gap
+        killed = time.monotonic()
+        cluster.gateways["gw-a"].proc.kill()  # SIGKILL: no goodbye, its lease just runs out
+        moved: dict[str, str] = {}
+        while len(moved) < len(names):
+            assert time.monotonic() - killed < LEASE + 8.0, f"owned again after the kill: {moved}"
+            for name in names:
+                with contextlib.suppress(PropertyServiceError):
+                    owner = await _owner(clients["gw-c"], name)
+                    if owner in ("gw-b", "gw-c"):
+                        moved.setdefault(name, owner)
+            await asyncio.sleep(0.05)
+        failover = time.monotonic() - killed
+        print(f"devices owned again {failover:.2f} s after SIGKILL of their owner (lease {LEASE:g} s)")
+        assert failover < LEASE + 3.0
+        # Spread over the survivors, least loaded first: not all on one gateway.
+        assert set(moved.values()) == {"gw-b", "gw-c"}
+        for gateway in ("gw-b", "gw-c"):
+            listed = await clients[gateway].get_names("registry", "services")
+            assert set(names) <= set(listed)  # no registration lost
+        # The Listen through a survivor goes on: one event marked gap, then live readings.
+        gap = await asyncio.wait_for(_next_gap(events), 15.0)
+        assert gap.service == "thermo1"
+        after = await asyncio.wait_for(anext(events), 5.0)
+        assert not after.gap
+        await events.aclose()
+        for name in names:
+            assert 10.0 < await clients["gw-c"].get_number(name, "data") < 30.0
+
+
+async def _next_gap(events: AsyncIterator[object]) -> object:
+    async for event in events:
+        if getattr(event, "gap", False):
+            return event
+    raise AssertionError("the stream ended without a gap")
+
+
+async def test_a_device_that_dialled_in_goes_to_another_gateway_when_its_own_dies(
+    cluster: Cluster, clients: dict[str, AsyncClient]
+) -> None:
+    line_a = cluster.lines["gw-a"]
+    with device_process(
+        "--service", "sim-robot", "--name", "rover", "--connect", line_a, "--log-level", "INFO"
+    ):
+        for gateway in IDS:
+            await eventually(
+                lambda g=gateway: clients[g].get_names("registry", "services"),
+                lambda names: "rover" in names,
+                what=f"{gateway} lists the device that dialled in",
+            )
+        assert await _owner(clients["gw-c"], "rover") == "gw-a"
+        assert (await clients["gw-b"].get("registry", "services.rover.url")).startswith("tcp-in://")
+        cluster.gateways["gw-a"].proc.kill()
+        # Its registration leaves with gw-a's lease; the device dials an alternate it was told of.
+        owner = await eventually(
+            lambda: _owner(clients["gw-b"], "rover"),
+            lambda o: o in ("gw-b", "gw-c"),
+            within=30.0,
+            retry_on=(PropertyServiceError,),
+            what="the device registered on another gateway",
+        )
+        assert owner in ("gw-b", "gw-c")
+        assert len(await clients["gw-c"].get_vector("rover", "location")) == 6
+
+
+async def test_etcd_restarted_empty_gets_the_keys_back(
+    cluster: Cluster, clients: dict[str, AsyncClient]
+) -> None:
+    with tcp_device("--service", "sim-sensor", "--name", "thermo") as address:
+        await _register(clients["gw-a"], "thermo", address)
+        await eventually(lambda: _owner(clients["gw-c"], "thermo"), lambda o: o == "gw-a")
+        cluster.etcd.kill()
+        cluster.etcd.start(wipe=True)
+        keys = await eventually(
+            lambda: _etcd_keys(cluster.etcd),
+            lambda keys: (
+                {"services/thermo", "owners/thermo", "states/thermo"} <= keys
+                and {f"gateways/{g}" for g in IDS} <= keys
+            ),
+            within=20.0,
+            what="every gateway wrote its keys again",
+        )
+        assert "owners/thermo" in keys
+        # Nobody took it over, nobody lost it.
+        for gateway in IDS:
+            await eventually(lambda g=gateway: _owner(clients[g], "thermo"), lambda o: o == "gw-a")
+        assert 10.0 < await clients["gw-b"].get_number("thermo", "data") < 30.0
+        with tcp_device("--service", "sim-sensor") as other:
+            await eventually(lambda: _register(clients["gw-b"], "after", other), retry_on=(Unavailable,))
+
+
+async def _etcd_keys(etcd: EtcdServer) -> set[str]:
+    """The keys under the default prefix, read with etcd's v3 API through the gateway's own store."""
+    from gateway.stores.address import parse_store_url
+    from gateway.stores.etcd import EtcdStore
+    from services.registry.store import Kind
+
+    store = EtcdStore(parse_store_url(etcd.url), gateway_id="test-reader")
+    await store.start()
+    try:
+        return {f"{kind.value}/{name}" for kind in Kind for name in await store.read(kind)}
+    finally:
+        await store.aclose()
+
+
+async def test_without_etcd_the_registry_is_read_only_and_served_calls_go_on(
+    cluster: Cluster, clients: dict[str, AsyncClient]
+) -> None:
+    with (
+        tcp_device("--service", "sim-sensor", "--name", "thermo") as address,
+        tcp_device("--service", "sim-sensor") as other,
+    ):
+        await _register(clients["gw-a"], "thermo", address)
+        await eventually(lambda: _owner(clients["gw-b"], "thermo"), lambda o: o == "gw-a")
+        cluster.etcd.stop()
+        store = await eventually(
+            lambda: clients["gw-b"].get("registry", "store"), lambda text: "read-only" in str(text)
+        )
+        assert str(store).startswith(f"{cluster.etcd.url} (read-only: etcd at ")
+        with pytest.raises(Unavailable) as refused:
+            await _register(clients["gw-b"], "other", other)
+        assert "the registry is read-only: etcd at" in str(refused.value)
+        assert "cannot be reached" in str(refused.value)
+        # What is owned and what is forwarded is served as before.
+        assert 10.0 < await clients["gw-a"].get_number("thermo", "data") < 30.0
+        assert 10.0 < await clients["gw-c"].get_number("thermo", "data") < 30.0
+        cluster.etcd.start()
+        await eventually(
+            lambda: _register(clients["gw-b"], "other", other), retry_on=(Unavailable,), within=20.0
+        )
+        await eventually(
+            lambda: _owner(clients["gw-a"], "other"), lambda o: o == "gw-b", retry_on=(PropertyServiceError,)
+        )
+
+
+async def test_two_gateways_racing_for_one_licence_grant_it_once(cluster: Cluster) -> None:
+    with tcp_device("--service", "sim-robot", "--name", "arm") as address:
+        admin = cluster.client("gw-a")
+        await _register(admin, "arm", address)
+        await eventually(lambda: _owner(admin, "arm"), lambda o: o == "gw-a")
+        racers = [cluster.client(gateway, who) for gateway, who in (("gw-b", "alice"), ("gw-c", "bob"))]
+        for racer in racers:
+            await eventually(lambda r=racer: r.get_names("registry", "services"), lambda n: "arm" in n)
+        try:
+            outcomes = await asyncio.gather(
+                *(r.set("registry", "acquire", "", service="arm", duration="30") for r in racers),
+                return_exceptions=True,
+            )
+            won = [o for o in outcomes if isinstance(o, str)]
+            lost = [o for o in outcomes if isinstance(o, FailedPrecondition)]
+            assert len(won) == 1 and len(lost) == 1, outcomes
+            assert "is held by" in str(lost[0])
+        finally:
+            for racer in racers:
+                await racer.close()
+            await admin.close()
