@@ -21,7 +21,7 @@ from typing import Any
 
 from bench import report
 from bench.camera import run_camera
-from bench.cluster import run_cores
+from bench.cluster import ETCD_MISSING, etcd_binary, measure_registry, run_cores
 from bench.fusion import run_fusion
 from bench.groups import run_scaling
 from bench.line import WAYS as LINE_WAYS
@@ -90,6 +90,8 @@ PROFILES: dict[str, dict[str, Any]] = {
         "cluster_streams": 400,
         "cluster_listeners": 4,
         "cluster_seconds": 5.0,
+        "cluster_devices": 10_000,
+        "cluster_queries": 1_000,
     },
     "quick": {
         "calls": 2_000,
@@ -116,6 +118,8 @@ PROFILES: dict[str, dict[str, Any]] = {
         "cluster_streams": 100,
         "cluster_listeners": 2,
         "cluster_seconds": 2.0,
+        "cluster_devices": 400,
+        "cluster_queries": 200,
     },
 }
 
@@ -173,7 +177,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "I/O; (k) Server-Sent-Events fan-out beside gRPC Listen; (l) chart transitions with a Set each; "
         "(m) scheduler decisions; (n) environment model fusion per observation, growing numbers of markers; "
         "(o) camera frames to 10 Listeners and the gateway's CPU; (p) unary Get with and without metrics; "
-        "(q) Listen fan-out from 1, 2 and 4 gateway processes, the others forwarding from the first. "
+        "(q) Listen fan-out from 1, 2 and 4 gateway processes, the others forwarding from the first, and "
+        "devices across 4 gateways sharing a registry in etcd (registration, find, forwarded Get, failover). "
         "Prints figures, ratios and targets.",
     )
     parser.add_argument(
@@ -302,6 +307,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--cluster-seconds",
         type=float,
         help=f"(q) seconds the listeners count events {both('cluster_seconds')}",
+    )
+    sizes.add_argument(
+        "--cluster-devices",
+        type=_positive,
+        help=f"(q) devices registered across 4 gateways sharing a registry in etcd {both('cluster_devices')}",
+    )
+    sizes.add_argument(
+        "--cluster-queries",
+        type=_positive,
+        help=f"(q) finds, and Gets each way (local and forwarded), on that cluster {both('cluster_queries')}",
     )
     sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
     sizes.add_argument(
@@ -531,6 +546,19 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
                 time_limit=4 * args.time_limit,
             ),
         )
+        if etcd_binary() is None:
+            print(f"  cluster registry: not run: {ETCD_MISSING}", file=sys.stderr)
+        else:
+            results["cluster"]["registry"] = await _timed(
+                f"cluster: {args.cluster_devices:,} devices across 4 gateways sharing a registry in etcd",
+                lambda: measure_registry(
+                    args.cluster_devices,
+                    gateways=4,
+                    queries=args.cluster_queries,
+                    gets=args.cluster_queries,
+                    time_limit=10 * args.time_limit,
+                ),
+            )
     if "register" in args.parts:
         results.setdefault("gateway", {})["register"] = await _timed(
             f"register over raw TCP, {_listing(args.register_sizes)} members",

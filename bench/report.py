@@ -496,6 +496,26 @@ TARGETS += (
         (("cluster", "cores"),),
         bound_of=lambda r: float(r["cluster"]["cores"]["judged_bound"]),
     ),
+    Target(
+        "cluster-register-rate",
+        "registrations/s over raw TCP, spread across 4 gateways sharing a registry in etcd",
+        lambda r: _get(r, "cluster", "registry", "register_per_s"),
+        "min",
+        100.0,
+        "/s",
+        (("cluster", "registry"),),
+    ),
+    # A forwarded Get is the local one plus one more gateway hop of the same kind: at most about 2 x,
+    # and some room for a loaded machine.
+    Target(
+        "cluster-forwarded-get",
+        "Get p50 through a gateway that forwards to the device's owner / on the owner, same run",
+        lambda r: _get(r, "cluster", "registry", "forwarded_ratio"),
+        "max",
+        2.5,
+        "x",
+        (("cluster", "registry"),),
+    ),
 )
 
 
@@ -961,6 +981,7 @@ def _issue_tables(out: TextIO, results: Results) -> None:
     _fusion_table(out, results)
     _metrics_table(out, results)
     _cores_table(out, results)
+    _cluster_registry_table(out, results)
 
 
 def _cores_table(out: TextIO, results: Results) -> None:
@@ -1006,6 +1027,39 @@ def _cores_table(out: TextIO, results: Results) -> None:
             "rounds",
         ],
         rows,
+    )
+
+
+def _cluster_registry_table(out: TextIO, results: Results) -> None:
+    cluster = results.get("cluster", {}).get("registry")
+    if not cluster:
+        return
+    title = "(q) devices across gateways sharing a registry in etcd"
+    if "error" in cluster:
+        _table(out, title, ["where", "error"], [_error_row("cluster", cluster)])
+        return
+    d = cluster
+    _table(
+        out,
+        f"{title}: {d['devices']:,} devices, {d['gateways']} gateways, lease {d['lease_s']:g} s",
+        ["figure", "value"],
+        [
+            ["registered", f"{d['registered']:,} at {d['register_per_s']:,.0f}/s ({d['register_s']:.1f} s)"],
+            ["listed by every gateway after", f"{d['visible_everywhere_s']:.1f} s ({d['listed_by_each']})"],
+            ["find p50 / p99", f"{d['find_p50_ms']:.2f} / {d['find_p99_ms']:.2f} ms ({d['find_queries']:,})"],
+            ["Get p50 local / forwarded", f"{d['local_get_p50_us']:,} / {d['forwarded_get_p50_us']:,} µs"],
+            [
+                "killed gateway's devices owned again",
+                f"{d['owned_again']:,} of {d['killed_gateway_devices']:,}: "
+                f"p50 {d['owned_again_p50_s']:.2f} s, all {d['owned_again_s']:.2f} s after SIGKILL",
+            ],
+            [
+                "killed gateway's devices answering again",
+                f"{d['answered_again']:,} of {d['killed_gateway_devices']:,}: "
+                f"p50 {d['failover_p50_s']:.2f} s, all {d['failover_s']:.2f} s after SIGKILL",
+            ],
+            ["listed after the failover", f"{d['listed_after_failover']:,}"],
+        ],
     )
 
 
