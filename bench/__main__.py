@@ -21,7 +21,8 @@ from typing import Any
 
 from bench import report
 from bench.camera import run_camera
-from bench.cluster import ETCD_MISSING, etcd_binary, measure_registry, run_cores
+from bench.cluster import run_cores
+from bench.cluster_registry import ETCD_MISSING, etcd_binary, measure_registry
 from bench.fusion import run_fusion
 from bench.groups import run_scaling
 from bench.line import WAYS as LINE_WAYS
