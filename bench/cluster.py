@@ -213,6 +213,7 @@ async def measure_cores(
         "set_errors": sets[1],
         "streams_ended": ended,
         "gateway_cores": [round(c, 2) for c in cores],
+        "gateway_cpu_us_per_event": round(1e6 * sum(cores) * wall / events, 1) if events else 0.0,
         "complete": ended == 0 and events > 0,
     }
 

@@ -34,7 +34,7 @@ import grpc
 
 from bench.cluster import CALL_TIMEOUT, READY_TIMEOUT, start_gateway
 from bench.device_farm import FD_SPARE, device_name, raise_fd_limit
-from bench.measure import STREAM_END, read_until_sync
+from bench.measure import STREAM_END
 from bench.register import start_farms
 from bench.servers import ServerError, ServerProcess, end_process
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -181,7 +181,9 @@ class OwnerWatch:
 
     Exact selectors, ``OWNER_SELECTORS`` a stream: a wildcard ``services.*.owner`` is expanded from
     the registry's ``properties`` list, which passes the 64 KiB limit of a value past about 250
-    services.
+    services. A stream that ends is opened again, and the current owners it reads then count as
+    heard at that moment (a change made meanwhile is not lost, only heard late); how many ended,
+    and the first reason, are kept.
     """
 
     def __init__(self, orphans: list[str], killed: str) -> None:
@@ -191,29 +193,54 @@ class OwnerWatch:
         self.owned: dict[str, float] = {}
         self.killed_at = 0.0
         self.following = asyncio.Event()
+        self.ended = 0
+        self.first_end = ""
 
     async def follow(self, stub: pb_grpc.PropertyServiceStub) -> None:
         """Listen until cancelled; :attr:`following` is set once every stream has read the current owners."""
-        calls = []
-        for first in range(0, len(self.orphans), OWNER_SELECTORS):
-            paths = [f"services.{name}.owner" for name in self.orphans[first : first + OWNER_SELECTORS]]
-            more = [pb.PropertyRef(service="registry", property=path) for path in paths[1:]]
-            calls.append(stub.Listen(pb.ListenRequest(service="registry", property=paths[0], more=more)))
+        chunks = [self.orphans[k : k + OWNER_SELECTORS] for k in range(0, len(self.orphans), OWNER_SELECTORS)]
+        synced = [asyncio.Event() for _ in chunks]
+        watches = [asyncio.create_task(self._watch(stub, c, e)) for c, e in zip(chunks, synced, strict=True)]
         try:
-            await asyncio.gather(*(read_until_sync(call) for call in calls))
+            await asyncio.gather(*(event.wait() for event in synced))
             self.following.set()
-            await asyncio.gather(*(self._read(call) for call in calls))
+            await asyncio.gather(*watches)
         finally:
-            for call in calls:
-                call.cancel()
+            for watch in watches:
+                watch.cancel()
+            await asyncio.gather(*watches, return_exceptions=True)
 
-    async def _read(self, call: Any) -> None:
-        while (response := await call.read()) is not STREAM_END:
-            now = time.perf_counter()
-            for event in response.events:
-                name = event.property.removeprefix("services.").removesuffix(".owner")
-                if event.value not in ("", self.killed) and name not in self.owned:
-                    self.owned[name] = now - self.killed_at
+    async def _watch(
+        self, stub: pb_grpc.PropertyServiceStub, names: list[str], synced: asyncio.Event
+    ) -> None:
+        paths = [f"services.{name}.owner" for name in names]
+        more = [pb.PropertyRef(service="registry", property=path) for path in paths[1:]]
+        request = pb.ListenRequest(service="registry", property=paths[0], more=more)
+        while True:
+            call = stub.Listen(request)
+            try:
+                while (response := await call.read()) is not STREAM_END:
+                    if response.sync:
+                        synced.set()
+                    else:
+                        self._heard(response.events)
+                reason = f"{await call.code()}: {await call.details()}"
+            except grpc.aio.AioRpcError as exc:
+                reason = f"{exc.code().name}: {exc.details()}"
+            finally:
+                call.cancel()
+            self.ended += 1
+            self.first_end = self.first_end or reason
+            await asyncio.sleep(FAILOVER_PAUSE)
+
+    def _heard(self, events: Any) -> None:
+        if not self.following.is_set():
+            return  # the owners before the kill
+        now = time.perf_counter()
+        for event in events:
+            name = event.property.removeprefix("services.").removesuffix(".owner")
+            if event.value not in ("", self.killed) and name not in self.owned:
+                self.owned[name] = now - self.killed_at
 
 
 async def _answer_again(
@@ -355,6 +382,8 @@ async def _registry_figures(
         "killed_gateway_devices": len(orphans),
         "answered_again": len(answered),
         "owned_again": len(taken),
+        "owner_streams_ended": watch.ended,
+        "owner_streams_first_end": watch.first_end,
         "owned_again_p50_s": round(_quantile(taken, 0.5), 2),
         "owned_again_s": round(max(taken), 2) if taken else math.nan,
         "failover_p50_s": round(_quantile(delays, 0.5), 2),

@@ -1006,6 +1006,7 @@ def _cores_table(out: TextIO, results: Results) -> None:
             f"{d['conflated']:,}",
             f"{d['sets_per_s']:,.0f}",
             " ".join(f"{c:.2f}" for c in d["gateway_cores"]),
+            _fmt(d["gateway_cpu_us_per_event"], 1),
             str(d["rounds_events_per_s"]),
         ]
         for d in cores["sizes"]
@@ -1024,6 +1025,7 @@ def _cores_table(out: TextIO, results: Results) -> None:
             "conflated",
             "Sets/s",
             "gateway cores",
+            "gw CPU µs/event",
             "rounds",
         ],
         rows,
@@ -1059,6 +1061,11 @@ def _cluster_registry_table(out: TextIO, results: Results) -> None:
                 f"p50 {d['failover_p50_s']:.2f} s, all {d['failover_s']:.2f} s after SIGKILL",
             ],
             ["listed after the failover", f"{d['listed_after_failover']:,}"],
+            [
+                "owner Listens that ended (opened again)",
+                f"{d['owner_streams_ended']}"
+                + (f" (first: {d['owner_streams_first_end'][:60]})" if d["owner_streams_ended"] else ""),
+            ],
         ],
     )
 
