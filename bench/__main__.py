@@ -23,6 +23,8 @@ from typing import Any
 
 from bench import report
 from bench.camera import run_camera
+from bench.cluster import run_cores
+from bench.cluster_registry import ETCD_MISSING, etcd_binary, measure_registry
 from bench.fusion import run_fusion
 from bench.groups import run_scaling
 from bench.line import WAYS as LINE_WAYS
@@ -62,6 +64,7 @@ PARTS = (
     "camera",
     "fusion",
     "metrics",
+    "cluster",
 )
 #: (q) Gets one at a time beside the bare server's echo floor; (r) Listen fan-out with paced Sets.
 SERVER_PARTS += ("sequential", "paced")
@@ -89,7 +92,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "group_sizes": (100, 1_000, 10_000),
         "find_sizes": (100, 1_000, 10_000),
         "find_queries": 1_000,
-        "register_sizes": (100, 1_000),
+        "register_sizes": (1_000, 10_000),
         "storage_calls": 1_000,
         "transitions": 20_000,
         "scheduler_sizes": (100, 10_000),
@@ -97,6 +100,13 @@ PROFILES: dict[str, dict[str, Any]] = {
         "camera_seconds": 10.0,
         "fusion_sizes": (100, 10_000),
         "fusion_observations": 20_000,
+        "cluster_gateways": (1, 2, 4),
+        "cluster_streams": 400,
+        # Enough listener processes that the clients are not what limits the gateways on a larger machine.
+        "cluster_listeners": max(4, len(os.sched_getaffinity(0)) // 2),
+        "cluster_seconds": 5.0,
+        "cluster_devices": 10_000,
+        "cluster_queries": 1_000,
     },
     "quick": {
         "calls": 2_000,
@@ -113,7 +123,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "group_sizes": (100, 1_000),
         "find_sizes": (100, 1_000),
         "find_queries": 200,
-        "register_sizes": (100,),
+        "register_sizes": (1_000, 2_000),
         "storage_calls": 200,
         "transitions": 2_000,
         "scheduler_sizes": (100, 10_000),
@@ -121,6 +131,12 @@ PROFILES: dict[str, dict[str, Any]] = {
         "camera_seconds": 3.0,
         "fusion_sizes": (100, 10_000),
         "fusion_observations": 2_000,
+        "cluster_gateways": (1, 2, 4),
+        "cluster_streams": 100,
+        "cluster_listeners": 2,
+        "cluster_seconds": 2.0,
+        "cluster_devices": 400,
+        "cluster_queries": 200,
     },
 }
 
@@ -155,6 +171,18 @@ def _sizes(text: str) -> tuple[int, ...]:
     return sizes
 
 
+def _gateway_counts(text: str) -> tuple[int, ...]:
+    try:
+        counts = tuple(int(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        counts = ()
+    if len(counts) < 2 or counts[0] != 1 or list(counts) != sorted(set(counts)) or counts[-1] > 16:
+        raise argparse.ArgumentTypeError(
+            "expected increasing numbers of gateways from 1 to at most 16, e.g. 1,2,4"
+        )
+    return counts
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="python -m bench",
@@ -168,7 +196,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "(o) camera frames to 10 Listeners and the gateway's CPU; (p) unary Get with and without metrics; "
         "(q) Gets one at a time, unary and over Session, beside the bare server's bidirectional echo "
         "(the floor); (r) Listen fan-out with paced Sets; (s) the peers, OPC UA (asyncua) and Zenoh, "
-        "with the same patterns. Prints figures, ratios and targets.",
+        "with the same patterns; "
+        "(t) Listen fan-out from 1, 2 and 4 gateway processes, the others forwarding from the first, and "
+        "devices across 4 gateways sharing a registry in etcd (registration, find, forwarded Get, failover). "
+        "Prints figures, ratios and targets.",
     )
     parser.add_argument(
         "--quick", action="store_true", help="small sizes: a smoke run of well under a minute"
@@ -287,6 +318,34 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--fusion-observations",
         type=_positive,
         help=f"(n) observations fused per size {both('fusion_observations')}",
+    )
+    sizes.add_argument(
+        "--cluster-gateways",
+        type=_gateway_counts,
+        help=f"(t) gateway processes sharing the fan-out, in turn {listed('cluster_gateways')}",
+    )
+    sizes.add_argument(
+        "--cluster-streams", type=_positive, help=f"(t) Listen streams in all {both('cluster_streams')}"
+    )
+    sizes.add_argument(
+        "--cluster-listeners",
+        type=_positive,
+        help=f"(t) processes that open the Listen streams {both('cluster_listeners')}",
+    )
+    sizes.add_argument(
+        "--cluster-seconds",
+        type=float,
+        help=f"(t) seconds the listeners count events {both('cluster_seconds')}",
+    )
+    sizes.add_argument(
+        "--cluster-devices",
+        type=_positive,
+        help=f"(t) devices registered across 4 gateways sharing a registry in etcd {both('cluster_devices')}",
+    )
+    sizes.add_argument(
+        "--cluster-queries",
+        type=_positive,
+        help=f"(t) finds, and Gets each way (local and forwarded), on that cluster {both('cluster_queries')}",
     )
     sizes.add_argument("--time-limit", type=float, help=f"seconds any one part may run {both('time_limit')}")
     sizes.add_argument(
@@ -521,11 +580,41 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
                 time_limit=args.time_limit,
             ),
         )
+    if "cluster" in args.parts:
+        results.setdefault("cluster", {})["cores"] = await _timed(
+            f"cluster: Listen fan-out of {args.cluster_streams} streams from "
+            f"{_listing(args.cluster_gateways)} gateway processes",
+            lambda: run_cores(
+                args.cluster_gateways,
+                streams=args.cluster_streams,
+                listeners=args.cluster_listeners,
+                seconds=args.cluster_seconds,
+                warmup=min(1.0, args.cluster_seconds / 2),
+                rounds=args.rounds,
+                time_limit=4 * args.time_limit,
+            ),
+        )
+        if etcd_binary() is None:
+            print(f"  cluster registry: not run: {ETCD_MISSING}", file=sys.stderr)
+        else:
+            results["cluster"]["registry"] = await _timed(
+                f"cluster: {args.cluster_devices:,} devices across 4 gateways sharing a registry in etcd",
+                lambda: measure_registry(
+                    args.cluster_devices,
+                    gateways=4,
+                    queries=args.cluster_queries,
+                    gets=args.cluster_queries,
+                    time_limit=10 * args.time_limit,
+                ),
+            )
     if "register" in args.parts:
         results.setdefault("gateway", {})["register"] = await _timed(
             f"register over raw TCP, {_listing(args.register_sizes)} members",
             lambda: run_register(
-                args.register_sizes, concurrency=args.register_concurrency, time_limit=args.time_limit
+                args.register_sizes,
+                concurrency=args.register_concurrency,
+                time_limit=args.time_limit,
+                rounds=args.rounds,
             ),
         )
 

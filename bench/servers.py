@@ -147,3 +147,8 @@ def open_channel(address: str, credentials: grpc.ChannelCredentials | None = Non
     if credentials is None:
         return grpc.aio.insecure_channel(address)
     return grpc.aio.secure_channel(address, credentials)
+
+
+async def end_process(process: asyncio.subprocess.Process) -> None:
+    """End a child process of the benchmark by its PID: stdin closed, SIGTERM, then SIGKILL after a while."""
+    await _end(process)

@@ -185,6 +185,9 @@ class RouterDirectory:
     def names(self) -> list[str]:
         return self.router.names()
 
+    def __contains__(self, name: object) -> bool:
+        return name in self.router
+
     def backend(self, name: str) -> Backend:
         return self.router.lookup(name)
 

@@ -23,6 +23,10 @@ class Directory(Protocol):
         """Names of every service right now."""
         ...
 
+    def __contains__(self, name: object) -> bool:
+        """Whether ``name`` is served right now, down or not (a dict lookup: no list is made)."""
+        ...
+
     def backend(self, name: str) -> Backend:
         """The backend serving ``name``; raises ``NotFound``."""
         ...

@@ -31,6 +31,9 @@ class ClusterDirectory:
     def names(self) -> list[str]:
         return self._router.names()
 
+    def __contains__(self, name: object) -> bool:
+        return name in self._router
+
     def backend(self, name: str) -> Backend:
         return self._router.backend(name)
 

@@ -174,7 +174,7 @@ class Registrations:
         existing = self.table.get(name)
         if name in self._busy:
             raise AlreadyExists(f"{name!r} is being registered or unregistered right now")
-        if existing is not None or name in directory.names():
+        if existing is not None or name in directory:
             if existing is not None and existing.url == url:
                 self.table.set_state(name, "up")  # the same registration again: a sign of life
                 if lease is not None:

@@ -34,6 +34,10 @@ class ServiceTable:
 
     def __init__(self, services: ServiceList, bump: Callable[[], None]) -> None:
         self.services = services
+        #: The entries of ``services`` by name, in the order they joined: the table is the only
+        #: writer of ``services``, and its ``children()`` is a copy of every entry, which made
+        #: each lookup (several a registration, one a liveness check) grow with the registry.
+        self._entries: dict[str, ServiceEntry] = {}
         self.index = ServiceIndex()
         self._bump = bump
         self._state_watchers: list[Callable[[str, str], None]] = []
@@ -46,12 +50,11 @@ class ServiceTable:
 
     def names(self) -> list[str]:
         """The known service names, in the order they joined."""
-        return list(self.services.children())
+        return list(self._entries)
 
     def get(self, name: str) -> ServiceEntry | None:
         """The entry of ``name``, None when it is not known."""
-        entry = self.services.children().get(name)
-        return entry if isinstance(entry, ServiceEntry) else None
+        return self._entries.get(name)
 
     def entry(self, name: str) -> ServiceEntry:
         """The entry of ``name``; NotFound when it is not known."""
@@ -62,7 +65,7 @@ class ServiceTable:
 
     def entries(self) -> list[tuple[str, ServiceEntry]]:
         """(name, entry) of every known service, a snapshot."""
-        return [(n, e) for n, e in self.services.children().items() if isinstance(e, ServiceEntry)]
+        return list(self._entries.items())
 
     # -- changing --------------------------------------------------------------
 
@@ -85,14 +88,16 @@ class ServiceTable:
                 existing.changed()
             self._bump()
             return
-        self.services.attach(name, ServiceEntry(name, info, state, renew=renew, want_location=self._wanted))
+        entry = ServiceEntry(name, info, state, renew=renew, want_location=self._wanted)
+        self.services.attach(name, entry)
+        self._entries[name] = entry
         self.index.put(name, info.type, state == "up")
         self._bump()
         self._tell(self._member_watchers, name, state)
 
     def forget(self, name: str) -> bool:
         """Drop ``name``; False when it was not known."""
-        if name not in self.services.children():
+        if self._entries.pop(name, None) is None:
             return False
         self.services.detach(name)
         self.index.remove(name)

@@ -117,6 +117,16 @@ async def test_bad_registrations_get_clear_errors_and_change_nothing(  # noqa: P
     assert (world.names(), await svc.get("services")) == before
 
 
+async def test_a_name_the_directory_serves_outside_the_registry_is_taken(world: MemoryDirectory) -> None:
+    _, svc = await start_registry(world, period=0)
+    world.backends["hidden"] = sim_robot(1, 1)  # served, but never announced to the registry
+    with pytest.raises(PropertyError) as info:
+        await svc.set("services.hidden", "tcp://127.0.0.1:7001")
+    assert info.value.code is Code.ALREADY_EXISTS
+    assert "is taken (by another service)" in info.value.message
+    assert parse_names(await svc.get("services")) == ["registry"]
+
+
 def test_check_url_accepts_the_registrable_forms() -> None:
     for url in ("tcp://10.0.0.7:7000", "serial:///dev/ttyUSB0?baudrate=115200", "grpc://gw2:50051"):
         assert check_url(url) == url

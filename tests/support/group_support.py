@@ -30,6 +30,9 @@ class MemoryDirectory:
     def names(self) -> list[str]:
         return sorted(self.backends)
 
+    def __contains__(self, name: object) -> bool:
+        return name in self.backends
+
     def backend(self, name: str) -> Backend:
         try:
             return self.backends[name]
