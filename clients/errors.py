@@ -169,8 +169,10 @@ assert set(_CLIENT_CLASS) >= set(errors.ERROR_CLASSES.values()), (
     "every service-side class has its client class"
 )
 
-# Phrases grpc core uses when no connection could be made at all (as opposed
-# to a service behind the gateway being unavailable).
+# Phrases grpc core begins its message with when no connection could be made at all (as opposed
+# to a service behind the gateway being unavailable). Only at the start: a gateway that could not
+# reach what lies behind it (a device, the owner gateway of a cluster, etcd) quotes grpc's words
+# after its own, and it was reached.
 _NO_CONNECTION = ("failed to connect to all addresses", "connection refused", "dns resolution failed")
 
 
@@ -191,7 +193,7 @@ def error_from_rpc(
     details_fn = getattr(err, "details", None)
     code = code_fn() if callable(code_fn) else grpc.StatusCode.UNKNOWN
     message = (details_fn() if callable(details_fn) else None) or str(err)
-    if code == grpc.StatusCode.UNAVAILABLE and any(p in message.lower() for p in _NO_CONNECTION):
+    if code == grpc.StatusCode.UNAVAILABLE and message.lower().startswith(_NO_CONNECTION):
         where = f" at {target}" if target else ""
         return GatewayUnreachable(code, f"cannot reach the gateway{where} ({message})", service, property)
     return error_for_code(code, message, service, property)

@@ -4,8 +4,8 @@
 
     python -m gateway.cluster                          # etcd, 3 gateways, 6 devices; Ctrl-C stops all
     python -m gateway.cluster --gateways 4 --devices 8
-    python -m gateway.cluster --base-port 0            # free ports, printed
-    python -m gateway.cluster --once --picture docs/scale-out-owners.svg
+    python -m gateway.cluster --base-port 0            # free ports (etcd's too), printed
+    python -m gateway.cluster --once --picture docs/images/scale-out-owners.svg
 
 It starts Debian's ``etcd`` (a one-member cluster in a temporary folder), then the gateways
 (``python -m gateway serve``, each with ``[registry] store`` naming that etcd, a line listener and
@@ -39,6 +39,7 @@ import grpc
 
 from gateway.cluster.picture import draw_owners
 from gateway.cluster.records import GatewayRecord, Ownership, Registration
+from gateway.ports import PortInUse, check_port_free
 from gateway.stores.etcd import MAX_LEASE, MIN_LEASE
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -61,6 +62,8 @@ STOP_TIMEOUT = 5.0
 #: Most gateways and devices one command starts: a demonstration, not a deployment.
 MAX_GATEWAYS = 9
 MAX_DEVICES = 64
+#: etcd's own client port (its peer port is the next, as etcd's 2380).
+DEFAULT_ETCD_PORT = 2379
 
 
 @dataclass
@@ -172,13 +175,15 @@ class Cluster:
         self.children: list[Child] = []
         free = _FreePorts()
         fixed = args.base_port != 0
+        # --base-port 0 means every port a free one, etcd's too, unless --etcd-port names one.
+        etcd_port = args.etcd_port if args.etcd_port is not None else (DEFAULT_ETCD_PORT if fixed else 0)
 
         def port(base: int, offset: int, *, chosen: bool) -> int:
             return base + offset if chosen else free.take()
 
         try:
-            self.etcd_port = port(args.etcd_port, 0, chosen=args.etcd_port != 0)
-            self.etcd_peer_port = port(args.etcd_port, 1, chosen=args.etcd_port != 0)
+            self.etcd_port = port(etcd_port, 0, chosen=etcd_port != 0)
+            self.etcd_peer_port = port(etcd_port, 1, chosen=etcd_port != 0)
             self.gateways = [
                 GatewayPorts(
                     f"gw{i + 1}",
@@ -214,6 +219,11 @@ class Cluster:
     async def start_etcd(self, binary: str) -> None:
         client = f"http://127.0.0.1:{self.etcd_port}"
         peer = f"http://127.0.0.1:{self.etcd_peer_port}"
+        for port, what in ((self.etcd_port, "etcd's client port"), (self.etcd_peer_port, "etcd's peer port")):
+            try:
+                check_port_free(f"127.0.0.1:{port}", what)
+            except PortInUse as exc:  # etcd would only say so in a JSON log line
+                raise RuntimeError(f"{exc}; --etcd-port 0 picks free ones") from None
         etcd = self._spawn(
             "etcd",
             [
@@ -360,8 +370,8 @@ def _parser() -> argparse.ArgumentParser:
         epilog="""examples:
   python -m gateway.cluster                     etcd on 2379, gateways on 50061-50063 (HTTP 8081-8083,
                                                 line 7101-7103), 6 devices; Ctrl-C stops everything
-  python -m gateway.cluster --base-port 0       every port a free one (printed)
-  python -m gateway.cluster --once --picture docs/scale-out-owners.svg
+  python -m gateway.cluster --base-port 0       every port a free one, etcd's too (printed)
+  python -m gateway.cluster --once --picture docs/images/scale-out-owners.svg
                                                 draw who owns what, then stop
 
 then, from another shell (any gateway answers for any device):
@@ -378,11 +388,16 @@ then, from another shell (any gateway answers for any device):
         ("--base-port", 0, 65000, 50061, "gRPC port of the first gateway, the others follow; 0: all free"),
         ("--line-port", 1, 65000, 7101, "line listener of the first gateway"),
         ("--http-port", 1, 65000, 8081, "HTTP port of the first gateway"),
-        ("--etcd-port", 0, 65000, 2379, "etcd's client port; 0: a free one"),
     )
     for option, low, high, default, what in numbers:
         kind = bounded_int(option.removeprefix("--"), low, high)
         parser.add_argument(option, type=kind, default=default, help=f"{what} (default {default})")
+    parser.add_argument(
+        "--etcd-port",
+        type=bounded_int("etcd-port", 0, 65000),
+        help=f"etcd's client port, its peer port the next; 0: free ones "
+        f"(default {DEFAULT_ETCD_PORT}, with --base-port 0 free ones)",
+    )
     parser.add_argument(
         "--lease",
         type=_lease,
@@ -449,7 +464,7 @@ async def run(args: argparse.Namespace) -> int:
     finally:
         cluster.stop()
         print("stopped", flush=True)
-        if args.keep or status:
+        if args.keep or (status and cluster.children):  # with nothing started, no logs to keep
             print(f"logs and configs kept in {folder}", file=sys.stderr)
         else:
             shutil.rmtree(folder, ignore_errors=True)

@@ -243,6 +243,8 @@ class GrpcProxy(Backend):
             async with asyncio.timeout(wait_s):
                 await channel.channel_ready()
                 await self._type_learned()
+                if not self._type_known:  # its registry did not know it yet: ask again now
+                    await self._learn_type()
         except TimeoutError:
             raise Unavailable(f"{self._label()}: not reachable within {wait_s:g} s") from None
 
@@ -266,7 +268,9 @@ class GrpcProxy(Backend):
                 self._type_known = True
                 self.info.type = "resource"  # reached, but its registry does not say what it is
             return
-        if reply.value:
+        # "unknown": the remote has not heard from the service's device yet (in a cluster, the
+        # owner that is still connecting to it): asked again by check() and wait_connected().
+        if reply.value and reply.value != UNKNOWN_TYPE:
             self.info.type = reply.value
             self._type_known = True
 

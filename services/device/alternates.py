@@ -43,9 +43,10 @@ class GatewayAddresses:
     def __init__(self, first: Address) -> None:
         self.given = first
         self.addresses: list[Address] = [first]
-        #: Some address was tried since the last pause (the next round waits first).
-        self.tried = False
         self._next = 0
+        # Dialled since the last pause, counted apart from the turn: a gateway that greets and then
+        # refuses the name starts the turn again (connected), and must not start the count again.
+        self._dialled = 0
 
     def take(self) -> tuple[Address, bool]:
         """The address to dial now, and True when it starts a new round (all were tried)."""
@@ -54,7 +55,16 @@ class GatewayAddresses:
         new_round = self._next == 0
         address = self.addresses[self._next]
         self._next += 1
+        self._dialled += 1
         return address, new_round
+
+    def pause_due(self) -> bool:
+        """Every address known was dialled since the last pause: wait before dialling again."""
+        return self._dialled >= len(self.addresses)
+
+    def rested(self) -> None:
+        """The device paused, or its last connection lasted: the next round may dial at once."""
+        self._dialled = 0
 
     def connected(self, address: Address, alternates: str) -> None:
         """Connected to ``address``, whose greeting named ``alternates``: the list from now on is that

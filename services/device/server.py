@@ -140,17 +140,19 @@ class DeviceServer:
         cannot be made, the next of them is dialled, in turn
         (:class:`~services.device.alternates.GatewayAddresses`). The pause before a
         new round of attempts doubles from ``retry_initial`` up to ``retry_max``
-        seconds while dialling fails or the connection is refused at once.
+        seconds while dialling fails or the connection is refused at once: a
+        round is one attempt at every address known, also when each gateway
+        greets (naming the others) and then refuses the name.
         """
         gateways = GatewayAddresses((host, port))
         pause = retry_initial
         loop = asyncio.get_running_loop()
         while True:
-            (host, port), new_round = gateways.take()
-            if new_round and gateways.tried:
+            if gateways.pause_due():
                 await asyncio.sleep(pause)
                 pause = min(pause * 2, retry_max)
-            gateways.tried = True
+                gateways.rested()
+            (host, port), _ = gateways.take()
             began = loop.time()
             try:
                 reader, writer = await asyncio.open_connection(host, port, limit=READ_SIZE)
@@ -174,7 +176,7 @@ class DeviceServer:
             log.warning("connection to %s:%d ended", host, port)
             if loop.time() - began > retry_max:
                 pause = retry_initial  # it was up for a while: a fresh drop, not a refusal
-                gateways.tried = False  # the next address at once, without a pause
+                gateways.rested()  # the next addresses at once, without a pause
 
     async def serve_serial(self, port: str, baudrate: int = 115200, *, reopen_delay: float = 1.0) -> None:
         """Open the serial ``port`` (OSError if it cannot be opened) and serve it in the background.

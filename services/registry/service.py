@@ -296,6 +296,13 @@ class Registry(Resource):
             return
         self._mirrored.add(name)
         self._table.set_state(name, state)
+        entry = self._table.get(name)
+        if state == "up" and entry is not None and entry.type == PLACEHOLDER_TYPE:
+            # Its owner has heard from its device, which this gateway may have asked for the type
+            # too early (before the greeting): ask again.
+            directory = self._directory
+            if directory is not None and name in directory.names():
+                self._start_reaching(name, directory.backend(name))
 
     def set_owner(self, name: str, owner: str) -> None:
         """In a cluster of gateways: ``owner`` (a gateway id, "" for none) holds ``name``'s connection
@@ -595,6 +602,10 @@ class Registry(Resource):
         # Its location is followed only once somebody asks (find near=, services.NAME.location):
         # a LISTEN nobody asked for doubles the traffic on a slow serial line. Its type and
         # "up" come as soon as it is reached, which costs the device nothing (no request).
+        self._start_reaching(name, backend)
+
+    def _start_reaching(self, name: str, backend: Backend) -> None:
+        """Learn ``name``'s type and "up" in the background, once at a time (see :meth:`_reach`)."""
         if name not in self._reaching:
             task = asyncio.get_running_loop().create_task(self._reach(name, backend), name=f"reach {name}")
             self._reaching[name] = task

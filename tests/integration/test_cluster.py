@@ -356,3 +356,20 @@ async def test_two_gateways_racing_for_one_licence_grant_it_once(cluster: Cluste
             for racer in racers:
                 await racer.close()
             await admin.close()
+
+
+async def test_every_gateway_learns_the_type_the_device_greeted_with(
+    cluster: Cluster, clients: dict[str, AsyncClient]
+) -> None:
+    """Registered with no type declared: the owner learns it from the device's greeting, which comes
+    after the other gateways saw the registration; they learn it too, not 'unknown' for good."""
+    with tcp_device("--service", "sim-sensor", "--name", "thermo") as address:
+        await _register(clients["gw-b"], "thermo", address)
+        for gateway in IDS:
+            client = clients[gateway]
+            kind = await eventually(
+                lambda c=client: c.get("registry", "services.thermo.type"),
+                lambda kind: kind == "sensor",
+                what=f"{gateway} learns thermo's type",
+            )
+            assert kind == "sensor", gateway

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -76,13 +77,13 @@ def _alive(pid: int) -> bool:
 
 async def test_one_command_starts_a_cluster_that_answers_everywhere_and_stops_it_all() -> None:
     etcd_binary()  # skips, saying why, without etcd
-    command = Command(
-        "--gateways", "3", "--devices", "5", "--base-port", "0", "--etcd-port", "0", "--lease", "2"
-    )
+    command = Command("--gateways", "3", "--devices", "5", "--base-port", "0", "--lease", "2")
     try:
         command.wait_for("cluster ready")
         gateways = {m.group(1): (m.group(2), m.group(3)) for m in map(_GATEWAY_ROW.match, command.lines) if m}
         devices = {m.group(1): m.group(3) for m in map(_DEVICE_ROW.match, command.lines) if m}
+        # --base-port 0 picks etcd's ports free too: it runs beside an etcd on 2379.
+        assert not _line(command, "etcd:").startswith("etcd: etcd://127.0.0.1:2379 ")
         assert sorted(gateways) == ["gw1", "gw2", "gw3"]
         assert len(devices) == 5
         assert set(devices.values()) <= set(gateways), devices  # every device has a live owner
@@ -128,6 +129,27 @@ def test_without_etcd_it_says_what_to_install(tmp_path: Path) -> None:
     assert done.returncode == 2
     assert "etcd is not installed" in done.stderr
     assert "apt-get install etcd-server" in done.stderr
+
+
+def test_an_etcd_port_in_use_is_named_with_what_to_do() -> None:
+    etcd_binary()  # skips, saying why, without etcd
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        done = subprocess.run(
+            [sys.executable, "-m", "gateway.cluster", "--once", "--etcd-port", str(port)],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
+    assert done.returncode == 1, done.stderr
+    assert f"error: port {port} (etcd's client port) is in use by " in done.stderr
+    assert "--etcd-port 0 picks free ones" in done.stderr
+    assert "Traceback" not in done.stderr
+    assert "kept in" not in done.stderr  # nothing started, no empty folder left behind
 
 
 def test_help_names_the_ports_and_the_picture() -> None:

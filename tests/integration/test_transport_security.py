@@ -19,7 +19,7 @@ from support.gateway_process import ROOT, StartGateway
 from support.ports import free_port
 from support.psctl import psctl
 
-from clients import AsyncClient, ClientCredentials, GatewayUnreachable
+from clients import AsyncClient, ClientCredentials, GatewayUnreachable, Unavailable
 
 __all__ = ["certificates"]
 
@@ -309,8 +309,10 @@ options = {{ ca = "{certificates.ca}", connect_timeout = 1 }}
         async with AsyncClient(remote.address, credentials=_sdk_credentials(certificates)) as direct:
             assert await direct.get("bot", "velocity") == "(0.5 0 0 0 0 0)"
         for refused in ("unknown_ca", "no_cert"):
-            with pytest.raises(GatewayUnreachable):
+            # The local gateway was reached: its service is unavailable, the remote named.
+            with pytest.raises(Unavailable, match=f"bot on gateway {remote.address}") as failed:
                 await client.get(refused, "location")
+            assert not isinstance(failed.value, GatewayUnreachable)
 
 
 def _sdk_credentials(certs: CertificateFiles, client: str = "alice") -> ClientCredentials:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import grpc
 import pytest
 from support.ports import free_port
@@ -59,3 +61,34 @@ def test_unreachable_gateway_is_told_apart() -> None:
     device = error_for_code(grpc.StatusCode.UNAVAILABLE, "scout7 is not answering")
     assert isinstance(device, Unavailable)
     assert not isinstance(device, GatewayUnreachable)
+
+
+def test_a_gateway_that_answers_unavailable_for_what_lies_behind_it_was_reached() -> None:
+    """The gateway's own words come first; grpc's about the connection come after them (an owner
+    gateway, a device or etcd it could not reach): a service unavailable, not the gateway."""
+    behind = (
+        "thermo1 on gateway 127.0.0.1:13041: failed to connect to all addresses; last error: "
+        "UNKNOWN: ipv4:127.0.0.1:13041: Failed to connect to remote host: Connection refused"
+    )
+
+    def refuse(_request: bytes, context: grpc.ServicerContext) -> bytes:
+        context.abort(grpc.StatusCode.UNAVAILABLE, behind)
+
+    handler = grpc.method_handlers_generic_handler(
+        "propertyservice.v1.PropertyService", {"Get": grpc.unary_unary_rpc_method_handler(refuse)}
+    )
+    server = grpc.server(ThreadPoolExecutor(max_workers=1), handlers=[handler])
+    port = server.add_insecure_port("127.0.0.1:0")
+    server.start()
+    target = f"127.0.0.1:{port}"
+    try:
+        with grpc.insecure_channel(target) as channel:
+            get = channel.unary_unary("/propertyservice.v1.PropertyService/Get")
+            with pytest.raises(grpc.RpcError) as answered:
+                get(b"", timeout=5)
+    finally:
+        server.stop(None)
+    err = error_from_rpc(answered.value, "thermo1", "data", target=target)
+    assert isinstance(err, Unavailable)
+    assert not isinstance(err, GatewayUnreachable)
+    assert str(err) == f"UNAVAILABLE: {behind}"

@@ -40,6 +40,20 @@ def test_the_gateways_are_dialled_in_turn() -> None:
     assert gateways.addresses == [("c", 3), ("a", 1), ("b", 2)]
 
 
+def test_a_pause_is_due_once_every_gateway_was_dialled_whatever_the_greetings_said() -> None:
+    gateways = GatewayAddresses(("a", 1))
+    assert not gateways.pause_due()  # the first attempt goes at once
+    gateways.take()
+    gateways.connected(("a", 1), "b:2,c:3")  # a greets, then refuses
+    assert gateways.pause_due() is False
+    for _ in range(2):
+        address, _ = gateways.take()
+        gateways.connected(address, "a:1,b:2,c:3")  # each greets (starting the turn again), refuses
+    assert gateways.pause_due()
+    gateways.rested()
+    assert not gateways.pause_due()
+
+
 @pytest.fixture
 async def two_listeners() -> AsyncIterator[tuple[tuple[Router, LineListener], tuple[Router, LineListener]]]:
     first, second = Router(), Router()
@@ -75,3 +89,26 @@ async def test_a_device_whose_gateway_is_gone_dials_the_alternate_it_was_told(
         dialling.cancel()
         await asyncio.gather(dialling, return_exceptions=True)
         await device.aclose()
+
+
+async def test_a_device_refused_by_every_gateway_pauses_between_rounds(
+    two_listeners: tuple[tuple[Router, LineListener], tuple[Router, LineListener]],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Each gateway greets (naming the other) and then refuses the name: a round of both, then a pause."""
+    (first, listener_a), (second, _listener_b) = two_listeners
+    for router in (first, second):
+        router.add("probe", DictBackend({"x": "0"}, url="tcp://127.0.0.1:9"))  # the name is taken
+    device = DeviceServer(DictBackend({"x": "1"}, type="sensor"), name="probe")
+    assert listener_a.address is not None
+    caplog.set_level("WARNING", logger="gateway.line_listener")
+    dialling = asyncio.ensure_future(device.dial(*listener_a.address, retry_initial=0.2, retry_max=0.4))
+    try:
+        await asyncio.sleep(1.0)
+    finally:
+        dialling.cancel()
+        await asyncio.gather(dialling, return_exceptions=True)
+        await device.aclose()
+    refusals = [r for r in caplog.records if "is taken" in r.getMessage()]
+    # Rounds of two at 0, 0.2, 0.6 s (pauses 0.2, 0.4): 6 refusals in a second, not hundreds.
+    assert 2 <= len(refusals) <= 8, f"{len(refusals)} refusals in 1 s"
