@@ -42,11 +42,13 @@ from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.values import parse_names
 
 #: Seconds of each gateway's etcd lease in the registry part: how long a dead gateway's devices wait.
-STORE_LEASE = 3.0
+STORE_LEASE = 5.0
 #: Registration Sets in flight in all, as in part (h).
 REGISTER_IN_FLIGHT = 32
 #: Gets in flight while waiting for a dead gateway's devices to answer again.
 FAILOVER_IN_FLIGHT = 64
+#: Characters of each gateway's log kept in the results of a run that did not complete.
+LOG_TAIL_CHARS = 2000
 #: Exact selectors one Listen carries (``[limits] max_selectors``, 64 by default).
 OWNER_SELECTORS = 64
 #: Seconds a Get of a device taken over may take while waiting for it to answer again.
@@ -244,9 +246,12 @@ class OwnerWatch:
 
 
 async def _answer_again(
-    stub: pb_grpc.PropertyServiceStub, owned: dict[str, float], count: int, killed_at: float, deadline: float
+    stub: pb_grpc.PropertyServiceStub, orphans: list[str], killed_at: float, deadline: float
 ) -> dict[str, float]:
-    """Ask each device owned again for its location until it answers; seconds from ``killed_at`` to it."""
+    """Ask each orphan for its location until it answers; seconds from ``killed_at`` to its answer.
+
+    Until a survivor owns it a Get fails at once (no owner) or within ``FAILOVER_GET_TIMEOUT``.
+    """
     answered: dict[str, float] = {}
     semaphore = asyncio.Semaphore(FAILOVER_IN_FLIGHT)
 
@@ -258,8 +263,8 @@ async def _answer_again(
                 return
             answered[name] = time.perf_counter() - killed_at
 
-    while len(answered) < count and time.monotonic() < deadline:
-        await asyncio.gather(*(ask(name) for name in list(owned) if name not in answered))
+    while len(answered) < len(orphans) and time.monotonic() < deadline:
+        await asyncio.gather(*(ask(name) for name in orphans if name not in answered))
         await asyncio.sleep(FAILOVER_PAUSE)
     return answered
 
@@ -303,6 +308,8 @@ async def measure_registry(
             finally:
                 for channel in channels:
                     await channel.close(None)
+            if not result["complete"]:  # what the gateways said: the end of each one's log
+                result["gateway_logs"] = {g.kind: g.log_tail[-LOG_TAIL_CHARS:] for g in started}
             for farm in farms:
                 farm.check_alive()
         finally:
@@ -358,7 +365,7 @@ async def _registry_figures(
             await watch.following.wait()
         watch.killed_at = time.perf_counter()
         os.kill(victim.pid, signal.SIGKILL)
-        answered = await _answer_again(stubs[0], watch.owned, len(orphans), watch.killed_at, deadline)
+        answered = await _answer_again(stubs[0], orphans, watch.killed_at, deadline)
     finally:
         following.cancel()
         await asyncio.gather(following, return_exceptions=True)

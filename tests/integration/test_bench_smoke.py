@@ -68,6 +68,7 @@ NEED_ETCD = ("cluster-register-rate", "cluster-forwarded-get")
 
 # Every part of the bench, each once, on a shared 2-core machine: about 3 minutes when it is quiet, five
 # under load (the peers add about 10 s to a quiet run, the cluster part about a minute).
+# (The scale-out part starts etcd, 4 gateways and their devices, and gateways 7 times for the cores.)
 @pytest.mark.timeout(620)
 def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     saved = tmp_path / "bench.json"
