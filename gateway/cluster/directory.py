@@ -10,23 +10,32 @@ deletes them, on whichever gateway the Set arrives.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
+from gateway.router import RouterDirectory
 from services.backend import Backend, BackendInfo
 from services.directory import DirectoryListener
 
-if TYPE_CHECKING:
-    from gateway.cluster.node import ClusterNode
+__all__ = ["ClusterDirectory", "ClusterRegistrar"]
 
-__all__ = ["ClusterDirectory"]
+
+class ClusterRegistrar(Protocol):
+    """What registers and unregisters a service in the cluster (a
+    :class:`gateway.cluster.node.ClusterNode`)."""
+
+    async def register(
+        self, name: str, url: str, options: Mapping[str, Any] | None = None
+    ) -> BackendInfo: ...
+
+    async def unregister(self, name: str) -> None: ...
 
 
 class ClusterDirectory:
-    """A :class:`services.directory.Directory` whose changes go through a :class:`ClusterNode`."""
+    """A :class:`services.directory.Directory` whose changes go through a :class:`ClusterRegistrar`."""
 
-    def __init__(self, node: ClusterNode) -> None:
+    def __init__(self, router: RouterDirectory, node: ClusterRegistrar) -> None:
         self._node = node
-        self._router = node.router.directory
+        self._router = router
 
     def names(self) -> list[str]:
         return self._router.names()

@@ -86,7 +86,7 @@ class ClusterNode:
         self.me = store.gateway_id
         self.view = ClusterView()
         #: The directory the registry is given (registrations go through :meth:`register`).
-        self.directory = ClusterDirectory(self)
+        self.directory = ClusterDirectory(self.router.directory, self)
         #: The licence claims the registry's licences are checked against.
         self.licences = ClusterLicences(store)
         self.registry: Registry | None = None
