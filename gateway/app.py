@@ -48,7 +48,6 @@ from services.backend import Backend, BackendInfo
 from services.catalog import build, needs_directory
 from services.errors import PropertyError
 from services.registry import DEFAULT_REGISTER_TIMEOUT, AllowList, Licence, Registry, RegistryService
-from services.registry import ServiceEntry as RegistryEntry
 from services.registry.store import SharedStore
 from services.registry.table import GONE
 
@@ -390,8 +389,8 @@ class Gateway:
             log.info("service %s is %s", name, state, extra={"service": name})
             return
         reason = f"service {name!r} is down"
-        entry = self.registry.services.children().get(name)
-        misses = entry.misses if isinstance(entry, RegistryEntry) else 0
+        entry = self.registry.entry_of(name)
+        misses = entry.misses if entry is not None else 0
         if misses:
             reason += f": it missed {misses} liveness check{'s' if misses != 1 else ''}"
         self.router.set_down(name, reason)

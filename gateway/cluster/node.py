@@ -274,7 +274,7 @@ class ClusterNode:
         value = registration.to_json()
         if not await self._create(Kind.SERVICE, name, value, leased=leased) and leased:
             await self.store.put(Kind.SERVICE, name, value, leased=True)  # bound to the new lease
-        if self.registry is not None and name in self.registry.services.children():
+        if self.registry is not None and self.registry.entry_of(name) is not None:
             await self.store.put(Kind.STATE, name, self.registry.state_of(name), leased=True)
 
     def _on_router(self, name: str, backend: Backend | None) -> None:
@@ -407,7 +407,7 @@ class ClusterNode:
             self._busy.discard(name)
         self._dialled[name] = backend
         self._own(name, registration)
-        if self.registry is not None and name in self.registry.services.children():
+        if self.registry is not None and self.registry.entry_of(name) is not None:
             self._writes.put(Kind.STATE, name, self.registry.state_of(name))
         self._mark(name)
 
@@ -527,7 +527,7 @@ class ClusterNode:
             return
         with contextlib.suppress(PropertyError):
             await switching.wait_connected(max(1.0, registry.timeout))
-            if name in self.owned and name in registry.services.children():
+            if name in self.owned and registry.entry_of(name) is not None:
                 registry.add(name, switching.info)
 
     async def _forward(self, name: str, owner: str, switching: SwitchingBackend) -> None:

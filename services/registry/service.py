@@ -21,7 +21,7 @@ from services.query import Query, values_equal
 from services.registry.allow import AllowList
 from services.registry.dispatch import Dispatcher, QosView
 from services.registry.embedded import EmbeddedStore
-from services.registry.entry import ServiceList
+from services.registry.entry import ServiceEntry, ServiceList
 from services.registry.licences import (
     DEFAULT_LICENCE_DURATION,
     DEFAULT_MAX_LICENCE_DURATION,
@@ -318,6 +318,10 @@ class Registry(Resource):
     def state_of(self, name: str) -> str:
         """``up`` or ``down``; NotFound when ``name`` is not known."""
         return self._table.entry(name).state
+
+    def entry_of(self, name: str) -> ServiceEntry | None:
+        """The registry's row of ``name``; None when it does not know it (one lookup, no copy)."""
+        return self._table.get(name)
 
     def watch_states(
         self, listener: Callable[[str, str], None], *, members: bool = False
