@@ -6,6 +6,12 @@ its own on its own TCP port of 127.0.0.1, named ``m0`` … ``m499`` in their
 greetings, and placed on a grid. It writes ``{"m0": PORT, ...}`` to ``F``,
 then prints ``listening on 127.0.0.1:PORT`` (the first port) to stderr, and
 serves until SIGTERM, SIGINT or end of file on stdin.
+
+Before it writes the ports, each device is dialled once and must greet with
+its own name: a port that the kernel handed out but that something else
+intercepts (a container runtime's port forwarding, for one, rewrites every
+local connection to its published port) would fail that device's
+registration. Such a device is moved to another port.
 """
 
 from __future__ import annotations
@@ -28,6 +34,9 @@ from services.simulators import SimRobot
 CONNECTIONS_PER_DEVICE = 4
 #: File descriptors a process needs besides its sockets.
 FD_SPARE = 256
+#: Ports tried per device before the farm gives up, and seconds a device has to greet when dialled.
+PORT_TRIES = 5
+GREET_S = 5.0
 
 
 def raise_fd_limit(needed: int) -> dict[str, int]:
@@ -48,6 +57,34 @@ def device_name(number: int) -> str:
     return f"m{number}"
 
 
+async def _greets(port: int, name: str) -> bool:
+    """Whether a connection to 127.0.0.1:``port`` reaches device ``name`` (its greeting names it)."""
+    try:
+        async with asyncio.timeout(GREET_S):
+            reader, writer = await asyncio.open_connection("127.0.0.1", port)
+            try:
+                line = await reader.readline()
+            finally:
+                writer.close()
+                with contextlib.suppress(OSError):
+                    await writer.wait_closed()
+    except (OSError, TimeoutError):
+        return False
+    return line.startswith(b"HELLO ") and f" name={name} ".encode() in line
+
+
+async def _serve_reachable(backend: LocalService, name: str) -> tuple[DeviceServer, int]:
+    """Serve ``backend`` as device ``name`` on a port of 127.0.0.1 that really reaches it."""
+    for _ in range(PORT_TRIES):
+        server = DeviceServer(backend, name=name, max_connections=CONNECTIONS_PER_DEVICE)
+        _, port = await server.serve_tcp("127.0.0.1", 0)
+        if await _greets(port, name):
+            return server, port
+        print(f"port {port} does not reach device {name} (intercepted?): trying another", file=sys.stderr)
+        await server.aclose()
+    raise RuntimeError(f"no port of 127.0.0.1 reached device {name} in {PORT_TRIES} tries")
+
+
 async def serve(count: int, first: int, ports_file: Path) -> None:
     """Serve ``count`` devices, numbered from ``first``, until stopped."""
     backends: list[LocalService] = []
@@ -58,9 +95,8 @@ async def serve(count: int, first: int, ports_file: Path) -> None:
             backend = LocalService(SimRobot(start=(number % 100, number // 100), tick_hz=0.1))
             await backend.start()
             backends.append(backend)
-            server = DeviceServer(backend, name=device_name(number), max_connections=CONNECTIONS_PER_DEVICE)
+            server, port = await _serve_reachable(backend, device_name(number))
             servers.append(server)
-            _, port = await server.serve_tcp("127.0.0.1", 0)
             ports[device_name(number)] = port
         await asyncio.to_thread(ports_file.write_text, json.dumps(ports))
         print(f"listening on 127.0.0.1:{next(iter(ports.values()))}", file=sys.stderr, flush=True)

@@ -134,6 +134,10 @@ class ProxyOptions:
 #: Sane ranges of the numeric proxy options, as (lowest, highest). A registration names them
 #: in its URL, so without bounds ``keepalive=0.001`` would be a PING flood and ``timeout=1e300``
 #: a call that never ends. Out of range is INVALID_ARGUMENT, never silently clamped.
+#: Seconds of refused connections (nothing listens at the device's address) after which a caller
+#: waiting for the device hears so at once, rather than at the end of its wait.
+REFUSED_GIVE_UP = 1.0
+
 OPTION_RANGES: Mapping[str, tuple[float, float]] = {
     "timeout": (0.01, 600.0),
     "connect_timeout": (0.01, 3600.0),
@@ -212,6 +216,10 @@ class LineProxy(Backend):
         #: Why the device's last greeting was refused (another version, a bad field); None once it is served.
         self.refusal: PropertyError | None = None
         self._refused = asyncio.Event()
+        #: When the device's host began refusing the connection (nothing listens there), None
+        #: while it does not; set after every failed attempt for the waiters of wait_connected.
+        self._refused_since: float | None = None
+        self._attempt_failed = asyncio.Event()
         self._closing = False
         #: Connections made and lost and keep-alives missed, read by the metrics at scrape time.
         self.counts = LinkCounts(self.transport)
@@ -265,24 +273,40 @@ class LineProxy(Backend):
 
         Raises the refusal (FAILED_PRECONDITION for another protocol version,
         INVALID_ARGUMENT for a bad greeting) as soon as the device's greeting
-        was refused, and Unavailable, saying why, on timeout.
+        was refused, and Unavailable, saying why, on timeout, or as soon as the
+        device's host has refused the connection for ``REFUSED_GIVE_UP``
+        seconds (nothing listens there: waiting longer only eats the caller's
+        deadline).
         """
         if not self._connected.is_set():
             try:
                 async with asyncio.timeout(wait_s):
-                    connected = asyncio.ensure_future(self._connected.wait())
-                    refused = asyncio.ensure_future(self._refused.wait())
-                    try:
-                        await asyncio.wait([connected, refused], return_when=asyncio.FIRST_COMPLETED)
-                    finally:
-                        connected.cancel()
-                        refused.cancel()
+                    while not (self._connected.is_set() or self._refused.is_set()):
+                        if self._refused_for() >= REFUSED_GIVE_UP:
+                            raise Unavailable(
+                                f"{self._label()}: connection refused for "
+                                f"{self._refused_for():.1f} s ({self._last_error})"
+                            )
+                        self._attempt_failed.clear()
+                        waits = [
+                            asyncio.ensure_future(event.wait())
+                            for event in (self._connected, self._refused, self._attempt_failed)
+                        ]
+                        try:
+                            await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+                        finally:
+                            for waiting in waits:
+                                waiting.cancel()
             except TimeoutError:
                 raise Unavailable(
                     f"{self._label()}: not connected after {wait_s:g} s ({self._last_error})"
                 ) from None
         if not self._connected.is_set() and self.refusal is not None:
             raise error_for(self.refusal.code, self.refusal.message)
+
+    def _refused_for(self) -> float:
+        """Seconds the device's host has refused every connection attempt (0 when it has not)."""
+        return 0.0 if self._refused_since is None else time.monotonic() - self._refused_since
 
     @property
     def connected(self) -> bool:
@@ -344,10 +368,17 @@ class LineProxy(Backend):
                 await self.attach(conn)
         except (OSError, TimeoutError) as exc:
             self._last_error = f"cannot connect: {exc or 'timed out'}"
+            if isinstance(exc, ConnectionRefusedError):
+                if self._refused_since is None:
+                    self._refused_since = time.monotonic()
+            else:
+                self._refused_since = None
+            self._attempt_failed.set()
             log.info("%s: %s", self._label(), self._last_error)
             conn.hello.cancel()  # nobody will wait for a greeting on a stream that never opened
             await conn.aclose(self._last_error)
             return None
+        self._refused_since = None
         try:
             async with asyncio.timeout(self.options.connect_timeout):
                 if self.ask_hello_first:

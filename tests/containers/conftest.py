@@ -5,6 +5,12 @@
 Docker-compatible API (``podman system service``) on a socket of their own and point
 testcontainers at it: no Ryuk (podman has no reaper image here, and the fixtures remove what they
 start), the docker host's own address for mapped ports, and 127.0.0.1 as that host.
+
+Every container and network the tests create carries ``RUN_LABEL`` = this test process's PID. When
+the session ends, what carries its PID is removed; when one starts, what carries the PID of a test
+process that is gone (a run that was killed) is removed too. A container left running would keep
+its published port forwarded: every later connection to 127.0.0.1 on that port, whoever listens
+there, would be sent to the dead container.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from support.podman_runs import remove_labelled
 
 ROOT = Path(__file__).resolve().parents[2]
 STATUS = ROOT / "build" / "containers" / "status"
@@ -51,6 +58,9 @@ def podman_env(image: str) -> dict[str, str]:
 @pytest.fixture(scope="session")
 def docker_api(podman_env: dict[str, str], tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """A Docker-compatible API socket served by ``podman system service``; testcontainers uses it."""
+    left = remove_labelled(podman_env, run=None)
+    if left:
+        print(f"removed what killed test runs left behind: {', '.join(left)}")
     sock = tmp_path_factory.mktemp("podman") / "podman.sock"
     url = f"unix://{sock}"
     service = subprocess.Popen(
@@ -75,6 +85,7 @@ def docker_api(podman_env: dict[str, str], tmp_path_factory: pytest.TempPathFact
         os.environ["TESTCONTAINERS_HOST_OVERRIDE"] = "127.0.0.1"
         yield url
     finally:
+        remove_labelled(podman_env, run=str(os.getpid()))
         service.terminate()
         try:
             service.wait(timeout=10)

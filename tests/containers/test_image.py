@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support.podman_runs import run_labels
 
 pytestmark = pytest.mark.slow
 
@@ -80,14 +81,18 @@ def get_or_error(address: str, service: str, prop: str) -> str:
 def start_gateway(image: str, network: Any = None, config: str = "") -> Running:
     from testcontainers.core.container import DockerContainer
 
-    container = DockerContainer(image).with_exposed_ports(GRPC_PORT)
+    container = DockerContainer(image).with_exposed_ports(GRPC_PORT).with_kwargs(labels=run_labels())
     if network is not None:
         container = container.with_network(network)
     if config:
         container = container.with_volume_mapping(str(ROOT / config), "/etc/psgateway/gateway.toml", "ro")
     container.start()
-    running = Running(container, address(container))
-    wait_for("the gateway's health", lambda: health(running.address), "SERVING", READY)
+    try:
+        running = Running(container, address(container))
+        wait_for("the gateway's health", lambda: health(running.address), "SERVING", READY)
+    except BaseException:
+        container.stop()
+        raise
     return running
 
 
@@ -167,7 +172,7 @@ def test_a_device_in_another_container_and_containers_killed_and_restarted(
     from testcontainers.core.container import DockerContainer
     from testcontainers.core.network import Network
 
-    with Network() as network:
+    with Network(docker_network_kw={"labels": run_labels()}) as network:
         # The compose file's pair: `psgateway device` on TCP, named "device" on the network, and
         # the gateway with containers/compose.toml (rover1 = tcp://device:7001, rover2 on a pty).
         device = (
@@ -187,6 +192,7 @@ def test_a_device_in_another_container_and_containers_killed_and_restarted(
             )
             .with_network(network)
             .with_network_aliases("device")
+            .with_kwargs(labels=run_labels())
         )
         device.start()
         try:

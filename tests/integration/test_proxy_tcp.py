@@ -248,6 +248,18 @@ async def test_unreachable_device_is_unavailable_at_once() -> None:
         assert "not connected" in error.message
 
 
+async def test_waiting_for_a_device_whose_host_refuses_ends_before_the_wait_does() -> None:
+    """Nothing listens at the address: the waiter hears "connection refused", not a bare timeout."""
+    async with proxy_for(f"tcp://127.0.0.1:{free_port()}") as proxy:
+        with pytest.raises(PropertyError) as info:
+            await proxy.wait_connected(600)
+        assert info.value.code == Code.UNAVAILABLE
+        assert "connection refused for" in info.value.message and "after 600 s" not in info.value.message
+        # While it goes on refusing, the next waiter is answered at once too.
+        with pytest.raises(PropertyError, match="connection refused for"):
+            await proxy.wait_connected(600)
+
+
 def unlisten_failures(caplog: pytest.LogCaptureFixture) -> list[tuple[int, str]]:
     return [(r.levelno, r.getMessage()) for r in caplog.records if "UNLISTEN" in r.getMessage()]
 
