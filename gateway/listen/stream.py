@@ -38,7 +38,15 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from itertools import islice
 
 from gateway.config import Limits
-from gateway.listen.encoding import Ready, encode_events, within
+from gateway.listen.encoding import (
+    Mark,
+    Ready,
+    encode_events,
+    encode_wire,
+    event_size,
+    marker_response,
+    within,
+)
 from gateway.listen.requests import Selector, StreamOptions
 from gateway.listen.topics import MISSING, NOTHING, UNREACHABLE, Topic, TopicKey, Topics
 from gateway.router import Router
@@ -540,8 +548,14 @@ class ListenStream:
 
     def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None:
         """A change on a topic this stream shares (called by :meth:`Topic.notify`)."""
-        if topic in self._refs:
-            self._enqueue(topic, change.value, seen_ns, change.gap, change.removed)
+        if topic not in self._refs:
+            return
+        # _enqueue and _signal written out: this runs once per stream for every change.
+        if not self._pending.put(topic, change.value, seen_ns, change.gap, change.removed):
+            self.conflated += 1
+        if self._live and not self._sample_flush and not self._signalled:
+            self._signalled = True
+            self._on_ready()
 
     def _enqueue(self, topic: Topic, value: Value, seen: int, gap: bool, removed: bool) -> None:
         if not self._pending.put(topic, value, seen, gap, removed):
@@ -602,12 +616,30 @@ class ListenStream:
 
     def take(self) -> pb.ListenResponse | None:
         """Drain what is ready into one response; None when nothing is ready."""
+        taken = self._next()
+        if isinstance(taken, list):
+            return encode_events(taken, self._sequence - len(taken))
+        return None if taken is None else marker_response(taken)
+
+    def take_wire(self) -> bytes | None:
+        """:meth:`take`, serialized: the shared part of each event is encoded once for every stream
+        (:func:`gateway.listen.encoding.encode_wire`)."""
+        taken = self._next()
+        if isinstance(taken, list):
+            return encode_wire(taken, self._sequence - len(taken))
+        return None if taken is None else taken.wire
+
+    def _next(self) -> list[Ready] | Mark | None:
+        """What the next response carries: events (numbered already), a marker, or nothing."""
         self._signalled = False
         if not self._live or self.closed or self.error is not None:
             return None
+        if not self._pending and not self._sync_due:
+            return self._heartbeat()  # what the rest comes to with nothing queued: the commonest case
         if self._sync_due and (self._sync_after <= 0 or not self._pending):
             self._sync_due = False
-            return self._sent(pb.ListenResponse(sync=True))
+            self._sent()
+            return Mark.SYNC
         limit = self.options.max_batch
         if self._sync_due:
             limit = min(limit, self._sync_after)
@@ -615,38 +647,43 @@ class ListenStream:
             if self._sample_flush < 0:
                 return self._heartbeat()
             limit = min(limit, self._sample_flush)
-        response = self._drain(limit)
-        count = len(response.events) if response is not None else 0
+        ready = self._drain(limit)
+        count = len(ready) if ready is not None else 0
         if self._sync_due:
             self._sync_after -= count
         elif self._sample_flush > 0:
             self._sample_flush = max(self._sample_flush - count, 0) or -1
-        if response is not None:
-            return self._sent(response)
+        if ready is not None:
+            self._sent()
+            return ready
         if self._sync_due:
             self._sync_due = False
-            return self._sent(pb.ListenResponse(sync=True))
+            self._sent()
+            return Mark.SYNC
         return self._heartbeat()
 
-    def _heartbeat(self) -> pb.ListenResponse | None:
+    def _heartbeat(self) -> Mark | None:
         if self._heartbeat_due:
-            return self._sent(pb.ListenResponse(heartbeat=True))
+            self._sent()
+            return Mark.HEARTBEAT
         return None
 
-    def _sent(self, response: pb.ListenResponse) -> pb.ListenResponse:
+    def _sent(self) -> None:
         self._heartbeat_due = False
         if self._heartbeat_timer is not None:
             self._last_sent = asyncio.get_running_loop().time()
-        return response
 
-    def _drain(self, limit: int) -> pb.ListenResponse | None:
-        """The events ready, at most ``limit``, in one response; None when there are none."""
+    def _drain(self, limit: int) -> list[Ready] | None:
+        """The events ready, at most ``limit``, numbered; None when there are none."""
         pending = self._pending
         if not pending:
             return None
         ready: list[Ready]
         if self._last_emit is not None and self._sync_after <= 0:
             ready, size = self._ready_throttled(limit)
+        elif len(pending) == 1:  # one change since the last response: the commonest case
+            ready = pending.take()
+            size = event_size(*ready[0])
         else:
             ready, size = within(islice(pending.items(), limit))
             pending.take(len(ready))
@@ -661,10 +698,9 @@ class ListenStream:
                 )
             )
             return None
-        response = encode_events(ready, self._sequence)
         self._sequence += len(ready)
         self.events_sent += len(ready)
-        return response
+        return ready
 
     def _ready_throttled(self, limit: int) -> tuple[list[Ready], int]:
         """Like :func:`gateway.listen.encoding.within`, but only topics whose ``min_interval`` has passed."""
