@@ -109,7 +109,7 @@ def add_to_server(servicer: PropertyServicer, server: grpc.aio.Server) -> None:
         "Session": grpc.stream_stream_rpc_method_handler(
             servicer.Session,
             request_deserializer=_lenient(pb.SessionRequest),
-            response_serializer=pb.SessionResponse.SerializeToString,
+            response_serializer=_serialized,  # a Session writes its responses serialized already
         ),
         "Describe": grpc.unary_unary_rpc_method_handler(
             servicer.Describe,

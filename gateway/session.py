@@ -27,6 +27,7 @@ from gateway.calls import Begun, Calls, Undecodable, is_snapshot
 from gateway.config import Limits
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
+from gateway.listen.encoding import listen_reply_wire, reply_wire
 from gateway.listen.hub import SHUTTING_DOWN
 from gateway.logs import RequestContext, current_request
 from gateway.rules import Subject
@@ -130,9 +131,9 @@ class Session:
             self._wake.clear()
             if self._stopping or (self._reader_done and self._listens):
                 self._end_listens()
-            replies = self._collect()
-            if replies:
-                await context.write(pb.SessionResponse(replies=replies))
+            response = self._collect()
+            if response:
+                await context.write(response)
                 if self._replies or self._ready:
                     self._wake.set()
             if len(self._replies) < self._limits.session_max_queued_replies:
@@ -142,11 +143,14 @@ class Session:
             if self._reader_done and not self._active and not self._replies and not self._ready:
                 return
 
-    def _collect(self) -> list[pb.Reply]:
-        """The next SessionResponse's replies: at most MAX_REPLIES_PER_MESSAGE, about BATCH_BYTES.
+    def _collect(self) -> bytes:
+        """The next SessionResponse, serialized ("" when there is nothing to send): at most
+        MAX_REPLIES_PER_MESSAGE replies, about BATCH_BYTES.
 
         A reply bigger than the budget goes alone: a client drops the whole stream on a message
-        over its limit (4 MiB by default), so batching must never add up to one.
+        over its limit (4 MiB by default), so batching must never add up to one. The Listens'
+        replies are added serialized (``ListenStream.take_wire``): a repeated field's entries
+        may follow one another on the wire, so they are appended to the other replies' message.
         """
         replies: list[pb.Reply] = []
         size = 0
@@ -154,32 +158,36 @@ class Session:
         while queue and len(replies) < MAX_REPLIES_PER_MESSAGE:
             n = queue[0][1]
             if replies and size + n > BATCH_BYTES:
-                return replies
+                return pb.SessionResponse(replies=replies).SerializeToString()
             size += n
             replies.append(queue.popleft()[0])
+        count = len(replies)
+        listened: list[bytes] = []
         for rid in list(self._ready):
             stream = self._listens.get(rid)
             if stream is None:
                 del self._ready[rid]
                 continue
             drained = False
-            while size < BATCH_BYTES and len(replies) < MAX_REPLIES_PER_MESSAGE:
-                response = stream.take()
+            while size < BATCH_BYTES and count < MAX_REPLIES_PER_MESSAGE:
+                response = stream.take_wire()
                 if response is None:
                     drained = True
                     break
-                reply = pb.Reply(id=rid, listen=response)
-                size += reply.ByteSize()
-                replies.append(reply)
+                reply = listen_reply_wire(rid, response)
+                size += len(reply)
+                count += 1
+                listened.append(reply)
             if not drained:
                 break  # the rest goes in the next message; rid stays ready
             del self._ready[rid]
             if stream.error is not None:
-                replies.append(pb.Reply(id=rid, status=status_message(stream.error)))
+                listened.append(reply_wire(pb.Reply(id=rid, status=status_message(stream.error))))
                 self._drop_listen(rid)
             elif stream.ended and not self._stopping:
                 self._drop_listen(rid)
-        return replies
+        head = pb.SessionResponse(replies=replies).SerializeToString() if replies else b""
+        return head + b"".join(listened) if listened else head
 
     def _end_listens(self) -> None:
         """Flush what every Listen has ready and end it (half-close or shutdown)."""

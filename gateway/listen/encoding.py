@@ -1,10 +1,11 @@
 """Events into ``ListenResponse`` messages: sizes, batches by bytes, and encoding in place.
 
-Two encodings of the same response: :func:`encode_events` builds the message (for a Session's
-reply and the HTTP front end, which handle it further), :func:`encode_wire` its serialized bytes
-(what the gRPC Listen handler sends). The wire form encodes the fields of an event that every
-stream sends alike once per change (:func:`shared_wire`) and adds each stream's own sequence
-number, count and flags; protobuf readers take the fields of a message in any order.
+Two encodings of the same response: :func:`encode_events` builds the message (for the HTTP
+front end, which turns it into JSON), :func:`encode_wire` its serialized bytes (what the gRPC
+Listen handler sends, and a Session inside its replies: :func:`listen_reply_wire`). The wire
+form encodes the fields of an event that every stream sends alike once per change
+(:func:`shared_wire`) and adds each stream's own sequence number, count and flags; protobuf
+readers take the fields of a message in any order.
 """
 
 from __future__ import annotations
@@ -111,6 +112,11 @@ _CONFLATED = b"\x30"
 _GAP = b"\x38\x01"
 _REMOVED = b"\x40\x01"
 _EVENTS = b"\x0a"
+# SessionResponse.replies = 1 (length-delimited); Reply.id = 1 (varint), Reply.listen = 5
+# (length-delimited).
+_REPLIES = b"\x0a"
+_REPLY_ID = b"\x08"
+_REPLY_LISTEN = b"\x2a"
 _ONE_BYTE = [bytes((n,)) for n in range(0x80)]
 
 
@@ -164,3 +170,16 @@ def _event_wire(topic: Topic, entry: Slot[Value], sequence: int) -> bytes:
     if entry.removed:
         event += _REMOVED
     return event
+
+
+def reply_wire(reply: pb.Reply) -> bytes:
+    """``reply`` as one entry of a serialized SessionResponse's replies."""
+    body = reply.SerializeToString()
+    return _REPLIES + _varint(len(body)) + body
+
+
+def listen_reply_wire(rid: int, response: bytes) -> bytes:
+    """The reply to Listen request ``rid`` carrying ``response`` (a serialized ListenResponse),
+    as one entry of a serialized SessionResponse's replies."""
+    body = _REPLY_ID + _varint(rid) + _REPLY_LISTEN + _varint(len(response)) + response
+    return _REPLIES + _varint(len(body)) + body

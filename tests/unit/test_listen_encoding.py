@@ -6,7 +6,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from support.fake_backend import DictBackend
 
-from gateway.listen.encoding import Mark, encode_events, encode_wire, marker_response
+from gateway.listen.encoding import (
+    Mark,
+    encode_events,
+    encode_wire,
+    listen_reply_wire,
+    marker_response,
+    reply_wire,
+)
 from gateway.listen.topics import Topic
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.conflation import Slot
@@ -70,3 +77,18 @@ def test_markers_serialized_are_the_marker_messages() -> None:
         assert pb.ListenResponse.FromString(mark.wire) == marker_response(mark)
     assert marker_response(Mark.SYNC).sync
     assert marker_response(Mark.HEARTBEAT).heartbeat
+
+
+@settings(deadline=None)
+@given(st.integers(min_value=0, max_value=2**64 - 1), slots)
+def test_listen_replies_serialized_join_the_other_replies_of_a_session_response(
+    rid: int, slot: Slot[Value]
+) -> None:
+    topic = _topic("svc", "a")
+    answer = pb.Reply(id=3, get=pb.GetResponse(value="x"))
+    head = pb.SessionResponse(replies=[answer]).SerializeToString()
+    wire = head + listen_reply_wire(rid, encode_wire([(topic, slot)], 41)) + reply_wire(pb.Reply(id=rid))
+    expected = pb.SessionResponse(
+        replies=[answer, pb.Reply(id=rid, listen=encode_events([(topic, slot)], 41)), pb.Reply(id=rid)]
+    )
+    assert pb.SessionResponse.FromString(wire) == expected
