@@ -34,19 +34,16 @@ import asyncio
 import collections
 import contextlib
 import sys
-import time
 from collections.abc import AsyncIterator
 from typing import Any
 
 import grpc
 
 from bench.baseline import until_stopped
-from bench.listen import CALL_TIMEOUT, CHANNEL_OPTIONS, DRAIN_TIMEOUT, ListenResult, Run, run_listen, set_all
-from bench.measure import STREAM_END, Latencies, window
+from bench.listen import ListenResult, run_listen
 from bench.servers import ServerProcess
-from bench.target import BATCH_PROPERTIES, SERVICE, VALUE_PROPERTY
+from bench.target import BATCH_PROPERTIES, VALUE_PROPERTY
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
 SERVERS = {
     "floor": ["bench.fanout", "--serve", "--listen", "127.0.0.1:0"],
@@ -143,145 +140,6 @@ async def serve(listen: str) -> None:
     await server.stop(grace=1.0)
 
 
-class _SessionReader:
-    """One Session carrying ``listens`` Listens of the same property, and what it has read."""
-
-    def __init__(self, call: Any, listens: int, run: Run) -> None:
-        self.call = call
-        self.listens = listens
-        self.run = run
-        self.latest: dict[int, str] = {}
-        self.events = 0
-        self.conflated = 0
-        self.messages = 0
-        self.last_ns = 0
-        self.done = asyncio.Event()
-
-    async def wait_sync(self) -> None:
-        """Read until every Listen of the Session has sent its ``sync`` marker."""
-        synced: set[int] = set()
-        while len(synced) < self.listens:
-            response = await self.call.read()
-            if response is STREAM_END:
-                raise RuntimeError(f"a Session ended before its listens' sync: {await self.call.code()}")
-            for reply in response.replies:
-                if reply.status.code:
-                    raise RuntimeError(f"listen {reply.id} failed: {reply.status.message}")
-                if reply.listen.sync:
-                    synced.add(reply.id)
-
-    def check_done(self) -> None:
-        final = self.run.final
-        value = final.get(VALUE_PROPERTY) if final is not None else None
-        if self.events + self.conflated >= self.run.expected * self.listens or (
-            value is not None
-            and len(self.latest) == self.listens
-            and all(v == value for v in self.latest.values())
-        ):
-            self.done.set()
-
-    async def consume(self) -> None:
-        samples = self.run.samples
-        while True:
-            response = await self.call.read()
-            if response is STREAM_END:
-                return
-            now = time.perf_counter_ns()
-            counted = False
-            for reply in response.replies:
-                for event in reply.listen.events:
-                    counted = True
-                    self.events += 1
-                    self.conflated += event.conflated
-                    self.latest[reply.id] = event.value
-                    samples.append(now - int(event.value))
-            if counted:
-                self.messages += 1
-                self.last_ns = now
-                self.check_done()
-
-
-async def run_session_listens(
-    server: ServerProcess,
-    *,
-    subscribers: int,
-    per_session: int,
-    sets: int,
-    set_rate: float,
-    time_limit: float,
-) -> ListenResult:
-    """``subscribers`` listens of one property, ``per_session`` inside each Session (the Sessions
-    spread over four connections, as part (c) spreads its streams); ``sets`` one-by-one Sets."""
-    sessions = max(subscribers // per_session, 1)
-    result = ListenResult(
-        mode=f"{per_session} in a Session",
-        subscribers=sessions * per_session,
-        sets=sets,
-        properties=1,
-        burst=1,
-        set_rate=set_rate,
-        channels=min(sessions, 4),
-    )
-    run = Run(expected=sets)
-    deadline = time.monotonic() + time_limit
-    opened = [
-        grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(result.channels)
-    ]
-    setter_channel = grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS)
-    readers: list[_SessionReader] = []
-    tasks: list[asyncio.Task[None]] = []
-    first_set_ns = 0
-    try:
-        setter = pb_grpc.PropertyServiceStub(setter_channel)
-        await setter.Set(
-            pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value="0"), timeout=CALL_TIMEOUT
-        )
-        listen = pb.ListenRequest(service=SERVICE, property=VALUE_PROPERTY)
-        for number in range(sessions):
-            call = pb_grpc.PropertyServiceStub(opened[number % len(opened)]).Session()
-            requests = [pb.Request(id=i + 1, listen=listen) for i in range(per_session)]
-            await call.write(pb.SessionRequest(requests=requests))
-            readers.append(_SessionReader(call, per_session, run))
-        async with asyncio.timeout(CALL_TIMEOUT * 3):
-            await asyncio.gather(*(reader.wait_sync() for reader in readers))
-        tasks = [asyncio.create_task(reader.consume()) for reader in readers]
-        with window(server) as result.window:
-            first_set_ns = time.perf_counter_ns()
-            final = await set_all(
-                setter,
-                properties=(VALUE_PROPERTY,),
-                sets=sets,
-                set_rate=set_rate,
-                deadline=deadline,
-                result=result,
-            )
-            result.setter_s = (time.perf_counter_ns() - first_set_ns) / 1e9
-            run.final = final
-            for reader in readers:
-                reader.check_done()
-            drain_until = min(deadline, time.monotonic() + DRAIN_TIMEOUT)
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(max(drain_until - time.monotonic(), 0.0)):
-                    await asyncio.gather(*(reader.done.wait() for reader in readers))
-    finally:
-        for task in tasks:
-            task.cancel()
-        for reader in readers:
-            reader.call.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
-        for channel in [*opened, setter_channel]:
-            await channel.close(None)
-    last_ns = max((reader.last_ns for reader in readers), default=0)
-    result.delivery_s = max(last_ns - first_set_ns, 0) / 1e9
-    result.events = sum(reader.events for reader in readers)
-    result.conflated = sum(reader.conflated for reader in readers)
-    result.messages = sum(reader.messages for reader in readers)
-    result.complete_subscribers = sum(reader.listens for reader in readers if reader.done.is_set())
-    result.latency = Latencies.of(run.samples)
-    server.check_alive()
-    return result
-
-
 async def measure(
     sets: int, rounds: int, subscribers: int, time_limit: float
 ) -> dict[tuple[str, str], ListenResult]:
@@ -351,26 +209,17 @@ async def measure_ways(
         for way, per_session in WAYS.items():
             server = await ServerProcess.start("gateway", SERVERS["gateway"])
             try:
-                if per_session:
-                    result = await run_session_listens(
-                        server,
-                        subscribers=subscribers,
-                        per_session=per_session,
-                        sets=sets,
-                        set_rate=set_rate,
-                        time_limit=time_limit,
-                    )
-                else:
-                    result = await run_listen(
-                        server,
-                        mode="one-by-one",
-                        properties=(VALUE_PROPERTY,),
-                        subscribers=subscribers,
-                        sets=sets,
-                        channels=max(subscribers // 25, 1),
-                        set_rate=set_rate,
-                        time_limit=time_limit,
-                    )
+                result = await run_listen(
+                    server,
+                    mode="one-by-one",
+                    properties=(VALUE_PROPERTY,),
+                    subscribers=subscribers,
+                    sets=sets,
+                    channels=max(subscribers // 25, 1),
+                    set_rate=set_rate,
+                    time_limit=time_limit,
+                    per_session=per_session,
+                )
             finally:
                 await server.stop()
             print(f"  {way:22} {_cpu_per_event(result):7.1f} µs/event, {result.events_per_s:9,.0f} events/s")

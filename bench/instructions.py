@@ -17,6 +17,8 @@ they are the same per call on each server) nor cache misses.
   timing).
 * ``fanout``: 100 Listen streams of ``bench/value`` over four connections, one-by-one unary
   Sets; per event delivered. ``floor`` is :mod:`bench.fanout`'s server.
+* ``session-fanout``: the same with each Listen a request inside a Session of its own (the
+  gateway only: neither the bare server nor the floor has Listens in Sessions).
 
 Needs valgrind (``apt-get install valgrind``); without it the command says so and exits 2.
 """
@@ -34,11 +36,12 @@ import tempfile
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
+from typing import Any
 
 import grpc
 
 from bench.listen import CHANNEL_OPTIONS
-from bench.measure import STREAM_END, read_until_sync
+from bench.measure import STREAM_END
 from bench.servers import ROOT
 from bench.target import SERVICE, VALUE_PROPERTY
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -173,27 +176,46 @@ async def unary_round(server: Counted, channel: grpc.aio.Channel, calls: int) ->
     return total / calls, main / calls
 
 
-async def fanout_round(server: Counted, channel: grpc.aio.Channel, sets: int) -> tuple[float, float]:
-    """Instructions per event delivered to 100 Listen streams (all threads, main thread), ``sets`` Sets."""
+async def fanout_round(
+    server: Counted, channel: grpc.aio.Channel, sets: int, *, in_sessions: bool = False
+) -> tuple[float, float]:
+    """Instructions per event delivered to 100 Listens (all threads, main thread), ``sets`` Sets;
+    each Listen a stream of its own, or with ``in_sessions`` a request inside a Session of its own."""
     setter = pb_grpc.PropertyServiceStub(channel)
     streams = [grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(4)]
     request = pb.ListenRequest(service=SERVICE, property=VALUE_PROPERTY)
-    calls = [pb_grpc.PropertyServiceStub(streams[n % 4]).Listen(request) for n in range(SUBSCRIBERS)]
+    stubs = [pb_grpc.PropertyServiceStub(streams[n % 4]) for n in range(SUBSCRIBERS)]
+    calls: list[Any] = []
     events = [0]
     expected = sets * SUBSCRIBERS
     delivered = asyncio.Event()
 
-    async def read(call: grpc.aio.UnaryStreamCall[pb.ListenRequest, pb.ListenResponse]) -> None:
-        while (response := await call.read()) is not STREAM_END:
-            events[0] += len(response.events)
-            if events[0] >= expected:
-                delivered.set()
+    def count(response: pb.ListenResponse) -> bool:
+        events[0] += len(response.events)
+        if events[0] >= expected:
+            delivered.set()
+        return response.sync
 
+    async def read(call: Any, synced: asyncio.Event) -> None:
+        while (response := await call.read()) is not STREAM_END:
+            replies = [reply.listen for reply in response.replies] if in_sessions else [response]
+            if any([count(listened) for listened in replies]):
+                synced.set()
+
+    syncs = [asyncio.Event() for _ in stubs]
     tasks: list[asyncio.Task[None]] = []
     try:
+        for stub in stubs:
+            if in_sessions:
+                call = stub.Session()
+                await call.write(pb.SessionRequest(requests=[pb.Request(id=1, listen=request)]))
+            else:
+                call = stub.Listen(request)
+            calls.append(call)
+        tasks = [asyncio.create_task(read(call, synced)) for call, synced in zip(calls, syncs, strict=True)]
         async with asyncio.timeout(CALL_TIMEOUT):
-            await asyncio.gather(*(read_until_sync(call) for call in calls))
-        tasks = [asyncio.create_task(read(call)) for call in calls]
+            await asyncio.gather(*(synced.wait() for synced in syncs))
+        events[0] = 0
         await server.zero()
         for n in range(sets):
             value = f"{time.monotonic_ns()}{n}"
@@ -214,9 +236,15 @@ async def fanout_round(server: Counted, channel: grpc.aio.Channel, sets: int) ->
     return total / events[0], main / events[0]
 
 
+async def session_fanout_round(server: Counted, channel: grpc.aio.Channel, sets: int) -> tuple[float, float]:
+    """:func:`fanout_round` with each Listen inside a Session of its own."""
+    return await fanout_round(server, channel, sets, in_sessions=True)
+
+
 PARTS: dict[str, Callable[[Counted, grpc.aio.Channel, int], Awaitable[tuple[float, float]]]] = {
     "unary": unary_round,
     "fanout": fanout_round,
+    "session-fanout": session_fanout_round,
 }
 
 
@@ -244,7 +272,9 @@ async def measure(part: str, kind: str, rounds: int, quick: bool) -> list[tuple[
 def main(argv: list[str] | None = None) -> int:
     """Command line: ``python -m bench.instructions``."""
     parser = argparse.ArgumentParser(prog="python -m bench.instructions", description=__doc__.splitlines()[0])
-    parser.add_argument("--parts", default="unary,fanout", help="unary, fanout (default both)")
+    parser.add_argument(
+        "--parts", default="unary,fanout", help="unary, fanout, session-fanout (default unary,fanout)"
+    )
     parser.add_argument(
         "--servers", default="bare,gateway", help="bare, gateway, floor (default bare,gateway)"
     )
@@ -262,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [p for p in parts if p not in PARTS] + [k for k in kinds if k not in SERVERS]
     if unknown:
         parser.error(f"unknown part or server: {', '.join(unknown)}")
-    per = {"unary": "Get", "fanout": "event"}
+    per = {"unary": "Get", "fanout": "event", "session-fanout": "event"}
     for part in parts:
         medians: dict[str, float] = {}
         for kind in kinds:

@@ -126,6 +126,9 @@ class Run:
 class _Subscriber:
     """One Listen stream and what it has read."""
 
+    #: Subscribers this one stands for (a Session carries several).
+    listens = 1
+
     def __init__(self, call: Any, run: Run) -> None:
         self.call = call
         self.run = run
@@ -164,6 +167,64 @@ class _Subscriber:
                 samples.append(now - int(event.value))
             self.last_ns = now
             self.check_done()
+
+
+class _SessionSubscribers:
+    """``listens`` subscribers carried as Listen requests inside one Session, and what they read."""
+
+    def __init__(self, call: Any, listens: int, run: Run) -> None:
+        self.call = call
+        self.listens = listens
+        self.run = run
+        #: The latest value of each (listen id, property).
+        self.latest: dict[tuple[int, str], str] = {}
+        self.events = 0
+        self.conflated = 0
+        self.messages = 0
+        self.last_ns = 0
+        self.done = asyncio.Event()
+
+    async def wait_sync(self) -> None:
+        """Read until every Listen of the Session has sent its ``sync`` marker."""
+        synced: set[int] = set()
+        while len(synced) < self.listens:
+            response = await self.call.read()
+            if response is STREAM_END:
+                raise RuntimeError(f"a Session ended before its listens' sync: {await self.call.code()}")
+            for reply in response.replies:
+                if reply.status.code:
+                    raise RuntimeError(f"listen {reply.id} failed: {reply.status.message}")
+                if reply.listen.sync:
+                    synced.add(reply.id)
+
+    def check_done(self) -> None:
+        final = self.run.final
+        if self.events + self.conflated >= self.run.expected * self.listens or (
+            final is not None
+            and all(
+                self.latest.get((rid, p)) == v for rid in range(1, self.listens + 1) for p, v in final.items()
+            )
+        ):
+            self.done.set()
+
+    async def consume(self) -> None:
+        samples = self.run.samples
+        while True:
+            response = await self.call.read()
+            if response is STREAM_END:
+                return
+            now = time.perf_counter_ns()
+            before = self.events
+            for reply in response.replies:
+                for event in reply.listen.events:
+                    self.events += 1
+                    self.conflated += event.conflated
+                    self.latest[(reply.id, event.property)] = event.value
+                    samples.append(now - int(event.value))
+            if self.events > before:
+                self.messages += 1
+                self.last_ns = now
+                self.check_done()
 
 
 async def set_all(
@@ -244,8 +305,14 @@ async def run_listen(
     channels: int,
     set_rate: float,
     time_limit: float,
+    per_session: int = 0,
 ) -> ListenResult:
-    """Open ``subscribers`` Listen streams on ``properties``, make ``sets`` Sets, count what arrives."""
+    """Open ``subscribers`` Listen streams on ``properties``, make ``sets`` Sets, count what arrives.
+
+    ``per_session``: the subscribers are Listen requests inside Sessions instead, this many to a
+    Session (the Sessions spread over the channels as the streams are), ``subscribers // per_session``
+    Sessions in all.
+    """
     result = ListenResult(
         mode=mode,
         subscribers=subscribers,
@@ -260,7 +327,7 @@ async def run_listen(
     opened = [grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(channels)]
     setter_channel = grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS)
     tasks: list[asyncio.Task[None]] = []
-    subs: list[_Subscriber] = []
+    subs: list[_Subscriber | _SessionSubscribers] = []
     first_set_ns = 0
     try:
         setter = pb_grpc.PropertyServiceStub(setter_channel)
@@ -271,9 +338,17 @@ async def run_listen(
             property=properties[0],
             more=[pb.PropertyRef(service=SERVICE, property=prop) for prop in properties[1:]],
         )
-        for number in range(subscribers):
-            stub = pb_grpc.PropertyServiceStub(opened[number % channels])
-            subs.append(_Subscriber(stub.Listen(request), run))
+        if per_session:
+            # Listens inside Sessions, per_session to a Session, the Sessions spread as the streams.
+            in_session = [pb.Request(id=n + 1, listen=request) for n in range(per_session)]
+            for number in range(subscribers // per_session):
+                call = pb_grpc.PropertyServiceStub(opened[number % channels]).Session()
+                await call.write(pb.SessionRequest(requests=in_session))
+                subs.append(_SessionSubscribers(call, per_session, run))
+        else:
+            for number in range(subscribers):
+                stub = pb_grpc.PropertyServiceStub(opened[number % channels])
+                subs.append(_Subscriber(stub.Listen(request), run))
         async with asyncio.timeout(CALL_TIMEOUT * 3):
             await asyncio.gather(*(sub.wait_sync() for sub in subs))
         tasks = [asyncio.create_task(sub.consume()) for sub in subs]
@@ -305,7 +380,7 @@ async def run_listen(
     result.events = sum(sub.events for sub in subs)
     result.conflated = sum(sub.conflated for sub in subs)
     result.messages = sum(sub.messages for sub in subs)
-    result.complete_subscribers = sum(sub.done.is_set() for sub in subs)
+    result.complete_subscribers = sum(sub.listens for sub in subs if sub.done.is_set())
     result.latency = Latencies.of(run.samples)
     server.check_alive()
     return result

@@ -27,6 +27,7 @@ from gateway.calls import Begun, Calls, Undecodable, is_snapshot
 from gateway.config import Limits
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
+from gateway.listen.drain import Wake
 from gateway.listen.encoding import listen_reply_wire, reply_wire
 from gateway.listen.hub import SHUTTING_DOWN
 from gateway.logs import RequestContext, current_request
@@ -35,6 +36,7 @@ from gateway.sizes import BATCH_BYTES, SURELY_FITS_CHARS, check_fits
 from gateway.status import abort, status_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Answer
+from services.eager import Started, step
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable
 from services.values import Value, value_size
 
@@ -42,6 +44,26 @@ log = logging.getLogger(__name__)
 
 #: Replies in one SessionResponse; bounds one message's size.
 MAX_REPLIES_PER_MESSAGE = 1024
+
+
+async def _finish(started: Started[None]) -> None:
+    await started.rest()
+
+
+class _Ready:
+    """What a Listen of a Session calls when it has something to send: the Session marks it ready.
+
+    One per Listen: a slotted instance is a quarter of the size of a closure over ``rid``.
+    """
+
+    __slots__ = ("rid", "session")
+
+    def __init__(self, session: Session, rid: int) -> None:
+        self.session = session
+        self.rid = rid
+
+    def __call__(self) -> None:
+        self.session._ready_listen(self.rid)
 
 
 class Session:
@@ -74,7 +96,8 @@ class Session:
         self._timeout = calls.timeout
         #: Replies waiting to be written, each with its size in bytes (at most a few bytes over).
         self._replies: deque[tuple[pb.Reply, int]] = deque()
-        self._wake = asyncio.Event()
+        #: The writer's wake-up; one waiter, so the lighter Wake rather than an asyncio.Event.
+        self._wake = Wake()
         self._room = asyncio.Event()
         self._room.set()
         #: ids of Gets and Sets running in a task, and of Listens (starting or live).
@@ -128,7 +151,6 @@ class Session:
         context = self._context
         while True:
             await self._wake.wait()
-            self._wake.clear()
             if self._stopping or (self._reader_done and self._listens):
                 self._end_listens()
             response = self._collect()
@@ -411,13 +433,25 @@ class Session:
             stream = self._hub.open(
                 parse_selectors(request, limits),
                 parse_options(request.options, limits),
-                lambda: self._ready_listen(rid),
+                _Ready(self, rid),
                 self._subject,
             )
         except Exception as exc:
             self._fail(rid, exc, "Listen")
             return
-        self._spawn(rid, self._run_listen(rid, stream), listen=True)
+        # Started here, in the reader: a Listen of a topic that is open already (one another
+        # stream shares, an in-process service's) starts without waiting and needs no task.
+        self._active.add(rid)
+        try:
+            first = step(self._run_listen(rid, stream))
+        except Exception:
+            self._active.discard(rid)  # _run_listen has answered the request with its error
+            return
+        if isinstance(first, Started):
+            self._active.discard(rid)
+            self._spawn(rid, _finish(first), listen=True)
+        elif rid not in self._listens:
+            self._active.discard(rid)
 
     async def _run_listen(self, rid: int, stream: ListenStream) -> None:
         try:

@@ -215,9 +215,11 @@ class ListenStream:
         self._on_ready = on_ready
         self._pending: ConflatingQueue[Topic, Value] = ConflatingQueue()
         self._refs: dict[Topic, int] = {}
-        self._expansions: list[_Expansion] = []
+        #: Wildcard paths expanded per service; () until the first (most streams have none).
+        self._expansions: Sequence[_Expansion] = ()
         #: One per (selector, service) with a skipped part that is tried again; cancelled at close.
-        self._retries: dict[tuple[Selector, str], _Retry] = {}
+        #: None until the first (most streams never retry): an idle stream stays small.
+        self._retries: dict[tuple[Selector, str], _Retry] | None = None
         self._last_emit: dict[Topic, float] | None = {} if options.min_interval else None
         self._sequence = 0
         self._signalled = False
@@ -314,7 +316,7 @@ class ListenStream:
             self._topics.unsubscribe(exp, list_topic)
             return
         exp.list_topic = list_topic
-        self._expansions.append(exp)
+        self._expansions = [*self._expansions, exp]
         exp.matched = exp.paths(list_topic.value)
         await self._join_many(exp, sorted(exp.matched), gap)
 
@@ -392,13 +394,16 @@ class ListenStream:
         if self.closed:
             return
         key = (sel, service)
-        retry = self._retries.get(key)
+        retries = self._retries
+        if retries is None:
+            retries = self._retries = {}
+        retry = retries.get(key)
         if retry is None or retry.backend is not backend:
             if retry is not None and retry.task is not None:
                 retry.task.cancel()
             give_up_at = None if give_up_after is None else asyncio.get_running_loop().time() + give_up_after
             retry = _Retry(backend, give_up_at)
-            self._retries[key] = retry
+            retries[key] = retry
             retry.task = self._topics.spawn(self._retry(key, retry))
         if path is None:
             retry.whole = True
@@ -438,7 +443,7 @@ class ListenStream:
                     self.fail(exc)  # or a limit passed now that the service answers
                     return
         finally:
-            if self._retries.get(key) is retry:
+            if self._retries is not None and self._retries.get(key) is retry:
                 del self._retries[key]
 
     def _expansion(self, sel: Selector, service: str) -> _Expansion | None:
@@ -455,7 +460,7 @@ class ListenStream:
     @property
     def retrying(self) -> int:
         """How many (selector, service) parts skipped as unreachable are being tried again."""
-        return len(self._retries)
+        return len(self._retries) if self._retries is not None else 0
 
     def _too_many(self) -> ResourceExhausted:
         limit = self._limits.max_stream_properties
@@ -538,9 +543,11 @@ class ListenStream:
         """A service left the router (its topics have told the stream ``removed``)."""
         for topic in [t for t in self._refs if t.service == name]:
             del self._refs[topic]
-        self._expansions = [e for e in self._expansions if e.service != name]
-        for key in [k for k in self._retries if k[1] == name]:
-            task = self._retries.pop(key).task
+        if self._expansions:
+            self._expansions = [e for e in self._expansions if e.service != name]
+        retries = self._retries or {}
+        for key in [k for k in retries if k[1] == name]:
+            task = retries.pop(key).task
             if task is not None:
                 task.cancel()
 
@@ -743,10 +750,10 @@ class ListenStream:
             if timer is not None:
                 timer.cancel()
         self._throttle_timer = self._sample_timer = self._heartbeat_timer = None
-        for retry in self._retries.values():
+        for retry in (self._retries or {}).values():
             if retry.task is not None:
                 retry.task.cancel()
-        self._retries.clear()
+        self._retries = None
         topics = self._topics
         for topic in self._refs:
             topics.unsubscribe(self, topic)
@@ -754,7 +761,7 @@ class ListenStream:
             if exp.list_topic is not None:
                 topics.unsubscribe(exp, exp.list_topic)
         self._refs.clear()
-        self._expansions.clear()
+        self._expansions = ()
         self._pending.clear()
         self._last_emit = None
         self._on_close(self)
