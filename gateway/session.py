@@ -132,8 +132,26 @@ class Session:
 
     async def run(self) -> None:
         reader = asyncio.get_running_loop().create_task(self._read())
+        context = self._context
+        wake = self._wake
         try:
-            await self._write_loop()
+            # The writer, written out here rather than in a coroutine of its own: one coroutine
+            # less to resume for every message written.
+            while True:
+                await wake.wait()
+                if self._stopping or (self._reader_done and self._listens):
+                    self._end_listens()
+                response = self._collect()
+                if response:
+                    await context.write(response)
+                    if self._replies or self._ready:
+                        wake.set()
+                if len(self._replies) < self._limits.session_max_queued_replies:
+                    self._room.set()
+                if self._stopping and not self._replies:
+                    break
+                if self._reader_done and not self._active and not self._replies and not self._ready:
+                    break
             if self._error is not None:
                 await abort(self._context, self._error, "Session")
         finally:
@@ -146,24 +164,6 @@ class Session:
             await asyncio.gather(reader, *self._tasks.values(), return_exceptions=True)
             # Its holder vanished: the licences acquired on this Session end with it.
             self._calls.session_ended(self._subject)
-
-    async def _write_loop(self) -> None:
-        context = self._context
-        while True:
-            await self._wake.wait()
-            if self._stopping or (self._reader_done and self._listens):
-                self._end_listens()
-            response = self._collect()
-            if response:
-                await context.write(response)
-                if self._replies or self._ready:
-                    self._wake.set()
-            if len(self._replies) < self._limits.session_max_queued_replies:
-                self._room.set()
-            if self._stopping and not self._replies:
-                return
-            if self._reader_done and not self._active and not self._replies and not self._ready:
-                return
 
     def _collect(self) -> bytes:
         """The next SessionResponse, serialized ("" when there is nothing to send): at most
