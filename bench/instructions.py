@@ -52,6 +52,13 @@ SERVERS = {
     "gateway": ["bench.gateway_server"],
     "floor": ["bench.fanout", "--serve"],
 }
+#: What each server can be measured on: the floor serves only a fan-out, and only the gateway
+#: has Listens inside Sessions.
+SERVES = {
+    "bare": ("unary", "fanout"),
+    "gateway": ("unary", "fanout", "session-fanout"),
+    "floor": ("fanout",),
+}
 #: Seconds a server under valgrind may take to print its address (it starts about fifty times slower).
 START_TIMEOUT = 180.0
 #: Seconds one call may take under valgrind.
@@ -296,6 +303,9 @@ def main(argv: list[str] | None = None) -> int:
     for part in parts:
         medians: dict[str, float] = {}
         for kind in kinds:
+            if part not in SERVES[kind]:
+                print(f"{part:6} {kind:8} (not measured: it serves {', '.join(SERVES[kind])} only)")
+                continue
             counts = asyncio.run(measure(part, kind, args.rounds, args.quick))
             medians[kind] = statistics.median(total for total, _ in counts)
             shown = ", ".join(f"{total:,.0f} ({main:,.0f} main)" for total, main in counts)

@@ -1,4 +1,4 @@
-"""``python -m bench.fanout`` and ``python -m bench.instructions`` run end to end.
+"""``python -m bench.fanout``, ``bench.instructions`` and ``bench.paired`` run end to end.
 
 Smoke tests only: every server and every way ran to the end and printed a figure; never what
 the figures are.
@@ -51,3 +51,12 @@ def test_instructions_counts_a_get_and_an_event_on_each_server() -> None:
         for server in ("bare", "gateway"):
             assert re.search(rf"^{part}\s+{server}\s+instructions per {per}: [\d,]+ ", out, re.MULTILINE), out
         assert re.search(rf"^{part}\s+gateway\s+[\d.]+ x the bare server", out, re.MULTILINE), out
+
+
+@pytest.mark.timeout(300)
+def test_paired_prints_both_ratios_for_one_and_eight_in_flight() -> None:
+    out = _run("bench.paired", "--pairs", "2", "--calls", "200", timeout=280)
+    for inflight in (1, 8):
+        for figure in ("p50", "Gets/s"):
+            head = rf"^{inflight} in flight, gateway / bare: {re.escape(figure)}"
+            assert re.search(rf"{head} median [\d.]+, pairs [\d.]+-[\d.]+$", out, re.MULTILINE), out
