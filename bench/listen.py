@@ -31,7 +31,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -132,7 +132,8 @@ class _Subscriber:
     def __init__(self, call: Any, run: Run) -> None:
         self.call = call
         self.run = run
-        self.latest: dict[str, str] = {}
+        #: The latest value of each (listen, property); a Listen stream is listen 1.
+        self.latest: dict[tuple[int, str], str] = {}
         self.events = 0
         self.conflated = 0
         self.messages = 0
@@ -145,86 +146,61 @@ class _Subscriber:
 
     def check_done(self) -> None:
         final = self.run.final
-        if self.events + self.conflated >= self.run.expected or (
-            final is not None and all(self.latest.get(p) == v for p, v in final.items())
-        ):
-            self.done.set()
-
-    async def consume(self) -> None:
-        samples = self.run.samples
-        while True:
-            response = await self.call.read()
-            if response is STREAM_END:
-                return
-            now = time.perf_counter_ns()
-            if not response.events:
-                continue
-            self.messages += 1
-            for event in response.events:
-                self.events += 1
-                self.conflated += event.conflated
-                self.latest[event.property] = event.value
-                samples.append(now - int(event.value))
-            self.last_ns = now
-            self.check_done()
-
-
-class _SessionSubscribers:
-    """``listens`` subscribers carried as Listen requests inside one Session, and what they read."""
-
-    def __init__(self, call: Any, listens: int, run: Run) -> None:
-        self.call = call
-        self.listens = listens
-        self.run = run
-        #: The latest value of each (listen id, property).
-        self.latest: dict[tuple[int, str], str] = {}
-        self.events = 0
-        self.conflated = 0
-        self.messages = 0
-        self.last_ns = 0
-        self.done = asyncio.Event()
-
-    async def wait_sync(self) -> None:
-        """Read until every Listen of the Session has sent its ``sync`` marker."""
-        synced: set[int] = set()
-        while len(synced) < self.listens:
-            response = await self.call.read()
-            if response is STREAM_END:
-                raise RuntimeError(f"a Session ended before its listens' sync: {await self.call.code()}")
-            for reply in response.replies:
-                if reply.status.code:
-                    raise RuntimeError(f"listen {reply.id} failed: {reply.status.message}")
-                if reply.listen.sync:
-                    synced.add(reply.id)
-
-    def check_done(self) -> None:
-        final = self.run.final
         if self.events + self.conflated >= self.run.expected * self.listens or (
             final is not None
             and all(
-                self.latest.get((rid, p)) == v for rid in range(1, self.listens + 1) for p, v in final.items()
+                self.latest.get((n, p)) == v for n in range(1, self.listens + 1) for p, v in final.items()
             )
         ):
             self.done.set()
 
+    def listened(self, message: Any) -> Iterator[tuple[int, pb.ListenResponse]]:
+        """The Listen responses ``message`` carries, each with the number of its listen."""
+        yield 1, message
+
     async def consume(self) -> None:
         samples = self.run.samples
         while True:
-            response = await self.call.read()
-            if response is STREAM_END:
+            message = await self.call.read()
+            if message is STREAM_END:
                 return
             now = time.perf_counter_ns()
             before = self.events
-            for reply in response.replies:
-                for event in reply.listen.events:
+            for number, response in self.listened(message):
+                for event in response.events:
                     self.events += 1
                     self.conflated += event.conflated
-                    self.latest[(reply.id, event.property)] = event.value
+                    self.latest[(number, event.property)] = event.value
                     samples.append(now - int(event.value))
             if self.events > before:
                 self.messages += 1
                 self.last_ns = now
                 self.check_done()
+
+
+class _SessionSubscribers(_Subscriber):
+    """``listens`` subscribers carried as Listen requests (ids 1 to ``listens``) inside one Session."""
+
+    def __init__(self, call: Any, listens: int, run: Run) -> None:
+        super().__init__(call, run)
+        self.listens = listens
+
+    async def wait_sync(self) -> None:
+        """Read until every Listen of the Session has sent its ``sync`` marker."""
+        synced: set[int] = set()
+        while len(synced) < self.listens:
+            message = await self.call.read()
+            if message is STREAM_END:
+                raise RuntimeError(f"a Session ended before its listens' sync: {await self.call.code()}")
+            for reply in message.replies:
+                if reply.status.code:
+                    raise RuntimeError(f"listen {reply.id} failed: {reply.status.message}")
+                if reply.listen.sync:
+                    synced.add(reply.id)
+
+    def listened(self, message: Any) -> Iterator[tuple[int, pb.ListenResponse]]:
+        for reply in message.replies:
+            yield reply.id, reply.listen
 
 
 async def set_all(
@@ -327,7 +303,7 @@ async def run_listen(
     opened = [grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(channels)]
     setter_channel = grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS)
     tasks: list[asyncio.Task[None]] = []
-    subs: list[_Subscriber | _SessionSubscribers] = []
+    subs: list[_Subscriber] = []
     first_set_ns = 0
     try:
         setter = pb_grpc.PropertyServiceStub(setter_channel)
