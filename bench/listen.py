@@ -31,7 +31,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -126,10 +126,14 @@ class Run:
 class _Subscriber:
     """One Listen stream and what it has read."""
 
+    #: Subscribers this one stands for (a Session carries several).
+    listens = 1
+
     def __init__(self, call: Any, run: Run) -> None:
         self.call = call
         self.run = run
-        self.latest: dict[str, str] = {}
+        #: The latest value of each (listen, property); a Listen stream is listen 1.
+        self.latest: dict[tuple[int, str], str] = {}
         self.events = 0
         self.conflated = 0
         self.messages = 0
@@ -142,28 +146,61 @@ class _Subscriber:
 
     def check_done(self) -> None:
         final = self.run.final
-        if self.events + self.conflated >= self.run.expected or (
-            final is not None and all(self.latest.get(p) == v for p, v in final.items())
+        if self.events + self.conflated >= self.run.expected * self.listens or (
+            final is not None
+            and all(
+                self.latest.get((n, p)) == v for n in range(1, self.listens + 1) for p, v in final.items()
+            )
         ):
             self.done.set()
+
+    def listened(self, message: Any) -> Iterator[tuple[int, pb.ListenResponse]]:
+        """The Listen responses ``message`` carries, each with the number of its listen."""
+        yield 1, message
 
     async def consume(self) -> None:
         samples = self.run.samples
         while True:
-            response = await self.call.read()
-            if response is STREAM_END:
+            message = await self.call.read()
+            if message is STREAM_END:
                 return
             now = time.perf_counter_ns()
-            if not response.events:
-                continue
-            self.messages += 1
-            for event in response.events:
-                self.events += 1
-                self.conflated += event.conflated
-                self.latest[event.property] = event.value
-                samples.append(now - int(event.value))
-            self.last_ns = now
-            self.check_done()
+            before = self.events
+            for number, response in self.listened(message):
+                for event in response.events:
+                    self.events += 1
+                    self.conflated += event.conflated
+                    self.latest[(number, event.property)] = event.value
+                    samples.append(now - int(event.value))
+            if self.events > before:
+                self.messages += 1
+                self.last_ns = now
+                self.check_done()
+
+
+class _SessionSubscribers(_Subscriber):
+    """``listens`` subscribers carried as Listen requests (ids 1 to ``listens``) inside one Session."""
+
+    def __init__(self, call: Any, listens: int, run: Run) -> None:
+        super().__init__(call, run)
+        self.listens = listens
+
+    async def wait_sync(self) -> None:
+        """Read until every Listen of the Session has sent its ``sync`` marker."""
+        synced: set[int] = set()
+        while len(synced) < self.listens:
+            message = await self.call.read()
+            if message is STREAM_END:
+                raise RuntimeError(f"a Session ended before its listens' sync: {await self.call.code()}")
+            for reply in message.replies:
+                if reply.status.code:
+                    raise RuntimeError(f"listen {reply.id} failed: {reply.status.message}")
+                if reply.listen.sync:
+                    synced.add(reply.id)
+
+    def listened(self, message: Any) -> Iterator[tuple[int, pb.ListenResponse]]:
+        for reply in message.replies:
+            yield reply.id, reply.listen
 
 
 async def set_all(
@@ -244,8 +281,14 @@ async def run_listen(
     channels: int,
     set_rate: float,
     time_limit: float,
+    per_session: int = 0,
 ) -> ListenResult:
-    """Open ``subscribers`` Listen streams on ``properties``, make ``sets`` Sets, count what arrives."""
+    """Open ``subscribers`` Listen streams on ``properties``, make ``sets`` Sets, count what arrives.
+
+    ``per_session``: the subscribers are Listen requests inside Sessions instead, this many to a
+    Session (the Sessions spread over the channels as the streams are), ``subscribers // per_session``
+    Sessions in all.
+    """
     result = ListenResult(
         mode=mode,
         subscribers=subscribers,
@@ -271,9 +314,17 @@ async def run_listen(
             property=properties[0],
             more=[pb.PropertyRef(service=SERVICE, property=prop) for prop in properties[1:]],
         )
-        for number in range(subscribers):
-            stub = pb_grpc.PropertyServiceStub(opened[number % channels])
-            subs.append(_Subscriber(stub.Listen(request), run))
+        if per_session:
+            # Listens inside Sessions, per_session to a Session, the Sessions spread as the streams.
+            in_session = [pb.Request(id=n + 1, listen=request) for n in range(per_session)]
+            for number in range(subscribers // per_session):
+                call = pb_grpc.PropertyServiceStub(opened[number % channels]).Session()
+                await call.write(pb.SessionRequest(requests=in_session))
+                subs.append(_SessionSubscribers(call, per_session, run))
+        else:
+            for number in range(subscribers):
+                stub = pb_grpc.PropertyServiceStub(opened[number % channels])
+                subs.append(_Subscriber(stub.Listen(request), run))
         async with asyncio.timeout(CALL_TIMEOUT * 3):
             await asyncio.gather(*(sub.wait_sync() for sub in subs))
         tasks = [asyncio.create_task(sub.consume()) for sub in subs]
@@ -305,7 +356,7 @@ async def run_listen(
     result.events = sum(sub.events for sub in subs)
     result.conflated = sum(sub.conflated for sub in subs)
     result.messages = sum(sub.messages for sub in subs)
-    result.complete_subscribers = sum(sub.done.is_set() for sub in subs)
+    result.complete_subscribers = sum(sub.listens for sub in subs if sub.done.is_set())
     result.latency = Latencies.of(run.samples)
     server.check_alive()
     return result

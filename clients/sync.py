@@ -181,12 +181,19 @@ class Client(_BlockingCalls):
         metadata: Iterable[tuple[str, str]] | None = None,
         max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
         credentials: ClientCredentials | None = None,
+        separate_listens: bool = False,
     ) -> None:
-        """``credentials``: TLS and a bearer token, as for :class:`~clients.aio.AsyncClient`."""
+        """``credentials``: TLS and a bearer token; ``separate_listens``: each listen on a stream of
+        its own rather than inside one shared Session; both as for :class:`~clients.aio.AsyncClient`."""
         self.target = target
         self.timeout = timeout
         self._aio = AsyncClient(
-            target, timeout=timeout, metadata=metadata, max_in_flight=max_in_flight, credentials=credentials
+            target,
+            timeout=timeout,
+            metadata=metadata,
+            max_in_flight=max_in_flight,
+            credentials=credentials,
+            separate_listens=separate_listens,
         )
         super().__init__(_LoopThread(None if timeout is None else timeout + _GRACE), self._aio)
 

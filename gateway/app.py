@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
 import grpc
-from grpc_health.v1 import health_pb2, health_pb2_grpc
+from grpc_health.v1 import health_pb2
 from grpc_reflection.v1alpha import reflection
 
 from gateway.backends import open_backend, open_proxy
@@ -40,7 +40,7 @@ from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
 from gateway.router import Router
-from gateway.server import PropertyServicer, add_to_server
+from gateway.server import PropertyServicer, add_health_and_reflection, add_to_server
 from gateway.stores import open_store
 from gateway.tls import LineCredentials, ServerCredentials
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -479,14 +479,14 @@ class Gateway:
         server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])
         # Not the generated registration: a request that does not parse is INVALID_ARGUMENT.
         add_to_server(self.servicer, server)
-        health_pb2_grpc.add_HealthServicer_to_server(self.health, server)
-        reflection.enable_server_reflection(
+        add_health_and_reflection(
+            server,
+            self.health,
             (
                 SERVICE_NAME,
                 health_pb2.DESCRIPTOR.services_by_name["Health"].full_name,
                 reflection.SERVICE_NAME,
             ),
-            server,
         )
         listen = self.config.gateway.listen
         if self.config.tls.enabled:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextvars
 import secrets
-from collections.abc import Iterable
 
 from gateway.logs import REQUEST_ID_HEADER, current_request_id
 from services.errors import InvalidArgument
@@ -34,23 +33,23 @@ def new_gateway_id() -> str:
     return secrets.token_hex(6)
 
 
-def enter(metadata: Iterable[tuple[str, str | bytes]] | None, own_id: str) -> None:
-    """Start serving a call: refuse a loop or too long a chain (INVALID_ARGUMENT), else note the chain."""
-    via: tuple[str, ...] = ()
-    for key, value in metadata or ():
-        if key == VIA_KEY:
-            text = value.decode(errors="replace") if isinstance(value, bytes) else value
-            via = tuple(part for part in text.split(",")[: MAX_HOPS + 1] if part)
-            break
-    if own_id in via:
-        chain = " → ".join((*via, own_id))
+def enter(via: str | bytes | None, own_id: str) -> None:
+    """Start serving a call whose ``ps-via`` metadata is ``via`` (None: it has none): refuse a loop
+    or too long a chain (INVALID_ARGUMENT), else note the chain."""
+    if not via:
+        VIA.set((own_id,))  # a call straight from a client: the commonest case
+        return
+    text = via.decode(errors="replace") if isinstance(via, bytes) else via
+    chain = tuple(part for part in text.split(",")[: MAX_HOPS + 1] if part)
+    if own_id in chain:
+        shown = " → ".join((*chain, own_id))
         raise InvalidArgument(
-            f"federation loop: the request came back to a gateway it passed through ({chain}); "
+            f"federation loop: the request came back to a gateway it passed through ({shown}); "
             "a grpc:// service must not lead back to a gateway on its way"
         )
-    if len(via) >= MAX_HOPS:
-        raise InvalidArgument(f"federation too deep: the request passed through {len(via)} gateways")
-    VIA.set((*via, own_id))
+    if len(chain) >= MAX_HOPS:
+        raise InvalidArgument(f"federation too deep: the request passed through {len(chain)} gateways")
+    VIA.set((*chain, own_id))
 
 
 def outgoing() -> tuple[tuple[str, str], ...]:

@@ -27,6 +27,8 @@ from gateway.calls import Begun, Calls, Undecodable, is_snapshot
 from gateway.config import Limits
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
+from gateway.listen.drain import Wake
+from gateway.listen.encoding import listen_reply_wire, reply_wire
 from gateway.listen.hub import SHUTTING_DOWN
 from gateway.logs import RequestContext, current_request
 from gateway.rules import Subject
@@ -34,6 +36,7 @@ from gateway.sizes import BATCH_BYTES, SURELY_FITS_CHARS, check_fits
 from gateway.status import abort, status_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Answer
+from services.eager import Started, step
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable
 from services.values import Value, value_size
 
@@ -41,6 +44,26 @@ log = logging.getLogger(__name__)
 
 #: Replies in one SessionResponse; bounds one message's size.
 MAX_REPLIES_PER_MESSAGE = 1024
+
+
+async def _finish(started: Started[None]) -> None:
+    await started.rest()
+
+
+class _Ready:
+    """What a Listen of a Session calls when it has something to send: the Session marks it ready.
+
+    One per Listen: a slotted instance is a quarter of the size of a closure over ``rid``.
+    """
+
+    __slots__ = ("rid", "session")
+
+    def __init__(self, session: Session, rid: int) -> None:
+        self.session = session
+        self.rid = rid
+
+    def __call__(self) -> None:
+        self.session._ready_listen(self.rid)
 
 
 class Session:
@@ -73,7 +96,8 @@ class Session:
         self._timeout = calls.timeout
         #: Replies waiting to be written, each with its size in bytes (at most a few bytes over).
         self._replies: deque[tuple[pb.Reply, int]] = deque()
-        self._wake = asyncio.Event()
+        #: The writer's wake-up; one waiter, so the lighter Wake rather than an asyncio.Event.
+        self._wake = Wake()
         self._room = asyncio.Event()
         self._room.set()
         #: ids of Gets and Sets running in a task, and of Listens (starting or live).
@@ -108,8 +132,26 @@ class Session:
 
     async def run(self) -> None:
         reader = asyncio.get_running_loop().create_task(self._read())
+        context = self._context
+        wake = self._wake
         try:
-            await self._write_loop()
+            # The writer, written out here rather than in a coroutine of its own: one coroutine
+            # less to resume for every message written.
+            while True:
+                await wake.wait()
+                if self._stopping or (self._reader_done and self._listens):
+                    self._end_listens()
+                response = self._collect()
+                if response:
+                    await context.write(response)
+                    if self._replies or self._ready:
+                        wake.set()
+                if len(self._replies) < self._limits.session_max_queued_replies:
+                    self._room.set()
+                if self._stopping and not self._replies:
+                    break
+                if self._reader_done and not self._active and not self._replies and not self._ready:
+                    break
             if self._error is not None:
                 await abort(self._context, self._error, "Session")
         finally:
@@ -123,30 +165,14 @@ class Session:
             # Its holder vanished: the licences acquired on this Session end with it.
             self._calls.session_ended(self._subject)
 
-    async def _write_loop(self) -> None:
-        context = self._context
-        while True:
-            await self._wake.wait()
-            self._wake.clear()
-            if self._stopping or (self._reader_done and self._listens):
-                self._end_listens()
-            replies = self._collect()
-            if replies:
-                await context.write(pb.SessionResponse(replies=replies))
-                if self._replies or self._ready:
-                    self._wake.set()
-            if len(self._replies) < self._limits.session_max_queued_replies:
-                self._room.set()
-            if self._stopping and not self._replies:
-                return
-            if self._reader_done and not self._active and not self._replies and not self._ready:
-                return
-
-    def _collect(self) -> list[pb.Reply]:
-        """The next SessionResponse's replies: at most MAX_REPLIES_PER_MESSAGE, about BATCH_BYTES.
+    def _collect(self) -> bytes:
+        """The next SessionResponse, serialized ("" when there is nothing to send): at most
+        MAX_REPLIES_PER_MESSAGE replies, about BATCH_BYTES.
 
         A reply bigger than the budget goes alone: a client drops the whole stream on a message
-        over its limit (4 MiB by default), so batching must never add up to one.
+        over its limit (4 MiB by default), so batching must never add up to one. The Listens'
+        replies are added serialized (``ListenStream.take_wire``): a repeated field's entries
+        may follow one another on the wire, so they are appended to the other replies' message.
         """
         replies: list[pb.Reply] = []
         size = 0
@@ -154,32 +180,36 @@ class Session:
         while queue and len(replies) < MAX_REPLIES_PER_MESSAGE:
             n = queue[0][1]
             if replies and size + n > BATCH_BYTES:
-                return replies
+                return pb.SessionResponse(replies=replies).SerializeToString()
             size += n
             replies.append(queue.popleft()[0])
+        count = len(replies)
+        listened: list[bytes] = []
         for rid in list(self._ready):
             stream = self._listens.get(rid)
             if stream is None:
                 del self._ready[rid]
                 continue
             drained = False
-            while size < BATCH_BYTES and len(replies) < MAX_REPLIES_PER_MESSAGE:
-                response = stream.take()
+            while size < BATCH_BYTES and count < MAX_REPLIES_PER_MESSAGE:
+                response = stream.take_wire()
                 if response is None:
                     drained = True
                     break
-                reply = pb.Reply(id=rid, listen=response)
-                size += reply.ByteSize()
-                replies.append(reply)
+                reply = listen_reply_wire(rid, response)
+                size += len(reply)
+                count += 1
+                listened.append(reply)
             if not drained:
                 break  # the rest goes in the next message; rid stays ready
             del self._ready[rid]
             if stream.error is not None:
-                replies.append(pb.Reply(id=rid, status=status_message(stream.error)))
+                listened.append(reply_wire(pb.Reply(id=rid, status=status_message(stream.error))))
                 self._drop_listen(rid)
             elif stream.ended and not self._stopping:
                 self._drop_listen(rid)
-        return replies
+        head = pb.SessionResponse(replies=replies).SerializeToString() if replies else b""
+        return head + b"".join(listened) if listened else head
 
     def _end_listens(self) -> None:
         """Flush what every Listen has ready and end it (half-close or shutdown)."""
@@ -403,13 +433,25 @@ class Session:
             stream = self._hub.open(
                 parse_selectors(request, limits),
                 parse_options(request.options, limits),
-                lambda: self._ready_listen(rid),
+                _Ready(self, rid),
                 self._subject,
             )
         except Exception as exc:
             self._fail(rid, exc, "Listen")
             return
-        self._spawn(rid, self._run_listen(rid, stream), listen=True)
+        # Started here, in the reader: a Listen of a topic that is open already (one another
+        # stream shares, an in-process service's) starts without waiting and needs no task.
+        self._active.add(rid)
+        try:
+            first = step(self._run_listen(rid, stream))
+        except Exception:
+            self._active.discard(rid)  # _run_listen has answered the request with its error
+            return
+        if isinstance(first, Started):
+            self._active.discard(rid)
+            self._spawn(rid, _finish(first), listen=True)
+        elif rid not in self._listens:
+            self._active.discard(rid)
 
     async def _run_listen(self, rid: int, stream: ListenStream) -> None:
         try:

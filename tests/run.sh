@@ -97,6 +97,11 @@ if ! command -v etcd >/dev/null; then
   apt_install "the shared registry store (etcd)" etcd-server
 fi
 bash tests/containers/setup.sh || echo "note: tests/containers/setup.sh failed; the container tests will skip"
+# The benchmark's instruction counts (python -m bench.instructions, and its smoke test) run
+# the servers under valgrind's callgrind.
+if ! command -v valgrind >/dev/null || ! command -v callgrind_control >/dev/null; then
+  apt_install "the benchmark's instruction counts" valgrind
+fi
 
 echo "== ruff check"; python -m ruff check .
 echo "== ruff format --check"; python -m ruff format --check .

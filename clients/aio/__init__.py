@@ -1,8 +1,9 @@
 """The asyncio client: :class:`AsyncClient` and its multiplexed :class:`Session`.
 
-Unary calls (Get, Set) and server-streamed Listen go over ``grpc.aio``; a
-:class:`Session` multiplexes many calls over the bidirectional ``Session`` RPC,
-which is the fast path for programs making many small calls.
+Unary calls (Get, Set) go over ``grpc.aio``; a :class:`Session` multiplexes many
+calls over the bidirectional ``Session`` RPC, which is the fast path for programs
+making many small calls. A client's listens share one Session of the client
+(``separate_listens=True``: a server-streamed Listen call each).
 
 * :mod:`~clients.aio.client`: :class:`AsyncClient`
 * :mod:`~clients.aio.session`: :class:`Session`

@@ -1,8 +1,9 @@
 """How a front end writes one Listen stream: wait until it is ready, take what it has, repeat.
 
-The gRPC Listen handler and the HTTP front end's Server-Sent Events both drain a
-:class:`~gateway.listen.stream.ListenStream` through :func:`responses`; they differ only
-in how they send each ``ListenResponse``. A writer that waits on its client (a slow reader)
+The HTTP front end's event and image streams drain a
+:class:`~gateway.listen.stream.ListenStream` through :func:`responses`; the gRPC Listen
+handler runs the same loop itself, on the serialized form (``ListenStream.take_wire``), to
+save an async-generator step a message. A writer that waits on its client (a slow reader)
 is simply not taking: the stream's conflating queue holds the latest value per property
 meanwhile, so memory stays bounded by the properties it matches.
 """

@@ -38,7 +38,15 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from itertools import islice
 
 from gateway.config import Limits
-from gateway.listen.encoding import Ready, encode_events, within
+from gateway.listen.encoding import (
+    Mark,
+    Ready,
+    encode_events,
+    encode_wire,
+    event_size,
+    marker_response,
+    within,
+)
 from gateway.listen.requests import Selector, StreamOptions
 from gateway.listen.topics import MISSING, NOTHING, UNREACHABLE, Topic, TopicKey, Topics
 from gateway.router import Router
@@ -207,9 +215,11 @@ class ListenStream:
         self._on_ready = on_ready
         self._pending: ConflatingQueue[Topic, Value] = ConflatingQueue()
         self._refs: dict[Topic, int] = {}
-        self._expansions: list[_Expansion] = []
+        #: Wildcard paths expanded per service; () until the first (most streams have none).
+        self._expansions: Sequence[_Expansion] = ()
         #: One per (selector, service) with a skipped part that is tried again; cancelled at close.
-        self._retries: dict[tuple[Selector, str], _Retry] = {}
+        #: None until the first (most streams never retry): an idle stream stays small.
+        self._retries: dict[tuple[Selector, str], _Retry] | None = None
         self._last_emit: dict[Topic, float] | None = {} if options.min_interval else None
         self._sequence = 0
         self._signalled = False
@@ -306,7 +316,7 @@ class ListenStream:
             self._topics.unsubscribe(exp, list_topic)
             return
         exp.list_topic = list_topic
-        self._expansions.append(exp)
+        self._expansions = [*self._expansions, exp]
         exp.matched = exp.paths(list_topic.value)
         await self._join_many(exp, sorted(exp.matched), gap)
 
@@ -384,13 +394,16 @@ class ListenStream:
         if self.closed:
             return
         key = (sel, service)
-        retry = self._retries.get(key)
+        retries = self._retries
+        if retries is None:
+            retries = self._retries = {}
+        retry = retries.get(key)
         if retry is None or retry.backend is not backend:
             if retry is not None and retry.task is not None:
                 retry.task.cancel()
             give_up_at = None if give_up_after is None else asyncio.get_running_loop().time() + give_up_after
             retry = _Retry(backend, give_up_at)
-            self._retries[key] = retry
+            retries[key] = retry
             retry.task = self._topics.spawn(self._retry(key, retry))
         if path is None:
             retry.whole = True
@@ -430,7 +443,7 @@ class ListenStream:
                     self.fail(exc)  # or a limit passed now that the service answers
                     return
         finally:
-            if self._retries.get(key) is retry:
+            if self._retries is not None and self._retries.get(key) is retry:
                 del self._retries[key]
 
     def _expansion(self, sel: Selector, service: str) -> _Expansion | None:
@@ -447,7 +460,7 @@ class ListenStream:
     @property
     def retrying(self) -> int:
         """How many (selector, service) parts skipped as unreachable are being tried again."""
-        return len(self._retries)
+        return len(self._retries) if self._retries is not None else 0
 
     def _too_many(self) -> ResourceExhausted:
         limit = self._limits.max_stream_properties
@@ -530,9 +543,11 @@ class ListenStream:
         """A service left the router (its topics have told the stream ``removed``)."""
         for topic in [t for t in self._refs if t.service == name]:
             del self._refs[topic]
-        self._expansions = [e for e in self._expansions if e.service != name]
-        for key in [k for k in self._retries if k[1] == name]:
-            task = self._retries.pop(key).task
+        if self._expansions:
+            self._expansions = [e for e in self._expansions if e.service != name]
+        retries = self._retries or {}
+        for key in [k for k in retries if k[1] == name]:
+            task = retries.pop(key).task
             if task is not None:
                 task.cancel()
 
@@ -540,8 +555,14 @@ class ListenStream:
 
     def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None:
         """A change on a topic this stream shares (called by :meth:`Topic.notify`)."""
-        if topic in self._refs:
-            self._enqueue(topic, change.value, seen_ns, change.gap, change.removed)
+        if topic not in self._refs:
+            return
+        # _enqueue and _signal written out: this runs once per stream for every change.
+        if not self._pending.put(topic, change.value, seen_ns, change.gap, change.removed):
+            self.conflated += 1
+        if self._live and not self._sample_flush and not self._signalled:
+            self._signalled = True
+            self._on_ready()
 
     def _enqueue(self, topic: Topic, value: Value, seen: int, gap: bool, removed: bool) -> None:
         if not self._pending.put(topic, value, seen, gap, removed):
@@ -602,12 +623,30 @@ class ListenStream:
 
     def take(self) -> pb.ListenResponse | None:
         """Drain what is ready into one response; None when nothing is ready."""
+        taken = self._next()
+        if isinstance(taken, list):
+            return encode_events(taken, self._sequence - len(taken))
+        return None if taken is None else marker_response(taken)
+
+    def take_wire(self) -> bytes | None:
+        """:meth:`take`, serialized: the shared part of each event is encoded once for every stream
+        (:func:`gateway.listen.encoding.encode_wire`)."""
+        taken = self._next()
+        if isinstance(taken, list):
+            return encode_wire(taken, self._sequence - len(taken))
+        return None if taken is None else taken.wire
+
+    def _next(self) -> list[Ready] | Mark | None:
+        """What the next response carries: events (numbered already), a marker, or nothing."""
         self._signalled = False
         if not self._live or self.closed or self.error is not None:
             return None
+        if not self._pending and not self._sync_due:
+            return self._heartbeat()  # what the rest comes to with nothing queued: the commonest case
         if self._sync_due and (self._sync_after <= 0 or not self._pending):
             self._sync_due = False
-            return self._sent(pb.ListenResponse(sync=True))
+            self._sent()
+            return Mark.SYNC
         limit = self.options.max_batch
         if self._sync_due:
             limit = min(limit, self._sync_after)
@@ -615,38 +654,43 @@ class ListenStream:
             if self._sample_flush < 0:
                 return self._heartbeat()
             limit = min(limit, self._sample_flush)
-        response = self._drain(limit)
-        count = len(response.events) if response is not None else 0
+        ready = self._drain(limit)
+        count = len(ready) if ready is not None else 0
         if self._sync_due:
             self._sync_after -= count
         elif self._sample_flush > 0:
             self._sample_flush = max(self._sample_flush - count, 0) or -1
-        if response is not None:
-            return self._sent(response)
+        if ready is not None:
+            self._sent()
+            return ready
         if self._sync_due:
             self._sync_due = False
-            return self._sent(pb.ListenResponse(sync=True))
+            self._sent()
+            return Mark.SYNC
         return self._heartbeat()
 
-    def _heartbeat(self) -> pb.ListenResponse | None:
+    def _heartbeat(self) -> Mark | None:
         if self._heartbeat_due:
-            return self._sent(pb.ListenResponse(heartbeat=True))
+            self._sent()
+            return Mark.HEARTBEAT
         return None
 
-    def _sent(self, response: pb.ListenResponse) -> pb.ListenResponse:
+    def _sent(self) -> None:
         self._heartbeat_due = False
         if self._heartbeat_timer is not None:
             self._last_sent = asyncio.get_running_loop().time()
-        return response
 
-    def _drain(self, limit: int) -> pb.ListenResponse | None:
-        """The events ready, at most ``limit``, in one response; None when there are none."""
+    def _drain(self, limit: int) -> list[Ready] | None:
+        """The events ready, at most ``limit``, numbered; None when there are none."""
         pending = self._pending
         if not pending:
             return None
         ready: list[Ready]
         if self._last_emit is not None and self._sync_after <= 0:
             ready, size = self._ready_throttled(limit)
+        elif len(pending) == 1:  # one change since the last response: the commonest case
+            ready = pending.take()
+            size = event_size(*ready[0])
         else:
             ready, size = within(islice(pending.items(), limit))
             pending.take(len(ready))
@@ -661,10 +705,9 @@ class ListenStream:
                 )
             )
             return None
-        response = encode_events(ready, self._sequence)
         self._sequence += len(ready)
         self.events_sent += len(ready)
-        return response
+        return ready
 
     def _ready_throttled(self, limit: int) -> tuple[list[Ready], int]:
         """Like :func:`gateway.listen.encoding.within`, but only topics whose ``min_interval`` has passed."""
@@ -707,10 +750,10 @@ class ListenStream:
             if timer is not None:
                 timer.cancel()
         self._throttle_timer = self._sample_timer = self._heartbeat_timer = None
-        for retry in self._retries.values():
+        for retry in (self._retries or {}).values():
             if retry.task is not None:
                 retry.task.cancel()
-        self._retries.clear()
+        self._retries = None
         topics = self._topics
         for topic in self._refs:
             topics.unsubscribe(self, topic)
@@ -718,7 +761,7 @@ class ListenStream:
             if exp.list_topic is not None:
                 topics.unsubscribe(exp, exp.list_topic)
         self._refs.clear()
-        self._expansions.clear()
+        self._expansions = ()
         self._pending.clear()
         self._last_emit = None
         self._on_close(self)

@@ -59,6 +59,7 @@ class Topic:
         "sinks",
         "subscription",
         "value",
+        "wire",
     )
 
     def __init__(self, key: TopicKey, backend: Backend) -> None:
@@ -75,6 +76,9 @@ class Topic:
         #: A change came from the backend: it is newer than the value the opening Listen brought.
         self.heard = False
         self.opening: asyncio.Task[None] | None = None
+        #: (stamp, value, bytes): the shared fields of the latest change's event, serialized once
+        #: for every stream (gateway.listen.encoding.shared_wire).
+        self.wire: tuple[int, Value, bytes] | None = None
 
     def notify(self, change: Change) -> None:
         """The backend's callback: remember the value, hand it to every sink."""

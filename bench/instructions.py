@@ -1,0 +1,320 @@
+"""Instructions a server executes per unary Get or per Listen event, counted by callgrind.
+
+Run ``python -m bench.instructions`` (``--rounds N``, ``--servers bare,gateway,floor``,
+``--parts unary,fanout``). Each server runs under ``valgrind --tool=callgrind`` (about fifty
+times slower, so the counts come from a few hundred calls); the load comes from this process
+with the same client code as ``python -m bench``. Around each measured batch the counters are
+zeroed and dumped (``callgrind_control``), so start-up and warm-up are not counted. The figure
+is the instructions of all the server's threads divided by the calls or events, and of its main
+thread (the event loop: Python, grpc.aio's Cython and the calls into grpc core made from it).
+
+Unlike CPU time, an instruction count does not move with the load of a shared machine: it
+settles differences of a few per cent that wall-clock figures there cannot (they swing by
+±30 % between runs). It counts neither the kernel's work (system calls; ``strace -c`` shows
+they are the same per call on each server) nor cache misses.
+
+* ``unary``: unary Gets of ``bench/value``, one in flight (the count then depends least on
+  timing).
+* ``fanout``: 100 Listen streams of ``bench/value`` over four connections, one-by-one unary
+  Sets; per event delivered. ``floor`` is :mod:`bench.fanout`'s server.
+* ``session-fanout``: the same with each Listen a request inside a Session of its own (the
+  gateway only: neither the bare server nor the floor has Listens in Sessions).
+
+Needs valgrind (``apt-get install valgrind``); without it the command says so and exits 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import glob
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import grpc
+
+from bench.listen import CHANNEL_OPTIONS
+from bench.measure import STREAM_END
+from bench.servers import ROOT
+from bench.target import SERVICE, VALUE_PROPERTY
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
+
+SERVERS = {
+    "bare": ["bench.baseline"],
+    "gateway": ["bench.gateway_server"],
+    "floor": ["bench.fanout", "--serve"],
+}
+#: What each server can be measured on: the floor serves only a fan-out, and only the gateway
+#: has Listens inside Sessions.
+SERVES = {
+    "bare": ("unary", "fanout"),
+    "gateway": ("unary", "fanout", "session-fanout"),
+    "floor": ("fanout",),
+}
+#: Seconds a server under valgrind may take to print its address (it starts about fifty times slower).
+START_TIMEOUT = 180.0
+#: Seconds one call may take under valgrind.
+CALL_TIMEOUT = 120.0
+#: Calls a round of ``unary`` measures, Sets a round of ``fanout`` makes (to 100 streams); and with
+#: ``--quick``.
+UNARY_CALLS = 400
+FANOUT_SETS = 40
+QUICK_CALLS = 50
+QUICK_SETS = 5
+SUBSCRIBERS = 100
+
+
+def _summary(dump: str) -> int:
+    """The instruction count a callgrind dump file holds."""
+    for line in Path(dump).read_text(errors="replace").splitlines():
+        if line.startswith(("summary:", "totals:")):
+            return int(line.split()[1])
+    return 0
+
+
+class Counted:
+    """A server under callgrind: zero its counters, dump them, read what the dump holds."""
+
+    def __init__(self, process: asyncio.subprocess.Process, folder: Path, address: str) -> None:
+        self.process = process
+        self.folder = folder
+        self.address = address
+        self._seen: set[str] = set()
+        self._drain: asyncio.Task[None] | None = None
+
+    @classmethod
+    async def start(cls, argv: list[str], folder: Path) -> Counted:
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH", "")]))
+        process = await asyncio.create_subprocess_exec(
+            "valgrind",
+            "--tool=callgrind",
+            "--separate-threads=yes",
+            f"--callgrind-out-file={folder}/callgrind.out.%p",
+            sys.executable,
+            "-m",
+            *argv,
+            "--listen",
+            "127.0.0.1:0",
+            cwd=ROOT,
+            env=env,
+            stdin=asyncio.subprocess.PIPE,  # held open: the servers stop at end of file on stdin
+            stdout=asyncio.subprocess.DEVNULL,
+            stderr=asyncio.subprocess.PIPE,
+        )
+        assert process.stderr is not None
+        seen: list[str] = []
+        try:
+            async with asyncio.timeout(START_TIMEOUT):
+                while raw := await process.stderr.readline():
+                    line = raw.decode(errors="replace").strip()
+                    seen.append(line)
+                    if line.startswith("listening on "):
+                        server = cls(process, folder, line.split()[-1])
+                        server._drain = asyncio.create_task(_drain(process.stderr))
+                        return server
+        except TimeoutError:
+            pass
+        process.kill()
+        await process.wait()
+        raise RuntimeError(f"{argv[0]} did not start under valgrind:\n" + "\n".join(seen[-30:]))
+
+    async def _control(self, option: str) -> None:
+        control = await asyncio.create_subprocess_exec(
+            "callgrind_control",
+            option,
+            str(self.process.pid),
+            stdout=asyncio.subprocess.DEVNULL,
+            stderr=asyncio.subprocess.DEVNULL,
+        )
+        if await control.wait():
+            raise RuntimeError(f"callgrind_control {option} {self.process.pid} failed")
+
+    async def zero(self) -> None:
+        await self._control("-z")
+        self._seen = set(glob.glob(f"{self.folder}/callgrind.out.*"))
+
+    async def dumped(self) -> tuple[int, int]:
+        """Dump the counters; (all threads, main thread) since :meth:`zero`."""
+        await self._control("-d")
+        await asyncio.sleep(0.5)
+        total = main = 0
+        for name in set(glob.glob(f"{self.folder}/callgrind.out.*")) - self._seen:
+            count = _summary(name)
+            total += count
+            main += count if name.endswith("-01") else 0  # thread 1: the event loop's
+        return total, main
+
+    async def stop(self) -> None:
+        if self.process.stdin is not None:
+            self.process.stdin.close()
+        try:
+            async with asyncio.timeout(30):
+                await self.process.wait()
+        except TimeoutError:
+            self.process.kill()
+            await self.process.wait()
+        if self._drain is not None:
+            self._drain.cancel()
+
+
+async def _drain(stream: asyncio.StreamReader) -> None:
+    # Keep reading: a server whose stderr pipe fills up would block.
+    while await stream.readline():
+        pass
+
+
+async def unary_round(server: Counted, channel: grpc.aio.Channel, calls: int) -> tuple[float, float]:
+    """Instructions per unary Get (all threads, main thread), ``calls`` Gets one at a time."""
+    stub = pb_grpc.PropertyServiceStub(channel)
+    request = pb.GetRequest(service=SERVICE, property=VALUE_PROPERTY)
+    await server.zero()
+    for _ in range(calls):
+        await stub.Get(request, timeout=CALL_TIMEOUT)
+    total, main = await server.dumped()
+    return total / calls, main / calls
+
+
+async def fanout_round(
+    server: Counted, channel: grpc.aio.Channel, sets: int, *, in_sessions: bool = False
+) -> tuple[float, float]:
+    """Instructions per event delivered to 100 Listens (all threads, main thread), ``sets`` Sets;
+    each Listen a stream of its own, or with ``in_sessions`` a request inside a Session of its own."""
+    setter = pb_grpc.PropertyServiceStub(channel)
+    streams = [grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(4)]
+    request = pb.ListenRequest(service=SERVICE, property=VALUE_PROPERTY)
+    stubs = [pb_grpc.PropertyServiceStub(streams[n % 4]) for n in range(SUBSCRIBERS)]
+    calls: list[Any] = []
+    events = [0]
+    expected = sets * SUBSCRIBERS
+    delivered = asyncio.Event()
+
+    def count(response: pb.ListenResponse) -> bool:
+        events[0] += len(response.events)
+        if events[0] >= expected:
+            delivered.set()
+        return response.sync
+
+    async def read(call: Any, synced: asyncio.Event) -> None:
+        while (response := await call.read()) is not STREAM_END:
+            replies = [reply.listen for reply in response.replies] if in_sessions else [response]
+            if any([count(listened) for listened in replies]):
+                synced.set()
+
+    syncs = [asyncio.Event() for _ in stubs]
+    tasks: list[asyncio.Task[None]] = []
+    try:
+        for stub in stubs:
+            if in_sessions:
+                call = stub.Session()
+                await call.write(pb.SessionRequest(requests=[pb.Request(id=1, listen=request)]))
+            else:
+                call = stub.Listen(request)
+            calls.append(call)
+        tasks = [asyncio.create_task(read(call, synced)) for call, synced in zip(calls, syncs, strict=True)]
+        async with asyncio.timeout(CALL_TIMEOUT):
+            await asyncio.gather(*(synced.wait() for synced in syncs))
+        events[0] = 0
+        await server.zero()
+        for n in range(sets):
+            value = f"{time.monotonic_ns()}{n}"
+            await setter.Set(
+                pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value=value), timeout=CALL_TIMEOUT
+            )
+        async with asyncio.timeout(CALL_TIMEOUT):
+            await delivered.wait()
+        total, main = await server.dumped()
+    finally:
+        for task in tasks:
+            task.cancel()
+        for call in calls:
+            call.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        for stream in streams:
+            await stream.close(None)
+    return total / events[0], main / events[0]
+
+
+async def session_fanout_round(server: Counted, channel: grpc.aio.Channel, sets: int) -> tuple[float, float]:
+    """:func:`fanout_round` with each Listen inside a Session of its own."""
+    return await fanout_round(server, channel, sets, in_sessions=True)
+
+
+PARTS: dict[str, Callable[[Counted, grpc.aio.Channel, int], Awaitable[tuple[float, float]]]] = {
+    "unary": unary_round,
+    "fanout": fanout_round,
+    "session-fanout": session_fanout_round,
+}
+
+
+async def measure(part: str, kind: str, rounds: int, quick: bool) -> list[tuple[float, float]]:
+    """``rounds`` counts of ``part`` on one ``kind`` of server under callgrind."""
+    if part == "unary":
+        size = QUICK_CALLS if quick else UNARY_CALLS
+    else:
+        size = QUICK_SETS if quick else FANOUT_SETS
+    with tempfile.TemporaryDirectory(prefix="callgrind-") as folder:
+        server = await Counted.start(SERVERS[kind], Path(folder))
+        try:
+            async with grpc.aio.insecure_channel(server.address) as channel:
+                stub = pb_grpc.PropertyServiceStub(channel)
+                first = pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value="0")
+                await stub.Set(first, timeout=CALL_TIMEOUT)
+                get = pb.GetRequest(service=SERVICE, property=VALUE_PROPERTY)
+                for _ in range(20 if part == "unary" else 0):  # warm up: the first calls import and cache
+                    await stub.Get(get, timeout=CALL_TIMEOUT)
+                return [await PARTS[part](server, channel, size) for _ in range(rounds)]
+        finally:
+            await server.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line: ``python -m bench.instructions``."""
+    parser = argparse.ArgumentParser(prog="python -m bench.instructions", description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--parts", default="unary,fanout", help="unary, fanout, session-fanout (default unary,fanout)"
+    )
+    parser.add_argument(
+        "--servers", default="bare,gateway", help="bare, gateway, floor (default bare,gateway)"
+    )
+    parser.add_argument("--rounds", type=int, default=3, help="measured rounds per server (default 3)")
+    parser.add_argument(
+        "--quick", action="store_true", help=f"{QUICK_CALLS} Gets and {QUICK_SETS} Sets a round (a smoke run)"
+    )
+    args = parser.parse_args(argv)
+    missing = [tool for tool in ("valgrind", "callgrind_control") if shutil.which(tool) is None]
+    if missing:
+        print(f"needs {' and '.join(missing)} (apt-get install valgrind)", file=sys.stderr)
+        return 2
+    parts = [p for p in args.parts.split(",") if p]
+    kinds = [k for k in args.servers.split(",") if k]
+    unknown = [p for p in parts if p not in PARTS] + [k for k in kinds if k not in SERVERS]
+    if unknown:
+        parser.error(f"unknown part or server: {', '.join(unknown)}")
+    per = {"unary": "Get", "fanout": "event", "session-fanout": "event"}
+    for part in parts:
+        medians: dict[str, float] = {}
+        for kind in kinds:
+            if part not in SERVES[kind]:
+                print(f"{part:6} {kind:8} (not measured: it serves {', '.join(SERVES[kind])} only)")
+                continue
+            counts = asyncio.run(measure(part, kind, args.rounds, args.quick))
+            medians[kind] = statistics.median(total for total, _ in counts)
+            shown = ", ".join(f"{total:,.0f} ({main:,.0f} main)" for total, main in counts)
+            print(f"{part:6} {kind:8} instructions per {per[part]}: {shown}; median {medians[kind]:,.0f}")
+        if "bare" in medians:
+            for kind, median in medians.items():
+                print(f"{part:6} {kind:8} {median / medians['bare']:.3f} x the bare server")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
