@@ -14,6 +14,11 @@ TCP port of their own, registered by a Set on one gateway each in turn, the othe
 gateway's line listener. Once every gateway lists every device it prints who owns what, and runs
 until Ctrl-C (or SIGTERM), when it stops every process it started, by PID: the devices, the
 gateways, then etcd. Every process writes its log in the temporary folder (``--keep`` keeps it).
+
+Meanwhile it watches what it started: a process that ends (killed to watch a failover, or
+crashed) is named with its exit status and the end of its log; when it was a gateway, who owns
+what is printed again once the lease has run out and the others have taken its devices over.
+When no gateway is left, it stops everything and exits with status 1.
 """
 
 from __future__ import annotations
@@ -313,12 +318,19 @@ period = 1.0
                     raise RuntimeError(f"{gateway.id} does not list {missing} after {START_TIMEOUT:g} s")
                 await asyncio.sleep(0.1)
 
+    def live_gateways(self) -> list[GatewayPorts]:
+        """The gateways whose process still runs."""
+        running = {child.what for child in self.children if child.proc.poll() is None}
+        return [g for g in self.gateways if g.id in running]
+
     async def ownership(self) -> Ownership:
-        """The gateways, who owns each device and where each is registered, as the first gateway says."""
-        address = self.gateways[0].address
-        gateways = {
-            g.id: GatewayRecord(g.address, f"127.0.0.1:{g.http}", g.line_address) for g in self.gateways
-        }
+        """The gateways, who owns each device and where each is registered, as the first live gateway
+        says (RuntimeError when none is left)."""
+        live = self.live_gateways()
+        if not live:
+            raise RuntimeError("no gateway of the cluster is running")
+        address = live[0].address
+        gateways = {g.id: GatewayRecord(g.address, f"127.0.0.1:{g.http}", g.line_address) for g in live}
         owners: dict[str, str] = {}
         registrations: dict[str, Registration] = {}
         for name in self.devices:
@@ -457,7 +469,7 @@ async def run(args: argparse.Namespace) -> int:
         print(f"processes: {pids}")
         if not args.once:
             print("cluster ready; Ctrl-C stops everything", flush=True)
-            await stop.wait()
+            status = await watch(cluster, stop)
     except (RuntimeError, OSError, grpc.aio.AioRpcError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         status = 1
@@ -469,6 +481,55 @@ async def run(args: argparse.Namespace) -> int:
         else:
             shutil.rmtree(folder, ignore_errors=True)
     return status
+
+
+#: Seconds between looks at whether the processes started still run.
+WATCH_PERIOD = 0.5
+#: Seconds after the lease that the others get to take a dead gateway's devices over.
+TAKEOVER_SLACK = 2.0
+
+
+async def watch(cluster: Cluster, stop: asyncio.Event) -> int:
+    """Until ``stop``: name each process that ends; after a gateway's end, print the owners again.
+
+    Returns 0 when stopped, 1 when no gateway is left (``stop`` is then set too).
+    """
+    gone: set[int] = set()
+    while not stop.is_set():
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), WATCH_PERIOD)
+        if stop.is_set():
+            return 0
+        ended = [c for c in cluster.children if c.pid not in gone and c.proc.poll() is not None]
+        for child in ended:
+            gone.add(child.pid)
+            tail = "\n".join("    " + line for line in child.output().splitlines()[-5:])
+            print(f"{child.what} (pid {child.pid}) exited with status {child.proc.returncode}; its log ends:")
+            print(tail, flush=True)
+            if child.what == "etcd":
+                print(
+                    "the gateways go on serving what they own and forward to, read-only "
+                    "(docs/scale-out.md); Ctrl-C stops everything",
+                    flush=True,
+                )
+        if not any(c.what in {g.id for g in cluster.gateways} for c in ended):
+            continue
+        if not cluster.live_gateways():
+            print("no gateway is left: stopping", flush=True)
+            stop.set()
+            return 1
+        wait = cluster.args.lease + TAKEOVER_SLACK
+        print(f"waiting {wait:g} s for the others to take its devices over", flush=True)
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), wait)
+        if stop.is_set():
+            return 0
+        try:
+            print_owners(await cluster.ownership(), cluster.folder)
+        except (RuntimeError, grpc.aio.AioRpcError) as exc:
+            print(f"who owns what cannot be read now: {exc}", flush=True)
+        sys.stdout.flush()
+    return 0
 
 
 async def _start(cluster: Cluster, binary: str) -> None:

@@ -163,3 +163,50 @@ def test_help_names_the_ports_and_the_picture() -> None:
     for option in ("--gateways", "--devices", "--base-port", "--etcd-port", "--lease", "--picture", "--once"):
         assert option in done.stdout
     assert "Ctrl-C stops everything" in done.stdout
+
+
+def test_a_gateway_killed_is_named_and_its_devices_shown_with_their_new_owners() -> None:
+    etcd_binary()  # skips, saying why, without etcd
+    command = Command("--gateways", "3", "--devices", "6", "--base-port", "0", "--lease", "2")
+    try:
+        command.wait_for("cluster ready")
+        before = {m.group(1): m.group(3) for m in map(_DEVICE_ROW.match, command.lines) if m}
+        registered = {m.group(1): m.group(2) for m in map(_DEVICE_ROW.match, command.lines) if m}
+        pids = dict(item.split("=") for item in _line(command, "processes:").split()[1:])
+        victim = before["rover1"] if "rover1" in before else sorted(set(before.values()))[0]
+        moved = sorted(name for name, owner in before.items() if owner == victim)
+        assert moved, before
+        printed = len(command.lines)
+        os.kill(int(pids[victim]), signal.SIGKILL)  # a process the command started, by its PID
+        command.wait_for(f"{victim} (pid {pids[victim]}) exited with status -9")
+        command.wait_for("waiting ")
+        after: dict[str, str] = {}
+
+        def new_table() -> bool:
+            lines = command.lines[printed:]
+            starts = [i for i, line in enumerate(lines) if line.startswith("device ")]
+            if not starts:
+                return False
+            rows = [_DEVICE_ROW.match(line) for line in lines[starts[-1] + 1 :]]
+            after.clear()
+            after.update({m.group(1): m.group(3) for m in rows if m})
+            return len(after) == len(before)
+
+        deadline = time.monotonic() + 60
+        while not new_table():
+            assert time.monotonic() < deadline, "\n".join(command.lines)
+            time.sleep(0.1)
+        # The dead gateway owns nothing and is gone from the gateways' table; every device it owned
+        # by URL has a live owner, and the others kept theirs.
+        assert victim not in after.values(), after
+        rows = [m.group(1) for m in map(_GATEWAY_ROW.match, command.lines[printed:]) if m]
+        assert rows and victim not in rows, command.lines[printed:]
+        for name in moved:
+            if registered[name].startswith("tcp://"):
+                assert after[name] in set(before.values()) - {victim}, (name, after)
+        for name, owner in before.items():
+            if owner != victim:
+                assert after[name] == owner, (name, before, after)
+    finally:
+        status = command.stop()
+    assert status == 0, "\n".join(command.lines)
