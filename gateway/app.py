@@ -352,8 +352,18 @@ class Gateway:
             raise ConfigError(f"{self.config.source}: registry.store: {store.location} is not shared")
         await store.start()
         self.store = store
+        settings = self.config.registry
+        peer_tls = {
+            option: value
+            for option, value in (
+                ("ca", settings.peer_ca),
+                ("cert", settings.peer_cert),
+                ("key", settings.peer_key),
+            )
+            if value
+        }
         self.cluster = ClusterNode(
-            store, self.router, lease=self.config.registry.store_lease, allow=self.allow
+            store, self.router, lease=settings.store_lease, allow=self.allow, peer_tls=peer_tls
         )
 
     async def _start_cluster(self) -> None:
@@ -365,6 +375,7 @@ class Gateway:
             address=self.config.registry.advertise or self.address,
             http=self.http_address,
             line=self.line_address,
+            tls=self.config.tls.enabled,
         )
         log.info("cluster: joined as %s through %s", self.cluster.me, self.config.registry.store)
 

@@ -245,6 +245,12 @@ class RegistrySection:
     #: host:port the other gateways dial to reach this gateway's services; empty = the gRPC
     #: listen address.
     advertise: str = ""
+    #: PEM files for forwarding calls to gateways of the cluster that serve TLS: the CA that
+    #: signs their certificates (empty = the system's roots), and this gateway's client
+    #: certificate and key for those that require one (``[tls] require_client_cert``).
+    peer_ca: str = ""
+    peer_cert: str = ""
+    peer_key: str = ""
 
 
 #: Seconds a woken dormant service stays unused before it is stopped again, by default.
@@ -764,12 +770,15 @@ def _store(section: RegistrySection, where: str, folder: Path | None, found: lis
                 f"{section.store!r} they are kept there: remove one of the two"
             )
     files: dict[str, str] = {}
-    for key in ("store_ca", "store_cert", "store_key"):
+    for key in ("store_ca", "store_cert", "store_key", "peer_ca", "peer_cert", "peer_key"):
         value = getattr(section, key)
         if not value:
             continue
-        if not tls:
+        if key.startswith("store") and not tls:
             found.append(f"{where}.{key}: TLS files need a store URL starting with etcds://")
+            continue
+        if key.startswith("peer") and not section.store:
+            found.append(f"{where}.{key}: TLS files for the other gateways of a cluster need a store")
             continue
         try:
             files[key] = _config_file(value, f"{where}.{key}", folder)
@@ -777,6 +786,11 @@ def _store(section: RegistrySection, where: str, folder: Path | None, found: lis
             found.extend(exc.problems)
     if bool(section.store_cert) != bool(section.store_key):
         found.append(f"{where}: give both 'store_cert' and 'store_key' (this gateway's certificate for etcd)")
+    if bool(section.peer_cert) != bool(section.peer_key):
+        found.append(
+            f"{where}: give both 'peer_cert' and 'peer_key' "
+            "(this gateway's client certificate for the other gateways)"
+        )
     prefix = section.store_prefix.rstrip("/")
     if not section.store_prefix.startswith("/") or not prefix or any(c.isspace() for c in prefix):
         found.append(
@@ -810,6 +824,9 @@ def _store(section: RegistrySection, where: str, folder: Path | None, found: lis
         store_ca=files.get("store_ca", section.store_ca),
         store_cert=files.get("store_cert", section.store_cert),
         store_key=files.get("store_key", section.store_key),
+        peer_ca=files.get("peer_ca", section.peer_ca),
+        peer_cert=files.get("peer_cert", section.peer_cert),
+        peer_key=files.get("peer_key", section.peer_key),
     )
 
 

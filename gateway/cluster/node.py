@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 from collections.abc import Callable, Coroutine, Mapping
 from typing import Any
@@ -75,13 +76,17 @@ class ClusterNode:
         *,
         lease: float,
         allow: AllowList | None = None,
+        peer_tls: Mapping[str, str] | None = None,
     ) -> None:
         """``lease``: seconds of the store's lease (a dead gateway's keys go within it); ``allow``: what
-        this gateway may dial when it takes a registration over (the registry's allow-list)."""
+        this gateway may dial when it takes a registration over (the registry's allow-list);
+        ``peer_tls``: the ``grpcs://`` proxy options (``ca``, ``cert``, ``key``) with which calls are
+        forwarded to a gateway that serves TLS."""
         self.store = store
         self.router = router
         self.lease = lease
         self.allow = allow
+        self.peer_tls: Mapping[str, str] = dict(peer_tls or {})
         #: This gateway's id in the cluster (the value of the owners keys it writes).
         self.me = store.gateway_id
         self.view = ClusterView()
@@ -97,7 +102,7 @@ class ClusterNode:
         self.owned: dict[str, Registration] = {}
         #: Devices that dialled in here and were published, by name.
         self._dialled: dict[str, Backend] = {}
-        #: name → the owner address its forwarding proxy dials.
+        #: name → the URL its forwarding proxy dials (the owner's address, over TLS or not).
         self._forwarding: dict[str, str] = {}
         #: Names being registered, unregistered or published now: the reconciler leaves them alone.
         self._busy: set[str] = set()
@@ -121,12 +126,14 @@ class ClusterNode:
 
     # -- joining and leaving ---------------------------------------------------
 
-    async def start(self, registry: Registry, *, address: str, http: str = "", line: str = "") -> None:
-        """Join: this gateway serves gRPC at ``address`` (as the others dial it), HTTP at ``http`` and
-        the line protocol at ``line`` ("" when off). A store that cannot be reached now is joined
-        when it is back (the gateway serves read-only until then)."""
+    async def start(
+        self, registry: Registry, *, address: str, http: str = "", line: str = "", tls: bool = False
+    ) -> None:
+        """Join: this gateway serves gRPC at ``address`` (as the others dial it; over TLS when
+        ``tls``), HTTP at ``http`` and the line protocol at ``line`` ("" when off). A store that
+        cannot be reached now is joined when it is back (the gateway serves read-only until then)."""
         self.registry = registry
-        self.record = GatewayRecord(address=address, http=http, line=line)
+        self.record = GatewayRecord(address=address, http=http, line=line, tls=tls)
         registry.licensing.set_claims(self.licences)
         self._stops += [
             self.store.watch(self._on_change),
@@ -155,9 +162,7 @@ class ClusterNode:
         self.joined = True
 
     async def _announce(self) -> None:
-        self.record = GatewayRecord(
-            self.record.address, self.record.http, self.record.line, owned=len(self.owned)
-        )
+        self.record = dataclasses.replace(self.record, owned=len(self.owned))
         await self.store.put(Kind.GATEWAY, self.me, self.record.to_json(), leased=True)
 
     async def _read_all(self) -> None:
@@ -362,9 +367,7 @@ class ClusterNode:
         self._count_changed()
 
     def _count_changed(self) -> None:
-        self.record = GatewayRecord(
-            self.record.address, self.record.http, self.record.line, owned=len(self.owned)
-        )
+        self.record = dataclasses.replace(self.record, owned=len(self.owned))
         self._writes.put(Kind.GATEWAY, self.me, self.record.to_json())
 
     async def unregister(self, name: str) -> None:
@@ -541,13 +544,19 @@ class ClusterNode:
             await switching.switch(
                 None, reason=f"service {name!r} is owned by gateway {owner}, which is not in the cluster now"
             )
-        elif self._forwarding.get(name) != record.address:
-            proxy = open_grpc_backend(name, f"grpc://{record.address}/{name}", FORWARD_OPTIONS)
+        elif self._forwarding.get(name) != (url := self._forward_url(record, name)):
+            options = {**FORWARD_OPTIONS, **self.peer_tls} if record.tls else FORWARD_OPTIONS
+            proxy = open_grpc_backend(name, url, options)
             await proxy.start()
-            self._forwarding[name] = record.address
+            self._forwarding[name] = url
             await switching.switch(proxy, f"forwarded to gateway {owner} at {record.address}")
         if self.registry is not None:
             self.registry.mirror(name, self.view.states.get(name, "connecting"))
+
+    @staticmethod
+    def _forward_url(record: GatewayRecord, name: str) -> str:
+        """The URL of the gRPC proxy that forwards calls for ``name`` to the gateway of ``record``."""
+        return f"{'grpcs' if record.tls else 'grpc'}://{record.address}/{name}"
 
     async def _orphan(self, name: str, registration: Registration, switching: SwitchingBackend) -> None:
         if name in self.owned:

@@ -79,13 +79,20 @@ class GatewayRecord:
     line: str = ""
     #: Services it owns (``owners`` keys naming it), as it last counted them.
     owned: int = 0
+    #: Whether its gRPC port serves TLS (the others forward to it over ``grpcs://``).
+    tls: bool = False
 
     def to_json(self) -> str:
         """The key's value."""
-        return json.dumps(
-            {"address": self.address, "http": self.http, "line": self.line, "owned": self.owned},
-            sort_keys=True,
-        )
+        fields: dict[str, object] = {
+            "address": self.address,
+            "http": self.http,
+            "line": self.line,
+            "owned": self.owned,
+        }
+        if self.tls:
+            fields["tls"] = True
+        return json.dumps(fields, sort_keys=True)
 
 
 def read_gateway(text: str) -> GatewayRecord | None:
@@ -96,11 +103,12 @@ def read_gateway(text: str) -> GatewayRecord | None:
         http = data.get("http", "")
         line = data.get("line", "")
         owned = data.get("owned", 0)
+        tls = data.get("tls", False)
     except (ValueError, KeyError, TypeError, AttributeError):
         return None
-    if not isinstance(address, str) or not address or not isinstance(owned, int):
+    if not isinstance(address, str) or not address or not isinstance(owned, int) or not isinstance(tls, bool):
         return None
-    return GatewayRecord(address, str(http or ""), str(line or ""), owned)
+    return GatewayRecord(address, str(http or ""), str(line or ""), owned, tls)
 
 
 def read_state(text: str) -> str | None:

@@ -40,6 +40,9 @@ def test_an_etcd_store_is_read_with_its_keys(tmp_path: Path) -> None:
         store_lease = 3
         gateway_id = "gw-a"
         advertise = "10.0.0.5:50051"
+        peer_ca = "tls/ca.pem"
+        peer_cert = "tls/gw.pem"
+        peer_key = "tls/gw.key"
         """
     )
     section = load_config(path).registry
@@ -51,6 +54,9 @@ def test_an_etcd_store_is_read_with_its_keys(tmp_path: Path) -> None:
     )
     assert (section.store_prefix, section.store_lease) == ("/site/a", 3.0)
     assert (section.gateway_id, section.advertise) == ("gw-a", "10.0.0.5:50051")
+    assert (section.peer_ca, section.peer_cert, section.peer_key) == tuple(
+        str(tmp_path / "tls" / name) for name in ("ca.pem", "gw.pem", "gw.key")
+    )
 
 
 def test_open_store_makes_an_etcd_store_named_by_the_config() -> None:
@@ -99,6 +105,12 @@ def test_the_gateway_id_is_the_same_for_the_same_host_and_port() -> None:
         ('gateway_id = "a/b"', "registry.gateway_id: 1 to 128 printable characters"),
         ('gateway_id = "a b"', "registry.gateway_id: 1 to 128 printable characters"),
         ('advertise = "somewhere"', "registry.advertise: expected host:port"),
+        (
+            'peer_ca = "ca.pem"',
+            "registry.peer_ca: TLS files for the other gateways of a cluster need a store",
+        ),
+        ('store = "etcd://127.0.0.1:2379"\npeer_ca = "nowhere.pem"', "registry.peer_ca: no such file"),
+        ('store = "etcd://127.0.0.1:2379"\npeer_key = "k.pem"', "give both 'peer_cert' and 'peer_key'"),
         ("store = 2379", "registry.store: expected a string"),
     ],
 )
