@@ -376,7 +376,9 @@ class Gateway:
             http=self.http_address,
             line=self.line_address,
             tls=self.config.tls.enabled,
+            via=self.servicer.gateway_id,
         )
+        self.servicer.calls.peer_hop = self.cluster.is_peer_hop
         log.info("cluster: joined as %s through %s", self.cluster.me, self.config.registry.store)
 
     def _alternates(self) -> list[str]:

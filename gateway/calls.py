@@ -37,6 +37,7 @@ import functools
 from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from typing import Any
 
+from gateway.federation import VIA
 from gateway.guard import CALLER, REGISTRY, Guard
 from gateway.identity import ANONYMOUS
 from gateway.licensing import check_set
@@ -100,6 +101,16 @@ class Calls:
         self.guard = guard or Guard()
         #: The registry's licences every Set is checked against; None: no licences (no registry yet).
         self.licences: Licences | None = None
+        #: Whether a ``ps-via`` hop is another gateway of this one's cluster (whose forwarded Sets
+        #: were checked against the licences where the client called); None: not in a cluster.
+        self.peer_hop: Callable[[str], bool] | None = None
+
+    def _forwarded_by_peer(self) -> bool:
+        """Whether the call being served was forwarded by another gateway of this one's cluster."""
+        if self.peer_hop is None:
+            return False
+        chain = VIA.get()
+        return len(chain) >= 2 and self.peer_hop(chain[-2])
 
     def session_ended(self, subject: Subject) -> None:
         """The Session of ``subject`` ended: the licences acquired on it are lost."""
@@ -147,7 +158,8 @@ class Calls:
             path = check_path(request.property)
             value = received(request)
             operation = guard.set_operation(subject, service, path, value)
-            check_set(self.licences, subject, service, path)
+            if not self._forwarded_by_peer():
+                check_set(self.licences, subject, service, path)
         except PropertyError as exc:
             if exc.code not in (Code.PERMISSION_DENIED, Code.UNAUTHENTICATED):  # already audited
                 guard.audited(subject, service, request.property, Operation.WRITE, exc)

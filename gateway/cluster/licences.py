@@ -15,6 +15,13 @@ licence's release deletes the key.
 
 A second gateway asked for a licence that overlaps one in the key gets the registry's usual
 answer, FAILED_PRECONDITION naming the holder and the expiry (and which gateway granted it).
+
+Every gateway also keeps the licences the others granted, as the store's watch shows them
+(:meth:`ClusterLicences.observe`), so that a Set on any gateway is checked against every licence
+of the cluster: a client that does not hold a licence granted on gateway A is refused on gateway B
+too. The check is made once, by the gateway the client called; a call that another gateway of the
+cluster forwarded to the owner is not checked again there (its caller is the forwarding gateway,
+and the check was made where the client is known).
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ import asyncio
 import json
 import logging
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from services.errors import FailedPrecondition, PropertyError, Unavailable
@@ -92,6 +100,36 @@ class ClusterLicences:
     def __init__(self, store: SharedStore) -> None:
         self.store = store
         self._releasing: set[asyncio.Task[None]] = set()
+        #: The licences other gateways granted, by service, as the store last showed them.
+        self._elsewhere: dict[str, list[Licence]] = {}
+
+    def observe(self, service: str, value: str | None) -> None:
+        """The store's ``licences/SERVICE`` key now holds ``value`` (None: deleted)."""
+        me = self.store.gateway_id
+        now = time.time()
+        held = [c.as_licence(service) for c in _read(value) if c.gateway != me and c.live(now)]
+        if held:
+            self._elsewhere[service] = held
+        else:
+            self._elsewhere.pop(service, None)
+
+    def load(self, keys: Mapping[str, str]) -> None:
+        """Every ``licences`` key, as read when joining or after a reconnect."""
+        self._elsewhere.clear()
+        for service, value in keys.items():
+            self.observe(service, value)
+
+    def held_elsewhere(self, service: str) -> Sequence[Licence]:
+        held = self._elsewhere.get(service)
+        if not held:
+            return ()
+        live = [licence for licence in held if not licence.lease.lapsed()]
+        if len(live) != len(held):
+            if live:
+                self._elsewhere[service] = live
+            else:
+                del self._elsewhere[service]
+        return live
 
     async def _current(self, service: str) -> str | None:
         return (await self.store.read(Kind.LICENCE)).get(service)

@@ -62,7 +62,7 @@ FORWARD_OPTIONS: Mapping[str, Any] = {"backoff_initial": 0.1, "backoff_max": 2.0
 LEAVE_WAIT = 3.0
 #: Writes to the store at once when this gateway writes all its keys (coming back, leaving).
 MAX_WRITES = 64
-#: Folders read when joining and after a reconnect (licences are read when one is claimed).
+#: Folders read when joining and after a reconnect (and the licences, for the licence mirror).
 _FOLDERS = (Kind.GATEWAY, Kind.SERVICE, Kind.OWNER, Kind.STATE)
 
 
@@ -127,13 +127,21 @@ class ClusterNode:
     # -- joining and leaving ---------------------------------------------------
 
     async def start(
-        self, registry: Registry, *, address: str, http: str = "", line: str = "", tls: bool = False
+        self,
+        registry: Registry,
+        *,
+        address: str,
+        http: str = "",
+        line: str = "",
+        tls: bool = False,
+        via: str = "",
     ) -> None:
         """Join: this gateway serves gRPC at ``address`` (as the others dial it; over TLS when
-        ``tls``), HTTP at ``http`` and the line protocol at ``line`` ("" when off). A store that
+        ``tls``), HTTP at ``http`` and the line protocol at ``line`` ("" when off); ``via`` is its id
+        in the ``ps-via`` chain of the calls it forwards. A store that
         cannot be reached now is joined when it is back (the gateway serves read-only until then)."""
         self.registry = registry
-        self.record = GatewayRecord(address=address, http=http, line=line, tls=tls)
+        self.record = GatewayRecord(address=address, http=http, line=line, tls=tls, via=via)
         registry.licensing.set_claims(self.licences)
         self._stops += [
             self.store.watch(self._on_change),
@@ -168,6 +176,7 @@ class ClusterNode:
     async def _read_all(self) -> None:
         folders = {kind: await self.store.read(kind) for kind in _FOLDERS}
         self.view.replace(folders)
+        self.licences.load(await self.store.read(Kind.LICENCE))
         for name in sorted({*self.view.registrations, *self.served, *self._dialled}):
             self._mark(name)
         self._takeover.orphaned()
@@ -214,6 +223,9 @@ class ClusterNode:
     # -- what the store says ---------------------------------------------------
 
     def _on_change(self, change: Change) -> None:
+        if change.kind is Kind.LICENCE:
+            self.licences.observe(change.name, change.value)
+            return
         for name in self.view.apply(change):
             self._mark(name)
         if change.value is None and change.kind in (Kind.OWNER, Kind.GATEWAY):
@@ -552,6 +564,14 @@ class ClusterNode:
             await switching.switch(proxy, f"forwarded to gateway {owner} at {record.address}")
         if self.registry is not None:
             self.registry.mirror(name, self.view.states.get(name, "connecting"))
+
+    def is_peer_hop(self, hop: str) -> bool:
+        """Whether ``hop`` of a call's ``ps-via`` chain is another gateway of the cluster."""
+        return any(
+            record.via == hop
+            for gateway, record in self.view.gateways.items()
+            if gateway != self.me and record.via
+        )
 
     @staticmethod
     def _forward_url(record: GatewayRecord, name: str) -> str:

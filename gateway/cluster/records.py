@@ -81,6 +81,9 @@ class GatewayRecord:
     owned: int = 0
     #: Whether its gRPC port serves TLS (the others forward to it over ``grpcs://``).
     tls: bool = False
+    #: Its id in the ``ps-via`` chain of the calls it forwards (gateway.federation): the owner
+    #: knows a call another gateway of the cluster forwarded by it.
+    via: str = ""
 
     def to_json(self) -> str:
         """The key's value."""
@@ -92,6 +95,8 @@ class GatewayRecord:
         }
         if self.tls:
             fields["tls"] = True
+        if self.via:
+            fields["via"] = self.via
         return json.dumps(fields, sort_keys=True)
 
 
@@ -104,11 +109,12 @@ def read_gateway(text: str) -> GatewayRecord | None:
         line = data.get("line", "")
         owned = data.get("owned", 0)
         tls = data.get("tls", False)
+        via = data.get("via", "")
     except (ValueError, KeyError, TypeError, AttributeError):
         return None
     if not isinstance(address, str) or not address or not isinstance(owned, int) or not isinstance(tls, bool):
         return None
-    return GatewayRecord(address, str(http or ""), str(line or ""), owned, tls)
+    return GatewayRecord(address, str(http or ""), str(line or ""), owned, tls, str(via or ""))
 
 
 def read_state(text: str) -> str | None:

@@ -24,7 +24,7 @@ import itertools
 import logging
 import math
 import secrets
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -173,6 +173,11 @@ class LicenceClaims(Protocol):
         """``licence`` ended: let go of its claim (in the background; it never fails the caller)."""
         ...
 
+    def held_elsewhere(self, service: str) -> Sequence[Licence]:
+        """The live licences on ``service`` that others granted (other gateways of the cluster), as
+        last seen there: a Set on this gateway is checked against them too."""
+        ...
+
 
 class Licences:
     """The licences a registry holds; see the module docstring.
@@ -231,16 +236,18 @@ class Licences:
         raise NotFound(f"no licence {licence_id[:80]!r} (held now: {len(self._held)})")
 
     def holder_of(self, service: str, path: str = "") -> Licence | None:
-        """The licence that covers a Set of ``path`` on ``service`` (any, for ``path`` ""); None when free."""
-        on_service = self._by_service.get(service)
-        if not on_service:
-            return None
-        for licence in on_service:
+        """The licence that covers a Set of ``path`` on ``service`` (any, for ``path`` ""); None when
+        free. Licences granted elsewhere (:meth:`LicenceClaims.held_elsewhere`) count too."""
+        for licence in self._by_service.get(service, ()):
             if licence.lease.lapsed():
                 self._expire_due()
                 return self.holder_of(service, path)
             if not path or licence.covers(service, path):
                 return licence
+        if self._claims is not None:
+            for licence in self._claims.held_elsewhere(service):
+                if not path or licence.covers(service, path):
+                    return licence
         return None
 
     def check_set(self, service: str, path: str, holder: str) -> None:

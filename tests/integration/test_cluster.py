@@ -373,3 +373,45 @@ async def test_every_gateway_learns_the_type_the_device_greeted_with(
                 what=f"{gateway} learns thermo's type",
             )
             assert kind == "sensor", gateway
+
+
+async def test_a_licence_granted_on_one_gateway_holds_on_every_gateway(cluster: Cluster) -> None:
+    """Alice's licence, granted by gw-b on arm (owned by gw-a), refuses Bob's Sets through every
+    gateway, the owner's included; Alice's own Sets pass through any of them."""
+    with tcp_device("--service", "sim-robot", "--name", "arm") as address:
+        admin = cluster.client("gw-a")
+        await _register(admin, "arm", address)
+        await eventually(lambda: _owner(admin, "arm"), lambda o: o == "gw-a")
+        alice = {gateway: cluster.client(gateway, "alice") for gateway in IDS}
+        bob = {gateway: cluster.client(gateway, "bob") for gateway in IDS}
+        try:
+            for client in bob.values():
+                await eventually(lambda c=client: c.get_names("registry", "services"), lambda n: "arm" in n)
+            licence = await alice["gw-b"].set("registry", "acquire", "", service="arm", duration="30")
+            for gateway in IDS:
+                refusal = await eventually(
+                    lambda g=gateway: _set_or_error(bob[g], "arm", "speed", "0.5"),
+                    lambda outcome: isinstance(outcome, FailedPrecondition),
+                    what=f"bob refused on {gateway}",
+                )
+                assert isinstance(refusal, FailedPrecondition), (gateway, refusal)
+                assert "held by alice" in str(refusal), (gateway, refusal)
+                assert await alice[gateway].set("arm", "speed", "0.25") == "0.25", gateway
+            await alice["gw-b"].set("registry", "release", "", licence=licence)
+            for gateway in IDS:
+                done = await eventually(
+                    lambda g=gateway: _set_or_error(bob[g], "arm", "speed", "0.5"),
+                    lambda outcome: outcome == "0.5",
+                    what=f"bob's Set on {gateway} once the licence is released",
+                )
+                assert done == "0.5", (gateway, done)
+        finally:
+            for client in [*alice.values(), *bob.values(), admin]:
+                await client.close()
+
+
+async def _set_or_error(client: AsyncClient, service: str, path: str, value: str) -> object:
+    try:
+        return await client.set(service, path, value)
+    except PropertyServiceError as exc:
+        return exc

@@ -96,3 +96,54 @@ async def test_a_licence_that_expires_deletes_its_key() -> None:
         lambda: server.value(Kind.LICENCE, "arm") is None, within=3.0, what="expiry deletes the key"
     )
     assert a.held() == []
+
+
+def _watching(server: MemoryServer, gateway: str) -> Licences:
+    """A gateway's licences whose claims also mirror the store's licences keys, as a node wires them."""
+    licences = Licences(lambda name: True)
+    store = server.store(gateway)
+    claims = ClusterLicences(store)
+    store.watch(
+        lambda change: claims.observe(change.name, change.value) if change.kind is Kind.LICENCE else None
+    )
+    licences.set_claims(claims)
+    return licences
+
+
+async def test_a_set_is_checked_against_the_licences_other_gateways_granted() -> None:
+    server = MemoryServer()
+    a, b = _watching(server, "gw-a"), _watching(server, "gw-b")
+    granted = await a.grant("arm", "alice", 0.6, "gripper")
+
+    def refused_on_b() -> bool:
+        try:
+            b.check_set("arm", "gripper.open", "bob")
+        except PropertyError:
+            return True
+        return False
+
+    await wait_until(refused_on_b, what="gw-b sees gw-a's licence")
+    with pytest.raises(PropertyError) as refusal:
+        b.check_set("arm", "gripper.open", "bob")
+    assert refusal.value.code is Code.FAILED_PRECONDITION
+    assert f"licence {granted.id} on arm/gripper is held by alice" in refusal.value.message
+    b.check_set("arm", "gripper.open", "alice")  # its holder
+    b.check_set("arm", "camera", "bob")  # outside the subtree
+    assert b.holder_of("arm") is not None and b.held() == []  # gw-b holds none itself
+    # A gateway is not checked against its own claims twice: gw-a's local table answers there.
+    assert a.holder_of("arm", "gripper") is granted
+    # Once its time has passed, the licence holds nowhere, even before anyone deletes its key.
+    a.set_claims(None)
+    await asyncio.sleep(0.7)
+    b.check_set("arm", "gripper.open", "bob")
+    assert b.holder_of("arm") is None
+
+
+async def test_a_released_licence_stops_holding_on_the_other_gateways() -> None:
+    server = MemoryServer()
+    a, b = _watching(server, "gw-a"), _watching(server, "gw-b")
+    granted = await a.grant("arm", "alice", 30.0)
+    await wait_until(lambda: b.holder_of("arm") is not None, what="gw-b sees the licence")
+    await a.release(granted.id)
+    await wait_until(lambda: b.holder_of("arm") is None, what="gw-b sees it released")
+    b.check_set("arm", "speed", "bob")
