@@ -15,6 +15,9 @@ from collections.abc import Iterable, Iterator
 #: The character right after ``.`` in code-point order: every path that starts with ``name.``
 #: sorts at or after ``name.`` and before ``name/``.
 _AFTER_DOT = chr(ord(".") + 1)
+#: Paths added one by one (each a binary search and a move of the longer part); more are sorted
+#: again with the others at once (a wildcard asked about everything after a burst of changes).
+_ONE_BY_ONE = 64
 
 
 class MatchedPaths:
@@ -39,6 +42,16 @@ class MatchedPaths:
         if path not in self._members:
             self._members.add(path)
             bisect.insort(self._sorted, path)
+
+    def update(self, paths: Iterable[str]) -> None:
+        """Add every one of ``paths``: one by one when they are few, else sorted again at once."""
+        new = [p for p in paths if p not in self._members]
+        if len(new) <= _ONE_BY_ONE:
+            for path in new:
+                self.add(path)
+            return
+        self._members.update(new)
+        self._sorted = sorted(self._members)
 
     def discard(self, path: str) -> None:
         if path in self._members:

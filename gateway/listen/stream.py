@@ -591,8 +591,7 @@ class ListenStream:
             if topic is not None:
                 self._leave(topic, announce=True)
         new = sorted(found - before)
-        for path in new:
-            exp.matched.add(path)
+        exp.matched.update(new)
         if not new:
             return
         await self._join_many(exp, new, gap)

@@ -172,3 +172,7 @@ def test_matched_paths_tell_what_lies_below_a_name() -> None:
     paths.add("a.c")
     assert paths.below("a") == {"a", "a.b.c", "a.c"} and len(paths) == 5 and "a.c" in paths
     assert list(paths) == sorted(paths.below(""))
+    many = [f"b.{i:03d}" for i in range(100)]
+    paths.update(many)
+    paths.update(["a.d"])
+    assert paths.below("b") == set(many) and list(paths) == sorted(paths.below("")) and "a.d" in paths

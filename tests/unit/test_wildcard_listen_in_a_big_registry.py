@@ -167,13 +167,19 @@ class Failing(DictBackend):
         return await super().describe()
 
 
-async def test_a_match_that_fails_later_ends_the_stream_with_the_error() -> None:
+async def listening_to(device: DictBackend) -> tuple[ListenHub, Reader]:
+    """A hub serving ``device`` as ``dev``, and a started ``dev/*`` Listen on it."""
     router = Router()
-    device = Failing({"a": "1"})
     router.add("dev", device)
     hub = ListenHub(router, Limits(), call_timeout=5.0)
     reader = Reader(hub, Selector("dev", "*"))
     await reader.start()
+    return hub, reader
+
+
+async def test_a_match_that_fails_later_ends_the_stream_with_the_error() -> None:
+    device = Failing({"a": "1"})
+    hub, reader = await listening_to(device)
     device.broken = True
     device.add("b", "2")
     await wait_until(lambda: reader.stream.error is not None, what="the stream to end")
@@ -182,17 +188,17 @@ async def test_a_match_that_fails_later_ends_the_stream_with_the_error() -> None
     await hub.aclose()
 
 
-async def test_a_change_asked_about_while_the_service_is_away_is_asked_again_once_it_answers(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+@pytest.fixture
+def quick_retries(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Tries again after 10 ms to 50 ms, not 0.5 s to 10 s."""
     monkeypatch.setattr(stream_module, "RETRY_FIRST_S", 0.01)
     monkeypatch.setattr(stream_module, "RETRY_MAX_S", 0.05)
-    router = Router()
+
+
+@pytest.mark.usefixtures("quick_retries")
+async def test_a_change_asked_about_while_the_service_is_away_is_asked_again_once_it_answers() -> None:
     device = DictBackend({"a": "1"})
-    router.add("dev", device)
-    hub = ListenHub(router, Limits(), call_timeout=5.0)
-    reader = Reader(hub, Selector("dev", "*"))
-    await reader.start()
+    hub, reader = await listening_to(device)
     device.unreachable = True
     device.add("b", "2")
     await wait_until(lambda: reader.stream.retrying == 1, what="the change to be asked about again later")
