@@ -418,7 +418,7 @@ class LocalService(Backend):
     async def match_properties(self, pattern: str, under: str = "") -> list[PropertyModel]:
         """The matches of ``pattern`` from a walk of only what it names (:func:`describe_matching`):
         no list of every property is made, however big the tree."""
-        return list(await describe_matching(self.obj, pattern, under))
+        return [self.model_of(p) for p in await describe_matching(self.obj, pattern, under)]
 
     async def listen_properties(self, notify: Notify) -> Subscription:
         """Tell ``notify`` where the tree changes (a child attached or detached, a Backend child's
@@ -431,9 +431,17 @@ class LocalService(Backend):
 
     async def describe(self) -> ServiceModel:
         """The model of every property of the object's tree, Backend children's through their own."""
-        return ServiceModel(
-            type=self.info.type, properties=await describe_tree(self.obj), doc=class_spec(type(self.obj)).doc
-        )
+        properties = tuple(self.model_of(p) for p in await describe_tree(self.obj))
+        return ServiceModel(type=self.info.type, properties=properties, doc=class_spec(type(self.obj)).doc)
+
+    def model_of(self, prop: PropertyModel) -> PropertyModel:
+        """The model of ``prop`` as this service gives it: the class wrapper's, by default.
+
+        A subclass serving what the class wrapper cannot express alone (a property read with a
+        parameter, a node typed as a value) refines it here; :meth:`describe` and
+        :meth:`match_properties` both give what it answers.
+        """
+        return prop
 
     async def start(self) -> None:
         """Start the object's background work, children first."""
