@@ -181,11 +181,10 @@ async def _timed_get(stub: pb_grpc.PropertyServiceStub, request: pb.GetRequest) 
 class OwnerWatch:
     """Listens to ``services.NAME.owner`` of every orphan: when each is owned by a gateway not ``killed``.
 
-    Exact selectors, ``OWNER_SELECTORS`` a stream: a wildcard ``services.*.owner`` is expanded from
-    the registry's ``properties`` list, which passes the 64 KiB limit of a value past about 250
-    services. A stream that ends is opened again, and the current owners it reads then count as
-    heard at that moment (a change made meanwhile is not lost, only heard late); how many ended,
-    and the first reason, are kept.
+    Exact selectors, ``OWNER_SELECTORS`` a stream: only the orphans are followed (a wildcard
+    ``services.*.owner`` would follow every registration of the cluster). A stream that ends is
+    opened again, and the current owners it reads then count as heard at that moment (a change
+    made meanwhile is not lost, only heard late); how many ended, and the first reason, are kept.
     """
 
     def __init__(self, orphans: list[str], killed: str) -> None:

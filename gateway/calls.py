@@ -11,8 +11,9 @@ bad one) and start the call, returning one of
 * an awaitable of the value, under the call timeout, to await in a task.
 
 A Get whose path (or one of whose ``more`` paths) has ``*`` segments is a
-snapshot, as gNMI's Get with a wildcard path: each pattern is expanded against
-the service's readable properties (:meth:`services.backend.Backend.describe`),
+snapshot, as gNMI's Get with a wildcard path: each pattern is expanded by the
+service itself to its readable matches (:meth:`services.backend.Backend.match_properties`,
+which walks only what the pattern names and never builds the ``properties`` list),
 and the response lists every match with its concrete path in ``more`` (its
 ``value`` stays empty); see ``docs/errors.md``. Such a Get is never started
 inline (:func:`is_snapshot`): it always goes through :meth:`Calls.get`.
@@ -51,7 +52,7 @@ from services.backend import NO_PARAMS, Answer, Backend
 from services.eager import Started, step
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, ResourceExhausted
 from services.model import ServiceModel
-from services.paths import compile_pattern, is_pattern, validate_pattern
+from services.paths import is_pattern, validate_pattern
 from services.registry import Licences
 from services.values import Value
 
@@ -326,18 +327,18 @@ class Calls:
         values) are skipped, and so is what the
         subject may not read.
         """
-        model = await bounded_call(
-            backend.describe(), time_limit, functools.partial("{}: describe for {}".format, service, pattern)
+        found = await bounded_call(
+            backend.match_properties(pattern),
+            time_limit,
+            functools.partial("{}: match {}".format, service, pattern),
         )
-        matches = compile_pattern(pattern)
         guard = self.guard
         names = [
             p.name
-            for p in model.properties
+            for p in found
             if p.access.listenable
             and not p.needs_parameters
             and p.type != "namespace"
-            and matches(p.name)
             and guard.may(subject, service, p.name, Operation.READ)
         ]
         if not names:

@@ -21,7 +21,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, LinkCounts, Notify, Subscription, close_quietly
 from services.errors import PropertyError, Unavailable
-from services.model import ServiceModel
+from services.model import PropertyModel, ServiceModel
 from services.values import Value
 
 __all__ = ["DormantBackend"]
@@ -163,8 +163,16 @@ class DormantBackend(Backend):
         async with self._use() as backend:
             return await backend.properties()
 
+    async def match_properties(self, pattern: str, under: str = "") -> list[PropertyModel]:
+        async with self._use() as backend:
+            return await backend.match_properties(pattern, under)
+
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
         sub, _ = await self._hold(lambda backend: _no_value(backend.listen(path, notify, params)))
+        return sub
+
+    async def listen_properties(self, notify: Notify) -> Subscription:
+        sub, _ = await self._hold(lambda backend: _no_value(backend.listen_properties(notify)))
         return sub
 
     async def listen_current(

@@ -7,7 +7,9 @@ only this interface; they never ask which kind of backend they hold.
 
 Paths are dotted property paths (``location.x``, ``robots.scout1.location``)
 without wildcards: wildcard selectors are expanded by the listen hub using
-:meth:`Backend.properties` and a listen on ``properties``.
+:meth:`Backend.match_properties` and followed with :meth:`Backend.listen_properties`,
+never by reading the ``properties`` value, which a big service (a registry of a few
+hundred services) makes longer than one value may be.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from types import MappingProxyType
 from typing import ClassVar, Protocol
 
 from services.model import Access, PropertyModel, ServiceModel
+from services.paths import compile_pattern, is_below
 from services.values.binary import Value
 
 NO_PARAMS: Mapping[str, str] = MappingProxyType({})
@@ -116,6 +119,7 @@ class Backend(abc.ABC):
     backends have are declared here with defaults that do without them, so
     that callers never ask which kind of backend they hold:
     :attr:`answers_inline`, :meth:`start_get`, :meth:`listen_current`,
+    :meth:`match_properties`, :meth:`listen_properties`,
     :meth:`wait_connected`, :meth:`serves`, :meth:`wake`, :attr:`on_demand`.
     """
 
@@ -188,6 +192,42 @@ class Backend(abc.ABC):
             type=self.info.type,
             properties=tuple(PropertyModel(name, "unknown", Access.UNKNOWN) for name in names),
         )
+
+    async def match_properties(self, pattern: str, under: str = "") -> list[PropertyModel]:
+        """The model of every property whose name matches ``pattern`` (``*`` matches one segment),
+        in the order ``properties`` lists them; with ``under``, only ``under`` itself and the
+        names below it (``services.scout7``: ``services.scout7.state``, ...).
+
+        How the listen hub expands a wildcard selector and the gateway a wildcard Get. The
+        default filters :meth:`describe`: a device's own model, another gateway's Describe, or,
+        for a backend that does not describe itself, the ``properties`` list (which holds at most
+        what one value holds, ``services.values.MAX_VALUE_LENGTH``: a longer list is
+        INVALID_ARGUMENT). ``LocalService`` walks only the part of its tree the pattern names,
+        and answers at any size.
+        """
+        matches = compile_pattern(pattern)
+        return [
+            p
+            for p in (await self.describe()).properties
+            if matches(p.name) and (not under or is_below(p.name, under))
+        ]
+
+    async def listen_properties(self, notify: Notify) -> Subscription:
+        """Call ``notify`` whenever properties appear or go; each ``Change``'s ``path`` names where
+        (the name of a property or namespace that came or went, everything below it with it),
+        "" for anywhere; its ``value`` is empty, ``gap`` as for any change.
+
+        A listener asks :meth:`match_properties` again for what it follows, ``under`` that
+        path. The default listens to ``properties`` and reports each change as "anywhere"; a
+        service that knows where its tree changed (``LocalService``) overrides it and never
+        formats its list for it.
+        """
+
+        def changed(change: Change) -> None:
+            if not change.removed:
+                notify(Change("", "", gap=change.gap))
+
+        return await self.listen("properties", changed)
 
     async def check(self) -> None:
         """Return when the service is alive; raise a PropertyError (UNAVAILABLE, ...) when it is not.

@@ -19,6 +19,7 @@ __all__ = [
     "MAX_SEGMENT_LENGTH",
     "WILDCARD",
     "compile_pattern",
+    "is_below",
     "is_pattern",
     "match",
     "split_path",
@@ -109,6 +110,11 @@ def split_path(path: str) -> list[str]:
 def is_pattern(s: str) -> bool:
     """True when ``s`` holds a wildcard segment (it is a selector, not a concrete path)."""
     return WILDCARD in s
+
+
+def is_below(path: str, name: str) -> bool:
+    """True when ``path`` is ``name`` or lies below it (``name.…``): ``a.b`` is below ``a``, ``ab`` is not."""
+    return path.startswith(name) and (len(path) == len(name) or path[len(name)] == ".")
 
 
 def validate_pattern(pattern: str) -> str:

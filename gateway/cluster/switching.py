@@ -35,7 +35,7 @@ from services.backend import (
     close_quietly,
 )
 from services.errors import Code, PropertyError, Unavailable
-from services.model import ServiceModel
+from services.model import PropertyModel, ServiceModel
 from services.values import Value
 
 __all__ = ["RESUME_BACKOFF_INITIAL", "RESUME_BACKOFF_MAX", "SwitchingBackend"]
@@ -215,6 +215,9 @@ class SwitchingBackend(Backend):
 
     async def properties(self) -> list[str]:
         return await self._require().properties()
+
+    async def match_properties(self, pattern: str, under: str = "") -> list[PropertyModel]:
+        return await self._require().match_properties(pattern, under)
 
     async def check(self) -> None:
         target = self._require()

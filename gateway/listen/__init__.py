@@ -2,10 +2,12 @@
 
 * :mod:`~gateway.listen.requests` — a Listen request parsed: selectors, options.
 * :mod:`~gateway.listen.topics` — one shared backend subscription per
-  (service, path, parameters), with its latest value.
-* :mod:`~gateway.listen.stream` — one client's Listen: wildcard expansion (a service that
-  cannot be reached is skipped and tried again), the conflating queue, pacing (throttle,
-  sampling, heartbeat), ``take``.
+  (service, path, parameters), with its latest value; and per service, one that follows
+  where its property list changes.
+* :mod:`~gateway.listen.stream` — one client's Listen: wildcard expansion by the service
+  itself, at any size (a service that cannot be reached is skipped and tried again), the
+  conflating queue, pacing (throttle, sampling, heartbeat), ``take``.
+* :mod:`~gateway.listen.matched` — a wildcard's matches on one service, kept sorted.
 * :mod:`~gateway.listen.encoding` — events into ``ListenResponse`` messages, batched by bytes.
 * :mod:`~gateway.listen.hub` — the hub that owns topics and streams.
 """

@@ -12,10 +12,20 @@ until it returns None; each call drains what is ready into one
 
 Wildcards follow the service: ``*`` as service follows the router's adds and
 removes (the hub calls :meth:`ListenStream.service_added`); ``*`` in a path is
-expanded against the service's ``properties`` and follows a listen on
-``properties``. A selector with ``*`` (service or path) matches only what a
-Listen may follow: actions and queries are skipped silently, as the service's
-model (``Backend.describe``, read once per service per expansion) says.
+expanded by the service itself (``Backend.match_properties``: the model of each
+match, never the ``properties`` list, which a registry of a few hundred services
+makes longer than a value may be) and follows where the service's property list
+changes (``Backend.listen_properties``, one topic per service shared by every
+stream): below each name where it changed, the service is asked for the matches
+again, so a registration costs a lookup of that one entry, not of the whole list.
+A selector with ``*`` (service or path) matches only what a Listen may follow:
+actions, queries and properties that need a parameter are skipped silently, as
+the models of the matches say.
+
+An expansion that cannot be made fails the stream with the service's error, naming the
+service and the pattern (a remote list too long to read is INVALID_ARGUMENT), unless
+the selector skips that error: a ``*`` service skips NOT_FOUND and INVALID_ARGUMENT for
+good (logged), and every wildcard skips a service that cannot be reached (below).
 
 A wildcard never fails because a service cannot be reached (UNAVAILABLE,
 DEADLINE_EXCEEDED) when the stream opens or when it expands later: the part it
@@ -47,8 +57,9 @@ from gateway.listen.encoding import (
     marker_response,
     within,
 )
+from gateway.listen.matched import MatchedPaths
 from gateway.listen.requests import Selector, StreamOptions
-from gateway.listen.topics import MISSING, NOTHING, UNREACHABLE, Topic, TopicKey, Topics
+from gateway.listen.topics import MISSING, NOTHING, PROPERTY_LIST, UNREACHABLE, Topic, TopicKey, Topics
 from gateway.router import Router
 from gateway.sizes import MAX_MESSAGE_BYTES
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -56,12 +67,12 @@ from services.backend import Backend, Change
 from services.backoff import pauses, wait_to_retry
 from services.conflation import ConflatingQueue
 from services.errors import Code, PropertyError, ResourceExhausted
-from services.paths import WILDCARD, compile_pattern, is_pattern
-from services.values import Value, as_text, parse_names
+from services.model import PropertyModel
+from services.paths import WILDCARD, is_pattern
+from services.values import Value
 
 log = logging.getLogger(__name__)
 
-PROPERTIES = "properties"
 #: Seconds before a wildcard tries again a part it skipped because its service could not be
 #: reached, doubled after each failed try up to ``RETRY_MAX_S``: the shape of the proxies' own
 #: reconnect backoff (0.2 s to 10 s), so a device that is back is followed within about 10 s
@@ -74,6 +85,9 @@ RETRY_MAX_S = 10.0
 JOIN_RETRY_S = 10.0
 #: What a wildcard skips: a property that is not there, and a service that cannot be reached.
 WILDCARD_SKIPS = MISSING | UNREACHABLE
+#: Names below which a service's property list changed that an expansion remembers until it asks
+#: the service again; past this many (a burst of registrations) it asks for every match at once.
+MAX_CHANGED_NAMES = 1024
 
 
 def retry_pauses() -> Iterator[float]:
@@ -82,63 +96,84 @@ def retry_pauses() -> Iterator[float]:
 
 
 class _Expansion:
-    """A path pattern expanded against one service's ``properties``; follows its changes.
+    """A path pattern expanded on one service; follows where the service's property list changes.
 
-    It matches only the properties a Listen may follow (``Access.listenable``:
-    never an action, nor a query, nor a property that needs a parameter), as the service's
-    model says; a name the model does not know counts as listenable. Names the
-    stream's subject may not read are skipped too.
+    It matches only the properties a Listen may follow (``Access.listenable``: never an
+    action, nor a query, nor a property that needs a parameter), as the model of each match
+    says; a name the service does not describe counts as listenable. Names the stream's
+    subject may not read are skipped too.
     """
 
-    __slots__ = ("known", "list_topic", "matched", "matches", "selector", "service", "skipped", "stream")
+    __slots__ = (
+        "changed",
+        "gap",
+        "list_topic",
+        "matched",
+        "matching",
+        "ready",
+        "selector",
+        "service",
+        "skip",
+        "stream",
+    )
 
-    def __init__(self, stream: ListenStream, selector: Selector, service: str) -> None:
+    def __init__(self, stream: ListenStream, selector: Selector, service: str, skip: frozenset[Code]) -> None:
         self.stream = stream
         self.selector = selector
         self.service = service
-        self.matches = compile_pattern(selector.path)
-        self.matched: set[str] = set()
+        #: The errors of a later match that are skipped rather than ending the stream.
+        self.skip = skip
+        self.matched = MatchedPaths()
         self.list_topic: Topic | None = None
-        #: Names the service's model says a Listen may not follow, and every name it knows.
-        self.skipped: frozenset[str] = frozenset()
-        self.known: frozenset[str] = frozenset()
+        #: Names below which the list changed since the service was last asked ("": anywhere),
+        #: and whether one of those changes came after a gap.
+        self.changed: set[str] = set()
+        self.gap = False
+        #: A task is asking the service about ``changed`` (one at a time per expansion).
+        self.matching = False
+        #: The first matches are followed: changes are asked about from now on.
+        self.ready = False
 
-    async def learn_model(self, backend: Backend) -> None:
-        """Read which properties to skip from the service's model (once per expansion)."""
-        try:
-            model = await backend.describe()
-        except PropertyError as exc:
-            log.debug("%s: cannot read its model (%s); every match is followed", self.service, exc.message)
-            return
-        self.known = frozenset(p.name for p in model.properties)
-        self.skipped = frozenset(
-            p.name for p in model.properties if not p.access.listenable or p.needs_parameters
-        )
-
-    def paths(self, listing: Value) -> set[str]:
-        try:
-            names = parse_names(as_text(listing, "properties"))
-        except PropertyError as exc:
-            log.warning("%s: cannot read its properties list: %s", self.service, exc.message)
-            return set(self.matched)
-        stream = self.stream
+    def accept(self, found: Iterable[PropertyModel]) -> set[str]:
+        """The names among ``found`` this stream follows."""
+        stream, service = self.stream, self.service
         return {
-            n for n in names if self.matches(n) and n not in self.skipped and stream.may_read(self.service, n)
+            p.name
+            for p in found
+            if p.access.listenable and not p.needs_parameters and stream.may_read(service, p.name)
         }
 
+    def note(self, below: str, gap: bool) -> bool:
+        """The list changed below ``below``; True when a task must start asking about it."""
+        changed = self.changed
+        if not below or "" in changed or len(changed) >= MAX_CHANGED_NAMES:
+            changed.clear()
+            changed.add("")
+        else:
+            changed.add(below)
+        self.gap = self.gap or gap
+        if self.matching or not self.ready:
+            return False
+        self.matching = True
+        return True
+
+    def take(self) -> tuple[list[str], bool]:
+        """The names to ask about, and whether their changes came after a gap; forgotten here."""
+        names, gap = sorted(self.changed), self.gap
+        self.changed, self.gap = set(), False
+        return names, gap
+
     def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None:
-        if change.removed:
+        if change.removed:  # the service left the router: the stream forgets the expansion
             return
-        # A list that comes after a gap (a device reconnected): what is new in it may have been
-        # there a while, so its first values are marked as a gap too.
-        self.stream.reconcile(self, self.paths(change.value), gap=change.gap)
+        self.stream.list_changed(self, change.path, change.gap)
 
 
 class _Retry:
     """What a wildcard skipped on one service because it could not be reached, and the task
     that tries it again (see :meth:`ListenStream._retry`)."""
 
-    __slots__ = ("backend", "give_up_at", "paths", "task", "whole")
+    __slots__ = ("backend", "below", "give_up_at", "paths", "task", "whole")
 
     def __init__(self, backend: Backend, give_up_at: float | None) -> None:
         self.backend = backend
@@ -149,11 +184,13 @@ class _Retry:
         self.whole = False
         #: Matched paths of the service's expansion that could not be joined.
         self.paths: set[str] = set()
+        #: Names below which the expansion could not ask the service for its matches.
+        self.below: set[str] = set()
         self.task: asyncio.Task[None] | None = None
 
     @property
     def pending(self) -> bool:
-        return self.whole or bool(self.paths)
+        return self.whole or bool(self.paths) or bool(self.below)
 
 
 class ListenStream:
@@ -300,25 +337,39 @@ class ListenStream:
                 if skipped is not None:
                     self._skipped(sel, service, backend, None)
             return
-        exp = _Expansion(self, sel, service)
-        # A named service's list must exist; only a service that cannot be reached is skipped.
+        # A named service must answer; only a service that cannot be reached is skipped.
         skip = UNREACHABLE if named and not rejoined else WILDCARD_SKIPS
-        list_topic = await self._topics.subscribe(exp, (service, PROPERTIES, ()), backend, skip)
+        exp = _Expansion(self, sel, service, skip)
+        # Its list is followed before it is asked: no change can fall between the two.
+        list_topic = await self._topics.subscribe(exp, (service, PROPERTY_LIST, ()), backend, skip)
         if not isinstance(list_topic, Topic):
             if list_topic.code in UNREACHABLE:
                 self._skipped(sel, service, backend, None)
             return
-        if self.closed:
-            self._topics.unsubscribe(exp, list_topic)
-            return
-        await exp.learn_model(backend)
-        if self.closed:
-            self._topics.unsubscribe(exp, list_topic)
-            return
         exp.list_topic = list_topic
+        found: list[PropertyModel] | None = None
+        if not self.closed:
+            try:
+                found = await self._topics.match(service, backend, sel.path)
+            except PropertyError as exc:
+                self._topics.unsubscribe(exp, list_topic)
+                if exc.code not in skip:
+                    raise
+                if exc.code in UNREACHABLE:
+                    self._skipped(sel, service, backend, None)
+                else:
+                    log.warning("a wildcard Listen on %s skips it: %s", service, exc.message)
+                return
+        if self.closed or found is None:
+            self._topics.unsubscribe(exp, list_topic)
+            return
         self._expansions = [*self._expansions, exp]
-        exp.matched = exp.paths(list_topic.value)
-        await self._join_many(exp, sorted(exp.matched), gap)
+        exp.matched = MatchedPaths(exp.accept(found))
+        await self._join_many(exp, list(exp.matched), gap)
+        exp.ready = True
+        if exp.changed and not exp.matching:
+            exp.matching = True
+            self._topics.spawn(self._follow_changes(exp))
 
     async def _join_many(self, exp: _Expansion, paths: Iterable[str], gap: bool) -> None:
         backend = exp.list_topic.backend if exp.list_topic else None
@@ -385,11 +436,14 @@ class ListenStream:
         service: str,
         backend: Backend,
         path: str | None,
+        *,
         give_up_after: float | None = None,
+        below: str | None = None,
     ) -> None:
         """Remember a part ``sel`` could not follow on ``service`` (None: all of it); try it later.
 
         ``give_up_after``: seconds after which a try that still fails ends the stream.
+        ``below``: the part is the expansion's matches below that name (``path`` is None then).
         """
         if self.closed:
             return
@@ -405,7 +459,9 @@ class ListenStream:
             retry = _Retry(backend, give_up_at)
             retries[key] = retry
             retry.task = self._topics.spawn(self._retry(key, retry))
-        if path is None:
+        if below is not None:
+            retry.below.add(below)
+        elif path is None:
             retry.whole = True
         else:
             retry.paths.add(path)
@@ -423,8 +479,8 @@ class ListenStream:
                 await wait_to_retry(retry.backend, pause)
                 if self.closed or not self._serves(service, retry.backend):
                     return
-                whole, paths = retry.whole, retry.paths
-                retry.whole, retry.paths = False, set()
+                whole, paths, below = retry.whole, retry.paths, retry.below
+                retry.whole, retry.paths, retry.below = False, set(), set()
                 # What a wildcard fails on again is put back into ``retry`` by ``_skipped``.
                 try:
                     if whole:
@@ -432,8 +488,10 @@ class ListenStream:
                         await self._expand(sel, service, retry.backend, gap=True, rejoined=rejoined)
                     else:
                         exp = self._expansion(sel, service)
-                        if exp is not None:
-                            await self._join_many(exp, sorted(paths & exp.matched), gap=True)
+                        if exp is not None and below:
+                            await self._rematch(exp, sorted(below), gap=True)
+                        if exp is not None and paths:
+                            await self._join_many(exp, sorted(p for p in paths if p in exp.matched), gap=True)
                 except PropertyError as exc:
                     # An exact selector raises; it is tried again until it gives up.
                     give_up_at = retry.give_up_at
@@ -482,32 +540,63 @@ class ListenStream:
         elif not topic.removed:  # else the backend's own removal is queued or sent already
             self._enqueue(topic, "", time.time_ns(), gap=False, removed=True)
 
-    def reconcile(self, exp: _Expansion, paths: set[str], gap: bool = False) -> None:
-        """The service's properties changed: join new matches, leave the ones gone."""
-        if self.closed:
+    # -- following where a service's property list changes ---------------------
+
+    def list_changed(self, exp: _Expansion, below: str, gap: bool) -> None:
+        """The property list of ``exp``'s service changed below ``below`` ("": anywhere)."""
+        if not self.closed and exp.note(below, gap):
+            self._topics.spawn(self._follow_changes(exp))
+
+    async def _follow_changes(self, exp: _Expansion) -> None:
+        """Ask the service about each change noted, until none is left (one task per expansion)."""
+        try:
+            while exp.changed and not self.closed and exp.list_topic is not None and not exp.list_topic.dead:
+                names, gap = exp.take()
+                await self._rematch(exp, names, gap)
+        except PropertyError as exc:
+            self.fail(exc)
+        finally:
+            exp.matching = False
+
+    async def _rematch(self, exp: _Expansion, names: list[str], gap: bool) -> None:
+        """Ask the service for the matches below each of ``names`` again; join the new ones, leave
+        the ones gone. Below a name the service cannot be asked about now, it is asked again
+        later (:meth:`_retry`); an error the selector does not skip is raised."""
+        list_topic = exp.list_topic
+        if list_topic is None:
             return
-        gone = exp.matched - paths
-        new = paths - exp.matched
-        exp.matched = paths
-        for path in gone:
+        backend = list_topic.backend
+        for i, below in enumerate(names):
+            try:
+                found = await self._topics.match(exp.service, backend, exp.selector.path, below)
+            except PropertyError as exc:
+                if exc.code in UNREACHABLE:
+                    for name in names[i:]:
+                        self._skipped(exp.selector, exp.service, backend, None, below=name)
+                    return
+                if exc.code not in exp.skip:
+                    raise
+                log.warning("a wildcard Listen on %s keeps what it matched: %s", exp.service, exc.message)
+                continue
+            if self.closed:
+                return
+            await self._reconcile(exp, below, exp.accept(found), gap)
+
+    async def _reconcile(self, exp: _Expansion, below: str, found: set[str], gap: bool) -> None:
+        """``found`` is what ``exp`` matches below ``below`` now: join what is new, leave what is gone."""
+        before = exp.matched.below(below)
+        for path in before - found:
+            exp.matched.discard(path)
             topic = self._topics.get((exp.service, path, exp.selector.params))
             if topic is not None:
                 self._leave(topic, announce=True)
-        if new:
-            self._topics.spawn(self._join_new(exp, sorted(new), gap))
-
-    async def _join_new(self, exp: _Expansion, paths: list[str], gap: bool) -> None:
-        try:
-            if exp.list_topic is not None and any(p not in exp.known for p in paths):
-                # Properties the model has not seen (a member joined a group): ask it again.
-                await exp.learn_model(exp.list_topic.backend)
-                exp.matched -= exp.skipped
-            await self._join_many(exp, [p for p in paths if p in exp.matched], gap)
-        except PropertyError as exc:
-            self.fail(exc)
+        new = sorted(found - before)
+        exp.matched.update(new)
+        if not new:
             return
+        await self._join_many(exp, new, gap)
         # A path may have gone again while joining.
-        for path in paths:
+        for path in new:
             if path not in exp.matched:
                 topic = self._topics.get((exp.service, path, exp.selector.params))
                 if topic is not None:

@@ -6,6 +6,11 @@ LISTEN answers with it, other backends Get it once the Listen is in place), cach
 the latest value, so a stream joining a busy topic needs no backend call, and
 is closed when its last sink leaves.
 
+A topic whose path is :data:`PROPERTY_LIST` follows where a service's property list changes
+(:meth:`Backend.listen_properties`) and carries no value: each change's ``path`` names where.
+The wildcard expansions of every stream on that service share it, and each asks the service
+for its own matches there (:meth:`Topics.match`).
+
 A wildcard does not fail on what it cannot follow: :meth:`Topics.subscribe` takes the codes
 to skip (``MISSING``: not there or not listenable; ``UNREACHABLE``: the service cannot be
 reached now, which the stream tries again later) and hands back the error instead of raising.
@@ -23,6 +28,7 @@ from gateway.router import bounded_call
 from gateway.status import to_property_error
 from services.backend import NO_PARAMS, Backend, Change, Subscription
 from services.errors import Code, PropertyError
+from services.model import PropertyModel
 from services.values import Value
 
 log = logging.getLogger(__name__)
@@ -35,6 +41,9 @@ MISSING: frozenset[Code] = frozenset({Code.NOT_FOUND, Code.INVALID_ARGUMENT})
 UNREACHABLE: frozenset[Code] = frozenset({Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED})
 #: An exact selector skips nothing: the caller asked for exactly that.
 NOTHING: frozenset[Code] = frozenset()
+#: The path of the topic that follows a service's property list: never a property's path (no
+#: concrete path has a ``*`` segment).
+PROPERTY_LIST = "*"
 
 
 class Sink(Protocol):
@@ -162,14 +171,33 @@ class Topics:
             exc.message,
         )
 
+    async def match(
+        self, service: str, backend: Backend, pattern: str, under: str = ""
+    ) -> list[PropertyModel]:
+        """``backend.match_properties(pattern, under)`` under the call timeout; any failure is a
+        PropertyError naming the service and the pattern."""
+        what = f"{service}: match {pattern}" + (f" below {under}" if under else "")
+        try:
+            return await bounded_call(
+                backend.match_properties(pattern, under), self.call_timeout, lambda: what
+            )
+        except PropertyError as exc:
+            if exc.message.startswith(what):
+                raise
+            raise type(exc)(f"{what}: {exc.message}", exc.code) from None
+        except Exception as exc:
+            raise to_property_error(exc, what) from exc
+
     async def _open(self, topic: Topic) -> None:
         backend, path, params = topic.backend, topic.path, topic.params
         timeout = self.call_timeout
+        if path == PROPERTY_LIST:
+            listening = _listen_to_list(backend, topic)
+        else:
+            listening = backend.listen_current(path, topic.notify, params)
         try:
             topic.subscription, value = await bounded_call(
-                backend.listen_current(path, topic.notify, params),
-                timeout,
-                lambda: f"{topic.service}: listen {path}",
+                listening, timeout, lambda: f"{topic.service}: listen {path}"
             )
             if not topic.heard:
                 topic.value = value
@@ -250,3 +278,8 @@ class Topics:
             # Since Python 3.12 a gather of tasks already done returns without yielding to the loop,
             # so their done callbacks may not have run yet: forget them here, or this would spin.
             self._tasks.difference_update(tasks)
+
+
+async def _listen_to_list(backend: Backend, topic: Topic) -> tuple[Subscription, Value]:
+    """Open a :data:`PROPERTY_LIST` topic: it has no value of its own."""
+    return await backend.listen_properties(topic.notify), ""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import itertools
 import logging
 from collections.abc import Coroutine, Mapping
@@ -10,12 +11,20 @@ from typing import Any
 
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.backoff import pauses, wait_to_retry
-from services.core.describe import describe_tree
+from services.core.describe import describe_matching, describe_tree
 from services.core.metadata import class_spec
 from services.core.resource import Resource, start_tree, stop_tree
-from services.core.tree import NeedsAwait, RemoteTarget, Target, all_properties, remote_children, resolve
+from services.core.tree import (
+    NeedsAwait,
+    RemoteTarget,
+    Target,
+    all_properties,
+    remote_children,
+    remote_prefixes,
+    resolve,
+)
 from services.errors import Code, NotFound, PropertyError
-from services.model import ServiceModel
+from services.model import PropertyModel, ServiceModel
 from services.paths import validate_path
 from services.values import Value
 
@@ -119,6 +128,19 @@ class _LocalSubscription(Subscription):
         self._service._drop_listener(self._watch, self._token)
 
 
+class _ListSubscription(Subscription):
+    """A listener of the property list (:meth:`LocalService.listen_properties`)."""
+
+    __slots__ = ("_service", "_token")
+
+    def __init__(self, service: LocalService, token: int) -> None:
+        self._service = service
+        self._token = token
+
+    async def close(self) -> None:
+        self._service._drop_list_listener(self._token)
+
+
 class _RemoteSubscription(Subscription):
     """A listen forwarded into a Backend child, with its paths put back under the child's name."""
 
@@ -164,7 +186,10 @@ class LocalService(Backend):
         self._remote: dict[int, _RemoteSubscription] = {}
         self._tokens = itertools.count()
         self._closed = False
-        # While `properties` has listeners: a listen on `properties` of every remote child.
+        #: Listeners of the property list (listen_properties): told where the tree changed.
+        self._list_listeners: dict[int, Notify] = {}
+        # While the list is followed (a listen on `properties`, or a listener of the list): a
+        # listen on the property list of every remote child.
         self._remote_lists: dict[int, tuple[Backend, Subscription]] = {}
         self._remote_lists_lock = asyncio.Lock()
         # Remote children whose list could not be followed (not reachable): one retry task each.
@@ -239,13 +264,28 @@ class LocalService(Backend):
             watch.close()
             if self._watches.get(watch.path) is watch:
                 del self._watches[watch.path]
-            if watch.path == "properties" and (self._remote_lists or self._remote_list_retries):
-                self._spawn(self._sync_remote_lists(), "stop following remote property lists")
+            if watch.path == "properties":
+                self._lists_unfollowed()
+
+    def _drop_list_listener(self, token: int) -> None:
+        if self._list_listeners.pop(token, None) is not None and not self._list_listeners:
+            self._lists_unfollowed()
+
+    def _lists_unfollowed(self) -> None:
+        """A listener of the list left: stop following the remote children's lists if it was the last."""
+        if not self._list_followed() and (self._remote_lists or self._remote_list_retries):
+            self._spawn(self._sync_remote_lists(), "stop following remote property lists")
+
+    def _list_followed(self) -> bool:
+        """Somebody follows the property list: a listen on ``properties``, or a listener of the list."""
+        return bool(self._list_listeners) or "properties" in self._watches
 
     def _on_tree(self, path: str, removed: bool) -> None:
         self._targets.clear()
-        if "properties" in self._watches or self._remote_lists or self._remote_list_retries:
+        if self._remote_tree_changed(path, removed):
             self._spawn(self._sync_remote_lists(), "follow remote property lists")
+        if self._list_listeners:
+            self._tell_list_listeners(Change(path, ""))
         if not removed:
             return
         below = path + "."
@@ -261,6 +301,31 @@ class LocalService(Backend):
             if sub.inner is not None:
                 self.obj._ps_spawn(sub.inner.close(), f"close listen on {sub.path}")
 
+    def _remote_tree_changed(self, path: str, removed: bool) -> bool:
+        """Whether the change at ``path`` may change which remote children's lists are followed.
+
+        Only the part of the tree at ``path`` is looked at: a registry of 10,000 entries is not
+        walked again on each registration.
+        """
+        if removed:
+            return bool(self._remote_lists or self._remote_list_retries)
+        if not self._list_followed():
+            return False
+        node: Resource | Backend = self.obj
+        for name in path.split("."):
+            if not isinstance(node, Resource) or name not in node._ps_children:
+                return True  # changed again meanwhile: look at the whole tree
+            node = node._ps_children[name]
+        return not isinstance(node, Resource) or bool(remote_children(node))
+
+    def _tell_list_listeners(self, change: Change) -> None:
+        for token, notify in list(self._list_listeners.items()):
+            try:
+                notify(change)
+            except Exception:
+                log.exception("a listener of the property list raised; it is dropped")
+                self._list_listeners.pop(token, None)
+
     def _spawn(self, coro: Coroutine[Any, Any, None], what: str) -> asyncio.Task[None]:
         task = asyncio.get_running_loop().create_task(coro, name=what)
         self._tasks.add(task)
@@ -273,15 +338,20 @@ class LocalService(Backend):
         task.add_done_callback(done)
         return task
 
-    def _remote_list_changed(self, change: Change) -> None:
+    def _remote_list_changed(self, backend: Backend, change: Change) -> None:
+        """The property list of the remote child ``backend`` changed (at ``change.path`` in it)."""
         watch = self._watches.get("properties")
         if watch is not None:
             watch.fire(gap=change.gap)
+        if self._list_listeners:
+            for prefix in remote_prefixes(self.obj, backend):
+                where = f"{prefix}.{change.path}" if change.path else prefix
+                self._tell_list_listeners(Change(where, "", gap=change.gap))
 
     async def _sync_remote_lists(self) -> None:
-        """While ``properties`` is listened to, follow ``properties`` of every remote child."""
+        """While the property list is followed, follow the list of every remote child."""
         async with self._remote_lists_lock:
-            listened = "properties" in self._watches and not self._closed
+            listened = self._list_followed() and not self._closed
             wanted = {id(b): b for b in remote_children(self.obj)} if listened else {}
             for key in [k for k in self._remote_lists if k not in wanted]:
                 _, sub = self._remote_lists.pop(key)
@@ -292,7 +362,9 @@ class LocalService(Backend):
                 if key in self._remote_lists or key in self._remote_list_retries:
                     continue
                 try:
-                    sub = await backend.listen("properties", self._remote_list_changed)
+                    sub = await backend.listen_properties(
+                        functools.partial(self._remote_list_changed, backend)
+                    )
                 except PropertyError as e:
                     log.debug("cannot follow the property list of %r: %s", backend, e.message)
                     if e.code in _TRANSIENT:
@@ -314,7 +386,9 @@ class LocalService(Backend):
             for pause in pauses(REMOTE_LIST_RETRY_FIRST_S, REMOTE_LIST_RETRY_MAX_S):
                 await wait_to_retry(backend, pause)
                 try:
-                    sub = await backend.listen("properties", self._remote_list_changed)
+                    sub = await backend.listen_properties(
+                        functools.partial(self._remote_list_changed, backend)
+                    )
                 except PropertyError as e:
                     if e.code in _TRANSIENT:
                         continue
@@ -322,7 +396,7 @@ class LocalService(Backend):
                     return
                 async with self._remote_lists_lock:
                     wanted = (
-                        "properties" in self._watches
+                        self._list_followed()
                         and not self._closed
                         and key not in self._remote_lists
                         and any(b is backend for b in remote_children(self.obj))
@@ -332,7 +406,7 @@ class LocalService(Backend):
                 if not wanted:
                     await sub.close()
                     return
-                self._remote_list_changed(Change("properties", "", gap=True))
+                self._remote_list_changed(backend, Change("", "", gap=True))
                 return
         finally:
             if self._remote_list_retries.get(key) is mine:
@@ -341,11 +415,33 @@ class LocalService(Backend):
     async def properties(self) -> list[str]:
         return await all_properties(self.obj)
 
+    async def match_properties(self, pattern: str, under: str = "") -> list[PropertyModel]:
+        """The matches of ``pattern`` from a walk of only what it names (:func:`describe_matching`):
+        no list of every property is made, however big the tree."""
+        return [self.model_of(p) for p in await describe_matching(self.obj, pattern, under)]
+
+    async def listen_properties(self, notify: Notify) -> Subscription:
+        """Tell ``notify`` where the tree changes (a child attached or detached, a Backend child's
+        own list changed), as it changes: the list itself is never formatted for it."""
+        token = next(self._tokens)
+        self._list_listeners[token] = notify
+        if len(self._list_listeners) == 1:
+            await self._sync_remote_lists()
+        return _ListSubscription(self, token)
+
     async def describe(self) -> ServiceModel:
         """The model of every property of the object's tree, Backend children's through their own."""
-        return ServiceModel(
-            type=self.info.type, properties=await describe_tree(self.obj), doc=class_spec(type(self.obj)).doc
-        )
+        properties = tuple(self.model_of(p) for p in await describe_tree(self.obj))
+        return ServiceModel(type=self.info.type, properties=properties, doc=class_spec(type(self.obj)).doc)
+
+    def model_of(self, prop: PropertyModel) -> PropertyModel:
+        """The model of ``prop`` as this service gives it: the class wrapper's, by default.
+
+        A subclass serving what the class wrapper cannot express alone (a property read with a
+        parameter, a node typed as a value) refines it here; :meth:`describe` and
+        :meth:`match_properties` both give what it answers.
+        """
+        return prop
 
     async def start(self) -> None:
         """Start the object's background work, children first."""
@@ -361,6 +457,7 @@ class LocalService(Backend):
         for watch in list(self._watches.values()):
             watch.close()
         self._watches.clear()
+        self._list_listeners.clear()
         for sub in list(self._remote.values()):
             await sub.close()
         for task in list(self._tasks):

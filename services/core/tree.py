@@ -31,7 +31,7 @@ from services.values import (
     vector_index,
 )
 
-__all__ = ["NeedsAwait", "Target", "all_properties", "direct_names", "resolve"]
+__all__ = ["NeedsAwait", "Target", "all_properties", "direct_names", "remote_prefixes", "resolve"]
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +69,17 @@ def remote_children(node: Resource) -> list[Backend]:
             found.extend(remote_children(child))
         elif all(child is not b for b in found):
             found.append(child)
+    return found
+
+
+def remote_prefixes(node: Resource, backend: Backend, prefix: str = "") -> list[str]:
+    """The paths under ``node`` at which ``backend`` is a child (a member of a group: ``robots.scout1``)."""
+    found: list[str] = []
+    for name, child in node._ps_children.items():
+        if child is backend:
+            found.append(prefix + name)
+        elif isinstance(child, Resource):
+            found.extend(remote_prefixes(child, backend, f"{prefix}{name}."))
     return found
 
 

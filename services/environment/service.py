@@ -47,7 +47,7 @@ from services.environment.options import (
 from services.environment.options import readings as parse_readings
 from services.environment.sources import Follow, fixed
 from services.errors import InvalidArgument, PropertyError
-from services.model import PropertyModel, ServiceModel
+from services.model import PropertyModel
 from services.values import Value, ValueFormatError, Vector, parse_number, parse_vector
 
 __all__ = ["EnvironmentModel", "EnvironmentService"]
@@ -130,23 +130,16 @@ class EnvironmentService(LocalService):
         node.listeners[token] = notify
         return _LayerSubscription(node, token)
 
-    async def describe(self) -> ServiceModel:
-        model = await super().describe()
-        doc = LAYER_META["doc"]
-        layers = {f"grid.{name}" for name in self.obj.layer_nodes}
-
-        def typed(p: PropertyModel) -> PropertyModel:
-            # Nodes with a value of their own, which the class wrapper calls namespaces: typed,
-            # they are values a wildcard Get (`markers.*`) reads and a client knows how to parse.
-            if p.name in layers:
-                return replace(p, type="bytes", media_type=NPY, doc=doc, gui="bytes")
-            if p.name in ("markers", "grid"):
-                return replace(p, type="names", gui="list")
-            if p.name.startswith("markers.") and p.type == "namespace":
-                return replace(p, type="marker", gui="marker")
-            return p
-
-        return replace(model, properties=tuple(typed(p) for p in model.properties))
+    def model_of(self, prop: PropertyModel) -> PropertyModel:
+        # Nodes with a value of their own, which the class wrapper calls namespaces: typed,
+        # they are values a wildcard Get (`markers.*`) reads and a client knows how to parse.
+        if self._layer(prop.name) is not None:
+            return replace(prop, type="bytes", media_type=NPY, doc=LAYER_META["doc"], gui="bytes")
+        if prop.name in ("markers", "grid"):
+            return replace(prop, type="names", gui="list")
+        if prop.name.startswith("markers.") and prop.type == "namespace":
+            return replace(prop, type="marker", gui="marker")
+        return prop
 
 
 class EnvironmentModel(Resource):

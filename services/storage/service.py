@@ -37,7 +37,7 @@ from services.errors import (
     ResourceExhausted,
     Unavailable,
 )
-from services.model import Access, ParameterModel, PropertyModel, ServiceModel
+from services.model import Access, ParameterModel, PropertyModel
 from services.storage.disk import FileInfo, Folder
 from services.storage.find import FindQuery, format_time, glob_matcher
 from services.storage.names import check_name
@@ -159,12 +159,12 @@ class StorageService(LocalService):
             return await self.storage.follow(_file_name(params, path), notify, path)
         return await super().listen(path, notify, params)
 
-    async def describe(self) -> ServiceModel:
-        model = await super().describe()
-        blob = dataclasses.replace(BLOB_MODEL, max_size=self.storage.max_file_size)
-        fixed = {FILE: FILE_MODEL, BLOB: blob}
-        properties = tuple(fixed.get(p.name, p) for p in model.properties)
-        return dataclasses.replace(model, properties=properties)
+    def model_of(self, prop: PropertyModel) -> PropertyModel:
+        if prop.name == FILE:
+            return FILE_MODEL
+        if prop.name == BLOB:
+            return dataclasses.replace(BLOB_MODEL, max_size=self.storage.max_file_size)
+        return prop
 
 
 def _file_name(params: Mapping[str, str], prop: str = FILE) -> str:

@@ -35,7 +35,7 @@ from services.core import LocalService, Prop, Resource
 from services.directory import Directory
 from services.errors import InvalidArgument, PropertyError, ReadOnly, ResourceExhausted
 from services.location_following import LocationFollower
-from services.model import ParameterModel, ServiceModel
+from services.model import ParameterModel, PropertyModel
 from services.paths import validate_service_name
 from services.values import Value, Vector, format_number
 from services.values.markers import format_markers
@@ -167,13 +167,8 @@ class CameraService(LocalService):
             return _FrameWatch(self.camera, sub)
         return await super().listen(path, notify, params)
 
-    async def describe(self) -> ServiceModel:
-        model = await super().describe()
-        properties = tuple(
-            dataclasses.replace(p, parameters=(FRAME_PARAMETER,)) if p.name == "markers" else p
-            for p in model.properties
-        )
-        return dataclasses.replace(model, properties=properties)
+    def model_of(self, prop: PropertyModel) -> PropertyModel:
+        return dataclasses.replace(prop, parameters=(FRAME_PARAMETER,)) if prop.name == "markers" else prop
 
 
 #: ``markers`` takes a parameter, which a read property of the class wrapper cannot declare:

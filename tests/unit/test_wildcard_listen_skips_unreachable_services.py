@@ -13,47 +13,22 @@ from itertools import islice
 
 import pytest
 from support.fake_backend import DictBackend
+from support.hub_reader import Reader
 from support.waiting import wait_until
 
 from gateway.config import Limits
-from gateway.listen import ListenHub, ListenStream, Selector, StreamOptions
+from gateway.listen import ListenHub, Selector, StreamOptions
 from gateway.listen import stream as stream_module
 from gateway.router import Router
 from services.backend import NO_PARAMS, Notify, Subscription
 from services.backoff import pauses
 from services.errors import Code, PropertyError, ResourceExhausted, Unavailable
 
-Seen = tuple[str, str, str, bool]
-
 
 @pytest.fixture(autouse=True)
 def quick_retries(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(stream_module, "RETRY_FIRST_S", 0.01)
     monkeypatch.setattr(stream_module, "RETRY_MAX_S", 0.05)
-
-
-class Reader:
-    """Opens a stream on the hub and collects what it sends, as a front end's writer would."""
-
-    def __init__(self, hub: ListenHub, *selectors: Selector, options: StreamOptions | None = None) -> None:
-        self.events: list[Seen] = []
-        self.synced = False
-        self.stream: ListenStream = hub.open(list(selectors), options or StreamOptions(), self._ready)
-
-    def _ready(self) -> None:
-        asyncio.get_running_loop().call_soon(self._drain)
-
-    def _drain(self) -> None:
-        while (msg := self.stream.take()) is not None:
-            self.events += [(e.service, e.property, e.value, e.gap) for e in msg.events]
-            self.synced = self.synced or msg.sync
-
-    async def start(self) -> None:
-        await self.stream.start()
-        await wait_until(lambda: self.synced, what="the stream's sync marker")
-
-    async def until(self, event: Seen) -> None:
-        await wait_until(lambda: event in self.events, what=f"event {event}")
 
 
 def running(qualname: str) -> list[asyncio.Task[object]]:
