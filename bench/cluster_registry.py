@@ -13,18 +13,27 @@ gateway (forwarded), taking turns (p50 of each and their ratio). Last, the
 gateway that owns a quarter of the devices is SIGKILLed. Exact Listens on each
 of its devices' ``services.NAME.owner`` tell when it is owned again, Gets of
 its ``location`` through a survivor when it answers again (the new owner has
-connected to it); every registration must still be listed.
+connected to it); every registration must still be listed. The first and the
+last of each are kept: the first is the lease running out, the spread between
+them is the survivors taking the orphans over.
+
+Run alone, at any size (``python -m bench.cluster_registry --devices 4000
+--gateways 2``); ``--profile FOLDER`` records each survivor with py-spy from the
+kill until every orphan answers again (collapsed stacks, one file a gateway).
 """
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import contextlib
+import json
 import math
 import os
 import shutil
 import signal
 import socket
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -269,9 +278,16 @@ async def _answer_again(
 
 
 async def measure_registry(
-    devices: int, *, gateways: int, queries: int, gets: int, time_limit: float
+    devices: int,
+    *,
+    gateways: int,
+    queries: int,
+    gets: int,
+    time_limit: float,
+    profile: Path | None = None,
 ) -> dict[str, Any]:
-    """The registry part (see the module docstring) on a fresh etcd, fresh farms and fresh gateways."""
+    """The registry part (see the module docstring) on a fresh etcd, fresh farms and fresh gateways;
+    ``profile``: a folder where py-spy's record of each survivor's failover is written."""
     binary = etcd_binary()
     if binary is None:
         raise ServerError(ETCD_MISSING)
@@ -301,7 +317,13 @@ async def measure_registry(
                 stubs = [pb_grpc.PropertyServiceStub(channel) for channel in channels]
                 result.update(
                     await _registry_figures(
-                        stubs, started=started, ports=ports, queries=queries, gets=gets, deadline=deadline
+                        stubs,
+                        started=started,
+                        ports=ports,
+                        queries=queries,
+                        gets=gets,
+                        deadline=deadline,
+                        profile=profile,
                     )
                 )
             finally:
@@ -329,6 +351,7 @@ async def _registry_figures(
     queries: int,
     gets: int,
     deadline: float,
+    profile: Path | None,
 ) -> dict[str, Any]:
     devices, count = len(ports), len(stubs)
     begun = time.perf_counter()
@@ -362,9 +385,13 @@ async def _registry_figures(
     try:
         async with asyncio.timeout(CALL_TIMEOUT):
             await watch.following.wait()
+        recorders = await _start_profiles(profile, started[:-1])
         watch.killed_at = time.perf_counter()
         os.kill(victim.pid, signal.SIGKILL)
-        answered = await _answer_again(stubs[0], orphans, watch.killed_at, deadline)
+        try:
+            answered = await _answer_again(stubs[0], orphans, watch.killed_at, deadline)
+        finally:
+            await _stop_profiles(recorders)
     finally:
         following.cancel()
         await asyncio.gather(following, return_exceptions=True)
@@ -390,8 +417,10 @@ async def _registry_figures(
         "owned_again": len(taken),
         "owner_streams_ended": watch.ended,
         "owner_streams_first_end": watch.first_end,
+        "owned_again_first_s": round(min(taken), 2) if taken else math.nan,
         "owned_again_p50_s": round(_quantile(taken, 0.5), 2),
         "owned_again_s": round(max(taken), 2) if taken else math.nan,
+        "failover_first_s": round(min(delays), 2) if delays else math.nan,
         "failover_p50_s": round(_quantile(delays, 0.5), 2),
         "failover_s": round(max(delays), 2) if delays else math.nan,
         "listed_after_failover": after,
@@ -400,3 +429,72 @@ async def _registry_figures(
         and len(answered) == len(taken) == len(orphans)
         and after == devices,
     }
+
+
+async def _start_profiles(
+    folder: Path | None, gateways: list[ServerProcess]
+) -> list[asyncio.subprocess.Process]:
+    """py-spy recording each of ``gateways`` into ``folder`` (none without a folder)."""
+    if folder is None:
+        return []
+    binary = shutil.which("py-spy")
+    if binary is None:
+        raise ServerError("--profile needs py-spy (pip install py-spy)")
+    await asyncio.to_thread(folder.mkdir, parents=True, exist_ok=True)
+    recorders = []
+    for gateway in gateways:
+        argv = [binary, "record", "--pid", str(gateway.pid), "--rate", "100", "--format", "raw"]
+        argv += ["--output", str(folder / f"{gateway.kind}.txt")]
+        recorders.append(
+            await asyncio.create_subprocess_exec(
+                *argv, stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.DEVNULL
+            )
+        )
+    await asyncio.sleep(1.0)  # py-spy attaches to the process before the kill
+    return recorders
+
+
+async def _stop_profiles(recorders: list[asyncio.subprocess.Process]) -> None:
+    """Stop each recorder as Ctrl-C does: py-spy writes its file, then exits."""
+    for recorder in recorders:
+        with contextlib.suppress(ProcessLookupError):
+            recorder.send_signal(signal.SIGINT)
+    for recorder in recorders:
+        try:
+            async with asyncio.timeout(30):
+                await recorder.wait()
+        except TimeoutError:
+            await end_process(recorder)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Run the registry part alone and print its figures as JSON."""
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.cluster_registry", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("--devices", type=int, default=4_000, help="devices registered (default 4000)")
+    parser.add_argument("--gateways", type=int, default=4, help="gateway processes, 2 to 16 (default 4)")
+    parser.add_argument("--queries", type=int, default=200, help="finds and Gets each way (default 200)")
+    parser.add_argument("--time-limit", type=float, default=600.0, help="seconds the run may take")
+    parser.add_argument(
+        "--profile", type=Path, help="a folder for py-spy's record of each survivor's failover"
+    )
+    args = parser.parse_args(argv)
+    if not 2 <= args.gateways <= 16 or args.devices < args.gateways or args.queries < 1:
+        parser.error("expected 2 to 16 gateways, at least as many devices, and at least one query")
+    result = asyncio.run(
+        measure_registry(
+            args.devices,
+            gateways=args.gateways,
+            queries=args.queries,
+            gets=args.queries,
+            time_limit=args.time_limit,
+            profile=args.profile,
+        )
+    )
+    json.dump(result, sys.stdout, indent=1)
+    print()
+
+
+if __name__ == "__main__":
+    main()

@@ -1184,11 +1184,13 @@ def _cluster_registry_table(out: TextIO, results: Results) -> None:
             [
                 "killed gateway's devices owned again",
                 f"{d['owned_again']:,} of {d['killed_gateway_devices']:,}: "
+                f"first {d.get('owned_again_first_s', math.nan):.2f} s, "
                 f"p50 {d['owned_again_p50_s']:.2f} s, all {d['owned_again_s']:.2f} s after SIGKILL",
             ],
             [
                 "killed gateway's devices answering again",
                 f"{d['answered_again']:,} of {d['killed_gateway_devices']:,}: "
+                f"first {d.get('failover_first_s', math.nan):.2f} s, "
                 f"p50 {d['failover_p50_s']:.2f} s, all {d['failover_s']:.2f} s after SIGKILL",
             ],
             ["listed after the failover", f"{d['listed_after_failover']:,}"],

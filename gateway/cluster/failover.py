@@ -8,6 +8,11 @@ counts one more. Each gateway waits ``rank × step`` seconds for each orphan (ra
 the plan names), then ``create``\\ s the owners key unless somebody has: the first to try wins, and
 when it cannot (it died too, it lost the store), the next one in the order takes over a step later.
 
+The orphans of one rank are claimed together, in one call (:meth:`SharedStore.create_many
+<services.registry.store.SharedStore.create_many>`: 128 owners keys a transaction on etcd), not
+one transaction each: a dead gateway's thousand devices are a few dozen transactions, not a
+thousand at once that etcd would apply behind every gateway's lease renewal.
+
 A device that dialled in is never taken over: nobody can dial it. Its registration leaves with
 its gateway's lease, and it comes back when the device dials in to another gateway.
 """
@@ -48,8 +53,9 @@ def takeover_ranks(orphans: Iterable[str], loads: Mapping[str, int], me: str) ->
 class Takeover:
     """Schedules this gateway's attempts to take over orphans (see the module docstring).
 
-    ``plan()`` gives the orphans and the loads now; ``attempt(name)`` creates the owners key if the
-    registration is still an orphan (the cluster node does, and opens the device when it wins).
+    ``plan()`` gives the orphans and the loads now; ``attempt(names)`` creates the owners keys of
+    those still orphans, in one go (the cluster node does, and opens the devices it wins). A plan
+    makes one attempt per rank, so the tasks waiting are at most the gateways of the cluster per plan.
     """
 
     def __init__(
@@ -58,15 +64,17 @@ class Takeover:
         *,
         step: float,
         plan: Callable[[], tuple[list[str], dict[str, int]]],
-        attempt: Callable[[str], Awaitable[None]],
+        attempt: Callable[[list[str]], Awaitable[None]],
     ) -> None:
         self.me = me
         self.step = step
         self._plan = plan
         self._attempt = attempt
         self._batch: asyncio.TimerHandle | None = None
-        #: One pending attempt per orphan (bounded by the registrations).
-        self._pending: dict[str, asyncio.Task[None]] = {}
+        #: The orphans an attempt is waiting for (bounded by the registrations).
+        self._pending: set[str] = set()
+        #: The attempts waiting, one per rank of a plan.
+        self._tasks: set[asyncio.Task[None]] = set()
 
     def orphaned(self) -> None:
         """Some registration lost its owner: make a plan shortly (one plan for a burst)."""
@@ -76,30 +84,34 @@ class Takeover:
     def _make_plan(self) -> None:
         self._batch = None
         orphans, loads = self._plan()
-        ranks = takeover_ranks(orphans, loads, self.me)
+        by_rank: dict[int, list[str]] = {}
+        for name, rank in takeover_ranks(orphans, loads, self.me).items():
+            if name not in self._pending:
+                by_rank.setdefault(rank, []).append(name)
         loop = asyncio.get_running_loop()
-        for name, rank in ranks.items():
-            if name in self._pending:
-                continue
-            self._pending[name] = loop.create_task(
-                self._after(name, rank * self.step), name=f"cluster: take over {name}"
+        for rank, names in sorted(by_rank.items()):
+            self._pending.update(names)
+            task = loop.create_task(
+                self._after(names, rank * self.step), name=f"cluster: take over {len(names)} at rank {rank}"
             )
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
 
-    async def _after(self, name: str, delay: float) -> None:
+    async def _after(self, names: list[str], delay: float) -> None:
         try:
             if delay > 0:
                 await asyncio.sleep(delay)
-            await self._attempt(name)
+            await self._attempt(names)
         finally:
-            self._pending.pop(name, None)
+            self._pending.difference_update(names)
 
     async def aclose(self) -> None:
         """Stop every pending attempt."""
         if self._batch is not None:
             self._batch.cancel()
             self._batch = None
-        pending = list(self._pending.values())
-        self._pending.clear()
-        for task in pending:
+        tasks = list(self._tasks)
+        for task in tasks:
             task.cancel()
-        await asyncio.gather(*pending, return_exceptions=True)
+        await asyncio.gather(*tasks, return_exceptions=True)
+        self._pending.clear()

@@ -18,11 +18,13 @@ A :class:`ClusterNode` is what a gateway runs when its registry's store is share
 * **States.** The owner runs the liveness checks and writes ``states/NAME``; the others mirror it
   into their registry (``Registry.mirror``), so ``services.*.state`` is the same everywhere.
 * **Failover.** A registration whose ``owners`` key expired is taken over by the least-loaded
-  live gateway (:mod:`gateway.cluster.failover`); Listens through every gateway resume with a gap.
+  live gateway (:mod:`gateway.cluster.failover`), the orphans of one plan claimed together; the
+  devices won are opened ``MAX_OPENING`` at a time. Listens through every gateway resume with a gap.
 * **Read-only.** While the store cannot be reached, everything owned and forwarded is served as
-  before and registrations are refused (UNAVAILABLE, saying why). When it is back, with a new lease,
-  the node writes its leased keys and the registrations it owns again (:meth:`_reassert`), and for
-  one lease time lets the other gateways do the same before it believes a registration gone.
+  before and registrations are refused (UNAVAILABLE, saying why). When it is back the node writes
+  again what the store lost (:meth:`_reassert`): nothing when the lease lived through it, every
+  key of this gateway when the lease or the store's data are gone, in batches. For one lease time
+  it lets the other gateways do the same before it believes a registration gone.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ from services.registry.store import Change, Kind, SharedStore
 from services.registry.table import GONE
 from services.worker_pool import run_bounded
 
-__all__ = ["FORWARD_OPTIONS", "LEAVE_WAIT", "MAX_WRITES", "ClusterNode"]
+__all__ = ["FORWARD_OPTIONS", "LEAVE_WAIT", "MAX_OPENING", "MAX_WRITES", "ClusterNode"]
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +62,12 @@ log = logging.getLogger(__name__)
 FORWARD_OPTIONS: Mapping[str, Any] = {"backoff_initial": 0.1, "backoff_max": 2.0}
 #: Seconds a gateway that stops spends handing its services over (deleting its keys) at most.
 LEAVE_WAIT = 3.0
-#: Writes to the store at once when this gateway writes all its keys (coming back, leaving).
+#: Writes to the store at once when this gateway hands its keys over (leaving).
 MAX_WRITES = 64
+#: Devices taken over that are being connected at once (a TCP connect, the greeting, a properties
+#: Get each): a dead gateway's thousand devices would otherwise be a thousand connections opened
+#: in one go, each answer queued behind the others' and behind this gateway's own calls.
+MAX_OPENING = 64
 #: Folders read when joining and after a reconnect (and the licences, for the licence mirror).
 _FOLDERS = (Kind.GATEWAY, Kind.SERVICE, Kind.OWNER, Kind.STATE)
 
@@ -77,11 +83,15 @@ class ClusterNode:
         lease: float,
         allow: AllowList | None = None,
         peer_tls: Mapping[str, str] | None = None,
+        max_opening: int = MAX_OPENING,
     ) -> None:
         """``lease``: seconds of the store's lease (a dead gateway's keys go within it); ``allow``: what
         this gateway may dial when it takes a registration over (the registry's allow-list);
         ``peer_tls``: the ``grpcs://`` proxy options (``ca``, ``cert``, ``key``) with which calls are
-        forwarded to a gateway that serves TLS."""
+        forwarded to a gateway that serves TLS; ``max_opening``: devices taken over that are
+        connected at once."""
+        if max_opening < 1:
+            raise ValueError(f"max_opening must be at least 1, got {max_opening}")
         self.store = store
         self.router = router
         self.lease = lease
@@ -106,6 +116,14 @@ class ClusterNode:
         self._forwarding: dict[str, str] = {}
         #: Names being registered, unregistered or published now: the reconciler leaves them alone.
         self._busy: set[str] = set()
+        #: Services taken over whose device is being opened (waiting for one of MAX_OPENING places).
+        self._opening: set[str] = set()
+        self._open_places = asyncio.Semaphore(max_opening)
+        #: Devices taken over being connected now, each holding one of the places (tests, metrics).
+        self.connecting = 0
+        #: Services owned here whose owners key went: claimed again together, by one task.
+        self._reclaiming: set[str] = set()
+        self._reclaimer: asyncio.Task[None] | None = None
         self._dirty: dict[str, None] = {}
         #: Names looked at again once the store has settled after a reconnect.
         self._deferred: dict[str, None] = {}
@@ -255,19 +273,17 @@ class ClusterNode:
         self._wake.set()
 
     def _on_reconnect(self) -> None:
-        """The store is back with a new lease: write what this gateway holds again (in a task)."""
+        """The store is back: write what it lost of this gateway's keys again (in a task)."""
         self._resyncing = True
         self._settling_until = asyncio.get_running_loop().time() + self.lease
         self._spawn(self._reassert(), "cluster: write the keys again")
 
     async def _reassert(self) -> None:
         try:
-            await self._announce()
-            owners = await self.store.read(Kind.OWNER)
-            await run_bounded(sorted(self.owned), lambda name: self._reassert_one(name, owners), MAX_WRITES)
-            await self._read_all()
+            await self._read_all()  # the view as the store holds it now
+            written = await self._write_lost()
             self.joined = True
-            log.info("cluster: the store is back; %d keys of this gateway written again", len(self.owned))
+            log.info("cluster: the store is back; written again: %s", written)
         except PropertyError as exc:
             log.warning(
                 "cluster: writing the keys again failed (%s); trying at the next reconnect", exc.message
@@ -276,23 +292,67 @@ class ClusterNode:
             self._resyncing = False
             self._wake.set()
 
-    async def _reassert_one(self, name: str, owners: Mapping[str, str]) -> None:
-        """Write the keys of one service this gateway owns again (the store came back)."""
-        registration = self.owned.get(name)
-        if registration is None:
+    async def _write_lost(self) -> str:
+        """Write the keys of this gateway that the store does not hold as this gateway does.
+
+        A store that kept this gateway's lease kept every key bound to it, and one that took a new
+        lease did so once the old one's keys were gone (the store's promise): so comparing with what
+        the store holds now is enough. When the lease lived, nothing is written; when it, or the
+        store's data, is gone, every key is, in a few bulk writes (the store bounds their size and
+        how many are in flight). An owners key is created only if absent: another gateway may have
+        taken the service over meanwhile. What was written, for the log.
+        """
+        view = self.view
+        self.record = GatewayRecord(
+            self.record.address, self.record.http, self.record.line, owned=len(self.owned)
+        )
+        announced = view.gateways.get(self.me) != self.record
+        if announced:
+            await self._announce()
+            self._on_change(Change(Kind.GATEWAY, self.me, self.record.to_json()))
+        held = sorted(self.owned)
+        unowned = [name for name in held if name not in view.owners]
+        won = await self._create_many(Kind.OWNER, {name: self.me for name in unowned}, leased=True)
+        for name in unowned:
+            if name not in won:
+                log.info("cluster: %s is owned by %s now", name, view.owners.get(name, "another gateway"))
+        mine = [(name, self.owned[name]) for name in held if view.owners.get(name) == self.me]
+        # A registration by Set outlives this gateway: written only when the store lost it. One that
+        # dialled in is bound to this gateway's lease: written when the store does not hold it so.
+        registered = await self._create_many(
+            Kind.SERVICE,
+            {n: r.to_json() for n, r in mine if not r.dialled_in and n not in view.registrations},
+        )
+        dialled = {n: r.to_json() for n, r in mine if r.dialled_in and view.registrations.get(n) != r}
+        await self._put_many(Kind.SERVICE, dialled, leased=True)
+        states: dict[str, str] = {}
+        registry = self.registry
+        if registry is not None:
+            for name, _ in mine:
+                if registry.entry_of(name) is not None and view.states.get(name) != registry.state_of(name):
+                    states[name] = registry.state_of(name)
+        await self._put_many(Kind.STATE, states, leased=True)
+        return (
+            f"{'the gateway key, ' if announced else ''}{len(won)} owners, "
+            f"{len(registered) + len(dialled)} registrations and {len(states)} states of {len(held)} owned"
+        )
+
+    async def _create_many(self, kind: Kind, values: Mapping[str, str], *, leased: bool = False) -> set[str]:
+        """Create the keys that are absent, in bulk; the view has those created at once."""
+        if not values:
+            return set()
+        created = await self.store.create_many(kind, values, leased=leased)
+        for name in sorted(created):
+            self._on_change(Change(kind, name, values[name]))
+        return created
+
+    async def _put_many(self, kind: Kind, values: Mapping[str, str], *, leased: bool = False) -> None:
+        """Write keys in bulk; the view has them at once."""
+        if not values:
             return
-        if not await self._create(Kind.OWNER, name, self.me, leased=True):
-            owner = owners.get(name)
-            if owner != self.me:
-                log.info("cluster: %s is owned by %s now", name, owner)
-                return  # taken over meanwhile: the reconciler forwards to the new owner
-            await self.store.replace(Kind.OWNER, name, self.me, self.me, leased=True)  # the new lease
-        leased = registration.dialled_in
-        value = registration.to_json()
-        if not await self._create(Kind.SERVICE, name, value, leased=leased) and leased:
-            await self.store.put(Kind.SERVICE, name, value, leased=True)  # bound to the new lease
-        if self.registry is not None and self.registry.entry_of(name) is not None:
-            await self.store.put(Kind.STATE, name, self.registry.state_of(name), leased=True)
+        await self.store.put_many(kind, values, leased=leased)
+        for name, value in values.items():
+            self._on_change(Change(kind, name, value))
 
     def _on_router(self, name: str, backend: Backend | None) -> None:
         """A device dialled in to this gateway's line listener: publish it to the cluster."""
@@ -486,7 +546,7 @@ class ClusterNode:
             return
         if owner == self.me:
             if name not in self.owned or switching.target is None:
-                await self._open_owned(name, registration, switching)
+                self._open_owned(name, switching)
             else:
                 self.owned[name] = registration  # as the key holds it now (the registry adds options)
         elif owner is not None:
@@ -522,18 +582,40 @@ class ClusterNode:
             self.registry.mirror(name, self.view.states.get(name, "connecting"))
         return switching
 
-    async def _open_owned(self, name: str, registration: Registration, switching: SwitchingBackend) -> None:
-        """This gateway owns ``name`` now (it took it over): open the device."""
+    def _open_owned(self, name: str, switching: SwitchingBackend) -> None:
+        """This gateway owns ``name`` now (it took it over): open the device, in a task that waits for
+        one of ``MAX_OPENING`` places (a dead gateway's devices are opened side by side, not in turn)."""
+        if name not in self._opening:
+            self._opening.add(name)
+            self._spawn(self._open(name, switching), f"cluster: open {name}")
+
+    async def _open(self, name: str, switching: SwitchingBackend) -> None:
         try:
-            proxy = open_proxy(name, registration.url, {})
-            await proxy.start()
-        except PropertyError as exc:
-            log.error("cluster: cannot open %s at %s: %s", name, registration.url, exc.message)
-            return
-        await switching.switch(proxy, "owned here")
-        self._own(name, registration)
-        log.info("cluster: %s is owned here now (%s)", name, registration.url)
-        self._spawn(self._reach(name, switching), f"cluster: reach {name}")
+            async with self._open_places:
+                registration = self.view.registrations.get(name)
+                if (
+                    registration is None
+                    or self.view.owners.get(name) != self.me
+                    or self.served.get(name) is not switching
+                    or self._stopped
+                ):
+                    return  # it moved on while waiting for a place
+                try:
+                    proxy = open_proxy(name, registration.url, {})
+                    await proxy.start()
+                except PropertyError as exc:
+                    log.error("cluster: cannot open %s at %s: %s", name, registration.url, exc.message)
+                    return
+                self.connecting += 1
+                try:
+                    await switching.switch(proxy, "owned here")
+                    self._own(name, registration)
+                    log.info("cluster: %s is owned here now (%s)", name, registration.url)
+                    await self._reach(name, switching)
+                finally:
+                    self.connecting -= 1
+        finally:
+            self._opening.discard(name)
 
     async def _reach(self, name: str, switching: SwitchingBackend) -> None:
         """Tell the registry once the device taken over answers (it checks it itself from now on)."""
@@ -581,9 +663,8 @@ class ClusterNode:
     async def _orphan(self, name: str, registration: Registration, switching: SwitchingBackend) -> None:
         if name in self.owned:
             # This gateway holds the connection, but its owners key went (its lease lapsed while
-            # the store was away): claim it again at once.
-            with contextlib.suppress(PropertyError):
-                await self._create(Kind.OWNER, name, self.me, leased=True)
+            # the store was away): claim it again at once, with the others that went with it.
+            self._reclaim(name)
             return
         self._forwarding.pop(name, None)
         await switching.switch(
@@ -624,23 +705,49 @@ class ClusterNode:
         await asyncio.sleep(max(0.05, self._settling_until - asyncio.get_running_loop().time()))
         self._takeover.orphaned()
 
-    async def _take_over(self, name: str) -> None:
-        registration = self.view.registrations.get(name)
-        if registration is None or name in self.view.owners or registration.dialled_in or self._stopped:
+    async def _take_over(self, names: list[str]) -> None:
+        """Claim the owners keys of ``names`` still orphans, in one bulk create; the devices won are
+        opened by the reconciler (the view has this gateway as their owner at once)."""
+        if self._stopped:
             return
-        if self.allow is not None:
-            try:
-                await self.allow.check(name, registration.url)
-            except PropertyError as exc:
-                log.warning("cluster: not taking %s over: %s", name, exc.message)
-                return
+        claims: dict[str, str] = {}
+        for name in names:
+            registration = self.view.registrations.get(name)
+            if registration is None or name in self.view.owners or registration.dialled_in:
+                continue
+            if self.allow is not None:
+                try:
+                    await self.allow.check(name, registration.url)
+                except PropertyError as exc:
+                    log.warning("cluster: not taking %s over: %s", name, exc.message)
+                    continue
+            claims[name] = self.me
         try:
-            won = await self._create(Kind.OWNER, name, self.me, leased=True)
+            won = await self._create_many(Kind.OWNER, claims, leased=True)
         except PropertyError as exc:
-            log.info("cluster: cannot take %s over now: %s", name, exc.message)
+            log.info("cluster: cannot take %d services over now: %s", len(claims), exc.message)
             return
         if won:
-            log.info("cluster: taking %s over (%s)", name, registration.url)
+            log.info("cluster: taking %d of %d orphans over: %s", len(won), len(claims), _few(sorted(won)))
+
+    def _reclaim(self, name: str) -> None:
+        """Claim the owners key of ``name`` (owned here, its key gone) again soon, with any others."""
+        self._reclaiming.add(name)
+        if self._reclaimer is None or self._reclaimer.done():
+            self._reclaimer = asyncio.get_running_loop().create_task(
+                self._reclaim_all(), name="cluster: claim the owners keys again"
+            )
+            self._tasks.add(self._reclaimer)
+            self._reclaimer.add_done_callback(self._tasks.discard)
+
+    async def _reclaim_all(self) -> None:
+        await asyncio.sleep(0)  # the reconciler marks the others that went with it first
+        while self._reclaiming and not self._stopped:
+            names = sorted(self._reclaiming)
+            self._reclaiming.clear()
+            claims = {name: self.me for name in names if name in self.owned and name not in self.view.owners}
+            with contextlib.suppress(PropertyError):
+                await self._create_many(Kind.OWNER, claims, leased=True)
 
     # -- for devices and people ---------------------------------------------------
 
@@ -655,3 +762,9 @@ class ClusterNode:
     def owners(self) -> dict[str, str]:
         """Service name → owning gateway id, as this gateway sees it."""
         return dict(self.view.owners)
+
+
+def _few(names: list[str], shown: int = 5) -> str:
+    """The first names of a list for a log line, and how many more."""
+    more = f" and {len(names) - shown} more" if len(names) > shown else ""
+    return ", ".join(names[:shown]) + more

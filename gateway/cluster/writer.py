@@ -3,7 +3,9 @@
 A state change or a new count of owned services is heard in a plain callback, which cannot
 await a write to the store. :class:`LatestWrites` takes the write, keeps only the newest value
 per key (a burst of state changes is one write of the last state), and one task writes them in
-the order their keys were first touched. A write the store refuses (it cannot be reached) is
+the order their keys were first touched: the puts waiting side by side in one folder go in one
+bulk write (a gateway that took a thousand devices over reports their states in a few
+transactions, not a thousand). A write the store refuses (it cannot be reached) is
 dropped with a log line: when the store is back, the cluster writes every key it holds again
 (:meth:`gateway.cluster.ClusterNode` on reconnect), so nothing waits unbounded here.
 """
@@ -41,15 +43,32 @@ class LatestWrites:
 
     async def _write(self) -> None:
         while self._waiting:
-            (kind, name), (value, leased) = next(iter(self._waiting.items()))
-            del self._waiting[(kind, name)]
+            kind, leased, deleting, values = self._take_run()
             try:
-                if value is None:
-                    await self._store.delete(kind, name)
+                if deleting:
+                    for name in values:
+                        await self._store.delete(kind, name)
                 else:
-                    await self._store.put(kind, name, value, leased=leased)
+                    await self._store.put_many(kind, values, leased=leased)
             except PropertyError as exc:
-                log.info("cluster: cannot write %s/%s now: %s", kind.value, name, exc.message)
+                log.info("cluster: cannot write %d keys of %s now: %s", len(values), kind.value, exc.message)
+
+    def _take_run(self) -> tuple[Kind, bool, bool, dict[str, str]]:
+        """Take the first waiting writes that are alike (one folder, leased or not, puts or deletes):
+        (kind, leased, deleting, name → value)."""
+        run: dict[str, str] = {}
+        first: tuple[Kind, bool, bool] | None = None
+        for (kind, name), (value, leased) in self._waiting.items():
+            alike = (kind, leased, value is None)
+            if first is None:
+                first = alike
+            elif alike != first:
+                break
+            run[name] = value or ""
+        assert first is not None
+        for name in run:
+            del self._waiting[(first[0], name)]
+        return first[0], first[1], first[2], run
 
     async def flush(self) -> None:
         """Wait until every waiting write is done."""

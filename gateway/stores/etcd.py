@@ -11,15 +11,24 @@ One task (the supervisor) holds the connection:
   at one revision); open one watch of the whole prefix from the next revision. Then every key
   read is reported to the watchers again (and every key they knew that is gone, as deleted), and
   after any connection but the one :meth:`EtcdStore.start` waited for, the ``on_reconnect``
-  listeners are called, so that the gateway writes its leased keys again: etcd may have been
-  restarted empty, or the old lease may have expired while it was away.
+  listeners are called, so that the gateway writes again what it lost: etcd may have been
+  restarted empty, or the old lease may have expired while it was away. A new lease is taken
+  only when etcd says the old one is gone (and its keys with it), never on a mere broken stream.
+* **bulk writes** (:meth:`EtcdStore.create_many`, :meth:`EtcdStore.put_many`): up to
+  ``MAX_TXN_OPS`` keys a transaction, and ``BULK_IN_FLIGHT`` transactions at once over all
+  callers, so that a gateway taking a thousand devices over, or writing its keys again after a
+  reconnection, sends etcd a few dozen raft entries, not thousands at once.
 * **serve**: keep the lease alive every TTL/3 and hand every watched change to the watchers,
-  until either fails (etcd stopped, the lease expired, the watch was cancelled).
+  until either fails (etcd stopped, the lease expired, the watch was cancelled). The lease has a
+  connection of its own, so that its keep-alive never queues behind bulk writes; a keep-alive
+  that gets no answer (a loaded etcd answers renewals only once it has applied the writes before
+  them) is tried again on a new stream while the lease surely lives, and only then is the
+  connection given up.
 * **lost**: ``read_only`` says why at once, every call raises Unavailable with that reason, and
   the supervisor tries the next endpoint after a pause (0.1 s, doubled, at most 2 s).
 
-A dead etcd is noticed at once when its connection closes, and otherwise within TTL/3 plus the
-keep-alive's answer time (at most TTL/2): within a lease time.
+A dead etcd is noticed at once when its connection closes, and otherwise when no keep-alive has
+been answered for ``GIVE_UP`` of the lease (5/6 of it): within a lease time.
 """
 
 from __future__ import annotations
@@ -27,7 +36,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -79,6 +88,19 @@ MAX_KEYS = 1_000_000
 _MAX_MESSAGE_BYTES = PAGE * MAX_VALUE_BYTES + 4 * 1024 * 1024
 #: How long :meth:`EtcdStore.start` waits for the first connection before it returns read-only.
 START_WAIT = 2 * REQUEST_TIMEOUT
+#: Operations one transaction carries at most: etcd's default ``--max-txn-ops`` (128).
+MAX_TXN_OPS = 128
+#: Bytes of keys and values one transaction carries at most: under etcd's ``--max-request-bytes``
+#: (1.5 MiB by default) with room for the request's framing.
+MAX_TXN_BYTES = 1024 * 1024
+#: Bulk transactions in flight at once, over all callers. etcd applies writes one raft entry at a
+#: time and answers a lease renewal only once it has applied what came before (3.4: "waiting for
+#: the applied index took too long" after 1 s), so a flood of writes costs every gateway its lease;
+#: a few batches of 128 keys in flight keep a two-core etcd applying well under that.
+BULK_IN_FLIGHT = 4
+#: Part of the lease after the last answered keep-alive when this gateway gives the connection up
+#: (its keys may expire soon after): renewals are tried until then.
+GIVE_UP = 5 / 6
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,16 +135,23 @@ class _Lost(Exception):
 
 @dataclass(slots=True)
 class _Link:
-    """One connection to one etcd endpoint: the channel, the stubs, the two streams."""
+    """One connection to one etcd endpoint: the channels, the stubs, the two streams."""
 
     endpoint: str
     channel: grpc.aio.Channel
     kv: Any
+    #: The lease's own connection: its keep-alive never waits behind the keys' traffic.
+    lease_channel: grpc.aio.Channel
     leases: Any
     keepalive: Any = None
     watch: Any = None
     #: Seconds of the lease as granted (etcd may raise a short one to its minimum).
     ttl: float = DEFAULT_LEASE
+
+    async def close(self) -> None:
+        """Close both connections (their calls end)."""
+        await self.channel.close(None)
+        await self.lease_channel.close(None)
 
 
 class EtcdStore:
@@ -168,6 +197,8 @@ class EtcdStore:
         self._read_only_listeners: list[Callable[[], None]] = []
         self._read_only_told = self.read_only
         self._supervisor: asyncio.Task[None] | None = None
+        #: Bulk transactions in flight (``BULK_IN_FLIGHT``), shared by every caller.
+        self._bulk = asyncio.Semaphore(BULK_IN_FLIGHT)
         #: Connections made so far (a test reads it to see a reconnection happen).
         self.connections = 0
 
@@ -245,7 +276,7 @@ class EtcdStore:
                 )
             except grpc.aio.AioRpcError as e:
                 log.warning("could not end this gateway's lease on etcd: %s", _describe(e))
-        await link.channel.close(None)
+        await link.close()
 
     # -- the connection --------------------------------------------------------------------------
 
@@ -291,7 +322,7 @@ class EtcdStore:
     async def _drop_link(self) -> None:
         link, self._link = self._link, None
         if link is not None:
-            await link.channel.close(None)
+            await link.close()
 
     def _open_channel(self, endpoint: str) -> grpc.aio.Channel:
         options = [
@@ -307,7 +338,8 @@ class EtcdStore:
     async def _connect(self, endpoint: str) -> dict[tuple[Kind, str], str]:
         """Open a link, keep or grant the lease, read every key, open the watch; raises _Lost."""
         channel = self._open_channel(endpoint)
-        link = _Link(endpoint, channel, rpc.KVStub(channel), rpc.LeaseStub(channel))
+        lease_channel = self._open_channel(endpoint)
+        link = _Link(endpoint, channel, rpc.KVStub(channel), lease_channel, rpc.LeaseStub(lease_channel))
         self._link = link
         try:
             link.keepalive = link.leases.LeaseKeepAlive()
@@ -334,7 +366,11 @@ class EtcdStore:
         if self._lease_id:
             await self._bounded(link.keepalive.write(rpc.LeaseKeepAliveRequest(ID=self._lease_id)))
             kept = await self._bounded(link.keepalive.read())
-            if kept is not EOF and kept.TTL > 0:
+            if kept is EOF:
+                # Not an answer about the lease: it may live, with its keys. A new lease now would
+                # leave them to expire under this gateway's feet; try again instead.
+                raise _Lost("etcd ended the lease's keep-alive")
+            if kept.TTL > 0:
                 link.ttl = min(float(kept.TTL), self._lease_seconds)
                 return
             log.info("registry store: lease %x is gone (etcd restarted or it expired)", self._lease_id)
@@ -366,22 +402,39 @@ class EtcdStore:
         return _describe(failure) if failure is not None else "the connection ended"
 
     async def _keep_alive(self, link: _Link) -> None:
+        loop = asyncio.get_running_loop()
         interval = link.ttl / 3
         # An answer slower than half the lease means the keys may expire before the next one.
         answer_within = min(self._timeout, link.ttl / 2)
+        renewed = loop.time()
+        pause = interval
+        failure = ""
         while not self._closed:
-            await asyncio.sleep(interval)
+            await asyncio.sleep(pause)
+            # Until GIVE_UP of the lease has passed since the last renewal, the lease surely lives:
+            # a renewal that failed (a loaded etcd refuses one it cannot apply in time) is tried
+            # again on a new stream rather than giving the connection, and every key, up.
+            within = min(answer_within, renewed + GIVE_UP * link.ttl - loop.time())
+            if within <= 0:
+                raise _Lost(failure or "no keep-alive answered in time")
             try:
                 await self._bounded(
-                    link.keepalive.write(rpc.LeaseKeepAliveRequest(ID=self._lease_id)), answer_within
+                    link.keepalive.write(rpc.LeaseKeepAliveRequest(ID=self._lease_id)), within
                 )
-                answer = await self._bounded(link.keepalive.read(), answer_within)
+                answer = await self._bounded(link.keepalive.read(), within)
             except Exception as e:
-                raise _Lost(_describe(e)) from None
+                answer, failure = None, _describe(e)
             if answer is EOF:
-                raise _Lost("etcd ended the lease's keep-alive")
+                answer, failure = None, "etcd ended the lease's keep-alive"
+            if answer is None:
+                log.info("registry store: the lease's keep-alive failed (%s); trying again", failure)
+                link.keepalive.cancel()
+                link.keepalive = link.leases.LeaseKeepAlive()
+                pause = RETRY_FIRST
+                continue
             if answer.TTL <= 0:
                 raise _Lost(f"this gateway's lease {self._lease_id:x} expired")
+            renewed, pause, failure = loop.time(), interval, ""
 
     async def _follow(self, link: _Link) -> None:
         while True:
@@ -557,6 +610,68 @@ class EtcdStore:
         )
         return bool(answer.succeeded)
 
+    async def create_many(self, kind: Kind, values: Mapping[str, str], *, leased: bool = False) -> set[str]:
+        """Write each absent key of ``values``, ``MAX_TXN_OPS`` a transaction; the names written.
+
+        A transaction writes its keys only if every one is absent; when one is not, its failure
+        branch reads which exist (at the same revision), and the others are tried again in a new
+        transaction: each try leaves out at least one key, so it ends.
+        """
+        link = self._ready()
+        lease = self._lease_for(leased)
+        items = [(name, self._key(kind, name), self._value(value)) for name, value in values.items()]
+
+        async def create(batch: list[tuple[str, bytes, bytes]]) -> set[str]:
+            created: set[str] = set()
+            while batch:
+                absent = [
+                    rpc.Compare(
+                        key=key, result=rpc.Compare.EQUAL, target=rpc.Compare.CREATE, create_revision=0
+                    )
+                    for _, key, _ in batch
+                ]
+                writes = [
+                    rpc.RequestOp(request_put=rpc.PutRequest(key=key, value=value, lease=lease))
+                    for _, key, value in batch
+                ]
+                reads = [
+                    rpc.RequestOp(request_range=rpc.RangeRequest(key=key, count_only=True))
+                    for _, key, _ in batch
+                ]
+                request = rpc.TxnRequest(compare=absent, success=writes, failure=reads)
+                async with self._bulk:
+                    answer = await self._request(link.kv.Txn(request, timeout=self._timeout))
+                if answer.succeeded:
+                    created.update(name for name, _, _ in batch)
+                    break
+                batch = [
+                    item
+                    for item, read in zip(batch, answer.responses, strict=True)
+                    if not read.response_range.count
+                ]
+            return created
+
+        created: set[str] = set()
+        for done in await _all_or_none([create(batch) for batch in _batches(items)]):
+            created |= done
+        return created
+
+    async def put_many(self, kind: Kind, values: Mapping[str, str], *, leased: bool = False) -> None:
+        """Write every key of ``values``, ``MAX_TXN_OPS`` a transaction."""
+        link = self._ready()
+        lease = self._lease_for(leased)
+        items = [(name, self._key(kind, name), self._value(value)) for name, value in values.items()]
+
+        async def put(batch: list[tuple[str, bytes, bytes]]) -> None:
+            writes = [
+                rpc.RequestOp(request_put=rpc.PutRequest(key=key, value=value, lease=lease))
+                for _, key, value in batch
+            ]
+            async with self._bulk:
+                await self._request(link.kv.Txn(rpc.TxnRequest(success=writes), timeout=self._timeout))
+
+        await _all_or_none([put(batch) for batch in _batches(items)])
+
     async def replace(
         self, kind: Kind, name: str, expected: str, value: str | None, *, leased: bool = False
     ) -> bool:
@@ -610,6 +725,33 @@ class EtcdStore:
         # as the awaited call finishes, and the supervisor would then outlive aclose.
         async with asyncio.timeout(within if within is not None else self._timeout):
             return await call
+
+
+async def _all_or_none(calls: list[Coroutine[Any, Any, _T]]) -> list[_T]:
+    """Await every call (each a task); on the first failure the others are cancelled and it is raised."""
+    tasks = [asyncio.ensure_future(call) for call in calls]
+    try:
+        return await asyncio.gather(*tasks)
+    except BaseException:
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        raise
+
+
+def _batches(items: list[tuple[str, bytes, bytes]]) -> list[list[tuple[str, bytes, bytes]]]:
+    """``items`` (name, key, value) cut into transactions of at most MAX_TXN_OPS keys and
+    MAX_TXN_BYTES bytes."""
+    batches: list[list[tuple[str, bytes, bytes]]] = []
+    size = 0
+    for item in items:
+        length = len(item[1]) + len(item[2])
+        if not batches or len(batches[-1]) >= MAX_TXN_OPS or size + length > MAX_TXN_BYTES:
+            batches.append([])
+            size = 0
+        batches[-1].append(item)
+        size += length
+    return batches
 
 
 def _prefix_end(prefix: bytes) -> bytes:

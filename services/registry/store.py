@@ -18,7 +18,7 @@ the gateway (``gateway.stores``), so that ``services`` needs no etcd client.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Protocol, runtime_checkable
@@ -137,6 +137,18 @@ class SharedStore(RegistryStore, Protocol):
         """Write a key only when it is absent (one transaction); False when it exists."""
         ...
 
+    async def create_many(self, kind: Kind, values: Mapping[str, str], *, leased: bool = False) -> set[str]:
+        """Write each key of ``values`` (name → value) that is absent, many in one transaction; the
+        names written. A key that exists (another gateway wrote it first) is left as it is and does
+        not keep the others from being written. Raises Unavailable when the store cannot be reached
+        (the keys written by then stay written: the watch reports them)."""
+        ...
+
+    async def put_many(self, kind: Kind, values: Mapping[str, str], *, leased: bool = False) -> None:
+        """Write every key of ``values`` (name → value), many in one transaction; ``leased`` as for
+        :meth:`put`. Raises Unavailable when the store cannot be reached."""
+        ...
+
     async def replace(
         self, kind: Kind, name: str, expected: str, value: str | None, *, leased: bool = False
     ) -> bool:
@@ -154,8 +166,10 @@ class SharedStore(RegistryStore, Protocol):
         ...
 
     def on_reconnect(self, listener: Callable[[], None]) -> Callable[[], None]:
-        """Call ``listener`` after the store reconnected with a new lease, so that the gateway
-        writes its leased keys again (the old lease, and the keys bound to it, may be gone)."""
+        """Call ``listener`` after the store reconnected, so that the gateway writes again what it
+        lost. Before the listener is called, the watch has reported every key as the store holds
+        it now. The store keeps its lease when it can, and with it every key bound to it; it takes a
+        new lease only once the old one is gone, and every key bound to the old one with it."""
         ...
 
 

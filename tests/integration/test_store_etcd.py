@@ -160,6 +160,92 @@ async def test_two_gateways_racing_to_create_one_key_one_wins(etcd: EtcdServer, 
         assert sorted(won) == [False, True], f"round {n}: {won}"
 
 
+async def test_many_keys_are_created_at_once_and_a_key_taken_first_stays_its_writers(
+    etcd: EtcdServer, stores: Any
+) -> None:
+    first = await stores(etcd, "gw-first")
+    batcher = await stores(etcd, "gw-batcher")
+    names = [f"dev{n:04d}" for n in range(300)]  # three transactions of at most 128 keys
+    taken = {names[0], names[129], names[200], names[299]}
+    for name in sorted(taken):
+        assert await first.create(Kind.OWNER, name, "gw-first", leased=True)
+    created = await batcher.create_many(Kind.OWNER, {name: "gw-batcher" for name in names}, leased=True)
+    assert created == set(names) - taken
+    owners = await batcher.read(Kind.OWNER)
+    assert owners == {name: "gw-first" if name in taken else "gw-batcher" for name in names}
+    assert await batcher.create_many(Kind.OWNER, {name: "gw-batcher" for name in names}) == set()
+    # Leased: bound to the batcher's lease, they go when it ends.
+    await batcher.aclose()
+    assert await first.read(Kind.OWNER) == {name: "gw-first" for name in taken}
+
+
+async def test_two_gateways_creating_the_same_keys_at_once_share_them_without_overlap(
+    etcd: EtcdServer, stores: Any
+) -> None:
+    a = await stores(etcd, "gw-a")
+    b = await stores(etcd, "gw-b")
+    for round_ in range(5):
+        names = [f"r{round_}-dev{n:03d}" for n in range(400)]
+        won_a, won_b = await asyncio.gather(
+            a.create_many(Kind.OWNER, dict.fromkeys(names, "gw-a"), leased=True),
+            b.create_many(Kind.OWNER, dict.fromkeys(reversed(names), "gw-b"), leased=True),
+        )
+        assert not won_a & won_b, f"round {round_}: both created {sorted(won_a & won_b)[:5]}"
+        assert won_a | won_b == set(names), f"round {round_}: nobody created some"
+        owners = await a.read(Kind.OWNER)
+        assert all(owners[name] == ("gw-a" if name in won_a else "gw-b") for name in names)
+
+
+async def test_many_keys_are_put_at_once_within_etcds_request_size(etcd: EtcdServer, stores: Any) -> None:
+    store = await stores(etcd, "gw-a")
+    # 40 values of 60 KiB: 2.4 MiB, over etcd's 1.5 MiB a request, so more than one transaction.
+    big = {f"blob{n:02d}": chr(ord("a") + n % 26) * 60_000 for n in range(40)}
+    await store.put_many(Kind.LICENCE, big)
+    assert await store.read(Kind.LICENCE) == big
+    small = {f"dev{n:04d}": "up" for n in range(1_000)}
+    await store.put_many(Kind.STATE, small, leased=True)
+    await store.put_many(Kind.STATE, {name: "down" for name in list(small)[:10]}, leased=True)
+    states = await store.read(Kind.STATE)
+    assert len(states) == 1_000 and list(states.values()).count("down") == 10
+    with pytest.raises(InvalidArgument, match="without '/'"):
+        await store.put_many(Kind.STATE, {"a/b": "up"})
+    assert "a" not in await store.read(Kind.STATE)
+
+
+async def test_the_lease_lives_through_bulk_writes(etcd: EtcdServer, stores: Any) -> None:
+    store = await stores(etcd, "gw-a")
+    told: list[str] = []
+    store.watch_read_only(lambda: told.append(store.read_only))
+    loop = asyncio.get_running_loop()
+    began = loop.time()
+    rounds = 0
+    # Bulk writes for at least two leases' time: the keep-alive, on its own connection, goes on.
+    while loop.time() - began < 2 * LEASE:
+        await store.put_many(Kind.STATE, {f"dev{n:05d}": f"up{rounds}" for n in range(2_000)}, leased=True)
+        rounds += 1
+    assert told == [] and store.connections == 1, (told, store.connections)
+    states = await store.read(Kind.STATE)
+    assert len(states) == 2_000 and set(states.values()) == {f"up{rounds - 1}"}
+
+
+async def test_a_lease_that_lives_through_an_etcd_restart_keeps_its_keys(
+    etcd: EtcdServer, stores: Any
+) -> None:
+    owner = await stores(etcd, "gw-owner")
+    other = await stores(etcd, "gw-other")
+    await owner.put(Kind.OWNER, "bot", "gw-owner", leased=True)
+    seen = Seen(other)
+    reconnected = asyncio.Event()
+    owner.on_reconnect(reconnected.set)
+    etcd.stop()
+    etcd.start()  # with its data: the lease is still there
+    await asyncio.wait_for(reconnected.wait(), 10)
+    # The same lease, kept alive: its key never went, and outlives a lease's time.
+    await asyncio.sleep(LEASE + EXPIRY_SLACK)
+    assert await other.read(Kind.OWNER) == {"bot": "gw-owner"}
+    assert not seen.has(Kind.OWNER, "bot", None)
+
+
 async def test_the_watch_reports_changes_of_another_gateway_within_a_second(
     etcd: EtcdServer, stores: Any
 ) -> None:

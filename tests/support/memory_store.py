@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import TypeVar
 
 from services.errors import Unavailable
@@ -111,6 +111,8 @@ class MemoryStore:
         self.dead = False
         #: Writes made through this store (kind, name), in order: tests read what a gateway wrote.
         self.writes: list[tuple[str, Kind, str]] = []
+        #: Calls of the bulk writes (what, kind, keys asked for), in order: one round trip each.
+        self.bulk_calls: list[tuple[str, Kind, int]] = []
 
     # -- RegistryStore -------------------------------------------------------
 
@@ -180,6 +182,26 @@ class MemoryStore:
         self.writes.append(("create", kind, name))
         self.server.write(kind, name, value, self._gateway_id if leased else None)
         return True
+
+    async def create_many(self, kind: Kind, values: Mapping[str, str], *, leased: bool = False) -> set[str]:
+        await asyncio.sleep(0)
+        self._reachable()
+        self.bulk_calls.append(("create_many", kind, len(values)))
+        created = set()
+        for name, value in values.items():
+            if self.server.value(kind, name) is None:
+                self.writes.append(("create", kind, name))
+                self.server.write(kind, name, value, self._gateway_id if leased else None)
+                created.add(name)
+        return created
+
+    async def put_many(self, kind: Kind, values: Mapping[str, str], *, leased: bool = False) -> None:
+        await asyncio.sleep(0)
+        self._reachable()
+        self.bulk_calls.append(("put_many", kind, len(values)))
+        for name, value in values.items():
+            self.writes.append(("put", kind, name))
+            self.server.write(kind, name, value, self._gateway_id if leased else None)
 
     async def replace(
         self, kind: Kind, name: str, expected: str, value: str | None, *, leased: bool = False

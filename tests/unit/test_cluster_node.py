@@ -9,13 +9,15 @@ point.
 
 from __future__ import annotations
 
+import asyncio
 import json
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
+from typing import Any
 
 import pytest
 from support.fake_backend import DictBackend
-from support.memory_store import MemoryServer
+from support.memory_store import MemoryServer, MemoryStore
 from support.waiting import eventually, wait_until
 
 from gateway.cluster import ClusterNode, SwitchingBackend
@@ -43,11 +45,11 @@ class Member:
         return backend.target_label
 
 
-async def _member(server: MemoryServer, gateway_id: str) -> Member:
+async def _member(server: MemoryServer, gateway_id: str, **options: Any) -> Member:
     router = Router()
     store = server.store(gateway_id)
     await store.start()
-    node = ClusterNode(store, router, lease=LEASE)
+    node = ClusterNode(store, router, lease=LEASE, **options)
     registry = Registry(directory=node.directory, period=0, register_timeout=3.0, store=store, restore=False)
     await registry.start()
     await node.start(registry, address=f"127.0.0.1:{50050 + len(server.stores)}", line="127.0.0.1:7100")
@@ -64,6 +66,13 @@ async def cluster() -> AsyncIterator[tuple[MemoryServer, list[Member]]]:
         await member.registry.stop()
         for name in member.router.names():
             await member.router.remove(name).aclose()
+
+
+async def _stop(member: Member) -> None:
+    await member.node.stop()
+    await member.registry.stop()
+    for name in member.router.names():
+        await member.router.remove(name).aclose()
 
 
 @pytest.fixture
@@ -231,3 +240,140 @@ async def test_a_gateway_started_without_its_store_joins_when_the_store_is_back(
         await member.registry.stop()
         for name in member.router.names():
             await member.router.remove(name).aclose()
+
+
+#: Devices of the bulk tests: 60 a survivor, in one bulk write each.
+MANY = 120
+
+
+@pytest.fixture
+async def shared_device() -> AsyncIterator[str]:
+    """One device that answers under any name, on enough connections for every registration."""
+    server = DeviceServer(
+        DictBackend({"temperature": "21.5"}, type="sensor"), name="many", max_connections=2 * MANY
+    )
+    host, port = await server.serve_tcp("127.0.0.1", 0)
+    yield f"tcp://{host}:{port}"
+    await server.aclose()
+
+
+async def test_a_dead_gateways_devices_are_claimed_in_bulk_and_opened_side_by_side(
+    shared_device: str,
+) -> None:
+    server = MemoryServer()
+    members = [await _member(server, f"gw-{letter}", max_opening=8) for letter in "abc"]
+    a, b, c = members
+    try:
+        names = [f"dev{n:03d}" for n in range(MANY)]
+        for name in names:
+            await a.registry.register(name, shared_device)
+        await wait_until(lambda: all(name in c.router for name in names), what="c serves every device")
+        single_creates = {m.id: len([w for w in m.node.store.writes if w[0] == "create"]) for m in (b, c)}
+        peak = {"b": 0, "c": 0}
+        sampling = True
+
+        async def sample() -> None:  # how many devices each survivor connects at once
+            while sampling:
+                peak["b"] = max(peak["b"], b.node.connecting)
+                peak["c"] = max(peak["c"], c.node.connecting)
+                await asyncio.sleep(0)
+
+        sampler = asyncio.ensure_future(sample())
+        server.kill("gw-a")
+        await wait_until(
+            lambda: all(server.value(Kind.OWNER, name) in ("gw-b", "gw-c") for name in names),
+            what="every device owned again",
+        )
+        for member in (b, c):
+            await wait_until(
+                lambda m=member: all(
+                    m.target(n) == "owned here" for n in names if m.node.owners()[n] == m.id
+                ),
+                what=f"{member.id} opened what it took over",
+            )
+        sampling = False
+        await sampler
+        owners = [server.value(Kind.OWNER, name) for name in names]
+        assert owners.count("gw-b") == owners.count("gw-c") == MANY // 2  # spread evenly
+        for member in (b, c):
+            store = member.node.store
+            assert isinstance(store, MemoryStore)
+            claims = [call for call in store.bulk_calls if call[:2] == ("create_many", Kind.OWNER)]
+            # One bulk claim of its own half (rank 0), maybe one of what the other left (rank 1).
+            assert claims and claims[0][2] == MANY // 2, store.bulk_calls
+            creates = [w for w in store.writes if w[0] == "create"]
+            assert len(creates) - single_creates[member.id] == MANY // 2  # the claims, nothing more
+        # Opened side by side, never more than its places at once.
+        assert 1 < peak["b"] <= 8 and 1 < peak["c"] <= 8, peak
+        for name in names[:6]:  # each through its new owner (forwarding needs gateway processes)
+            owner = b if server.value(Kind.OWNER, name) == "gw-b" else c
+            assert await owner.router.lookup(name).get("temperature") == "21.5"
+    finally:
+        for member in (b, c):
+            await _stop(member)
+
+
+async def test_after_a_reconnect_only_what_the_store_lost_is_written_again(shared_device: str) -> None:
+    server = MemoryServer()
+    a = await _member(server, "gw-a")
+    try:
+        names = [f"dev{n:03d}" for n in range(MANY)]
+        for name in names:
+            await a.registry.register(name, shared_device)
+        await wait_until(
+            lambda: all(server.value(Kind.STATE, name) == "up" for name in names), what="every state written"
+        )
+        store = a.node.store
+        assert isinstance(store, MemoryStore)
+        keys = (Kind.OWNER, Kind.SERVICE, Kind.STATE, Kind.GATEWAY)
+
+        # The store went away and came back with its data and this gateway's lease: nothing to write.
+        before, calls = len(store.writes), len(store.bulk_calls)
+        server.stop()
+        server.start()
+        await wait_until(lambda: not a.node._resyncing, what="the reconnect handled")
+        await asyncio.sleep(0.1)
+        assert _keys_written_since(store, before, keys) == [] and store.bulk_calls[calls:] == []
+
+        # The lease ended while it was away: every leased key again, in bulk; the registrations stayed.
+        server.stop()
+        server.end_lease("gw-a")
+        before, calls = len(store.writes), len(store.bulk_calls)
+        server.start()
+        await wait_until(
+            lambda: all(server.value(Kind.STATE, name) == "up" for name in names), what="the states again"
+        )
+        assert {server.value(Kind.OWNER, name) for name in names} == {"gw-a"}
+        assert store.bulk_calls[calls:] == [
+            ("create_many", Kind.OWNER, MANY),
+            ("put_many", Kind.STATE, MANY),
+        ]
+        written = _keys_written_since(store, before, keys)
+        assert ("put", Kind.GATEWAY, "gw-a") in written
+        assert not [w for w in written if w[1] is Kind.SERVICE]
+
+        # Restarted empty: the registrations too.
+        before, calls = len(store.writes), len(store.bulk_calls)
+        server.stop()
+        server.start(empty=True)
+        await wait_until(
+            lambda: all(server.value(Kind.SERVICE, name) is not None for name in names),
+            what="the registrations again",
+        )
+        await wait_until(
+            lambda: all(server.value(Kind.STATE, name) == "up" for name in names), what="the states again"
+        )
+        assert store.bulk_calls[calls:] == [
+            ("create_many", Kind.OWNER, MANY),
+            ("create_many", Kind.SERVICE, MANY),
+            ("put_many", Kind.STATE, MANY),
+        ]
+        assert a.target(names[0]) == "owned here"
+    finally:
+        await _stop(a)
+
+
+def _keys_written_since(
+    store: MemoryStore, start: int, kinds: tuple[Kind, ...]
+) -> list[tuple[str, Kind, str]]:
+    return [write for write in store.writes[start:] if write[1] in kinds]

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
 from xml.etree import ElementTree
 
+from support.waiting import wait_until
+
 from gateway.cluster import ClusterView, GatewayRecord, Registration, takeover_ranks
+from gateway.cluster.failover import Takeover
 from gateway.cluster.picture import draw_owners
 from gateway.cluster.records import Ownership, read_gateway, read_registration
 from services.registry.store import Change, Kind
@@ -78,6 +82,34 @@ def test_orphans_are_dealt_to_the_least_loaded_first() -> None:
     assert sorted(plan["s1"] for plan in plans.values()) == [0, 1, 2]
     assert plans["gw-a"]["s1"] == 2
     assert takeover_ranks(["s1"], {"gw-a": 0}, "gw-z") == {}  # not a live gateway (yet)
+
+
+async def test_the_orphans_of_one_rank_are_attempted_together_a_step_apart() -> None:
+    loop = asyncio.get_running_loop()
+    orphans = [f"s{n}" for n in range(6)]
+    attempts: list[tuple[float, list[str]]] = []
+
+    async def attempt(names: list[str]) -> None:
+        attempts.append((loop.time(), sorted(names)))
+        for name in names:
+            orphans.remove(name)  # owned now: the next plan leaves it out
+
+    takeover = Takeover(
+        "gw-b", step=0.2, plan=lambda: (list(orphans), {"gw-b": 0, "gw-c": 0}), attempt=attempt
+    )
+    try:
+        takeover.orphaned()
+        takeover.orphaned()  # a burst of orphans: one plan
+        await wait_until(lambda: len(attempts) == 2, what="one attempt per rank")
+        takeover.orphaned()  # nothing left: no attempt
+        await asyncio.sleep(0.3)
+    finally:
+        await takeover.aclose()
+    (first_at, first), (second_at, second) = attempts
+    # gw-b is first for every other orphan (ties go to the smaller id), second for the rest.
+    assert first == ["s0", "s2", "s4"] and second == ["s1", "s3", "s5"]
+    assert second_at - first_at >= 0.19
+    assert len(attempts) == 2
 
 
 def test_the_picture_shows_each_gateway_with_what_it_owns() -> None:
