@@ -7,7 +7,7 @@ Python listener process spends more CPU per event than the gateway it
 measures (grpc.aio's per-message cost on both sides), so on a machine with
 few cores they take the cores the gateways should scale onto. The Go
 listeners (``bench/go_listeners/``: HTTP/2 frames read by one goroutine a
-connection, every connection read on one 5 ms tick) spend about 3 µs an
+connection, every connection read on one 5 ms tick) spend 1–3 µs an
 event. They are built offline from Debian's Go sources into
 ``build/go-listeners`` by ``bench/go_listeners/build.sh`` the first time a
 run asks for them (about 5 s; later runs only check that the build is up to

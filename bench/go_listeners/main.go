@@ -1,9 +1,9 @@
 // fanout-listeners: many Listen streams in one process, counting events on command, in Go.
 //
 // The same program as `python -m bench.fanout_listeners`, with the same options and the same stdin
-// protocol, for part (t) of the benchmark: it costs its machine about 3 µs of CPU an event where the
-// Python one costs twice what the gateway it measures spends, so that on a machine with few cores
-// the figure is the gateways' and not the listeners'. connection.go speaks HTTP/2 for the Listen
+// protocol, for part (t) of the benchmark: it costs its machine 1–3 µs of CPU an event where the
+// Python one costs more than the gateway it measures spends (40–70 µs against 25–40), so that on a
+// machine with few cores the figure is the gateways' and not the listeners'. connection.go speaks HTTP/2 for the Listen
 // calls; pacing.go reads every connection on one tick.
 //
 //	fanout-listeners --spread A1,A2 --streams 100 [--first 0] [--time-limit 300]
