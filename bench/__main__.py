@@ -24,6 +24,7 @@ from typing import Any
 from bench import report
 from bench.camera import run_camera
 from bench.cluster import run_cores
+from bench.cluster_listeners import KINDS as LISTENER_KINDS
 from bench.cluster_registry import ETCD_MISSING, etcd_binary, measure_registry
 from bench.fusion import run_fusion
 from bench.groups import run_scaling
@@ -70,6 +71,8 @@ PARTS = (
 SERVER_PARTS += ("sequential", "paced")
 #: (s) the peers: ``peers`` is both of them.
 PARTS += ("sequential", "paced", "peers", *PEERS_BY_NAME)
+#: (t) scale-out: ``cluster`` is both its measurements, the cores and the registry on etcd.
+PARTS += ("cluster-cores", "cluster-registry")
 SERVERS = {
     "baseline": ["bench.baseline", "--listen", "127.0.0.1:0"],
     "gateway": ["bench.gateway_server", "--listen", "127.0.0.1:0"],
@@ -333,6 +336,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help=f"(t) processes that open the Listen streams {both('cluster_listeners')}",
     )
     sizes.add_argument(
+        "--cluster-listener",
+        type=_csv(LISTENER_KINDS),
+        default=["auto"],
+        help="(t) the program of the listener processes, comma-separated to compare them in the same "
+        "rounds (the first is judged): go (bench/go_listeners, built on first use), python "
+        "(bench.fanout_listeners), auto (go where it can be built, else python) (default: auto)",
+    )
+    sizes.add_argument(
         "--cluster-seconds",
         type=float,
         help=f"(t) seconds the listeners count events {both('cluster_seconds')}",
@@ -580,12 +591,13 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
                 time_limit=args.time_limit,
             ),
         )
-    if "cluster" in args.parts:
+    if "cluster" in args.parts or "cluster-cores" in args.parts:
         results.setdefault("cluster", {})["cores"] = await _timed(
             f"cluster: Listen fan-out of {args.cluster_streams} streams from "
             f"{_listing(args.cluster_gateways)} gateway processes",
             lambda: run_cores(
                 args.cluster_gateways,
+                listener_kinds=args.cluster_listener,
                 streams=args.cluster_streams,
                 listeners=args.cluster_listeners,
                 seconds=args.cluster_seconds,
@@ -594,10 +606,11 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
                 time_limit=4 * args.time_limit,
             ),
         )
+    if "cluster" in args.parts or "cluster-registry" in args.parts:
         if etcd_binary() is None:
             print(f"  cluster registry: not run: {ETCD_MISSING}", file=sys.stderr)
         else:
-            results["cluster"]["registry"] = await _timed(
+            results.setdefault("cluster", {})["registry"] = await _timed(
                 f"cluster: {args.cluster_devices:,} devices across 4 gateways sharing a registry in etcd",
                 lambda: measure_registry(
                     args.cluster_devices,

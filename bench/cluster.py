@@ -34,6 +34,7 @@ from typing import Any
 
 import grpc
 
+from bench.cluster_listeners import ListenerProgram, listener_programs
 from bench.servers import ROOT, ServerError, ServerProcess, end_process
 from bench.target import SERVICE, VALUE_PROPERTY
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -64,31 +65,38 @@ def free_cores() -> dict[str, Any]:
 
 
 class ListenerProcess:
-    """One :mod:`bench.fanout_listeners` process: ``ready`` once its streams are synced."""
+    """One listener process (:mod:`bench.cluster_listeners`): ``ready`` once its streams are synced."""
 
     def __init__(self, process: asyncio.subprocess.Process) -> None:
         self.process = process
+        # Imported here, not at the top: `python -m bench --help` needs only the runtime packages.
+        import psutil  # type: ignore[import-untyped,unused-ignore]
+
+        self._ps = psutil.Process(process.pid)
 
     @classmethod
     async def start(
-        cls, spread: Sequence[str], streams: int, first: int, time_limit: float
+        cls, program: ListenerProgram, spread: Sequence[str], streams: int, first: int, time_limit: float
     ) -> ListenerProcess:
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH", "")]))
-        argv = [
-            "-m", "bench.fanout_listeners", "--spread", ",".join(spread), "--streams", str(streams),
-            "--first", str(first), "--time-limit", str(time_limit),
+        options = [
+            "--spread", ",".join(spread), "--streams", str(streams), "--first", str(first),
+            "--time-limit", str(time_limit),
         ]  # fmt: skip
         process = await asyncio.create_subprocess_exec(
-            sys.executable,
-            *argv,
+            *program.command,
+            *options,
             cwd=ROOT,
-            env=env,
+            env=program.environment(),
             stdin=asyncio.subprocess.PIPE,
             stdout=asyncio.subprocess.PIPE,
             stderr=asyncio.subprocess.PIPE,
         )
         return cls(process)
+
+    def cpu_seconds(self) -> float:
+        """User plus system CPU time the process has used so far (all its threads), as a gateway's."""
+        times = self._ps.cpu_times()
+        return float(times.user + times.system)
 
     async def ready(self) -> None:
         """Wait for ``ready``; ServerError with the process's stderr when it does not come."""
@@ -148,7 +156,14 @@ async def _set_until(stub: pb_grpc.PropertyServiceStub, stop: asyncio.Event, cou
 
 
 async def measure_cores(
-    gateways: int, *, streams: int, listeners: int, seconds: float, warmup: float, time_limit: float
+    gateways: int,
+    *,
+    program: ListenerProgram,
+    streams: int,
+    listeners: int,
+    seconds: float,
+    warmup: float,
+    time_limit: float,
 ) -> dict[str, Any]:
     """``gateways`` gateway processes, the first serving ``bench``, the rest forwarding it: count events."""
     started: list[ServerProcess] = []
@@ -168,7 +183,7 @@ async def measure_cores(
             for number in range(listeners):
                 count = share + (number < extra)
                 if count:
-                    clients.append(await ListenerProcess.start(spread, count, first, time_limit))
+                    clients.append(await ListenerProcess.start(program, spread, count, first, time_limit))
                 first += count
             await asyncio.gather(*(client.ready() for client in clients))
             async with grpc.aio.insecure_channel(origin.address) as channel:
@@ -178,16 +193,24 @@ async def measure_cores(
                 try:
                     await asyncio.sleep(warmup)
                     cpu = [gateway.cpu_seconds() for gateway in started]
+                    listener_cpu = [client.cpu_seconds() for client in clients]
+                    setter_cpu = time.process_time()
                     sets_before = sets[0]
                     for client in clients:
                         client.tell("start")
                     begun = time.perf_counter()
                     await asyncio.sleep(seconds)
+                    # Read before ``stop``: a listener exits once it has printed its counts.
+                    listener_used = sum(
+                        c.cpu_seconds() - before for c, before in zip(clients, listener_cpu, strict=True)
+                    )
                     for client in clients:
                         client.tell("stop")
                     wall = time.perf_counter() - begun
                     sets_done = sets[0] - sets_before
                     cores = [(g.cpu_seconds() - c) / wall for g, c in zip(started, cpu, strict=True)]
+                    listener_cores = listener_used / wall
+                    setter_cores = (time.process_time() - setter_cpu) / wall
                     counted = await asyncio.gather(*(client.figures() for client in clients))
                 finally:
                     stop.set()
@@ -201,8 +224,13 @@ async def measure_cores(
                 await gateway.stop()
     events = sum(c["events"] for c in counted)
     ended = sum(c["ended"] for c in counted)
+
+    def per_event(busy_cores: float) -> float:
+        return round(1e6 * busy_cores * wall / events, 1) if events else 0.0
+
     return {
         "gateways": gateways,
+        "listener": program.kind,
         "streams": streams,
         "listener_processes": len(clients),
         "seconds": round(wall, 3),
@@ -213,14 +241,30 @@ async def measure_cores(
         "set_errors": sets[1],
         "streams_ended": ended,
         "gateway_cores": [round(c, 2) for c in cores],
-        "gateway_cpu_us_per_event": round(1e6 * sum(cores) * wall / events, 1) if events else 0.0,
+        "gateway_cpu_us_per_event": per_event(sum(cores)),
+        "listener_cores": round(listener_cores, 2),
+        "listener_cpu_us_per_event": per_event(listener_cores),
+        # This process: the setter, and the asyncio loop that drives the listeners' pipes.
+        "setter_cores": round(setter_cores, 2),
         "complete": ended == 0 and events > 0,
     }
+
+
+def _best_of(gateway_counts: tuple[int, ...], seen: dict[int, list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Each number of gateways' best round, with its ratio to the fewest gateways' and every round's rate."""
+    best = {k: max(runs, key=lambda figures: float(figures["events_per_s"])) for k, runs in seen.items()}
+    one = best[min(gateway_counts)]["events_per_s"]
+    return [
+        {**best[k], "ratio": round(best[k]["events_per_s"] / one, 3) if one else 0.0,
+         "rounds_events_per_s": [r["events_per_s"] for r in seen[k]]}
+        for k in gateway_counts
+    ]  # fmt: skip
 
 
 async def run_cores(
     gateway_counts: tuple[int, ...],
     *,
+    listener_kinds: Sequence[str] = ("auto",),
     streams: int,
     listeners: int,
     seconds: float,
@@ -228,33 +272,44 @@ async def run_cores(
     rounds: int,
     time_limit: float,
 ) -> dict[str, Any]:
-    """Measure fan-out with each number of gateways, taking turns for ``rounds``; the best round counts."""
+    """Measure fan-out with each number of gateways, taking turns for ``rounds``; the best round counts.
+
+    Each kind of listener program in ``listener_kinds`` (:mod:`bench.cluster_listeners`) takes its turn
+    after each number of gateways; the first is the one the target judges (``sizes``), the others are
+    kept in ``other_listeners``, measured in the same rounds.
+    """
     machine = free_cores()
-    seen: dict[int, list[dict[str, Any]]] = {k: [] for k in gateway_counts}
+    programs, notes = await listener_programs(listener_kinds)
+    for note in notes:
+        print(f"  cluster cores: {note}", file=sys.stderr)
+    seen: dict[str, dict[int, list[dict[str, Any]]]] = {
+        program.kind: {k: [] for k in gateway_counts} for program in programs
+    }
     for _ in range(rounds):
         for k in gateway_counts:
-            seen[k].append(
-                await measure_cores(
-                    k,
-                    streams=streams,
-                    listeners=listeners,
-                    seconds=seconds,
-                    warmup=warmup,
-                    time_limit=time_limit,
+            for program in programs:
+                seen[program.kind][k].append(
+                    await measure_cores(
+                        k,
+                        program=program,
+                        streams=streams,
+                        listeners=listeners,
+                        seconds=seconds,
+                        warmup=warmup,
+                        time_limit=time_limit,
+                    )
                 )
-            )
-    best = {k: max(runs, key=lambda figures: float(figures["events_per_s"])) for k, runs in seen.items()}
-    one = best[min(gateway_counts)]["events_per_s"]
-    sizes = [
-        {**best[k], "ratio": round(best[k]["events_per_s"] / one, 3) if one else 0.0,
-         "rounds_events_per_s": [r["events_per_s"] for r in seen[k]]}
-        for k in gateway_counts
-    ]  # fmt: skip
+    by_kind = {kind: _best_of(gateway_counts, runs) for kind, runs in seen.items()}
+    judged_kind = programs[0].kind
+    sizes = by_kind.pop(judged_kind)
     judged = 4 if machine["free_cores"] >= 4 and 4 in gateway_counts else 2
     return {
         **machine,
+        "listener": judged_kind,
+        "listener_notes": notes,
         "sizes": sizes,
+        "other_listeners": by_kind,
         "judged_gateways": judged,
         "judged_bound": CORES_BOUNDS[judged],
-        "complete": all(size["complete"] for size in sizes),
+        "complete": all(size["complete"] for runs in (sizes, *by_kind.values()) for size in runs),
     }

@@ -7,7 +7,7 @@ each up to its ``sync`` marker and prints ``ready`` on stdout. Then it obeys
 its stdin, one word a line: ``start`` zeroes the counts, ``stop`` prints
 ``{"events": E, "conflated": C, "ended": N}`` as one JSON line (events read
 since ``start``, intermediate values the gateways conflated away, streams that
-ended) and exits. It also exits at end of file on stdin, and after
+ended, with an error or without) and exits. It also exits at end of file on stdin, and after
 ``--time-limit`` seconds whatever happens, so that it never outlives the
 benchmark.
 """
@@ -48,7 +48,10 @@ class Counts:
 
 async def _consume(call: Any, counts: Counts) -> None:
     while True:
-        response = await call.read()
+        try:
+            response = await call.read()
+        except grpc.aio.AioRpcError:
+            response = STREAM_END  # ended with an error status: ended all the same
         if response is STREAM_END:
             counts.ended += 1
             return
@@ -87,8 +90,13 @@ async def listen(spread: list[str], streams: int, first: int) -> int:
     counts = Counts()
     tasks: list[asyncio.Task[None]] = []
     try:
-        async with asyncio.timeout(SYNC_TIMEOUT):
-            await asyncio.gather(*(read_until_sync(call) for call in calls))
+        try:
+            async with asyncio.timeout(SYNC_TIMEOUT):
+                await asyncio.gather(*(read_until_sync(call) for call in calls))
+        except grpc.aio.AioRpcError as error:
+            why = f"{error.code().name}: {error.details()}"
+            print(f"error: a Listen stream ended before its sync marker: {why}", file=sys.stderr)
+            return 1
         tasks = [asyncio.create_task(_consume(call, counts)) for call in calls]
         commands = await _commands()
         print("ready", flush=True)

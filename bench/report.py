@@ -1127,9 +1127,11 @@ def _cores_table(out: TextIO, results: Results) -> None:
             [_error_row("cluster", cores)],
         )
         return
+    runs = [*cores["sizes"], *(d for sizes in cores["other_listeners"].values() for d in sizes)]
     rows = [
         [
             str(d["gateways"]),
+            d["listener"],
             f"{d['streams']:,}",
             str(d["listener_processes"]),
             f"{d['events_per_s']:,.0f}",
@@ -1138,17 +1140,21 @@ def _cores_table(out: TextIO, results: Results) -> None:
             f"{d['sets_per_s']:,.0f}",
             " ".join(f"{c:.2f}" for c in d["gateway_cores"]),
             _fmt(d["gateway_cpu_us_per_event"], 1),
+            _fmt(d["listener_cores"], 2),
+            _fmt(d["listener_cpu_us_per_event"], 1),
             str(d["rounds_events_per_s"]),
         ]
-        for d in cores["sizes"]
+        for d in runs
     ]
+    rows += [[f"note: {note}"] for note in cores["listener_notes"]]
     _table(
         out,
         "(t) Listen fan-out from K gateway processes, K-1 forwarding bench/value from the first (grpc://); "
         f"{cores['cpu_count']} cores, {cores['usable_cores']} usable, {cores['free_cores']} free "
-        f"(load average {cores['load_average']})",
+        f"(load average {cores['load_average']}); judged: the {cores['listener']} listeners",
         [
             "K",
+            "listener",
             "streams",
             "listener procs",
             "events/s",
@@ -1157,6 +1163,8 @@ def _cores_table(out: TextIO, results: Results) -> None:
             "Sets/s",
             "gateway cores",
             "gw CPU µs/event",
+            "listener cores",
+            "lst CPU µs/event",
             "rounds",
         ],
         rows,

@@ -78,8 +78,11 @@ command -v go >/dev/null || go_missing+=(golang-go)
 command -v protoc >/dev/null || go_missing+=(protobuf-compiler)
 command -v protoc-gen-go >/dev/null || go_missing+=(protoc-gen-go)
 command -v protoc-gen-go-grpc >/dev/null || go_missing+=(protoc-gen-go-grpc)
+# The benchmark's Go listeners (bench/go_listeners) speak HTTP/2 with golang.org/x/net's framer
+# (golang-google-grpc-dev depends on it; named here so that it is there whatever brought it).
+[ -d /usr/share/gocode/src/golang.org/x/net/http2 ] || go_missing+=(golang-golang-x-net-dev)
 if [ "${#go_missing[@]}" -gt 0 ]; then
-  apt_install "the Go client" "${go_missing[@]}"
+  apt_install "the Go client and listeners" "${go_missing[@]}"
 fi
 # The container tests (tests/containers) build the gateway's image with podman (runc as its runtime)
 # on a base image that mmdebstrap makes here; setup.sh writes why they skip when it cannot.

@@ -203,6 +203,10 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
     assert [d["gateways"] for d in cores["sizes"]] == [1, 2, 4] and cores["complete"], cores
     assert all(d["events"] > 0 and d["streams_ended"] == 0 for d in cores["sizes"]), cores
     assert cores["usable_cores"] >= 1 and cores["judged_gateways"] in (2, 4), cores
+    # The listener processes (Go where it builds, else Python, with a note) had their CPU measured too.
+    assert cores["listener"] in ("go", "python") and cores["other_listeners"] == {}, cores
+    assert (cores["listener"] == "python") == bool(cores["listener_notes"]), cores
+    assert all(d["listener"] == cores["listener"] and d["listener_cores"] > 0 for d in cores["sizes"]), cores
     # The registry on etcd: every device registered, listed by every gateway, and after one gateway was
     # killed every one of its devices answered again through a survivor, none lost.
     if has_etcd:
