@@ -9,7 +9,13 @@ registration rate, then the time until every gateway lists every device. Then
 ``queries`` Gets of the registry's ``find`` (``type=mobile_robot``,
 ``limit=10``) taking turns over the gateways (p50, p99); ``gets`` Gets of a
 device's ``location`` one at a time, on its owner (local) and on another
-gateway (forwarded), taking turns (p50 of each and their ratio). Last, the
+gateway (forwarded), taking turns (p50 of each and their ratio). Before those,
+once every gateway reads every device ``up`` and typed (its forwarding set up
+and its type learnt), the cluster is left alone for ``REST_SECONDS``: each
+gateway's CPU over that rest, then its RSS and open files, compared with what
+it held before the first registration (per service it serves: every device of
+the cluster), and its established TCP connections to the other gateways' gRPC
+ports (how many channels it forwards over). Last, the
 gateway that owns a quarter of the devices is SIGKILLed. Exact Listens on each
 of its devices' ``services.NAME.owner`` tell when it is owned again, Gets of
 its ``location`` through a survivor when it answers again (the new owner has
@@ -18,13 +24,16 @@ connected to it); every registration must still be listed.
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import contextlib
+import json
 import math
 import os
 import shutil
 import signal
 import socket
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -55,6 +64,13 @@ OWNER_SELECTORS = 64
 FAILOVER_GET_TIMEOUT = 2.0
 #: Seconds between rounds of asking the devices that have not answered yet.
 FAILOVER_PAUSE = 0.1
+#: Seconds the settled cluster is left alone while each gateway's CPU time is read (its CPU at rest).
+REST_SECONDS = 5.0
+#: Devices whose state and type one Get reads while waiting for the cluster to settle: two paths
+#: each, within a gateway's default ``[limits] max_get_paths`` (1,000).
+SETTLE_CHUNK = 400
+#: Seconds between looks at whether the cluster has settled.
+SETTLE_PAUSE = 0.5
 #: What etcd logs once it answers clients (3.4 says the first, later versions the second).
 ETCD_READY = (b"serving client traffic", b"ready to serve client requests")
 ETCD_MISSING = "etcd is not installed (Debian: apt-get install etcd-server); the registry part needs it"
@@ -170,6 +186,70 @@ async def _register_spread(
 async def _listed(stub: pb_grpc.PropertyServiceStub) -> set[str]:
     reply = await stub.Get(pb.GetRequest(service="registry", property="services"), timeout=CALL_TIMEOUT)
     return set(parse_names(reply.value))
+
+
+async def _unsettled(stub: pb_grpc.PropertyServiceStub, names: list[str]) -> int:
+    """How many of ``names`` the gateway of ``stub`` does not read ``up`` with a known type yet."""
+    waiting = 0
+    for first in range(0, len(names), SETTLE_CHUNK):
+        chunk = names[first : first + SETTLE_CHUNK]
+        paths = [f"services.{name}.{what}" for name in chunk for what in ("state", "type")]
+        more = [pb.PropertyRef(property=path) for path in paths[1:]]
+        reply = await stub.Get(
+            pb.GetRequest(service="registry", property=paths[0], more=more), timeout=CALL_TIMEOUT
+        )
+        values = [reply.value, *(item.value for item in reply.more)]
+        waiting += sum(
+            1
+            for state, kind in zip(values[::2], values[1::2], strict=True)
+            if state != "up" or kind in ("", "unknown")
+        )
+    return waiting
+
+
+def _footprint(started: list[ServerProcess]) -> dict[str, list[int]]:
+    return {"rss": [g.rss_bytes() for g in started], "fds": [g.open_files() for g in started]}
+
+
+async def _at_rest(
+    stubs: list[pb_grpc.PropertyServiceStub],
+    started: list[ServerProcess],
+    names: list[str],
+    before: dict[str, list[int]],
+    deadline: float,
+) -> dict[str, Any]:
+    """Wait until every gateway reads every device up and typed, leave the cluster alone for
+    ``REST_SECONDS``, and read what each gateway holds then (see the module docstring)."""
+    begun = time.perf_counter()
+    waiting = [len(names)] * len(stubs)
+    while max(waiting) and time.monotonic() < deadline:
+        waiting = [await _unsettled(stub, names) for stub in stubs]
+        if max(waiting):
+            await asyncio.sleep(SETTLE_PAUSE)
+    settled = time.perf_counter() - begun
+    cpu = [g.cpu_seconds() for g in started]
+    rest_begun = time.perf_counter()
+    await asyncio.sleep(REST_SECONDS)
+    rested = time.perf_counter() - rest_begun
+    cpu = [g.cpu_seconds() - c for g, c in zip(started, cpu, strict=True)]
+    after = _footprint(started)
+    ports = [int(g.address.rsplit(":", 1)[1]) for g in started]
+    served = max(1, len(names))
+    return {
+        "settled_s": round(settled, 2),
+        "unsettled_by_each": waiting,
+        "rest_s": round(rested, 2),
+        "rest_cpu_percent": [round(100 * c / rested, 2) for c in cpu],
+        "rss_mib": [round(rss / 2**20, 1) for rss in after["rss"]],
+        "rss_kib_per_service": [
+            round((a - b) / 1024 / served, 2) for a, b in zip(after["rss"], before["rss"], strict=True)
+        ],
+        "fds": after["fds"],
+        "fds_added": [a - b for a, b in zip(after["fds"], before["fds"], strict=True)],
+        "connections_to_other_gateways": [
+            g.connections_to(set(ports) - {own}) for g, own in zip(started, ports, strict=True)
+        ],
+    }
 
 
 async def _timed_get(stub: pb_grpc.PropertyServiceStub, request: pb.GetRequest) -> float:
@@ -332,6 +412,7 @@ async def _registry_figures(
     deadline: float,
 ) -> dict[str, Any]:
     devices, count = len(ports), len(stubs)
+    before = _footprint(started)
     begun = time.perf_counter()
     ok, errors = await _register_spread(stubs, ports, deadline)
     registering = time.perf_counter() - begun
@@ -341,6 +422,7 @@ async def _registry_figures(
             break
         await asyncio.sleep(0.1)
     everywhere = time.perf_counter() - begun
+    rest = await _at_rest(stubs, started, list(ports), before, deadline)
 
     find = pb.GetRequest(
         service="registry", property="find", parameters={"type": "mobile_robot", "limit": "10"}
@@ -380,6 +462,7 @@ async def _registry_figures(
         "register_per_s": round(ok / registering, 1) if registering else 0.0,
         "listed_by_each": listed,
         "visible_everywhere_s": round(everywhere, 3),
+        "at_rest": rest,
         "find_queries": queries,
         "find_p50_ms": round(1e3 * _quantile(found, 0.5), 2),
         "find_p99_ms": round(1e3 * _quantile(found, 0.99), 2),
@@ -399,5 +482,30 @@ async def _registry_figures(
         "complete": ok == devices
         and min(listed) == devices
         and len(answered) == len(taken) == len(orphans)
-        and after == devices,
+        and after == devices
+        and not max(rest["unsettled_by_each"]),
     }
+
+
+async def main(devices: int, gateways: int, queries: int, time_limit: float) -> None:
+    """Run the registry part on its own, at a size of one's choice, and print its figures as JSON."""
+    print(f"load average {os.getloadavg()[0]:.2f}", file=sys.stderr)
+    result = await measure_registry(
+        devices, gateways=gateways, queries=queries, gets=queries, time_limit=time_limit
+    )
+    json.dump(result, sys.stdout, indent=2)
+    print()
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.cluster_registry", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("--devices", type=int, default=2000, help="devices registered (default 2000)")
+    parser.add_argument("--gateways", type=int, default=2, help="gateway processes (default 2)")
+    parser.add_argument("--queries", type=int, default=200, help="finds, and Gets each way (default 200)")
+    parser.add_argument("--time-limit", type=float, default=600.0, help="seconds at most (default 600)")
+    arguments = parser.parse_args()
+    if etcd_binary() is None:
+        sys.exit(ETCD_MISSING)
+    asyncio.run(main(arguments.devices, arguments.gateways, arguments.queries, arguments.time_limit))
