@@ -380,11 +380,20 @@ async def measure_registry(
             channels = [grpc.aio.insecure_channel(g.address) for g in started]
             try:
                 stubs = [pb_grpc.PropertyServiceStub(channel) for channel in channels]
-                result.update(
+                try:
                     await _registry_figures(
-                        stubs, started=started, ports=ports, queries=queries, gets=gets, deadline=deadline
+                        result,
+                        stubs,
+                        started=started,
+                        ports=ports,
+                        queries=queries,
+                        gets=gets,
+                        deadline=deadline,
                     )
-                )
+                except (grpc.aio.AioRpcError, TimeoutError) as exc:
+                    # What was measured before stays in the results (the cluster at rest, say).
+                    result["error"] = f"{type(exc).__name__}: {exc}"[:LOG_TAIL_CHARS]
+                    result["complete"] = False
             finally:
                 for channel in channels:
                     await channel.close(None)
@@ -403,6 +412,7 @@ async def measure_registry(
 
 
 async def _registry_figures(
+    result: dict[str, Any],
     stubs: list[pb_grpc.PropertyServiceStub],
     *,
     started: list[ServerProcess],
@@ -410,7 +420,8 @@ async def _registry_figures(
     queries: int,
     gets: int,
     deadline: float,
-) -> dict[str, Any]:
+) -> None:
+    """Measure the cluster into ``result``, each figure as soon as it is known."""
     devices, count = len(ports), len(stubs)
     before = _footprint(started)
     begun = time.perf_counter()
@@ -422,7 +433,15 @@ async def _registry_figures(
             break
         await asyncio.sleep(0.1)
     everywhere = time.perf_counter() - begun
-    rest = await _at_rest(stubs, started, list(ports), before, deadline)
+    result.update(
+        registered=ok,
+        first_errors=errors,
+        register_s=round(registering, 3),
+        register_per_s=round(ok / registering, 1) if registering else 0.0,
+        listed_by_each=listed,
+        visible_everywhere_s=round(everywhere, 3),
+    )
+    rest = result["at_rest"] = await _at_rest(stubs, started, list(ports), before, deadline)
 
     find = pb.GetRequest(
         service="registry", property="find", parameters={"type": "mobile_robot", "limit": "10"}
@@ -455,36 +474,31 @@ async def _registry_figures(
     delays = list(answered.values())
     taken = list(watch.owned.values())
     local_p50 = _quantile(local, 0.5)
-    return {
-        "registered": ok,
-        "first_errors": errors,
-        "register_s": round(registering, 3),
-        "register_per_s": round(ok / registering, 1) if registering else 0.0,
-        "listed_by_each": listed,
-        "visible_everywhere_s": round(everywhere, 3),
-        "at_rest": rest,
-        "find_queries": queries,
-        "find_p50_ms": round(1e3 * _quantile(found, 0.5), 2),
-        "find_p99_ms": round(1e3 * _quantile(found, 0.99), 2),
-        "local_get_p50_us": round(1e6 * local_p50),
-        "forwarded_get_p50_us": round(1e6 * _quantile(forwarded, 0.5)),
-        "forwarded_ratio": round(_quantile(forwarded, 0.5) / local_p50, 2) if local_p50 else math.nan,
-        "killed_gateway_devices": len(orphans),
-        "answered_again": len(answered),
-        "owned_again": len(taken),
-        "owner_streams_ended": watch.ended,
-        "owner_streams_first_end": watch.first_end,
-        "owned_again_p50_s": round(_quantile(taken, 0.5), 2),
-        "owned_again_s": round(max(taken), 2) if taken else math.nan,
-        "failover_p50_s": round(_quantile(delays, 0.5), 2),
-        "failover_s": round(max(delays), 2) if delays else math.nan,
-        "listed_after_failover": after,
-        "complete": ok == devices
-        and min(listed) == devices
-        and len(answered) == len(taken) == len(orphans)
-        and after == devices
-        and not max(rest["unsettled_by_each"]),
-    }
+    result.update(
+        {
+            "find_queries": queries,
+            "find_p50_ms": round(1e3 * _quantile(found, 0.5), 2),
+            "find_p99_ms": round(1e3 * _quantile(found, 0.99), 2),
+            "local_get_p50_us": round(1e6 * local_p50),
+            "forwarded_get_p50_us": round(1e6 * _quantile(forwarded, 0.5)),
+            "forwarded_ratio": round(_quantile(forwarded, 0.5) / local_p50, 2) if local_p50 else math.nan,
+            "killed_gateway_devices": len(orphans),
+            "answered_again": len(answered),
+            "owned_again": len(taken),
+            "owner_streams_ended": watch.ended,
+            "owner_streams_first_end": watch.first_end,
+            "owned_again_p50_s": round(_quantile(taken, 0.5), 2),
+            "owned_again_s": round(max(taken), 2) if taken else math.nan,
+            "failover_p50_s": round(_quantile(delays, 0.5), 2),
+            "failover_s": round(max(delays), 2) if delays else math.nan,
+            "listed_after_failover": after,
+            "complete": ok == devices
+            and min(listed) == devices
+            and len(answered) == len(taken) == len(orphans)
+            and after == devices
+            and not max(rest["unsettled_by_each"]),
+        }
+    )
 
 
 async def main(devices: int, gateways: int, queries: int, time_limit: float) -> None:
