@@ -11,7 +11,8 @@ registration rate, then the time until every gateway lists every device. Then
 device's ``location`` one at a time, on its owner (local) and on another
 gateway (forwarded), taking turns (p50 of each and their ratio). Before those,
 once every gateway reads every device ``up`` and typed (its forwarding set up
-and its type learnt), the cluster is left alone for ``REST_SECONDS``: each
+and its type learnt), the cluster is left alone for ``rest`` seconds
+(``REST_SECONDS``, 5): each
 gateway's CPU over that rest, then its RSS and open files, compared with what
 it held before the first registration (per service it serves: every device of
 the cluster), and its established TCP connections to the other gateways' gRPC
@@ -216,10 +217,12 @@ async def _at_rest(
     started: list[ServerProcess],
     names: list[str],
     before: dict[str, list[int]],
+    *,
     deadline: float,
+    rest: float,
 ) -> dict[str, Any]:
     """Wait until every gateway reads every device up and typed, leave the cluster alone for
-    ``REST_SECONDS``, and read what each gateway holds then (see the module docstring)."""
+    ``rest`` seconds, and read what each gateway holds then (see the module docstring)."""
     begun = time.perf_counter()
     waiting = [len(names)] * len(stubs)
     while max(waiting) and time.monotonic() < deadline:
@@ -229,7 +232,7 @@ async def _at_rest(
     settled = time.perf_counter() - begun
     cpu = [g.cpu_seconds() for g in started]
     rest_begun = time.perf_counter()
-    await asyncio.sleep(REST_SECONDS)
+    await asyncio.sleep(rest)
     rested = time.perf_counter() - rest_begun
     cpu = [g.cpu_seconds() - c for g, c in zip(started, cpu, strict=True)]
     after = _footprint(started)
@@ -350,7 +353,7 @@ async def _answer_again(
 
 
 async def measure_registry(
-    devices: int, *, gateways: int, queries: int, gets: int, time_limit: float
+    devices: int, *, gateways: int, queries: int, gets: int, time_limit: float, rest: float = REST_SECONDS
 ) -> dict[str, Any]:
     """The registry part (see the module docstring) on a fresh etcd, fresh farms and fresh gateways."""
     binary = etcd_binary()
@@ -389,6 +392,7 @@ async def measure_registry(
                         queries=queries,
                         gets=gets,
                         deadline=deadline,
+                        rest=rest,
                     )
                 except (grpc.aio.AioRpcError, TimeoutError) as exc:
                     # What was measured before stays in the results (the cluster at rest, say).
@@ -420,6 +424,7 @@ async def _registry_figures(
     queries: int,
     gets: int,
     deadline: float,
+    rest: float,
 ) -> None:
     """Measure the cluster into ``result``, each figure as soon as it is known."""
     devices, count = len(ports), len(stubs)
@@ -441,7 +446,9 @@ async def _registry_figures(
         listed_by_each=listed,
         visible_everywhere_s=round(everywhere, 3),
     )
-    rest = result["at_rest"] = await _at_rest(stubs, started, list(ports), before, deadline)
+    at_rest = result["at_rest"] = await _at_rest(
+        stubs, started, list(ports), before, deadline=deadline, rest=rest
+    )
 
     find = pb.GetRequest(
         service="registry", property="find", parameters={"type": "mobile_robot", "limit": "10"}
@@ -496,16 +503,21 @@ async def _registry_figures(
             and min(listed) == devices
             and len(answered) == len(taken) == len(orphans)
             and after == devices
-            and not max(rest["unsettled_by_each"]),
+            and not max(at_rest["unsettled_by_each"]),
         }
     )
 
 
-async def main(devices: int, gateways: int, queries: int, time_limit: float) -> None:
+async def main(arguments: argparse.Namespace) -> None:
     """Run the registry part on its own, at a size of one's choice, and print its figures as JSON."""
     print(f"load average {os.getloadavg()[0]:.2f}", file=sys.stderr)
     result = await measure_registry(
-        devices, gateways=gateways, queries=queries, gets=queries, time_limit=time_limit
+        arguments.devices,
+        gateways=arguments.gateways,
+        queries=arguments.queries,
+        gets=arguments.queries,
+        time_limit=arguments.time_limit,
+        rest=arguments.rest,
     )
     json.dump(result, sys.stdout, indent=2)
     print()
@@ -519,7 +531,10 @@ if __name__ == "__main__":
     parser.add_argument("--gateways", type=int, default=2, help="gateway processes (default 2)")
     parser.add_argument("--queries", type=int, default=200, help="finds, and Gets each way (default 200)")
     parser.add_argument("--time-limit", type=float, default=600.0, help="seconds at most (default 600)")
+    parser.add_argument(
+        "--rest", type=float, default=REST_SECONDS, help=f"seconds of rest (default {REST_SECONDS:g})"
+    )
     arguments = parser.parse_args()
     if etcd_binary() is None:
         sys.exit(ETCD_MISSING)
-    asyncio.run(main(arguments.devices, arguments.gateways, arguments.queries, arguments.time_limit))
+    asyncio.run(main(arguments))
