@@ -274,8 +274,10 @@ class GrpcProxy(Backend):
         error = learning.exception()
         if isinstance(error, PropertyError):
             log.debug("%s: no type from its registry: %s", self._label(), error.message)
-            # Only a remote that could not be reached is asked again (by check()).
-            if error.code not in (Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED):
+            # Asked again (by check() and wait_connected()): a remote that could not be reached,
+            # and one whose registry does not know the service yet (in a cluster, the owner has
+            # published the registration and is still opening its device).
+            if error.code not in (Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED, Code.NOT_FOUND):
                 self._type_known = True
                 self.info.type = "resource"  # reached, but its registry does not say what it is
             return

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import grpc
 import pytest
-from support.ports import free_port
+from support.fake_backend import DictBackend
+from support.ports import free_port, silent_port
+from support.waiting import eventually
 
 from gateway.app import Gateway
 from gateway.backends import open_proxy
@@ -111,21 +113,42 @@ async def test_a_channel_is_released_once_per_acquire(remote: Gateway) -> None:
 async def test_the_types_of_many_services_come_in_one_query(remote: Gateway) -> None:
     pool = channel_pool()
     proxies = [proxy(remote.address, f"scout{k}") for k in range(SERVED)]
-    ghost = proxy(remote.address, "ghost")  # not served there: its registry does not know it
     tasks_before = len(asyncio.all_tasks())
-    for each in [*proxies, ghost]:
+    for each in proxies:
         await each.start()
     # Starting proxies starts no task of their own: one query is on its way for all of them.
     assert len(asyncio.all_tasks()) - tasks_before <= 1
     await asyncio.gather(*(each.wait_connected(5.0) for each in proxies))
-    await ghost.wait_connected(5.0)
     assert {each.info.type for each in proxies} == {"mobile_robot"}
-    assert ghost.info.type == "resource"  # reached, but its registry does not know it
     (shared,) = pool.channels()
-    # One Get asked all the names; the ghost's NOT_FOUND split it in halves down to the ghost
-    # (about log2 of the batch), instead of one Get per service.
-    assert shared.types.queries <= 2 + 2 * (SERVED + 1).bit_length(), shared.types.queries
-    for each in [*proxies, ghost]:
+    assert shared.types.queries == 1
+    for each in proxies:
+        await each.aclose()
+
+
+async def test_a_name_the_remote_registry_does_not_know_yet_leaves_the_others_their_answer(
+    remote: Gateway,
+) -> None:
+    proxies = [proxy(remote.address, f"scout{k}") for k in range(SERVED)]
+    early = proxy(remote.address, "late")  # not served there yet: its registry does not know it
+    for each in [*proxies, early]:
+        await each.start()
+    await asyncio.gather(*(each.wait_connected(5.0) for each in proxies))
+    assert {each.info.type for each in proxies} == {"mobile_robot"}
+    (shared,) = channel_pool().channels()
+    # The batch the unknown name failed was asked again in halves down to it (about log2 of the
+    # batch), not once per service.
+    assert shared.types.queries <= 1 + 2 * (SERVED + 1).bit_length(), shared.types.queries
+    await early.wait_connected(5.0)
+    assert early.info.type == "unknown"  # not "resource": asked again, it is known once served there
+    remote.router.add("late", DictBackend({"temperature": "21.5"}, type="sensor"))
+
+    async def asked_again() -> str:
+        await early.wait_connected(5.0)
+        return early.info.type
+
+    assert await eventually(asked_again, lambda kind: kind == "sensor") == "sensor"
+    for each in [*proxies, early]:
         await each.aclose()
 
 
@@ -172,14 +195,7 @@ async def test_a_dead_gateways_channel_waits_once_and_closes_when_unused() -> No
 
 
 async def test_closing_the_last_proxy_while_another_waits_for_the_type_ends_the_wait() -> None:
-    held: list[asyncio.StreamWriter] = []
-
-    async def hold(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        held.append(writer)  # accepts the connection and never speaks HTTP/2
-
-    server = await asyncio.start_server(hold, "127.0.0.1", 0)
-    port = server.sockets[0].getsockname()[1]
-    try:
+    async with silent_port() as port:
         silent = proxy(f"127.0.0.1:{port}", "scout0", timeout=30.0)
         await silent.start()
         (shared,) = channel_pool().channels()
@@ -188,8 +204,3 @@ async def test_closing_the_last_proxy_while_another_waits_for_the_type_ends_the_
         with pytest.raises(PropertyError) as closed:
             await asyncio.wait_for(asked, 5.0)
         assert closed.value.code is Code.UNAVAILABLE
-    finally:
-        for writer in held:
-            writer.close()
-        server.close()
-        await server.wait_closed()
