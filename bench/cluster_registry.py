@@ -9,7 +9,14 @@ registration rate, then the time until every gateway lists every device. Then
 ``queries`` Gets of the registry's ``find`` (``type=mobile_robot``,
 ``limit=10``) taking turns over the gateways (p50, p99); ``gets`` Gets of a
 device's ``location`` one at a time, on its owner (local) and on another
-gateway (forwarded), taking turns (p50 of each and their ratio). Last, the
+gateway (forwarded), taking turns (p50 of each and their ratio). Before those,
+once every gateway reads every device ``up`` and typed (its forwarding set up
+and its type learnt), the cluster is left alone for ``rest`` seconds
+(``REST_SECONDS``, 5): each
+gateway's CPU over that rest, then its RSS and open files, compared with what
+it held before the first registration (per service it serves: every device of
+the cluster), and its established TCP connections to the other gateways' gRPC
+ports (how many channels it forwards over). Last, the
 gateway that owns a quarter of the devices is SIGKILLed. Exact Listens on each
 of its devices' ``services.NAME.owner`` tell when it is owned again, Gets of
 its ``location`` through a survivor when it answers again (the new owner has
@@ -64,6 +71,13 @@ OWNER_SELECTORS = 64
 FAILOVER_GET_TIMEOUT = 2.0
 #: Seconds between rounds of asking the devices that have not answered yet.
 FAILOVER_PAUSE = 0.1
+#: Seconds the settled cluster is left alone while each gateway's CPU time is read (its CPU at rest).
+REST_SECONDS = 5.0
+#: Devices whose state and type one Get reads while waiting for the cluster to settle: two paths
+#: each, within a gateway's default ``[limits] max_get_paths`` (1,000).
+SETTLE_CHUNK = 400
+#: Seconds between looks at whether the cluster has settled.
+SETTLE_PAUSE = 0.5
 #: What etcd logs once it answers clients (3.4 says the first, later versions the second).
 ETCD_READY = (b"serving client traffic", b"ready to serve client requests")
 ETCD_MISSING = "etcd is not installed (Debian: apt-get install etcd-server); the registry part needs it"
@@ -181,6 +195,72 @@ async def _listed(stub: pb_grpc.PropertyServiceStub) -> set[str]:
     return set(parse_names(reply.value))
 
 
+async def _unsettled(stub: pb_grpc.PropertyServiceStub, names: list[str]) -> int:
+    """How many of ``names`` the gateway of ``stub`` does not read ``up`` with a known type yet."""
+    waiting = 0
+    for first in range(0, len(names), SETTLE_CHUNK):
+        chunk = names[first : first + SETTLE_CHUNK]
+        paths = [f"services.{name}.{what}" for name in chunk for what in ("state", "type")]
+        more = [pb.PropertyRef(property=path) for path in paths[1:]]
+        reply = await stub.Get(
+            pb.GetRequest(service="registry", property=paths[0], more=more), timeout=CALL_TIMEOUT
+        )
+        values = [reply.value, *(item.value for item in reply.more)]
+        waiting += sum(
+            1
+            for state, kind in zip(values[::2], values[1::2], strict=True)
+            if state != "up" or kind in ("", "unknown")
+        )
+    return waiting
+
+
+def _footprint(started: list[ServerProcess]) -> dict[str, list[int]]:
+    return {"rss": [g.rss_bytes() for g in started], "fds": [g.open_files() for g in started]}
+
+
+async def _at_rest(
+    stubs: list[pb_grpc.PropertyServiceStub],
+    started: list[ServerProcess],
+    names: list[str],
+    before: dict[str, list[int]],
+    *,
+    deadline: float,
+    rest: float,
+) -> dict[str, Any]:
+    """Wait until every gateway reads every device up and typed, leave the cluster alone for
+    ``rest`` seconds, and read what each gateway holds then (see the module docstring)."""
+    begun = time.perf_counter()
+    waiting = [len(names)] * len(stubs)
+    while max(waiting) and time.monotonic() < deadline:
+        waiting = [await _unsettled(stub, names) for stub in stubs]
+        if max(waiting):
+            await asyncio.sleep(SETTLE_PAUSE)
+    settled = time.perf_counter() - begun
+    cpu = [g.cpu_seconds() for g in started]
+    rest_begun = time.perf_counter()
+    await asyncio.sleep(rest)
+    rested = time.perf_counter() - rest_begun
+    cpu = [g.cpu_seconds() - c for g, c in zip(started, cpu, strict=True)]
+    after = _footprint(started)
+    ports = [int(g.address.rsplit(":", 1)[1]) for g in started]
+    served = max(1, len(names))
+    return {
+        "settled_s": round(settled, 2),
+        "unsettled_by_each": waiting,
+        "rest_s": round(rested, 2),
+        "rest_cpu_percent": [round(100 * c / rested, 2) for c in cpu],
+        "rss_mib": [round(rss / 2**20, 1) for rss in after["rss"]],
+        "rss_kib_per_service": [
+            round((a - b) / 1024 / served, 2) for a, b in zip(after["rss"], before["rss"], strict=True)
+        ],
+        "fds": after["fds"],
+        "fds_added": [a - b for a, b in zip(after["fds"], before["fds"], strict=True)],
+        "connections_to_other_gateways": [
+            g.connections_to(set(ports) - {own}) for g, own in zip(started, ports, strict=True)
+        ],
+    }
+
+
 async def _timed_get(stub: pb_grpc.PropertyServiceStub, request: pb.GetRequest) -> float:
     start = time.perf_counter()
     await stub.Get(request, timeout=CALL_TIMEOUT)
@@ -285,6 +365,7 @@ async def measure_registry(
     gets: int,
     time_limit: float,
     profile: Path | None = None,
+    rest: float = REST_SECONDS,
 ) -> dict[str, Any]:
     """The registry part (see the module docstring) on a fresh etcd, fresh farms and fresh gateways;
     ``profile``: a folder where py-spy's record of each survivor's failover is written."""
@@ -315,8 +396,9 @@ async def measure_registry(
             channels = [grpc.aio.insecure_channel(g.address) for g in started]
             try:
                 stubs = [pb_grpc.PropertyServiceStub(channel) for channel in channels]
-                result.update(
+                try:
                     await _registry_figures(
+                        result,
                         stubs,
                         started=started,
                         ports=ports,
@@ -324,8 +406,12 @@ async def measure_registry(
                         gets=gets,
                         deadline=deadline,
                         profile=profile,
+                        rest=rest,
                     )
-                )
+                except (grpc.aio.AioRpcError, TimeoutError) as exc:
+                    # What was measured before stays in the results (the cluster at rest, say).
+                    result["error"] = f"{type(exc).__name__}: {exc}"[:LOG_TAIL_CHARS]
+                    result["complete"] = False
             finally:
                 for channel in channels:
                     await channel.close(None)
@@ -344,6 +430,7 @@ async def measure_registry(
 
 
 async def _registry_figures(
+    result: dict[str, Any],
     stubs: list[pb_grpc.PropertyServiceStub],
     *,
     started: list[ServerProcess],
@@ -352,8 +439,11 @@ async def _registry_figures(
     gets: int,
     deadline: float,
     profile: Path | None,
-) -> dict[str, Any]:
+    rest: float,
+) -> None:
+    """Measure the cluster into ``result``, each figure as soon as it is known."""
     devices, count = len(ports), len(stubs)
+    before = _footprint(started)
     begun = time.perf_counter()
     ok, errors = await _register_spread(stubs, ports, deadline)
     registering = time.perf_counter() - begun
@@ -363,6 +453,17 @@ async def _registry_figures(
             break
         await asyncio.sleep(0.1)
     everywhere = time.perf_counter() - begun
+    result.update(
+        registered=ok,
+        first_errors=errors,
+        register_s=round(registering, 3),
+        register_per_s=round(ok / registering, 1) if registering else 0.0,
+        listed_by_each=listed,
+        visible_everywhere_s=round(everywhere, 3),
+    )
+    at_rest = result["at_rest"] = await _at_rest(
+        stubs, started, list(ports), before, deadline=deadline, rest=rest
+    )
 
     find = pb.GetRequest(
         service="registry", property="find", parameters={"type": "mobile_robot", "limit": "10"}
@@ -399,36 +500,33 @@ async def _registry_figures(
     delays = list(answered.values())
     taken = list(watch.owned.values())
     local_p50 = _quantile(local, 0.5)
-    return {
-        "registered": ok,
-        "first_errors": errors,
-        "register_s": round(registering, 3),
-        "register_per_s": round(ok / registering, 1) if registering else 0.0,
-        "listed_by_each": listed,
-        "visible_everywhere_s": round(everywhere, 3),
-        "find_queries": queries,
-        "find_p50_ms": round(1e3 * _quantile(found, 0.5), 2),
-        "find_p99_ms": round(1e3 * _quantile(found, 0.99), 2),
-        "local_get_p50_us": round(1e6 * local_p50),
-        "forwarded_get_p50_us": round(1e6 * _quantile(forwarded, 0.5)),
-        "forwarded_ratio": round(_quantile(forwarded, 0.5) / local_p50, 2) if local_p50 else math.nan,
-        "killed_gateway_devices": len(orphans),
-        "answered_again": len(answered),
-        "owned_again": len(taken),
-        "owner_streams_ended": watch.ended,
-        "owner_streams_first_end": watch.first_end,
-        "owned_again_first_s": round(min(taken), 2) if taken else math.nan,
-        "owned_again_p50_s": round(_quantile(taken, 0.5), 2),
-        "owned_again_s": round(max(taken), 2) if taken else math.nan,
-        "failover_first_s": round(min(delays), 2) if delays else math.nan,
-        "failover_p50_s": round(_quantile(delays, 0.5), 2),
-        "failover_s": round(max(delays), 2) if delays else math.nan,
-        "listed_after_failover": after,
-        "complete": ok == devices
-        and min(listed) == devices
-        and len(answered) == len(taken) == len(orphans)
-        and after == devices,
-    }
+    result.update(
+        {
+            "find_queries": queries,
+            "find_p50_ms": round(1e3 * _quantile(found, 0.5), 2),
+            "find_p99_ms": round(1e3 * _quantile(found, 0.99), 2),
+            "local_get_p50_us": round(1e6 * local_p50),
+            "forwarded_get_p50_us": round(1e6 * _quantile(forwarded, 0.5)),
+            "forwarded_ratio": round(_quantile(forwarded, 0.5) / local_p50, 2) if local_p50 else math.nan,
+            "killed_gateway_devices": len(orphans),
+            "answered_again": len(answered),
+            "owned_again": len(taken),
+            "owner_streams_ended": watch.ended,
+            "owner_streams_first_end": watch.first_end,
+            "owned_again_first_s": round(min(taken), 2) if taken else math.nan,
+            "owned_again_p50_s": round(_quantile(taken, 0.5), 2),
+            "owned_again_s": round(max(taken), 2) if taken else math.nan,
+            "failover_first_s": round(min(delays), 2) if delays else math.nan,
+            "failover_p50_s": round(_quantile(delays, 0.5), 2),
+            "failover_s": round(max(delays), 2) if delays else math.nan,
+            "listed_after_failover": after,
+            "complete": ok == devices
+            and min(listed) == devices
+            and len(answered) == len(taken) == len(orphans)
+            and after == devices
+            and not max(at_rest["unsettled_by_each"]),
+        }
+    )
 
 
 async def _start_profiles(
@@ -479,6 +577,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--profile", type=Path, help="a folder for py-spy's record of each survivor's failover"
     )
+    parser.add_argument(
+        "--rest", type=float, default=REST_SECONDS, help=f"seconds of rest (default {REST_SECONDS:g})"
+    )
     args = parser.parse_args(argv)
     if not 2 <= args.gateways <= 16 or args.devices < args.gateways or args.queries < 1:
         parser.error("expected 2 to 16 gateways, at least as many devices, and at least one query")
@@ -490,6 +591,7 @@ def main(argv: list[str] | None = None) -> None:
             gets=args.queries,
             time_limit=args.time_limit,
             profile=args.profile,
+            rest=args.rest,
         )
     )
     json.dump(result, sys.stdout, indent=1)

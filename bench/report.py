@@ -1187,6 +1187,7 @@ def _cluster_registry_table(out: TextIO, results: Results) -> None:
         [
             ["registered", f"{d['registered']:,} at {d['register_per_s']:,.0f}/s ({d['register_s']:.1f} s)"],
             ["listed by every gateway after", f"{d['visible_everywhere_s']:.1f} s ({d['listed_by_each']})"],
+            *_at_rest_rows(d.get("at_rest")),
             ["find p50 / p99", f"{d['find_p50_ms']:.2f} / {d['find_p99_ms']:.2f} ms ({d['find_queries']:,})"],
             ["Get p50 local / forwarded", f"{d['local_get_p50_us']:,} / {d['forwarded_get_p50_us']:,} µs"],
             [
@@ -1209,6 +1210,24 @@ def _cluster_registry_table(out: TextIO, results: Results) -> None:
             ],
         ],
     )
+
+
+def _at_rest_rows(rest: dict[str, Any] | None) -> list[list[str]]:
+    """Rows of (t)'s settled cluster: what each gateway holds at rest (absent from older results)."""
+    if not rest:
+        return []
+
+    def each(key: str) -> str:
+        return " / ".join(f"{v:,}" if isinstance(v, int) else f"{v:g}" for v in rest[key])
+
+    return [
+        ["every device up and typed everywhere after", f"{rest['settled_s']:.1f} s"],
+        ["RSS per gateway (MiB)", each("rss_mib")],
+        ["RSS added per service served (KiB)", each("rss_kib_per_service")],
+        ["open files per gateway (added)", f"{each('fds')} ({each('fds_added')})"],
+        ["TCP connections to the other gateways", each("connections_to_other_gateways")],
+        [f"CPU at rest over {rest['rest_s']:g} s (% of a core)", each("rest_cpu_percent")],
+    ]
 
 
 def _one_at_a_time_table(out: TextIO, results: Results) -> None:

@@ -114,6 +114,14 @@ class ServerProcess:
         """File descriptors the server process holds (sockets included)."""
         return int(self._ps.num_fds())
 
+    def connections_to(self, ports: set[int]) -> int:
+        """Established TCP connections the server process holds to a remote port among ``ports``."""
+        return sum(
+            1
+            for connection in self._ps.net_connections(kind="tcp")
+            if connection.status == "ESTABLISHED" and connection.raddr and connection.raddr.port in ports
+        )
+
     async def stop(self) -> None:
         """End the server (SIGTERM, then SIGKILL after a grace period), by its PID."""
         await _end(self.process)

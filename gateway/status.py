@@ -43,6 +43,18 @@ def error_from_status(status: grpc.StatusCode, message: str) -> PropertyError:
     return error_for(CODE_OF_STATUS.get(status, Code.UNKNOWN), message)
 
 
+def error_from_remote(exc: grpc.aio.AioRpcError, label: str, timeout: float) -> PropertyError:
+    """A remote gateway's failed call as an error whose message starts with ``label`` (which remote
+    said it). Its message is cut to :data:`MAX_MESSAGE_CHARS` (a remote is not trusted to be brief),
+    and a deadline of this side's own (grpc's bare "Deadline Exceeded", after ``timeout`` seconds)
+    is said as such."""
+    status = exc.code()
+    details = (exc.details() or status.name)[:MAX_MESSAGE_CHARS]
+    if status is grpc.StatusCode.DEADLINE_EXCEEDED and details == "Deadline Exceeded":
+        details = f"no answer within {timeout:g} s"
+    return error_from_status(status, f"{label}: {details}")
+
+
 def to_property_error(exc: BaseException, what: str = "request") -> PropertyError:
     """Turn any exception into a :class:`PropertyError`.
 

@@ -22,6 +22,7 @@ from prometheus_client.core import (
 from prometheus_client.registry import Collector
 
 from gateway.metrics.counts import LATENCY_BOUNDS, Latency
+from gateway.proxies.grpc_channels import channel_pool
 from services.backend import LinkCounts
 from services.errors import Code
 
@@ -121,6 +122,7 @@ class GatewayCollector(Collector):
         yield from self._http()
         yield from self._streams()
         yield from self._devices()
+        yield from self._remote_gateways()
         yield from self._registry()
 
     def _grpc(self) -> Iterator[Metric]:
@@ -283,6 +285,22 @@ class GatewayCollector(Collector):
             devices.add_metric((transport,), total)
         yield connected
         yield devices
+
+    def _remote_gateways(self) -> Iterator[Metric]:
+        # The gRPC proxies' shared channels belong to the event loop the gateway runs in, where
+        # ``/metrics`` is answered.
+        pool = channel_pool()
+        yield GaugeMetricFamily(
+            f"{PREFIX}_remote_gateway_channels",
+            "gRPC channels to other gateways open now: one per address and settings, shared by "
+            "the grpc:// services and the cluster's forwarded services that reach it",
+            value=len(pool),
+        )
+        yield GaugeMetricFamily(
+            f"{PREFIX}_remote_gateway_proxies",
+            "gRPC proxies (grpc:// services, forwarded services of a cluster) holding those channels",
+            value=pool.users,
+        )
 
     def _registry(self) -> Iterator[Metric]:
         entries = GaugeMetricFamily(

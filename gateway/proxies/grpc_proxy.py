@@ -7,7 +7,9 @@ client certificate, for a remote that asks for mutual TLS).
 Federation: gateway A serves ``far1 = grpc://b:50051/scout1`` and its clients
 reach ``scout1`` of gateway B as if it were local. The proxy
 
-* keeps one grpc.aio channel to the remote gateway; Get and Set are unary
+* calls through a grpc.aio channel to the remote gateway shared with every other
+  proxy that reaches it alike (:mod:`gateway.proxies.grpc_channels`: one per
+  address, TLS files and settings, reference counted); Get and Set are unary
   calls under the per-call timeout (a binary value travels in ``data`` both
   ways, and so do Listen events), and the remote's status codes come back
   1:1 as :class:`~services.errors.PropertyError` with the remote's message,
@@ -19,7 +21,9 @@ reach ``scout1`` of gateway B as if it were local. The proxy
 * re-opens a broken remote Listen (the remote gateway restarted) with
   exponential backoff (bounded, with jitter), then reads the current value
   and hands it to every listener as a ``Change(gap=True)``;
-* learns the service's type from the remote ``registry`` (best effort).
+* learns the service's type from the remote ``registry`` (best effort), asked
+  together with the other services of that remote in one Get
+  (:mod:`gateway.proxies.remote_types`).
 """
 
 from __future__ import annotations
@@ -38,10 +42,10 @@ import grpc
 from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stubs
 
 from gateway.federation import outgoing
-from gateway.status import error_from_status
+from gateway.proxies.grpc_channels import ChannelKey, ChannelPool, SharedChannel, TlsFiles, channel_pool
+from gateway.status import error_from_remote
 from gateway.wire_values import put, received
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.backend import NO_PARAMS, UNKNOWN_TYPE, Backend, BackendInfo, Change, Notify, Subscription
 from services.errors import Code, DeadlineExceeded, InvalidArgument, PropertyError, Unavailable
 from services.model import ServiceModel
@@ -51,11 +55,6 @@ from services.sharing import SharedListen, SharedListens
 from services.values import Value
 
 log = logging.getLogger(__name__)
-
-#: The name a gateway serves its registry under (``gateway.config.REGISTRY_NAME``), asked for the type.
-REMOTE_REGISTRY = "registry"
-#: Longest remote message passed on; the rest is cut (a remote is not trusted to be brief).
-MAX_REMOTE_MESSAGE = 1000
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,7 +74,7 @@ class GrpcProxyOptions:
     def parse(cls, url: str, options: Mapping[str, Any]) -> GrpcProxyOptions:
         """Options from the URL's query, overridden by ``options``; InvalidArgument for a bad one.
 
-        The TLS files (``ca``, ``cert``, ``key``) are left to :func:`tls_credentials`.
+        The TLS files (``ca``, ``cert``, ``key``) are left to :func:`tls_files`.
         """
         merged: dict[str, Any] = dict(parse_qsl(urlsplit(url).query))
         merged.update(options)
@@ -108,8 +107,8 @@ class GrpcProxyOptions:
 TLS_OPTIONS = ("ca", "cert", "key")
 
 
-def tls_credentials(url: str, options: Mapping[str, Any]) -> grpc.ChannelCredentials | None:
-    """The channel credentials of a ``grpcs://`` URL (None for ``grpc://``), files read now.
+def tls_files(url: str, options: Mapping[str, Any]) -> TlsFiles | None:
+    """The TLS files of a ``grpcs://`` URL (None for ``grpc://``), read now.
 
     InvalidArgument when a file cannot be read, when ``cert`` comes without ``key``, or when a
     ``grpc://`` URL names TLS files.
@@ -131,9 +130,7 @@ def tls_credentials(url: str, options: Mapping[str, Any]) -> grpc.ChannelCredent
             read[key] = Path(name).expanduser().read_bytes()
         except OSError as exc:
             raise InvalidArgument(f"grpcs proxy option {key}: cannot read {name!r}: {exc.strerror}") from None
-    return grpc.ssl_channel_credentials(
-        root_certificates=read.get("ca"), private_key=read.get("key"), certificate_chain=read.get("cert")
-    )
+    return TlsFiles(ca=read.get("ca"), cert=read.get("cert"), key=read.get("key"))
 
 
 def _ms(seconds: float) -> int:
@@ -160,11 +157,12 @@ class GrpcProxy(Backend):
         remote: str,
         options: GrpcProxyOptions,
         *,
-        credentials: grpc.ChannelCredentials | None = None,
+        tls: TlsFiles | None = None,
+        pool: ChannelPool | None = None,
     ) -> None:
-        """``credentials``: TLS to the remote gateway (``grpcs://``); None = plaintext."""
+        """``tls``: TLS to the remote gateway (``grpcs://``); None = plaintext. ``pool``: where the
+        channel is taken from; None: the running event loop's (:func:`channel_pool`)."""
         self.name = name
-        self._credentials = credentials
         self.url = url
         #: ``host:port`` of the remote gateway.
         self.target = target
@@ -172,14 +170,28 @@ class GrpcProxy(Backend):
         self.remote = remote
         self.options = options
         self.info = BackendInfo(type=UNKNOWN_TYPE, url=url)  # until reached
-        self._channel: grpc.aio.Channel | None = None
-        self._stub: Any = None
+        self._key = ChannelKey(
+            target,
+            tls,
+            (
+                # gRPC's own reconnection follows the proxy's backoff (its defaults wait up to 2 min);
+                # gRPC core takes its "min reconnect backoff" as the time a connection attempt may take.
+                ("grpc.initial_reconnect_backoff_ms", _ms(options.backoff_initial)),
+                ("grpc.min_reconnect_backoff_ms", _ms(options.connect_timeout)),
+                ("grpc.max_reconnect_backoff_ms", _ms(options.backoff_max)),
+            ),
+            options.timeout,
+        )
+        self._pool = pool
+        #: The shared channel, taken when first needed, given back by :meth:`aclose`.
+        self._channel: SharedChannel | None = None
         #: The remote Listens, one per (path, parameters), shared by the proxy's listeners.
         self.shared_listens: SharedListens[_RemoteListen] = SharedListens(
             _RemoteListen, self._open_shared, self._close_shared
         )
         self._type_known = False
-        self._learning: asyncio.Task[None] | None = None
+        #: The last question for the type to the remote registry (answered in a batch).
+        self._learning: asyncio.Future[str] | None = None
         self._closed = False
 
     def __repr__(self) -> str:
@@ -190,31 +202,24 @@ class GrpcProxy(Backend):
 
     # -- lifecycle ---------------------------------------------------------
 
-    def _get_stub(self) -> Any:
+    def _shared(self) -> SharedChannel:
+        """The shared channel to the remote gateway, taken from the pool when first needed."""
         if self._closed:
             raise Unavailable(f"{self._label()}: the proxy is closed")
-        if self._stub is None:
-            channel_options = [
-                # gRPC's own reconnection follows the proxy's backoff (its defaults wait up to 2 min);
-                # gRPC core takes its "min reconnect backoff" as the time a connection attempt may take.
-                ("grpc.initial_reconnect_backoff_ms", _ms(self.options.backoff_initial)),
-                ("grpc.min_reconnect_backoff_ms", _ms(self.options.connect_timeout)),
-                ("grpc.max_reconnect_backoff_ms", _ms(self.options.backoff_max)),
-            ]
-            if self._credentials is not None:
-                self._channel = grpc.aio.secure_channel(
-                    self.target, self._credentials, options=channel_options
-                )
-            else:
-                self._channel = grpc.aio.insecure_channel(self.target, options=channel_options)
-            self._stub = pb_grpc.PropertyServiceStub(self._channel)
-        return self._stub
+        if self._channel is None:
+            if self._pool is None:
+                self._pool = channel_pool()
+            self._channel = self._pool.acquire(self._key)
+        return self._channel
+
+    def _get_stub(self) -> Any:
+        return self._shared().stub
 
     async def start(self) -> None:
-        """Make the channel and ask the remote registry for the type in the background; never waits long."""
-        self._get_stub()
+        """Take the channel and ask the remote registry for the type in the background; never waits."""
+        self._shared()
         if self._learning is None:
-            self._learning = asyncio.create_task(self._learn_type(), name=f"grpc proxy {self.name}: type")
+            self._ask_type()
 
     async def aclose(self) -> None:
         if self._closed:
@@ -222,68 +227,73 @@ class GrpcProxy(Backend):
         self._closed = True
         entries = self.shared_listens.clear()
         tasks = [entry.follower for entry in entries if entry.follower is not None]
-        if self._learning is not None:
-            tasks.append(self._learning)
         for entry in entries:
             if entry.call is not None:
                 entry.call.cancel()
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
-        channel, self._channel, self._stub = self._channel, None, None
-        if channel is not None:
-            await channel.close(None)
+        # Its own calls are cancelled above; a Get or Set still on its way ends by itself (its
+        # timeout), the channel being others' too. The last proxy to let it go closes it.
+        shared, self._channel = self._channel, None
+        if shared is not None and self._pool is not None:
+            await self._pool.release(shared)
 
     async def wait_connected(self, wait_s: float) -> None:
         """Wait until the remote gateway is reachable (registration); Unavailable after ``wait_s``."""
-        self._get_stub()
-        channel = self._channel
-        assert channel is not None
+        shared = self._shared()
         try:
             async with asyncio.timeout(wait_s):
-                await channel.channel_ready()
+                await shared.wait_ready()
                 await self._type_learned()
                 if not self._type_known:  # its registry did not know it yet: ask again now
-                    await self._learn_type()
+                    self._ask_type()
+                    await self._type_learned()
         except TimeoutError:
             raise Unavailable(f"{self._label()}: not reachable within {wait_s:g} s") from None
 
-    async def _type_learned(self) -> None:
-        learning = self._learning
-        if learning is not None and not learning.done():
-            await asyncio.shield(learning)
+    def _ask_type(self) -> None:
+        """Ask the remote registry for ``services.<SERVICE>.type`` (in its channel's next batch)."""
+        learning = self._shared().types.ask(self.remote)
+        self._learning = learning
+        learning.add_done_callback(self._take_type)
 
-    async def _learn_type(self) -> None:
-        """Take ``services.<SERVICE>.type`` from the remote registry; nothing when it cannot be read."""
-        try:
-            reply = await self._get_stub().Get(
-                pb.GetRequest(service=REMOTE_REGISTRY, property=f"services.{self.remote}.type"),
-                timeout=self.options.timeout,
-                metadata=outgoing(),
-            )
-        except grpc.aio.AioRpcError as exc:
-            log.debug("%s: no type from its registry: %s", self._label(), exc.details())
-            # Only a remote that could not be reached is asked again (by check()).
-            if exc.code() not in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+    async def _type_learned(self) -> None:
+        """Wait for the answer to the last question for the type, if one is on its way."""
+        learning = self._learning
+        if learning is None:
+            return
+        if not learning.done():
+            await asyncio.wait((learning,))
+        self._take_type(learning)
+
+    def _take_type(self, learning: asyncio.Future[str]) -> None:
+        """Take the remote registry's answer (called once it is there; again changes nothing)."""
+        if self._type_known or learning.cancelled():
+            return
+        error = learning.exception()
+        if isinstance(error, PropertyError):
+            log.debug("%s: no type from its registry: %s", self._label(), error.message)
+            # Asked again (by check() and wait_connected()): a remote that could not be reached,
+            # and one whose registry does not know the service yet (in a cluster, the owner has
+            # published the registration and is still opening its device).
+            if error.code not in (Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED, Code.NOT_FOUND):
                 self._type_known = True
                 self.info.type = "resource"  # reached, but its registry does not say what it is
             return
+        if error is not None:
+            return
         # "unknown": the remote has not heard from the service's device yet (in a cluster, the
         # owner that is still connecting to it): asked again by check() and wait_connected().
-        if reply.value and reply.value != UNKNOWN_TYPE:
-            self.info.type = reply.value
+        value = learning.result()
+        if value and value != UNKNOWN_TYPE:
+            self.info.type = value
             self._type_known = True
 
     # -- calls -------------------------------------------------------------
 
     def _error(self, exc: grpc.aio.AioRpcError) -> PropertyError:
-        status = exc.code()
-        details = (exc.details() or status.name)[:MAX_REMOTE_MESSAGE]
-        if (
-            status is grpc.StatusCode.DEADLINE_EXCEEDED and details == "Deadline Exceeded"
-        ):  # our own deadline, not the remote's
-            details = f"no answer within {self.options.timeout:g} s"
-        return error_from_status(status, f"{self._label()}: {details}")
+        return error_from_remote(exc, self._label(), self.options.timeout)
 
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         await self._type_learned()
@@ -327,7 +337,8 @@ class GrpcProxy(Backend):
         """
         await self.get("properties")
         if not self._type_known:
-            await self._learn_type()
+            self._ask_type()
+            await self._type_learned()
 
     # -- listening ---------------------------------------------------------
 
@@ -473,7 +484,7 @@ def open_grpc_backend(name: str, url: str, options: Mapping[str, Any]) -> Backen
     target = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
     parsed = GrpcProxyOptions.parse(url, options)
     try:
-        credentials = tls_credentials(url, options)
+        tls = tls_files(url, options)
     except InvalidArgument as exc:
         raise InvalidArgument(f"service {name!r}: {exc.message}") from None
-    return GrpcProxy(name, url, target, remote, parsed, credentials=credentials)
+    return GrpcProxy(name, url, target, remote, parsed, tls=tls)

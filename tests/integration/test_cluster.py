@@ -17,9 +17,12 @@ from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
+import aiohttp
 import jwt
+import psutil
 import pytest
 from line_device_support import device_process, tcp_device
+from prometheus_client.parser import text_string_to_metric_families
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess, start_gateway
 from support.ports import stable_ports
@@ -228,6 +231,61 @@ async def test_killing_the_owner_moves_its_devices_and_a_listen_resumes_with_a_g
         await events.aclose()
         for name in names:
             assert 10.0 < await clients["gw-c"].get_number(name, "data") < 30.0
+
+
+async def _remote_gateway_gauges(gateway: GatewayProcess) -> tuple[float, float]:
+    """The gateway's ``/metrics``: its channels to other gateways, and the proxies holding them."""
+    async with aiohttp.ClientSession() as session, session.get(f"{gateway.http_url}metrics") as response:
+        assert response.status == 200, await response.text()
+        text = await response.text()
+    samples = {s.name: s.value for family in text_string_to_metric_families(text) for s in family.samples}
+    return samples["psgateway_remote_gateway_channels"], samples["psgateway_remote_gateway_proxies"]
+
+
+def _connections_to(gateway: GatewayProcess, other: GatewayProcess) -> int:
+    """Established TCP connections from ``gateway``'s process to ``other``'s gRPC port."""
+    port = int(other.address.rsplit(":", 1)[1])
+    return sum(
+        1
+        for connection in psutil.Process(gateway.proc.pid).net_connections(kind="tcp")
+        if connection.status == psutil.CONN_ESTABLISHED and connection.raddr and connection.raddr.port == port
+    )
+
+
+async def test_the_services_forwarded_to_one_owner_share_one_channel(
+    cluster: Cluster, clients: dict[str, AsyncClient]
+) -> None:
+    names = [f"thermo{k}" for k in range(1, 5)]
+    with ExitStack() as stack:
+        for name in names:
+            address = stack.enter_context(tcp_device("--service", "sim-sensor", "--name", name))
+            await _register(clients["gw-a"], name, address)
+        for name in names:  # forwarded by gw-b, which learnt each one's type and state
+            for what, expected in (("owner", "gw-a"), ("state", "up"), ("type", "sensor")):
+                await eventually(
+                    lambda n=name, w=what: clients["gw-b"].get("registry", f"services.{n}.{w}"),
+                    lambda value, e=expected: value == e,
+                    what=f"gw-b reads {name}'s {what} {expected}",
+                )
+            assert 10.0 < await clients["gw-b"].get_number(name, "data") < 30.0
+        # gw-b forwards four services to gw-a over one channel, and one TCP connection.
+        assert await _remote_gateway_gauges(cluster.gateways["gw-b"]) == (1, len(names))
+        assert _connections_to(cluster.gateways["gw-b"], cluster.gateways["gw-a"]) == 1
+        # The channel stays while one service is forwarded over it, and closes with the last.
+        for name in names[:-1]:
+            await clients["gw-a"].set("registry", f"services.{name}", "")
+        await eventually(
+            lambda: _remote_gateway_gauges(cluster.gateways["gw-b"]),
+            lambda gauges: gauges == (1, 1),
+            what="one forwarded service left on gw-b's channel",
+        )
+        assert await clients["gw-b"].get("registry", f"services.{names[-1]}.state") == "up"
+        await clients["gw-a"].set("registry", f"services.{names[-1]}", "")
+        await eventually(
+            lambda: _remote_gateway_gauges(cluster.gateways["gw-b"]),
+            lambda gauges: gauges == (0, 0),
+            what="gw-b closed its channel to gw-a",
+        )
 
 
 async def _next_gap(events: AsyncIterator[object]) -> object:

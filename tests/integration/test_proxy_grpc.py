@@ -9,7 +9,7 @@ from contextlib import asynccontextmanager
 from typing import Any
 
 import pytest
-from support.ports import free_port
+from support.ports import free_port, silent_port
 from support.waiting import eventually
 
 from clients import errors as client_errors
@@ -109,24 +109,14 @@ async def test_an_unreachable_gateway_is_unavailable_at_once() -> None:
 
 
 async def test_a_gateway_that_never_answers_gives_deadline_exceeded() -> None:
-    held: list[asyncio.StreamWriter] = []
-
-    async def hold(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        held.append(writer)  # accepts the connection and never speaks HTTP/2
-
-    server = await asyncio.start_server(hold, "127.0.0.1", 0)
-    port = server.sockets[0].getsockname()[1]
-    try:
-        async with proxy_to(f"grpc://127.0.0.1:{port}/scout1", timeout=0.3) as proxy:
-            err = await expect_error(Code.DEADLINE_EXCEEDED, proxy.get("location"))
-            assert err.message == f"scout1 on gateway 127.0.0.1:{port}: no answer within 0.3 s"
-            await expect_error(Code.DEADLINE_EXCEEDED, proxy.listen("location", lambda change: None))
-            await expect_error(Code.UNAVAILABLE, proxy.wait_connected(0.3))
-    finally:
-        for writer in held:
-            writer.close()
-        server.close()
-        await server.wait_closed()
+    async with (
+        silent_port() as port,  # accepts the connection and never speaks HTTP/2
+        proxy_to(f"grpc://127.0.0.1:{port}/scout1", timeout=0.3) as proxy,
+    ):
+        err = await expect_error(Code.DEADLINE_EXCEEDED, proxy.get("location"))
+        assert err.message == f"scout1 on gateway 127.0.0.1:{port}: no answer within 0.3 s"
+        await expect_error(Code.DEADLINE_EXCEEDED, proxy.listen("location", lambda change: None))
+        await expect_error(Code.UNAVAILABLE, proxy.wait_connected(0.3))
 
 
 async def test_proxy_calls_and_shared_listens_against_an_in_process_gateway() -> None:

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import random
 import socket
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 
@@ -65,3 +67,22 @@ def stable_ports(count: int) -> list[int]:
             if len(picked) == count:
                 return picked
     return free_ports(count)
+
+
+@contextlib.asynccontextmanager
+async def silent_port() -> AsyncIterator[int]:
+    """A loopback port whose listener accepts connections and never says a byte (a peer that hangs:
+    no HTTP/2, no greeting); the connections and the listener are closed when the block ends."""
+    held: list[asyncio.StreamWriter] = []
+
+    async def hold(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        held.append(writer)
+
+    server = await asyncio.start_server(hold, "127.0.0.1", 0)
+    try:
+        yield server.sockets[0].getsockname()[1]
+    finally:
+        for writer in held:
+            writer.close()
+        server.close()
+        await server.wait_closed()
