@@ -131,13 +131,13 @@ class ProxyOptions:
         return cls(**values)
 
 
-#: Sane ranges of the numeric proxy options, as (lowest, highest). A registration names them
-#: in its URL, so without bounds ``keepalive=0.001`` would be a PING flood and ``timeout=1e300``
-#: a call that never ends. Out of range is INVALID_ARGUMENT, never silently clamped.
 #: Seconds of refused connections (nothing listens at the device's address) after which a caller
 #: waiting for the device hears so at once, rather than at the end of its wait.
 REFUSED_GIVE_UP = 1.0
 
+#: Sane ranges of the numeric proxy options, as (lowest, highest). A registration names them
+#: in its URL, so without bounds ``keepalive=0.001`` would be a PING flood and ``timeout=1e300``
+#: a call that never ends. Out of range is INVALID_ARGUMENT, never silently clamped.
 OPTION_RANGES: Mapping[str, tuple[float, float]] = {
     "timeout": (0.01, 600.0),
     "connect_timeout": (0.01, 3600.0),

@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
+import functools
 import itertools
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import grpc
@@ -79,7 +80,7 @@ class RemoteTypes:
         future = loop.create_future()
         future.add_done_callback(_retrieved)
         if self._closed:
-            future.set_exception(Unavailable(f"{self._label()}: the channel is closed"))
+            self._fail([future], self._closed_error)
             return future
         self._pending[name] = future
         if self._asking is None:
@@ -98,7 +99,8 @@ class RemoteTypes:
                 try:
                     await self._answer(batch)
                 finally:
-                    self._fail(batch.values())  # only those left unanswered: the channel closed
+                    # only those left unanswered: the channel closed
+                    self._fail(batch.values(), self._closed_error)
         finally:
             self._asking = None
 
@@ -118,25 +120,26 @@ class RemoteTypes:
                 await self._answer({name: batch[name] for name in names[:half]})
                 await self._answer({name: batch[name] for name in names[half:]})
                 return
-            for future in batch.values():
-                if not future.done():
-                    future.set_exception(error_from_remote(exc, self._label(), self.timeout))
+            self._fail(batch.values(), functools.partial(error_from_remote, exc, self._label(), self.timeout))
             return
         values = [reply.value, *(item.value for item in reply.more)]
         if len(values) != len(names):
             message = f"{self._label()}: {len(values)} values for {len(names)} paths"
-            for future in batch.values():
-                if not future.done():
-                    future.set_exception(PropertyError(message, Code.INTERNAL))
+            self._fail(batch.values(), lambda: PropertyError(message, Code.INTERNAL))
             return
         for future, value in zip(batch.values(), values, strict=True):
             if not future.done():
                 future.set_result(value)
 
-    def _fail(self, futures: Iterable[asyncio.Future[str]]) -> None:
+    def _closed_error(self) -> PropertyError:
+        return Unavailable(f"{self._label()}: the channel is closed")
+
+    @staticmethod
+    def _fail(futures: Iterable[asyncio.Future[str]], error: Callable[[], PropertyError]) -> None:
+        """Fail each of ``futures`` not answered yet with an error of its own, made by ``error``."""
         for future in futures:
             if not future.done():
-                future.set_exception(Unavailable(f"{self._label()}: the channel is closed"))
+                future.set_exception(error())
 
     async def aclose(self) -> None:
         """Stop asking; whoever waits gets Unavailable."""
@@ -147,4 +150,4 @@ class RemoteTypes:
             await asyncio.gather(asking, return_exceptions=True)
         pending = list(self._pending.values())
         self._pending.clear()
-        self._fail(pending)
+        self._fail(pending, self._closed_error)
