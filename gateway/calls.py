@@ -130,8 +130,17 @@ class Calls:
             self.guard.require(subject, service, "", Operation.READ)
         return await bounded_call(backend.describe(), time_limit, lambda: f"{service}: describe")
 
-    def start_get(self, request: pb.GetRequest, time_limit: float, subject: Subject = ANONYMOUS) -> Begun:
-        """Start reading the request's one path (``more`` is :meth:`get`'s)."""
+    def start_get(
+        self,
+        request: pb.GetRequest,
+        time_limit: float,
+        subject: Subject = ANONYMOUS,
+        then: Callable[[Answer], None] | None = None,
+    ) -> Begun:
+        """Start reading the request's one path (``more`` is :meth:`get`'s).
+
+        ``then`` goes to a proxy that answers by a future (:meth:`Backend.start_get`).
+        """
         service = request.service
         backend = self._backend(service, "Get")
         path = check_path(request.property)
@@ -140,7 +149,7 @@ class Calls:
         params = request.parameters
         if backend.answers_inline:
             return _inline(backend.get(path, _params(params)), time_limit, service, "get", path)
-        future = backend.start_get(path, params, time_limit)
+        future = backend.start_get(path, params, time_limit, then)
         if future is not None:
             return future
         # A proxy's call is stepped inside whichever task awaits it (its timeouts belong there).

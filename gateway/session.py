@@ -31,6 +31,7 @@ from gateway.listen.drain import Wake
 from gateway.listen.encoding import listen_reply_wire, reply_wire
 from gateway.listen.hub import SHUTTING_DOWN
 from gateway.logs import RequestContext, current_request
+from gateway.proxies.connection import send_waiting_lines
 from gateway.rules import Subject
 from gateway.sizes import BATCH_BYTES, SURELY_FITS_CHARS, check_fits
 from gateway.status import abort, status_message, to_property_error
@@ -274,6 +275,8 @@ class Session:
                     if self._stopping:
                         break
                     self._dispatch(request)
+                # The message's requests to line devices go out now, one write a device.
+                send_waiting_lines()
         finally:
             self._reader_done = True
             self._wake.set()
@@ -321,7 +324,9 @@ class Session:
             self._spawn(rid, self._get_more(rid, request))
             return
         try:
-            begun = self._calls.start_get(request, self._timeout, self._subject)
+            begun = self._calls.start_get(
+                request, self._timeout, self._subject, functools.partial(self._got, rid)
+            )
         except Exception as exc:
             self._fail(rid, exc, f"{request.service}: get {request.property}")
             return
@@ -329,6 +334,15 @@ class Session:
             self._answer(rid, "get", begun)
         else:
             self._follow(rid, begun, "get", request.service, request.property)
+
+    def _got(self, rid: int, answer: Answer) -> None:
+        """A proxy's reply to Get ``rid``, straight from its reader: answered a loop turn sooner
+        than the future's done-callback (which then finds the request gone and does nothing)."""
+        if self._tasks.pop(rid, None) is None:
+            return
+        self._active.discard(rid)
+        self._answer(rid, "get", answer.value)
+        self._room.set()
 
     def _set(self, rid: int, request: pb.SetRequest) -> None:
         try:
@@ -360,9 +374,10 @@ class Session:
         self._tasks[rid] = future
 
         def done(_: asyncio.Future[Answer]) -> None:
-            if self._tasks.get(rid) is future:
-                del self._tasks[rid]
-                self._active.discard(rid)
+            if self._tasks.get(rid) is not future:
+                return  # answered from the reply itself (_got), or the Session is ending
+            del self._tasks[rid]
+            self._active.discard(rid)
             if future.cancelled():
                 return
             error = future.exception()

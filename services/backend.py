@@ -239,7 +239,11 @@ class Backend(abc.ABC):
         await self.properties()
 
     def start_get(
-        self, path: str, params: Mapping[str, str], time_limit: float
+        self,
+        path: str,
+        params: Mapping[str, str],
+        time_limit: float,
+        then: Callable[[Answer], None] | None = None,
     ) -> asyncio.Future[Answer] | None:
         """Send a Get of ``path`` now and return a future of its reply, or None to say "await :meth:`get`".
 
@@ -247,7 +251,10 @@ class Backend(abc.ABC):
         and a timer of their own: a proxy resolves the future straight from its
         connection's reader, under the one timer of its connection. The future
         fails with the call's PropertyError (DEADLINE_EXCEEDED after at most
-        ``time_limit``). The default has no shortcut and returns None.
+        ``time_limit``). ``then``, when given, is called with a successful
+        reply in the reader itself, just before the future is resolved: a
+        loop turn sooner than the future's done-callbacks run. The default
+        has no shortcut and returns None.
         """
         return None
 

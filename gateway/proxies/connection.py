@@ -12,7 +12,9 @@ What one request costs (docs/performance.md, "Get through the TCP proxy"):
 * the lines of every request started in one turn of the event loop go out
   in one ``write`` at the end of that turn, so a batch of Gets from one
   Session message is one send to the device and, as the device answers a
-  batch in one write, one read back;
+  batch in one write, one read back; a caller that knows its batch is
+  complete (the Session, once a message's requests are started) sends it
+  at once with :func:`send_waiting_lines` rather than a loop turn later;
 * every complete line of one read is decoded and resolved right in
   ``data_received``: no reader task to wake, no copy into a stream buffer;
 * one timer per connection, armed at the earliest deadline of the requests
@@ -44,6 +46,7 @@ import asyncio
 import contextlib
 import heapq
 import logging
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -107,11 +110,26 @@ _TAG_MASK = 0xFFFFFFFF
 #: Short: it must fit the smallest line limit (64 bytes) with a tag and a checksum.
 _NOT_SERVED = "not served: the gateway is the client here"
 
+#: Per thread, so per event loop: the connections holding lines for the end of this loop turn.
+_waiting = threading.local()
+
+
+def send_waiting_lines() -> None:
+    """Send now every line the connections of this thread's loop hold for the end of its turn.
+
+    For a caller that knows no more requests of its batch come in this turn: a Session, once it
+    has started the requests of one message. The device has them a loop turn sooner (one
+    ``epoll`` and whatever else that turn runs); the batch is still one write a connection.
+    """
+    waiting: set[LineConnection] | None = _waiting.__dict__.get("connections")
+    while waiting:
+        waiting.pop()._flush()
+
 
 class _Pending:
     """One request waiting for its reply: its future, its deadline, its time limit, its size."""
 
-    __slots__ = ("cancel_when_abandoned", "deadline", "future", "size", "tag", "timeout")
+    __slots__ = ("cancel_when_abandoned", "deadline", "future", "size", "tag", "then", "timeout")
 
     def __init__(
         self, future: asyncio.Future[Frame], tag: str, deadline: float, timeout: float, size: int
@@ -124,6 +142,8 @@ class _Pending:
         self.size = size
         #: A SET: when nobody waits for its reply any more, the device is told to drop it.
         self.cancel_when_abandoned = False
+        #: Called with a successful reply as it is read, before the future is resolved.
+        self.then: Callable[[Frame], None] | None = None
 
 
 class LineSink(Protocol):
@@ -354,19 +374,32 @@ class LineConnection(asyncio.Protocol):
         if not self._flush_due:
             self._flush_due = True
             self._loop.call_soon(self._flush)
+            try:
+                _waiting.connections.add(self)
+            except AttributeError:
+                _waiting.connections = {self}
 
     def _flush(self) -> None:
         self._flush_due = False
         lines = self._outgoing
         if not lines:
             return
+        # Sent at the turn's end or sooner (send_waiting_lines): either way no longer waiting.
+        _waiting.connections.discard(self)
         self._outgoing = []
         transport = self._transport
         if transport is not None and not self._closed.is_set():
             transport.write(lines[0] if len(lines) == 1 else b"".join(lines))
 
-    def start_request(self, frame: Request, deadline_s: float) -> asyncio.Future[Frame] | None:
+    def start_request(
+        self, frame: Request, deadline_s: float, then: Callable[[Frame], None] | None = None
+    ) -> asyncio.Future[Frame] | None:
         """Send ``frame`` now under a fresh tag; return the future of its reply (Ok, Pong or Hello).
+
+        ``then``, when given, is called with a successful reply as soon as it
+        is read, before the future is resolved (whose done-callbacks run a
+        loop turn later); errors, timeouts and a lost connection come only
+        through the future.
 
         The future fails with the PropertyError of an ERR reply, with
         DeadlineExceeded when no reply came in ``deadline_s`` seconds, with
@@ -379,7 +412,7 @@ class LineConnection(asyncio.Protocol):
         if not self._fits(len(line)):
             return None
         self._take(len(line))
-        return self._issue(frame, tag, line, deadline_s, self._loop.time() + deadline_s)
+        return self._issue(frame, tag, line, deadline_s, self._loop.time() + deadline_s, then=then)
 
     async def request(self, frame: Request, deadline_s: float) -> Frame:
         """Send ``frame`` under a fresh tag and return the reply frame (Ok, Pong or Hello).
@@ -445,7 +478,14 @@ class LineConnection(asyncio.Protocol):
         self._in_flight_bytes += size
 
     def _issue(
-        self, frame: Request, tag: str, line: bytes, timeout: float, deadline: float
+        self,
+        frame: Request,
+        tag: str,
+        line: bytes,
+        timeout: float,
+        deadline: float,
+        *,
+        then: Callable[[Frame], None] | None = None,
     ) -> asyncio.Future[Frame]:
         """Send ``line`` in the room the caller holds; the reply or the timeout frees the room."""
         if self._closed.is_set():
@@ -453,6 +493,7 @@ class LineConnection(asyncio.Protocol):
             raise Unavailable(f"{self.label}: {self._close_reason}")
         future: asyncio.Future[Frame] = self._loop.create_future()
         pending = _Pending(future, tag, deadline, timeout, len(line))
+        pending.then = then
         self._pending[tag] = pending
         self._add_deadline(pending)
         if type(frame) is Set and not self.flow_controlled:
@@ -677,8 +718,14 @@ class LineConnection(asyncio.Protocol):
             return
         if type(reply) is ErrorReply:
             future.set_exception(reply.to_exception())
-        else:
-            future.set_result(reply)
+            return
+        then = pending.then
+        if then is not None:
+            try:
+                then(reply)
+            except Exception:
+                log.exception("%s: the receiver of the reply to tag #%s failed", self.label, tag)
+        future.set_result(reply)
 
     def _greeted(self, hello: Hello) -> None:
         if hello.version != PROTOCOL_VERSION:

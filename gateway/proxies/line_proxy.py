@@ -34,7 +34,7 @@ import logging
 import math
 import random
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any, cast
 from urllib.parse import parse_qsl, urlsplit
@@ -57,6 +57,7 @@ from services.line_protocol import (
     MAX_LINE,
     MIN_MAX_LINE,
     Event,
+    Frame,
     Get,
     Gone,
     Hello,
@@ -473,7 +474,11 @@ class LineProxy(Backend):
         await conn.request(Ping(), self.options.timeout)
 
     def start_get(
-        self, path: str, params: Mapping[str, str], time_limit: float
+        self,
+        path: str,
+        params: Mapping[str, str],
+        time_limit: float,
+        then: Callable[[Answer], None] | None = None,
     ) -> asyncio.Future[Answer] | None:
         """Send a GET of ``path`` now; return the future of its reply, an :class:`Ok` frame.
 
@@ -482,14 +487,17 @@ class LineProxy(Backend):
         the connection's reader, and the one timer is the connection's. The
         future fails with the call's PropertyError (DEADLINE_EXCEEDED after
         ``time_limit`` or the proxy's own timeout, whichever is shorter).
-        Raises Unavailable when the device is not connected; returns None,
+        ``then`` has the Ok frame in the reader, before the future is resolved
+        (:meth:`Backend.start_get`). Raises Unavailable when the device is not connected; returns None,
         sending nothing, when every request slot is taken (await :meth:`get`).
         """
         frame = Get(path, dict(params) if params else {})
         # The future resolves to an Ok frame (errors fail it), which carries the value.
         return cast(
             "asyncio.Future[Answer] | None",
-            self._live().start_request(frame, min(time_limit, self.options.timeout)),
+            self._live().start_request(
+                frame, min(time_limit, self.options.timeout), cast("Callable[[Frame], None] | None", then)
+            ),
         )
 
     async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:

@@ -5,7 +5,9 @@ while they do; a device that drops mid-pipeline fails exactly the requests it
 left unanswered; the requests of one loop turn reach the device in one read
 (and a Session message of Gets through a real gateway process comes back as
 one message); each request expires at its own deadline under the connection's
-one timer, whose heap stays bounded.
+one timer, whose heap stays bounded. A caller that knows its batch is complete
+sends it without waiting for the turn's end, and a reply reaches a ``then``
+receiver in the reader, before the future's done-callbacks run.
 """
 
 from __future__ import annotations
@@ -13,7 +15,9 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import logging
 import threading
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 
@@ -24,7 +28,7 @@ from support.session_stream import replies_until
 from support.waiting import WAIT, eventually
 
 from gateway.proxies import TcpProxy
-from gateway.proxies.connection import LineConnection
+from gateway.proxies.connection import LineConnection, send_waiting_lines
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.errors import Code, PropertyError
@@ -303,8 +307,80 @@ async def test_a_session_message_of_gets_is_one_read_at_the_device_and_one_messa
             first = await asyncio.wait_for(call.read(), WAIT)
             replies = await replies_until(call, lambda got: len(got) + len(first.replies) >= 10)
             await call.done_writing()
+            # Each Get is answered once: from the reply as read, not again from its future.
+            extra: list[pb.Reply] = []
+            while (message := await asyncio.wait_for(call.read(), WAIT)) is not grpc.aio.EOF:
+                extra.extend(message.replies)
+            assert extra == []
     answered = {reply.id: reply.get.value for reply in [*first.replies, *replies]}
     assert answered == {n + 1: path for n, path in enumerate(paths)}
     assert len(first.replies) == 10  # one read of the device's one write: one SessionResponse
     batch = link.chunks[reads_before:]
     assert len(batch) == 1 and batch[0].count(b"\n") == 10, batch
+
+
+async def test_a_batch_known_complete_goes_out_at_once_in_one_write() -> None:
+    async with (
+        fake_device(lambda link: answer_each_read(link, list)) as (url, links),
+        proxy_for(url) as proxy,
+    ):
+        (link,) = links
+        before = len(link.chunks)
+        paths = [f"p{i}" for i in range(5)]
+        futures = [proxy.start_get(path, {}, WAIT) for path in paths]
+        send_waiting_lines()
+        # No turn of this loop from here on: the device, in a thread of its own, reads them anyway.
+        deadline = time.monotonic() + WAIT
+        while len(link.chunks) == before and time.monotonic() < deadline:
+            time.sleep(0.005)  # noqa: ASYNC251 - blocking on purpose: no loop turn
+        assert len(link.chunks) == before + 1, "the lines did not reach the device before the turn ended"
+        assert link.chunks[before].count(b"\n") == 5, link.chunks[before]
+        assert all(future is not None for future in futures)
+        answers = await asyncio.gather(*(future for future in futures if future is not None))
+        assert [answer.value for answer in answers] == paths
+        await asyncio.sleep(0.05)  # the turn's own flush has run since, and sent nothing again
+    assert sum(chunk.count(b"\n") for chunk in link.chunks[before:]) == 5
+
+
+async def answer_missing_with_an_error(link: DeviceLink) -> None:
+    while True:
+        got = await link.requests()
+        link.answer(
+            [
+                (tag, "ERR 5 no such property" if path_of(request) == "missing" else f"OK {path_of(request)}")
+                for tag, request in got
+            ]
+        )
+
+
+async def test_a_reply_reaches_then_in_the_reader_before_the_future_is_done(caplog) -> None:
+    async with fake_device(answer_missing_with_an_error) as (url, _), proxy_for(url) as proxy:
+        seen: list[tuple[str, bool]] = []
+        futures: list[asyncio.Future] = []
+
+        def then(answer) -> None:
+            seen.append((answer.value, futures[0].done()))
+
+        future = proxy.start_get("p1", {}, WAIT, then)
+        assert future is not None
+        futures.append(future)
+        assert (await future).value == "p1"
+        assert seen == [("p1", False)]
+
+        # An error reply comes only through the future.
+        failed = proxy.start_get("missing", {}, WAIT, then)
+        assert failed is not None
+        with pytest.raises(PropertyError) as raised:
+            await failed
+        assert raised.value.code == Code.NOT_FOUND
+        assert seen == [("p1", False)]
+
+        # A receiver that fails is logged; the future is resolved all the same.
+        def broken(_answer) -> None:
+            raise RuntimeError("the receiver broke")
+
+        with caplog.at_level(logging.ERROR, logger="gateway.proxies.connection"):
+            resolved = proxy.start_get("p2", {}, WAIT, broken)
+            assert resolved is not None
+            assert (await resolved).value == "p2"
+        assert any("receiver of the reply" in record.getMessage() for record in caplog.records)
