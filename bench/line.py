@@ -16,7 +16,14 @@ Gets of the robot's ``speed`` are made two ways in the same run, taking turns:
 * *session-floor*: the same Gets over a Session of the same gateway, of the same
   property of an in-process simulated robot (service ``local``): what a Session
   Get costs with no device behind it, the floor the proxied Session Get is
-  judged against (it may cost at most this plus 2 × the direct round trip).
+  judged against (it may cost at most this plus 2 × the direct round trip);
+* *bare-session*: the same Gets over a Session of the bare server
+  (:mod:`bench.baseline`, a fourth process), of a value in its dict: grpc.aio's
+  own cost of a batch of Gets over a bidirectional stream, with no gateway and
+  no device. With many in flight a batch of Gets through the proxy crosses
+  this hop and the device's in turn (the client sends the next batch when the
+  last one is answered), so ``f·d / (f + d)`` of their Gets/s is about the most
+  the proxied path can reach (``line-inflight-ceiling``).
 
 Each is measured with 1 and with ``inflight`` calls in flight.
 """
@@ -51,7 +58,9 @@ CALL_TIMEOUT = 10.0
 GREETING_TIMEOUT = 10.0
 
 #: The ways each Get is made, in the order they take turns.
-WAYS = ("direct", "gateway", "gateway-session", "session-floor")
+WAYS = ("direct", "gateway", "gateway-session", "session-floor", "bare-session")
+#: The value the bare server holds for the bare-session way (set before it is measured).
+BARE_SERVICE, BARE_PROPERTY = "bench", "value"
 
 DEVICE_ARGV = ["services.device_server", "--service", "sim-robot", "--name", DEVICE, "--tcp", "127.0.0.1:0"]
 
@@ -293,7 +302,9 @@ async def run_line(
     rounds_seen: dict[str, dict[int, list[float]]] = {name: {} for name in WAYS}
     device = await ServerProcess.start("device", DEVICE_ARGV, address_on="stdout")
     gateway: ServerProcess | None = None
+    bare: ServerProcess | None = None
     try:
+        bare = await ServerProcess.start("bare", ["bench.baseline", "--listen", "127.0.0.1:0"])
         with tempfile.TemporaryDirectory(prefix="bench-line-") as folder:
             config = Path(folder) / "gateway.toml"
             config.write_text(gateway_config(device.address))
@@ -304,7 +315,9 @@ async def run_line(
         direct = await LineClient.connect(host, int(port))
         channel = grpc.aio.insecure_channel(gateway.address)
         session_channel = grpc.aio.insecure_channel(gateway.address)
+        bare_channel = grpc.aio.insecure_channel(bare.address)
         session: SessionClient | None = None
+        bare_session: SessionClient | None = None
         try:
             stub = pb_grpc.PropertyServiceStub(channel)
             request = pb.GetRequest(service=DEVICE, property=PROPERTY)
@@ -317,11 +330,17 @@ async def run_line(
 
             session = SessionClient(pb_grpc.PropertyServiceStub(session_channel))
             over_session = functools.partial(session.get, DEVICE, PROPERTY)
+            bare_stub = pb_grpc.PropertyServiceStub(bare_channel)
+            await bare_stub.Set(
+                pb.SetRequest(service=BARE_SERVICE, property=BARE_PROPERTY, value="0.0"), timeout=CALL_TIMEOUT
+            )
+            bare_session = SessionClient(bare_stub)
             ways: dict[str, Callable[[], Awaitable[Any]]] = {
                 "direct": straight,
                 "gateway": through_gateway,
                 "gateway-session": over_session,
                 "session-floor": functools.partial(session.get, LOCAL, PROPERTY),
+                "bare-session": functools.partial(bare_session.get, BARE_SERVICE, BARE_PROPERTY),
             }
             for way in ways.values():  # the proxy may still be connecting: the warm-up waits for it
                 await _wait_answering(way)
@@ -335,7 +354,8 @@ async def run_line(
                             inflight=inflight,
                             time_limit=time_limit,
                             device=device,
-                            gateway=gateway,
+                            # The bare way's server CPU is the bare server's.
+                            gateway=bare if name == "bare-session" else gateway,
                         )
                         rounds_seen[name].setdefault(inflight, []).append(round(got.throughput, 1))
                         kept = best[name].get(inflight)
@@ -343,15 +363,21 @@ async def run_line(
                             best[name][inflight] = got
             device.check_alive()
             gateway.check_alive()
+            bare.check_alive()
         finally:
             if session is not None:
                 await session.aclose()
+            if bare_session is not None:
+                await bare_session.aclose()
+            await bare_channel.close(None)
             await session_channel.close(None)
             await channel.close(None)
             await direct.aclose()
     finally:
         if gateway is not None:
             await gateway.stop()
+        if bare is not None:
+            await bare.stop()
         await device.stop()
     return {
         name: {

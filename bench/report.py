@@ -151,6 +151,12 @@ def _largest(results: Results, server: str, part: str) -> dict[str, Any]:
     return sizes[-1]
 
 
+def _ceiling(hop: float, device: float) -> float:
+    """Two stages a batch crosses in turn, at ``hop`` and ``device`` Gets/s alone: their rate
+    together, f·d / (f + d), over the device's own."""
+    return hop / (hop + device)
+
+
 def _exponent(results: Results, server: str, part: str, size: str, figure: str) -> float:
     """How the figure grows with the size between the smallest and the largest run: 1.0 = linearly."""
     sizes: list[dict[str, Any]] = results[server][part]["sizes"]
@@ -222,6 +228,19 @@ TARGETS += (
         2.0,
         "x",
         (("gateway-session", "line"), ("session-floor", "line"), ("direct", "line")),
+    ),
+    Target(
+        "line-inflight-ceiling",
+        "the most the proxied Session path can reach with 8 in flight, / direct: a batch crosses "
+        "grpc.aio's own hop (bare server's Session, f) and the device (direct, d) in turn, f·d/(f+d)",
+        lambda r: _ceiling(
+            _line(r, "bare-session", "most")["throughput_per_s"],
+            _line(r, "direct", "most")["throughput_per_s"],
+        ),
+        "min",
+        0.5,
+        "x",
+        (("bare-session", "line"), ("direct", "line")),
     ),
     Target(
         "group-moveto",
@@ -911,6 +930,7 @@ def _issue_tables(out: TextIO, results: Results) -> None:
         ("gateway", "gRPC via gateway proxy"),
         ("gateway-session", "gRPC Session via gw proxy"),
         ("session-floor", "gRPC Session, in-process"),
+        ("bare-session", "gRPC Session, bare server"),
     ):
         data = results.get(way, {}).get("line")
         if data is None:

@@ -27,6 +27,7 @@ TARGETS = (
     "line-session-p50",
     "line-session-inflight",
     "line-session-proxy-cost",
+    "line-inflight-ceiling",
     "group-moveto",
     "group-scaling",
     "find-p99",
@@ -150,7 +151,7 @@ def test_quick_bench_prints_every_ratio(tmp_path: Path) -> None:
         assert "(s) the gateway against the peers" in out, out
     # The line-protocol part: the same Gets straight to the device and through the gateway (unary and
     # Session), and over Session of the same property in-process (the floor), 1 and 8 in flight.
-    for way in ("direct", "gateway", "gateway-session", "session-floor"):
+    for way in ("direct", "gateway", "gateway-session", "session-floor", "bare-session"):
         line = payload["results"][way]["line"]
         assert "error" not in line, (way, line)
         assert sorted(line["inflight"], key=int) == ["1", "8"]

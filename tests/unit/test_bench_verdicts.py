@@ -104,3 +104,22 @@ def test_the_gateway_is_set_against_each_peer_that_ran_and_not_against_one_skipp
     assert rows[("fan-out, events/s", "one-by-one")]["gateway_over_peer"] == {"opcua": 2.0}
     # A figure the run did not measure on the gateway has no ratio.
     assert rows[("paced Set→delivery p50 µs", "Listen")]["gateway_over_peer"] == {"opcua": None}
+
+
+def _line_way(inflight_8_per_s: float) -> dict[str, Any]:
+    inflight = {"1": {"throughput_per_s": 1.0}, "8": {"throughput_per_s": inflight_8_per_s}}
+    return {"line": {"inflight": inflight}}
+
+
+@pytest.mark.parametrize(
+    ("bare_per_s", "direct_per_s", "ceiling", "verdict"),
+    [(20_000.0, 50_000.0, 20 / 70, "FAIL"), (60_000.0, 50_000.0, 60 / 110, "PASS")],
+)
+def test_the_proxied_paths_ceiling_is_grpcs_hop_and_the_device_in_turn(
+    bare_per_s: float, direct_per_s: float, ceiling: float, verdict: str
+) -> None:
+    # A batch crosses both in turn: together f·d/(f+d) Gets/s, over the device's own d.
+    results = {"bare-session": _line_way(bare_per_s), "direct": _line_way(direct_per_s)}
+    judged = _verdict(results, "line-inflight-ceiling")
+    assert judged["figure"] == pytest.approx(ceiling, abs=0.001)  # the verdict's figure is rounded
+    assert judged["verdict"] == verdict
