@@ -19,6 +19,9 @@ they are the same per call on each server) nor cache misses.
   Sets; per event delivered. ``floor`` is :mod:`bench.fanout`'s server.
 * ``session-fanout``: the same with each Listen a request inside a Session of its own (the
   gateway only: neither the bare server nor the floor has Listens in Sessions).
+* ``session``: Gets of ``bench/value`` over one Session stream, one request a message, one
+  at a time; ``echo``: the same messages over the bare server's echo (grpc.aio's floor for a
+  Get over a bidirectional stream, ``bench.baseline.ECHO_METHOD``; ``--servers bare``).
 
 Needs valgrind (``apt-get install valgrind``); without it the command says so and exits 2.
 """
@@ -40,6 +43,7 @@ from typing import Any
 
 import grpc
 
+from bench.baseline import ECHO_METHOD
 from bench.listen import CHANNEL_OPTIONS
 from bench.measure import STREAM_END
 from bench.servers import ROOT
@@ -55,8 +59,8 @@ SERVERS = {
 #: What each server can be measured on: the floor serves only a fan-out, and only the gateway
 #: has Listens inside Sessions.
 SERVES = {
-    "bare": ("unary", "fanout"),
-    "gateway": ("unary", "fanout", "session-fanout"),
+    "bare": ("unary", "fanout", "session", "echo"),
+    "gateway": ("unary", "fanout", "session-fanout", "session"),
     "floor": ("fanout",),
 }
 #: Seconds a server under valgrind may take to print its address (it starts about fifty times slower).
@@ -183,6 +187,41 @@ async def unary_round(server: Counted, channel: grpc.aio.Channel, calls: int) ->
     return total / calls, main / calls
 
 
+async def _stream_round(server: Counted, call: Any, calls: int) -> tuple[float, float]:
+    """Instructions per Get over an open bidirectional stream, one Get a message, one at a time."""
+    for number in range(1, 21):  # warm up: the first messages import and cache
+        await call.write(_session_get(number))
+        await call.read()
+    await server.zero()
+    for number in range(21, 21 + calls):
+        await call.write(_session_get(number))
+        await call.read()
+    total, main = await server.dumped()
+    await call.done_writing()
+    return total / calls, main / calls
+
+
+def _session_get(number: int) -> pb.SessionRequest:
+    message = pb.SessionRequest()
+    message.requests.add(id=number, get=pb.GetRequest(service=SERVICE, property=VALUE_PROPERTY))
+    return message
+
+
+async def session_round(server: Counted, channel: grpc.aio.Channel, calls: int) -> tuple[float, float]:
+    """Instructions per Get over a Session, one request a message, one at a time."""
+    return await _stream_round(server, pb_grpc.PropertyServiceStub(channel).Session(), calls)
+
+
+async def echo_round(server: Counted, channel: grpc.aio.Channel, calls: int) -> tuple[float, float]:
+    """The same over the bare server's echo (``bench.baseline.ECHO_METHOD``): grpc.aio's floor."""
+    echo = channel.stream_stream(
+        ECHO_METHOD,
+        request_serializer=pb.SessionRequest.SerializeToString,
+        response_deserializer=pb.SessionResponse.FromString,
+    )
+    return await _stream_round(server, echo(), calls)
+
+
 async def fanout_round(
     server: Counted, channel: grpc.aio.Channel, sets: int, *, in_sessions: bool = False
 ) -> tuple[float, float]:
@@ -252,12 +291,14 @@ PARTS: dict[str, Callable[[Counted, grpc.aio.Channel, int], Awaitable[tuple[floa
     "unary": unary_round,
     "fanout": fanout_round,
     "session-fanout": session_fanout_round,
+    "session": session_round,
+    "echo": echo_round,
 }
 
 
 async def measure(part: str, kind: str, rounds: int, quick: bool) -> list[tuple[float, float]]:
     """``rounds`` counts of ``part`` on one ``kind`` of server under callgrind."""
-    if part == "unary":
+    if part in {"unary", "session", "echo"}:
         size = QUICK_CALLS if quick else UNARY_CALLS
     else:
         size = QUICK_SETS if quick else FANOUT_SETS
@@ -280,7 +321,9 @@ def main(argv: list[str] | None = None) -> int:
     """Command line: ``python -m bench.instructions``."""
     parser = argparse.ArgumentParser(prog="python -m bench.instructions", description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--parts", default="unary,fanout", help="unary, fanout, session-fanout (default unary,fanout)"
+        "--parts",
+        default="unary,fanout",
+        help="unary, fanout, session-fanout, session, echo (default unary,fanout)",
     )
     parser.add_argument(
         "--servers", default="bare,gateway", help="bare, gateway, floor (default bare,gateway)"
@@ -299,7 +342,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [p for p in parts if p not in PARTS] + [k for k in kinds if k not in SERVERS]
     if unknown:
         parser.error(f"unknown part or server: {', '.join(unknown)}")
-    per = {"unary": "Get", "fanout": "event", "session-fanout": "event"}
+    per = {"unary": "Get", "fanout": "event", "session-fanout": "event", "session": "Get", "echo": "Get"}
     for part in parts:
         medians: dict[str, float] = {}
         for kind in kinds:
