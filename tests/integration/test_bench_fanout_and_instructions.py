@@ -53,6 +53,26 @@ def test_instructions_counts_a_get_and_an_event_on_each_server() -> None:
         assert re.search(rf"^{part}\s+gateway\s+[\d.]+ x the bare server", out, re.MULTILINE), out
 
 
+@pytest.mark.skipif(shutil.which("callgrind_control") is None, reason="valgrind is not installed")
+@pytest.mark.timeout(400)
+def test_instructions_counts_a_session_get_beside_the_bare_servers_echo() -> None:
+    out = _run(
+        "bench.instructions",
+        "--quick",
+        "--rounds",
+        "1",
+        "--parts",
+        "session,echo",
+        "--servers",
+        "bare,gateway",
+        timeout=380,
+    )
+    for part, server in (("session", "bare"), ("session", "gateway"), ("echo", "bare")):
+        assert re.search(rf"^{part}\s+{server}\s+instructions per Get: [\d,]+ ", out, re.MULTILINE), out
+    assert re.search(r"^session\s+gateway\s+[\d.]+ x the bare server", out, re.MULTILINE), out
+    assert re.search(r"^echo\s+gateway\s+\(not measured", out, re.MULTILINE), out
+
+
 @pytest.mark.timeout(300)
 def test_paired_prints_both_ratios_for_one_and_eight_in_flight() -> None:
     out = _run("bench.paired", "--pairs", "2", "--calls", "200", timeout=280)
