@@ -195,6 +195,10 @@ class ClusterNode:
         folders = {kind: await self.store.read(kind) for kind in _FOLDERS}
         self.view.replace(folders)
         self.licences.load(await self.store.read(Kind.LICENCE))
+        self._look_at_everything()
+
+    def _look_at_everything(self) -> None:
+        """Reconcile every service known here, and look for orphans."""
         for name in sorted({*self.view.registrations, *self.served, *self._dialled}):
             self._mark(name)
         self._takeover.orphaned()
@@ -280,7 +284,11 @@ class ClusterNode:
 
     async def _reassert(self) -> None:
         try:
-            await self._read_all()  # the view as the store holds it now
+            # The view is the store's already: its watch reported every key, at one revision, before
+            # this ran (Store.on_reconnect). Reading the folders again could only go back in time:
+            # a read answered after a newer change came through the watch would undo that change
+            # (a gateway's record, say, leaving its services forwarded nowhere for good).
+            self._look_at_everything()
             written = await self._write_lost()
             self.joined = True
             log.info("cluster: the store is back; written again: %s", written)

@@ -113,6 +113,9 @@ class MemoryStore:
         self.writes: list[tuple[str, Kind, str]] = []
         #: Calls of the bulk writes (what, kind, keys asked for), in order: one round trip each.
         self.bulk_calls: list[tuple[str, Kind, int]] = []
+        #: The keys the watchers have been told of (as etcd's store keeps its mirror): a reconnection
+        #: reports those gone meanwhile as deleted.
+        self._known: set[tuple[Kind, str]] = set()
 
     # -- RegistryStore -------------------------------------------------------
 
@@ -137,6 +140,7 @@ class MemoryStore:
 
     async def start(self) -> None:
         self.started = True
+        self._known = set(self.server.keys)
 
     async def aclose(self) -> None:
         self.started = False
@@ -241,6 +245,11 @@ class MemoryStore:
         """Report ``change`` to the watchers a moment later, on the loop (as a watch stream does)."""
         if not self._listeners or self.dead or self.server.down:
             return
+        where = (change.kind, change.name)
+        if change.value is None:
+            self._known.discard(where)
+        else:
+            self._known.add(where)
         loop = asyncio.get_running_loop()
         for listener in list(self._listeners):
             loop.call_soon(listener, change)
@@ -250,6 +259,8 @@ class MemoryStore:
         does), then the reconnect listeners write their leased keys again."""
         if self.dead:
             return
+        for kind, name in sorted(self._known - set(self.server.keys), key=lambda key: (key[0].value, key[1])):
+            self.deliver(Change(kind, name, None))
         for kind in Kind:
             for name, value in self.server.folder(kind).items():
                 self.deliver(Change(kind, name, value))
