@@ -53,6 +53,26 @@ def test_instructions_counts_a_get_and_an_event_on_each_server() -> None:
         assert re.search(rf"^{part}\s+gateway\s+[\d.]+ x the bare server", out, re.MULTILINE), out
 
 
+@pytest.mark.skipif(shutil.which("callgrind_control") is None, reason="valgrind is not installed")
+@pytest.mark.timeout(400)
+def test_instructions_counts_a_batched_event_on_the_gateway_and_the_floor() -> None:
+    out = _run(
+        "bench.instructions",
+        "--quick",
+        "--rounds",
+        "1",
+        "--parts",
+        "batched-fanout",
+        "--servers",
+        "gateway,floor",
+        timeout=380,
+    )
+    for server in ("gateway", "floor"):
+        assert re.search(
+            rf"^batched-fanout\s+{server}\s+instructions per event: [\d,]+ ", out, re.MULTILINE
+        ), out
+
+
 @pytest.mark.timeout(300)
 def test_paired_prints_both_ratios_for_one_and_eight_in_flight() -> None:
     out = _run("bench.paired", "--pairs", "2", "--calls", "200", timeout=280)
