@@ -22,6 +22,10 @@ they are the same per call on each server) nor cache misses.
 * ``session``: Gets of ``bench/value`` over one Session stream, one request a message, one
   at a time; ``echo``: the same messages over the bare server's echo (grpc.aio's floor for a
   Get over a bidirectional stream, ``bench.baseline.ECHO_METHOD``; ``--servers bare``).
+* ``batched-fanout``: 100 Listen streams of the ten ``bench/v0`` .. ``bench/v9`` each, and bursts
+  of ten Sets (one to each) in one Session message, as the batched mode of part (c); per event
+  delivered (the gateway and the floor send a burst's ten events in one message, the bare server
+  one message each).
 
 Needs valgrind (``apt-get install valgrind``); without it the command says so and exits 2.
 """
@@ -47,7 +51,7 @@ from bench.baseline import ECHO_METHOD
 from bench.listen import CHANNEL_OPTIONS
 from bench.measure import STREAM_END
 from bench.servers import ROOT
-from bench.target import SERVICE, VALUE_PROPERTY
+from bench.target import BATCH_PROPERTIES, SERVICE, VALUE_PROPERTY
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
@@ -59,9 +63,9 @@ SERVERS = {
 #: What each server can be measured on: the floor serves only a fan-out, and only the gateway
 #: has Listens inside Sessions.
 SERVES = {
-    "bare": ("unary", "fanout", "session", "echo"),
-    "gateway": ("unary", "fanout", "session-fanout", "session"),
-    "floor": ("fanout",),
+    "bare": ("unary", "fanout", "batched-fanout", "session", "echo"),
+    "gateway": ("unary", "fanout", "session-fanout", "batched-fanout", "session"),
+    "floor": ("fanout", "batched-fanout"),
 }
 #: Seconds a server under valgrind may take to print its address (it starts about fifty times slower).
 START_TIMEOUT = 180.0
@@ -223,17 +227,26 @@ async def echo_round(server: Counted, channel: grpc.aio.Channel, calls: int) -> 
 
 
 async def fanout_round(
-    server: Counted, channel: grpc.aio.Channel, sets: int, *, in_sessions: bool = False
+    server: Counted,
+    channel: grpc.aio.Channel,
+    sets: int,
+    *,
+    in_sessions: bool = False,
+    properties: tuple[str, ...] = (VALUE_PROPERTY,),
 ) -> tuple[float, float]:
     """Instructions per event delivered to 100 Listens (all threads, main thread), ``sets`` Sets;
-    each Listen a stream of its own, or with ``in_sessions`` a request inside a Session of its own."""
+    each Listen a stream of its own, or with ``in_sessions`` a request inside a Session of its own.
+
+    With several ``properties`` each Listen follows them all, and each of the ``sets`` is a burst:
+    one Session message with a Set to each property (``sets * len(properties)`` Sets in all)."""
     setter = pb_grpc.PropertyServiceStub(channel)
     streams = [grpc.aio.insecure_channel(server.address, options=CHANNEL_OPTIONS) for _ in range(4)]
-    request = pb.ListenRequest(service=SERVICE, property=VALUE_PROPERTY)
+    more = [pb.PropertyRef(service=SERVICE, property=prop) for prop in properties[1:]]
+    request = pb.ListenRequest(service=SERVICE, property=properties[0], more=more)
     stubs = [pb_grpc.PropertyServiceStub(streams[n % 4]) for n in range(SUBSCRIBERS)]
     calls: list[Any] = []
     events = [0]
-    expected = sets * SUBSCRIBERS
+    expected = sets * len(properties) * SUBSCRIBERS
     delivered = asyncio.Event()
 
     def count(response: pb.ListenResponse) -> bool:
@@ -250,6 +263,7 @@ async def fanout_round(
 
     syncs = [asyncio.Event() for _ in stubs]
     tasks: list[asyncio.Task[None]] = []
+    bursts = setter.Session() if len(properties) > 1 else None
     try:
         for stub in stubs:
             if in_sessions:
@@ -265,13 +279,18 @@ async def fanout_round(
         await server.zero()
         for n in range(sets):
             value = f"{time.monotonic_ns()}{n}"
-            await setter.Set(
-                pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value=value), timeout=CALL_TIMEOUT
-            )
+            if bursts is None:
+                await setter.Set(
+                    pb.SetRequest(service=SERVICE, property=properties[0], value=value), timeout=CALL_TIMEOUT
+                )
+            else:
+                await _burst(bursts, properties, value)
         async with asyncio.timeout(CALL_TIMEOUT):
             await delivered.wait()
         total, main = await server.dumped()
     finally:
+        if bursts is not None:
+            bursts.cancel()
         for task in tasks:
             task.cancel()
         for call in calls:
@@ -280,6 +299,26 @@ async def fanout_round(
         for stream in streams:
             await stream.close(None)
     return total / events[0], main / events[0]
+
+
+async def _burst(session: Any, properties: tuple[str, ...], value: str) -> None:
+    """One Session message with a Set of ``value`` to each of ``properties``; wait for every reply."""
+    message = pb.SessionRequest()
+    for number, prop in enumerate(properties, start=1):
+        message.requests.add(id=number, set=pb.SetRequest(service=SERVICE, property=prop, value=value))
+    async with asyncio.timeout(CALL_TIMEOUT):
+        await session.write(message)
+        replies = 0
+        while replies < len(properties):
+            response = await session.read()
+            if response is STREAM_END:
+                raise RuntimeError(f"the setter's Session ended: {await session.code()}")
+            replies += len(response.replies)
+
+
+async def batched_fanout_round(server: Counted, channel: grpc.aio.Channel, sets: int) -> tuple[float, float]:
+    """:func:`fanout_round` with each Listen following the ten batch properties, ``sets`` bursts."""
+    return await fanout_round(server, channel, sets, properties=BATCH_PROPERTIES)
 
 
 async def session_fanout_round(server: Counted, channel: grpc.aio.Channel, sets: int) -> tuple[float, float]:
@@ -293,6 +332,7 @@ PARTS: dict[str, Callable[[Counted, grpc.aio.Channel, int], Awaitable[tuple[floa
     "session-fanout": session_fanout_round,
     "session": session_round,
     "echo": echo_round,
+    "batched-fanout": batched_fanout_round,
 }
 
 
@@ -307,8 +347,9 @@ async def measure(part: str, kind: str, rounds: int, quick: bool) -> list[tuple[
         try:
             async with grpc.aio.insecure_channel(server.address) as channel:
                 stub = pb_grpc.PropertyServiceStub(channel)
-                first = pb.SetRequest(service=SERVICE, property=VALUE_PROPERTY, value="0")
-                await stub.Set(first, timeout=CALL_TIMEOUT)
+                for prop in (VALUE_PROPERTY, *BATCH_PROPERTIES):  # the bare server makes them on a Set
+                    first = pb.SetRequest(service=SERVICE, property=prop, value="0")
+                    await stub.Set(first, timeout=CALL_TIMEOUT)
                 get = pb.GetRequest(service=SERVICE, property=VALUE_PROPERTY)
                 for _ in range(20 if part == "unary" else 0):  # warm up: the first calls import and cache
                     await stub.Get(get, timeout=CALL_TIMEOUT)
@@ -323,7 +364,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--parts",
         default="unary,fanout",
-        help="unary, fanout, session-fanout, session, echo (default unary,fanout)",
+        help="unary, fanout, session-fanout, batched-fanout, session, echo (default unary,fanout)",
     )
     parser.add_argument(
         "--servers", default="bare,gateway", help="bare, gateway, floor (default bare,gateway)"
@@ -342,7 +383,14 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [p for p in parts if p not in PARTS] + [k for k in kinds if k not in SERVERS]
     if unknown:
         parser.error(f"unknown part or server: {', '.join(unknown)}")
-    per = {"unary": "Get", "fanout": "event", "session-fanout": "event", "session": "Get", "echo": "Get"}
+    per = {
+        "unary": "Get",
+        "fanout": "event",
+        "session-fanout": "event",
+        "batched-fanout": "event",
+        "session": "Get",
+        "echo": "Get",
+    }
     for part in parts:
         medians: dict[str, float] = {}
         for kind in kinds:

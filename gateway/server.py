@@ -289,10 +289,12 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         code = Code.CANCELLED  # unless it ends otherwise: the client went away
         try:
             # drain.responses written out here: a generator in between costs every message one
-            # more async-generator step.
+            # more async-generator step, as Wake.wait costs it a coroutine.
             await stream.start()
             while True:
-                await wake.wait()
+                waiter = wake.waiter()
+                if waiter is not None:
+                    await waiter
                 while (response := stream.take_wire()) is not None:
                     yield response
                 if stream.error is not None:

@@ -39,6 +39,9 @@ class Slot(Generic[V]):
         self.removed = removed
 
 
+_new_slot = object.__new__
+
+
 class ConflatingQueue(Generic[K, V]):
     """Latest value per key, oldest key first; see the module docstring."""
 
@@ -52,9 +55,18 @@ class ConflatingQueue(Generic[K, V]):
 
         A removal that replaces a removal is not counted as conflated: nothing was lost.
         """
-        slot = self._slots.get(key)
+        slots = self._slots
+        slot = slots.get(key)
         if slot is None:
-            self._slots[key] = Slot(value, stamp, gap, removed)
+            # Slot(...) written out: calling a class with an __init__ costs about half again as
+            # much, and this runs for every value of every queue (each Listen stream's).
+            slot = _new_slot(Slot)
+            slot.value = value
+            slot.stamp = stamp
+            slot.conflated = 0
+            slot.gap = gap
+            slot.removed = removed
+            slots[key] = slot
             return True
         if not (removed and slot.removed):
             slot.conflated += 1

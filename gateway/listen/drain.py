@@ -30,19 +30,30 @@ class Wake:
         self._future: asyncio.Future[None] | None = None
 
     def set(self) -> None:
-        self._set = True
         future = self._future
-        if future is not None and not future.done():
+        if future is None or future.done():  # no waiter (or one cancelled): the next wait returns at once
+            self._set = True
+            self._future = None
+        else:  # the waiter wakes, and its wake is spent
+            self._future = None
             future.set_result(None)
 
+    def waiter(self) -> asyncio.Future[None] | None:
+        """What to await before the next round: a future :meth:`set` completes, or None when it
+        was set already (and is cleared now).
+
+        :meth:`wait` without a coroutine of its own, for a writer woken once a message.
+        """
+        if self._set:
+            self._set = False
+            return None
+        future = self._future = asyncio.get_running_loop().create_future()
+        return future
+
     async def wait(self) -> None:
-        if not self._set:
-            self._future = asyncio.get_running_loop().create_future()
-            try:
-                await self._future
-            finally:
-                self._future = None
-        self._set = False
+        future = self.waiter()
+        if future is not None:
+            await future
 
 
 async def responses(stream: ListenStream, wake: Wake) -> AsyncGenerator[pb.ListenResponse, None]:

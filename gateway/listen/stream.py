@@ -782,7 +782,10 @@ class ListenStream:
             size = event_size(*ready[0])
         else:
             ready, size = within(islice(pending.items(), limit))
-            pending.take(len(ready))
+            if len(ready) == len(pending):
+                pending.clear()  # all of it, as the commonest batch is: no list taken twice
+            else:
+                pending.take(len(ready))
         if not ready:
             return None
         if len(ready) == 1 and size > MAX_MESSAGE_BYTES:

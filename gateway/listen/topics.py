@@ -52,6 +52,28 @@ class Sink(Protocol):
     def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None: ...
 
 
+class SharedEvent:
+    """What every stream's event for one change of a topic has alike: its size, and its service,
+    property, value and time serialized (filled by :mod:`gateway.listen.encoding` when a stream
+    first sends it, then reused by the others)."""
+
+    __slots__ = ("body", "leads", "rest", "size", "stamp", "value")
+
+    def __init__(self, stamp: int, value: Value, size: int) -> None:
+        #: The change it is for: the stamp and the very value object the streams' slots hold.
+        self.stamp = stamp
+        self.value = value
+        #: About the bytes the event takes (``gateway.listen.encoding.event_size``).
+        self.size = size
+        #: The shared fields serialized; None until a stream sends the change serialized.
+        self.body: bytes | None = None
+        #: The event's tag and length followed by ``body``, per number of bytes a stream adds
+        #: (its sequence number, count and flags): a few distinct numbers at most.
+        self.leads: dict[int, bytes] = {}
+        #: ``body`` when it is too big to copy into each lead (it follows the lead then), else b"".
+        self.rest = b""
+
+
 class Topic:
     """One shared backend subscription and the latest value seen on it."""
 
@@ -85,9 +107,9 @@ class Topic:
         #: A change came from the backend: it is newer than the value the opening Listen brought.
         self.heard = False
         self.opening: asyncio.Task[None] | None = None
-        #: (stamp, value, bytes): the shared fields of the latest change's event, serialized once
-        #: for every stream (gateway.listen.encoding.shared_wire).
-        self.wire: tuple[int, Value, bytes] | None = None
+        #: The latest change's event as every stream sends it, encoded once for them all
+        #: (gateway.listen.encoding.shared_event).
+        self.wire: SharedEvent | None = None
 
     def notify(self, change: Change) -> None:
         """The backend's callback: remember the value, hand it to every sink."""

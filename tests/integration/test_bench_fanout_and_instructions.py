@@ -1,4 +1,5 @@
-"""``python -m bench.fanout``, ``bench.instructions`` and ``bench.paired`` run end to end.
+"""``python -m bench.fanout``, ``bench.instructions``, ``bench.hub_fanout`` and ``bench.paired`` run
+end to end.
 
 Smoke tests only: every server and every way ran to the end and printed a figure; never what
 the figures are.
@@ -71,6 +72,34 @@ def test_instructions_counts_a_session_get_beside_the_bare_servers_echo() -> Non
         assert re.search(rf"^{part}\s+{server}\s+instructions per Get: [\d,]+ ", out, re.MULTILINE), out
     assert re.search(r"^session\s+gateway\s+[\d.]+ x the bare server", out, re.MULTILINE), out
     assert re.search(r"^echo\s+gateway\s+\(not measured", out, re.MULTILINE), out
+
+
+@pytest.mark.skipif(shutil.which("callgrind_control") is None, reason="valgrind is not installed")
+@pytest.mark.timeout(400)
+def test_instructions_counts_a_batched_event_on_the_gateway_and_the_floor() -> None:
+    out = _run(
+        "bench.instructions",
+        "--quick",
+        "--rounds",
+        "1",
+        "--parts",
+        "batched-fanout",
+        "--servers",
+        "gateway,floor",
+        timeout=380,
+    )
+    for server in ("gateway", "floor"):
+        assert re.search(
+            rf"^batched-fanout\s+{server}\s+instructions per event: [\d,]+ ", out, re.MULTILINE
+        ), out
+
+
+@pytest.mark.timeout(120)
+def test_hub_fanout_times_an_event_and_a_message_of_the_hub_alone() -> None:
+    out = _run("bench.hub_fanout", "--bursts", "5", timeout=100)
+    assert re.search(
+        r"^100 streams, 10 events a message: [\d.]+ µs per event, [\d.]+ µs per message", out, re.M
+    ), out
 
 
 @pytest.mark.timeout(300)

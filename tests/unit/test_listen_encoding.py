@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 from support.fake_backend import DictBackend
 
 from gateway.listen.encoding import (
+    LEAD_BODY_BYTES,
     Mark,
     encode_events,
     encode_wire,
@@ -92,3 +93,68 @@ def test_listen_replies_serialized_join_the_other_replies_of_a_session_response(
         replies=[answer, pb.Reply(id=rid, listen=encode_events([(topic, slot)], 41)), pb.Reply(id=rid)]
     )
     assert pb.SessionResponse.FromString(wire) == expected
+
+
+#: Sequence numbers on each side of each varint width the encoding treats apart (one byte, two,
+#: three, more).
+EDGES = [1, 127, 128, 16_383, 16_384, 2**21 - 1, 2**21, 2**28, 2**40]
+
+
+@settings(deadline=None)
+@given(
+    st.lists(st.tuples(st.sampled_from(["a", "b"]), slots), min_size=1, max_size=4),
+    st.lists(st.sampled_from(EDGES), min_size=2, max_size=4),
+    st.one_of(values, st.binary(min_size=LEAD_BODY_BYTES, max_size=LEAD_BODY_BYTES + 50)),
+)
+def test_streams_at_any_sequence_share_one_change_and_each_reads_its_own_message(
+    events: list[tuple[str, Slot[Value]]], sequences: list[int], big: Value
+) -> None:
+    topics = {path: _topic("svc", path) for path in ("a", "b")}
+    events = [*events, ("a", _slot(big, 7, 0, False, False))]
+    ready = [(topics[path], slot) for path, slot in events]
+    for sequence in sequences:  # one stream each, all sending the same changes
+        wire = encode_wire(ready, sequence)
+        expected = encode_events(ready, sequence)
+        assert wire == _canonical(expected)
+        assert pb.ListenResponse.FromString(wire) == expected
+
+
+def _canonical(response: pb.ListenResponse) -> bytes:
+    """``response`` serialized with each event's fields in the order encode_wire writes them:
+    the shared ones (protobuf's own bytes of an Event holding only those), then the stream's."""
+    out = b""
+    for event in response.events:
+        shared = pb.Event(service=event.service, property=event.property, value=event.value, time=event.time)
+        if event.HasField("data"):
+            shared.data = event.data
+        own = pb.Event(
+            sequence=event.sequence, conflated=event.conflated, gap=event.gap, removed=event.removed
+        )
+        body = shared.SerializeToString() + own.SerializeToString()
+        out += pb.ListenResponse(events=[pb.Event()]).SerializeToString()[:1] + _varint(len(body)) + body
+    return out
+
+
+def _varint(n: int) -> bytes:
+    out = b""
+    while n > 0x7F:
+        out += bytes(((n & 0x7F) | 0x80,))
+        n >>= 7
+    return out + bytes((n,))
+
+
+def test_a_change_is_led_once_per_length_and_a_big_value_is_not_copied_into_its_leads() -> None:
+    topic = _topic("cam", "frame")
+    small = Slot[Value]("x", 1, False, False)
+    encode_wire([(topic, small)], 0)
+    encode_wire([(topic, small)], 5)  # a second stream whose sequence number is as long
+    shared = topic.wire
+    assert shared is not None and list(shared.leads) == [2] and shared.rest == b""
+    encode_wire([(topic, small)], 200)  # a third, with a longer one: a second lead
+    assert sorted(shared.leads) == [2, 3]
+    frame = Slot[Value](bytes(LEAD_BODY_BYTES + 1), 2, False, False)
+    first = encode_wire([(topic, frame)], 0)
+    shared = topic.wire
+    assert shared is not None and shared.body is not None and shared.rest is shared.body
+    assert all(len(lead) < 8 for lead in shared.leads.values())
+    assert pb.ListenResponse.FromString(first).events[0].data == frame.value

@@ -1,0 +1,112 @@
+"""The listen hub's own work per event of a batched fan-out, in one process and without gRPC.
+
+Run ``python -m bench.hub_fanout`` (``--bursts N``, ``--profile``). 100 streams of the listen hub
+follow the ten properties of part (c)'s batched mode each, on :class:`bench.gateway_server.BenchTarget`
+served by ``LocalService`` as the benchmark's gateway serves it. A burst sets each property
+once (ten changes); then every stream is drained as the gRPC Listen handler drains it
+(``ListenStream.take_wire``: one message of ten events). The figure, the best of five runs, is
+the time per event and per message: what the gateway's Python pays beside grpc.aio's own cost
+of writing the message, which the floor of ``python -m bench.fanout`` pays too. ``--profile``
+prints where it goes (cProfile).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import cProfile
+import pstats
+import time
+
+from bench.gateway_server import BenchTarget
+from bench.target import BATCH_PROPERTIES, SERVICE
+from gateway.config import Limits
+from gateway.listen import ListenHub, ListenStream, Selector, StreamOptions
+from gateway.router import Router
+from services.core import LocalService
+
+STREAMS = 100
+#: Bursts before the measured ones: the first changes of a stream take its start-up paths.
+WARM_UP = 50
+
+
+class _Hub:
+    """The hub with its streams open and synced, and the streams each burst woke."""
+
+    def __init__(self) -> None:
+        self.target = BenchTarget()
+        router = Router()
+        router.add(SERVICE, LocalService(self.target))
+        self.hub = ListenHub(router, Limits(), call_timeout=5.0)
+        self.woken: list[ListenStream] = []
+        self.streams: list[ListenStream] = []
+        self.events = 0
+
+    async def open(self) -> None:
+        selectors = [Selector(SERVICE, prop) for prop in BATCH_PROPERTIES]
+        for _ in range(STREAMS):
+            holder: list[ListenStream] = []
+            stream = self.hub.open(selectors, StreamOptions(), lambda held=holder: self.woken.append(held[0]))
+            holder.append(stream)
+            self.streams.append(stream)
+        for stream in self.streams:
+            await stream.start()
+        self.bursts(WARM_UP)
+
+    def bursts(self, count: int) -> None:
+        """``count`` bursts of one change to each property, each drained by every stream it woke."""
+        for _ in range(count):
+            value = str(time.perf_counter_ns())
+            for prop in BATCH_PROPERTIES:
+                setattr(self.target, prop, value)
+            woken, self.woken = self.woken, []
+            for stream in woken:
+                while stream.take_wire() is not None:
+                    pass
+
+    def sent(self) -> int:
+        return sum(stream.events_sent for stream in self.streams)
+
+
+async def measure(bursts: int, profile: bool) -> None:
+    """Print the hub's time per event and per message, or with ``profile`` where it goes."""
+    hub = _Hub()
+    await hub.open()
+    if profile:
+        profiler = cProfile.Profile()
+        profiler.enable()
+        hub.bursts(bursts)
+        profiler.disable()
+        pstats.Stats(profiler).sort_stats("tottime").print_stats(20)
+        return
+    best = float("inf")
+    for _ in range(5):
+        before = hub.sent()
+        started = time.perf_counter()
+        hub.bursts(bursts)
+        elapsed = time.perf_counter() - started
+        events = hub.sent() - before
+        if events != bursts * STREAMS * len(BATCH_PROPERTIES):
+            raise RuntimeError(f"expected {bursts * STREAMS * len(BATCH_PROPERTIES)} events, sent {events}")
+        best = min(best, elapsed / events)
+    per_message = best * len(BATCH_PROPERTIES)
+    print(
+        f"{STREAMS} streams, {len(BATCH_PROPERTIES)} events a message: "
+        f"{1e6 * best:.3f} µs per event, {1e6 * per_message:.2f} µs per message (best of 5 runs)"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line: ``python -m bench.hub_fanout``."""
+    parser = argparse.ArgumentParser(prog="python -m bench.hub_fanout", description=__doc__.splitlines()[0])
+    parser.add_argument("--bursts", type=int, default=200, help="bursts a run (default 200)")
+    parser.add_argument("--profile", action="store_true", help="print a cProfile of one run instead")
+    args = parser.parse_args(argv)
+    if args.bursts < 1:
+        parser.error("--bursts must be at least 1")
+    asyncio.run(measure(args.bursts, args.profile))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
