@@ -44,10 +44,17 @@ def test_fanout_measures_every_server_mode_and_way() -> None:
         assert re.search(rf"^{way}{FIGURE}{FIGURE}{FIGURE}", out, re.MULTILINE), out
 
 
+def _quick_instructions(parts: str, servers: str) -> str:
+    """``python -m bench.instructions --quick`` of ``parts`` on ``servers``, one round: its output."""
+    return _run(
+        "bench.instructions", "--quick", "--rounds", "1", "--parts", parts, "--servers", servers, timeout=380
+    )
+
+
 @pytest.mark.skipif(shutil.which("callgrind_control") is None, reason="valgrind is not installed")
 @pytest.mark.timeout(400)
 def test_instructions_counts_a_get_and_an_event_on_each_server() -> None:
-    out = _run("bench.instructions", "--quick", "--rounds", "1", "--servers", "bare,gateway", timeout=380)
+    out = _quick_instructions("unary,fanout", "bare,gateway")
     for part, per in (("unary", "Get"), ("fanout", "event")):
         for server in ("bare", "gateway"):
             assert re.search(rf"^{part}\s+{server}\s+instructions per {per}: [\d,]+ ", out, re.MULTILINE), out
@@ -57,17 +64,7 @@ def test_instructions_counts_a_get_and_an_event_on_each_server() -> None:
 @pytest.mark.skipif(shutil.which("callgrind_control") is None, reason="valgrind is not installed")
 @pytest.mark.timeout(400)
 def test_instructions_counts_a_session_get_beside_the_bare_servers_echo() -> None:
-    out = _run(
-        "bench.instructions",
-        "--quick",
-        "--rounds",
-        "1",
-        "--parts",
-        "session,echo",
-        "--servers",
-        "bare,gateway",
-        timeout=380,
-    )
+    out = _quick_instructions("session,echo", "bare,gateway")
     for part, server in (("session", "bare"), ("session", "gateway"), ("echo", "bare")):
         assert re.search(rf"^{part}\s+{server}\s+instructions per Get: [\d,]+ ", out, re.MULTILINE), out
     assert re.search(r"^session\s+gateway\s+[\d.]+ x the bare server", out, re.MULTILINE), out
@@ -77,17 +74,7 @@ def test_instructions_counts_a_session_get_beside_the_bare_servers_echo() -> Non
 @pytest.mark.skipif(shutil.which("callgrind_control") is None, reason="valgrind is not installed")
 @pytest.mark.timeout(400)
 def test_instructions_counts_a_batched_event_on_the_gateway_and_the_floor() -> None:
-    out = _run(
-        "bench.instructions",
-        "--quick",
-        "--rounds",
-        "1",
-        "--parts",
-        "batched-fanout",
-        "--servers",
-        "gateway,floor",
-        timeout=380,
-    )
+    out = _quick_instructions("batched-fanout", "gateway,floor")
     for server in ("gateway", "floor"):
         assert re.search(
             rf"^batched-fanout\s+{server}\s+instructions per event: [\d,]+ ", out, re.MULTILINE
