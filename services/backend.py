@@ -51,6 +51,17 @@ class Change:
 Notify = Callable[[Change], None]
 
 
+def tell_each(listeners: dict[int, Notify], change: Change, what: str) -> None:
+    """Hand ``change`` to every listener (token → callback); one that raises is logged, as a
+    listener of ``what``, and dropped, and the others are told all the same."""
+    for token, notify in list(listeners.items()):
+        try:
+            notify(change)
+        except Exception:
+            log.exception("a listener of %s raised; it is dropped", what)
+            listeners.pop(token, None)
+
+
 class Subscription(abc.ABC):
     """A live listen on one backend property; ``close`` ends it (idempotent)."""
 

@@ -9,7 +9,7 @@ import logging
 from collections.abc import Coroutine, Mapping
 from typing import Any
 
-from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
+from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription, tell_each
 from services.backoff import pauses, wait_to_retry
 from services.core.describe import describe_matching, describe_tree
 from services.core.metadata import class_spec
@@ -98,13 +98,7 @@ class _Watch:
         if value == self.last and not removed:
             return
         self.last = value
-        change = Change(self.path, value, gap=gap, removed=removed)
-        for token, notify in list(self.listeners.items()):
-            try:
-                notify(change)
-            except Exception:
-                log.exception("a listener of %s raised; it is dropped", self.path)
-                self.listeners.pop(token, None)
+        tell_each(self.listeners, Change(self.path, value, gap=gap, removed=removed), self.path)
 
     def close(self) -> None:
         if self._unhook is not None:
@@ -319,12 +313,7 @@ class LocalService(Backend):
         return not isinstance(node, Resource) or bool(remote_children(node))
 
     def _tell_list_listeners(self, change: Change) -> None:
-        for token, notify in list(self._list_listeners.items()):
-            try:
-                notify(change)
-            except Exception:
-                log.exception("a listener of the property list raised; it is dropped")
-                self._list_listeners.pop(token, None)
+        tell_each(self._list_listeners, change, "the property list")
 
     def _spawn(self, coro: Coroutine[Any, Any, None], what: str) -> asyncio.Task[None]:
         task = asyncio.get_running_loop().create_task(coro, name=what)

@@ -8,11 +8,10 @@ answered by :class:`~services.environment.service.EnvironmentService`.
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Mapping
 from typing import Annotated, Any
 
-from services.backend import Change, Notify
+from services.backend import Change, Notify, tell_each
 from services.core import Marker, Prop, Resource
 from services.environment.fusion import MarkerFusion
 from services.environment.grid import Layer, to_npy
@@ -21,7 +20,6 @@ from services.environment.observations import fused_marker
 
 __all__ = ["LAYER_META", "NPY", "PNG", "GridLayers", "LayerNode", "MarkerNode", "MarkerTable"]
 
-log = logging.getLogger(__name__)
 
 #: Media types of a layer's value and of its image.
 NPY = "application/x-npy"
@@ -88,13 +86,7 @@ class LayerNode(Resource):
         self.changed("info")
         self.changed("image")
         if self.listeners:
-            change = Change(path, self.npy())
-            for token, notify in list(self.listeners.items()):
-                try:
-                    notify(change)
-                except Exception:
-                    log.exception("a listener of %s raised; it is dropped", path)
-                    self.listeners.pop(token, None)
+            tell_each(self.listeners, Change(path, self.npy()), path)
 
     def npy(self) -> bytes:
         """The layer's values (float32, NaN where a mean has no value yet) as ``numpy.save`` writes them."""

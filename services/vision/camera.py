@@ -30,7 +30,7 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from services.backend import NO_PARAMS, UNKNOWN_TYPE, Backend, Change, Notify, Subscription
+from services.backend import NO_PARAMS, UNKNOWN_TYPE, Backend, Change, Notify, Subscription, tell_each
 from services.core import LocalService, Prop, Resource
 from services.directory import Directory
 from services.errors import InvalidArgument, PropertyError, ReadOnly, ResourceExhausted
@@ -487,13 +487,7 @@ class Camera(Resource):
             self.changed("data")
         self.changed("markers")
         if self._camera_listeners:
-            change = Change("markers", camera)
-            for token, notify in list(self._camera_listeners.items()):
-                try:
-                    notify(change)
-                except Exception:
-                    log.exception("a listener of markers (camera frame) raised; it is dropped")
-                    self._camera_listeners.pop(token, None)
+            tell_each(self._camera_listeners, Change("markers", camera), "markers (camera frame)")
 
     def listen_camera_markers(self, notify: Notify) -> Subscription:
         """Call ``notify`` whenever the markers in the camera's frame change (CameraService's Listen)."""
