@@ -118,6 +118,10 @@ class LinkCounts:
     keepalive_failures: int = 0
 
 
+def _no_link() -> None:
+    """Stop watching the link of a backend that has none: nothing to stop."""
+
+
 class Backend(abc.ABC):
     """One Property Service, whatever it runs on.
 
@@ -272,6 +276,12 @@ class Backend(abc.ABC):
     def link_counts(self) -> LinkCounts | None:
         """The counts of a backend that keeps a connection to a device; None for any other (the default)."""
         return None
+
+    def watch_link(self, listener: Callable[[bool], None]) -> Callable[[], None]:
+        """Call ``listener(False)`` as soon as the backend loses its device, ``listener(True)`` when
+        it has it back; returns a function that stops it. A backend with no link of its own never
+        calls it (the default)."""
+        return _no_link
 
     async def wait_connected(self, wait_s: float) -> None:  # noqa: B027 - optional hook, at once by default
         """Return once the backend can serve calls; raise Unavailable, saying why, after ``wait_s``.
