@@ -85,6 +85,7 @@ from services.line_protocol import (
     Request,
     Set,
     Unlisten,
+    decode_line,
     encode,
 )
 
@@ -106,8 +107,6 @@ ASKED_GREETING_WINDOW_S = 2.0
 #: reply arrives damaged, before the call fails with DATA_LOSS: a line that a noisy serial line
 #: spoils three times in a row is not noise any more, and the call's own deadline still holds.
 RESENDS = 2
-#: ``resends`` of a SET: never sent again (see LineConnection._resend).
-NEVER_RESENT = -1
 #: Tags are the request counter in hex, at most 8 digits.
 _TAG_MASK = 0xFFFFFFFF
 
@@ -135,7 +134,7 @@ def send_waiting_lines() -> None:
 class _Pending:
     """One request waiting for its reply: its future, its deadline, its time limit, its line."""
 
-    __slots__ = ("cancel_when_abandoned", "deadline", "future", "line", "resends", "tag", "then", "timeout")
+    __slots__ = ("cancel_when_abandoned", "deadline", "future", "line", "tag", "then", "timeout")
 
     def __init__(
         self, future: asyncio.Future[Frame], tag: str, deadline: float, timeout: float, line: bytes
@@ -147,8 +146,6 @@ class _Pending:
         #: The line as sent (its length counts against the device's ``rxbuf`` until answered): sent
         #: again, tag and all, when the device reports it lost (§6).
         self.line = line
-        #: Times it may still be sent again; NEVER_RESENT for a SET, which the device may have applied.
-        self.resends = RESENDS
         #: A SET: when nobody waits for its reply any more, the device is told to drop it.
         self.cancel_when_abandoned = False
         #: Called with a successful reply as it is read, before the future is resolved.
@@ -198,6 +195,8 @@ class LineConnection(asyncio.Protocol):
         #: The longest line taken from the device (the proxy option ``maxline``); longer is a bad line.
         self._receiver = LineReceiver(max_line=receive_limit)
         self._pending: dict[str, _Pending] = {}
+        #: Times each request in flight that was reported lost has been sent again, by tag.
+        self._resent: dict[str, int] = {}
         #: (deadline, issue number, request): a heap over the requests in flight (and some answered
         #: ones, dropped lazily), with the one timer armed at its earliest live deadline.
         self._deadlines: list[tuple[float, int, _Pending]] = []
@@ -505,11 +504,9 @@ class LineConnection(asyncio.Protocol):
         pending.then = then
         self._pending[tag] = pending
         self._add_deadline(pending)
-        if type(frame) is Set:
-            pending.resends = NEVER_RESENT
-            if not self.flow_controlled:
-                pending.cancel_when_abandoned = True
-                future.add_done_callback(lambda done: self._abandoned(done, tag))
+        if type(frame) is Set and not self.flow_controlled:
+            pending.cancel_when_abandoned = True
+            future.add_done_callback(lambda done: self._abandoned(done, tag))
         if log.isEnabledFor(logging.DEBUG):
             # The tag ties the device's reply to this line, the request id to the client's call.
             log.debug(
@@ -780,6 +777,14 @@ class LineConnection(asyncio.Protocol):
             if self._pending.get(pending.tag) is pending:
                 self._resend(pending, why)
 
+    def _resends_of(self, tag: str) -> int:
+        """How many times the request of ``tag`` has been sent again; answered ones are forgotten
+        here, so the count never holds more than the requests in flight."""
+        resent = self._resent
+        if len(resent) > len(self._pending):
+            self._resent = resent = {t: n for t, n in resent.items() if t in self._pending}
+        return resent.get(tag, 0)
+
     def _resend(self, pending: _Pending, why: str) -> None:
         """Send the line of ``pending`` again, under its own tag, in the room it holds already.
 
@@ -792,14 +797,18 @@ class LineConnection(asyncio.Protocol):
         future = pending.future
         if future.done():
             return
-        if pending.resends > 0:
-            pending.resends -= 1
-            log.info("%s: request #%s sent again: %s", self.label, pending.tag, why)
+        tag = pending.tag
+        is_set = _is_set(pending.line)
+        resends = self._resends_of(tag)
+        if resends < RESENDS and not is_set:
+            self._resent[tag] = resends + 1
+            log.info("%s: request #%s sent again: %s", self.label, tag, why)
             self._write_line(pending.line)
             return
-        del self._pending[pending.tag]
+        del self._pending[tag]
+        self._resent.pop(tag, None)
         self._release(len(pending.line))
-        if pending.resends < 0:
+        if is_set:
             message = f"{self.label}: {why}; the SET may or may not have been applied: read it back"
         else:
             message = f"{self.label}: {why}, again after {RESENDS} resends"
@@ -862,6 +871,15 @@ class LineConnection(asyncio.Protocol):
                     f"maxline, now {self._receiver.max_line}, is the longest line taken from the device)"
                 )
             )
+
+
+def _is_set(line: bytes) -> bool:
+    """Whether ``line`` (as sent, LF included) is a SET: read from the line, since a fault is rare
+    and a request that carries no field for it costs nothing on the way that is not."""
+    try:
+        return type(decode_line(line[:-1], max_line=len(line))) is Set
+    except LineProtocolError:  # never for a line the connection wrote; never sent again if it were
+        return True
 
 
 def _time_out(waiter: asyncio.Future[None]) -> None:

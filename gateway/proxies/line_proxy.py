@@ -379,8 +379,8 @@ class LineProxy(Backend):
             try:
                 await self._supervise(conn)
             finally:
-                self._connected.clear()
                 self._tell_link(False)
+            self._connected.clear()
             if not self._closing:
                 self.counts.disconnects += 1
             self._last_error = conn.close_reason
