@@ -244,6 +244,13 @@ class LineConnection(asyncio.Protocol):
         self._task = asyncio.create_task(
             self._read_loop(reader), name=f"line-connection {self.label}", context=outside_requests()
         )
+        self._task.add_done_callback(self._reader_ended)
+
+    def _reader_ended(self, task: asyncio.Task[None]) -> None:
+        # The reader ends cancelled or at the stream's end (expected); anything it raised is a bug
+        # worth a traceback, logged here even when nobody awaits the connection's close.
+        if not task.cancelled() and (exc := task.exception()) is not None:
+            log.error("%s: the reader failed", self.label, exc_info=exc)
 
     def data_received(self, data: bytes) -> None:
         self._last_data = time.monotonic()
@@ -357,10 +364,8 @@ class LineConnection(asyncio.Protocol):
         self.close(reason)
         task = self._task
         if task is not None:
-            # The reader ends cancelled (expected); anything else it raised is a bug worth a traceback.
-            (outcome,) = await asyncio.gather(task, return_exceptions=True)
-            if isinstance(outcome, Exception):
-                log.error("%s: the reader failed", self.label, exc_info=outcome)
+            # What the reader raised, if anything, _reader_ended has logged.
+            await asyncio.gather(task, return_exceptions=True)
             return
         if self._transport is None or self._lost.done():
             return

@@ -484,7 +484,19 @@ class LineProxy(Backend):
     def _spawn(self, coro: Any) -> None:
         task = asyncio.create_task(coro)
         self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        task.add_done_callback(self._task_ended)
+
+    def _task_ended(self, task: asyncio.Task[Any]) -> None:
+        """A background task ended: forget it, and log (never leave unretrieved) what it raised."""
+        self._tasks.discard(task)
+        if not task.cancelled() and (exc := task.exception()) is not None:
+            log.error("%s: %s failed", self._label(), task.get_name(), exc_info=exc)
+
+    def _background(self, coro: Any, name: str) -> asyncio.Task[None]:
+        """A poller or a retry of one shared listen: outside any request, its failure logged."""
+        task: asyncio.Task[None] = asyncio.create_task(coro, name=name, context=outside_requests(self.name))
+        task.add_done_callback(self._task_ended)
+        return task
 
     # -- calls -------------------------------------------------------------
 
@@ -633,9 +645,7 @@ class LineProxy(Backend):
                 return value
         value = await self._call(Get(entry.path, dict(entry.params)))
         if entry.poller is None or entry.poller.done():
-            entry.poller = asyncio.create_task(
-                self._poll(entry), name=f"poll {self.name}.{entry.path}", context=outside_requests(self.name)
-            )
+            entry.poller = self._background(self._poll(entry), f"poll {self.name}.{entry.path}")
         return value
 
     async def _close_listen(self, entry: _DeviceListen) -> None:
@@ -708,7 +718,7 @@ class LineProxy(Backend):
         entry.last = None
         entry.deliver(Change(entry.path, "", removed=True))
         if entry.poller is None or entry.poller.done():
-            entry.poller = asyncio.create_task(self._poll(entry), name=f"await {self.name}.{entry.path}")
+            entry.poller = self._background(self._poll(entry), f"await {self.name}.{entry.path}")
 
     async def _resubscribe(self, conn: LineConnection) -> None:
         """After a (re)connection: listen again and hand every listener the current value, marked as a gap."""
@@ -731,10 +741,8 @@ class LineProxy(Backend):
                     exc.message,
                 )
                 if entry.relisten is None or entry.relisten.done():
-                    entry.relisten = asyncio.create_task(
-                        self._relisten(entry, conn),
-                        name=f"listen again {self.name}.{entry.path}",
-                        context=outside_requests(self.name),
+                    entry.relisten = self._background(
+                        self._relisten(entry, conn), f"listen again {self.name}.{entry.path}"
                     )
                 continue
             self._reopened(entry, value)
