@@ -135,7 +135,7 @@ class Backend(abc.ABC):
     that callers never ask which kind of backend they hold:
     :attr:`answers_inline`, :meth:`start_get`, :meth:`listen_current`,
     :meth:`match_properties`, :meth:`listen_properties`,
-    :meth:`wait_connected`, :meth:`serves`, :meth:`wake`, :attr:`on_demand`.
+    :meth:`wait_connected`, :meth:`watch_link`, :meth:`serves`, :meth:`wake`, :attr:`on_demand`.
     """
 
     info: BackendInfo
