@@ -78,6 +78,8 @@ class ScriptedDevice:
         #: Replies to spoil on the way, by how the request's words start, and how many times: the
         #: reply goes out with a checksum that does not match.
         self.damaging: dict[str, int] = {}
+        #: Pulled out (:meth:`unplug`): silent until plugged in again.
+        self.unplugged = False
         #: Every line received (without LF), in order, over all connections.
         self.lines: list[str] = []
         #: Lines the client sent that are replies to the device's own requests.
@@ -101,6 +103,17 @@ class ScriptedDevice:
         assert self._writer is not None, "no client connected"
         body = line.encode()
         self._writer.write(b"$" + body + b"*%02X\n" % crc8(body) if checksum else body + b"\n")
+
+    def unplug(self) -> None:
+        """The cable is pulled: the connection drops, and until :meth:`plug_in` the device neither
+        greets nor answers a client that connects."""
+        self.unplugged = True
+        if self._writer is not None:
+            self._writer.transport.abort()
+
+    def plug_in(self) -> None:
+        """Back: it greets a client that connects, and answers again (a HELLO among the rest)."""
+        self.unplugged = False
 
     def restart(self) -> None:
         """A reset: subscriptions and pending requests are forgotten, the greeting is sent unasked."""
@@ -133,7 +146,7 @@ class ScriptedDevice:
         self.connections += 1
         self._writer = writer
         self.subscribed.clear()
-        if self.greet_first:
+        if self.greet_first and not self.unplugged:
             self.send(self.greeting)
         worker = asyncio.create_task(self._work())
         # It takes lines as long as its greeting says (maxline=), and never fewer than 1024 bytes:
@@ -186,7 +199,7 @@ class ScriptedDevice:
             reply = self._answer(frame)
             self._unanswered = max(0, self._unanswered - 1)
             self._unanswered_bytes = max(0, self._unanswered_bytes - size)
-            if reply is not None and self._writer is not None:
+            if reply is not None and self._writer is not None and not self.unplugged:
                 if damaged:
                     body = reply.encode()
                     self._writer.write(b"$" + body + b"*%02X\n" % (crc8(body) ^ 0x5A))

@@ -182,7 +182,7 @@ async def test_a_full_subscription_table_costs_only_that_path_a_listen_line_it_i
             other = stub.Listen(pb.ListenRequest(service="probe", property="a"))
             await values_until(other, {"a": "1"})
             stream.cancel()
-            await wait_until(lambda: device.subscribed == {"a"}, within=WAIT, what="the device's subscriptions")
+            await wait_until(lambda: device.subscribed == {"a"}, within=WAIT, what="subscriptions")
             other.cancel()
 
 
@@ -199,7 +199,7 @@ async def test_a_polled_path_moves_to_a_listen_when_the_device_has_room_again(
             await values_until(second, {"b": "0"})
             assert device.subscribed == {"a"}, "b is polled"
             first.cancel()
-            await wait_until(lambda: device.subscribed == {"b"}, within=WAIT, what="the device's subscriptions")
+            await wait_until(lambda: device.subscribed == {"b"}, within=WAIT, what="subscriptions")
             device.change("b", "5")
             await values_until(second, {"b": "5"})
             second.cancel()
@@ -208,7 +208,6 @@ async def test_a_polled_path_moves_to_a_listen_when_the_device_has_room_again(
 async def test_health_says_not_serving_as_soon_as_the_device_drops(gateway_process: StartGateway) -> None:
     device = ScriptedDevice(GREETING, {"a": "1"})
     async with tcp_scripted(device) as url:
-        # Liveness checks far apart: only the proxy's own knowledge can move health in time.
         gw = await start(gateway_process, url)
         async with grpc.aio.insecure_channel(gw.address) as channel:
             await connected(pb_grpc.PropertyServiceStub(channel))
@@ -216,21 +215,21 @@ async def test_health_says_not_serving_as_soon_as_the_device_drops(gateway_proce
             watch = health.Watch(health_pb2.HealthCheckRequest(service="probe"))
             async with asyncio.timeout(WAIT):
                 assert (await watch.read()).status == health_pb2.HealthCheckResponse.SERVING
-            writer = device._writer
-            assert writer is not None
-            # The device drops and does not come back at once (nothing accepts the reconnection).
-            device.greet_first = False
-            device.greeting = ""
+            # The device drops and does not come back at once (it answers no reconnection).
             began = time.monotonic()
-            writer.transport.abort()
+            device.unplug()
             async with asyncio.timeout(WAIT):
                 assert (await watch.read()).status == health_pb2.HealthCheckResponse.NOT_SERVING
             assert time.monotonic() - began < QUICK
             check = await health.Check(health_pb2.HealthCheckRequest(service="probe"), timeout=WAIT)
             assert check.status == health_pb2.HealthCheckResponse.NOT_SERVING
-            # Back: it greets again, and health follows.
-            device.greeting = GREETING
-            device.greet_first = True
+            try:  # and calls agree with it
+                await get(pb_grpc.PropertyServiceStub(channel), "a")
+                raise AssertionError("a Get was answered while the device was unplugged")
+            except grpc.aio.AioRpcError as exc:
+                assert exc.code() == grpc.StatusCode.UNAVAILABLE, exc
+            # Back: it answers the gateway's HELLO, and health follows.
+            device.plug_in()
             async with asyncio.timeout(WAIT):
                 assert (await watch.read()).status == health_pb2.HealthCheckResponse.SERVING
             watch.cancel()
