@@ -91,6 +91,8 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
         self._call: Any = None
         self._tasks: list[asyncio.Task[None]] = []
         self._closed: PropertyServiceError | None = None
+        #: The gateway address the stream went to (the client may move on to another later).
+        self.target = client.target
 
     async def __aenter__(self) -> Self:
         await self.open()
@@ -105,6 +107,7 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
         """Open the stream (done by ``async with``)."""
         if self._call is not None:
             return
+        self.target = self._client.target
         self._call = self._client.stub().Session(metadata=self._client.metadata)
         self._tasks = [asyncio.create_task(self._read()), asyncio.create_task(self._write())]
 
@@ -147,7 +150,7 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
                 for reply in resp.replies:
                     self._dispatch(reply)
         except grpc.RpcError as e:
-            error = error_from_rpc(e, target=self._client.target)
+            error = error_from_rpc(e, target=self.target)
         except asyncio.CancelledError:
             pass
         finally:
@@ -176,7 +179,7 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
                     batch.append(queue.get_nowait())
                 await self._call.write(pb.SessionRequest(requests=batch))
         except grpc.RpcError as e:
-            self._shutdown(error_from_rpc(e, target=self._client.target))
+            self._shutdown(error_from_rpc(e, target=self.target))
         except asyncio.CancelledError:
             pass
         except Exception as e:
