@@ -146,8 +146,10 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         self._slots = asyncio.Semaphore(max_in_flight)
         #: The Session the listens share (made by the first listen, again after it ended).
         self._listen_session: Session | None = None
-        #: Channels to gateways left behind, closing while their last calls end.
-        self._closing: set[asyncio.Task[None]] = set()
+        #: One channel per gateway address used so far; the one in use is ``_channel``. A channel
+        #: left behind is kept, not closed: calls still on it end on their own (closing it would
+        #: turn their UNAVAILABLE into CANCELLED), and going back to its gateway reuses it.
+        self._channels: dict[str, grpc.aio.Channel] = {}
 
     def stub(self) -> Any:
         """The generated ``PropertyServiceStub`` over this client's channel, made on first use.
@@ -160,13 +162,22 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         return self._stub
 
     def _open_channel(self) -> None:
-        if self.credentials.secure:
-            self._channel = grpc.aio.secure_channel(
-                self.target, self.credentials.channel_credentials(), options=self._options
-            )
-        else:
-            self._channel = grpc.aio.insecure_channel(self.target, options=self._options)
-        self._stub = pb_grpc.PropertyServiceStub(self._channel)
+        channel = self._channels.get(self.target)
+        if channel is None:
+            if self.credentials.secure:
+                channel = grpc.aio.secure_channel(
+                    self.target, self.credentials.channel_credentials(), options=self._options
+                )
+            else:
+                channel = grpc.aio.insecure_channel(self.target, options=self._options)
+            self._channels[self.target] = channel
+        self._channel = channel
+        self._stub = pb_grpc.PropertyServiceStub(channel)
+
+    def gateway_failed(self, target: str, why: str) -> None:
+        """A call or stream through ``target`` found it gone (``why``): when that is the gateway in
+        use and the client has several, later calls and streams go to the next."""
+        self._move_on(target, why)
 
     def _move_on(self, failed: str, why: str) -> None:
         """Use the next gateway when ``failed`` (the address a call used) is the one in use."""
@@ -174,14 +185,8 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
             return
         self.target = self.gateways.current
         log.warning("gateway %s failed (%s); moving to %s", failed, why, self.target)
-        old = self._channel
-        if old is not None and self._stub is not None:
+        if self._stub is not None:
             self._open_channel()
-            # Calls still running on the old channel end on their own (the gateway is gone):
-            # closing it at once would turn their UNAVAILABLE into CANCELLED.
-            task = asyncio.ensure_future(old.close(self.timeout or DEFAULT_TIMEOUT))
-            self._closing.add(task)
-            task.add_done_callback(self._closing.discard)
 
     async def __aenter__(self) -> Self:
         self.stub()
@@ -197,12 +202,10 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         session, self._listen_session = self._listen_session, None
         if session is not None:
             await session.aclose()
-        channel, self._channel, self._stub = self._channel, None, None
-        if channel is not None:
+        channels, self._channels = list(self._channels.values()), {}
+        self._channel = self._stub = None
+        for channel in channels:
             await channel.close(None)
-        for task in list(self._closing):
-            task.cancel()
-        await asyncio.gather(*self._closing, return_exceptions=True)
 
     def _error(
         self, err: grpc.RpcError, service: str = "", prop: str = "", target: str | None = None

@@ -55,6 +55,8 @@ class Channel(Protocol):
 
     def stub(self) -> Any: ...
 
+    def gateway_failed(self, target: str, why: str) -> None: ...
+
 
 @dataclass(slots=True)
 class _Pending:
@@ -154,6 +156,10 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
         except asyncio.CancelledError:
             pass
         finally:
+            if isinstance(error, Unavailable):
+                # The stream's gateway went away (or shut down): the client's next stream or
+                # call goes to its next gateway, when it has several.
+                self._client.gateway_failed(self.target, error.message)
             self._shutdown(error)
 
     def _dispatch(self, reply: pb.Reply) -> None:

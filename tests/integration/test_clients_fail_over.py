@@ -27,7 +27,7 @@ from support.waiting import eventually
 
 from clients import AsyncClient, Client
 from clients.aio import Event
-from clients.errors import GatewayUnreachable, PropertyServiceError
+from clients.errors import GatewayUnreachable, PropertyServiceError, Unavailable
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -171,6 +171,40 @@ async def test_a_get_leaves_a_frozen_gateway_for_the_next(
         assert client.target == second.address
     print(f"a Get through a frozen gateway answered by the next {took:.2f} s after")
     assert took < 8.0
+
+
+async def test_a_device_away_behind_the_gateway_is_its_answer_and_moves_nothing(
+    gateway_process: StartGateway,
+) -> None:
+    gw = gateway_process(f"""
+        [[services]]
+        name = "away"
+        url = "tcp://127.0.0.1:{free_port()}"
+        """)
+    other = f"127.0.0.1:{free_port()}"
+    async with AsyncClient([gw.address, other]) as client:
+        with pytest.raises(Unavailable) as raised:
+            await client.get("away", "location")
+        assert not isinstance(raised.value, GatewayUnreachable)
+        assert "away" in str(raised.value)
+        assert client.target == gw.address
+
+
+async def test_a_session_opened_after_its_gateway_died_goes_to_the_next(
+    pair: tuple[GatewayProcess, GatewayProcess],
+) -> None:
+    first, second = pair
+    async with AsyncClient([first.address, second.address]) as client:
+        async with client.session() as session:
+            assert await session.get("thermo", "rate_hz")
+            first.proc.kill()
+            with pytest.raises(Unavailable):
+                async with asyncio.timeout(10):
+                    while True:
+                        await session.get("thermo", "rate_hz")
+        assert client.target == second.address
+        async with client.session() as again:
+            assert await again.get("thermo", "rate_hz")
 
 
 async def test_a_listen_raises_naming_every_gateway_once_none_answers_within_the_limit(
