@@ -73,7 +73,6 @@ examples:
   psctl listen '*' location --min-interval 0.5 --json --duration 2
   psctl listen scout1 location --updates-only --heartbeat 1 --marks --duration 3
   psctl listen thermo1 data --count 5 --resume            five readings, across a gateway restart
-  psctl -t gw1:50051,gw2:50051 listen thermo1 data --resume   moves to gw2 if gw1 dies or freezes
 
 The stream ends with exit code 0 at --count, --duration or Ctrl-C; a stream the gateway ends
 (UNAVAILABLE "gateway shutting down", or any other error) exits 1 (3 when it cannot be reached).
