@@ -71,7 +71,6 @@ SERVICE_NAME = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
 #: pings", which would end every idle Listen. Pings faster than every 0.5 s still count as abuse.
 CLIENT_PING_POLICY: tuple[tuple[str, int], ...] = (
     ("grpc.http2.min_ping_interval_without_data_ms", 500),
-    ("grpc.http2.min_time_between_pings_ms", 500),
 )
 
 

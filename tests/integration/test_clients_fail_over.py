@@ -173,6 +173,27 @@ async def test_a_get_leaves_a_frozen_gateway_for_the_next(
     assert took < 8.0
 
 
+async def test_a_quiet_listen_outlives_the_keepalive_pings_that_watch_its_gateway(
+    gateway_process: StartGateway,
+) -> None:
+    # grpc's default server policy sends a client that pings a quiet stream every second away
+    # ("too many pings") after three pings; the gateway accepts them.
+    gw = gateway_process(SENSOR)
+    async with AsyncClient(gw.address, keepalive=0.5) as client:
+        events = client.listen("thermo", "rate_hz", updates_only=True, resume=True)
+        try:
+            waiting = asyncio.ensure_future(anext(events))
+            await asyncio.sleep(5.0)
+            assert not waiting.done()
+            await client.set("thermo", "rate_hz", "7")
+            async with asyncio.timeout(10):
+                event = await waiting
+        finally:
+            await events.aclose()
+    assert (event.value, event.gap, event.sequence) == ("7", False, 1)
+    assert "too many pings" not in gw.output.lower()
+
+
 async def test_a_device_away_behind_the_gateway_is_its_answer_and_moves_nothing(
     gateway_process: StartGateway,
 ) -> None:
