@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+import socket
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
@@ -26,7 +27,7 @@ from support.psctl import psctl
 from support.waiting import eventually
 
 from clients import AsyncClient, Client
-from clients.aio import Event
+from clients.aio import DEFAULT_KEEPALIVE, Event
 from clients.errors import GatewayUnreachable, PropertyServiceError, Unavailable
 
 pytestmark = pytest.mark.timeout(120)
@@ -226,6 +227,24 @@ async def test_a_session_opened_after_its_gateway_died_goes_to_the_next(
         assert client.target == second.address
         async with client.session() as again:
             assert await again.get("thermo", "rate_hz")
+
+
+async def test_a_gateway_that_accepts_connections_but_never_answers_is_left_within_the_connect_limit(
+    pair: tuple[GatewayProcess, GatewayProcess],
+) -> None:
+    # What a frozen gateway's kernel does for a new connection: the TCP handshake completes (the
+    # listening socket's backlog), the HTTP/2 one never does.
+    _, second = pair
+    with socket.socket() as mute:
+        mute.bind(("127.0.0.1", 0))
+        mute.listen(8)
+        silent = f"127.0.0.1:{mute.getsockname()[1]}"
+        async with AsyncClient([silent, second.address], timeout=10) as client:
+            started = time.monotonic()
+            assert await client.get("thermo", "rate_hz")
+            took = time.monotonic() - started
+            assert client.target == second.address
+    assert took < 2 * 2 * DEFAULT_KEEPALIVE + 2.0, took
 
 
 async def test_a_listen_raises_naming_every_gateway_once_none_answers_within_the_limit(
