@@ -69,9 +69,7 @@ SERVICE_NAME = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
 #: every second while a call is open, so that a frozen gateway is found within two. grpc's own
 #: policy answers a ping more often than every 5 minutes on a quiet stream with GOAWAY "too many
 #: pings", which would end every idle Listen. Pings faster than every 0.5 s still count as abuse.
-CLIENT_PING_POLICY: tuple[tuple[str, int], ...] = (
-    ("grpc.http2.min_ping_interval_without_data_ms", 500),
-)
+CLIENT_PING_POLICY: tuple[tuple[str, int], ...] = (("grpc.http2.min_ping_interval_without_data_ms", 500),)
 
 
 class Gateway:
