@@ -65,6 +65,11 @@ REGISTER_SHARE = 0.8
 DEVICE_CONNECT_WAIT = 5.0
 
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
+#: Keep-alive pings the gRPC port accepts from clients (see docs/client.md, failover): the SDK pings
+#: every second while a call is open, so that a frozen gateway is found within two. grpc's own
+#: policy answers a ping more often than every 5 minutes on a quiet stream with GOAWAY "too many
+#: pings", which would end every idle Listen. Pings faster than every 0.5 s still count as abuse.
+CLIENT_PING_POLICY: tuple[tuple[str, int], ...] = (("grpc.http2.min_ping_interval_without_data_ms", 500),)
 
 
 class Gateway:
@@ -492,7 +497,7 @@ class Gateway:
             log.debug("registry: %s rejoined: %s", name, exc.message)
 
     def _make_server(self) -> grpc.aio.Server:
-        server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])
+        server = grpc.aio.server(options=[("grpc.so_reuseport", 0), *CLIENT_PING_POLICY])
         # Not the generated registration: a request that does not parse is INVALID_ARGUMENT.
         add_to_server(self.servicer, server)
         add_health_and_reflection(
