@@ -120,6 +120,12 @@ class DeviceServer:
             self._sessions.discard(writer)
             log.info("%s: disconnected", peer)
 
+    def tcp_protocol(self) -> asyncio.StreamReaderProtocol:
+        """The protocol of one accepted TCP connection, served as :meth:`serve_tcp` serves each (for
+        a listener that accepts connections itself)."""
+        reader = asyncio.StreamReader(limit=READ_SIZE)
+        return asyncio.StreamReaderProtocol(reader, self._on_tcp)
+
     async def serve_tcp(
         self, host: str, port: int, *, ssl_context: ssl.SSLContext | None = None
     ) -> tuple[str, int]:
