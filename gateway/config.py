@@ -168,7 +168,7 @@ class Limits:
     #: silent longest makes room (a flood from one address cannot lock out a device beside it).
     line_max_connections_per_address: int = 128
     #: Unary calls (Get, Set, Describe) running at once on the gRPC port; beyond, RESOURCE_EXHAUSTED
-    #: naming this limit. grpc's queue of calls not yet taken up holds as many again.
+    #: naming this limit. grpc's queue of calls not yet taken up holds at least 20,000 more.
     max_calls: int = 10_000
 
 
