@@ -313,7 +313,7 @@ class ConnectionBounds:
         if silent < _EVICT_AFTER:
             return False
         if address is None:
-            log.info("line listener full: closing a connection silent for %.0f s", silent)
+            log.debug("line listener full: closing a connection silent for %.0f s", silent)
         else:
             log.debug(
                 "line listener: %s has as many connections as it may: closing one silent for %.0f s",
@@ -358,6 +358,10 @@ def _address_of(writer: asyncio.StreamWriter) -> str:
 
 class _ListenerServer(DeviceServer):
     """The device server of the line listener: clients are served, devices that greet are registered."""
+
+    #: A line per connection would let a flood of connections write the log full (a device that
+    #: dials in is logged when it joins and when it hangs up).
+    connection_log_level = logging.DEBUG
 
     def __init__(
         self, listener: LineListener, backend: RouterBackend, bounds: ConnectionBounds, **kwargs: object
