@@ -273,12 +273,12 @@ class BoundedListener:
             await loop.connect_accepted_socket(
                 lambda: protocol, conn, ssl=self._ssl, ssl_handshake_timeout=self._handshake_timeout
             )
-        except (OSError, ssl.SSLError, asyncio.CancelledError) as exc:
+        except BaseException as exc:
             # A TLS handshake that failed or timed out, or the listener closing: the protocol
             # never heard of the connection, so its place is given back here.
             protocol.free()
             conn.close()
-            if isinstance(exc, asyncio.CancelledError):
+            if not isinstance(exc, Exception):
                 raise
             log.debug("%s: a connection ended before it began: %s", self.what, exc)
 

@@ -1,6 +1,7 @@
 """Bounded connections on every port, against a real gateway process: a flood of idle connections
 from one address leaves a bystander's gRPC Get, HTTP Get and a dialling-in device working; the
-metrics port checks Host; a burst of calls meets a named limit, never a bare CANCELLED.
+metrics port checks Host; a burst of calls meets a named limit, never a bare CANCELLED; an
+accept that finds no descriptor pauses and says so once.
 
 The caps are lowered through the config so that a few hundred connections prove what the
 defaults do for thousands (docs/security.md, "Bounded connections"). The flood comes from
@@ -10,16 +11,22 @@ defaults do for thousands (docs/security.md, "Bounded connections"). The flood c
 from __future__ import annotations
 
 import asyncio
+import logging
+import os
 import re
+import resource
+import socket
 
 import aiohttp
 import grpc
+import pytest
 from line_device_support import device_process
 from support.bystander import get_p99, registry_state, rss_mb
 from support.gateway_process import GatewayProcess, StartGateway
 from support.ports import free_port
-from support.waiting import eventually
+from support.waiting import eventually, wait_until
 
+from gateway.connections import BoundedListener, ConnectionCaps
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
@@ -234,3 +241,38 @@ async def test_5000_concurrent_gets_on_one_connection_all_succeed_with_the_defau
         )
     failed = [r for r in results if isinstance(r, BaseException)]
     assert failed == [], f"{len(failed)} of 5000 failed, e.g. {failed[0]!r}"
+
+
+async def test_an_accept_that_finds_no_descriptor_backs_off_and_is_logged_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # In this process: the test takes the descriptors away itself, then gives them back.
+    served: list[asyncio.BaseTransport] = []
+
+    class Hello(asyncio.Protocol):
+        def connection_made(self, transport: asyncio.BaseTransport) -> None:
+            served.append(transport)
+
+    listener = BoundedListener(Hello, ConnectionCaps(100, 100, "t.max", "t.per"), "test.listen")
+    host, port = await listener.start("127.0.0.1", 0)
+    clients = [socket.create_connection((host, port)) for _ in range(5)]  # wait in the backlog
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    open_now = len(os.listdir("/proc/self/fd")) - 1  # less the listing's own
+    try:
+        with caplog.at_level(logging.WARNING, logger="gateway.connections"):
+            resource.setrlimit(resource.RLIMIT_NOFILE, (open_now, hard))  # not one left to accept with
+            await asyncio.sleep(1.0)
+            resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+            await wait_until(lambda: len(served) == 5, within=WAIT, what="5 connections served")
+        failures = [r.getMessage() for r in caplog.records if "accept failed" in r.getMessage()]
+        # One line for a second of failing accepts (asyncio's own loop wrote one an accept,
+        # and retried as many times), the pause doubling from 50 ms meanwhile.
+        assert len(failures) == 1, failures
+        assert "Too many open files" in failures[0] and "accepting again in 0.05 s" in failures[0]
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+        for client in clients:
+            client.close()
+        for transport in served:
+            transport.close()
+        await listener.aclose()
