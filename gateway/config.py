@@ -159,7 +159,7 @@ class Limits:
     #: Seconds a line-listener connection may stay silent (nothing read, nothing written) before
     #: it is closed; and when the listener is full, the connection silent longest makes room.
     line_idle_timeout: float = 300.0
-    #: Connections of the line listener from one source address at once (devices and clients).
+    #: Devices dialled in to the line listener from one source address served at once.
     max_greetings_per_source: int = 64
     #: Line-listener connections open at once (devices and clients); when full, the connection
     #: silent longest makes room for a new one.
