@@ -36,7 +36,7 @@ from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
 from gateway.guard import Guard
 from gateway.health import NOT_SERVING, SERVING, HealthService, state_status
-from gateway.licensing import current_caller
+from gateway.licensing import current_caller, may_license
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
@@ -345,6 +345,7 @@ class Gateway:
             max_registrations=settings.max_registrations,
             max_licences=settings.max_licences,
             max_licence_duration=settings.max_licence_duration,
+            max_licences_per_holder=settings.max_licences_per_holder,
             features={e.name: e.features for e in self.config.services if e.features},
             tout=settings.tout,
             tr=settings.tr,
@@ -354,6 +355,8 @@ class Gateway:
         self.registry.set_admin_check(self.guard.may_administer)
         # Licences are held by the caller's identity (or its Session); every Set is checked against them.
         self.registry.set_caller(current_caller)
+        # A caller locks only what the rules let it change.
+        self.registry.set_licence_check(may_license(self.guard))
         self.servicer.calls.licences = self.registry.licensing
         self.registry.licensing.watch(self._on_licence)
         await self._add(REGISTRY_NAME, RegistryService(self.registry), "built in")
