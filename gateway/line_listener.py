@@ -387,7 +387,11 @@ class _ListenerServer(DeviceServer):
     ) -> None:
         heard = self._bounds.admit(reader, writer)
         if heard is None:
-            writer.write(encode(ErrorReply(int(Code.RESOURCE_EXHAUSTED), "too many connections; try later")))
+            full = (
+                "too many connections, none silent long enough to make room for this one"
+                " (limits.line_max_connections, limits.line_max_connections_per_address); try later"
+            )
+            writer.write(encode(ErrorReply(int(Code.RESOURCE_EXHAUSTED), full)))
             writer.close()
             return
         try:

@@ -111,7 +111,10 @@ async def test_idle_connections_from_one_address_leave_every_port_working_for_a_
         assert b"http.max_connections_per_address" in refused[0]
         # The line listener says ERR 8 (RESOURCE_EXHAUSTED) to every connection past it.
         assert line_read.count(None) == PER_ADDRESS
-        assert any(answer is not None and answer.startswith(b"ERR 8 ") for answer in line_read)
+        refused_lines = [
+            answer for answer in line_read if answer is not None and answer.startswith(b"ERR 8 ")
+        ]
+        assert refused_lines and b"limits.line_max_connections_per_address" in refused_lines[0]
         # grpc has no per-address cap: its share of open files (gateway.max_connections) holds.
         assert grpc_read.count(None) <= 100
 
@@ -218,11 +221,11 @@ async def test_a_burst_of_gets_on_one_connection_is_answered_or_refused_by_name_
             *(stub.Get(request, timeout=60) for _ in range(2000)), return_exceptions=True
         )
     codes = [r.code() if isinstance(r, grpc.aio.AioRpcError) else grpc.StatusCode.OK for r in results]
-    assert grpc.StatusCode.CANCELLED not in codes, {c: codes.count(c) for c in set(codes)}
+    counted = {code.name: codes.count(code) for code in set(codes)}
     refused = [r for r in results if isinstance(r, grpc.aio.AioRpcError)]
-    assert all(r.code() == grpc.StatusCode.RESOURCE_EXHAUSTED for r in refused), refused[:1]
-    assert refused and "[limits] max_calls" in (refused[0].details() or "")
-    assert codes.count(grpc.StatusCode.OK) >= 20
+    assert set(codes) <= {grpc.StatusCode.OK, grpc.StatusCode.RESOURCE_EXHAUSTED}, (counted, refused[:1])
+    assert any("[limits] max_calls" in (r.details() or "") for r in refused), (counted, refused[:1])
+    assert counted["OK"] >= 20, counted
 
 
 async def test_5000_concurrent_gets_on_one_connection_all_succeed_with_the_default_limits(
