@@ -427,6 +427,7 @@ class Gateway:
                 max_greetings_per_source=self.config.limits.max_greetings_per_source,
                 device_secrets=self._device_secrets(),
                 alternates=self._alternates,
+                seats=self.cluster,
             )
         except OSError as exc:
             if exc.errno != errno.EADDRINUSE:
