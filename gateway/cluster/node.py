@@ -518,6 +518,7 @@ class ClusterNode:
         except PropertyError as exc:
             log.info("cluster: %s left; its keys stay until the lease ends: %s", name, exc.message)
         self._count_changed()
+        self._mark(name)  # a registration of the name elsewhere is served here from now on
 
     # -- reconciling: what the router serves follows the view ------------------
 
@@ -563,6 +564,7 @@ class ClusterNode:
             if owner is not None and owner != self.me:
                 log.warning("cluster: %s is owned by %s now; the device here is turned away", name, owner)
                 await self._drop(name)
+                self._mark(name)  # served again, forwarded to its owner
                 return
             self._show_owner(name)
             return
