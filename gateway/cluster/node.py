@@ -173,6 +173,7 @@ class ClusterNode:
         self.registry = registry
         self.record = GatewayRecord(address=address, http=http, line=line, tls=tls, via=via)
         registry.licensing.set_claims(self.licences)
+        self.licences.show_in(registry)
         self._stops += [
             self.store.watch(self._on_change),
             self.store.on_reconnect(self._on_reconnect),

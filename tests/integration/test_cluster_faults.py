@@ -30,6 +30,7 @@ from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import jwt
 import pytest
 from line_device_support import device_process, tcp_device
 from support.etcd import EtcdServer
@@ -37,7 +38,7 @@ from support.gateway_process import GatewayProcess, start_gateway
 from support.ports import stable_ports
 from support.waiting import eventually
 
-from clients import AsyncClient
+from clients import AsyncClient, ClientCredentials
 from clients.aio import Event
 from clients.errors import NotFound, PropertyServiceError
 
@@ -46,6 +47,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 #: Seconds of each gateway's lease: short, so that a fault is over soon (etcd's floor is ~1.5 s).
 LEASE = 2.0
 IDS = ("gw-a", "gw-b", "gw-c")
+SECRET = "a shared secret of the cluster, long enough for HS256"
 SURVIVORS = ("gw-b", "gw-c")
 #: Seconds between two Sets of the counter.
 SET_EVERY = 0.1
@@ -67,6 +69,9 @@ def _config(etcd: EtcdServer, gateway: str, line: str) -> str:
         [gateway]
         line_listen = "{line}"
 
+        [auth]
+        jwt_secret_file = "jwt.secret"
+
         [registry]
         store = "{etcd.url}"
         store_lease = {LEASE}
@@ -79,6 +84,7 @@ def _config(etcd: EtcdServer, gateway: str, line: str) -> str:
 @pytest.fixture
 def cluster(etcd_server: Callable[..., EtcdServer], tmp_path: Path) -> Iterator[Cluster]:
     etcd = etcd_server()
+    (tmp_path / "jwt.secret").write_text(SECRET)
     lines = {gateway: f"127.0.0.1:{port}" for gateway, port in zip(IDS, stable_ports(len(IDS)), strict=True)}
     gateways: dict[str, GatewayProcess] = {}
     try:
@@ -389,20 +395,30 @@ async def test_a_licence_granted_on_one_gateway_is_read_on_every_gateway(
     with tcp_device("--service", "sim-sensor", "--name", "counter") as address:
         await clients["gw-a"].set("registry", "services.counter", f"tcp://{address[0]}:{address[1]}")
         await _owned_by(clients, "gw-a")
-        licence = str(await clients["gw-b"].set("registry", "acquire", "", service="counter", duration="30"))
-        for gateway in IDS:
-            client = clients[gateway]
-            assert await eventually(
-                lambda c=client: c.get("registry", "services.counter.licence"),
-                lambda held: held == licence,
-                what=f"{gateway} reads the licence on counter",
-            )
-            assert licence in await client.get_names("registry", "licences")
-            assert await client.get("registry", "services.counter.availability") == "active"
-        await clients["gw-b"].set("registry", "release", "", licence=licence)
+        token = jwt.encode({"sub": "alice", "exp": int(time.time()) + 600}, SECRET, algorithm="HS256")
+        async with AsyncClient(
+            cluster.gateways["gw-b"].address, credentials=ClientCredentials(token=token)
+        ) as alice:
+            licence = str(await alice.set("registry", "acquire", "", service="counter", duration="30"))
+            await _read_everywhere(clients, licence)
+            await alice.set("registry", "release", "", licence=licence)
         for gateway in IDS:
             await eventually(
                 lambda g=gateway: clients[g].get("registry", "services.counter.licence"),
                 lambda held: held == "",
                 what=f"{gateway} reads the licence gone",
             )
+            assert licence not in await clients[gateway].get_names("registry", "licences")
+
+
+async def _read_everywhere(clients: dict[str, AsyncClient], licence: str) -> None:
+    """Every gateway reads ``licence`` on counter, lists it and reads the service active."""
+    for gateway in IDS:
+        client = clients[gateway]
+        assert await eventually(
+            lambda c=client: c.get("registry", "services.counter.licence"),
+            lambda held: held == licence,
+            what=f"{gateway} reads the licence on counter",
+        )
+        assert licence in await client.get_names("registry", "licences")
+        assert await client.get("registry", "services.counter.availability") == "active"
