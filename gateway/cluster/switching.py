@@ -124,9 +124,19 @@ class _SwitchedListen(Subscription):
 class SwitchingBackend(Backend):
     """A cluster service's router entry on one gateway; its target follows the owner (module docstring)."""
 
-    def __init__(self, name: str, url: str, *, declared_type: str = "", reason: str = "") -> None:
+    def __init__(
+        self,
+        name: str,
+        url: str,
+        *,
+        declared_type: str = "",
+        reason: str = "",
+        not_found_wait: float = RESUME_NOT_FOUND_WAIT,
+    ) -> None:
         """``url`` is the registration's URL (what every gateway's registry shows); ``declared_type``
-        the type the registration declared; ``reason`` why there is no target yet."""
+        the type the registration declared; ``reason`` why there is no target yet;
+        ``not_found_wait``: see :data:`RESUME_NOT_FOUND_WAIT`."""
+        self.not_found_wait = not_found_wait
         self.name = name
         self.info = BackendInfo(type=declared_type or UNKNOWN_TYPE, url=url)
         self._declared_type = declared_type
@@ -211,7 +221,7 @@ class SwitchingBackend(Backend):
                     listen.path, listen.forward_for(generation), listen.params
                 )
             except PropertyError as exc:
-                if exc.code is Code.NOT_FOUND and loop.time() - began >= RESUME_NOT_FOUND_WAIT:
+                if exc.code is Code.NOT_FOUND and loop.time() - began >= self.not_found_wait:
                     listen.gap_told = None
                     listen.notify(Change(listen.path, "", removed=True))
                     return
