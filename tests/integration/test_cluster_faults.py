@@ -33,6 +33,7 @@ from pathlib import Path
 import jwt
 import pytest
 from line_device_support import device_process, tcp_device
+from support.c_device import CProgram, build, require
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess, start_gateway
 from support.ports import stable_ports
@@ -422,3 +423,36 @@ async def _read_everywhere(clients: dict[str, AsyncClient], licence: str) -> Non
         )
         assert licence in await client.get_names("registry", "licences")
         assert await client.get("registry", "services.counter.availability") == "active"
+
+
+async def test_the_c_example_device_moves_off_a_frozen_gateway(
+    cluster: Cluster, clients: dict[str, AsyncClient], tmp_path: Path
+) -> None:
+    require("host")
+    build("host", tmp_path / "c")
+    program = tmp_path / "c" / "host" / "thermostat"
+    keepalive = ("--keepalive", "1000", "--keepalive-timeout", "2000")
+    with CProgram([str(program), "--connect", cluster.lines["gw-a"], *keepalive]):
+        for gateway in IDS:
+            await eventually(
+                lambda g=gateway: clients[g].get("registry", "services.thermo1.owner"),
+                lambda owner: owner == "gw-a",
+                retry_on=(PropertyServiceError,),
+                what=f"{gateway} reads the C device owned by gw-a",
+            )
+        frozen_at = time.monotonic()
+        _freeze(cluster.gateways["gw-a"])
+        seen: list[str] = []
+        while True:
+            assert time.monotonic() - frozen_at < 20.0, f"the C device did not move: {seen[-3:]}"
+            try:
+                await clients["gw-c"].get("thermo1", "temp")
+                owner = await clients["gw-c"].get("registry", "services.thermo1.owner")
+                if owner in SURVIVORS:
+                    break
+            except PropertyServiceError as exc:
+                seen.append(f"{type(exc).__name__}: {exc}")
+            await asyncio.sleep(0.1)
+        moved = time.monotonic() - frozen_at
+        print(f"\nC example device, gateway SIGSTOP: answering through gw-c again after {moved:.2f} s")
+        assert not [s for s in seen if s.startswith("NotFound")], seen
