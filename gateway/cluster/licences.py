@@ -127,7 +127,7 @@ class ClusterLicences:
         #: The registry that shows them (:meth:`show_in`), its list, and their views there by id.
         self._registry: Registry | None = None
         self._list: ClusterLicenceList | None = None
-        self._views: dict[str, LicenceView] = {}
+        self._views: dict[str, _RemoteLicenceView] = {}
         #: The timer that reads the licences again when the next one shown expires.
         self._expiry: asyncio.TimerHandle | None = None
 
@@ -181,8 +181,8 @@ class ClusterLicences:
                     shown.detach(licence_id)
         for licence_id, licence in live.items():
             if licence_id not in self._views and licence_id not in shown.children():
-                view = self._views[licence_id] = _RemoteLicenceView(licence)
-                shown.attach(licence_id, view)
+                self._views[licence_id] = _RemoteLicenceView(licence)
+                shown.attach(licence_id, self._views[licence_id])
         shown.changed()
         entry = registry.entry_of(service)
         if entry is not None:
