@@ -15,8 +15,9 @@ or SIGTERMed, and each test checks what must hold:
 * the service reads UNAVAILABLE while it moves, never NOT_FOUND;
 * the Sets succeed again, and every Listen has its gap, within the bound of the fault.
 
-Each test prints its row of the table in docs/performance.md ("Faults in a cluster"). A licence
-granted on one gateway is read on every gateway. Without the ``etcd`` command the tests skip.
+Each test prints its row of the table in docs/performance.md ("Faults in a cluster"). The C
+library's example device, dialled in, moves off a frozen gateway too, and a licence granted on one
+gateway is read on every gateway. Without the ``etcd`` command the tests skip.
 """
 
 from __future__ import annotations
