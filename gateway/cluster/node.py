@@ -648,19 +648,19 @@ class ClusterNode:
             raise AlreadyExists(f"the name {name!r} is taken")
         registration = Registration(proxy.info.url, {"type": proxy.info.type} if proxy.info.type else {})
         self._writable()
-        self._busy.add(name)
+        self._busy.add(name)  # the reconciler leaves it alone until it is served here
         try:
             await self._claim(name, registration, leased=True)
+            self._awaited.pop(name, None)
+            switching.info.url = registration.url
+            self._dialled[name] = switching
+            await switching.switch(proxy, "dialled in here")
+            self._own(name, registration)
         finally:
             self._busy.discard(name)
-        self._awaited.pop(name, None)
-        switching.info.url = registration.url
-        await switching.switch(proxy, "dialled in here")
-        self._dialled[name] = switching
-        self._own(name, registration)
+            self._mark(name)
         log.info("cluster: %s dialled in here again (%s)", name, registration.url)
         self._spawn(self._reach(name, switching), f"cluster: reach {name}")
-        self._mark(name)
 
     def _show_owner(self, name: str) -> None:
         """``services.NAME.owner`` in this gateway's registry: who holds the connection, as heard."""

@@ -423,6 +423,7 @@ async def _read_everywhere(clients: dict[str, AsyncClient], licence: str) -> Non
             what=f"{gateway} reads the licence on counter",
         )
         assert licence in await client.get_names("registry", "licences")
+        assert "alice" in str(await client.get("registry", f"licences.{licence}"))
         assert await client.get("registry", "services.counter.availability") == "active"
 
 
