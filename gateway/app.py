@@ -460,6 +460,7 @@ class Gateway:
                 max_connections_per_address=self.config.limits.line_max_connections_per_address,
                 device_secrets=self._device_secrets(),
                 alternates=self._alternates,
+                seats=self.cluster,
             )
         except OSError as exc:
             if exc.errno != errno.EADDRINUSE:

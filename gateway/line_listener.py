@@ -49,7 +49,7 @@ import hmac
 import logging
 import ssl
 from collections.abc import Collection, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from gateway.connections import BoundedListener, ConnectionCaps
 from gateway.guard import REGISTRY, Guard
@@ -431,6 +431,23 @@ def certificate_name(peercert: Any) -> str:
     return ""
 
 
+class DeviceSeats(Protocol):
+    """Names a cluster of gateways holds for devices that dial in (``gateway.cluster``): a device
+    whose gateway is gone dials another, whose entry for its name waits for it (its Listens open)."""
+
+    def awaits(self, name: str) -> bool:
+        """Whether ``name`` is held for its device, which may take it up here."""
+        ...
+
+    def inbound(self, name: str) -> Backend | None:
+        """The proxy of device ``name`` seated here earlier (it dials again after a drop); else None."""
+        ...
+
+    async def seat(self, name: str, proxy: Backend) -> None:
+        """Serve the device's ``proxy`` (connected) under the held name; AlreadyExists when it cannot."""
+        ...
+
+
 class LineListener:
     """A raw-TCP line-protocol server in front of a router; ``aclose`` stops it.
 
@@ -452,8 +469,10 @@ class LineListener:
         device_secrets: Mapping[str, str] | None = None,
         alternates: Callable[[], list[str]] | None = None,
         max_connections_per_address: int = MAX_CONNECTIONS_PER_ADDRESS,
+        seats: DeviceSeats | None = None,
     ) -> None:
-        """``alternates()`` names the line listeners of the other gateways of this one's cluster: the
+        """``seats``: the names a cluster holds for devices that dial in (:class:`DeviceSeats`);
+        ``alternates()`` names the line listeners of the other gateways of this one's cluster: the
         greeting tells them to every peer (``alternates=``), so that a device that dialled in knows
         where to go when this gateway is gone (docs/line-protocol.md §4.5);
         ``guard`` checks every request of every connection (default: nothing is refused);
@@ -479,6 +498,7 @@ class LineListener:
         self._reaper: asyncio.Task[None] | None = None
         self._device_secrets = dict(device_secrets or {})
         self._alternates = alternates
+        self._seats = seats
         self._guard = guard or Guard()
 
     def greeting(self) -> Hello:
@@ -596,6 +616,13 @@ class LineListener:
         from gateway.inbound import INBOUND_OPTIONS, InboundProxy
 
         existing = self.router.lookup(name) if name in self.router else None
+        seats = self._seats
+        if existing is not None and not isinstance(existing, InboundProxy) and seats is not None:
+            held = seats.inbound(name)
+            if isinstance(held, InboundProxy):
+                existing = held  # the device dialled in here before, and its cluster entry serves it
+            elif seats.awaits(name):
+                return await self._seat(seats, name, reader, writer, url)
         if existing is not None:
             if not isinstance(existing, InboundProxy):
                 raise AlreadyExists(f"the name {name!r} is taken (by {existing.info.url})")
@@ -610,6 +637,28 @@ class LineListener:
         try:
             await proxy.wait_connected(_TAKE_UP)
             self.router.add(name, proxy)
+        except BaseException:
+            await proxy.aclose()
+            raise
+        return proxy
+
+    async def _seat(
+        self,
+        seats: DeviceSeats,
+        name: str,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        url: str,
+    ) -> InboundProxy:
+        """Serve a device that a cluster awaits under its name (it left a gateway that is gone)."""
+        from gateway.inbound import INBOUND_OPTIONS, InboundProxy
+
+        proxy = InboundProxy(name, url, self.device_options or INBOUND_OPTIONS)
+        proxy.offer(reader, writer, url)
+        await proxy.start()
+        try:
+            await proxy.wait_connected(_TAKE_UP)
+            await seats.seat(name, proxy)
         except BaseException:
             await proxy.aclose()
             raise
@@ -715,9 +764,10 @@ async def start_line_listener(
     alternates: Callable[[], list[str]] | None = None,
     max_connections: int = MAX_CONNECTIONS,
     max_connections_per_address: int = MAX_CONNECTIONS_PER_ADDRESS,
+    seats: DeviceSeats | None = None,
 ) -> LineListener:
     """Start a :class:`LineListener` on ``address`` ("HOST:PORT") for ``router``, checked by ``guard``;
-    TLS with ``ssl_context``; ``alternates``: see :class:`LineListener`."""
+    TLS with ``ssl_context``; ``alternates`` and ``seats``: see :class:`LineListener`."""
     listener = LineListener(
         router,
         on_rejoin=on_rejoin,
@@ -728,6 +778,7 @@ async def start_line_listener(
         alternates=alternates,
         max_connections=max_connections,
         max_connections_per_address=max_connections_per_address,
+        seats=seats,
     )
     await listener.start(*parse_address(address), ssl_context=ssl_context)
     return listener
