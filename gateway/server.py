@@ -24,6 +24,7 @@ from gateway.federation import VIA_KEY, enter, new_gateway_id
 from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, parse_options, parse_selectors
+from gateway.listen.budget import COUNTED_BYTES
 from gateway.listen.drain import Wake
 from gateway.logs import REQUEST_ID_HEADER, RequestContext, current_request, request_id_from
 from gateway.metrics.counts import GrpcCounts, MethodCounts
@@ -287,8 +288,10 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         if counts is not None:
             counts.listens_open += 1
         code = Code.CANCELLED  # unless it ends otherwise: the client went away
+        budget = self.hub.budget
+        counted = 0
         try:
-            # drain.responses written out here: a generator in between costs every message one
+            # drain.taken written out here: a generator in between costs every message one
             # more async-generator step, as Wake.wait costs it a coroutine.
             await stream.start()
             while True:
@@ -296,7 +299,15 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
                 if waiter is not None:
                     await waiter
                 while (response := stream.take_wire()) is not None:
+                    if len(response) < COUNTED_BYTES:
+                        yield response
+                        continue
+                    # A large message (a binary value) waits in two copies until the client has
+                    # taken it, this one and grpc's: both count against the hub's budget.
+                    counted = budget.take(2 * len(response), "Listen")
                     yield response
+                    budget.give_back(counted)
+                    counted = 0
                 if stream.error is not None:
                     raise stream.error
                 if stream.ended or stream.closed:
@@ -307,6 +318,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             code = err.code
             await abort(context, err, "Listen")
         finally:
+            budget.give_back(counted)  # a message the client never took
             stream.close()
             if counts is not None:
                 counts.listens_open -= 1
