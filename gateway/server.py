@@ -71,6 +71,11 @@ def _begin_unary(context: Context, service: str, path: str) -> tuple[RequestCont
     return request, via
 
 
+#: The copies of a large Listen message counted against the hub's budget while it is written (see
+#: Listen).
+GRPC_COPIES = 3
+
+
 def _lenient(message: type[Message]) -> Callable[[bytes], Message | Undecodable]:
     # grpc's own handling of a deserializer that raises is UNKNOWN and a logged traceback.
     name = message.DESCRIPTOR.full_name
@@ -302,9 +307,11 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
                     if len(response) < COUNTED_BYTES:
                         yield response
                         continue
-                    # A large message (a binary value) waits in two copies until the client has
-                    # taken it, this one and grpc's: both count against the hub's budget.
-                    counted = budget.take(2 * len(response), "Listen")
+                    # A large message (a binary value) to a reader that does not read waits in
+                    # two copies, this one and grpc's, and grpc may still be writing the one
+                    # before it to the socket (measured: about 3 copies each for readers that
+                    # announce a large window and never read): all three count in the budget.
+                    counted = budget.take(GRPC_COPIES * len(response), "Listen")
                     yield response
                     budget.give_back(counted)
                     counted = 0

@@ -82,7 +82,7 @@ def http_get_bytes(authority: str, target: str) -> bytes:
     return f"GET {target} HTTP/1.1\r\nHost: {authority}\r\n\r\n".encode()
 
 
-def open_reader(kind: str, grpc_address: str, http_address: str, service: str, path: str) -> socket.socket:
+def open_reader(kind: str, *, grpc_address: str, http_address: str, service: str, path: str) -> socket.socket:
     """One reader of ``kind`` (``stream``, ``sse`` or ``grpc``) that has asked and will read nothing."""
     address = grpc_address if kind == "grpc" else http_address
     host, port = address.rsplit(":", 1)
@@ -99,9 +99,10 @@ def open_reader(kind: str, grpc_address: str, http_address: str, service: str, p
 
 
 def open_readers(
-    kind: str, count: int, grpc_address: str, http_address: str, service: str, path: str
+    kind: str, count: int, *, grpc_address: str, http_address: str, service: str, path: str
 ) -> list[socket.socket]:
-    return [open_reader(kind, grpc_address, http_address, service, path) for _ in range(count)]
+    target = {"grpc_address": grpc_address, "http_address": http_address, "service": service, "path": path}
+    return [open_reader(kind, **target) for _ in range(count)]
 
 
 def close_readers(readers: list[socket.socket]) -> None:
@@ -116,7 +117,7 @@ def payload(size: int, count: int) -> bytes:
 
 
 async def set_repeatedly(
-    stub: pb_grpc.PropertyServiceStub, service: str, path: str, size: int, rate_hz: float, seconds: float
+    stub: pb_grpc.PropertyServiceStub, service: str, path: str, *, size: int, rate_hz: float, seconds: float
 ) -> int:
     """Set ``service``/``path`` to a new ``size``-byte value ``rate_hz`` times a second; how many."""
     count = 0
@@ -145,25 +146,32 @@ async def _measure(args: argparse.Namespace) -> None:
         try:
             async with grpc.aio.insecure_channel(gw.address) as channel:
                 stub = pb_grpc.PropertyServiceStub(channel)
-                await set_repeatedly(stub, "blobs", "picture", args.size, args.rate, 2)
+                await set_repeatedly(stub, "blobs", "picture", size=args.size, rate_hz=args.rate, seconds=2)
                 before = _rss_mb(gw.proc.pid)
                 print(f"{args.kind}: RSS before {before:.0f} MB", flush=True)
-                readers = open_readers(args.kind, args.readers, gw.address, gw.http_address, "blobs", "picture")
-                await set_repeatedly(stub, "blobs", "picture", args.size, args.rate, args.seconds)
+                target = {"grpc_address": gw.address, "http_address": gw.http_address}
+                readers = open_readers(args.kind, args.readers, **target, service="blobs", path="picture")
+                await set_repeatedly(
+                    stub, "blobs", "picture", size=args.size, rate_hz=args.rate, seconds=args.seconds
+                )
                 stalled = _rss_mb(gw.proc.pid)
                 print(f"{args.kind}: RSS with {args.readers} stalled readers {stalled:.0f} MB", flush=True)
                 close_readers(readers)
-                await set_repeatedly(stub, "blobs", "picture", args.size, args.rate, args.after)
+                await set_repeatedly(
+                    stub, "blobs", "picture", size=args.size, rate_hz=args.rate, seconds=args.after
+                )
                 after = _rss_mb(gw.proc.pid)
                 print(f"{args.kind}: RSS {args.after:g} s after they closed {after:.0f} MB", flush=True)
         finally:
             gw.stop()
             if args.log:
-                print(gw.output())
+                print(gw.output)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--kind", choices=KINDS, default="stream")
     parser.add_argument("--readers", type=int, default=60)
     parser.add_argument("--size", type=int, default=3_900_000)
