@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping
-from contextlib import aclosing
+from contextlib import aclosing, suppress
 
 from aiohttp import hdrs, web
 from google.protobuf.duration_pb2 import Duration
@@ -189,7 +189,10 @@ class EventStreams(StreamHandler):
                         snapshot = False
                     # A chunk carrying a binary value is this reader's one copy of it (base64):
                     # counted against the hub's budget until the connection has taken it.
-                    counted = budget.take(len(chunk), "event stream")
+                    size = len(chunk)
+                    if not budget.take(size):
+                        del chunk  # not held while the error is written
+                        return await self._end(request, response, budget.refusal(size, "event stream"), peer)
                     try:
                         written = await write_or_drop(
                             request,
@@ -200,17 +203,26 @@ class EventStreams(StreamHandler):
                             peer=peer,
                         )
                     finally:
-                        budget.give_back(counted)
+                        budget.give_back(size)
                     del chunk
                     if not written:
                         return response
         except ConnectionError:
             return response  # the client went away
         except Exception as exc:
-            try:
-                await response.write(error_event(to_property_error(exc, "event stream")))
-            except ConnectionError:
-                return response
+            return await self._end(request, response, exc, peer)
+        return response
+
+    async def _end(
+        self, request: web.Request, response: web.StreamResponse, exc: BaseException, peer: str
+    ) -> web.StreamResponse:
+        """End the stream with ``event: error`` for ``exc`` (a reader that does not take it within
+        ``http.write_timeout`` is dropped)."""
+        event = error_event(to_property_error(exc, "event stream"))
+        with suppress(ConnectionError):
+            await write_or_drop(
+                request, response, event, within_s=self.write_timeout, what="event stream", peer=peer
+            )
         return response
 
 

@@ -181,7 +181,8 @@ class ImageStreams(StreamHandler):
         while it is written. False when the reader was dropped; RESOURCE_EXHAUSTED when the
         budget has no room for it."""
         budget = self.hub.budget
-        counted = budget.take(len(data), what)
+        if not budget.take(len(data)):
+            raise budget.refusal(len(data), what)
         try:
             return await write_or_drop(
                 request,
@@ -194,4 +195,4 @@ class ImageStreams(StreamHandler):
                 peer=peer,
             )
         finally:
-            budget.give_back(counted)
+            budget.give_back(len(data))

@@ -31,23 +31,26 @@ class PayloadBudget:
         #: Bytes counted right now (read by the tests and the metrics).
         self.held = 0
 
-    def take(self, size: int, what: str) -> int:
-        """Count ``size`` bytes for a reader about to be written ``what``; the count to give back.
-
-        Raises RESOURCE_EXHAUSTED when they would take the total past the limit. A size under
-        :data:`COUNTED_BYTES` is not counted (0 comes back).
-        """
+    def take(self, size: int) -> bool:
+        """Count ``size`` bytes a reader is about to be written; False (nothing counted) when they
+        would take the total past the limit: end that reader with :meth:`refusal`. A size under
+        :data:`COUNTED_BYTES` always fits and is not counted."""
         if size < COUNTED_BYTES:
-            return 0
+            return True
         if self.held + size > self.limit:
-            raise ResourceExhausted(
-                f"{what}: {size} bytes would take the values waiting on slow readers past"
-                f" limits.max_pending_binary ({self.limit} bytes, {self.held} held now); read faster,"
-                " or try again"
-            )
+            return False
         self.held += size
-        return size
+        return True
 
     def give_back(self, size: int) -> None:
         """The reader's connection took (or dropped) what :meth:`take` counted."""
-        self.held -= size
+        if size >= COUNTED_BYTES:
+            self.held -= size
+
+    def refusal(self, size: int, what: str) -> ResourceExhausted:
+        """The error that ends a reader whose ``size`` bytes for ``what`` did not fit."""
+        return ResourceExhausted(
+            f"{what}: {size} bytes would take the values waiting on slow readers past"
+            f" limits.max_pending_binary ({self.limit} bytes, {self.held} held now); read faster,"
+            " or try again"
+        )
