@@ -14,8 +14,11 @@ what :func:`gateway.listen.drain.responses` yields:
 
 A request with ``Last-Event-ID`` (EventSource resuming) gets the snapshot with
 ``gap: true`` on each value: changes in between may be lost. A client that does not read
-makes ``write`` wait (the transport buffers at most its high-water mark); meanwhile the
-stream's queue keeps only the latest value of each property. A write that waits longer than
+makes ``write`` wait (the message is written in slices: the transport buffers at most about
+two); meanwhile the stream's queue keeps only the latest value of each property. A message
+carrying a large value counts against the hub's budget while it is written
+(:mod:`gateway.listen.budget`); one that does not fit ends the stream with ``event: error``
+(RESOURCE_EXHAUSTED). A write that waits longer than
 ``http.write_timeout`` ends the stream (the connection is dropped): a client that reads
 nothing for that long is gone.
 

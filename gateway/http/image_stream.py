@@ -8,10 +8,13 @@ sequence) and ``X-Conflated`` (values skipped for this reader since the last par
 same way. When the property goes away the body ends with the closing boundary.
 
 A reader slower than the property's rate gets the latest value only: while ``write`` waits on
-the client (the transport holds at most its high-water mark beyond the part being written), the
-stream's queue keeps one value for the property, and a response holding several events writes
-only its last. A write that waits longer than ``http.write_timeout`` drops the connection. Such
-a stream takes one of the places event streams take (:mod:`gateway.http.places`).
+the client, the stream's queue keeps one value for the property, and a response holding several
+events writes only its last. The part's bytes are the value every reader shares, written in
+slices (the transport holds at most about two): a stalled reader holds no copy of its own. While
+it is written a large part counts against the hub's budget (:mod:`gateway.listen.budget`); one
+that does not fit ends the stream. A write that waits longer than ``http.write_timeout`` drops
+the connection. Such a stream takes one of the places event streams take
+(:mod:`gateway.http.places`).
 
 A request that cannot start (no such service or property, a text property, refused by the rules)
 is a JSON error with its status, before any part.
