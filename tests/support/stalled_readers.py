@@ -10,7 +10,7 @@ announces the largest flow-control windows, so that only the socket holds the ga
 Run as a module to measure the full-size attack against a fresh gateway process (its RSS before,
 while the readers stall, and after they close)::
 
-    PYTHONPATH=$PWD:$PWD/tests python -m support.stalled_readers --readers 60 --size 3900000 --rate 2
+    PYTHONPATH=$PWD:$PWD/tests python -m support.stalled_readers --kind sse --readers 60 --size 3900000
 """
 
 from __future__ import annotations
