@@ -171,6 +171,12 @@ class Limits:
     #: Unary calls (Get, Set, Describe) running at once on the gRPC port; beyond, RESOURCE_EXHAUSTED
     #: naming this limit. grpc's queue of calls not yet taken up holds at least 20,000 more.
     max_calls: int = 10_000
+    #: Bytes of large values (64 KiB or more: binary ones) handed to Listen readers, event and
+    #: image streams and not yet taken by their connections, all readers together; a reader whose
+    #: next value would pass it ends with RESOURCE_EXHAUSTED (gateway.listen.budget). A stalled
+    #: reader holds at most one value (two copies of it on gRPC), so 256 MiB is about 65 readers
+    #: stalled at once on 4 MB camera frames, or 1,300 on 200 KB ones.
+    max_pending_binary: int = 256 * 1024 * 1024
 
 
 #: Bytes of a request body the HTTP front end reads at most (a Set's JSON); beyond, 413. A value

@@ -24,6 +24,7 @@ from gateway.federation import VIA_KEY, enter, new_gateway_id
 from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, parse_options, parse_selectors
+from gateway.listen.budget import COUNTED_BYTES
 from gateway.listen.drain import Wake
 from gateway.logs import REQUEST_ID_HEADER, RequestContext, current_request, request_id_from
 from gateway.metrics.counts import GrpcCounts, MethodCounts
@@ -68,6 +69,11 @@ def _begin_unary(context: Context, service: str, path: str) -> tuple[RequestCont
     request = RequestContext(request_id, service or None, path or None)
     current_request.set(request)
     return request, via
+
+
+#: The copies of a large Listen message counted against the hub's budget while it is written (see
+#: Listen).
+GRPC_COPIES = 3
 
 
 def _lenient(message: type[Message]) -> Callable[[bytes], Message | Undecodable]:
@@ -315,8 +321,10 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         if counts is not None:
             counts.listens_open += 1
         code = Code.CANCELLED  # unless it ends otherwise: the client went away
+        budget = self.hub.budget
+        held = 0
         try:
-            # drain.responses written out here: a generator in between costs every message one
+            # drain.taken written out here: a generator in between costs every message one
             # more async-generator step, as Wake.wait costs it a coroutine.
             await stream.start()
             while True:
@@ -324,7 +332,23 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
                 if waiter is not None:
                     await waiter
                 while (response := stream.take_wire()) is not None:
+                    if len(response) < COUNTED_BYTES:
+                        yield response
+                        continue
+                    # A large message (a binary value) to a reader that does not read waits in
+                    # two copies, this one and grpc's, and grpc may still be writing the one
+                    # before it to the socket (measured: about 3 copies each for readers that
+                    # announce a large window and never read): all three count in the budget.
+                    counted = GRPC_COPIES * len(response)
+                    if not budget.take(counted):
+                        # Not kept by the refusal's traceback (a cycle through this frame, freed
+                        # only by the next collection: measured, 300 MB for 60 refused readers).
+                        response = b""
+                        raise budget.refusal(counted, "Listen")
+                    held = counted
                     yield response
+                    budget.give_back(held)
+                    held = 0
                 if stream.error is not None:
                     raise stream.error
                 if stream.ended or stream.closed:
@@ -335,6 +359,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             code = err.code
             await abort(context, err, "Listen")
         finally:
+            budget.give_back(held)  # a message the client never took
             stream.close()
             if counts is not None:
                 counts.listens_open -= 1
