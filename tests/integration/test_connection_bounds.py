@@ -21,6 +21,7 @@ import aiohttp
 import grpc
 import pytest
 from line_device_support import device_process
+from scripted_device import ScriptedDevice, tcp_scripted
 from support.bystander import get_p99, registry_state, rss_mb
 from support.gateway_process import GatewayProcess, StartGateway
 from support.ports import free_port
@@ -203,23 +204,24 @@ async def test_the_metrics_port_refuses_a_host_that_is_not_loopback(gateway_proc
 async def test_a_burst_of_gets_on_one_connection_is_answered_or_refused_by_name_never_cancelled(
     gateway_process: StartGateway,
 ) -> None:
-    # Gets of a device over TCP are in flight together; max_calls is lowered to meet it.
-    device = free_port()
-    gw = gateway_process(f"""
-        [limits]
-        max_calls = 20
-        [[devices]]
-        name = "bot"
-        type = "sim-robot"
-        tcp = "127.0.0.1:{device}"
-    """)
-    async with grpc.aio.insecure_channel(gw.address) as channel:
-        stub = pb_grpc.PropertyServiceStub(channel)
-        request = pb.GetRequest(service="bot", property="location")
-        await stub.Get(request, timeout=WAIT)
-        results = await asyncio.gather(
-            *(stub.Get(request, timeout=60) for _ in range(2000)), return_exceptions=True
-        )
+    # A device that takes 20 ms a request (one at a time, as a small microcontroller does) keeps
+    # far more than max_calls Gets of the burst in flight together, however fast the machine.
+    device = ScriptedDevice("HELLO 1 name=bot type=sensor push=1", {"temp": "21.5"}, delay=0.02)
+    async with tcp_scripted(device) as url:
+        gw = gateway_process(f"""
+            [limits]
+            max_calls = 20
+            [[services]]
+            name = "bot"
+            url = "{url}"
+        """)
+        async with grpc.aio.insecure_channel(gw.address) as channel:
+            stub = pb_grpc.PropertyServiceStub(channel)
+            request = pb.GetRequest(service="bot", property="temp")
+            await stub.Get(request, timeout=WAIT)
+            results = await asyncio.gather(
+                *(stub.Get(request, timeout=60) for _ in range(2000)), return_exceptions=True
+            )
     codes = [r.code() if isinstance(r, grpc.aio.AioRpcError) else grpc.StatusCode.OK for r in results]
     counted = {code.name: codes.count(code) for code in set(codes)}
     refused = [r for r in results if isinstance(r, grpc.aio.AioRpcError)]
