@@ -18,7 +18,7 @@ import errno
 import logging
 import signal
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING
@@ -35,7 +35,7 @@ from gateway.connections import share_open_files
 from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
 from gateway.guard import Guard
-from gateway.health import NOT_SERVING, SERVING, HealthService, state_status
+from gateway.health import NOT_SERVING, SERVING, HealthService
 from gateway.licensing import current_caller, may_license
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
@@ -102,6 +102,9 @@ class Gateway:
         self._stopped = asyncio.Event()
         self._unwatch_registry: object | None = None
         self._unwatch_health: object | None = None
+        self._unwatch_links: object | None = None
+        #: Each service's watch on its backend's link to its device (health follows it).
+        self._link_watches: dict[str, Callable[[], None]] = {}
         #: The resource service, served as ``registry`` (built in :meth:`start`).
         self.registry: Registry = Registry()
         self._devices: list[SupervisedDevice] = []
@@ -369,6 +372,9 @@ class Gateway:
         self._unwatch_health = self.registry.watch_states(self._health_follows, members=True)
         for name, state in self.registry.states():
             self._health_follows(name, state)
+        self._unwatch_links = self.router.watch(self._health_follows_link)
+        for name, backend in self.router.items():
+            self._health_follows_link(name, backend)
 
     async def _join_store(self) -> None:
         """Open the shared registry store a config names (``[registry] store``), and this gateway's
@@ -421,7 +427,19 @@ class Gateway:
         if state == GONE:
             self.health.forget(name)
         else:
-            self.health.set(name, state_status(state))
+            self.health.follow_state(name, state)
+
+    def _health_follows_link(self, name: str, backend: Backend | None) -> None:
+        """A backend was added (or removed): its health follows its link to its device as well."""
+        unwatch = self._link_watches.pop(name, None)
+        if unwatch is not None:
+            unwatch()
+        if backend is not None:
+            self._link_watches[name] = backend.watch_link(
+                lambda connected: self.health.follow_link(name, connected)
+            )
+        else:
+            self.health.follow_link(name, True)
 
     def _on_state(self, name: str, state: str) -> None:
         """The registry marked ``name`` up, down or connecting: client calls follow."""
@@ -616,6 +634,11 @@ class Gateway:
             self._unwatch_registry()
         if callable(self._unwatch_health):
             self._unwatch_health()
+        if callable(self._unwatch_links):
+            self._unwatch_links()
+        for unwatch in self._link_watches.values():
+            unwatch()
+        self._link_watches.clear()
         if self._line_listener is not None:
             await self._line_listener.aclose()
         # Groups go first, so none of them asks the registry again once it is gone; then the
