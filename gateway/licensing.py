@@ -18,7 +18,7 @@ Whichever the holder, a licence acquired on a Session ends with that Session
 
 from __future__ import annotations
 
-from gateway.guard import CALLER, REGISTRY
+from gateway.guard import REGISTRY, current_subject
 from gateway.rules import Subject
 from services.errors import FailedPrecondition
 from services.registry import SESSION_HOLDER_PREFIX, Caller, Licences
@@ -48,7 +48,7 @@ def caller_of(subject: Subject) -> Caller:
 
 def current_caller() -> Caller:
     """:func:`caller_of` the subject of the Set being carried out (the registry's caller source)."""
-    return caller_of(CALLER.get())
+    return caller_of(current_subject())
 
 
 def check_set(licences: Licences | None, subject: Subject, service: str, path: str) -> None:

@@ -39,7 +39,7 @@ class ListenHub:
         self.router = router
         self.guard = guard or Guard()
         self.limits = limits
-        self.topics = Topics(call_timeout)
+        self.topics = Topics(call_timeout, self.guard)
         self._streams: set[ListenStream] = set()
         #: Events sent and values conflated by the streams already closed (the open ones keep their own).
         self.closed_events_sent = 0
@@ -89,6 +89,7 @@ class ListenHub:
             on_ready=on_ready,
             on_close=self._closed,
             may_read=guard.reader(subject),
+            caller=subject if guard.checks else None,
         )
         self._streams.add(stream)
         return stream
