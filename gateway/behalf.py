@@ -46,17 +46,15 @@ class Trail:
 
     __slots__ = ("_open", "_reads")
 
-    #: Reads noted at most: a group of thousands of members opening one topic is checked for these
-    #: (and refused beyond them, see :meth:`close`), and the trail's memory stays bounded.
-    MAX_READS = 1024
-
     def __init__(self) -> None:
+        # Each distinct read once, and only while the topic opens (under the call timeout): at
+        # most one entry per (service, path) the opening reached, however many members it has.
         self._reads: dict[tuple[str, str], None] = {}
         self._open = True
 
     def note(self, service: str, path: str) -> None:
         """Remember a read (once); nothing once closed (a task the opening left behind)."""
-        if self._open and len(self._reads) < self.MAX_READS:
+        if self._open:
             self._reads[service, path] = None
 
     def close(self) -> tuple[tuple[str, str], ...]:
