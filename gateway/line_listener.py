@@ -19,7 +19,16 @@ connection instead of one it opens — served under the greeting's ``name``
 with the URL ``tcp-in://HOST:PORT`` (the device's end of the connection). The
 registry lists it like any other service. A bad or missing name gets
 ``ERR 3`` (INVALID_ARGUMENT), a taken one ``ERR 6`` (ALREADY_EXISTS), and the
-connection is closed. When the connection drops the service stays, not
+connection is closed.
+
+**A greeting is a registration**, checked like a Set of ``services.NAME`` on the
+registry from any other front end: its subject is the name the greeting proves
+— a configured device's ``secret=``, or the CN of a client certificate on the
+listener's TLS — else ``anonymous``, and the rules must let that subject
+``register`` ``registry/services.NAME``. A refused greeting gets ``ERR 16``
+(UNAUTHENTICATED; ``ERR 7``, PERMISSION_DENIED, when it proved a name the rules
+refuse) naming the rule, and registers nothing. With no rules every greeting
+passes, as on the gRPC port. When the connection drops the service stays, not
 connected: the registry's liveness checks mark it ``down`` and its grace
 removes it; a device that dials in again under the same name before that
 takes its place back.
@@ -40,10 +49,11 @@ import dataclasses
 import hmac
 import logging
 import ssl
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from typing import TYPE_CHECKING, Any
 
-from gateway.guard import Guard
+from gateway.connections import BoundedListener, ConnectionCaps
+from gateway.guard import REGISTRY, Guard
 from gateway.identity import ANONYMOUS
 from gateway.rules import Operation, Subject
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
@@ -55,6 +65,7 @@ from services.errors import (
     Code,
     FailedPrecondition,
     InvalidArgument,
+    PermissionDenied,
     PropertyError,
     ReadOnly,
     ResourceExhausted,
@@ -91,6 +102,11 @@ _TAKE_UP = 5.0
 LINE_IDLE_TIMEOUT = 300.0
 #: Devices that dialled in from one source address and are served at once.
 MAX_GREETINGS_PER_SOURCE = 64
+#: Connections from one address served at once, devices and clients together.
+MAX_CONNECTIONS_PER_ADDRESS = 128
+#: Connections the door lets in beyond ``max_connections``: a full listener admits one more and
+#: closes the connection silent longest, which frees its place a loop turn later.
+_EVICTION_ROOM = 16
 #: A full listener closes the connection silent longest to admit a new one, if it has been
 #: silent at least this long (a busy listener is not churned by a flood of fresh connections).
 _EVICT_AFTER = 1.0
@@ -264,36 +280,68 @@ class ConnectionBounds:
     """How many line-listener connections are open, how long each has been silent, and who greeted.
 
     Silent connections are closed after ``idle_timeout``; a full listener
-    makes room by closing the one silent longest; one source address may
-    have at most ``max_greetings_per_source`` devices served at once.
+    makes room by closing the one silent longest, and an address with
+    ``max_connections_per_address`` open by closing its own one silent
+    longest; one source address may have at most ``max_greetings_per_source``
+    devices served at once.
     """
 
-    def __init__(self, *, max_connections: int, idle_timeout: float, max_greetings_per_source: int) -> None:
+    def __init__(
+        self,
+        *,
+        max_connections: int,
+        idle_timeout: float,
+        max_greetings_per_source: int,
+        max_connections_per_address: int = MAX_CONNECTIONS_PER_ADDRESS,
+    ) -> None:
         self.max_connections = max_connections
         self.idle_timeout = idle_timeout
         self.max_greetings_per_source = max_greetings_per_source
+        self.max_connections_per_address = max_connections_per_address
         self._open: dict[asyncio.StreamWriter, _Heard] = {}
+        #: The open connections of each source address (for its own bound).
+        self._by_address: dict[str, set[asyncio.StreamWriter]] = {}
         self._greetings: dict[str, int] = {}
 
     def admit(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> _Heard | None:
         """Track a new connection, making room when full; None when no room can be made."""
-        if len(self._open) >= self.max_connections and not self._evict_quietest():
+        address = _address_of(writer)
+        own = self._by_address.get(address, set())
+        if len(own) >= self.max_connections_per_address and not self._evict_quietest(own, address):
+            return None
+        if len(self._open) >= self.max_connections and not self._evict_quietest(self._open, None):
             return None
         heard = _Heard(reader)
         self._open[writer] = heard
+        self._by_address.setdefault(address, set()).add(writer)
         return heard
 
     def release(self, writer: asyncio.StreamWriter) -> None:
         """The connection ended."""
         self._open.pop(writer, None)
+        address = _address_of(writer)
+        own = self._by_address.get(address)
+        if own is not None:
+            own.discard(writer)
+            if not own:
+                del self._by_address[address]
 
-    def _evict_quietest(self) -> bool:
+    def _evict_quietest(self, among: Collection[asyncio.StreamWriter], address: str | None) -> bool:
+        """Close the connection of ``among`` silent longest, if it has been silent long enough."""
         now = asyncio.get_running_loop().time()
-        writer, heard = min(self._open.items(), key=lambda item: item[1].last_heard)
-        if now - heard.last_heard < _EVICT_AFTER:
+        writer = min(among, key=lambda w: self._open[w].last_heard)
+        silent = now - self._open[writer].last_heard
+        if silent < _EVICT_AFTER:
             return False
-        log.info("line listener full: closing a connection silent for %.0f s", now - heard.last_heard)
-        self._open.pop(writer)
+        if address is None:
+            log.debug("line listener full: closing a connection silent for %.0f s", silent)
+        else:
+            log.debug(
+                "line listener: %s has as many connections as it may: closing one silent for %.0f s",
+                address,
+                silent,
+            )
+        self.release(writer)
         writer.close()
         return True
 
@@ -324,14 +372,23 @@ class ConnectionBounds:
             self._greetings.pop(source, None)
 
 
+def _address_of(writer: asyncio.StreamWriter) -> str:
+    peer = writer.get_extra_info("peername")
+    return str(peer[0]) if isinstance(peer, tuple) else "local"
+
+
 class _ListenerServer(DeviceServer):
     """The device server of the line listener: clients are served, devices that greet are registered."""
+
+    #: A line per connection would let a flood of connections write the log full (a device that
+    #: dials in is logged when it joins and when it hangs up).
+    connection_log_level = logging.DEBUG
 
     def __init__(
         self, listener: LineListener, backend: RouterBackend, bounds: ConnectionBounds, **kwargs: object
     ) -> None:
         # The listener bounds its connections itself (ConnectionBounds), evicting silent ones.
-        super().__init__(backend, max_connections=bounds.max_connections + 1, **kwargs)  # type: ignore[arg-type]
+        super().__init__(backend, max_connections=bounds.max_connections + _EVICTION_ROOM, **kwargs)  # type: ignore[arg-type]
         self._listener = listener
         self._router_backend = backend
         self._bounds = bounds
@@ -341,7 +398,11 @@ class _ListenerServer(DeviceServer):
     ) -> None:
         heard = self._bounds.admit(reader, writer)
         if heard is None:
-            writer.write(encode(ErrorReply(int(Code.RESOURCE_EXHAUSTED), "too many connections; try later")))
+            full = (
+                "too many connections, none silent long enough to make room for this one"
+                " (limits.line_max_connections, limits.line_max_connections_per_address); try later"
+            )
+            writer.write(encode(ErrorReply(int(Code.RESOURCE_EXHAUSTED), full)))
             writer.close()
             return
         try:
@@ -401,6 +462,7 @@ class LineListener:
         max_greetings_per_source: int = MAX_GREETINGS_PER_SOURCE,
         device_secrets: Mapping[str, str] | None = None,
         alternates: Callable[[], list[str]] | None = None,
+        max_connections_per_address: int = MAX_CONNECTIONS_PER_ADDRESS,
     ) -> None:
         """``alternates()`` names the line listeners of the other gateways of this one's cluster: the
         greeting tells them to every peer (``alternates=``), so that a device that dialled in knows
@@ -418,14 +480,17 @@ class LineListener:
             max_connections=max_connections,
             idle_timeout=idle_timeout,
             max_greetings_per_source=max_greetings_per_source,
+            max_connections_per_address=max_connections_per_address,
         )
         self.server = _ListenerServer(
             self, RouterBackend(router, guard), self.bounds, name=name, type="gateway", push=True
         )
         self.address: tuple[str, int] | None = None
+        self._door: BoundedListener | None = None
         self._reaper: asyncio.Task[None] | None = None
         self._device_secrets = dict(device_secrets or {})
         self._alternates = alternates
+        self._guard = guard or Guard()
 
     def greeting(self) -> Hello:
         """The listener's greeting now: with the other gateways of its cluster, when it has any."""
@@ -517,15 +582,30 @@ class LineListener:
     async def _take_up(
         self, hello: Hello, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, url: str
     ) -> InboundProxy:
-        from gateway.inbound import INBOUND_OPTIONS, InboundProxy
-
         name = hello.name
         if not name:
             raise InvalidArgument(
                 "a device that dials in must give its name in its greeting: HELLO 1 name=NAME type=TYPE"
             )
         validate_service_name(name)
-        self._check_secret(hello, writer)
+        subject = self._greeting_subject(hello, writer)
+        self._check_register(subject, name)
+        path = f"services.{name}"
+        try:
+            proxy = await self._serve_as(name, reader, writer, url)
+        except Exception as exc:
+            self._guard.audited(subject, REGISTRY, path, Operation.REGISTER, exc)
+            raise
+        self._guard.audited(subject, REGISTRY, path, Operation.REGISTER, None)
+        return proxy
+
+    async def _serve_as(
+        self, name: str, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, url: str
+    ) -> InboundProxy:
+        """The proxy serving the device on this connection as ``name``: a new one, or the one it
+        left when its connection dropped."""
+        from gateway.inbound import INBOUND_OPTIONS, InboundProxy
+
         existing = self.router.lookup(name) if name in self.router else None
         if existing is not None:
             if not isinstance(existing, InboundProxy):
@@ -546,25 +626,63 @@ class LineListener:
             raise
         return proxy
 
-    def _check_secret(self, hello: Hello, writer: asyncio.StreamWriter) -> None:
-        """A configured device's name is taken only with its secret, or over TLS with a client
-        certificate whose subject (CN) is that name and that the listener's ``client_ca`` signed
-        (UNAUTHENTICATED otherwise)."""
+    def _greeting_subject(self, hello: Hello, writer: asyncio.StreamWriter) -> Subject:
+        """Who greets: the name a client certificate proves (its CN; the listener's ``client_ca``
+        signed it), else a configured device's name proven by its secret, else anonymous.
+
+        A configured device's name is taken only with its secret or a certificate for that name
+        (UNAUTHENTICATED otherwise), whatever the rules say."""
+        certified = certificate_name(writer.get_extra_info("peercert"))
         expected = self._device_secrets.get(hello.name)
-        if expected is None:
+        if expected is not None and certified != hello.name:
+            given = hello.extra.get("secret", "")
+            if not hmac.compare_digest(given.encode(), expected.encode()):
+                what = "a wrong secret" if given else "no secret"
+                raise Unauthenticated(f"{hello.name!r} is a configured device; the greeting carried {what}")
+            return Subject(hello.name, authenticated=True, via="secret")
+        if certified:
+            return Subject(certified, authenticated=True, via="certificate")
+        return ANONYMOUS
+
+    def _check_register(self, subject: Subject, name: str) -> None:
+        """Refuse, audited, unless the rules let ``subject`` register ``name`` (the gRPC port's check)."""
+        guard = self._guard
+        if not guard.checks:
             return
-        if certificate_name(writer.get_extra_info("peercert")) == hello.name:
+        path = f"services.{name}"
+        decision = guard.rules.check(subject, REGISTRY, path, Operation.REGISTER)
+        if decision.allowed:
             return
-        given = hello.extra.get("secret", "")
-        if not hmac.compare_digest(given.encode(), expected.encode()):
-            what = "a wrong secret" if given else "no secret"
-            raise Unauthenticated(f"{hello.name!r} is a configured device; the greeting carried {what}")
+        what = f"register {REGISTRY}/{path}"
+        error: PropertyError
+        if subject.authenticated:
+            error = PermissionDenied(f"{what}: {subject.name} may not: {decision.reason}")
+        else:
+            error = Unauthenticated(
+                f"{what}: not allowed without proof of who greets (secret= of a configured device, "
+                f"or a client certificate on the listener's TLS): {decision.reason}"
+            )
+        guard.audited(subject, REGISTRY, path, Operation.REGISTER, error)
+        raise error
 
     async def start(
         self, host: str, port: int, *, ssl_context: ssl.SSLContext | None = None
     ) -> tuple[str, int]:
-        """Listen on ``host:port`` (0 = any free port), over TLS with ``ssl_context``; the bound address."""
-        self.address = await self.server.serve_tcp(host, port, ssl_context=ssl_context)
+        """Listen on ``host:port`` (0 = any free port), over TLS with ``ssl_context``; the bound address.
+
+        The door (:class:`~gateway.connections.BoundedListener`) closes at once what is past
+        ``max_connections`` (and the room eviction needs); :class:`ConnectionBounds` does the rest.
+        """
+        most = self.bounds.max_connections + _EVICTION_ROOM
+        caps = ConnectionCaps(most, most, "limits.line_max_connections", "limits.line_max_connections")
+        self._door = BoundedListener(
+            self.server.tcp_protocol,
+            caps,
+            "gateway.line_listen",
+            ssl_context=ssl_context,
+            refusal=None if ssl_context is not None else _line_refusal,
+        )
+        self.address = await self._door.start(host, port)
         self._reaper = asyncio.create_task(self._close_idle_connections(), name="line listener: idle")
         return self.address
 
@@ -575,10 +693,16 @@ class LineListener:
             self.bounds.close_idle()
 
     async def aclose(self) -> None:
+        if self._door is not None:
+            await self._door.aclose()
         if self._reaper is not None:
             self._reaper.cancel()
             await asyncio.gather(self._reaper, return_exceptions=True)
         await self.server.aclose()
+
+
+def _line_refusal(reason: str) -> bytes:
+    return encode(ErrorReply(int(Code.RESOURCE_EXHAUSTED), f"too many connections: {reason}; try later"))
 
 
 def parse_address(address: str) -> tuple[str, int]:
@@ -600,6 +724,8 @@ async def start_line_listener(
     max_greetings_per_source: int = MAX_GREETINGS_PER_SOURCE,
     device_secrets: Mapping[str, str] | None = None,
     alternates: Callable[[], list[str]] | None = None,
+    max_connections: int = MAX_CONNECTIONS,
+    max_connections_per_address: int = MAX_CONNECTIONS_PER_ADDRESS,
 ) -> LineListener:
     """Start a :class:`LineListener` on ``address`` ("HOST:PORT") for ``router``, checked by ``guard``;
     TLS with ``ssl_context``; ``alternates``: see :class:`LineListener`."""
@@ -611,6 +737,8 @@ async def start_line_listener(
         max_greetings_per_source=max_greetings_per_source,
         device_secrets=device_secrets,
         alternates=alternates,
+        max_connections=max_connections,
+        max_connections_per_address=max_connections_per_address,
     )
     await listener.start(*parse_address(address), ssl_context=ssl_context)
     return listener

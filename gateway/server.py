@@ -33,7 +33,7 @@ from gateway.session import Session
 from gateway.status import abort, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.errors import Code, InvalidArgument
+from services.errors import Code, InvalidArgument, ResourceExhausted
 from services.model_codec import model_to_proto
 
 Context = grpc.aio.ServicerContext[Any, Any]
@@ -164,6 +164,9 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         self.hub = hub
         self.config = config
         self._timeout = config.gateway.call_timeout
+        #: Unary calls (Get, Set, Describe) running now, and how many may (``[limits] max_calls``).
+        self.calls_running = 0
+        self._max_calls = config.limits.max_calls
         #: Session calls running now (see gateway.session).
         self.sessions: set[Session] = set()
         #: This gateway's id in the ``ps-via`` chain of federated calls (gateway.federation).
@@ -186,6 +189,19 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         """Who calls; without rules or tokens nobody is refused and a Get need not ask."""
         return self.guard.identify_call(context) if self.guard.checks else ANONYMOUS
 
+    def _take_call_place(self) -> None:
+        """Count one more unary call running; RESOURCE_EXHAUSTED naming the limit when it is reached.
+
+        Without it a burst only meets grpc's queue of calls not yet taken up, whose overflow
+        ends calls with a bare CANCELLED (docs/errors.md).
+        """
+        if self.calls_running >= self._max_calls:
+            raise ResourceExhausted(
+                f"{self._max_calls} calls are running in this gateway already ([limits] max_calls);"
+                " try again, or send them in a Session"
+            )
+        self.calls_running += 1
+
     def _deadline(self, context: Context) -> float:
         remaining = context.time_remaining()
         timeout = self._timeout
@@ -202,7 +218,11 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             enter(via, self.gateway_id)
             subject = self._subject(context)
             logged.subject = _subject_name(subject)
-            response = await self.calls.get(request, self._deadline(context), subject)
+            self._take_call_place()
+            try:
+                response = await self.calls.get(request, self._deadline(context), subject)
+            finally:
+                self.calls_running -= 1
         except Exception as exc:
             await _failed(context, exc, "Get", counts, started)
             raise  # not reached: abort raises
@@ -226,7 +246,11 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             # Identified even when nothing is refused: the audit trail names who set what.
             subject = self.guard.identify_call(context)
             logged.subject = _subject_name(subject)
-            response = await self.calls.set(request, self._deadline(context), subject)
+            self._take_call_place()
+            try:
+                response = await self.calls.set(request, self._deadline(context), subject)
+            finally:
+                self.calls_running -= 1
         except Exception as exc:
             await _failed(context, exc, "Set", counts, started)
             raise
@@ -248,7 +272,11 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             enter(via, self.gateway_id)
             subject = self._subject(context)
             logged.subject = _subject_name(subject)
-            model = await self.calls.describe(request.service, self._deadline(context), subject)
+            self._take_call_place()
+            try:
+                model = await self.calls.describe(request.service, self._deadline(context), subject)
+            finally:
+                self.calls_running -= 1
             response = model_to_proto(model)
         except Exception as exc:
             await _failed(context, exc, "Describe", self._describe_counts, started)

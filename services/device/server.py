@@ -35,6 +35,9 @@ _CLOSE_WAIT = 5.0
 class DeviceServer:
     """Serves one backend to any number of line-protocol connections (TCP clients, a serial port)."""
 
+    #: The level of the "connected" and "disconnected" lines of each TCP connection.
+    connection_log_level = logging.INFO
+
     def __init__(
         self,
         backend: Backend,
@@ -113,12 +116,18 @@ class DeviceServer:
         self._sessions.add(writer)
         host, port = tuple(writer.get_extra_info("peername") or ("?", "?"))[:2]
         peer = f"{host}:{port}"
-        log.info("%s: connected", peer)
+        log.log(self.connection_log_level, "%s: connected", peer)
         try:
             await self.serve_stream(reader, writer, peer)
         finally:
             self._sessions.discard(writer)
-            log.info("%s: disconnected", peer)
+            log.log(self.connection_log_level, "%s: disconnected", peer)
+
+    def tcp_protocol(self) -> asyncio.StreamReaderProtocol:
+        """The protocol of one accepted TCP connection, served as :meth:`serve_tcp` serves each (for
+        a listener that accepts connections itself)."""
+        reader = asyncio.StreamReader(limit=READ_SIZE)
+        return asyncio.StreamReaderProtocol(reader, self._on_tcp)
 
     async def serve_tcp(
         self, host: str, port: int, *, ssl_context: ssl.SSLContext | None = None
