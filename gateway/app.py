@@ -367,6 +367,9 @@ class Gateway:
         # A caller locks only what the rules let it change.
         self.registry.set_licence_check(may_license(self.guard))
         self.servicer.calls.licences = self.registry.licensing
+        # And every Set a service makes for a client (a group's members): given before any such
+        # service is added, so that each member it is handed checks them.
+        self.router.directory.licences = self.registry.licensing
         self.registry.licensing.watch(self._on_licence)
         await self._add(REGISTRY_NAME, RegistryService(self.registry), "built in")
         self._unwatch_registry = self.registry.watch_states(self._on_state)

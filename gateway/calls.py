@@ -169,9 +169,9 @@ class Calls:
         """
         service = request.service
         guard = self.guard
-        if guard.checks or service == REGISTRY:
-            # Checked deeper as this subject: the calls a service makes for it, and the registry's
-            # admin check and licence holder.
+        if guard.checks or service == REGISTRY or self.licences is not None:
+            # Checked deeper as this subject: the calls a service makes for it (by the rules and
+            # against the licences others hold), and the registry's admin check and licence holder.
             CALLER.set(subject)
         try:
             backend = self._backend(service, "Set")
