@@ -22,6 +22,7 @@ from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
 from clients.errors import FailedPrecondition, NotFound, PermissionDenied, ResourceExhausted, Unauthenticated
+from services.values import parse_list
 
 SECRET = "a shared secret of the lab, long enough for HS256"
 
@@ -386,6 +387,28 @@ async def test_a_licence_refuses_even_an_admin_through_a_group_under_rules(ruled
         # The holder's own Set through the group passes.
         await operator.set("swarm", "robots.scout.velocity", "(0.1 0)")
         assert await admin.get("scout", "velocity") == "(0.1 0 0 0 0 0)"
+
+
+async def test_the_scheduler_picks_only_providers_the_caller_may_write(ruled: GatewayProcess) -> None:
+    async with client(ruled, "operator") as operator, client(ruled, "squatter") as squatter:
+        # Nothing it may write offers it: NOT_FOUND as when no provider offers it, saying why.
+        with pytest.raises(
+            NotFound,
+            match=re.escape(
+                "no provider offers (mobile_robot): squatter may not write scout spare by the rules"
+            ),
+        ):
+            await squatter.set("registry", "request", "(mobile_robot)", wait="0")
+        # The operator may write scout whole, spare only in part: two are more than it may have.
+        with pytest.raises(NotFound, match=r"1 exist: operator may not write spare by the rules"):
+            await operator.set("registry", "request", "(mobile_robot)", count="2", wait="0")
+        # One it may have: scout, whatever the distance or the others' state.
+        _, status, pairs = parse_list(await operator.set("registry", "request", "(mobile_robot)", wait="0"))
+        assert status == "granted" and [provider for provider, _ in pairs] == ["scout"], pairs
+    async with client(ruled, "admin") as admin:
+        with pytest.raises(FailedPrecondition, match=r"licence \S+ on scout is held by operator"):
+            await admin.set("scout", "velocity", "(0.1 0)")
+        await admin.set("spare", "velocity", "(0.1 0)")
 
 
 async def test_an_admin_revokes_any_licence_and_its_holder_is_told(ruled: GatewayProcess) -> None:
