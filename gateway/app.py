@@ -420,6 +420,8 @@ class Gateway:
             via=self.servicer.gateway_id,
         )
         self.servicer.calls.peer_hop = self.cluster.is_peer_hop
+        # A Set a peer forwarded comes as that peer, checked against the licences where the client called.
+        self.router.directory.peer_forwarded = self.servicer.calls.forwarded_by_peer
         log.info("cluster: joined as %s through %s", self.cluster.me, self.config.registry.store)
 
     def _alternates(self) -> list[str]:

@@ -28,6 +28,8 @@ from typing import Any, TypeVar
 from gateway.backends import open_proxy
 from gateway.behalf import OnBehalf, on_behalf
 from gateway.guard import Guard
+from gateway.licensing import check_set
+from gateway.rules import Subject
 from services.backend import Backend, BackendInfo
 from services.directory import DirectoryListener, own_context
 from services.eager import Started, step
@@ -198,6 +200,10 @@ class RouterDirectory:
         #: The registry's licences, given before any service that reaches others is added (the
         #: gateway does it when its registry starts); None: no licences to check.
         self.licences: Licences | None = None
+        #: Whether the call being served was forwarded by another gateway of this one's cluster: its
+        #: Sets were checked against the licences where the client called, and come as that gateway
+        #: (which holds none); None: not in a cluster.
+        self.peer_forwarded: Callable[[], bool] | None = None
         #: name → the OnBehalf handed out for it; one per name served (a leave forgets it).
         self._handed: dict[str, OnBehalf] = {}
         router.watch(self._forget)
@@ -212,8 +218,15 @@ class RouterDirectory:
             return backend
         handed = self._handed.get(name)
         if handed is None or handed.inner is not backend:
-            handed = self._handed[name] = on_behalf(name, backend, guard, self.licences)
+            licensed = self._check_licence if self.licences is not None else None
+            handed = self._handed[name] = on_behalf(name, backend, guard, licensed)
         return handed
+
+    def _check_licence(self, subject: Subject, service: str, path: str) -> None:
+        """Refuse a Set made for ``subject`` on what someone else holds a licence on."""
+        forwarded = self.peer_forwarded
+        if forwarded is None or not forwarded():
+            check_set(self.licences, subject, service, path)
 
     def names(self) -> list[str]:
         return self.router.names()
