@@ -32,6 +32,8 @@ from services.statemachine.binding import PropertyBinding
 from services.statemachine.chart import (
     MAX_DELAY,
     MAX_FOREACH,
+    SCXML_PROCESSOR,
+    SEND_TYPES,
     Action,
     Assign,
     Cancel,
@@ -46,6 +48,8 @@ from services.statemachine.chart import (
     Send,
     State,
     Transition,
+    is_variable_name,
+    parse_duration,
 )
 from services.statemachine.expressions import (
     FUNCTIONS,
@@ -82,13 +86,27 @@ _ACTIONS_PER_TURN = 100
 
 @dataclass(frozen=True, slots=True)
 class Event:
+    """An event as ``_event`` shows it (W3C SCXML 5.10.1); empty fields read as None."""
+
     name: str
     data: Any = None
     kind: str = "external"
     origin: str = ""
+    sendid: str = ""
+    origintype: str = ""
 
     def record(self) -> Record:
-        return Record({"name": self.name, "data": self.data, "type": self.kind, "origin": self.origin})
+        return Record(
+            {
+                "name": self.name,
+                "type": self.kind,
+                "sendid": self.sendid or None,
+                "origin": self.origin or None,
+                "origintype": self.origintype or None,
+                "invokeid": None,  # a chart invokes nothing
+                "data": self.data,
+            }
+        )
 
 
 class _FollowFailed(EvaluationError):
@@ -142,7 +160,7 @@ def _covered(child: State, entering: set[State]) -> bool:
 def _matches(descriptors: Iterable[str], name: str) -> bool:
     """SCXML event matching: ``error`` matches ``error`` and ``error.action``; ``*`` matches every event."""
     for d in descriptors:
-        if d == "*":
+        if d in ("*", ".*"):
             return True
         stem = d.removesuffix(".*")
         if name == stem or name.startswith(stem + "."):
@@ -188,6 +206,22 @@ class Interpreter:
         self._follows: dict[str, _Follow] = {}
         self._functions = {**FUNCTIONS, "In": self._in, "value": self._followed_value}
         self.transitions = 0
+        #: Ids made up for sends without one (``idlocation``), counted per run.
+        self._send_ids = 0
+        #: States whose ``<data>`` has its value (``binding="late"``: set when first entered).
+        self._bound: set[str] = set()
+        location = f"#_scxml_{self.session_id}"
+        processor = Record({"location": location})
+        self._system = {
+            "_sessionid": self.session_id,
+            "_name": self.chart.chart_name or self.name,
+            "_ioprocessors": Record({SCXML_PROCESSOR: processor, "scxml": processor}),
+        }
+
+    @property
+    def session_id(self) -> str:
+        """``_sessionid``: the machine's name, unique in its service (``#_scxml_`` + it is its address)."""
+        return self.name
 
     # -- outside ---------------------------------------------------------------
 
@@ -457,6 +491,9 @@ class Interpreter:
                 self._add_ancestors(s, domain, entering, default_entry, history_content)
         for s in sorted(entering, key=lambda x: x.order):
             self.configuration.add(s)
+            if self.chart.late and s.id not in self._bound:
+                self._bound.add(s.id)
+                self._bind(self.chart.state_data.get(s.id, ()))
             for block in s.onentry:
                 await self._run_block(block)
             if s in default_entry and s.initial is not None:
@@ -542,7 +579,11 @@ class Interpreter:
     def _init_data(self) -> None:
         for name, _ in self.chart.data:
             self.variables[name] = None
-        for name, expr in self.chart.data:
+        data = self.chart.state_data.get("", []) if self.chart.late else self.chart.data
+        self._bind(data)
+
+    def _bind(self, data: Iterable[tuple[str, Expression | None]]) -> None:
+        for name, expr in data:
             if expr is None:
                 continue
             try:
@@ -555,8 +596,8 @@ class Interpreter:
     def _evaluate(self, expr: Expression, extra: Mapping[str, Any] | None = None) -> Any:
         scope: dict[str, Any] = dict(self.variables)
         event = self._event
-        scope["_event"] = event.record() if event is not None else Record({"name": "", "data": None})
-        scope["_name"] = self.name
+        scope["_event"] = event.record() if event is not None else None  # unbound before the first
+        scope.update(self._system)
         if extra:
             scope.update(extra)
         return expr.evaluate(scope, self._functions)
@@ -566,10 +607,13 @@ class Interpreter:
             raise _Stopped(f"more than {MAX_QUEUED_EVENTS} internal events waiting (a loop of <raise>?)")
         self._internal.append(event)
 
-    def _error_execution(self, message: str, where: str) -> None:
-        self.journal(f"error.execution: {where + ': ' if where else ''}{message}")
+    def _error_execution(self, message: str, where: str, sendid: str = "") -> None:
+        self._error_event("error.execution", message, where, sendid)
+
+    def _error_event(self, name: str, message: str, where: str, sendid: str = "") -> None:
+        self.journal(f"{name}: {where + ': ' if where else ''}{message}")
         data = Record({"message": message, "where": where})
-        self._queue_internal(Event("error.execution", data, "platform"))
+        self._queue_internal(Event(name, data, "platform", sendid=sendid))
 
     def _expression_failed(self, e: EvaluationError, where: str) -> None:
         """An expression failed: error.action when it read a property not followed, else error.execution."""
@@ -620,8 +664,7 @@ class Interpreter:
             self._queue_internal(Event(action.event, None, "internal"))
         elif isinstance(action, Assign):
             if action.location not in self.variables:
-                undeclared = f"assign to {action.location!r}, which is not declared in <datamodel>"
-                self._error_execution(undeclared, action.where)
+                self._error_execution(self._not_writable("assign to", action.location), action.where)
                 raise _BlockFailed
             self.variables[action.location] = self._kept(self._value(action.expr, action.where), action.where)
         elif isinstance(action, Log):
@@ -638,8 +681,11 @@ class Interpreter:
         elif isinstance(action, Send):
             self._send(action)
         elif isinstance(action, Cancel):
+            send_id = action.send_id
+            if action.sendidexpr is not None:
+                send_id = format_chart_value(self._value(action.sendidexpr, action.where))
             for key, timer in list(self._timers.items()):
-                if timer.send_id == action.send_id:
+                if timer.send_id == send_id:
                     timer.handle.cancel()
                     del self._timers[key]
         elif isinstance(action, PropertySet):
@@ -647,7 +693,19 @@ class Interpreter:
         elif isinstance(action, PropertyGet):
             await self._property_get(action)
 
+    @staticmethod
+    def _not_writable(what: str, location: str) -> str:
+        if location.startswith("_") and location in ("_event", "_sessionid", "_name", "_ioprocessors"):
+            return f"{what} {location!r}, a system variable (read-only)"
+        if not is_variable_name(location):
+            return f"{what} {location[:60]!r}, which is not a variable's name"
+        return f"{what} {location!r}, which is not declared in <datamodel>"
+
     async def _foreach(self, action: Foreach) -> None:
+        for location in (action.item, action.index):
+            if location and not is_variable_name(location):
+                self._error_execution(self._not_writable("foreach into", location), action.where)
+                raise _BlockFailed
         items = self._value(action.array, action.where)
         if not isinstance(items, list | tuple | str):
             self._error_execution(f"foreach over a {type(items).__name__}", action.where)
@@ -663,22 +721,72 @@ class Interpreter:
                 await self._act(inner)
 
     def _send(self, action: Send) -> None:
+        where = action.where
+        send_id = action.send_id
+        if not send_id and action.idlocation:
+            self._send_ids += 1
+            send_id = f"{self.session_id}.send{self._send_ids}"
+        if action.idlocation:
+            if action.idlocation not in self.variables:
+                self._error_execution(self._not_writable("idlocation", action.idlocation), where)
+                raise _BlockFailed
+            self.variables[action.idlocation] = send_id
         name = action.event
         if action.eventexpr is not None:
-            name = str(self._value(action.eventexpr, action.where))
+            name = format_chart_value(self._value(action.eventexpr, where))
         assert name is not None
-        data = {n: self._kept(self._value(e, action.where), action.where) for n, e in action.params} or None
+        target = action.target
+        if action.targetexpr is not None:
+            target = format_chart_value(self._value(action.targetexpr, where))
+        kind = action.type
+        if action.typeexpr is not None:
+            kind = format_chart_value(self._value(action.typeexpr, where))
+        if kind not in SEND_TYPES:
+            self._error_execution(
+                f"type {kind[:60]!r}: the only event processor is {SCXML_PROCESSOR}", where, send_id
+            )
+            raise _BlockFailed
+        internal = target == "#_internal"
+        if target.startswith("#_scxml_") and target != f"#_scxml_{self.session_id}":
+            # W3C SCXML 6.2.4: a session that cannot be reached is error.communication.
+            why = f"target {target[:60]!r}: no such session; a chart sends only to itself"
+            self._error_event("error.communication", why, where, send_id)
+            raise _BlockFailed
+        if not internal and target not in ("", f"#_scxml_{self.session_id}"):
+            self._error_execution(f"target {target[:60]!r}: a chart sends only to itself", where, send_id)
+            raise _BlockFailed
+        data: dict[str, Any] = {}
+        for variable in action.namelist:
+            if variable not in self.variables:
+                self._error_execution(self._not_writable("namelist names", variable), where, send_id)
+                raise _BlockFailed
+            data[variable] = self.variables[variable]
+        for n, e in action.params:
+            data[n] = self._kept(self._value(e, where), where)
         event_data = Record(data) if data else None
         delay = action.delay
         if action.delayexpr is not None:
-            raw = self._value(action.delayexpr, action.where)
-            if isinstance(raw, bool) or not isinstance(raw, int | float) or not 0 <= raw <= MAX_DELAY:
-                bad = f"delayexpr gave {raw!r}, not seconds between 0 and {MAX_DELAY:g}"
-                self._error_execution(bad, action.where)
+            raw = self._value(action.delayexpr, where)
+            seconds = parse_duration(raw) if isinstance(raw, str) else raw
+            if (
+                isinstance(seconds, bool)
+                or not isinstance(seconds, int | float)
+                or not 0 <= seconds <= MAX_DELAY
+            ):
+                bad = (
+                    f"delayexpr gave {raw!r}, not a time like '1s' or '500ms' or seconds up to {MAX_DELAY:g}"
+                )
+                self._error_execution(bad, where, send_id)
                 raise _BlockFailed
-            delay = float(raw)
+            delay = float(seconds)
+        if internal:  # W3C SCXML 6.2.4: to the internal queue, after what is there already
+            self._queue_internal(Event(name, event_data, "internal", sendid=action.send_id))
+            return
+        event = Event(
+            name, event_data, "external", f"#_scxml_{self.session_id}", action.send_id, SCXML_PROCESSOR
+        )
         if delay <= 0:
-            self._post(name, event_data)
+            self._post(event)
             return
         if len(self._timers) >= MAX_TIMERS:
             self._error_execution(f"more than {MAX_TIMERS} delayed events waiting", action.where)
@@ -688,18 +796,18 @@ class Interpreter:
 
         def fire() -> None:
             self._timers.pop(key, None)
-            self._post(name, event_data)
+            self._post(event)
 
         handle = asyncio.get_running_loop().call_later(delay, fire)
-        self._timers[key] = _Timer(handle, action.send_id)
+        self._timers[key] = _Timer(handle, send_id)
 
-    def _post(self, name: str, data: Any) -> None:
+    def _post(self, event: Event) -> None:
         """An event the chart sent itself: to the external queue, as SCXML's <send> does."""
         try:
-            self._external.put_nowait(Event(name, data, "external", "self"))
+            self._external.put_nowait(event)
         except asyncio.QueueFull:
-            self.journal(f"event {name} dropped: {MAX_QUEUED_EVENTS} events already waiting")
-            log.warning("machine %s: event %s dropped, the queue is full", self.name, name)
+            self.journal(f"event {event.name} dropped: {MAX_QUEUED_EVENTS} events already waiting")
+            log.warning("machine %s: event %s dropped, the queue is full", self.name, event.name)
 
     def _cancel_timers(self) -> None:
         for timer in self._timers.values():

@@ -50,6 +50,7 @@ BY_DESIGN: dict[str, str] = {
     "<send> targetexpr": "the target is known at load",
     "<scxml> binding": 'only binding="early": every variable is set when the machine starts',
     "<data> src": "a chart never reads files or URLs",
+    "unknown attribute": "an attribute SCXML does not define is refused (a misspelt cond is no guard)",
 }
 
 _REFUSAL = re.compile(r"(?:line \d+(?: \([^)]*\))?: )?<([\w:]+)>: (?:([\w]+)=)?")
@@ -134,6 +135,8 @@ def as_python(text: str) -> str:
 
 def refusal(message: str) -> Outcome:
     """A chart refused at load: ``refused FEATURE`` for a feature left out by design, else a failure."""
+    if ": unknown attribute " in message:
+        return Outcome("refused", "unknown attribute")
     m = _REFUSAL.match(message)
     if m is not None:
         feature = f"<{m.group(1)}>" + (f" {m.group(2)}" if m.group(2) else "")
