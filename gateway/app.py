@@ -88,9 +88,10 @@ class Gateway:
         from gateway.config import default_config
 
         self.config = config if config is not None else default_config()
-        self.router = Router()
-        #: Identity, rules and audit: the one check of every front end (gRPC and the line listener).
+        #: Identity, rules and audit: the one check of every front end (gRPC and the line listener),
+        #: and of every call a system service makes on a client's behalf (the router's directory).
         self.guard = Guard.from_config(self.config)
+        self.router = Router(self.guard)
         self.hub = ListenHub(self.router, self.config.limits, self.config.gateway.call_timeout, self.guard)
         self._extra = dict(backends or {})
         self._server: grpc.aio.Server | None = None
