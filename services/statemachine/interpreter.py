@@ -85,7 +85,7 @@ MAX_ACTIONS = 100_000
 _ACTIONS_PER_TURN = 100
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Event:
     """An event as ``_event`` shows it (W3C SCXML 5.10.1); empty fields read as None."""
 
@@ -214,7 +214,10 @@ class Interpreter:
         self._send_ids = 0
         #: States whose ``<data>`` has its value (``binding="late"``: set when first entered).
         self._bound: set[str] = set()
-        location = f"#_scxml_{self.session_id}"
+        #: The chart's own address as a send target (and its events' origin).
+        self._address = location = f"#_scxml_{self.session_id}"
+        #: ``_event`` of the event taken last, made once per event, not once per expression.
+        self._recorded: tuple[Event | None, Record | None] = (None, None)
         processor = Record({"location": location})
         self._system = {
             "_sessionid": self.session_id,
@@ -600,10 +603,11 @@ class Interpreter:
                 self._error_execution(f"data {name}: {e}", "")
 
     def _evaluate(self, expr: Expression, extra: Mapping[str, Any] | None = None) -> Any:
-        scope: dict[str, Any] = dict(self.variables)
         event = self._event
-        scope["_event"] = event.record() if event is not None else None  # unbound before the first
-        scope.update(self._system)
+        if event is not self._recorded[0]:
+            # ``_event`` is unbound (None) before the first event.
+            self._recorded = (event, event.record() if event is not None else None)
+        scope: dict[str, Any] = {**self.variables, **self._system, "_event": self._recorded[1]}
         if extra:
             scope.update(extra)
         return expr.evaluate(scope, self._functions)
@@ -753,12 +757,12 @@ class Interpreter:
             )
             raise _BlockFailed
         internal = target == "#_internal"
-        if target.startswith("#_scxml_") and target != f"#_scxml_{self.session_id}":
+        if target and target.startswith("#_scxml_") and target != self._address:
             # W3C SCXML 6.2.4: a session that cannot be reached is error.communication.
             why = f"target {target[:60]!r}: no such session; a chart sends only to itself"
             self._error_event("error.communication", why, where, send_id)
             raise _BlockFailed
-        if not internal and target not in ("", f"#_scxml_{self.session_id}"):
+        if target and not internal and target != self._address:
             self._error_execution(f"target {target[:60]!r}: a chart sends only to itself", where, send_id)
             raise _BlockFailed
         data: dict[str, Any] = {}
@@ -788,9 +792,7 @@ class Interpreter:
         if internal:  # W3C SCXML 6.2.4: to the internal queue, after what is there already
             self._queue_internal(Event(name, event_data, "internal", sendid=action.send_id))
             return
-        event = Event(
-            name, event_data, "external", f"#_scxml_{self.session_id}", action.send_id, SCXML_PROCESSOR
-        )
+        event = Event(name, event_data, "external", self._address, action.send_id, SCXML_PROCESSOR)
         if delay <= 0:
             self._post(event)
             return
