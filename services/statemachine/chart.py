@@ -13,11 +13,12 @@ Every expression is checked by :mod:`services.statemachine.expressions`.
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from contextvars import ContextVar
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 from services.errors import InvalidArgument
 from services.paths import validate_path, validate_service_name
@@ -25,8 +26,12 @@ from services.statemachine.document import ChartError, Node, read_document
 from services.statemachine.expressions import (
     FUNCTIONS,
     NOT_AN_EXPRESSION,
+    EvaluationError,
     Expression,
+    Record,
+    check_size,
     compile_expression,
+    parse_chart_value,
 )
 
 __all__ = [
@@ -38,10 +43,13 @@ __all__ = [
     "Assign",
     "Cancel",
     "Chart",
+    "Content",
+    "DoneData",
     "Foreach",
     "If",
     "Listen",
     "Log",
+    "Param",
     "PropertyGet",
     "PropertySet",
     "Raise",
@@ -90,6 +98,38 @@ class Raise:
 
 
 @dataclass(eq=False, slots=True)
+class Param:
+    """``<param name expr|location>`` of a ``<send>`` or a ``<donedata>``: one field of the event's data."""
+
+    name: str
+    expr: Expression | None
+    #: A variable read by name: one not declared is error.execution when the data is made.
+    location: str
+    where: str
+
+
+@dataclass(eq=False, slots=True)
+class Content:
+    """``<content expr>`` or ``<content>text</content>``: the whole data of an event. Text arrives with
+    its white space collapsed; JSON text as records and lists, a number or a vector as one."""
+
+    expr: Expression | None
+    text: str
+    where: str
+    #: The text's value, made once when the chart is loaded.
+    value: Any = None
+
+
+@dataclass(eq=False, slots=True)
+class DoneData:
+    """``<donedata>`` of a ``<final>``: the data of the ``done.state.ID`` event its parent raises."""
+
+    params: list[Param]
+    content: Content | None
+    where: str
+
+
+@dataclass(eq=False, slots=True)
 class Send:
     """``<send>`` to the chart itself: its external queue, or ``#_internal`` its internal one."""
 
@@ -98,8 +138,9 @@ class Send:
     delay: float
     delayexpr: Expression | None
     send_id: str
-    params: list[tuple[str, Expression]]
+    params: list[Param]
     where: str
+    content: Content | None = None
     #: ``""`` (the external queue), ``#_internal``, or any other text: error.execution when sent.
     target: str = ""
     targetexpr: Expression | None = None
@@ -227,6 +268,7 @@ class State:
     listens: list[Listen] = field(default_factory=list)
     deep: bool = False
     history: list[State] = field(default_factory=list)
+    donedata: DoneData | None = None
 
     def __repr__(self) -> str:
         return f"State({self.id!r}, {self.kind})"
@@ -292,8 +334,6 @@ _EXECUTABLE = ("raise", "send", "cancel", "assign", "log", "if", "foreach", "ps:
 _REFUSED = {
     "script": "<script> runs code and is not supported; use <assign>, <if> and the ps: elements",
     "invoke": "<invoke> starts other documents and is not supported; use another machine and ps:set",
-    "donedata": "<donedata> is not supported",
-    "content": "<content> is not supported; give values with expr or <param>",
 }
 
 
@@ -400,13 +440,13 @@ def _variable(node: Node, attr: str) -> str:
     return name
 
 
-def _location(node: Node, attr: str) -> str:
+def _location(node: Node, attr: str, use: str = "writing") -> str:
     """A location written to at run time: one that is not a variable's name (``_sessionid``,
     ``foo.bar``) is error.execution when written (W3C SCXML 5.4), with a warning at load."""
     name = node.attrs.get(attr, "").strip()
     if _VARIABLE.fullmatch(name) is None:
         why = "a system variable, read-only" if name in SYSTEM_VARIABLES else "not a variable's name"
-        _warn(node, f"{attr}={name[:60]!r}: {why}; writing it raises error.execution")
+        _warn(node, f"{attr}={name[:60]!r}: {why}; {use} it raises error.execution")
     return name
 
 
@@ -580,16 +620,7 @@ class _Compiler:
         if kind not in SEND_TYPES:
             _warn(node, f"type={kind!r}: not an event processor here; sending raises error.execution")
         namelist = tuple(node.attrs.get("namelist", "").split())
-        params: list[tuple[str, Expression]] = []
-        for child in node.children:
-            if child.tag != "param":
-                raise child.fail("<send> holds only <param name=... expr=...>")
-            _check_attrs(child, ("name", "expr", "location"))
-            name = child.attrs.get("name", "")
-            source = child.attrs.get("expr") or child.attrs.get("location")
-            if _VARIABLE.fullmatch(name) is None or source is None:
-                raise child.fail("a parameter has a name and an expr")
-            params.append((name, _expr(child, "expr" if "expr" in child.attrs else "location")))
+        params, content = self.event_data(node)
         send_id = node.attrs.get("id", "")
         if send_id:
             self.send_ids.add(send_id)
@@ -601,6 +632,7 @@ class _Compiler:
             send_id=send_id,
             params=params,
             where=node.where,
+            content=content,
             target=target,
             targetexpr=_expr(node, "targetexpr") if "targetexpr" in node.attrs else None,
             type=kind,
@@ -608,6 +640,35 @@ class _Compiler:
             idlocation=_location(node, "idlocation") if "idlocation" in node.attrs else "",
             namelist=namelist,
         )
+
+    def event_data(self, node: Node) -> tuple[list[Param], Content | None]:
+        """The ``<param>`` and ``<content>`` children of a ``<send>`` or ``<donedata>``."""
+        params: list[Param] = []
+        content: Content | None = None
+        for child in node.children:
+            if child.tag == "content":
+                _check_attrs(child, ("expr",))
+                if child.children:
+                    raise child.fail("XML content is not supported: give the data as text or with expr")
+                if content is not None or ("expr" in child.attrs and child.text.strip()):
+                    raise child.fail("one <content>, with expr or text, not both")
+                expr = _expr(child, "expr") if "expr" in child.attrs else None
+                content = Content(expr, child.text.strip(), child.where, _content_value(child))
+            elif child.tag == "param":
+                _check_attrs(child, ("name", "expr", "location"))
+                name = child.attrs.get("name", "")
+                if _VARIABLE.fullmatch(name) is None or ("expr" in child.attrs) == (
+                    "location" in child.attrs
+                ):
+                    raise child.fail("a parameter has a name and one of expr or location")
+                expr = _expr(child, "expr") if "expr" in child.attrs else None
+                location = _location(child, "location", "reading") if "location" in child.attrs else ""
+                params.append(Param(name, expr, location, child.where))
+            else:
+                raise child.fail(f"<{node.tag}> holds only <param name=... expr=...> and <content>")
+        if content is not None and (params or node.attrs.get("namelist")):
+            raise node.fail("give the data as <content> or as <param> and namelist, not both")
+        return params, content
 
     def if_(self, node: Node) -> If:
         _check_attrs(node, ("cond",))
@@ -708,6 +769,12 @@ class _Compiler:
                 self.datamodel(child, state)
             elif tag == "ps:listen":
                 state.listens.append(self.listen(child))
+            elif tag == "donedata":
+                if node.tag != "final" or state.donedata is not None:
+                    raise child.fail("a <final> has at most one <donedata>, and only a <final> has one")
+                _check_attrs(child, ())
+                params, content = self.event_data(child)
+                state.donedata = DoneData(params, content, child.where)
             elif tag == "initial":
                 if node.tag != "state":
                     raise child.fail("only a <state> has an <initial>")
@@ -804,6 +871,27 @@ class _Compiler:
                     raise ChartError(
                         f"{initial.where}: the initial state {target.id!r} is not inside {inside!r}"
                     )
+
+
+def _from_json(value: Any) -> Any:
+    if isinstance(value, dict):
+        return Record({str(k): _from_json(v) for k, v in value.items()})
+    if isinstance(value, list):
+        return [_from_json(v) for v in value]
+    return value
+
+
+def _content_value(node: Node) -> Any:
+    """The value of ``<content>``'s text (W3C SCXML B.2: space-normalized; JSON parsed)."""
+    text = " ".join(node.text.split())
+    if not text:
+        return None
+    if text[0] in "{[":
+        try:
+            return check_size(_from_json(json.loads(text)))
+        except (ValueError, RecursionError, EvaluationError):
+            pass  # not JSON after all (or too big): the text itself
+    return parse_chart_value(text)
 
 
 def _refuse_left_out(node: Node) -> None:

@@ -39,10 +39,12 @@ from services.statemachine.chart import (
     Assign,
     Cancel,
     Chart,
+    Content,
     Foreach,
     If,
     Listen,
     Log,
+    Param,
     PropertyGet,
     PropertySet,
     Raise,
@@ -518,7 +520,12 @@ class Interpreter:
         if parent is None or parent.kind == "root":
             self.status = "done"
             return
-        self._queue_internal(Event(f"done.state.{parent.id}", None, "internal"))
+        data = None
+        if s.donedata is not None:
+            with contextlib.suppress(_BlockFailed):  # error.execution is queued, before the done event
+                done = s.donedata
+                data = self._event_data((), done.params, done.content, done.where, "")
+        self._queue_internal(Event(f"done.state.{parent.id}", data, "internal"))
         grand = parent.parent
         if (
             grand is not None
@@ -765,15 +772,7 @@ class Interpreter:
         if target and not internal and target != self._address:
             self._error_execution(f"target {target[:60]!r}: a chart sends only to itself", where, send_id)
             raise _BlockFailed
-        data: dict[str, Any] = {}
-        for variable in action.namelist:
-            if variable not in self.variables:
-                self._error_execution(self._not_writable("namelist names", variable), where, send_id)
-                raise _BlockFailed
-            data[variable] = self.variables[variable]
-        for n, e in action.params:
-            data[n] = self._kept(self._value(e, where), where)
-        event_data = Record(data) if data else None
+        event_data = self._event_data(action.namelist, action.params, action.content, where, send_id)
         delay = action.delay
         if action.delayexpr is not None:
             raw = self._value(action.delayexpr, where)
@@ -808,6 +807,33 @@ class Interpreter:
 
         handle = asyncio.get_running_loop().call_later(delay, fire)
         self._timers[key] = _Timer(handle, send_id)
+
+    def _event_data(
+        self, namelist: Iterable[str], params: list[Param], content: Content | None, where: str, send_id: str
+    ) -> Any:
+        """The data of an event: ``<content>``'s value, or a record of the namelist and the params
+        (None when there are none); _BlockFailed (error.execution queued) when one cannot be read."""
+        if content is not None:
+            if content.expr is None:
+                return content.value
+            return self._kept(self._value(content.expr, content.where), content.where)
+        data: dict[str, Any] = {}
+        for variable in namelist:
+            if variable not in self.variables:
+                self._error_execution(self._not_writable("namelist names", variable), where, send_id)
+                raise _BlockFailed
+            data[variable] = self.variables[variable]
+        for param in params:
+            if param.expr is None:
+                if param.location not in self.variables:
+                    self._error_execution(
+                        self._not_writable("param reads", param.location), param.where, send_id
+                    )
+                    raise _BlockFailed
+                data[param.name] = self.variables[param.location]
+            else:
+                data[param.name] = self._kept(self._value(param.expr, param.where), param.where)
+        return Record(data) if data else None
 
     def _post(self, event: Event) -> None:
         """An event the chart sent itself: to the external queue, as SCXML's <send> does."""

@@ -250,6 +250,36 @@ async def test_what_the_standard_fails_at_run_time_raises_error_execution_there(
     assert "error.communication" in log
 
 
+async def test_donedata_and_content_give_the_data_of_done_and_sent_events() -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="job">
+  <datamodel><data id="n" expr="3"/><data id="report"/><data id="order"/></datamodel>
+  <state id="job" initial="work">
+    <state id="work"><transition target="finished"/></state>
+    <final id="finished">
+      <donedata><param name="count" location="n"/><param name="twice" expr="n * 2"/></donedata>
+    </final>
+    <transition event="done.state.job" target="ordering">
+      <assign location="report" expr="(_event.data.count, _event.data.twice)"/>
+    </transition>
+  </state>
+  <state id="ordering">
+    <onentry><send event="order"><content>{ "item": "bolt", "sizes": [3, 4] }</content></send></onentry>
+    <transition event="order" target="end"><assign location="order" expr="_event.data['item']"/></transition>
+  </state>
+  <final id="end"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(end)")
+    found = await variables(sm, "m")
+    assert found["report"] == [3, 6]
+    assert found["order"] == "bolt"
+
+
 class Thermometer(Resource):
     """A sensor whose reading the test sets."""
 
