@@ -43,12 +43,9 @@ CHART_SECONDS = 8.0
 BY_DESIGN: dict[str, str] = {
     "<invoke>": "a chart never starts other documents",
     "<script>": "a chart never runs code",
-    "<content>": "event data is given with <param> and namelist",
-    "<donedata>": "done events carry no data",
-    "<send> target": "a chart sends only to itself (#_internal, #_parent-free); ps:set reaches services",
+    "<content>": "XML content: a chart's data is text, numbers, lists and records",
+    "<send> target": "a chart invokes nothing, so it has no #_parent or #_invoke_ID to send to",
     "<send> type": "only the SCXML event processor; the Basic HTTP processor is not offered",
-    "<send> targetexpr": "the target is known at load",
-    "<scxml> binding": 'only binding="early": every variable is set when the machine starts',
     "<data> src": "a chart never reads files or URLs",
     "unknown attribute": "an attribute SCXML does not define is refused (a misspelt cond is no guard)",
 }
