@@ -3,12 +3,16 @@
 The supported SCXML subset (docs/statemachine.md lists it): ``scxml``,
 ``state``, ``parallel``, ``final``, ``initial``, ``history`` (shallow and
 deep), ``transition`` (event, cond, target, type), ``onentry``, ``onexit``,
-``datamodel``/``data``, and the executable content ``raise``, ``send``
-(to the chart itself, with ``delay``), ``cancel``, ``assign``, ``log``,
+``datamodel``/``data`` (early or late binding), ``donedata``, and the
+executable content ``raise``, ``send`` (to the chart itself, with ``delay``,
+``param``/``namelist`` or ``content``), ``cancel``, ``assign``, ``log``,
 ``if``/``elseif``/``else`` and ``foreach``; plus the Property Service binding
 ``ps:set``, ``ps:get`` (executable content) and ``ps:listen`` (in a state).
 ``script`` and ``invoke`` would run code or other documents and are refused.
-Every expression is checked by :mod:`services.statemachine.expressions`.
+Every expression is checked by :mod:`services.statemachine.expressions`; what
+the standard wants to fail when it runs (text that is no expression, a write to
+a system variable) loads with a warning (:attr:`Chart.warnings`) and raises
+``error.execution`` there.
 """
 
 from __future__ import annotations
