@@ -764,15 +764,19 @@ class Interpreter:
             )
             raise _BlockFailed
         internal = target == "#_internal"
-        if target and target.startswith("#_scxml_") and target != self._address:
-            # W3C SCXML 6.2.4: a session that cannot be reached is error.communication.
-            why = f"target {target[:60]!r}: no such session; a chart sends only to itself"
-            self._error_event("error.communication", why, where, send_id)
-            raise _BlockFailed
         if target and not internal and target != self._address:
-            self._error_execution(f"target {target[:60]!r}: a chart sends only to itself", where, send_id)
+            if target.startswith("#_scxml_"):
+                # W3C SCXML 6.2.4: a session that cannot be reached is error.communication.
+                why = f"target {target[:60]!r}: no such session; a chart sends only to itself"
+                self._error_event("error.communication", why, where, send_id)
+            else:
+                self._error_execution(f"target {target[:60]!r}: a chart sends only to itself", where, send_id)
             raise _BlockFailed
-        event_data = self._event_data(action.namelist, action.params, action.content, where, send_id)
+        event_data = (
+            self._event_data(action.namelist, action.params, action.content, where, send_id)
+            if action.params or action.namelist or action.content is not None
+            else None
+        )
         delay = action.delay
         if action.delayexpr is not None:
             raw = self._value(action.delayexpr, where)
