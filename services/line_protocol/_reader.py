@@ -258,6 +258,10 @@ def decode_line(line: bytes | bytearray, max_line: int = MAX_LINE) -> Frame:
                 f"checksum mismatch: line says {raw[-2:].decode().upper()}, content gives {crc8(body):02X}",
                 Code.DATA_LOSS,
             )
+        if body.startswith(b" "):
+            # Nothing stands between '$' and the tag or word (docs/device-spec.md §6.3): a device
+            # that finds the tag right after the '$' must not have to skip spaces there too.
+            raise LineProtocolError("a space after '$': the tag or word follows it directly")
         raw = body
     # The tag is read only when the line turns out bad: it addresses the error.
     try:

@@ -323,7 +323,7 @@ async def test_a_device_dialling_in_with_a_greeting_it_cannot_have_gets_an_err_l
         lines = await greet_as(gw.line_address, b"HELLO 2 name=future type=sensor push=1\n")
         assert lines[0].startswith("HELLO 1 name=gateway")
         assert lines[1:] == [
-            "ERR 9 line protocol version 2 is not supported; this gateway speaks version 1 (1.2)"
+            "ERR 9 line protocol version 2 is not supported; this gateway speaks version 1 (1.3)"
         ]
         lines = await greet_as(gw.line_address, checked("HELLO 1 name=tiny maxline=32"))
         (err,) = lines[1:]
