@@ -1,8 +1,8 @@
 """``psgateway``: run the Property Service gateway.
 
-Subcommands: ``serve`` and ``check-config`` (here), ``device``
-(:mod:`gateway.device_cli`) and ``device-check`` (:mod:`gateway.device_check_cli`); each adds its parser and sets ``func``
-(``args -> exit code``) with ``set_defaults``.
+Subcommands: ``serve`` and ``check-config`` (here), ``device`` (:mod:`gateway.device_cli`)
+and ``device-check`` (:mod:`gateway.device_check_cli`); each adds its parser and sets
+``func`` (``args -> exit code``) with ``set_defaults``.
 """
 
 from __future__ import annotations

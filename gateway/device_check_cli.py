@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         report = asyncio.run(
             check_device(
                 args.url,
-                timeout=args.timeout,
+                reply_wait=args.timeout,
                 greeting_wait=args.greeting_wait,
                 writes=not args.read_only,
                 on_outcome=lambda outcome: print_outcome(outcome, out),

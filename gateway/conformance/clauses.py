@@ -17,10 +17,11 @@ from __future__ import annotations
 import math
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 from gateway.conformance.probe import Heard, Probe, checked, is_error
 from services.errors import Code, PropertyError
-from services.line_protocol import Frame, Hello, Ok, Pong, crc8
+from services.line_protocol import BadLine, ErrorReply, Frame, Hello, Ok, Pong, crc8
 from services.model import Access, PropertyModel, ServiceModel
 from services.model_codec import model_from_text
 from services.values.grammar import parse_names, parse_number
@@ -94,7 +95,9 @@ def clause(number: str, title: str) -> Callable[[Check], Check]:
 # -- expectations ------------------------------------------------------------------------------
 
 
-def _expect(heard: Heard | None, what: str, good: Callable[[Frame], bool], probe: Probe) -> Frame:
+def _expect(
+    heard: Heard | None, what: str, good: Callable[[Frame | BadLine], bool], probe: Probe
+) -> Frame | BadLine:
     if heard is None:
         raise Failed(f"no line within {probe.timeout:g} s; expected {what}")
     frame = heard.frame
@@ -105,7 +108,12 @@ def _expect(heard: Heard | None, what: str, good: Callable[[Frame], bool], probe
 
 def _expect_error(heard: Heard | None, code: Code, tag: str | None, probe: Probe) -> None:
     tagged = f"#{tag} " if tag else ""
-    _expect(heard, f"{tagged}ERR {int(code)} ...{'' if tag else ' (untagged)'}", lambda _: is_error(heard, code, tag), probe)
+    _expect(
+        heard,
+        f"{tagged}ERR {int(code)} ...{'' if tag else ' (untagged)'}",
+        lambda _: is_error(heard, code, tag),
+        probe,
+    )
 
 
 def _expect_ok(heard: Heard | None, tag: str, probe: Probe) -> Ok:
@@ -124,7 +132,12 @@ async def _expect_silence(probe: Probe, send: bytes) -> None:
     await probe.send(send)
     tag = probe.tag()
     heard = await probe.ask(f"#{tag} PING".encode())
-    _expect(heard, f"no reply to it: the next reply `#{tag} PONG`", lambda f: type(f) is Pong and f.tag == tag, probe)
+    _expect(
+        heard,
+        f"no reply to it: the next reply `#{tag} PONG`",
+        lambda f: type(f) is Pong and f.tag == tag,
+        probe,
+    )
 
 
 def _number(text: str) -> float | None:
@@ -144,7 +157,9 @@ def _text(value: str | bytes) -> str:
 @clause("3.7", "`HELLO` is answered with the greeting, `HELLO foo` with ERR 3")
 async def hello_request(probe: Probe, device: Device) -> None:
     heard = await probe.ask(b"HELLO")
-    _expect(heard, "the greeting `HELLO 1 ...`, untagged", lambda f: type(f) is Hello and f.tag is None, probe)
+    _expect(
+        heard, "the greeting `HELLO 1 ...`, untagged", lambda f: type(f) is Hello and f.tag is None, probe
+    )
     _expect_error(await probe.ask(b"HELLO foo"), Code.INVALID_ARGUMENT, None, probe)
 
 
@@ -257,7 +272,12 @@ async def cancel(probe: Probe, device: Device) -> None:
     heard = await probe.ask(f"#{after} PING".encode())
     if is_error(heard, Code.UNIMPLEMENTED, tag):  # a device that does not know the word (§3.8)
         heard = await probe.reply()
-    _expect(heard, f"no reply to the CANCEL: the next reply `#{after} PONG`", lambda f: type(f) is Pong and f.tag == after, probe)
+    _expect(
+        heard,
+        f"no reply to the CANCEL: the next reply `#{after} PONG`",
+        lambda f: type(f) is Pong and f.tag == after,
+        probe,
+    )
     _expect_error(await probe.ask(b"CANCEL"), Code.INVALID_ARGUMENT, None, probe)
 
 
@@ -268,6 +288,13 @@ async def cancel(probe: Probe, device: Device) -> None:
 async def get_missing(probe: Probe, device: Device) -> None:
     tag = probe.tag()
     _expect_error(await probe.ask(f"#{tag} GET {MISSING}".encode()), Code.NOT_FOUND, tag, probe)
+
+
+def _read_or_refused(frame: Frame | BadLine, tag: str) -> bool:
+    """``#TAG OK ...`` or ``#TAG ERR 9 ...``: a listed property that reads, or one that never does."""
+    if type(frame) is Ok:
+        return frame.tag == tag
+    return type(frame) is ErrorReply and frame.code == Code.FAILED_PRECONDITION and frame.tag == tag
 
 
 @clause("3.1", "`GET properties` lists names, and each answers GET with OK or ERR 9")
@@ -287,7 +314,7 @@ async def get_properties(probe: Probe, device: Device) -> None:
         frame = _expect(
             heard,
             f"`#{tag} OK ...` or `#{tag} ERR 9 ...` for a listed property",
-            lambda f, t=tag: (type(f) is Ok and f.tag == t) or is_error(heard, Code.FAILED_PRECONDITION, t),
+            partial(_read_or_refused, tag=tag),
             probe,
         )
         if type(frame) is Ok:
@@ -322,7 +349,9 @@ async def get_action(probe: Probe, device: Device) -> None:
     if not actions:
         raise Skipped("no action in the model")
     tag = probe.tag()
-    _expect_error(await probe.ask(f"#{tag} GET {actions[0].name}".encode()), Code.FAILED_PRECONDITION, tag, probe)
+    _expect_error(
+        await probe.ask(f"#{tag} GET {actions[0].name}".encode()), Code.FAILED_PRECONDITION, tag, probe
+    )
 
 
 # -- 3.2 SET -------------------------------------------------------------------------------------
@@ -347,7 +376,9 @@ async def set_read_only(probe: Probe, device: Device) -> None:
 
 def _writable_numbers(device: Device) -> list[PropertyModel]:
     return device.described(
-        lambda p: p.access is Access.READ_WRITE and p.type in ("number", "integer") and p.name in device.values
+        lambda p: (
+            p.access is Access.READ_WRITE and p.type in ("number", "integer") and p.name in device.values
+        )
     )
 
 
@@ -361,7 +392,9 @@ async def set_out_of_range(probe: Probe, device: Device) -> None:
     assert prop.maximum is not None
     above = prop.maximum + max(abs(prop.maximum), 1.0)
     tag = probe.tag()
-    _expect_error(await probe.ask(f"#{tag} SET {prop.name} {above:g}".encode()), Code.INVALID_ARGUMENT, tag, probe)
+    _expect_error(
+        await probe.ask(f"#{tag} SET {prop.name} {above:g}".encode()), Code.INVALID_ARGUMENT, tag, probe
+    )
     tag = probe.tag()
     ok = _expect_ok(await probe.ask(f"#{tag} GET {prop.name}".encode()), tag, probe)
     if _number(_text(ok.value)) == above:
@@ -386,7 +419,9 @@ async def set_same_value(probe: Probe, device: Device) -> None:
 
 
 def _listenable(device: Device) -> str:
-    described = device.described(lambda p: p.access in (Access.READ, Access.READ_WRITE) and p.type != "namespace")
+    described = device.described(
+        lambda p: p.access in (Access.READ, Access.READ_WRITE) and p.type != "namespace"
+    )
     names = [p.name for p in described if p.name in device.values] or list(device.values)
     if not names:
         raise Skipped("no property the device answers GET for")
@@ -432,7 +467,12 @@ async def damaged_checksum(probe: Probe, device: Device) -> None:
         raise Failed("the ERR 15 with a checksum: `$ERR 15 ...*HH` (§6.4)")
     tag = probe.tag()
     heard = await probe.ask(f"#{tag} PING".encode())
-    _expect(heard, f"a plain `#{tag} PONG`: a damaged line turns no mode on (§6.5)", lambda f: type(f) is Pong and not _is_checked(heard), probe)
+    _expect(
+        heard,
+        f"a plain `#{tag} PONG`: a damaged line turns no mode on (§6.5)",
+        lambda f: type(f) is Pong and not _is_checked(heard),
+        probe,
+    )
 
 
 @clause("6.3", "a space after `$` is ERR 3, untagged")
@@ -456,7 +496,12 @@ async def long_checked_line(probe: Probe, device: Device) -> None:
 async def mirrored(probe: Probe, device: Device) -> None:
     tag = probe.tag()
     heard = await probe.ask(checked(f"#{tag} PING a"))
-    _expect(heard, f"`$#{tag} PONG a*HH`", lambda f: type(f) is Pong and f.tag == tag and f.data == "a" and _is_checked(heard), probe)
+    _expect(
+        heard,
+        f"`$#{tag} PONG a*HH`",
+        lambda f: type(f) is Pong and f.tag == tag and f.data == "a" and _is_checked(heard),
+        probe,
+    )
 
 
 @clause("6.5", "after a good `$` line every line goes out checked, until a plain HELLO")
@@ -465,9 +510,24 @@ async def checksum_mode(probe: Probe, device: Device) -> None:
     _expect(await probe.ask(checked(f"#{tag} PING")), f"`$#{tag} PONG*HH`", lambda f: type(f) is Pong, probe)
     tag = probe.tag()
     heard = await probe.ask(f"#{tag} PING b".encode())
-    _expect(heard, f"`$#{tag} PONG b*HH` in checksum mode", lambda f: type(f) is Pong and f.tag == tag and _is_checked(heard), probe)
+    _expect(
+        heard,
+        f"`$#{tag} PONG b*HH` in checksum mode",
+        lambda f: type(f) is Pong and f.tag == tag and _is_checked(heard),
+        probe,
+    )
     heard = await probe.ask(b"HELLO")
-    _expect(heard, "the greeting, plain: a plain HELLO ends checksum mode", lambda f: type(f) is Hello and not _is_checked(heard), probe)
+    _expect(
+        heard,
+        "the greeting, plain: a plain HELLO ends checksum mode",
+        lambda f: type(f) is Hello and not _is_checked(heard),
+        probe,
+    )
     tag = probe.tag()
     heard = await probe.ask(f"#{tag} PING".encode())
-    _expect(heard, f"a plain `#{tag} PONG`", lambda f: type(f) is Pong and f.tag == tag and not _is_checked(heard), probe)
+    _expect(
+        heard,
+        f"a plain `#{tag} PONG`",
+        lambda f: type(f) is Pong and f.tag == tag and not _is_checked(heard),
+        probe,
+    )

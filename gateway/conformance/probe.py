@@ -142,7 +142,7 @@ class Probe:
             self.writer.write(data[start : start + piece])
             await self.writer.drain()
 
-    async def line(self, timeout: float | None = None) -> Heard | None:
+    async def line(self, wait: float | None = None) -> Heard | None:
         """The next line from the device, or None when none came in time (or the device hung up).
 
         The device's PINGs are answered here and not returned: a device MAY ask whether its
@@ -150,7 +150,7 @@ class Probe:
         """
         while True:
             try:
-                async with asyncio.timeout(self.timeout if timeout is None else timeout):
+                async with asyncio.timeout(self.timeout if wait is None else wait):
                     raw = await self.reader.readuntil(b"\n")
             except (TimeoutError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, OSError):
                 return None
@@ -167,17 +167,17 @@ class Probe:
                 continue
             return Heard(raw, frame)
 
-    async def reply(self, timeout: float | None = None) -> Heard | None:
+    async def reply(self, wait: float | None = None) -> Heard | None:
         """The next line that is not an EVENT or GONE (those may come at any time, §3.3)."""
         while True:
-            heard = await self.line(timeout)
+            heard = await self.line(wait)
             if heard is None or type(heard.frame) not in (Event, Gone):
                 return heard
 
-    async def ask(self, line: bytes, timeout: float | None = None) -> Heard | None:
+    async def ask(self, line: bytes, wait: float | None = None) -> Heard | None:
         """Send one request line; its reply, or None when none came in time."""
         await self.send(line)
-        return await self.reply(timeout)
+        return await self.reply(wait)
 
     async def settle(self) -> None:
         """Bring the conversation back in step after a check that failed.

@@ -50,6 +50,10 @@ class Report:
         return sum(1 for o in self.outcomes if o.status == status)
 
 
+def _is_greeting(frame: object) -> bool:
+    return type(frame) is Hello or (isinstance(frame, BadLine) and frame.greeting)
+
+
 async def _greeting(probe: Probe, serial: bool, wait: float) -> tuple[Outcome, Outcome, Hello | None]:
     """The outcomes of §4.2 (a greeting came) and §4.1 (it is well formed), and the greeting."""
     loop = asyncio.get_running_loop()
@@ -59,16 +63,25 @@ async def _greeting(probe: Probe, serial: bool, wait: float) -> tuple[Outcome, O
     while first is None and loop.time() < until:
         if serial:
             await probe.send(b"HELLO")
-        heard = await probe.line(min(HELLO_AGAIN_S if serial else wait, max(until - loop.time(), 0.01)))
-        if heard is not None:
-            first = heard
+        asked = loop.time()
+        # Lines before the greeting (a boot banner, bytes a reset spoiled) are passed over on a
+        # serial line; on TCP the greeting must be the first line.
+        while (
+            first is None
+            and (left := min(until, asked + HELLO_AGAIN_S) - loop.time() if serial else until - loop.time())
+            > 0
+        ):
+            heard = await probe.line(left)
+            if heard is None:
+                break
+            if _is_greeting(heard.frame) or not serial:
+                first = heard
     if first is None and not serial:  # late or silent: ask, so that the other clauses can run
         await probe.send(b"HELLO")
         first = await probe.line()
     lines = tuple(probe.transcript)
     frame = first.frame if first is not None else None
-    greeted = type(frame) is Hello or (isinstance(frame, BadLine) and frame.greeting)
-    if first is not None and greeted and (serial or lines[0].startswith("< ")):
+    if first is not None and _is_greeting(frame) and (serial or lines[0].startswith("< ")):
         arrived = Outcome("4.2", how, PASS)
     else:
         expected = "a greeting `HELLO 1 ...` as the first line" if not serial else "a greeting"
@@ -86,14 +99,17 @@ async def _greeting(probe: Probe, serial: bool, wait: float) -> tuple[Outcome, O
 async def check_device(
     url: str,
     *,
-    timeout: float = 2.0,
+    reply_wait: float = 2.0,
     greeting_wait: float = 5.0,
     writes: bool = True,
     on_outcome: Callable[[Outcome], None] | None = None,
 ) -> Report:
-    """Check the device at ``url`` clause by clause; OSError or ValueError when it cannot be opened."""
+    """Check the device at ``url`` clause by clause, giving it ``reply_wait`` seconds for each reply.
+
+    OSError or ValueError when it cannot be opened.
+    """
     reader, writer = await open_url(url)
-    probe = Probe(reader, writer, timeout)
+    probe = Probe(reader, writer, reply_wait)
     report = Report(url)
     outcomes: list[Outcome] = []
 
