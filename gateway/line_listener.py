@@ -13,7 +13,7 @@ gateway is just one more device whose backend is the whole router.
 
 **A device that dials in.** When the first line a peer sends is a greeting
 (``HELLO 1 name=scout4 type=mobile_robot push=1``) the peer is a device that
-registers itself (docs/line-protocol.md §4): the connection is handed to an
+registers itself (docs/line-protocol.md §5): the connection is handed to an
 :class:`InboundProxy` — the ordinary line-protocol proxy, whose stream is this
 connection instead of one it opens — served under the greeting's ``name``
 with the URL ``tcp-in://HOST:PORT`` (the device's end of the connection). The
@@ -474,7 +474,7 @@ class LineListener:
         """``seats``: the names a cluster holds for devices that dial in (:class:`DeviceSeats`);
         ``alternates()`` names the line listeners of the other gateways of this one's cluster: the
         greeting tells them to every peer (``alternates=``), so that a device that dialled in knows
-        where to go when this gateway is gone (docs/line-protocol.md §4.5);
+        where to go when this gateway is gone (docs/line-protocol.md §5);
         ``guard`` checks every request of every connection (default: nothing is refused);
         ``device_secrets`` (name → secret) are the configured devices that dial in: each name is
         taken only by a greeting that carries ``secret=`` with its secret;
@@ -521,7 +521,7 @@ class LineListener:
         """Serve the device that greeted on this connection as service ``hello.name``, until it hangs up.
 
         A greeting that cannot be accepted (another protocol version, a bad
-        field) is refused at once with an ERR line (docs/line-protocol.md §4.3),
+        field) is refused at once with an ERR line (docs/line-protocol.md §3),
         checksummed when the greeting was.
         """
         from gateway.inbound import INBOUND_SCHEME

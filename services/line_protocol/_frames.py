@@ -1,4 +1,4 @@
-"""The frames of the line protocol: one class per kind of line (docs/line-protocol.md §3, §4)."""
+"""The frames of the line protocol: one class per kind of line (docs/device-spec.md §3, §4)."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ MAX_LINE = 1024
 #: ERR reply with a short message must still fit.
 MIN_MAX_LINE = 64
 
-#: Bounds of the flow-control fields of a greeting (docs/line-protocol.md §4.2).
+#: Bounds of the flow-control fields of a greeting (docs/device-spec.md §5).
 #: ``inflight`` at most the proxies' own ceiling (``max_in_flight``); ``rxbuf`` at
 #: least what a short tagged GET needs (``#1 GET speed`` and its LF are 13 bytes).
 MAX_INFLIGHT = 4096
@@ -34,7 +34,7 @@ MIN_RXBUF = 16
 MAX_RXBUF = 65536
 
 _Params = Mapping[str, str]
-#: A value on the line: text, or bytes written ``\=`` and base64 (docs/line-protocol.md §2.3).
+#: A value on the line: text, or bytes written ``\=`` and base64 (docs/device-spec.md §2.6).
 LineValue = str | bytes
 
 
@@ -185,7 +185,7 @@ class BadLine:
     code: Code
     message: str
     tag: str | None = None
-    #: The line began with ``$``: a reply to it carries a checksum (docs/line-protocol.md §6).
+    #: The line began with ``$``: a reply to it carries a checksum (docs/device-spec.md §6.4).
     checksummed: bool = False
     #: The line was a greeting (``HELLO`` and a version) that cannot be accepted.
     greeting: bool = False

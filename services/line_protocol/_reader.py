@@ -242,7 +242,7 @@ def decode_line(line: bytes | bytearray, max_line: int = MAX_LINE) -> Frame:
     if raw.endswith(b"\r"):
         raw = raw[:-1]
     if raw.startswith(b" "):
-        raw = raw.lstrip(b" ")  # spaces before the first field are skipped (§1)
+        raw = raw.lstrip(b" ")  # spaces before the first field are skipped (docs/device-spec.md §1.4)
     if len(raw) + 1 > max_line:
         raise LineProtocolError(
             f"line too long: {len(raw) + 1} bytes, the limit is {max_line}",

@@ -164,7 +164,7 @@ async def test_listen_reset_gone_and_return_over_tcp(
 
 def check_checksums(tap: WireTap) -> None:
     """Once the gateway sent a checksummed line, every line the device sent carries a right CRC-8,
-    but for its greeting after a reset: a reset forgets checksum mode (docs/line-protocol.md §6)."""
+    but for its greeting after a reset: a reset forgets checksum mode (docs/device-spec.md §6.5)."""
     record = tap.record()
     first = next(i for i, (who, line) in enumerate(record) if who == "gw" and line.startswith("$"))
     device_lines = [line for who, line in record[first:] if who == "dev" and line]

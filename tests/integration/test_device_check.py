@@ -20,6 +20,7 @@ from line_device_support import ROOT, device_process, tcp_device
 from support.c_device import CProgram, build
 
 from gateway.conformance import CLAUSES, FAIL, PASS, SKIP, Report, check_device
+from gateway.conformance.probe import Probe, open_url
 
 #: Seconds a device has for each reply. Generous: the machines are shared, and simavr runs the
 #: AVR slower than real time.
@@ -108,6 +109,67 @@ def test_the_c_library_conforms_on_tcp_and_on_a_pty(c_build: Path) -> None:
     with CProgram([thermostat, "--pty"]) as device:
         report = asyncio.run(check_device(f"serial://{device.where}", reply_wait=REPLY_WAIT))
     assert_conforms(report, EVERY_KIND)
+
+
+#: A reading that changes while the vectors run: compared as "a number".
+READING = re.compile(r"^((?:#\w+ )?OK) -?\d+(?:\.\d+)?$")
+
+
+def spec_vectors() -> list[tuple[str, list[str]]]:
+    """Each request line of docs/device-spec.md §10 with the lines answering it (EVENTs left out)."""
+    text = (ROOT / "docs" / "device-spec.md").read_text(encoding="utf-8")
+    block = text.split("## 10. Test vectors", 1)[1].split("```", 2)[1]
+    exchanges: list[tuple[str, list[str]]] = []
+    for line in block.splitlines():
+        if line.startswith("> "):
+            exchanges.append((line[2:], []))
+        elif line.startswith("< ") and exchanges and not line.startswith("< EVENT "):
+            exchanges[-1][1].append(line[2:])
+    return exchanges
+
+
+def comparable(request: str, line: str) -> str:
+    """``line`` with what may differ between two conforming devices put aside: the greeting's
+    fields (each device states its own) and a sensor's reading."""
+    line = re.sub(r"HELLO 1 .*", "HELLO 1 ...", line)
+    return READING.sub(r"\1 <reading>", line) if " temp" in request else line
+
+
+async def exchange_vectors(url: str) -> list[tuple[str, list[str], list[str]]]:
+    """Send each vector's request; (request, expected, answered), both made comparable."""
+    reader, writer = await open_url(url)
+    probe = Probe(reader, writer, REPLY_WAIT)
+    try:
+        assert await probe.line() is not None  # the greeting
+        results = []
+        for request, expected in spec_vectors():
+            await probe.send(request.encode())
+            answered = []
+            for _ in expected:
+                heard = await probe.reply()
+                answered.append(heard.text if heard is not None else "(nothing)")
+            if not expected and (heard := await probe.reply(0.3)) is not None:
+                answered.append(heard.text)
+            results.append(
+                (
+                    request,
+                    [comparable(request, e) for e in expected],
+                    [comparable(request, a) for a in answered],
+                )
+            )
+        return results
+    finally:
+        await probe.close()
+
+
+def test_the_c_library_answers_the_test_vectors_of_the_specification_byte_for_byte(c_build: Path) -> None:
+    with CProgram([str(c_build / "host" / "thermostat"), "--tcp", "127.0.0.1:0"]) as device:
+        results = asyncio.run(exchange_vectors(f"tcp://{device.where}"))
+    assert len(results) > 20
+    differing = [
+        (request, expected, answered) for request, expected, answered in results if expected != answered
+    ]
+    assert not differing, differing
 
 
 def test_the_avr_firmware_conforms_in_simavr(tmp_path: Path) -> None:

@@ -278,7 +278,7 @@ def test_the_receiver_says_which_lines_were_checksummed_and_a_plain_hello_ends_c
 
 
 def test_ping_data_is_echoed_byte_for_byte() -> None:
-    # PING data is opaque (docs/line-protocol.md §3.1): no escape is decoded, so none is refused.
+    # PING data is opaque (docs/device-spec.md §3.6): no escape is decoded, so none is refused.
     for raw in (b"PING a\\qb\n", b"#1 PING a\\sb  \n"):
         (ping,) = LineReceiver().receive_data(raw)
         assert isinstance(ping, Ping)
