@@ -123,6 +123,9 @@ class _Watch(Subscription):
 class RouterBackend(Backend):
     """Every service of a router as one tree: ``SERVICE.PATH``; ``properties`` lists the services.
 
+    A service's name alone reads as a namespace does: the names of its properties (its own
+    ``properties``), so that every name ``properties`` lists answers a GET (docs/device-spec.md §3.1).
+
     One per line connection: :attr:`subject` is who asks on it, checked by ``guard``.
     """
 
@@ -134,11 +137,12 @@ class RouterBackend(Backend):
         self.subject = subject
 
     def _split(self, path: str) -> tuple[Backend, str, str]:
+        """The service's backend, its name and the path inside it; a bare name is its ``properties``."""
         service, dot, rest = path.partition(".")
         backend = self.router.backend(service)
-        if not dot or not rest:
+        if dot and not rest:
             raise InvalidArgument(f"{path!r} names a service; name one of its properties: {service}.PROPERTY")
-        return backend, service, rest
+        return backend, service, rest or "properties"
 
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         if path == "properties":

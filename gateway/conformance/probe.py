@@ -33,8 +33,9 @@ from services.line_protocol import (
 #: (docs/device-spec.md §1.2); room is left for one that sends more, so that the check that
 #: catches it can show the line rather than a read error.
 READ_LIMIT = 1 << 20
-#: Bytes written at once when the device states no ``rxbuf``: a UART ring of an 8-bit part is
-#: seldom smaller, and a device that reads as the bytes come never holds more than a piece.
+#: Bytes written at once on a serial line when the device states no ``rxbuf``: a UART ring of an
+#: 8-bit part is seldom smaller, and a device that reads as the bytes come never holds more than a
+#: piece. On TCP the socket's own buffers stand between, and a line goes out whole.
 DEFAULT_PIECE = 32
 #: Pause between two pieces of one line: at 9600 baud 32 bytes take 33 ms on the wire, so the
 #: device has emptied its ring before the next piece comes.
@@ -109,11 +110,20 @@ async def open_url(url: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter
 class Probe:
     """One connection to the device under test; see the module docstring."""
 
-    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, timeout: float) -> None:
+    def __init__(
+        self,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        timeout: float,
+        *,
+        serial: bool = False,
+    ) -> None:
         self.reader = reader
         self.writer = writer
         #: Seconds to wait for a line the device owes.
         self.timeout = timeout
+        #: The device is on a serial line: lines go out in pieces its receive ring holds.
+        self.serial = serial
         #: Every line, ``> `` what the probe sent, ``< `` what the device sent.
         self.transcript: list[str] = []
         #: The device's greeting, once heard.
@@ -121,10 +131,10 @@ class Probe:
         self._tags = 0
 
     @property
-    def piece(self) -> int:
-        """Bytes written at once: the device's ``rxbuf`` when it states one."""
+    def piece(self) -> int | None:
+        """Bytes written at once: the device's ``rxbuf`` when it states one; None: the whole line."""
         stated = self.greeting.rxbuf if self.greeting is not None else None
-        return stated or DEFAULT_PIECE
+        return stated or (DEFAULT_PIECE if self.serial else None)
 
     def tag(self) -> str:
         """A tag not used before on this connection (``k1``, ``k2``, ...)."""
@@ -135,7 +145,7 @@ class Probe:
         """Write ``line`` and its LF, in pieces the device's receive buffer holds."""
         self.transcript.append(f"> {show(line)}")
         data = line + b"\n"
-        piece = self.piece
+        piece = self.piece or len(data)
         for start in range(0, len(data), piece):
             if start:
                 await asyncio.sleep(PIECE_PAUSE_S)

@@ -109,7 +109,8 @@ async def check_device(
     OSError or ValueError when it cannot be opened.
     """
     reader, writer = await open_url(url)
-    probe = Probe(reader, writer, reply_wait)
+    serial = urlsplit(url).scheme == "serial"
+    probe = Probe(reader, writer, reply_wait, serial=serial)
     report = Report(url)
     outcomes: list[Outcome] = []
 
@@ -119,7 +120,6 @@ async def check_device(
             on_outcome(outcome)
 
     try:
-        serial = urlsplit(url).scheme == "serial"
         arrived, formed, greeting = await _greeting(probe, serial, greeting_wait)
         record(arrived)
         record(formed)

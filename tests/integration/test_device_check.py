@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 from line_device_support import ROOT, device_process, tcp_device
 from support.c_device import CProgram, build
+from support.gateway_process import StartGateway
 
 from gateway.conformance import CLAUSES, FAIL, PASS, SKIP, Report, check_device
 from gateway.conformance.probe import Probe, open_url
@@ -92,6 +93,25 @@ def test_the_python_device_server_conforms_on_its_own_pty_under_flow_control() -
         report = asyncio.run(check_device(f"serial://{pty}?baudrate=115200", reply_wait=REPLY_WAIT))
     assert "inflight=1 rxbuf=32" in report.greeting
     assert_conforms(report, ("4.2", "1.2", "3.2", "3.3", "6.5", "9"))
+
+
+def test_the_gateways_own_line_listener_conforms(gateway_process: StartGateway) -> None:
+    gw = gateway_process(
+        """
+        [gateway]
+        line_listen = "127.0.0.1:0"
+
+        [[services]]
+        name = "bot"
+        type = "sim-robot"
+        """
+    )
+    match = re.search(r"line-protocol listener on (127\.0\.0\.1:\d+)", gw.output)
+    assert match, gw.output
+    report = asyncio.run(check_device(f"tcp://{match.group(1)}", reply_wait=REPLY_WAIT))
+    assert "name=gateway type=gateway" in report.greeting
+    # Every service it lists answers a GET, as a namespace does: the names of its properties.
+    assert_conforms(report, ("4.2", "1.2", "3.1", "3.3", "3.9", "6.5"))
 
 
 @pytest.fixture(scope="module")
