@@ -99,10 +99,10 @@ def _expect(
     heard: Heard | None, what: str, good: Callable[[Frame | BadLine], bool], probe: Probe
 ) -> Frame | BadLine:
     if heard is None:
-        raise Failed(f"no line within {probe.timeout:g} s; expected {what}")
+        raise Failed(f"{what}; nothing came within {probe.timeout:g} s")
     frame = heard.frame
     if not good(frame):
-        raise Failed(f"expected {what}")
+        raise Failed(what)
     return frame
 
 
