@@ -29,6 +29,7 @@ from grpc_health.v1 import health_pb2
 from grpc_reflection.v1alpha import reflection
 
 from gateway.backends import open_backend, open_proxy
+from gateway.client_faults import filter_grpc_client_faults
 from gateway.cluster import ClusterNode
 from gateway.config import REGISTRY_NAME, Config, ConfigError, ServiceEntry
 from gateway.devices import SupervisedDevice, start_supervised
@@ -490,6 +491,7 @@ class Gateway:
 
     def _make_server(self) -> grpc.aio.Server:
         server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])
+        filter_grpc_client_faults()  # a call cancelled while a message was sent: no traceback
         # Not the generated registration: a request that does not parse is INVALID_ARGUMENT.
         add_to_server(self.servicer, server)
         add_health_and_reflection(
