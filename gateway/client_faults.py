@@ -17,7 +17,7 @@ import logging
 import time
 from collections.abc import Callable
 
-from grpc._cython import cygrpc
+from grpc._cython import cygrpc  # type: ignore[attr-defined]
 
 from gateway.audit import TokenBucket
 
@@ -123,7 +123,7 @@ def filter_grpc_client_faults() -> None:
     core by servicer method"): the client cancelled the call or went away while a message was
     being written to it (a large value on a slow reader, typically). An ordinary end of a call,
     so one rate-limited INFO line."""
-    execute_batch_error: type[BaseException] = cygrpc.ExecuteBatchError  # type: ignore[attr-defined]
+    execute_batch_error: type[BaseException] = cygrpc.ExecuteBatchError
     filter_client_faults(
         "grpc._cython.cygrpc",
         (execute_batch_error,),
