@@ -20,7 +20,7 @@ from gateway.identity import Authenticator, AuthSection
 from gateway.rules import Subject
 from services.errors import Unauthenticated
 
-SECRET = "correct horse battery staple, long enough for HS256"
+SECRET = "correct horse battery staple, long enough for HS256, HS384 and even HS512 keys"
 
 #: One key of each kind a JWKS may hold, by kid; made once (an RSA key takes a while).
 PRIVATE_KEYS: dict[str, Any] = {
