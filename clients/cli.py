@@ -53,7 +53,11 @@ examples:
   psctl listen scout1 location --also scout2:location --min-interval 0.1 --duration 5
   psctl --json get scout1 location            machine-readable output
 
-The gateway address comes from --target, else $PSCTL_TARGET, else 127.0.0.1:50051.
+The gateway address comes from --target, else $PSCTL_TARGET, else 127.0.0.1:50051. Several
+addresses, comma-separated (-t gw1:50051,gw2:50051), or a gRPC name that stands for several
+(dns:///gateways.local:50051): a call that cannot reach one gateway is made through the next, and
+`listen --resume` moves to the next when its gateway dies or freezes; when none answers, the
+error names each address tried (exit 3).
 exit codes: 0 ok, 1 the call failed, 2 usage error, 3 gateway unreachable, 130 interrupted.
 """
 
@@ -86,9 +90,9 @@ def _common_options() -> argparse.ArgumentParser:
     common.add_argument(
         "-t",
         "--target",
-        metavar="HOST:PORT",
+        metavar="HOST:PORT[,HOST:PORT...]",
         default=argparse.SUPPRESS,
-        help=f"gateway address (default: $PSCTL_TARGET or {DEFAULT_TARGET})",
+        help=f"gateway address, or several to fail over between (default: $PSCTL_TARGET or {DEFAULT_TARGET})",
     )
     common.add_argument(
         "--timeout",
@@ -255,8 +259,9 @@ def build_parser() -> argparse.ArgumentParser:
     listen.add_argument(
         "--resume",
         action="store_true",
-        help="when the gateway goes away (UNAVAILABLE), listen again once it is back; the first event "
-        "after that is marked [gap]",
+        help="when the gateway goes away (UNAVAILABLE, or a keep-alive unanswered), listen again, "
+        "through the next of several --target addresses; the first event after that is marked [gap]; "
+        "exits 3 naming every address tried when none answers for 30 s",
     )
     listen.add_argument(
         "--separate-stream",

@@ -155,6 +155,9 @@ class Unavailable(PropertyServiceError, reports=errors.Unavailable):
 class GatewayUnreachable(Unavailable):
     """No connection to the gateway itself could be made."""
 
+    #: Every gateway address tried, in order, when a client with several gave up on all of them.
+    tried: tuple[str, ...] = ()
+
 
 class DataLoss(PropertyServiceError, reports=errors.DataLoss):
     """Unrecoverable loss or corruption of data."""

@@ -10,11 +10,13 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import threading
-from collections.abc import AsyncIterator, Awaitable, Iterable
+from collections.abc import AsyncIterator, Awaitable, Iterable, Sequence
 from types import TracebackType
 from typing import Any, Generic, Self, TypeVar
 
 from clients.aio import (
+    DEFAULT_FAILOVER_LIMIT,
+    DEFAULT_KEEPALIVE,
     DEFAULT_MAX_IN_FLIGHT,
     DEFAULT_SESSION_QUEUE,
     DEFAULT_TARGET,
@@ -175,17 +177,21 @@ class Client(_BlockingCalls):
 
     def __init__(
         self,
-        target: str = DEFAULT_TARGET,
+        target: str | Sequence[str] = DEFAULT_TARGET,
         *,
         timeout: float | None = DEFAULT_TIMEOUT,
         metadata: Iterable[tuple[str, str]] | None = None,
         max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
         credentials: ClientCredentials | None = None,
         separate_listens: bool = False,
+        keepalive: float | None = DEFAULT_KEEPALIVE,
+        failover_limit: float | None = DEFAULT_FAILOVER_LIMIT,
     ) -> None:
-        """``credentials``: TLS and a bearer token; ``separate_listens``: each listen on a stream of
-        its own rather than inside one shared Session; both as for :class:`~clients.aio.AsyncClient`."""
-        self.target = target
+        """``target``: one gateway address or several to fail over between; ``credentials``: TLS
+        and a bearer token; ``separate_listens``: each listen on a stream of its own rather than
+        inside one shared Session; ``keepalive``, ``failover_limit``: how soon a dead or frozen
+        gateway is left, and how long a resumed listen tries; all as for
+        :class:`~clients.aio.AsyncClient`."""
         self.timeout = timeout
         self._aio = AsyncClient(
             target,
@@ -194,8 +200,15 @@ class Client(_BlockingCalls):
             max_in_flight=max_in_flight,
             credentials=credentials,
             separate_listens=separate_listens,
+            keepalive=keepalive,
+            failover_limit=failover_limit,
         )
         super().__init__(_LoopThread(None if timeout is None else timeout + _GRACE), self._aio)
+
+    @property
+    def target(self) -> str:
+        """The gateway address in use now."""
+        return self._aio.target
 
     def close(self) -> None:
         """Close the channel and stop the background loop. Idempotent."""

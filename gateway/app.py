@@ -36,7 +36,7 @@ from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
 from gateway.guard import Guard
 from gateway.health import NOT_SERVING, SERVING, HealthService, state_status
-from gateway.licensing import current_caller
+from gateway.licensing import current_caller, may_license
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
@@ -66,6 +66,11 @@ REGISTER_SHARE = 0.8
 DEVICE_CONNECT_WAIT = 5.0
 
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
+#: Keep-alive pings the gRPC port accepts from clients (see docs/client.md, failover): the SDK pings
+#: every second while a call is open, so that a frozen gateway is found within two. grpc's own
+#: policy answers a ping more often than every 5 minutes on a quiet stream with GOAWAY "too many
+#: pings", which would end every idle Listen. Pings faster than every 0.5 s still count as abuse.
+CLIENT_PING_POLICY: tuple[tuple[str, int], ...] = (("grpc.http2.min_ping_interval_without_data_ms", 500),)
 
 
 class Gateway:
@@ -325,6 +330,7 @@ class Gateway:
             max_registrations=settings.max_registrations,
             max_licences=settings.max_licences,
             max_licence_duration=settings.max_licence_duration,
+            max_licences_per_holder=settings.max_licences_per_holder,
             features={e.name: e.features for e in self.config.services if e.features},
             tout=settings.tout,
             tr=settings.tr,
@@ -334,6 +340,8 @@ class Gateway:
         self.registry.set_admin_check(self.guard.may_administer)
         # Licences are held by the caller's identity (or its Session); every Set is checked against them.
         self.registry.set_caller(current_caller)
+        # A caller locks only what the rules let it change.
+        self.registry.set_licence_check(may_license(self.guard))
         self.servicer.calls.licences = self.registry.licensing
         self.registry.licensing.watch(self._on_licence)
         await self._add(REGISTRY_NAME, RegistryService(self.registry), "built in")
@@ -490,7 +498,7 @@ class Gateway:
             log.debug("registry: %s rejoined: %s", name, exc.message)
 
     def _make_server(self) -> grpc.aio.Server:
-        server = grpc.aio.server(options=[("grpc.so_reuseport", 0)])
+        server = grpc.aio.server(options=[("grpc.so_reuseport", 0), *CLIENT_PING_POLICY])
         filter_grpc_client_faults()  # a call cancelled while a message was sent: no traceback
         # Not the generated registration: a request that does not parse is INVALID_ARGUMENT.
         add_to_server(self.servicer, server)

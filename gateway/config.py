@@ -32,6 +32,7 @@ from services.registry import (
     DEFAULT_ALLOW,
     DEFAULT_MAX_LICENCE_DURATION,
     DEFAULT_MAX_LICENCES,
+    DEFAULT_MAX_LICENCES_PER_HOLDER,
     DEFAULT_MAX_REGISTRATIONS,
     parse_allow_entry,
 )
@@ -225,6 +226,8 @@ class RegistrySection:
     max_registrations: int = DEFAULT_MAX_REGISTRATIONS
     #: Licences held at once (``acquire``); one more is RESOURCE_EXHAUSTED.
     max_licences: int = DEFAULT_MAX_LICENCES
+    #: Licences one holder may hold when it acquires one; one more is RESOURCE_EXHAUSTED.
+    max_licences_per_holder: int = DEFAULT_MAX_LICENCES_PER_HOLDER
     #: Longest licence in seconds (a longer ``duration`` is INVALID_ARGUMENT); a longer job renews.
     max_licence_duration: float = DEFAULT_MAX_LICENCE_DURATION
     #: Where the registry is kept: empty = embedded (this gateway's memory and ``persist``);
@@ -715,6 +718,10 @@ def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
         section = replace(section, allow=allow)
         if section.max_licences < 1:
             found_here.append(f"{where}.max_licences: must be at least 1, got {section.max_licences}")
+        if section.max_licences_per_holder < 1:
+            found_here.append(
+                f"{where}.max_licences_per_holder: must be at least 1, got {section.max_licences_per_holder}"
+            )
         longest = section.max_licence_duration
         if not (math.isfinite(longest) and 0 < longest <= MAX_LEASE):
             found_here.append(

@@ -14,16 +14,29 @@ name; this module says which name a caller holds them under:
 
 Whichever the holder, a licence acquired on a Session ends with that Session
 (a holder that vanishes loses it).
+
+**Who may lock what.** A licence keeps everyone else from changing what it
+covers, so acquiring one needs the right to change it: ``write`` by the rules on
+the subtree it locks (its path; for a whole service the service itself, which
+only a ``**`` rule path matches), checked as the caller (:func:`may_license`).
+A subject allowed only to invoke ``registry/acquire`` can lock nothing.
 """
 
 from __future__ import annotations
 
-from gateway.guard import CALLER, REGISTRY
-from gateway.rules import Subject
+from gateway.guard import CALLER, REGISTRY, Guard
+from gateway.rules import Operation, Subject
 from services.errors import FailedPrecondition
-from services.registry import SESSION_HOLDER_PREFIX, Caller, Licences
+from services.registry import SESSION_HOLDER_PREFIX, Caller, LicenceCheck, Licences
 
-__all__ = ["SESSION_HOLDER_PREFIX", "caller_of", "check_set", "current_caller", "holder_of"]
+__all__ = [
+    "SESSION_HOLDER_PREFIX",
+    "caller_of",
+    "check_set",
+    "current_caller",
+    "holder_of",
+    "may_license",
+]
 
 
 def holder_of(subject: Subject) -> str:
@@ -59,3 +72,13 @@ def check_set(licences: Licences | None, subject: Subject, service: str, path: s
     if licences is None or service == REGISTRY:
         return
     licences.check_set(service, path, holder_of(subject))
+
+
+def may_license(guard: Guard) -> LicenceCheck:
+    """The registry's check of an ``acquire``: the caller of the Set may ``write`` the subtree it locks
+    (UNAUTHENTICATED or PERMISSION_DENIED naming the rule otherwise; audited)."""
+
+    def check(service: str, subtree: str) -> None:
+        guard.require(CALLER.get(), service, subtree, Operation.WRITE)
+
+    return check

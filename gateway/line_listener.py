@@ -19,7 +19,16 @@ connection instead of one it opens — served under the greeting's ``name``
 with the URL ``tcp-in://HOST:PORT`` (the device's end of the connection). The
 registry lists it like any other service. A bad or missing name gets
 ``ERR 3`` (INVALID_ARGUMENT), a taken one ``ERR 6`` (ALREADY_EXISTS), and the
-connection is closed. When the connection drops the service stays, not
+connection is closed.
+
+**A greeting is a registration**, checked like a Set of ``services.NAME`` on the
+registry from any other front end: its subject is the name the greeting proves
+— a configured device's ``secret=``, or the CN of a client certificate on the
+listener's TLS — else ``anonymous``, and the rules must let that subject
+``register`` ``registry/services.NAME``. A refused greeting gets ``ERR 16``
+(UNAUTHENTICATED; ``ERR 7``, PERMISSION_DENIED, when it proved a name the rules
+refuse) naming the rule, and registers nothing. With no rules every greeting
+passes, as on the gRPC port. When the connection drops the service stays, not
 connected: the registry's liveness checks mark it ``down`` and its grace
 removes it; a device that dials in again under the same name before that
 takes its place back.
@@ -42,7 +51,7 @@ import ssl
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-from gateway.guard import Guard
+from gateway.guard import REGISTRY, Guard
 from gateway.identity import ANONYMOUS
 from gateway.rules import Operation, Subject
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
@@ -53,6 +62,7 @@ from services.errors import (
     Code,
     FailedPrecondition,
     InvalidArgument,
+    PermissionDenied,
     PropertyError,
     ReadOnly,
     ResourceExhausted,
@@ -415,6 +425,7 @@ class LineListener:
         self._reaper: asyncio.Task[None] | None = None
         self._device_secrets = dict(device_secrets or {})
         self._alternates = alternates
+        self._guard = guard or Guard()
 
     def greeting(self) -> Hello:
         """The listener's greeting now: with the other gateways of its cluster, when it has any."""
@@ -506,15 +517,30 @@ class LineListener:
     async def _take_up(
         self, hello: Hello, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, url: str
     ) -> InboundProxy:
-        from gateway.inbound import INBOUND_OPTIONS, InboundProxy
-
         name = hello.name
         if not name:
             raise InvalidArgument(
                 "a device that dials in must give its name in its greeting: HELLO 1 name=NAME type=TYPE"
             )
         validate_service_name(name)
-        self._check_secret(hello, writer)
+        subject = self._greeting_subject(hello, writer)
+        self._check_register(subject, name)
+        path = f"services.{name}"
+        try:
+            proxy = await self._serve_as(name, reader, writer, url)
+        except Exception as exc:
+            self._guard.audited(subject, REGISTRY, path, Operation.REGISTER, exc)
+            raise
+        self._guard.audited(subject, REGISTRY, path, Operation.REGISTER, None)
+        return proxy
+
+    async def _serve_as(
+        self, name: str, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, url: str
+    ) -> InboundProxy:
+        """The proxy serving the device on this connection as ``name``: a new one, or the one it
+        left when its connection dropped."""
+        from gateway.inbound import INBOUND_OPTIONS, InboundProxy
+
         existing = self.router.lookup(name) if name in self.router else None
         if existing is not None:
             if not isinstance(existing, InboundProxy):
@@ -535,19 +561,44 @@ class LineListener:
             raise
         return proxy
 
-    def _check_secret(self, hello: Hello, writer: asyncio.StreamWriter) -> None:
-        """A configured device's name is taken only with its secret, or over TLS with a client
-        certificate whose subject (CN) is that name and that the listener's ``client_ca`` signed
-        (UNAUTHENTICATED otherwise)."""
+    def _greeting_subject(self, hello: Hello, writer: asyncio.StreamWriter) -> Subject:
+        """Who greets: the name a client certificate proves (its CN; the listener's ``client_ca``
+        signed it), else a configured device's name proven by its secret, else anonymous.
+
+        A configured device's name is taken only with its secret or a certificate for that name
+        (UNAUTHENTICATED otherwise), whatever the rules say."""
+        certified = certificate_name(writer.get_extra_info("peercert"))
         expected = self._device_secrets.get(hello.name)
-        if expected is None:
+        if expected is not None and certified != hello.name:
+            given = hello.extra.get("secret", "")
+            if not hmac.compare_digest(given.encode(), expected.encode()):
+                what = "a wrong secret" if given else "no secret"
+                raise Unauthenticated(f"{hello.name!r} is a configured device; the greeting carried {what}")
+            return Subject(hello.name, authenticated=True, via="secret")
+        if certified:
+            return Subject(certified, authenticated=True, via="certificate")
+        return ANONYMOUS
+
+    def _check_register(self, subject: Subject, name: str) -> None:
+        """Refuse, audited, unless the rules let ``subject`` register ``name`` (the gRPC port's check)."""
+        guard = self._guard
+        if not guard.checks:
             return
-        if certificate_name(writer.get_extra_info("peercert")) == hello.name:
+        path = f"services.{name}"
+        decision = guard.rules.check(subject, REGISTRY, path, Operation.REGISTER)
+        if decision.allowed:
             return
-        given = hello.extra.get("secret", "")
-        if not hmac.compare_digest(given.encode(), expected.encode()):
-            what = "a wrong secret" if given else "no secret"
-            raise Unauthenticated(f"{hello.name!r} is a configured device; the greeting carried {what}")
+        what = f"register {REGISTRY}/{path}"
+        error: PropertyError
+        if subject.authenticated:
+            error = PermissionDenied(f"{what}: {subject.name} may not: {decision.reason}")
+        else:
+            error = Unauthenticated(
+                f"{what}: not allowed without proof of who greets (secret= of a configured device, "
+                f"or a client certificate on the listener's TLS): {decision.reason}"
+            )
+        guard.audited(subject, REGISTRY, path, Operation.REGISTER, error)
+        raise error
 
     async def start(
         self, host: str, port: int, *, ssl_context: ssl.SSLContext | None = None

@@ -14,6 +14,14 @@ import grpc
 import grpc.aio
 
 from clients.aio.events import Event, Mark, listen_items
+from clients.aio.gateways import (
+    DEFAULT_FAILOVER_LIMIT,
+    DEFAULT_KEEPALIVE,
+    GatewayList,
+    answered_by_gateway,
+    channel_options,
+    no_gateway_answered,
+)
 from clients.aio.listen import ListenCalls
 from clients.aio.requests import (
     Selector,
@@ -28,7 +36,13 @@ from clients.aio.requests import (
 )
 from clients.aio.session import DEFAULT_SESSION_QUEUE, Session
 from clients.credentials import ClientCredentials
-from clients.errors import DeadlineExceeded, PropertyServiceError, Unavailable, error_from_rpc
+from clients.errors import (
+    DeadlineExceeded,
+    GatewayUnreachable,
+    PropertyServiceError,
+    Unavailable,
+    error_from_rpc,
+)
 from clients.values import (
     Marker,
     Value,
@@ -44,7 +58,14 @@ from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.model import ServiceModel
 from services.model_codec import model_from_proto
 
-__all__ = ["DEFAULT_MAX_IN_FLIGHT", "DEFAULT_TARGET", "DEFAULT_TIMEOUT", "AsyncClient"]
+__all__ = [
+    "DEFAULT_FAILOVER_LIMIT",
+    "DEFAULT_KEEPALIVE",
+    "DEFAULT_MAX_IN_FLIGHT",
+    "DEFAULT_TARGET",
+    "DEFAULT_TIMEOUT",
+    "AsyncClient",
+]
 
 DEFAULT_TARGET = "127.0.0.1:50051"
 #: Seconds a unary call (or a request inside a Session) may take.
@@ -57,6 +78,9 @@ DEFAULT_MAX_IN_FLIGHT = 256
 #: a gateway that restarts is back within seconds; one that stays away is asked every 5 s.
 RESUME_FIRST_PAUSE = 0.1
 RESUME_MAX_PAUSE = 5.0
+#: Unary calls that only read: one that failed on the way to a gateway is asked again of the next.
+#: A Set is asked again only when it never reached a gateway (it may have been applied otherwise).
+_READS = frozenset({"Get", "Describe"})
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +89,14 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
     """Asyncio client of a Property Service gateway.
 
     Use as ``async with AsyncClient("127.0.0.1:50051") as c: await c.get("scout1", "location")``.
+    ``target`` may name several gateways that offer the same services (the gateways of a
+    cluster): a list, or one string ``"gw1:50051,gw2:50051"``; a gRPC name such as
+    ``dns:///gateways.local:50051`` may stand for several addresses itself. The client uses one
+    at a time and moves to the next when it stops answering (see :mod:`clients.aio.gateways`):
+    a Get whose gateway could not be reached is asked of the next within the same ``timeout``;
+    a resumed listen opens again on the next, its first event marked ``gap``; when no address
+    answers, :class:`~clients.errors.GatewayUnreachable` names each one tried. Keep-alive
+    pings every ``keepalive`` seconds (None: grpc's defaults) find a frozen gateway.
     Every unary call is bounded by ``timeout`` seconds (None: no limit);
     ``metadata`` goes with every call; ``credentials`` (a CA, a client certificate and key, a
     token: :class:`clients.credentials.ClientCredentials`) make the channel TLS and add
@@ -81,7 +113,7 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
 
     def __init__(
         self,
-        target: str = DEFAULT_TARGET,
+        target: str | Sequence[str] = DEFAULT_TARGET,
         *,
         timeout: float | None = DEFAULT_TIMEOUT,
         metadata: Iterable[tuple[str, str]] | None = None,
@@ -89,16 +121,24 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
         credentials: ClientCredentials | None = None,
         separate_listens: bool = False,
+        keepalive: float | None = DEFAULT_KEEPALIVE,
+        failover_limit: float | None = DEFAULT_FAILOVER_LIMIT,
     ) -> None:
+        """``failover_limit``: seconds a resumed listen may go without reaching any gateway before
+        it raises (None: it keeps trying)."""
         if isinstance(max_in_flight, bool) or not isinstance(max_in_flight, int) or max_in_flight < 1:
             raise ValueError(f"max_in_flight must be a whole number of at least 1, got {max_in_flight!r}")
-        self.target = target
+        self.gateways = GatewayList(target)
+        #: The gateway address in use now.
+        self.target = self.gateways.current
         self.timeout = timeout
+        self.failover_limit = failover_limit
         self.credentials = credentials or ClientCredentials()
         sent = (*(metadata or ()), *self.credentials.metadata())
         self.metadata: tuple[tuple[str, str], ...] | None = sent or None
         self.max_in_flight = max_in_flight
-        self._options = list(options or [])
+        # The caller's options win over the keep-alive defaults (grpc takes the last of a key).
+        self._options = [*channel_options(keepalive), *(options or [])]
         #: Each ``listen`` on a Listen stream of its own, rather than inside the shared Session.
         self.separate_listens = separate_listens
         self._channel: grpc.aio.Channel | None = None
@@ -106,6 +146,10 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         self._slots = asyncio.Semaphore(max_in_flight)
         #: The Session the listens share (made by the first listen, again after it ended).
         self._listen_session: Session | None = None
+        #: One channel per gateway address used so far; the one in use is ``_channel``. A channel
+        #: left behind is kept, not closed: calls still on it end on their own (closing it would
+        #: turn their UNAVAILABLE into CANCELLED), and going back to its gateway reuses it.
+        self._channels: dict[str, grpc.aio.Channel] = {}
 
     def stub(self) -> Any:
         """The generated ``PropertyServiceStub`` over this client's channel, made on first use.
@@ -113,15 +157,36 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         The channel (and the call slots) are made on first use, so that they bind to the running loop.
         """
         if self._stub is None:
+            self._open_channel()
+            self._slots = asyncio.Semaphore(self.max_in_flight)
+        return self._stub
+
+    def _open_channel(self) -> None:
+        channel = self._channels.get(self.target)
+        if channel is None:
             if self.credentials.secure:
-                self._channel = grpc.aio.secure_channel(
+                channel = grpc.aio.secure_channel(
                     self.target, self.credentials.channel_credentials(), options=self._options
                 )
             else:
-                self._channel = grpc.aio.insecure_channel(self.target, options=self._options)
-            self._stub = pb_grpc.PropertyServiceStub(self._channel)
-            self._slots = asyncio.Semaphore(self.max_in_flight)
-        return self._stub
+                channel = grpc.aio.insecure_channel(self.target, options=self._options)
+            self._channels[self.target] = channel
+        self._channel = channel
+        self._stub = pb_grpc.PropertyServiceStub(channel)
+
+    def gateway_failed(self, target: str, why: str) -> None:
+        """A call or stream through ``target`` found it gone (``why``): when that is the gateway in
+        use and the client has several, later calls and streams go to the next."""
+        self._move_on(target, why)
+
+    def _move_on(self, failed: str, why: str) -> None:
+        """Use the next gateway when ``failed`` (the address a call used) is the one in use."""
+        if not self.gateways.move_on(failed):
+            return
+        self.target = self.gateways.current
+        log.warning("gateway %s failed (%s); moving to %s", failed, why, self.target)
+        if self._stub is not None:
+            self._open_channel()
 
     async def __aenter__(self) -> Self:
         self.stub()
@@ -137,26 +202,57 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         session, self._listen_session = self._listen_session, None
         if session is not None:
             await session.aclose()
-        channel, self._channel, self._stub = self._channel, None, None
-        if channel is not None:
+        channels, self._channels = list(self._channels.values()), {}
+        self._channel = self._stub = None
+        for channel in channels:
             await channel.close(None)
 
-    def _error(self, err: grpc.RpcError, service: str = "", prop: str = "") -> PropertyServiceError:
-        return error_from_rpc(err, service, prop, self.target)
+    def _error(
+        self, err: grpc.RpcError, service: str = "", prop: str = "", target: str | None = None
+    ) -> PropertyServiceError:
+        return error_from_rpc(err, service, prop, self.target if target is None else target)
 
     async def _unary(self, method: str, request: Any, service: str = "", prop: str = "") -> Any:
-        """One Get or Set, in a call slot; the wait for the slot counts towards the timeout."""
-        stub = self.stub()
+        """One Get or Set, in a call slot; the wait for the slot counts towards the timeout.
+
+        With several gateways, a call that did not reach its gateway is made again on the next,
+        each address once, all within the one timeout.
+        """
+        self.stub()
         slots = self._slots
         timeout = self.timeout
         if slots.locked():
             timeout = await self._wait_for_slot(slots, service, prop)
         else:
             await slots.acquire()  # a free slot: taken at once, no timer needed
+        loop = asyncio.get_running_loop()
+        deadline = None if timeout is None else loop.time() + timeout
+        tried: dict[str, str] = {}
         try:
-            return await getattr(stub, method)(request, timeout=timeout, metadata=self.metadata)
-        except grpc.RpcError as e:
-            raise self._error(e, service, prop) from None
+            while True:
+                target, stub = self.target, self.stub()
+                left = None if deadline is None else max(deadline - loop.time(), 1e-3)
+                try:
+                    return await getattr(stub, method)(request, timeout=left, metadata=self.metadata)
+                except grpc.RpcError as e:
+                    error = self._error(e, service, prop, target)
+                    if not isinstance(error, Unavailable) or answered_by_gateway(e):
+                        raise error from None
+                    self._move_on(target, error.message)
+                    tried[target] = error.message
+                    again = isinstance(error, GatewayUnreachable) or method in _READS
+                    if len(self.gateways) == 1:
+                        raise error from None
+                    if not again:
+                        raise Unavailable(
+                            error.code,
+                            f"{error.message} (at {target}; the call may have been applied there; "
+                            f"the next call goes to {self.target})",
+                            service,
+                            prop,
+                        ) from None
+                    if self.target in tried or (deadline is not None and loop.time() >= deadline):
+                        raise no_gateway_answered(tried, None, service, prop) from None
         finally:
             slots.release()
 
@@ -256,14 +352,22 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         request: pb.ListenRequest,
         resume: bool,
     ) -> AsyncGenerator[Event | Mark, None]:
-        """The items of ``attempt()``; with ``resume``, of a new attempt after each UNAVAILABLE."""
+        """The items of ``attempt()``; with ``resume``, of a new attempt after each UNAVAILABLE,
+        on the next gateway when there are several, until ``failover_limit`` passes with no
+        gateway reached."""
+        loop = asyncio.get_running_loop()
         pause = RESUME_FIRST_PAUSE
         resumed = False
+        #: Since the stream broke, without an item since: each address tried, with why it failed.
+        tried: dict[str, str] = {}
+        broken_at = 0.0
         while True:
+            target = self.target
             try:
                 async with aclosing(attempt()) as items:
                     async for item in items:
                         pause = RESUME_FIRST_PAUSE
+                        tried.clear()
                         if resumed and isinstance(item, Event):
                             resumed = False
                             yield dataclasses.replace(item, gap=True)  # values may have been missed
@@ -273,28 +377,41 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
             except Unavailable as e:  # GatewayUnreachable too
                 if not resume:
                     raise
-                log.info(
-                    "listen %s %s: %s; resuming in %.1f s",
+                if not tried:
+                    broken_at = loop.time()
+                tried[target] = e.message
+                self._move_on(target, e.message)
+                limit = self.failover_limit
+                if limit is not None and loop.time() - broken_at >= limit:
+                    raise no_gateway_answered(tried, limit, request.service, request.property) from None
+                # The next address at once when it has not failed yet; a full round, a pause.
+                wait = pause if self.target in tried else 0.0
+                log.warning(
+                    "listen %s %s: %s at %s; resuming at %s in %.1f s",
                     request.service,
                     request.property,
                     e.message,
-                    pause,
+                    target,
+                    self.target,
+                    wait,
                 )
-            await asyncio.sleep(pause)
-            pause = min(2 * pause, RESUME_MAX_PAUSE)
+            if wait:
+                await asyncio.sleep(wait)
+                pause = min(2 * pause, RESUME_MAX_PAUSE)
             resumed = True
 
     async def _stream_items(
         self, request: pb.ListenRequest, marks: bool
     ) -> AsyncGenerator[Event | Mark, None]:
         """The items of a server-streamed Listen call of its own."""
+        target = self.target
         call = self.stub().Listen(request, metadata=self.metadata)
         try:
             async for resp in call:
                 for item in listen_items(resp, marks):
                     yield item
         except grpc.RpcError as e:
-            raise self._error(e, request.service, request.property) from None
+            raise self._error(e, request.service, request.property, target) from None
         finally:
             call.cancel()
 

@@ -55,6 +55,8 @@ class Channel(Protocol):
 
     def stub(self) -> Any: ...
 
+    def gateway_failed(self, target: str, why: str) -> None: ...
+
 
 @dataclass(slots=True)
 class _Pending:
@@ -91,6 +93,8 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
         self._call: Any = None
         self._tasks: list[asyncio.Task[None]] = []
         self._closed: PropertyServiceError | None = None
+        #: The gateway address the stream went to (the client may move on to another later).
+        self.target = client.target
 
     async def __aenter__(self) -> Self:
         await self.open()
@@ -105,6 +109,7 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
         """Open the stream (done by ``async with``)."""
         if self._call is not None:
             return
+        self.target = self._client.target
         self._call = self._client.stub().Session(metadata=self._client.metadata)
         self._tasks = [asyncio.create_task(self._read()), asyncio.create_task(self._write())]
 
@@ -147,10 +152,14 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
                 for reply in resp.replies:
                     self._dispatch(reply)
         except grpc.RpcError as e:
-            error = error_from_rpc(e, target=self._client.target)
+            error = error_from_rpc(e, target=self.target)
         except asyncio.CancelledError:
             pass
         finally:
+            if isinstance(error, Unavailable):
+                # The stream's gateway went away (or shut down): the client's next stream or
+                # call goes to its next gateway, when it has several.
+                self._client.gateway_failed(self.target, error.message)
             self._shutdown(error)
 
     def _dispatch(self, reply: pb.Reply) -> None:
@@ -176,7 +185,7 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
                     batch.append(queue.get_nowait())
                 await self._call.write(pb.SessionRequest(requests=batch))
         except grpc.RpcError as e:
-            self._shutdown(error_from_rpc(e, target=self._client.target))
+            self._shutdown(error_from_rpc(e, target=self.target))
         except asyncio.CancelledError:
             pass
         except Exception as e:

@@ -319,7 +319,9 @@ class Dispatcher:
                 for name in plan.providers:
                     try:
                         granted.append(
-                            await self._licensing.grant(name, holder, plan.request.duration, session=session)
+                            await self._licensing.grant(
+                                name, holder, plan.request.duration, session=session, limit_holder=False
+                            )
                         )
                     except FailedPrecondition:
                         refused.add(name)  # held outside the scheduler: the provider rejects (rule d)

@@ -42,6 +42,7 @@ from services.values import format_number
 __all__ = [
     "DEFAULT_LICENCE_DURATION",
     "DEFAULT_MAX_LICENCES",
+    "DEFAULT_MAX_LICENCES_PER_HOLDER",
     "DEFAULT_MAX_LICENCE_DURATION",
     "Licence",
     "LicenceClaims",
@@ -55,6 +56,10 @@ log = logging.getLogger(__name__)
 #: Licences held at once (``[registry] max_licences``): each one is a row every Set is checked
 #: against, so a flood of acquisitions is refused rather than slowing every call.
 DEFAULT_MAX_LICENCES = 1024
+#: Licences one holder may hold when it acquires one (``[registry] max_licences_per_holder``): a
+#: holder that locks a few robots for a job is served; one that tries to lock everything is
+#: stopped long before it keeps others from :data:`DEFAULT_MAX_LICENCES`.
+DEFAULT_MAX_LICENCES_PER_HOLDER = 8
 #: Longest licence (``[registry] max_licence_duration``): an hour; a longer job renews.
 DEFAULT_MAX_LICENCE_DURATION = 3600.0
 #: A licence acquired without a duration.
@@ -62,9 +67,9 @@ DEFAULT_LICENCE_DURATION = 30.0
 #: Ended licences remembered, so that using one says "expired at ..." rather than "unknown".
 _ENDED_KEPT = 256
 
-#: How a licence changed: granted, renewed, released (by its holder or an admin), expired
-#: (its time ran out), lost (its holder vanished, or the service left).
-EVENTS = ("granted", "renewed", "released", "expired", "lost")
+#: How a licence changed: granted, renewed, released (by its holder), expired (its time ran
+#: out), lost (its holder vanished, or the service left), revoked (by an admin).
+EVENTS = ("granted", "renewed", "released", "expired", "lost", "revoked")
 
 
 def format_time(unix: float) -> str:
@@ -191,14 +196,17 @@ class Licences:
         *,
         max_licences: int = DEFAULT_MAX_LICENCES,
         max_duration: float = DEFAULT_MAX_LICENCE_DURATION,
+        max_per_holder: int = DEFAULT_MAX_LICENCES_PER_HOLDER,
     ) -> None:
-        if isinstance(max_licences, bool) or not isinstance(max_licences, int) or max_licences < 1:
-            raise InvalidArgument(f"max_licences must be a positive whole number, got {max_licences!r}")
+        for what, count in (("max_licences", max_licences), ("max_licences_per_holder", max_per_holder)):
+            if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+                raise InvalidArgument(f"{what} must be a positive whole number, got {count!r}")
         if not (math.isfinite(max_duration) and max_duration > 0):
             raise InvalidArgument(
                 f"max_licence_duration must be a positive number of seconds, got {max_duration}"
             )
         self.max_licences = max_licences
+        self.max_per_holder = max_per_holder
         self.max_duration = float(max_duration)
         self._known = known
         self._held: dict[str, Licence] = {}
@@ -260,15 +268,29 @@ class Licences:
 
     # -- changing --------------------------------------------------------------
 
+    def count_held_by(self, holder: str) -> int:
+        """How many licences ``holder`` holds now."""
+        self._expire_due()
+        return sum(1 for licence in self._held.values() if licence.holder == holder)
+
     async def grant(
-        self, service: str, holder: str, duration: float, subtree: str = "", *, session: str = ""
+        self,
+        service: str,
+        holder: str,
+        duration: float,
+        subtree: str = "",
+        *,
+        session: str = "",
+        limit_holder: bool = True,
     ) -> Licence:
         """Grant ``holder`` a licence on ``service`` (or its ``subtree``) for ``duration`` seconds.
 
         Raises NotFound (unknown service), InvalidArgument (bad duration or
         subtree), FailedPrecondition (held by another: naming holder and
         expiry; or by the same holder already: renew it), ResourceExhausted
-        (``max_licences`` held).
+        (``max_licences`` held, or ``max_per_holder`` by this holder).
+        ``limit_holder`` False: the holder's own bound is not asked (the
+        scheduler, which bounds the allocations of each consumer itself).
         """
         self._expire_due()
         if not holder:
@@ -282,6 +304,8 @@ class Licences:
                 raise InvalidArgument(f"bad subtree: {e.message}") from None
         duration = self._duration(duration)
         self._check_free(service, subtree, holder)
+        if limit_holder:
+            self._check_holder_room(holder)
         licence = Licence(
             id=f"L{next(self._serial)}-{secrets.token_hex(3)}",
             service=service,
@@ -295,6 +319,8 @@ class Licences:
             await self._claims.claim(licence)
             try:
                 self._check_free(service, subtree, holder)  # granted here while the claim was made
+                if limit_holder:
+                    self._check_holder_room(holder)
             except BaseException:
                 self._claims.release(licence)
                 raise
@@ -321,6 +347,12 @@ class Licences:
         licence = self.get(licence_id)
         self._check_holder(licence, holder, "release")
         self._end(licence, "released")
+        return licence
+
+    def revoke(self, licence_id: str) -> Licence:
+        """End ``licence_id`` now, whoever holds it (an admin's act; the caller checks who may)."""
+        licence = self.get(licence_id)
+        self._end(licence, "revoked")
         return licence
 
     def release_session(self, session: str) -> list[Licence]:
@@ -384,6 +416,14 @@ class Licences:
         if len(self._held) >= self.max_licences:
             raise ResourceExhausted(
                 f"the registry holds {self.max_licences} licences already ([registry] max_licences)"
+            )
+
+    def _check_holder_room(self, holder: str) -> None:
+        held = self.count_held_by(holder)
+        if held >= self.max_per_holder:
+            raise ResourceExhausted(
+                f"{holder} holds {held} licences already, as many as one holder may "
+                "([registry] max_licences_per_holder): release one first"
             )
 
     def _check_holder(self, licence: Licence, holder: str | None, verb: str) -> None:

@@ -57,6 +57,8 @@ DEFAULT_REGISTER_TIMEOUT = 10.0
 _REGISTER_PARAMS = ("type", "lease", "features")
 #: Codes with which a device's greeting is refused (docs/line-protocol.md §4.3).
 _REFUSALS = (Code.FAILED_PRECONDITION, Code.INVALID_ARGUMENT)
+#: Codes that say only that nothing answered as a device, for whatever reason (see :meth:`_open`).
+_NOT_REACHED = (Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED)
 
 
 def parse_features(text: str) -> frozenset[str]:
@@ -252,12 +254,12 @@ class Registrations:
             async with asyncio.timeout_at(deadline):
                 await directory.register(name, url)
         except TimeoutError:
-            raise DeadlineExceeded(
-                f"registering {name!r}: {url} did not answer within {timeout:g} s; nothing was registered"
-            ) from None
+            raise self._not_reached(name, url, "no answer") from None
         except PropertyError as e:
             if e.code in (Code.INVALID_ARGUMENT, Code.ALREADY_EXISTS):
                 raise
+            if e.code in _NOT_REACHED:
+                raise self._not_reached(name, url, e.message) from None
             raise type(e)(f"registering {name!r}: {e.message}; nothing was registered", e.code) from None
         # A device that is not reachable, or accepts a connection but never
         # answers, is not registered either. A proxy connects in the
@@ -284,10 +286,8 @@ class Registrations:
             await self._undo(directory, name)
             if isinstance(e, PropertyError):
                 last = e
-            if last is None:
-                raise DeadlineExceeded(
-                    f"registering {name!r}: {url} did not answer within {timeout:g} s; nothing was registered"
-                ) from None
+            if last is None or last.code in _NOT_REACHED:
+                raise self._not_reached(name, url, last.message if last else "no answer") from None
             # A device that answered with a greeting the gateway refused (another protocol
             # version, a bad field) did answer: say it was refused, and why.
             verb = "was refused" if last.code in _REFUSALS else "does not answer"
@@ -297,6 +297,16 @@ class Registrations:
             ) from None
         if self.table.get(name) is None:  # the directory does not tell its watchers before returning
             self._joined(name, directory.backend(name))
+
+    def _not_reached(self, name: str, url: str, reason: str) -> Unavailable:
+        """The one answer for a device not reached, whatever the reason: the reason (refused,
+        silent, not a device) would tell an open port from a closed one, so that the registry
+        would scan ports for its caller. The gateway's log keeps the reason."""
+        log.info("registering %r: %s not reached: %s", name, url, reason)
+        return Unavailable(
+            f"registering {name!r}: no device answered at {url} within {self.timeout:g} s; "
+            "nothing was registered"
+        )
 
     async def _undo(self, directory: Directory, name: str) -> None:
         with contextlib.suppress(PropertyError):

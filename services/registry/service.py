@@ -15,8 +15,9 @@ from typing import Annotated
 from services.backend import NO_PARAMS, Backend, BackendInfo
 from services.core import LocalService, Prop, Resource, action, query
 from services.directory import Directory
-from services.errors import InvalidArgument, PermissionDenied, PropertyError, Unavailable
+from services.errors import InvalidArgument, NotFound, PermissionDenied, PropertyError, Unavailable
 from services.location_following import LocationFollower
+from services.paths import validate_path
 from services.query import Query, values_equal
 from services.registry.allow import AllowList
 from services.registry.dispatch import Dispatcher, QosView
@@ -26,6 +27,7 @@ from services.registry.licences import (
     DEFAULT_LICENCE_DURATION,
     DEFAULT_MAX_LICENCE_DURATION,
     DEFAULT_MAX_LICENCES,
+    DEFAULT_MAX_LICENCES_PER_HOLDER,
     Licence,
     Licences,
 )
@@ -47,7 +49,7 @@ from services.registry.table import PLACEHOLDER_TYPE, ServiceTable
 from services.values import Value, ValueFormatError, Vector, as_text, format_names, parse_vector
 from services.worker_pool import run_bounded
 
-__all__ = ["Caller", "CallerSource", "Registry", "RegistryService"]
+__all__ = ["Caller", "CallerSource", "LicenceCheck", "Registry", "RegistryService"]
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +64,10 @@ MAX_ENDED_SHOWN = 64
 Caller = tuple[str, str]
 #: Answers :data:`Caller` for the request being carried out; the gateway installs one.
 CallerSource = Callable[[], Caller]
+#: Raises when the caller of the current request may not license ``(service, subtree)`` (subtree
+#: "" = the whole service): UNAUTHENTICATED or PERMISSION_DENIED naming why; the gateway installs
+#: one that asks its rules (:meth:`Registry.set_licence_check`).
+LicenceCheck = Callable[[str, str], None]
 #: The holder name of an anonymous caller on a Session: this prefix and the Session's token.
 SESSION_HOLDER_PREFIX = "session-"
 
@@ -74,6 +80,10 @@ def proves_identity(caller: Caller) -> bool:
 
 def _local_caller() -> Caller:
     return ("local", "")
+
+
+def _anyone_may_license(service: str, subtree: str) -> None:
+    return None
 
 
 class LicenceView(Resource):
@@ -132,6 +142,7 @@ class Registry(Resource):
         max_registrations: int = DEFAULT_MAX_REGISTRATIONS,
         max_licences: int = DEFAULT_MAX_LICENCES,
         max_licence_duration: float = DEFAULT_MAX_LICENCE_DURATION,
+        max_licences_per_holder: int = DEFAULT_MAX_LICENCES_PER_HOLDER,
         features: Mapping[str, Iterable[str]] | None = None,
         tout: float = DEFAULT_TOUT,
         tr: float = DEFAULT_TR,
@@ -140,7 +151,8 @@ class Registry(Resource):
         """``static`` names come from the gateway's config: they are never removed for being down,
         nor unregistered or replaced from outside (see :meth:`set_admin_check`). ``allow`` says
         which addresses a registration may reach (default: loopback and USB serial adapters).
-        ``max_licences`` and ``max_licence_duration`` bound the licences (:attr:`licences`).
+        ``max_licences``, ``max_licences_per_holder`` and ``max_licence_duration`` bound the
+        licences (:attr:`licences`).
         ``features`` gives configured services their capabilities for the scheduler; ``tout``
         (longest allocation, at most ``max_licence_duration``), ``tr`` (longest wait) and
         ``max_queued`` (requests waiting) set the scheduler (:mod:`services.registry.dispatch`).
@@ -192,12 +204,14 @@ class Registry(Resource):
             lambda name: self._table.get(name) is not None,
             max_licences=max_licences,
             max_duration=max_licence_duration,
+            max_per_holder=max_licences_per_holder,
         )
         self.licences = LicenceList(self.licensing)
         #: Ids of ended licences still shown under ``licences`` (how they ended), oldest first.
         self._ended_views: collections.deque[str] = collections.deque()
         self.licensing.watch(self._on_licence)
         self._caller: CallerSource = _local_caller
+        self._may_license: LicenceCheck = _anyone_may_license
         self._table.watch_states(self._on_state_for_licences)
         self._registrations = Registrations(
             self._table,
@@ -414,23 +428,58 @@ class Registry(Resource):
         """Install what tells who the current request comes from (the holder of licences it acquires)."""
         self._caller = caller
 
+    def set_licence_check(self, may_license: LicenceCheck) -> None:
+        """Install the check of who may license what (:data:`LicenceCheck`); without one, anyone may."""
+        self._may_license = may_license
+
     @action(doc="acquire an exclusive licence on `service` (or `subtree`) for `duration` s; answers its id")
     async def acquire(
         self, *, service: str, duration: float = DEFAULT_LICENCE_DURATION, subtree: str = ""
     ) -> str:
         """Acquire a licence for the caller; its id is the Set's answer (see :meth:`Licences.grant`).
 
-        A dormant provider is woken first: a licence is granted on a service that serves. The
-        registry itself (this one, or another gateway's) is never licensed.
+        The caller must be allowed to change what it locks (:meth:`set_licence_check`), asked
+        before anything about the service is told. A dormant provider is woken first: a licence
+        is granted on a service that serves, and on a subtree that names at least one of its
+        properties. The registry itself (this one, or another gateway's) is never licensed.
         """
         holder, session = self._caller()
+        if subtree:
+            try:
+                validate_path(subtree)
+            except InvalidArgument as e:
+                raise InvalidArgument(f"bad subtree: {e.message}") from None
+        self._may_license(service, subtree)
         entry = self._table.get(service)
-        if entry is not None and entry.type == self.resource_type:
+        if entry is None:
+            raise NotFound(f"no service named {service[:80]!r} in the registry: nothing to license")
+        if entry.type == self.resource_type:
             raise InvalidArgument(f"{service!r} is a registry: a registry is never licensed")
-        if entry is not None and entry.availability == "dormant":
+        if entry.availability == "dormant":
             await self.wake(service)
+        if subtree:
+            await self._check_subtree(service, subtree)
         licence = await self.licensing.grant(service, holder, duration, subtree, session=session)
         return licence.id
+
+    async def _check_subtree(self, service: str, subtree: str) -> None:
+        """NotFound unless ``subtree`` is a property of ``service`` or has properties below it now."""
+        directory = self._directory
+        if directory is None:
+            raise Unavailable("this registry cannot read the services' properties: it has no directory")
+        model = await directory.backend(service).describe()
+        below = subtree + "."
+        if not any(p.name == subtree or p.name.startswith(below) for p in model.properties):
+            raise NotFound(
+                f"{service} has no property {subtree[:120]!r} and none below it: nothing to license"
+            )
+
+    @action(doc="end licence `licence` now, whoever holds it (an admin's act)")
+    async def revoke(self, *, licence: str) -> str:
+        """End any licence at once (an admin operation by the rules: only an admin may ask);
+        its holder's renew and release then say it was revoked."""
+        self.licensing.revoke(licence)
+        return ""
 
     @action(doc="hold licence `licence` for `duration` s from now (its holder only)")
     async def renew(self, *, licence: str, duration: float = DEFAULT_LICENCE_DURATION) -> str:

@@ -20,10 +20,11 @@ import grpc
 import jwt
 import pytest
 from cryptography.hazmat.primitives.asymmetric import ec
-from line_device_support import LineClient
+from line_device_support import LineClient, device_process
 from support.certs import make_certificates
 from support.gateway_process import GatewayProcess
 from support.ports import free_port
+from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
 from clients.errors import NotFound, PermissionDenied, Unauthenticated
@@ -414,3 +415,137 @@ async def test_only_an_admin_by_the_rules_unregisters_a_configured_device(
         assert code == OK, details
         code, _ = await _call(stub, tokens.hs256("admin"), "get", "registry", "services.rover")
         assert code == grpc.StatusCode.NOT_FOUND
+
+
+DIAL_IN_RULES = """
+[[rules]]   # 5: the configured device rover may register itself, and nothing else
+subject = "rover"
+service = "registry"
+path = "services.rover"
+operations = ["register"]
+effect = "permit"
+"""
+
+
+async def _greeting_answer(port: int, greeting: str) -> str:
+    """Everything the listener sends a peer whose first line is ``greeting``, until it closes."""
+    client = await LineClient.tcp("127.0.0.1", port)
+    try:
+        await client.send(greeting)
+        return (await asyncio.wait_for(client.reader.read(), 15)).decode()
+    finally:
+        await client.close()
+
+
+async def _registry_state(stub: pb_grpc.PropertyServiceStub, token: str | None, name: str) -> str:
+    """``services.<name>.state`` as ``token``'s subject reads it, or the status code's name."""
+    code, _ = await _call(stub, token, "get", "registry", f"services.{name}.state")
+    if code != OK:
+        return code.name
+    reply = await stub.Get(
+        pb.GetRequest(service="registry", property=f"services.{name}.state"), metadata=_metadata(token)
+    )
+    return str(reply.value)
+
+
+async def test_a_greeting_registers_only_what_the_rules_let_its_subject_register(  # type: ignore[no-untyped-def]
+    gateway_process, tmp_path: Path
+) -> None:
+    tokens = Tokens(tmp_path)
+    (tmp_path / "rover.secret").write_text("s3cr3t-rover\n")
+    (tmp_path / "drone.secret").write_text("s3cr3t-drone\n")
+    line_port = free_port()
+    gw = gateway_process(
+        f"""
+        [gateway]
+        line_listen = "127.0.0.1:{line_port}"
+
+        [auth]
+        jwt_secret_file = "jwt.secret"
+        issuer = "lab"
+
+        [[services]]
+        name = "scout1"
+        type = "sim-robot"
+
+        [[services]]
+        name = "rover"
+        url = "tcp-in://"
+        secret_file = "rover.secret"
+
+        [[services]]
+        name = "drone"
+        url = "tcp-in://"
+        secret_file = "drone.secret"
+        """
+        + RULES
+        + DIAL_IN_RULES
+    )
+    admin = tokens.hs256("admin")
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        # The attack: an anonymous peer greets under a new name. Over gRPC the same registration
+        # is UNAUTHENTICATED; on the line it is too, and nothing joins.
+        code, details = await _call(stub, None, "set", "registry", "services.fakebot", "tcp://127.0.0.1:9")
+        assert code == UNAUTH and "register registry/services.fakebot" in details, details
+        answer = await _greeting_answer(line_port, "HELLO 1 name=fakebot type=mobile_robot push=1")
+        assert "\nERR 16 register registry/services.fakebot: " in answer, answer
+        assert "implicit deny" in answer, answer
+        assert await _registry_state(stub, admin, "fakebot") == "NOT_FOUND"
+        code, _ = await _call(stub, admin, "get", "fakebot", "location")
+        assert code == grpc.StatusCode.NOT_FOUND
+        # A device that proves its name with its secret, but whom no rule lets register: ERR 7.
+        answer = await _greeting_answer(line_port, "HELLO 1 name=drone type=mobile_robot secret=s3cr3t-drone")
+        assert "\nERR 7 register registry/services.drone: drone may not: " in answer, answer
+        assert await _registry_state(stub, admin, "drone") != "up"
+
+        # The device with the right secret is the subject rover, which rules[5] lets register.
+        with device_process(
+            "--service",
+            "sim-robot",
+            "--name",
+            "rover",
+            "--connect",
+            f"127.0.0.1:{line_port}",
+            "--secret-file",
+            str(tmp_path / "rover.secret"),
+        ):
+            state = await eventually(
+                lambda: _registry_state(stub, admin, "rover"), lambda s: s == "up", within=15, what="rover"
+            )
+            assert state == "up"
+    # Both greetings left their audit lines: the refusal, and rover's registration.
+    decoder = json.JSONDecoder()
+    audit = [
+        decoder.raw_decode(line, line.index("{"))[0]
+        for line in gw.output.splitlines()
+        if "gateway.audit" in line and "{" in line
+    ]
+    registrations = {
+        (a["subject"], a["via"], a["property"], a["outcome"]) for a in audit if a["operation"] == "register"
+    }
+    assert ("anonymous", "none", "services.fakebot", "UNAUTHENTICATED") in registrations, registrations
+    assert ("drone", "secret", "services.drone", "PERMISSION_DENIED") in registrations, registrations
+    assert ("rover", "secret", "services.rover", "ok") in registrations, registrations
+    assert "s3cr3t" not in gw.output
+
+
+async def test_without_rules_a_device_that_dials_in_registers_as_before(gateway_process) -> None:  # type: ignore[no-untyped-def]
+    line_port = free_port()
+    gw = gateway_process(
+        f"""
+        [gateway]
+        line_listen = "127.0.0.1:{line_port}"
+        """
+    )
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        with device_process(
+            "--service", "sim-robot", "--name", "fakebot", "--connect", f"127.0.0.1:{line_port}"
+        ):
+            state = await eventually(
+                lambda: _registry_state(stub, None, "fakebot"), lambda s: s == "up", within=15, what="fakebot"
+            )
+            assert state == "up"
+            reply = await stub.Get(pb.GetRequest(service="fakebot", property="location"), timeout=15)
+            assert reply.value

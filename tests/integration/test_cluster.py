@@ -30,7 +30,7 @@ from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
 from clients.aio import Event
-from clients.errors import FailedPrecondition, PropertyServiceError, Unavailable
+from clients.errors import FailedPrecondition, NotFound, PropertyServiceError, Unavailable
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -449,6 +449,7 @@ async def test_a_licence_granted_on_one_gateway_holds_on_every_gateway(cluster: 
         await eventually(lambda: _owner(admin, "arm"), lambda o: o == "gw-a")
         alice = {gateway: cluster.client(gateway, "alice") for gateway in IDS}
         bob = {gateway: cluster.client(gateway, "bob") for gateway in IDS}
+        admin_c = cluster.client("gw-c")
         try:
             for client in bob.values():
                 await eventually(lambda c=client: c.get_names("registry", "services"), lambda n: "arm" in n)
@@ -470,8 +471,28 @@ async def test_a_licence_granted_on_one_gateway_holds_on_every_gateway(cluster: 
                     what=f"bob's Set on {gateway} once the licence is released",
                 )
                 assert done == "0.5", (gateway, done)
+            # A subtree must name properties of the service: gw-c reads arm's model from its owner.
+            with pytest.raises(NotFound, match="arm has no property 'wings'"):
+                await alice["gw-c"].set("registry", "acquire", "", service="arm", subtree="wings")
+            sub = await alice["gw-c"].set(
+                "registry", "acquire", "", service="arm", subtree="behaviors", duration="30"
+            )
+            refusal = await eventually(
+                lambda: _set_or_error(bob["gw-a"], "arm", "behaviors.stop", ""),
+                lambda outcome: isinstance(outcome, FailedPrecondition),
+                what="bob refused on gw-a under alice's subtree",
+            )
+            assert "held by alice" in str(refusal), refusal
+            # Revoked where it was granted, it stops holding on every gateway.
+            await admin_c.set("registry", "revoke", "", licence=sub)
+            done = await eventually(
+                lambda: _set_or_error(bob["gw-a"], "arm", "behaviors.stop", ""),
+                lambda outcome: not isinstance(outcome, PropertyServiceError),
+                what="bob's Set on gw-a once the licence is revoked",
+            )
+            assert not isinstance(done, PropertyServiceError), done
         finally:
-            for client in [*alice.values(), *bob.values(), admin]:
+            for client in [*alice.values(), *bob.values(), admin, admin_c]:
                 await client.close()
 
 

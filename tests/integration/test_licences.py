@@ -21,7 +21,7 @@ from support.psctl import psctl
 from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
-from clients.errors import FailedPrecondition, PermissionDenied
+from clients.errors import FailedPrecondition, NotFound, PermissionDenied, ResourceExhausted, Unauthenticated
 
 SECRET = "a shared secret of the lab, long enough for HS256"
 
@@ -114,13 +114,16 @@ async def test_bad_licence_requests_get_clear_statuses(secured: GatewayProcess) 
             await alice.set("registry", "acquire", "", service="registry")
         with pytest.raises(Exception, match="bad subtree"):
             await alice.set("registry", "acquire", "", service="scout", subtree="a..b")
+        # Nothing to lock: a subtree with no property of the service in it.
+        with pytest.raises(NotFound, match="scout has no property 'wings' and none below it"):
+            await alice.set("registry", "acquire", "", service="scout", subtree="wings")
         held = [
             await alice.set("registry", "acquire", "", service=name, subtree=sub)
             for name, sub in (
                 ("scout", "velocity"),
                 ("scout", "behaviors"),
                 ("spare", "velocity"),
-                ("spare", "x"),
+                ("spare", "sensors.battery"),
             )
         ]
         with pytest.raises(Exception, match=r"holds 4 licences already \(\[registry\] max_licences\)"):
@@ -244,3 +247,110 @@ async def test_the_http_front_end_refuses_a_non_holder_too(secured: GatewayProce
         async with http.put(acquire, json={"value": "", "parameters": {"service": "spare"}}) as anonymous:
             text = await anonymous.text()
             assert anonymous.status == 400 and "only on a Session" in text, text
+
+
+RULES = """
+[[rules]]   # 0: anyone reads, and invokes the licence actions (revoke is admin)
+subject = "*"
+operations = ["read"]
+effect = "permit"
+
+[[rules]]   # 1
+subject = "*"
+service = "registry"
+operations = ["invoke"]
+effect = "permit"
+
+[[rules]]   # 2: the operator drives scout, and sets spare's speed only
+subject = "operator"
+service = "scout"
+operations = ["write", "invoke"]
+effect = "permit"
+
+[[rules]]   # 3
+subject = "operator"
+service = "spare"
+path = "speed"
+operations = ["write"]
+effect = "permit"
+
+[[rules]]   # 4
+subject = "admin"
+operations = ["read", "write", "invoke", "register", "unregister", "admin"]
+effect = "permit"
+"""
+
+
+@pytest.fixture
+def ruled(gateway_process, tmp_path: Path) -> GatewayProcess:  # type: ignore[no-untyped-def]
+    (tmp_path / "jwt.secret").write_text(SECRET)
+    return gateway_process(  # type: ignore[no-any-return]
+        """
+        [auth]
+        jwt_secret_file = "jwt.secret"
+
+        [registry]
+        max_licences_per_holder = 2
+        """
+        + ROBOTS
+        + RULES
+    )
+
+
+async def test_a_caller_locks_only_what_the_rules_let_it_change(ruled: GatewayProcess) -> None:
+    async with (
+        client(ruled, "squatter") as squatter,
+        client(ruled, "operator") as operator,
+        AsyncClient(ruled.address) as anonymous,
+    ):
+        # Allowed to invoke registry/acquire, allowed to write nothing: it locks nothing.
+        for where in ({"service": "scout"}, {"service": "spare", "subtree": "velocity"}):
+            with pytest.raises(PermissionDenied, match=r"squatter may not: no rule permits it"):
+                await squatter.set("registry", "acquire", "", duration="3600", **where)
+        # The rules are asked before anything about the service is told: no probing for names.
+        with pytest.raises(PermissionDenied, match="write ghost: squatter may not"):
+            await squatter.set("registry", "acquire", "", service="ghost")
+        async with anonymous.session() as session:
+            with pytest.raises(Unauthenticated, match="write scout: not allowed without credentials"):
+                await session.set("registry", "acquire", "", service="scout")
+        assert await operator.get("registry", "licences") == "()"
+        await operator.set("scout", "velocity", "(0.1 0)")  # nothing keeps the operator out
+
+        # The operator may write all of scout but only spare's speed: so much it may lock.
+        with pytest.raises(PermissionDenied, match=r"write spare: operator may not"):
+            await operator.set("registry", "acquire", "", service="spare")
+        speed = await operator.set("registry", "acquire", "", service="spare", subtree="speed")
+        # Nothing is locked that does not exist, even by one who may write it.
+        async with client(ruled, "admin") as admin:
+            with pytest.raises(NotFound, match="no service named 'ghost'"):
+                await admin.set("registry", "acquire", "", service="ghost")
+        with pytest.raises(NotFound, match=re.escape("scout has no property 'ghost.arm'")):
+            await operator.set("registry", "acquire", "", service="scout", subtree="ghost.arm")
+        await operator.set("registry", "acquire", "", service="scout", subtree="velocity")
+        # Two licences are as many as one holder may hold ([registry] max_licences_per_holder = 2).
+        with pytest.raises(ResourceExhausted, match=r"operator holds 2 licences already.*per_holder"):
+            await operator.set("registry", "acquire", "", service="scout", subtree="behaviors")
+        await operator.set("registry", "release", "", licence=speed)
+        await operator.set("registry", "acquire", "", service="scout", subtree="behaviors")
+
+
+async def test_an_admin_revokes_any_licence_and_its_holder_is_told(ruled: GatewayProcess) -> None:
+    async with client(ruled, "operator") as operator, client(ruled, "admin") as admin:
+        licence = await operator.set("registry", "acquire", "", service="scout", duration="3600")
+        with pytest.raises(FailedPrecondition, match="held by operator"):
+            await admin.set("scout", "velocity", "(0.2 0)")
+        # Revoking is an admin operation on the registry: the operator may not, even its own.
+        with pytest.raises(PermissionDenied, match="admin registry/revoke: operator may not"):
+            await operator.set("registry", "revoke", "", licence=licence)
+        await admin.set("registry", "revoke", "", licence=licence)
+        await admin.set("scout", "velocity", "(0.2 0)")
+        assert await admin.get("registry", "licences") == "()"
+        assert "<status>revoked</status>" in await admin.get("registry", f"licences.{licence}")
+        for action in ("renew", "release"):
+            with pytest.raises(
+                FailedPrecondition, match=f"licence {licence} on scout is no longer held: it was revoked"
+            ):
+                await operator.set("registry", action, "", licence=licence)
+        with pytest.raises(NotFound, match="no licence 'L999-000000'"):
+            await admin.set("registry", "revoke", "", licence="L999-000000")
+    assert "licence " + licence + " on scout (holder operator): revoked" in ruled.output

@@ -185,3 +185,28 @@ async def test_the_default_allow_list_is_loopback_only(gateway_process: StartGat
         # Loopback is allowed: a closed port is only unreachable.
         code, details, _ = await refused(stub, "services.x", f"tcp://127.0.0.1:{free_port()}")
         assert code == grpc.StatusCode.UNAVAILABLE, details
+
+
+async def test_an_open_and_a_closed_loopback_port_get_the_same_answer(gateway_process: StartGateway) -> None:
+    # Loopback is on the default allow list, so these registrations are tried: what they fail
+    # with must not tell a port that accepts connections from one that refuses them.
+    gw = gateway_process("""
+        [gateway]
+        call_timeout = 2.0
+    """)
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        for scheme in ("tcp", "grpc"):
+            with listening_port() as open_port:
+                closed_port = free_port()
+                opened = await refused(stub, "services.probe", f"{scheme}://127.0.0.1:{open_port}")
+                closed = await refused(stub, "services.probe", f"{scheme}://127.0.0.1:{closed_port}")
+            assert opened[0] == closed[0] == grpc.StatusCode.UNAVAILABLE, (opened, closed)
+            assert opened[1].replace(str(open_port), "P") == closed[1].replace(str(closed_port), "P")
+            assert opened[1] == (
+                f"registering 'probe': no device answered at {scheme}://127.0.0.1:{open_port} "
+                "within 1.6 s; nothing was registered"
+            )
+        assert await services_listed(stub) == "(registry)"
+    # The gateway's own log keeps why, for its operator.
+    assert "'probe': tcp://127.0.0.1:" in gw.output and "connection refused for" in gw.output

@@ -42,6 +42,7 @@ def test_registry_settings_are_read_and_persist_is_taken_from_the_config_folder(
         ("[registry]\ngrace = inf", "registry.grace: must be a finite number"),
         ('[registry]\nperiod = "often"', "registry.period: expected a number"),
         ("[registry]\nlease = 3", "registry.lease: unknown key"),
+        ("[registry]\nmax_licences_per_holder = 0", "registry.max_licences_per_holder: must be at least 1"),
         ("registry = 3", "registry: expected a table"),
     ],
 )

@@ -149,3 +149,33 @@ async def test_the_expiry_timer_stops_with_the_registry(registry: Registry) -> N
     await registry.stop()
     await asyncio.sleep(0)
     assert registry.licensing._timer is None
+
+
+async def test_one_holder_holds_a_few_licences_and_an_admin_revokes_any() -> None:
+    registry = Registry(max_licences=10, max_licences_per_holder=2)
+    for name in ("scout", "spare", "arm", "cam"):
+        registry.add(name, BackendInfo(type="mobile_robot", url=f"tcp://{name}:1"))
+    licences = registry.licensing
+    events: list[tuple[str, str]] = []
+    licences.watch(lambda licence, event: events.append((licence.id, event)))
+    first = await licences.grant("scout", "squatter", 30)
+    await licences.grant("spare", "squatter", 30)
+    with pytest.raises(PropertyError, match=r"squatter holds 2 licences already") as capped:
+        await licences.grant("arm", "squatter", 30)
+    assert capped.value.code is Code.RESOURCE_EXHAUSTED
+    await licences.grant("arm", "someone", 30)  # others are not held back
+    # The scheduler bounds its own grants (allocations per consumer): they are not capped here.
+    scheduled = await licences.grant("cam", "squatter", 30, limit_holder=False)
+    assert licences.count_held_by("squatter") == 3
+    await licences.release(scheduled.id)
+
+    revoked = licences.revoke(first.id)
+    assert revoked.status == "revoked" and (first.id, "revoked") in events
+    assert licences.holder_of("scout") is None
+    with pytest.raises(PropertyError, match="no longer held: it was revoked") as ended:
+        await licences.renew(first.id, 10, holder="squatter")
+    assert ended.value.code is Code.FAILED_PRECONDITION
+    with pytest.raises(PropertyError, match="no longer held: it was revoked"):
+        licences.revoke(first.id)
+    again = await licences.grant("scout", "squatter", 30)  # room again under its bound
+    assert again.holder == "squatter"
