@@ -31,7 +31,8 @@ from grpc_reflection.v1alpha import reflection
 from gateway.backends import open_backend, open_proxy
 from gateway.client_faults import filter_grpc_client_faults
 from gateway.cluster import ClusterNode
-from gateway.config import REGISTRY_NAME, Config, ConfigError, ServiceEntry
+from gateway.config import METRICS_MAX_CONNECTIONS, REGISTRY_NAME, Config, ConfigError, ServiceEntry
+from gateway.connections import share_open_files
 from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
 from gateway.guard import Guard
@@ -64,6 +65,11 @@ REGISTER_SHARE = 0.8
 
 #: Seconds the gateway waits at startup for each of its own devices to connect and greet.
 DEVICE_CONNECT_WAIT = 5.0
+
+#: Calls grpc queues until the asyncio loop takes them up, at least (each holds its headers and
+#: the start of its message). 20,000 Gets at once over 10 connections were all answered with it
+#: (docs/errors.md); past it grpc ends a new call with CANCELLED before the gateway sees it.
+PENDING_CALLS = 20_000
 
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
 #: Keep-alive pings the gRPC port accepts from clients (see docs/client.md, failover): the SDK pings
@@ -124,6 +130,8 @@ class Gateway:
         self.cluster: ClusterNode | None = None
         #: What registrations may reach (``[registry] allow``) and what is this gateway itself.
         self.allow = AllowList(self.config.registry.allow, own_ports=self._own_ports)
+        #: Each port's share of open files: the connections it holds at most (set in :meth:`start`).
+        self.shares: dict[str, int] = {}
         for entry in self.config.services:
             if entry.url.startswith("serial://"):
                 self.allow.reserve(urlsplit(entry.url).path)
@@ -146,6 +154,7 @@ class Gateway:
         """
         self._check_ports()
         self._check_devices()
+        self.shares = self._share_open_files()
         self.health.set("", NOT_SERVING)
         self.health.set(SERVICE_NAME, NOT_SERVING)
         try:
@@ -186,6 +195,18 @@ class Gateway:
             check_port_free(self.config.http.listen, "http.listen")
         if self.config.metrics.enabled and self.config.metrics.listen:
             check_port_free(self.config.metrics.listen, "metrics.listen")
+
+    def _share_open_files(self) -> dict[str, int]:
+        """Each listening port's share of open files, so that a flood on one cannot starve another."""
+        config = self.config
+        wanted = {"gateway.max_connections": config.gateway.max_connections}
+        if config.gateway.line_listen:
+            wanted["limits.line_max_connections"] = config.limits.line_max_connections
+        if config.http.listen:
+            wanted["http.max_connections"] = config.http.max_connections
+        if config.metrics.enabled and config.metrics.listen:
+            wanted["metrics.listen"] = METRICS_MAX_CONNECTIONS
+        return share_open_files(wanted)
 
     def _check_devices(self) -> None:
         """Build each ``[[devices]]`` service here as its process would, so bad options launch nothing."""
@@ -434,8 +455,13 @@ class Gateway:
                 ssl_context=context,
                 idle_timeout=self.config.limits.line_idle_timeout,
                 max_greetings_per_source=self.config.limits.max_greetings_per_source,
+                max_connections=self.shares.get(
+                    "limits.line_max_connections", self.config.limits.line_max_connections
+                ),
+                max_connections_per_address=self.config.limits.line_max_connections_per_address,
                 device_secrets=self._device_secrets(),
                 alternates=self._alternates,
+                seats=self.cluster,
             )
         except OSError as exc:
             if exc.errno != errno.EADDRINUSE:
@@ -456,6 +482,7 @@ class Gateway:
         from gateway.http import HttpFront
 
         self.http = HttpFront(self.servicer.calls, self.hub, self.config, self.guard)
+        self.http.max_connections = self.shares.get("http.max_connections", self.config.http.max_connections)
         if self.config.metrics.enabled:
             self.http.metrics = self._metrics_endpoint().guarded
         await self.http.start()
@@ -473,7 +500,11 @@ class Gateway:
         settings = self.config.metrics
         if settings.enabled and settings.listen:
             endpoint = self._metrics_endpoint()
-            await endpoint.start(settings.listen, self.config.gateway.shutdown_grace)
+            await endpoint.start(
+                settings.listen,
+                self.config.gateway.shutdown_grace,
+                self.shares.get("metrics.listen", METRICS_MAX_CONNECTIONS),
+            )
             self.metrics_address = endpoint.address
             log.debug("metrics on http://%s/metrics", endpoint.address)  # printed as well, below
 
@@ -498,7 +529,27 @@ class Gateway:
             log.debug("registry: %s rejoined: %s", name, exc.message)
 
     def _make_server(self) -> grpc.aio.Server:
-        server = grpc.aio.server(options=[("grpc.so_reuseport", 0), *CLIENT_PING_POLICY])
+        gw, limits = self.config.gateway, self.config.limits
+        pending = max(limits.max_calls, PENDING_CALLS)
+        options = [
+            ("grpc.so_reuseport", 0),
+            # Bounded connections (docs/security.md): beyond its share of open files grpc closes a
+            # new connection at once; one that never begins, or stays without a call, is closed.
+            (
+                "grpc.max_allowed_incoming_connections",
+                self.shares.get("gateway.max_connections", gw.max_connections),
+            ),
+            ("grpc.server_handshake_timeout_ms", round(gw.handshake_timeout * 1000)),
+            ("grpc.max_connection_idle_ms", round(gw.idle_timeout * 1000)),
+            # Calls wait in grpc's queue until the asyncio loop takes them up. grpc's defaults
+            # (1,000 soft, 3,000 hard, dropped at random between) end a burst of a few thousand
+            # calls with CANCELLED although nothing cancelled them; a longer queue lets the
+            # servicer take each up and answer RESOURCE_EXHAUSTED past limits.max_calls itself.
+            ("grpc.server.max_pending_requests", pending),
+            ("grpc.server.max_pending_requests_hard_limit", pending),
+            *CLIENT_PING_POLICY,
+        ]
+        server = grpc.aio.server(options=options)
         filter_grpc_client_faults()  # a call cancelled while a message was sent: no traceback
         # Not the generated registration: a request that does not parse is INVALID_ARGUMENT.
         add_to_server(self.servicer, server)

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from gateway import device_cli
+from gateway.allocator import return_large_blocks
 from gateway.config import Config, ConfigError, default_config, load_config, load_config_partly
 from gateway.logs import LOG_FORMATS, setup_logging
 
@@ -142,6 +143,7 @@ def _serve(args: argparse.Namespace) -> int:
     log.info("starting gateway from %s", config.source)
     _, middle, oldest = gc.get_threshold()
     gc.set_threshold(YOUNG_COLLECTION_THRESHOLD, middle, oldest)
+    return_large_blocks()  # what slow readers of large values held is given back (gateway.allocator)
     try:
         return asyncio.run(serve(config))
     except KeyboardInterrupt:

@@ -87,6 +87,15 @@ class GatewaySection:
     #: Listen on a non-loopback address without TLS (anyone who reaches the port reads and drives
     #: every service); false = such a config is refused.
     allow_insecure_remote: bool = False
+    #: gRPC connections open at once (grpc.max_allowed_incoming_connections); beyond, a new one is
+    #: closed as soon as it is accepted. Its share of open files (docs/security.md, "Bounded
+    #: connections").
+    max_connections: int = 4096
+    #: Seconds a gRPC connection with no call running may stay open (grpc.max_connection_idle_ms).
+    idle_timeout: float = 300.0
+    #: Seconds a new connection gets to finish its TLS handshake and HTTP/2 preface (gRPC) or its TLS
+    #: handshake (HTTPS); a connection that sends nothing is closed after it.
+    handshake_timeout: float = 10.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -151,8 +160,23 @@ class Limits:
     #: Seconds a line-listener connection may stay silent (nothing read, nothing written) before
     #: it is closed; and when the listener is full, the connection silent longest makes room.
     line_idle_timeout: float = 300.0
-    #: Connections of the line listener from one source address at once (devices and clients).
+    #: Devices dialled in to the line listener from one source address served at once.
     max_greetings_per_source: int = 64
+    #: Line-listener connections open at once (devices and clients); when full, the connection
+    #: silent longest makes room for a new one.
+    line_max_connections: int = 1024
+    #: Line-listener connections from one address at once; beyond, that address's connection
+    #: silent longest makes room (a flood from one address cannot lock out a device beside it).
+    line_max_connections_per_address: int = 128
+    #: Unary calls (Get, Set, Describe) running at once on the gRPC port; beyond, RESOURCE_EXHAUSTED
+    #: naming this limit. grpc's queue of calls not yet taken up holds at least 20,000 more.
+    max_calls: int = 10_000
+    #: Bytes of large values (64 KiB or more: binary ones) handed to Listen readers, event and
+    #: image streams and not yet taken by their connections, all readers together; a reader whose
+    #: next value would pass it ends with RESOURCE_EXHAUSTED (gateway.listen.budget). A stalled
+    #: reader holds at most one value (two copies of it on gRPC), so 256 MiB is about 65 readers
+    #: stalled at once on 4 MB camera frames, or 1,300 on 200 KB ones.
+    max_pending_binary: int = 256 * 1024 * 1024
 
 
 #: Bytes of a request body the HTTP front end reads at most (a Set's JSON); beyond, 413. A value
@@ -186,6 +210,20 @@ class HttpSection:
     heartbeat: float = 15.0
     #: Serve HTTPS with the ``[tls]`` section's certificate (and client CA).
     tls: bool = False
+    #: Connections open at once, event streams and plain requests together; beyond, a new one is
+    #: answered 503 and closed at once. Its share of open files (docs/security.md).
+    max_connections: int = 6144
+    #: Connections one client address may hold open at once; beyond, 503 and closed at once.
+    max_connections_per_address: int = 256
+    #: Seconds a connection may stay open with no request running (a fresh one that sends
+    #: nothing, or a kept-alive one between requests); an event stream is a running request.
+    idle_timeout: float = 60.0
+
+
+#: Connections the ``[metrics] listen`` port holds at once, and from one address: a scraper or
+#: two beside the gateway need a handful (its share of open files, docs/security.md).
+METRICS_MAX_CONNECTIONS = 64
+METRICS_MAX_CONNECTIONS_PER_ADDRESS = 16
 
 
 @dataclass(frozen=True, slots=True)
@@ -538,6 +576,12 @@ def _gateway(data: Any, where: str) -> GatewaySection:
             problems.attempt(lambda: _check_address(gw.line_listen, f"{where}.line_listen"), None)
         if gw.call_timeout <= 0:
             problems.found.append(f"{where}.call_timeout: must be positive, got {gw.call_timeout}")
+        if gw.max_connections < 1:
+            problems.found.append(f"{where}.max_connections: must be at least 1")
+        for key in ("idle_timeout", "handshake_timeout"):
+            seconds = getattr(gw, key)
+            if not (math.isfinite(seconds) and seconds > 0):
+                problems.found.append(f"{where}.{key}: must be a positive number of seconds, got {seconds!r}")
         level = problems.attempt(lambda: _check_log_level(gw.log_level, f"{where}.log_level"), "info")
         log_format = problems.attempt(lambda: _check_log_format(gw.log_format, f"{where}.log_format"), "text")
         found.extend(problems.found)
@@ -648,9 +692,15 @@ def _http(data: Any, where: str, gw: GatewaySection, tls: TlsSection, limits: Li
             except ConfigError as exc:
                 found.extend(exc.problems)
                 return replace(http, listen="")
-        for key in ("max_body", "max_streams", "max_streams_per_client"):
+        for key in ("max_body", "max_streams", "max_streams_per_client", "max_connections"):
             if getattr(http, key) < 1:
                 found.append(f"{where}.{key}: must be at least 1")
+        if http.max_connections_per_address < 1:
+            found.append(f"{where}.max_connections_per_address: must be at least 1")
+        if not (math.isfinite(http.idle_timeout) and http.idle_timeout > 0):
+            found.append(
+                f"{where}.idle_timeout: must be a positive number of seconds, got {http.idle_timeout!r}"
+            )
         if not (math.isfinite(http.write_timeout) and http.write_timeout > 0):
             found.append(
                 f"{where}.write_timeout: must be a positive number of seconds, got {http.write_timeout!r}"

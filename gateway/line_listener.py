@@ -48,9 +48,10 @@ import dataclasses
 import hmac
 import logging
 import ssl
-from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from collections.abc import Collection, Mapping
+from typing import TYPE_CHECKING, Any, Protocol
 
+from gateway.connections import BoundedListener, ConnectionCaps
 from gateway.guard import REGISTRY, Guard
 from gateway.identity import ANONYMOUS
 from gateway.rules import Operation, Subject
@@ -99,6 +100,11 @@ _TAKE_UP = 5.0
 LINE_IDLE_TIMEOUT = 300.0
 #: Devices that dialled in from one source address and are served at once.
 MAX_GREETINGS_PER_SOURCE = 64
+#: Connections from one address served at once, devices and clients together.
+MAX_CONNECTIONS_PER_ADDRESS = 128
+#: Connections the door lets in beyond ``max_connections``: a full listener admits one more and
+#: closes the connection silent longest, which frees its place a loop turn later.
+_EVICTION_ROOM = 16
 #: A full listener closes the connection silent longest to admit a new one, if it has been
 #: silent at least this long (a busy listener is not churned by a flood of fresh connections).
 _EVICT_AFTER = 1.0
@@ -263,36 +269,68 @@ class ConnectionBounds:
     """How many line-listener connections are open, how long each has been silent, and who greeted.
 
     Silent connections are closed after ``idle_timeout``; a full listener
-    makes room by closing the one silent longest; one source address may
-    have at most ``max_greetings_per_source`` devices served at once.
+    makes room by closing the one silent longest, and an address with
+    ``max_connections_per_address`` open by closing its own one silent
+    longest; one source address may have at most ``max_greetings_per_source``
+    devices served at once.
     """
 
-    def __init__(self, *, max_connections: int, idle_timeout: float, max_greetings_per_source: int) -> None:
+    def __init__(
+        self,
+        *,
+        max_connections: int,
+        idle_timeout: float,
+        max_greetings_per_source: int,
+        max_connections_per_address: int = MAX_CONNECTIONS_PER_ADDRESS,
+    ) -> None:
         self.max_connections = max_connections
         self.idle_timeout = idle_timeout
         self.max_greetings_per_source = max_greetings_per_source
+        self.max_connections_per_address = max_connections_per_address
         self._open: dict[asyncio.StreamWriter, _Heard] = {}
+        #: The open connections of each source address (for its own bound).
+        self._by_address: dict[str, set[asyncio.StreamWriter]] = {}
         self._greetings: dict[str, int] = {}
 
     def admit(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> _Heard | None:
         """Track a new connection, making room when full; None when no room can be made."""
-        if len(self._open) >= self.max_connections and not self._evict_quietest():
+        address = _address_of(writer)
+        own = self._by_address.get(address, set())
+        if len(own) >= self.max_connections_per_address and not self._evict_quietest(own, address):
+            return None
+        if len(self._open) >= self.max_connections and not self._evict_quietest(self._open, None):
             return None
         heard = _Heard(reader)
         self._open[writer] = heard
+        self._by_address.setdefault(address, set()).add(writer)
         return heard
 
     def release(self, writer: asyncio.StreamWriter) -> None:
         """The connection ended."""
         self._open.pop(writer, None)
+        address = _address_of(writer)
+        own = self._by_address.get(address)
+        if own is not None:
+            own.discard(writer)
+            if not own:
+                del self._by_address[address]
 
-    def _evict_quietest(self) -> bool:
+    def _evict_quietest(self, among: Collection[asyncio.StreamWriter], address: str | None) -> bool:
+        """Close the connection of ``among`` silent longest, if it has been silent long enough."""
         now = asyncio.get_running_loop().time()
-        writer, heard = min(self._open.items(), key=lambda item: item[1].last_heard)
-        if now - heard.last_heard < _EVICT_AFTER:
+        writer = min(among, key=lambda w: self._open[w].last_heard)
+        silent = now - self._open[writer].last_heard
+        if silent < _EVICT_AFTER:
             return False
-        log.info("line listener full: closing a connection silent for %.0f s", now - heard.last_heard)
-        self._open.pop(writer)
+        if address is None:
+            log.debug("line listener full: closing a connection silent for %.0f s", silent)
+        else:
+            log.debug(
+                "line listener: %s has as many connections as it may: closing one silent for %.0f s",
+                address,
+                silent,
+            )
+        self.release(writer)
         writer.close()
         return True
 
@@ -323,14 +361,23 @@ class ConnectionBounds:
             self._greetings.pop(source, None)
 
 
+def _address_of(writer: asyncio.StreamWriter) -> str:
+    peer = writer.get_extra_info("peername")
+    return str(peer[0]) if isinstance(peer, tuple) else "local"
+
+
 class _ListenerServer(DeviceServer):
     """The device server of the line listener: clients are served, devices that greet are registered."""
+
+    #: A line per connection would let a flood of connections write the log full (a device that
+    #: dials in is logged when it joins and when it hangs up).
+    connection_log_level = logging.DEBUG
 
     def __init__(
         self, listener: LineListener, backend: RouterBackend, bounds: ConnectionBounds, **kwargs: object
     ) -> None:
         # The listener bounds its connections itself (ConnectionBounds), evicting silent ones.
-        super().__init__(backend, max_connections=bounds.max_connections + 1, **kwargs)  # type: ignore[arg-type]
+        super().__init__(backend, max_connections=bounds.max_connections + _EVICTION_ROOM, **kwargs)  # type: ignore[arg-type]
         self._listener = listener
         self._router_backend = backend
         self._bounds = bounds
@@ -340,7 +387,11 @@ class _ListenerServer(DeviceServer):
     ) -> None:
         heard = self._bounds.admit(reader, writer)
         if heard is None:
-            writer.write(encode(ErrorReply(int(Code.RESOURCE_EXHAUSTED), "too many connections; try later")))
+            full = (
+                "too many connections, none silent long enough to make room for this one"
+                " (limits.line_max_connections, limits.line_max_connections_per_address); try later"
+            )
+            writer.write(encode(ErrorReply(int(Code.RESOURCE_EXHAUSTED), full)))
             writer.close()
             return
         try:
@@ -380,6 +431,23 @@ def certificate_name(peercert: Any) -> str:
     return ""
 
 
+class DeviceSeats(Protocol):
+    """Names a cluster of gateways holds for devices that dial in (``gateway.cluster``): a device
+    whose gateway is gone dials another, whose entry for its name waits for it (its Listens open)."""
+
+    def awaits(self, name: str) -> bool:
+        """Whether ``name`` is held for its device, which may take it up here."""
+        ...
+
+    def inbound(self, name: str) -> Backend | None:
+        """The proxy of device ``name`` seated here earlier (it dials again after a drop); else None."""
+        ...
+
+    async def seat(self, name: str, proxy: Backend) -> None:
+        """Serve the device's ``proxy`` (connected) under the held name; AlreadyExists when it cannot."""
+        ...
+
+
 class LineListener:
     """A raw-TCP line-protocol server in front of a router; ``aclose`` stops it.
 
@@ -400,8 +468,11 @@ class LineListener:
         max_greetings_per_source: int = MAX_GREETINGS_PER_SOURCE,
         device_secrets: Mapping[str, str] | None = None,
         alternates: Callable[[], list[str]] | None = None,
+        max_connections_per_address: int = MAX_CONNECTIONS_PER_ADDRESS,
+        seats: DeviceSeats | None = None,
     ) -> None:
-        """``alternates()`` names the line listeners of the other gateways of this one's cluster: the
+        """``seats``: the names a cluster holds for devices that dial in (:class:`DeviceSeats`);
+        ``alternates()`` names the line listeners of the other gateways of this one's cluster: the
         greeting tells them to every peer (``alternates=``), so that a device that dialled in knows
         where to go when this gateway is gone (docs/line-protocol.md §4.5);
         ``guard`` checks every request of every connection (default: nothing is refused);
@@ -417,14 +488,17 @@ class LineListener:
             max_connections=max_connections,
             idle_timeout=idle_timeout,
             max_greetings_per_source=max_greetings_per_source,
+            max_connections_per_address=max_connections_per_address,
         )
         self.server = _ListenerServer(
             self, RouterBackend(router, guard), self.bounds, name=name, type="gateway", push=True
         )
         self.address: tuple[str, int] | None = None
+        self._door: BoundedListener | None = None
         self._reaper: asyncio.Task[None] | None = None
         self._device_secrets = dict(device_secrets or {})
         self._alternates = alternates
+        self._seats = seats
         self._guard = guard or Guard()
 
     def greeting(self) -> Hello:
@@ -542,6 +616,13 @@ class LineListener:
         from gateway.inbound import INBOUND_OPTIONS, InboundProxy
 
         existing = self.router.lookup(name) if name in self.router else None
+        seats = self._seats
+        if existing is not None and not isinstance(existing, InboundProxy) and seats is not None:
+            held = seats.inbound(name)
+            if isinstance(held, InboundProxy):
+                existing = held  # the device dialled in here before, and its cluster entry serves it
+            elif seats.awaits(name):
+                return await self._seat(seats, name, reader, writer, url)
         if existing is not None:
             if not isinstance(existing, InboundProxy):
                 raise AlreadyExists(f"the name {name!r} is taken (by {existing.info.url})")
@@ -556,6 +637,28 @@ class LineListener:
         try:
             await proxy.wait_connected(_TAKE_UP)
             self.router.add(name, proxy)
+        except BaseException:
+            await proxy.aclose()
+            raise
+        return proxy
+
+    async def _seat(
+        self,
+        seats: DeviceSeats,
+        name: str,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        url: str,
+    ) -> InboundProxy:
+        """Serve a device that a cluster awaits under its name (it left a gateway that is gone)."""
+        from gateway.inbound import INBOUND_OPTIONS, InboundProxy
+
+        proxy = InboundProxy(name, url, self.device_options or INBOUND_OPTIONS)
+        proxy.offer(reader, writer, url)
+        await proxy.start()
+        try:
+            await proxy.wait_connected(_TAKE_UP)
+            await seats.seat(name, proxy)
         except BaseException:
             await proxy.aclose()
             raise
@@ -603,8 +706,21 @@ class LineListener:
     async def start(
         self, host: str, port: int, *, ssl_context: ssl.SSLContext | None = None
     ) -> tuple[str, int]:
-        """Listen on ``host:port`` (0 = any free port), over TLS with ``ssl_context``; the bound address."""
-        self.address = await self.server.serve_tcp(host, port, ssl_context=ssl_context)
+        """Listen on ``host:port`` (0 = any free port), over TLS with ``ssl_context``; the bound address.
+
+        The door (:class:`~gateway.connections.BoundedListener`) closes at once what is past
+        ``max_connections`` (and the room eviction needs); :class:`ConnectionBounds` does the rest.
+        """
+        most = self.bounds.max_connections + _EVICTION_ROOM
+        caps = ConnectionCaps(most, most, "limits.line_max_connections", "limits.line_max_connections")
+        self._door = BoundedListener(
+            self.server.tcp_protocol,
+            caps,
+            "gateway.line_listen",
+            ssl_context=ssl_context,
+            refusal=None if ssl_context is not None else _line_refusal,
+        )
+        self.address = await self._door.start(host, port)
         self._reaper = asyncio.create_task(self._close_idle_connections(), name="line listener: idle")
         return self.address
 
@@ -615,10 +731,16 @@ class LineListener:
             self.bounds.close_idle()
 
     async def aclose(self) -> None:
+        if self._door is not None:
+            await self._door.aclose()
         if self._reaper is not None:
             self._reaper.cancel()
             await asyncio.gather(self._reaper, return_exceptions=True)
         await self.server.aclose()
+
+
+def _line_refusal(reason: str) -> bytes:
+    return encode(ErrorReply(int(Code.RESOURCE_EXHAUSTED), f"too many connections: {reason}; try later"))
 
 
 def parse_address(address: str) -> tuple[str, int]:
@@ -640,9 +762,12 @@ async def start_line_listener(
     max_greetings_per_source: int = MAX_GREETINGS_PER_SOURCE,
     device_secrets: Mapping[str, str] | None = None,
     alternates: Callable[[], list[str]] | None = None,
+    max_connections: int = MAX_CONNECTIONS,
+    max_connections_per_address: int = MAX_CONNECTIONS_PER_ADDRESS,
+    seats: DeviceSeats | None = None,
 ) -> LineListener:
     """Start a :class:`LineListener` on ``address`` ("HOST:PORT") for ``router``, checked by ``guard``;
-    TLS with ``ssl_context``; ``alternates``: see :class:`LineListener`."""
+    TLS with ``ssl_context``; ``alternates`` and ``seats``: see :class:`LineListener`."""
     listener = LineListener(
         router,
         on_rejoin=on_rejoin,
@@ -651,6 +776,9 @@ async def start_line_listener(
         max_greetings_per_source=max_greetings_per_source,
         device_secrets=device_secrets,
         alternates=alternates,
+        max_connections=max_connections,
+        max_connections_per_address=max_connections_per_address,
+        seats=seats,
     )
     await listener.start(*parse_address(address), ssl_context=ssl_context)
     return listener

@@ -15,10 +15,13 @@ import contextlib
 import errno
 import os
 import socket
-import ssl
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from aiohttp import web
+if TYPE_CHECKING:
+    from aiohttp import web
+
+    from gateway.connections import BoundedListener
 
 #: ``st`` of a listening socket in /proc/net/tcp (include/net/tcp_states.h: TCP_LISTEN).
 _TCP_LISTEN = "0A"
@@ -52,24 +55,23 @@ def check_port_free(address: str, what: str) -> None:
             raise PortInUse(f"port {port} ({what}) is in use by {port_holder(port)}") from None
 
 
-async def start_site(
-    runner: web.AppRunner, host: str, port: int, what: str, ssl_context: ssl.SSLContext | None = None
+async def start_bounded(
+    listener: BoundedListener, runner: web.AppRunner, host: str, port: int, what: str
 ) -> str:
-    """Listen with ``runner`` (set up) on ``host:port``; the address bound, ``HOST:PORT``.
+    """Serve ``runner`` (set up, its server as ``listener``'s protocol factory) on ``host:port``
+    through ``listener``; the address bound, ``HOST:PORT``.
 
     The runner is cleaned up when it cannot listen; a port in use is :class:`PortInUse` naming
     ``what`` (the option, ``http.listen``) and the holder.
     """
-    site = web.TCPSite(runner, host, port, ssl_context=ssl_context, reuse_address=True)
     try:
-        await site.start()
+        bound = await listener.start(host, port)
     except OSError as exc:
         await runner.cleanup()
         if exc.errno != errno.EADDRINUSE:
             raise
         raise PortInUse(f"port {port} ({what}) is in use by {port_holder(port)}") from None
-    bound = runner.addresses[0]
-    shown = f"[{bound[0]}]" if ":" in str(bound[0]) else str(bound[0])
+    shown = f"[{bound[0]}]" if ":" in bound[0] else bound[0]
     return f"{shown}:{bound[1]}"
 
 

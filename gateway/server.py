@@ -24,6 +24,7 @@ from gateway.federation import VIA_KEY, enter, new_gateway_id
 from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, parse_options, parse_selectors
+from gateway.listen.budget import COUNTED_BYTES
 from gateway.listen.drain import Wake
 from gateway.logs import REQUEST_ID_HEADER, RequestContext, current_request, request_id_from
 from gateway.metrics.counts import GrpcCounts, MethodCounts
@@ -33,7 +34,7 @@ from gateway.session import Session
 from gateway.status import abort, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.errors import Code, InvalidArgument
+from services.errors import Code, InvalidArgument, ResourceExhausted
 from services.model_codec import model_to_proto
 
 Context = grpc.aio.ServicerContext[Any, Any]
@@ -68,6 +69,11 @@ def _begin_unary(context: Context, service: str, path: str) -> tuple[RequestCont
     request = RequestContext(request_id, service or None, path or None)
     current_request.set(request)
     return request, via
+
+
+#: The copies of a large Listen message counted against the hub's budget while it is written (see
+#: Listen).
+GRPC_COPIES = 3
 
 
 def _lenient(message: type[Message]) -> Callable[[bytes], Message | Undecodable]:
@@ -164,6 +170,9 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         self.hub = hub
         self.config = config
         self._timeout = config.gateway.call_timeout
+        #: Unary calls (Get, Set, Describe) running now, and how many may (``[limits] max_calls``).
+        self.calls_running = 0
+        self._max_calls = config.limits.max_calls
         #: Session calls running now (see gateway.session).
         self.sessions: set[Session] = set()
         #: This gateway's id in the ``ps-via`` chain of federated calls (gateway.federation).
@@ -186,6 +195,19 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         """Who calls; without rules or tokens nobody is refused and a Get need not ask."""
         return self.guard.identify_call(context) if self.guard.checks else ANONYMOUS
 
+    def _take_call_place(self) -> None:
+        """Count one more unary call running; RESOURCE_EXHAUSTED naming the limit when it is reached.
+
+        Without it a burst only meets grpc's queue of calls not yet taken up, whose overflow
+        ends calls with a bare CANCELLED (docs/errors.md).
+        """
+        if self.calls_running >= self._max_calls:
+            raise ResourceExhausted(
+                f"{self._max_calls} calls are running in this gateway already ([limits] max_calls);"
+                " try again, or send them in a Session"
+            )
+        self.calls_running += 1
+
     def _deadline(self, context: Context) -> float:
         remaining = context.time_remaining()
         timeout = self._timeout
@@ -202,7 +224,11 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             enter(via, self.gateway_id)
             subject = self._subject(context)
             logged.subject = _subject_name(subject)
-            response = await self.calls.get(request, self._deadline(context), subject)
+            self._take_call_place()
+            try:
+                response = await self.calls.get(request, self._deadline(context), subject)
+            finally:
+                self.calls_running -= 1
         except Exception as exc:
             await _failed(context, exc, "Get", counts, started)
             raise  # not reached: abort raises
@@ -226,7 +252,11 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             # Identified even when nothing is refused: the audit trail names who set what.
             subject = self.guard.identify_call(context)
             logged.subject = _subject_name(subject)
-            response = await self.calls.set(request, self._deadline(context), subject)
+            self._take_call_place()
+            try:
+                response = await self.calls.set(request, self._deadline(context), subject)
+            finally:
+                self.calls_running -= 1
         except Exception as exc:
             await _failed(context, exc, "Set", counts, started)
             raise
@@ -248,7 +278,11 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             enter(via, self.gateway_id)
             subject = self._subject(context)
             logged.subject = _subject_name(subject)
-            model = await self.calls.describe(request.service, self._deadline(context), subject)
+            self._take_call_place()
+            try:
+                model = await self.calls.describe(request.service, self._deadline(context), subject)
+            finally:
+                self.calls_running -= 1
             response = model_to_proto(model)
         except Exception as exc:
             await _failed(context, exc, "Describe", self._describe_counts, started)
@@ -287,8 +321,10 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         if counts is not None:
             counts.listens_open += 1
         code = Code.CANCELLED  # unless it ends otherwise: the client went away
+        budget = self.hub.budget
+        held = 0
         try:
-            # drain.responses written out here: a generator in between costs every message one
+            # drain.taken written out here: a generator in between costs every message one
             # more async-generator step, as Wake.wait costs it a coroutine.
             await stream.start()
             while True:
@@ -296,7 +332,23 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
                 if waiter is not None:
                     await waiter
                 while (response := stream.take_wire()) is not None:
+                    if len(response) < COUNTED_BYTES:
+                        yield response
+                        continue
+                    # A large message (a binary value) to a reader that does not read waits in
+                    # two copies, this one and grpc's, and grpc may still be writing the one
+                    # before it to the socket (measured: about 3 copies each for readers that
+                    # announce a large window and never read): all three count in the budget.
+                    counted = GRPC_COPIES * len(response)
+                    if not budget.take(counted):
+                        # Not kept by the refusal's traceback (a cycle through this frame, freed
+                        # only by the next collection: measured, 300 MB for 60 refused readers).
+                        response = b""
+                        raise budget.refusal(counted, "Listen")
+                    held = counted
                     yield response
+                    budget.give_back(held)
+                    held = 0
                 if stream.error is not None:
                     raise stream.error
                 if stream.ended or stream.closed:
@@ -307,6 +359,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             code = err.code
             await abort(context, err, "Listen")
         finally:
+            budget.give_back(held)  # a message the client never took
             stream.close()
             if counts is not None:
                 counts.listens_open -= 1

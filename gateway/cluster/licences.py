@@ -22,6 +22,11 @@ of the cluster: a client that does not hold a licence granted on gateway A is re
 too. The check is made once, by the gateway the client called; a call that another gateway of the
 cluster forwarded to the owner is not checked again there (its caller is the forwarding gateway,
 and the check was made where the client is known).
+
+The same licences are read on every gateway (:meth:`ClusterLicences.show_in`): the registry's
+``licences`` lists those held here and those the others granted (:class:`ClusterLicenceList`),
+``licences.<id>`` shows each, and ``services.<name>.licence`` names the one held on the service,
+whichever gateway granted it; each follows the key's changes and the licence's expiry.
 """
 
 from __future__ import annotations
@@ -34,10 +39,13 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from services.errors import FailedPrecondition, PropertyError, Unavailable
-from services.registry import Lease, Licence
+from services.registry import Lease, Licence, Registry
+from services.registry.licences import Licences
+from services.registry.service import LicenceList, LicenceView
 from services.registry.store import Kind, SharedStore
+from services.values import format_names
 
-__all__ = ["MAX_ATTEMPTS", "ClusterLicences"]
+__all__ = ["MAX_ATTEMPTS", "ClusterLicenceList", "ClusterLicences"]
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +102,20 @@ def _write(claims: list[_Claim]) -> str:
     )
 
 
+class ClusterLicenceList(LicenceList):
+    """The registry's ``licences`` in a cluster: the ids of the licences held here, then of those the
+    other gateways granted (one child ``licences.<id>`` each, as for a licence granted here)."""
+
+    def __init__(self, licensing: Licences, claims: ClusterLicences) -> None:
+        super().__init__(licensing)
+        self._here = licensing
+        self._claims = claims
+
+    def _value(self) -> str:
+        here = [licence.id for licence in self._here.held()]
+        return format_names([*here, *(licence.id for licence in self._claims.elsewhere())])
+
+
 class ClusterLicences:
     """A registry's :class:`~services.registry.licences.LicenceClaims` on a shared store."""
 
@@ -102,6 +124,29 @@ class ClusterLicences:
         self._releasing: set[asyncio.Task[None]] = set()
         #: The licences other gateways granted, by service, as the store last showed them.
         self._elsewhere: dict[str, list[Licence]] = {}
+        #: The registry that shows them (:meth:`show_in`), its list, and their views there by id.
+        self._registry: Registry | None = None
+        self._list: ClusterLicenceList | None = None
+        self._views: dict[str, _RemoteLicenceView] = {}
+        #: The timer that reads the licences again when the next one shown expires.
+        self._expiry: asyncio.TimerHandle | None = None
+
+    def show_in(self, registry: Registry) -> None:
+        """Show the licences the other gateways granted in ``registry`` too (module docstring)."""
+        shown = ClusterLicenceList(registry.licensing, self)
+        old = registry.licences
+        for name, child in old.children().items():  # the views of licences granted here so far
+            old.detach(name)
+            shown.attach(name, child)
+        registry.licences = shown
+        self._registry = registry
+        self._list = shown
+        for service in list(self._elsewhere):
+            self._show(service)
+
+    def elsewhere(self) -> list[Licence]:
+        """The live licences the other gateways granted, on every service."""
+        return [licence for service in list(self._elsewhere) for licence in self.held_elsewhere(service)]
 
     def observe(self, service: str, value: str | None) -> None:
         """The store's ``licences/SERVICE`` key now holds ``value`` (None: deleted)."""
@@ -112,12 +157,53 @@ class ClusterLicences:
             self._elsewhere[service] = held
         else:
             self._elsewhere.pop(service, None)
+        self._show(service)
 
     def load(self, keys: Mapping[str, str]) -> None:
         """Every ``licences`` key, as read when joining or after a reconnect."""
+        services = set(self._elsewhere)
         self._elsewhere.clear()
         for service, value in keys.items():
             self.observe(service, value)
+        for service in services - set(keys):
+            self._show(service)
+
+    def _show(self, service: str) -> None:
+        """The registry reads ``service``'s licences as they are now (those of the others included)."""
+        registry, shown = self._registry, self._list
+        if registry is None or shown is None:
+            return
+        live = {licence.id: licence for licence in self.held_elsewhere(service)}
+        for licence_id, view in list(self._views.items()):
+            if licence_id not in live and view.service == service:
+                del self._views[licence_id]
+                if shown.children().get(licence_id) is view:
+                    shown.detach(licence_id)
+        for licence_id, licence in live.items():
+            if licence_id not in self._views and licence_id not in shown.children():
+                self._views[licence_id] = _RemoteLicenceView(licence)
+                shown.attach(licence_id, self._views[licence_id])
+        shown.changed()
+        entry = registry.entry_of(service)
+        if entry is not None:
+            holder = registry.licensing.holder_of(service)
+            entry.set_licence(holder.id if holder is not None else "")
+        self._expire_later()
+
+    def _expire_later(self) -> None:
+        """Read the licences again when the first one the others granted expires."""
+        if self._expiry is not None:
+            self._expiry.cancel()
+            self._expiry = None
+        ends = [licence.expires_at for licences in self._elsewhere.values() for licence in licences]
+        if ends and self._registry is not None:
+            delay = max(0.0, min(ends) - time.time()) + 0.05
+            self._expiry = asyncio.get_running_loop().call_later(delay, self._on_expiry)
+
+    def _on_expiry(self) -> None:
+        self._expiry = None
+        for service in list(self._elsewhere):
+            self._show(service)
 
     def held_elsewhere(self, service: str) -> Sequence[Licence]:
         held = self._elsewhere.get(service)
@@ -201,4 +287,15 @@ class ClusterLicences:
 
     async def aclose(self) -> None:
         """Wait for the releases under way."""
+        if self._expiry is not None:
+            self._expiry.cancel()
+            self._expiry = None
         await asyncio.gather(*self._releasing, return_exceptions=True)
+
+
+class _RemoteLicenceView(LicenceView):
+    """``licences.<id>`` of a licence another gateway granted."""
+
+    def __init__(self, licence: Licence) -> None:
+        super().__init__(licence)
+        self.service = licence.service

@@ -53,7 +53,7 @@ from services.registry.store import Change, Kind, SharedStore
 from services.registry.table import GONE
 from services.worker_pool import run_bounded
 
-__all__ = ["FORWARD_OPTIONS", "LEAVE_WAIT", "MAX_OPENING", "MAX_WRITES", "ClusterNode"]
+__all__ = ["FORWARD_OPTIONS", "LEAVE_WAIT", "MAX_OPENING", "MAX_WRITES", "RECONNECT_GRACE", "ClusterNode"]
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +68,12 @@ MAX_WRITES = 64
 #: Get each): a dead gateway's thousand devices would otherwise be a thousand connections opened
 #: in one go, each answer queued behind the others' and behind this gateway's own calls.
 MAX_OPENING = 64
+#: Seconds a device that dialled in, whose registration left with its gateway (that gateway died,
+#: froze past its lease, or stopped), is waited for under its name: its service reads UNAVAILABLE
+#: ("reconnecting") meanwhile, and every Listen on it stays open and resumes, with a gap, on the
+#: gateway the device dials next. The device is refused elsewhere until the lease has run out,
+#: then dials in at its next round (its pause doubles up to 10 s): this covers several rounds.
+RECONNECT_GRACE = 20.0
 #: Folders read when joining and after a reconnect (and the licences, for the licence mirror).
 _FOLDERS = (Kind.GATEWAY, Kind.SERVICE, Kind.OWNER, Kind.STATE)
 
@@ -84,12 +90,14 @@ class ClusterNode:
         allow: AllowList | None = None,
         peer_tls: Mapping[str, str] | None = None,
         max_opening: int = MAX_OPENING,
+        reconnect_grace: float = RECONNECT_GRACE,
     ) -> None:
         """``lease``: seconds of the store's lease (a dead gateway's keys go within it); ``allow``: what
         this gateway may dial when it takes a registration over (the registry's allow-list);
         ``peer_tls``: the ``grpcs://`` proxy options (``ca``, ``cert``, ``key``) with which calls are
         forwarded to a gateway that serves TLS; ``max_opening``: devices taken over that are
-        connected at once."""
+        connected at once; ``reconnect_grace``: seconds the name of a device that dialled in is held
+        for it after its registration left with its gateway (:data:`RECONNECT_GRACE`)."""
         if max_opening < 1:
             raise ValueError(f"max_opening must be at least 1, got {max_opening}")
         self.store = store
@@ -97,6 +105,7 @@ class ClusterNode:
         self.lease = lease
         self.allow = allow
         self.peer_tls: Mapping[str, str] = dict(peer_tls or {})
+        self.reconnect_grace = reconnect_grace
         #: This gateway's id in the cluster (the value of the owners keys it writes).
         self.me = store.gateway_id
         self.view = ClusterView()
@@ -114,6 +123,9 @@ class ClusterNode:
         self._dialled: dict[str, Backend] = {}
         #: name → the URL its forwarding proxy dials (the owner's address, over TLS or not).
         self._forwarding: dict[str, str] = {}
+        #: Devices that dialled in whose registration left with their gateway: name → the loop time
+        #: until which its entry here waits for the device to dial in again (UNAVAILABLE meanwhile).
+        self._awaited: dict[str, float] = {}
         #: Names being registered, unregistered or published now: the reconciler leaves them alone.
         self._busy: set[str] = set()
         #: Services taken over whose device is being opened (waiting for one of MAX_OPENING places).
@@ -161,6 +173,7 @@ class ClusterNode:
         self.registry = registry
         self.record = GatewayRecord(address=address, http=http, line=line, tls=tls, via=via)
         registry.licensing.set_claims(self.licences)
+        self.licences.show_in(registry)
         self._stops += [
             self.store.watch(self._on_change),
             self.store.on_reconnect(self._on_reconnect),
@@ -367,8 +380,8 @@ class ClusterNode:
         if backend is None:
             dialled = self._dialled.pop(name, None)
             if dialled is not None and name not in self._busy:
-                self.owned.pop(name, None)
-                self._spawn(self._unpublish(name), f"cluster: unpublish {name}")
+                registration = self.owned.pop(name, None)
+                self._spawn(self._unpublish(name, registration), f"cluster: unpublish {name}")
             return
         if backend.info.url.startswith(DIAL_IN_PREFIX) and name not in self.served and name not in self._busy:
             self._spawn(self._publish(name, backend), f"cluster: publish {name}")
@@ -494,15 +507,19 @@ class ClusterNode:
             self._writes.put(Kind.STATE, name, self.registry.state_of(name))
         self._mark(name)
 
-    async def _unpublish(self, name: str) -> None:
-        """A published device left this gateway's router: its keys go."""
+    async def _unpublish(self, name: str, registration: Registration | None) -> None:
+        """A published device left this gateway's router: its keys go, unless they are another
+        gateway's by now (the device dialled in there while this gateway was frozen)."""
         try:
-            await self._delete(Kind.SERVICE, name)
-            await self._let_go(Kind.OWNER, name, self.me)
-            await self._delete(Kind.STATE, name)
+            held = self.view.registrations.get(name)
+            if held is not None and registration is not None and held.url == registration.url:
+                await self._delete(Kind.SERVICE, name)
+            if await self._let_go(Kind.OWNER, name, self.me):
+                await self._delete(Kind.STATE, name)
         except PropertyError as exc:
             log.info("cluster: %s left; its keys stay until the lease ends: %s", name, exc.message)
         self._count_changed()
+        self._mark(name)  # a registration of the name elsewhere is served here from now on
 
     # -- reconciling: what the router serves follows the view ------------------
 
@@ -536,6 +553,8 @@ class ClusterNode:
                 if asyncio.get_running_loop().time() < self._settling_until:
                     self._deferred[name] = None  # looked at again once the others wrote theirs again
                     return
+                if await self._await_device(name):
+                    return
                 await self._drop(name)
             if owner == self.me:  # the registration left: so does this gateway's claim on it
                 await self._let_go(Kind.OWNER, name, self.me)
@@ -546,12 +565,16 @@ class ClusterNode:
             if owner is not None and owner != self.me:
                 log.warning("cluster: %s is owned by %s now; the device here is turned away", name, owner)
                 await self._drop(name)
+                self._mark(name)  # served again, forwarded to its owner
                 return
             self._show_owner(name)
             return
         switching = self._serve(name, registration)
         if switching is None:
             return
+        if self._awaited.pop(name, None) is not None:
+            log.info("cluster: %s is back, at %s", name, registration.url)
+        switching.info.url = registration.url
         if owner == self.me:
             if name not in self.owned or switching.target is None:
                 self._open_owned(name, switching)
@@ -567,6 +590,77 @@ class ClusterNode:
         else:
             await self._orphan(name, registration, switching)
         self._show_owner(name)
+
+    async def _await_device(self, name: str) -> bool:
+        """The registration of ``name`` left the cluster: when it was a device that dialled in (it
+        left with its gateway, and dials another one), hold its entry, answering UNAVAILABLE, until it
+        is back or :attr:`reconnect_grace` has passed. True while it is held."""
+        switching = self.served.get(name)
+        if switching is None or name in self._dialled or self._stopped:
+            return False
+        if not switching.info.url.startswith(DIAL_IN_PREFIX):
+            return False  # a registration by Set leaves only when unregistered
+        loop = asyncio.get_running_loop()
+        until = self._awaited.get(name)
+        if until is None:
+            until = self._awaited[name] = loop.time() + self.reconnect_grace
+            self._forwarding.pop(name, None)
+            await switching.switch(
+                None,
+                reason=f"service {name!r} is reconnecting: its device had dialled in to a gateway "
+                f"that left the cluster, and dials another one",
+            )
+            if self.registry is not None:
+                self.registry.mirror(name, "connecting")
+            self._show_owner(name)
+            loop.call_later(self.reconnect_grace, self._mark, name)
+            log.info(
+                "cluster: %s left with its gateway; waiting %g s for it to dial in again",
+                name,
+                self.reconnect_grace,
+            )
+            return True
+        if loop.time() < until:
+            return True
+        del self._awaited[name]
+        log.info("cluster: %s did not dial in again within %g s; it is gone", name, self.reconnect_grace)
+        return False
+
+    def awaits(self, name: str) -> bool:
+        """Whether ``name`` is held for a device that dialled in and is reconnecting (it may dial here)."""
+        return name in self._awaited and name in self.served and name not in self.view.registrations
+
+    def inbound(self, name: str) -> Backend | None:
+        """The proxy of the device ``name`` that dialled in here and sits in the cluster's entry (it
+        dialled in here while it was awaited); None when there is none."""
+        switching = self.served.get(name)
+        if switching is None or self._dialled.get(name) is not switching:
+            return None
+        return switching.target
+
+    async def seat(self, name: str, proxy: Backend) -> None:
+        """The device ``name``, awaited (:meth:`awaits`), dialled in here: publish it and serve it
+        through the entry that held its name, so that every Listen on it resumes with a gap.
+        AlreadyExists when it is not awaited (any more) or another gateway took the name first."""
+        switching = self.served.get(name)
+        until = self._awaited.get(name)
+        if switching is None or until is None or not self.awaits(name):
+            raise AlreadyExists(f"the name {name!r} is taken")
+        registration = Registration(proxy.info.url, {"type": proxy.info.type} if proxy.info.type else {})
+        self._writable()
+        self._busy.add(name)  # the reconciler leaves it alone until it is served here
+        try:
+            await self._claim(name, registration, leased=True)
+            self._awaited.pop(name, None)
+            switching.info.url = registration.url
+            self._dialled[name] = switching
+            await switching.switch(proxy, "dialled in here")
+            self._own(name, registration)
+        finally:
+            self._busy.discard(name)
+            self._mark(name)
+        log.info("cluster: %s dialled in here again (%s)", name, registration.url)
+        self._spawn(self._reach(name, switching), f"cluster: reach {name}")
 
     def _show_owner(self, name: str) -> None:
         """``services.NAME.owner`` in this gateway's registry: who holds the connection, as heard."""

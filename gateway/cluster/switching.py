@@ -18,6 +18,7 @@ and every client stream on them, stay as they are.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import itertools
 import logging
 import random
@@ -38,7 +39,7 @@ from services.errors import Code, PropertyError, Unavailable
 from services.model import PropertyModel, ServiceModel
 from services.values import Value
 
-__all__ = ["RESUME_BACKOFF_INITIAL", "RESUME_BACKOFF_MAX", "SwitchingBackend"]
+__all__ = ["RESUME_BACKOFF_INITIAL", "RESUME_BACKOFF_MAX", "RESUME_NOT_FOUND_WAIT", "SwitchingBackend"]
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +47,10 @@ log = logging.getLogger(__name__)
 #: listened to yet (the new owner is still connecting to the device); doubled per failure, jittered.
 RESUME_BACKOFF_INITIAL = 0.1
 RESUME_BACKOFF_MAX = 2.0
+#: Seconds a Listen being opened again on a new target takes NOT_FOUND for "not there yet" (the new
+#: owner, or the gateway it forwards to, has not caught up with the move) before it reports the
+#: property removed: a service that only moves between owners is never reported removed.
+RESUME_NOT_FOUND_WAIT = 5.0
 
 
 class _SwitchedListen(Subscription):
@@ -65,15 +70,42 @@ class _SwitchedListen(Subscription):
         self.closed = False
         #: Its key in the owner's table of listens.
         self.key = -1
+        #: While it is opened again on a new target, and until the first ordinary change after:
+        #: whether the gap of this move has been told (None: not moving).
+        self.gap_told: bool | None = None
+        #: The value the gap of this move carried.
+        self.gap_value: Value = ""
 
     def forward_for(self, generation: int) -> Notify:
         """The notify handed to the target of ``generation``: it passes changes on while that is current."""
 
         def forward(change: Change) -> None:
             if self.generation == generation and not self.closed:
-                self.notify(change)
+                if self.gap_told is None:
+                    self.notify(change)
+                else:
+                    self.tell_moved(change)
 
         return forward
+
+    def tell_moved(self, change: Change) -> None:
+        """A change while the listen moves to a new target, or just after: one gap for the move.
+
+        The new target may report a gap of its own for the same interruption (a gateway it forwards
+        to that was still connecting to the device, a device proxy that had to listen again): the
+        listener hears of the move once, marked gap, and the value it did not have yet unmarked.
+        """
+        if change.removed or not change.gap:
+            if not change.gap and self.gap_told:
+                self.gap_told = None  # an ordinary change: the move is over
+            self.notify(change)
+        elif not self.gap_told:
+            self.gap_told = True
+            self.gap_value = change.value
+            self.notify(change)
+        elif change.value != self.gap_value:
+            self.gap_value = change.value
+            self.notify(dataclasses.replace(change, gap=False))
 
     async def close(self) -> None:
         if self.closed:
@@ -92,9 +124,19 @@ class _SwitchedListen(Subscription):
 class SwitchingBackend(Backend):
     """A cluster service's router entry on one gateway; its target follows the owner (module docstring)."""
 
-    def __init__(self, name: str, url: str, *, declared_type: str = "", reason: str = "") -> None:
+    def __init__(
+        self,
+        name: str,
+        url: str,
+        *,
+        declared_type: str = "",
+        reason: str = "",
+        not_found_wait: float = RESUME_NOT_FOUND_WAIT,
+    ) -> None:
         """``url`` is the registration's URL (what every gateway's registry shows); ``declared_type``
-        the type the registration declared; ``reason`` why there is no target yet."""
+        the type the registration declared; ``reason`` why there is no target yet;
+        ``not_found_wait``: see :data:`RESUME_NOT_FOUND_WAIT`."""
+        self.not_found_wait = not_found_wait
         self.name = name
         self.info = BackendInfo(type=declared_type or UNKNOWN_TYPE, url=url)
         self._declared_type = declared_type
@@ -169,13 +211,18 @@ class SwitchingBackend(Backend):
     async def _listen_again(self, listen: _SwitchedListen, target: Backend, generation: int) -> None:
         """Open ``listen`` on ``target`` (retrying while it cannot be reached yet), then report a gap."""
         failures = 0
+        loop = asyncio.get_running_loop()
+        began = loop.time()
+        if listen.gap_told is None:
+            listen.gap_told = False  # one gap for the move, however many targets it passes through
         while listen.generation == generation and not listen.closed:
             try:
                 sub, value = await target.listen_current(
                     listen.path, listen.forward_for(generation), listen.params
                 )
             except PropertyError as exc:
-                if exc.code is Code.NOT_FOUND:
+                if exc.code is Code.NOT_FOUND and loop.time() - began >= self.not_found_wait:
+                    listen.gap_told = None
                     listen.notify(Change(listen.path, "", removed=True))
                     return
                 failures += 1
@@ -189,7 +236,7 @@ class SwitchingBackend(Backend):
                 return
             listen.sub = sub
             listen.resuming = None
-            listen.notify(Change(listen.path, value, gap=True))
+            listen.tell_moved(Change(listen.path, value, gap=True))
             return
 
     # -- calls -------------------------------------------------------------

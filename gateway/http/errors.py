@@ -15,7 +15,7 @@ from typing import Final
 from aiohttp import web
 
 from gateway.status import clip_message, to_property_error
-from services.errors import Code, PropertyError
+from services.errors import Code, PropertyError, ResourceExhausted
 
 log = logging.getLogger(__name__)
 
@@ -67,3 +67,14 @@ def error_response(exc: BaseException, what: str = "request", status: int | None
         content_type="application/json",
         headers={"Cache-Control": "no-store"},
     )
+
+
+def connection_refusal(reason: str) -> bytes:
+    """What a connection refused at the door reads (plain HTTP): a 503 whose JSON names the bound."""
+    err = ResourceExhausted(f"too many connections: {reason}; try again later")
+    body = json.dumps({"error": error_json(err)}).encode()
+    head = (
+        "HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(body)}\r\nRetry-After: 1\r\nConnection: close\r\n\r\n"
+    )
+    return head.encode() + body

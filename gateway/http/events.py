@@ -14,8 +14,11 @@ what :func:`gateway.listen.drain.responses` yields:
 
 A request with ``Last-Event-ID`` (EventSource resuming) gets the snapshot with
 ``gap: true`` on each value: changes in between may be lost. A client that does not read
-makes ``write`` wait (the transport buffers at most its high-water mark); meanwhile the
-stream's queue keeps only the latest value of each property. A write that waits longer than
+makes ``write`` wait (the message is written in slices: the transport buffers at most about
+two); meanwhile the stream's queue keeps only the latest value of each property. A message
+carrying a large value counts against the hub's budget while it is written
+(:mod:`gateway.listen.budget`); one that does not fit ends the stream with ``event: error``
+(RESOURCE_EXHAUSTED). A write that waits longer than
 ``http.write_timeout`` ends the stream (the connection is dropped): a client that reads
 nothing for that long is gone.
 
@@ -29,7 +32,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping
-from contextlib import aclosing
+from contextlib import aclosing, suppress
 
 from aiohttp import hdrs, web
 from google.protobuf.duration_pb2 import Duration
@@ -42,11 +45,15 @@ from gateway.http.errors import error_json
 from gateway.http.places import StreamHandler, StreamPlaces, too_many, write_or_drop
 from gateway.http.safety import identify
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
-from gateway.listen.drain import Wake, responses
+from gateway.listen.drain import Taken, Wake, taken
+from gateway.listen.encoding import Mark
+from gateway.listen.topics import Topic
 from gateway.rules import Subject
 from gateway.status import to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.conflation import Slot
 from services.errors import InvalidArgument, PropertyError, ResourceExhausted
+from services.values import Value
 
 log = logging.getLogger(__name__)
 
@@ -72,36 +79,45 @@ def listen_request(selectors: list[str]) -> pb.ListenRequest:
     return pb.ListenRequest(service=first.service, property=first.property, more=refs[1:])
 
 
-def event_json(ev: pb.Event, gap: bool, media_type: str) -> dict[str, object]:
+def event_json(topic: Topic, entry: Slot[Value], gap: bool, media_type: str) -> dict[str, object]:
     """One event as the JSON of its ``data:`` line: ``value``, or ``data`` and ``media_type`` when binary."""
-    item: dict[str, object] = {"service": ev.service, "path": ev.property}
-    item.update(value_json(ev.value, ev.data if ev.HasField("data") else None, media_type))
+    item: dict[str, object] = {"service": topic.service, "path": topic.path}
+    value = entry.value
+    if isinstance(value, bytes):
+        item.update(value_json("", value, media_type))
+    else:
+        item.update(value_json(value, None, media_type))
     item.update(
-        gap=ev.gap or gap,
-        removed=ev.removed,
-        conflated=ev.conflated,
-        time=ev.time.seconds + ev.time.nanos / 1e9,
+        gap=entry.gap or gap,
+        removed=entry.removed,
+        conflated=entry.conflated,
+        time=entry.stamp / 1e9,
     )
     return item
 
 
-def binary_refs(response: pb.ListenResponse) -> list[tuple[str, str]]:
-    """(service, path) of each binary value in ``response``."""
-    return [(ev.service, ev.property) for ev in response.events if ev.HasField("data")]
+def binary_refs(item: Taken) -> list[tuple[str, str]]:
+    """(service, path) of each binary value in ``item``."""
+    if isinstance(item, Mark):
+        return []
+    return [(topic.service, topic.path) for topic, entry in item[0] if isinstance(entry.value, bytes)]
 
 
-def encode(response: pb.ListenResponse, gap: bool, media_types: Mapping[tuple[str, str], str] = {}) -> bytes:
-    """One ListenResponse as SSE messages; ``gap`` marks every value (a resumed snapshot);
+def encode(item: Taken, gap: bool, media_types: Mapping[tuple[str, str], str] = {}) -> bytes:
+    """What a stream took as SSE messages; ``gap`` marks every value (a resumed snapshot);
     ``media_types`` names the media type of each binary value by (service, path)."""
-    if response.sync:
+    if item is Mark.SYNC:
         return SYNC
-    if response.heartbeat and not response.events:
+    if item is Mark.HEARTBEAT:
         return HEARTBEAT
+    assert not isinstance(item, Mark)
+    events, sequence = item
     parts = []
-    for ev in response.events:
-        media_type = media_types.get((ev.service, ev.property), OCTET_STREAM)
-        data = json.dumps(event_json(ev, gap, media_type), ensure_ascii=False)
-        parts.append(f"id: {ev.sequence}\nevent: value\ndata: {data}\n\n")
+    for topic, entry in events:
+        sequence += 1
+        media_type = media_types.get((topic.service, topic.path), OCTET_STREAM)
+        data = json.dumps(event_json(topic, entry, gap, media_type), ensure_ascii=False)
+        parts.append(f"id: {sequence}\nevent: value\ndata: {data}\n\n")
     return "".join(parts).encode()
 
 
@@ -165,25 +181,51 @@ class EventStreams(StreamHandler):
         resumed = hdrs.LAST_EVENT_ID in request.headers
         snapshot = True
         media_types = MediaTypes(self.calls)
+        budget = self.hub.budget
         try:
-            async with aclosing(responses(stream, wake)) as ready:
-                async for answer in ready:
-                    for service, path in binary_refs(answer):
+            async with aclosing(taken(stream, wake)) as ready:
+                async for item in ready:
+                    for service, path in binary_refs(item):
                         await media_types.of(service, path)  # a model read the first time only
-                    chunk = encode(answer, resumed and snapshot, media_types.known)
-                    if not await write_or_drop(
-                        request, response, chunk, within_s=self.write_timeout, what="event stream", peer=peer
-                    ):
-                        return response
-                    if answer.sync:
+                    chunk = encode(item, resumed and snapshot, media_types.known)
+                    if item is Mark.SYNC:
                         snapshot = False
+                    # A chunk carrying a binary value is this reader's one copy of it (base64):
+                    # counted against the hub's budget until the connection has taken it.
+                    size = len(chunk)
+                    if not budget.take(size):
+                        del chunk  # not held while the error is written
+                        return await self._end(request, response, budget.refusal(size, "event stream"), peer)
+                    try:
+                        written = await write_or_drop(
+                            request,
+                            response,
+                            chunk,
+                            within_s=self.write_timeout,
+                            what="event stream",
+                            peer=peer,
+                        )
+                    finally:
+                        budget.give_back(size)
+                    del chunk
+                    if not written:
+                        return response
         except ConnectionError:
             return response  # the client went away
         except Exception as exc:
-            try:
-                await response.write(error_event(to_property_error(exc, "event stream")))
-            except ConnectionError:
-                return response
+            return await self._end(request, response, exc, peer)
+        return response
+
+    async def _end(
+        self, request: web.Request, response: web.StreamResponse, exc: BaseException, peer: str
+    ) -> web.StreamResponse:
+        """End the stream with ``event: error`` for ``exc`` (a reader that does not take it within
+        ``http.write_timeout`` is dropped)."""
+        event = error_event(to_property_error(exc, "event stream"))
+        with suppress(ConnectionError):
+            await write_or_drop(
+                request, response, event, within_s=self.write_timeout, what="event stream", peer=peer
+            )
         return response
 
 

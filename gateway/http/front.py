@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import resource
 from collections.abc import Awaitable, Callable
 from time import perf_counter
 
@@ -24,11 +23,12 @@ from aiohttp.http_exceptions import HttpProcessingError
 from gateway.calls import Calls
 from gateway.client_faults import filter_client_faults
 from gateway.config import Config, is_loopback
+from gateway.connections import BoundedListener, ConnectionCaps
 from gateway.guard import Guard
 from gateway.http.api import Api, body_too_large
 from gateway.http.bodies import BodyTooLarge
 from gateway.http.console import CONSOLE_ROOT, Console
-from gateway.http.errors import PAYLOAD_TOO_LARGE, error_response
+from gateway.http.errors import PAYLOAD_TOO_LARGE, connection_refusal, error_response
 from gateway.http.events import EventStreams
 from gateway.http.image_stream import ImageStreams
 from gateway.http.openapi import document
@@ -43,7 +43,7 @@ from gateway.logs import (
     request_id_from,
 )
 from gateway.metrics.counts import HttpCounts
-from gateway.ports import start_site
+from gateway.ports import start_bounded
 from gateway.tls import HttpsCredentials
 from services.errors import Code, InvalidArgument, PropertyError, ResourceExhausted, error_for
 
@@ -81,29 +81,6 @@ def _route_of(request: web.Request) -> str:
     return f"{info.route.method} {resource.canonical}"
 
 
-#: Descriptors the gateway needs beside its event streams: gRPC connections, proxies, logs.
-FILES_BESIDE_STREAMS = 1024
-
-
-def room_for_files(wanted: int) -> None:
-    """Raise the soft limit on open files towards ``wanted`` (at most the hard limit): many
-    systems start processes with 1,024, fewer than ``http.max_streams`` connections need."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if soft == resource.RLIM_INFINITY or soft >= wanted:
-        return
-    new = wanted if hard == resource.RLIM_INFINITY else min(wanted, hard)
-    if new > soft:
-        resource.setrlimit(resource.RLIMIT_NOFILE, (new, hard))
-        log.debug("open files limit raised from %d to %d for http.max_streams", soft, new)
-    if new < wanted:
-        log.warning(
-            "open files are limited to %d (hard limit), fewer than http.max_streams needs (%d):"
-            " connections beyond are refused by the system",
-            new,
-            wanted,
-        )
-
-
 class HttpFront:
     """The HTTP/JSON + SSE front end of one gateway; :meth:`start` and :meth:`stop` in its loop."""
 
@@ -132,6 +109,11 @@ class HttpFront:
         self.counts = HttpCounts() if config.metrics.enabled else None
         #: ``GET /metrics``, set by the gateway when metrics are on (before :meth:`start`).
         self.metrics: Handler | None = None
+        #: Connections held at once: ``max_connections``, or the share of open files the gateway
+        #: gave this port (set before :meth:`start`).
+        self.max_connections = self.settings.max_connections
+        #: The listening sockets and their connection caps; None before :meth:`start`.
+        self.listener: BoundedListener | None = None
 
     @property
     def url(self) -> str:
@@ -245,7 +227,6 @@ class HttpFront:
 
     async def start(self) -> None:
         """Listen; raises PortInUse (one line naming the holder) when the port is taken."""
-        room_for_files(self.settings.max_streams + FILES_BESIDE_STREAMS)
         # aiohttp logs a request it cannot parse (a malformed header, an oversized line) with a
         # traceback: a client's doing, one rate-limited line instead.
         filter_client_faults("aiohttp.server", (HttpProcessingError,))
@@ -256,20 +237,41 @@ class HttpFront:
             self.credentials = HttpsCredentials(self.config.tls)
         ssl_context = self.credentials.context if self.credentials is not None else None
         # handler_cancellation: a client that goes away ends its handler (an idle event stream
-        # would otherwise only notice at its next heartbeat).
+        # would otherwise only notice at its next heartbeat). keepalive_timeout: aiohttp closes a
+        # connection with no request running after it, a fresh one that sends nothing included.
         runner = web.AppRunner(
             self.build_app(),
             handler_cancellation=True,
             access_log=None,
             shutdown_timeout=self.config.gateway.shutdown_grace,
+            keepalive_timeout=self.settings.idle_timeout,
         )
         await runner.setup()
-        self.address = await start_site(runner, host, port, "http.listen", ssl_context)
+        caps = ConnectionCaps(
+            self.max_connections,
+            self.settings.max_connections_per_address,
+            "http.max_connections",
+            "http.max_connections_per_address",
+        )
+        server = runner.server
+        assert server is not None  # set up just before
+        self.listener = BoundedListener(
+            server,  # aiohttp's server makes each connection's protocol
+            caps,
+            "http.listen",
+            ssl_context=ssl_context,
+            ssl_handshake_timeout=self.config.gateway.handshake_timeout,
+            refusal=None if ssl_context is not None else connection_refusal,
+        )
+        self.address = await start_bounded(self.listener, runner, host, port, "http.listen")
         self._runner = runner
         log.debug("HTTP front end and console on %s", self.url)
 
     async def stop(self) -> None:
         """Stop listening and end every request (event streams end with the hub's error first)."""
+        listener, self.listener = self.listener, None
+        if listener is not None:
+            await listener.aclose()
         runner, self._runner = self._runner, None
         if runner is not None:
             await runner.cleanup()

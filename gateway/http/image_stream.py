@@ -8,10 +8,13 @@ sequence) and ``X-Conflated`` (values skipped for this reader since the last par
 same way. When the property goes away the body ends with the closing boundary.
 
 A reader slower than the property's rate gets the latest value only: while ``write`` waits on
-the client (the transport holds at most its high-water mark beyond the part being written), the
-stream's queue keeps one value for the property, and a response holding several events writes
-only its last. A write that waits longer than ``http.write_timeout`` drops the connection. Such
-a stream takes one of the places event streams take (:mod:`gateway.http.places`).
+the client, the stream's queue keeps one value for the property, and a response holding several
+events writes only its last. The part's bytes are the value every reader shares, written in
+slices (the transport holds at most about two): a stalled reader holds no copy of its own. While
+it is written a large part counts against the hub's budget (:mod:`gateway.listen.budget`); one
+that does not fit ends the stream. A write that waits longer than ``http.write_timeout`` drops
+the connection. Such a stream takes one of the places event streams take
+(:mod:`gateway.http.places`).
 
 A request that cannot start (no such service or property, a text property, refused by the rules)
 is a JSON error with its status, before any part.
@@ -32,7 +35,8 @@ from gateway.http.errors import error_response
 from gateway.http.places import StreamHandler, too_many, write_or_drop
 from gateway.http.safety import identify
 from gateway.listen import parse_options, parse_selectors
-from gateway.listen.drain import Wake, responses
+from gateway.listen.drain import Taken, Wake, taken
+from gateway.listen.encoding import Mark, Ready
 from gateway.rules import Operation
 from gateway.status import to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -55,12 +59,16 @@ def part_head(media_type: str, size: int, sequence: int, conflated: int) -> byte
     ).encode("ascii")
 
 
-def latest(response: pb.ListenResponse) -> tuple[pb.Event | None, int]:
-    """The event of ``response`` to write (the last one) and how many values it replaces for the reader."""
-    if not response.events:
-        return None, 0
-    skipped = len(response.events) - 1 + sum(ev.conflated for ev in response.events[:-1])
-    return response.events[-1], skipped
+def latest(item: Taken) -> tuple[Ready | None, int, int]:
+    """The event of ``item`` to write (the last one), its sequence number, and how many values it
+    replaces for the reader."""
+    if isinstance(item, Mark):
+        return None, 0, 0
+    events, before = item
+    if not events:
+        return None, 0, 0
+    skipped = len(events) - 1 + sum(entry.conflated for _, entry in events[:-1])
+    return events[-1], before + len(events), skipped
 
 
 class ImageStreams(StreamHandler):
@@ -98,7 +106,7 @@ class ImageStreams(StreamHandler):
         self.open.add(stream)
         try:
             with self.places.held(peer):
-                async with aclosing(responses(stream, wake)) as ready:
+                async with aclosing(taken(stream, wake)) as ready:
                     return await self._serve(request, ready, media_type, peer)
         finally:
             stream.close()
@@ -107,16 +115,16 @@ class ImageStreams(StreamHandler):
     async def _serve(
         self,
         request: web.Request,
-        ready: AsyncGenerator[pb.ListenResponse, None],
+        ready: AsyncGenerator[Taken, None],
         media_type: str,
         peer: str,
     ) -> web.StreamResponse:
         # The first answer (the current value) before the response begins: a Listen that cannot
         # start is still a JSON error with its status.
         try:
-            answer: pb.ListenResponse | None = await anext(ready)
+            item: Taken | None = await anext(ready)
         except StopAsyncIteration:
-            answer = None
+            item = None
         except PropertyError as exc:
             return error_response(exc, f"stream {request.path[:200]}")
         response = web.StreamResponse(
@@ -128,27 +136,29 @@ class ImageStreams(StreamHandler):
             }
         )
         await response.prepare(request)
+        what = f"image stream {request.path[:200]}"
         skipped = 0
         try:
-            while answer is not None:
-                event, conflated = latest(answer)
+            while item is not None:
+                event, sequence, conflated = latest(item)
+                item = None
                 skipped += conflated
-                if event is not None and event.removed:
+                if event is not None and event[1].removed:
                     break  # the property went away: the body ends
-                if event is not None and event.HasField("data"):
-                    data = event.data
-                    part = part_head(media_type, len(data), event.sequence, skipped + event.conflated)
-                    chunk = part + data + b"\r\n"
-                    if not await write_or_drop(
-                        request, response, chunk, within_s=self.write_timeout, what="image stream", peer=peer
+                data = event[1].value if event is not None else None
+                if event is not None and isinstance(data, bytes):
+                    head = part_head(media_type, len(data), sequence, skipped + event[1].conflated)
+                    if not await self._write_part(
+                        request, response, head=head, data=data, what=what, peer=peer
                     ):
                         return response
                     skipped = 0
-                answer = await anext(ready, None)
+                event = data = None  # waiting for the next value, the stream holds nothing of this one
+                item = await anext(ready, None)
         except ConnectionError:
             return response  # the client went away
         except Exception as exc:
-            err = to_property_error(exc, f"stream {request.path[:200]}")
+            err = to_property_error(exc, what)
             log.info("image stream to %s ended: %s %s", peer, err.code.name, err.message)
         try:
             async with asyncio.timeout(self.write_timeout):
@@ -158,3 +168,34 @@ class ImageStreams(StreamHandler):
             if request.transport is not None:
                 request.transport.abort()
         return response
+
+    async def _write_part(
+        self,
+        request: web.Request,
+        response: web.StreamResponse,
+        *,
+        head: bytes,
+        data: bytes,
+        what: str,
+        peer: str,
+    ) -> bool:
+        """Write one part: ``head``, then the value itself (the one every reader shares, in
+        slices: no copy of it piles up for a slow reader), counted against the hub's budget
+        while it is written. False when the reader was dropped; RESOURCE_EXHAUSTED when the
+        budget has no room for it."""
+        budget = self.hub.budget
+        if not budget.take(len(data)):
+            raise budget.refusal(len(data), what)
+        try:
+            return await write_or_drop(
+                request,
+                response,
+                head,
+                data,
+                b"\r\n",
+                within_s=self.write_timeout,
+                what="image stream",
+                peer=peer,
+            )
+        finally:
+            budget.give_back(len(data))

@@ -90,17 +90,38 @@ def too_many(message: str, status: int = TOO_MANY_STREAMS) -> web.Response:
     return error_response(ResourceExhausted(message), status=status)
 
 
-async def write_or_drop(
-    request: web.Request, response: web.StreamResponse, data: bytes, *, within_s: float, what: str, peer: str
-) -> bool:
-    """Write ``data`` to a stream within ``within_s`` seconds; False when the reader did not take it.
+#: Bytes handed to a connection at a time. The transport copies what the socket does not take at
+#: once into its own buffer, so a large value written whole would be copied once per slow reader
+#: (Python 3.11's asyncio); in slices of its high-water mark (64 KiB) the transport holds at most
+#: about two, and the value itself stays the one copy every reader shares.
+WRITE_SLICE = 64 * 1024
 
-    A reader that reads nothing for that long is dropped (its connection aborted), not finished:
-    finishing would wait on the same full buffer. ``what`` names the stream in the log line.
+
+async def write_or_drop(
+    request: web.Request,
+    response: web.StreamResponse,
+    *pieces: bytes,
+    within_s: float,
+    what: str,
+    peer: str,
+) -> bool:
+    """Write ``pieces`` one after the other to a stream within ``within_s`` seconds; False when
+    the reader did not take them.
+
+    A piece larger than :data:`WRITE_SLICE` is written a slice at a time, each once the
+    connection has taken the last (no copy of it piles up in the transport). A reader that reads
+    nothing for that long is dropped (its connection aborted), not finished: finishing would wait
+    on the same full buffer. ``what`` names the stream in the log line.
     """
     try:
         async with asyncio.timeout(within_s):
-            await response.write(data)
+            for piece in pieces:
+                if len(piece) <= WRITE_SLICE:
+                    await response.write(piece)
+                    continue
+                view = memoryview(piece)
+                for start in range(0, len(view), WRITE_SLICE):
+                    await response.write(view[start : start + WRITE_SLICE])
     except TimeoutError:
         log.info("%s to %s ended: it read nothing for %g s (http.write_timeout)", what, peer, within_s)
         if request.transport is not None:

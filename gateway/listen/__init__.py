@@ -10,6 +10,8 @@
 * :mod:`~gateway.listen.matched` — a wildcard's matches on one service, kept sorted.
 * :mod:`~gateway.listen.encoding` — events into ``ListenResponse`` messages, batched by bytes.
 * :mod:`~gateway.listen.hub` — the hub that owns topics and streams.
+* :mod:`~gateway.listen.drain` — how a front end writes a stream: wait, take, repeat.
+* :mod:`~gateway.listen.budget` — one total for the large values readers hold, all together.
 """
 
 from gateway.listen.hub import ListenHub

@@ -1,7 +1,7 @@
 """How a front end writes one Listen stream: wait until it is ready, take what it has, repeat.
 
 The HTTP front end's event and image streams drain a
-:class:`~gateway.listen.stream.ListenStream` through :func:`responses`; the gRPC Listen
+:class:`~gateway.listen.stream.ListenStream` through :func:`taken`; the gRPC Listen
 handler runs the same loop itself, on the serialized form (``ListenStream.take_wire``), to
 save an async-generator step a message. A writer that waits on its client (a slow reader)
 is simply not taking: the stream's conflating queue holds the latest value per property
@@ -13,8 +13,8 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncGenerator
 
+from gateway.listen.encoding import Mark, Ready
 from gateway.listen.stream import ListenStream
-from protos.propertyservice.v1 import property_service_pb2 as pb
 
 
 class Wake:
@@ -56,18 +56,26 @@ class Wake:
             await future
 
 
-async def responses(stream: ListenStream, wake: Wake) -> AsyncGenerator[pb.ListenResponse, None]:
-    """Start ``stream`` and yield each response it has ready, as it becomes ready.
+#: What a writer takes at a time: events (with the stream's sequence number before the first),
+#: or a marker (``sync``, a heartbeat).
+Taken = tuple[list[Ready], int] | Mark
+
+
+async def taken(stream: ListenStream, wake: Wake) -> AsyncGenerator[Taken, None]:
+    """Start ``stream`` and yield what it has ready (:meth:`ListenStream.take_events`), as it
+    becomes ready.
 
     ``wake`` is the one the stream was opened with. Raises the stream's error (a
     ``PropertyError``: the start failed, a limit was passed, the gateway is shutting down);
-    returns when the stream is ended or closed. The caller closes the stream.
+    returns when the stream is ended or closed. The caller closes the stream. The events carry
+    the values every stream shares: a writer that waits on its client holds a reference to one,
+    never a copy.
     """
     await stream.start()
     while True:
         await wake.wait()
-        while (response := stream.take()) is not None:
-            yield response
+        while (item := stream.take_events()) is not None:
+            yield item
         if stream.error is not None:
             raise stream.error
         if stream.ended or stream.closed:

@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from gateway.config import Limits
 from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
+from gateway.listen.budget import PayloadBudget
 from gateway.listen.requests import Selector, StreamOptions
 from gateway.listen.stream import ListenStream
 from gateway.listen.topics import Topics
@@ -40,6 +41,8 @@ class ListenHub:
         self.guard = guard or Guard()
         self.limits = limits
         self.topics = Topics(call_timeout)
+        #: What every reader of every front end holds of large values, together (limits.max_pending_binary).
+        self.budget = PayloadBudget(limits.max_pending_binary)
         self._streams: set[ListenStream] = set()
         #: Events sent and values conflated by the streams already closed (the open ones keep their own).
         self.closed_events_sent = 0

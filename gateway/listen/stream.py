@@ -725,6 +725,15 @@ class ListenStream:
             return encode_wire(taken, self._sequence - len(taken))
         return None if taken is None else taken.wire
 
+    def take_events(self) -> tuple[list[Ready], int] | Mark | None:
+        """:meth:`take` before encoding: the events ready and the sequence number before the
+        first, a marker, or None. A value is the one every stream shares, not a copy: the HTTP
+        front end writes it from there."""
+        taken = self._next()
+        if isinstance(taken, list):
+            return taken, self._sequence - len(taken)
+        return taken
+
     def _next(self) -> list[Ready] | Mark | None:
         """What the next response carries: events (numbered already), a marker, or nothing."""
         self._signalled = False

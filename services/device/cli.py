@@ -23,13 +23,15 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import signal
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from services.backend import Backend
-from services.device.server import DeviceServer
+from services.device.server import DIAL_KEEPALIVE, DeviceServer
+from services.device.session import KEEPALIVE_TIMEOUT
 from services.errors import PropertyError
 from services.line_protocol import MAX_INFLIGHT, MAX_LINE, MAX_RXBUF, MIN_MAX_LINE, MIN_RXBUF
 
@@ -133,7 +135,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="a file holding the secret the greeting carries (secret=...) when dialling a gateway that "
         "configures this device",
     )
+    parser.add_argument(
+        "--keepalive",
+        type=_seconds("keepalive", 0.0, 3600.0),
+        default=DIAL_KEEPALIVE,
+        help="with --connect: PING a gateway silent this many seconds, and dial the next one when it "
+        "does not answer within --keepalive-timeout (a frozen gateway; "
+        f"default {DIAL_KEEPALIVE:g}; 0: never)",
+    )
+    parser.add_argument(
+        "--keepalive-timeout",
+        type=_seconds("keepalive-timeout", 0.01, 600.0),
+        default=KEEPALIVE_TIMEOUT,
+        help=f"seconds the gateway has to answer the keep-alive PING (default {KEEPALIVE_TIMEOUT:g})",
+    )
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+
+
+def _seconds(what: str, low: float, high: float) -> Callable[[str], float]:
+    """An argparse type: seconds from ``low`` to ``high`` (0 allowed where ``low`` is 0)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be a number of seconds, not {text!r}") from None
+        if not (math.isfinite(value) and low <= value <= high):
+            raise argparse.ArgumentTypeError(f"{what} must be from {low:g} to {high:g} seconds")
+        return value
+
+    return parse
 
 
 def bounded_int(what: str, low: int, high: int) -> Callable[[str], int]:
@@ -177,6 +208,8 @@ async def serve(args: argparse.Namespace) -> None:
         inflight=getattr(args, "inflight", None),
         rxbuf=getattr(args, "rxbuf", None),
         secret=_read_secret(args.secret_file) if getattr(args, "secret_file", None) else "",
+        keepalive=getattr(args, "keepalive", DIAL_KEEPALIVE),
+        keepalive_timeout=getattr(args, "keepalive_timeout", KEEPALIVE_TIMEOUT),
     )
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()

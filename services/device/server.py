@@ -19,7 +19,7 @@ from dataclasses import replace
 
 from services.backend import Backend
 from services.device.alternates import ALTERNATES_FIELD, GatewayAddresses
-from services.device.session import CALL_TIMEOUT, READ_SIZE, DeviceSession
+from services.device.session import CALL_TIMEOUT, KEEPALIVE_TIMEOUT, READ_SIZE, DeviceSession
 from services.device.transports import open_pty, open_serial, pipe_streams
 from services.errors import Code
 from services.line_protocol import MAX_LINE, ErrorReply, Hello, encode
@@ -28,12 +28,19 @@ __all__ = ["DeviceServer"]
 
 log = logging.getLogger(__name__)
 
+#: Seconds of silence from the gateway a device dialled before it sends a keep-alive ``PING``: a
+#: gateway's own PINGs and liveness checks come every few seconds, so a gateway silent for longer
+#: is asked, and one that stays silent (frozen) is left for another within about 5 s.
+DIAL_KEEPALIVE = 2.0
 #: Seconds ``aclose`` waits for a listening socket to close.
 _CLOSE_WAIT = 5.0
 
 
 class DeviceServer:
     """Serves one backend to any number of line-protocol connections (TCP clients, a serial port)."""
+
+    #: The level of the "connected" and "disconnected" lines of each TCP connection.
+    connection_log_level = logging.INFO
 
     def __init__(
         self,
@@ -49,11 +56,16 @@ class DeviceServer:
         secret: str = "",
         inflight: int | None = None,
         rxbuf: int | None = None,
+        keepalive: float = DIAL_KEEPALIVE,
+        keepalive_timeout: float = KEEPALIVE_TIMEOUT,
     ) -> None:
         """``secret``: carried in the greeting (``secret=...``) for a gateway that configures this
         device by name; it proves the device is the one configured (docs/line-protocol.md §4).
         ``inflight`` and ``rxbuf``: the flow control the greeting states (§4.2); with
-        ``inflight`` a connection also takes at most that many requests at once."""
+        ``inflight`` a connection also takes at most that many requests at once. ``keepalive`` and
+        ``keepalive_timeout``: on a connection the device dialled, a gateway silent for
+        ``keepalive`` seconds is sent ``PING`` and left for the next when it does not answer within
+        ``keepalive_timeout`` (a frozen gateway keeps the TCP connection open); 0: never."""
         self.backend = backend
         self.greeting = Hello(
             name=name,
@@ -67,6 +79,8 @@ class DeviceServer:
         self.dial_greeting = replace(self.greeting, extra={"secret": secret}) if secret else self.greeting
         self.checksum = checksum
         self.call_timeout = call_timeout
+        self.keepalive = keepalive
+        self.keepalive_timeout = keepalive_timeout
         self.max_connections = max_connections
         self._sessions: set[asyncio.StreamWriter] = set()
         self._servers: list[asyncio.Server] = []
@@ -88,10 +102,12 @@ class DeviceServer:
         *,
         greeting: Hello | None = None,
         on_greeting: Callable[[Hello], None] | None = None,
+        keepalive: float = 0.0,
     ) -> DeviceSession:
         """The protocol session of one connection, with this server's greeting, checksum and timeout;
         ``backend`` serves this connection instead of the server's (a per-connection view of it),
-        ``greeting`` replaces the server's; ``on_greeting`` hears the peer's greeting."""
+        ``greeting`` replaces the server's; ``on_greeting`` hears the peer's greeting; ``keepalive``:
+        see :class:`DeviceSession` (its timeout is this server's)."""
         return DeviceSession(
             backend if backend is not None else self.backend,
             reader,
@@ -101,6 +117,8 @@ class DeviceServer:
             call_timeout=self.call_timeout,
             peer=peer,
             on_greeting=on_greeting,
+            keepalive=keepalive,
+            keepalive_timeout=self.keepalive_timeout,
         )
 
     async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -113,12 +131,18 @@ class DeviceServer:
         self._sessions.add(writer)
         host, port = tuple(writer.get_extra_info("peername") or ("?", "?"))[:2]
         peer = f"{host}:{port}"
-        log.info("%s: connected", peer)
+        log.log(self.connection_log_level, "%s: connected", peer)
         try:
             await self.serve_stream(reader, writer, peer)
         finally:
             self._sessions.discard(writer)
-            log.info("%s: disconnected", peer)
+            log.log(self.connection_log_level, "%s: disconnected", peer)
+
+    def tcp_protocol(self) -> asyncio.StreamReaderProtocol:
+        """The protocol of one accepted TCP connection, served as :meth:`serve_tcp` serves each (for
+        a listener that accepts connections itself)."""
+        reader = asyncio.StreamReader(limit=READ_SIZE)
+        return asyncio.StreamReaderProtocol(reader, self._on_tcp)
 
     async def serve_tcp(
         self, host: str, port: int, *, ssl_context: ssl.SSLContext | None = None
@@ -135,7 +159,9 @@ class DeviceServer:
         """Dial ``host:port`` (a gateway's line listener) and serve that connection; dial again when it ends.
 
         The greeting, sent first as on every connection, registers the device
-        there. Runs until cancelled. A gateway of a cluster names the other
+        there. Runs until cancelled. A gateway silent for ``keepalive`` seconds
+        is sent ``PING``; one that does not answer (frozen: its TCP connection
+        stays open) is left as if it had closed the connection. A gateway of a cluster names the other
         gateways in its greeting (``alternates=``): when the connection ends or
         cannot be made, the next of them is dialled, in turn
         (:class:`~services.device.alternates.GatewayAddresses`). The pause before a
@@ -168,7 +194,12 @@ class DeviceServer:
 
             try:
                 session = self.session(
-                    reader, writer, f"{host}:{port}", greeting=self.dial_greeting, on_greeting=greeted
+                    reader,
+                    writer,
+                    f"{host}:{port}",
+                    greeting=self.dial_greeting,
+                    on_greeting=greeted,
+                    keepalive=self.keepalive,
                 )
                 await session.run()
             finally:

@@ -44,6 +44,7 @@ from services.values import Value
 
 __all__ = [
     "CALL_TIMEOUT",
+    "KEEPALIVE_TIMEOUT",
     "MAX_IN_FLIGHT",
     "MAX_QUEUED_REPLIES",
     "MAX_QUEUED_REPLY_BYTES",
@@ -71,6 +72,8 @@ MAX_QUEUED_REPLY_BYTES = 8 * 1024 * 1024
 CALL_TIMEOUT = 10.0
 #: Bytes asked of a stream per read (and the stream reader's buffer limit).
 READ_SIZE = 65536
+#: Seconds the peer has to answer the device's keep-alive PING (its PONG, or any other line).
+KEEPALIVE_TIMEOUT = 3.0
 
 
 class DeviceSession:
@@ -87,9 +90,14 @@ class DeviceSession:
         call_timeout: float = CALL_TIMEOUT,
         peer: str = "",
         on_greeting: Callable[[Hello], None] | None = None,
+        keepalive: float = 0.0,
+        keepalive_timeout: float = KEEPALIVE_TIMEOUT,
     ) -> None:
         """``on_greeting`` hears the peer's greeting (a gateway's line listener greets a device that
-        dialled it, and may name other gateways to dial when it is gone, docs/line-protocol.md §4.5)."""
+        dialled it, and may name other gateways to dial when it is gone, docs/line-protocol.md §4.5).
+        ``keepalive``: after that many seconds without a line from the peer, the device sends
+        ``PING``, and ends the connection when nothing comes back within ``keepalive_timeout``
+        (a peer that is frozen keeps its TCP connection open, §9); 0: never."""
         self.backend = backend
         self.reader = reader
         self.writer = writer
@@ -98,6 +106,10 @@ class DeviceSession:
         self.call_timeout = call_timeout
         self.peer = peer or str(writer.get_extra_info("peername") or "?")
         self._on_greeting = on_greeting
+        self.keepalive = keepalive
+        self.keepalive_timeout = keepalive_timeout
+        #: Loop time of the last bytes from the peer (the keep-alive's measure of silence).
+        self._heard = 0.0
         self._receiver = LineReceiver(max_line=greeting.max_line)
         self._send_limit = max(MAX_LINE, greeting.max_line)
         self._outbox = Outbox()
@@ -154,6 +166,9 @@ class DeviceSession:
     async def run(self) -> None:
         """Greet, then serve until the peer closes the connection."""
         writer_task = asyncio.create_task(self._write_loop())
+        loop = asyncio.get_running_loop()
+        self._heard = loop.time()
+        watchdog = asyncio.create_task(self._keep_alive()) if self.keepalive > 0 else None
         try:
             self._reply(self.greeting)
             while True:
@@ -164,6 +179,7 @@ class DeviceSession:
                     break
                 if not data:
                     break
+                self._heard = loop.time()
                 frames = self._receiver.receive_data(data)
                 checked = dict(zip(map(id, frames), self._receiver.last_checked, strict=True))
                 for frame in self._not_cancelled(frames):
@@ -175,7 +191,30 @@ class DeviceSession:
                 if not await self._room(writer_task):
                     break
         finally:
+            if watchdog is not None:
+                watchdog.cancel()
+                await asyncio.gather(watchdog, return_exceptions=True)
             await self._shutdown(writer_task)
+
+    async def _keep_alive(self) -> None:
+        """PING a peer silent for ``keepalive`` seconds; end the connection when it stays silent."""
+        loop = asyncio.get_running_loop()
+        while True:
+            silent = loop.time() - self._heard
+            if silent < self.keepalive:
+                await asyncio.sleep(self.keepalive - silent)
+                continue
+            asked = loop.time()
+            self._reply(Ping("keepalive"))
+            await asyncio.sleep(self.keepalive_timeout)
+            if self._heard < asked:
+                log.warning(
+                    "%s: no answer to a keep-alive PING within %g s; ending the connection",
+                    self.peer,
+                    self.keepalive_timeout,
+                )
+                self.writer.transport.abort()  # the read sees the end; the session closes as on EOF
+                return
 
     async def _room(self, writer_task: asyncio.Task[None]) -> bool:
         """Wait while the replies not yet written are too many or too long; False once the writer stopped."""

@@ -11,18 +11,21 @@ from __future__ import annotations
 import asyncio
 import re
 import subprocess
+from collections.abc import Awaitable, Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
 
 import grpc
 import pytest
 from line_device_support import LineClient, device_process, tcp_device
+from support.fake_backend import DictBackend
 from support.waiting import eventually
 
 from clients.aio import AsyncClient
 from clients.errors import PropertyServiceError
 from gateway.app import Gateway
 from gateway.config import parse_config
+from services.device import DeviceServer
 
 WAIT = 10.0
 
@@ -137,3 +140,49 @@ async def test_registrations_by_set_come_back_after_a_restart_and_config_service
             assert await client.get("registry", "services.survivor") == url
             assert await client.get("registry", "services.survivor.type") == "mobile_robot"
             assert await client.get("survivor", "location.x") == "0"
+
+
+async def test_a_device_leaves_a_gateway_that_does_not_answer_its_keep_alive_for_the_next_one() -> None:
+    """A frozen gateway keeps the TCP connection open: the device's PING goes unanswered, and it dials
+    the alternate the frozen gateway named in its greeting."""
+    heard: dict[str, list[str]] = {"frozen": [], "alternate": []}
+
+    def gateway(
+        kind: str, greeting: str
+    ) -> Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]:
+        async def serve(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            writer.write(greeting.encode())
+            while line := await reader.readline():  # it reads, and answers nothing: frozen
+                heard[kind].append(line.decode().strip())
+            writer.close()
+
+        return serve
+
+    alternate = await asyncio.start_server(
+        gateway("alternate", "HELLO 1 name=gateway type=gateway push=1\n"), "127.0.0.1", 0
+    )
+    host, port = alternate.sockets[0].getsockname()[:2]
+    frozen = await asyncio.start_server(
+        gateway("frozen", f"HELLO 1 name=gateway type=gateway push=1 alternates={host}:{port}\n"),
+        "127.0.0.1",
+        0,
+    )
+    device = DeviceServer(
+        DictBackend({"x": "1"}, type="sensor"), name="probe", keepalive=0.3, keepalive_timeout=0.3
+    )
+    dialling = asyncio.create_task(device.dial(*frozen.sockets[0].getsockname()[:2]))
+    try:
+        greeted = await eventually(
+            lambda: asyncio.sleep(0, heard["alternate"]),
+            bool,
+            what="the alternate dialled",
+        )
+        assert greeted[0].startswith("HELLO 1 name=probe")
+        assert heard["frozen"][0].startswith("HELLO 1 name=probe")
+        assert heard["frozen"][1:] == ["PING keepalive"]
+    finally:
+        dialling.cancel()
+        await asyncio.gather(dialling, return_exceptions=True)
+        await device.aclose()
+        for server in (frozen, alternate):
+            server.close()

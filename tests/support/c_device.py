@@ -88,7 +88,7 @@ class CProgram:
         assert self.proc.stdout is not None
         for line in self.proc.stdout:
             self._lines.append(line)
-            for prefix in ("listening on ", "serial port "):
+            for prefix in ("listening on ", "serial port ", "connecting to "):
                 if line.startswith(prefix) and not self.where:
                     self.where = line[len(prefix) :].strip()
                     self._ready.set()

@@ -215,10 +215,10 @@ async def test_a_reconnect_keeps_the_view_the_watch_reported_and_reads_nothing_o
     assert b.target("thermo").startswith("forwarded to gateway gw-a")
 
 
-async def test_a_device_that_dialled_in_is_published_and_leaves_with_its_gateway(
+async def test_a_device_that_dialled_in_is_published_and_awaited_when_its_gateway_dies(
     cluster: tuple[MemoryServer, list[Member]],
 ) -> None:
-    server, (a, b, _c) = cluster
+    server, (a, b, c) = cluster
     a.router.add("probe", DictBackend({"x": "1"}, type="sensor", url="tcp-in://127.0.0.1:5555"))
     await wait_until(lambda: server.value(Kind.OWNER, "probe") == "gw-a", what="the device published")
     assert json.loads(server.value(Kind.SERVICE, "probe") or "{}") == {
@@ -228,8 +228,38 @@ async def test_a_device_that_dialled_in_is_published_and_leaves_with_its_gateway
     await wait_until(lambda: "probe" in b.router, what="b serves probe")
     assert b.target("probe").startswith("forwarded to gateway gw-a")
     server.kill("gw-a")
-    await wait_until(lambda: "probe" not in b.router, what="the device left with its gateway")
-    assert server.value(Kind.OWNER, "probe") is None  # nobody took it over: it dials in again itself
+    # Nobody takes it over (it dials in again itself): meanwhile every gateway waits for it under its
+    # name, which reads UNAVAILABLE ("reconnecting"), never NOT_FOUND.
+    await wait_until(lambda: c.node.awaits("probe"), what="the device awaited")
+    assert server.value(Kind.OWNER, "probe") is None
+    with pytest.raises(PropertyError, match="reconnecting") as refused:
+        await b.router.lookup("probe").get("x")
+    assert refused.value.code is Code.UNAVAILABLE
+    assert b.registry.state_of("probe") == "connecting"
+    # It dials in to gw-c: gw-c publishes it, and gw-b forwards to gw-c under the same entry.
+    entry = b.router.lookup("probe")
+    await c.node.seat("probe", DictBackend({"x": "2"}, type="sensor", url="tcp-in://127.0.0.1:5557"))
+    assert server.value(Kind.OWNER, "probe") == "gw-c"
+    await wait_until(
+        lambda: b.target("probe").startswith("forwarded to gateway gw-c"), what="b forwards to c"
+    )
+    assert b.router.lookup("probe") is entry
+    assert c.target("probe") == "dialled in here"
+    assert await c.router.lookup("probe").get("x") == "2"
+
+
+async def test_a_device_that_dialled_in_and_does_not_come_back_leaves_after_the_grace() -> None:
+    server = MemoryServer()
+    a, b = [await _member(server, gateway, reconnect_grace=0.5) for gateway in ("gw-a", "gw-b")]
+    try:
+        a.router.add("probe", DictBackend({"x": "1"}, type="sensor", url="tcp-in://127.0.0.1:5555"))
+        await wait_until(lambda: "probe" in b.router, what="b serves probe")
+        server.kill("gw-a")
+        await wait_until(lambda: b.node.awaits("probe"), what="the device awaited")
+        await wait_until(lambda: "probe" not in b.router, what="the device gone after the grace")
+        assert b.registry.entry_of("probe") is None
+    finally:
+        await _stop(b)
 
 
 async def test_a_device_dialling_in_under_a_name_taken_in_the_cluster_is_turned_away(

@@ -82,13 +82,48 @@ async def test_a_new_target_that_cannot_be_reached_yet_is_tried_again() -> None:
     await wait_until(lambda: heard == [Change("x", "4", gap=True)], what="the retry on the new target")
 
 
-async def test_a_property_the_new_target_lacks_is_reported_removed() -> None:
+async def test_a_property_the_new_target_lacks_is_reported_removed_once_it_had_time_to_catch_up() -> None:
+    switching = SwitchingBackend("bot", "tcp://127.0.0.1:7001", not_found_wait=0.3)
+    await switching.switch(DictBackend({"x": "1"}), "a")
+    heard: list[Change] = []
+    await switching.listen("x", heard.append)
+    began = asyncio.get_running_loop().time()
+    await switching.switch(DictBackend({"y": "1"}), "b")
+    await wait_until(lambda: heard == [Change("x", "", removed=True)], what="the removal")
+    assert asyncio.get_running_loop().time() - began >= 0.3
+
+
+async def test_a_new_target_that_finds_the_property_soon_is_a_move_not_a_removal() -> None:
+    switching = SwitchingBackend("bot", "tcp://127.0.0.1:7001", not_found_wait=5.0)
+    await switching.switch(DictBackend({"x": "1"}), "a")
+    heard: list[Change] = []
+    await switching.listen("x", heard.append)
+    late = DictBackend({"y": "1"})  # the new owner that has not caught up with the move yet
+    await switching.switch(late, "b")
+    await asyncio.sleep(0.15)
+    late.values["x"] = "3"
+    await wait_until(lambda: heard == [Change("x", "3", gap=True)], what="the move, with a gap")
+
+
+async def test_a_gap_the_new_target_reports_for_the_same_move_is_not_told_twice() -> None:
     switching = SwitchingBackend("bot", "tcp://127.0.0.1:7001")
     await switching.switch(DictBackend({"x": "1"}), "a")
     heard: list[Change] = []
     await switching.listen("x", heard.append)
-    await switching.switch(DictBackend({"y": "1"}), "b")
-    await wait_until(lambda: heard == [Change("x", "", removed=True)], what="the removal")
+    second = DictBackend({"x": "4"})
+    await switching.switch(second, "forwarded to gw-b")
+    await wait_until(lambda: heard == [Change("x", "4", gap=True)], what="the gap of the move")
+    # gw-b was still connecting to the device when the listen reached it: it reports its own gap.
+    second._notify(Change("x", "4", gap=True))
+    second._notify(Change("x", "5", gap=True))
+    second.put("x", "6")
+    second._notify(Change("x", "7", gap=True))  # a later interruption is one of its own
+    assert heard == [
+        Change("x", "4", gap=True),
+        Change("x", "5"),
+        Change("x", "6"),
+        Change("x", "7", gap=True),
+    ]
 
 
 async def test_closing_closes_the_target_and_every_listen() -> None:

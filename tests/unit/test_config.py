@@ -86,6 +86,20 @@ def test_overrides_from_the_command_line() -> None:
         ("[gateway]\nlog_level = 'loud'", "gateway.log_level: expected one of"),
         ("[limits]\nmax_streams = true", "limits.max_streams: expected an integer"),
         ("[limits]\nmax_batch = 0", "limits.max_batch: must be at least 1"),
+        ("[limits]\nmax_calls = 0", "limits.max_calls: must be at least 1"),
+        (
+            "[limits]\nline_max_connections_per_address = 0",
+            "limits.line_max_connections_per_address: must be",
+        ),
+        ("[gateway]\nmax_connections = 0", "gateway.max_connections: must be at least 1"),
+        ("[gateway]\nhandshake_timeout = 0", "gateway.handshake_timeout: must be a positive number"),
+        ("[gateway]\nidle_timeout = inf", "gateway.idle_timeout: must be a positive number"),
+        ('[http]\nlisten = "127.0.0.1:0"\nmax_connections = 0', "http.max_connections: must be at least 1"),
+        (
+            '[http]\nlisten = "127.0.0.1:0"\nmax_connections_per_address = 0',
+            "http.max_connections_per_address",
+        ),
+        ('[http]\nlisten = "127.0.0.1:0"\nidle_timeout = 0.0', "http.idle_timeout: must be a positive"),
         ("[limit]\nmax_batch = 1", "unknown key 'limit'"),
         (
             '[[services]]\nname = "a"\ntype = "sim-robot"\n[[services]]\nname = "a"\ntype = "sim-robot"',

@@ -362,23 +362,21 @@ def test_check_config_checks_and_names_the_http_section(
     assert sum("http.heartbeat" in line for line in errors) == 1
 
 
-def test_the_open_files_limit_is_raised_for_max_streams() -> None:
+def test_the_open_files_limit_is_raised_to_the_hard_limit_and_shared_between_ports() -> None:
     import resource
 
-    from gateway.http.front import room_for_files
+    from gateway.connections import share_open_files
 
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     top = soft if hard == resource.RLIM_INFINITY else hard
-    low = top - 100
     try:
-        resource.setrlimit(resource.RLIMIT_NOFILE, (low, hard))  # a soft limit under the hard one
-        room_for_files(low + 50)
-        assert resource.getrlimit(resource.RLIMIT_NOFILE) == (low + 50, hard)
-        room_for_files(low)  # never lowered
-        assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == low + 50
-        if hard != resource.RLIM_INFINITY:
-            room_for_files(hard + 1000)  # at most the hard limit (and a warning)
-            assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == hard
+        resource.setrlimit(resource.RLIMIT_NOFILE, (top - 100, hard))  # a soft limit under the hard one
+        wanted = {"http.max_connections": 10, "gateway.max_connections": 20}
+        assert share_open_files(wanted, reserved=10) == wanted
+        assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == top
+        # Shares that do not fit beside what is reserved are lowered in proportion.
+        shares = share_open_files({"http.max_connections": top, "gateway.max_connections": top}, reserved=100)
+        assert shares["http.max_connections"] == shares["gateway.max_connections"] == (top - 100) // 2
     finally:
         resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
 
