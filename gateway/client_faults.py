@@ -2,13 +2,13 @@
 
 A malformed HTTP request, a call cancelled while its message was being sent: the client's doing,
 nothing in the gateway to debug, and something any client can repeat as fast as it likes. Each is
-one WARNING line, at most ``burst`` at once and ``rate`` a second after that (the audit's
+one line, at most ``BURST`` at once and ``RATE`` a second after that (the audit's
 :class:`~gateway.audit.TokenBucket`); what the bucket drops is counted, and the next line written
 says how many were left out. A client's bad token is not here: the audit records that refusal, under
 its own rate.
 
-Libraries that log such failures with a traceback of their own (aiohttp's ``aiohttp.server``) get a
-:class:`ClientFaultFilter` on their logger: configured, not patched.
+Libraries that log such failures with a traceback of their own (``aiohttp.server``,
+``grpc._cython.cygrpc``) get a :class:`ClientFaultFilter` on their logger: configured, not patched.
 """
 
 from __future__ import annotations
@@ -40,7 +40,9 @@ MAX_CHARS = 300
 class FaultLines:
     """Client-fault lines through a token bucket; see the module docstring."""
 
-    def __init__(self, rate: float = RATE, burst: int = BURST, clock: Callable[[], float] = time.monotonic):
+    def __init__(
+        self, rate: float = RATE, burst: int = BURST, clock: Callable[[], float] = time.monotonic
+    ) -> None:
         self._bucket = TokenBucket(rate, burst, clock)
         #: Lines dropped since the last one written.
         self.suppressed = 0
@@ -53,12 +55,6 @@ class FaultLines:
             return None
         dropped, self.suppressed = self.suppressed, 0
         return dropped
-
-    def warn(self, logger: logging.Logger, message: str) -> None:
-        """Log ``message`` (one line, clipped) as a WARNING on ``logger`` if the bucket has room."""
-        dropped = self.admit()
-        if dropped is not None:
-            logger.warning("%s", one_line(message, dropped))
 
 
 def one_line(message: str, dropped: int = 0) -> str:
