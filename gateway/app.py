@@ -18,7 +18,7 @@ import errno
 import logging
 import signal
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING
@@ -36,7 +36,7 @@ from gateway.connections import share_open_files
 from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
 from gateway.guard import Guard
-from gateway.health import NOT_SERVING, SERVING, HealthService, state_status
+from gateway.health import NOT_SERVING, SERVING, HealthService
 from gateway.licensing import current_caller, may_license
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
@@ -89,9 +89,10 @@ class Gateway:
         from gateway.config import default_config
 
         self.config = config if config is not None else default_config()
-        self.router = Router()
-        #: Identity, rules and audit: the one check of every front end (gRPC and the line listener).
+        #: Identity, rules and audit: the one check of every front end (gRPC and the line listener),
+        #: and of every call a system service makes on a client's behalf (the router's directory).
         self.guard = Guard.from_config(self.config)
+        self.router = Router(self.guard)
         self.hub = ListenHub(self.router, self.config.limits, self.config.gateway.call_timeout, self.guard)
         self._extra = dict(backends or {})
         self._server: grpc.aio.Server | None = None
@@ -103,6 +104,9 @@ class Gateway:
         self._stopped = asyncio.Event()
         self._unwatch_registry: object | None = None
         self._unwatch_health: object | None = None
+        self._unwatch_links: object | None = None
+        #: Each service's watch on its backend's link to its device (health follows it).
+        self._link_watches: dict[str, Callable[[], None]] = {}
         #: The resource service, served as ``registry`` (built in :meth:`start`).
         self.registry: Registry = Registry()
         self._devices: list[SupervisedDevice] = []
@@ -370,6 +374,9 @@ class Gateway:
         self._unwatch_health = self.registry.watch_states(self._health_follows, members=True)
         for name, state in self.registry.states():
             self._health_follows(name, state)
+        self._unwatch_links = self.router.watch(self._health_follows_link)
+        for name, backend in self.router.items():
+            self._health_follows_link(name, backend)
 
     async def _join_store(self) -> None:
         """Open the shared registry store a config names (``[registry] store``), and this gateway's
@@ -422,7 +429,19 @@ class Gateway:
         if state == GONE:
             self.health.forget(name)
         else:
-            self.health.set(name, state_status(state))
+            self.health.follow_state(name, state)
+
+    def _health_follows_link(self, name: str, backend: Backend | None) -> None:
+        """A backend was added (or removed): its health follows its link to its device as well."""
+        unwatch = self._link_watches.pop(name, None)
+        if unwatch is not None:
+            unwatch()
+        if backend is not None:
+            self._link_watches[name] = backend.watch_link(
+                lambda connected: self.health.follow_link(name, connected)
+            )
+        else:
+            self.health.follow_link(name, True)
 
     def _on_state(self, name: str, state: str) -> None:
         """The registry marked ``name`` up, down or connecting: client calls follow."""
@@ -618,6 +637,11 @@ class Gateway:
             self._unwatch_registry()
         if callable(self._unwatch_health):
             self._unwatch_health()
+        if callable(self._unwatch_links):
+            self._unwatch_links()
+        for unwatch in self._link_watches.values():
+            unwatch()
+        self._link_watches.clear()
         if self._line_listener is not None:
             await self._line_listener.aclose()
         # Groups go first, so none of them asks the registry again once it is gone; then the

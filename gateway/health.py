@@ -3,7 +3,9 @@
 The empty name (and ``propertyservice.v1.PropertyService``) is the gateway itself: SERVING once it
 has started, NOT_SERVING while it starts and from the moment it stops. Any other name is a service
 the router serves, following the registry's states: SERVING when ``up``, NOT_SERVING when ``down``
-or still ``connecting`` (a proxy whose device has not answered yet). A name nobody serves is
+or still ``connecting`` (a proxy whose device has not answered yet), and NOT_SERVING from the moment
+its backend loses its device (a proxy's connection drops), before the registry's liveness checks
+notice (:meth:`HealthService.follow_link`). A name nobody serves is
 NOT_FOUND on ``Check`` and SERVICE_UNKNOWN on ``Watch``, which goes on and reports the service when
 it is registered, as the health protocol says
 (https://github.com/grpc/grpc/blob/master/doc/health-checking.md).
@@ -47,6 +49,10 @@ class HealthService(health_pb2_grpc.HealthServicer):  # type: ignore[misc]
 
     def __init__(self) -> None:
         self._status: dict[str, Status] = {}
+        #: Each service's status as the registry's state gives it, before its link is taken into account.
+        self._by_state: dict[str, Status] = {}
+        #: Services whose backend lost its device: NOT_SERVING whatever the registry still says.
+        self._link_down: set[str] = set()
         #: The events of the Watch calls on each name, set on every change of its status.
         self._watches: dict[str, set[asyncio.Event]] = {}
         self._open = 0
@@ -64,8 +70,32 @@ class HealthService(health_pb2_grpc.HealthServicer):  # type: ignore[misc]
             self._status[name] = status
             self._wake(name)
 
+    def follow_state(self, name: str, state: str) -> None:
+        """The registry's state of service ``name``: its status, unless its link is down."""
+        self._by_state[name] = state_status(state)
+        self._publish(name)
+
+    def follow_link(self, name: str, connected: bool) -> None:
+        """The backend of ``name`` lost its device (False) or has it back (True).
+
+        NOT_SERVING at once on a loss: the registry learns it only after its liveness checks
+        miss (``[registry] period`` times ``misses``), while calls fail UNAVAILABLE already.
+        """
+        if connected:
+            self._link_down.discard(name)
+        else:
+            self._link_down.add(name)
+        self._publish(name)
+
+    def _publish(self, name: str) -> None:
+        status = self._by_state.get(name)
+        if status is not None:
+            self.set(name, NOT_SERVING if name in self._link_down else status)
+
     def forget(self, name: str) -> None:
         """``name`` is served no more: Check says NOT_FOUND, Watch SERVICE_UNKNOWN."""
+        self._by_state.pop(name, None)
+        self._link_down.discard(name)
         if self._status.pop(name, None) is not None:
             self._wake(name)
 

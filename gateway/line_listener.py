@@ -37,7 +37,8 @@ takes its place back.
 whose :attr:`RouterBackend.subject` is the connection's subject: anonymous
 unless the connection proved who it is (set it there once it has). Every GET,
 SET and LISTEN passes the gateway's :class:`~gateway.guard.Guard` as that
-subject, exactly as on the gRPC port; a refusal is an ``ERR 16``
+subject, exactly as on the gRPC port, and so does every call a service makes
+for it (a group's members: :mod:`gateway.behalf`); a refusal is an ``ERR 16``
 (UNAUTHENTICATED) or ``ERR 7`` (PERMISSION_DENIED) line naming the rule.
 """
 
@@ -58,6 +59,7 @@ from gateway.rules import Operation, Subject
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.device import DeviceServer
 from services.device.alternates import ALTERNATES_FIELD, format_alternates
+from services.directory import CALLER
 from services.errors import (
     AlreadyExists,
     Code,
@@ -133,6 +135,13 @@ class RouterBackend(Backend):
         #: Who asks on this connection: anonymous until it proves who it is (then set it here).
         self.subject = subject
 
+    def _check_read(self, service: str, path: str) -> None:
+        """Refuse a read the rules deny; what a service reads for it is checked as the same subject."""
+        guard = self.guard
+        if guard.checks:
+            guard.require(self.subject, service, path, Operation.READ)
+            CALLER.set(self.subject)
+
     def _split(self, path: str) -> tuple[Backend, str, str]:
         service, dot, rest = path.partition(".")
         backend = self.router.backend(service)
@@ -144,7 +153,7 @@ class RouterBackend(Backend):
         if path == "properties":
             return format_names(self.router.names())
         backend, service, rest = self._split(path)
-        self.guard.require(self.subject, service, rest, Operation.READ)
+        self._check_read(service, rest)
         return await backend.get(rest, params)
 
     async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
@@ -152,6 +161,8 @@ class RouterBackend(Backend):
             raise ReadOnly("properties (the list of services) is read-only")
         backend, service, rest = self._split(path)
         guard, subject = self.guard, self.subject
+        if guard.checks:
+            CALLER.set(subject)
         operation = guard.set_operation(subject, service, rest, value)
         if operation is None:
             operation = await guard.set_operation_from_model(subject, service, rest, backend.describe())
@@ -171,7 +182,7 @@ class RouterBackend(Backend):
 
             return _Watch(self.router.watch(changed))
         backend, service, rest = self._split(path)
-        self.guard.require(self.subject, service, rest, Operation.READ)
+        self._check_read(service, rest)
 
         def forward(change: Change) -> None:
             notify(Change(f"{service}.{change.path}", change.value, change.gap, change.removed))

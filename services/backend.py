@@ -118,6 +118,10 @@ class LinkCounts:
     keepalive_failures: int = 0
 
 
+def _no_link() -> None:
+    """Stop watching the link of a backend that has none: nothing to stop."""
+
+
 class Backend(abc.ABC):
     """One Property Service, whatever it runs on.
 
@@ -131,7 +135,7 @@ class Backend(abc.ABC):
     that callers never ask which kind of backend they hold:
     :attr:`answers_inline`, :meth:`start_get`, :meth:`listen_current`,
     :meth:`match_properties`, :meth:`listen_properties`,
-    :meth:`wait_connected`, :meth:`serves`, :meth:`wake`, :attr:`on_demand`.
+    :meth:`wait_connected`, :meth:`watch_link`, :meth:`serves`, :meth:`wake`, :attr:`on_demand`.
     """
 
     info: BackendInfo
@@ -272,6 +276,12 @@ class Backend(abc.ABC):
     def link_counts(self) -> LinkCounts | None:
         """The counts of a backend that keeps a connection to a device; None for any other (the default)."""
         return None
+
+    def watch_link(self, listener: Callable[[bool], None]) -> Callable[[], None]:
+        """Call ``listener(False)`` as soon as the backend loses its device, ``listener(True)`` when
+        it has it back; returns a function that stops it. A backend with no link of its own never
+        calls it (the default)."""
+        return _no_link
 
     async def wait_connected(self, wait_s: float) -> None:  # noqa: B027 - optional hook, at once by default
         """Return once the backend can serve calls; raise Unavailable, saying why, after ``wait_s``.

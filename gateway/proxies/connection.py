@@ -85,6 +85,7 @@ from services.line_protocol import (
     Request,
     Set,
     Unlisten,
+    decode_line,
     encode,
 )
 
@@ -102,6 +103,10 @@ LOGGED_LINE_BYTES = 200
 
 #: How long after the gateway's untagged HELLO a greeting is taken as its answer (§4.4).
 ASKED_GREETING_WINDOW_S = 2.0
+#: Times a request is sent again when the device reports bytes lost (an untagged ``ERR 15``) or its
+#: reply arrives damaged, before the call fails with DATA_LOSS: a line that a noisy serial line
+#: spoils three times in a row is not noise any more, and the call's own deadline still holds.
+RESENDS = 2
 #: Tags are the request counter in hex, at most 8 digits.
 _TAG_MASK = 0xFFFFFFFF
 
@@ -127,19 +132,20 @@ def send_waiting_lines() -> None:
 
 
 class _Pending:
-    """One request waiting for its reply: its future, its deadline, its time limit, its size."""
+    """One request waiting for its reply: its future, its deadline, its time limit, its line."""
 
-    __slots__ = ("cancel_when_abandoned", "deadline", "future", "size", "tag", "then", "timeout")
+    __slots__ = ("cancel_when_abandoned", "deadline", "future", "line", "tag", "then", "timeout")
 
     def __init__(
-        self, future: asyncio.Future[Frame], tag: str, deadline: float, timeout: float, size: int
+        self, future: asyncio.Future[Frame], tag: str, deadline: float, timeout: float, line: bytes
     ) -> None:
         self.future = future
         self.tag = tag
         self.deadline = deadline
         self.timeout = timeout
-        #: Bytes of its line on the wire, counted against the device's ``rxbuf`` until answered.
-        self.size = size
+        #: The line as sent (its length counts against the device's ``rxbuf`` until answered): sent
+        #: again, tag and all, when the device reports it lost (§6).
+        self.line = line
         #: A SET: when nobody waits for its reply any more, the device is told to drop it.
         self.cancel_when_abandoned = False
         #: Called with a successful reply as it is read, before the future is resolved.
@@ -189,6 +195,8 @@ class LineConnection(asyncio.Protocol):
         #: The longest line taken from the device (the proxy option ``maxline``); longer is a bad line.
         self._receiver = LineReceiver(max_line=receive_limit)
         self._pending: dict[str, _Pending] = {}
+        #: Times each request in flight that was reported lost has been sent again, by tag.
+        self._resent: dict[str, int] = {}
         #: (deadline, issue number, request): a heap over the requests in flight (and some answered
         #: ones, dropped lazily), with the one timer armed at its earliest live deadline.
         self._deadlines: list[tuple[float, int, _Pending]] = []
@@ -236,6 +244,13 @@ class LineConnection(asyncio.Protocol):
         self._task = asyncio.create_task(
             self._read_loop(reader), name=f"line-connection {self.label}", context=outside_requests()
         )
+        self._task.add_done_callback(self._reader_ended)
+
+    def _reader_ended(self, task: asyncio.Task[None]) -> None:
+        # The reader ends cancelled or at the stream's end (expected); anything it raised is a bug
+        # worth a traceback, logged here even when nobody awaits the connection's close.
+        if not task.cancelled() and (exc := task.exception()) is not None:
+            log.error("%s: the reader failed", self.label, exc_info=exc)
 
     def data_received(self, data: bytes) -> None:
         self._last_data = time.monotonic()
@@ -353,10 +368,8 @@ class LineConnection(asyncio.Protocol):
         self.close(reason)
         task = self._task
         if task is not None:
-            # The reader ends cancelled (expected); anything else it raised is a bug worth a traceback.
-            (outcome,) = await asyncio.gather(task, return_exceptions=True)
-            if isinstance(outcome, Exception):
-                log.error("%s: the reader failed", self.label, exc_info=outcome)
+            # What the reader raised, if anything, _reader_ended has logged.
+            await asyncio.gather(task, return_exceptions=True)
             return
         if self._transport is None or self._lost.done():
             return
@@ -496,7 +509,7 @@ class LineConnection(asyncio.Protocol):
             self._release(len(line))
             raise Unavailable(f"{self.label}: {self._close_reason}")
         future: asyncio.Future[Frame] = self._loop.create_future()
-        pending = _Pending(future, tag, deadline, timeout, len(line))
+        pending = _Pending(future, tag, deadline, timeout, line)
         pending.then = then
         self._pending[tag] = pending
         self._add_deadline(pending)
@@ -575,7 +588,7 @@ class LineConnection(asyncio.Protocol):
         tag = pending.tag
         del self._pending[tag]
         # A request not answered in time is taken as lost: its room is free again (§4.2).
-        self._release(pending.size)
+        self._release(len(pending.line))
         self._send_cancel(pending, tag)
         if not pending.future.done():
             self._drop_stale_half_line(pending.timeout)
@@ -670,6 +683,10 @@ class LineConnection(asyncio.Protocol):
                 return
             if kind is ErrorReply:
                 log.warning("%s: device reports: ERR %d %s", self.label, reply.code, reply.message)  # type: ignore[union-attr]
+                if reply.code == Code.DATA_LOSS:  # type: ignore[union-attr]
+                    # Bytes lost on the way in (an overrun, a checksum that failed): the device
+                    # cannot say whose line it was, so every request in flight may be lost (§6).
+                    self._resend_all(f"the device lost bytes ({reply.message})")  # type: ignore[union-attr]
                 return
         elif kind is Event or kind is Gone:
             try:
@@ -716,7 +733,7 @@ class LineConnection(asyncio.Protocol):
             if type(reply) is not Hello:
                 log.info("%s: reply for tag #%s came too late or was not asked for; ignored", self.label, tag)
             return
-        self._release(pending.size)
+        self._release(len(pending.line))
         future = pending.future
         if future.done():
             return
@@ -763,6 +780,49 @@ class LineConnection(asyncio.Protocol):
                 except Exception:
                     log.exception("%s: restart handler failed", self.label)
 
+    def _resend_all(self, why: str) -> None:
+        """Every request in flight may have been lost: send each again, or fail it (see _resend)."""
+        for pending in list(self._pending.values()):
+            if self._pending.get(pending.tag) is pending:
+                self._resend(pending, why)
+
+    def _resends_of(self, tag: str) -> int:
+        """How many times the request of ``tag`` has been sent again; answered ones are forgotten
+        here, so the count never holds more than the requests in flight."""
+        resent = self._resent
+        if len(resent) > len(self._pending):
+            self._resent = resent = {t: n for t, n in resent.items() if t in self._pending}
+        return resent.get(tag, 0)
+
+    def _resend(self, pending: _Pending, why: str) -> None:
+        """Send the line of ``pending`` again, under its own tag, in the room it holds already.
+
+        Whichever reply comes first answers the call; a second one is ignored as late. A request
+        that has been sent again :data:`RESENDS` times, or a SET, fails at once with DATA_LOSS
+        instead: a SET may have been applied before its reply was lost, and applying it twice
+        may not be harmless (a Set can be an action), so its caller is told, at once rather than
+        at its deadline, to read the property before it sets it again (§6).
+        """
+        future = pending.future
+        if future.done():
+            return
+        tag = pending.tag
+        is_set = _is_set(pending.line)
+        resends = self._resends_of(tag)
+        if resends < RESENDS and not is_set:
+            self._resent[tag] = resends + 1
+            log.info("%s: request #%s sent again: %s", self.label, tag, why)
+            self._write_line(pending.line)
+            return
+        del self._pending[tag]
+        self._resent.pop(tag, None)
+        self._release(len(pending.line))
+        if is_set:
+            message = f"{self.label}: {why}; the SET may or may not have been applied: read it back"
+        else:
+            message = f"{self.label}: {why}, again after {RESENDS} resends"
+        future.set_exception(DataLoss(message))
+
     def _lost_everything(self, reason: str) -> None:
         """Every unanswered request is lost (the device restarted): fail them, free their room."""
         pending, self._pending = self._pending, {}
@@ -792,26 +852,43 @@ class LineConnection(asyncio.Protocol):
         if bad.greeting:
             self._refuse(error_for(bad.code, bad.message), bad.tag, bad.checksummed)
             return
-        pending = self._pending.pop(bad.tag, None) if bad.tag is not None else None
-        if pending is not None:
-            self._release(pending.size)
-        future = pending.future if pending is not None else None
         log.warning(
             "%s: bad line from the device%s: %s",
             self.label,
             f" (reply to #{bad.tag})" if bad.tag else "",
             bad.message,
         )
-        if future is None or future.done():
+        if bad.tag is None:
+            if bad.code == Code.DATA_LOSS:
+                # A line whose checksum failed: its tag cannot be trusted, so it may have been
+                # the reply to any request in flight.
+                self._resend_all(f"a reply arrived damaged ({bad.message})")
             return
-        if bad.code == Code.RESOURCE_EXHAUSTED:
-            error: PropertyError = ResourceExhausted(
-                f"{self.label}: the device's reply was too long: {bad.message} (the proxy option "
-                f"maxline, now {self._receiver.max_line}, is the longest line taken from the device)"
+        pending = self._pending.get(bad.tag)
+        if pending is None:
+            return
+        if bad.code != Code.RESOURCE_EXHAUSTED:
+            self._resend(pending, f"the device sent a malformed reply: {bad.message}")
+            return
+        # A reply too long would come back as long: no use asking again.
+        del self._pending[bad.tag]
+        self._release(len(pending.line))
+        if not pending.future.done():
+            pending.future.set_exception(
+                ResourceExhausted(
+                    f"{self.label}: the device's reply was too long: {bad.message} (the proxy option "
+                    f"maxline, now {self._receiver.max_line}, is the longest line taken from the device)"
+                )
             )
-        else:
-            error = DataLoss(f"{self.label}: the device sent a malformed reply: {bad.message}")
-        future.set_exception(error)
+
+
+def _is_set(line: bytes) -> bool:
+    """Whether ``line`` (as sent, LF included) is a SET: read from the line, since a fault is rare
+    and a request that carries no field for it costs nothing on the way that is not."""
+    try:
+        return type(decode_line(line[:-1], max_line=len(line))) is Set
+    except LineProtocolError:  # never for a line the connection wrote; never sent again if it were
+        return True
 
 
 def _time_out(waiter: asyncio.Future[None]) -> None:

@@ -52,7 +52,15 @@ from services.backend import (
     Notify,
     Subscription,
 )
-from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable, error_for
+from services.errors import (
+    Code,
+    InvalidArgument,
+    NotFound,
+    PropertyError,
+    ResourceExhausted,
+    Unavailable,
+    error_for,
+)
 from services.line_protocol import (
     MAX_LINE,
     MIN_MAX_LINE,
@@ -180,8 +188,14 @@ class _DeviceListen(SharedListen):
         self.last: Value | None = None
         #: The device said the property is gone (NOT_FOUND, GONE); the listeners were told once.
         self.removed = False
-        #: Polls a device that cannot push; for one that can, asks again for a property that went.
+        #: Polls a device that cannot push; for one that can, asks again for a property that went,
+        #: or polls a property the device had no room to subscribe to.
         self.poller: asyncio.Task[None] | None = None
+        #: The device pushes, but refused the LISTEN for lack of room (ERR 8): the property is
+        #: polled instead, until an UNLISTEN makes room (docs/line-protocol.md §3).
+        self.polled = False
+        #: Listens again with backoff after a LISTEN that failed to start after a reconnect.
+        self.relisten: asyncio.Task[None] | None = None
 
 
 class LineProxy(Backend):
@@ -224,6 +238,8 @@ class LineProxy(Backend):
         self._closing = False
         #: Connections made and lost and keep-alives missed, read by the metrics at scrape time.
         self.counts = LinkCounts(self.transport)
+        #: Told at once when the device is connected (True) and lost (False): health follows it.
+        self._link_watchers: list[Callable[[bool], None]] = []
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.name!r}, {self.url!r})"
@@ -259,7 +275,12 @@ class LineProxy(Backend):
             self._runner.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._runner
-        pollers = [entry.poller for entry in self.shared_listens if entry.poller is not None]
+        pollers = [
+            task
+            for entry in self.shared_listens
+            for task in (entry.poller, entry.relisten)
+            if task is not None
+        ]
         for poller in pollers:
             poller.cancel()
         tasks = [*self._tasks, *pollers]
@@ -320,6 +341,22 @@ class LineProxy(Backend):
     def _label(self) -> str:
         return f"device {self.name} at {self.url}"
 
+    def watch_link(self, listener: Callable[[bool], None]) -> Callable[[], None]:
+        self._link_watchers.append(listener)
+
+        def unwatch() -> None:
+            if listener in self._link_watchers:
+                self._link_watchers.remove(listener)
+
+        return unwatch
+
+    def _tell_link(self, connected: bool) -> None:
+        for listener in list(self._link_watchers):
+            try:
+                listener(connected)
+            except Exception:
+                log.exception("%s: a watcher of the link failed", self._label())
+
     async def _run(self) -> None:
         failures = 0
         while not self._closing:
@@ -337,8 +374,12 @@ class LineProxy(Backend):
             self._refused.clear()
             self._connected.set()
             self.counts.connects += 1
+            self._tell_link(True)
             self._spawn(self._resubscribe(conn))
-            await self._supervise(conn)
+            try:
+                await self._supervise(conn)
+            finally:
+                self._tell_link(False)
             self._connected.clear()
             if not self._closing:
                 self.counts.disconnects += 1
@@ -443,7 +484,19 @@ class LineProxy(Backend):
     def _spawn(self, coro: Any) -> None:
         task = asyncio.create_task(coro)
         self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        task.add_done_callback(self._task_ended)
+
+    def _task_ended(self, task: asyncio.Task[Any]) -> None:
+        """A background task ended: forget it, and log (never leave unretrieved) what it raised."""
+        self._tasks.discard(task)
+        if not task.cancelled() and (exc := task.exception()) is not None:
+            log.error("%s: %s failed", self._label(), task.get_name(), exc_info=exc)
+
+    def _background(self, coro: Any, name: str) -> asyncio.Task[None]:
+        """A poller or a retry of one shared listen: outside any request, its failure logged."""
+        task: asyncio.Task[None] = asyncio.create_task(coro, name=name, context=outside_requests(self.name))
+        task.add_done_callback(self._task_ended)
+        return task
 
     # -- calls -------------------------------------------------------------
 
@@ -568,23 +621,44 @@ class LineProxy(Backend):
 
     async def _subscribe(self, entry: _DeviceListen) -> None:
         self._live()
+        entry.last = await self._open_on_device(entry)
+
+    async def _open_on_device(self, entry: _DeviceListen) -> Value:
+        """LISTEN to the entry's property and return its value; a device that cannot push it
+        (``push=0``, or no room left in its subscription table) has it polled instead."""
         if self._pushes():
-            entry.last = await self._call(Listen(entry.path, dict(entry.params)))
-        else:
-            entry.last = await self._call(Get(entry.path, dict(entry.params)))
-            entry.poller = asyncio.create_task(
-                self._poll(entry), name=f"poll {self.name}.{entry.path}", context=outside_requests(self.name)
-            )
+            try:
+                value = await self._call(Listen(entry.path, dict(entry.params)))
+            except ResourceExhausted as exc:
+                # The device's subscription table is full: this path is polled, the others of the
+                # same Listen keep their LISTENs, and an UNLISTEN that makes room upgrades it.
+                log.info(
+                    "%s: no room to LISTEN to %s (%s): polling it every %g s",
+                    self._label(),
+                    entry.path,
+                    exc.message,
+                    self.options.poll_interval,
+                )
+                entry.polled = True
+            else:
+                entry.polled = False
+                return value
+        value = await self._call(Get(entry.path, dict(entry.params)))
+        if entry.poller is None or entry.poller.done():
+            entry.poller = self._background(self._poll(entry), f"poll {self.name}.{entry.path}")
+        return value
 
     async def _close_listen(self, entry: _DeviceListen) -> None:
         """The last listener left: stop polling, or UNLISTEN when no listen of the path is left."""
-        if entry.poller is not None:
-            entry.poller.cancel()
+        for task in (entry.poller, entry.relisten):
+            if task is not None:
+                task.cancel()
         # The device keeps one subscription per path (docs/line-protocol.md §3), whatever the parameters.
         if (
             entry.removed
+            or entry.polled
             or not (self.connected and self._pushes())
-            or self.shared_listens.on_path(entry.path)
+            or any(not other.polled for other in self.shared_listens.on_path(entry.path))
         ):
             return
         try:
@@ -593,6 +667,34 @@ class LineProxy(Backend):
             # While the proxy closes, its connection goes away under the UNLISTEN: expected, not news.
             level = logging.DEBUG if self._closing else logging.INFO
             log.log(level, "%s: UNLISTEN %s failed: %s", self._label(), entry.path, exc.message)
+            return
+        self._upgrade_a_polled_listen()
+
+    def _upgrade_a_polled_listen(self) -> None:
+        """An UNLISTEN made room in the device's table: the oldest polled property gets it."""
+        for entry in self.shared_listens:
+            if entry.polled and not entry.removed:
+                self._spawn(self._upgrade(entry))
+                return
+
+    async def _upgrade(self, entry: _DeviceListen) -> None:
+        try:
+            value = await self._call(Listen(entry.path, dict(entry.params)))
+        except PropertyError as exc:
+            log.info("%s: %s stays polled: %s", self._label(), entry.path, exc.message)
+            return
+        if not self.shared_listens.holds(entry):
+            # Its last listener left meanwhile: give the room back.
+            if not self.shared_listens.on_path(entry.path):
+                with contextlib.suppress(PropertyError):
+                    await self._call(Unlisten(entry.path))
+            return
+        entry.polled = False
+        if entry.poller is not None:
+            entry.poller.cancel()
+        if value != entry.last:
+            entry.last = value
+            entry.deliver(Change(entry.path, value))
 
     def _on_event(self, frame: Event | Gone) -> None:
         # EVENT and GONE name only the path: every listen of it hears them, whatever its parameters.
@@ -616,7 +718,7 @@ class LineProxy(Backend):
         entry.last = None
         entry.deliver(Change(entry.path, "", removed=True))
         if entry.poller is None or entry.poller.done():
-            entry.poller = asyncio.create_task(self._poll(entry), name=f"await {self.name}.{entry.path}")
+            entry.poller = self._background(self._poll(entry), f"await {self.name}.{entry.path}")
 
     async def _resubscribe(self, conn: LineConnection) -> None:
         """After a (re)connection: listen again and hand every listener the current value, marked as a gap."""
@@ -626,21 +728,53 @@ class LineProxy(Backend):
             if not self.shared_listens.holds(entry) or conn.closed:
                 continue
             try:
-                if self._pushes():
-                    value = await self._call(Listen(entry.path, dict(entry.params)))
-                else:
-                    value = await self._call(Get(entry.path, dict(entry.params)))
-                    if entry.poller is None or entry.poller.done():
-                        entry.poller = asyncio.create_task(self._poll(entry))
+                value = await self._open_on_device(entry)
             except NotFound:
                 self._went(entry)
                 continue
             except PropertyError as exc:
-                log.warning("%s: cannot listen to %s again: %s", self._label(), entry.path, exc.message)
+                # Not a dead stream: it listens again with backoff, and the listeners get a gap.
+                log.warning(
+                    "%s: cannot listen to %s again (%s): trying again with backoff",
+                    self._label(),
+                    entry.path,
+                    exc.message,
+                )
+                if entry.relisten is None or entry.relisten.done():
+                    entry.relisten = self._background(
+                        self._relisten(entry, conn), f"listen again {self.name}.{entry.path}"
+                    )
                 continue
-            entry.removed = False
-            entry.last = value
-            entry.deliver(Change(entry.path, value, gap=True))
+            self._reopened(entry, value)
+
+    def _reopened(self, entry: _DeviceListen, value: Value) -> None:
+        entry.removed = False
+        entry.last = value
+        entry.deliver(Change(entry.path, value, gap=True))
+
+    async def _relisten(self, entry: _DeviceListen, conn: LineConnection) -> None:
+        """LISTEN again with backoff until it starts, the connection ends or the listeners leave.
+
+        A new connection listens to everything again itself; a property that went is asked for by
+        its poller.
+        """
+        options = self.options
+        delay = options.backoff_initial
+        while self.shared_listens.holds(entry) and not conn.closed:
+            await asyncio.sleep(delay * random.uniform(0.5, 1.0))
+            delay = min(options.backoff_max, delay * 2)
+            if conn.closed or not self.shared_listens.holds(entry):
+                return
+            try:
+                value = await self._open_on_device(entry)
+            except NotFound:
+                self._went(entry)
+                return
+            except PropertyError as exc:
+                log.info("%s: listening to %s again failed: %s", self._label(), entry.path, exc.message)
+                continue
+            self._reopened(entry, value)
+            return
 
     async def _poll(self, entry: _DeviceListen) -> None:
         """Poll a device that cannot push; for one that can, LISTEN until a property that went is back."""
@@ -649,7 +783,7 @@ class LineProxy(Backend):
             await asyncio.sleep(interval)
             if not self.connected:
                 continue
-            pushes = self._pushes()
+            pushes = self._pushes() and not entry.polled
             if pushes and not entry.removed:
                 return  # the device pushes the property's changes again
             try:

@@ -14,7 +14,7 @@ from typing import Annotated
 
 from services.backend import NO_PARAMS, Backend, BackendInfo
 from services.core import LocalService, Prop, Resource, action, query
-from services.directory import Directory
+from services.directory import Directory, own_context
 from services.errors import InvalidArgument, NotFound, PermissionDenied, PropertyError, Unavailable
 from services.location_following import LocationFollower
 from services.paths import validate_path
@@ -660,7 +660,9 @@ class Registry(Resource):
     def _start_reaching(self, name: str, backend: Backend) -> None:
         """Learn ``name``'s type and "up" in the background, once at a time (see :meth:`_reach`)."""
         if name not in self._reaching:
-            task = asyncio.get_running_loop().create_task(self._reach(name, backend), name=f"reach {name}")
+            task = asyncio.get_running_loop().create_task(
+                self._reach(name, backend), name=f"reach {name}", context=own_context()
+            )
             self._reaching[name] = task
             task.add_done_callback(lambda done: self._reached(name, done))
 

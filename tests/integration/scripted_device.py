@@ -61,6 +61,7 @@ class ScriptedDevice:
         greet_first: bool = True,
         answer_pings: bool = True,
         binary: bool = True,
+        max_listens: int | None = None,
     ) -> None:
         self.greeting = greeting
         self.props = dict(props)
@@ -69,6 +70,16 @@ class ScriptedDevice:
         self.greet_first = greet_first
         self.answer_pings = answer_pings
         self.binary = binary
+        #: Its subscription table: a LISTEN of one more path is answered ``ERR 8`` (None: no limit).
+        self.max_listens = max_listens
+        #: Request lines to lose, by how their words (after a tag) start, and how many times: each
+        #: is answered only with the untagged ``ERR 15`` of a receive buffer that overran.
+        self.losing: dict[str, int] = {}
+        #: Replies to spoil on the way, by how the request's words start, and how many times: the
+        #: reply goes out with a checksum that does not match.
+        self.damaging: dict[str, int] = {}
+        #: Pulled out (:meth:`unplug`): silent until plugged in again.
+        self.unplugged = False
         #: Every line received (without LF), in order, over all connections.
         self.lines: list[str] = []
         #: Lines the client sent that are replies to the device's own requests.
@@ -80,7 +91,7 @@ class ScriptedDevice:
         self.max_unanswered_bytes = 0
         self.overrun = False
         self._writer: asyncio.StreamWriter | None = None
-        self._queue: asyncio.Queue[tuple[Frame | BadLine, int, bool]] = asyncio.Queue(maxsize=1000)
+        self._queue: asyncio.Queue[tuple[Frame | BadLine, int, bool, bool]] = asyncio.Queue(maxsize=1000)
         self._unanswered = 0
         self._unanswered_bytes = 0
         self._tasks: set[asyncio.Task[None]] = set()
@@ -92,6 +103,17 @@ class ScriptedDevice:
         assert self._writer is not None, "no client connected"
         body = line.encode()
         self._writer.write(b"$" + body + b"*%02X\n" % crc8(body) if checksum else body + b"\n")
+
+    def unplug(self) -> None:
+        """The cable is pulled: the connection drops, and until :meth:`plug_in` the device neither
+        greets nor answers a client that connects."""
+        self.unplugged = True
+        if self._writer is not None:
+            self._writer.transport.abort()
+
+    def plug_in(self) -> None:
+        """Back: it greets a client that connects, and answers again (a HELLO among the rest)."""
+        self.unplugged = False
 
     def restart(self) -> None:
         """A reset: subscriptions and pending requests are forgotten, the greeting is sent unasked."""
@@ -124,7 +146,7 @@ class ScriptedDevice:
         self.connections += 1
         self._writer = writer
         self.subscribed.clear()
-        if self.greet_first:
+        if self.greet_first and not self.unplugged:
             self.send(self.greeting)
         worker = asyncio.create_task(self._work())
         # It takes lines as long as its greeting says (maxline=), and never fewer than 1024 bytes:
@@ -161,18 +183,28 @@ class ScriptedDevice:
         self.max_unanswered_bytes = max(self.max_unanswered_bytes, self._unanswered_bytes)
         if self.rxbuf is not None and self._unanswered_bytes > self.rxbuf:
             self.overrun = True
-        self._queue.put_nowait((frame, size, checked))
+        words = _untagged(self.lines[-1])
+        if _take_one(self.losing, words):
+            self._unanswered = max(0, self._unanswered - 1)
+            self._unanswered_bytes = max(0, self._unanswered_bytes - size)
+            self.send("ERR 15 bytes lost: the receive buffer was full")
+            return
+        self._queue.put_nowait((frame, size, checked, _take_one(self.damaging, words)))
 
     async def _work(self) -> None:
         while True:
-            frame, size, checked = await self._queue.get()
+            frame, size, checked, damaged = await self._queue.get()
             if self.delay:
                 await asyncio.sleep(self.delay)
             reply = self._answer(frame)
             self._unanswered = max(0, self._unanswered - 1)
             self._unanswered_bytes = max(0, self._unanswered_bytes - size)
-            if reply is not None and self._writer is not None:
-                self.send(reply, checksum=checked)
+            if reply is not None and self._writer is not None and not self.unplugged:
+                if damaged:
+                    body = reply.encode()
+                    self._writer.write(b"$" + body + b"*%02X\n" % (crc8(body) ^ 0x5A))
+                else:
+                    self.send(reply, checksum=checked)
 
     def _answer(self, frame: Frame | BadLine) -> str | None:
         tag = getattr(frame, "tag", None)
@@ -196,6 +228,12 @@ class ScriptedDevice:
             case Listen(path):
                 if path not in self.props:
                     return f"{head}ERR 5 no {path}"
+                if (
+                    self.max_listens is not None
+                    and path not in self.subscribed
+                    and len(self.subscribed) >= self.max_listens
+                ):
+                    return f"{head}ERR 8 too many subscriptions"
                 self.subscribed.add(path)
                 return f"{head}OK {self.props[path]}"
             case Unlisten(path):
@@ -210,6 +248,15 @@ class ScriptedDevice:
             case BadLine(code, message):
                 return f"{head}ERR {int(code)} {message}"
         return f"{head}ERR 12 not here"
+
+
+def _take_one(counts: dict[str, int], words: str) -> bool:
+    """Whether ``words`` start with a prefix in ``counts`` that has some left; counts one down."""
+    for prefix, left in counts.items():
+        if left > 0 and words.startswith(prefix):
+            counts[prefix] = left - 1
+            return True
+    return False
 
 
 def _untagged(line: str) -> str:

@@ -196,3 +196,42 @@ async def test_the_firmware_in_simavr_through_the_gateway(
         print("\n".join(shown))
         print(f"--- the serial line (> gateway, < device), {len(tap.record())} lines; RAM used: {used} B")
         print("\n".join(transcript.split("\n")[:40]))
+
+
+async def test_an_overrun_on_the_serial_line_costs_one_resend_not_a_timeout(
+    gateway_process: StartGateway, mcu: CProgram
+) -> None:
+    """Eight ``GET properties.model`` at once and a Listen, with line noise that overruns the 32-byte
+    ring while the device sends its longest reply: the device answers the damaged line with an
+    untagged ``ERR 15``, the gateway sends the lost request again at once, and every call is
+    answered well within the 5 s timeout."""
+    with WireTap(mcu.where) as tap:
+        gw = gateway_process(
+            f'[[services]]\nname = "thermo"\nurl = "serial://{tap.path}?baudrate=115200"\n'
+            f"options = {OPTIONS}\n"
+        )
+        async with grpc.aio.insecure_channel(gw.address) as channel:
+            stub = pb_grpc.PropertyServiceStub(channel)
+            await stub.Get(pb.GetRequest(service="thermo", property="setpoint"), timeout=WAIT)
+            # 48 bytes arrive while the firmware writes the model (about 400 bytes): more than its
+            # ring holds, so the next line it reads, the gateway's next request, lost bytes.
+            tap.add_noise(b"GET properties.model", b"~" * 48)
+            began = time.monotonic()
+            model = pb.GetRequest(service="thermo", property="properties.model")
+            gets = [stub.Get(model, timeout=WAIT) for _ in range(8)]
+            stream = stub.Listen(pb.ListenRequest(service="thermo", property="temp"))
+            replies = await asyncio.gather(*gets)
+            async with asyncio.timeout(WAIT):
+                first = await stream.read()
+            took = time.monotonic() - began
+            stream.cancel()
+        assert all("setpoint" in reply.value for reply in replies)
+        assert first is not grpc.aio.EOF and first.events[0].property == "temp"
+        assert took < 2.5, f"{took:.1f} s: a lost request waited for its timeout"
+        record = tap.record()
+        lost = [i for i, (who, line) in enumerate(record) if who == "dev" and line.startswith("ERR 15")]
+        assert lost, tap.transcript()
+        # The request before the ERR 15 went out again, the same line, and was answered.
+        resent = next(line for who, line in reversed(record[: lost[0]]) if who == "gw")
+        assert next(line for who, line in record[lost[0] + 1 :] if who == "gw") == resent, tap.transcript()
+    assert "never retrieved" not in gw.output, gw.output

@@ -38,6 +38,9 @@ class WireTap:
         self._partial = {"gw": b"", "dev": b""}
         self._lock = threading.Lock()
         self._stop_r, self._stop_w = os.pipe()
+        #: (marker, noise): once the gateway sends bytes containing ``marker``, ``noise`` follows them
+        #: to the device, once (``add_noise``).
+        self._noise: list[tuple[bytes, bytes]] = []
         self._thread = threading.Thread(target=self._pump, daemon=True)
         self._thread.start()
 
@@ -54,8 +57,22 @@ class WireTap:
                     continue  # the far side is not open (yet)
                 target, who = route[fd]
                 with contextlib.suppress(OSError):
-                    os.write(target, data)
+                    os.write(target, data + (self._noise_after(data) if who == "gw" else b""))
                 self._record(who, data)
+
+    def add_noise(self, marker: bytes, noise: bytes) -> None:
+        """Line noise: once the gateway sends bytes that contain ``marker``, ``noise`` reaches the
+        device right after them (it is not recorded: the device sees it, the gateway never sent it)."""
+        with self._lock:
+            self._noise.append((marker, noise))
+
+    def _noise_after(self, data: bytes) -> bytes:
+        with self._lock:
+            for i, (marker, noise) in enumerate(self._noise):
+                if marker in data:
+                    del self._noise[i]
+                    return noise
+        return b""
 
     def _record(self, who: str, data: bytes) -> None:
         with self._lock:
