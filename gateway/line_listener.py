@@ -299,6 +299,9 @@ class ConnectionBounds:
         self.max_greetings_per_source = max_greetings_per_source
         self.max_connections_per_address = max_connections_per_address
         self._open: dict[asyncio.StreamWriter, _Heard] = {}
+        #: The source address of each open connection, taken when it opened: a TLS transport
+        #: that has closed answers no ``peername`` any more (it raises instead).
+        self._addresses: dict[asyncio.StreamWriter, str] = {}
         #: The open connections of each source address (for its own bound).
         self._by_address: dict[str, set[asyncio.StreamWriter]] = {}
         self._greetings: dict[str, int] = {}
@@ -313,13 +316,16 @@ class ConnectionBounds:
             return None
         heard = _Heard(reader)
         self._open[writer] = heard
+        self._addresses[writer] = address
         self._by_address.setdefault(address, set()).add(writer)
         return heard
 
     def release(self, writer: asyncio.StreamWriter) -> None:
         """The connection ended."""
         self._open.pop(writer, None)
-        address = _address_of(writer)
+        address = self._addresses.pop(writer, None)
+        if address is None:
+            return
         own = self._by_address.get(address)
         if own is not None:
             own.discard(writer)
