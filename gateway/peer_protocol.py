@@ -98,14 +98,16 @@ def _shown(versions: Iterable[int]) -> str:
 def check_cluster(gateways: Mapping[str, frozenset[int]], *, me: str, store: str) -> None:
     """Refuse to join a cluster (:class:`ProtocolMismatch`) when a live gateway of it, other than
     ``me``, shares no version with this one; ``gateways``: id → the versions its key names."""
-    strangers = {gid: spoken for gid, spoken in sorted(gateways.items()) if gid != me and not common(SPOKEN, spoken)}
+    strangers = {
+        gid: spoken for gid, spoken in sorted(gateways.items()) if gid != me and not common(SPOKEN, spoken)
+    }
     if not strangers:
         return
     named = "; ".join(f"{gid} speaks {_shown(spoken)}" for gid, spoken in strangers.items())
     raise ProtocolMismatch(
         f"cannot join the cluster at {store}: this gateway speaks cluster protocol {_shown(SPOKEN)} "
         f"and {named}; gateways of these releases cannot run together: upgrade one gateway at a "
-        "time from the release before (docs/scale-out.md, \"Versions\")"
+        'time from the release before (docs/scale-out.md, "Versions")'
     )
 
 
@@ -118,5 +120,5 @@ def check_caller(text: str | bytes) -> None:
     if not common(SPOKEN, theirs):
         raise ProtocolMismatch(
             f"the calling gateway speaks cluster protocol {_shown(theirs)} and this one "
-            f"{_shown(SPOKEN)}: they cannot run in one cluster (docs/scale-out.md, \"Versions\")"
+            f'{_shown(SPOKEN)}: they cannot run in one cluster (docs/scale-out.md, "Versions")'
         )

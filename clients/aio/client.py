@@ -46,8 +46,8 @@ from clients.errors import (
 )
 from clients.values import (
     Marker,
-    ValueFormatError,
     Value,
+    ValueFormatError,
     Vector,
     parse_marker,
     parse_names,
@@ -343,12 +343,12 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
 
     async def service_pages(self, page: int = SERVICES_PAGE) -> AsyncGenerator[list[str], None]:
         """The names of the registry's services in name order, ``page`` at most at a time (fewer
-        when that many would pass one value's 64 KiB): the registry's ``names``, each page asked
+        when that many would pass one value's 64 KiB): the registry's ``service_names``, each page asked
         after the last name of the one before, until an empty one. A service that joins or leaves
         meanwhile may be in the pages or not; one registered throughout is in them exactly once."""
         after = ""
         while True:
-            names = await self.get_names("registry", "names", after=after, limit=str(page))
+            names = await self.get_names("registry", "service_names", after=after, limit=str(page))
             if not names:
                 return
             yield names

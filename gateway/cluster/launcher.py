@@ -364,10 +364,10 @@ async def _get(address: str, service: str, path: str, parameters: dict[str, str]
 
 async def _registered(address: str) -> set[str]:
     """Every name the registry of the gateway at ``address`` lists, read a page at a time (its
-    ``names``): ``services`` is one value, which passes 64 KiB at about 6,000 names."""
+    ``service_names``): ``services`` is one value, which passes 64 KiB at about 6,000 names."""
     names: set[str] = set()
     after = ""
-    while page := parse_names(await _get(address, "registry", "names", {"after": after})):
+    while page := parse_names(await _get(address, "registry", "service_names", {"after": after})):
         names.update(page)
         after = page[-1]
     return names

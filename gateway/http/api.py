@@ -126,9 +126,9 @@ class Api:
         return json_response({"status": "ok"})
 
     async def _names_page(self, after: str, limit: str, subject: Subject) -> list[str]:
-        """One page of the registry's ``names``: after ``after``, at most ``limit`` ("" = its default)."""
+        """One page of the registry's ``service_names``: after ``after``, at most ``limit`` ("": 1,000)."""
         parameters = {"after": after, **({"limit": limit} if limit else {})}
-        asked = pb.GetRequest(service=REGISTRY_NAME, property="names", parameters=parameters)
+        asked = pb.GetRequest(service=REGISTRY_NAME, property="service_names", parameters=parameters)
         return parse_names((await self.calls.get(asked, self.calls.timeout, subject)).value)
 
     async def _columns(self, names: list[str], subject: Subject) -> dict[str, dict[str, str]]:
@@ -144,7 +144,7 @@ class Api:
             asked = pb.GetRequest(service=REGISTRY_NAME, property=refs[0].property, more=refs[1:])
             try:
                 answer = await self.calls.get(asked, self.calls.timeout, subject)
-                values = [answer.value, *(item.value for item in answer.more)]
+                values: list[str | None] = [answer.value, *(item.value for item in answer.more)]
             except NotFound:
                 values = [await self._column(name, column, subject) for name, column in chunk]
             for (name, column), value in zip(chunk, values, strict=True):

@@ -351,7 +351,7 @@ DOCUMENT: dict[str, Any] = {
                     },
                     "next": {
                         "type": ["string", "null"],
-                        "description": "A page's last name: the next page's `after` (null: an empty page, no more)",
+                        "description": "The page's last name: the next page's `after` (null: no more)",
                     },
                 },
             },

@@ -114,13 +114,13 @@ class LicenceList(Resource):
         return format_names(lic.id for lic in self._licensing.held())
 
 
-#: Names a page of ``names`` holds by default; and at most (its own limit is one value's size).
+#: Names a page of ``service_names`` holds by default; and at most (its own limit is one value's size).
 NAMES_PAGE = 1000
 MAX_NAMES_PAGE = 10_000
 
 
 def _page_limit(text: str) -> int:
-    """The ``limit`` parameter of ``names``: a whole number from 1 to :data:`MAX_NAMES_PAGE`."""
+    """The ``limit`` parameter of ``service_names``: a whole number from 1 to :data:`MAX_NAMES_PAGE`."""
     if text == "":
         return NAMES_PAGE
     if not text.isdigit() or not 1 <= int(text) <= MAX_NAMES_PAGE:
@@ -794,7 +794,7 @@ class Registry(Resource):
     # -- search --------------------------------------------------------------
 
     @query(doc="the services' names in name order, a page at a time: after (the last name read), limit")
-    async def names(self, *, after: str = "", limit: str = "") -> list[str]:
+    async def service_names(self, *, after: str = "", limit: str = "") -> list[str]:
         """The names of the services after ``after`` in name order (from the first when empty), at
         most ``limit`` (:data:`NAMES_PAGE`, at most :data:`MAX_NAMES_PAGE`) and at most what one
         value holds (``services.values.MAX_VALUE_LENGTH``): the page ends before the name that

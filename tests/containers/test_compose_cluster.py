@@ -96,12 +96,19 @@ def _client(container: Any) -> Client:
     return Client(address, timeout=5.0)
 
 
-def test_a_device_owned_by_a_killed_gateways_container_is_answered_by_another(cluster: dict[str, Any]) -> None:
+def test_a_device_owned_by_a_killed_gateways_container_is_answered_by_another(
+    cluster: dict[str, Any],
+) -> None:
     started = cluster["started"]
     clients = {gw: _client(started[gw]) for gw in GATEWAYS}
     try:
         for gw, client in clients.items():
-            wait_for(f"{gw} serves", lambda c=client: c.get("registry", "store"), lambda v: v == "etcd://etcd:2379", READY)
+            wait_for(
+                f"{gw} serves",
+                lambda c=client: c.get("registry", "store"),
+                lambda v: v == "etcd://etcd:2379",
+                READY,
+            )
         register = _start("register", cluster["services"]["register"], cluster["image"], cluster["network"])
         try:
             ended = register.get_wrapped_container().wait(timeout=READY)

@@ -126,7 +126,7 @@ def test_the_compose_cluster_has_etcd_three_gateways_on_it_and_devices_they_may_
     register = services["register"]
     script = ROOT / register["volumes"][0].split(":")[0]
     text = script.read_text()
-    assert "gw1=thermo1 gw2=rover1 gw3=thermo2" in text and 'tcp://$device:7001' in text
+    assert "gw1=thermo1 gw2=rover1 gw3=thermo2" in text and "tcp://$device:7001" in text
     assert set(register["depends_on"]) == {*CLUSTER_GATEWAYS, "thermo1", "rover1", "thermo2"}
 
 

@@ -39,7 +39,9 @@ async def test_ten_thousand_services_are_listed_and_followed_within_the_listen_l
             assert pages == [1000] * 10 + [1]
 
             refused = client.listen("registry", "services.*.state")
-            with pytest.raises(ResourceExhausted, match=r"more than 10000 properties \(limits.max_stream_properties\)"):
+            with pytest.raises(
+                ResourceExhausted, match=r"more than 10000 properties \(limits.max_stream_properties\)"
+            ):
                 async for _ in refused:
                     pass
 

@@ -51,7 +51,7 @@ async def _join(server: MemoryServer, gateway_id: str) -> tuple[ClusterNode, Reg
     return node, registry
 
 
-async def test_a_gateway_announces_the_protocols_it_speaks_and_joins_a_cluster_of_the_previous_release() -> None:
+async def test_a_gateway_says_its_protocols_and_joins_a_cluster_of_the_previous_release() -> None:
     server = MemoryServer()
     older = server.store("gw-old")
     await older.start()
@@ -115,29 +115,31 @@ def test_the_protocols_metadata_reads_back_and_refuses_what_is_not_a_list_of_ver
 async def test_a_call_from_a_gateway_is_answered_when_they_share_a_protocol(
     sent: str | None, answered: grpc.StatusCode
 ) -> None:
-    async with running_gateway(DictBackend({"temperature": "21.5"}), name="thermo") as gateway:
-        async with grpc.aio.insecure_channel(gateway.address) as channel:
-            stub = pb_grpc.PropertyServiceStub(channel)
-            metadata = ((PROTOCOLS_KEY, sent), ("ps-via", "gw-other")) if sent is not None else ()
-            request = pb.GetRequest(service="thermo", property="temperature")
-            try:
-                reply = await stub.Get(request, metadata=metadata, timeout=5)
-            except grpc.aio.AioRpcError as exc:
-                assert exc.code() == answered, exc.details()
-                assert "cluster protocol" in (exc.details() or "")
-            else:
-                assert answered == grpc.StatusCode.OK
-                assert reply.value == "21.5"
-            listen = stub.Listen(
-                pb.ListenRequest(service="thermo", property="temperature"),
-                metadata=metadata,
-                timeout=5,
-            )
-            try:
-                async for _ in listen:
-                    break
-            except grpc.aio.AioRpcError as exc:
-                assert exc.code() == answered, exc.details()
-            else:
-                assert answered == grpc.StatusCode.OK
-            listen.cancel()
+    async with (
+        running_gateway(DictBackend({"temperature": "21.5"}), name="thermo") as gateway,
+        grpc.aio.insecure_channel(gateway.address) as channel,
+    ):
+        stub = pb_grpc.PropertyServiceStub(channel)
+        metadata = ((PROTOCOLS_KEY, sent), ("ps-via", "gw-other")) if sent is not None else ()
+        request = pb.GetRequest(service="thermo", property="temperature")
+        try:
+            reply = await stub.Get(request, metadata=metadata, timeout=5)
+        except grpc.aio.AioRpcError as exc:
+            assert exc.code() == answered, exc.details()
+            assert "cluster protocol" in (exc.details() or "")
+        else:
+            assert answered == grpc.StatusCode.OK
+            assert reply.value == "21.5"
+        listen = stub.Listen(
+            pb.ListenRequest(service="thermo", property="temperature"),
+            metadata=metadata,
+            timeout=5,
+        )
+        try:
+            async for _ in listen:
+                break
+        except grpc.aio.AioRpcError as exc:
+            assert exc.code() == answered, exc.details()
+        else:
+            assert answered == grpc.StatusCode.OK
+        listen.cancel()

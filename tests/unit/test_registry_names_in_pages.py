@@ -1,9 +1,9 @@
 """A registry whose ``services`` passes one value's 64 KiB is listed page by page, through every front.
 
-1,100 services with names of 64 characters (the longest a name may be) make a ``services`` value past the 64 KiB
-a value may hold (what about 6,000 ordinary names do), in-process: the registry's ``names``
-query, then a real gateway served in this process (gateway.testing) read through the SDK, the
-HTTP front end and psctl. The 10,000-service registry is in
+1,100 services with names of 64 characters (the longest a name may be) make a ``services``
+value past the 64 KiB a value may hold (what about 6,000 ordinary names do), in-process: the
+registry's ``service_names`` query, then a real gateway served in this process
+(gateway.testing) read through the SDK, the HTTP front end and psctl. The 10,000-service registry is in
 tests/integration/test_a_registry_of_ten_thousand_services.py.
 """
 
@@ -45,7 +45,7 @@ async def test_names_pages_every_service_in_name_order_each_page_within_one_valu
 
         pages: list[list[str]] = []
         after = ""
-        while page := await registry.names(after=after, limit="10000"):
+        while page := await registry.service_names(after=after, limit="10000"):
             assert len(format_names(page)) <= MAX_VALUE_LENGTH
             pages.append(page)
             after = page[-1]
@@ -58,12 +58,12 @@ async def test_names_pages_every_service_in_name_order_each_page_within_one_valu
         assert read == sorted(read), "name order"
         assert read == [*NAMES[:-1], "zzz-after-the-cursor"], "each name registered throughout exactly once"
 
-        assert len(await registry.names()) == 1_000, "a page holds 1,000 names by default"
-        assert await registry.names(limit="3") == ["aaa-before-the-cursor", *NAMES[:2]]
-        assert await registry.names(after=NAMES[3], limit="2") == NAMES[4:6]
+        assert len(await registry.service_names()) == 1_000, "a page holds 1,000 names by default"
+        assert await registry.service_names(limit="3") == ["aaa-before-the-cursor", *NAMES[:2]]
+        assert await registry.service_names(after=NAMES[3], limit="2") == NAMES[4:6]
         for bad in ("0", "-1", "ten", "10001"):
             with pytest.raises(InvalidArgument, match="limit"):
-                await registry.names(limit=bad)
+                await registry.service_names(limit=bad)
     finally:
         await registry.stop()
 
@@ -117,4 +117,4 @@ async def test_the_http_front_lists_a_registry_past_one_value_whole_or_a_page_at
 def test_a_registry_within_one_value_is_listed_in_joining_order() -> None:
     with serve_sync({"lamp": DictBackend({"on": "0"}), "dev": DictBackend({"a": "1"})}) as small:
         assert small.services() == ["registry", "lamp", "dev"]
-        assert parse_names(small.get("registry", "names", limit="2")) == ["dev", "lamp"]
+        assert parse_names(small.get("registry", "service_names", limit="2")) == ["dev", "lamp"]
