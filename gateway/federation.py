@@ -17,16 +17,13 @@ import contextvars
 import secrets
 
 from gateway.logs import REQUEST_ID_HEADER, current_request_id
-from gateway.peer_protocol import PROTOCOLS_KEY, SPOKEN, format_protocols
+from gateway.peer_protocol import SPOKEN_HEADER
 from services.errors import InvalidArgument
 
 #: The metadata key of the chain of gateways (comma-separated ids, the first gateway first).
 VIA_KEY = "ps-via"
 #: Gateways one request may pass through; federation deeper than this is a mistake, not a design.
 MAX_HOPS = 8
-
-#: The cluster protocol versions every call to another gateway names (gateway.peer_protocol).
-_SPOKEN_HEADER = (PROTOCOLS_KEY, format_protocols(SPOKEN))
 
 #: The gateways the request being served has passed through, this one last (empty: no request).
 VIA: contextvars.ContextVar[tuple[str, ...]] = contextvars.ContextVar("via", default=())
@@ -61,6 +58,6 @@ def outgoing() -> tuple[tuple[str, str], ...]:
     the cluster protocol versions this gateway speaks, the ``ps-via`` chain, and the request id,
     so the next gateway's log lines carry it too."""
     via = VIA.get()
-    metadata = (_SPOKEN_HEADER, (VIA_KEY, ",".join(via))) if via else (_SPOKEN_HEADER,)
+    metadata = (SPOKEN_HEADER, (VIA_KEY, ",".join(via))) if via else (SPOKEN_HEADER,)
     request_id = current_request_id()
     return (*metadata, (REQUEST_ID_HEADER, request_id)) if request_id is not None else metadata

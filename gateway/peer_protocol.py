@@ -32,6 +32,7 @@ __all__ = [
     "CLUSTER_PROTOCOL",
     "PROTOCOLS_KEY",
     "SPOKEN",
+    "SPOKEN_HEADER",
     "UNVERSIONED",
     "ProtocolMismatch",
     "check_caller",
@@ -50,6 +51,8 @@ SPOKEN: frozenset[int] = frozenset({1, 2})
 UNVERSIONED: frozenset[int] = frozenset({1})
 #: The metadata key of the versions a gateway-to-gateway call speaks (comma-separated integers).
 PROTOCOLS_KEY = "ps-protocols"
+#: The metadata every call to another gateway carries: the versions this one speaks.
+SPOKEN_HEADER: tuple[str, str] = (PROTOCOLS_KEY, ",".join(str(v) for v in sorted(SPOKEN)))
 #: Versions one key or call may name; more is not a gateway of this project.
 _MAX_NAMED = 32
 

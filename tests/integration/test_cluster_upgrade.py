@@ -5,12 +5,14 @@ cluster protocol had versions), made in the test's temporary folder and removed 
 gateways run its own code (``start_gateway(checkout=...)``). Three of them share a real etcd,
 with two devices registered; each in turn is stopped (SIGTERM: it hands its devices over) and
 started again from this tree under the same id, and after each step every gateway, old and new,
-answers Gets and Sets on every device, forwarded both ways between the releases. Without git,
+answers Gets and Sets on every device, forwarded both ways between the releases, and a Listen
+through the gateway upgraded last goes on through the others' restarts. Without git,
 the commit or etcd the tests skip, saying so.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import shutil
 import subprocess
@@ -27,6 +29,7 @@ from support.ports import stable_ports
 from support.waiting import eventually
 
 from clients import AsyncClient
+from clients.aio import Event
 from clients.errors import PropertyServiceError
 from gateway.cluster.records import GatewayRecord
 from gateway.peer_protocol import SPOKEN, UNVERSIONED
@@ -121,8 +124,29 @@ async def test_a_cluster_of_the_previous_release_is_upgraded_one_gateway_at_a_ti
                 await last.set("registry", "services.hygro", "tcp://{}:{}".format(*hygro))
             keys = await _gateway_keys(etcd)
             assert all("protocols" not in key for key in keys.values()), keys
+            # A Listen through the gateway upgraded last stays open while the others restart.
+            watcher = AsyncClient(gateways["gw-c"].address)
+            seen: list[Event] = []
+
+            async def follow() -> None:
+                async for event in watcher.listen("thermo", "rate_hz"):
+                    seen.append(event)
+
+            following = asyncio.get_running_loop().create_task(follow())
 
             for step, upgraded in enumerate(IDS, start=1):
+                if upgraded == "gw-c":  # its own restart ends the stream: check what it saw first
+                    await eventually(
+                        lambda: asyncio.sleep(0, seen[-1].value if seen else None),
+                        lambda last: last == "2.3",
+                        what="the last Set of step 2 on the Listen through gw-c",
+                    )
+                    assert not following.done(), following
+                    assert not any(event.removed for event in seen), seen
+                    assert sum(event.gap for event in seen) <= 2, "one gap at most per move of thermo"
+                    following.cancel()
+                    await asyncio.gather(following, return_exceptions=True)
+                    await watcher.close()
                 assert gateways[upgraded].stop() == 0, gateways[upgraded].output[-2000:]
                 gateways[upgraded] = start_gateway(tmp_path, _config(etcd, upgraded, lines[upgraded]))
                 release[upgraded] = "this"
