@@ -82,13 +82,20 @@ class GatewayProcess:
     """A running ``psgateway serve`` process."""
 
     def __init__(
-        self, args: Sequence[str], env: dict[str, str] | None = None, *, own_group: bool = False
+        self,
+        args: Sequence[str],
+        env: dict[str, str] | None = None,
+        *,
+        own_group: bool = False,
+        cwd: Path = ROOT,
     ) -> None:
-        """``own_group``: a process group of its own, like a shell's foreground job (see ``killpg``)."""
+        """``own_group``: a process group of its own, like a shell's foreground job (see ``killpg``);
+        ``cwd``: the folder it runs in, whose ``gateway`` package ``python -m`` imports first (another
+        checkout of the project runs that checkout's gateway)."""
         self.args = list(args)
         self.proc = subprocess.Popen(
             self.args,
-            cwd=ROOT,
+            cwd=cwd,
             stdin=subprocess.DEVNULL,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
@@ -202,16 +209,19 @@ def start_gateway(
     config: str | None,
     extra_args: Sequence[str] = (),
     credentials: grpc.ChannelCredentials | None = None,
+    checkout: Path = ROOT,
 ) -> GatewayProcess:
     """A ready gateway process serving ``config`` (TOML text written into ``tmp``; None = the demo),
-    stopped again if it does not become ready; the caller stops it (the fixtures do)."""
+    stopped again if it does not become ready; the caller stops it (the fixtures do). ``checkout``:
+    the copy of the project whose gateway runs (another release's worktree: its code alone)."""
     # The HTTP front end on a free port too (a later --http in extra_args wins): never a fixed port.
     args = [sys.executable, "-m", "gateway.cli", "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"]
     if config is not None:
         path = tmp / f"gateway-{len(list(tmp.glob('gateway-*.toml')))}.toml"
         path.write_text(textwrap.dedent(config))
         args += ["--config", str(path)]
-    gw = GatewayProcess([*args, *extra_args])
+    env = {"PYTHONPATH": str(checkout)} if checkout != ROOT else None
+    gw = GatewayProcess([*args, *extra_args], env, cwd=checkout)
     try:
         gw.wait_ready(credentials=credentials)
     except BaseException:
