@@ -29,6 +29,7 @@ from grpc_health.v1 import health_pb2
 from grpc_reflection.v1alpha import reflection
 
 from gateway.backends import open_backend, open_proxy
+from gateway.client_faults import filter_grpc_client_faults
 from gateway.cluster import ClusterNode
 from gateway.config import METRICS_MAX_CONNECTIONS, REGISTRY_NAME, Config, ConfigError, ServiceEntry
 from gateway.connections import share_open_files
@@ -88,9 +89,10 @@ class Gateway:
         from gateway.config import default_config
 
         self.config = config if config is not None else default_config()
-        self.router = Router()
-        #: Identity, rules and audit: the one check of every front end (gRPC and the line listener).
+        #: Identity, rules and audit: the one check of every front end (gRPC and the line listener),
+        #: and of every call a system service makes on a client's behalf (the router's directory).
         self.guard = Guard.from_config(self.config)
+        self.router = Router(self.guard)
         self.hub = ListenHub(self.router, self.config.limits, self.config.gateway.call_timeout, self.guard)
         self._extra = dict(backends or {})
         self._server: grpc.aio.Server | None = None
@@ -567,6 +569,7 @@ class Gateway:
             *CLIENT_PING_POLICY,
         ]
         server = grpc.aio.server(options=options)
+        filter_grpc_client_faults()  # a call cancelled while a message was sent: no traceback
         # Not the generated registration: a request that does not parse is INVALID_ARGUMENT.
         add_to_server(self.servicer, server)
         add_health_and_reflection(

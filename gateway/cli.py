@@ -210,6 +210,14 @@ def _check_config(args: argparse.Namespace) -> int:
     if config.metrics.enabled and config.metrics.listen:
         listening += f", metrics on {config.metrics.listen}"
     print(f"{config.source}: fine ({counted}, listening on {listening})")
+    # What a big registry meets first: one Listen follows a property of each registration, and the
+    # registry's own entry is one of them (docs/registry-and-groups.md, "A big registry").
+    most = config.limits.max_stream_properties
+    print(
+        f"  a Listen matches at most {most} properties (limits.max_stream_properties): one on "
+        f"registry services.*.state follows at most {most - 1} services besides the registry; "
+        "raise the limit for a bigger registry"
+    )
     return 0
 
 

@@ -24,7 +24,7 @@ A subject allowed only to invoke ``registry/acquire`` can lock nothing.
 
 from __future__ import annotations
 
-from gateway.guard import CALLER, REGISTRY, Guard
+from gateway.guard import REGISTRY, Guard, current_subject
 from gateway.rules import Operation, Subject
 from services.errors import FailedPrecondition
 from services.registry import SESSION_HOLDER_PREFIX, Caller, LicenceCheck, Licences
@@ -61,7 +61,7 @@ def caller_of(subject: Subject) -> Caller:
 
 def current_caller() -> Caller:
     """:func:`caller_of` the subject of the Set being carried out (the registry's caller source)."""
-    return caller_of(CALLER.get())
+    return caller_of(current_subject())
 
 
 def check_set(licences: Licences | None, subject: Subject, service: str, path: str) -> None:
@@ -79,6 +79,6 @@ def may_license(guard: Guard) -> LicenceCheck:
     (UNAUTHENTICATED or PERMISSION_DENIED naming the rule otherwise; audited)."""
 
     def check(service: str, subtree: str) -> None:
-        guard.require(CALLER.get(), service, subtree, Operation.WRITE)
+        guard.require(current_subject(), service, subtree, Operation.WRITE)
 
     return check

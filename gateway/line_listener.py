@@ -37,7 +37,8 @@ takes its place back.
 whose :attr:`RouterBackend.subject` is the connection's subject: anonymous
 unless the connection proved who it is (set it there once it has). Every GET,
 SET and LISTEN passes the gateway's :class:`~gateway.guard.Guard` as that
-subject, exactly as on the gRPC port; a refusal is an ``ERR 16``
+subject, exactly as on the gRPC port, and so does every call a service makes
+for it (a group's members: :mod:`gateway.behalf`); a refusal is an ``ERR 16``
 (UNAUTHENTICATED) or ``ERR 7`` (PERMISSION_DENIED) line naming the rule.
 """
 
@@ -58,6 +59,7 @@ from gateway.rules import Operation, Subject
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.device import DeviceServer
 from services.device.alternates import ALTERNATES_FIELD, format_alternates
+from services.directory import CALLER
 from services.errors import (
     AlreadyExists,
     Code,
@@ -136,6 +138,13 @@ class RouterBackend(Backend):
         #: Who asks on this connection: anonymous until it proves who it is (then set it here).
         self.subject = subject
 
+    def _check_read(self, service: str, path: str) -> None:
+        """Refuse a read the rules deny; what a service reads for it is checked as the same subject."""
+        guard = self.guard
+        if guard.checks:
+            guard.require(self.subject, service, path, Operation.READ)
+            CALLER.set(self.subject)
+
     def _split(self, path: str) -> tuple[Backend, str, str]:
         """The service's backend, its name and the path inside it; a bare name is its ``properties``."""
         service, dot, rest = path.partition(".")
@@ -148,7 +157,7 @@ class RouterBackend(Backend):
         if path == "properties":
             return format_names(self.router.names())
         backend, service, rest = self._split(path)
-        self.guard.require(self.subject, service, rest, Operation.READ)
+        self._check_read(service, rest)
         return await backend.get(rest, params)
 
     async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
@@ -156,6 +165,8 @@ class RouterBackend(Backend):
             raise ReadOnly("properties (the list of services) is read-only")
         backend, service, rest = self._split(path)
         guard, subject = self.guard, self.subject
+        if guard.checks:
+            CALLER.set(subject)
         operation = guard.set_operation(subject, service, rest, value)
         if operation is None:
             operation = await guard.set_operation_from_model(subject, service, rest, backend.describe())
@@ -175,7 +186,7 @@ class RouterBackend(Backend):
 
             return _Watch(self.router.watch(changed))
         backend, service, rest = self._split(path)
-        self.guard.require(self.subject, service, rest, Operation.READ)
+        self._check_read(service, rest)
 
         def forward(change: Change) -> None:
             notify(Change(f"{service}.{change.path}", change.value, change.gap, change.removed))
@@ -292,6 +303,9 @@ class ConnectionBounds:
         self.max_greetings_per_source = max_greetings_per_source
         self.max_connections_per_address = max_connections_per_address
         self._open: dict[asyncio.StreamWriter, _Heard] = {}
+        #: The source address of each open connection, taken when it opened: a TLS transport
+        #: that has closed answers no ``peername`` any more (it raises instead).
+        self._addresses: dict[asyncio.StreamWriter, str] = {}
         #: The open connections of each source address (for its own bound).
         self._by_address: dict[str, set[asyncio.StreamWriter]] = {}
         self._greetings: dict[str, int] = {}
@@ -306,13 +320,16 @@ class ConnectionBounds:
             return None
         heard = _Heard(reader)
         self._open[writer] = heard
+        self._addresses[writer] = address
         self._by_address.setdefault(address, set()).add(writer)
         return heard
 
     def release(self, writer: asyncio.StreamWriter) -> None:
         """The connection ended."""
         self._open.pop(writer, None)
-        address = _address_of(writer)
+        address = self._addresses.pop(writer, None)
+        if address is None:
+            return
         own = self._by_address.get(address)
         if own is not None:
             own.discard(writer)

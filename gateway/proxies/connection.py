@@ -346,6 +346,10 @@ class LineConnection(asyncio.Protocol):
         self._outgoing.clear()
         if not self.hello.done():
             self.hello.set_exception(Unavailable(f"{self.label}: {reason}"))
+            # Marked as heard: whoever awaits the greeting still gets the error, but a caller that
+            # stopped waiting (a registration that timed out in asyncio.wait) leaves nobody to
+            # retrieve it, and asyncio would log "Future exception was never retrieved".
+            self.hello.exception()
         transport = self._transport
         if transport is None:  # never attached: nothing to close, and nobody waits for it
             self._lost.cancel()

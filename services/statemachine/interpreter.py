@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from services.backend import Change, Subscription, close_quietly
+from services.directory import context_for
 from services.errors import NotFound, PropertyError, ResourceExhausted
 from services.statemachine.binding import PropertyBinding
 from services.statemachine.chart import (
@@ -166,6 +167,9 @@ class Interpreter:
     name: str = ""
     #: True while someone listens to the configuration: each step then gives them a turn to take it.
     watched: Callable[[], bool] = lambda: False
+    #: Who the chart's Gets, Sets and Listens are made for (:data:`services.directory.CALLER`):
+    #: checked against the gateway's rules as that subject; None: as the service's own work.
+    caller: object | None = None
     configuration: set[State] = field(default_factory=set)
     variables: dict[str, Any] = field(default_factory=dict)
     status: str = "stopped"
@@ -199,7 +203,9 @@ class Interpreter:
         """Start the machine's task (the initial configuration is entered there)."""
         self.status = "running"
         self.reason = ""
-        self._task = asyncio.get_running_loop().create_task(self._run(), name=f"statemachine {self.name}")
+        self._task = asyncio.get_running_loop().create_task(
+            self._run(), name=f"statemachine {self.name}", context=context_for(self.caller)
+        )
 
     def send(self, name: str, data: Any = None, origin: str = "") -> None:
         """Queue an external event; ResourceExhausted when the queue is full."""
