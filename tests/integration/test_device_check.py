@@ -1,9 +1,10 @@
 r"""``psgateway device-check`` run on every device of the project, and on devices broken on purpose.
 
 The devices are real: the Python device server as a process (TCP, and its own pty with flow
-control), the C library's example built for the host (TCP and a pty) and for the ATmega328P (in
-simavr, on a pty). A broken device is a real device behind a relay that breaks one rule of
-docs/device-spec.md in what passes through; the kit must fail exactly the clauses of that rule.
+control), the gateway's own line listener, the C library's example built for the host (TCP and a
+pty), for the ATmega328P (in simavr) and for a Cortex-M3 (in QEMU), each on a pty. A broken
+device is a real device behind a relay that breaks one rule of docs/device-spec.md in what passes
+through; the kit must fail exactly the clauses of that rule.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import pytest
 from line_device_support import ROOT, device_process, tcp_device
 from support.c_device import CProgram, build
 from support.gateway_process import StartGateway
+from support.qemu_board import QemuBoard, require_qemu
 
 from gateway.conformance import CLAUSES, FAIL, PASS, SKIP, Report, check_device
 from gateway.conformance.probe import Probe, open_url
@@ -200,6 +202,17 @@ def test_the_avr_firmware_conforms_in_simavr(tmp_path: Path) -> None:
             check_device(f"serial://{mcu.where}?baudrate=115200", reply_wait=REPLY_WAIT, greeting_wait=10.0)
         )
     assert re.search(r"maxline=64 inflight=1 rxbuf=\d+", report.greeting), report.outcomes[:2]
+    assert_conforms(report, EVERY_KIND)
+
+
+def test_the_cortex_m_firmware_conforms_in_qemu(tmp_path: Path) -> None:
+    require_qemu()
+    build("cortexm", tmp_path)
+    with QemuBoard(tmp_path / "cortexm" / "thermostat.elf", tmp_path) as board:
+        report = asyncio.run(
+            check_device(f"serial://{board.where}?baudrate=115200", reply_wait=REPLY_WAIT, greeting_wait=10.0)
+        )
+    assert re.search(r"name=thermo1 .*inflight=1", report.greeting), report.outcomes[:2]
     assert_conforms(report, EVERY_KIND)
 
 
