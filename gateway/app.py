@@ -29,6 +29,7 @@ from grpc_health.v1 import health_pb2
 from grpc_reflection.v1alpha import reflection
 
 from gateway.backends import open_backend, open_proxy
+from gateway.client_faults import filter_grpc_client_faults
 from gateway.cluster import ClusterNode
 from gateway.config import METRICS_MAX_CONNECTIONS, REGISTRY_NAME, Config, ConfigError, ServiceEntry
 from gateway.connections import share_open_files
@@ -575,6 +576,7 @@ class Gateway:
             *CLIENT_PING_POLICY,
         ]
         server = grpc.aio.server(options=options)
+        filter_grpc_client_faults()  # a call cancelled while a message was sent: no traceback
         # Not the generated registration: a request that does not parse is INVALID_ARGUMENT.
         add_to_server(self.servicer, server)
         add_health_and_reflection(

@@ -483,11 +483,7 @@ class Session:
         # Started here, in the reader: a Listen of a topic that is open already (one another
         # stream shares, an in-process service's) starts without waiting and needs no task.
         self._active.add(rid)
-        try:
-            first = step(self._run_listen(rid, stream))
-        except Exception:
-            self._active.discard(rid)  # _run_listen has answered the request with its error
-            return
+        first = step(self._run_listen(rid, stream))
         if isinstance(first, Started):
             self._active.discard(rid)
             self._spawn(rid, _finish(first), listen=True)
@@ -495,13 +491,18 @@ class Session:
             self._active.discard(rid)
 
     async def _run_listen(self, rid: int, stream: ListenStream) -> None:
+        """Start ``stream`` and make it Listen ``rid``; a failure is answered on ``rid``, not
+        raised: in a task of its own, nobody would retrieve it (a traceback in the log a client
+        could ask for 100,000 times a message)."""
         try:
             await stream.start()
-        except BaseException as exc:
+        except asyncio.CancelledError:
             stream.close()
-            if not isinstance(exc, asyncio.CancelledError):
-                self._fail(rid, exc, "Listen")
             raise
+        except Exception as exc:
+            stream.close()
+            self._fail(rid, exc, "Listen")
+            return
         if stream.closed or self._reader_done or self._stopping:
             stream.close()
             return

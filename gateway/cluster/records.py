@@ -5,8 +5,13 @@ Key layout (``PREFIX`` is ``[registry] store_prefix``)::
     PREFIX/services/NAME   {"url": URL, "options": {"type": ..., "features": ...}}
     PREFIX/owners/NAME     the owning gateway's id                                   (leased)
     PREFIX/states/NAME     up | down | connecting, as the owner sees it              (leased)
-    PREFIX/gateways/ID     {"address": HOST:PORT, "http": ..., "line": ..., "owned": N}  (leased)
+    PREFIX/gateways/ID     {"address": HOST:PORT, "http": ..., "line": ..., "owned": N,
+                            "protocols": [1, 2]}                                      (leased)
     PREFIX/licences/NAME   [{"id": ..., "subtree": ..., "holder": ..., ...}, ...]   (see licences)
+
+The cluster protocol versions a gateway speaks (:mod:`gateway.peer_protocol`) are in its
+``gateways`` key; a key without them was written by a gateway of version 1. The other keys hold
+what the versions those gateways share say they hold.
 
 A value another program wrote badly is not trusted: :func:`read_registration` and
 :func:`read_gateway` answer None for it, and the cluster logs and skips the key.
@@ -18,6 +23,7 @@ import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+from gateway.peer_protocol import SPOKEN, read_protocols
 from services.registry import STATES
 from services.registry.store import decode_registration, encode_registration
 
@@ -84,6 +90,8 @@ class GatewayRecord:
     #: Its id in the ``ps-via`` chain of the calls it forwards (gateway.federation): the owner
     #: knows a call another gateway of the cluster forwarded by it.
     via: str = ""
+    #: The cluster protocol versions it speaks (gateway.peer_protocol); a key without them: {1}.
+    protocols: frozenset[int] = SPOKEN
 
     def to_json(self) -> str:
         """The key's value."""
@@ -92,6 +100,7 @@ class GatewayRecord:
             "http": self.http,
             "line": self.line,
             "owned": self.owned,
+            "protocols": sorted(self.protocols),
         }
         if self.tls:
             fields["tls"] = True
@@ -110,11 +119,18 @@ def read_gateway(text: str) -> GatewayRecord | None:
         owned = data.get("owned", 0)
         tls = data.get("tls", False)
         via = data.get("via", "")
+        protocols = read_protocols(data.get("protocols"))
     except (ValueError, KeyError, TypeError, AttributeError):
         return None
-    if not isinstance(address, str) or not address or not isinstance(owned, int) or not isinstance(tls, bool):
+    if (
+        not isinstance(address, str)
+        or not address
+        or not isinstance(owned, int)
+        or not isinstance(tls, bool)
+        or protocols is None
+    ):
         return None
-    return GatewayRecord(address, str(http or ""), str(line or ""), owned, tls, str(via or ""))
+    return GatewayRecord(address, str(http or ""), str(line or ""), owned, tls, str(via or ""), protocols)
 
 
 def read_state(text: str) -> str | None:

@@ -55,7 +55,7 @@ def _nobody_is_admin(name: str) -> bool:
 DEFAULT_REGISTER_TIMEOUT = 10.0
 
 _REGISTER_PARAMS = ("type", "lease", "features")
-#: Codes with which a device's greeting is refused (docs/line-protocol.md §4.3).
+#: Codes with which a device's greeting is refused (docs/line-protocol.md §3).
 _REFUSALS = (Code.FAILED_PRECONDITION, Code.INVALID_ARGUMENT)
 #: Codes that say only that nothing answered as a device, for whatever reason (see :meth:`_open`).
 _NOT_REACHED = (Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED)

@@ -46,7 +46,15 @@ from services.registry.scheduling import (
 )
 from services.registry.store import RegistryStore
 from services.registry.table import PLACEHOLDER_TYPE, ServiceTable
-from services.values import Value, ValueFormatError, Vector, as_text, format_names, parse_vector
+from services.values import (
+    MAX_VALUE_LENGTH,
+    Value,
+    ValueFormatError,
+    Vector,
+    as_text,
+    format_names,
+    parse_vector,
+)
 from services.worker_pool import run_bounded
 
 __all__ = ["Caller", "CallerSource", "LicenceCheck", "Registry", "RegistryService"]
@@ -113,6 +121,20 @@ class LicenceList(Resource):
 
     def _value(self) -> str:
         return format_names(lic.id for lic in self._licensing.held())
+
+
+#: Names a page of ``service_names`` holds by default; and at most (its own limit is one value's size).
+NAMES_PAGE = 1000
+MAX_NAMES_PAGE = 10_000
+
+
+def _page_limit(text: str) -> int:
+    """The ``limit`` parameter of ``service_names``: a whole number from 1 to :data:`MAX_NAMES_PAGE`."""
+    if text == "":
+        return NAMES_PAGE
+    if not text.isdigit() or not 1 <= int(text) <= MAX_NAMES_PAGE:
+        raise InvalidArgument(f"limit: expected a whole number from 1 to {MAX_NAMES_PAGE}, got {text!r:.40}")
+    return int(text)
 
 
 class Registry(Resource):
@@ -788,6 +810,29 @@ class Registry(Resource):
             self._table.learn_type(name, backend.info.type)
 
     # -- search --------------------------------------------------------------
+
+    @query(doc="the services' names in name order, a page at a time: after (the last name read), limit")
+    async def service_names(self, *, after: str = "", limit: str = "") -> list[str]:
+        """The names of the services after ``after`` in name order (from the first when empty), at
+        most ``limit`` (:data:`NAMES_PAGE`, at most :data:`MAX_NAMES_PAGE`) and at most what one
+        value holds (``services.values.MAX_VALUE_LENGTH``): the page ends before the name that
+        would pass it. An empty page: there are no more.
+
+        ``services`` is one value, so past about 6,000 names it no longer fits in one; this reads
+        the same names page by page. Name order keeps the pages right while services join and
+        leave: a name registered throughout is read exactly once.
+        """
+        wanted = _page_limit(limit)
+        page: list[str] = []
+        size = len("()")
+        for name in sorted(self._table.names()):
+            if name <= after:
+                continue
+            size += len(name) + (1 if page else 0)
+            if len(page) == wanted or size > MAX_VALUE_LENGTH:
+                break
+            page.append(name)
+        return page
 
     @query(doc="names of the services matching type, location, state and property values")
     async def find(

@@ -221,6 +221,8 @@ class Machine(Resource):
         self._configured = configured
         self._run = None
         self.journal(f"loaded ({chart.format}, {len(chart.states)} states)")
+        for warning in chart.warnings:
+            self.journal(f"warning: {warning}")
         self._refresh()
         self.changed("definition")
 
