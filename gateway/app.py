@@ -37,7 +37,7 @@ from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
 from gateway.guard import Guard
 from gateway.health import NOT_SERVING, SERVING, HealthService
-from gateway.licensing import current_caller, may_license
+from gateway.licensing import current_caller, may_license, may_provide
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
@@ -367,7 +367,12 @@ class Gateway:
         self.registry.set_caller(current_caller)
         # A caller locks only what the rules let it change.
         self.registry.set_licence_check(may_license(self.guard))
+        # And the scheduler licenses to the caller only the providers it may write.
+        self.registry.set_provider_check(may_provide(self.guard))
         self.servicer.calls.licences = self.registry.licensing
+        # And every Set a service makes for a client (a group's members): given before any such
+        # service is added, so that each member it is handed checks them.
+        self.router.directory.licences = self.registry.licensing
         self.registry.licensing.watch(self._on_licence)
         await self._add(REGISTRY_NAME, RegistryService(self.registry), "built in")
         self._unwatch_registry = self.registry.watch_states(self._on_state)
@@ -416,6 +421,8 @@ class Gateway:
             via=self.servicer.gateway_id,
         )
         self.servicer.calls.peer_hop = self.cluster.is_peer_hop
+        # A Set a peer forwarded comes as that peer, checked against the licences where the client called.
+        self.router.directory.peer_forwarded = self.servicer.calls.forwarded_by_peer
         log.info("cluster: joined as %s through %s", self.cluster.me, self.config.registry.store)
 
     def _alternates(self) -> list[str]:

@@ -9,6 +9,11 @@ Get, Set, Listen, Describe and match of one is checked, for its own service and
 path, as the caller in :data:`services.directory.CALLER` — the subject of the
 client's call being served (set by the call layer, the listen hub and the line
 listener), or the subject a service's configuration names (a chart's ``run_as``).
+A Set is also checked against the registry's licences as that caller (the
+directory's check, :func:`gateway.licensing.check_set`): a group's Set to a member
+someone else holds a licence on is refused for that member, as a direct Set would
+be. So the directory wraps its backends once the gateway has licences, with rules
+or without.
 When the caller is None the call is a service's own work and nothing is checked.
 A new system service needs nothing of its own for this: it reaches others through
 the directory.
@@ -29,13 +34,16 @@ from collections.abc import Callable, Mapping
 from typing import cast
 
 from gateway.guard import Guard, subject_of
-from gateway.rules import Operation
+from gateway.rules import Operation, Subject
 from services.backend import NO_PARAMS, Answer, Backend, BackendInfo, LinkCounts, Notify, Subscription
 from services.directory import CALLER
 from services.model import PropertyModel, ServiceModel
 from services.values import Value
 
-__all__ = ["TRAIL", "OnBehalf", "Trail", "on_behalf"]
+__all__ = ["TRAIL", "OnBehalf", "SetLicenceCheck", "Trail", "on_behalf"]
+
+#: Raises when someone else holds a licence on (service, path) that a Set for the subject would change.
+SetLicenceCheck = Callable[[Subject, str, str], None]
 
 #: The trail the reads made now are noted in (a Listen topic opening), or None.
 TRAIL: contextvars.ContextVar[Trail | None] = contextvars.ContextVar("trail", default=None)
@@ -76,10 +84,14 @@ def _filtered(
 class OnBehalf(Backend):
     """The backend of ``service`` as a system service sees it: each call checked as the caller."""
 
-    def __init__(self, service: str, inner: Backend, guard: Guard) -> None:
+    def __init__(
+        self, service: str, inner: Backend, guard: Guard, check_licence: SetLicenceCheck | None = None
+    ) -> None:
         self.service = service
         self.inner = inner
         self.guard = guard
+        #: Refuses a Set for the caller on what someone else holds a licence on; None: no licences.
+        self.check_licence = check_licence
 
     @property
     def info(self) -> BackendInfo:
@@ -122,6 +134,9 @@ class OnBehalf(Backend):
             guard = self.guard
             if guard.set_operation(subject, self.service, path, value) is None:
                 await guard.set_operation_from_model(subject, self.service, path, self.inner.describe())
+            # After the rules, as for a direct Set: a licence someone else holds refuses it.
+            if self.check_licence is not None:
+                self.check_licence(subject, self.service, path)
         return await self.inner.set(path, value, params)
 
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
@@ -186,6 +201,9 @@ def _kind(answers_inline: bool, on_demand: bool) -> type[OnBehalf]:
     return cast(type[OnBehalf], type("OnBehalf", (OnBehalf,), attrs))
 
 
-def on_behalf(service: str, backend: Backend, guard: Guard) -> OnBehalf:
-    """``backend`` (serving ``service``) with every call checked as the caller; see the module docstring."""
-    return _kind(backend.answers_inline, backend.on_demand)(service, backend, guard)
+def on_behalf(
+    service: str, backend: Backend, guard: Guard, check_licence: SetLicenceCheck | None = None
+) -> OnBehalf:
+    """``backend`` (serving ``service``) with every call checked as the caller, each Set by
+    ``check_licence`` too; see the module docstring."""
+    return _kind(backend.answers_inline, backend.on_demand)(service, backend, guard, check_licence)

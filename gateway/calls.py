@@ -110,7 +110,7 @@ class Calls:
         #: were checked against the licences where the client called); None: not in a cluster.
         self.peer_hop: Callable[[str], bool] | None = None
 
-    def _forwarded_by_peer(self) -> bool:
+    def forwarded_by_peer(self) -> bool:
         """Whether the call being served was forwarded by another gateway of this one's cluster."""
         if self.peer_hop is None:
             return False
@@ -169,16 +169,16 @@ class Calls:
         """
         service = request.service
         guard = self.guard
-        if guard.checks or service == REGISTRY:
-            # Checked deeper as this subject: the calls a service makes for it, and the registry's
-            # admin check and licence holder.
+        if guard.checks or service == REGISTRY or self.licences is not None:
+            # Checked deeper as this subject: the calls a service makes for it (by the rules and
+            # against the licences others hold), and the registry's admin check and licence holder.
             CALLER.set(subject)
         try:
             backend = self._backend(service, "Set")
             path = check_path(request.property)
             value = received(request)
             operation = guard.set_operation(subject, service, path, value)
-            if not self._forwarded_by_peer():
+            if not self.forwarded_by_peer():
                 check_set(self.licences, subject, service, path)
         except PropertyError as exc:
             if exc.code not in (Code.PERMISSION_DENIED, Code.UNAUTHENTICATED):  # already audited

@@ -28,11 +28,14 @@ from typing import Any, TypeVar
 from gateway.backends import open_proxy
 from gateway.behalf import OnBehalf, on_behalf
 from gateway.guard import Guard
+from gateway.licensing import check_set
+from gateway.rules import Subject
 from services.backend import Backend, BackendInfo
 from services.directory import DirectoryListener, own_context
 from services.eager import Started, step
 from services.errors import AlreadyExists, DeadlineExceeded, InvalidArgument, NotFound, Unavailable
 from services.paths import validate_path, validate_pattern, validate_service_name
+from services.registry import Licences
 
 log = logging.getLogger(__name__)
 
@@ -184,18 +187,26 @@ class Router:
 class RouterDirectory:
     """A router as a :class:`services.directory.Directory`: the same services, down ones included.
 
-    With a guard that checks (rules, or tokens whose scopes narrow), each backend it hands out
-    is an :class:`~gateway.behalf.OnBehalf`: the same one for a name as long as the name is
-    served by the same backend, so that a service can tell its members apart by identity.
+    With a guard that checks (rules, or tokens whose scopes narrow), or once it has the
+    registry's licences (:attr:`licences`: a Set made for a client is checked against them),
+    each backend it hands out is an :class:`~gateway.behalf.OnBehalf`: the same one for a name
+    as long as the name is served by the same backend, so that a service can tell its members
+    apart by identity. With neither it hands out the router's own backends.
     """
 
     def __init__(self, router: Router, guard: Guard | None = None) -> None:
         self.router = router
         self.guard = guard
+        #: The registry's licences, given before any service that reaches others is added (the
+        #: gateway does it when its registry starts); None: no licences to check.
+        self.licences: Licences | None = None
+        #: Whether the call being served was forwarded by another gateway of this one's cluster: its
+        #: Sets were checked against the licences where the client called, and come as that gateway
+        #: (which holds none); None: not in a cluster.
+        self.peer_forwarded: Callable[[], bool] | None = None
         #: name → the OnBehalf handed out for it; one per name served (a leave forgets it).
         self._handed: dict[str, OnBehalf] = {}
-        if guard is not None and guard.checks:
-            router.watch(self._forget)
+        router.watch(self._forget)
 
     def _forget(self, name: str, backend: Backend | None) -> None:
         if backend is None:
@@ -203,12 +214,19 @@ class RouterDirectory:
 
     def _checked(self, name: str, backend: Backend) -> Backend:
         guard = self.guard
-        if guard is None or not guard.checks:
+        if guard is None or not (guard.checks or self.licences is not None):
             return backend
         handed = self._handed.get(name)
         if handed is None or handed.inner is not backend:
-            handed = self._handed[name] = on_behalf(name, backend, guard)
+            licensed = self._check_licence if self.licences is not None else None
+            handed = self._handed[name] = on_behalf(name, backend, guard, licensed)
         return handed
+
+    def _check_licence(self, subject: Subject, service: str, path: str) -> None:
+        """Refuse a Set made for ``subject`` on what someone else holds a licence on."""
+        forwarded = self.peer_forwarded
+        if forwarded is None or not forwarded():
+            check_set(self.licences, subject, service, path)
 
     def names(self) -> list[str]:
         return self.router.names()

@@ -24,7 +24,7 @@ from gateway.federation import VIA_KEY, enter, new_gateway_id
 from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, parse_options, parse_selectors
-from gateway.listen.budget import COUNTED_BYTES
+from gateway.listen.budget import COUNTED_BYTES, GRPC_COPIES
 from gateway.listen.drain import Wake
 from gateway.logs import REQUEST_ID_HEADER, RequestContext, current_request, request_id_from
 from gateway.metrics.counts import GrpcCounts, MethodCounts
@@ -74,11 +74,6 @@ def _begin_unary(context: Context, service: str, path: str) -> tuple[RequestCont
     request = RequestContext(request_id, service or None, path or None)
     current_request.set(request)
     return request, via
-
-
-#: The copies of a large Listen message counted against the hub's budget while it is written (see
-#: Listen).
-GRPC_COPIES = 3
 
 
 def _lenient(message: type[Message]) -> Callable[[bytes], Message | Undecodable]:

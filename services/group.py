@@ -432,11 +432,13 @@ class Group(Resource):
         active = _ACTIVE.get()
         if id(self) in active:
             raise PropertyError(f"{what}: the group is among its own members", Code.FAILED_PRECONDITION)
-        token = _ACTIVE.set(active | {id(self)})
+        _ACTIVE.set(active | {id(self)})
         try:
             return await self._fan_out(what, call, names)
         finally:
-            _ACTIVE.reset(token)
+            # Set back rather than reset by token: a call started inline and finished in a task
+            # (a Session's) ends in another context than it began, where a token is refused.
+            _ACTIVE.set(active)
 
     async def _fan_out(
         self, what: str, call: Callable[[str, Backend], Awaitable[Any]], names: Iterable[str] | None

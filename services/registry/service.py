@@ -76,6 +76,11 @@ CallerSource = Callable[[], Caller]
 #: "" = the whole service): UNAUTHENTICATED or PERMISSION_DENIED naming why; the gateway installs
 #: one that asks its rules (:meth:`Registry.set_licence_check`).
 LicenceCheck = Callable[[str, str], None]
+#: For the current request: which services its caller may be licensed whole (``write`` on the
+#: service by the rules), asked without a word for each; None when it may be licensed any. The
+#: scheduler's ``request`` picks only those (:meth:`Registry.set_provider_check`); the test is
+#: kept with a request that waits, and asked again when it is retried.
+ProviderCheck = Callable[[], Callable[[str], bool] | None]
 #: The holder name of an anonymous caller on a Session: this prefix and the Session's token.
 SESSION_HOLDER_PREFIX = "session-"
 
@@ -91,6 +96,10 @@ def _local_caller() -> Caller:
 
 
 def _anyone_may_license(service: str, subtree: str) -> None:
+    return None
+
+
+def _any_provider() -> Callable[[str], bool] | None:
     return None
 
 
@@ -234,6 +243,7 @@ class Registry(Resource):
         self.licensing.watch(self._on_licence)
         self._caller: CallerSource = _local_caller
         self._may_license: LicenceCheck = _anyone_may_license
+        self._may_provide: ProviderCheck = _any_provider
         self._table.watch_states(self._on_state_for_licences)
         self._registrations = Registrations(
             self._table,
@@ -454,6 +464,11 @@ class Registry(Resource):
         """Install the check of who may license what (:data:`LicenceCheck`); without one, anyone may."""
         self._may_license = may_license
 
+    def set_provider_check(self, may_provide: ProviderCheck) -> None:
+        """Install which providers the scheduler may license to the caller (:data:`ProviderCheck`);
+        without one, any."""
+        self._may_provide = may_provide
+
     @action(doc="acquire an exclusive licence on `service` (or `subtree`) for `duration` s; answers its id")
     async def acquire(
         self, *, service: str, duration: float = DEFAULT_LICENCE_DURATION, subtree: str = ""
@@ -574,6 +589,7 @@ class Registry(Resource):
             consumer=consumer,
             holder=holder,
             session=session,
+            allowed=self._may_provide(),
             location=location,
             count=count,
             duration=duration,
