@@ -55,6 +55,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 from gateway.connections import BoundedListener, ConnectionCaps
 from gateway.guard import REGISTRY, Guard
 from gateway.identity import ANONYMOUS
+from gateway.licensing import check_set
 from gateway.rules import Operation, Subject
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.device import DeviceServer
@@ -171,6 +172,8 @@ class RouterBackend(Backend):
         if operation is None:
             operation = await guard.set_operation_from_model(subject, service, rest, backend.describe())
         try:
+            # A licence someone else holds refuses this Set as it does one over gRPC or HTTP.
+            check_set(self.router.directory.licences, subject, service, rest)
             answer = await backend.set(rest, value, params)
         except BaseException as exc:
             guard.audited(subject, service, rest, operation, exc)

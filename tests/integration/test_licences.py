@@ -16,7 +16,9 @@ from pathlib import Path
 
 import jwt
 import pytest
+from line_device_support import LineClient
 from support.gateway_process import GatewayProcess
+from support.ports import free_port
 from support.psctl import psctl
 from support.waiting import eventually
 
@@ -431,3 +433,39 @@ async def test_an_admin_revokes_any_licence_and_its_holder_is_told(ruled: Gatewa
         with pytest.raises(NotFound, match="no licence 'L999-000000'"):
             await admin.set("registry", "revoke", "", licence="L999-000000")
     assert "licence " + licence + " on scout (holder operator): revoked" in ruled.output
+
+
+async def test_a_licence_refuses_a_set_over_the_line_listener_too(gateway_process, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    (tmp_path / "jwt.secret").write_text(SECRET)
+    line_port = free_port()
+    gw = gateway_process(
+        f"""
+        [gateway]
+        line_listen = "127.0.0.1:{line_port}"
+
+        [auth]
+        jwt_secret_file = "jwt.secret"
+        """
+        + ROBOTS
+    )
+    async with client(gw, "alice") as alice:
+        licence = await alice.set("registry", "acquire", "", service="scout")
+        line = await LineClient.tcp("127.0.0.1", line_port)
+        try:
+            assert (await line.line()).startswith("HELLO 1 name=gateway")
+            await line.send("#1 SET scout.velocity (0.1 0)")
+            refused = await line.line()
+            held = f"licence {licence} on scout is held by alice"
+            assert refused.startswith("#1 ERR 9 ") and held in refused, refused
+            await line.send("#2 SET spare.velocity (0.1 0)")
+            assert (await line.line()).startswith("#2 OK"), "a service nobody holds stays open"
+        finally:
+            line.writer.close()
+        await alice.set("registry", "release", "", licence=licence)
+        line = await LineClient.tcp("127.0.0.1", line_port)
+        try:
+            await line.line()  # the greeting
+            await line.send("#3 SET scout.velocity (0.1 0)")
+            assert (await line.line()).startswith("#3 OK")
+        finally:
+            line.writer.close()
