@@ -54,11 +54,14 @@ def own_context() -> contextvars.Context:
 @contextlib.contextmanager
 def own_work() -> Iterator[None]:
     """Make the calls inside the ``with`` block as the service itself, not for the client being served."""
-    token = CALLER.set(None)
+    # The old value is put back, not reset by token: a call stepped first in one context may
+    # finish in another (a task's copy), where a token of the first is refused.
+    before = CALLER.get()
+    CALLER.set(None)
     try:
         yield
     finally:
-        CALLER.reset(token)
+        CALLER.set(before)
 
 
 class Directory(Protocol):

@@ -247,11 +247,14 @@ class Topics:
         a PropertyError naming the service and the pattern."""
         if caller is None:
             return await self._match(service, backend, pattern, under)
-        token = CALLER.set(caller)
+        # The old value is put back, not reset by token: a call stepped first in one context may
+        # finish in another (a task's copy), where a token of the first is refused.
+        before = CALLER.get()
+        CALLER.set(caller)
         try:
             return await self._match(service, backend, pattern, under)
         finally:
-            CALLER.reset(token)
+            CALLER.set(before)
 
     async def _match(self, service: str, backend: Backend, pattern: str, under: str) -> list[PropertyModel]:
         what = f"{service}: match {pattern}" + (f" below {under}" if under else "")
