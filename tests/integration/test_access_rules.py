@@ -27,7 +27,7 @@ from support.certs import make_certificates
 from support.gateway_process import GatewayProcess, start_gateway
 from support.ports import free_port
 from support.sse import SseReader
-from support.waiting import eventually
+from support.waiting import eventually, wait_until
 
 from clients import AsyncClient, ClientCredentials
 from clients.errors import NotFound, PermissionDenied, Unauthenticated
@@ -214,11 +214,21 @@ async def test_every_cell_of_subject_by_operation_by_path(secured) -> None:  # t
     # Every Set and every refusal left one JSON audit line.
     # The audit record is the JSON object in the line's message (a text line may end with its request).
     decoder = json.JSONDecoder()
-    audit = [
-        decoder.raw_decode(line, line.index("{"))[0]
-        for line in gw.output.splitlines()
-        if "gateway.audit" in line and "{" in line
-    ]
+
+    def audit_lines() -> list[dict[str, str]]:
+        return [
+            decoder.raw_decode(line, line.index("{"))[0]
+            for line in gw.output.splitlines()
+            if "gateway.audit" in line and "{" in line
+        ]
+
+    # The process's output is read by a thread of its own: the last lines may come a moment late.
+    await wait_until(
+        lambda: any(a["subject"] == "admin" and a["operation"] == "unregister" for a in audit_lines()),
+        within=20,
+        what="the audit line of the last Set",
+    )
+    audit = audit_lines()
     assert any(
         a["subject"] == "operator" and a["operation"] == "write" and a["outcome"] == "ok" for a in audit
     ), audit
