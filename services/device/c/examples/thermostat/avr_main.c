@@ -1,14 +1,15 @@
-/* The example device on an ATmega328P at 16 MHz: USART0 at 115200 baud, a 32-byte receive ring
- * filled by the RX interrupt (stated as rxbuf=32 in the greeting), Timer1 ticking every 0.5 s.
- * Sending is polled: while a reply goes out the ring keeps receiving, which is why the gateway
- * must never have more than 32 unanswered bytes on the wire. */
+/* The example device on an ATmega328P at 16 MHz: USART0 at 115200 baud, a 64-byte receive ring
+ * filled by the RX interrupt, Timer1 ticking every 0.5 s. Sending is polled: while a line goes out
+ * (a reply, an EVENT) the ring keeps receiving, so what the device can hold without reading is the
+ * ring, and the greeting states it: rxbuf=64 (PS_RXBUF). A ring as long as the line buffer takes any
+ * request the device accepts at all, whatever the device is doing when it comes. */
 #include <avr/interrupt.h>
 #include <avr/io.h>
 
 #include "thermostat.h"
 
 #define BAUD 115200UL
-#define RING 32 /* a power of two */
+#define RING 64 /* a power of two; a whole line (PS_MAXLINE): rxbuf=64 */
 
 static volatile uint8_t ring[RING];
 static volatile uint8_t head, count;

@@ -13,7 +13,21 @@
 
 #include "ps_device.h"
 
-enum { THERMOSTAT_TEMP, THERMOSTAT_SETPOINT, THERMOSTAT_LOCATION, THERMOSTAT_LABEL, THERMOSTAT_PROBE, THERMOSTAT_HISTORY };
+/* The table's order; a profile without vectors, actions or binary values leaves those out. */
+enum {
+    THERMOSTAT_TEMP,
+    THERMOSTAT_SETPOINT,
+#if PS_WITH_VECTORS
+    THERMOSTAT_LOCATION,
+#endif
+    THERMOSTAT_LABEL,
+#if PS_WITH_ACTIONS
+    THERMOSTAT_PROBE,
+#endif
+#if PS_WITH_BYTES
+    THERMOSTAT_HISTORY
+#endif
+};
 
 /* Power-up: every value to its default, then the greeting through put. */
 void thermostat_start(ps_device *dev, ps_put_fn put, void *context);
