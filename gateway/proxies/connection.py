@@ -109,6 +109,9 @@ ASKED_GREETING_WINDOW_S = 2.0
 RESENDS = 2
 #: Tags are the request counter in hex, at most 8 digits.
 _TAG_MASK = 0xFFFFFFFF
+#: A request is measured with the longest tag it could carry, so that whether it fits the device's
+#: line limit never depends on how many requests came before it (§4.2).
+_WIDEST_TAG_DIGITS = len(format(_TAG_MASK, "x"))
 
 
 #: What a device that asks the gateway something on a connection the gateway opened is told.
@@ -463,10 +466,19 @@ class LineConnection(asyncio.Protocol):
             raise Unavailable(f"{self.label}: {self._close_reason}")
         self._next_tag = tag_number = (self._next_tag + 1) & _TAG_MASK
         tag = format(tag_number, "x")
+        limit = self._line_limit()
         try:
-            line = encode(_with_tag(frame, tag), checksum=self._checksum, max_line=self._line_limit())
+            line = encode(
+                _with_tag(frame, tag),
+                checksum=self._checksum,
+                max_line=limit - (_WIDEST_TAG_DIGITS - len(tag)),
+            )
         except LineProtocolError as exc:
-            message = f"{self.label}: cannot send the request: {exc.message}"
+            reason = exc.message
+            if exc.code == Code.RESOURCE_EXHAUSTED:
+                widest = encode(_with_tag(frame, "f" * _WIDEST_TAG_DIGITS), checksum=self._checksum, max_line=1 << 30)
+                reason = f"line too long: {len(widest)} bytes with the longest tag, the device takes {limit}"
+            message = f"{self.label}: cannot send the request: {reason}"
             value = frame.value if isinstance(frame, Set) else None
             if isinstance(value, bytes) and exc.code == Code.RESOURCE_EXHAUSTED:
                 message += (
