@@ -220,13 +220,14 @@ static uint8_t resolve(const ps_device *dev, const char *path, size_t length, ui
         size_t rest = length - n - 1;
 #if PS_WITH_MODEL
         if (rest == 3 && same_prefix(suffix, PS_F("gui"), 3)) return GUI;
-#endif
         if (rest == 10 && same_prefix(suffix, PS_F("parameters"), 10)) return PARAMETERS;
+#endif
 #if PS_WITH_VECTORS
         if (p.type == PS_VECTOR && (*element = element_of(suffix, rest, p.size)) != 255) return ELEMENT;
-#else
-        (void)element;
 #endif
+        (void)suffix;
+        (void)rest;
+        (void)element;
     }
     return 255;
 }
@@ -333,10 +334,14 @@ static void put_model(ps_device *dev) {
 
 /* ---- the greeting (§4) ------------------------------------------------------------------------- */
 
-static void put_field(ps_device *dev, const char *name, uint16_t value) {
-    put_flash(dev, name);
-    put_number(dev, value, 0);
-}
+/* The flow-control fields are build-time constants: one flash string, no number formatting. */
+#define PS_STRING(x) #x
+#define PS_DECIMAL(x) PS_STRING(x) /* the value of macro x as text: x must be a decimal literal */
+#if PS_RXBUF > 0
+#define PS_RXBUF_FIELD " rxbuf=" PS_DECIMAL(PS_RXBUF)
+#else
+#define PS_RXBUF_FIELD ""
+#endif
 
 static void greet(ps_device *dev, const request *req) {
     line_begin(dev, req);
@@ -344,11 +349,7 @@ static void greet(ps_device *dev, const request *req) {
     put_flash(dev, dev->config->name);
     put_flash(dev, PS_F(" type="));
     put_flash(dev, dev->config->type);
-    put_field(dev, PS_F(" push=1 maxline="), PS_MAXLINE);
-    put_field(dev, PS_F(" inflight="), PS_INFLIGHT);
-#if PS_RXBUF > 0
-    put_field(dev, PS_F(" rxbuf="), PS_RXBUF);
-#endif
+    put_flash(dev, PS_F(" push=1 maxline=" PS_DECIMAL(PS_MAXLINE) " inflight=" PS_DECIMAL(PS_INFLIGHT) PS_RXBUF_FIELD));
     line_end(dev);
 }
 
@@ -371,10 +372,13 @@ static uint8_t is_name_char(char c) {
 }
 
 static uint8_t in_range(const ps_property *p, ps_fixed value) {
+    struct range { /* the tail of ps_meta: only what the check reads comes out of flash */
+        ps_fixed minimum, maximum;
+        uint8_t has_range;
+    } range;
     if (!p->meta) return 1;
-    ps_meta meta;
-    ps_flash_copy(&meta, p->meta, sizeof meta);
-    return !meta.has_range || (value >= meta.minimum && value <= meta.maximum);
+    ps_flash_copy(&range, &p->meta->minimum, sizeof range);
+    return !range.has_range || (value >= range.minimum && value <= range.maximum);
 }
 
 #if PS_WITH_VECTORS
@@ -544,9 +548,7 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
     if (part == LIST) put_names(dev);
 #if PS_WITH_MODEL
     else if (part == MODEL) put_model(dev);
-#endif
     else if (part == PARAMETERS) put_flash(dev, PS_F("()"));
-#if PS_WITH_MODEL
     else if (part == GUI) {
         if (p.meta) {
             ps_meta meta;
@@ -584,6 +586,7 @@ static void flush_events(ps_device *dev) {
         }
         line_end(dev);
     }
+#if PS_WITH_ACTIONS /* without ps_gone and ps_back the list never changes */
     if ((dev->flags & (PS_FLAG_LIST | PS_FLAG_LIST_DUE)) == (PS_FLAG_LIST | PS_FLAG_LIST_DUE)) {
         line_begin(dev, 0);
         put_flash(dev, PS_F("EVENT properties "));
@@ -591,6 +594,7 @@ static void flush_events(ps_device *dev) {
         line_end(dev);
     }
     dev->flags &= (uint8_t)~PS_FLAG_LIST_DUE;
+#endif
 }
 
 #if PS_WITH_CHECKSUM

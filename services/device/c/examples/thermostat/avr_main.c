@@ -9,21 +9,24 @@
 #include "thermostat.h"
 
 #define BAUD 115200UL
-#define RING 64 /* a power of two; a whole line (PS_MAXLINE): rxbuf=64 */
+#define RING 64 /* a power of two dividing 256: the free-running 8-bit counters wrap with it */
 
+/* The ring: the RX interrupt writes at `tail`, the main loop reads at `head`; each counter has one
+ * writer and is one byte, so neither side needs interrupts off to read the other's. */
 static volatile uint8_t ring[RING];
-static volatile uint8_t head, count;
-/* When the ring overflowed: how many bytes received before the lost one are still to be fed;
- * the line being read once they are is the damaged one (0: nothing lost). */
-static volatile uint8_t lost_after;
+static volatile uint8_t head, tail;
+/* The ring overflowed: the byte that would have been at `lost_at` was dropped. Once the main loop
+ * has fed every byte before it, the line being read is the damaged one. */
+static volatile uint8_t lost, lost_at;
 
 ISR(USART_RX_vect) {
     uint8_t byte = UDR0;
-    if (count < RING) {
-        ring[(uint8_t)(head + count) & (RING - 1)] = byte;
-        count++;
-    } else if (!lost_after) {
-        lost_after = RING;
+    if ((uint8_t)(tail - head) < RING) {
+        ring[tail & (RING - 1)] = byte;
+        tail++;
+    } else if (!lost) {
+        lost_at = tail;
+        lost = 1;
     }
 }
 
@@ -46,15 +49,14 @@ int main(void) {
     sei();
     thermostat_start(&dev, put_byte, 0); /* after reset: the greeting (docs/line-protocol.md §4) */
     for (;;) {
-        if (count) {
-            cli();
-            uint8_t byte = ring[head];
-            head = (uint8_t)(head + 1) & (RING - 1);
-            count--;
-            uint8_t report = lost_after && --lost_after == 0;
-            sei();
+        if (lost && head == lost_at) {
+            lost = 0;
+            ps_lost(&dev);
+        }
+        if (head != tail) {
+            uint8_t byte = ring[head & (RING - 1)];
+            head++;
             ps_feed(&dev, &byte, 1);
-            if (report) ps_lost(&dev);
         }
         if (TIFR1 & _BV(OCF1A)) {
             TIFR1 = _BV(OCF1A);

@@ -3,21 +3,31 @@
 
 #include "thermostat.h"
 
-static ps_fixed temp, setpoint, location[6];
+static ps_fixed temp, setpoint;
+#if PS_WITH_VECTORS
+static ps_fixed location[6];
+#endif
 static int8_t step;
+#if PS_WITH_BYTES
 /* The last HISTORY readings of temp in tenths of a degree, a ring whose oldest is at `oldest`. */
 #define HISTORY 8 /* a power of two: the ring wraps with a mask */
 static int16_t history[HISTORY];
 static uint8_t oldest;
+#endif
 static char label[16];
-static ps_config config;
 
 static const char name_temp[] PS_FLASH = "temp";
 static const char name_setpoint[] PS_FLASH = "setpoint";
+#if PS_WITH_VECTORS
 static const char name_location[] PS_FLASH = "location";
+#endif
 static const char name_label[] PS_FLASH = "label";
+#if PS_WITH_ACTIONS
 static const char name_probe[] PS_FLASH = "probe";
+#endif
+#if PS_WITH_BYTES
 static const char name_history[] PS_FLASH = "history";
+#endif
 #if PS_WITH_MODEL /* the model's words: without it the build drops them (PS_DOC) */
 static const char degc[] PS_FLASH = "degC";
 static const char doc_temp[] PS_FLASH = "board temperature";
@@ -80,22 +90,24 @@ static const ps_property table[] PS_FLASH = {
 static const char device_name[] PS_FLASH = "thermo1";
 static const char device_type[] PS_FLASH = "sensor";
 
+/* Everything but the sink is known at build time: set in the image, not by code. */
+static ps_config config = {device_name, device_type, table, sizeof table / sizeof table[0], 0, 0, 0};
+
 void thermostat_start(ps_device *dev, ps_put_fn put, void *context) {
     memset(dev, 0, sizeof *dev);
     temp = 215;
     setpoint = 200;
-    memset(location, 0, sizeof location);
     step = 1;
     strcpy(label, "bench");
+#if PS_WITH_VECTORS
+    memset(location, 0, sizeof location);
+#endif
+#if PS_WITH_BYTES
     for (uint8_t i = 0; i < HISTORY; i++) history[i] = (int16_t)temp;
     oldest = 0;
-    config.name = device_name;
-    config.type = device_type;
-    config.properties = table;
-    config.count = sizeof table / sizeof table[0];
+#endif
     config.put = put;
     config.context = context;
-    config.on_set = 0;
     ps_begin(dev, &config);
 }
 
@@ -104,10 +116,10 @@ void thermostat_tick(ps_device *dev) {
     if (temp >= setpoint + 10) step = -1;
     else if (temp <= setpoint - 10) step = 1;
     temp += step;
-    history[oldest] = (int16_t)temp; /* the oldest goes, the newest comes last */
-    oldest = (oldest + 1) & (HISTORY - 1);
     ps_changed(dev, THERMOSTAT_TEMP);
 #if PS_WITH_BYTES
+    history[oldest] = (int16_t)temp; /* the oldest goes, the newest comes last */
+    oldest = (oldest + 1) & (HISTORY - 1);
     ps_changed(dev, THERMOSTAT_HISTORY);
 #endif
 }
