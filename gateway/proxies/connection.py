@@ -476,7 +476,9 @@ class LineConnection(asyncio.Protocol):
         except LineProtocolError as exc:
             reason = exc.message
             if exc.code == Code.RESOURCE_EXHAUSTED:
-                widest = encode(_with_tag(frame, "f" * _WIDEST_TAG_DIGITS), checksum=self._checksum, max_line=1 << 30)
+                widest = encode(
+                    _with_tag(frame, "f" * _WIDEST_TAG_DIGITS), checksum=self._checksum, max_line=1 << 30
+                )
                 reason = f"line too long: {len(widest)} bytes with the longest tag, the device takes {limit}"
             message = f"{self.label}: cannot send the request: {reason}"
             value = frame.value if isinstance(frame, Set) else None

@@ -241,10 +241,12 @@ async def test_a_32_byte_receive_buffer_is_never_overrun_and_longer_lines_are_re
         assert not [line for line in device.lines if "1111111111" in line]  # never sent
 
 
-async def test_whether_a_request_fits_the_receive_buffer_does_not_depend_on_how_long_the_session_ran() -> None:
+async def test_whether_a_request_fits_the_receive_buffer_does_not_depend_on_how_long_it_ran() -> None:
     """Tags are a hex counter of 1 to 8 digits: a request is measured with the longest, so one that
     is refused is refused from the first request on, and one that is taken is taken for ever."""
-    device = ScriptedDevice("HELLO 1 name=avr type=sensor push=1 maxline=64 rxbuf=32", {"speed": "1"}, rxbuf=32)
+    device = ScriptedDevice(
+        "HELLO 1 name=avr type=sensor push=1 maxline=64 rxbuf=32", {"speed": "1"}, rxbuf=32
+    )
     async with tcp_scripted(device) as url, proxy_for(url) as proxy:
         await proxy.wait_connected(WAIT)
         # "#ffffffff SET speed " is 20 bytes: 11 bytes of value and the LF fill the 32 exactly.

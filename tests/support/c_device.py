@@ -34,6 +34,7 @@ NEEDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "test": (("make", "cc"), ()),
     "host": (("make", "cc"), ()),
     "avr": (("make", "avr-gcc", "avr-objcopy", "avr-size", "avr-nm"), ("/usr/lib/avr/include/avr/io.h",)),
+    "sizes": (("make", "avr-gcc", "avr-size"), ("/usr/lib/avr/include/avr/io.h",)),
     "sim": (("make", "cc"), ("/usr/include/simavr/sim_avr.h", "/usr/include/simavr/parts/uart_pty.h")),
 }
 BUILD_TIMEOUT = 120.0

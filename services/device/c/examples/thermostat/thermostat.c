@@ -93,7 +93,7 @@ static const char device_type[] PS_FLASH = "sensor";
 /* Everything but the sink is known at build time: set in the image, not by code. */
 static ps_config config = {device_name, device_type, table, sizeof table / sizeof table[0], 0, 0, 0};
 
-void thermostat_start(ps_device *dev, ps_put_fn put, void *context) {
+void example_start(ps_device *dev, ps_put_fn put, void *context) {
     memset(dev, 0, sizeof *dev);
     temp = 215;
     setpoint = 200;
@@ -111,7 +111,7 @@ void thermostat_start(ps_device *dev, ps_put_fn put, void *context) {
     ps_begin(dev, &config);
 }
 
-void thermostat_tick(ps_device *dev) {
+void example_tick(ps_device *dev) {
     /* a sawtooth of 0.1 degC steps within 1 degC of the setpoint */
     if (temp >= setpoint + 10) step = -1;
     else if (temp <= setpoint - 10) step = 1;

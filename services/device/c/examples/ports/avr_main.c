@@ -1,4 +1,4 @@
-/* The example device on an ATmega328P at 16 MHz: USART0 at 115200 baud, a 64-byte receive ring
+/* The AVR port of the example devices: an ATmega328P at 16 MHz, USART0 at 115200 baud, a 64-byte receive ring
  * filled by the RX interrupt, Timer1 ticking every 0.5 s. Sending is polled: while a line goes out
  * (a reply, an EVENT) the ring keeps receiving, so what the device can hold without reading is the
  * ring, and the greeting states it: rxbuf=64 (PS_RXBUF). A ring as long as the line buffer takes any
@@ -6,7 +6,7 @@
 #include <avr/interrupt.h>
 #include <avr/io.h>
 
-#include "thermostat.h"
+#include "example.h"
 
 #define BAUD 115200UL
 #define RING 64 /* a power of two dividing 256: the free-running 8-bit counters wrap with it */
@@ -47,7 +47,7 @@ int main(void) {
     TCCR1B = _BV(WGM12) | _BV(CS12) | _BV(CS10); /* CTC, clock / 1024 */
     OCR1A = (uint16_t)(F_CPU / 1024 / 2 - 1);     /* 0.5 s */
     sei();
-    thermostat_start(&dev, put_byte, 0); /* after reset: the greeting (docs/line-protocol.md §4) */
+    example_start(&dev, put_byte, 0); /* after reset: the greeting (docs/line-protocol.md §4) */
     for (;;) {
         if (lost && head == lost_at) {
             lost = 0;
@@ -60,7 +60,7 @@ int main(void) {
         }
         if (TIFR1 & _BV(OCF1A)) {
             TIFR1 = _BV(OCF1A);
-            thermostat_tick(&dev);
+            example_tick(&dev);
         }
         ps_poll(&dev);
     }
