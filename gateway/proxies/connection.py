@@ -732,13 +732,15 @@ class LineConnection(asyncio.Protocol):
         self._write_line(line)
 
     def _resolve(self, reply: Ok | ErrorReply | Pong | Hello, tag: str) -> None:
+        pending = self._pending.pop(tag, None)
         if type(reply) is Hello:
             self._greeted(reply)
-        else:
+        elif pending is not None:
             # A device answers in order: once it answered a later request, the answer to the
-            # gateway's HELLO is behind, and an untagged greeting from now on is a restart.
+            # gateway's HELLO is behind, and an untagged greeting from now on is a restart. (A
+            # reply to no request of this connection, one a board sent before it was reset as the
+            # port opened, says nothing about that.)
             self._asked_greetings = 0
-        pending = self._pending.pop(tag, None)
         if pending is None:
             if type(reply) is not Hello:
                 log.info("%s: reply for tag #%s came too late or was not asked for; ignored", self.label, tag)

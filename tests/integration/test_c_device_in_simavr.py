@@ -9,6 +9,7 @@ import itertools
 import os
 import re
 import select
+import signal
 import struct
 import subprocess
 import time
@@ -22,6 +23,7 @@ from support.c_device import CProgram, build
 from support.gateway_process import StartGateway
 from support.psctl import psctl
 from support.serial_tap import WireTap
+from support.waiting import eventually
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -237,3 +239,39 @@ async def test_an_overrun_on_the_serial_line_costs_one_resend_not_a_timeout(
         resent = next(line for who, line in reversed(record[: lost[0]]) if who == "gw")
         assert next(line for who, line in record[lost[0] + 1 :] if who == "gw") == resent, tap.transcript()
     assert "never retrieved" not in gw.output, gw.output
+
+
+async def test_a_board_that_resets_when_the_port_opens_costs_a_listener_one_gap(
+    gateway_process: StartGateway, firmware: tuple[Path, Path]
+) -> None:
+    """An Arduino-like board: opening the port resets it (DTR) and a bootloader eats what comes for
+    a second before the firmware greets. The firmware hangs; the gateway's keep-alive gives up and
+    opens the port again, which resets the board: the gateway greets it again through the
+    bootloader's second, and a listener sees exactly one gap."""
+    harness, elf = firmware
+    options = OPTIONS.replace("keepalive = 1.0", "keepalive = 1.0, keepalive_timeout = 2.0")
+    with CProgram([str(harness), "--reset-on-open", "1000", str(elf)]) as board:
+        url = f"serial://{board.where}?baudrate=115200"
+        gw = gateway_process(f'[[services]]\nname = "thermo"\nurl = "{url}"\noptions = {options}\n')
+        async with grpc.aio.insecure_channel(gw.address) as channel:
+            stub = pb_grpc.PropertyServiceStub(channel)
+            setpoint = pb.GetRequest(service="thermo", property="setpoint")
+            # The first open resets the board too: the gateway is connected once the firmware greets.
+            first = await eventually(
+                lambda: stub.Get(setpoint, timeout=WAIT), retry_on=(grpc.aio.AioRpcError,)
+            )
+            assert first.value == "20"
+            stream = stub.Listen(pb.ListenRequest(service="thermo", property="temp"))
+            gaps = 0
+            async with asyncio.timeout(WAIT):
+                assert (await stream.read()).events
+                os.kill(board.proc.pid, signal.SIGUSR2)  # the firmware hangs
+                after_gap = 0
+                while after_gap < 4:  # the gap, then events for a while: no second gap
+                    msg = await stream.read()
+                    assert msg is not grpc.aio.EOF
+                    gaps += sum(e.gap for e in msg.events)
+                    after_gap += bool(gaps) * len(msg.events)
+            stream.cancel()
+            assert gaps == 1, f"{gw.output}\n{board.output}"
+            assert (await stub.Get(setpoint, timeout=WAIT)).value == "20"
