@@ -429,7 +429,7 @@ class LineProxy(Backend):
                     # while the line stays silent, the HELLO went unheard; ask again (every answer
                     # counts as one, §4.4). A device that is answering is never asked twice.
                     conn.ask_hello()
-                    every = self.options.connect_timeout / 4
+                    every = self.options.connect_timeout / 2  # as a TCP device is asked (below)
                     while not (await asyncio.wait([conn.hello], timeout=every))[0]:
                         if time.monotonic() - conn.last_heard >= every:
                             conn.ask_hello()

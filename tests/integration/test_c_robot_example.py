@@ -14,6 +14,7 @@ import grpc
 import pytest
 from support.c_device import CProgram, build
 from support.gateway_process import StartGateway
+from support.waiting import eventually
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -63,7 +64,9 @@ def pose(value: str) -> list[float]:
 async def drive_the_robot(address: str, tick_s: float) -> None:
     async with grpc.aio.insecure_channel(address) as channel:
         stub = pb_grpc.PropertyServiceStub(channel)
-        assert (await get(stub, "properties")).strip("()").split() == [
+        # The gateway is up before it has heard the robot greet: ask until it has.
+        names = await eventually(lambda: get(stub, "properties"), retry_on=(grpc.aio.AioRpcError,))
+        assert names.strip("()").split() == [
             "location",
             "velocity",
             "behaviors.stop",
