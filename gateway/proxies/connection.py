@@ -109,6 +109,9 @@ ASKED_GREETING_WINDOW_S = 2.0
 RESENDS = 2
 #: Tags are the request counter in hex, at most 8 digits.
 _TAG_MASK = 0xFFFFFFFF
+#: A request is measured with the longest tag it could carry, so that whether it fits the device's
+#: line limit never depends on how many requests came before it (§4.2).
+_WIDEST_TAG_DIGITS = len(format(_TAG_MASK, "x"))
 
 
 #: What a device that asks the gateway something on a connection the gateway opened is told.
@@ -468,10 +471,21 @@ class LineConnection(asyncio.Protocol):
             raise Unavailable(f"{self.label}: {self._close_reason}")
         self._next_tag = tag_number = (self._next_tag + 1) & _TAG_MASK
         tag = format(tag_number, "x")
+        limit = self._line_limit()
         try:
-            line = encode(_with_tag(frame, tag), checksum=self._checksum, max_line=self._line_limit())
+            line = encode(
+                _with_tag(frame, tag),
+                checksum=self._checksum,
+                max_line=limit - (_WIDEST_TAG_DIGITS - len(tag)),
+            )
         except LineProtocolError as exc:
-            message = f"{self.label}: cannot send the request: {exc.message}"
+            reason = exc.message
+            if exc.code == Code.RESOURCE_EXHAUSTED:
+                widest = encode(
+                    _with_tag(frame, "f" * _WIDEST_TAG_DIGITS), checksum=self._checksum, max_line=1 << 30
+                )
+                reason = f"line too long: {len(widest)} bytes with the longest tag, the device takes {limit}"
+            message = f"{self.label}: cannot send the request: {reason}"
             value = frame.value if isinstance(frame, Set) else None
             if isinstance(value, bytes) and exc.code == Code.RESOURCE_EXHAUSTED:
                 message += (
@@ -724,13 +738,15 @@ class LineConnection(asyncio.Protocol):
         self._write_line(line)
 
     def _resolve(self, reply: Ok | ErrorReply | Pong | Hello, tag: str) -> None:
+        pending = self._pending.pop(tag, None)
         if type(reply) is Hello:
             self._greeted(reply)
-        else:
+        elif pending is not None:
             # A device answers in order: once it answered a later request, the answer to the
-            # gateway's HELLO is behind, and an untagged greeting from now on is a restart.
+            # gateway's HELLO is behind, and an untagged greeting from now on is a restart. (A
+            # reply to no request of this connection, one a board sent before it was reset as the
+            # port opened, says nothing about that.)
             self._asked_greetings = 0
-        pending = self._pending.pop(tag, None)
         if pending is None:
             if type(reply) is not Hello:
                 log.info("%s: reply for tag #%s came too late or was not asked for; ignored", self.label, tag)

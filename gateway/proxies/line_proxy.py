@@ -424,7 +424,15 @@ class LineProxy(Backend):
         try:
             async with asyncio.timeout(self.options.connect_timeout):
                 if self.ask_hello_first:
+                    # A board that resets when its port opens (DTR) runs its bootloader first, which
+                    # eats the HELLO, and may send a fragment of a line before its boot greeting:
+                    # while the line stays silent, the HELLO went unheard; ask again (every answer
+                    # counts as one, §4.4). A device that is answering is never asked twice.
                     conn.ask_hello()
+                    every = self.options.connect_timeout / 2  # as a TCP device is asked (below)
+                    while not (await asyncio.wait([conn.hello], timeout=every))[0]:
+                        if time.monotonic() - conn.last_heard >= every:
+                            conn.ask_hello()
                     hello = await conn.hello
                 else:
                     done, _ = await asyncio.wait([conn.hello], timeout=self.options.connect_timeout / 2)

@@ -1,6 +1,6 @@
 """The example device's ATmega328P firmware, run in simavr with USART0 on a host pty, driven by a real
-gateway's serial proxy: Get, Set, Listen, a reset, and a 32-byte receive ring that loses nothing
-because the gateway keeps to the device's flow control (inflight=1 rxbuf=32)."""
+gateway's serial proxy: Get, Set, Listen, a reset, and a 64-byte receive ring that loses nothing
+because the gateway keeps to the device's flow control (inflight=1 rxbuf=64)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import itertools
 import os
 import re
 import select
+import signal
 import struct
 import subprocess
 import time
@@ -22,12 +23,13 @@ from support.c_device import CProgram, build
 from support.gateway_process import StartGateway
 from support.psctl import psctl
 from support.serial_tap import WireTap
+from support.waiting import eventually
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
 WAIT = 20.0
-RXBUF = 32
+RXBUF = 64
 ATMEGA328P_SRAM = 2048
 RAM_BUDGET = 1024
 # A keep-alive PING every second: under inflight=1 it queues behind requests like any other.
@@ -89,7 +91,7 @@ def test_the_harness_ends_on_sigterm(firmware: tuple[Path, Path], tmp_path: Path
 
 
 def test_the_ring_overflows_without_flow_control_and_says_so(mcu: CProgram) -> None:
-    """The control experiment: requests pipelined past 32 bytes while the device is still sending a
+    """The control experiment: requests pipelined past 64 bytes while the device is still sending a
     long reply overflow its ring; the device answers the damaged line ERR 15 instead of merging it."""
     fd = os.open(mcu.where, os.O_RDWR | os.O_NOCTTY)
     try:
@@ -141,6 +143,8 @@ async def test_the_firmware_in_simavr_through_the_gateway(
         assert "setpoint = 20\n" in five and "label = bench" in five and "temp.gui = gauge" in five, five
         assert "23.5" in await run("set", "thermo", "setpoint", "23.5")
         assert "shelf 2" in await run("set", "thermo", "label", "shelf 2")
+        # A whole pose: 39 bytes on the line under an 8-digit tag, within what the ring holds.
+        assert "(10.25 20.5 0 0 0 0)" in await run("set", "thermo", "location", "(10.25 20.5 0 0 0 0)")
         events = await run("listen", "thermo", "temp", "--count", "3")
         assert len(re.findall(r"temp", events)) >= 3, events
         async with grpc.aio.insecure_channel(gw.address) as channel:
@@ -180,10 +184,10 @@ async def test_the_firmware_in_simavr_through_the_gateway(
             history = await stub.Get(pb.GetRequest(service="thermo", property="history"), timeout=WAIT)
             assert_history(history)
         transcript = tap.transcript()
-        # The 32-byte ring never overflowed: no line was damaged, and the gateway never had more
+        # The 64-byte ring never overflowed: no line was damaged, and the gateway never had more
         # request bytes on the wire than the device said it can hold.
         assert "ERR 15" not in transcript, transcript
-        assert "inflight=1 rxbuf=32" in transcript
+        assert "inflight=1 rxbuf=64" in transcript
         assert re.search(r"^< #\w+ PONG", transcript, re.M), "the device answered the gateway's keep-alive"
         assert 0 < tap.most_unanswered_bytes() <= RXBUF, transcript
     mcu.stop()
@@ -201,7 +205,7 @@ async def test_the_firmware_in_simavr_through_the_gateway(
 async def test_an_overrun_on_the_serial_line_costs_one_resend_not_a_timeout(
     gateway_process: StartGateway, mcu: CProgram
 ) -> None:
-    """Eight ``GET properties.model`` at once and a Listen, with line noise that overruns the 32-byte
+    """Eight ``GET properties.model`` at once and a Listen, with line noise that overruns the 64-byte
     ring while the device sends its longest reply: the device answers the damaged line with an
     untagged ``ERR 15``, the gateway sends the lost request again at once, and every call is
     answered well within the 5 s timeout."""
@@ -213,9 +217,9 @@ async def test_an_overrun_on_the_serial_line_costs_one_resend_not_a_timeout(
         async with grpc.aio.insecure_channel(gw.address) as channel:
             stub = pb_grpc.PropertyServiceStub(channel)
             await stub.Get(pb.GetRequest(service="thermo", property="setpoint"), timeout=WAIT)
-            # 48 bytes arrive while the firmware writes the model (about 400 bytes): more than its
+            # 80 bytes arrive while the firmware writes the model (about 400 bytes): more than its
             # ring holds, so the next line it reads, the gateway's next request, lost bytes.
-            tap.add_noise(b"GET properties.model", b"~" * 48)
+            tap.add_noise(b"GET properties.model", b"~" * 80)
             began = time.monotonic()
             model = pb.GetRequest(service="thermo", property="properties.model")
             gets = [stub.Get(model, timeout=WAIT) for _ in range(8)]
@@ -235,3 +239,39 @@ async def test_an_overrun_on_the_serial_line_costs_one_resend_not_a_timeout(
         resent = next(line for who, line in reversed(record[: lost[0]]) if who == "gw")
         assert next(line for who, line in record[lost[0] + 1 :] if who == "gw") == resent, tap.transcript()
     assert "never retrieved" not in gw.output, gw.output
+
+
+async def test_a_board_that_resets_when_the_port_opens_costs_a_listener_one_gap(
+    gateway_process: StartGateway, firmware: tuple[Path, Path]
+) -> None:
+    """An Arduino-like board: opening the port resets it (DTR) and a bootloader eats what comes for
+    a second before the firmware greets. The firmware hangs; the gateway's keep-alive gives up and
+    opens the port again, which resets the board: the gateway greets it again through the
+    bootloader's second, and a listener sees exactly one gap."""
+    harness, elf = firmware
+    options = OPTIONS.replace("keepalive = 1.0", "keepalive = 1.0, keepalive_timeout = 2.0")
+    with CProgram([str(harness), "--reset-on-open", "1000", str(elf)]) as board:
+        url = f"serial://{board.where}?baudrate=115200"
+        gw = gateway_process(f'[[services]]\nname = "thermo"\nurl = "{url}"\noptions = {options}\n')
+        async with grpc.aio.insecure_channel(gw.address) as channel:
+            stub = pb_grpc.PropertyServiceStub(channel)
+            setpoint = pb.GetRequest(service="thermo", property="setpoint")
+            # The first open resets the board too: the gateway is connected once the firmware greets.
+            first = await eventually(
+                lambda: stub.Get(setpoint, timeout=WAIT), retry_on=(grpc.aio.AioRpcError,)
+            )
+            assert first.value == "20"
+            stream = stub.Listen(pb.ListenRequest(service="thermo", property="temp"))
+            gaps = 0
+            async with asyncio.timeout(WAIT):
+                assert (await stream.read()).events
+                os.kill(board.proc.pid, signal.SIGUSR2)  # the firmware hangs
+                after_gap = 0
+                while after_gap < 4:  # the gap, then events for a while: no second gap
+                    msg = await stream.read()
+                    assert msg is not grpc.aio.EOF
+                    gaps += sum(e.gap for e in msg.events)
+                    after_gap += bool(gaps) * len(msg.events)
+            stream.cancel()
+            assert gaps == 1, f"{gw.output}\n{board.output}"
+            assert (await stub.Get(setpoint, timeout=WAIT)).value == "20"

@@ -187,3 +187,29 @@ async def test_the_same_over_a_pty_with_checksums(gateway_process: StartGateway,
         await check_listen_reset_gone_and_return(gw, device)
         check_checksums(tap)
         assert any(who == "gw" and line.startswith("$#") for who, line in tap.record()), "tagged requests"
+
+
+async def test_the_minimal_profile_serves_numbers_and_text_through_the_gateway(
+    gateway_process: StartGateway, tmp_path: Path
+) -> None:
+    """The thermostat built with -DPS_MINIMAL (what fits 4 KiB on the AVR): Get, Set and Listen of
+    its numbers and text through a real gateway; what the profile leaves out is not there."""
+    build("host", tmp_path, profile="-DPS_MINIMAL")
+    with CProgram(
+        [str(tmp_path / "host" / "thermostat"), "--tcp", "127.0.0.1:0", "--period", "100"]
+    ) as device:
+        gw = gateway_process(config(f"tcp://{device.where}"))
+        async with grpc.aio.insecure_channel(gw.address) as channel:
+            stub = pb_grpc.PropertyServiceStub(channel)
+            assert (await get(stub, "properties")).strip("()").split() == ["temp", "setpoint", "label"]
+            assert await set_(stub, "setpoint", "22.5") == "22.5"
+            assert await set_(stub, "label", "shelf 2") == "shelf 2"
+            stream = stub.Listen(pb.ListenRequest(service="thermo", property="temp"))
+            values = {(await next_event(stream)).value for _ in range(3)}
+            stream.cancel()
+            assert len(values) >= 2, "temp moves on the timer"
+            with pytest.raises(grpc.aio.AioRpcError) as info:
+                await set_(stub, "setpoint", "99")
+            assert info.value.code() == grpc.StatusCode.OUT_OF_RANGE
+            assert await refused(lambda: get(stub, "temp.gui")) == grpc.StatusCode.NOT_FOUND  # no model
+            assert await refused(lambda: get(stub, "history")) == grpc.StatusCode.NOT_FOUND  # no binary

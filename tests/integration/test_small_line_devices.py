@@ -241,6 +241,23 @@ async def test_a_32_byte_receive_buffer_is_never_overrun_and_longer_lines_are_re
         assert not [line for line in device.lines if "1111111111" in line]  # never sent
 
 
+async def test_whether_a_request_fits_the_receive_buffer_does_not_depend_on_how_long_it_ran() -> None:
+    """Tags are a hex counter of 1 to 8 digits: a request is measured with the longest, so one that
+    is refused is refused from the first request on, and one that is taken is taken for ever."""
+    device = ScriptedDevice(
+        "HELLO 1 name=avr type=sensor push=1 maxline=64 rxbuf=32", {"speed": "1"}, rxbuf=32
+    )
+    async with tcp_scripted(device) as url, proxy_for(url) as proxy:
+        await proxy.wait_connected(WAIT)
+        # "#ffffffff SET speed " is 20 bytes: 11 bytes of value and the LF fill the 32 exactly.
+        assert await proxy.set("speed", "1" * 11) == "1" * 11
+        with pytest.raises(PropertyError) as info:
+            await proxy.set("speed", "1" * 12)  # under the tag "#2" 26 bytes: the counter must not decide
+        assert info.value.code == Code.RESOURCE_EXHAUSTED
+        assert "33 bytes with the longest tag, the device takes 32" in info.value.message
+        assert not [line for line in device.lines if "1" * 12 in line]
+
+
 async def test_a_serial_device_that_states_nothing_gets_one_request_at_a_time() -> None:
     device = ScriptedDevice(THERM, {"a": "1", "b": "2"}, delay=0.02, greet_first=False)
     async with pty_scripted(device) as path, proxy_for(path) as proxy:

@@ -35,6 +35,7 @@ NEEDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "test": (("make", "cc"), ()),
     "host": (("make", "cc"), ()),
     "avr": (("make", "avr-gcc", "avr-objcopy", "avr-size", "avr-nm"), ("/usr/lib/avr/include/avr/io.h",)),
+    "sizes": (("make", "avr-gcc", "avr-size"), ("/usr/lib/avr/include/avr/io.h",)),
     "sim": (("make", "cc"), ("/usr/include/simavr/sim_avr.h", "/usr/include/simavr/parts/uart_pty.h")),
     "cortexm": (
         ("make", "arm-none-eabi-gcc", "arm-none-eabi-objcopy", "arm-none-eabi-size", "arm-none-eabi-nm"),
@@ -58,11 +59,12 @@ def require(*targets: str) -> None:
         pytest.skip(f"the C device library needs {', '.join(lacking)}: {INSTALL_HINT}")
 
 
-def build(target: str, into: Path) -> str:
-    """``make target`` into the folder ``into``; the build's output. A failed build fails the test."""
+def build(target: str, into: Path, profile: str = "") -> str:
+    """``make target`` into the folder ``into``, with the profile switches ``profile`` (``-DPS_MINIMAL``);
+    the build's output. A failed build fails the test."""
     require(target)
     run = subprocess.run(
-        ["make", "--no-print-directory", "-C", str(C_DIR), f"BUILD={into}", target],
+        ["make", "--no-print-directory", "-C", str(C_DIR), f"BUILD={into}", f"PROFILE={profile}", target],
         capture_output=True,
         text=True,
         timeout=BUILD_TIMEOUT,

@@ -37,6 +37,47 @@
 #define PS_MAX_PROPERTIES 16
 #endif
 
+/* ---- profiles: what the core is built with (each 0 or 1 with -D; docs/c-device-library.md) ---- */
+
+/* PS_MINIMAL: Get, Set and Listen of numbers and text and nothing else; each switch below can
+ * still be turned on by itself (-DPS_MINIMAL -DPS_WITH_CHECKSUM=1). */
+#ifdef PS_MINIMAL
+#define PS_DEFAULT_FEATURE 0
+#else
+#define PS_DEFAULT_FEATURE 1
+#endif
+/* Binary values (PS_BYTES, ps_put_base64; line protocol 1.2). */
+#ifndef PS_WITH_BYTES
+#define PS_WITH_BYTES PS_DEFAULT_FEATURE
+#endif
+/* The model with docs: properties.model, NAME.gui, and the unit, doc and gui strings of ps_meta
+ * (PS_DOC: a string the build drops when the model is off). Ranges are checked either way. */
+#ifndef PS_WITH_MODEL
+#define PS_WITH_MODEL PS_DEFAULT_FEATURE
+#endif
+/* CRC-8 checksums ('$' lines, §6). Without them a '$' line is answered ERR 12. */
+#ifndef PS_WITH_CHECKSUM
+#define PS_WITH_CHECKSUM PS_DEFAULT_FEATURE
+#endif
+/* Tags ('#TAG ' echoed on the reply, §2.1). The gateway tags every request: a device behind it
+ * keeps them. Without them a tagged line is answered ERR 12, untagged (a terminal, a script). */
+#ifndef PS_WITH_TAGS
+#define PS_WITH_TAGS 1
+#endif
+/* Vectors (PS_VECTOR) and their elements NAME.0.., NAME.x y z roll pitch yaw. */
+#ifndef PS_WITH_VECTORS
+#define PS_WITH_VECTORS PS_DEFAULT_FEATURE
+#endif
+/* Actions (PS_ACTION) and ps_gone/ps_back. */
+#ifndef PS_WITH_ACTIONS
+#define PS_WITH_ACTIONS PS_DEFAULT_FEATURE
+#endif
+/* The words after an ERR code ("ERR 5 no such property"); without them "ERR 5" alone (§2: the
+ * message is optional). */
+#ifndef PS_WITH_ERROR_TEXTS
+#define PS_WITH_ERROR_TEXTS PS_DEFAULT_FEATURE
+#endif
+
 #if PS_MAXLINE < 64 || PS_MAXLINE > 1024
 #error "PS_MAXLINE must be 64..1024 (docs/line-protocol.md §1, §4)"
 #endif
@@ -57,6 +98,12 @@
 #define PS_F(text) (text)
 #define ps_flash_byte(p) (*(const uint8_t *)(p))
 #define ps_flash_copy(dst, src, n) memcpy((dst), (src), (n))
+#endif
+
+#if PS_WITH_MODEL
+#define PS_DOC(flash_string) (flash_string)
+#else
+#define PS_DOC(flash_string) 0
 #endif
 
 /* ---- status codes: the gRPC numbers (docs/line-protocol.md §7) ---------------------------- */
@@ -186,10 +233,12 @@ void ps_lost(ps_device *dev);
 void ps_changed(ps_device *dev, uint8_t index);
 /* Send the EVENT lines of changed, listened properties. Call it from the main loop. */
 void ps_poll(ps_device *dev);
+#if PS_WITH_ACTIONS
 /* Property `index` no longer exists (a tool unplugged): a listener gets GONE; GET is NOT_FOUND. */
 void ps_gone(ps_device *dev, uint8_t index);
 /* Property `index` exists again: a listener of `properties` gets the new list. */
 void ps_back(ps_device *dev, uint8_t index);
+#endif
 
 /* ---- pieces the core is built of, public for tests and for authors ---------------------------- */
 
@@ -200,12 +249,14 @@ uint8_t ps_parse_fixed(const char *text, size_t length, uint8_t decimals, ps_fix
 /* Format a fixed-point value into out (at least 13 bytes); trailing zeros of the fraction are left
  * out ("21.5", "3", "-0.05"). Returns the length. */
 uint8_t ps_format_fixed(ps_fixed value, uint8_t decimals, char *out);
+#if PS_WITH_BYTES
 /* Write "\=" and the standard base64 of the bytes read(dev, index, 0), read(dev, index, 1), ...
  * up to the first -1 into the line being sent (through the sink, counted in its CRC), 4 characters
  * for every 3 bytes, the last group padded with '='. Two bytes of state, whatever the length (the
  * position passed to read wraps after 65535: a longer value needs a source that ignores it). The line must still fit the client's limit (1024 bytes unless the gateway's proxy option
  * maxline raises it): at most 756 bytes after "#TAG OK " (docs/line-protocol.md §2.4). */
 void ps_put_base64(ps_device *dev, ps_byte_fn read, uint8_t index);
+#endif
 /* Undo the escapes \n \r \\ \s in place; PS_OK or PS_INVALID_ARGUMENT (any other escape, "\=" too:
  * this library takes no binary values, it only sends them). */
 uint8_t ps_unescape(char *text, size_t *length);

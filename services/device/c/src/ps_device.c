@@ -15,6 +15,16 @@ static ps_mask bit_of(uint8_t index) {
     return index < PS_MAX_PROPERTIES ? (ps_mask)((ps_mask)1 << index) : (ps_mask)0;
 }
 #define BIT(i) bit_of(i)
+#if PS_WITH_ACTIONS
+#define ABSENT(dev, i) ((dev)->absent & BIT(i))
+#else
+#define ABSENT(dev, i) 0 /* nothing comes and goes: no test at all */
+#endif
+#if PS_WITH_ERROR_TEXTS
+#define WHY(text) PS_F(text)
+#else
+#define WHY(text) ((const char *)0) /* "ERR 5" alone: the words are optional (§2) */
+#endif
 #define TAG_MAX 8
 #define PATH_MAX_LENGTH 256
 
@@ -28,14 +38,18 @@ typedef struct request {
 
 /* ---- output: every byte goes through put(), which keeps the line's CRC ------------------------ */
 
+#if PS_WITH_CHECKSUM
 static uint8_t crc_step(uint8_t crc, uint8_t byte) {
     crc ^= byte;
     for (uint8_t bit = 0; bit < 8; bit++) crc = (crc & 0x80) ? (uint8_t)((crc << 1) ^ 0x07) : (uint8_t)(crc << 1);
     return crc;
 }
+#endif
 
 static void put(ps_device *dev, uint8_t byte) {
+#if PS_WITH_CHECKSUM
     dev->crc = crc_step(dev->crc, byte);
+#endif
     dev->config->put(dev->config->context, byte);
 }
 
@@ -64,6 +78,7 @@ static void put_escaped(ps_device *dev, const char *text) {
     }
 }
 
+#if PS_WITH_BYTES
 /* One base64 character for a 6-bit value (RFC 4648 §4): arithmetic is smaller than a table on AVR. */
 static uint8_t base64_char(uint8_t v) {
     return (uint8_t)(v < 26 ? 'A' + v : v < 52 ? 'a' + (v - 26) : v < 62 ? '0' + (v - 52) : v == 62 ? '+' : '/');
@@ -96,18 +111,26 @@ void ps_put_base64(ps_device *dev, ps_byte_fn read, uint8_t index) {
         written++;
     }
 }
+#endif
 
 static void line_begin(ps_device *dev, const request *req) {
+#if PS_WITH_CHECKSUM
     if (dev->flags & (PS_FLAG_CHECKSUM | PS_FLAG_MIRROR)) dev->config->put(dev->config->context, '$');
     dev->crc = 0;
+#endif
+#if PS_WITH_TAGS
     if (req && req->tag) {
         put(dev, '#');
         put_ram(dev, req->tag, req->tag_length);
         put(dev, ' ');
     }
+#endif
+    (void)dev;
+    (void)req;
 }
 
 static void line_end(ps_device *dev) {
+#if PS_WITH_CHECKSUM
     if (dev->flags & (PS_FLAG_CHECKSUM | PS_FLAG_MIRROR)) {
         static const char hex[] PS_FLASH = "0123456789ABCDEF";
         uint8_t crc = dev->crc;
@@ -115,6 +138,7 @@ static void line_end(ps_device *dev) {
         dev->config->put(dev->config->context, ps_flash_byte(&hex[crc >> 4]));
         dev->config->put(dev->config->context, ps_flash_byte(&hex[crc & 15]));
     }
+#endif
     dev->config->put(dev->config->context, '\n');
 }
 
@@ -122,8 +146,10 @@ static void reply_error(ps_device *dev, const request *req, uint8_t code, const 
     line_begin(dev, req);
     put_flash(dev, PS_F("ERR "));
     put_number(dev, code, 0);
-    put(dev, ' ');
-    put_flash(dev, message);
+    if (message) {
+        put(dev, ' ');
+        put_flash(dev, message);
+    }
     line_end(dev);
 }
 
@@ -157,6 +183,7 @@ static uint8_t same_prefix(const char *text, const char *flash, uint8_t length) 
     return 1;
 }
 
+#if PS_WITH_VECTORS
 static const char element_names[] PS_FLASH = "x\0y\0z\0roll\0pitch\0yaw\0";
 
 /* Element `suffix` of a vector of `size` elements: an index or x y z roll pitch yaw; 255 if none. */
@@ -173,38 +200,54 @@ static uint8_t element_of(const char *suffix, size_t length, uint8_t size) {
     }
     return 255;
 }
+#endif
 
 /* Resolve path: which property (*index) and which part of it (the return value); 255 = none. */
 static uint8_t resolve(const ps_device *dev, const char *path, size_t length, uint8_t *index, uint8_t *element) {
     if (length == 10 && same_prefix(path, PS_F("properties"), 10)) return LIST;
+#if PS_WITH_MODEL
     if (length == 16 && same_prefix(path, PS_F("properties.model"), 16)) return MODEL;
+#endif
     for (uint8_t i = 0; i < dev->config->count; i++) {
         ps_property p;
         load(dev, i, &p);
         uint8_t n = flash_length(p.name);
-        if (length < n || !same_prefix(path, p.name, n) || (dev->absent & BIT(i))) continue;
+        if (length < n || !same_prefix(path, p.name, n) || ABSENT(dev, i)) continue;
         *index = i;
         if (length == n) return WHOLE;
         if (path[n] != '.') continue;
         const char *suffix = path + n + 1;
         size_t rest = length - n - 1;
+#if PS_WITH_MODEL
         if (rest == 3 && same_prefix(suffix, PS_F("gui"), 3)) return GUI;
         if (rest == 10 && same_prefix(suffix, PS_F("parameters"), 10)) return PARAMETERS;
+#endif
+#if PS_WITH_VECTORS
         if (p.type == PS_VECTOR && (*element = element_of(suffix, rest, p.size)) != 255) return ELEMENT;
+#endif
+        (void)suffix;
+        (void)rest;
+        (void)element;
     }
     return 255;
 }
 
 static void put_value(ps_device *dev, const ps_property *p, uint8_t index) {
+    (void)index;
+#if PS_WITH_BYTES
     if (p->type == PS_BYTES) {
         ps_bytes_source source;
         ps_flash_copy(&source, p->data, sizeof source);
         ps_put_base64(dev, source.read, index);
-    } else if (p->type == PS_TEXT) {
+    } else
+#endif
+    if (p->type == PS_TEXT) {
         put_escaped(dev, (const char *)p->data);
     } else if (p->type == PS_NUMBER) {
         put_number(dev, *(const ps_fixed *)p->data, p->decimals);
-    } else if (p->type == PS_VECTOR) {
+    }
+#if PS_WITH_VECTORS
+    else if (p->type == PS_VECTOR) {
         put(dev, '(');
         for (uint8_t i = 0; i < p->size; i++) {
             if (i) put(dev, ' ');
@@ -212,13 +255,14 @@ static void put_value(ps_device *dev, const ps_property *p, uint8_t index) {
         }
         put(dev, ')');
     }
+#endif
 }
 
 static void put_names(ps_device *dev) {
     put(dev, '(');
     uint8_t first = 1;
     for (uint8_t i = 0; i < dev->config->count; i++) {
-        if (dev->absent & BIT(i)) continue;
+        if (ABSENT(dev, i)) continue;
         ps_property p;
         load(dev, i, &p);
         if (!first) put(dev, ' ');
@@ -228,6 +272,7 @@ static void put_names(ps_device *dev) {
     put(dev, ')');
 }
 
+#if PS_WITH_MODEL
 /* The n-th of the NUL-separated strings in packed. */
 static const char *nth(const char *packed, uint8_t n) {
     for (; n; n--) packed += flash_length(packed) + 1;
@@ -247,7 +292,7 @@ static void put_model(ps_device *dev) {
     put(dev, '(');
     uint8_t first = 1;
     for (uint8_t i = 0; i < dev->config->count; i++) {
-        if (dev->absent & BIT(i)) continue;
+        if (ABSENT(dev, i)) continue;
         ps_property p;
         ps_meta meta;
         load(dev, i, &p);
@@ -270,6 +315,7 @@ static void put_model(ps_device *dev) {
         }
         put(dev, ' ');
         put_words(dev, meta.doc);
+#if PS_WITH_BYTES
         if (p.type == PS_BYTES) { /* §3.6: (media_type TYPE/SUBTYPE) */
             ps_bytes_source source;
             ps_flash_copy(&source, p.data, sizeof source);
@@ -279,17 +325,23 @@ static void put_model(ps_device *dev) {
                 put(dev, ')');
             }
         }
+#endif
         put(dev, ')');
     }
     put(dev, ')');
 }
+#endif
 
 /* ---- the greeting (§4) ------------------------------------------------------------------------- */
 
-static void put_field(ps_device *dev, const char *name, uint16_t value) {
-    put_flash(dev, name);
-    put_number(dev, value, 0);
-}
+/* The flow-control fields are build-time constants: one flash string, no number formatting. */
+#define PS_STRING(x) #x
+#define PS_DECIMAL(x) PS_STRING(x) /* the value of macro x as text: x must be a decimal literal */
+#if PS_RXBUF > 0
+#define PS_RXBUF_FIELD " rxbuf=" PS_DECIMAL(PS_RXBUF)
+#else
+#define PS_RXBUF_FIELD ""
+#endif
 
 static void greet(ps_device *dev, const request *req) {
     line_begin(dev, req);
@@ -297,11 +349,7 @@ static void greet(ps_device *dev, const request *req) {
     put_flash(dev, dev->config->name);
     put_flash(dev, PS_F(" type="));
     put_flash(dev, dev->config->type);
-    put_field(dev, PS_F(" push=1 maxline="), PS_MAXLINE);
-    put_field(dev, PS_F(" inflight="), PS_INFLIGHT);
-#if PS_RXBUF > 0
-    put_field(dev, PS_F(" rxbuf="), PS_RXBUF);
-#endif
+    put_flash(dev, PS_F(" push=1 maxline=" PS_DECIMAL(PS_MAXLINE) " inflight=" PS_DECIMAL(PS_INFLIGHT) PS_RXBUF_FIELD));
     line_end(dev);
 }
 
@@ -324,12 +372,16 @@ static uint8_t is_name_char(char c) {
 }
 
 static uint8_t in_range(const ps_property *p, ps_fixed value) {
+    struct range { /* the tail of ps_meta: only what the check reads comes out of flash */
+        ps_fixed minimum, maximum;
+        uint8_t has_range;
+    } range;
     if (!p->meta) return 1;
-    ps_meta meta;
-    ps_flash_copy(&meta, p->meta, sizeof meta);
-    return !meta.has_range || (value >= meta.minimum && value <= meta.maximum);
+    ps_flash_copy(&range, &p->meta->minimum, sizeof range);
+    return !range.has_range || (value >= range.minimum && value <= range.maximum);
 }
 
+#if PS_WITH_VECTORS
 static uint8_t parse_vector(const char *text, size_t length, const ps_property *p, ps_fixed *store) {
     size_t i = 0;
     uint8_t count = 0;
@@ -351,6 +403,7 @@ static uint8_t parse_vector(const char *text, size_t length, const ps_property *
         if (text[i] != ' ') return PS_INVALID_ARGUMENT;
     return count == p->size ? PS_OK : PS_INVALID_ARGUMENT;
 }
+#endif
 
 /* SET of a whole number, vector or text, or of a vector element: store it or say why not. */
 static uint8_t store(const ps_property *p, uint8_t part, uint8_t element, char *value, size_t length) {
@@ -359,11 +412,13 @@ static uint8_t store(const ps_property *p, uint8_t part, uint8_t element, char *
         memcpy(p->data, value, length + 1);
         return PS_OK;
     }
+#if PS_WITH_VECTORS
     if (p->type == PS_VECTOR && part == WHOLE) {
         /* check everything first: a refused SET leaves the vector as it was */
         uint8_t code = parse_vector(value, length, p, 0);
         return code != PS_OK ? code : parse_vector(value, length, p, (ps_fixed *)p->data);
     }
+#endif
     ps_fixed number;
     if (ps_parse_fixed(value, length, p->decimals, &number) != PS_OK) return PS_INVALID_ARGUMENT;
     if (!in_range(p, number)) return PS_OUT_OF_RANGE;
@@ -382,18 +437,18 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
         path_length = (size_t)(rest + i - path);
         if (!memchr(path, '=', path_length)) break;
         if (word != W_UNLISTEN) { /* §3.4: UNLISTEN accepts and ignores them */
-            reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("this device takes no parameters"));
+            reply_error(dev, req, PS_INVALID_ARGUMENT, WHY("this device takes no parameters"));
             return;
         }
     }
     for (size_t k = 0; k < path_length; k++) {
         if (!is_name_char(path[k]) && !(path[k] == '.' && k && k + 1 < path_length && path[k + 1] != '.')) {
-            reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("bad path"));
+            reply_error(dev, req, PS_INVALID_ARGUMENT, WHY("bad path"));
             return;
         }
     }
     if (!path_length || path_length > PATH_MAX_LENGTH) {
-        reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("bad path"));
+        reply_error(dev, req, PS_INVALID_ARGUMENT, WHY("bad path"));
         return;
     }
     char *value = rest + length; /* SET: the rest of the line after one space (§2) */
@@ -404,7 +459,7 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
     } else {
         while (i < length && rest[i] == ' ') i++; /* trailing spaces are not a field */
         if (i < length) {
-            reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("unexpected text after the path"));
+            reply_error(dev, req, PS_INVALID_ARGUMENT, WHY("unexpected text after the path"));
             return;
         }
     }
@@ -422,7 +477,7 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
         return;
     }
     if (part == 255) {
-        reply_error(dev, req, PS_NOT_FOUND, PS_F("no such property"));
+        reply_error(dev, req, PS_NOT_FOUND, WHY("no such property"));
         return;
     }
     ps_property p;
@@ -430,20 +485,23 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
     else load(dev, index, &p);
     if (word == W_SET) {
         if (ps_unescape(value, &value_length) != PS_OK) {
-            reply_error(dev, req, PS_INVALID_ARGUMENT, PS_F("bad escape"));
+            reply_error(dev, req, PS_INVALID_ARGUMENT, WHY("bad escape"));
             return;
         }
+#if PS_WITH_ACTIONS
         if (part == WHOLE && p.type == PS_ACTION) {
             uint8_t code = p.action(dev, index, value);
             if (code != PS_OK) {
                 /* docs/device-spec.md §3.2: outside the range is ERR 3 (INVALID_ARGUMENT, as gRPC
                  * and the gateway's own services say it); the message tells it from a bad number */
-                reply_error(dev, req, code == PS_OUT_OF_RANGE ? PS_INVALID_ARGUMENT : code, PS_F("the action failed"));
+                reply_error(dev, req, code == PS_OUT_OF_RANGE ? PS_INVALID_ARGUMENT : code, WHY("the action failed"));
                 return;
             }
-        } else {
+        } else
+#endif
+        {
             if ((part != WHOLE && part != ELEMENT) || !(p.access & PS_WRITE)) {
-                reply_error(dev, req, PS_FAILED_PRECONDITION, PS_F("read-only"));
+                reply_error(dev, req, PS_FAILED_PRECONDITION, WHY("read-only"));
                 return;
             }
             uint8_t code = store(&p, part, element, value, value_length);
@@ -451,9 +509,9 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
                 /* docs/device-spec.md §3.2: outside the range is ERR 3 (INVALID_ARGUMENT, as gRPC
                  * and the gateway's own services say it); the message tells it from a bad number */
                 reply_error(dev, req, code == PS_OUT_OF_RANGE ? PS_INVALID_ARGUMENT : code,
-                            code == PS_RESOURCE_EXHAUSTED ? PS_F("text too long")
-                            : code == PS_OUT_OF_RANGE     ? PS_F("out of range")
-                                                          : PS_F("bad value"));
+                            code == PS_RESOURCE_EXHAUSTED ? WHY("text too long")
+                            : code == PS_OUT_OF_RANGE     ? WHY("out of range")
+                                                          : WHY("bad value"));
                 return;
             }
             dev->pending |= dev->listening & BIT(index);
@@ -471,19 +529,19 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
     }
     /* GET and LISTEN */
     if (word == W_LISTEN && part != WHOLE && part != LIST) {
-        reply_error(dev, req, PS_UNIMPLEMENTED, PS_F("listen to a whole property"));
+        reply_error(dev, req, PS_UNIMPLEMENTED, WHY("listen to a whole property"));
         return;
     }
     if ((part == WHOLE || part == ELEMENT) && (p.type == PS_ACTION || !(p.access & PS_READ))) {
         reply_error(dev, req, PS_FAILED_PRECONDITION,
-                    p.type == PS_ACTION ? PS_F("an action: SET it, reads never act") : PS_F("write-only"));
+                    p.type == PS_ACTION ? WHY("an action: SET it, reads never act") : WHY("write-only"));
         return;
     }
     if (word == W_LISTEN) {
         if (part == LIST) {
             dev->flags |= PS_FLAG_LIST;
         } else if (!BIT(index)) { /* §3.1: no bit in the masks for this one */
-            reply_error(dev, req, PS_RESOURCE_EXHAUSTED, PS_F("subscription table full"));
+            reply_error(dev, req, PS_RESOURCE_EXHAUSTED, WHY("subscription table full"));
             return;
         } else {
             dev->listening |= BIT(index);
@@ -492,6 +550,7 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
     line_begin(dev, req);
     put_flash(dev, PS_F("OK "));
     if (part == LIST) put_names(dev);
+#if PS_WITH_MODEL
     else if (part == MODEL) put_model(dev);
     else if (part == PARAMETERS) put_flash(dev, PS_F("()"));
     else if (part == GUI) {
@@ -500,7 +559,9 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
             ps_flash_copy(&meta, p.meta, sizeof meta);
             if (meta.gui) put_flash(dev, meta.gui);
         }
-    } else if (part == ELEMENT) put_number(dev, ((const ps_fixed *)p.data)[element], p.decimals);
+    }
+#endif
+    else if (part == ELEMENT) put_number(dev, ((const ps_fixed *)p.data)[element], p.decimals);
     else put_value(dev, &p, index);
     line_end(dev);
 }
@@ -514,11 +575,14 @@ static void flush_events(ps_device *dev) {
         ps_property p;
         load(dev, i, &p);
         line_begin(dev, 0);
-        if (dev->absent & BIT(i)) {
+#if PS_WITH_ACTIONS
+        if (ABSENT(dev, i)) {
             put_flash(dev, PS_F("GONE "));
             put_flash(dev, p.name);
             dev->listening &= ~BIT(i); /* §3: the subscription ends */
-        } else {
+        } else
+#endif
+        {
             put_flash(dev, PS_F("EVENT "));
             put_flash(dev, p.name);
             put(dev, ' ');
@@ -526,6 +590,7 @@ static void flush_events(ps_device *dev) {
         }
         line_end(dev);
     }
+#if PS_WITH_ACTIONS /* without ps_gone and ps_back the list never changes */
     if ((dev->flags & (PS_FLAG_LIST | PS_FLAG_LIST_DUE)) == (PS_FLAG_LIST | PS_FLAG_LIST_DUE)) {
         line_begin(dev, 0);
         put_flash(dev, PS_F("EVENT properties "));
@@ -533,13 +598,16 @@ static void flush_events(ps_device *dev) {
         line_end(dev);
     }
     dev->flags &= (uint8_t)~PS_FLAG_LIST_DUE;
+#endif
 }
 
+#if PS_WITH_CHECKSUM
 static uint8_t hex_digit(char c) {
     if (c >= '0' && c <= '9') return (uint8_t)(c - '0');
     c = (char)lower((uint8_t)c);
     return (c >= 'a' && c <= 'f') ? (uint8_t)(c - 'a' + 10) : 255;
 }
+#endif
 
 static void answer_line(ps_device *dev) {
     char *text = dev->line;
@@ -552,48 +620,54 @@ static void answer_line(ps_device *dev) {
     if (length && text[length - 1] == '\r') length--;
     while (i < length && text[i] == ' ') i++;
     if (i == length && !(flags & (PS_FLAG_OVERFLOW | PS_FLAG_LOST))) return; /* §1: blank: no reply */
+#if PS_WITH_CHECKSUM
     if (text[i] == '$') dev->flags |= PS_FLAG_MIRROR; /* §6: the reply to a '$' line is checked */
+#endif
     if (flags & PS_FLAG_LOST) { /* the tag may be what was lost: answer untagged */
-        reply_error(dev, 0, PS_DATA_LOSS, PS_F("bytes lost: the receive buffer was full"));
+        reply_error(dev, 0, PS_DATA_LOSS, WHY("bytes lost: the receive buffer was full"));
         return;
     }
+#if PS_WITH_CHECKSUM /* without: "$GET" is an unknown word, ERR 12 */
     if (!(flags & PS_FLAG_OVERFLOW) && text[i] == '$') {
         /* §2.1: "*HH" are the last three bytes; the CRC covers what lies between '$' and '*' */
         uint8_t high = length - i >= 4 ? hex_digit(text[length - 2]) : 255;
         uint8_t low = length - i >= 4 ? hex_digit(text[length - 1]) : 255;
         if (high == 255 || low == 255 || text[length - 3] != '*' ||
             ps_crc8((const uint8_t *)text + i + 1, length - i - 4) != (uint8_t)(high << 4 | low)) {
-            reply_error(dev, 0, PS_DATA_LOSS, PS_F("checksum mismatch")); /* §6: untagged */
+            reply_error(dev, 0, PS_DATA_LOSS, WHY("checksum mismatch")); /* §6: untagged */
             return;
         }
         dev->flags |= PS_FLAG_CHECKSUM; /* checksum mode: only a line that checks out turns it on */
         i++;
         length -= 3;
     }
+#endif
     text[length] = 0;
+#if PS_WITH_TAGS /* without: "#1" is an unknown word, ERR 12 */
     if (text[i] == '#') { /* an over-long '$' line still starts with '$': its tag is not trusted */
         size_t start = ++i;
         while (i < length && is_name_char(text[i])) i++;
         if (i == start || i - start > TAG_MAX || i == length || text[i] != ' ') {
-            reply_error(dev, 0, PS_INVALID_ARGUMENT, PS_F("bad tag")); /* §2.1: untagged */
+            reply_error(dev, 0, PS_INVALID_ARGUMENT, WHY("bad tag")); /* §2.1: untagged */
             return;
         }
         req.tag = text + start;
         req.tag_length = (uint8_t)(i - start);
         while (i < length && text[i] == ' ') i++;
     }
+#endif
     if (flags & PS_FLAG_OVERFLOW) {
-        reply_error(dev, &req, PS_RESOURCE_EXHAUSTED, PS_F("line too long"));
+        reply_error(dev, &req, PS_RESOURCE_EXHAUSTED, WHY("line too long"));
         return;
     }
     if (memchr(text + i, '\r', length - i)) {
-        reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("raw CR in the line; write \\r"));
+        reply_error(dev, &req, PS_INVALID_ARGUMENT, WHY("raw CR in the line; write \\r"));
         return;
     }
     size_t start = i;
     while (i < length && text[i] != ' ') i++;
     if (i == start) {
-        reply_error(dev, 0, PS_INVALID_ARGUMENT, PS_F("bad tag"));
+        reply_error(dev, 0, PS_INVALID_ARGUMENT, WHY("bad tag"));
         return;
     }
     uint8_t word = word_of(text + start, i - start);
@@ -613,7 +687,7 @@ static void answer_line(ps_device *dev) {
             if (!(dev->flags & PS_FLAG_MIRROR)) dev->flags &= (uint8_t)~PS_FLAG_CHECKSUM;
             greet(dev, &req);
         } else if (*rest < '0' || *rest > '9') { /* a greeting (a version follows) is never answered */
-            reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("unexpected text after HELLO"));
+            reply_error(dev, &req, PS_INVALID_ARGUMENT, WHY("unexpected text after HELLO"));
         }
         break;
     case W_PONG: /* the answer to a PING of ours: nothing to do */
@@ -621,15 +695,15 @@ static void answer_line(ps_device *dev) {
     case W_CANCEL: /* every SET is answered before the next line is read: nothing is left to stop */
         while (rest_length && *rest == ' ') rest++, rest_length--;
         if (!req.tag) /* §2.1: CANCEL names the request it cancels by its tag */
-            reply_error(dev, 0, PS_INVALID_ARGUMENT, PS_F("CANCEL needs a tag"));
+            reply_error(dev, 0, PS_INVALID_ARGUMENT, WHY("CANCEL needs a tag"));
         else if (rest_length) /* §2.1: CANCEL takes nothing after the word */
-            reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("unexpected text after CANCEL"));
+            reply_error(dev, &req, PS_INVALID_ARGUMENT, WHY("unexpected text after CANCEL"));
         break;
     case W_REPLY:
-        reply_error(dev, &req, PS_INVALID_ARGUMENT, PS_F("a reply; send a request"));
+        reply_error(dev, &req, PS_INVALID_ARGUMENT, WHY("a reply; send a request"));
         break;
     case W_UNKNOWN:
-        reply_error(dev, &req, PS_UNIMPLEMENTED, PS_F("unknown word"));
+        reply_error(dev, &req, PS_UNIMPLEMENTED, WHY("unknown word"));
         break;
     default:
         answer(dev, &req, word, rest, rest_length);
@@ -669,6 +743,7 @@ void ps_changed(ps_device *dev, uint8_t index) {
 
 void ps_poll(ps_device *dev) { flush_events(dev); }
 
+#if PS_WITH_ACTIONS
 void ps_gone(ps_device *dev, uint8_t index) {
     if (!BIT(index) || dev->absent & BIT(index)) return;
     dev->absent |= BIT(index);
@@ -681,3 +756,4 @@ void ps_back(ps_device *dev, uint8_t index) {
     dev->absent &= ~BIT(index);
     dev->flags |= PS_FLAG_LIST_DUE;
 }
+#endif

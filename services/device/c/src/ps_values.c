@@ -13,38 +13,41 @@ uint8_t ps_crc8(const uint8_t *bytes, size_t count) {
     return crc;
 }
 
-#define FIXED_LIMIT 2147483647UL
+/* *value * 10 + digit, or 0 when that would pass 2^31 - 1: compared, not divided (AVR has no
+ * divide instruction, and a 32-bit division per digit is a library call). */
+static uint8_t push_digit(uint32_t *value, uint8_t digit) {
+    if (*value > 214748364UL || (*value == 214748364UL && digit > 7)) return 0;
+    *value = *value * 10 + digit;
+    return 1;
+}
 
 uint8_t ps_parse_fixed(const char *text, size_t length, uint8_t decimals, ps_fixed *out) {
     size_t i = 0;
     uint8_t negative = 0, seen_digit = 0, point = 0, fraction = 0;
     uint32_t value = 0;
-    if (i < length && (text[i] == '-' || text[i] == '+')) negative = text[i++] == '-';
+    if (length && (text[0] == '-' || text[0] == '+')) negative = text[i++] == '-';
     for (; i < length; i++) {
-        char c = text[i];
-        if (c == '.' && !point) {
+        uint8_t digit = (uint8_t)(text[i] - '0');
+        if (text[i] == '.' && !point) {
             point = 1;
             continue;
         }
-        if (c < '0' || c > '9') return PS_INVALID_ARGUMENT;
+        if (digit > 9) return PS_INVALID_ARGUMENT;
         seen_digit = 1;
         if (point) {
             /* Digits past the device's precision must be zeros: "21.50" is 21.5, "21.25" is refused
              * with one decimal rather than silently rounded. */
             if (fraction == decimals) {
-                if (c != '0') return PS_INVALID_ARGUMENT;
+                if (digit) return PS_INVALID_ARGUMENT;
                 continue;
             }
             fraction++;
         }
-        if (value > (FIXED_LIMIT - (uint32_t)(c - '0')) / 10) return PS_INVALID_ARGUMENT;
-        value = value * 10 + (uint32_t)(c - '0');
+        if (!push_digit(&value, digit)) return PS_INVALID_ARGUMENT;
     }
     if (!seen_digit) return PS_INVALID_ARGUMENT;
-    for (; fraction < decimals; fraction++) {
-        if (value > FIXED_LIMIT / 10) return PS_INVALID_ARGUMENT;
-        value *= 10;
-    }
+    for (; fraction < decimals; fraction++)
+        if (!push_digit(&value, 0)) return PS_INVALID_ARGUMENT;
     *out = negative ? -(ps_fixed)value : (ps_fixed)value;
     return PS_OK;
 }

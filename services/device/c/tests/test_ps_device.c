@@ -1,5 +1,5 @@
 /* The unit tests of ps_device: feed request lines, compare the exact lines sent back.
- * Build and run: make -C services/device/c test (tests/unit/test_c_device_library.py does). */
+ * Build and run: make -C services/device/c test (tests/integration/test_c_device_library.py does). */
 #include <stdio.h>
 #include <string.h>
 

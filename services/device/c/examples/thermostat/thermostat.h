@@ -7,17 +7,28 @@
  *             plugs it back
  *   history   bytes, read: the last 8 readings of temp, int16 big-endian tenths of degC (16 bytes,
  *             sent as \= and base64: line protocol 1.2)
- * host_main.c runs it on TCP, a pty or a serial port; avr_main.c on an ATmega328P's USART0. */
+ * The ports run it: ../ports/host_main.c on TCP, a pty or a serial port; ../ports/avr_main.c on an
+ * ATmega328P's USART0. example_start sets every value to its default and greets; example_tick moves
+ * temp one step (0.1 degC) and listeners get an EVENT at the next ps_poll. */
 #ifndef THERMOSTAT_H
 #define THERMOSTAT_H
 
-#include "ps_device.h"
+#include "example.h"
 
-enum { THERMOSTAT_TEMP, THERMOSTAT_SETPOINT, THERMOSTAT_LOCATION, THERMOSTAT_LABEL, THERMOSTAT_PROBE, THERMOSTAT_HISTORY };
-
-/* Power-up: every value to its default, then the greeting through put. */
-void thermostat_start(ps_device *dev, ps_put_fn put, void *context);
-/* The timer: temp moves one step (0.1 degC) and listeners get an EVENT at the next ps_poll. */
-void thermostat_tick(ps_device *dev);
+/* The table's order; a profile without vectors, actions or binary values leaves those out. */
+enum {
+    THERMOSTAT_TEMP,
+    THERMOSTAT_SETPOINT,
+#if PS_WITH_VECTORS
+    THERMOSTAT_LOCATION,
+#endif
+    THERMOSTAT_LABEL,
+#if PS_WITH_ACTIONS
+    THERMOSTAT_PROBE,
+#endif
+#if PS_WITH_BYTES
+    THERMOSTAT_HISTORY
+#endif
+};
 
 #endif

@@ -1,17 +1,17 @@
-/* The example device on a POSIX host: the transport around the sans-IO core.
+/* The POSIX port of the example devices (thermostat, robot): the transport around the sans-IO core.
  *
- *   thermostat --tcp HOST:PORT   serve one TCP connection at a time (port 0: a free one); each new
+ *   DEVICE --tcp HOST:PORT       serve one TCP connection at a time (port 0: a free one); each new
  *                                connection is a new session and gets the greeting first
- *   thermostat --pty             make a pseudo-terminal and serve its master end; prints the path
+ *   DEVICE --pty                 make a pseudo-terminal and serve its master end; prints the path
  *                                of the end to give the gateway (serial:///dev/pts/N)
- *   thermostat --serial PATH     serve a serial port (raw, 115200 baud)
- *   thermostat --connect HOST:PORT
+ *   DEVICE --serial PATH         serve a serial port (raw, 115200 baud)
+ *   DEVICE --connect HOST:PORT
  *                                dial a gateway's line listener and greet (the device registers
  *                                itself there); when the connection ends, or the gateway stays
  *                                silent past the keep-alive, dial the next gateway it named in its
  *                                greeting (alternates=HOST:PORT,...), in turn (docs/line-protocol.md
  *                                §4.5, §9)
- *   --period MS                  the timer that changes temp (default 500)
+ *   --period MS                  the device's timer (example_tick; default 500)
  *   --keepalive MS               with --connect: PING a gateway silent this long (default 2000)
  *   --keepalive-timeout MS       ... and leave it when nothing comes back within this (default 3000)
  *
@@ -33,7 +33,7 @@
 #include <time.h>
 #include <unistd.h>
 
-#include "thermostat.h"
+#include "example.h"
 
 static volatile sig_atomic_t reset_requested, stop_requested;
 static int line_fd = -1; /* where lines go: the connection, the pty master or the serial port */
@@ -170,13 +170,16 @@ static void heard_first_line(const uint8_t *bytes, size_t n, const char *current
     }
 }
 
+static const char *program = "device"; /* argv[0], for messages */
+
 static int usage(void) {
-    fprintf(stderr, "usage: thermostat (--tcp HOST:PORT | --pty | --serial PATH | --connect HOST:PORT) "
-                    "[--period MS] [--keepalive MS] [--keepalive-timeout MS]\n");
+    fprintf(stderr, "usage: %s (--tcp HOST:PORT | --pty | --serial PATH | --connect HOST:PORT) "
+                    "[--period MS] [--keepalive MS] [--keepalive-timeout MS]\n", program);
     return 2;
 }
 
 int main(int argc, char **argv) {
+    program = argv[0];
     const char *tcp = 0, *serial = 0, *connect_to = 0;
     int pty = 0;
     long period = 500, keepalive = 2000, keepalive_timeout = 3000;
@@ -207,7 +210,7 @@ int main(int argc, char **argv) {
     if (tcp) {
         server = open_tcp(tcp);
         if (server < 0) {
-            fprintf(stderr, "thermostat: cannot listen on %s: %s\n", tcp, strerror(errno));
+            fprintf(stderr, "%s: cannot listen on %s: %s\n", program, tcp, strerror(errno));
             return 1;
         }
     } else if (pty) {
@@ -227,7 +230,7 @@ int main(int argc, char **argv) {
         printf("serial port %s\n", serial);
     }
     fflush(stdout);
-    thermostat_start(&dev, put_byte, 0); /* on TCP nobody hears this one: each connection gets its own */
+    example_start(&dev, put_byte, 0); /* on TCP nobody hears this one: each connection gets its own */
 
     long long next_tick = now_ms() + period;
     /* Dialling: when to dial next, the pause before a new round, what was last heard, the PING. */
@@ -237,7 +240,7 @@ int main(int argc, char **argv) {
     while (!stop_requested) {
         if (reset_requested) {
             reset_requested = 0;
-            thermostat_start(&dev, put_byte, 0);
+            example_start(&dev, put_byte, 0);
         }
         if (connect_to && line_fd < 0 && now_ms() >= dial_at) {
             if (next_gateway >= gateway_count || next_gateway == 0) next_gateway = gateway_count > 1 ? 1 : 0;
@@ -249,7 +252,7 @@ int main(int argc, char **argv) {
                 pause = pause * 2 > 10000 ? 10000 : pause * 2;
             }
             if (line_fd >= 0) {
-                fprintf(stderr, "thermostat: connected to %s\n", current);
+                fprintf(stderr, "%s: connected to %s\n", program, current);
                 first_length = 0, first_done = 0, heard_at = connected_at = now_ms(), pinged_at = 0;
                 ps_begin(&dev, dev.config); /* the greeting registers the device there */
             }
@@ -280,7 +283,7 @@ int main(int argc, char **argv) {
                 close(line_fd); /* the connection ended: wait for the next, or dial the next gateway */
                 line_fd = -1;
                 if (connect_to) {
-                    fprintf(stderr, "thermostat: the connection to %s ended\n", current);
+                    fprintf(stderr, "%s: the connection to %s ended\n", program, current);
                     if (now_ms() - connected_at > 10000) dialled_in_round = 0, dial_at = 0, pause = 200;
                 }
             }
@@ -289,7 +292,8 @@ int main(int argc, char **argv) {
             long long now = now_ms();
             if (pinged_at && now - pinged_at >= keepalive_timeout) {
                 /* A frozen gateway keeps the connection open but answers nothing: leave it (§9). */
-                fprintf(stderr, "thermostat: %s did not answer a keep-alive PING; dialling the next\n", current);
+                fprintf(stderr, "%s: %s did not answer a keep-alive PING; dialling the next\n", program,
+                        current);
                 close(line_fd);
                 line_fd = -1;
                 dialled_in_round = 0; /* it was up: the next gateway at once */
@@ -302,7 +306,7 @@ int main(int argc, char **argv) {
         }
         if (now_ms() >= next_tick) {
             next_tick += period;
-            thermostat_tick(&dev);
+            example_tick(&dev);
         }
         ps_poll(&dev);
     }

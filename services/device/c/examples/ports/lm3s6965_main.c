@@ -4,7 +4,7 @@
  * boards/lm3s6965/. QEMU's lm3s6965evb machine runs the same image with UART0 on a host pty.
  * Sending is polled, as on the AVR: while a reply goes out the ring keeps receiving. */
 #include "lm3s6965.h"
-#include "thermostat.h"
+#include "example.h"
 
 #define BAUD 115200u
 #define RING 128 /* a power of two, at least PS_MAXLINE: a whole request fits */
@@ -67,7 +67,7 @@ int main(void) {
     SYST_CSR = SYST_CSR_CLKSOURCE | SYST_CSR_ENABLE;
     uint8_t ticks = 0;
     lm3s_interrupts_on();
-    thermostat_start(&dev, put_byte, 0); /* after reset: the greeting (docs/line-protocol.md §4) */
+    example_start(&dev, put_byte, 0); /* after reset: the greeting (docs/line-protocol.md §4) */
     for (;;) {
         if (count) {
             lm3s_interrupts_off();
@@ -81,7 +81,7 @@ int main(void) {
         }
         if ((SYST_CSR & SYST_CSR_COUNTFLAG) && ++ticks == TICKS_PER_STEP) {
             ticks = 0;
-            thermostat_tick(&dev);
+            example_tick(&dev);
         }
         ps_poll(&dev);
     }
