@@ -210,6 +210,6 @@ async def test_the_minimal_profile_serves_numbers_and_text_through_the_gateway(
             assert len(values) >= 2, "temp moves on the timer"
             with pytest.raises(grpc.aio.AioRpcError) as info:
                 await set_(stub, "setpoint", "99")
-            assert info.value.code() == grpc.StatusCode.OUT_OF_RANGE
+            assert info.value.code() == grpc.StatusCode.INVALID_ARGUMENT  # ERR 3 (docs/device-spec.md §3.2)
             assert await refused(lambda: get(stub, "temp.gui")) == grpc.StatusCode.NOT_FOUND  # no model
             assert await refused(lambda: get(stub, "history")) == grpc.StatusCode.NOT_FOUND  # no binary

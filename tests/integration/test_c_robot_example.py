@@ -75,9 +75,10 @@ async def drive_the_robot(address: str, tick_s: float) -> None:
         assert await get(stub, "battery") == "100"
         # Elements are x y z roll pitch yaw whatever the property means: there is no "wz".
         assert await refused(stub, "velocity.wz") == grpc.StatusCode.NOT_FOUND
-        # The range (-1..1) holds for each element, of a whole SET and of one element alike.
-        assert await refused(stub, "velocity", "(1.5 0 0 0 0 0)") == grpc.StatusCode.OUT_OF_RANGE
-        assert await refused(stub, "velocity.yaw", "-2") == grpc.StatusCode.OUT_OF_RANGE
+        # The range (-1..1) holds for each element, of a whole SET and of one element alike; outside
+        # it is ERR 3, INVALID_ARGUMENT (docs/device-spec.md §3.2).
+        assert await refused(stub, "velocity", "(1.5 0 0 0 0 0)") == grpc.StatusCode.INVALID_ARGUMENT
+        assert await refused(stub, "velocity.yaw", "-2") == grpc.StatusCode.INVALID_ARGUMENT
         assert await refused(stub, "location", "(1 0 0 0 0 0)") == grpc.StatusCode.FAILED_PRECONDITION
         # Drive, and nobody SETs the velocity again: the location moves on each tick (0.5 m/s and
         # 0.1 rad/s for 0.5 s: 0.25 m and 0.05 rad), and the dead-man stops the robot on the third.
@@ -89,10 +90,32 @@ async def drive_the_robot(address: str, tick_s: float) -> None:
         await velocity.aclose()
         x, *_, yaw = pose(await get(stub, "location"))
         assert x == 0.5 and yaw == 0.1, "two ticks of motion, then the stop"
-        # The same value SET again runs on_set again: a driver that keeps sending keeps it moving.
-        for _ in range(6):
-            assert await set_(stub, "velocity", "(0.2 0 0 0 0 0)") == "(0.2 0 0 0 0 0)"
-            await asyncio.sleep(tick_s / 2)
+        # The same value SET again runs on_set again: a driver that keeps sending keeps it moving,
+        # for longer than the dead-man's three ticks, and no stop is heard meanwhile. The ticks are
+        # counted by the distance moved (0.1 m a tick at 0.2 m/s), not by the wall's clock: a
+        # simulated MCU may run faster or slower than real time.
+        heard: list[str] = []
+        velocity = values_of(stub, "velocity")
+        assert await anext(velocity) == STOPPED
+
+        async def hear() -> None:
+            async for value in velocity:
+                heard.append(value)
+
+        listening = asyncio.create_task(hear())
+        start = pose(await get(stub, "location"))[0]
+        try:
+            for _ in range(2000):
+                assert await set_(stub, "velocity", "(0.2 0 0 0 0 0)") == "(0.2 0 0 0 0 0)"
+                if pose(await get(stub, "location"))[0] >= start + 0.45:
+                    break
+                await asyncio.sleep(min(tick_s / 10, 0.02))
+            else:
+                raise AssertionError("the robot did not move 0.45 m while driven")
+        finally:
+            listening.cancel()
+            await asyncio.gather(listening, return_exceptions=True)
+        assert heard and STOPPED not in heard, heard
         assert await get(stub, "velocity") == "(0.2 0 0 0 0 0)"
         assert await get(stub, "velocity.x") == "0.2"
         # behaviors.stop stops at once; reading an action is refused.
@@ -109,7 +132,7 @@ async def test_the_robot_built_for_this_host_drives_through_the_gateway(
     gateway_process: StartGateway, tmp_path: Path
 ) -> None:
     build("host", tmp_path)
-    period_ms = 100
+    period_ms = 250  # the dead-man (three ticks) then outlasts a slow Set on a loaded machine
     with CProgram(
         [str(tmp_path / "host" / "robot"), "--tcp", "127.0.0.1:0", "--period", str(period_ms)]
     ) as robot:
