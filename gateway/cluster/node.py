@@ -197,6 +197,8 @@ class ClusterNode:
         self.draining = False
         #: Services this gateway is handing over (a drain, a rebalance), until another owns them.
         self._handing: set[str] = set()
+        #: Registered on this gateway while it is drained: handed over once the registry has it up.
+        self._hand_over_when_up: set[str] = set()
         #: Seconds every gateway holds the calls for a service that moves (a planned move).
         self.move_hold = max(2.0, lease)
         #: One drain or rebalance at a time.
@@ -462,6 +464,10 @@ class ClusterNode:
         """The registry's state of a service: the owner reports it to the others."""
         if name in self.owned and state != GONE:
             self._writes.put(Kind.STATE, name, state)
+        if name in self._hand_over_when_up and state != "connecting":
+            self._hand_over_when_up.discard(name)
+            if state == "up" and name in self.owned:
+                self._spawn(self._hand_over_locked([name], "drained"), f"cluster: hand {name} over")
 
     def _spawn(self, coro: Coroutine[Any, Any, None], name: str) -> None:
         task = asyncio.get_running_loop().create_task(coro, name=name)
@@ -502,8 +508,8 @@ class ClusterNode:
             self.served[name] = switching
             self._own(name, registration)
             log.info("cluster: service %s registered at %s, owned here", name, url)
-            if self.draining:  # a drained gateway takes no new device: it hands this one over
-                self._spawn(self._hand_over_locked([name], "drained"), f"cluster: hand {name} over")
+            if self.draining:  # a drained gateway takes no new device: it hands it over once it is up
+                self._hand_over_when_up.add(name)
             return switching.info
         finally:
             self._busy.discard(name)
@@ -785,6 +791,11 @@ class ClusterNode:
                 except PropertyError as exc:
                     log.error("cluster: cannot open %s at %s: %s", name, registration.url, exc.message)
                     return
+                # The calls held for a planned move go to it once it answers, not before (they would
+                # be refused as "not connected yet"); a device that does not answer is switched to
+                # all the same, and its state says so.
+                with contextlib.suppress(PropertyError):
+                    await proxy.wait_connected(max(1.0, self.registry.timeout if self.registry else 1.0))
                 self.connecting += 1
                 try:
                     await switching.switch(proxy, "owned here")
@@ -951,9 +962,10 @@ class ClusterNode:
         """The live gateways that take no devices now (drained), this one included when it is."""
         draining = {gateway for gateway, record in self.view.gateways.items() if record.draining}
         draining.update(gateway for gateway in self.view.drains if gateway in self.view.gateways)
-        draining.discard(self.me)
-        if self.draining:
+        if self.draining or self.me in self.view.drains:
             draining.add(self.me)
+        else:
+            draining.discard(self.me)  # undrained: its record says so a moment later
         return draining
 
     def _owner_lives(self, name: str) -> bool:
