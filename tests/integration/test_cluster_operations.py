@@ -32,6 +32,7 @@ import pytest
 from line_device_support import tcp_device
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess, start_gateway
+from support.psctl import psctl
 from support.waiting import eventually
 
 from bench.register import start_farms
@@ -190,6 +191,15 @@ async def test_a_drain_a_join_and_an_undrain_move_devices_with_no_set_lost_and_o
                 what="gw-a's record says it is draining and owns nothing",
             )
             assert json.loads(drained)["drained_by"] == "anonymous"
+            # psctl shows it as a user reads it: gw-a draining, gw-b owning every device.
+            shown = await asyncio.to_thread(psctl, gateways["gw-a"].address, "cluster", "--devices")
+            assert shown.returncode == 0, shown.stderr
+            print("\n" + shown.stdout)
+            lines = [line.split() for line in shown.stdout.splitlines()]
+            table = {cells[0]: cells for cells in lines if len(cells) == 9 and cells[0].startswith("gw-")}
+            assert table["gw-a"][4:6] == ["draining", "0"], shown.stdout
+            assert table["gw-b"][4:6] == ["serving", str(DEVICES)], shown.stdout
+            assert [cells[:2] for cells in lines if cells and cells[0] == COUNTER] == [[COUNTER, "gw-b"]]
             assert await a.get_number("a-counter", "rate_hz") > 0  # forwarded by the drained gateway
 
             # 2. gw-c joins: gw-b hands devices over until the loads are within the spread.
