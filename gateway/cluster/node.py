@@ -1210,7 +1210,9 @@ class ClusterNode:
             "http": record.http,
             "line": record.line,
             "version": record.version,
-            "lease_expires": record.lease_expires,
+            "lease_expires": round(self.store.lease_expires, 1)
+            if gateway == self.me
+            else record.lease_expires,
             "health": health,
             "owned": owned,
             "calls_per_s": record.calls_per_s,

@@ -94,7 +94,12 @@ def test_the_cluster_page_shows_who_owns_what_and_a_drain_from_it_moves_every_de
         assert "0.1.0" in card.text or "version" in card.text
 
         # An admin drains gw-a from its card: its devices go to gw-b and gw-c, and the page follows.
-        card.find_element(CSS, 'button[data-action="drain"]').click()
+        # The cards are drawn anew with each view: a click on one just replaced is tried again.
+        wait_for(
+            browser,
+            lambda d: _card(d, "gw-a").find_element(CSS, 'button[data-action="drain"]').click() or True,
+            "a click on gw-a's Drain button",
+        )
         wait_for(
             browser,
             lambda d: _card(d, "gw-a").get_attribute("data-state") == "draining" and _owned(d, "gw-a") == "0",

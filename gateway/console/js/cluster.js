@@ -83,7 +83,8 @@ function drawMembers(view) {
           h('dt', {}, 'version'), h('dd', {}, m.version || '-'),
           h('dt', {}, 'health'), h('dd', {}, m.health),
           h('dt', {}, 'load'), h('dd', {}, `${m.calls_per_s ?? 0} calls/s · ${m.listens ?? 0} Listens`),
-          h('dt', {}, 'lease'), h('dd', {}, leaseText(m.lease_expires, now)),
+          h('dt', {}, 'lease'),
+          h('dd', { dataset: { leaseExpires: String(m.lease_expires ?? 0) } }, leaseText(m.lease_expires, now)),
           m.read_only ? [h('dt', {}, 'read-only'), h('dd', { class: 'error-text' }, m.read_only)] : null,
           m.draining && m.drained_by ? [h('dt', {}, 'drained by'), h('dd', {}, m.drained_by)] : null,
           m.last_move
@@ -138,6 +139,14 @@ function deviceOf(path, leaf) {
   const match = /^services\.(.+)\.([a-z_]+)$/.exec(path);
   return match && match[2] === leaf ? match[1] : null;
 }
+
+// The leases count down between two views: their text is written again every second.
+setInterval(() => {
+  const now = Date.now() / 1000;
+  for (const el of document.querySelectorAll('#members [data-lease-expires]')) {
+    el.textContent = leaseText(Number(el.dataset.leaseExpires), now);
+  }
+}, 1000);
 
 mux.subscribe('registry/cluster', {
   onValue({ value, removed }) {
