@@ -791,13 +791,19 @@ class ClusterNode:
                 except PropertyError as exc:
                     log.error("cluster: cannot open %s at %s: %s", name, registration.url, exc.message)
                     return
-                # The calls held for a planned move go to it once it answers, not before (they would
-                # be refused as "not connected yet"); a device that does not answer is switched to
-                # all the same, and its state says so.
-                with contextlib.suppress(PropertyError):
-                    await proxy.wait_connected(max(1.0, self.registry.timeout if self.registry else 1.0))
                 self.connecting += 1
                 try:
+                    # The calls held for a planned move go to it once it answers, not before (they
+                    # would be refused as "not connected yet"); a device that does not answer is
+                    # switched to all the same, and its state says so.
+                    try:
+                        with contextlib.suppress(PropertyError):
+                            await proxy.wait_connected(
+                                max(1.0, self.registry.timeout if self.registry else 1.0)
+                            )
+                    except BaseException:
+                        await proxy.aclose()  # stopped meanwhile: the proxy is nobody's
+                        raise
                     await switching.switch(proxy, "owned here")
                     self._own(name, registration)
                     log.info("cluster: %s is owned here now (%s)", name, registration.url)
