@@ -2,7 +2,7 @@
 
 Run ``python -m bench.line_binary`` (``--quick`` for a short run). A device process serves the
 storage service (``psgateway device --service storage``) on TCP; its ``blob`` property is a file
-as bytes, sent on the line as ``\\=`` and base64 (docs/line-protocol.md §2.4). One gateway
+as bytes, sent on the line as ``\\=`` and base64 (docs/device-spec.md §2.6). One gateway
 process proxies it (``tcp://...?maxline=8388608``). For each size (750 bytes: the largest that
 fits the default 1024-byte line; 40 kB: a 640×480 JPEG; 1 MB) the figures are Gets per second
 and their p50 through the gateway with one call in flight, and the CPU time per Get of the

@@ -29,6 +29,7 @@ from grpc_health.v1 import health_pb2
 from grpc_reflection.v1alpha import reflection
 
 from gateway.backends import open_backend, open_proxy
+from gateway.client_faults import filter_grpc_client_faults
 from gateway.cluster import ClusterNode, ClusterReport
 from gateway.cluster.records import gateway_version
 from gateway.config import METRICS_MAX_CONNECTIONS, REGISTRY_NAME, Config, ConfigError, ServiceEntry
@@ -37,7 +38,7 @@ from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
 from gateway.guard import Guard
 from gateway.health import NOT_SERVING, SERVING, HealthService
-from gateway.licensing import current_caller, may_license
+from gateway.licensing import current_caller, may_license, may_provide
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
@@ -89,9 +90,10 @@ class Gateway:
         from gateway.config import default_config
 
         self.config = config if config is not None else default_config()
-        self.router = Router()
-        #: Identity, rules and audit: the one check of every front end (gRPC and the line listener).
+        #: Identity, rules and audit: the one check of every front end (gRPC and the line listener),
+        #: and of every call a system service makes on a client's behalf (the router's directory).
         self.guard = Guard.from_config(self.config)
+        self.router = Router(self.guard)
         self.hub = ListenHub(self.router, self.config.limits, self.config.gateway.call_timeout, self.guard)
         self._extra = dict(backends or {})
         self._server: grpc.aio.Server | None = None
@@ -366,7 +368,12 @@ class Gateway:
         self.registry.set_caller(current_caller)
         # A caller locks only what the rules let it change.
         self.registry.set_licence_check(may_license(self.guard))
+        # And the scheduler licenses to the caller only the providers it may write.
+        self.registry.set_provider_check(may_provide(self.guard))
         self.servicer.calls.licences = self.registry.licensing
+        # And every Set a service makes for a client (a group's members): given before any such
+        # service is added, so that each member it is handed checks them.
+        self.router.directory.licences = self.registry.licensing
         self.registry.licensing.watch(self._on_licence)
         await self._add(REGISTRY_NAME, RegistryService(self.registry), "built in")
         self._unwatch_registry = self.registry.watch_states(self._on_state)
@@ -438,6 +445,8 @@ class Gateway:
             via=self.servicer.gateway_id,
         )
         self.servicer.calls.peer_hop = self.cluster.is_peer_hop
+        # A Set a peer forwarded comes as that peer, checked against the licences where the client called.
+        self.router.directory.peer_forwarded = self.servicer.calls.forwarded_by_peer
         self.registry.attach("cluster", ClusterReport(self.cluster))
         log.info("cluster: joined as %s through %s", self.cluster.me, self.config.registry.store)
 
@@ -592,6 +601,7 @@ class Gateway:
             *CLIENT_PING_POLICY,
         ]
         server = grpc.aio.server(options=options)
+        filter_grpc_client_faults()  # a call cancelled while a message was sent: no traceback
         # Not the generated registration: a request that does not parse is INVALID_ARGUMENT.
         add_to_server(self.servicer, server)
         add_health_and_reflection(

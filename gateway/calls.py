@@ -22,7 +22,10 @@ Every path is checked by the :class:`~gateway.guard.Guard` for the caller's
 subject before its backend is asked: each path of a Get (``more`` included;
 a pattern's matches that the subject may not read are skipped), and each Set
 as the operation it is (write, invoke, register, unregister, admin). Every
-Set's outcome is audited.
+Set's outcome is audited. When the guard checks, the subject is also put in
+:data:`services.directory.CALLER` before the backend is asked, so that the calls
+a system service makes for this one (a group's members, a wildcard into them)
+are checked as the same subject (:mod:`gateway.behalf`).
 
 Every Set is also checked against the licences the registry holds
 (:mod:`gateway.licensing`): a Set or an action on a service (or subtree) that
@@ -39,7 +42,7 @@ from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from typing import Any
 
 from gateway.federation import VIA
-from gateway.guard import CALLER, REGISTRY, Guard
+from gateway.guard import REGISTRY, Guard
 from gateway.identity import ANONYMOUS
 from gateway.licensing import check_set
 from gateway.router import Router, bounded_call, check_path, finish_call
@@ -49,6 +52,7 @@ from gateway.status import to_property_error
 from gateway.wire_values import put, received
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS, Answer, Backend
+from services.directory import CALLER
 from services.eager import Started, step
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, ResourceExhausted
 from services.model import ServiceModel
@@ -106,7 +110,7 @@ class Calls:
         #: were checked against the licences where the client called); None: not in a cluster.
         self.peer_hop: Callable[[str], bool] | None = None
 
-    def _forwarded_by_peer(self) -> bool:
+    def forwarded_by_peer(self) -> bool:
         """Whether the call being served was forwarded by another gateway of this one's cluster."""
         if self.peer_hop is None:
             return False
@@ -128,6 +132,7 @@ class Calls:
         backend = self._backend(service, "Describe")
         if self.guard.checks:
             self.guard.require(subject, service, "", Operation.READ)
+            CALLER.set(subject)
         return await bounded_call(backend.describe(), time_limit, lambda: f"{service}: describe")
 
     def start_get(
@@ -146,6 +151,7 @@ class Calls:
         path = check_path(request.property)
         if self.guard.checks:
             self.guard.require(subject, service, path, Operation.READ)
+            CALLER.set(subject)
         params = request.parameters
         if backend.answers_inline:
             return _inline(backend.get(path, _params(params)), time_limit, service, "get", path)
@@ -163,12 +169,16 @@ class Calls:
         """
         service = request.service
         guard = self.guard
+        if guard.checks or service == REGISTRY or self.licences is not None:
+            # Checked deeper as this subject: the calls a service makes for it (by the rules and
+            # against the licences others hold), and the registry's admin check and licence holder.
+            CALLER.set(subject)
         try:
             backend = self._backend(service, "Set")
             path = check_path(request.property)
             value = received(request)
             operation = guard.set_operation(subject, service, path, value)
-            if not self._forwarded_by_peer():
+            if not self.forwarded_by_peer():
                 check_set(self.licences, subject, service, path)
         except PropertyError as exc:
             if exc.code not in (Code.PERMISSION_DENIED, Code.UNAUTHENTICATED):  # already audited
@@ -178,10 +188,6 @@ class Calls:
             return self._set_after_model(
                 request, value, backend, path, time_limit=time_limit, subject=subject
             )
-        if service == REGISTRY:
-            # The registry asks whether this caller is an admin (configured names), and who holds
-            # the licences it acquires, renews or releases.
-            CALLER.set(subject)
         try:
             begun = self._start_set(request, value, backend, path, time_limit)
         except Exception as exc:
@@ -238,15 +244,18 @@ class Calls:
             put(response, value)
             if len(value) <= SURELY_FITS_CHARS:
                 return response
-        elif is_snapshot(request):
-            response = pb.GetResponse(more=await self._snapshot(request, time_limit, subject))
         else:
-            # Every path is resolved (and counted) first, so that a bad one fails the call
-            # before any backend is asked.
-            refs = self._resolve_more(request, subject)
-            value = await outcome(self.start_get(request, time_limit, subject))
-            response = pb.GetResponse(more=await self._read(refs, time_limit))
-            put(response, value)
+            if self.guard.checks:
+                CALLER.set(subject)
+            if is_snapshot(request):
+                response = pb.GetResponse(more=await self._snapshot(request, time_limit, subject))
+            else:
+                # Every path is resolved (and counted) first, so that a bad one fails the call
+                # before any backend is asked.
+                refs = self._resolve_more(request, subject)
+                value = await outcome(self.start_get(request, time_limit, subject))
+                response = pb.GetResponse(more=await self._read(refs, time_limit))
+                put(response, value)
         check_fits(
             response,
             lambda: (

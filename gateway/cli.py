@@ -1,8 +1,8 @@
 """``psgateway``: run the Property Service gateway.
 
-Subcommands: ``serve`` and ``check-config`` (here) and ``device``
-(:mod:`gateway.device_cli`); each adds its parser and sets ``func``
-(``args -> exit code``) with ``set_defaults``.
+Subcommands: ``serve`` and ``check-config`` (here), ``device`` (:mod:`gateway.device_cli`)
+and ``device-check`` (:mod:`gateway.device_check_cli`); each adds its parser and sets
+``func`` (``args -> exit code``) with ``set_defaults``.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from gateway import device_cli
+from gateway import device_check_cli, device_cli
 from gateway.allocator import return_large_blocks
 from gateway.config import Config, ConfigError, default_config, load_config, load_config_partly
 from gateway.logs import LOG_FORMATS, setup_logging
@@ -45,6 +45,7 @@ examples:
   psgateway serve --log-format json --log-level debug
                                               one JSON object a log line, with request ids
   psgateway check-config site.toml            check a config file and exit (0 = fine, 2 = errors)
+  psgateway device-check tcp://10.0.0.7:7000  check a device against docs/device-spec.md (0 = conforms)
 
 then, from another shell:
   grpcurl -plaintext 127.0.0.1:50051 list
@@ -113,6 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(title="commands", metavar="COMMAND")
     add_subcommand(subparsers)
     device_cli.add_parser(subparsers)
+    device_check_cli.add_parser(subparsers)
     return parser
 
 
@@ -208,6 +210,14 @@ def _check_config(args: argparse.Namespace) -> int:
     if config.metrics.enabled and config.metrics.listen:
         listening += f", metrics on {config.metrics.listen}"
     print(f"{config.source}: fine ({counted}, listening on {listening})")
+    # What a big registry meets first: one Listen follows a property of each registration, and the
+    # registry's own entry is one of them (docs/registry-and-groups.md, "A big registry").
+    most = config.limits.max_stream_properties
+    print(
+        f"  a Listen matches at most {most} properties (limits.max_stream_properties): one on "
+        f"registry services.*.state follows at most {most - 1} services besides the registry; "
+        "raise the limit for a bigger registry"
+    )
     return 0
 
 

@@ -126,7 +126,7 @@ def device_command(entry: DeviceEntry) -> list[str]:
     args.append("--exit-with-parent")
     if "maxline" in entry.proxy:
         # The proxy takes lines this long from the device (large binary values, docs/line-protocol.md
-        # §2.4); the device then takes and sends them too.
+        # §11); the device then takes and sends them too.
         args += ["--max-line", str(entry.proxy["maxline"])]
     if entry.tcp:
         return [*args, "--tcp", entry.tcp]

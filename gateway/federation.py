@@ -17,6 +17,7 @@ import contextvars
 import secrets
 
 from gateway.logs import REQUEST_ID_HEADER, current_request_id
+from gateway.peer_protocol import SPOKEN_HEADER
 from services.errors import InvalidArgument
 
 #: The metadata key of the chain of gateways (comma-separated ids, the first gateway first).
@@ -54,8 +55,9 @@ def enter(via: str | bytes | None, own_id: str) -> None:
 
 def outgoing() -> tuple[tuple[str, str], ...]:
     """The metadata a call to another gateway carries on behalf of the request being served:
-    the ``ps-via`` chain, and the request id, so the next gateway's log lines carry it too."""
+    the cluster protocol versions this gateway speaks, the ``ps-via`` chain, and the request id,
+    so the next gateway's log lines carry it too."""
     via = VIA.get()
-    metadata = ((VIA_KEY, ",".join(via)),) if via else ()
+    metadata = (SPOKEN_HEADER, (VIA_KEY, ",".join(via))) if via else (SPOKEN_HEADER,)
     request_id = current_request_id()
     return (*metadata, (REQUEST_ID_HEADER, request_id)) if request_id is not None else metadata

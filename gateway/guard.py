@@ -21,7 +21,6 @@ cost of one attribute read (:attr:`Guard.checks`); Sets are still audited.
 
 from __future__ import annotations
 
-import contextvars
 from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
 from typing import Any
 
@@ -29,6 +28,7 @@ from gateway.audit import Audit, AuditSection
 from gateway.config import Config
 from gateway.identity import ANONYMOUS, Authenticator, AuthSection
 from gateway.rules import Decision, Operation, Rules, Subject, refusal
+from services.directory import CALLER
 from services.errors import PropertyError
 from services.model import Access, ServiceModel
 from services.values import Value
@@ -42,10 +42,27 @@ _SERVICES_PREFIX = "services."
 LICENCE_ACTIONS = frozenset({"acquire", "renew", "release", "request"})
 
 
-#: The subject of the Set being carried out, for checks made deep inside a service (the
-#: registry's admin check): set by the call layer before a Set starts, copied into any task
-#: the Set goes on in.
-CALLER: contextvars.ContextVar[Subject] = contextvars.ContextVar("caller", default=ANONYMOUS)
+#: How a subject that a service's configuration names (a chart's ``run_as``) proved who it is.
+CONFIGURED = "config"
+
+
+def subject_of(caller: object) -> Subject:
+    """The subject a :data:`services.directory.CALLER` stands for: a Subject as the call layer set
+    it, or the name a service's configuration gives (trusted as the config is); anyone else
+    (None included) is anonymous."""
+    if isinstance(caller, Subject):
+        return caller
+    if isinstance(caller, str) and caller:
+        return Subject(caller, authenticated=True, via=CONFIGURED)
+    return ANONYMOUS
+
+
+def current_subject() -> Subject:
+    """The subject of the call being carried out, for checks made deep inside a service (the
+    registry's admin check, the holder of a licence): set by the call layer when a call starts
+    (:data:`services.directory.CALLER`), copied into any task the call goes on in; anonymous
+    when none is."""
+    return subject_of(CALLER.get())
 
 
 def registry_operation(path: str, value: Value) -> Operation:
@@ -112,6 +129,22 @@ class Guard:
             self.audit.record(subject, service, path, operation, err)
             raise err
 
+    def refused_read(
+        self, subject: Subject, reads: Iterable[tuple[str, str]], *, audit: bool
+    ) -> PropertyError | None:
+        """The refusal of the first of ``reads`` ((service, path) pairs) that ``subject`` may not
+        read, recorded when ``audit``; None when every one may be read."""
+        if not self.checks:
+            return None
+        for service, path in reads:
+            decision = self.rules.check(subject, service, path, Operation.READ)
+            if not decision.allowed:
+                err = refusal(subject, service, path, Operation.READ, decision)
+                if audit:
+                    self.audit.record(subject, service, path, Operation.READ, err)
+                return err
+        return None
+
     def reader(self, subject: Subject) -> Callable[[str, str], bool] | None:
         """``(service, path) → may subject read it``, or None when everything may be read."""
         if not self.checks:
@@ -151,7 +184,7 @@ class Guard:
 
         Only a rule can make someone admin: with no rules, configured services stay as configured.
         """
-        return self.checks and self.may(CALLER.get(), REGISTRY, f"services.{name}", Operation.ADMIN)
+        return self.checks and self.may(current_subject(), REGISTRY, f"services.{name}", Operation.ADMIN)
 
     def audited(
         self, subject: Subject, service: str, path: str, operation: Operation, error: BaseException | None

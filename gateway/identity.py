@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import jwt
+from cryptography.hazmat.primitives.asymmetric import ec, ed448, ed25519, rsa
 
 from gateway.rules import ANONYMOUS_NAME, Scopes, Subject
 from services.errors import InvalidArgument, Unauthenticated
@@ -34,6 +35,15 @@ ANONYMOUS = Subject(ANONYMOUS_NAME)
 #: Algorithms accepted with a shared secret; a JWKS key's own algorithm family is used otherwise.
 _SECRET_ALGORITHMS = ("HS256", "HS384", "HS512")
 _KEY_ALGORITHMS = ("RS256", "RS384", "RS512", "PS256", "PS384", "PS512", "ES256", "ES384", "ES512", "EdDSA")
+#: The kind of key each JWKS algorithm verifies with (and, for ECDSA, its curve): a token's ``alg``
+#: is its author's word, so a ``kid`` naming a key of another kind is a refusal, not a call into
+#: the library with a key it cannot use (which raises TypeError rather than a token error).
+_KEY_KINDS: dict[str, tuple[type, ...]] = {
+    **dict.fromkeys(("RS256", "RS384", "RS512", "PS256", "PS384", "PS512"), (rsa.RSAPublicKey,)),
+    **dict.fromkeys(("ES256", "ES384", "ES512"), (ec.EllipticCurvePublicKey,)),
+    "EdDSA": (ed25519.Ed25519PublicKey, ed448.Ed448PublicKey),
+}
+_CURVES = {"ES256": ec.SECP256R1.name, "ES384": ec.SECP384R1.name, "ES512": ec.SECP521R1.name}
 _BEARER = "bearer "
 #: Seconds of clock difference tolerated on ``exp`` and ``nbf``.
 _LEEWAY_S = 5.0
@@ -118,7 +128,7 @@ class Authenticator:
                 key: Any = self._secret
                 algorithms = list(_SECRET_ALGORITHMS)
             elif algorithm in _KEY_ALGORITHMS and self._keys:
-                key = self._key_for(header.get("kid"))
+                key = self._key_for(header.get("kid"), algorithm)
                 algorithms = [algorithm]
             else:
                 raise Unauthenticated(f"bearer token refused: algorithm {algorithm!r} is not accepted here")
@@ -139,21 +149,30 @@ class Authenticator:
         scopes = None
         if "scope" in claims:
             scope = claims["scope"]
-            text = " ".join(scope) if isinstance(scope, list) else scope
-            if not isinstance(text, str):
-                raise Unauthenticated("bearer token refused: its scope claim must be text")
+            if isinstance(scope, list) and all(isinstance(word, str) for word in scope):
+                scope = " ".join(scope)
+            if not isinstance(scope, str):
+                raise Unauthenticated("bearer token refused: its scope claim must be text or a list of texts")
             try:
-                scopes = Scopes.parse(text)
+                scopes = Scopes.parse(scope)
             except InvalidArgument as exc:
                 raise Unauthenticated(f"bearer token refused: {exc.message}") from None
         return Subject(subject, authenticated=True, scopes=scopes, via="token")
 
-    def _key_for(self, kid: object) -> Any:
+    def _key_for(self, kid: object, algorithm: str) -> Any:
+        """The JWKS key ``kid`` names, when it is of the kind ``algorithm`` verifies with."""
         if isinstance(kid, str) and kid in self._keys:
-            return self._keys[kid]
-        if kid is None and len(self._keys) == 1:
-            return next(iter(self._keys.values()))
-        raise Unauthenticated(f"bearer token refused: no key {kid!r} in auth.jwks_file")
+            key = self._keys[kid]
+        elif kid is None and len(self._keys) == 1:
+            key = next(iter(self._keys.values()))
+        else:
+            raise Unauthenticated(f"bearer token refused: no key {kid!r} in auth.jwks_file")
+        suits = isinstance(key, _KEY_KINDS[algorithm])
+        if suits and algorithm in _CURVES:
+            suits = key.curve.name == _CURVES[algorithm]
+        if not suits:
+            raise Unauthenticated(f"bearer token refused: key {kid!r} is not a key for {algorithm}")
+        return key
 
 
 def _read(path: str, key: str) -> str:
@@ -170,4 +189,17 @@ def _load_jwks(path: str) -> dict[str, Any]:
         keys = jwt.PyJWKSet.from_dict(json.loads(text)).keys
     except (ValueError, jwt.PyJWTError) as exc:
         raise InvalidArgument(f"auth.jwks_file: {path} is not a usable JSON Web Key Set: {exc}") from None
-    return {key.key_id or "": key.key for key in keys}
+    # A private key in the file verifies as its public half (the kinds in _KEY_KINDS are public).
+    return {key.key_id or "": _public(key.key) for key in keys}
+
+
+_PRIVATE_KEYS = (
+    rsa.RSAPrivateKey,
+    ec.EllipticCurvePrivateKey,
+    ed25519.Ed25519PrivateKey,
+    ed448.Ed448PrivateKey,
+)
+
+
+def _public(key: Any) -> Any:
+    return key.public_key() if isinstance(key, _PRIVATE_KEYS) else key

@@ -19,15 +19,19 @@ Whichever the holder, a licence acquired on a Session ends with that Session
 covers, so acquiring one needs the right to change it: ``write`` by the rules on
 the subtree it locks (its path; for a whole service the service itself, which
 only a ``**`` rule path matches), checked as the caller (:func:`may_license`).
-A subject allowed only to invoke ``registry/acquire`` can lock nothing.
+A subject allowed only to invoke ``registry/acquire`` can lock nothing. The
+scheduler's ``request`` licenses whole providers to its caller, so it picks only
+those the caller may ``write`` (:func:`may_provide`).
 """
 
 from __future__ import annotations
 
-from gateway.guard import CALLER, REGISTRY, Guard
+from collections.abc import Callable
+
+from gateway.guard import REGISTRY, Guard, current_subject
 from gateway.rules import Operation, Subject
 from services.errors import FailedPrecondition
-from services.registry import SESSION_HOLDER_PREFIX, Caller, LicenceCheck, Licences
+from services.registry import SESSION_HOLDER_PREFIX, Caller, LicenceCheck, Licences, ProviderCheck
 
 __all__ = [
     "SESSION_HOLDER_PREFIX",
@@ -36,6 +40,7 @@ __all__ = [
     "current_caller",
     "holder_of",
     "may_license",
+    "may_provide",
 ]
 
 
@@ -61,7 +66,7 @@ def caller_of(subject: Subject) -> Caller:
 
 def current_caller() -> Caller:
     """:func:`caller_of` the subject of the Set being carried out (the registry's caller source)."""
-    return caller_of(CALLER.get())
+    return caller_of(current_subject())
 
 
 def check_set(licences: Licences | None, subject: Subject, service: str, path: str) -> None:
@@ -79,6 +84,19 @@ def may_license(guard: Guard) -> LicenceCheck:
     (UNAUTHENTICATED or PERMISSION_DENIED naming the rule otherwise; audited)."""
 
     def check(service: str, subtree: str) -> None:
-        guard.require(CALLER.get(), service, subtree, Operation.WRITE)
+        guard.require(current_subject(), service, subtree, Operation.WRITE)
 
     return check
+
+
+def may_provide(guard: Guard) -> ProviderCheck:
+    """The scheduler's test of the providers it may license to the caller of the Set: those it
+    may ``write`` whole by the rules (asked quietly: a refused provider is simply not picked)."""
+
+    def for_caller() -> Callable[[str], bool] | None:
+        if not guard.checks:
+            return None
+        subject = current_subject()
+        return lambda service: guard.may(subject, service, "", Operation.WRITE)
+
+    return for_caller

@@ -13,7 +13,7 @@ gateway is just one more device whose backend is the whole router.
 
 **A device that dials in.** When the first line a peer sends is a greeting
 (``HELLO 1 name=scout4 type=mobile_robot push=1``) the peer is a device that
-registers itself (docs/line-protocol.md §4): the connection is handed to an
+registers itself (docs/line-protocol.md §5): the connection is handed to an
 :class:`InboundProxy` — the ordinary line-protocol proxy, whose stream is this
 connection instead of one it opens — served under the greeting's ``name``
 with the URL ``tcp-in://HOST:PORT`` (the device's end of the connection). The
@@ -37,7 +37,8 @@ takes its place back.
 whose :attr:`RouterBackend.subject` is the connection's subject: anonymous
 unless the connection proved who it is (set it there once it has). Every GET,
 SET and LISTEN passes the gateway's :class:`~gateway.guard.Guard` as that
-subject, exactly as on the gRPC port; a refusal is an ``ERR 16``
+subject, exactly as on the gRPC port, and so does every call a service makes
+for it (a group's members: :mod:`gateway.behalf`); a refusal is an ``ERR 16``
 (UNAUTHENTICATED) or ``ERR 7`` (PERMISSION_DENIED) line naming the rule.
 """
 
@@ -58,6 +59,7 @@ from gateway.rules import Operation, Subject
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.device import DeviceServer
 from services.device.alternates import ALTERNATES_FIELD, format_alternates
+from services.directory import CALLER
 from services.errors import (
     AlreadyExists,
     Code,
@@ -123,6 +125,9 @@ class _Watch(Subscription):
 class RouterBackend(Backend):
     """Every service of a router as one tree: ``SERVICE.PATH``; ``properties`` lists the services.
 
+    A service's name alone reads as a namespace does: the names of its properties (its own
+    ``properties``), so that every name ``properties`` lists answers a GET (docs/device-spec.md §3.1).
+
     One per line connection: :attr:`subject` is who asks on it, checked by ``guard``.
     """
 
@@ -133,18 +138,26 @@ class RouterBackend(Backend):
         #: Who asks on this connection: anonymous until it proves who it is (then set it here).
         self.subject = subject
 
+    def _check_read(self, service: str, path: str) -> None:
+        """Refuse a read the rules deny; what a service reads for it is checked as the same subject."""
+        guard = self.guard
+        if guard.checks:
+            guard.require(self.subject, service, path, Operation.READ)
+            CALLER.set(self.subject)
+
     def _split(self, path: str) -> tuple[Backend, str, str]:
+        """The service's backend, its name and the path inside it; a bare name is its ``properties``."""
         service, dot, rest = path.partition(".")
         backend = self.router.backend(service)
-        if not dot or not rest:
+        if dot and not rest:
             raise InvalidArgument(f"{path!r} names a service; name one of its properties: {service}.PROPERTY")
-        return backend, service, rest
+        return backend, service, rest or "properties"
 
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         if path == "properties":
             return format_names(self.router.names())
         backend, service, rest = self._split(path)
-        self.guard.require(self.subject, service, rest, Operation.READ)
+        self._check_read(service, rest)
         return await backend.get(rest, params)
 
     async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
@@ -152,6 +165,8 @@ class RouterBackend(Backend):
             raise ReadOnly("properties (the list of services) is read-only")
         backend, service, rest = self._split(path)
         guard, subject = self.guard, self.subject
+        # Always: what a service sets for it is checked as it, by the rules and the licences.
+        CALLER.set(subject)
         operation = guard.set_operation(subject, service, rest, value)
         if operation is None:
             operation = await guard.set_operation_from_model(subject, service, rest, backend.describe())
@@ -171,7 +186,7 @@ class RouterBackend(Backend):
 
             return _Watch(self.router.watch(changed))
         backend, service, rest = self._split(path)
-        self.guard.require(self.subject, service, rest, Operation.READ)
+        self._check_read(service, rest)
 
         def forward(change: Change) -> None:
             notify(Change(f"{service}.{change.path}", change.value, change.gap, change.removed))
@@ -288,6 +303,9 @@ class ConnectionBounds:
         self.max_greetings_per_source = max_greetings_per_source
         self.max_connections_per_address = max_connections_per_address
         self._open: dict[asyncio.StreamWriter, _Heard] = {}
+        #: The source address of each open connection, taken when it opened: a TLS transport
+        #: that has closed answers no ``peername`` any more (it raises instead).
+        self._addresses: dict[asyncio.StreamWriter, str] = {}
         #: The open connections of each source address (for its own bound).
         self._by_address: dict[str, set[asyncio.StreamWriter]] = {}
         self._greetings: dict[str, int] = {}
@@ -302,13 +320,16 @@ class ConnectionBounds:
             return None
         heard = _Heard(reader)
         self._open[writer] = heard
+        self._addresses[writer] = address
         self._by_address.setdefault(address, set()).add(writer)
         return heard
 
     def release(self, writer: asyncio.StreamWriter) -> None:
         """The connection ended."""
         self._open.pop(writer, None)
-        address = _address_of(writer)
+        address = self._addresses.pop(writer, None)
+        if address is None:
+            return
         own = self._by_address.get(address)
         if own is not None:
             own.discard(writer)
@@ -474,7 +495,7 @@ class LineListener:
         """``seats``: the names a cluster holds for devices that dial in (:class:`DeviceSeats`);
         ``alternates()`` names the line listeners of the other gateways of this one's cluster: the
         greeting tells them to every peer (``alternates=``), so that a device that dialled in knows
-        where to go when this gateway is gone (docs/line-protocol.md §4.5);
+        where to go when this gateway is gone (docs/line-protocol.md §5);
         ``guard`` checks every request of every connection (default: nothing is refused);
         ``device_secrets`` (name → secret) are the configured devices that dial in: each name is
         taken only by a greeting that carries ``secret=`` with its secret;
@@ -521,7 +542,7 @@ class LineListener:
         """Serve the device that greeted on this connection as service ``hello.name``, until it hangs up.
 
         A greeting that cannot be accepted (another protocol version, a bad
-        field) is refused at once with an ERR line (docs/line-protocol.md §4.3),
+        field) is refused at once with an ERR line (docs/line-protocol.md §3),
         checksummed when the greeting was.
         """
         from gateway.inbound import INBOUND_SCHEME

@@ -7,7 +7,9 @@ marks ``down`` (:meth:`Router.set_down`) still holds its place, but
 UNAVAILABLE for it. System services (the registry, groups) are handed
 :attr:`Router.directory`, a :class:`services.directory.Directory` whose
 lookups ignore that mark: the registry must keep probing a service that is
-down to see it come back.
+down to see it come back. With rules configured, the backends that directory
+hands out check every call as the client it is made for (:mod:`gateway.behalf`),
+and its watchers hear joins and leaves as the services' own work.
 
 :func:`bounded_call` runs one backend coroutine under a timeout without
 creating a task, and without even arming a timer when the backend answers
@@ -24,11 +26,16 @@ from collections.abc import Callable, Coroutine, Mapping
 from typing import Any, TypeVar
 
 from gateway.backends import open_proxy
+from gateway.behalf import OnBehalf, on_behalf
+from gateway.guard import Guard
+from gateway.licensing import check_set
+from gateway.rules import Subject
 from services.backend import Backend, BackendInfo
-from services.directory import DirectoryListener
+from services.directory import DirectoryListener, own_context
 from services.eager import Started, step
 from services.errors import AlreadyExists, DeadlineExceeded, InvalidArgument, NotFound, Unavailable
 from services.paths import validate_path, validate_pattern, validate_service_name
+from services.registry import Licences
 
 log = logging.getLogger(__name__)
 
@@ -46,13 +53,14 @@ _SUGGESTIONS = 5
 class Router:
     """The live map from service name to :class:`~services.backend.Backend`."""
 
-    def __init__(self) -> None:
+    def __init__(self, guard: Guard | None = None) -> None:
+        """``guard``: the rules the calls system services make on a client's behalf are checked by."""
         self._backends: dict[str, Backend] = {}
         self._watchers: list[DirectoryListener] = []
         #: name → why it is down, for the services the registry marked down.
         self._down: dict[str, str] = {}
         #: The view of this router that system services get (lookups ignore ``down``).
-        self.directory = RouterDirectory(self)
+        self.directory = RouterDirectory(self, guard)
 
     # -- lookups ---------------------------------------------------------
 
@@ -177,10 +185,48 @@ class Router:
 
 
 class RouterDirectory:
-    """A router as a :class:`services.directory.Directory`: the same services, down ones included."""
+    """A router as a :class:`services.directory.Directory`: the same services, down ones included.
 
-    def __init__(self, router: Router) -> None:
+    With a guard that checks (rules, or tokens whose scopes narrow), or once it has the
+    registry's licences (:attr:`licences`: a Set made for a client is checked against them),
+    each backend it hands out is an :class:`~gateway.behalf.OnBehalf`: the same one for a name
+    as long as the name is served by the same backend, so that a service can tell its members
+    apart by identity. With neither it hands out the router's own backends.
+    """
+
+    def __init__(self, router: Router, guard: Guard | None = None) -> None:
         self.router = router
+        self.guard = guard
+        #: The registry's licences, given before any service that reaches others is added (the
+        #: gateway does it when its registry starts); None: no licences to check.
+        self.licences: Licences | None = None
+        #: Whether the call being served was forwarded by another gateway of this one's cluster: its
+        #: Sets were checked against the licences where the client called, and come as that gateway
+        #: (which holds none); None: not in a cluster.
+        self.peer_forwarded: Callable[[], bool] | None = None
+        #: name → the OnBehalf handed out for it; one per name served (a leave forgets it).
+        self._handed: dict[str, OnBehalf] = {}
+        router.watch(self._forget)
+
+    def _forget(self, name: str, backend: Backend | None) -> None:
+        if backend is None:
+            self._handed.pop(name, None)
+
+    def _checked(self, name: str, backend: Backend) -> Backend:
+        guard = self.guard
+        if guard is None or not (guard.checks or self.licences is not None):
+            return backend
+        handed = self._handed.get(name)
+        if handed is None or handed.inner is not backend:
+            licensed = self._check_licence if self.licences is not None else None
+            handed = self._handed[name] = on_behalf(name, backend, guard, licensed)
+        return handed
+
+    def _check_licence(self, subject: Subject, service: str, path: str) -> None:
+        """Refuse a Set made for ``subject`` on what someone else holds a licence on."""
+        forwarded = self.peer_forwarded
+        if forwarded is None or not forwarded():
+            check_set(self.licences, subject, service, path)
 
     def names(self) -> list[str]:
         return self.router.names()
@@ -189,10 +235,17 @@ class RouterDirectory:
         return name in self.router
 
     def backend(self, name: str) -> Backend:
-        return self.router.lookup(name)
+        return self._checked(name, self.router.lookup(name))
 
     def watch(self, listener: DirectoryListener) -> Callable[[], None]:
-        return self.router.watch(listener)
+        """Tell ``listener`` of every join and leave, as the service's own work (a registration by
+        a client makes the services that react to it act for themselves, not for that client)."""
+
+        def heard(name: str, backend: Backend | None) -> None:
+            checked = None if backend is None else self._checked(name, backend)
+            own_context().run(listener, name, checked)
+
+        return self.router.watch(heard)
 
     async def register(self, name: str, url: str, options: Mapping[str, Any] | None = None) -> BackendInfo:
         return await self.router.register(name, url, options)

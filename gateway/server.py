@@ -24,10 +24,11 @@ from gateway.federation import VIA_KEY, enter, new_gateway_id
 from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, parse_options, parse_selectors
-from gateway.listen.budget import COUNTED_BYTES
+from gateway.listen.budget import COUNTED_BYTES, GRPC_COPIES
 from gateway.listen.drain import Wake
 from gateway.logs import REQUEST_ID_HEADER, RequestContext, current_request, request_id_from
 from gateway.metrics.counts import GrpcCounts, MethodCounts
+from gateway.peer_protocol import PROTOCOLS_KEY, check_caller
 from gateway.router import Router
 from gateway.rules import Subject
 from gateway.session import Session
@@ -42,7 +43,9 @@ Context = grpc.aio.ServicerContext[Any, Any]
 
 def arrival(context: Context) -> tuple[str, str | bytes | None]:
     """The call's request id (the client's ``x-request-id`` metadata when usable, else a new one)
-    and its ``ps-via`` chain (None: it came straight from a client).
+    and its ``ps-via`` chain (None: it came straight from a client). A call from a gateway that
+    shares no cluster protocol version with this one (its ``ps-protocols`` metadata) is refused:
+    :class:`~gateway.peer_protocol.ProtocolMismatch`.
 
     One pass over the metadata for both: grpc builds the metadata tuple anew on every read.
     """
@@ -54,6 +57,8 @@ def arrival(context: Context) -> tuple[str, str | bytes | None]:
                 chosen = value
         elif key == VIA_KEY and via is None:
             via = value
+        elif key == PROTOCOLS_KEY:
+            check_caller(value)
     return request_id_from(chosen), via
 
 
@@ -69,11 +74,6 @@ def _begin_unary(context: Context, service: str, path: str) -> tuple[RequestCont
     request = RequestContext(request_id, service or None, path or None)
     current_request.set(request)
     return request, via
-
-
-#: The copies of a large Listen message counted against the hub's budget while it is written (see
-#: Listen).
-GRPC_COPIES = 3
 
 
 def _lenient(message: type[Message]) -> Callable[[bytes], Message | Undecodable]:

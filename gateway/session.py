@@ -7,7 +7,10 @@ run right in the reader (it usually answers without waiting, so it costs no
 task); only when it has to wait does it go on in a task of its own. Calls to
 other backends get a task each. At most ``limits.session_max_in_flight``
 run at once and at most ``limits.session_max_queued_replies`` wait to be
-written; beyond either, the reader stops reading (backpressure).
+written; beyond either, the reader stops reading (backpressure). A Listen's
+large value counts against the hub's budget while it is written, as a gRPC
+Listen's does (:mod:`gateway.listen.budget`); one that does not fit ends that
+Listen with RESOURCE_EXHAUSTED, and the Session goes on.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from gateway.calls import Begun, Calls, Undecodable, is_snapshot
 from gateway.config import Limits
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
+from gateway.listen.budget import COUNTED_BYTES, GRPC_COPIES
 from gateway.listen.drain import Wake
 from gateway.listen.encoding import listen_reply_wire, reply_wire
 from gateway.listen.hub import SHUTTING_DOWN
@@ -113,6 +117,8 @@ class Session:
         #: The call ends with this status (a message that did not parse).
         self._error: PropertyError | None = None
         self._requests = requests
+        #: Bytes of the message being written counted against the hub's budget (its large Listen values).
+        self._held = 0
 
     @property
     def error(self) -> PropertyError | None:
@@ -145,6 +151,9 @@ class Session:
                 response = self._collect()
                 if response:
                     await context.write(response)
+                    if self._held:
+                        self._hub.budget.give_back(self._held)
+                        self._held = 0
                     if self._replies or self._ready:
                         wake.set()
                 if len(self._replies) < self._limits.session_max_queued_replies:
@@ -156,6 +165,8 @@ class Session:
             if self._error is not None:
                 await abort(self._context, self._error, "Session")
         finally:
+            self._hub.budget.give_back(self._held)  # a message the client never took
+            self._held = 0
             reader.cancel()
             for task in list(self._tasks.values()):
                 task.cancel()
@@ -198,6 +209,8 @@ class Session:
                     drained = True
                     break
                 reply = listen_reply_wire(rid, response)
+                if len(reply) >= COUNTED_BYTES and not self._counted(rid, len(reply), listened):
+                    break  # that Listen is ended; the others' replies go in the next message
                 size += len(reply)
                 count += 1
                 listened.append(reply)
@@ -211,6 +224,19 @@ class Session:
                 self._drop_listen(rid)
         head = pb.SessionResponse(replies=replies).SerializeToString() if replies else b""
         return head + b"".join(listened) if listened else head
+
+    def _counted(self, rid: int, size: int, listened: list[bytes]) -> bool:
+        """Count a large Listen reply against the hub's budget until it is written, as a gRPC
+        Listen counts its message; when it does not fit, end Listen ``rid`` with the refusal."""
+        budget = self._hub.budget
+        counted = GRPC_COPIES * size
+        if budget.take(counted):
+            self._held += counted
+            return True
+        refusal = budget.refusal(counted, "Listen")
+        listened.append(reply_wire(pb.Reply(id=rid, status=status_message(refusal))))
+        self._drop_listen(rid)
+        return False
 
     def _end_listens(self) -> None:
         """Flush what every Listen has ready and end it (half-close or shutdown)."""
@@ -457,11 +483,7 @@ class Session:
         # Started here, in the reader: a Listen of a topic that is open already (one another
         # stream shares, an in-process service's) starts without waiting and needs no task.
         self._active.add(rid)
-        try:
-            first = step(self._run_listen(rid, stream))
-        except Exception:
-            self._active.discard(rid)  # _run_listen has answered the request with its error
-            return
+        first = step(self._run_listen(rid, stream))
         if isinstance(first, Started):
             self._active.discard(rid)
             self._spawn(rid, _finish(first), listen=True)
@@ -469,13 +491,18 @@ class Session:
             self._active.discard(rid)
 
     async def _run_listen(self, rid: int, stream: ListenStream) -> None:
+        """Start ``stream`` and make it Listen ``rid``; a failure is answered on ``rid``, not
+        raised: in a task of its own, nobody would retrieve it (a traceback in the log a client
+        could ask for 100,000 times a message)."""
         try:
             await stream.start()
-        except BaseException as exc:
+        except asyncio.CancelledError:
             stream.close()
-            if not isinstance(exc, asyncio.CancelledError):
-                self._fail(rid, exc, "Listen")
             raise
+        except Exception as exc:
+            stream.close()
+            self._fail(rid, exc, "Listen")
+            return
         if stream.closed or self._reader_done or self._stopping:
             stream.close()
             return

@@ -24,6 +24,15 @@ A group call that fails on some members still lets the others act; then it
 raises :class:`GroupCallFailed` naming every member that failed and why
 (the code is that of the first failure in name order), and ``failed``
 lists ``(member CODE)`` pairs of the last group call.
+
+Every call the group makes to a member for a client (a ``robots.<name>.<path>``
+Get, Set or Listen, a fan-out of ``velocity`` or ``behaviors.moveto``) goes
+through the directory, which checks it against the gateway's rules as that
+client, for the member's own name and path: a member the client may not drive
+fails the call as any failing member does (PERMISSION_DENIED), and a wildcard
+skips what the client may not read. The group's own work (following the
+members' locations for its centroid, asking the registry for its members) is
+checked as nobody's.
 """
 
 from __future__ import annotations
@@ -41,7 +50,7 @@ import numpy as np
 from services.backend import Backend, Subscription, close_quietly
 from services.core import Prop, Resource, functional, read_write, start_tree, stop_tree
 from services.core.metadata import RESERVED_NAMES
-from services.directory import Directory
+from services.directory import Directory, own_context, own_work
 from services.errors import (
     AlreadyExists,
     Code,
@@ -269,10 +278,12 @@ class Group(Resource):
             self._sync()
             return
         try:
-            registry = self._directory.backend(self._registry)
-            await self._follow_registry(registry)
-            async with asyncio.timeout(self.member_timeout):
-                text = await registry.get("find", self._query)
+            # Who the members are is the group's own business, whoever's call made it ask.
+            with own_work():
+                registry = self._directory.backend(self._registry)
+                await self._follow_registry(registry)
+                async with asyncio.timeout(self.member_timeout):
+                    text = await registry.get("find", self._query)
         except TimeoutError:
             log.warning("group query: the registry %r did not answer in time", self._registry)
             return
@@ -363,7 +374,7 @@ class Group(Resource):
             self._refresh_again = True
             return
         self._refresh_task = asyncio.get_running_loop().create_task(
-            self._refresh_loop(), name="group: refresh"
+            self._refresh_loop(), name="group: refresh", context=own_context()
         )
 
     async def _refresh_loop(self) -> None:
@@ -421,11 +432,13 @@ class Group(Resource):
         active = _ACTIVE.get()
         if id(self) in active:
             raise PropertyError(f"{what}: the group is among its own members", Code.FAILED_PRECONDITION)
-        token = _ACTIVE.set(active | {id(self)})
+        _ACTIVE.set(active | {id(self)})
         try:
             return await self._fan_out(what, call, names)
         finally:
-            _ACTIVE.reset(token)
+            # Set back rather than reset by token: a call started inline and finished in a task
+            # (a Session's) ends in another context than it began, where a token is refused.
+            _ACTIVE.set(active)
 
     async def _fan_out(
         self, what: str, call: Callable[[str, Backend], Awaitable[Any]], names: Iterable[str] | None

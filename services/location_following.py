@@ -16,6 +16,7 @@ from collections.abc import Callable, Coroutine
 from typing import Any
 
 from services.backend import Backend, Change, Subscription, close_quietly
+from services.directory import own_context
 from services.errors import Code, PropertyError
 from services.values import Value, ValueFormatError, Vector, as_text, parse_vector
 
@@ -159,7 +160,8 @@ class LocationFollower:
         self._on_location(name, vector)
 
     def _spawn(self, coro: Coroutine[Any, Any, None], what: str) -> asyncio.Task[None]:
-        task = asyncio.get_running_loop().create_task(coro, name=what)
+        # Following is the follower's own work, whichever client's call made it start.
+        task = asyncio.get_running_loop().create_task(coro, name=what, context=own_context())
         self._running.add(task)
         task.add_done_callback(self._done)
         return task

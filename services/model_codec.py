@@ -6,7 +6,7 @@ Both sides of each wire use this one module: the gateway (serving
 (``clients``), which may import it: it imports only the contract
 (``protos``), :mod:`services.model` and the value grammar.
 
-The line form (docs/line-protocol.md, "A device that describes itself") is
+The line form (docs/device-spec.md §9, docs/line-protocol.md §12) is
 one list value, an entry per property::
 
     ((name type access (unit words) minimum maximum (doc words)) ...)

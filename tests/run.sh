@@ -52,6 +52,16 @@ command -v simavr >/dev/null || c_missing+=(simavr)
 if [ "${#c_missing[@]}" -gt 0 ]; then
   apt_install "the C device library" "${c_missing[@]}"
 fi
+# Its Cortex-M build (an LM3S6965) needs Debian's bare-metal ARM compiler and newlib (for memcpy and
+# the like), and its test runs the firmware in QEMU's lm3s6965evb: ~110 MB to download, ~2.3 GB on
+# disk (most of it newlib and libgcc built for every ARM core).
+arm_missing=()
+command -v arm-none-eabi-gcc >/dev/null || arm_missing+=(gcc-arm-none-eabi)
+[ -f /usr/lib/arm-none-eabi/newlib/thumb/v7-m/nofp/libc_nano.a ] || arm_missing+=(libnewlib-arm-none-eabi)
+command -v qemu-system-arm >/dev/null || arm_missing+=(qemu-system-arm)
+if [ "${#arm_missing[@]}" -gt 0 ]; then
+  apt_install "the C device library on Cortex-M" "${arm_missing[@]}"
+fi
 
 # The C++ example client (clients/examples/cpp, tests/interop/test_cpp_client.py): CMake, gRPC C++
 # and its protoc plugin (~13 MB of packages to download where cmake and g++ are already there).

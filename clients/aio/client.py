@@ -40,12 +40,14 @@ from clients.errors import (
     DeadlineExceeded,
     GatewayUnreachable,
     PropertyServiceError,
+    ResourceExhausted,
     Unavailable,
     error_from_rpc,
 )
 from clients.values import (
     Marker,
     Value,
+    ValueFormatError,
     Vector,
     parse_marker,
     parse_names,
@@ -74,6 +76,9 @@ DEFAULT_TIMEOUT = 10.0
 #: grpc.aio answers part of a burst of more than about a thousand simultaneous unary calls on one
 #: channel with CANCELLED, so the client never starts that many.
 DEFAULT_MAX_IN_FLIGHT = 256
+#: Names asked of the registry a page (``services()`` past one value, ``service_pages``): 1,000
+#: names of the longest a name may be (64 characters) fit in one value.
+SERVICES_PAGE = 1000
 #: Seconds before a resumed Listen (``resume=True``) is opened again, doubling up to the most:
 #: a gateway that restarts is back within seconds; one that stays away is asked every 5 s.
 RESUME_FIRST_PAUSE = 0.1
@@ -326,8 +331,28 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         return decode(parse_marker, await self.get(service, prop, **params), service, prop)
 
     async def services(self) -> list[str]:
-        """Names of the services the gateway's registry knows."""
-        return await self.get_names("registry", "services")
+        """Names of the services the gateway's registry knows, in the order they joined.
+
+        The registry's ``services`` is one value: past about 6,000 names it passes the 64 KiB a
+        value may hold. Then the names are read a page at a time (:meth:`service_pages`), in name
+        order."""
+        try:
+            return await self.get_names("registry", "services")
+        except (ValueFormatError, ResourceExhausted):
+            return [name async for page in self.service_pages() for name in page]
+
+    async def service_pages(self, page: int = SERVICES_PAGE) -> AsyncGenerator[list[str], None]:
+        """The names of the registry's services in name order, ``page`` at most at a time (fewer
+        when that many would pass one value's 64 KiB): the registry's ``service_names``, each page asked
+        after the last name of the one before, until an empty one. A service that joins or leaves
+        meanwhile may be in the pages or not; one registered throughout is in them exactly once."""
+        after = ""
+        while True:
+            names = await self.get_names("registry", "service_names", after=after, limit=str(page))
+            if not names:
+                return
+            yield names
+            after = names[-1]
 
     async def describe(self, service: str) -> ServiceModel:
         """The typed model of every property of ``service`` in one call (the ``Describe`` RPC)."""

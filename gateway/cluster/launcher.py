@@ -310,7 +310,7 @@ period = 1.0
         deadline = time.monotonic() + START_TIMEOUT
         for gateway in self.gateways:
             while True:
-                names = set(parse_names(await _get(gateway.address, "registry", "services")))
+                names = await _registered(gateway.address)
                 if set(self.devices) <= names:
                     break
                 if time.monotonic() > deadline:
@@ -354,12 +354,23 @@ async def _register(address: str, name: str, url: str) -> None:
         )
 
 
-async def _get(address: str, service: str, path: str) -> str:
+async def _get(address: str, service: str, path: str, parameters: dict[str, str] | None = None) -> str:
     async with grpc.aio.insecure_channel(address) as channel:
         reply = await pb_grpc.PropertyServiceStub(channel).Get(
-            pb.GetRequest(service=service, property=path), timeout=10.0
+            pb.GetRequest(service=service, property=path, parameters=parameters), timeout=10.0
         )
         return str(reply.value)
+
+
+async def _registered(address: str) -> set[str]:
+    """Every name the registry of the gateway at ``address`` lists, read a page at a time (its
+    ``service_names``): ``services`` is one value, which passes 64 KiB at about 6,000 names."""
+    names: set[str] = set()
+    after = ""
+    while page := parse_names(await _get(address, "registry", "service_names", {"after": after})):
+        names.update(page)
+        after = page[-1]
+    return names
 
 
 def print_owners(ownership: Ownership, folder: Path) -> None:

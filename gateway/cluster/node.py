@@ -49,12 +49,13 @@ from gateway.cluster.directory import ClusterDirectory
 from gateway.cluster.failover import Takeover
 from gateway.cluster.licences import ClusterLicences
 from gateway.cluster.moves import rebalance_quota, taking_loads
-from gateway.cluster.records import DIAL_IN_PREFIX, DrainOrder, GatewayRecord, Registration
+from gateway.cluster.records import DIAL_IN_PREFIX, DrainOrder, GatewayRecord, Registration, read_gateway
 from gateway.cluster.switching import SwitchingBackend
 from gateway.cluster.view import ClusterView
 from gateway.cluster.writer import LatestWrites
 from gateway.config import DEFAULT_REBALANCE_BATCH, DEFAULT_REBALANCE_SPREAD
-from gateway.guard import CALLER
+from gateway.guard import current_subject
+from gateway.peer_protocol import ProtocolMismatch, check_cluster
 from gateway.proxies.grpc_proxy import open_grpc_backend
 from gateway.router import Router
 from services.backend import Backend, BackendInfo
@@ -243,12 +244,22 @@ class ClusterNode:
             self._on_router(name, backend)
         try:
             await self._join()
+        except ProtocolMismatch:
+            raise  # the gateway does not start: nothing it wrote would be understood
         except PropertyError as exc:
             log.warning(
                 "cluster: cannot join now (%s); serving read-only until the store is back", exc.message
             )
 
     async def _join(self) -> None:
+        # A live gateway that shares no cluster protocol version with this one would misread what
+        # this one writes, and this one what it writes: refuse before writing anything.
+        gateways = {gid: read_gateway(text) for gid, text in (await self.store.read(Kind.GATEWAY)).items()}
+        check_cluster(
+            {gid: record.protocols for gid, record in gateways.items() if record is not None},
+            me=self.me,
+            store=self.store.location,
+        )
         # Owners keys that name this gateway but belong to an earlier run of it (the same id; its
         # lease has not expired yet) are let go now: the services are taken over as orphans.
         for name, owner in (await self.store.read(Kind.OWNER)).items():
@@ -1001,7 +1012,7 @@ class ClusterNode:
             raise FailedPrecondition(
                 f"no other gateway takes devices: draining {gateway!r} would leave its devices to nobody"
             )
-        subject = CALLER.get()
+        subject = current_subject()
         order = DrainOrder(subject.name if subject.authenticated else "anonymous", round(time.time(), 3))
         await self.store.put(Kind.DRAIN, gateway, order.to_json())
         self._on_change(Change(Kind.DRAIN, gateway, order.to_json()))

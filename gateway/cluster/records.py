@@ -5,7 +5,8 @@ Key layout (``PREFIX`` is ``[registry] store_prefix``)::
     PREFIX/services/NAME   {"url": URL, "options": {"type": ..., "features": ...}}
     PREFIX/owners/NAME     the owning gateway's id                                   (leased)
     PREFIX/states/NAME     up | down | connecting, as the owner sees it              (leased)
-    PREFIX/gateways/ID     {"address": HOST:PORT, "http": ..., "line": ..., "owned": N, ...}  (leased)
+    PREFIX/gateways/ID     {"address": HOST:PORT, "http": ..., "line": ..., "owned": N,
+                            "protocols": [1, 2], ...}                                 (leased)
     PREFIX/licences/NAME   [{"id": ..., "subtree": ..., "holder": ..., ...}, ...]   (see licences)
     PREFIX/drains/ID       {"by": ..., "at": unix seconds}: an admin drained gateway ID
 
@@ -13,6 +14,10 @@ A gateway's record carries, besides where it is reached, what the cluster view s
 version, load, lease expiry, read-only reason, whether it is draining) and its count of rebalance
 requests: each field is written only when it is not its default, and a reader takes a missing
 field for its default, so gateways that know fewer fields read the records of those that know more.
+
+The cluster protocol versions a gateway speaks (:mod:`gateway.peer_protocol`) are in its
+``gateways`` key; a key without them was written by a gateway of version 1. The other keys hold
+what the versions those gateways share say they hold.
 
 A value another program wrote badly is not trusted: :func:`read_registration` and
 :func:`read_gateway` answer None for it, and the cluster logs and skips the key.
@@ -25,7 +30,9 @@ import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
+from gateway.peer_protocol import SPOKEN, read_protocols
 from services.registry import STATES
 from services.registry.store import decode_registration, encode_registration
 
@@ -118,6 +125,8 @@ class GatewayRecord:
     #: Its id in the ``ps-via`` chain of the calls it forwards (gateway.federation): the owner
     #: knows a call another gateway of the cluster forwarded by it.
     via: str = ""
+    #: The cluster protocol versions it speaks (gateway.peer_protocol); a key without them: {1}.
+    protocols: frozenset[int] = SPOKEN
     #: The gateway's release (the package version).
     version: str = ""
     #: It hands what it owns over to the others and takes nothing new (an admin drained it).
@@ -140,6 +149,7 @@ class GatewayRecord:
             "http": self.http,
             "line": self.line,
             "owned": self.owned,
+            "protocols": sorted(self.protocols),
         }
         for name, (_, default) in _EXTRA_FIELDS.items():
             value = getattr(self, name)
@@ -157,11 +167,18 @@ def read_gateway(text: str) -> GatewayRecord | None:
         line = data.get("line", "")
         owned = data.get("owned", 0)
         tls = data.get("tls", False)
+        protocols = read_protocols(data.get("protocols"))
     except (ValueError, KeyError, TypeError, AttributeError):
         return None
-    if not isinstance(address, str) or not address or not isinstance(owned, int) or not isinstance(tls, bool):
+    if (
+        not isinstance(address, str)
+        or not address
+        or not isinstance(owned, int)
+        or not isinstance(tls, bool)
+        or protocols is None
+    ):
         return None
-    extra: dict[str, object] = {}
+    extra: dict[str, Any] = {}
     for name, (kind, default) in _EXTRA_FIELDS.items():
         value = data.get(name, default)
         if kind is float and isinstance(value, int) and not isinstance(value, bool):
@@ -169,7 +186,7 @@ def read_gateway(text: str) -> GatewayRecord | None:
         finite = not isinstance(value, float) or math.isfinite(value)
         extra[name] = value if type(value) is kind and finite else default
     extra["via"] = str(data.get("via", "") or "")
-    return GatewayRecord(address, str(http or ""), str(line or ""), owned, **extra)  # type: ignore[arg-type]
+    return GatewayRecord(address, str(http or ""), str(line or ""), owned, protocols=protocols, **extra)
 
 
 @dataclass(frozen=True, slots=True)

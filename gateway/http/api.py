@@ -40,7 +40,7 @@ from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import InvalidArgument, NotFound, PropertyError, ResourceExhausted
 from services.model import Access, ParameterModel, PropertyModel, ServiceModel
 from services.paths import WILDCARD
-from services.values import parse_names, parse_vector
+from services.values import ValueFormatError, parse_names, parse_vector
 
 #: The registry's columns /api/v1/services reads, each with one wildcard Get.
 _COLUMNS = ("type", "url", "state", "location")
@@ -125,25 +125,61 @@ class Api:
     async def health(self, request: web.Request) -> web.Response:
         return json_response({"status": "ok"})
 
+    async def _names_page(self, after: str, limit: str, subject: Subject) -> list[str]:
+        """One page of the registry's ``service_names``: after ``after``, at most ``limit`` ("": 1,000)."""
+        parameters = {"after": after, **({"limit": limit} if limit else {})}
+        asked = pb.GetRequest(service=REGISTRY_NAME, property="service_names", parameters=parameters)
+        return parse_names((await self.calls.get(asked, self.calls.timeout, subject)).value)
+
+    async def _columns(self, names: list[str], subject: Subject) -> dict[str, dict[str, str]]:
+        """``services.NAME.COLUMN`` of each name, in Gets of many paths (``max_get_paths`` each):
+        a wildcard Get would count every registration, past the limit in a big registry. A Get
+        that meets a service that left meanwhile is read again path by path, the rest kept."""
+        paths = [(name, column) for name in names for column in _COLUMNS]
+        per_get = max(1, self.calls.max_get_paths)
+        found: dict[str, dict[str, str]] = {}
+        for start in range(0, len(paths), per_get):
+            chunk = paths[start : start + per_get]
+            refs = [pb.PropertyRef(property=f"services.{name}.{column}") for name, column in chunk]
+            asked = pb.GetRequest(service=REGISTRY_NAME, property=refs[0].property, more=refs[1:])
+            try:
+                answer = await self.calls.get(asked, self.calls.timeout, subject)
+                values: list[str | None] = [answer.value, *(item.value for item in answer.more)]
+            except NotFound:
+                values = [await self._column(name, column, subject) for name, column in chunk]
+            for (name, column), value in zip(chunk, values, strict=True):
+                if value is not None:
+                    found.setdefault(name, {})[column] = value
+        return found
+
+    async def _column(self, name: str, column: str, subject: Subject) -> str | None:
+        asked = pb.GetRequest(service=REGISTRY_NAME, property=f"services.{name}.{column}")
+        try:
+            return (await self.calls.get(asked, self.calls.timeout, subject)).value
+        except NotFound:
+            return None  # it left
+
     async def services(self, request: web.Request) -> web.Response:
-        """Every service the registry knows, in the order they joined, with its columns."""
+        """Every service the registry knows, in the order they joined, with its columns; with
+        ``?limit=N`` (and ``&after=NAME``), one page of them in name order and ``next``, the
+        ``after`` of the page that follows (an empty page: no more). A registry whose ``services``
+        passes one value's 64 KiB (about 6,000 names) is listed whole in name order."""
         subject = identify(request, self.guard)
         timeout = self.calls.timeout
-        listed = pb.GetRequest(service=REGISTRY_NAME, property="services")
-        listing = await self.calls.get(listed, timeout, subject)
-        names = parse_names(listing.value)
-        columns: dict[str, dict[str, str]] = {}
-        for column in _COLUMNS:
-            pattern = f"services.{WILDCARD}.{column}"
+        after, limit = request.query.get("after", ""), request.query.get("limit", "")
+        paged = "after" in request.query or "limit" in request.query
+        if paged:
+            names = await self._names_page(after, limit, subject)
+        else:
+            listed = pb.GetRequest(service=REGISTRY_NAME, property="services")
+            listing = await self.calls.get(listed, timeout, subject)
             try:
-                answer = await self.calls.get(
-                    pb.GetRequest(service=REGISTRY_NAME, property=pattern), timeout, subject
-                )
-            except NotFound:
-                answer = pb.GetResponse()  # nothing matched: no service has the column (yet)
-            for item in answer.more:
-                name = item.property.split(".")[1]
-                columns.setdefault(name, {})[column] = item.value
+                names = parse_names(listing.value)
+            except ValueFormatError:  # past one value: read it a page at a time
+                names = []
+                while page := await self._names_page(names[-1] if names else "", "", subject):
+                    names += page
+        columns = await self._columns(names, subject)
         services = []
         for name in names:
             row = columns.get(name, {})
@@ -156,6 +192,8 @@ class Api:
                     "location": location_json(row.get("location", "")),
                 }
             )
+        if paged:
+            return json_response({"services": services, "next": names[-1] if names else None})
         return json_response({"services": services})
 
     async def model(self, request: web.Request) -> web.Response:

@@ -18,8 +18,10 @@ from collections.abc import Awaitable, Callable
 from time import perf_counter
 
 from aiohttp import HttpVersion11, hdrs, web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from gateway.calls import Calls
+from gateway.client_faults import filter_client_faults
 from gateway.config import Config, is_loopback
 from gateway.connections import BoundedListener, ConnectionCaps
 from gateway.guard import Guard
@@ -225,6 +227,9 @@ class HttpFront:
 
     async def start(self) -> None:
         """Listen; raises PortInUse (one line naming the holder) when the port is taken."""
+        # aiohttp logs a request it cannot parse (a malformed header, an oversized line) with a
+        # traceback: a client's doing, one rate-limited line instead.
+        filter_client_faults("aiohttp.server", (HttpProcessingError,))
         host, _, port_text = self.settings.listen.rpartition(":")
         host = host.strip("[]")
         port = int(port_text)

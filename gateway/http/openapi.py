@@ -107,8 +107,25 @@ DOCUMENT: dict[str, Any] = {
         "/api/v1/services": {
             "get": {
                 "summary": "The services the registry knows",
+                "parameters": [
+                    {
+                        "name": "limit",
+                        "in": "query",
+                        "description": "One page of at most this many services, in name order (1 to 10000)",
+                        "schema": {"type": "integer", "minimum": 1, "maximum": 10000},
+                    },
+                    {
+                        "name": "after",
+                        "in": "query",
+                        "description": "The page after this name (the previous page's `next`)",
+                        "schema": {"type": "string"},
+                    },
+                ],
                 "responses": {
-                    "200": _json({"$ref": "#/components/schemas/Services"}, "Every service, joining order"),
+                    "200": _json(
+                        {"$ref": "#/components/schemas/Services"},
+                        "Every service, joining order; with limit or after, a page in name order",
+                    ),
                     **_errors("401", "403", "500", "503"),
                 },
             }
@@ -331,7 +348,11 @@ DOCUMENT: dict[str, Any] = {
                                 "location": {"type": ["array", "null"], "items": {"type": "number"}},
                             },
                         },
-                    }
+                    },
+                    "next": {
+                        "type": ["string", "null"],
+                        "description": "The page's last name: the next page's `after` (null: no more)",
+                    },
                 },
             },
             "Parameter": {

@@ -19,6 +19,10 @@ from services.errors import ResourceExhausted
 #: A message, value or part of at least this many bytes counts against the budget: the high-water
 #: mark of an asyncio transport's write buffer, what a connection holds anyway.
 COUNTED_BYTES = 64 * 1024
+#: The copies of a large gRPC message (a Listen's, a Session's) counted while it is written: this
+#: one, grpc's, and the one before it that grpc may still be writing to a reader that does not
+#: read (measured: about three for readers that announce a large window and never read).
+GRPC_COPIES = 3
 
 
 class PayloadBudget:

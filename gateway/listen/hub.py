@@ -40,7 +40,7 @@ class ListenHub:
         self.router = router
         self.guard = guard or Guard()
         self.limits = limits
-        self.topics = Topics(call_timeout)
+        self.topics = Topics(call_timeout, self.guard)
         #: What every reader of every front end holds of large values, together (limits.max_pending_binary).
         self.budget = PayloadBudget(limits.max_pending_binary)
         self._streams: set[ListenStream] = set()
@@ -92,6 +92,7 @@ class ListenHub:
             on_ready=on_ready,
             on_close=self._closed,
             may_read=guard.reader(subject),
+            caller=subject if guard.checks else None,
         )
         self._streams.add(stream)
         return stream

@@ -59,8 +59,18 @@ from gateway.listen.encoding import (
 )
 from gateway.listen.matched import MatchedPaths
 from gateway.listen.requests import Selector, StreamOptions
-from gateway.listen.topics import MISSING, NOTHING, PROPERTY_LIST, UNREACHABLE, Topic, TopicKey, Topics
+from gateway.listen.topics import (
+    MISSING,
+    NOTHING,
+    PROPERTY_LIST,
+    REFUSED,
+    UNREACHABLE,
+    Topic,
+    TopicKey,
+    Topics,
+)
 from gateway.router import Router
+from gateway.rules import Subject
 from gateway.sizes import MAX_MESSAGE_BYTES
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, Change
@@ -83,8 +93,9 @@ RETRY_MAX_S = 10.0
 #: cannot answer yet (a proxy still connecting to its device) before the stream fails with the
 #: service's error; the registry's register_timeout.
 JOIN_RETRY_S = 10.0
-#: What a wildcard skips: a property that is not there, and a service that cannot be reached.
-WILDCARD_SKIPS = MISSING | UNREACHABLE
+#: What a wildcard skips: a property that is not there, a service that cannot be reached, and
+#: what the rules refuse the stream's subject in a service that another reads for it.
+WILDCARD_SKIPS = MISSING | UNREACHABLE | REFUSED
 #: Names below which a service's property list changed that an expansion remembers until it asks
 #: the service again; past this many (a burst of registrations) it asks for every match at once.
 MAX_CHANGED_NAMES = 1024
@@ -197,6 +208,7 @@ class ListenStream:
     """One Listen: selectors, options and the conflating queue; see the module docstring."""
 
     __slots__ = (
+        "_caller",
         "_expansions",
         "_heartbeat_due",
         "_heartbeat_timer",
@@ -239,10 +251,14 @@ class ListenStream:
         on_ready: Callable[[], None],
         on_close: Callable[[ListenStream], None],
         may_read: Callable[[str, str], bool] | None = None,
+        caller: Subject | None = None,
     ) -> None:
         """Called by :meth:`gateway.listen.ListenHub.open`; ``on_close`` tells the hub the stream is gone;
-        ``may_read(service, path)`` says what the stream's subject may read (None: everything)."""
+        ``may_read(service, path)`` says what the stream's subject may read (None: everything);
+        ``caller``: that subject, when the rules are checked (what a service reads for the
+        stream is checked as it, :mod:`gateway.behalf`)."""
         self._may_read = may_read
+        self._caller = caller
         self._router = router
         self._topics = topics
         self._limits = limits
@@ -350,7 +366,7 @@ class ListenStream:
         found: list[PropertyModel] | None = None
         if not self.closed:
             try:
-                found = await self._topics.match(service, backend, sel.path)
+                found = await self._topics.match(service, backend, sel.path, caller=self._caller)
             except PropertyError as exc:
                 self._topics.unsubscribe(exp, list_topic)
                 if exc.code not in skip:
@@ -405,7 +421,7 @@ class ListenStream:
         limit = self._limits.max_stream_properties
         if len(self._refs) >= limit:
             raise self._too_many()
-        joined = await self._topics.subscribe(self, key, backend, skip)
+        joined = await self._topics.subscribe(self, key, backend, skip, self._caller)
         if not isinstance(joined, Topic):
             return joined if joined.code in UNREACHABLE else None
         topic = joined
@@ -568,7 +584,9 @@ class ListenStream:
         backend = list_topic.backend
         for i, below in enumerate(names):
             try:
-                found = await self._topics.match(exp.service, backend, exp.selector.path, below)
+                found = await self._topics.match(
+                    exp.service, backend, exp.selector.path, below, caller=self._caller
+                )
             except PropertyError as exc:
                 if exc.code in UNREACHABLE:
                     for name in names[i:]:

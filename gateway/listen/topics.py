@@ -13,7 +13,14 @@ for its own matches there (:meth:`Topics.match`).
 
 A wildcard does not fail on what it cannot follow: :meth:`Topics.subscribe` takes the codes
 to skip (``MISSING``: not there or not listenable; ``UNREACHABLE``: the service cannot be
-reached now, which the stream tries again later) and hands back the error instead of raising.
+reached now, which the stream tries again later; ``REFUSED``: the rules refuse it) and hands
+back the error instead of raising.
+
+**Checked as each stream's subject.** With rules, a topic opens as the subject of the stream
+that opens it (:data:`services.directory.CALLER`), so that what a service reads for it (a
+group's member) is checked as that subject, and those reads are noted
+(:class:`gateway.behalf.Trail`); a stream of another subject that joins the topic later is
+checked for each of them before it hears anything.
 """
 
 from __future__ import annotations
@@ -24,9 +31,13 @@ import time
 from collections.abc import Collection, Coroutine, Mapping
 from typing import Any, Protocol
 
+from gateway.behalf import TRAIL, Trail
+from gateway.guard import Guard
 from gateway.router import bounded_call
+from gateway.rules import Subject
 from gateway.status import to_property_error
 from services.backend import NO_PARAMS, Backend, Change, Subscription
+from services.directory import CALLER, context_for
 from services.errors import Code, PropertyError
 from services.model import PropertyModel
 from services.values import Value
@@ -39,6 +50,8 @@ TopicKey = tuple[str, str, tuple[tuple[str, str], ...]]
 MISSING: frozenset[Code] = frozenset({Code.NOT_FOUND, Code.INVALID_ARGUMENT})
 #: A wildcard skips a service that cannot be reached now, and tries it again in the background.
 UNREACHABLE: frozenset[Code] = frozenset({Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED})
+#: A wildcard skips what the rules refuse its subject (what a service reads for a topic, too).
+REFUSED: frozenset[Code] = frozenset({Code.PERMISSION_DENIED, Code.UNAUTHENTICATED})
 #: An exact selector skips nothing: the caller asked for exactly that.
 NOTHING: frozenset[Code] = frozenset()
 #: The path of the topic that follows a service's property list: never a property's path (no
@@ -82,6 +95,7 @@ class Topic:
         "dead",
         "heard",
         "key",
+        "opener",
         "opening",
         "params",
         "path",
@@ -89,6 +103,7 @@ class Topic:
         "service",
         "sinks",
         "subscription",
+        "trail",
         "value",
         "wire",
     )
@@ -107,6 +122,10 @@ class Topic:
         #: A change came from the backend: it is newer than the value the opening Listen brought.
         self.heard = False
         self.opening: asyncio.Task[None] | None = None
+        #: The subject the topic opened as (None: unchecked), and the reads a service made for it
+        #: then, which every other subject joining it is checked for.
+        self.opener: Subject | None = None
+        self.trail: tuple[tuple[str, str], ...] = ()
         #: The latest change's event as every stream sends it, encoded once for them all
         #: (gateway.listen.encoding.shared_event).
         self.wire: SharedEvent | None = None
@@ -132,8 +151,9 @@ class Topic:
 class Topics:
     """The open topics of one hub, and the background work of opening and closing them."""
 
-    def __init__(self, call_timeout: float) -> None:
+    def __init__(self, call_timeout: float, guard: Guard | None = None) -> None:
         self.call_timeout = call_timeout
+        self.guard = guard or Guard()
         self._topics: dict[TopicKey, Topic] = {}
         self._tasks: set[asyncio.Task[Any]] = set()
         #: Services a wildcard skipped as unreachable, until one of their topics opens again: the
@@ -148,18 +168,32 @@ class Topics:
         return self._topics.get(key)
 
     async def subscribe(
-        self, sink: Sink, key: TopicKey, backend: Backend, skip: Collection[Code]
+        self,
+        sink: Sink,
+        key: TopicKey,
+        backend: Backend,
+        skip: Collection[Code],
+        caller: Subject | None = None,
     ) -> Topic | PropertyError:
         """Add ``sink`` to topic ``key``, opening it if needed.
 
         An error whose code is in ``skip`` is handed back instead of raised (the topic was
-        skipped, ``sink`` is not in it); any other error is raised.
+        skipped, ``sink`` is not in it); any other error is raised. ``caller``: the subject of
+        the sink's stream when the rules are checked (None: they are not).
         """
         topic = self._topics.get(key)
         if topic is None or topic.dead:
             topic = Topic(key, backend)
             self._topics[key] = topic
-            topic.opening = asyncio.get_running_loop().create_task(self._open(topic))
+            loop = asyncio.get_running_loop()
+            if caller is None:
+                topic.opening = loop.create_task(self._open(topic))
+            else:
+                topic.opener = caller
+                trail = Trail()
+                context = context_for(caller)
+                context.run(TRAIL.set, trail)
+                topic.opening = loop.create_task(self._open(topic, trail), context=context)
         topic.sinks.add(sink)
         opening = topic.opening
         assert opening is not None
@@ -170,17 +204,29 @@ class Topics:
                 opening.result()
         except PropertyError as exc:
             self.unsubscribe(sink, topic)
-            if exc.code not in skip:
-                raise
-            if exc.code in UNREACHABLE:
-                self._note_unreachable(key[0], exc)
-            else:
-                log.debug("skipping %s %s: %s", key[0], key[1], exc.message)
-            return exc
+            if exc.code in REFUSED and caller is not None and topic.opener not in (None, caller):
+                # Refused to the stream that opened it, not to this one: open it again as this one.
+                return await self.subscribe(sink, key, backend, skip, caller)
+            return self._skipped(key, exc, skip)
         except BaseException:
             self.unsubscribe(sink, topic)
             raise
+        if topic.trail and caller is not None and caller != topic.opener:
+            refused = self.guard.refused_read(caller, topic.trail, audit=Code.PERMISSION_DENIED not in skip)
+            if refused is not None:
+                self.unsubscribe(sink, topic)
+                return self._skipped(key, refused, skip)
         return topic
+
+    def _skipped(self, key: TopicKey, exc: PropertyError, skip: Collection[Code]) -> PropertyError:
+        """``exc``, handed back when its code is in ``skip``; raised otherwise."""
+        if exc.code not in skip:
+            raise exc
+        if exc.code in UNREACHABLE:
+            self._note_unreachable(key[0], exc)
+        else:
+            log.debug("skipping %s %s: %s", key[0], key[1], exc.message)
+        return exc
 
     def _note_unreachable(self, service: str, exc: PropertyError) -> None:
         if service in self._unreachable:
@@ -194,10 +240,20 @@ class Topics:
         )
 
     async def match(
-        self, service: str, backend: Backend, pattern: str, under: str = ""
+        self, service: str, backend: Backend, pattern: str, under: str = "", caller: Subject | None = None
     ) -> list[PropertyModel]:
-        """``backend.match_properties(pattern, under)`` under the call timeout; any failure is a
-        PropertyError naming the service and the pattern."""
+        """``backend.match_properties(pattern, under)`` under the call timeout, as ``caller`` (what a
+        service matches for it in another service is what that subject may read); any failure is
+        a PropertyError naming the service and the pattern."""
+        if caller is None:
+            return await self._match(service, backend, pattern, under)
+        token = CALLER.set(caller)
+        try:
+            return await self._match(service, backend, pattern, under)
+        finally:
+            CALLER.reset(token)
+
+    async def _match(self, service: str, backend: Backend, pattern: str, under: str) -> list[PropertyModel]:
         what = f"{service}: match {pattern}" + (f" below {under}" if under else "")
         try:
             return await bounded_call(
@@ -210,7 +266,7 @@ class Topics:
         except Exception as exc:
             raise to_property_error(exc, what) from exc
 
-    async def _open(self, topic: Topic) -> None:
+    async def _open(self, topic: Topic, trail: Trail | None = None) -> None:
         backend, path, params = topic.backend, topic.path, topic.params
         timeout = self.call_timeout
         if path == PROPERTY_LIST:
@@ -218,9 +274,13 @@ class Topics:
         else:
             listening = backend.listen_current(path, topic.notify, params)
         try:
-            topic.subscription, value = await bounded_call(
-                listening, timeout, lambda: f"{topic.service}: listen {path}"
-            )
+            try:
+                topic.subscription, value = await bounded_call(
+                    listening, timeout, lambda: f"{topic.service}: listen {path}"
+                )
+            finally:
+                if trail is not None:
+                    topic.trail = trail.close()
             if not topic.heard:
                 topic.value = value
         except BaseException as exc:

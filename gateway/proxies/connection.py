@@ -30,11 +30,11 @@ Whatever the device sends wrong affects only the request it belongs to:
 * the stream ends (even mid-reply) → UNAVAILABLE at once for every
   outstanding call, and for every later one;
 * it greets again unasked (it restarted) → UNAVAILABLE for every outstanding
-  call, and ``on_restart`` tells the proxy (docs/line-protocol.md §4.4);
+  call, and ``on_restart`` tells the proxy (docs/line-protocol.md §4);
 * a greeting it cannot accept (another version, a bad field) → an ERR line to
-  the device and the ``hello`` future fails with that refusal (§4.3).
+  the device and the ``hello`` future fails with that refusal (§3).
 
-Flow control (§4.2, §8): the connection never has more unanswered requests
+Flow control (§7; docs/device-spec.md §5): the connection never has more unanswered requests
 than the device's ``inflight`` (1 on a serial line that states nothing), nor
 more bytes of them than its ``rxbuf``; a request that finds no room waits for
 it in order.
@@ -101,7 +101,7 @@ _STALE_DEADLINES = 256
 #: base64 image must not fill the log.
 LOGGED_LINE_BYTES = 200
 
-#: How long after the gateway's untagged HELLO a greeting is taken as its answer (§4.4).
+#: How long after the gateway's untagged HELLO a greeting is taken as its answer (§4).
 ASKED_GREETING_WINDOW_S = 2.0
 #: Times a request is sent again when the device reports bytes lost (an untagged ``ERR 15``) or its
 #: reply arrives damaged, before the call fails with DATA_LOSS: a line that a noisy serial line
@@ -144,7 +144,7 @@ class _Pending:
         self.deadline = deadline
         self.timeout = timeout
         #: The line as sent (its length counts against the device's ``rxbuf`` until answered): sent
-        #: again, tag and all, when the device reports it lost (§6).
+        #: again, tag and all, when the device reports it lost (§8).
         self.line = line
         #: A SET: when nobody waits for its reply any more, the device is told to drop it.
         self.cancel_when_abandoned = False
@@ -207,7 +207,8 @@ class LineConnection(asyncio.Protocol):
         #: The proxy's own ceiling on unanswered requests, and whether the stream is a serial line.
         self._ceiling = max_in_flight
         self._serial = serial
-        #: Flow control (§4.2): the most unanswered requests, and bytes of them, the device takes.
+        #: Flow control (docs/device-spec.md §5): the most unanswered requests, and bytes of them,
+        #: the device takes.
         #: Until the greeting a serial device is taken to handle one request at a time.
         self.inflight_limit = 1 if serial else max_in_flight
         self.rxbuf: int | None = None
@@ -223,7 +224,7 @@ class LineConnection(asyncio.Protocol):
         self._last_data = time.monotonic()
         self.hello: asyncio.Future[Hello] = self._loop.create_future()
         #: Greetings asked for with an untagged HELLO and not yet matched, and until when they may
-        #: come: each such greeting is an answer, not a restart (§4.4). A serial device greets when
+        #: come: each such greeting is an answer, not a restart (§4). A serial device greets when
         #: it boots and again when asked; both may arrive after the gateway's HELLO went out.
         self._asked_greetings = 0
         self._asked_until = 0.0
@@ -304,7 +305,7 @@ class LineConnection(asyncio.Protocol):
 
     @property
     def flow_controlled(self) -> bool:
-        """The device stated ``inflight`` or ``rxbuf``, or is on a serial line: no CANCEL lines (§3.3)."""
+        """The device stated ``inflight`` or ``rxbuf``, or is on a serial line: no CANCEL lines (§7)."""
         return self._serial or self.rxbuf is not None or self.inflight_limit < self._ceiling
 
     @property
@@ -345,6 +346,10 @@ class LineConnection(asyncio.Protocol):
         self._outgoing.clear()
         if not self.hello.done():
             self.hello.set_exception(Unavailable(f"{self.label}: {reason}"))
+            # Marked as heard: whoever awaits the greeting still gets the error, but a caller that
+            # stopped waiting (a registration that timed out in asyncio.wait) leaves nobody to
+            # retrieve it, and asyncio would log "Future exception was never retrieved".
+            self.hello.exception()
         transport = self._transport
         if transport is None:  # never attached: nothing to close, and nobody waits for it
             self._lost.cancel()
@@ -443,7 +448,7 @@ class LineConnection(asyncio.Protocol):
         return await self._issue(frame, tag, line, deadline_s, deadline)
 
     def _line_limit(self) -> int:
-        """The longest line the device takes: min(maxline, rxbuf) (§4.2)."""
+        """The longest line the device takes: min(maxline, rxbuf) (docs/device-spec.md §5.2)."""
         return self.max_line if self.rxbuf is None else min(self.max_line, self.rxbuf)
 
     def largest_binary(self, path: str) -> int:
@@ -471,7 +476,7 @@ class LineConnection(asyncio.Protocol):
             if isinstance(value, bytes) and exc.code == Code.RESOURCE_EXHAUSTED:
                 message += (
                     f" (a binary value of {len(value)} bytes is {4 * -(-len(value) // 3)} characters "
-                    "of base64 on the line, docs/line-protocol.md §2.4)"
+                    "of base64 on the line, docs/line-protocol.md §11)"
                 )
             raise error_for(exc.code, message) from None
         return tag, line
@@ -534,7 +539,7 @@ class LineConnection(asyncio.Protocol):
     def _send_cancel(self, pending: _Pending, tag: str) -> None:
         # The client is told DEADLINE_EXCEEDED; a device that has not started the SET
         # yet (it was frozen, or busy) must not apply it when it gets to it
-        # (docs/line-protocol.md §3.3). Once per request; never under flow control.
+        # (docs/line-protocol.md §7). Once per request; never under flow control.
         if not pending.cancel_when_abandoned or self._closed.is_set():
             return
         pending.cancel_when_abandoned = False
@@ -583,7 +588,7 @@ class LineConnection(asyncio.Protocol):
     def _expire(self, pending: _Pending) -> None:
         tag = pending.tag
         del self._pending[tag]
-        # A request not answered in time is taken as lost: its room is free again (§4.2).
+        # A request not answered in time is taken as lost: its room is free again (§7).
         self._release(len(pending.line))
         self._send_cancel(pending, tag)
         if not pending.future.done():
@@ -681,7 +686,7 @@ class LineConnection(asyncio.Protocol):
                 log.warning("%s: device reports: ERR %d %s", self.label, reply.code, reply.message)  # type: ignore[union-attr]
                 if reply.code == Code.DATA_LOSS:  # type: ignore[union-attr]
                     # Bytes lost on the way in (an overrun, a checksum that failed): the device
-                    # cannot say whose line it was, so every request in flight may be lost (§6).
+                    # cannot say whose line it was, so every request in flight may be lost (§8).
                     self._resend_all(f"the device lost bytes ({reply.message})")  # type: ignore[union-attr]
                 return
         elif kind is Event or kind is Gone:
@@ -697,7 +702,8 @@ class LineConnection(asyncio.Protocol):
             self._bad_line(frame)  # type: ignore[arg-type]
             return
         elif kind is Get or kind is Set or kind is Listen or kind is Unlisten or kind is HelloRequest:
-            # The device asks something on a connection where the gateway is the client (§3.2).
+            # The device asks something on a connection where the gateway is the client
+            # (docs/device-spec.md §3.9).
             tag = frame.tag  # type: ignore[union-attr]
             log.info(
                 "%s: the device sent a request (%s); told it is not served here", self.label, kind.__name__
@@ -707,7 +713,7 @@ class LineConnection(asyncio.Protocol):
         log.warning("%s: unexpected line from the device ignored: %r", self.label, frame)
 
     def _answer(self, reply: Pong | ErrorReply, checksummed: bool = False) -> None:
-        """Answer a line of the device: with a checksum when the device uses them (mirrored, §6)."""
+        """Answer a line of the device: with a checksum when the device uses them (mirrored, spec §6.4)."""
         checksum = self._checksum or checksummed
         try:
             line = encode(reply, checksum=checksum, max_line=self._line_limit())
@@ -762,7 +768,7 @@ class LineConnection(asyncio.Protocol):
         if hello.inflight is not None:
             self.inflight_limit = min(hello.inflight, ceiling)
         else:
-            # A serial device that states neither field gets one request at a time (§4.2).
+            # A serial device that states neither field gets one request at a time (docs/device-spec.md §5.3).
             self.inflight_limit = 1 if self._serial and hello.rxbuf is None else ceiling
         self.rxbuf = hello.rxbuf
         self._hand_room()
@@ -797,7 +803,7 @@ class LineConnection(asyncio.Protocol):
         that has been sent again :data:`RESENDS` times, or a SET, fails at once with DATA_LOSS
         instead: a SET may have been applied before its reply was lost, and applying it twice
         may not be harmless (a Set can be an action), so its caller is told, at once rather than
-        at its deadline, to read the property before it sets it again (§6).
+        at its deadline, to read the property before it sets it again (§8).
         """
         future = pending.future
         if future.done():

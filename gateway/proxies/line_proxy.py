@@ -23,7 +23,7 @@ subclass only says how to open the stream. The proxy
   a ``Change(gap=True)``;
 * refuses a greeting it cannot accept with an ERR line to the device, and
   tells whoever waits for the device (a registration) why
-  (docs/line-protocol.md §4.3).
+  (docs/line-protocol.md §3).
 """
 
 from __future__ import annotations
@@ -104,8 +104,8 @@ class ProxyOptions:
     checksum: bool = False
     #: Calls that may be in flight on the connection at once.
     max_in_flight: int = 256
-    #: The longest line accepted from the device, LF included (docs/line-protocol.md §1, §2.4):
-    #: raised for a device that sends large binary values.
+    #: The longest line accepted from the device, LF included (docs/device-spec.md §1.2,
+    #: docs/line-protocol.md §11): raised for a device that sends large binary values.
     maxline: int = MAX_LINE
 
     @classmethod
@@ -192,7 +192,7 @@ class _DeviceListen(SharedListen):
         #: or polls a property the device had no room to subscribe to.
         self.poller: asyncio.Task[None] | None = None
         #: The device pushes, but refused the LISTEN for lack of room (ERR 8): the property is
-        #: polled instead, until an UNLISTEN makes room (docs/line-protocol.md §3).
+        #: polled instead, until an UNLISTEN makes room (docs/line-protocol.md §6).
         self.polled = False
         #: Listens again with backoff after a LISTEN that failed to start after a reconnect.
         self.relisten: asyncio.Task[None] | None = None
@@ -435,7 +435,7 @@ class LineProxy(Backend):
             if exc.code == Code.UNAVAILABLE:
                 self._last_error = f"no greeting from the device: {exc.message}"
                 log.warning("%s: %s", self._label(), self._last_error)
-            else:  # refused: the connection told the device with an ERR line (§4.3)
+            else:  # refused: the connection told the device with an ERR line (docs/line-protocol.md §3)
                 self._last_error = exc.message
                 self.refusal = exc
                 self._refused.set()
@@ -558,7 +558,7 @@ class LineProxy(Backend):
             return await self._call(Set(path, value, dict(params)))
         except InvalidArgument as exc:
             # A device that knows no ``\=`` (line protocol 1.1), or whose property takes text,
-            # refuses a binary value as a bad escape (docs/line-protocol.md §2.4): say so plainly.
+            # refuses a binary value as a bad escape (docs/line-protocol.md §11): say so plainly.
             if isinstance(value, str) or "escape" not in exc.message:
                 raise
             raise InvalidArgument(
@@ -584,7 +584,7 @@ class LineProxy(Backend):
         return await super().describe()
 
     def _fit_the_line(self, model: ServiceModel) -> ServiceModel:
-        """A binary property's ``max_size`` at most what one line carries as base64 (§2.4)."""
+        """A binary property's ``max_size``: at most what one line carries as base64 (line-protocol §11)."""
         conn = self._conn
         if conn is None:
             return model
@@ -608,7 +608,7 @@ class LineProxy(Backend):
     async def listen_current(
         self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS
     ) -> tuple[Subscription, Value]:
-        """Listen, and take the current value from the LISTEN's OK: no GET after it (§3.1)."""
+        """Listen, and take the current value from the LISTEN's OK: no GET after it (device-spec §3)."""
         share = await self.shared_listens.listen(path, notify, params)
         last = share.entry.last
         if last is None:  # the property went meanwhile: what is there now (NOT_FOUND if nothing)
@@ -653,7 +653,7 @@ class LineProxy(Backend):
         for task in (entry.poller, entry.relisten):
             if task is not None:
                 task.cancel()
-        # The device keeps one subscription per path (docs/line-protocol.md §3), whatever the parameters.
+        # The device keeps one subscription per path (docs/device-spec.md §3.3), whatever the parameters.
         if (
             entry.removed
             or entry.polled

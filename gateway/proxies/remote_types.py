@@ -24,6 +24,7 @@ from typing import Any
 
 import grpc
 
+from gateway.peer_protocol import SPOKEN_HEADER
 from gateway.status import error_from_remote
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import Code, PropertyError, Unavailable
@@ -112,7 +113,8 @@ class RemoteTypes:
         )
         self.queries += 1
         try:
-            reply = await self._stub.Get(request, timeout=self.timeout)
+            # Asked on no client's behalf: no ps-via chain, only the versions this gateway speaks.
+            reply = await self._stub.Get(request, timeout=self.timeout, metadata=(SPOKEN_HEADER,))
         except grpc.aio.AioRpcError as exc:
             error = error_from_remote(exc, self._label(), self.timeout)
             if len(names) > 1 and error.code in _ONE_NAMES_FAULT:

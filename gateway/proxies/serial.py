@@ -9,6 +9,7 @@ from urllib.parse import parse_qsl, unquote, urlsplit
 
 from gateway.proxies.line_proxy import LineProxy, ProxyOptions
 from services.backend import Backend
+from services.device.transports import serial_streams
 from services.errors import InvalidArgument
 
 _SERIAL_KEYS = frozenset({"baudrate"})
@@ -33,16 +34,11 @@ class SerialProxy(LineProxy):
 
     async def open_stream(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
         import serial
-        import serial_asyncio_fast
 
         try:
-            opened: tuple[asyncio.StreamReader, asyncio.StreamWriter]
-            opened = await serial_asyncio_fast.open_serial_connection(
-                url=self.port, baudrate=self.baudrate, limit=65536
-            )
+            return await serial_streams(self.port, self.baudrate, 65536)
         except (serial.SerialException, ValueError) as exc:
             raise OSError(f"cannot open {self.port}: {exc}") from exc
-        return opened
 
 
 def open_serial_backend(name: str, url: str, options: Mapping[str, Any]) -> Backend:

@@ -560,6 +560,12 @@ class EtcdStore:
             return await call
         except grpc.aio.AioRpcError as e:
             raise self._error(e) from None
+        except asyncio.CancelledError:
+            task = asyncio.current_task()
+            if task is not None and task.cancelling():
+                raise  # this task is being cancelled
+            # The call was cancelled under it: its channel closed (the store is closing).
+            raise Unavailable(self.read_only or "the registry store closed") from None
 
     def _error(self, error: grpc.aio.AioRpcError) -> PropertyError:
         code = error.code()
@@ -628,7 +634,7 @@ class EtcdStore:
         branch reads which exist (at the same revision), and the others are tried again in a new
         transaction: each try leaves out at least one key, so it ends.
         """
-        link = self._ready()
+        self._ready()  # Unavailable at once when not connected
         lease = self._lease_for(leased)
         items = [(name, self._key(kind, name), self._value(value)) for name, value in values.items()]
 
@@ -651,7 +657,8 @@ class EtcdStore:
                 ]
                 request = rpc.TxnRequest(compare=absent, success=writes, failure=reads)
                 async with self._bulk:
-                    answer = await self._request(link.kv.Txn(request, timeout=self._timeout))
+                    # The link again: the store may have closed while this batch waited its turn.
+                    answer = await self._request(self._ready().kv.Txn(request, timeout=self._timeout))
                 if answer.succeeded:
                     created.update(name for name, _, _ in batch)
                     break
@@ -669,7 +676,7 @@ class EtcdStore:
 
     async def put_many(self, kind: Kind, values: Mapping[str, str], *, leased: bool = False) -> None:
         """Write every key of ``values``, ``MAX_TXN_OPS`` a transaction."""
-        link = self._ready()
+        self._ready()  # Unavailable at once when not connected
         lease = self._lease_for(leased)
         items = [(name, self._key(kind, name), self._value(value)) for name, value in values.items()]
 
@@ -679,7 +686,9 @@ class EtcdStore:
                 for _, key, value in batch
             ]
             async with self._bulk:
-                await self._request(link.kv.Txn(rpc.TxnRequest(success=writes), timeout=self._timeout))
+                # The link again: the store may have closed while this batch waited its turn.
+                request = rpc.TxnRequest(success=writes)
+                await self._request(self._ready().kv.Txn(request, timeout=self._timeout))
 
         await _all_or_none([put(batch) for batch in _batches(items)])
 

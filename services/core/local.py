@@ -23,6 +23,7 @@ from services.core.tree import (
     remote_prefixes,
     resolve,
 )
+from services.directory import own_context
 from services.errors import Code, NotFound, PropertyError
 from services.model import PropertyModel, ServiceModel
 from services.paths import validate_path
@@ -79,7 +80,11 @@ class _Watch:
         except NeedsAwait:
             self._gap = self._gap or gap
             if self._pending is None or self._pending.done():
-                self._pending = asyncio.get_running_loop().create_task(self._fire_later())
+                # Read for every listener (each was checked when it joined), not for whoever
+                # made the change: the service's own work.
+                self._pending = asyncio.get_running_loop().create_task(
+                    self._fire_later(), context=own_context()
+                )
             return
         except PropertyError:
             value = ""  # e.g. a marker field that is gone for now
@@ -316,7 +321,7 @@ class LocalService(Backend):
         tell_each(self._list_listeners, change, "the property list")
 
     def _spawn(self, coro: Coroutine[Any, Any, None], what: str) -> asyncio.Task[None]:
-        task = asyncio.get_running_loop().create_task(coro, name=what)
+        task = asyncio.get_running_loop().create_task(coro, name=what, context=own_context())
         self._tasks.add(task)
 
         def done(t: asyncio.Task[None]) -> None:

@@ -9,6 +9,7 @@ from typing import Any, ClassVar, Protocol
 
 from services.backend import Backend
 from services.core.metadata import RESERVED_NAMES, MemberKind, Namespace, class_spec
+from services.directory import own_context
 from services.errors import AlreadyExists, InvalidArgument, NotFound
 from services.paths import validate_service_name
 
@@ -217,7 +218,10 @@ class Resource(Namespace):
                 await asyncio.gather(*tasks, return_exceptions=True)
 
     def _ps_spawn(self, coro: Any, what: str) -> None:
-        task: asyncio.Task[None] = asyncio.get_running_loop().create_task(coro, name=what)
+        # Background work is the service's own, whichever client's call started it.
+        task: asyncio.Task[None] = asyncio.get_running_loop().create_task(
+            coro, name=what, context=own_context()
+        )
         self._ps_tasks.add(task)
 
         def done(t: asyncio.Task[None]) -> None:

@@ -2,7 +2,7 @@
 
 A gateway of a cluster greets a device that dialled its line listener with one more field,
 ``alternates=HOST:PORT,HOST:PORT``: the line listeners of the other gateways of its cluster
-(docs/line-protocol.md §4.5). Every gateway of the cluster serves every service, so a device whose
+(docs/line-protocol.md §5). Every gateway of the cluster serves every service, so a device whose
 gateway died may register itself on any other. :class:`GatewayAddresses` keeps the list a device
 dials in turn: the gateway it is connected to first, then the alternates it named, then the
 address the device was started with.

@@ -8,7 +8,7 @@
     python -m services.device_server --service sim-robot --name rover2 --pty
 
 With ``--connect`` the device dials out to a gateway's line listener and
-greets; the gateway registers it under its name (docs/line-protocol.md §4).
+greets; the gateway registers it under its name (docs/line-protocol.md §5).
 With ``--pty`` it creates a pseudo-terminal, plays the device's end of the
 cable on its master side and prints the other end's path (``serial port
 /dev/pts/N``) for a ``serial://`` client to open. With ``--exit-with-parent``
@@ -113,12 +113,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=MAX_LINE,
         help=f"longest line accepted, stated as maxline= (default {MAX_LINE}); lines sent may be as "
         "long when it is larger: raise it (and the proxy's maxline) for large binary values "
-        "(docs/line-protocol.md §2.4)",
+        "(docs/line-protocol.md §11)",
     )
     parser.add_argument(
         "--inflight",
         type=bounded_int("inflight", 1, MAX_INFLIGHT),
-        help="state inflight=N in the greeting: requests taken at once (docs/line-protocol.md §4.2)",
+        help="state inflight=N in the greeting: requests taken at once (docs/device-spec.md §5)",
     )
     parser.add_argument(
         "--rxbuf",
@@ -168,7 +168,7 @@ def _seconds(what: str, low: float, high: float) -> Callable[[str], float]:
 
 
 def bounded_int(what: str, low: int, high: int) -> Callable[[str], int]:
-    """An argparse type: an integer from ``low`` to ``high`` (here, the greeting's bounds, §4.2)."""
+    """An argparse type: an integer from ``low`` to ``high`` (the greeting's bounds, device-spec §5)."""
 
     def parse(text: str) -> int:
         try:

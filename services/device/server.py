@@ -1,6 +1,6 @@
 """Serve any Property Service over the line protocol, on a TCP port or a serial port.
 
-This is the device side of docs/line-protocol.md in Python: it stands in for a
+This is the device side of docs/device-spec.md in Python: it stands in for a
 microcontroller in tests and demos, and lets any :class:`services.backend.Backend`
 (a simulated robot, a sensor, a whole gateway's router) be reached by anything
 that speaks lines of text. Every connection gets its own
@@ -60,8 +60,8 @@ class DeviceServer:
         keepalive_timeout: float = KEEPALIVE_TIMEOUT,
     ) -> None:
         """``secret``: carried in the greeting (``secret=...``) for a gateway that configures this
-        device by name; it proves the device is the one configured (docs/line-protocol.md §4).
-        ``inflight`` and ``rxbuf``: the flow control the greeting states (§4.2); with
+        device by name; it proves the device is the one configured (docs/line-protocol.md §5).
+        ``inflight`` and ``rxbuf``: the flow control the greeting states (docs/device-spec.md §5); with
         ``inflight`` a connection also takes at most that many requests at once. ``keepalive`` and
         ``keepalive_timeout``: on a connection the device dialled, a gateway silent for
         ``keepalive`` seconds is sent ``PING`` and left for the next when it does not answer within

@@ -1,4 +1,4 @@
-"""One line-protocol connection served by one backend: the device side of docs/line-protocol.md.
+"""One line-protocol connection served by one backend: the device side of docs/device-spec.md.
 
 Requests with a tag run concurrently (bounded), untagged requests one at a
 time; events for a client that reads slowly are conflated per property in a
@@ -64,7 +64,7 @@ MAX_SUBSCRIPTIONS = 256
 #: that sends bad lines but never reads must not grow the outbox).
 MAX_QUEUED_REPLIES = 256
 #: The same in bytes: replies that carry binary values are long lines (docs/line-protocol.md
-#: §2.4), and 256 of them could hold a gigabyte. 8 MiB holds one line of the longest kind. What
+#: §11), and 256 of them could hold a gigabyte. 8 MiB holds one line of the longest kind. What
 #: waits is then at most this, the batch the writer holds, and the replies of the requests
 #: running (MAX_IN_FLIGHT).
 MAX_QUEUED_REPLY_BYTES = 8 * 1024 * 1024
@@ -94,10 +94,10 @@ class DeviceSession:
         keepalive_timeout: float = KEEPALIVE_TIMEOUT,
     ) -> None:
         """``on_greeting`` hears the peer's greeting (a gateway's line listener greets a device that
-        dialled it, and may name other gateways to dial when it is gone, docs/line-protocol.md §4.5).
+        dialled it, and may name other gateways to dial when it is gone, docs/line-protocol.md §5).
         ``keepalive``: after that many seconds without a line from the peer, the device sends
         ``PING``, and ends the connection when nothing comes back within ``keepalive_timeout``
-        (a peer that is frozen keeps its TCP connection open, §9); 0: never."""
+        (a peer that is frozen keeps its TCP connection open, docs/line-protocol.md §9); 0: never."""
         self.backend = backend
         self.reader = reader
         self.writer = writer
@@ -114,21 +114,23 @@ class DeviceSession:
         self._send_limit = max(MAX_LINE, greeting.max_line)
         self._outbox = Outbox()
         self._subscriptions: dict[str, Subscription] = {}
-        # A device that states inflight=N takes no more than N requests at once (§4.2).
+        # A device that states inflight=N takes no more than N requests at once (docs/device-spec.md §5).
         self._in_flight = asyncio.Semaphore(min(greeting.inflight or MAX_IN_FLIGHT, MAX_IN_FLIGHT))
         self._tasks: set[asyncio.Task[None]] = set()
         #: SETs running now by tag, so that a CANCEL can stop one still waiting on its backend.
         self._running_sets: dict[str, asyncio.Task[None]] = {}
         self._step_gets = backend.answers_inline
-        #: A good $-line came, and no plain HELLO since: every line goes out checksummed (§6).
+        #: A good $-line came, and no plain HELLO since: every line goes out checksummed
+        #: (docs/device-spec.md §6.5).
         self._checksum_mode = False
 
     # -- writing ---------------------------------------------------------
 
     def _encode(self, frame: Frame, checksummed: bool = False) -> bytes:
-        # Checksum mode (after a good $-line), or the reply to a $-line: mirrored (docs/line-protocol.md §6).
-        # Lines out are bounded by the client's limit, which a device is not told: the protocol's
-        # 1024 bytes, or this device's own when larger (a peer that takes long lines, §2.4).
+        # Checksum mode (after a good $-line), or the reply to a $-line: mirrored (docs/device-spec.md
+        # §6.4, §6.5). Lines out are bounded by the client's limit, which a device is not told: the
+        # protocol's 1024 bytes, or this device's own when larger (a peer that takes long lines,
+        # docs/line-protocol.md §11).
         return encode(
             frame, checksum=self.checksum or self._checksum_mode or checksummed, max_line=self._send_limit
         )
@@ -375,7 +377,7 @@ class DeviceSession:
         return await backend.get(frame.path, frame.params)
 
     def _model_reply(self, model: ServiceModel, tag: str | None) -> str:
-        """The device describes itself (docs/line-protocol.md): the model in one reply line.
+        """The device describes itself (docs/device-spec.md §9): the model in one reply line.
 
         A model too long for a line goes without its docs, then without its tags (gui,
         length, choices, value, parameters); one still too long is NOT_FOUND, as from a

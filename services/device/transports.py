@@ -12,22 +12,46 @@ import os
 
 from services.device.session import READ_SIZE
 
-__all__ = ["open_pty", "open_serial", "pipe_streams"]
+__all__ = ["open_pty", "open_serial", "pipe_streams", "serial_streams"]
 
 
 async def open_serial(port: str, baudrate: int) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
     """Asyncio streams on serial ``port``; OSError when it cannot be opened."""
     import serial
-    import serial_asyncio_fast
 
     try:
-        opened: tuple[asyncio.StreamReader, asyncio.StreamWriter]
-        opened = await serial_asyncio_fast.open_serial_connection(
-            url=port, baudrate=baudrate, limit=READ_SIZE
-        )
+        return await serial_streams(port, baudrate, READ_SIZE)
     except (serial.SerialException, ValueError) as exc:
         raise OSError(f"cannot open serial port {port}: {exc}") from exc
-    return opened
+
+
+async def serial_streams(
+    port: str, baudrate: int, limit: int
+) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    """Asyncio streams on serial ``port`` (what ``serial_asyncio_fast.open_serial_connection``
+    makes, on the transport below); pyserial's SerialException or ValueError when it cannot be
+    opened."""
+    import serial
+    import serial_asyncio_fast
+
+    class SerialTransport(serial_asyncio_fast.SerialTransport):  # type: ignore[misc]
+        """serial_asyncio_fast 0.16's transport, with its writer let go once the buffer is empty:
+        its ``_write_ready`` keeps the writer registered after writing everything, so the next
+        "ready" finds nothing to write and fails an assertion in a loop callback (a traceback in
+        the log for every one, after any write the port took in more than one go)."""
+
+        def _write_ready(self) -> None:
+            if self._write_buffer:
+                super()._write_ready()
+            if not self._write_buffer:
+                self._remove_writer()
+
+    loop = asyncio.get_running_loop()
+    line = await loop.run_in_executor(None, lambda: serial.serial_for_url(port, baudrate=baudrate))
+    reader = asyncio.StreamReader(limit=limit)
+    protocol = asyncio.StreamReaderProtocol(reader)
+    transport = SerialTransport(loop, protocol, line)
+    return reader, asyncio.StreamWriter(transport, protocol, reader, loop)
 
 
 def open_pty() -> tuple[int, int, str]:

@@ -1,4 +1,4 @@
-"""The Property Service line protocol (docs/line-protocol.md) as a sans-IO codec.
+"""The Property Service line protocol (docs/device-spec.md) as a sans-IO codec.
 
 ``encode(frame) -> bytes`` writes one line; ``LineReceiver.receive_data(bytes)``
 returns the frames of the lines completed so far, bad lines as ``BadLine``.

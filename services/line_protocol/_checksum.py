@@ -1,4 +1,4 @@
-"""CRC-8/SMBUS (polynomial 0x07, init 0, no reflection, no final XOR), see docs/line-protocol.md §5.
+"""CRC-8/SMBUS (polynomial 0x07, init 0, no reflection, no final XOR), see docs/device-spec.md §6.1.
 
 CRC-8 rather than NMEA's XOR: an XOR misses two flipped bits in the same
 position and swapped bytes, the usual damage of a noisy serial line; CRC-8

@@ -1,5 +1,5 @@
 """Backslash escapes of values and parameter values, and the ``\\=`` form of a binary value
-(docs/line-protocol.md §2.3)."""
+(docs/device-spec.md §2.5, §2.6)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The frames of the line protocol: one class per kind of line (docs/line-protocol.md §3, §4)."""
+"""The frames of the line protocol: one class per kind of line (docs/device-spec.md §3, §4)."""
 
 from __future__ import annotations
 
@@ -7,12 +7,13 @@ from dataclasses import dataclass, field
 
 from services.errors import Code, PropertyError, code_for, error_for
 
-#: Wire version sent in the greeting: 1 for protocol 1.0, 1.1 and 1.2 (1.1 only adds
-#: greeting fields a 1.0 peer ignores; 1.2 only adds the ``\=`` form of a binary value,
-#: which a 1.1 peer refuses cleanly with ``ERR 3 bad escape``; docs/line-protocol.md §4.3).
+#: Wire version sent in the greeting: 1 for protocol 1.0 to 1.3 (1.1 only adds greeting
+#: fields a 1.0 peer ignores; 1.2 only adds the ``\=`` form of a binary value, which a 1.1
+#: peer refuses cleanly with ``ERR 3 bad escape``; 1.3 settles points the earlier texts left
+#: open; docs/device-spec.md, "Versions").
 PROTOCOL_VERSION = 1
 #: The protocol revision this codec implements, for messages and docs.
-PROTOCOL_REVISION = "1.2"
+PROTOCOL_REVISION = "1.3"
 
 #: Longest line, first byte to LF inclusive. It fits every value of the standard
 #: property sets (6-vector ~60 bytes, marker ~150, a 40-name ``properties`` list
@@ -25,7 +26,7 @@ MAX_LINE = 1024
 #: ERR reply with a short message must still fit.
 MIN_MAX_LINE = 64
 
-#: Bounds of the flow-control fields of a greeting (docs/line-protocol.md §4.2).
+#: Bounds of the flow-control fields of a greeting (docs/device-spec.md §5).
 #: ``inflight`` at most the proxies' own ceiling (``max_in_flight``); ``rxbuf`` at
 #: least what a short tagged GET needs (``#1 GET speed`` and its LF are 13 bytes).
 MAX_INFLIGHT = 4096
@@ -33,7 +34,7 @@ MIN_RXBUF = 16
 MAX_RXBUF = 65536
 
 _Params = Mapping[str, str]
-#: A value on the line: text, or bytes written ``\=`` and base64 (docs/line-protocol.md §2.3).
+#: A value on the line: text, or bytes written ``\=`` and base64 (docs/device-spec.md §2.6).
 LineValue = str | bytes
 
 
@@ -184,7 +185,7 @@ class BadLine:
     code: Code
     message: str
     tag: str | None = None
-    #: The line began with ``$``: a reply to it carries a checksum (docs/line-protocol.md §6).
+    #: The line began with ``$``: a reply to it carries a checksum (docs/device-spec.md §6.4).
     checksummed: bool = False
     #: The line was a greeting (``HELLO`` and a version) that cannot be accepted.
     greeting: bool = False

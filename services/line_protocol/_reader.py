@@ -242,7 +242,7 @@ def decode_line(line: bytes | bytearray, max_line: int = MAX_LINE) -> Frame:
     if raw.endswith(b"\r"):
         raw = raw[:-1]
     if raw.startswith(b" "):
-        raw = raw.lstrip(b" ")  # spaces before the first field are skipped (§1)
+        raw = raw.lstrip(b" ")  # spaces before the first field are skipped (docs/device-spec.md §1.4)
     if len(raw) + 1 > max_line:
         raise LineProtocolError(
             f"line too long: {len(raw) + 1} bytes, the limit is {max_line}",
@@ -258,6 +258,10 @@ def decode_line(line: bytes | bytearray, max_line: int = MAX_LINE) -> Frame:
                 f"checksum mismatch: line says {raw[-2:].decode().upper()}, content gives {crc8(body):02X}",
                 Code.DATA_LOSS,
             )
+        if body.startswith(b" "):
+            # Nothing stands between '$' and the tag or word (docs/device-spec.md §6.3): a device
+            # that finds the tag right after the '$' must not have to skip spaces there too.
+            raise LineProtocolError("a space after '$': the tag or word follows it directly")
         raw = body
     # The tag is read only when the line turns out bad: it addresses the error.
     try:

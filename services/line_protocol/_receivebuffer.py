@@ -24,7 +24,7 @@ class LineReceiver:
         self._scanned = 0
         self._discarding = False
         #: A line with a valid checksum has been received (and no plain HELLO since): a device
-        #: answers with checksums from then on (docs/line-protocol.md §6).
+        #: answers with checksums from then on (docs/device-spec.md §6.5).
         self.saw_checksum = False
         #: For each item the last :meth:`receive_data` returned: whether its line began with ``$``.
         self.last_checked: list[bool] = []
@@ -120,5 +120,5 @@ class LineReceiver:
         if checked:
             self.saw_checksum = True
         elif type(frame) is HelloRequest:
-            # A plain HELLO: the client starts afresh, checksum mode ends (docs/line-protocol.md §6).
+            # A plain HELLO: the client starts afresh, checksum mode ends (docs/device-spec.md §6.5).
             self.saw_checksum = False

@@ -1,4 +1,4 @@
-"""The lexical rules shared by the reader and the writer (docs/line-protocol.md §2)."""
+"""The lexical rules shared by the reader and the writer (docs/device-spec.md §2)."""
 
 from __future__ import annotations
 

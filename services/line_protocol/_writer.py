@@ -78,7 +78,7 @@ def _body(frame: Frame) -> str:
             return f"{_tag(tag)}LISTEN {_params(params)}{_path(path)}"
         case Unlisten(path, params, tag):
             return f"{_tag(tag)}UNLISTEN {_params(params)}{_path(path)}"
-        # PING data is opaque: echoed byte for byte, never escaped or decoded (§3.1).
+        # PING data is opaque: echoed byte for byte, never escaped or decoded (docs/device-spec.md §3.6).
         case Ping(data, tag):
             return f"{_tag(tag)}PING{_raw(data)}"
         case Pong(data, tag):

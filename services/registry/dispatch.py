@@ -146,6 +146,8 @@ class Dispatcher:
         self._timeout = timeout
         #: Holder and Session of each waiting request, and the costs it asked providers for.
         self._waiting_callers: dict[str, tuple[str, str]] = {}
+        #: Which providers each waiting request's caller may be licensed (absent: any).
+        self._waiting_allowed: dict[str, Callable[[str], bool]] = {}
         self._published: dict[str, dict[str, float]] = {}
         self._ours: set[str] = set()  # licence ids the dispatcher itself is releasing
         self._kick = asyncio.Event()
@@ -172,16 +174,33 @@ class Dispatcher:
         return found
 
     def providers_for(
-        self, request: Request, published: dict[str, float] | None
+        self,
+        request: Request,
+        published: dict[str, float] | None,
+        allowed: Callable[[str], bool] | None = None,
     ) -> tuple[list[Provider], float]:
         """The providers the scheduler needs to see for ``request`` (narrowed as
-        :mod:`services.registry.candidates` says) and the cost that scores 1 among them all."""
+        :mod:`services.registry.candidates` says) and the cost that scores 1 among them all;
+        only those ``allowed`` (the caller may be licensed them: :data:`ProviderCheck`)."""
+        refused = self.refused(request.capabilities, allowed)
         if published is not None:
             # Only those that published a cost can be ranked by it.
-            priced = [p for p in self.providers(published) if p.cost is not None]
+            priced = [p for p in self.providers(published) if p.cost is not None and p.name not in refused]
             return priced, max(published.values(), default=0.0)
         unsure = self.scheduler.unsure(request) | {lic.service for lic in self._licensing.held()}
-        return self._candidates.narrow(request, self._revision(), self.scheduler.qos.means(), unsure)
+        # The refused count as unsure: the narrowing keeps enough others in their place.
+        providers, scale = self._candidates.narrow(
+            request, self._revision(), self.scheduler.qos.means(), unsure | refused
+        )
+        if refused:
+            providers = [p for p in providers if p.name not in refused]
+        return providers, scale
+
+    def refused(self, wanted: frozenset[str], allowed: Callable[[str], bool] | None) -> frozenset[str]:
+        """The providers offering any of ``wanted`` that ``allowed`` refuses (none when it is None)."""
+        if allowed is None:
+            return frozenset()
+        return frozenset(n for n in self._candidates.offering(wanted, self._revision()) if not allowed(n))
 
     def _to_locate(self, wanted: frozenset[str], by_distance: bool) -> list[str]:
         """The providers of ``wanted`` whose locations a request needs, once per capability set and
@@ -229,6 +248,7 @@ class Dispatcher:
         consumer: str,
         holder: str,
         session: str,
+        allowed: Callable[[str], bool] | None = None,
         location: str,
         count: int,
         duration: float | None,
@@ -238,7 +258,9 @@ class Dispatcher:
         weight: float,
     ) -> str:
         """What the registry's ``request`` action does: ``(ID granted ((provider licence) ...))`` or
-        ``(ID queued ())``; raises with the reason otherwise."""
+        ``(ID queued ())``; raises with the reason otherwise. Only providers ``allowed`` are picked
+        (None: any); when none of those offering the capabilities is, the request is NOT_FOUND as
+        when no provider offers them, saying that the rules refuse the others."""
         wanted = parse_capabilities(capabilities)
         if not consumer:
             consumer = holder
@@ -274,13 +296,13 @@ class Dispatcher:
         rejected: set[str] = set()
         for _ in range(MAX_ATTEMPTS):
             asked = replace(request, exclude=request.exclude | rejected) if rejected else request
-            providers, scale = self.providers_for(asked, published)
+            providers, scale = self.providers_for(asked, published, allowed)
             asked = replace(asked, cost_scale=scale)
             try:
                 decided = self.scheduler.submit(asked, providers, time.monotonic())
             except NotFound as e:
                 if not rejected:
-                    raise
+                    raise self._explained(e, self.refused(wanted, allowed), holder) from None
                 # Those left cannot serve it: it is the rejections that failed it, not step 3.
                 raise Unavailable(
                     f"the providers chosen for {capabilities.strip()[:80]} rejected the allocation or "
@@ -289,6 +311,8 @@ class Dispatcher:
                 ) from None
             if isinstance(decided, Waiting):
                 self._waiting_callers[decided.id] = (holder, session)
+                if allowed is not None:
+                    self._waiting_allowed[decided.id] = allowed
                 if published is not None:
                     self._published[decided.id] = published
                 self._changed("requests")
@@ -301,6 +325,18 @@ class Dispatcher:
         raise Unavailable(
             f"the providers chosen for {capabilities.strip()[:80]} rejected the allocation "
             f"{MAX_ATTEMPTS} times ({' '.join(sorted(rejected))}); nothing was allocated"
+        )
+
+    @staticmethod
+    def _explained(error: NotFound, refused: frozenset[str], holder: str) -> NotFound:
+        """``error`` (no provider can serve), saying which providers the rules kept out of it."""
+        if not refused:
+            return error
+        names = sorted(refused)
+        listed = " ".join(names[:8]) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
+        return NotFound(
+            f"{error.message}: {holder or 'the caller'} may not write {listed} by the rules, "
+            "so none of them is picked"
         )
 
     async def _carry_out(self, plan: Plan, holder: str, session: str) -> tuple[Allocation | None, set[str]]:
@@ -433,7 +469,10 @@ class Dispatcher:
         if not len(self.scheduler.queue):
             return
         plans, dropped = self.scheduler.retry(
-            lambda w: self.providers_for(w.request, self._published.get(w.id))[0], time.monotonic()
+            lambda w: self.providers_for(
+                w.request, self._published.get(w.id), self._waiting_allowed.get(w.id)
+            )[0],
+            time.monotonic(),
         )
         for waiting in dropped:
             self._forget_waiting(waiting.id)
@@ -446,6 +485,7 @@ class Dispatcher:
         for plan in plans:
             holder, session = self._waiting_callers.get(plan.id, (plan.request.consumer, ""))
             published = self._published.get(plan.id)
+            allowed = self._waiting_allowed.get(plan.id)
             self._forget_waiting(plan.id)
             allocation, refused = await self._carry_out(plan, holder, session)
             if allocation is None:
@@ -458,6 +498,8 @@ class Dispatcher:
                 )
                 if again is not None:
                     self._waiting_callers[plan.id] = (holder, session)
+                    if allowed is not None:
+                        self._waiting_allowed[plan.id] = allowed
                     if published is not None:
                         self._published[plan.id] = published
         if plans or dropped:
@@ -465,6 +507,7 @@ class Dispatcher:
 
     def _forget_waiting(self, id: str) -> None:
         self._waiting_callers.pop(id, None)
+        self._waiting_allowed.pop(id, None)
         self._published.pop(id, None)
 
     # -- what the properties show -------------------------------------------------------

@@ -107,7 +107,7 @@ class ServiceEntry(Resource):
         ),
     ]:
         # Followed on demand: a device's location is listened to only once somebody
-        # asks for it (docs/line-protocol.md §5), never at connect.
+        # asks for it (docs/line-protocol.md §12), never at connect.
         if self._want_location is not None:
             self._want_location(self._name)
         return self._location

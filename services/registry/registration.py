@@ -9,7 +9,7 @@ from collections.abc import Callable, Mapping
 
 from services.backend import NO_PARAMS, Backend
 from services.core import RESERVED_NAMES
-from services.directory import Directory
+from services.directory import Directory, own_work
 from services.errors import (
     AlreadyExists,
     Code,
@@ -55,7 +55,7 @@ def _nobody_is_admin(name: str) -> bool:
 DEFAULT_REGISTER_TIMEOUT = 10.0
 
 _REGISTER_PARAMS = ("type", "lease", "features")
-#: Codes with which a device's greeting is refused (docs/line-protocol.md §4.3).
+#: Codes with which a device's greeting is refused (docs/line-protocol.md §3).
 _REFUSALS = (Code.FAILED_PRECONDITION, Code.INVALID_ARGUMENT)
 #: Codes that say only that nothing answered as a device, for whatever reason (see :meth:`_open`).
 _NOT_REACHED = (Code.UNAVAILABLE, Code.DEADLINE_EXCEEDED)
@@ -265,36 +265,38 @@ class Registrations:
         # answers, is not registered either. A proxy connects in the
         # background, so "not connected yet" is asked again until the deadline.
         last: PropertyError | None = None
-        try:
-            backend = directory.backend(name)
-            # A line-protocol proxy says when the device greeted, and why not (cannot connect)
-            # when the deadline comes: outside the timeout scope, so that reason is not lost.
-            await backend.wait_connected(max(0.0, deadline - loop.time()))
-            async with asyncio.timeout_at(deadline):
-                pause = 0.02
-                while True:
-                    try:
-                        await backend.get("properties")
-                        break
-                    except PropertyError as e:
-                        if e.code is not Code.UNAVAILABLE:
-                            raise
-                        last = e
-                    await asyncio.sleep(pause)
-                    pause = min(pause * 2, 0.5)
-        except (TimeoutError, PropertyError) as e:
-            await self._undo(directory, name)
-            if isinstance(e, PropertyError):
-                last = e
-            if last is None or last.code in _NOT_REACHED:
-                raise self._not_reached(name, url, last.message if last else "no answer") from None
-            # A device that answered with a greeting the gateway refused (another protocol
-            # version, a bad field) did answer: say it was refused, and why.
-            verb = "was refused" if last.code in _REFUSALS else "does not answer"
-            raise type(last)(
-                f"registering {name!r}: {url} {verb} ({last.message}); nothing was registered",
-                last.code,
-            ) from None
+        # The registry's own probe of what it opened, not a read for the caller who registers.
+        with own_work():
+            try:
+                backend = directory.backend(name)
+                # A line-protocol proxy says when the device greeted, and why not (cannot connect)
+                # when the deadline comes: outside the timeout scope, so that reason is not lost.
+                await backend.wait_connected(max(0.0, deadline - loop.time()))
+                async with asyncio.timeout_at(deadline):
+                    pause = 0.02
+                    while True:
+                        try:
+                            await backend.get("properties")
+                            break
+                        except PropertyError as e:
+                            if e.code is not Code.UNAVAILABLE:
+                                raise
+                            last = e
+                        await asyncio.sleep(pause)
+                        pause = min(pause * 2, 0.5)
+            except (TimeoutError, PropertyError) as e:
+                await self._undo(directory, name)
+                if isinstance(e, PropertyError):
+                    last = e
+                if last is None or last.code in _NOT_REACHED:
+                    raise self._not_reached(name, url, last.message if last else "no answer") from None
+                # A device that answered with a greeting the gateway refused (another protocol
+                # version, a bad field) did answer: say it was refused, and why.
+                verb = "was refused" if last.code in _REFUSALS else "does not answer"
+                raise type(last)(
+                    f"registering {name!r}: {url} {verb} ({last.message}); nothing was registered",
+                    last.code,
+                ) from None
         if self.table.get(name) is None:  # the directory does not tell its watchers before returning
             self._joined(name, directory.backend(name))
 

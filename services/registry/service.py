@@ -14,7 +14,7 @@ from typing import Annotated
 
 from services.backend import NO_PARAMS, Backend, BackendInfo
 from services.core import LocalService, Prop, Resource, action, query
-from services.directory import Directory
+from services.directory import Directory, own_context
 from services.errors import InvalidArgument, NotFound, PermissionDenied, PropertyError, Unavailable
 from services.location_following import LocationFollower
 from services.paths import validate_path
@@ -46,7 +46,15 @@ from services.registry.scheduling import (
 )
 from services.registry.store import RegistryStore
 from services.registry.table import PLACEHOLDER_TYPE, ServiceTable
-from services.values import Value, ValueFormatError, Vector, as_text, format_names, parse_vector
+from services.values import (
+    MAX_VALUE_LENGTH,
+    Value,
+    ValueFormatError,
+    Vector,
+    as_text,
+    format_names,
+    parse_vector,
+)
 from services.worker_pool import run_bounded
 
 __all__ = ["Caller", "CallerSource", "LicenceCheck", "Registry", "RegistryService"]
@@ -68,6 +76,11 @@ CallerSource = Callable[[], Caller]
 #: "" = the whole service): UNAUTHENTICATED or PERMISSION_DENIED naming why; the gateway installs
 #: one that asks its rules (:meth:`Registry.set_licence_check`).
 LicenceCheck = Callable[[str, str], None]
+#: For the current request: which services its caller may be licensed whole (``write`` on the
+#: service by the rules), asked without a word for each; None when it may be licensed any. The
+#: scheduler's ``request`` picks only those (:meth:`Registry.set_provider_check`); the test is
+#: kept with a request that waits, and asked again when it is retried.
+ProviderCheck = Callable[[], Callable[[str], bool] | None]
 #: The holder name of an anonymous caller on a Session: this prefix and the Session's token.
 SESSION_HOLDER_PREFIX = "session-"
 
@@ -83,6 +96,10 @@ def _local_caller() -> Caller:
 
 
 def _anyone_may_license(service: str, subtree: str) -> None:
+    return None
+
+
+def _any_provider() -> Callable[[str], bool] | None:
     return None
 
 
@@ -104,6 +121,20 @@ class LicenceList(Resource):
 
     def _value(self) -> str:
         return format_names(lic.id for lic in self._licensing.held())
+
+
+#: Names a page of ``service_names`` holds by default; and at most (its own limit is one value's size).
+NAMES_PAGE = 1000
+MAX_NAMES_PAGE = 10_000
+
+
+def _page_limit(text: str) -> int:
+    """The ``limit`` parameter of ``service_names``: a whole number from 1 to :data:`MAX_NAMES_PAGE`."""
+    if text == "":
+        return NAMES_PAGE
+    if not text.isdigit() or not 1 <= int(text) <= MAX_NAMES_PAGE:
+        raise InvalidArgument(f"limit: expected a whole number from 1 to {MAX_NAMES_PAGE}, got {text!r:.40}")
+    return int(text)
 
 
 class Registry(Resource):
@@ -212,6 +243,7 @@ class Registry(Resource):
         self.licensing.watch(self._on_licence)
         self._caller: CallerSource = _local_caller
         self._may_license: LicenceCheck = _anyone_may_license
+        self._may_provide: ProviderCheck = _any_provider
         self._table.watch_states(self._on_state_for_licences)
         self._registrations = Registrations(
             self._table,
@@ -433,6 +465,11 @@ class Registry(Resource):
         """Install the check of who may license what (:data:`LicenceCheck`); without one, anyone may."""
         self._may_license = may_license
 
+    def set_provider_check(self, may_provide: ProviderCheck) -> None:
+        """Install which providers the scheduler may license to the caller (:data:`ProviderCheck`);
+        without one, any."""
+        self._may_provide = may_provide
+
     @action(doc="acquire an exclusive licence on `service` (or `subtree`) for `duration` s; answers its id")
     async def acquire(
         self, *, service: str, duration: float = DEFAULT_LICENCE_DURATION, subtree: str = ""
@@ -553,6 +590,7 @@ class Registry(Resource):
             consumer=consumer,
             holder=holder,
             session=session,
+            allowed=self._may_provide(),
             location=location,
             count=count,
             duration=duration,
@@ -661,7 +699,9 @@ class Registry(Resource):
     def _start_reaching(self, name: str, backend: Backend) -> None:
         """Learn ``name``'s type and "up" in the background, once at a time (see :meth:`_reach`)."""
         if name not in self._reaching:
-            task = asyncio.get_running_loop().create_task(self._reach(name, backend), name=f"reach {name}")
+            task = asyncio.get_running_loop().create_task(
+                self._reach(name, backend), name=f"reach {name}", context=own_context()
+            )
             self._reaching[name] = task
             task.add_done_callback(lambda done: self._reached(name, done))
 
@@ -771,6 +811,29 @@ class Registry(Resource):
             self._table.learn_type(name, backend.info.type)
 
     # -- search --------------------------------------------------------------
+
+    @query(doc="the services' names in name order, a page at a time: after (the last name read), limit")
+    async def service_names(self, *, after: str = "", limit: str = "") -> list[str]:
+        """The names of the services after ``after`` in name order (from the first when empty), at
+        most ``limit`` (:data:`NAMES_PAGE`, at most :data:`MAX_NAMES_PAGE`) and at most what one
+        value holds (``services.values.MAX_VALUE_LENGTH``): the page ends before the name that
+        would pass it. An empty page: there are no more.
+
+        ``services`` is one value, so past about 6,000 names it no longer fits in one; this reads
+        the same names page by page. Name order keeps the pages right while services join and
+        leave: a name registered throughout is read exactly once.
+        """
+        wanted = _page_limit(limit)
+        page: list[str] = []
+        size = len("()")
+        for name in sorted(self._table.names()):
+            if name <= after:
+                continue
+            size += len(name) + (1 if page else 0)
+            if len(page) == wanted or size > MAX_VALUE_LENGTH:
+                break
+            page.append(name)
+        return page
 
     @query(doc="names of the services matching type, location, state and property values")
     async def find(

@@ -3,26 +3,40 @@
 The supported SCXML subset (docs/statemachine.md lists it): ``scxml``,
 ``state``, ``parallel``, ``final``, ``initial``, ``history`` (shallow and
 deep), ``transition`` (event, cond, target, type), ``onentry``, ``onexit``,
-``datamodel``/``data``, and the executable content ``raise``, ``send``
-(to the chart itself, with ``delay``), ``cancel``, ``assign``, ``log``,
+``datamodel``/``data`` (early or late binding), ``donedata``, and the
+executable content ``raise``, ``send`` (to the chart itself, with ``delay``,
+``param``/``namelist`` or ``content``), ``cancel``, ``assign``, ``log``,
 ``if``/``elseif``/``else`` and ``foreach``; plus the Property Service binding
 ``ps:set``, ``ps:get`` (executable content) and ``ps:listen`` (in a state).
 ``script`` and ``invoke`` would run code or other documents and are refused.
-Every expression is checked by :mod:`services.statemachine.expressions`.
+Every expression is checked by :mod:`services.statemachine.expressions`; what
+the standard wants to fail when it runs (text that is no expression, a write to
+a system variable) loads with a warning (:attr:`Chart.warnings`) and raises
+``error.execution`` there.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from contextvars import ContextVar
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 from services.errors import InvalidArgument
 from services.paths import validate_path, validate_service_name
 from services.statemachine.document import ChartError, Node, read_document
-from services.statemachine.expressions import FUNCTIONS, Expression, compile_expression
+from services.statemachine.expressions import (
+    FUNCTIONS,
+    NOT_AN_EXPRESSION,
+    EvaluationError,
+    Expression,
+    Record,
+    check_size,
+    compile_expression,
+    parse_chart_value,
+)
 
 __all__ = [
     "MAX_FOLLOWED",
@@ -33,10 +47,13 @@ __all__ = [
     "Assign",
     "Cancel",
     "Chart",
+    "Content",
+    "DoneData",
     "Foreach",
     "If",
     "Listen",
     "Log",
+    "Param",
     "PropertyGet",
     "PropertySet",
     "Raise",
@@ -63,9 +80,17 @@ MAX_FOLLOWED = 32
 MAX_FOREACH = 1000
 
 _ID = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]{0,63}")
-_EVENT = re.compile(r"[A-Za-z0-9_*][A-Za-z0-9_.*-]{0,127}")
+_EVENT = re.compile(r"[A-Za-z0-9_*][A-Za-z0-9_.*-]{0,127}|\.\*")
 _VARIABLE = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,63}")
 _DURATION = re.compile(r"\s*([0-9]+(?:\.[0-9]*)?|\.[0-9]+)\s*(ms|s|m|min|h)?\s*")
+#: The SCXML event processor, the one ``<send>`` type there is (W3C SCXML, appendix C.1); ``scxml``
+#: is its short name.
+SCXML_PROCESSOR = "http://www.w3.org/TR/scxml/#SCXMLEventProcessor"
+SEND_TYPES = ("", SCXML_PROCESSOR, "scxml")
+#: Send targets that reach other sessions through ``<invoke>``, which a chart never does.
+_INVOKE_TARGETS = ("#_parent", "#_invoke_")
+#: The system variables (W3C SCXML 5.10): read-only, every expression may read them.
+SYSTEM_VARIABLES = ("_event", "_sessionid", "_name", "_ioprocessors")
 
 StateKind = Literal["root", "atomic", "compound", "parallel", "final", "history"]
 
@@ -77,20 +102,66 @@ class Raise:
 
 
 @dataclass(eq=False, slots=True)
+class Param:
+    """``<param name expr|location>`` of a ``<send>`` or a ``<donedata>``: one field of the event's data."""
+
+    name: str
+    expr: Expression | None
+    #: A variable read by name: one not declared is error.execution when the data is made.
+    location: str
+    where: str
+
+
+@dataclass(eq=False, slots=True)
+class Content:
+    """``<content expr>`` or ``<content>text</content>``: the whole data of an event. Text arrives with
+    its white space collapsed; JSON text as records and lists, a number or a vector as one."""
+
+    expr: Expression | None
+    text: str
+    where: str
+    #: The text's value, made once when the chart is loaded.
+    value: Any = None
+
+
+@dataclass(eq=False, slots=True)
+class DoneData:
+    """``<donedata>`` of a ``<final>``: the data of the ``done.state.ID`` event its parent raises."""
+
+    params: list[Param]
+    content: Content | None
+    where: str
+
+
+@dataclass(eq=False, slots=True)
 class Send:
+    """``<send>`` to the chart itself: its external queue, or ``#_internal`` its internal one."""
+
     event: str | None
     eventexpr: Expression | None
     delay: float
     delayexpr: Expression | None
     send_id: str
-    params: list[tuple[str, Expression]]
+    params: list[Param]
     where: str
+    content: Content | None = None
+    #: ``""`` (the external queue), ``#_internal``, or any other text: error.execution when sent.
+    target: str = ""
+    targetexpr: Expression | None = None
+    #: The event processor: ``""`` or :data:`SCXML_PROCESSOR` (others: error.execution when sent).
+    type: str = ""
+    typeexpr: Expression | None = None
+    #: A variable that gets the send's id (the ``id`` given, or one made up for each send).
+    idlocation: str = ""
+    #: Variables whose values go in the event's data, by their names.
+    namelist: tuple[str, ...] = ()
 
 
 @dataclass(eq=False, slots=True)
 class Cancel:
     send_id: str
     where: str
+    sendidexpr: Expression | None = None
 
 
 @dataclass(eq=False, slots=True)
@@ -201,6 +272,7 @@ class State:
     listens: list[Listen] = field(default_factory=list)
     deep: bool = False
     history: list[State] = field(default_factory=list)
+    donedata: DoneData | None = None
 
     def __repr__(self) -> str:
         return f"State({self.id!r}, {self.kind})"
@@ -245,6 +317,15 @@ class Chart:
     transitions: list[Transition]
     #: The properties the chart reads with ``value('SERVICE/PATH')``: (service, path), in order.
     followed: tuple[tuple[str, str], ...] = ()
+    #: What the chart does that fails when it runs (``error.execution``), found at load: a
+    #: malformed expression, an assignment to a system variable. ``M.log`` shows them on load.
+    warnings: tuple[str, ...] = ()
+    #: ``binding="late"``: a state's ``<data>`` gets its value when the state is first entered.
+    late: bool = False
+    #: The ``<data>`` of each state (late binding), by state id; the chart's own under ``""``.
+    state_data: dict[str, list[tuple[str, Expression | None]]] = field(default_factory=dict)
+    #: The ``name`` attribute of ``<scxml>``: ``_name`` (the machine's name when absent).
+    chart_name: str = ""
 
     def state(self, state_id: str) -> State:
         return self.states[state_id]
@@ -257,8 +338,6 @@ _EXECUTABLE = ("raise", "send", "cancel", "assign", "log", "if", "foreach", "ps:
 _REFUSED = {
     "script": "<script> runs code and is not supported; use <assign>, <if> and the ps: elements",
     "invoke": "<invoke> starts other documents and is not supported; use another machine and ps:set",
-    "donedata": "<donedata> is not supported",
-    "content": "<content> is not supported; give values with expr or <param>",
 }
 
 
@@ -272,10 +351,18 @@ def _check_attrs(node: Node, allowed: tuple[str, ...]) -> None:
 #: The expressions of the chart being compiled, with their element and attribute: the names they
 #: read are checked once every variable is known (:func:`_check_names`).
 _COMPILED: ContextVar[list[tuple[Expression, Node, str, str]] | None] = ContextVar("_COMPILED", default=None)
+#: What the chart being compiled does that will fail when it runs (Chart.warnings).
+_WARNINGS: ContextVar[list[str] | None] = ContextVar("_WARNINGS", default=None)
 #: Names every expression may read besides the chart's variables and functions.
 _BUILT_IN_NAMES = frozenset(
-    {"_event", "_name", "true", "True", "false", "False", "null", "None", *FUNCTIONS, "In", "value"}
+    {*SYSTEM_VARIABLES, "true", "True", "false", "False", "null", "None", *FUNCTIONS, "In", "value"}
 )
+
+
+def _warn(node: Node, why: str) -> None:
+    warnings = _WARNINGS.get()
+    if warnings is not None:
+        warnings.append(f"{node.where}: <{node.tag}>: {why}")
 
 
 def _expr(node: Node, attr: str, text: str | None = None) -> Expression:
@@ -283,7 +370,12 @@ def _expr(node: Node, attr: str, text: str | None = None) -> Expression:
     try:
         expression = compile_expression(source)
     except InvalidArgument as e:
-        raise node.fail(f"{attr}={source[:60]!r}: {e.message}") from None
+        if not e.message.startswith(NOT_AN_EXPRESSION):
+            raise node.fail(f"{attr}={source[:60]!r}: {e.message}") from None
+        # Malformed text is an error.execution each time it is evaluated (W3C SCXML 5.9, the
+        # standard's tests check the event): the chart loads, with a warning in its log.
+        _warn(node, f"{attr}={source[:60]!r}: {e.message}; it raises error.execution when evaluated")
+        return Expression.failing(source, e.message)
     compiled = _COMPILED.get()
     if compiled is not None:
         compiled.append((expression, node, attr, source))
@@ -311,12 +403,10 @@ def _check_names(compiled: list[tuple[Expression, Node, str, str]], declared: se
 
 def _duration(node: Node, attr: str, limit: float) -> float:
     text = node.attrs[attr]
-    m = _DURATION.fullmatch(text)
-    if m is None:
+    if _DURATION.fullmatch(text) is None:
         raise node.fail(f"{attr}={text!r}: expected a duration like '2s', '500ms', '1.5' (seconds) or '1min'")
-    scale = {"ms": 0.001, "s": 1.0, None: 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}[m.group(2)]
-    seconds = float(m.group(1)) * scale
-    if not math.isfinite(seconds) or seconds > limit:
+    seconds = parse_duration(text, limit)
+    if seconds is None:
         raise node.fail(f"{attr}={text!r}: at most {limit:g} s")
     return seconds
 
@@ -352,6 +442,32 @@ def _variable(node: Node, attr: str) -> str:
     if _VARIABLE.fullmatch(name) is None:
         raise node.fail(f"{attr}={name!r}: a variable name is a letter then letters, digits or _")
     return name
+
+
+def _location(node: Node, attr: str, use: str = "writing") -> str:
+    """A location written to at run time: one that is not a variable's name (``_sessionid``,
+    ``foo.bar``) is error.execution when written (W3C SCXML 5.4), with a warning at load."""
+    name = node.attrs.get(attr, "").strip()
+    if _VARIABLE.fullmatch(name) is None:
+        why = "a system variable, read-only" if name in SYSTEM_VARIABLES else "not a variable's name"
+        _warn(node, f"{attr}={name[:60]!r}: {why}; {use} it raises error.execution")
+    return name
+
+
+def is_variable_name(name: str) -> bool:
+    """True when ``name`` can be a chart variable (a letter, then letters, digits or _)."""
+    return _VARIABLE.fullmatch(name) is not None
+
+
+def parse_duration(text: str, limit: float = MAX_DELAY) -> float | None:
+    """Seconds of a duration like ``2s``, ``500ms``, ``1.5`` or ``1min`` (CSS2 times and more);
+    None when it is not one or is beyond ``limit``."""
+    m = _DURATION.fullmatch(text)
+    if m is None:
+        return None
+    scale = {"ms": 0.001, "s": 1.0, None: 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}[m.group(2)]
+    seconds = float(m.group(1)) * scale
+    return seconds if math.isfinite(seconds) and seconds <= limit else None
 
 
 def _property(node: Node) -> tuple[str, str]:
@@ -409,6 +525,7 @@ class _Compiler:
         self.ordered: list[State] = []
         self.transitions: list[Transition] = []
         self.data: list[tuple[str, Expression | None]] = []
+        self.state_data: dict[str, list[tuple[str, Expression | None]]] = {}
         self.send_ids: set[str] = set()
 
     # -- executable content ----------------------------------------------------
@@ -425,15 +542,20 @@ class _Compiler:
         if node.tag == "send":
             return self.send(node)
         if node.tag == "cancel":
-            _check_attrs(node, ("sendid",))
-            if not node.attrs.get("sendid"):
-                raise node.fail("needs sendid, the id of a <send>")
+            _check_attrs(node, ("sendid", "sendidexpr"))
+            if bool(node.attrs.get("sendid")) == ("sendidexpr" in node.attrs):
+                raise node.fail("needs sendid, the id of a <send>, or sendidexpr")
+            if "sendidexpr" in node.attrs:
+                return Cancel("", node.where, _expr(node, "sendidexpr"))
             return Cancel(node.attrs["sendid"], node.where)
         if node.tag == "assign":
             _check_attrs(node, ("location", "expr"))
-            if "expr" not in node.attrs:
+            if node.children:
+                raise node.children[0].fail("<assign> takes its value from expr (or its text), not elements")
+            if "expr" not in node.attrs and not node.text.strip():
                 raise node.fail("needs expr, the value to assign")
-            return Assign(_variable(node, "location"), _expr(node, "expr"), node.where)
+            value = _expr(node, "expr") if "expr" in node.attrs else _expr(node, "expr", node.text)
+            return Assign(_location(node, "location"), value, node.where)
         if node.tag == "log":
             _check_attrs(node, ("label", "expr"))
             expr = _expr(node, "expr") if "expr" in node.attrs else None
@@ -444,8 +566,8 @@ class _Compiler:
             _check_attrs(node, ("array", "item", "index"))
             if "array" not in node.attrs:
                 raise node.fail("needs array, an expression giving a list")
-            index = _variable(node, "index") if "index" in node.attrs else ""
-            return Foreach(_expr(node, "array"), _variable(node, "item"), index, self.block(node), node.where)
+            index = _location(node, "index") if "index" in node.attrs else ""
+            return Foreach(_expr(node, "array"), _location(node, "item"), index, self.block(node), node.where)
         if node.tag == "ps:set":
             return self.property_set(node)
         if node.tag == "ps:get":
@@ -459,26 +581,50 @@ class _Compiler:
         raise node.fail(f"unknown element; executable content is one of {', '.join(_EXECUTABLE)}")
 
     def send(self, node: Node) -> Send:
-        _check_attrs(node, ("event", "eventexpr", "delay", "delayexpr", "id", "target"))
+        _check_attrs(
+            node,
+            (
+                "event",
+                "eventexpr",
+                "delay",
+                "delayexpr",
+                "id",
+                "idlocation",
+                "target",
+                "targetexpr",
+                "type",
+                "typeexpr",
+                "namelist",
+            ),
+        )
+        kind = node.attrs.get("type", "").strip()
+        if kind.endswith("#BasicHTTPEventProcessor"):
+            raise node.fail(
+                f"type={kind!r}: a chart sends only SCXML events (the Basic HTTP processor is not offered)"
+            )
         if ("event" in node.attrs) == ("eventexpr" in node.attrs):
             raise node.fail("needs exactly one of event or eventexpr")
-        target = node.attrs.get("target", "")
-        if target not in ("", "#_internal"):
-            raise node.fail(f"target={target!r}: a chart sends only to itself; use ps:set to reach a service")
-        if target and ("delay" in node.attrs or "delayexpr" in node.attrs):
+        for one, other in (
+            ("delay", "delayexpr"),
+            ("target", "targetexpr"),
+            ("type", "typeexpr"),
+            ("id", "idlocation"),
+        ):
+            if one in node.attrs and other in node.attrs:
+                raise node.fail(f"give {one} or {other}, not both")
+        target = node.attrs.get("target", "").strip()
+        if target.startswith(_INVOKE_TARGETS):
+            raise node.fail(
+                f"target={target!r}: a chart invokes no other documents, so it has no {target} to send to"
+            )
+        if target == "#_internal" and ("delay" in node.attrs or "delayexpr" in node.attrs):
             raise node.fail("an event sent to #_internal cannot be delayed")
-        if "delay" in node.attrs and "delayexpr" in node.attrs:
-            raise node.fail("give delay or delayexpr, not both")
-        params: list[tuple[str, Expression]] = []
-        for child in node.children:
-            if child.tag != "param":
-                raise child.fail("<send> holds only <param name=... expr=...>")
-            _check_attrs(child, ("name", "expr", "location"))
-            name = child.attrs.get("name", "")
-            source = child.attrs.get("expr") or child.attrs.get("location")
-            if _VARIABLE.fullmatch(name) is None or source is None:
-                raise child.fail("a parameter has a name and an expr")
-            params.append((name, _expr(child, "expr" if "expr" in child.attrs else "location")))
+        if target not in ("", "#_internal") and not target.startswith("#_scxml_"):
+            _warn(node, f"target={target!r}: a chart sends only to itself; sending raises error.execution")
+        if kind not in SEND_TYPES:
+            _warn(node, f"type={kind!r}: not an event processor here; sending raises error.execution")
+        namelist = tuple(node.attrs.get("namelist", "").split())
+        params, content = self.event_data(node)
         send_id = node.attrs.get("id", "")
         if send_id:
             self.send_ids.add(send_id)
@@ -490,7 +636,43 @@ class _Compiler:
             send_id=send_id,
             params=params,
             where=node.where,
+            content=content,
+            target=target,
+            targetexpr=_expr(node, "targetexpr") if "targetexpr" in node.attrs else None,
+            type=kind,
+            typeexpr=_expr(node, "typeexpr") if "typeexpr" in node.attrs else None,
+            idlocation=_location(node, "idlocation") if "idlocation" in node.attrs else "",
+            namelist=namelist,
         )
+
+    def event_data(self, node: Node) -> tuple[list[Param], Content | None]:
+        """The ``<param>`` and ``<content>`` children of a ``<send>`` or ``<donedata>``."""
+        params: list[Param] = []
+        content: Content | None = None
+        for child in node.children:
+            if child.tag == "content":
+                _check_attrs(child, ("expr",))
+                if child.children:
+                    raise child.fail("XML content is not supported: give the data as text or with expr")
+                if content is not None or ("expr" in child.attrs and child.text.strip()):
+                    raise child.fail("one <content>, with expr or text, not both")
+                expr = _expr(child, "expr") if "expr" in child.attrs else None
+                content = Content(expr, child.text.strip(), child.where, _content_value(child))
+            elif child.tag == "param":
+                _check_attrs(child, ("name", "expr", "location"))
+                name = child.attrs.get("name", "")
+                if _VARIABLE.fullmatch(name) is None or ("expr" in child.attrs) == (
+                    "location" in child.attrs
+                ):
+                    raise child.fail("a parameter has a name and one of expr or location")
+                expr = _expr(child, "expr") if "expr" in child.attrs else None
+                location = _location(child, "location", "reading") if "location" in child.attrs else ""
+                params.append(Param(name, expr, location, child.where))
+            else:
+                raise child.fail(f"<{node.tag}> holds only <param name=... expr=...> and <content>")
+        if content is not None and (params or node.attrs.get("namelist")):
+            raise node.fail("give the data as <content> or as <param> and namelist, not both")
+        return params, content
 
     def if_(self, node: Node) -> If:
         _check_attrs(node, ("cond",))
@@ -588,9 +770,15 @@ class _Compiler:
                 _check_attrs(child, ())
                 (state.onentry if tag == "onentry" else state.onexit).append(self.block(child))
             elif tag == "datamodel":
-                self.datamodel(child)
+                self.datamodel(child, state)
             elif tag == "ps:listen":
                 state.listens.append(self.listen(child))
+            elif tag == "donedata":
+                if node.tag != "final" or state.donedata is not None:
+                    raise child.fail("a <final> has at most one <donedata>, and only a <final> has one")
+                _check_attrs(child, ())
+                params, content = self.event_data(child)
+                state.donedata = DoneData(params, content, child.where)
             elif tag == "initial":
                 if node.tag != "state":
                     raise child.fail("only a <state> has an <initial>")
@@ -645,21 +833,26 @@ class _Compiler:
         cond = _expr(node, "cond") if "cond" in node.attrs else None
         return Listen(service, path, _event(node, "event"), cond, node.where)
 
-    def datamodel(self, node: Node) -> None:
+    def datamodel(self, node: Node, state: State) -> None:
         _check_attrs(node, ())
         for child in node.children:
             if child.tag != "data":
                 raise child.fail("<datamodel> holds only <data id=... expr=...>")
+            if "src" in child.attrs:
+                raise child.fail("src=...: a chart never reads files or URLs; give the value with expr")
             _check_attrs(child, ("id", "expr"))
             name = _variable(child, "id")
             if name in (n for n, _ in self.data):
                 raise child.fail(f"the variable {name!r} is declared twice")
+            item: tuple[str, Expression | None]
             if "expr" in child.attrs:
-                self.data.append((name, _expr(child, "expr")))
+                item = (name, _expr(child, "expr"))
             elif child.text.strip():
-                self.data.append((name, _expr(child, "expr", child.text)))
+                item = (name, _expr(child, "expr", child.text))
             else:
-                self.data.append((name, None))
+                item = (name, None)
+            self.data.append(item)
+            self.state_data.setdefault(state.id, []).append(item)
 
     # -- resolving targets --------------------------------------------------------
 
@@ -684,11 +877,42 @@ class _Compiler:
                     )
 
 
+def _from_json(value: Any) -> Any:
+    if isinstance(value, dict):
+        return Record({str(k): _from_json(v) for k, v in value.items()})
+    if isinstance(value, list):
+        return [_from_json(v) for v in value]
+    return value
+
+
+def _content_value(node: Node) -> Any:
+    """The value of ``<content>``'s text (W3C SCXML B.2: space-normalized; JSON parsed)."""
+    text = " ".join(node.text.split())
+    if not text:
+        return None
+    if text[0] in "{[":
+        try:
+            return check_size(_from_json(json.loads(text)))
+        except (ValueError, RecursionError, EvaluationError):
+            pass  # not JSON after all (or too big): the text itself
+    return parse_chart_value(text)
+
+
+def _refuse_left_out(node: Node) -> None:
+    """The first element left out by design (``<invoke>``, ``<script>``...), in document order,
+    is the refusal: a chart that needs one is refused for it, not for what comes before it."""
+    for child in node.children:
+        if child.tag in _REFUSED:
+            raise child.fail(_REFUSED[child.tag])
+        _refuse_left_out(child)
+
+
 def compile_chart(name: str, text: str) -> Chart:
     """Load and check a chart (SCXML, JSON or YAML); ChartError naming the line and what is wrong."""
     fmt, node = read_document(text)
     if node.tag != "scxml":
         raise node.fail("the root element of a chart is <scxml>")
+    _refuse_left_out(node)
     _check_attrs(node, ("initial", "name", "version", "datamodel", "binding"))
     model = node.attrs.get("datamodel", "python")
     if model not in ("python", "ps", "null"):
@@ -696,16 +920,20 @@ def compile_chart(name: str, text: str) -> Chart:
             f"datamodel={model!r}: expressions here are a safe subset of Python;"
             ' write datamodel="python" or leave it out'
         )
-    if node.attrs.get("binding", "early") != "early":
-        raise node.fail('only binding="early" is supported: every variable is set when the machine starts')
+    binding = node.attrs.get("binding", "early")
+    if binding not in ("early", "late"):
+        raise node.fail(f"binding={binding!r}: 'early' or 'late'")
     compiler = _Compiler()
     root = State("", "root", node.where)
     compiled: list[tuple[Expression, Node, str, str]] = []
+    warnings: list[str] = []
     token = _COMPILED.set(compiled)
+    warned = _WARNINGS.set(warnings)
     try:
         compiler.contents(node, root)
     finally:
         _COMPILED.reset(token)
+        _WARNINGS.reset(warned)
     _check_names(compiled, {name for name, _ in compiler.data})
     for expression, at, attr, source in compiled:
         for state_id in expression.text_arguments("In"):
@@ -722,4 +950,18 @@ def compile_chart(name: str, text: str) -> Chart:
     compiler.transitions.append(root.initial)
     compiler.resolve(root)
     states, ordered = compiler.states, compiler.ordered
-    return Chart(name, fmt, text, root, states, ordered, compiler.data, compiler.transitions, followed)
+    return Chart(
+        name,
+        fmt,
+        text,
+        root,
+        states,
+        ordered,
+        compiler.data,
+        compiler.transitions,
+        followed,
+        warnings=tuple(warnings),
+        late=binding == "late",
+        state_data=compiler.state_data,
+        chart_name=node.attrs.get("name", ""),
+    )

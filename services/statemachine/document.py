@@ -66,9 +66,16 @@ class Node:
         return ChartError(f"{self.where}: <{self.tag}>: {why}")
 
 
+#: The byte-order mark editors on Windows write first (decoded: U+FEFF); a chart may start with it.
+BYTE_ORDER_MARK = "\ufeff"
+
+
 def detect_format(text: str) -> str:
-    """``scxml`` (text starting with ``<``), ``json`` (``{``) or ``yaml`` (anything else)."""
-    head = text.lstrip()[:1]
+    """``scxml`` (text starting with ``<``), ``json`` (``{``) or ``yaml`` (anything else).
+
+    A leading byte-order mark is not part of the text's start.
+    """
+    head = text.removeprefix(BYTE_ORDER_MARK).lstrip()[:1]
     if head == "<":
         return "scxml"
     if head == "{":
@@ -81,6 +88,9 @@ def read_document(text: str) -> tuple[str, Node]:
     if len(text) > MAX_CHART_CHARS:
         raise ChartError(f"the chart is longer than {MAX_CHART_CHARS} characters")
     fmt = detect_format(text)
+    # The mark says the text is UTF-8 (it is decoded already); expat, json and YAML would read it
+    # as a character of the document. CRLF line ends need nothing: all three read them.
+    text = text.removeprefix(BYTE_ORDER_MARK)
     if fmt == "scxml":
         return fmt, _read_scxml(text)
     if fmt == "json":

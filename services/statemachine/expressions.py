@@ -34,6 +34,7 @@ __all__ = [
     "LITERAL_ARGUMENTS",
     "MAX_EXPRESSION_LENGTH",
     "MAX_RESULT_LENGTH",
+    "NOT_AN_EXPRESSION",
     "EvaluationError",
     "Expression",
     "Record",
@@ -49,6 +50,10 @@ MAX_EXPRESSION_LENGTH = 2000
 MAX_NODES = 400
 #: Longest text, list or tuple an expression may build (the longest value a property takes).
 MAX_RESULT_LENGTH = MAX_VALUE_LENGTH
+
+
+#: How the refusal of text that does not parse as an expression starts.
+NOT_AN_EXPRESSION = "not a valid expression"
 
 
 class EvaluationError(Exception):
@@ -109,6 +114,13 @@ def _len(x: Any) -> int:
     raise EvaluationError(f"len() of a {type(x).__name__}")
 
 
+def _has_field(x: Any, name: Any) -> bool:
+    """``hasattr(_event, 'sendid')``: whether a record (or a mapping) has the field."""
+    if isinstance(x, Record):
+        return name in x.fields
+    return isinstance(x, dict) and name in x
+
+
 def _min_max(pick: Callable[..., Any]) -> Callable[..., Any]:
     def chosen(*args: Any) -> Any:
         items = args[0] if len(args) == 1 and isinstance(args[0], list | tuple) else args
@@ -132,6 +144,7 @@ FUNCTIONS: dict[str, Callable[..., Any]] = {
     "vector": _vector,
     "distance": _distance,
     "marker": _marker,
+    "hasattr": _has_field,
 }
 
 #: Functions whose arguments must be written as text (literals), with how many they take: the
@@ -156,6 +169,8 @@ _COMPARE: dict[type[ast.cmpop], Callable[[Any, Any], Any]] = {
     ast.GtE: operator.ge,
     ast.In: lambda a, b: a in b,
     ast.NotIn: lambda a, b: a not in b,
+    ast.Is: operator.is_,
+    ast.IsNot: operator.is_not,
 }
 _ALLOWED: tuple[type[ast.AST], ...] = (
     ast.Expression,
@@ -204,30 +219,41 @@ def _check(tree: ast.Expression, functions: Sequence[str]) -> None:
         if isinstance(node, ast.Attribute) and node.attr.startswith("_"):
             raise _refuse(node, f"the field {node.attr!r} is not allowed")
         if isinstance(node, ast.Call):
-            if not isinstance(node.func, ast.Name) or node.func.id not in functions:
-                raise _refuse(node, f"only these functions can be called: {', '.join(functions)}")
+            if isinstance(node.func, ast.Attribute) and node.func.attr == "get" and 1 <= len(node.args) <= 2:
+                pass  # a record's field, or a default: _event.data.get('Var1', 0)
+            elif not isinstance(node.func, ast.Name) or node.func.id not in functions:
+                raise _refuse(
+                    node, f"only these functions can be called: {', '.join(functions)} (and X.get(field))"
+                )
             if node.keywords or any(isinstance(a, ast.Starred) for a in node.args):
                 raise _refuse(node, "functions take positional arguments only")
-            wanted = LITERAL_ARGUMENTS.get(node.func.id)
+            called = node.func.id if isinstance(node.func, ast.Name) else ""
+            wanted = LITERAL_ARGUMENTS.get(called)
             if wanted is not None and (
                 len(node.args) != wanted
                 or not all(isinstance(a, ast.Constant) and isinstance(a.value, str) for a in node.args)
             ):
                 raise _refuse(
                     node,
-                    f"{node.func.id}() takes the property written as text, like "
-                    f"{node.func.id}('thermo1/data'), so that it is known when the chart is loaded",
+                    f"{called}() takes the property written as text, like "
+                    f"{called}('thermo1/data'), so that it is known when the chart is loaded",
                 )
 
 
 class Expression:
     """A checked expression; :meth:`evaluate` runs it against the chart's variables."""
 
-    __slots__ = ("_tree", "text")
+    __slots__ = ("_error", "_tree", "text")
 
-    def __init__(self, text: str, tree: ast.Expression) -> None:
+    def __init__(self, text: str, tree: ast.Expression, error: str = "") -> None:
         self.text = text
         self._tree = tree
+        self._error = error
+
+    @classmethod
+    def failing(cls, text: str, why: str) -> Expression:
+        """Text that does not parse: every evaluation is an EvaluationError saying ``why``."""
+        return cls(text, ast.Expression(body=ast.Constant(None)), why)
 
     def __repr__(self) -> str:
         return f"Expression({self.text!r})"
@@ -248,6 +274,8 @@ class Expression:
 
     def evaluate(self, variables: Mapping[str, Any], functions: Mapping[str, Callable[..., Any]]) -> Any:
         """The value; EvaluationError when it cannot be computed."""
+        if self._error:
+            raise EvaluationError(f"{self.text[:60]!r}: {self._error}")
         try:
             return _Evaluator(variables, functions).run(self._tree.body)
         except EvaluationError:
@@ -268,9 +296,9 @@ def compile_expression(text: str, functions: Sequence[str] = (*FUNCTIONS, "In", 
     try:
         tree = ast.parse(source, mode="eval")
     except SyntaxError as e:
-        raise InvalidArgument(f"not a valid expression: {e.msg} (column {e.offset or 0})") from None
+        raise InvalidArgument(f"{NOT_AN_EXPRESSION}: {e.msg} (column {e.offset or 0})") from None
     except (ValueError, RecursionError, MemoryError) as e:
-        raise InvalidArgument(f"not a valid expression: {e}") from None
+        raise InvalidArgument(f"{NOT_AN_EXPRESSION}: {e}") from None
     _check(tree, functions)
     return Expression(source, tree)
 
@@ -334,6 +362,8 @@ class _Evaluator:
                 raise EvaluationError(f"a {type(value).__name__} has no field {node.attr!r}")
             return value.field(node.attr)
         if isinstance(node, ast.Call):
+            if isinstance(node.func, ast.Attribute):  # X.get(field[, default]): checked at load time
+                return self._get(node.func.value, node.args)
             assert isinstance(node.func, ast.Name)  # checked at load time
             function = self.functions.get(node.func.id)
             if function is None:
@@ -351,6 +381,16 @@ class _Evaluator:
         if name in ("null", "None"):
             return None
         raise EvaluationError(f"name {name!r} is not defined")
+
+    def _get(self, of: ast.expr, args: list[ast.expr]) -> Any:
+        value = self.run(of)
+        key = self.run(args[0])
+        default = self.run(args[1]) if len(args) > 1 else None
+        if isinstance(value, Record):
+            return value.fields.get(key, default)
+        if isinstance(value, dict):
+            return value.get(key, default)
+        raise EvaluationError(f"a {type(value).__name__} has no fields to get")
 
     def _bool_op(self, node: ast.BoolOp) -> Any:
         value: Any = None

@@ -27,25 +27,32 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from services.backend import Change, Subscription, close_quietly
+from services.directory import context_for
 from services.errors import NotFound, PropertyError, ResourceExhausted
 from services.statemachine.binding import PropertyBinding
 from services.statemachine.chart import (
     MAX_DELAY,
     MAX_FOREACH,
+    SCXML_PROCESSOR,
+    SEND_TYPES,
     Action,
     Assign,
     Cancel,
     Chart,
+    Content,
     Foreach,
     If,
     Listen,
     Log,
+    Param,
     PropertyGet,
     PropertySet,
     Raise,
     Send,
     State,
     Transition,
+    is_variable_name,
+    parse_duration,
 )
 from services.statemachine.expressions import (
     FUNCTIONS,
@@ -80,15 +87,29 @@ MAX_ACTIONS = 100_000
 _ACTIONS_PER_TURN = 100
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Event:
+    """An event as ``_event`` shows it (W3C SCXML 5.10.1); empty fields read as None."""
+
     name: str
     data: Any = None
     kind: str = "external"
     origin: str = ""
+    sendid: str = ""
+    origintype: str = ""
 
     def record(self) -> Record:
-        return Record({"name": self.name, "data": self.data, "type": self.kind, "origin": self.origin})
+        return Record(
+            {
+                "name": self.name,
+                "type": self.kind,
+                "sendid": self.sendid or None,
+                "origin": self.origin or None,
+                "origintype": self.origintype or None,
+                "invokeid": None,  # a chart invokes nothing
+                "data": self.data,
+            }
+        )
 
 
 class _FollowFailed(EvaluationError):
@@ -142,7 +163,7 @@ def _covered(child: State, entering: set[State]) -> bool:
 def _matches(descriptors: Iterable[str], name: str) -> bool:
     """SCXML event matching: ``error`` matches ``error`` and ``error.action``; ``*`` matches every event."""
     for d in descriptors:
-        if d == "*":
+        if d in ("*", ".*"):
             return True
         stem = d.removesuffix(".*")
         if name == stem or name.startswith(stem + "."):
@@ -166,6 +187,9 @@ class Interpreter:
     name: str = ""
     #: True while someone listens to the configuration: each step then gives them a turn to take it.
     watched: Callable[[], bool] = lambda: False
+    #: Who the chart's Gets, Sets and Listens are made for (:data:`services.directory.CALLER`):
+    #: checked against the gateway's rules as that subject; None: as the service's own work.
+    caller: object | None = None
     configuration: set[State] = field(default_factory=set)
     variables: dict[str, Any] = field(default_factory=dict)
     status: str = "stopped"
@@ -188,6 +212,25 @@ class Interpreter:
         self._follows: dict[str, _Follow] = {}
         self._functions = {**FUNCTIONS, "In": self._in, "value": self._followed_value}
         self.transitions = 0
+        #: Ids made up for sends without one (``idlocation``), counted per run.
+        self._send_ids = 0
+        #: States whose ``<data>`` has its value (``binding="late"``: set when first entered).
+        self._bound: set[str] = set()
+        #: The chart's own address as a send target (and its events' origin).
+        self._address = location = f"#_scxml_{self.session_id}"
+        #: ``_event`` of the event taken last, made once per event, not once per expression.
+        self._recorded: tuple[Event | None, Record | None] = (None, None)
+        processor = Record({"location": location})
+        self._system = {
+            "_sessionid": self.session_id,
+            "_name": self.chart.chart_name or self.name,
+            "_ioprocessors": Record({SCXML_PROCESSOR: processor, "scxml": processor}),
+        }
+
+    @property
+    def session_id(self) -> str:
+        """``_sessionid``: the machine's name, unique in its service (``#_scxml_`` + it is its address)."""
+        return self.name
 
     # -- outside ---------------------------------------------------------------
 
@@ -199,7 +242,9 @@ class Interpreter:
         """Start the machine's task (the initial configuration is entered there)."""
         self.status = "running"
         self.reason = ""
-        self._task = asyncio.get_running_loop().create_task(self._run(), name=f"statemachine {self.name}")
+        self._task = asyncio.get_running_loop().create_task(
+            self._run(), name=f"statemachine {self.name}", context=context_for(self.caller)
+        )
 
     def send(self, name: str, data: Any = None, origin: str = "") -> None:
         """Queue an external event; ResourceExhausted when the queue is full."""
@@ -457,6 +502,9 @@ class Interpreter:
                 self._add_ancestors(s, domain, entering, default_entry, history_content)
         for s in sorted(entering, key=lambda x: x.order):
             self.configuration.add(s)
+            if self.chart.late and s.id not in self._bound:
+                self._bound.add(s.id)
+                self._bind(self.chart.state_data.get(s.id, ()))
             for block in s.onentry:
                 await self._run_block(block)
             if s in default_entry and s.initial is not None:
@@ -472,7 +520,12 @@ class Interpreter:
         if parent is None or parent.kind == "root":
             self.status = "done"
             return
-        self._queue_internal(Event(f"done.state.{parent.id}", None, "internal"))
+        data = None
+        if s.donedata is not None:
+            with contextlib.suppress(_BlockFailed):  # error.execution is queued, before the done event
+                done = s.donedata
+                data = self._event_data((), done.params, done.content, done.where, "")
+        self._queue_internal(Event(f"done.state.{parent.id}", data, "internal"))
         grand = parent.parent
         if (
             grand is not None
@@ -542,7 +595,11 @@ class Interpreter:
     def _init_data(self) -> None:
         for name, _ in self.chart.data:
             self.variables[name] = None
-        for name, expr in self.chart.data:
+        data = self.chart.state_data.get("", []) if self.chart.late else self.chart.data
+        self._bind(data)
+
+    def _bind(self, data: Iterable[tuple[str, Expression | None]]) -> None:
+        for name, expr in data:
             if expr is None:
                 continue
             try:
@@ -553,10 +610,11 @@ class Interpreter:
                 self._error_execution(f"data {name}: {e}", "")
 
     def _evaluate(self, expr: Expression, extra: Mapping[str, Any] | None = None) -> Any:
-        scope: dict[str, Any] = dict(self.variables)
         event = self._event
-        scope["_event"] = event.record() if event is not None else Record({"name": "", "data": None})
-        scope["_name"] = self.name
+        if event is not self._recorded[0]:
+            # ``_event`` is unbound (None) before the first event.
+            self._recorded = (event, event.record() if event is not None else None)
+        scope: dict[str, Any] = {**self.variables, **self._system, "_event": self._recorded[1]}
         if extra:
             scope.update(extra)
         return expr.evaluate(scope, self._functions)
@@ -566,10 +624,13 @@ class Interpreter:
             raise _Stopped(f"more than {MAX_QUEUED_EVENTS} internal events waiting (a loop of <raise>?)")
         self._internal.append(event)
 
-    def _error_execution(self, message: str, where: str) -> None:
-        self.journal(f"error.execution: {where + ': ' if where else ''}{message}")
+    def _error_execution(self, message: str, where: str, sendid: str = "") -> None:
+        self._error_event("error.execution", message, where, sendid)
+
+    def _error_event(self, name: str, message: str, where: str, sendid: str = "") -> None:
+        self.journal(f"{name}: {where + ': ' if where else ''}{message}")
         data = Record({"message": message, "where": where})
-        self._queue_internal(Event("error.execution", data, "platform"))
+        self._queue_internal(Event(name, data, "platform", sendid=sendid))
 
     def _expression_failed(self, e: EvaluationError, where: str) -> None:
         """An expression failed: error.action when it read a property not followed, else error.execution."""
@@ -620,8 +681,7 @@ class Interpreter:
             self._queue_internal(Event(action.event, None, "internal"))
         elif isinstance(action, Assign):
             if action.location not in self.variables:
-                undeclared = f"assign to {action.location!r}, which is not declared in <datamodel>"
-                self._error_execution(undeclared, action.where)
+                self._error_execution(self._not_writable("assign to", action.location), action.where)
                 raise _BlockFailed
             self.variables[action.location] = self._kept(self._value(action.expr, action.where), action.where)
         elif isinstance(action, Log):
@@ -638,8 +698,11 @@ class Interpreter:
         elif isinstance(action, Send):
             self._send(action)
         elif isinstance(action, Cancel):
+            send_id = action.send_id
+            if action.sendidexpr is not None:
+                send_id = format_chart_value(self._value(action.sendidexpr, action.where))
             for key, timer in list(self._timers.items()):
-                if timer.send_id == action.send_id:
+                if timer.send_id == send_id:
                     timer.handle.cancel()
                     del self._timers[key]
         elif isinstance(action, PropertySet):
@@ -647,7 +710,19 @@ class Interpreter:
         elif isinstance(action, PropertyGet):
             await self._property_get(action)
 
+    @staticmethod
+    def _not_writable(what: str, location: str) -> str:
+        if location.startswith("_") and location in ("_event", "_sessionid", "_name", "_ioprocessors"):
+            return f"{what} {location!r}, a system variable (read-only)"
+        if not is_variable_name(location):
+            return f"{what} {location[:60]!r}, which is not a variable's name"
+        return f"{what} {location!r}, which is not declared in <datamodel>"
+
     async def _foreach(self, action: Foreach) -> None:
+        for location in (action.item, action.index):
+            if location and not is_variable_name(location):
+                self._error_execution(self._not_writable("foreach into", location), action.where)
+                raise _BlockFailed
         items = self._value(action.array, action.where)
         if not isinstance(items, list | tuple | str):
             self._error_execution(f"foreach over a {type(items).__name__}", action.where)
@@ -663,22 +738,66 @@ class Interpreter:
                 await self._act(inner)
 
     def _send(self, action: Send) -> None:
+        where = action.where
+        send_id = action.send_id
+        if not send_id and action.idlocation:
+            self._send_ids += 1
+            send_id = f"{self.session_id}.send{self._send_ids}"
+        if action.idlocation:
+            if action.idlocation not in self.variables:
+                self._error_execution(self._not_writable("idlocation", action.idlocation), where)
+                raise _BlockFailed
+            self.variables[action.idlocation] = send_id
         name = action.event
         if action.eventexpr is not None:
-            name = str(self._value(action.eventexpr, action.where))
+            name = format_chart_value(self._value(action.eventexpr, where))
         assert name is not None
-        data = {n: self._kept(self._value(e, action.where), action.where) for n, e in action.params} or None
-        event_data = Record(data) if data else None
+        target = action.target
+        if action.targetexpr is not None:
+            target = format_chart_value(self._value(action.targetexpr, where))
+        kind = action.type
+        if action.typeexpr is not None:
+            kind = format_chart_value(self._value(action.typeexpr, where))
+        if kind not in SEND_TYPES:
+            self._error_execution(
+                f"type {kind[:60]!r}: the only event processor is {SCXML_PROCESSOR}", where, send_id
+            )
+            raise _BlockFailed
+        internal = target == "#_internal"
+        if target and not internal and target != self._address:
+            if target.startswith("#_scxml_"):
+                # W3C SCXML 6.2.4: a session that cannot be reached is error.communication.
+                why = f"target {target[:60]!r}: no such session; a chart sends only to itself"
+                self._error_event("error.communication", why, where, send_id)
+            else:
+                self._error_execution(f"target {target[:60]!r}: a chart sends only to itself", where, send_id)
+            raise _BlockFailed
+        event_data = (
+            self._event_data(action.namelist, action.params, action.content, where, send_id)
+            if action.params or action.namelist or action.content is not None
+            else None
+        )
         delay = action.delay
         if action.delayexpr is not None:
-            raw = self._value(action.delayexpr, action.where)
-            if isinstance(raw, bool) or not isinstance(raw, int | float) or not 0 <= raw <= MAX_DELAY:
-                bad = f"delayexpr gave {raw!r}, not seconds between 0 and {MAX_DELAY:g}"
-                self._error_execution(bad, action.where)
+            raw = self._value(action.delayexpr, where)
+            seconds = parse_duration(raw) if isinstance(raw, str) else raw
+            if (
+                isinstance(seconds, bool)
+                or not isinstance(seconds, int | float)
+                or not 0 <= seconds <= MAX_DELAY
+            ):
+                bad = (
+                    f"delayexpr gave {raw!r}, not a time like '1s' or '500ms' or seconds up to {MAX_DELAY:g}"
+                )
+                self._error_execution(bad, where, send_id)
                 raise _BlockFailed
-            delay = float(raw)
+            delay = float(seconds)
+        if internal:  # W3C SCXML 6.2.4: to the internal queue, after what is there already
+            self._queue_internal(Event(name, event_data, "internal", sendid=action.send_id))
+            return
+        event = Event(name, event_data, "external", self._address, action.send_id, SCXML_PROCESSOR)
         if delay <= 0:
-            self._post(name, event_data)
+            self._post(event)
             return
         if len(self._timers) >= MAX_TIMERS:
             self._error_execution(f"more than {MAX_TIMERS} delayed events waiting", action.where)
@@ -688,18 +807,45 @@ class Interpreter:
 
         def fire() -> None:
             self._timers.pop(key, None)
-            self._post(name, event_data)
+            self._post(event)
 
         handle = asyncio.get_running_loop().call_later(delay, fire)
-        self._timers[key] = _Timer(handle, action.send_id)
+        self._timers[key] = _Timer(handle, send_id)
 
-    def _post(self, name: str, data: Any) -> None:
+    def _event_data(
+        self, namelist: Iterable[str], params: list[Param], content: Content | None, where: str, send_id: str
+    ) -> Any:
+        """The data of an event: ``<content>``'s value, or a record of the namelist and the params
+        (None when there are none); _BlockFailed (error.execution queued) when one cannot be read."""
+        if content is not None:
+            if content.expr is None:
+                return content.value
+            return self._kept(self._value(content.expr, content.where), content.where)
+        data: dict[str, Any] = {}
+        for variable in namelist:
+            if variable not in self.variables:
+                self._error_execution(self._not_writable("namelist names", variable), where, send_id)
+                raise _BlockFailed
+            data[variable] = self.variables[variable]
+        for param in params:
+            if param.expr is None:
+                if param.location not in self.variables:
+                    self._error_execution(
+                        self._not_writable("param reads", param.location), param.where, send_id
+                    )
+                    raise _BlockFailed
+                data[param.name] = self.variables[param.location]
+            else:
+                data[param.name] = self._kept(self._value(param.expr, param.where), param.where)
+        return Record(data) if data else None
+
+    def _post(self, event: Event) -> None:
         """An event the chart sent itself: to the external queue, as SCXML's <send> does."""
         try:
-            self._external.put_nowait(Event(name, data, "external", "self"))
+            self._external.put_nowait(event)
         except asyncio.QueueFull:
-            self.journal(f"event {name} dropped: {MAX_QUEUED_EVENTS} events already waiting")
-            log.warning("machine %s: event %s dropped, the queue is full", self.name, name)
+            self.journal(f"event {event.name} dropped: {MAX_QUEUED_EVENTS} events already waiting")
+            log.warning("machine %s: event %s dropped, the queue is full", self.name, event.name)
 
     def _cancel_timers(self) -> None:
         for timer in self._timers.values():

@@ -19,8 +19,14 @@ property                  meaning
 ========================  ====================================================================
 
 Charts reach other services through the gateway's directory (see
-:mod:`services.statemachine.binding`). With ``storage = "NAME"`` every chart
-that is loaded by a Set is written to that storage service as
+:mod:`services.statemachine.binding`), and the gateway's rules check every Get,
+Set and Listen a chart makes as the subject it runs as: the subject whose Set of
+``M.start`` started it last; a chart the configuration loads runs as the
+subject ``run_as`` names for its machine (``run_as = {patrol = "operator"}``),
+or, started by the configuration (``autostart``) with none named, as the
+service itself, unchecked, until a Set replaces its chart or starts it again.
+
+With ``storage = "NAME"`` every chart that is loaded by a Set is written to that storage service as
 ``FOLDER/M.scxml`` (``.json``, ``.yaml`` after its format), removed with its
 machine, and every stored chart is loaded again when the service starts.
 """
@@ -39,7 +45,7 @@ from collections.abc import Iterable, Mapping
 from typing import Annotated, Any
 
 from services.core import Prop, Resource, action, read_write
-from services.directory import Directory
+from services.directory import CALLER, Directory, own_work
 from services.errors import (
     DeadlineExceeded,
     FailedPrecondition,
@@ -103,6 +109,8 @@ class Machine(Resource):
         self._run: Interpreter | None = None
         self._log: collections.deque[str] = collections.deque(maxlen=MAX_LOG_ENTRIES)
         self._lock = asyncio.Lock()
+        #: The chart loaded now is the configuration's (its ``run_as`` applies to it).
+        self._configured = False
 
     # -- what clients see ------------------------------------------------------------
 
@@ -123,6 +131,7 @@ class Machine(Resource):
                 raise FailedPrecondition(f"machine {self._name} has no chart: Set {self._name}.definition")
             if self._run is not None and self._run.running:
                 raise FailedPrecondition(f"machine {self._name} is already running; stop it first")
+            named = self._owner.run_as.get(self._name) if self._configured else None
             self._run = Interpreter(
                 self._chart,
                 self._owner.binding,
@@ -130,6 +139,8 @@ class Machine(Resource):
                 self.journal,
                 name=self._name,
                 watched=lambda: bool(self._ps_watch.get("state")),
+                # The configured subject, else whoever starts it now (None: the configuration).
+                caller=named if named is not None else CALLER.get(),
             )
             self.journal("start")
             self._run.start()
@@ -202,12 +213,16 @@ class Machine(Resource):
         self._log.append(line if len(line) <= MAX_LOG_LINE else line[: MAX_LOG_LINE - 1] + "…")
         self.changed("log")
 
-    def load(self, chart: Chart) -> None:
+    def load(self, chart: Chart, *, configured: bool = False) -> None:
+        """Load ``chart`` (``configured``: the configuration's, which its ``run_as`` applies to)."""
         if self.is_running():
             raise FailedPrecondition(f"machine {self._name} is running; stop it before replacing its chart")
         self._chart = chart
+        self._configured = configured
         self._run = None
         self.journal(f"loaded ({chart.format}, {len(chart.states)} states)")
+        for warning in chart.warnings:
+            self.journal(f"warning: {warning}")
         self._refresh()
         self.changed("definition")
 
@@ -279,6 +294,7 @@ class StateMachineService(Resource):
         folder: str = "statecharts",
         action_timeout: float = DEFAULT_ACTION_TIMEOUT,
         max_machines: int = MAX_MACHINES,
+        run_as: Mapping[str, str] | None = None,
     ) -> None:
         if not (
             isinstance(action_timeout, int | float) and math.isfinite(action_timeout) and action_timeout > 0
@@ -295,6 +311,13 @@ class StateMachineService(Resource):
             raise InvalidArgument('charts is a table of name = "builtin:NAME" or a file path')
         if isinstance(autostart, str) or not all(isinstance(name, str) for name in autostart):
             raise InvalidArgument('autostart is a list of machine names, like ["patrol"]')
+        if run_as is not None and (
+            not isinstance(run_as, Mapping)
+            or not all(isinstance(k, str) and isinstance(v, str) and v for k, v in run_as.items())
+        ):
+            raise InvalidArgument('run_as is a table of machine name = "SUBJECT", like {patrol = "operator"}')
+        #: Machine → the subject its configured chart runs as.
+        self.run_as: dict[str, str] = dict(run_as or {})
         if storage:
             validate_service_name(storage)
         if not all(part and all(c.isalnum() or c in "_-" for c in part) for part in folder.split("/")):
@@ -309,9 +332,12 @@ class StateMachineService(Resource):
         for name, spec in (charts or {}).items():
             try:
                 validate_service_name(name)
-                self._put(name, compile_chart(name, _read_chart_file(spec)))
+                self._put(name, compile_chart(name, _read_chart_file(spec)), configured=True)
             except InvalidArgument as e:
                 raise InvalidArgument(f"chart {name!r} ({spec}): {e.message}") from None
+        for name in self.run_as:
+            if name not in self._machines:
+                raise InvalidArgument(f"run_as names {name!r}, which is not among the charts")
         for name in self._autostart:
             if name not in self._machines:
                 raise InvalidArgument(f"autostart names {name!r}, which is not among the charts")
@@ -329,7 +355,7 @@ class StateMachineService(Resource):
         self._put(name, None)
         return True
 
-    def _put(self, name: str, chart: Chart | None) -> Machine:
+    def _put(self, name: str, chart: Chart | None, *, configured: bool = False) -> Machine:
         machine = self._machines.get(name)
         if machine is None:
             if len(self._machines) >= self._max:
@@ -339,7 +365,7 @@ class StateMachineService(Resource):
             self._machines[name] = machine
             self.changed("machines")
         if chart is not None:
-            machine.load(chart)
+            machine.load(chart, configured=configured)
         return machine
 
     def _remove(self, name: str) -> None:
@@ -385,6 +411,11 @@ class StateMachineService(Resource):
     async def _store(self, name: str, chart: Chart | None) -> None:
         if not self._storage:
             return
+        # Keeping the chart is the service's own work, not a write for the client who loaded it.
+        with own_work():
+            await self._write_stored(name, chart)
+
+    async def _write_stored(self, name: str, chart: Chart | None) -> None:
         backend = self._directory.backend(self._storage)
         limit = self.binding.timeout
         try:
@@ -450,8 +481,10 @@ class StateMachineService(Resource):
     async def start(self) -> None:
         if self._storage:
             await self._load_stored()
-        for name in self._autostart:
-            await self._machines[name].start()
+        # Started by the configuration, whichever call woke the service (a dormant one).
+        with own_work():
+            for name in self._autostart:
+                await self._machines[name].start()
 
     async def stop(self) -> None:
         await asyncio.gather(*(m.halt() for m in self._machines.values()), return_exceptions=True)

@@ -49,6 +49,20 @@ def image() -> str:
     return _image_or_skip()
 
 
+ETCD_STATUS = ROOT / "build" / "containers" / "etcd-status"
+
+
+@pytest.fixture(scope="session")
+def etcd_image(image: str) -> str:
+    """The etcd image of the compose cluster: the one setup.sh built from the host's etcd, or ETCD_IMAGE."""
+    if not ETCD_STATUS.exists():
+        pytest.skip(f"no etcd image: run tests/containers/setup.sh ({ETCD_STATUS} is missing)")
+    kind, _, detail = ETCD_STATUS.read_text().strip().partition(": ")
+    if kind != "ready":
+        pytest.skip(f"the compose cluster's test skipped by tests/containers/setup.sh: {detail}")
+    return detail
+
+
 @pytest.fixture(scope="session")
 def podman_env(image: str) -> dict[str, str]:
     """The environment podman commands run with (its containers.conf from setup.sh)."""

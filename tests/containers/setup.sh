@@ -25,6 +25,8 @@ log="$out/setup.log"
 : >"$log"
 # Until the build has finished, the tests skip: an image of an older tree is never tested.
 printf 'skip: tests/containers/setup.sh did not finish (see %s)\n' "$log" >"$status"
+etcd_status="$out/etcd-status"
+printf 'skip: tests/containers/setup.sh did not finish (see %s)\n' "$log" >"$etcd_status"
 
 skip() {  # skip "why": the tests skip with this reason
   echo "note: container tests will skip: $1"
@@ -98,3 +100,24 @@ echo "built $image in $(( $(date +%s) - start )) s: $(( size / 1000000 )) MB"
 # The layers of earlier builds, no longer under any tag: the cache does not grow without bound.
 podman image prune --force >>"$log" 2>&1 || true
 printf 'ready: %s\n' "$image" >"$status"
+
+# The compose cluster's etcd (tests/containers/test_compose_cluster.py): the image ETCD_IMAGE
+# names (a machine that can pull: ETCD_IMAGE=gcr.io/etcd-development/etcd:v3.5.17), or else the
+# host's etcd (Debian's etcd-server: linked against glibc alone) copied onto the same base.
+if [ -n "${ETCD_IMAGE:-}" ]; then
+  printf 'ready: %s\n' "$ETCD_IMAGE" >"$etcd_status"
+elif etcd_bin=$(command -v etcd); then
+  etcd_image=localhost/psgateway-etcd:test
+  context="$out/etcd-image"
+  mkdir -p "$context"
+  cp "$etcd_bin" "$context/etcd"
+  printf 'FROM %s\nCOPY etcd /usr/local/bin/etcd\n' "$PYTHON_IMAGE" >"$context/Containerfile"
+  if podman build --format docker --tag "$etcd_image" "$context" >>"$log" 2>&1; then
+    printf 'ready: %s\n' "$etcd_image" >"$etcd_status"
+  else
+    printf 'skip: podman build of the etcd image failed (see %s)\n' "$log" >"$etcd_status"
+  fi
+else
+  printf 'skip: no etcd image: set ETCD_IMAGE to one, or install etcd (Debian package etcd-server)\n' \
+    >"$etcd_status"
+fi

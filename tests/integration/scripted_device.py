@@ -1,6 +1,6 @@
 r"""A line-protocol device played by the test on a real TCP socket or a real pty.
 
-It is the kind of device docs/line-protocol.md describes for a small
+It is the kind of device docs/device-spec.md describes for a small
 microcontroller: a table of properties, one subscription per path, requests
 handled one at a time in arrival order with a pause each (the time an 8-bit
 device takes), and, when it states ``rxbuf=N``, a receive buffer of N bytes

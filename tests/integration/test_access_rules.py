@@ -14,16 +14,19 @@ import json
 import shutil
 import subprocess
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
+import aiohttp
 import grpc
 import jwt
 import pytest
 from cryptography.hazmat.primitives.asymmetric import ec
 from line_device_support import LineClient, device_process
 from support.certs import make_certificates
-from support.gateway_process import GatewayProcess
+from support.gateway_process import GatewayProcess, start_gateway
 from support.ports import free_port
+from support.sse import SseReader
 from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
@@ -549,3 +552,345 @@ async def test_without_rules_a_device_that_dials_in_registers_as_before(gateway_
             assert state == "up"
             reply = await stub.Get(pb.GetRequest(service="fakebot", property="location"), timeout=15)
             assert reply.value
+
+
+# -- calls made on a client's behalf: a group, a wildcard into it, federation, a chart ----------
+
+SWARM_RULES = """
+[[rules]]   # 5: anyone reads the swarm
+subject = "*"
+service = "swarm"
+operations = ["read"]
+effect = "permit"
+
+[[rules]]   # 6: the operator drives the swarm
+subject = "operator"
+service = "swarm"
+operations = ["write", "invoke"]
+effect = "permit"
+
+[[rules]]   # 7: anyone reads the missions; the operator loads and runs them
+subject = "*"
+service = "missions"
+operations = ["read"]
+effect = "permit"
+
+[[rules]]   # 8
+subject = "operator"
+service = "missions"
+operations = ["write", "invoke"]
+effect = "permit"
+"""
+
+#: A chart that writes scout1's speed (the operator may) and then scout2's (nobody but the admin
+#: may): it ends in `refused` holding the code and message of the refusal.
+ERRAND = """<scxml xmlns="http://www.w3.org/2005/07/scxml" xmlns:ps="urn:propertyservice:scxml" initial="go">
+  <datamodel><data id="code" expr="''"/><data id="why" expr="''"/></datamodel>
+  <state id="go">
+    <onentry>
+      <ps:set property="scout1/speed" value="0.25"/>
+      <ps:set property="scout2/speed" value="0.5"/>
+    </onentry>
+    <transition event="error.action" target="refused">
+      <assign location="code" expr="_event.data.code"/>
+      <assign location="why" expr="_event.data.message"/>
+    </transition>
+  </state>
+  <final id="refused"/>
+</scxml>
+"""
+
+
+@pytest.fixture(scope="module")
+def swarmed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[GatewayProcess, Tokens, int]]:
+    """The worked rules plus "anyone reads swarm, the operator drives it": one gateway for the module."""
+    folder = tmp_path_factory.mktemp("swarmed")
+    tokens = Tokens(folder)
+    (folder / "errand.scxml").write_text(ERRAND)
+    line_port = free_port()
+    gw = start_gateway(
+        folder,
+        f"""
+        [gateway]
+        line_listen = "127.0.0.1:{line_port}"
+
+        [auth]
+        jwt_secret_file = "jwt.secret"
+        jwks_file = "keys.json"
+        issuer = "lab"
+
+        [[services]]
+        name = "scout1"
+        type = "sim-robot"
+
+        [[services]]
+        name = "scout2"
+        type = "sim-robot"
+
+        [[services]]
+        name = "swarm"
+        type = "group"
+        options = {{ members = ["scout1", "scout2"] }}
+
+        [[services]]
+        name = "missions"
+        type = "statemachine"
+
+        [services.options]
+        charts = {{ errand = "errand.scxml" }}
+        autostart = ["errand"]
+        run_as = {{ errand = "viewer" }}
+        """
+        + RULES
+        + SWARM_RULES,
+    )
+    yield gw, tokens, line_port
+    gw.stop()
+
+
+def _who(tokens: Tokens) -> dict[str, str | None]:
+    return {
+        "anonymous": None,
+        "viewer": tokens.hs256("viewer"),
+        "operator": tokens.es256("operator"),
+        "admin": tokens.hs256("admin"),
+    }
+
+
+#: (subject, path of swarm) → (code, text the message must hold) for a Get through the group.
+GROUP_READS = [
+    ("anonymous", "robots.scout1.speed", OK, ""),
+    ("anonymous", "location", OK, ""),
+    ("anonymous", "robots.scout1.sensors.battery", UNAUTH, "read scout1/sensors.battery"),
+    ("anonymous", "robots.scout2.location", UNAUTH, "read scout2/location"),
+    ("viewer", "robots.scout1.sensors.battery", DENIED, "rules[1] (deny * read scout1/sensors.**)"),
+    ("viewer", "robots.scout2.location", DENIED, "viewer may not: no rule permits it (implicit deny)"),
+    # The mean of the members the caller may read (scout1's alone for a viewer).
+    ("viewer", "velocity", OK, ""),
+    # Rule 1 names scout1: it is more specific than the admin's rule 4, for the admin too.
+    ("admin", "robots.scout1.sensors.battery", DENIED, "admin may not: refused by rules[1]"),
+    ("admin", "robots.scout2.sensors.battery", OK, ""),
+    ("admin", "robots.scout2.location", OK, ""),
+]
+
+HTTP_STATUS = {OK: 200, DENIED: 403, UNAUTH: 401}
+
+
+async def test_a_group_reads_its_members_as_the_caller_on_every_front_end(swarmed) -> None:  # type: ignore[no-untyped-def]
+    gw, tokens, line_port = swarmed
+    who = _who(tokens)
+    failures = []
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        for subject, path, code, text in GROUP_READS:
+            got, details = await _call(stub, who[subject], "get", "swarm", path)
+            if got != code or text not in details:
+                failures.append(
+                    f"gRPC {subject} get swarm/{path}: {got.name} {details!r}, wanted {code.name}"
+                )
+    async with aiohttp.ClientSession(base_url=gw.http_url) as http:
+        for subject, path, code, text in GROUP_READS:
+            token = who[subject]
+            headers = {"Authorization": f"Bearer {token}"} if token else {}
+            url = f"/api/v1/services/swarm/properties/{path}"
+            async with http.get(url, headers=headers) as response:
+                body = await response.json()
+            message = body.get("error", {}).get("message", "")
+            if response.status != HTTP_STATUS[code] or text not in message:
+                failures.append(
+                    f"HTTP {subject} GET swarm/{path}: {response.status} {body}, wanted {code.name}"
+                )
+    assert not failures, "\n".join(failures)
+    # The line listener asks as anonymous.
+    c = await LineClient.tcp("127.0.0.1", line_port)
+    assert "name=gateway" in await c.line()
+    await c.send(
+        "#1 GET swarm.robots.scout1.speed",
+        "#2 GET swarm.robots.scout1.sensors.battery",
+        "#3 GET swarm.robots.scout2.location",
+        "#4 LISTEN swarm.robots.scout1.sensors.battery",
+    )
+    replies = sorted(await c.replies(4))
+    assert replies[0].startswith("#1 OK "), replies
+    assert replies[1].startswith("#2 ERR 16 ") and "scout1/sensors.battery" in replies[1], replies
+    assert replies[2].startswith("#3 ERR 16 ") and "scout2/location" in replies[2], replies
+    assert replies[3].startswith("#4 ERR 16 ") and "scout1/sensors.battery" in replies[3], replies
+    await c.close()
+
+
+async def test_a_wildcard_or_more_get_through_a_group_reads_only_what_the_caller_may(swarmed) -> None:  # type: ignore[no-untyped-def]
+    gw, tokens, _ = swarmed
+    with Client(gw.address, metadata=_metadata(tokens.hs256("viewer"))) as viewer:
+        seen = viewer.get_matching("swarm", "robots.*.*")
+        assert "robots.scout1.speed" in seen, seen
+        assert not [p for p in seen if p.startswith("robots.scout2.")], seen
+        # The sensors of scout1 are refused by rule 1, those of scout2 by the implicit deny.
+        with pytest.raises(NotFound, match="no readable property of swarm matches"):
+            viewer.get_matching("swarm", "robots.*.sensors.*")
+        with pytest.raises(PermissionDenied, match=r"scout1/sensors.battery: .*rules\[1\]"):
+            viewer.get_many([("swarm", "robots.scout1.speed"), ("swarm", "robots.scout1.sensors.battery")])
+    with Client(gw.address, metadata=_metadata(tokens.hs256("admin"))) as admin:
+        everything = admin.get_matching("swarm", "robots.*.sensors.*")
+        assert "robots.scout2.sensors.battery" in everything, everything
+        assert not [p for p in everything if p.startswith("robots.scout1.")], everything
+
+
+async def test_a_group_drives_its_members_only_as_far_as_the_caller_may(swarmed) -> None:  # type: ignore[no-untyped-def]
+    gw, tokens, _ = swarmed
+    who = _who(tokens)
+    marker = "<marker><location>(3 3)</location></marker>"
+    # (path of swarm, value) → (code, text) for the operator, who may drive scout1 but not send it
+    # somewhere (rules[3]) and may not touch scout2 at all.
+    table = [
+        ("robots.scout1.speed", "0.3", OK, ""),
+        ("robots.scout1.behaviors.moveto", marker, DENIED, "rules[3] (deny operator invoke"),
+        ("robots.scout2.speed", "0.3", DENIED, "write scout2/speed: operator may not"),
+        ("velocity", "(0.1 0 0)", DENIED, "scout2: PERMISSION_DENIED"),
+        ("behaviors.moveto", marker, DENIED, "scout1: PERMISSION_DENIED"),
+    ]
+    failures = []
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        before = await stub.Get(
+            pb.GetRequest(service="scout2", property="speed"), metadata=_metadata(who["admin"])
+        )
+        for path, value, code, text in table:
+            got, details = await _call(stub, who["operator"], "set", "swarm", path, value)
+            if got != code or text not in details:
+                failures.append(f"gRPC set swarm/{path}: {got.name} {details!r}, wanted {code.name} {text!r}")
+        async with aiohttp.ClientSession(base_url=gw.http_url) as http:
+            headers = {"Authorization": f"Bearer {who['operator']}"}
+            for path, value, code, text in table:
+                url = f"/api/v1/services/swarm/properties/{path}"
+                async with http.put(url, json={"value": value}, headers=headers) as response:
+                    body = await response.json()
+                message = body.get("error", {}).get("message", "")
+                if response.status != HTTP_STATUS[code] or text not in message:
+                    failures.append(f"HTTP PUT swarm/{path}: {response.status} {body}, wanted {code.name}")
+        after = await stub.Get(
+            pb.GetRequest(service="scout2", property="speed"), metadata=_metadata(who["admin"])
+        )
+        # The admin may drive every member through the group.
+        assert (await _call(stub, who["admin"], "set", "swarm", "robots.scout2.speed", "0.2"))[0] == OK
+    assert not failures, "\n".join(failures)
+    assert after.value == before.value  # nothing the operator sent reached scout2
+    audit = gw.output
+    assert (
+        '"property": "speed"' in audit and '"service": "scout2"' in audit and '"subject": "operator"' in audit
+    )
+
+
+async def _listen_until_sync(
+    stub: pb_grpc.PropertyServiceStub, token: str | None, request: pb.ListenRequest
+) -> set[tuple[str, str]]:
+    call = stub.Listen(request, metadata=_metadata(token))
+    seen: set[tuple[str, str]] = set()
+    async with asyncio.timeout(10):
+        async for response in call:
+            seen |= {(e.service, e.property) for e in response.events}
+            if response.sync:
+                break
+    call.cancel()
+    return seen
+
+
+async def _refused_listen(
+    stub: pb_grpc.PropertyServiceStub, token: str | None, service: str, path: str
+) -> str:
+    call = stub.Listen(pb.ListenRequest(service=service, property=path), metadata=_metadata(token))
+    with pytest.raises(grpc.aio.AioRpcError) as caught:
+        async with asyncio.timeout(10):
+            async for _ in call:
+                pass
+    return f"{caught.value.code().name} {caught.value.details()}"
+
+
+async def test_listen_through_a_group_hears_only_what_the_caller_may_read(swarmed) -> None:  # type: ignore[no-untyped-def]
+    gw, tokens, _ = swarmed
+    who = _who(tokens)
+    battery = "robots.scout1.sensors.battery"
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        # The admin opens the topic first; a viewer joining it is still checked for scout2's location.
+        where = "robots.scout2.location"
+        admin = stub.Listen(
+            pb.ListenRequest(service="swarm", property=where), metadata=_metadata(who["admin"])
+        )
+        async with asyncio.timeout(10):
+            async for response in admin:
+                if response.sync:
+                    break
+        refused = await _refused_listen(stub, who["viewer"], "swarm", where)
+        assert refused.startswith("PERMISSION_DENIED") and "read scout2/location" in refused, refused
+        refused = await _refused_listen(stub, None, "swarm", where)
+        assert refused.startswith("UNAUTHENTICATED") and "scout2/location" in refused, refused
+        admin.cancel()
+        refused = await _refused_listen(stub, who["viewer"], "swarm", battery)
+        assert refused.startswith("PERMISSION_DENIED") and "rules[1]" in refused, refused
+        request = pb.ListenRequest(
+            service="swarm",
+            property="robots.*.sensors.*",
+            more=[pb.PropertyRef(service="swarm", property="robots.*.speed")],
+        )
+        assert await _listen_until_sync(stub, who["viewer"], request) == {("swarm", "robots.scout1.speed")}
+        everything = await _listen_until_sync(stub, who["admin"], request)
+        assert ("swarm", "robots.scout2.sensors.battery") in everything, everything
+        assert ("swarm", battery) not in everything and ("swarm", "robots.scout2.speed") in everything
+    async with aiohttp.ClientSession(base_url=gw.http_url) as http:
+        params = [("sel", "swarm/robots.*.sensors.*"), ("sel", "swarm/robots.*.speed")]
+        async with http.get("/api/v1/events", params=params) as response:
+            snapshot = await SseReader(response).values_until_sync()
+        assert {(m.data["service"], m.data["path"]) for m in snapshot} == {("swarm", "robots.scout1.speed")}
+        async with http.get("/api/v1/events", params={"sel": f"swarm/{battery}"}) as response:
+            error = await SseReader(response).until("error")
+        assert error.data["code"] == "UNAUTHENTICATED", error
+        assert "scout1/sensors.battery" in error.data["message"], error
+
+
+async def test_a_chart_acts_as_the_subject_that_started_it_or_the_one_its_config_names(swarmed) -> None:  # type: ignore[no-untyped-def]
+    gw, tokens, _ = swarmed
+    async with AsyncClient(gw.address, metadata=_metadata(tokens.hs256("admin"))) as admin:
+        # Autostarted as `run_as = {errand = "viewer"}`: the viewer may write neither speed.
+        await _wait_for(admin, "missions", "errand.status", "done")
+        variables = json.loads(await admin.get("missions", "errand.variables"))
+        assert variables["code"] == "PERMISSION_DENIED" and "scout1/speed: viewer may not" in variables["why"]
+        # Loaded and started by the operator: scout1 is written, scout2 is refused.
+        speed2 = await admin.get("scout2", "speed")
+        async with AsyncClient(gw.address, metadata=_metadata(tokens.es256("operator"))) as operator:
+            await operator.set("missions", "mine.definition", ERRAND)
+            await operator.set("missions", "mine.start", "")
+        await _wait_for(admin, "missions", "mine.status", "done")
+        variables = json.loads(await admin.get("missions", "mine.variables"))
+        assert (
+            variables["code"] == "PERMISSION_DENIED" and "scout2/speed: operator may not" in variables["why"]
+        )
+        assert await admin.get("scout1", "speed") == "0.25"
+        assert await admin.get("scout2", "speed") == speed2
+
+
+async def _wait_for(client: AsyncClient, service: str, path: str, value: str) -> None:
+    await eventually(lambda: client.get(service, path), lambda got: got == value, what=f"{service}/{path}")
+
+
+async def test_a_federated_group_reads_the_far_members_as_the_rules_there_say(  # type: ignore[no-untyped-def]
+    swarmed, gateway_process
+) -> None:
+    gw, _, _ = swarmed
+    near = gateway_process(
+        f"""
+        [[services]]
+        name = "far"
+        url = "grpc://{gw.address}/swarm"
+        """
+    )
+    async with AsyncClient(near.address) as client:
+        assert await client.get("far", "robots.scout1.speed")
+        with pytest.raises(Unauthenticated, match=r"scout1/sensors\.battery"):
+            await client.get("far", "robots.scout1.sensors.battery")
+        with pytest.raises(Unauthenticated, match=r"scout2/location"):
+            await client.get("far", "robots.scout2.location")
+    async with grpc.aio.insecure_channel(near.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        request = pb.ListenRequest(service="far", property="robots.*.sensors.*")
+        request.more.add(service="far", property="robots.*.speed")
+        assert await _listen_until_sync(stub, None, request) == {("far", "robots.scout1.speed")}

@@ -94,7 +94,7 @@ async def check_get_set_and_errors(gw: GatewayProcess) -> None:
         )
         assert [many.value, *(v.value for v in many.more)] == ["22.5", "shelf 2, left", "1.25", "22.5", "()"]
         # The device's refusals reach the client with their own codes.
-        assert await refused(lambda: set_(stub, "setpoint", "99")) == grpc.StatusCode.OUT_OF_RANGE
+        assert await refused(lambda: set_(stub, "setpoint", "99")) == grpc.StatusCode.INVALID_ARGUMENT
         assert await refused(lambda: set_(stub, "setpoint", "20.25")) == grpc.StatusCode.INVALID_ARGUMENT
         assert await refused(lambda: set_(stub, "temp", "30")) == grpc.StatusCode.FAILED_PRECONDITION
         assert await refused(lambda: get(stub, "probe")) == grpc.StatusCode.FAILED_PRECONDITION
@@ -164,7 +164,7 @@ async def test_listen_reset_gone_and_return_over_tcp(
 
 def check_checksums(tap: WireTap) -> None:
     """Once the gateway sent a checksummed line, every line the device sent carries a right CRC-8,
-    but for its greeting after a reset: a reset forgets checksum mode (docs/line-protocol.md §6)."""
+    but for its greeting after a reset: a reset forgets checksum mode (docs/device-spec.md §6.5)."""
     record = tap.record()
     first = next(i for i, (who, line) in enumerate(record) if who == "gw" and line.startswith("$"))
     device_lines = [line for who, line in record[first:] if who == "dev" and line]

@@ -58,7 +58,7 @@ async def test_bad_lines_get_errors_and_the_connection_lives_on() -> None:
         assert replies[1].startswith("#5 ERR 8 line too long")
         assert replies[2].startswith("#6 ERR 3 bad escape")
         assert replies[3].startswith("#7 ERR 3 unexpected text")
-        # The reply to a $-line carries a checksum, the ERR of a damaged one too (§6).
+        # The reply to a $-line carries a checksum, the ERR of a damaged one too (docs/device-spec.md §6.4).
         assert replies[4].startswith("$ERR 15 checksum mismatch")
         assert int(replies[4][-2:], 16) == crc8(replies[4][1:-3].encode())
         await c.send(f"$#9 GET location*{crc8(b'#9 GET location'):02X}")

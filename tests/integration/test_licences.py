@@ -22,6 +22,7 @@ from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
 from clients.errors import FailedPrecondition, NotFound, PermissionDenied, ResourceExhausted, Unauthenticated
+from services.values import parse_list
 
 SECRET = "a shared secret of the lab, long enough for HS256"
 
@@ -33,6 +34,11 @@ type = "sim-robot"
 [[services]]
 name = "spare"
 type = "sim-robot"
+
+[[services]]
+name = "swarm"
+type = "group"
+options = { members = ["scout", "spare"] }
 """
 
 
@@ -249,6 +255,34 @@ async def test_the_http_front_end_refuses_a_non_holder_too(secured: GatewayProce
             assert anonymous.status == 400 and "only on a Session" in text, text
 
 
+async def test_a_licence_holds_through_a_group_too(secured: GatewayProcess) -> None:
+    async with client(secured, "alice") as alice, client(secured, "bob") as bob:
+        licence = await alice.set("registry", "acquire", "", service="scout")
+        held = f"scout: FAILED_PRECONDITION: scout/velocity: licence {licence} on scout is held by alice"
+        # A Set through the group is refused for the member alice holds, as a direct one is,
+        # and the group's Set fails as any partly failed group call does, naming that member.
+        with pytest.raises(
+            FailedPrecondition, match=re.escape("failed on 1 of 2 members (the other 1 acted): " + held)
+        ):
+            await bob.set("swarm", "velocity", "(0.3 0)")
+        with pytest.raises(
+            FailedPrecondition, match=re.escape(f"licence {licence} on scout is held by alice")
+        ):
+            await bob.set("swarm", "robots.scout.velocity", "(0.3 0)")
+        async with AsyncClient(secured.address) as anonymous, anonymous.session() as session:
+            with pytest.raises(FailedPrecondition, match=re.escape(held)):
+                await session.set("swarm", "velocity", "(0.3 0)")
+        # bob's Sets moved none of scout, and the member nobody holds acted.
+        assert await bob.get("scout", "velocity") == "(0 0 0 0 0 0)"
+        assert await bob.get("spare", "velocity") == "(0.3 0 0 0 0 0)"
+        # The holder's own Sets through the group pass, whole.
+        await alice.set("swarm", "velocity", "(0.2 0)")
+        await alice.set("swarm", "robots.scout.velocity", "(0.1 0)")
+        assert await bob.get("scout", "velocity") == "(0.1 0 0 0 0 0)"
+        await alice.set("registry", "release", "", licence=licence)
+        await bob.set("swarm", "velocity", "(0 0)")
+
+
 RULES = """
 [[rules]]   # 0: anyone reads, and invokes the licence actions (revoke is admin)
 subject = "*"
@@ -274,7 +308,13 @@ path = "speed"
 operations = ["write"]
 effect = "permit"
 
-[[rules]]   # 4
+[[rules]]   # 4: and drives the swarm, as far as each member's rules let it
+subject = "operator"
+service = "swarm"
+operations = ["write", "invoke"]
+effect = "permit"
+
+[[rules]]   # 5
 subject = "admin"
 operations = ["read", "write", "invoke", "register", "unregister", "admin"]
 effect = "permit"
@@ -332,6 +372,43 @@ async def test_a_caller_locks_only_what_the_rules_let_it_change(ruled: GatewayPr
             await operator.set("registry", "acquire", "", service="scout", subtree="behaviors")
         await operator.set("registry", "release", "", licence=speed)
         await operator.set("registry", "acquire", "", service="scout", subtree="behaviors")
+
+
+async def test_a_licence_refuses_even_an_admin_through_a_group_under_rules(ruled: GatewayProcess) -> None:
+    async with client(ruled, "operator") as operator, client(ruled, "admin") as admin:
+        licence = await operator.set("registry", "acquire", "", service="scout", subtree="velocity")
+        held = f"scout: FAILED_PRECONDITION: scout/velocity: licence {licence} on scout/velocity is held by"
+        # The admin may write everything by the rules; the licence still refuses it, for that member.
+        with pytest.raises(FailedPrecondition, match=re.escape(held)):
+            await admin.set("swarm", "velocity", "(0.3 0)")
+        with pytest.raises(FailedPrecondition, match=re.escape(f"licence {licence} on scout/velocity")):
+            await admin.set("swarm", "robots.scout.velocity", "(0.3 0)")
+        await admin.set("swarm", "robots.scout.speed", "0.4")  # outside the licensed subtree
+        # The holder's own Set through the group passes.
+        await operator.set("swarm", "robots.scout.velocity", "(0.1 0)")
+        assert await admin.get("scout", "velocity") == "(0.1 0 0 0 0 0)"
+
+
+async def test_the_scheduler_picks_only_providers_the_caller_may_write(ruled: GatewayProcess) -> None:
+    async with client(ruled, "operator") as operator, client(ruled, "squatter") as squatter:
+        # Nothing it may write offers it: NOT_FOUND as when no provider offers it, saying why.
+        with pytest.raises(
+            NotFound,
+            match=re.escape(
+                "no provider offers (mobile_robot): squatter may not write scout spare by the rules"
+            ),
+        ):
+            await squatter.set("registry", "request", "(mobile_robot)", wait="0")
+        # The operator may write scout whole, spare only in part: two are more than it may have.
+        with pytest.raises(NotFound, match=r"1 exist: operator may not write spare by the rules"):
+            await operator.set("registry", "request", "(mobile_robot)", count="2", wait="0")
+        # One it may have: scout, whatever the distance or the others' state.
+        _, status, pairs = parse_list(await operator.set("registry", "request", "(mobile_robot)", wait="0"))
+        assert status == "granted" and [provider for provider, _ in pairs] == ["scout"], pairs
+    async with client(ruled, "admin") as admin:
+        with pytest.raises(FailedPrecondition, match=r"licence \S+ on scout is held by operator"):
+            await admin.set("scout", "velocity", "(0.1 0)")
+        await admin.set("spare", "velocity", "(0.1 0)")
 
 
 async def test_an_admin_revokes_any_licence_and_its_holder_is_told(ruled: GatewayProcess) -> None:

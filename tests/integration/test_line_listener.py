@@ -38,12 +38,16 @@ async def test_a_microcontroller_reaches_every_service_through_the_listener() ->
         other = LocalService(create("sim-sensor"))
         router.add("light1", other)
         assert await c.line() == "EVENT properties (bot light1)"
-        await c.send("#5 GET nobody.x", "#6 GET bot", "#7 GET bot.nosuch", "#8 SET properties x")
-        replies = sorted(await c.replies(4))
+        await c.send(
+            "#5 GET nobody.x", "#6 GET bot.", "#7 GET bot.nosuch", "#8 SET properties x", "#9 GET bot"
+        )
+        replies = sorted(await c.replies(5))
         assert replies[0].startswith("#5 ERR 5 unknown service 'nobody'")
         assert replies[1].startswith("#6 ERR 3 ")
         assert replies[2].startswith("#7 ERR 5 ")
         assert replies[3].startswith("#8 ERR 9 ")
+        # A service's name alone reads as a namespace: the names of its properties.
+        assert replies[4].startswith("#9 OK (") and " speed " in replies[4]
         await c.close()
         await other.aclose()
     finally:

@@ -1,4 +1,4 @@
-"""Small line-protocol devices (docs/line-protocol.md 1.1) against the gateway's proxies and line listener.
+"""Small line-protocol devices (docs/device-spec.md, 1.1 on) against the gateway's proxies and line listener.
 
 Each device is played by the test on a real TCP socket or a real pty
 (:mod:`scripted_device`): it restarts mid-session, drops a property and gets
@@ -165,7 +165,7 @@ async def test_a_grpc_listen_hears_removed_then_the_value_again_when_the_propert
             device.remove("temp")
             gone = await asyncio.wait_for(anext(events), WAIT)
             assert gone.removed
-            device.props["temp"] = "30"  # plugged in again: nothing announces it (§3.5)
+            device.props["temp"] = "30"  # plugged in again: nothing announces it (docs/device-spec.md §3.5)
             back = await asyncio.wait_for(anext(events), WAIT)
             assert (back.value, back.removed) == ("30", False)
             device.change("temp", "31")
@@ -323,7 +323,7 @@ async def test_a_device_dialling_in_with_a_greeting_it_cannot_have_gets_an_err_l
         lines = await greet_as(gw.line_address, b"HELLO 2 name=future type=sensor push=1\n")
         assert lines[0].startswith("HELLO 1 name=gateway")
         assert lines[1:] == [
-            "ERR 9 line protocol version 2 is not supported; this gateway speaks version 1 (1.2)"
+            "ERR 9 line protocol version 2 is not supported; this gateway speaks version 1 (1.3)"
         ]
         lines = await greet_as(gw.line_address, checked("HELLO 1 name=tiny maxline=32"))
         (err,) = lines[1:]

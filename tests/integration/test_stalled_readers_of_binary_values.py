@@ -6,6 +6,7 @@ while a bystander's Get keeps answering. The readers are raw sockets with a tiny
 
 from __future__ import annotations
 
+import asyncio
 import base64
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
@@ -160,6 +161,65 @@ async def test_readers_past_the_budget_are_ended_with_resource_exhausted_until_t
 
         await eventually(served_again, bool, within=10)
         assert gw.proc.poll() is None
+        assert "Traceback" not in gw.output
+
+
+async def test_listens_in_a_session_count_in_the_budget_and_one_past_it_ends_alone(
+    small_budget: GatewayProcess,
+) -> None:
+    gw = small_budget
+    async with grpc.aio.insecure_channel(gw.address) as channel:
+        stub = pb_grpc.PropertyServiceStub(channel)
+        await stub.Set(pb.SetRequest(service="blobs", property="picture", data=payload(VALUE, 1)), timeout=10)
+        await stub.Set(pb.SetRequest(service="blobs", property="small", data=b"tiny"), timeout=10)
+        # Two Sessions whose Listen never reads take the budget as two stalled gRPC Listens do.
+        stalled = open_readers("session", 2, **target(gw))
+        try:
+            await stub.Set(
+                pb.SetRequest(service="blobs", property="picture", data=payload(VALUE, 2)), timeout=10
+            )
+
+            async def refused_over_grpc() -> bool:
+                listen = stub.Listen(pb.ListenRequest(service="blobs", property="picture"), timeout=10)
+                with pytest.raises(grpc.aio.AioRpcError) as refused:
+                    async for _ in listen:
+                        pass
+                return refused.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+
+            await eventually(refused_over_grpc, bool, within=10)
+            # A Listen in a Session is ended with the refusal; the Session goes on answering.
+            requests: asyncio.Queue[pb.SessionRequest | None] = asyncio.Queue()
+
+            async def sent() -> AsyncIterator[pb.SessionRequest]:
+                while (message := await requests.get()) is not None:
+                    yield message
+
+            session = stub.Session(sent(), timeout=10)
+            listen = pb.ListenRequest(service="blobs", property="picture")
+            get = pb.GetRequest(service="blobs", property="small")
+            await requests.put(pb.SessionRequest(requests=[pb.Request(id=1, listen=listen)]))
+            replies: dict[int, pb.Reply] = {}
+            async for message in session:
+                replies.update((reply.id, reply) for reply in message.replies)
+                if 1 in replies and 2 not in replies:
+                    await requests.put(pb.SessionRequest(requests=[pb.Request(id=2, get=get)]))
+                if 2 in replies:
+                    break
+            assert replies[1].status.code == grpc.StatusCode.RESOURCE_EXHAUSTED.value[0], replies[1]
+            assert "limits.max_pending_binary" in replies[1].status.message
+            assert replies[2].get.data == b"tiny", replies[2]
+            await requests.put(None)
+        finally:
+            close_readers(stalled)
+
+        async def served_again() -> bool:
+            async for answer in stub.Listen(
+                pb.ListenRequest(service="blobs", property="picture"), timeout=10
+            ):
+                return len(answer.events[0].data) == VALUE
+            return False
+
+        await eventually(served_again, bool, within=10)
         assert "Traceback" not in gw.output
 
 

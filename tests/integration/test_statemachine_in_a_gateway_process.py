@@ -16,6 +16,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Any
 
+import aiohttp
 import pytest
 from support.waiting import eventually
 
@@ -186,6 +187,12 @@ ERRAND = """<scxml xmlns="http://www.w3.org/2005/07/scxml" xmlns:ps="urn:propert
 """
 
 
+#: A chart as an editor on Windows saves it: a byte-order mark, an XML declaration, CRLF line ends.
+WINDOWS_SAVED = "\ufeff" + '<?xml version="1.0" encoding="UTF-8"?>\r\n' + ERRAND.replace("\n", "\r\n")
+#: The same model in YAML, with a byte-order mark and CRLF line ends.
+WINDOWS_YAML = "\ufeffscxml:\r\n  initial: idle\r\n  children:\r\n  - state: {id: idle}\r\n"
+
+
 @pytest.mark.timeout(90)
 async def test_charts_survive_a_gateway_restart_through_the_storage_service(
     gateway_process: Any, tmp_path: Path
@@ -210,11 +217,22 @@ async def test_charts_survive_a_gateway_restart_through_the_storage_service(
         await client.set("missions", "errand.definition", ERRAND)
         assert await client.get_names("store", "files") == ["statecharts/errand.scxml"]
         assert await client.get("store", "file", name="statecharts/errand.scxml") == ERRAND
+    # A chart with a byte-order mark and CRLF line ends loads through the HTTP API.
+    async with aiohttp.ClientSession(first.http_url) as http:
+        url = "/api/v1/services/missions/properties/windows.definition"
+        async with http.put(url, json={"value": WINDOWS_YAML}) as response:
+            assert response.status == 200, await response.text()
     assert first.stop() == 0
+    # ... and so does one saved that way into the storage service's folder.
+    (tmp_path / "files" / "statecharts" / "saved.scxml").write_bytes(WINDOWS_SAVED.encode())
 
     second = gateway_process(config)
     async with AsyncClient(second.address) as client:
-        assert await client.get_names("missions", "machines") == ["errand"]
+        assert await client.get_names("missions", "machines") == ["errand", "saved", "windows"]
+        await client.set("missions", "saved.start", "")
+        await eventually(lambda: client.get("missions", "saved.status"), lambda s: s == "done")
+        await client.set("missions", "saved.remove", "")
+        await client.set("missions", "windows.remove", "")
         assert await client.get("missions", "errand.definition") == ERRAND
         assert await client.get("missions", "errand.status") == "stopped"  # running state is not kept
         await client.set("missions", "errand.start", "")

@@ -27,7 +27,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 C_DIR = ROOT / "services" / "device" / "c"
 INSTALL_HINT = (
-    "bash tests/run.sh installs it (Debian: apt-get install gcc make gcc-avr avr-libc simavr libsimavr-dev)"
+    "bash tests/run.sh installs it (Debian: apt-get install gcc make gcc-avr avr-libc simavr libsimavr-dev"
+    " gcc-arm-none-eabi libnewlib-arm-none-eabi)"
 )
 #: What each make target needs on the machine: commands on PATH and files.
 NEEDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
@@ -35,6 +36,10 @@ NEEDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "host": (("make", "cc"), ()),
     "avr": (("make", "avr-gcc", "avr-objcopy", "avr-size", "avr-nm"), ("/usr/lib/avr/include/avr/io.h",)),
     "sim": (("make", "cc"), ("/usr/include/simavr/sim_avr.h", "/usr/include/simavr/parts/uart_pty.h")),
+    "cortexm": (
+        ("make", "arm-none-eabi-gcc", "arm-none-eabi-objcopy", "arm-none-eabi-size", "arm-none-eabi-nm"),
+        ("/usr/lib/arm-none-eabi/newlib/thumb/v7-m/nofp/libc_nano.a",),
+    ),
 }
 BUILD_TIMEOUT = 120.0
 START_TIMEOUT = 10.0

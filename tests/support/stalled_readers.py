@@ -31,7 +31,7 @@ from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
 #: The receive buffer each reader asks for; the kernel makes it at least a few KiB.
 RECEIVE_BUFFER = 4096
-KINDS = ("stream", "sse", "grpc")
+KINDS = ("stream", "sse", "grpc", "session")
 
 _PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n"
 _SETTINGS, _HEADERS, _DATA, _WINDOW_UPDATE = 0x4, 0x1, 0x0, 0x8
@@ -50,20 +50,25 @@ def _literal(name: str, value: str) -> bytes:
     return b"\x00" + bytes((len(name),)) + name.encode() + bytes((len(value),)) + value.encode()
 
 
-def grpc_listen_bytes(authority: str, service: str, path: str) -> bytes:
-    """What a gRPC client sends to start a Listen of ``service``/``path`` (and nothing after)."""
+def grpc_listen_bytes(authority: str, service: str, path: str, *, session: bool = False) -> bytes:
+    """What a gRPC client sends to start a Listen of ``service``/``path`` (and nothing after); with
+    ``session``, a Session whose one request is that Listen, left open (a half-close ends it)."""
     headers = b"".join(
         _literal(name, value)
         for name, value in (
             (":method", "POST"),
             (":scheme", "http"),
-            (":path", "/propertyservice.v1.PropertyService/Listen"),
+            (":path", f"/propertyservice.v1.PropertyService/{'Session' if session else 'Listen'}"),
             (":authority", authority),
             ("content-type", "application/grpc"),
             ("te", "trailers"),
         )
     )
-    request = pb.ListenRequest(service=service, property=path).SerializeToString()
+    listen = pb.ListenRequest(service=service, property=path)
+    if session:
+        request = pb.SessionRequest(requests=[pb.Request(id=1, listen=listen)]).SerializeToString()
+    else:
+        request = listen.SerializeToString()
     message = b"\x00" + struct.pack(">I", len(request)) + request
     settings = struct.pack(">HI", _INITIAL_WINDOW_SIZE, _MAX_WINDOW)
     return b"".join(
@@ -73,7 +78,7 @@ def grpc_listen_bytes(authority: str, service: str, path: str) -> bytes:
             _frame(_WINDOW_UPDATE, 0, 0, struct.pack(">I", _MAX_WINDOW - 65535)),
             _frame(_SETTINGS, _ACK, 0, b""),  # the gateway's SETTINGS, acknowledged unread
             _frame(_HEADERS, _END_HEADERS, 1, headers),
-            _frame(_DATA, _END_STREAM, 1, message),
+            _frame(_DATA, 0 if session else _END_STREAM, 1, message),
         )
     )
 
@@ -83,14 +88,15 @@ def http_get_bytes(authority: str, target: str) -> bytes:
 
 
 def open_reader(kind: str, *, grpc_address: str, http_address: str, service: str, path: str) -> socket.socket:
-    """One reader of ``kind`` (``stream``, ``sse`` or ``grpc``) that has asked and will read nothing."""
-    address = grpc_address if kind == "grpc" else http_address
+    """One reader of ``kind`` (``stream``, ``sse``, ``grpc`` or ``session``) that has asked and will
+    read nothing."""
+    address = grpc_address if kind in ("grpc", "session") else http_address
     host, port = address.rsplit(":", 1)
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)  # before connecting: the window
     sock.connect((host, int(port)))
-    if kind == "grpc":
-        sock.sendall(grpc_listen_bytes(address, service, path))
+    if kind in ("grpc", "session"):
+        sock.sendall(grpc_listen_bytes(address, service, path, session=kind == "session"))
     elif kind == "stream":
         sock.sendall(http_get_bytes(address, f"/api/v1/services/{service}/properties/{path}/stream"))
     else:

@@ -114,7 +114,7 @@ def test_the_line_limit_counts_the_encoded_line() -> None:
 
 
 def test_a_1_1_peer_that_does_not_know_the_form_refuses_it_as_a_bad_escape() -> None:
-    # What a 1.1 codec did with "\=": an unknown escape, ERR 3 "bad escape" (docs/line-protocol.md §2.3).
+    # What a 1.1 codec did with "\=": an unknown escape, ERR 3 "bad escape" (docs/device-spec.md §2.5).
     (bad,) = LineReceiver().receive_data(b"#3 SET notes x\\=y\n")
     assert isinstance(bad, BadLine) and bad.code == Code.INVALID_ARGUMENT
     assert bad.message.startswith("bad escape")

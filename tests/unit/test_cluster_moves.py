@@ -66,13 +66,21 @@ def test_a_gateway_record_carries_the_view_and_reads_records_without_it() -> Non
     record = GatewayRecord("h:1", owned=3, version="0.1.0", draining=True, calls_per_s=12.5, listens=4)
     assert read_gateway(record.to_json()) == record
     # A record written by a gateway that knows fewer fields: the others are their defaults.
-    old = read_gateway('{"address": "h:2", "http": "", "line": "", "owned": 7}')
+    old = read_gateway('{"address": "h:2", "http": "", "line": "", "owned": 7, "protocols": [1, 2]}')
     assert old == GatewayRecord("h:2", owned=7)
     # A field of the wrong type is its default, never a refused record.
-    odd = read_gateway('{"address": "h:3", "listens": "many", "draining": 1, "calls_per_s": 2}')
-    assert odd == GatewayRecord("h:3", calls_per_s=2.0)
+    odd = read_gateway(
+        '{"address": "h:3", "listens": "many", "draining": 1, "calls_per_s": 2, "protocols": [2]}'
+    )
+    assert odd is not None and odd.listens == 0 and not odd.draining and odd.calls_per_s == 2.0
     # Fields at their default are not written: the record stays as small as before.
-    assert set(json.loads(GatewayRecord("h:4").to_json())) == {"address", "http", "line", "owned"}
+    assert set(json.loads(GatewayRecord("h:4").to_json())) == {
+        "address",
+        "http",
+        "line",
+        "owned",
+        "protocols",
+    }
 
 
 async def test_a_set_during_a_planned_move_waits_for_the_new_target_instead_of_failing() -> None:

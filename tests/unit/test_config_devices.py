@@ -34,7 +34,7 @@ def test_devices_are_read_with_their_defaults() -> None:
 
 
 def test_a_devices_proxy_maxline_is_its_processs_max_line_too() -> None:
-    # Large binary values (docs/line-protocol.md §2.4): both ends take the longer lines.
+    # Large binary values (docs/line-protocol.md §11): both ends take the longer lines.
     cfg = loads_config(
         """
         [[devices]]

@@ -149,3 +149,14 @@ def test_check_config_builds_groups_and_device_options(
     )
     assert main(["check-config", str(good)]) == 0
     assert "fine (1 services, 1 devices" in capsys.readouterr().out
+
+
+def test_check_config_says_how_many_services_a_services_state_listen_follows(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    site = tmp_path / "site.toml"
+    site.write_text("[limits]\nmax_stream_properties = 20001\n")
+    assert main(["check-config", str(site)]) == 0
+    said = capsys.readouterr().out
+    assert "a Listen matches at most 20001 properties (limits.max_stream_properties)" in said
+    assert "registry services.*.state follows at most 20000 services" in said

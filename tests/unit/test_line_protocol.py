@@ -252,6 +252,17 @@ def test_leading_spaces_are_skipped_before_a_tag_and_a_checksum_too() -> None:
     assert info.value.code == Code.INVALID_ARGUMENT
 
 
+def test_a_space_after_the_dollar_makes_a_checked_line_bad_untagged_even_when_its_checksum_is_right() -> None:
+    for body in (b" #4 PING", b" GET x"):
+        line = b"$" + body + b"*%02X" % crc8(body)
+        with pytest.raises(LineProtocolError) as info:
+            decode_line(line)
+        assert info.value.code == Code.INVALID_ARGUMENT and info.value.tag is None
+        assert "space after '$'" in info.value.message
+        (bad,) = LineReceiver().receive_data(line + b"\n")
+        assert isinstance(bad, BadLine) and bad.checksummed and bad.tag is None
+
+
 def test_the_receiver_says_which_lines_were_checksummed_and_a_plain_hello_ends_checksum_mode() -> None:
     receiver = LineReceiver()
     good = b"$GET x*%02X\n" % crc8(b"GET x")
@@ -267,7 +278,7 @@ def test_the_receiver_says_which_lines_were_checksummed_and_a_plain_hello_ends_c
 
 
 def test_ping_data_is_echoed_byte_for_byte() -> None:
-    # PING data is opaque (docs/line-protocol.md §3.1): no escape is decoded, so none is refused.
+    # PING data is opaque (docs/device-spec.md §3.6): no escape is decoded, so none is refused.
     for raw in (b"PING a\\qb\n", b"#1 PING a\\sb  \n"):
         (ping,) = LineReceiver().receive_data(raw)
         assert isinstance(ping, Ping)

@@ -1,5 +1,6 @@
-"""The line form of a service's model (docs/line-protocol.md §3.6): what a device answers to
-``GET properties.model``, with and without the tagged lists that carry widgets and parameters."""
+"""The line form of a service's model (docs/device-spec.md §9, docs/line-protocol.md §12): what a
+device answers to ``GET properties.model``, with and without the tagged lists that carry widgets
+and parameters."""
 
 from __future__ import annotations
 

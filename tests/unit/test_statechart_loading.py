@@ -116,8 +116,14 @@ def test_scxml_json_and_yaml_of_the_same_chart_give_the_same_model() -> None:
          "line 3", "used twice"),
         (OPEN + "\n<state id='a'>\n<onentry><ps:set xmlns:ps='urn:propertyservice:scxml'"
          " property='scout1' value='1'/></onentry></state></scxml>", "line 3", "expected SERVICE/PATH"),
-        (OPEN + "\n<state id='a'><onentry>\n<send event='x' target='http://evil'/>"
-         "</onentry></state></scxml>", "line 3", "sends only to itself"),
+        (OPEN + "\n<state id='a'><onentry>\n<send event='x' target='#_parent'/>"
+         "</onentry></state></scxml>", "line 3", "a chart invokes no other documents"),
+        (OPEN + "\n<state id='a'><onentry>\n<send event='x' type='http://www.w3.org/TR/scxml/#BasicHTTPEventProcessor'/>"
+         "</onentry></state></scxml>", "line 3", "the Basic HTTP processor is not offered"),
+        (OPEN + "\n<state id='a'>\n<transition event='go' cond='lambda: 1' target='a'/></state></scxml>",
+         "line 3", "Lambda is not allowed"),
+        (OPEN + "\n<datamodel><data id='x' src='file:/etc/passwd'/></datamodel><state id='a'/></scxml>",
+         "line 2", "a chart never reads files or URLs"),
         (OPEN + "\n<state id='a'>\n<invoke src='other.scxml'/></state></scxml>",
          "line 3", "<invoke>"),
         (OPEN[:-1] + " datamodel='ecmascript'>" + "<state id='a'/></scxml>",
@@ -188,3 +194,28 @@ def test_the_diagram_is_valid_svg_with_the_active_states_marked() -> None:
     assert sorted(k for k, classes in boxes.items() if "active" in classes) == ["patrol", "wait"]
     labels = [t.text for t in svg.iter("{http://www.w3.org/2000/svg}text") if t.get("class") == "label"]
     assert "hot" in labels and "arrived" in labels
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        '<?xml version="1.0" encoding="UTF-8"?>\r\n' + SCXML.replace("\n", "\r\n"),
+        json.dumps(MODEL, indent=1).replace("\n", "\r\n"),
+        yaml.safe_dump(MODEL).replace("\n", "\r\n"),
+    ],
+    ids=["scxml", "json", "yaml"],
+)
+def test_a_chart_saved_with_a_byte_order_mark_and_crlf_line_ends_loads(text: str) -> None:
+    assert shape("\ufeff" + text) == shape(text)
+    assert compile_chart("m", "\ufeff" + text).format == compile_chart("m", text).format
+
+
+def test_malformed_expressions_load_with_a_warning_and_fail_when_run() -> None:
+    chart = compile_chart(
+        "m",
+        OPEN + "\n<datamodel><data id='x' expr='1 = 1'/></datamodel><state id='a'><onentry>\n"
+        "<assign location='_sessionid' expr='1'/></onentry></state></scxml>",
+    )
+    assert [w.split(": <")[0] for w in chart.warnings] == ["line 2", "line 3"]
+    assert "it raises error.execution when evaluated" in chart.warnings[0]
+    assert "a system variable, read-only" in chart.warnings[1]

@@ -161,6 +161,125 @@ async def test_cancel_stops_a_delayed_event_and_an_event_carries_data() -> None:
     await state_becomes(sm, "m", "(ok)")
 
 
+async def test_a_send_to_internal_goes_before_events_already_waiting_outside() -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="a">
+  <state id="a">
+    <onentry><send event="outside"/><send event="inside" target="#_internal"/></onentry>
+    <transition event="inside" target="b"/>
+    <transition event="outside" target="wrong"/>
+  </state>
+  <state id="b"><transition event="outside" target="done"/></state>
+  <final id="done"/>
+  <final id="wrong"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(done)")
+
+
+async def test_send_ids_namelists_css2_delays_and_the_event_fields_a_chart_reads() -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="a" name="courier">
+  <datamodel>
+    <data id="sent"/><data id="n" expr="7"/><data id="before" expr="_event"/><data id="fields"/>
+    <data id="who"/>
+  </datamodel>
+  <state id="a">
+    <onentry>
+      <send event="later" delayexpr="'30ms'" idlocation="sent" namelist="n"
+            type="http://www.w3.org/TR/scxml/#SCXMLEventProcessor"/>
+      <assign location="who" expr="(_name, _sessionid, _ioprocessors['scxml'].location)"/>
+    </onentry>
+    <transition event="later" target="b">
+      <assign location="fields"
+              expr="(_event.data.get('n'), _event.origin, _event.origintype, _event.sendid, _event.type)"/>
+    </transition>
+  </state>
+  <final id="b"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(b)")
+    found = await variables(sm, "m")
+    assert found["before"] is None  # no event yet when the data is set
+    assert found["sent"] == "m.send1"
+    assert found["who"] == ["courier", "m", "#_scxml_m"]
+    processor = "http://www.w3.org/TR/scxml/#SCXMLEventProcessor"
+    assert found["fields"] == [7, "#_scxml_m", processor, None, "external"]
+
+
+async def test_what_the_standard_fails_at_run_time_raises_error_execution_there() -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="a">
+  <datamodel><data id="errors" expr="0"/><data id="sendids" expr="()"/></datamodel>
+  <state id="a">
+    <!-- a failed action skips the rest of its block: one block each -->
+    <onentry><assign location="errors" expr="1 = 1"/></onentry>
+    <onentry><assign location="_sessionid" expr="'mine'"/></onentry>
+    <onentry><send event="x" type="27" id="typed"/></onentry>
+    <onentry><send event="x" namelist="nowhere"/></onentry>
+    <onentry><send event="x" target="elsewhere"/></onentry>
+    <onentry><send event="x" target="#_scxml_nobody" id="far"/><raise event="never"/></onentry>
+    <onentry><raise event="checked"/></onentry>
+    <transition event="error.execution error.communication">
+      <assign location="errors" expr="errors + 1"/>
+      <assign location="sendids" expr="sendids + (_event.sendid,)"/>
+    </transition>
+    <transition event="checked" target="b"/>
+  </state>
+  <state id="b"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(b)")
+    found = await variables(sm, "m")
+    assert found["errors"] == 6
+    assert found["sendids"] == [None, None, "typed", None, None, "far"]
+    log = await sm.get("m.log")
+    assert "warning: line 5: <assign>: expr='1 = 1'" in log
+    assert "error.communication" in log
+
+
+async def test_donedata_and_content_give_the_data_of_done_and_sent_events() -> None:
+    sm, _ = await service()
+    await run(
+        sm,
+        "m",
+        HEAD
+        + """ initial="job">
+  <datamodel><data id="n" expr="3"/><data id="report"/><data id="order"/></datamodel>
+  <state id="job" initial="work">
+    <state id="work"><transition target="finished"/></state>
+    <final id="finished">
+      <donedata><param name="count" location="n"/><param name="twice" expr="n * 2"/></donedata>
+    </final>
+    <transition event="done.state.job" target="ordering">
+      <assign location="report" expr="(_event.data.count, _event.data.twice)"/>
+    </transition>
+  </state>
+  <state id="ordering">
+    <onentry><send event="order"><content>{ "item": "bolt", "sizes": [3, 4] }</content></send></onentry>
+    <transition event="order" target="end"><assign location="order" expr="_event.data['item']"/></transition>
+  </state>
+  <final id="end"/>
+</scxml>""",
+    )
+    await state_becomes(sm, "m", "(end)")
+    found = await variables(sm, "m")
+    assert found["report"] == [3, 6]
+    assert found["order"] == "bolt"
+
+
 class Thermometer(Resource):
     """A sensor whose reading the test sets."""
 

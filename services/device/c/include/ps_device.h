@@ -94,7 +94,7 @@ typedef struct ps_meta {
     const char *unit; /* words: "degC" */
     const char *doc;  /* words, no parentheses: "board temperature" */
     const char *gui;  /* the preferred widget, answered to GET NAME.gui */
-    ps_fixed minimum; /* in the property's fixed-point scale; a SET outside is ERR 11 when has_range */
+    ps_fixed minimum; /* in the property's fixed-point scale; a SET outside is ERR 3 when has_range */
     ps_fixed maximum;
     uint8_t has_range;
 } ps_meta;

@@ -436,7 +436,9 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
         if (part == WHOLE && p.type == PS_ACTION) {
             uint8_t code = p.action(dev, index, value);
             if (code != PS_OK) {
-                reply_error(dev, req, code, PS_F("the action failed"));
+                /* docs/device-spec.md §3.2: outside the range is ERR 3 (INVALID_ARGUMENT, as gRPC
+                 * and the gateway's own services say it); the message tells it from a bad number */
+                reply_error(dev, req, code == PS_OUT_OF_RANGE ? PS_INVALID_ARGUMENT : code, PS_F("the action failed"));
                 return;
             }
         } else {
@@ -446,7 +448,9 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
             }
             uint8_t code = store(&p, part, element, value, value_length);
             if (code != PS_OK) {
-                reply_error(dev, req, code,
+                /* docs/device-spec.md §3.2: outside the range is ERR 3 (INVALID_ARGUMENT, as gRPC
+                 * and the gateway's own services say it); the message tells it from a bad number */
+                reply_error(dev, req, code == PS_OUT_OF_RANGE ? PS_INVALID_ARGUMENT : code,
                             code == PS_RESOURCE_EXHAUSTED ? PS_F("text too long")
                             : code == PS_OUT_OF_RANGE     ? PS_F("out of range")
                                                           : PS_F("bad value"));

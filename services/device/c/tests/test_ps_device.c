@@ -176,7 +176,7 @@ static void test_get_and_set(void) {
     int before = sets_seen;
     EXCHANGE("SET setpoint 22.5\n", "OK 22.5\n");
     CHECK(setpoint == 225 && sets_seen == before + 1);
-    EXCHANGE("SET setpoint 99\n", "ERR 11 out of range\n");
+    EXCHANGE("SET setpoint 99\n", "ERR 3 out of range\n");
     EXCHANGE("SET setpoint 22.25\n", "ERR 3 bad value\n");
     EXCHANGE("SET setpoint abc\n", "ERR 3 bad value\n");
     EXCHANGE("SET setpoint\n", "ERR 3 bad value\n");
