@@ -20,6 +20,7 @@ from datetime import datetime
 from typing import Any, TextIO
 
 from clients.aio import DEFAULT_TARGET, DEFAULT_TIMEOUT, HEARTBEAT, SYNC, AsyncClient, Event, Mark, Selector
+from clients.cluster_view import ACTIONS, cluster_command
 from clients.credentials import ENVIRONMENT, ClientCredentials
 from clients.errors import GatewayUnreachable, NotFound, PropertyServiceError
 from clients.values import Value, ValueFormatError
@@ -52,6 +53,8 @@ examples:
   psctl listen scout1 location --duration 5   scout1's pose for five seconds
   psctl listen scout1 location --also scout2:location --min-interval 0.1 --duration 5
   psctl --json get scout1 location            machine-readable output
+  psctl cluster --devices                     the gateways of a cluster and who owns each device
+  psctl cluster drain gw1                     gw1 hands its devices over (undrain gw1; rebalance)
 
 The gateway address comes from --target, else $PSCTL_TARGET, else 127.0.0.1:50051. Several
 addresses, comma-separated (-t gw1:50051,gw2:50051), or a gRPC name that stands for several
@@ -269,6 +272,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="listen on a Listen stream of its own rather than inside a Session (the default, which "
         "costs the gateway a tenth of the memory)",
     )
+    cluster = commands.add_parser(
+        "cluster",
+        parents=[common],
+        help="the gateways of a cluster, who owns what; drain, undrain, rebalance",
+        description="Without ACTION: every gateway of the cluster (address, version, health, state, "
+        "devices owned, load, lease), as the registry's 'cluster' shows it. drain GATEWAY: it hands "
+        "its devices over and takes no new ones; undrain GATEWAY; rebalance: every gateway hands "
+        "devices over until the loads are within the spread (admin actions, by the rules).",
+    )
+    cluster.add_argument("action", nargs="?", default="show", choices=sorted(ACTIONS), help="show by default")
+    cluster.add_argument("gateway", nargs="?", help="the gateway to drain or undrain")
+    cluster.add_argument("--devices", action="store_true", help="also each device's owner and since when")
+    cluster.add_argument("--watch", action="store_true", help="show the view again each time it changes")
+    cluster.add_argument("--count", type=_count, metavar="N", help="with --watch: exit after N views")
     return parser
 
 
@@ -634,7 +651,29 @@ def _print_mark(mark: Mark, as_json: bool) -> None:
         _out(f"{_clock(datetime.now())} -- heartbeat")
 
 
-_COMMANDS = {"ls": _ls, "get": _get, "set": _set, "listen": _listen}
+async def _cluster(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+    takes_gateway = ACTIONS[args.action]
+    if takes_gateway and not args.gateway:
+        raise _UsageError(
+            f"cluster {args.action} takes the id of a gateway, e.g. psctl cluster {args.action} gw1"
+        )
+    if not takes_gateway and args.gateway:
+        raise _UsageError(f"cluster {args.action} takes no gateway")
+    await cluster_command(
+        client,
+        args.action,
+        args.gateway,
+        devices=args.devices,
+        watch=args.watch,
+        count=args.count,
+        as_json=as_json,
+        table=_table,
+        out=_out,
+    )
+    return EXIT_OK
+
+
+_COMMANDS = {"ls": _ls, "get": _get, "set": _set, "listen": _listen, "cluster": _cluster}
 
 
 def _credentials(args: argparse.Namespace) -> ClientCredentials:

@@ -30,7 +30,8 @@ from grpc_reflection.v1alpha import reflection
 
 from gateway.backends import open_backend, open_proxy
 from gateway.client_faults import filter_grpc_client_faults
-from gateway.cluster import ClusterNode
+from gateway.cluster import ClusterNode, ClusterReport
+from gateway.cluster.records import gateway_version
 from gateway.config import METRICS_MAX_CONNECTIONS, REGISTRY_NAME, Config, ConfigError, ServiceEntry
 from gateway.connections import share_open_files
 from gateway.devices import SupervisedDevice, start_supervised
@@ -405,8 +406,31 @@ class Gateway:
             if value
         }
         self.cluster = ClusterNode(
-            store, self.router, lease=settings.store_lease, allow=self.allow, peer_tls=peer_tls
+            store,
+            self.router,
+            lease=settings.store_lease,
+            allow=self.allow,
+            peer_tls=peer_tls,
+            rebalance=settings.rebalance,
+            rebalance_spread=settings.rebalance_spread,
+            rebalance_batch=settings.rebalance_batch,
+            version=gateway_version(),
+            load=self._load,
         )
+
+    def _load(self) -> tuple[int, int]:
+        """(Gets, Sets and Describes answered so far, gRPC and HTTP; Listen streams open now): the
+        load the cluster view shows (counted only with ``[metrics] enabled``, the default)."""
+        calls = 0
+        grpc_counts = self.servicer.counts
+        if grpc_counts is not None:
+            for method in ("Get", "Set", "Describe"):
+                calls += sum(grpc_counts.methods[method].codes)
+        http_counts = self.http.counts if self.http is not None else None
+        if http_counts is not None:
+            responses = http_counts.responses.items()
+            calls += sum(count for (route, _), count in responses if "events" not in route)
+        return calls, self.hub.stream_count
 
     async def _start_cluster(self) -> None:
         """Join the cluster, now that every port this gateway serves is known."""
@@ -423,6 +447,7 @@ class Gateway:
         self.servicer.calls.peer_hop = self.cluster.is_peer_hop
         # A Set a peer forwarded comes as that peer, checked against the licences where the client called.
         self.router.directory.peer_forwarded = self.servicer.calls.forwarded_by_peer
+        self.registry.attach("cluster", ClusterReport(self.cluster))
         log.info("cluster: joined as %s through %s", self.cluster.me, self.config.registry.store)
 
     def _alternates(self) -> list[str]:
@@ -638,6 +663,9 @@ class Gateway:
         if self._server is not None:
             await self._server.stop(grace)
         if self.cluster is not None:
+            cluster_report = self.registry.children().get("cluster")
+            if isinstance(cluster_report, ClusterReport):
+                cluster_report.close()
             await self.cluster.stop()  # its services are handed over before their proxies close
         await self.hub.aclose()
         if callable(self._unwatch_registry):

@@ -237,6 +237,13 @@ class MetricsSection:
     listen: str = ""
 
 
+#: Devices a gateway hands over at once when it rebalances: each is a connection closed, a claim and
+#: a connection opened; a few dozen keep one round short and the other gateways' work small.
+DEFAULT_REBALANCE_BATCH = 32
+#: Devices owned beyond the least-loaded gateway that a gateway keeps without rebalancing.
+DEFAULT_REBALANCE_SPREAD = 2
+
+
 @dataclass(frozen=True, slots=True)
 class RegistrySection:
     """``[registry]``: liveness checks of the services and where run-time registrations are kept."""
@@ -292,6 +299,12 @@ class RegistrySection:
     peer_ca: str = ""
     peer_cert: str = ""
     peer_key: str = ""
+    #: Rebalance by policy: when a gateway joins, returns or is undrained, the gateways that own
+    #: more than ``rebalance_spread`` devices beyond it hand some over, ``rebalance_batch`` at a
+    #: time (docs/scale-out.md, "Operating a cluster"). Off: only an admin's ``cluster.rebalance``.
+    rebalance: bool = False
+    rebalance_spread: int = DEFAULT_REBALANCE_SPREAD
+    rebalance_batch: int = DEFAULT_REBALANCE_BATCH
 
 
 #: Seconds a woken dormant service stays unused before it is stopped again, by default.
@@ -870,6 +883,14 @@ def _store(section: RegistrySection, where: str, folder: Path | None, found: lis
             f"{where}.gateway_id: 1 to {MAX_GATEWAY_ID} printable characters without '/' or spaces, "
             f"got {gateway_id[:MAX_GATEWAY_ID]!r}"
         )
+    if section.rebalance_spread < 0:
+        found.append(f"{where}.rebalance_spread: devices, 0 or more, got {section.rebalance_spread}")
+    if section.rebalance_batch < 1:
+        found.append(
+            f"{where}.rebalance_batch: devices moved at once, 1 or more, got {section.rebalance_batch}"
+        )
+    if section.rebalance and not section.store:
+        found.append(f"{where}.rebalance: moves devices between the gateways of a cluster: it needs a store")
     if section.advertise:
         try:
             _check_address(section.advertise, f"{where}.advertise")

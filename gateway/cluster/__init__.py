@@ -10,7 +10,9 @@ that died (:mod:`gateway.cluster.failover`), claims licences with compare-and-se
 Modules: ``records`` (what the keys hold), ``view`` (the cluster as last heard), ``switching``
 (the router entry whose target follows the owner), ``writer`` (keys written in the background),
 ``failover`` (who takes over, and when), ``licences`` (licences by compare-and-set), ``directory``
-(the registry's directory on a cluster), ``node`` (:class:`ClusterNode`: all of it for one gateway).
+(the registry's directory on a cluster), ``moves`` (drain and rebalance: who takes devices, how many
+move), ``node`` (:class:`ClusterNode`: all of it for one gateway), ``report`` (the registry's
+``cluster`` view and its admin actions).
 """
 
 from gateway.cluster.directory import ClusterDirectory
@@ -18,6 +20,7 @@ from gateway.cluster.failover import Takeover, takeover_ranks
 from gateway.cluster.licences import ClusterLicences
 from gateway.cluster.node import ClusterNode
 from gateway.cluster.records import GatewayRecord, Registration, read_gateway, read_registration
+from gateway.cluster.report import ClusterReport
 from gateway.cluster.switching import SwitchingBackend
 from gateway.cluster.view import ClusterView
 
@@ -25,6 +28,7 @@ __all__ = [
     "ClusterDirectory",
     "ClusterLicences",
     "ClusterNode",
+    "ClusterReport",
     "ClusterView",
     "GatewayRecord",
     "Registration",

@@ -20,6 +20,12 @@ A :class:`ClusterNode` is what a gateway runs when its registry's store is share
 * **Failover.** A registration whose ``owners`` key expired is taken over by the least-loaded
   live gateway (:mod:`gateway.cluster.failover`), the orphans of one plan claimed together; the
   devices won are opened ``MAX_OPENING`` at a time. Listens through every gateway resume with a gap.
+* **Drain and rebalance.** An admin drains a gateway (a ``drains/ID`` key, :meth:`ClusterNode.set_drain`):
+  it hands what it owns over (:meth:`_hand_over`) and takes nothing new; a gateway that owns more
+  than the others hands some over when one joins or returns, or when an admin asks
+  (:mod:`gateway.cluster.moves`). A move closes the device's connection once its calls have ended,
+  lets the owners key go, and the others claim it as they claim orphans; meanwhile every gateway
+  holds the calls for it (``SwitchingBackend.switch(None, hold=...)``) instead of refusing them.
 * **Read-only.** While the store cannot be reached, everything owned and forwarded is served as
   before and registrations are refused (UNAVAILABLE, saying why). When it is back the node writes
   again what the store lost (:meth:`_reassert`): nothing when the lease lived through it, every
@@ -33,6 +39,8 @@ import asyncio
 import contextlib
 import dataclasses
 import logging
+import time
+from collections import Counter
 from collections.abc import Callable, Coroutine, Mapping
 from typing import Any
 
@@ -40,21 +48,32 @@ from gateway.backends import open_proxy
 from gateway.cluster.directory import ClusterDirectory
 from gateway.cluster.failover import Takeover
 from gateway.cluster.licences import ClusterLicences
-from gateway.cluster.records import DIAL_IN_PREFIX, GatewayRecord, Registration, read_gateway
+from gateway.cluster.moves import rebalance_quota, taking_loads
+from gateway.cluster.records import DIAL_IN_PREFIX, DrainOrder, GatewayRecord, Registration, read_gateway
 from gateway.cluster.switching import SwitchingBackend
 from gateway.cluster.view import ClusterView
 from gateway.cluster.writer import LatestWrites
+from gateway.config import DEFAULT_REBALANCE_BATCH, DEFAULT_REBALANCE_SPREAD
+from gateway.guard import current_subject
 from gateway.peer_protocol import ProtocolMismatch, check_cluster
 from gateway.proxies.grpc_proxy import open_grpc_backend
 from gateway.router import Router
 from services.backend import Backend, BackendInfo
-from services.errors import AlreadyExists, PropertyError, Unavailable
+from services.errors import AlreadyExists, FailedPrecondition, NotFound, PropertyError, Unavailable
 from services.registry import AllowList, Registry
 from services.registry.store import Change, Kind, SharedStore
 from services.registry.table import GONE
 from services.worker_pool import run_bounded
 
-__all__ = ["FORWARD_OPTIONS", "LEAVE_WAIT", "MAX_OPENING", "MAX_WRITES", "RECONNECT_GRACE", "ClusterNode"]
+__all__ = [
+    "FORWARD_OPTIONS",
+    "LEAVE_WAIT",
+    "MAX_OPENING",
+    "MAX_WRITES",
+    "RECONNECT_GRACE",
+    "REPORT_PERIOD",
+    "ClusterNode",
+]
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +94,12 @@ MAX_OPENING = 64
 #: gateway the device dials next. The device is refused elsewhere until the lease has run out,
 #: then dials in at its next round (its pause doubles up to 10 s): this covers several rounds.
 RECONNECT_GRACE = 20.0
+#: Seconds between two writes of this gateway's record with its load and lease (the cluster view):
+#: a few writes a minute per gateway, and the view is that fresh.
+REPORT_PERIOD = 2.0
+#: Seconds a gateway waits after another joined, returned or was undrained before it rebalances:
+#: the newcomer has read the cluster by then.
+REBALANCE_DELAY = 0.5
 #: Folders read when joining and after a reconnect (and the licences, for the licence mirror).
 _FOLDERS = (Kind.GATEWAY, Kind.SERVICE, Kind.OWNER, Kind.STATE)
 
@@ -92,13 +117,22 @@ class ClusterNode:
         peer_tls: Mapping[str, str] | None = None,
         max_opening: int = MAX_OPENING,
         reconnect_grace: float = RECONNECT_GRACE,
+        rebalance: bool = False,
+        rebalance_spread: int = DEFAULT_REBALANCE_SPREAD,
+        rebalance_batch: int = DEFAULT_REBALANCE_BATCH,
+        version: str = "",
+        load: Callable[[], tuple[int, int]] | None = None,
     ) -> None:
         """``lease``: seconds of the store's lease (a dead gateway's keys go within it); ``allow``: what
         this gateway may dial when it takes a registration over (the registry's allow-list);
         ``peer_tls``: the ``grpcs://`` proxy options (``ca``, ``cert``, ``key``) with which calls are
         forwarded to a gateway that serves TLS; ``max_opening``: devices taken over that are
         connected at once; ``reconnect_grace``: seconds the name of a device that dialled in is held
-        for it after its registration left with its gateway (:data:`RECONNECT_GRACE`)."""
+        for it after its registration left with its gateway (:data:`RECONNECT_GRACE`); ``rebalance``:
+        hand devices over when another gateway joins or returns with fewer
+        (:mod:`gateway.cluster.moves`: ``rebalance_spread``, ``rebalance_batch``); ``version``: this
+        gateway's release, shown in the cluster view; ``load``: (calls answered so far, Listen
+        streams open now), read every :data:`REPORT_PERIOD` for the view."""
         if max_opening < 1:
             raise ValueError(f"max_opening must be at least 1, got {max_opening}")
         self.store = store
@@ -154,6 +188,29 @@ class ClusterNode:
         self._resyncing = False
         self.joined = False
         self._stopped = False
+        #: Rebalance by policy (``[registry] rebalance``), and its bounds.
+        self.rebalance = rebalance
+        self.rebalance_spread = rebalance_spread
+        self.rebalance_batch = rebalance_batch
+        self.version = version
+        self._load = load
+        #: An admin drained this gateway (a ``drains`` key names it): it hands over and takes nothing.
+        self.draining = False
+        #: Services this gateway is handing over (a drain, a rebalance), until another owns them.
+        self._handing: set[str] = set()
+        #: Registered on this gateway while it is drained: handed over once the registry has it up.
+        self._hand_over_when_up: set[str] = set()
+        #: Seconds every gateway holds the calls for a service that moves (a planned move).
+        self.move_hold = max(2.0, lease)
+        #: One drain or rebalance at a time.
+        self._moving = asyncio.Lock()
+        self._owners_changed = asyncio.Event()
+        self._rebalancer: asyncio.Task[None] | None = None
+        self._rebalance_asked = False
+        #: The last move this gateway made: (devices, seconds, why), for the cluster view.
+        self.last_move: tuple[int, float, str] | None = None
+        #: Called when the cluster view may have changed (the registry's ``cluster`` property).
+        self.on_view: Callable[[], None] = lambda: None
 
     # -- joining and leaving ---------------------------------------------------
 
@@ -182,6 +239,7 @@ class ClusterNode:
             registry.watch_states(self._on_state, members=True),
         ]
         self._reconciler = asyncio.get_running_loop().create_task(self._work(), name="cluster: reconciler")
+        self._spawn(self._report(), "cluster: report this gateway's load")
         for name, backend in self.router.items():  # devices that dialled in before the node started
             self._on_router(name, backend)
         try:
@@ -212,12 +270,15 @@ class ClusterNode:
         self.joined = True
 
     async def _announce(self) -> None:
-        self.record = dataclasses.replace(self.record, owned=len(self.owned))
+        self.record = dataclasses.replace(
+            self.record, owned=len(self.owned), version=self.version, draining=self.draining
+        )
         await self.store.put(Kind.GATEWAY, self.me, self.record.to_json(), leased=True)
 
     async def _read_all(self) -> None:
-        folders = {kind: await self.store.read(kind) for kind in _FOLDERS}
+        folders = {kind: await self.store.read(kind) for kind in (*_FOLDERS, Kind.DRAIN)}
         self.view.replace(folders)
+        self._spawn(self._follow_drain(), "cluster: follow this gateway's drain")
         self.licences.load(await self.store.read(Kind.LICENCE))
         self._look_at_everything()
 
@@ -236,6 +297,10 @@ class ClusterNode:
             stop()
         self._stops.clear()
         await self._takeover.aclose()
+        rebalancer, self._rebalancer = self._rebalancer, None
+        if rebalancer is not None:
+            rebalancer.cancel()
+            await asyncio.gather(rebalancer, return_exceptions=True)
         reconciler, self._reconciler = self._reconciler, None
         if reconciler is not None:
             reconciler.cancel()
@@ -272,10 +337,21 @@ class ClusterNode:
         if change.kind is Kind.LICENCE:
             self.licences.observe(change.name, change.value)
             return
+        before = self.view.gateways.get(change.name) if change.kind is Kind.GATEWAY else None
         for name in self.view.apply(change):
             self._mark(name)
         if change.value is None and change.kind in (Kind.OWNER, Kind.GATEWAY):
             self._takeover.orphaned()
+        if change.kind is Kind.OWNER:
+            self._owners_changed.set()
+        elif change.kind is Kind.DRAIN:
+            if change.name == self.me:
+                self._spawn(self._follow_drain(), "cluster: follow this gateway's drain")
+            elif change.value is not None:
+                self._takeover.orphaned()  # a plan made now leaves the drained gateway out
+        elif change.kind is Kind.GATEWAY and change.name != self.me:
+            self._gateway_changed(before, self.view.gateways.get(change.name))
+        self.on_view()
 
     async def _create(self, kind: Kind, name: str, value: str, *, leased: bool = False) -> bool:
         """Create a key when absent; this gateway's view has it at once (the watch confirms it later)."""
@@ -399,6 +475,10 @@ class ClusterNode:
         """The registry's state of a service: the owner reports it to the others."""
         if name in self.owned and state != GONE:
             self._writes.put(Kind.STATE, name, state)
+        if name in self._hand_over_when_up and state != "connecting":
+            self._hand_over_when_up.discard(name)
+            if state == "up" and name in self.owned:
+                self._spawn(self._hand_over_locked([name], "drained"), f"cluster: hand {name} over")
 
     def _spawn(self, coro: Coroutine[Any, Any, None], name: str) -> None:
         task = asyncio.get_running_loop().create_task(coro, name=name)
@@ -439,6 +519,8 @@ class ClusterNode:
             self.served[name] = switching
             self._own(name, registration)
             log.info("cluster: service %s registered at %s, owned here", name, url)
+            if self.draining:  # a drained gateway takes no new device: it hands it over once it is up
+                self._hand_over_when_up.add(name)
             return switching.info
         finally:
             self._busy.discard(name)
@@ -471,6 +553,7 @@ class ClusterNode:
     def _count_changed(self) -> None:
         self.record = dataclasses.replace(self.record, owned=len(self.owned))
         self._writes.put(Kind.GATEWAY, self.me, self.record.to_json())
+        self.on_view()
 
     async def unregister(self, name: str) -> None:
         """Remove ``name`` from the cluster (on whichever gateway owns it); Unavailable when read-only."""
@@ -585,7 +668,9 @@ class ClusterNode:
             log.info("cluster: %s is back, at %s", name, registration.url)
         switching.info.url = registration.url
         if owner == self.me:
-            if name not in self.owned or switching.target is None:
+            if name in self._handing:
+                pass  # being handed over: its owners key goes next
+            elif name not in self.owned or switching.target is None:
                 self._open_owned(name, switching)
             else:
                 self.owned[name] = registration  # as the key holds it now (the registry adds options)
@@ -719,6 +804,17 @@ class ClusterNode:
                     return
                 self.connecting += 1
                 try:
+                    # The calls held for a planned move go to it once it answers, not before (they
+                    # would be refused as "not connected yet"); a device that does not answer is
+                    # switched to all the same, and its state says so.
+                    try:
+                        with contextlib.suppress(PropertyError):
+                            await proxy.wait_connected(
+                                max(1.0, self.registry.timeout if self.registry else 1.0)
+                            )
+                    except BaseException:
+                        await proxy.aclose()  # stopped meanwhile: the proxy is nobody's
+                        raise
                     await switching.switch(proxy, "owned here")
                     self._own(name, registration)
                     log.info("cluster: %s is owned here now (%s)", name, registration.url)
@@ -740,6 +836,7 @@ class ClusterNode:
 
     async def _forward(self, name: str, owner: str, switching: SwitchingBackend) -> None:
         record = self.view.gateways.get(owner)
+        self._handing.discard(name)
         if name in self.owned:
             log.info("cluster: %s is owned by %s now", name, owner)
             self.owned.pop(name, None)
@@ -772,17 +869,31 @@ class ClusterNode:
         return f"{'grpcs' if record.tls else 'grpc'}://{record.address}/{name}"
 
     async def _orphan(self, name: str, registration: Registration, switching: SwitchingBackend) -> None:
+        moving = name in self._handing or self._owner_lives(name)
         if name in self.owned:
-            # This gateway holds the connection, but its owners key went (its lease lapsed while
-            # the store was away): claim it again at once, with the others that went with it.
-            self._reclaim(name)
-            return
+            if name not in self._handing:
+                # This gateway holds the connection, but its owners key went (its lease lapsed while
+                # the store was away): claim it again at once, with the others that went with it.
+                self._reclaim(name)
+                return
+            self.owned.pop(name, None)  # handed over: let go of here, another claims it
+            self._count_changed()
         self._forwarding.pop(name, None)
-        await switching.switch(
-            None,
-            reason=f"service {name!r} has no owner now: its gateway left the cluster, and another "
-            f"takes it over within {self.lease:g} s",
-        )
+        if moving:
+            # A planned move (a drain, a rebalance): its owner lives and let it go; the calls wait
+            # for the gateway that claims it instead of being refused.
+            await switching.switch(
+                None,
+                reason=f"service {name!r} is moving to another gateway and has not been claimed "
+                f"within {self.move_hold:g} s",
+                hold=self.move_hold,
+            )
+        else:
+            await switching.switch(
+                None,
+                reason=f"service {name!r} has no owner now: its gateway left the cluster, and another "
+                f"takes it over within {self.lease:g} s",
+            )
         if self.registry is not None:
             self.registry.mirror(name, "connecting")
         self._takeover.orphaned()
@@ -790,6 +901,7 @@ class ClusterNode:
     async def _drop(self, name: str) -> None:
         """Stop serving ``name`` (its registration left the cluster); a device that dialled in here
         is hung up on (it dials again, and is registered again)."""
+        self._handing.discard(name)
         switching = self.served.pop(name, None)
         dialled = self._dialled.pop(name, None)
         self._forwarding.pop(name, None)
@@ -810,7 +922,7 @@ class ClusterNode:
         if self._resyncing or asyncio.get_running_loop().time() < self._settling_until:
             self._spawn(self._replan_later(), "cluster: plan later")
             return [], {}
-        return self.view.orphans(), self.view.loads()
+        return self.view.orphans(), taking_loads(self.view.loads(), self._draining_gateways())
 
     async def _replan_later(self) -> None:
         await asyncio.sleep(max(0.05, self._settling_until - asyncio.get_running_loop().time()))
@@ -839,6 +951,7 @@ class ClusterNode:
             log.info("cluster: cannot take %d services over now: %s", len(claims), exc.message)
             return
         if won:
+            self._handing.difference_update(won)  # handed over, and no other gateway took them
             log.info("cluster: taking %d of %d orphans over: %s", len(won), len(claims), _few(sorted(won)))
 
     def _reclaim(self, name: str) -> None:
@@ -859,6 +972,304 @@ class ClusterNode:
             claims = {name: self.me for name in names if name in self.owned and name not in self.view.owners}
             with contextlib.suppress(PropertyError):
                 await self._create_many(Kind.OWNER, claims, leased=True)
+
+    # -- drain and rebalance: planned moves ---------------------------------------
+
+    def _draining_gateways(self) -> set[str]:
+        """The live gateways that take no devices now (drained), this one included when it is."""
+        draining = {gateway for gateway, record in self.view.gateways.items() if record.draining}
+        draining.update(gateway for gateway in self.view.drains if gateway in self.view.gateways)
+        if self.draining or self.me in self.view.drains:
+            draining.add(self.me)
+        else:
+            draining.discard(self.me)  # undrained: its record says so a moment later
+        return draining
+
+    def _owner_lives(self, name: str) -> bool:
+        """Whether the gateway this one forwarded ``name`` to is still in the cluster (it let go)."""
+        url = self._forwarding.get(name)
+        return url is not None and any(
+            self._forward_url(record, name) == url
+            for gateway, record in self.view.gateways.items()
+            if gateway != self.me
+        )
+
+    async def set_drain(self, gateway: str, drain: bool) -> None:
+        """Drain ``gateway`` (it hands over what it owns and takes nothing new), or undrain it (it
+        takes devices again; a rebalance brings it some). NotFound for a gateway not in the
+        cluster (undraining one is allowed: its order is deleted); FailedPrecondition when no other
+        gateway would take its devices; Unavailable when read-only."""
+        self._writable()
+        if not drain:
+            await self._delete(Kind.DRAIN, gateway)
+            return
+        if gateway not in self.view.gateways:
+            raise NotFound(
+                f"no gateway {gateway!r} in the cluster (members: {', '.join(sorted(self.view.gateways))})"
+            )
+        others = set(self.view.gateways) - self._draining_gateways() - {gateway}
+        if not others:
+            raise FailedPrecondition(
+                f"no other gateway takes devices: draining {gateway!r} would leave its devices to nobody"
+            )
+        subject = current_subject()
+        order = DrainOrder(subject.name if subject.authenticated else "anonymous", round(time.time(), 3))
+        await self.store.put(Kind.DRAIN, gateway, order.to_json())
+        self._on_change(Change(Kind.DRAIN, gateway, order.to_json()))
+
+    async def ask_rebalance(self) -> None:
+        """Ask every gateway of the cluster to rebalance once now, whatever its policy (the count of
+        requests in this gateway's record grows; each gateway follows it)."""
+        self._writable()
+        self.record = dataclasses.replace(self.record, rebalance=self.record.rebalance + 1)
+        await self.store.put(Kind.GATEWAY, self.me, self.record.to_json(), leased=True)
+        self._rebalance_soon(asked=True)
+
+    def _gateway_changed(self, before: GatewayRecord | None, after: GatewayRecord | None) -> None:
+        """Another gateway's record changed: it joined, returned, was undrained, or asks for a rebalance."""
+        if after is None:
+            return
+        if before is None or (before.draining and not after.draining):
+            self._rebalance_soon(asked=False)
+        elif after.rebalance > before.rebalance:
+            self._rebalance_soon(asked=True)
+
+    def _rebalance_soon(self, *, asked: bool) -> None:
+        self._rebalance_asked |= asked
+        if not (self.rebalance or self._rebalance_asked):
+            return
+        if self._rebalancer is None or self._rebalancer.done():
+            self._rebalancer = asyncio.get_running_loop().create_task(
+                self._rebalance_rounds(), name="cluster: rebalance"
+            )
+
+    async def _rebalance_rounds(self) -> None:
+        """Hand devices over, a batch at a time, until this gateway is within the spread."""
+        await asyncio.sleep(REBALANCE_DELAY)
+        try:
+            while not self._stopped and not self.draining and self.joined and not self.store.read_only:
+                async with self._moving:
+                    names = self._rebalance_pick()
+                    if not names:
+                        return
+                    moved = await self._hand_over(names, "rebalancing")
+                if moved == 0:
+                    return  # nobody took them (they came back here): the loads are what they can be
+        except PropertyError as exc:
+            log.info("cluster: rebalancing stopped: %s", exc.message)
+        finally:
+            self._rebalance_asked = False
+
+    def _rebalance_pick(self) -> list[str]:
+        """The devices this gateway hands over in this round of a rebalance (sorted; none: balanced)."""
+        movable = sorted(self._movable())
+        loads = taking_loads(self.view.loads(), self._draining_gateways())
+        quota = rebalance_quota(
+            loads, self.me, movable=len(movable), spread=self.rebalance_spread, batch=self.rebalance_batch
+        )
+        return movable[:quota]
+
+    def _movable(self) -> list[str]:
+        """Devices owned here that another gateway can take (not one that dialled in: nobody else
+        can dial it), and that are not being registered, opened or handed over now."""
+        return [
+            name
+            for name, registration in self.owned.items()
+            if not registration.dialled_in
+            and name in self.served
+            and name not in self._busy
+            and name not in self._handing
+            and name not in self._opening
+        ]
+
+    async def _follow_drain(self) -> None:
+        """This gateway's ``drains`` key came or went: hand everything over, or take devices again."""
+        async with self._moving:
+            drained = self.me in self.view.drains
+            if drained == self.draining:
+                return
+            self.draining = drained
+            self.record = dataclasses.replace(self.record, draining=drained)
+            with contextlib.suppress(PropertyError):
+                await self.store.put(Kind.GATEWAY, self.me, self.record.to_json(), leased=True)
+            self.on_view()
+            if not drained:
+                log.info("cluster: undrained; this gateway takes devices again")
+                return
+            log.info("cluster: drained; handing over %d devices", len(self.owned))
+            with contextlib.suppress(PropertyError):
+                await self._hand_over(sorted(self._movable()), "drained")
+
+    async def _hand_over_locked(self, names: list[str], why: str) -> None:
+        async with self._moving:
+            with contextlib.suppress(PropertyError):
+                await self._hand_over([name for name in names if name in self._movable()], why)
+
+    async def _hand_over(self, names: list[str], why: str) -> int:
+        """Hand ``names`` (owned here, movable) over to the other gateways; how many moved.
+
+        Each device's connection is closed once the calls on it have ended, the calls arriving
+        meanwhile held (``move_hold``); then the owners and states keys go, in bounded writes, and
+        the others claim the devices as orphans, dealt to the least-loaded that take devices. It
+        returns once every name is owned elsewhere (or gone), or after two leases.
+        """
+        if not names:
+            return 0
+        loop = asyncio.get_running_loop()
+        began = loop.time()
+        self._handing.update(names)
+        reason = f"service {{}} is moving to another gateway ({why})"
+
+        async def close(name: str) -> None:
+            switching = self.served.get(name)
+            if switching is not None:
+                await switching.switch(None, reason=reason.format(repr(name)), hold=self.move_hold)
+
+        async def let_go(name: str) -> None:
+            if name in self._handing and await self._let_go(Kind.OWNER, name, self.me):
+                await self._delete(Kind.STATE, name)
+
+        try:
+            await run_bounded(names, close, MAX_WRITES)
+            await run_bounded(names, let_go, MAX_WRITES)
+        except PropertyError:
+            self._handing.difference_update(names)
+            for name in names:
+                self._mark(name)  # still owned here: opened again by the reconciler
+            raise
+        self._takeover.orphaned()
+        deadline = began + 2 * self.lease + 5.0
+
+        def moved(name: str) -> bool:
+            owner = self.view.owners.get(name)
+            return name not in self.view.registrations or (owner is not None and owner != self.me)
+
+        while not all(moved(name) for name in names) and loop.time() < deadline:
+            self._owners_changed.clear()
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout_at(deadline):
+                    await self._owners_changed.wait()
+        count = sum(1 for name in names if moved(name))
+        seconds = loop.time() - began
+        self.last_move = (count, seconds, why)
+        log.info(
+            "cluster: handed %d of %d devices over in %.2f s (%s): %s",
+            count,
+            len(names),
+            seconds,
+            why,
+            _few(sorted(names)),
+        )
+        self.on_view()
+        return count
+
+    # -- the cluster view ---------------------------------------------------------
+
+    def _report_once(self, calls_before: int, period: float) -> int:
+        """Write this gateway's record with its load and lease when they changed enough to show;
+        the calls counted so far."""
+        calls, listens = self._load() if self._load is not None else (0, 0)
+        was = self.record
+        now = dataclasses.replace(
+            was,
+            owned=len(self.owned),
+            calls_per_s=round(max(0, calls - calls_before) / period, 1),
+            listens=listens,
+            lease_expires=round(self.store.lease_expires, 1),
+            read_only=self.store.read_only,
+        )
+        self.record = now
+        # The expiry moves at every renewal (a third of the lease): written when it has moved by
+        # half a lease, so that the one shown is always ahead of the clock, and a few times a lease.
+        worth = (
+            (now.owned, now.listens, now.read_only) != (was.owned, was.listens, was.read_only)
+            or abs(now.calls_per_s - was.calls_per_s) > max(1.0, was.calls_per_s / 10)
+            or abs(now.lease_expires - was.lease_expires) >= self.lease / 2
+        )
+        if not worth:
+            self.record = dataclasses.replace(
+                now, calls_per_s=was.calls_per_s, lease_expires=was.lease_expires
+            )
+        elif self.joined and not self.store.read_only:
+            self._writes.put(Kind.GATEWAY, self.me, self.record.to_json())
+        self.on_view()
+        return calls
+
+    async def _report(self) -> None:
+        loop = asyncio.get_running_loop()
+        calls = self._load()[0] if self._load is not None else 0
+        period = min(REPORT_PERIOD, self.lease / 2)
+        while True:
+            began = loop.time()
+            await asyncio.sleep(period)
+            calls = self._report_once(calls, loop.time() - began)
+
+    def member_status(self, gateway: str, owned: int | None = None) -> dict[str, object] | None:
+        """What the cluster view shows of one gateway (None when it is not in the cluster); ``owned``:
+        its count of owners keys when the caller has counted them already."""
+        record = self.record if gateway == self.me else self.view.gateways.get(gateway)
+        if record is None:
+            return None
+        now = time.time()
+        read_only = self.store.read_only if gateway == self.me else record.read_only
+        if read_only:
+            health = "read-only"
+        elif record.lease_expires and record.lease_expires < now - self.lease:
+            health = "silent"  # its record says its lease should have lapsed: frozen, or cut off
+        else:
+            health = "ok"
+        drain = self.view.drains.get(gateway)
+        if owned is None:
+            owned = len(self.view.owned_by(gateway))
+        status: dict[str, object] = {
+            "id": gateway,
+            "address": record.address,
+            "http": record.http,
+            "line": record.line,
+            "version": record.version,
+            "lease_expires": round(self.store.lease_expires, 1)
+            if gateway == self.me
+            else record.lease_expires,
+            "health": health,
+            "owned": owned,
+            "calls_per_s": record.calls_per_s,
+            "listens": record.listens,
+            "read_only": read_only,
+            "draining": record.draining or drain is not None,
+            "drained_by": drain.by if drain is not None else "",
+            "drained_at": drain.at if drain is not None else 0.0,
+        }
+        if gateway == self.me:
+            status["moving"] = len(self._handing)
+            if self.last_move is not None:
+                count, seconds, why = self.last_move
+                status["last_move"] = {"devices": count, "seconds": round(seconds, 3), "why": why}
+        return status
+
+    def status(self) -> dict[str, object]:
+        """The cluster as this gateway sees it: the registry's ``cluster`` property (as JSON)."""
+        members = sorted({*self.view.gateways, self.me})
+        counts = Counter(self.view.owners.values())
+        return {
+            "gateway": self.me,
+            "store": self.store.location,
+            "rebalance": {
+                "policy": self.rebalance,
+                "spread": self.rebalance_spread,
+                "batch": self.rebalance_batch,
+            },
+            "members": [
+                status
+                for status in (self.member_status(gateway, counts.get(gateway, 0)) for gateway in members)
+                if status is not None
+            ],
+            "drains": {
+                gateway: {"by": order.by, "at": order.at}
+                for gateway, order in sorted(self.view.drains.items())
+            },
+            "services": len(self.view.registrations),
+            "unowned": len(self.view.orphans()),
+        }
 
     # -- for devices and people ---------------------------------------------------
 

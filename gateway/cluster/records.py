@@ -6,8 +6,14 @@ Key layout (``PREFIX`` is ``[registry] store_prefix``)::
     PREFIX/owners/NAME     the owning gateway's id                                   (leased)
     PREFIX/states/NAME     up | down | connecting, as the owner sees it              (leased)
     PREFIX/gateways/ID     {"address": HOST:PORT, "http": ..., "line": ..., "owned": N,
-                            "protocols": [1, 2]}                                      (leased)
+                            "protocols": [1, 2], ...}                                 (leased)
     PREFIX/licences/NAME   [{"id": ..., "subtree": ..., "holder": ..., ...}, ...]   (see licences)
+    PREFIX/drains/ID       {"by": ..., "at": unix seconds}: an admin drained gateway ID
+
+A gateway's record carries, besides where it is reached, what the cluster view shows of it (its
+version, load, lease expiry, read-only reason, whether it is draining) and its count of rebalance
+requests: each field is written only when it is not its default, and a reader takes a missing
+field for its default, so gateways that know fewer fields read the records of those that know more.
 
 The cluster protocol versions a gateway speaks (:mod:`gateway.peer_protocol`) are in its
 ``gateways`` key; a key without them was written by a gateway of version 1. The other keys hold
@@ -19,9 +25,12 @@ A value another program wrote badly is not trusted: :func:`read_registration` an
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 from gateway.peer_protocol import SPOKEN, read_protocols
 from services.registry import STATES
@@ -29,9 +38,12 @@ from services.registry.store import decode_registration, encode_registration
 
 __all__ = [
     "DIAL_IN_PREFIX",
+    "DrainOrder",
     "GatewayRecord",
     "Ownership",
     "Registration",
+    "gateway_version",
+    "read_drain",
     "read_gateway",
     "read_registration",
     "read_state",
@@ -40,6 +52,14 @@ __all__ = [
 #: A registration whose URL starts so is a device that dialled in to a gateway's line listener:
 #: its key is bound to that gateway's lease, and nobody else can dial it (it dials again elsewhere).
 DIAL_IN_PREFIX = "tcp-in://"
+
+
+def gateway_version() -> str:
+    """This gateway's release (the installed package's version), "" when it is not installed."""
+    try:
+        return importlib.metadata.version("propertyservice-gateway")
+    except importlib.metadata.PackageNotFoundError:
+        return ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -73,9 +93,24 @@ def read_registration(text: str) -> Registration | None:
     return Registration(url, options) if url else None
 
 
+#: Fields of a gateway's record beyond where it is reached: name → (type, default). A field at its
+#: default is not written; one of another type is read as its default (a record is never refused for them).
+_EXTRA_FIELDS: dict[str, tuple[type, object]] = {
+    "tls": (bool, False),
+    "via": (str, ""),
+    "version": (str, ""),
+    "draining": (bool, False),
+    "read_only": (str, ""),
+    "calls_per_s": (float, 0.0),
+    "listens": (int, 0),
+    "lease_expires": (float, 0.0),
+    "rebalance": (int, 0),
+}
+
+
 @dataclass(frozen=True, slots=True)
 class GatewayRecord:
-    """One ``gateways/ID`` key: where a live gateway of the cluster is reached."""
+    """One ``gateways/ID`` key: where a live gateway of the cluster is reached, and how it is doing."""
 
     #: host:port of its gRPC port, as the other gateways dial it (``[registry] advertise``).
     address: str
@@ -92,6 +127,20 @@ class GatewayRecord:
     via: str = ""
     #: The cluster protocol versions it speaks (gateway.peer_protocol); a key without them: {1}.
     protocols: frozenset[int] = SPOKEN
+    #: The gateway's release (the package version).
+    version: str = ""
+    #: It hands what it owns over to the others and takes nothing new (an admin drained it).
+    draining: bool = False
+    #: Why its registry was read-only when it last wrote this record ("" when it was not).
+    read_only: str = ""
+    #: Calls (Get, Set, Describe; gRPC and HTTP) a second it answered lately.
+    calls_per_s: float = 0.0
+    #: Listen streams open on it.
+    listens: int = 0
+    #: Wall-clock time its lease lapses unless renewed, as of its last renewal.
+    lease_expires: float = 0.0
+    #: How many rebalances an admin asked for through it: every gateway runs one when it grows.
+    rebalance: int = 0
 
     def to_json(self) -> str:
         """The key's value."""
@@ -102,10 +151,10 @@ class GatewayRecord:
             "owned": self.owned,
             "protocols": sorted(self.protocols),
         }
-        if self.tls:
-            fields["tls"] = True
-        if self.via:
-            fields["via"] = self.via
+        for name, (_, default) in _EXTRA_FIELDS.items():
+            value = getattr(self, name)
+            if value != default:
+                fields[name] = value
         return json.dumps(fields, sort_keys=True)
 
 
@@ -118,7 +167,6 @@ def read_gateway(text: str) -> GatewayRecord | None:
         line = data.get("line", "")
         owned = data.get("owned", 0)
         tls = data.get("tls", False)
-        via = data.get("via", "")
         protocols = read_protocols(data.get("protocols"))
     except (ValueError, KeyError, TypeError, AttributeError):
         return None
@@ -130,7 +178,38 @@ def read_gateway(text: str) -> GatewayRecord | None:
         or protocols is None
     ):
         return None
-    return GatewayRecord(address, str(http or ""), str(line or ""), owned, tls, str(via or ""), protocols)
+    extra: dict[str, Any] = {}
+    for name, (kind, default) in _EXTRA_FIELDS.items():
+        value = data.get(name, default)
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        finite = not isinstance(value, float) or math.isfinite(value)
+        extra[name] = value if type(value) is kind and finite else default
+    extra["via"] = str(data.get("via", "") or "")
+    return GatewayRecord(address, str(http or ""), str(line or ""), owned, protocols=protocols, **extra)
+
+
+@dataclass(frozen=True, slots=True)
+class DrainOrder:
+    """One ``drains/ID`` key: an admin drained gateway ID (it stays drained until undrained)."""
+
+    #: Who asked (the caller's identity, as the rules know it).
+    by: str = ""
+    #: When, unix seconds.
+    at: float = 0.0
+
+    def to_json(self) -> str:
+        """The key's value."""
+        return json.dumps({"by": self.by, "at": self.at}, sort_keys=True)
+
+
+def read_drain(text: str) -> DrainOrder:
+    """The order a ``drains/ID`` value holds; any value drains (a bad one is read as an order by nobody)."""
+    try:
+        data = json.loads(text)
+        return DrainOrder(str(data.get("by", "")), float(data.get("at", 0.0)))
+    except (ValueError, TypeError, AttributeError):
+        return DrainOrder()
 
 
 def read_state(text: str) -> str | None:

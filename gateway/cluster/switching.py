@@ -13,11 +13,18 @@ When the owner changes, :meth:`SwitchingBackend.switch` moves every Listen to th
 hands each listener the current value as a ``Change(gap=True)``: values may have been missed in
 between, and the listener hears that it may have. The router entry, and so the listen hub's topics
 and every client stream on them, stay as they are.
+
+A planned move (a drain, a rebalance: :mod:`gateway.cluster.moves`) is cleaner than a failure: the
+old target is closed only once the Gets and Sets on it have ended (at most :data:`CALLS_END_WAIT`),
+and while the service has no target for such a move (``switch(None, hold=...)``) a call waits for
+the next target, up to the hold, instead of being refused: a client's Set is answered by the new
+owner, never lost in between.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import itertools
 import logging
@@ -39,7 +46,13 @@ from services.errors import Code, PropertyError, Unavailable
 from services.model import PropertyModel, ServiceModel
 from services.values import Value
 
-__all__ = ["RESUME_BACKOFF_INITIAL", "RESUME_BACKOFF_MAX", "RESUME_NOT_FOUND_WAIT", "SwitchingBackend"]
+__all__ = [
+    "CALLS_END_WAIT",
+    "RESUME_BACKOFF_INITIAL",
+    "RESUME_BACKOFF_MAX",
+    "RESUME_NOT_FOUND_WAIT",
+    "SwitchingBackend",
+]
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +64,34 @@ RESUME_BACKOFF_MAX = 2.0
 #: owner, or the gateway it forwards to, has not caught up with the move) before it reports the
 #: property removed: a service that only moves between owners is never reported removed.
 RESUME_NOT_FOUND_WAIT = 5.0
+#: Seconds a switch waits for the Gets and Sets on the old target to end before closing it: a
+#: device's own timeout (2 s by default) ends them sooner.
+CALLS_END_WAIT = 5.0
+
+
+class _CallsOn:
+    """The Gets and Sets under way on one target: a switch waits for them to end before closing it."""
+
+    __slots__ = ("ended", "running")
+
+    def __init__(self) -> None:
+        self.running = 0
+        self.ended: asyncio.Event | None = None
+
+    def end(self) -> None:
+        self.running -= 1
+        if self.running == 0 and self.ended is not None:
+            self.ended.set()
+
+    async def wait_ended(self, wait_s: float) -> None:
+        if self.running == 0:
+            return
+        self.ended = asyncio.Event()
+        try:
+            async with asyncio.timeout(wait_s):
+                await self.ended.wait()
+        except TimeoutError:
+            log.info("%d calls still under way on a target being closed", self.running)
 
 
 class _SwitchedListen(Subscription):
@@ -147,6 +188,10 @@ class SwitchingBackend(Backend):
         self._listens: dict[int, _SwitchedListen] = {}
         self._ids = itertools.count()
         self._has_target = asyncio.Event()
+        #: The Gets and Sets under way on the current target.
+        self._calls = _CallsOn()
+        #: Until this loop time a call finding no target waits for one (a planned move: ``hold``).
+        self._hold_until = 0.0
         #: Subscriptions being closed because they were opened on a target that is gone.
         self._dropping: set[asyncio.Task[None]] = set()
         self._closed = False
@@ -161,16 +206,23 @@ class SwitchingBackend(Backend):
 
     # -- switching ---------------------------------------------------------
 
-    async def switch(self, target: Backend | None, label: str = "", reason: str = "") -> None:
+    async def switch(
+        self, target: Backend | None, label: str = "", reason: str = "", hold: float = 0.0
+    ) -> None:
         """Reach the service through ``target`` (started) from now on; None: through nothing, because of
-        ``reason``. The old target is closed; every Listen moves to the new one with a gap."""
+        ``reason``. The old target is closed once the calls on it have ended; every Listen moves to
+        the new one with a gap. ``hold`` (with None, for a planned move): seconds a call waits for
+        the next target before it is refused."""
         old = self._target
+        if target is None and hold > 0:
+            self._hold_until = asyncio.get_running_loop().time() + hold
         if target is old:
             return
         if self._closed:
             if target is not None:
                 await target.aclose()
             return
+        old_calls, self._calls = self._calls, _CallsOn()
         self._target = target
         self.target_label = label if target is not None else ""
         if reason:
@@ -189,6 +241,7 @@ class SwitchingBackend(Backend):
         for listen in listens:
             self._resume(listen)
         if old is not None:
+            await old_calls.wait_ended(CALLS_END_WAIT)
             await old.aclose()
 
     async def _detach(self, listen: _SwitchedListen) -> None:
@@ -247,18 +300,44 @@ class SwitchingBackend(Backend):
             raise Unavailable(self._reason)
         return target
 
+    async def _held(self) -> Backend:
+        """The target, once there is one again when a planned move holds the calls; else as _require."""
+        loop = asyncio.get_running_loop()
+        if self._target is None and loop.time() < self._hold_until:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout_at(self._hold_until):
+                    await self._has_target.wait()
+        return self._require()
+
     def _learn_type(self, target: Backend) -> None:
         if not self._declared_type and target.info.type != UNKNOWN_TYPE:
             self.info.type = target.info.type
 
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
-        return await self._require().get(path, params)
+        target = self._target
+        if target is None:
+            target = await self._held()
+        calls = self._calls
+        calls.running += 1
+        try:
+            return await target.get(path, params)
+        finally:
+            calls.end()
 
     async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
-        return await self._require().set(path, value, params)
+        target = self._target
+        if target is None:
+            target = await self._held()
+        calls = self._calls
+        calls.running += 1
+        try:
+            return await target.set(path, value, params)
+        finally:
+            calls.end()
 
     async def describe(self) -> ServiceModel:
-        return await self._require().describe()
+        target = self._target
+        return await (target if target is not None else await self._held()).describe()
 
     async def properties(self) -> list[str]:
         return await self._require().properties()
@@ -289,6 +368,8 @@ class SwitchingBackend(Backend):
         self._learn_type(target)
 
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
+        if self._target is None:
+            await self._held()
         listen, target, generation = self._place(path, notify, params)
         try:
             sub = await target.listen(path, listen.forward_for(generation), params)
@@ -301,6 +382,8 @@ class SwitchingBackend(Backend):
     async def listen_current(
         self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS
     ) -> tuple[Subscription, Value]:
+        if self._target is None:
+            await self._held()
         listen, target, generation = self._place(path, notify, params)
         try:
             sub, value = await target.listen_current(path, listen.forward_for(generation), params)

@@ -11,7 +11,15 @@ import logging
 from collections import Counter
 from typing import TypeVar
 
-from gateway.cluster.records import GatewayRecord, Registration, read_gateway, read_registration, read_state
+from gateway.cluster.records import (
+    DrainOrder,
+    GatewayRecord,
+    Registration,
+    read_drain,
+    read_gateway,
+    read_registration,
+    read_state,
+)
 from services.registry.store import Change, Kind
 
 __all__ = ["ClusterView"]
@@ -32,6 +40,8 @@ class ClusterView:
         self.states: dict[str, str] = {}
         #: Gateway id → where it is reached.
         self.gateways: dict[str, GatewayRecord] = {}
+        #: Gateway id → the admin's order that drained it (it may not be live now).
+        self.drains: dict[str, DrainOrder] = {}
 
     def apply(self, change: Change) -> list[str]:
         """Take one change of the store; the service names whose serving it may change."""
@@ -58,6 +68,11 @@ class ClusterView:
             if old is not None and record is not None and old.address == record.address:
                 return []  # only its count of owned services changed
             return self.owned_by(name)
+        if kind is Kind.DRAIN:
+            if value is None:
+                self.drains.pop(name, None)
+            else:
+                self.drains[name] = read_drain(value)
         return []
 
     @staticmethod
@@ -91,6 +106,8 @@ class ClusterView:
             return set(self.states)
         if kind is Kind.GATEWAY:
             return set(self.gateways)
+        if kind is Kind.DRAIN:
+            return set(self.drains)
         return set()
 
     def owned_by(self, gateway_id: str) -> list[str]:

@@ -36,6 +36,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -184,6 +185,8 @@ class EtcdStore:
         self._max_keys = max_keys
         self._link: _Link | None = None
         self._lease_id = 0
+        #: Wall-clock time the lease lapses unless renewed, as of its last grant or renewal.
+        self._lease_expires = 0.0
         self._reason = "not connected yet"
         self._connected = asyncio.Event()
         self._started = False
@@ -230,6 +233,11 @@ class EtcdStore:
         if self._connected.is_set():
             return ""
         return f"etcd at {','.join(self.address.endpoints)} cannot be reached ({self._reason})"
+
+    @property
+    def lease_expires(self) -> float:
+        """Wall-clock time this gateway's lease lapses unless renewed, as of its last renewal; 0: none."""
+        return self._lease_expires if self._lease_id else 0.0
 
     # -- lifecycle -------------------------------------------------------------------------------
 
@@ -372,6 +380,7 @@ class EtcdStore:
                 raise _Lost("etcd ended the lease's keep-alive")
             if kept.TTL > 0:
                 link.ttl = min(float(kept.TTL), self._lease_seconds)
+                self._lease_expires = time.time() + float(kept.TTL)
                 return
             log.info("registry store: lease %x is gone (etcd restarted or it expired)", self._lease_id)
         # etcd counts TTLs in whole seconds.
@@ -381,6 +390,7 @@ class EtcdStore:
             raise _Lost(f"etcd granted no lease: {granted.error}")
         self._lease_id = granted.ID
         link.ttl = min(float(granted.TTL), self._lease_seconds)
+        self._lease_expires = time.time() + float(granted.TTL)
 
     async def _serve(self) -> str:
         """Keep the lease alive and follow the watch until one of them fails; why it did."""
@@ -435,6 +445,7 @@ class EtcdStore:
             if answer.TTL <= 0:
                 raise _Lost(f"this gateway's lease {self._lease_id:x} expired")
             renewed, pause, failure = loop.time(), interval, ""
+            self._lease_expires = time.time() + float(answer.TTL)
 
     async def _follow(self, link: _Link) -> None:
         while True:

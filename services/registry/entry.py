@@ -59,6 +59,14 @@ class ServiceEntry(Resource):
             doc="in a cluster of gateways: the id of the gateway holding its connection; else empty",
         ),
     ]
+    owner_since: Annotated[
+        float,
+        Prop(
+            readonly=True,
+            gui="time",
+            doc="in a cluster: when this gateway heard that owner take it, unix seconds; else 0",
+        ),
+    ]
 
     def __init__(
         self,
@@ -76,6 +84,7 @@ class ServiceEntry(Resource):
         self.features = []
         self.licence = ""
         self.owner = ""
+        self.owner_since = 0.0
         self._location: Vector = np.zeros(0)
         self._want_location = want_location
         self._name = name

@@ -22,7 +22,7 @@ from services.query import Query, values_equal
 from services.registry.allow import AllowList
 from services.registry.dispatch import Dispatcher, QosView
 from services.registry.embedded import EmbeddedStore
-from services.registry.entry import ServiceEntry, ServiceList
+from services.registry.entry import ServiceEntry, ServiceList, wall_clock
 from services.registry.licences import (
     DEFAULT_LICENCE_DURATION,
     DEFAULT_MAX_LICENCE_DURATION,
@@ -356,6 +356,7 @@ class Registry(Resource):
         entry = self._table.get(name)
         if entry is not None and entry.owner != owner:
             entry.owner = owner
+            entry.owner_since = wall_clock() if owner else 0.0
 
     def _left_alone(self, name: str) -> bool:
         """Liveness leaves ``name`` alone: being (un)registered now, or its state is mirrored."""

@@ -52,6 +52,9 @@ class Kind(StrEnum):
     GATEWAY = "gateways"
     #: A licence granted on a service: JSON of the licence, created only when absent.
     LICENCE = "licences"
+    #: A gateway an admin drained (named by its id): JSON ``{"by": ..., "at": ...}``, not leased (a
+    #: drained gateway that restarts stays drained until an admin undrains it).
+    DRAIN = "drains"
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,6 +125,12 @@ class SharedStore(RegistryStore, Protocol):
     @property
     def gateway_id(self) -> str:
         """This gateway's id in the cluster (the value of the ``owners`` keys it writes)."""
+        ...
+
+    @property
+    def lease_expires(self) -> float:
+        """Wall-clock time (``time.time()``) at which this gateway's lease lapses unless renewed, as
+        of its last renewal; 0 while it holds none."""
         ...
 
     async def read(self, kind: Kind) -> dict[str, str]:

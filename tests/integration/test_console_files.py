@@ -1,6 +1,7 @@
-"""The console as a browser loads it from a real gateway process: the page, its stylesheet, and
-every ES module that main.js imports, directly or through other modules, each served with a
-JavaScript content type (a browser refuses a module served as anything else)."""
+"""The console as a browser loads it from a real gateway process: the pages (the console and the
+cluster page), the stylesheet, and every ES module that their entry points (main.js, cluster.js)
+import, directly or through other modules, each served with a JavaScript content type (a browser
+refuses a module served as anything else)."""
 
 from __future__ import annotations
 
@@ -109,9 +110,14 @@ def test_the_stylesheet_is_served_as_css(gateway: GatewayProcess, page: _Page) -
 def test_every_module_import_resolves_to_a_served_javascript_file(
     gateway: GatewayProcess, page: _Page
 ) -> None:
-    entry = urllib.parse.urljoin(gateway.http_url, str(page.scripts[0]["src"]))
+    status, content_type, body = fetch(urllib.parse.urljoin(gateway.http_url, "/console/cluster.html"))
+    assert status == 200 and content_type.startswith("text/html")
+    cluster_page = _Page()
+    cluster_page.feed(body)
+    assert {"members", "devices", "rebalance", "connection"} <= cluster_page.ids
+    entries = [str(p.scripts[0]["src"]) for p in (page, cluster_page)]
     seen: set[str] = set()
-    todo = [entry]
+    todo = [urllib.parse.urljoin(gateway.http_url, entry) for entry in entries]
     while todo:
         url = todo.pop()
         if url in seen:
@@ -126,7 +132,7 @@ def test_every_module_import_resolves_to_a_served_javascript_file(
             todo.append(urllib.parse.urljoin(url, spec))
     served = {Path(urllib.parse.urlparse(u).path).name for u in seen}
     on_disk = {p.name for p in CONSOLE_JS.glob("*.js")}
-    assert served == on_disk, f"modules main.js never loads: {sorted(on_disk - served)}"
+    assert served == on_disk, f"modules no page loads: {sorted(on_disk - served)}"
 
 
 def test_a_missing_console_file_is_a_json_404(gateway: GatewayProcess) -> None:

@@ -138,6 +138,10 @@ class MemoryStore:
     def gateway_id(self) -> str:
         return self._gateway_id
 
+    @property
+    def lease_expires(self) -> float:
+        return 0.0  # the memory server's leases never lapse by time: only a kill ends one
+
     async def start(self) -> None:
         self.started = True
         self._known = set(self.server.keys)
