@@ -75,7 +75,9 @@ def test_the_page_moves_to_the_next_gateway_when_its_own_dies(
             f"the page on the second gateway's console {second.http_url}",
             within=MOVE_WITHIN,
         )
-        wait_for(browser, lambda d: connection(d) == "open", "#connection open on the second gateway", within=20.0)
+        wait_for(
+            browser, lambda d: connection(d) == "open", "#connection open on the second gateway", within=20.0
+        )
         wait_for(browser, lambda d: selected_service(d) == "scout1", "scout1 still selected after the move")
         assert browser.execute_script("return location.hash") == "#scout1"
         assert failover_text(browser) == f"moved here from {first.http_url} (unreachable)"
