@@ -4,6 +4,7 @@
 import * as api from './api.js';
 import './builtin_widgets.js';
 import { EventMux } from './events.js';
+import { Failover, fetchProbe, withRoundEnded } from './failover.js';
 import { Inspector } from './inspector.js';
 import { RobotMap } from './map.js';
 import { ServiceList } from './service_list.js';
@@ -21,6 +22,21 @@ const $ = (selector) => {
 const connection = $('#connection');
 const CONNECTION_TEXT = { open: 'live', connecting: 'connecting…', closed: 'disconnected' };
 
+// With `?gateways=URL,URL` the page moves itself to the next gateway's console when its own
+// stays unreachable (js/failover.js).
+const failover = new Failover({
+  href: location.href,
+  hash: () => location.hash,
+  probe: fetchProbe(),
+  move: (url) => location.assign(url),
+  notice: (text) => {
+    const el = $('#failover');
+    el.textContent = text;
+    el.hidden = !text;
+  },
+  endRound: () => history.replaceState(history.state, '', withRoundEnded(location.href)),
+});
+
 const mux = new EventMux({
   // The gateway allows fewer selectors per Listen than the page asked for: lay the view out again.
   onLimit: () => setTimeout(() => selected() && view.show(selected()), 0),
@@ -28,6 +44,7 @@ const mux = new EventMux({
     connection.dataset.state = state;
     const retry = detail?.retryInSeconds ? ` · retry in ${detail.retryInSeconds} s` : '';
     connection.querySelector('.connection-text').textContent = `${CONNECTION_TEXT[state] ?? state}${retry}`;
+    failover.stateChanged(state);
   },
 });
 
