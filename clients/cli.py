@@ -19,7 +19,18 @@ from collections.abc import Sequence
 from datetime import datetime
 from typing import Any, TextIO
 
-from clients.aio import DEFAULT_TARGET, DEFAULT_TIMEOUT, HEARTBEAT, SYNC, AsyncClient, Event, Mark, Selector
+from clients.aio import (
+    DEFAULT_FAILOVER_LIMIT,
+    DEFAULT_KEEPALIVE,
+    DEFAULT_TARGET,
+    DEFAULT_TIMEOUT,
+    HEARTBEAT,
+    SYNC,
+    AsyncClient,
+    Event,
+    Mark,
+    Selector,
+)
 from clients.cluster_view import ACTIONS, cluster_command
 from clients.credentials import ENVIRONMENT, ClientCredentials
 from clients.errors import GatewayUnreachable, NotFound, PropertyServiceError
@@ -103,6 +114,22 @@ def _common_options() -> argparse.ArgumentParser:
         metavar="SECONDS",
         default=argparse.SUPPRESS,
         help=f"limit for each call, 0 for none (default: {DEFAULT_TIMEOUT:g})",
+    )
+    common.add_argument(
+        "--keepalive",
+        type=_timeout,
+        metavar="SECONDS",
+        default=argparse.SUPPRESS,
+        help="seconds between keep-alive pings, and how long one may go unanswered before the gateway"
+        f" counts as frozen; 0 for grpc's own (minutes) (default: {DEFAULT_KEEPALIVE:g})",
+    )
+    common.add_argument(
+        "--failover-limit",
+        type=_timeout,
+        metavar="SECONDS",
+        default=argparse.SUPPRESS,
+        help="seconds `listen --resume` may go without reaching any gateway before it gives up;"
+        f" 0 to keep trying (default: {DEFAULT_FAILOVER_LIMIT:g})",
     )
     common.add_argument(
         "--json", action="store_true", default=argparse.SUPPRESS, help="machine-readable JSON output"
@@ -694,6 +721,8 @@ async def _run(args: argparse.Namespace, target: str, call_timeout: float | None
         timeout=call_timeout,
         credentials=_credentials(args),
         separate_listens=getattr(args, "separate_stream", False),
+        keepalive=getattr(args, "keepalive", DEFAULT_KEEPALIVE) or None,
+        failover_limit=getattr(args, "failover_limit", DEFAULT_FAILOVER_LIMIT) or None,
     ) as client:
         return await _COMMANDS[args.command](client, args, as_json)
 

@@ -274,7 +274,13 @@ class Gateway:
         """Start every ``[[devices]]`` process at once; they boot while the gateway starts the rest."""
         if self.config.devices and self._launch is None:
             self._launch = asyncio.ensure_future(
-                asyncio.gather(*(start_supervised(e) for e in self.config.devices), return_exceptions=True)
+                asyncio.gather(
+                    *(
+                        start_supervised(e, wait_s=self.config.gateway.device_start_timeout)
+                        for e in self.config.devices
+                    ),
+                    return_exceptions=True,
+                )
             )
 
     async def _start_devices(self) -> None:

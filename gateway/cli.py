@@ -15,6 +15,8 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
+# First among the gateway's imports: it sets GRPC_VERBOSITY before anything imports grpc.
+import gateway.grpc_core_logs  # noqa: F401
 from gateway import device_check_cli, device_cli
 from gateway.allocator import return_large_blocks
 from gateway.config import Config, ConfigError, default_config, load_config, load_config_partly

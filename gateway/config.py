@@ -96,6 +96,9 @@ class GatewaySection:
     #: Seconds a new connection gets to finish its TLS handshake and HTTP/2 preface (gRPC) or its TLS
     #: handshake (HTTPS); a connection that sends nothing is closed after it.
     handshake_timeout: float = 10.0
+    #: Seconds each ``[[devices]]`` process may take to say where it serves, at start and at each
+    #: restart; a process still silent after it is ended and the gateway's start fails.
+    device_start_timeout: float = 30.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -591,7 +594,7 @@ def _gateway(data: Any, where: str) -> GatewaySection:
             problems.found.append(f"{where}.call_timeout: must be positive, got {gw.call_timeout}")
         if gw.max_connections < 1:
             problems.found.append(f"{where}.max_connections: must be at least 1")
-        for key in ("idle_timeout", "handshake_timeout"):
+        for key in ("idle_timeout", "handshake_timeout", "device_start_timeout"):
             seconds = getattr(gw, key)
             if not (math.isfinite(seconds) and seconds > 0):
                 problems.found.append(f"{where}.{key}: must be a positive number of seconds, got {seconds!r}")

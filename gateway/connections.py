@@ -12,7 +12,8 @@ gateway unable to dial its devices). So:
   protocol session) on its own listening sockets. A connection past its port's share, or past
   ``max_per_address`` from one address, is accepted and closed at once (with a short refusal
   when the port speaks plaintext), so it never waits in the kernel's backlog or holds a
-  descriptor. Refusals are counted and logged once per :data:`LOG_INTERVAL`.
+  descriptor. Refusals are counted and logged once per :data:`LOG_INTERVAL`: the first at once,
+  those that follow when the interval is over (a timer), and any still counted at close.
 * An accept that fails for want of descriptors or memory (EMFILE, ENFILE, ENOBUFS, ENOMEM)
   pauses that listener with a doubling back-off and is logged once per interval. asyncio's own
   accept loop logs such a failure once for each of up to ``backlog`` accepts in a row and
@@ -146,8 +147,11 @@ class BoundedListener:
         ssl_context: ssl.SSLContext | None = None,
         ssl_handshake_timeout: float | None = None,
         refusal: Callable[[str], bytes] | None = None,
+        log_interval: float = LOG_INTERVAL,
     ) -> None:
         self._factory = protocol_factory
+        #: Seconds between two lines about refused connections or failed accepts.
+        self.log_interval = log_interval
         self.caps = caps
         self.what = what
         self._ssl = ssl_context
@@ -160,6 +164,9 @@ class BoundedListener:
         self._handshakes: set[asyncio.Task[None]] = set()
         self._pause = _FIRST_PAUSE
         self._refused: Counter[str] = Counter()
+        self._last_refused_from = ""
+        #: Writes the refusals counted since the last line once the interval is over.
+        self._refusals_timer: asyncio.TimerHandle | None = None
         self._failed_accepts = 0
         self._last_logged: float | None = None
         self._last_accept_logged: float | None = None
@@ -230,7 +237,7 @@ class BoundedListener:
     def _accept_failed(self, exc: OSError, then: str = "") -> None:
         self._failed_accepts += 1
         now = asyncio.get_running_loop().time()
-        if self._last_accept_logged is not None and now - self._last_accept_logged < LOG_INTERVAL:
+        if self._last_accept_logged is not None and now - self._last_accept_logged < self.log_interval:
             return
         self._last_accept_logged = now
         count, self._failed_accepts = self._failed_accepts, 0
@@ -289,17 +296,29 @@ class BoundedListener:
                 conn.send(self._refusal(reason))
         conn.close()
         self._refused[reason] += 1
-        now = asyncio.get_running_loop().time()
-        if self._last_logged is not None and now - self._last_logged < LOG_INTERVAL:
+        self._last_refused_from = address
+        if self._refusals_timer is not None:
+            return  # counted; the timer writes it
+        loop = asyncio.get_running_loop()
+        if self._last_logged is not None and loop.time() - self._last_logged < self.log_interval:
+            # Written when the interval is over, not when (or if) the next refusal comes.
+            self._refusals_timer = loop.call_at(self._last_logged + self.log_interval, self._log_refusals)
             return
-        self._last_logged = now
+        self._log_refusals()
+
+    def _log_refusals(self) -> None:
+        """One line with the refusals counted since the last (none: nothing)."""
+        self._refusals_timer = None
+        if not self._refused:
+            return
+        self._last_logged = asyncio.get_running_loop().time()
         counts, self._refused = self._refused, Counter()
         log.warning(
             "%s: refused %d connection(s) since the last such line: %s; the last from %s",
             self.what,
             sum(counts.values()),
             "; ".join(f"{count} as {why}" for why, count in counts.items()),
-            address,
+            self._last_refused_from,
         )
 
     def _close_sockets(self) -> None:
@@ -311,8 +330,12 @@ class BoundedListener:
         self._sockets.clear()
 
     async def aclose(self) -> None:
-        """Stop listening (open connections are their protocol's to end); idempotent."""
+        """Stop listening (open connections are their protocol's to end); idempotent. Refusals
+        counted and not yet written are written now."""
         self._close_sockets()
+        if self._refusals_timer is not None:
+            self._refusals_timer.cancel()
+        self._log_refusals()
         tasks = list(self._handshakes)
         for task in tasks:
             task.cancel()

@@ -51,8 +51,9 @@ from services.errors import Unavailable
 
 log = logging.getLogger(__name__)
 
-#: Seconds a device process may take to say where it serves.
-START_TIMEOUT = 10.0
+#: Seconds a device process may take to say where it serves, unless ``[gateway] device_start_timeout``
+#: says otherwise (a loaded machine can take longer than this to start a Python process).
+START_TIMEOUT = 30.0
 #: Seconds a device process gets to end after SIGTERM before SIGKILL.
 STOP_TIMEOUT = 3.0
 
@@ -156,7 +157,10 @@ async def start_device(entry: DeviceEntry, *, wait_s: float = START_TIMEOUT) -> 
             first = (await process.stdout.readline()).decode(errors="replace").strip()  # type: ignore[union-attr]
     except TimeoutError:
         await _terminate(process, STOP_TIMEOUT)
-        raise Unavailable(f"device {entry.name}: did not say where it serves within {wait_s:g} s") from None
+        raise Unavailable(
+            f"device {entry.name}: did not say where it serves within {wait_s:g} s"
+            " (raise [gateway] device_start_timeout on a loaded machine)"
+        ) from None
     except BaseException:
         await _terminate(process, STOP_TIMEOUT)
         raise
@@ -190,8 +194,10 @@ class SupervisedDevice:
         initial_s: float = RESTART_INITIAL_S,
         max_s: float = RESTART_MAX_S,
         steady_s: float = RESTART_STEADY_S,
+        start_wait_s: float = START_TIMEOUT,
     ) -> None:
         self.name = entry.name
+        self.start_wait_s = start_wait_s
         self.device = device
         self.initial_s = initial_s
         self.max_s = max_s
@@ -256,7 +262,7 @@ class SupervisedDevice:
                 await asyncio.sleep(delay)
                 delay = min(delay * 2, self.max_s)
                 try:
-                    device = await start_device(self._again)
+                    device = await start_device(self._again, wait_s=self.start_wait_s)
                 except Exception as exc:  # any failure is logged and tried again
                     log.warning(
                         "device %s: could not start it again (%s); next try in %g s", self.name, exc, delay
@@ -282,9 +288,9 @@ class SupervisedDevice:
             shutil.rmtree(self._link_dir, ignore_errors=True)
 
 
-async def start_supervised(entry: DeviceEntry) -> SupervisedDevice:
-    """:func:`start_device`, then kept running by a :class:`SupervisedDevice`."""
-    return SupervisedDevice(entry, await start_device(entry))
+async def start_supervised(entry: DeviceEntry, *, wait_s: float = START_TIMEOUT) -> SupervisedDevice:
+    """:func:`start_device`, then kept running by a :class:`SupervisedDevice` (restarts wait as long)."""
+    return SupervisedDevice(entry, await start_device(entry, wait_s=wait_s), start_wait_s=wait_s)
 
 
 __all__ = [

@@ -179,19 +179,25 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         self._channel = channel
         self._stub = pb_grpc.PropertyServiceStub(channel)
 
-    def gateway_failed(self, target: str, why: str) -> None:
+    def gateway_failed(self, target: str, why: str, *, say: bool = True) -> None:
         """A call or stream through ``target`` found it gone (``why``): when that is the gateway in
-        use and the client has several, later calls and streams go to the next."""
-        self._move_on(target, why)
+        use and the client has several, later calls and streams go to the next. ``say``: log the
+        move (False where what resumes logs it, one line a move)."""
+        if self._move_on(target) and say:
+            self._log_move(target, why)
 
-    def _move_on(self, failed: str, why: str) -> None:
-        """Use the next gateway when ``failed`` (the address a call used) is the one in use."""
+    def _move_on(self, failed: str) -> bool:
+        """Use the next gateway when ``failed`` (the address a call used) is the one in use; True
+        when it moved. The caller logs the move, unless it gives up instead."""
         if not self.gateways.move_on(failed):
-            return
+            return False
         self.target = self.gateways.current
-        log.warning("gateway %s failed (%s); moving to %s", failed, why, self.target)
         if self._stub is not None:
             self._open_channel()
+        return True
+
+    def _log_move(self, failed: str, why: str) -> None:
+        log.warning("gateway %s failed (%s); moving to %s", failed, why, self.target)
 
     async def __aenter__(self) -> Self:
         self.stub()
@@ -243,7 +249,7 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
                     error = self._error(e, service, prop, target)
                     if not isinstance(error, Unavailable) or answered_by_gateway(e):
                         raise error from None
-                    self._move_on(target, error.message)
+                    moved = self._move_on(target)
                     tried[target] = error.message
                     again = isinstance(error, GatewayUnreachable) or method in _READS
                     if len(self.gateways) == 1:
@@ -258,6 +264,8 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
                         ) from None
                     if self.target in tried or (deadline is not None and loop.time() >= deadline):
                         raise no_gateway_answered(tried, None, service, prop) from None
+                    if moved:
+                        self._log_move(target, error.message)
         finally:
             slots.release()
 
@@ -405,7 +413,7 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
                 if not tried:
                     broken_at = loop.time()
                 tried[target] = e.message
-                self._move_on(target, e.message)
+                self._move_on(target)  # logged below with the resume, one line a move
                 limit = self.failover_limit
                 if limit is not None and loop.time() - broken_at >= limit:
                     raise no_gateway_answered(tried, limit, request.service, request.property) from None
@@ -449,7 +457,7 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
             if session is not None:
                 await session.aclose()  # its tasks: the reader ended with the stream, the writer waits
             # Kept before opening: open() never waits, so no other listen can find it unopened.
-            session = self._listen_session = Session(self)
+            session = self._listen_session = Session(self, carries_resumed_listens=True)
             await session.open()
         async with aclosing(session.start_listen(request, marks)) as items:
             async for item in items:

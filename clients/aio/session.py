@@ -55,7 +55,7 @@ class Channel(Protocol):
 
     def stub(self) -> Any: ...
 
-    def gateway_failed(self, target: str, why: str) -> None: ...
+    def gateway_failed(self, target: str, why: str, *, say: bool = True) -> None: ...
 
 
 @dataclass(slots=True)
@@ -83,8 +83,17 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
     counting the values it missed.
     """
 
-    def __init__(self, client: Channel, *, max_pending: int = DEFAULT_SESSION_QUEUE) -> None:
+    def __init__(
+        self,
+        client: Channel,
+        *,
+        max_pending: int = DEFAULT_SESSION_QUEUE,
+        carries_resumed_listens: bool = False,
+    ) -> None:
+        """``carries_resumed_listens``: the Session a client's listens share, whose listens each
+        log their own move to the next gateway (so the Session's end logs none)."""
         self._client = client
+        self._carries_resumed_listens = carries_resumed_listens
         self._timeout = client.timeout
         self._queue: asyncio.Queue[pb.Request] = asyncio.Queue(max_pending)
         self._ids = itertools.count(1)
@@ -159,7 +168,7 @@ class Session(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event | Ma
             if isinstance(error, Unavailable):
                 # The stream's gateway went away (or shut down): the client's next stream or
                 # call goes to its next gateway, when it has several.
-                self._client.gateway_failed(self.target, error.message)
+                self._client.gateway_failed(self.target, error.message, say=not self._carries_resumed_listens)
             self._shutdown(error)
 
     def _dispatch(self, reply: pb.Reply) -> None:

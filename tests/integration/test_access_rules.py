@@ -71,6 +71,12 @@ effect = "deny"
 subject = "admin"
 operations = ["read", "write", "invoke", "register", "unregister", "admin"]
 effect = "permit"
+
+[[rules]]   # 5
+subject = "operator"
+service = "registry"
+operations = ["invoke"]
+effect = "permit"
 """
 
 
@@ -137,6 +143,24 @@ async def _call(  # noqa: PLR0917
     except grpc.aio.AioRpcError as exc:
         return exc.code(), exc.details() or ""
     return OK, ""
+
+
+async def test_the_operator_locks_scout1_and_the_viewer_locks_nothing(secured) -> None:  # type: ignore[no-untyped-def]
+    # docs/security.md's worked config: rule 5 lets the operator take a licence on what it may write.
+    gw, tokens, _ = secured
+    operator = AsyncClient(gw.address, credentials=ClientCredentials(token=tokens.es256("operator")))
+    viewer = AsyncClient(gw.address, credentials=ClientCredentials(token=tokens.hs256("viewer")))
+    admin = AsyncClient(gw.address, credentials=ClientCredentials(token=tokens.hs256("admin")))
+    async with operator, viewer, admin:
+        with pytest.raises(PermissionDenied, match="invoke registry/acquire: viewer may not"):
+            await viewer.set("registry", "acquire", "", service="scout1", duration="60")
+        with pytest.raises(PermissionDenied, match="write scout2: operator may not"):
+            await operator.set("registry", "acquire", "", service="scout2", duration="60")
+        licence = await operator.set("registry", "acquire", "", service="scout1", duration="60")
+        await operator.set("registry", "renew", "", licence=licence, duration="60")
+        assert licence in await admin.get("registry", "licences")
+        await operator.set("registry", "release", "", licence=licence)
+        assert licence not in await admin.get("registry", "licences")
 
 
 async def test_every_cell_of_subject_by_operation_by_path(secured) -> None:  # type: ignore[no-untyped-def]

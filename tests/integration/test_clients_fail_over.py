@@ -297,6 +297,32 @@ def test_psctl_takes_several_gateways_and_uses_the_one_that_answers(
     assert dead in failed.stderr and other in failed.stderr
 
 
+def test_psctl_says_each_move_in_one_line_and_none_when_it_gives_up(
+    pair: tuple[GatewayProcess, GatewayProcess],
+) -> None:
+    _, second = pair
+    dead = f"127.0.0.1:{free_port()}"
+    listen = ("listen", "thermo", "data", "--count", "1", "--resume")
+    listened = psctl(f"{dead},{second.address}", *listen, "--keepalive", "2", "--failover-limit", "10")
+    assert listened.returncode == 0, listened.stderr
+    (move,) = listened.stderr.splitlines()  # one line for the one move
+    assert f" at {dead}; resuming at {second.address} in 0.0 s" in move, move
+
+    other = f"127.0.0.1:{free_port()}"
+    got = psctl(f"{dead},{other}", "get", "thermo", "rate_hz")
+    assert got.returncode == 3, got
+    move, error = got.stderr.splitlines()  # dead to other; none back to dead when it gives up
+    assert move.startswith(f"gateway {dead} failed") and move.endswith(f"moving to {other}"), move
+    assert error.startswith("error: UNAVAILABLE: no gateway answered") and error.endswith(" [thermo rate_hz]")
+
+    gave_up = psctl(f"{dead},{other}", "listen", "thermo", "data", "--resume", "--failover-limit", "0.5")
+    assert gave_up.returncode == 3, gave_up
+    *moves, error = gave_up.stderr.splitlines()
+    assert error.startswith("error: UNAVAILABLE: no gateway answered within 0.5 s"), error
+    assert moves and all(" resuming at " in line for line in moves), moves
+    assert not any("moving to" in line for line in gave_up.stderr.splitlines())
+
+
 # --- a cluster on etcd -------------------------------------------------------------------------
 
 

@@ -281,3 +281,40 @@ async def test_an_accept_that_finds_no_descriptor_backs_off_and_is_logged_once(
         for transport in served:
             transport.close()
         await listener.aclose()
+
+
+async def test_refusals_after_the_first_are_logged_when_the_interval_ends_and_at_close(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # In this process, with a short interval: one connection is the port's share, the rest are refused.
+    listener = BoundedListener(
+        asyncio.Protocol, ConnectionCaps(1, 1, "t.max", "t.per"), "test.listen", log_interval=1.0
+    )
+    host, port = await listener.start("127.0.0.1", 0)
+    clients: list[socket.socket] = []
+
+    def refusals() -> list[str]:
+        return [r.getMessage() for r in caplog.records if "test.listen: refused" in r.getMessage()]
+
+    try:
+        with caplog.at_level(logging.WARNING, logger="gateway.connections"):
+            clients.append(socket.create_connection((host, port)))
+            await wait_until(lambda: listener.open == 1, within=WAIT, what="the one connection admitted")
+            clients.append(socket.create_connection((host, port)))
+            await wait_until(lambda: len(refusals()) == 1, within=WAIT, what="the first refusal's line")
+            clients += [socket.create_connection((host, port)) for _ in range(2)]
+            for client in clients[-2:]:
+                assert await asyncio.to_thread(client.recv, 1) == b""  # closed at once: refused
+            # No further refusal comes: the timer writes the two counted.
+            await wait_until(lambda: len(refusals()) == 2, within=WAIT, what="the timer's line")
+            clients.append(socket.create_connection((host, port)))
+            assert await asyncio.to_thread(clients[-1].recv, 1) == b""  # refused and counted, not yet written
+            await listener.aclose()
+        first, timed, closing = refusals()
+        assert first.startswith("test.listen: refused 1 connection(s)"), first
+        assert timed.startswith("test.listen: refused 2 connection(s)"), timed
+        assert closing.startswith("test.listen: refused 1 connection(s)"), closing
+    finally:
+        for client in clients:
+            client.close()
+        await listener.aclose()

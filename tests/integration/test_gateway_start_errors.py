@@ -102,6 +102,27 @@ def test_http_port_in_use_is_one_line_too(held_port: int, tmp_path: Path) -> Non
     assert started_devices(result.stderr) == []
 
 
+def test_a_device_too_slow_to_start_names_the_option_that_gives_it_longer(tmp_path: Path) -> None:
+    config = tmp_path / "slow.toml"
+    config.write_text(
+        textwrap.dedent("""
+            [gateway]
+            device_start_timeout = 0.001
+            [[devices]]
+            name = "rover"
+            type = "sim-robot"
+            tcp = "127.0.0.1:0"
+        """)
+    )
+    result = run_gateway("serve", "--config", str(config), "--listen", "127.0.0.1:0")
+    assert result.returncode != 0
+    assert "Traceback" not in result.stderr
+    assert (
+        "device rover: did not say where it serves within 0.001 s"
+        " (raise [gateway] device_start_timeout on a loaded machine)" in result.stderr
+    )
+
+
 def test_serve_exits_2_on_an_unknown_service_type(tmp_path: Path) -> None:
     config = tmp_path / "unknown.toml"
     config.write_text('[[services]]\nname = "arm"\ntype = "robot-arm-9000"\n')

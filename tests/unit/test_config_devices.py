@@ -80,3 +80,10 @@ def test_bad_device_entries_are_refused_naming_the_key(entry: str, message: str)
         loads_config(text, "site.toml")
     assert message in str(info.value)
     assert str(info.value).startswith("site.toml: ")
+
+
+def test_device_start_timeout_defaults_to_30_s_and_must_be_positive() -> None:
+    assert default_config().gateway.device_start_timeout == 30.0
+    assert loads_config("[gateway]\ndevice_start_timeout = 90\n").gateway.device_start_timeout == 90.0
+    with pytest.raises(ConfigError, match=r"device_start_timeout: must be a positive number of seconds"):
+        loads_config("[gateway]\ndevice_start_timeout = 0\n")
