@@ -216,7 +216,9 @@ async def test_an_overrun_on_the_serial_line_costs_one_resend_not_a_timeout(
         )
         async with grpc.aio.insecure_channel(gw.address) as channel:
             stub = pb_grpc.PropertyServiceStub(channel)
-            await stub.Get(pb.GetRequest(service="thermo", property="setpoint"), timeout=WAIT)
+            # The gateway may be up before it has opened the pty (a loaded machine): ask until it has.
+            setpoint = pb.GetRequest(service="thermo", property="setpoint")
+            await eventually(lambda: stub.Get(setpoint, timeout=WAIT), retry_on=(grpc.aio.AioRpcError,))
             # 80 bytes arrive while the firmware writes the model (about 400 bytes): more than its
             # ring holds, so the next line it reads, the gateway's next request, lost bytes.
             tap.add_noise(b"GET properties.model", b"~" * 80)

@@ -15,6 +15,7 @@ import pytest
 from support.c_device import CProgram, build
 from support.gateway_process import GatewayProcess, StartGateway
 from support.serial_tap import WireTap
+from support.waiting import eventually
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -74,7 +75,10 @@ async def next_event(stream: grpc.aio.UnaryStreamCall[pb.ListenRequest, pb.Liste
 async def check_get_set_and_errors(gw: GatewayProcess) -> None:
     async with grpc.aio.insecure_channel(gw.address) as channel:
         stub = pb_grpc.PropertyServiceStub(channel)
-        assert (await get(stub, "properties")).strip("()").split() == NAMES
+        # A gateway that is up may not have opened the device yet (a pty on a loaded machine): ask
+        # until it has.
+        names = await eventually(lambda: get(stub, "properties"), retry_on=(grpc.aio.AioRpcError,))
+        assert names.strip("()").split() == NAMES
         assert 19.0 <= float(await get(stub, "temp")) <= 21.5
         assert await get(stub, "setpoint") == "20"
         assert await set_(stub, "setpoint", "22.5") == "22.5"

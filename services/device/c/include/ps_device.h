@@ -214,7 +214,13 @@ typedef struct ps_device {
     ps_mask listening;  /* LISTENed properties */
     ps_mask pending;    /* changed since their last EVENT (conflated: the latest value only) */
     ps_mask absent;     /* gone (ps_gone) until ps_back */
-    uint16_t length;    /* bytes of the current line in `line` */
+#if PS_MAXLINE <= 256
+    uint8_t length; /* bytes of the current line in `line` (one byte: a line fits in 255) */
+#else
+    uint16_t length; /* bytes of the current line in `line` */
+#endif
+    uint8_t tag_at;     /* the current request's tag: where in `line` it starts ... */
+    uint8_t tag_length; /* ... and its length; 0: the reply goes untagged */
     uint8_t flags;      /* PS_FLAG_* below */
     uint8_t crc;        /* CRC-8 of the line being sent */
     char line[PS_MAXLINE];

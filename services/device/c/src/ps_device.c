@@ -25,16 +25,28 @@ static ps_mask bit_of(uint8_t index) {
 #else
 #define WHY(text) ((const char *)0) /* "ERR 5" alone: the words are optional (§2) */
 #endif
+/* A length or position within the line: one byte wherever a line fits in 255 bytes (PS_MAXLINE
+ * counts the LF), which on an 8-bit MCU halves every index's arithmetic. */
+#if PS_MAXLINE <= 256
+typedef uint8_t span;
+#else
+typedef size_t span;
+#endif
+#if PS_WITH_ERROR_TEXTS /* the words two replies share: one copy in flash */
+static const char bad_path[] PS_FLASH = "bad path";
+static const char bad_tag[] PS_FLASH = "bad tag";
+#define BAD_PATH bad_path
+#define BAD_TAG bad_tag
+#else
+#define BAD_PATH WHY("")
+#define BAD_TAG WHY("")
+#endif
 #define TAG_MAX 8
 #define PATH_MAX_LENGTH 256
 
 /* What a path names besides a property's whole value. */
 enum { WHOLE, LIST, MODEL, GUI, PARAMETERS, ELEMENT };
 
-typedef struct request {
-    const char *tag; /* in the line buffer, not NUL-terminated; NULL when untagged */
-    uint8_t tag_length;
-} request;
 
 /* ---- output: every byte goes through put(), which keeps the line's CRC ------------------------ */
 
@@ -46,14 +58,16 @@ static uint8_t crc_step(uint8_t crc, uint8_t byte) {
 }
 #endif
 
+static void raw(ps_device *dev, uint8_t byte) { dev->config->put(dev->config->context, byte); }
+
 static void put(ps_device *dev, uint8_t byte) {
 #if PS_WITH_CHECKSUM
     dev->crc = crc_step(dev->crc, byte);
 #endif
-    dev->config->put(dev->config->context, byte);
+    raw(dev, byte);
 }
 
-static void put_ram(ps_device *dev, const char *text, size_t length) {
+static void put_ram(ps_device *dev, const char *text, span length) {
     while (length--) put(dev, (uint8_t)*text++);
 }
 
@@ -113,20 +127,22 @@ void ps_put_base64(ps_device *dev, ps_byte_fn read, uint8_t index) {
 }
 #endif
 
-static void line_begin(ps_device *dev, const request *req) {
+/* A reply to a tagged request carries its tag (dev->tag_at, dev->tag_length: §2.1). */
+static void line_begin(ps_device *dev) {
 #if PS_WITH_CHECKSUM
-    if (dev->flags & (PS_FLAG_CHECKSUM | PS_FLAG_MIRROR)) dev->config->put(dev->config->context, '$');
+    if (dev->flags & (PS_FLAG_CHECKSUM | PS_FLAG_MIRROR)) raw(dev, '$');
     dev->crc = 0;
 #endif
 #if PS_WITH_TAGS
-    if (req && req->tag) {
+    if (dev->tag_length) {
         put(dev, '#');
-        put_ram(dev, req->tag, req->tag_length);
+        put_ram(dev, dev->line + dev->tag_at, dev->tag_length);
         put(dev, ' ');
     }
 #endif
-    (void)dev;
-    (void)req;
+#if !PS_WITH_CHECKSUM && !PS_WITH_TAGS
+    (void)dev; /* nothing to begin a line with */
+#endif
 }
 
 static void line_end(ps_device *dev) {
@@ -134,16 +150,16 @@ static void line_end(ps_device *dev) {
     if (dev->flags & (PS_FLAG_CHECKSUM | PS_FLAG_MIRROR)) {
         static const char hex[] PS_FLASH = "0123456789ABCDEF";
         uint8_t crc = dev->crc;
-        dev->config->put(dev->config->context, '*');
-        dev->config->put(dev->config->context, ps_flash_byte(&hex[crc >> 4]));
-        dev->config->put(dev->config->context, ps_flash_byte(&hex[crc & 15]));
+        raw(dev, '*');
+        raw(dev, ps_flash_byte(&hex[crc >> 4]));
+        raw(dev, ps_flash_byte(&hex[crc & 15]));
     }
 #endif
-    dev->config->put(dev->config->context, '\n');
+    raw(dev, '\n');
 }
 
-static void reply_error(ps_device *dev, const request *req, uint8_t code, const char *message) {
-    line_begin(dev, req);
+static void reply_error(ps_device *dev, uint8_t code, const char *message) {
+    line_begin(dev);
     put_flash(dev, PS_F("ERR "));
     put_number(dev, code, 0);
     if (message) {
@@ -168,8 +184,8 @@ static uint8_t flash_length(const char *text) {
 static uint8_t lower(uint8_t c) { return (c >= 'A' && c <= 'Z') ? (uint8_t)(c + 32) : c; }
 
 /* Does text[0..length) equal the flash string word, ignoring case? */
-static uint8_t same_word(const char *text, size_t length, const char *word) {
-    size_t i = 0;
+static uint8_t same_word(const char *text, span length, const char *word) {
+    span i = 0;
     for (; i < length; i++) {
         uint8_t c = ps_flash_byte(word + i);
         if (!c || lower((uint8_t)text[i]) != lower(c)) return 0;
@@ -187,9 +203,9 @@ static uint8_t same_prefix(const char *text, const char *flash, uint8_t length) 
 static const char element_names[] PS_FLASH = "x\0y\0z\0roll\0pitch\0yaw\0";
 
 /* Element `suffix` of a vector of `size` elements: an index or x y z roll pitch yaw; 255 if none. */
-static uint8_t element_of(const char *suffix, size_t length, uint8_t size) {
+static uint8_t element_of(const char *suffix, span length, uint8_t size) {
     uint16_t index = 0;
-    size_t i = 0;
+    span i = 0;
     for (; i < length && i < 3 && suffix[i] >= '0' && suffix[i] <= '9'; i++) index = (uint16_t)(index * 10 + (uint16_t)(suffix[i] - '0'));
     if (i && i == length) return index < size ? (uint8_t)index : 255;
     const char *name = element_names;
@@ -203,7 +219,7 @@ static uint8_t element_of(const char *suffix, size_t length, uint8_t size) {
 #endif
 
 /* Resolve path: which property (*index) and which part of it (the return value); 255 = none. */
-static uint8_t resolve(const ps_device *dev, const char *path, size_t length, uint8_t *index, uint8_t *element) {
+static uint8_t resolve(const ps_device *dev, const char *path, span length, uint8_t *index, uint8_t *element) {
     if (length == 10 && same_prefix(path, PS_F("properties"), 10)) return LIST;
 #if PS_WITH_MODEL
     if (length == 16 && same_prefix(path, PS_F("properties.model"), 16)) return MODEL;
@@ -217,7 +233,7 @@ static uint8_t resolve(const ps_device *dev, const char *path, size_t length, ui
         if (length == n) return WHOLE;
         if (path[n] != '.') continue;
         const char *suffix = path + n + 1;
-        size_t rest = length - n - 1;
+        span rest = length - n - 1;
 #if PS_WITH_MODEL
         if (rest == 3 && same_prefix(suffix, PS_F("gui"), 3)) return GUI;
         if (rest == 10 && same_prefix(suffix, PS_F("parameters"), 10)) return PARAMETERS;
@@ -343,8 +359,8 @@ static void put_model(ps_device *dev) {
 #define PS_RXBUF_FIELD ""
 #endif
 
-static void greet(ps_device *dev, const request *req) {
-    line_begin(dev, req);
+static void greet(ps_device *dev) {
+    line_begin(dev);
     put_flash(dev, PS_F("HELLO 1 name="));
     put_flash(dev, dev->config->name);
     put_flash(dev, PS_F(" type="));
@@ -357,7 +373,7 @@ static void greet(ps_device *dev, const request *req) {
 
 enum { W_GET, W_SET, W_LISTEN, W_UNLISTEN, W_PING, W_HELLO, W_CANCEL, W_PONG, W_REPLY, W_UNKNOWN };
 
-static uint8_t word_of(const char *text, size_t length) {
+static uint8_t word_of(const char *text, span length) {
     static const char words[] PS_FLASH = "GET\0SET\0LISTEN\0UNLISTEN\0PING\0HELLO\0CANCEL\0PONG\0OK\0ERR\0EVENT\0GONE\0";
     const char *w = words;
     for (uint8_t i = 0; ps_flash_byte(w); i++) {
@@ -382,15 +398,15 @@ static uint8_t in_range(const ps_property *p, ps_fixed value) {
 }
 
 #if PS_WITH_VECTORS
-static uint8_t parse_vector(const char *text, size_t length, const ps_property *p, ps_fixed *store) {
-    size_t i = 0;
+static uint8_t parse_vector(const char *text, span length, const ps_property *p, ps_fixed *store) {
+    span i = 0;
     uint8_t count = 0;
     while (i < length && text[i] == ' ') i++;
     if (i == length || text[i++] != '(') return PS_INVALID_ARGUMENT;
     for (;;) {
         while (i < length && text[i] == ' ') i++;
         if (i < length && text[i] == ')') break;
-        size_t start = i;
+        span start = i;
         while (i < length && text[i] != ' ' && text[i] != ')') i++;
         ps_fixed value;
         if (count == p->size || ps_parse_fixed(text + start, i - start, p->decimals, &value) != PS_OK)
@@ -406,7 +422,7 @@ static uint8_t parse_vector(const char *text, size_t length, const ps_property *
 #endif
 
 /* SET of a whole number, vector or text, or of a vector element: store it or say why not. */
-static uint8_t store(const ps_property *p, uint8_t part, uint8_t element, char *value, size_t length) {
+static uint8_t store(const ps_property *p, uint8_t part, uint8_t element, char *value, span length) {
     if (p->type == PS_TEXT) {
         if (length >= p->size) return PS_RESOURCE_EXHAUSTED;
         memcpy(p->data, value, length + 1);
@@ -426,29 +442,32 @@ static uint8_t store(const ps_property *p, uint8_t part, uint8_t element, char *
     return PS_OK;
 }
 
-static void answer(ps_device *dev, const request *req, uint8_t word, char *rest, size_t length) {
-    size_t i = 0;
+static void answer(ps_device *dev, uint8_t word, char *rest, span length) {
+    span i = 0;
     char *path;
-    size_t path_length;
+    span path_length;
     for (;;) { /* NAME=VALUE fields come before the path (§2.1) */
         while (i < length && rest[i] == ' ') i++;
         path = rest + i;
         while (i < length && rest[i] != ' ') i++;
-        path_length = (size_t)(rest + i - path);
+        path_length = (span)(rest + i - path);
         if (!memchr(path, '=', path_length)) break;
         if (word != W_UNLISTEN) { /* §3.4: UNLISTEN accepts and ignores them */
-            reply_error(dev, req, PS_INVALID_ARGUMENT, WHY("this device takes no parameters"));
+            reply_error(dev, PS_INVALID_ARGUMENT, WHY("this device takes no parameters"));
             return;
         }
     }
-    for (size_t k = 0; k < path_length; k++) {
+    for (span k = 0; k < path_length; k++) {
         if (!is_name_char(path[k]) && !(path[k] == '.' && k && k + 1 < path_length && path[k + 1] != '.')) {
-            reply_error(dev, req, PS_INVALID_ARGUMENT, WHY("bad path"));
+            reply_error(dev, PS_INVALID_ARGUMENT, BAD_PATH);
             return;
         }
     }
-    if (!path_length || path_length > PATH_MAX_LENGTH) {
-        reply_error(dev, req, PS_INVALID_ARGUMENT, WHY("bad path"));
+#if PS_MAXLINE > PATH_MAX_LENGTH
+    if (path_length > PATH_MAX_LENGTH) path_length = 0; /* refused below */
+#endif
+    if (!path_length) {
+        reply_error(dev, PS_INVALID_ARGUMENT, BAD_PATH);
         return;
     }
     char *value = rest + length; /* SET: the rest of the line after one space (§2) */
@@ -459,7 +478,7 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
     } else {
         while (i < length && rest[i] == ' ') i++; /* trailing spaces are not a field */
         if (i < length) {
-            reply_error(dev, req, PS_INVALID_ARGUMENT, WHY("unexpected text after the path"));
+            reply_error(dev, PS_INVALID_ARGUMENT, WHY("unexpected text after the path"));
             return;
         }
     }
@@ -471,13 +490,13 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
             dev->listening &= ~BIT(index);
             dev->pending &= ~BIT(index);
         }
-        line_begin(dev, req);
+        line_begin(dev);
         put_flash(dev, PS_F("OK"));
         line_end(dev);
         return;
     }
     if (part == 255) {
-        reply_error(dev, req, PS_NOT_FOUND, WHY("no such property"));
+        reply_error(dev, PS_NOT_FOUND, WHY("no such property"));
         return;
     }
     ps_property p;
@@ -485,7 +504,7 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
     else load(dev, index, &p);
     if (word == W_SET) {
         if (ps_unescape(value, &value_length) != PS_OK) {
-            reply_error(dev, req, PS_INVALID_ARGUMENT, WHY("bad escape"));
+            reply_error(dev, PS_INVALID_ARGUMENT, WHY("bad escape"));
             return;
         }
 #if PS_WITH_ACTIONS
@@ -494,21 +513,21 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
             if (code != PS_OK) {
                 /* docs/device-spec.md §3.2: outside the range is ERR 3 (INVALID_ARGUMENT, as gRPC
                  * and the gateway's own services say it); the message tells it from a bad number */
-                reply_error(dev, req, code == PS_OUT_OF_RANGE ? PS_INVALID_ARGUMENT : code, WHY("the action failed"));
+                reply_error(dev, code == PS_OUT_OF_RANGE ? PS_INVALID_ARGUMENT : code, WHY("the action failed"));
                 return;
             }
         } else
 #endif
         {
             if ((part != WHOLE && part != ELEMENT) || !(p.access & PS_WRITE)) {
-                reply_error(dev, req, PS_FAILED_PRECONDITION, WHY("read-only"));
+                reply_error(dev, PS_FAILED_PRECONDITION, WHY("read-only"));
                 return;
             }
             uint8_t code = store(&p, part, element, value, value_length);
             if (code != PS_OK) {
                 /* docs/device-spec.md §3.2: outside the range is ERR 3 (INVALID_ARGUMENT, as gRPC
                  * and the gateway's own services say it); the message tells it from a bad number */
-                reply_error(dev, req, code == PS_OUT_OF_RANGE ? PS_INVALID_ARGUMENT : code,
+                reply_error(dev, code == PS_OUT_OF_RANGE ? PS_INVALID_ARGUMENT : code,
                             code == PS_RESOURCE_EXHAUSTED ? WHY("text too long")
                             : code == PS_OUT_OF_RANGE     ? WHY("out of range")
                                                           : WHY("bad value"));
@@ -517,7 +536,7 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
             dev->pending |= dev->listening & BIT(index);
             if (dev->config->on_set) dev->config->on_set(dev, index);
         }
-        line_begin(dev, req);
+        line_begin(dev);
         put_flash(dev, PS_F("OK"));
         if (p.type != PS_ACTION && (p.access & PS_READ)) {
             put(dev, ' ');
@@ -529,11 +548,11 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
     }
     /* GET and LISTEN */
     if (word == W_LISTEN && part != WHOLE && part != LIST) {
-        reply_error(dev, req, PS_UNIMPLEMENTED, WHY("listen to a whole property"));
+        reply_error(dev, PS_UNIMPLEMENTED, WHY("listen to a whole property"));
         return;
     }
     if ((part == WHOLE || part == ELEMENT) && (p.type == PS_ACTION || !(p.access & PS_READ))) {
-        reply_error(dev, req, PS_FAILED_PRECONDITION,
+        reply_error(dev, PS_FAILED_PRECONDITION,
                     p.type == PS_ACTION ? WHY("an action: SET it, reads never act") : WHY("write-only"));
         return;
     }
@@ -541,13 +560,13 @@ static void answer(ps_device *dev, const request *req, uint8_t word, char *rest,
         if (part == LIST) {
             dev->flags |= PS_FLAG_LIST;
         } else if (!BIT(index)) { /* §3.1: no bit in the masks for this one */
-            reply_error(dev, req, PS_RESOURCE_EXHAUSTED, WHY("subscription table full"));
+            reply_error(dev, PS_RESOURCE_EXHAUSTED, WHY("subscription table full"));
             return;
         } else {
             dev->listening |= BIT(index);
         }
     }
-    line_begin(dev, req);
+    line_begin(dev);
     put_flash(dev, PS_F("OK "));
     if (part == LIST) put_names(dev);
 #if PS_WITH_MODEL
@@ -574,7 +593,7 @@ static void flush_events(ps_device *dev) {
         due &= ~BIT(i);
         ps_property p;
         load(dev, i, &p);
-        line_begin(dev, 0);
+        line_begin(dev);
 #if PS_WITH_ACTIONS
         if (ABSENT(dev, i)) {
             put_flash(dev, PS_F("GONE "));
@@ -592,7 +611,7 @@ static void flush_events(ps_device *dev) {
     }
 #if PS_WITH_ACTIONS /* without ps_gone and ps_back the list never changes */
     if ((dev->flags & (PS_FLAG_LIST | PS_FLAG_LIST_DUE)) == (PS_FLAG_LIST | PS_FLAG_LIST_DUE)) {
-        line_begin(dev, 0);
+        line_begin(dev);
         put_flash(dev, PS_F("EVENT properties "));
         put_names(dev);
         line_end(dev);
@@ -611,10 +630,9 @@ static uint8_t hex_digit(char c) {
 
 static void answer_line(ps_device *dev) {
     char *text = dev->line;
-    size_t length = dev->length;
+    span length = dev->length;
     uint8_t flags = dev->flags;
-    request req = {0, 0};
-    size_t i = 0;
+    span i = 0;
     dev->flags &= (uint8_t)~(PS_FLAG_OVERFLOW | PS_FLAG_LOST);
     dev->length = 0;
     if (length && text[length - 1] == '\r') length--;
@@ -624,7 +642,7 @@ static void answer_line(ps_device *dev) {
     if (text[i] == '$') dev->flags |= PS_FLAG_MIRROR; /* §6: the reply to a '$' line is checked */
 #endif
     if (flags & PS_FLAG_LOST) { /* the tag may be what was lost: answer untagged */
-        reply_error(dev, 0, PS_DATA_LOSS, WHY("bytes lost: the receive buffer was full"));
+        reply_error(dev, PS_DATA_LOSS, WHY("bytes lost: the receive buffer was full"));
         return;
     }
 #if PS_WITH_CHECKSUM /* without: "$GET" is an unknown word, ERR 12 */
@@ -634,7 +652,7 @@ static void answer_line(ps_device *dev) {
         uint8_t low = length - i >= 4 ? hex_digit(text[length - 1]) : 255;
         if (high == 255 || low == 255 || text[length - 3] != '*' ||
             ps_crc8((const uint8_t *)text + i + 1, length - i - 4) != (uint8_t)(high << 4 | low)) {
-            reply_error(dev, 0, PS_DATA_LOSS, WHY("checksum mismatch")); /* §6: untagged */
+            reply_error(dev, PS_DATA_LOSS, WHY("checksum mismatch")); /* §6: untagged */
             return;
         }
         dev->flags |= PS_FLAG_CHECKSUM; /* checksum mode: only a line that checks out turns it on */
@@ -645,37 +663,38 @@ static void answer_line(ps_device *dev) {
     text[length] = 0;
 #if PS_WITH_TAGS /* without: "#1" is an unknown word, ERR 12 */
     if (text[i] == '#') { /* an over-long '$' line still starts with '$': its tag is not trusted */
-        size_t start = ++i;
+        span start = ++i;
         while (i < length && is_name_char(text[i])) i++;
         if (i == start || i - start > TAG_MAX || i == length || text[i] != ' ') {
-            reply_error(dev, 0, PS_INVALID_ARGUMENT, WHY("bad tag")); /* §2.1: untagged */
+            reply_error(dev, PS_INVALID_ARGUMENT, BAD_TAG); /* §2.1: untagged */
             return;
         }
-        req.tag = text + start;
-        req.tag_length = (uint8_t)(i - start);
+        dev->tag_at = (uint8_t)start;
+        dev->tag_length = (uint8_t)(i - start);
         while (i < length && text[i] == ' ') i++;
     }
 #endif
     if (flags & PS_FLAG_OVERFLOW) {
-        reply_error(dev, &req, PS_RESOURCE_EXHAUSTED, WHY("line too long"));
+        reply_error(dev, PS_RESOURCE_EXHAUSTED, WHY("line too long"));
         return;
     }
     if (memchr(text + i, '\r', length - i)) {
-        reply_error(dev, &req, PS_INVALID_ARGUMENT, WHY("raw CR in the line; write \\r"));
+        reply_error(dev, PS_INVALID_ARGUMENT, WHY("raw CR in the line; write \\r"));
         return;
     }
-    size_t start = i;
+    span start = i;
     while (i < length && text[i] != ' ') i++;
     if (i == start) {
-        reply_error(dev, 0, PS_INVALID_ARGUMENT, WHY("bad tag"));
+        dev->tag_length = 0; /* untagged */
+        reply_error(dev, PS_INVALID_ARGUMENT, BAD_TAG);
         return;
     }
     uint8_t word = word_of(text + start, i - start);
     char *rest = text + i;
-    size_t rest_length = length - i;
+    span rest_length = length - i;
     switch (word) {
     case W_PING:
-        line_begin(dev, &req);
+        line_begin(dev);
         put_flash(dev, PS_F("PONG"));
         put_ram(dev, rest, rest_length); /* the data as it came, its space included */
         line_end(dev);
@@ -685,28 +704,28 @@ static void answer_line(ps_device *dev) {
         if (!rest_length) {
             /* §6: a plain HELLO starts afresh without checksums; $HELLO*35 keeps them */
             if (!(dev->flags & PS_FLAG_MIRROR)) dev->flags &= (uint8_t)~PS_FLAG_CHECKSUM;
-            greet(dev, &req);
+            greet(dev);
         } else if (*rest < '0' || *rest > '9') { /* a greeting (a version follows) is never answered */
-            reply_error(dev, &req, PS_INVALID_ARGUMENT, WHY("unexpected text after HELLO"));
+            reply_error(dev, PS_INVALID_ARGUMENT, WHY("unexpected text after HELLO"));
         }
         break;
     case W_PONG: /* the answer to a PING of ours: nothing to do */
         break;
     case W_CANCEL: /* every SET is answered before the next line is read: nothing is left to stop */
         while (rest_length && *rest == ' ') rest++, rest_length--;
-        if (!req.tag) /* §2.1: CANCEL names the request it cancels by its tag */
-            reply_error(dev, 0, PS_INVALID_ARGUMENT, WHY("CANCEL needs a tag"));
+        if (!dev->tag_length) /* §2.1: CANCEL names the request it cancels by its tag */
+            reply_error(dev, PS_INVALID_ARGUMENT, WHY("CANCEL needs a tag"));
         else if (rest_length) /* §2.1: CANCEL takes nothing after the word */
-            reply_error(dev, &req, PS_INVALID_ARGUMENT, WHY("unexpected text after CANCEL"));
+            reply_error(dev, PS_INVALID_ARGUMENT, WHY("unexpected text after CANCEL"));
         break;
     case W_REPLY:
-        reply_error(dev, &req, PS_INVALID_ARGUMENT, WHY("a reply; send a request"));
+        reply_error(dev, PS_INVALID_ARGUMENT, WHY("a reply; send a request"));
         break;
     case W_UNKNOWN:
-        reply_error(dev, &req, PS_UNIMPLEMENTED, WHY("unknown word"));
+        reply_error(dev, PS_UNIMPLEMENTED, WHY("unknown word"));
         break;
     default:
-        answer(dev, &req, word, rest, rest_length);
+        answer(dev, word, rest, rest_length);
     }
 }
 
@@ -717,7 +736,8 @@ void ps_begin(ps_device *dev, const ps_config *config) {
     dev->listening = dev->pending = 0;
     dev->length = 0;
     dev->flags = 0;
-    greet(dev, 0);
+    dev->tag_length = 0;
+    greet(dev);
 }
 
 void ps_feed(ps_device *dev, const uint8_t *bytes, size_t count) {
@@ -725,6 +745,7 @@ void ps_feed(ps_device *dev, const uint8_t *bytes, size_t count) {
         uint8_t c = *bytes++;
         if (c == '\n') {
             answer_line(dev);
+            dev->tag_length = 0; /* what follows (EVENTs, the next line's errors) goes untagged */
             dev->flags &= (uint8_t)~PS_FLAG_MIRROR;
             flush_events(dev); /* §3.4: an EVENT a SET caused goes after the SET's OK */
         } else if (dev->length < PS_MAXLINE - 1) {
