@@ -306,7 +306,11 @@ async def test_a_reader_that_never_reads_is_conflated_and_slows_no_one(gateway: 
 async def test_streams_beyond_max_streams_are_refused_and_nobody_else_notices(
     gateway_process: StartGateway,
 ) -> None:
-    gw = gateway_process(CONFIG + "\n[http]\nmax_streams = 256\nmax_streams_per_client = 1000\n")
+    # Connections are capped per address too (256 by default): lifted here, the streams are the subject.
+    gw = gateway_process(
+        CONFIG
+        + "\n[http]\nmax_streams = 256\nmax_streams_per_client = 1000\nmax_connections_per_address = 2000\n"
+    )
     port = port_of(gw)
     request = f"GET /api/v1/events?sel=board/note HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode()
     connections: list[tuple[asyncio.StreamReader, asyncio.StreamWriter]] = []
