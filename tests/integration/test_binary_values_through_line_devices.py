@@ -168,7 +168,7 @@ async def test_a_binary_value_over_the_line_limit_is_refused_clearly(gateway_pro
             # Too long for the device's maxline: refused in the gateway, nothing sent.
             error = await refusal(set_(stub, "frame", bytes(800)))
             assert error.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
-            assert "line too long" in error.details() and "the limit is 1024" in error.details()
+            assert "line too long" in error.details() and "the device takes 1024" in error.details()
             assert "a binary value of 800 bytes is 1068 characters of base64" in error.details()
             assert len(device.seen("SET frame")) == 1
 
