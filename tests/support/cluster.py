@@ -1,0 +1,65 @@
+"""Gateways that form one cluster on a real etcd, as the cluster tests start them.
+
+``cluster_config(etcd, "gw-a", lease=2.0)`` is the config of one member (``[registry]`` on the
+etcd, its own ``gateway_id``); ``running_gateways(folder, configs)`` starts one real gateway
+process a config and stops them all when the block ends, waking any a test froze first::
+
+    with running_gateways(tmp_path, {gid: cluster_config(etcd, gid, lease=2.0) for gid in IDS}) as gws:
+        ...
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+
+from support.etcd import EtcdServer
+from support.gateway_process import GatewayProcess, start_gateway
+
+
+def cluster_config(
+    etcd: EtcdServer,
+    gateway: str,
+    *,
+    lease: float,
+    quick_checks: bool = True,
+    line: str | None = None,
+    secret_file: str | None = None,
+    registry: str = "",
+) -> str:
+    """The config of cluster member ``gateway`` on ``etcd`` with a ``lease``-second store lease.
+
+    ``quick_checks``: the registry checks its devices every 0.5 s with a 1 s timeout, so that a test
+    sees a failure soon; ``line``: the line protocol's listen address; ``secret_file``: the JWT
+    secret's file; ``registry``: more ``[registry]`` keys, one a line."""
+    sections = []
+    if line is not None:
+        sections.append(f'[gateway]\nline_listen = "{line}"\n')
+    if secret_file is not None:
+        sections.append(f'[auth]\njwt_secret_file = "{secret_file}"\n')
+    keys = [f'store = "{etcd.url}"', f"store_lease = {lease}", f'gateway_id = "{gateway}"']
+    if quick_checks:
+        keys += ["period = 0.5", "timeout = 1.0"]
+    keys += [key.strip() for key in registry.splitlines() if key.strip()]
+    sections.append("[registry]\n" + "".join(f"{key}\n" for key in keys))
+    return "\n".join(sections)
+
+
+@contextlib.contextmanager
+def running_gateways(folder: Path, configs: Mapping[str, str]) -> Iterator[dict[str, GatewayProcess]]:
+    """One gateway process a config, started in order in ``folder``, by the same id; all stopped at
+    the end (a frozen one is sent SIGCONT first, so that it can stop)."""
+    gateways: dict[str, GatewayProcess] = {}
+    try:
+        for gateway, config in configs.items():
+            gateways[gateway] = start_gateway(folder, config)
+        yield gateways
+    finally:
+        for gw in gateways.values():
+            if gw.proc.poll() is None:  # never signal a PID this process has reaped
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(gw.proc.pid, signal.SIGCONT)
+            gw.stop()
