@@ -15,6 +15,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 
 import pytest
+from support.cluster import cluster_config
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess, start_gateway
 from support.waiting import eventually
@@ -35,16 +36,6 @@ DEVICES = 300
 IDS = ("gw-a", "gw-b", "gw-c")
 #: Calls in flight while registering and while asking the devices again.
 IN_FLIGHT = 32
-
-
-def _config(etcd: EtcdServer, gateway: str) -> str:
-    return f"""
-        [registry]
-        store = "{etcd.url}"
-        store_lease = {LEASE}
-        gateway_id = "{gateway}"
-        max_registrations = {2 * DEVICES}
-        """
 
 
 @pytest.fixture
@@ -88,7 +79,16 @@ async def test_a_dead_gateways_few_hundred_devices_are_owned_again_and_answer_th
     clients: dict[str, AsyncClient] = {}
     try:
         for gateway in IDS:
-            gateways[gateway] = start_gateway(tmp_path, _config(etcd, gateway))
+            gateways[gateway] = start_gateway(
+                tmp_path,
+                cluster_config(
+                    etcd,
+                    gateway,
+                    lease=LEASE,
+                    quick_checks=False,
+                    registry=f"max_registrations = {2 * DEVICES}",
+                ),
+            )
             clients[gateway] = AsyncClient(gateways[gateway].address)
         names = sorted(devices)
 

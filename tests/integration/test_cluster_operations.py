@@ -30,6 +30,7 @@ from pathlib import Path
 
 import pytest
 from line_device_support import tcp_device
+from support.cluster import cluster_config
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess, start_gateway
 from support.psctl import psctl
@@ -56,18 +57,13 @@ SET_EVERY = 0.1
 
 
 def _config(etcd: EtcdServer, gateway: str) -> str:
-    return f"""
-        [registry]
-        store = "{etcd.url}"
-        store_lease = {LEASE}
-        gateway_id = "{gateway}"
-        period = 0.5
-        timeout = 1.0
-        rebalance = true
-        rebalance_spread = {SPREAD}
-        rebalance_batch = {BATCH}
-        max_registrations = {4 * DEVICES}
-        """
+    return cluster_config(
+        etcd,
+        gateway,
+        lease=LEASE,
+        registry=f"rebalance = true\nrebalance_spread = {SPREAD}\nrebalance_batch = {BATCH}\n"
+        f"max_registrations = {4 * DEVICES}",
+    )
 
 
 @dataclass
