@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 from line_device_support import tcp_device
-from support.cluster import cluster_config
+from support.cluster import cluster_config, stored
 from support.etcd import EtcdServer
 from support.gateway_process import ROOT, GatewayProcess, start_gateway
 from support.ports import stable_ports
@@ -77,12 +77,7 @@ def _config(etcd: EtcdServer, gateway: str, line: str) -> str:
 
 async def _gateway_keys(etcd: EtcdServer) -> dict[str, dict[str, object]]:
     """Every ``gateways/ID`` key, as JSON, read through the gateway's own etcd store."""
-    store = EtcdStore(parse_store_url(etcd.url), gateway_id="test-reader")
-    await store.start()
-    try:
-        return {gid: json.loads(text) for gid, text in (await store.read(Kind.GATEWAY)).items()}
-    finally:
-        await store.aclose()
+    return {gid: json.loads(text) for gid, text in (await stored(etcd, Kind.GATEWAY)).items()}
 
 
 async def _answers(address: str, device: str, rate: str) -> None:

@@ -2,7 +2,8 @@
 
 ``cluster_config(etcd, "gw-a", lease=2.0)`` is the config of one member (``[registry]`` on the
 etcd, its own ``gateway_id``); ``running_gateways(folder, configs)`` starts one real gateway
-process a config and stops them all when the block ends, waking any a test froze first::
+process a config and stops them all when the block ends, waking any a test froze first;
+``stored(etcd, Kind.OWNER)`` reads one kind of the cluster's keys as a gateway reads them::
 
     with running_gateways(tmp_path, {gid: cluster_config(etcd, gid, lease=2.0) for gid in IDS}) as gws:
         ...
@@ -16,6 +17,9 @@ import signal
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
+from gateway.stores.address import parse_store_url
+from gateway.stores.etcd import EtcdStore
+from services.registry.store import Kind
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess, start_gateway
 
@@ -63,3 +67,13 @@ def running_gateways(folder: Path, configs: Mapping[str, str]) -> Iterator[dict[
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(gw.proc.pid, signal.SIGCONT)
             gw.stop()
+
+
+async def stored(etcd: EtcdServer, kind: Kind) -> dict[str, str]:
+    """The keys of ``kind`` in ``etcd`` now (name → value), read through the gateway's own store."""
+    store = EtcdStore(parse_store_url(etcd.url), gateway_id="test-reader")
+    await store.start()
+    try:
+        return await store.read(kind)
+    finally:
+        await store.aclose()
