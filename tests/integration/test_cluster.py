@@ -23,10 +23,9 @@ import psutil
 import pytest
 from line_device_support import device_process, tcp_device
 from prometheus_client.parser import text_string_to_metric_families
-from support.cluster import cluster_config, running_gateways
+from support.cluster import running_cluster
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess
-from support.ports import stable_ports
 from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
@@ -62,13 +61,7 @@ def _token(subject: str) -> str:
 @pytest.fixture
 def cluster(etcd_server: Callable[..., EtcdServer], tmp_path: Path) -> Iterator[Cluster]:
     etcd = etcd_server()
-    (tmp_path / "jwt.secret").write_text(SECRET)
-    lines = {gateway: f"127.0.0.1:{port}" for gateway, port in zip(IDS, stable_ports(len(IDS)), strict=True)}
-    configs = {
-        gateway: cluster_config(etcd, gateway, lease=LEASE, line=lines[gateway], secret_file="jwt.secret")
-        for gateway in IDS
-    }
-    with running_gateways(tmp_path, configs) as gateways:
+    with running_cluster(etcd, tmp_path, IDS, lease=LEASE, secret=SECRET) as (gateways, lines):
         yield Cluster(etcd, gateways, lines, tmp_path)
 
 

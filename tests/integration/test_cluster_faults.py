@@ -34,10 +34,9 @@ import jwt
 import pytest
 from line_device_support import device_process, tcp_device
 from support.c_device import CProgram, build, require
-from support.cluster import cluster_config, running_gateways
+from support.cluster import running_cluster
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess
-from support.ports import stable_ports
 from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
@@ -69,13 +68,7 @@ class Cluster:
 @pytest.fixture
 def cluster(etcd_server: Callable[..., EtcdServer], tmp_path: Path) -> Iterator[Cluster]:
     etcd = etcd_server()
-    (tmp_path / "jwt.secret").write_text(SECRET)
-    lines = {gateway: f"127.0.0.1:{port}" for gateway, port in zip(IDS, stable_ports(len(IDS)), strict=True)}
-    configs = {
-        gateway: cluster_config(etcd, gateway, lease=LEASE, line=lines[gateway], secret_file="jwt.secret")
-        for gateway in IDS
-    }
-    with running_gateways(tmp_path, configs) as gateways:
+    with running_cluster(etcd, tmp_path, IDS, lease=LEASE, secret=SECRET) as (gateways, lines):
         yield Cluster(etcd, gateways, lines)
 
 

@@ -3,7 +3,8 @@
 ``cluster_config(etcd, "gw-a", lease=2.0)`` is the config of one member (``[registry]`` on the
 etcd, its own ``gateway_id``); ``running_gateways(folder, configs)`` starts one real gateway
 process a config and stops them all when the block ends, waking any a test froze first;
-``stored(etcd, Kind.OWNER)`` reads one kind of the cluster's keys as a gateway reads them::
+``running_cluster`` does both for gateways that take tokens and devices on a line listener of
+their own; ``stored(etcd, Kind.OWNER)`` reads one kind of the cluster's keys as a gateway reads them::
 
     with running_gateways(tmp_path, {gid: cluster_config(etcd, gid, lease=2.0) for gid in IDS}) as gws:
         ...
@@ -14,7 +15,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 from gateway.stores.address import parse_store_url
@@ -22,6 +23,7 @@ from gateway.stores.etcd import EtcdStore
 from services.registry.store import Kind
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess, start_gateway
+from support.ports import stable_ports
 
 
 def cluster_config(
@@ -67,6 +69,22 @@ def running_gateways(folder: Path, configs: Mapping[str, str]) -> Iterator[dict[
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(gw.proc.pid, signal.SIGCONT)
             gw.stop()
+
+
+@contextlib.contextmanager
+def running_cluster(
+    etcd: EtcdServer, folder: Path, ids: Sequence[str], *, lease: float, secret: str
+) -> Iterator[tuple[dict[str, GatewayProcess], dict[str, str]]]:
+    """Gateways ``ids`` on ``etcd``, each with its own line listener and ``secret`` as the HS256 key
+    of the tokens it takes: (id → process, id → its line listener's address)."""
+    (folder / "jwt.secret").write_text(secret)
+    lines = {gateway: f"127.0.0.1:{port}" for gateway, port in zip(ids, stable_ports(len(ids)), strict=True)}
+    configs = {
+        gateway: cluster_config(etcd, gateway, lease=lease, line=lines[gateway], secret_file="jwt.secret")
+        for gateway in ids
+    }
+    with running_gateways(folder, configs) as gateways:
+        yield gateways, lines
 
 
 async def stored(etcd: EtcdServer, kind: Kind) -> dict[str, str]:
