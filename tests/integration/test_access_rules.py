@@ -98,12 +98,10 @@ class Tokens:
         return jwt.encode(claims, self.key, algorithm="ES256", headers={"kid": "lab-1"})
 
 
-@pytest.fixture
-def secured(gateway_process, tmp_path: Path) -> tuple[GatewayProcess, Tokens, int]:  # type: ignore[no-untyped-def]
-    tokens = Tokens(tmp_path)
-    line_port = free_port()
-    gw = gateway_process(
-        f"""
+def _two_scouts(line_port: int) -> str:
+    """A gateway that takes HS256 tokens (``jwt.secret``) and ES256 ones (``keys.json``) from the
+    issuer ``lab``, with a line listener on ``line_port`` and the robots scout1 and scout2."""
+    return f"""
         [gateway]
         line_listen = "127.0.0.1:{line_port}"
 
@@ -120,8 +118,13 @@ def secured(gateway_process, tmp_path: Path) -> tuple[GatewayProcess, Tokens, in
         name = "scout2"
         type = "sim-robot"
         """
-        + RULES
-    )
+
+
+@pytest.fixture
+def secured(gateway_process, tmp_path: Path) -> tuple[GatewayProcess, Tokens, int]:  # type: ignore[no-untyped-def]
+    tokens = Tokens(tmp_path)
+    line_port = free_port()
+    gw = gateway_process(_two_scouts(line_port) + RULES)
     return gw, tokens, line_port
 
 
@@ -644,36 +647,21 @@ def swarmed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[GatewayP
     line_port = free_port()
     gw = start_gateway(
         folder,
-        f"""
-        [gateway]
-        line_listen = "127.0.0.1:{line_port}"
-
-        [auth]
-        jwt_secret_file = "jwt.secret"
-        jwks_file = "keys.json"
-        issuer = "lab"
-
-        [[services]]
-        name = "scout1"
-        type = "sim-robot"
-
-        [[services]]
-        name = "scout2"
-        type = "sim-robot"
-
+        _two_scouts(line_port)
+        + """
         [[services]]
         name = "swarm"
         type = "group"
-        options = {{ members = ["scout1", "scout2"] }}
+        options = { members = ["scout1", "scout2"] }
 
         [[services]]
         name = "missions"
         type = "statemachine"
 
         [services.options]
-        charts = {{ errand = "errand.scxml" }}
+        charts = { errand = "errand.scxml" }
         autostart = ["errand"]
-        run_as = {{ errand = "viewer" }}
+        run_as = { errand = "viewer" }
         """
         + RULES
         + SWARM_RULES,

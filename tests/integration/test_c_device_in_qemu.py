@@ -6,11 +6,9 @@ reset from QEMU's monitor, a binary value, and the gateway keeping to the device
 from __future__ import annotations
 
 import asyncio
-import itertools
 import os
 import re
 import select
-import struct
 import subprocess
 import time
 import tty
@@ -21,9 +19,9 @@ import grpc
 import pytest
 from support.c_device import build
 from support.gateway_process import StartGateway
-from support.psctl import psctl
 from support.qemu_board import SRAM_SIZE, QemuBoard, require_qemu, untouched
 from support.serial_tap import WireTap
+from support.thermostat import assert_a_reset_mid_listen_is_a_gap, run_psctl
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -132,21 +130,6 @@ def test_a_burst_past_the_ring_marks_every_loss_and_merges_no_lines(board: QemuB
     assert replies[-1] == f"#last{len(answers) - 1} OK 20", "the next line is read afresh"
 
 
-def assert_history(reply: pb.GetResponse) -> None:
-    """``history``: 8 readings of temp, int16 big-endian tenths of degC, one tick (0.1 degC) apart."""
-    assert reply.HasField("data") and len(reply.data) == 16, reply
-    readings = struct.unpack(">8h", reply.data)
-    assert all(150 <= r <= 250 for r in readings), readings
-    assert all(abs(a - b) <= 1 for a, b in itertools.pairwise(readings)), readings
-
-
-def run_psctl(address: str, transcript: list[str], *args: str) -> str:
-    result = psctl(address, *args, timeout=WAIT)
-    transcript += [f"$ psctl {' '.join(args)}", *result.stdout.rstrip("\n").split("\n")]
-    assert result.returncode == 0, f"psctl {args}: {result.stdout}{result.stderr}"
-    return result.stdout
-
-
 async def test_the_firmware_in_qemu_through_the_gateway(
     gateway_process: StartGateway, board: QemuBoard, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -168,23 +151,8 @@ async def test_the_firmware_in_qemu_through_the_gateway(
             await stub.Set(pb.SetRequest(service="thermo", property="setpoint", value="23.5"), timeout=WAIT)
             x = await stub.Get(pb.GetRequest(service="thermo", property="location.x"), timeout=WAIT)
             assert x.value == "10.25"
-            # A reset from QEMU's monitor mid-Listen: the firmware starts afresh from its vector table
-            # and greets; the gateway LISTENs again and marks the next event as a gap.
-            stream = stub.Listen(pb.ListenRequest(service="thermo", property="temp"))
-            async with asyncio.timeout(WAIT):
-                assert (await stream.read()).events
-                await asyncio.to_thread(board.reset)
-                while True:
-                    msg = await stream.read()
-                    assert msg is not grpc.aio.EOF
-                    if any(e.gap for e in msg.events):
-                        break
-                assert (await stream.read()).events, "events flow after the reset"
-            stream.cancel()
-            reply = await stub.Get(pb.GetRequest(service="thermo", property="setpoint"), timeout=WAIT)
-            assert reply.value == "20", "the reset set every value back"
-            history = await stub.Get(pb.GetRequest(service="thermo", property="history"), timeout=WAIT)
-            assert_history(history)
+            # A reset from QEMU's monitor mid-Listen: the firmware starts afresh from its vector table.
+            await assert_a_reset_mid_listen_is_a_gap(stub, board.reset)
         transcript = tap.transcript()
         assert "ERR" not in transcript, transcript
         # Greeted at least twice: in answer to the gateway's HELLO and after the reset.

@@ -5,12 +5,10 @@ because the gateway keeps to the device's flow control (inflight=1 rxbuf=64)."""
 from __future__ import annotations
 
 import asyncio
-import itertools
 import os
 import re
 import select
 import signal
-import struct
 import subprocess
 import time
 import tty
@@ -21,8 +19,8 @@ import grpc
 import pytest
 from support.c_device import CProgram, build
 from support.gateway_process import StartGateway
-from support.psctl import psctl
 from support.serial_tap import WireTap
+from support.thermostat import assert_a_reset_mid_listen_is_a_gap, run_psctl
 from support.waiting import eventually
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -112,21 +110,6 @@ def test_the_ring_overflows_without_flow_control_and_says_so(mcu: CProgram) -> N
         os.close(fd)
 
 
-def assert_history(reply: pb.GetResponse) -> None:
-    """``history``: 8 readings of temp, int16 big-endian tenths of degC, one tick (0.1 degC) apart."""
-    assert reply.HasField("data") and len(reply.data) == 16, reply
-    readings = struct.unpack(">8h", reply.data)
-    assert all(150 <= r <= 250 for r in readings), readings
-    assert all(abs(a - b) <= 1 for a, b in itertools.pairwise(readings)), readings
-
-
-def run_psctl(address: str, transcript: list[str], *args: str) -> str:
-    result = psctl(address, *args, timeout=WAIT)
-    transcript += [f"$ psctl {' '.join(args)}", *result.stdout.rstrip("\n").split("\n")]
-    assert result.returncode == 0, f"psctl {args}: {result.stdout}{result.stderr}"
-    return result.stdout
-
-
 async def test_the_firmware_in_simavr_through_the_gateway(
     gateway_process: StartGateway, mcu: CProgram, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -165,24 +148,8 @@ async def test_the_firmware_in_simavr_through_the_gateway(
                         seen.update({e.property: e.value for e in msg.events})
                 assert seen["setpoint"] == "23.5" and seen["label"] == "shelf 2"
                 stream.cancel()
-            # A reset mid-session (SIGUSR1 to the harness: avr_reset): the firmware starts afresh
-            # and greets; the gateway LISTENs again and marks the next event as a gap.
-            stream = stub.Listen(pb.ListenRequest(service="thermo", property="temp"))
-            async with asyncio.timeout(WAIT):
-                assert (await stream.read()).events
-                mcu.reset()
-                while True:
-                    msg = await stream.read()
-                    assert msg is not grpc.aio.EOF
-                    if any(e.gap for e in msg.events):
-                        break
-                assert (await stream.read()).events, "events flow after the reset"
-            stream.cancel()
-            reply = await stub.Get(pb.GetRequest(service="thermo", property="setpoint"), timeout=WAIT)
-            assert reply.value == "20", "the reset set every value back"
-            # The binary value (line protocol 1.2), base64 written by the AVR as it reads the ring.
-            history = await stub.Get(pb.GetRequest(service="thermo", property="history"), timeout=WAIT)
-            assert_history(history)
+            # A reset mid-session (SIGUSR1 to the harness: avr_reset).
+            await assert_a_reset_mid_listen_is_a_gap(stub, mcu.reset)
         transcript = tap.transcript()
         # The 64-byte ring never overflowed: no line was damaged, and the gateway never had more
         # request bytes on the wire than the device said it can hold.

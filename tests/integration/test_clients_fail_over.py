@@ -20,8 +20,9 @@ from pathlib import Path
 
 import pytest
 from line_device_support import tcp_device
+from support.cluster import cluster_config, running_gateways
 from support.etcd import EtcdServer
-from support.gateway_process import GatewayProcess, StartGateway, start_gateway
+from support.gateway_process import GatewayProcess, StartGateway
 from support.ports import free_port
 from support.psctl import psctl
 from support.waiting import eventually
@@ -326,27 +327,15 @@ def test_psctl_says_each_move_in_one_line_and_none_when_it_gives_up(
 # --- a cluster on etcd -------------------------------------------------------------------------
 
 
-def _cluster_config(etcd: EtcdServer, gateway: str) -> str:
-    return f"""
-        [registry]
-        store = "{etcd.url}"
-        store_lease = {LEASE}
-        gateway_id = "{gateway}"
-        period = 0.5
-        timeout = 1.0
-        """
-
-
 @pytest.fixture
 async def cluster_with_a_device(
     etcd_server: Callable[..., EtcdServer], tmp_path: Path
 ) -> AsyncIterator[tuple[GatewayProcess, GatewayProcess]]:
     """Gateways ``gw-a`` and ``gw-b`` on one etcd; a sensor device ``thermo`` owned by ``gw-b``."""
     etcd = etcd_server()
-    gateways: list[GatewayProcess] = []
-    try:
-        for name in ("gw-a", "gw-b"):
-            gateways.append(start_gateway(tmp_path, _cluster_config(etcd, name)))
+    configs = {name: cluster_config(etcd, name, lease=LEASE) for name in ("gw-a", "gw-b")}
+    with running_gateways(tmp_path, configs) as named:
+        gateways = list(named.values())
         with tcp_device("--service", "sim-sensor", "--name", "thermo") as (host, port):
             async with AsyncClient(gateways[1].address) as owner:
                 await owner.set("registry", "services.thermo", f"tcp://{host}:{port}")
@@ -358,11 +347,6 @@ async def cluster_with_a_device(
                     what="gw-a reaches thermo",
                 )
             yield gateways[0], gateways[1]
-    finally:
-        for gw in gateways:
-            if gw.proc.poll() is None:
-                os.kill(gw.proc.pid, signal.SIGCONT)
-            gw.stop()
 
 
 @pytest.mark.parametrize("fault", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "frozen"])

@@ -23,9 +23,9 @@ import psutil
 import pytest
 from line_device_support import device_process, tcp_device
 from prometheus_client.parser import text_string_to_metric_families
+from support.cluster import running_cluster
 from support.etcd import EtcdServer
-from support.gateway_process import GatewayProcess, start_gateway
-from support.ports import stable_ports
+from support.gateway_process import GatewayProcess
 from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
@@ -58,36 +58,11 @@ def _token(subject: str) -> str:
     return jwt.encode({"sub": subject, "exp": int(time.time()) + 600}, SECRET, algorithm="HS256")
 
 
-def _config(etcd: EtcdServer, gateway: str, line: str) -> str:
-    return f"""
-        [gateway]
-        line_listen = "{line}"
-
-        [auth]
-        jwt_secret_file = "jwt.secret"
-
-        [registry]
-        store = "{etcd.url}"
-        store_lease = {LEASE}
-        gateway_id = "{gateway}"
-        period = 0.5
-        timeout = 1.0
-        """
-
-
 @pytest.fixture
 def cluster(etcd_server: Callable[..., EtcdServer], tmp_path: Path) -> Iterator[Cluster]:
     etcd = etcd_server()
-    (tmp_path / "jwt.secret").write_text(SECRET)
-    lines = {gateway: f"127.0.0.1:{port}" for gateway, port in zip(IDS, stable_ports(len(IDS)), strict=True)}
-    gateways: dict[str, GatewayProcess] = {}
-    try:
-        for gateway in IDS:
-            gateways[gateway] = start_gateway(tmp_path, _config(etcd, gateway, lines[gateway]))
+    with running_cluster(etcd, tmp_path, IDS, lease=LEASE, secret=SECRET) as (gateways, lines):
         yield Cluster(etcd, gateways, lines, tmp_path)
-    finally:
-        for gw in gateways.values():
-            gw.stop()
 
 
 @pytest.fixture

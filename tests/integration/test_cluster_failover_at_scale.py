@@ -15,6 +15,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 
 import pytest
+from support.cluster import cluster_config, stored
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess, start_gateway
 from support.waiting import eventually
@@ -23,8 +24,6 @@ from bench.register import start_farms
 from bench.servers import ServerProcess
 from clients import AsyncClient
 from clients.errors import PropertyServiceError
-from gateway.stores.address import parse_store_url
-from gateway.stores.etcd import EtcdStore
 from services.registry.store import Kind
 
 pytestmark = pytest.mark.timeout(240)
@@ -37,16 +36,6 @@ IDS = ("gw-a", "gw-b", "gw-c")
 IN_FLIGHT = 32
 
 
-def _config(etcd: EtcdServer, gateway: str) -> str:
-    return f"""
-        [registry]
-        store = "{etcd.url}"
-        store_lease = {LEASE}
-        gateway_id = "{gateway}"
-        max_registrations = {2 * DEVICES}
-        """
-
-
 @pytest.fixture
 async def devices(tmp_path: Path) -> AsyncIterator[dict[str, int]]:
     """Name → TCP port of DEVICES simulated robots, in one device-farm process."""
@@ -57,16 +46,6 @@ async def devices(tmp_path: Path) -> AsyncIterator[dict[str, int]]:
     finally:
         for farm in farms:
             await farm.stop()
-
-
-async def _owners(etcd: EtcdServer) -> dict[str, str]:
-    """The owners keys in etcd now, read through the gateway's own store."""
-    store = EtcdStore(parse_store_url(etcd.url), gateway_id="test-reader")
-    await store.start()
-    try:
-        return await store.read(Kind.OWNER)
-    finally:
-        await store.aclose()
 
 
 async def _each(names: list[str], call: Callable[[str], Awaitable[None]]) -> None:
@@ -88,7 +67,16 @@ async def test_a_dead_gateways_few_hundred_devices_are_owned_again_and_answer_th
     clients: dict[str, AsyncClient] = {}
     try:
         for gateway in IDS:
-            gateways[gateway] = start_gateway(tmp_path, _config(etcd, gateway))
+            gateways[gateway] = start_gateway(
+                tmp_path,
+                cluster_config(
+                    etcd,
+                    gateway,
+                    lease=LEASE,
+                    quick_checks=False,
+                    registry=f"max_registrations = {2 * DEVICES}",
+                ),
+            )
             clients[gateway] = AsyncClient(gateways[gateway].address)
         names = sorted(devices)
 
@@ -97,7 +85,9 @@ async def test_a_dead_gateways_few_hundred_devices_are_owned_again_and_answer_th
 
         await _each(names, register)
         await eventually(
-            lambda: _owners(etcd), lambda owners: owners == dict.fromkeys(names, "gw-a"), within=30.0
+            lambda: stored(etcd, Kind.OWNER),
+            lambda owners: owners == dict.fromkeys(names, "gw-a"),
+            within=30.0,
         )
         for gateway in ("gw-b", "gw-c"):
             await eventually(
@@ -110,7 +100,7 @@ async def test_a_dead_gateways_few_hundred_devices_are_owned_again_and_answer_th
         killed = time.monotonic()
         gateways["gw-a"].proc.kill()  # SIGKILL: its lease just runs out
         owners = await eventually(
-            lambda: _owners(etcd),
+            lambda: stored(etcd, Kind.OWNER),
             lambda owners: set(owners) == set(names) and set(owners.values()) <= {"gw-b", "gw-c"},
             within=LEASE + 30.0,
             every=0.1,

@@ -23,7 +23,6 @@ gateway is read on every gateway. Without the ``etcd`` command the tests skip.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import os
 import signal
 import time
@@ -35,9 +34,9 @@ import jwt
 import pytest
 from line_device_support import device_process, tcp_device
 from support.c_device import CProgram, build, require
+from support.cluster import running_cluster
 from support.etcd import EtcdServer
-from support.gateway_process import GatewayProcess, start_gateway
-from support.ports import stable_ports
+from support.gateway_process import GatewayProcess
 from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
@@ -66,38 +65,11 @@ class Cluster:
     lines: dict[str, str]
 
 
-def _config(etcd: EtcdServer, gateway: str, line: str) -> str:
-    return f"""
-        [gateway]
-        line_listen = "{line}"
-
-        [auth]
-        jwt_secret_file = "jwt.secret"
-
-        [registry]
-        store = "{etcd.url}"
-        store_lease = {LEASE}
-        gateway_id = "{gateway}"
-        period = 0.5
-        timeout = 1.0
-        """
-
-
 @pytest.fixture
 def cluster(etcd_server: Callable[..., EtcdServer], tmp_path: Path) -> Iterator[Cluster]:
     etcd = etcd_server()
-    (tmp_path / "jwt.secret").write_text(SECRET)
-    lines = {gateway: f"127.0.0.1:{port}" for gateway, port in zip(IDS, stable_ports(len(IDS)), strict=True)}
-    gateways: dict[str, GatewayProcess] = {}
-    try:
-        for gateway in IDS:
-            gateways[gateway] = start_gateway(tmp_path, _config(etcd, gateway, lines[gateway]))
+    with running_cluster(etcd, tmp_path, IDS, lease=LEASE, secret=SECRET) as (gateways, lines):
         yield Cluster(etcd, gateways, lines)
-    finally:
-        for gw in gateways.values():
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(gw.proc.pid, signal.SIGCONT)  # a frozen one must be able to stop
-            gw.stop()
 
 
 @pytest.fixture

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import pytest
 from line_device_support import tcp_device
+from support.cluster import cluster_config, stored
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess, start_gateway
 from support.psctl import psctl
@@ -40,8 +41,6 @@ from bench.servers import ServerProcess
 from clients import AsyncClient
 from clients.aio import Event
 from clients.errors import PropertyServiceError
-from gateway.stores.address import parse_store_url
-from gateway.stores.etcd import EtcdStore
 from services.registry.store import Kind
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
@@ -56,18 +55,13 @@ SET_EVERY = 0.1
 
 
 def _config(etcd: EtcdServer, gateway: str) -> str:
-    return f"""
-        [registry]
-        store = "{etcd.url}"
-        store_lease = {LEASE}
-        gateway_id = "{gateway}"
-        period = 0.5
-        timeout = 1.0
-        rebalance = true
-        rebalance_spread = {SPREAD}
-        rebalance_batch = {BATCH}
-        max_registrations = {4 * DEVICES}
-        """
+    return cluster_config(
+        etcd,
+        gateway,
+        lease=LEASE,
+        registry=f"rebalance = true\nrebalance_spread = {SPREAD}\nrebalance_batch = {BATCH}\n"
+        f"max_registrations = {4 * DEVICES}",
+    )
 
 
 @dataclass
@@ -96,15 +90,6 @@ async def _set_forever(client: AsyncClient, load: Load) -> None:
 async def _listen_forever(client: AsyncClient, heard: list[Event]) -> None:
     async for event in client.listen(COUNTER, "rate_hz"):
         heard.append(event)
-
-
-async def _owners(etcd: EtcdServer) -> dict[str, str]:
-    store = EtcdStore(parse_store_url(etcd.url), gateway_id="test-reader")
-    await store.start()
-    try:
-        return await store.read(Kind.OWNER)
-    finally:
-        await store.aclose()
 
 
 def _counts(owners: dict[str, str]) -> dict[str, int]:
@@ -148,7 +133,9 @@ async def test_a_drain_a_join_and_an_undrain_move_devices_with_no_set_lost_and_o
 
             await asyncio.gather(*(register(name) for name in robots))
             names = sorted([COUNTER, *robots])
-            await eventually(lambda: _owners(etcd), lambda o: o == dict.fromkeys(names, "gw-a"), within=30.0)
+            await eventually(
+                lambda: stored(etcd, Kind.OWNER), lambda o: o == dict.fromkeys(names, "gw-a"), within=30.0
+            )
             await eventually(
                 lambda: clients["gw-b"].get("registry", f"services.{COUNTER}.state"),
                 lambda s: s == "up",
@@ -179,7 +166,10 @@ async def test_a_drain_a_join_and_an_undrain_move_devices_with_no_set_lost_and_o
             began = time.monotonic()
             await clients["gw-b"].set("registry", "cluster.drain", "gw-a")
             await eventually(
-                lambda: _owners(etcd), lambda o: _counts(o) == {"gw-b": DEVICES}, within=60.0, every=0.1
+                lambda: stored(etcd, Kind.OWNER),
+                lambda o: _counts(o) == {"gw-b": DEVICES},
+                within=60.0,
+                every=0.1,
             )
             owned_again = time.monotonic() - began
             await _all_answer(a, sorted(robots))
@@ -207,7 +197,7 @@ async def test_a_drain_a_join_and_an_undrain_move_devices_with_no_set_lost_and_o
             began = time.monotonic()  # from the moment gw-c serves (it has joined)
             clients["gw-c"] = AsyncClient(gateways["gw-c"].address, timeout=5.0)
             owners = await eventually(
-                lambda: _owners(etcd),
+                lambda: stored(etcd, Kind.OWNER),
                 lambda o: (
                     len(o) == DEVICES and abs(_counts(o).get("gw-b", 0) - _counts(o).get("gw-c", 0)) <= SPREAD
                 ),
@@ -226,7 +216,7 @@ async def test_a_drain_a_join_and_an_undrain_move_devices_with_no_set_lost_and_o
             began = time.monotonic()
             await clients["gw-c"].set("registry", "cluster.undrain", "gw-a")
             owners = await eventually(
-                lambda: _owners(etcd),
+                lambda: stored(etcd, Kind.OWNER),
                 lambda o: (
                     len(o) == DEVICES
                     and len(_counts(o)) == 3

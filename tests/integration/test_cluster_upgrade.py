@@ -17,12 +17,12 @@ import json
 import shutil
 import subprocess
 import sys
-import textwrap
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 from line_device_support import tcp_device
+from support.cluster import cluster_config, stored
 from support.etcd import EtcdServer
 from support.gateway_process import ROOT, GatewayProcess, start_gateway
 from support.ports import stable_ports
@@ -72,29 +72,12 @@ def previous_release(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]
 
 
 def _config(etcd: EtcdServer, gateway: str, line: str) -> str:
-    return textwrap.dedent(
-        f"""
-        [gateway]
-        line_listen = "{line}"
-
-        [registry]
-        store = "{etcd.url}"
-        store_lease = {LEASE}
-        gateway_id = "{gateway}"
-        period = 0.5
-        timeout = 1.0
-        """
-    )
+    return cluster_config(etcd, gateway, lease=LEASE, line=line)
 
 
 async def _gateway_keys(etcd: EtcdServer) -> dict[str, dict[str, object]]:
     """Every ``gateways/ID`` key, as JSON, read through the gateway's own etcd store."""
-    store = EtcdStore(parse_store_url(etcd.url), gateway_id="test-reader")
-    await store.start()
-    try:
-        return {gid: json.loads(text) for gid, text in (await store.read(Kind.GATEWAY)).items()}
-    finally:
-        await store.aclose()
+    return {gid: json.loads(text) for gid, text in (await stored(etcd, Kind.GATEWAY)).items()}
 
 
 async def _answers(address: str, device: str, rate: str) -> None:

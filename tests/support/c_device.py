@@ -112,15 +112,7 @@ class CProgram:
 
     def stop(self) -> int:
         """SIGTERM, then SIGKILL (this PID only) if it has not ended; the exit code."""
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
-        self._reader.join(5)
-        return self.proc.returncode
+        return stop_program(self.proc, self._reader)
 
     def __enter__(self) -> CProgram:
         return self
@@ -129,3 +121,17 @@ class CProgram:
         self, kind: type[BaseException] | None, value: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.stop()
+
+
+def stop_program(proc: subprocess.Popen[str], reader: threading.Thread) -> int:
+    """SIGTERM, then SIGKILL (this PID only) if it has not ended; the exit code, once ``reader`` has
+    taken the last of its output."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+    reader.join(5)
+    return proc.returncode

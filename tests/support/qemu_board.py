@@ -22,6 +22,8 @@ from types import TracebackType
 
 import pytest
 
+from support.c_device import stop_program
+
 QEMU = "qemu-system-arm"
 INSTALL_HINT = "bash tests/run.sh installs it (Debian: apt-get install qemu-system-arm)"
 #: The LM3S6965's SRAM (its data sheet's memory map).
@@ -111,15 +113,7 @@ class QemuBoard:
 
     def stop(self) -> int:
         """SIGTERM, then SIGKILL (this PID only) if it has not ended; the exit code."""
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
-        self._reader.join(5)
-        return self.proc.returncode
+        return stop_program(self.proc, self._reader)
 
     def __enter__(self) -> QemuBoard:
         return self
