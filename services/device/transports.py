@@ -8,11 +8,14 @@ is a plain file descriptor wrapped in asyncio streams.
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 
 from services.device.session import READ_SIZE
 
 __all__ = ["open_pty", "open_serial", "pipe_streams", "serial_streams"]
+
+_log = logging.getLogger(__name__)
 
 
 async def open_serial(port: str, baudrate: int) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
@@ -45,6 +48,16 @@ async def serial_streams(
                 super()._write_ready()
             if not self._write_buffer:
                 self._remove_writer()
+
+        def _fatal_error(self, exc: BaseException, message: str = "Fatal error on serial transport") -> None:
+            # A line that went away (the other end of a pty closed, a USB adapter unplugged: EIO)
+            # is a device leaving, which the connection above reports and reconnects from: one
+            # line, not the loop's traceback. Anything else keeps the loop's report.
+            if isinstance(exc, OSError):  # pyserial's SerialException is one
+                _log.info("serial line %s closed: %s", port, exc)
+                self._abort(exc)
+                return
+            super()._fatal_error(exc, message)
 
     loop = asyncio.get_running_loop()
     line = await loop.run_in_executor(None, lambda: serial.serial_for_url(port, baudrate=baudrate))

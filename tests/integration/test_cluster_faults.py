@@ -110,6 +110,12 @@ class Setter:
         self.step += 1
         return round(0.1 + self.step / 1000, 3)  # 0.101, 0.102, ...: within rate_hz's range
 
+    def may_hold(self) -> set[float]:
+        """What the counter may read once the Setter stops: its last acknowledged value, or the one
+        it was sending when it was stopped (applied, but its answer never read)."""
+        last = self.acked[-1][1] if self.acked else None
+        return {v for v in (last, round(0.1 + self.step / 1000, 3)) if v is not None}
+
     def acked_after(self, moment: float) -> float | None:
         return next((at for at, _ in self.acked if at > moment), None)
 
@@ -206,7 +212,7 @@ async def _settle_and_check(
             retry_on=(PropertyServiceError,),
             what=f"{gateway} reads the last acknowledged value",
         )
-        assert value == last, f"{gateway} reads {value}, the last acknowledged Set was {last}"
+        assert value in setter.may_hold(), f"{gateway} reads {value}, the last acknowledged Set was {last}"
     for w in trial.watched.values():
         await eventually(
             lambda w=w: _last_value(w),
@@ -304,8 +310,7 @@ async def test_a_client_loses_no_acknowledged_set_and_each_listen_one_gap_when_t
                 within=15.0,
                 what="the thawed gateway reads the new owner",
             )
-            last = trial.setter.acked[-1][1]
-            assert await clients["gw-a"].get_number("counter", "rate_hz") == last
+            assert await clients["gw-a"].get_number("counter", "rate_hz") in trial.setter.may_hold()
 
 
 @pytest.mark.parametrize("fault", ["SIGKILL", "SIGSTOP past the lease"])

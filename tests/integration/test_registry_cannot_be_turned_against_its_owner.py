@@ -16,6 +16,7 @@ import pytest
 from support.bystander import get_p99, rss_mb
 from support.gateway_process import GatewayProcess, StartGateway
 from support.ports import free_port
+from support.waiting import wait_until
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -208,5 +209,9 @@ async def test_an_open_and_a_closed_loopback_port_get_the_same_answer(gateway_pr
                 "within 1.6 s; nothing was registered"
             )
         assert await services_listed(stub) == "(registry)"
-    # The gateway's own log keeps why, for its operator.
-    assert "'probe': tcp://127.0.0.1:" in gw.output and "connection refused for" in gw.output
+    # The gateway's own log keeps why, for its operator (its output is read by a thread: wait for it).
+    await wait_until(
+        lambda: "'probe': tcp://127.0.0.1:" in gw.output and "connection refused for" in gw.output,
+        within=20,
+        what="the log line that says why",
+    )
