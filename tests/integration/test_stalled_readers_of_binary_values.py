@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import asyncio
 import base64
-from collections.abc import AsyncIterator, Iterator
+import itertools
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 
 import aiohttp
@@ -99,6 +100,34 @@ async def test_stalled_readers_hold_one_value_each_and_give_it_back_when_they_cl
     print(f"{kind}: RSS {rss_mb(gateway.proc.pid):.0f} MB after they closed")
 
 
+async def refused_over_grpc(stub: pb_grpc.PropertyServiceStub, count: int) -> grpc.aio.AioRpcError | None:
+    """Set a new picture (the stalled readers' next value waits for them), then Listen once: the
+    refusal, or None when the Listen was served (the readers may not have begun listening yet)."""
+    await stub.Set(pb.SetRequest(service="blobs", property="picture", data=payload(VALUE, count)), timeout=10)
+    listen = stub.Listen(pb.ListenRequest(service="blobs", property="picture"), timeout=10)
+    try:
+        async for _ in listen:
+            listen.cancel()  # served: not refused
+            return None
+    except grpc.aio.AioRpcError as refused:
+        if refused.code() == grpc.StatusCode.RESOURCE_EXHAUSTED:
+            return refused
+        if refused.code() == grpc.StatusCode.CANCELLED:
+            return None
+        raise
+    return None
+
+
+def refusal_prober(stub: pb_grpc.PropertyServiceStub) -> Callable[[], Awaitable[grpc.aio.AioRpcError | None]]:
+    """A probe for ``eventually`` that Sets a different picture each time it is tried."""
+    counts = itertools.count(3)
+
+    async def probe() -> grpc.aio.AioRpcError | None:
+        return await refused_over_grpc(stub, next(counts))
+
+    return probe
+
+
 @pytest.fixture
 def small_budget(tmp_path: Path) -> Iterator[GatewayProcess]:
     """A gateway whose budget holds two stalled gRPC readers of VALUE (three copies each) and not a
@@ -123,19 +152,8 @@ async def test_readers_past_the_budget_are_ended_with_resource_exhausted_until_t
         try:
             # The first value goes to their sockets' buffers, the second waits for them: two
             # stalled readers hold 6 values' worth, and a third reader's value does not fit.
-            await stub.Set(
-                pb.SetRequest(service="blobs", property="picture", data=payload(VALUE, 2)), timeout=10
-            )
-
-            async def refused_over_grpc() -> bool:
-                listen = stub.Listen(pb.ListenRequest(service="blobs", property="picture"), timeout=10)
-                with pytest.raises(grpc.aio.AioRpcError) as refused:
-                    async for _ in listen:
-                        pass
-                assert refused.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
-                return "limits.max_pending_binary" in (refused.value.details() or "")
-
-            await eventually(refused_over_grpc, bool, within=10)
+            refusal = await eventually(refusal_prober(stub), bool, within=20)
+            assert refusal is not None and "limits.max_pending_binary" in (refusal.details() or "")
             async with http.get("/api/v1/events", params={"sel": "blobs/picture"}) as response:
                 error = await SseReader(response).until("error")
             assert error.data["code"] == "RESOURCE_EXHAUSTED", error
@@ -175,18 +193,7 @@ async def test_listens_in_a_session_count_in_the_budget_and_one_past_it_ends_alo
         # Two Sessions whose Listen never reads take the budget as two stalled gRPC Listens do.
         stalled = open_readers("session", 2, **target(gw))
         try:
-            await stub.Set(
-                pb.SetRequest(service="blobs", property="picture", data=payload(VALUE, 2)), timeout=10
-            )
-
-            async def refused_over_grpc() -> bool:
-                listen = stub.Listen(pb.ListenRequest(service="blobs", property="picture"), timeout=10)
-                with pytest.raises(grpc.aio.AioRpcError) as refused:
-                    async for _ in listen:
-                        pass
-                return refused.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
-
-            await eventually(refused_over_grpc, bool, within=10)
+            await eventually(refusal_prober(stub), bool, within=20)
             # A Listen in a Session is ended with the refusal; the Session goes on answering.
             requests: asyncio.Queue[pb.SessionRequest | None] = asyncio.Queue()
 
