@@ -28,11 +28,11 @@ import grpc
 
 from gateway.calls import Begun, Calls, Undecodable, is_snapshot
 from gateway.config import Limits
+from gateway.fronts.grpc_v1.listen_encoding import listen_reply_wire, reply_wire
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.listen.budget import COUNTED_BYTES, GRPC_COPIES
 from gateway.listen.drain import Wake
-from gateway.listen.encoding import listen_reply_wire, reply_wire
 from gateway.listen.hub import SHUTTING_DOWN
 from gateway.logs import RequestContext, current_request
 from gateway.proxies.connection import send_waiting_lines

@@ -39,6 +39,7 @@ from google.protobuf.duration_pb2 import Duration
 
 from gateway.calls import Calls
 from gateway.config import HttpSection, Limits
+from gateway.fronts.grpc_v1.listen_encoding import Mark
 from gateway.guard import Guard
 from gateway.http.binary import OCTET_STREAM, MediaTypes, value_json
 from gateway.http.errors import error_json
@@ -46,7 +47,6 @@ from gateway.http.places import StreamHandler, StreamPlaces, too_many, write_or_
 from gateway.http.safety import identify
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.listen.drain import Taken, Wake, taken
-from gateway.listen.encoding import Mark
 from gateway.listen.topics import Topic
 from gateway.rules import Subject
 from gateway.status import to_property_error

@@ -29,6 +29,7 @@ from contextlib import aclosing
 
 from aiohttp import hdrs, web
 
+from gateway.fronts.grpc_v1.listen_encoding import Mark, Ready
 from gateway.http.binary import OCTET_STREAM, RAW_HEADERS, property_model, served_type
 from gateway.http.bodies import query_parameters
 from gateway.http.errors import error_response
@@ -36,7 +37,6 @@ from gateway.http.places import StreamHandler, too_many, write_or_drop
 from gateway.http.safety import identify
 from gateway.listen import parse_options, parse_selectors
 from gateway.listen.drain import Taken, Wake, taken
-from gateway.listen.encoding import Mark, Ready
 from gateway.rules import Operation
 from gateway.status import to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb

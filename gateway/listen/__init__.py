@@ -8,7 +8,7 @@
   itself, at any size (a service that cannot be reached is skipped and tried again), the
   conflating queue, pacing (throttle, sampling, heartbeat), ``take``.
 * :mod:`~gateway.listen.matched` — a wildcard's matches on one service, kept sorted.
-* :mod:`~gateway.listen.encoding` — events into ``ListenResponse`` messages, batched by bytes.
+* :mod:`~gateway.fronts.grpc_v1.listen_encoding` — events into ``ListenResponse`` messages, batched by bytes.
 * :mod:`~gateway.listen.hub` — the hub that owns topics and streams.
 * :mod:`~gateway.listen.drain` — how a front end writes a stream: wait, take, repeat.
 * :mod:`~gateway.listen.budget` — one total for the large values readers hold, all together.

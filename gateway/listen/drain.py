@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncGenerator
 
-from gateway.listen.encoding import Mark, Ready
+from gateway.fronts.grpc_v1.listen_encoding import Mark, Ready
 from gateway.listen.stream import ListenStream
 
 

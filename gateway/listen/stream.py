@@ -48,7 +48,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from itertools import islice
 
 from gateway.config import Limits
-from gateway.listen.encoding import (
+from gateway.fronts.grpc_v1.listen_encoding import (
     Mark,
     Ready,
     encode_events,
@@ -737,7 +737,7 @@ class ListenStream:
 
     def take_wire(self) -> bytes | None:
         """:meth:`take`, serialized: the shared part of each event is encoded once for every stream
-        (:func:`gateway.listen.encoding.encode_wire`)."""
+        (:func:`gateway.fronts.grpc_v1.listen_encoding.encode_wire`)."""
         taken = self._next()
         if isinstance(taken, list):
             return encode_wire(taken, self._sequence - len(taken))
@@ -829,7 +829,8 @@ class ListenStream:
         return ready
 
     def _ready_throttled(self, limit: int) -> tuple[list[Ready], int]:
-        """Like :func:`gateway.listen.encoding.within`, but only topics whose ``min_interval`` has passed."""
+        """Like :func:`~gateway.fronts.grpc_v1.listen_encoding.within`, but only topics whose
+        ``min_interval`` has passed."""
         last_emit = self._last_emit
         assert last_emit is not None
         loop = asyncio.get_running_loop()

@@ -67,7 +67,7 @@ class Sink(Protocol):
 
 class SharedEvent:
     """What every stream's event for one change of a topic has alike: its size, and its service,
-    property, value and time serialized (filled by :mod:`gateway.listen.encoding` when a stream
+    property, value and time serialized (filled by :mod:`gateway.fronts.grpc_v1.listen_encoding` when a stream
     first sends it, then reused by the others)."""
 
     __slots__ = ("body", "leads", "rest", "size", "stamp", "value")
@@ -76,7 +76,7 @@ class SharedEvent:
         #: The change it is for: the stamp and the very value object the streams' slots hold.
         self.stamp = stamp
         self.value = value
-        #: About the bytes the event takes (``gateway.listen.encoding.event_size``).
+        #: About the bytes the event takes (``gateway.fronts.grpc_v1.listen_encoding.event_size``).
         self.size = size
         #: The shared fields serialized; None until a stream sends the change serialized.
         self.body: bytes | None = None
@@ -127,7 +127,7 @@ class Topic:
         self.opener: Subject | None = None
         self.trail: tuple[tuple[str, str], ...] = ()
         #: The latest change's event as every stream sends it, encoded once for them all
-        #: (gateway.listen.encoding.shared_event).
+        #: (gateway.fronts.grpc_v1.listen_encoding.shared_event).
         self.wire: SharedEvent | None = None
 
     def notify(self, change: Change) -> None:

@@ -6,7 +6,7 @@ from typing import Annotated
 
 import pytest
 
-from gateway.listen.encoding import encode_events, within
+from gateway.fronts.grpc_v1.listen_encoding import encode_events, within
 from gateway.listen.topics import Topic
 from gateway.sizes import BATCH_BYTES, MAX_BINARY_SIZE
 from gateway.wire_values import put, received

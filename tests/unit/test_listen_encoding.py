@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from support.fake_backend import DictBackend
 
-from gateway.listen.encoding import (
+from gateway.fronts.grpc_v1.listen_encoding import (
     LEAD_BODY_BYTES,
     Mark,
     encode_events,
