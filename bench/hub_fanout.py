@@ -3,11 +3,11 @@
 Run ``python -m bench.hub_fanout`` (``--bursts N``, ``--profile``). 100 streams of the listen hub
 follow the ten properties of part (c)'s batched mode each, on :class:`bench.gateway_server.BenchTarget`
 served by ``LocalService`` as the benchmark's gateway serves it. A burst sets each property
-once (ten changes); then every stream is drained as the gRPC Listen handler drains it
-(``ListenStream.take_wire``: one message of ten events). The figure, the best of five runs, is
-the time per event and per message: what the gateway's Python pays beside grpc.aio's own cost
-of writing the message, which the floor of ``python -m bench.fanout`` pays too. ``--profile``
-prints where it goes (cProfile).
+once (ten changes); then every stream is drained as the gRPC front drains it
+(``gateway.fronts.grpc_v1.listen_encoding.take_wire``: one message of ten events). The figure,
+the best of five runs, is the time per event and per message: what the gateway's Python pays
+beside grpc.aio's own cost of writing the message, which the floor of ``python -m bench.fanout``
+pays too. ``--profile`` prints where it goes (cProfile).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import time
 from bench.gateway_server import BenchTarget
 from bench.target import BATCH_PROPERTIES, SERVICE
 from gateway.config import Limits
+from gateway.fronts.grpc_v1.listen_encoding import take_wire
 from gateway.listen import ListenHub, ListenStream, Selector, StreamOptions
 from gateway.router import Router
 from services.core import LocalService
@@ -61,7 +62,7 @@ class _Hub:
                 setattr(self.target, prop, value)
             woken, self.woken = self.woken, []
             for stream in woken:
-                while stream.take_wire() is not None:
+                while take_wire(stream) is not None:
                     pass
 
     def sent(self) -> int:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 from gateway.cli import YOUNG_COLLECTION_THRESHOLD
 from gateway.config import Limits
+from gateway.engine.events import Mark, events
 from gateway.listen import ListenHub, Selector, StreamOptions
 from gateway.router import Router
 from services.core import LocalService, Resource
@@ -65,13 +66,15 @@ class Reader:
         asyncio.get_running_loop().call_soon(self._drain)
 
     def _drain(self) -> None:
-        while (msg := self.stream.take()) is not None:
-            for event in msg.events:
-                self.events.append((event.property, event.value))
-                if (event.property, event.value) == self.awaited:
+        while (taken := self.stream.take()) is not None:
+            if isinstance(taken, Mark):
+                if taken is Mark.SYNC:
+                    self.synced.set()
+                continue
+            for event in events(taken):
+                self.events.append((event.path, event.value))
+                if (event.path, event.value) == self.awaited:
                     self.heard.set()
-            if msg.sync:
-                self.synced.set()
         if self.stream.error is not None:
             self.synced.set()
             self.heard.set()

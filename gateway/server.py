@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
+from contextlib import aclosing
 from time import perf_counter
 from typing import Any
 
@@ -21,11 +22,12 @@ from grpc_reflection.v1alpha._async import ReflectionServicer
 from gateway.calls import Calls, Undecodable
 from gateway.config import Config
 from gateway.federation import VIA_KEY, enter, new_gateway_id
+from gateway.fronts.grpc_v1.listen_encoding import listen_request, listen_wire
 from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
-from gateway.listen import ListenHub, parse_options, parse_selectors
+from gateway.listen import ListenHub
 from gateway.listen.budget import COUNTED_BYTES, GRPC_COPIES
-from gateway.listen.drain import Wake
+from gateway.listen.drain import Wake, taken
 from gateway.logs import REQUEST_ID_HEADER, RequestContext, current_request, request_id_from
 from gateway.metrics.counts import GrpcCounts, MethodCounts
 from gateway.peer_protocol import PROTOCOLS_KEY, check_caller
@@ -294,8 +296,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
     async def Listen(self, request: pb.ListenRequest, context: Context) -> AsyncIterator[bytes]:
         # Responses are yielded rather than written with context.write: grpc.aio
         # delivers 20-35% more messages per second this way (measured by bench/). They are
-        # yielded serialized (ListenStream.take_wire): a change is encoded once for every stream.
-        limits = self.config.limits
+        # yielded serialized (listen_wire): a change is encoded once for every stream.
         wake = Wake()
         try:
             request_id, via = arrival(context)
@@ -308,12 +309,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             enter(via, self.gateway_id)
             subject = self._subject(context)
             logged.subject = _subject_name(subject)
-            stream = self.hub.open(
-                parse_selectors(request, limits),
-                parse_options(request.options, limits),
-                wake.set,
-                subject,
-            )
+            stream = self.hub.listen(listen_request(request), wake.set, subject)
         except Exception as exc:
             await _failed(context, exc, "Listen", self._listen_counts, None)
             return
@@ -324,14 +320,9 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         budget = self.hub.budget
         held = 0
         try:
-            # drain.taken written out here: a generator in between costs every message one
-            # more async-generator step, as Wake.wait costs it a coroutine.
-            await stream.start()
-            while True:
-                waiter = wake.waiter()
-                if waiter is not None:
-                    await waiter
-                while (response := stream.take_wire()) is not None:
+            async with aclosing(taken(stream, wake)) as ready:
+                async for item in ready:
+                    response = listen_wire(item)
                     if len(response) < COUNTED_BYTES:
                         yield response
                         continue
@@ -342,17 +333,14 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
                     counted = GRPC_COPIES * len(response)
                     if not budget.take(counted):
                         # Not kept by the refusal's traceback (a cycle through this frame, freed
-                        # only by the next collection: measured, 300 MB for 60 refused readers).
-                        response = b""
+                        # only by the next collection: measured, 300 MB for 60 refused readers),
+                        # nor the values it carries.
+                        del response, item
                         raise budget.refusal(counted, "Listen")
                     held = counted
                     yield response
                     budget.give_back(held)
                     held = 0
-                if stream.error is not None:
-                    raise stream.error
-                if stream.ended or stream.closed:
-                    break
             code = Code.OK
         except Exception as exc:
             err = to_property_error(exc, "Listen")

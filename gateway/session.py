@@ -28,9 +28,15 @@ import grpc
 
 from gateway.calls import Begun, Calls, Undecodable, is_snapshot
 from gateway.config import Limits
-from gateway.fronts.grpc_v1.listen_encoding import listen_reply_wire, reply_wire
+from gateway.fronts.grpc_v1.listen_encoding import (
+    listen_reply_wire,
+    listen_request,
+    listen_response,
+    reply_wire,
+    take_wire,
+)
 from gateway.identity import ANONYMOUS
-from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
+from gateway.listen import ListenHub, ListenStream
 from gateway.listen.budget import COUNTED_BYTES, GRPC_COPIES
 from gateway.listen.drain import Wake
 from gateway.listen.hub import SHUTTING_DOWN
@@ -183,7 +189,7 @@ class Session:
 
         A reply bigger than the budget goes alone: a client drops the whole stream on a message
         over its limit (4 MiB by default), so batching must never add up to one. The Listens'
-        replies are added serialized (``ListenStream.take_wire``): a repeated field's entries
+        replies are added serialized (``listen_encoding.take_wire``): a repeated field's entries
         may follow one another on the wire, so they are appended to the other replies' message.
         """
         replies: list[pb.Reply] = []
@@ -204,7 +210,7 @@ class Session:
                 continue
             drained = False
             while size < BATCH_BYTES and count < MAX_REPLIES_PER_MESSAGE:
-                response = stream.take_wire()
+                response = take_wire(stream)
                 if response is None:
                     drained = True
                     break
@@ -241,8 +247,8 @@ class Session:
     def _end_listens(self) -> None:
         """Flush what every Listen has ready and end it (half-close or shutdown)."""
         for rid, stream in list(self._listens.items()):
-            while (response := stream.take()) is not None:
-                reply = pb.Reply(id=rid, listen=response)
+            while (taken := stream.take()) is not None:
+                reply = pb.Reply(id=rid, listen=listen_response(taken))
                 self._replies.append((reply, reply.ByteSize()))
             self._drop_listen(rid)
         for rid in list(self._starting):
@@ -469,14 +475,8 @@ class Session:
     # -- listens -----------------------------------------------------------
 
     def _start_listen(self, rid: int, request: pb.ListenRequest) -> None:
-        limits = self._limits
         try:
-            stream = self._hub.open(
-                parse_selectors(request, limits),
-                parse_options(request.options, limits),
-                _Ready(self, rid),
-                self._subject,
-            )
+            stream = self._hub.listen(listen_request(request), _Ready(self, rid), self._subject)
         except Exception as exc:
             self._fail(rid, exc, "Listen")
             return

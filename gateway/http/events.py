@@ -3,7 +3,7 @@
 ``GET /api/v1/events?sel=SERVICE/PATH&sel=...`` opens one
 :class:`~gateway.listen.stream.ListenStream` on the gateway's listen hub (the same
 selectors, wildcards, rules, limits and conflating queue as a gRPC Listen) and writes
-what :func:`gateway.listen.drain.responses` yields:
+the events :func:`gateway.listen.drain.taken` yields (:class:`gateway.engine.events.Event`):
 
 * ``event: value`` with ``id: N`` (the stream's sequence) and ``data:`` a JSON object
   ``{"service", "path", "value", "gap", "removed", "conflated", "time"}``: first the current
@@ -35,25 +35,21 @@ from collections.abc import Mapping
 from contextlib import aclosing, suppress
 
 from aiohttp import hdrs, web
-from google.protobuf.duration_pb2 import Duration
 
 from gateway.calls import Calls
 from gateway.config import HttpSection, Limits
-from gateway.fronts.grpc_v1.listen_encoding import Mark
+from gateway.engine.events import Event, ListenRequest, Mark, Selector, events
 from gateway.guard import Guard
 from gateway.http.binary import OCTET_STREAM, MediaTypes, value_json
 from gateway.http.errors import error_json
 from gateway.http.places import StreamHandler, StreamPlaces, too_many, write_or_drop
 from gateway.http.safety import identify
-from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
-from gateway.listen.drain import Taken, Wake, taken
-from gateway.listen.topics import Topic
+from gateway.listen import ListenHub, ListenStream
+from gateway.listen.drain import Wake, taken
+from gateway.listen.requests import check_listen
 from gateway.rules import Subject
 from gateway.status import to_property_error
-from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.conflation import Slot
 from services.errors import InvalidArgument, PropertyError, ResourceExhausted
-from services.values import Value
 
 log = logging.getLogger(__name__)
 
@@ -63,61 +59,59 @@ HEARTBEAT = b": heartbeat\n\n"
 SELECTOR_KEY = "sel"
 
 
-def listen_request(selectors: list[str]) -> pb.ListenRequest:
-    """``SERVICE/PATH`` selectors as a ListenRequest (the first ``/`` splits service from path)."""
+def listen_request(selectors: list[str], heartbeat: float = 0.0) -> ListenRequest:
+    """``SERVICE/PATH`` selectors as a Listen (the first ``/`` splits service from path), with a
+    heartbeat after ``heartbeat`` quiet seconds (0: none)."""
     if not selectors:
         raise InvalidArgument("give at least one selector: /api/v1/events?sel=SERVICE/PATH")
-    refs = []
+    parsed = []
     for text in selectors:
         service, slash, path = text.partition("/")
         if not slash or not service or not path:
             raise InvalidArgument(
                 f"selector {text[:300]!r} must be SERVICE/PATH, like scout1/location or */location"
             )
-        refs.append(pb.PropertyRef(service=service, property=path))
-    first = refs[0]
-    return pb.ListenRequest(service=first.service, property=first.property, more=refs[1:])
+        parsed.append(Selector(service, path))
+    return ListenRequest(parsed, heartbeat_interval=heartbeat)
 
 
-def event_json(topic: Topic, entry: Slot[Value], gap: bool, media_type: str) -> dict[str, object]:
+def event_json(event: Event, gap: bool, media_type: str) -> dict[str, object]:
     """One event as the JSON of its ``data:`` line: ``value``, or ``data`` and ``media_type`` when binary."""
-    item: dict[str, object] = {"service": topic.service, "path": topic.path}
-    value = entry.value
+    item: dict[str, object] = {"service": event.service, "path": event.path}
+    value = event.value
     if isinstance(value, bytes):
         item.update(value_json("", value, media_type))
     else:
         item.update(value_json(value, None, media_type))
     item.update(
-        gap=entry.gap or gap,
-        removed=entry.removed,
-        conflated=entry.conflated,
-        time=entry.stamp / 1e9,
+        gap=event.gap or gap,
+        removed=event.removed,
+        conflated=event.conflated,
+        time=event.time_ns / 1e9,
     )
     return item
 
 
-def binary_refs(item: Taken) -> list[tuple[str, str]]:
+def binary_refs(item: list[Event] | Mark) -> list[tuple[str, str]]:
     """(service, path) of each binary value in ``item``."""
     if isinstance(item, Mark):
         return []
-    return [(topic.service, topic.path) for topic, entry in item[0] if isinstance(entry.value, bytes)]
+    return [(event.service, event.path) for event in item if isinstance(event.value, bytes)]
 
 
-def encode(item: Taken, gap: bool, media_types: Mapping[tuple[str, str], str] = {}) -> bytes:
-    """What a stream took as SSE messages; ``gap`` marks every value (a resumed snapshot);
+def encode(item: list[Event] | Mark, gap: bool, media_types: Mapping[tuple[str, str], str] = {}) -> bytes:
+    """Events or a marker as SSE messages; ``gap`` marks every value (a resumed snapshot);
     ``media_types`` names the media type of each binary value by (service, path)."""
     if item is Mark.SYNC:
         return SYNC
     if item is Mark.HEARTBEAT:
         return HEARTBEAT
     assert not isinstance(item, Mark)
-    events, sequence = item
     parts = []
-    for topic, entry in events:
-        sequence += 1
-        media_type = media_types.get((topic.service, topic.path), OCTET_STREAM)
-        data = json.dumps(event_json(topic, entry, gap, media_type), ensure_ascii=False)
-        parts.append(f"id: {sequence}\nevent: value\ndata: {data}\n\n")
+    for event in item:
+        media_type = media_types.get((event.service, event.path), OCTET_STREAM)
+        data = json.dumps(event_json(event, gap, media_type), ensure_ascii=False)
+        parts.append(f"id: {event.sequence}\nevent: value\ndata: {data}\n\n")
     return "".join(parts).encode()
 
 
@@ -139,15 +133,15 @@ class EventStreams(StreamHandler):
         places: StreamPlaces,
     ) -> None:
         super().__init__(hub, calls, guard=guard, limits=limits, settings=settings, places=places)
-        self.options = pb.ListenOptions(heartbeat_interval=_duration(settings.heartbeat))
+        self.heartbeat = settings.heartbeat
 
     async def events(self, request: web.Request) -> web.StreamResponse:
         unknown = [key for key in request.query if key != SELECTOR_KEY]
         if unknown:
             raise InvalidArgument(f"unknown query key {unknown[0][:100]!r} (known: {SELECTOR_KEY})")
-        listen = listen_request(request.query.getall(SELECTOR_KEY, []))
-        selectors = parse_selectors(listen, self.limits)
-        options = parse_options(self.options, self.limits)
+        listen = listen_request(request.query.getall(SELECTOR_KEY, []), self.heartbeat)
+        # Checked before the stream takes a place: a bad Listen is refused whatever the load.
+        selectors, options = check_listen(listen, self.limits)
         subject = identify(request, self.guard)
         peer = request.remote or "?"
         refused = self.places.refusal(peer)
@@ -184,7 +178,8 @@ class EventStreams(StreamHandler):
         budget = self.hub.budget
         try:
             async with aclosing(taken(stream, wake)) as ready:
-                async for item in ready:
+                async for taken_item in ready:
+                    item = taken_item if isinstance(taken_item, Mark) else events(taken_item)
                     for service, path in binary_refs(item):
                         await media_types.of(service, path)  # a model read the first time only
                     chunk = encode(item, resumed and snapshot, media_types.known)
@@ -227,9 +222,3 @@ class EventStreams(StreamHandler):
                 request, response, event, within_s=self.write_timeout, what="event stream", peer=peer
             )
         return response
-
-
-def _duration(seconds: float) -> Duration:
-    d = Duration()
-    d.FromNanoseconds(round(seconds * 1e9))
-    return d

@@ -29,17 +29,16 @@ from contextlib import aclosing
 
 from aiohttp import hdrs, web
 
-from gateway.fronts.grpc_v1.listen_encoding import Mark, Ready
+from gateway.engine.events import Event, ListenRequest, Mark, Selector, Taken, events
 from gateway.http.binary import OCTET_STREAM, RAW_HEADERS, property_model, served_type
 from gateway.http.bodies import query_parameters
 from gateway.http.errors import error_response
 from gateway.http.places import StreamHandler, too_many, write_or_drop
 from gateway.http.safety import identify
-from gateway.listen import parse_options, parse_selectors
-from gateway.listen.drain import Taken, Wake, taken
+from gateway.listen.drain import Wake, taken
+from gateway.listen.requests import check_listen
 from gateway.rules import Operation
 from gateway.status import to_property_error
-from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import InvalidArgument, PropertyError, ResourceExhausted
 from services.paths import WILDCARD, is_pattern, validate_path
 
@@ -59,16 +58,16 @@ def part_head(media_type: str, size: int, sequence: int, conflated: int) -> byte
     ).encode("ascii")
 
 
-def latest(item: Taken) -> tuple[Ready | None, int, int]:
-    """The event of ``item`` to write (the last one), its sequence number, and how many values it
-    replaces for the reader."""
+def latest(item: Taken) -> tuple[Event | None, int]:
+    """The event of what a stream took to write (the last one), and how many values the others
+    stood for (a marker: none, nothing)."""
     if isinstance(item, Mark):
-        return None, 0, 0
-    events, before = item
-    if not events:
-        return None, 0, 0
-    skipped = len(events) - 1 + sum(entry.conflated for _, entry in events[:-1])
-    return events[-1], before + len(events), skipped
+        return None, 0
+    ready = events(item)
+    if not ready:
+        return None, 0
+    skipped = len(ready) - 1 + sum(event.conflated for event in ready[:-1])
+    return ready[-1], skipped
 
 
 class ImageStreams(StreamHandler):
@@ -95,9 +94,8 @@ class ImageStreams(StreamHandler):
         refused = self.places.refusal(peer)
         if refused is not None:
             return refused
-        listen = pb.ListenRequest(service=service, property=path, parameters=parameters)
-        selectors = parse_selectors(listen, self.limits)
-        options = parse_options(pb.ListenOptions(), self.limits)
+        listen = ListenRequest([Selector(service, path, tuple(sorted(parameters.items())))])
+        selectors, options = check_listen(listen, self.limits)
         wake = Wake()
         try:
             stream = self.hub.open(selectors, options, wake.set, subject)
@@ -140,14 +138,14 @@ class ImageStreams(StreamHandler):
         skipped = 0
         try:
             while item is not None:
-                event, sequence, conflated = latest(item)
+                event, conflated = latest(item)
                 item = None
                 skipped += conflated
-                if event is not None and event[1].removed:
+                if event is not None and event.removed:
                     break  # the property went away: the body ends
-                data = event[1].value if event is not None else None
+                data = event.value if event is not None else None
                 if event is not None and isinstance(data, bytes):
-                    head = part_head(media_type, len(data), sequence, skipped + event[1].conflated)
+                    head = part_head(media_type, len(data), event.sequence, skipped + event.conflated)
                     if not await self._write_part(
                         request, response, head=head, data=data, what=what, peer=peer
                     ):

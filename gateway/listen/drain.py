@@ -1,11 +1,12 @@
 """How a front end writes one Listen stream: wait until it is ready, take what it has, repeat.
 
-The HTTP front end's event and image streams drain a
-:class:`~gateway.listen.stream.ListenStream` through :func:`taken`; the gRPC Listen
-handler runs the same loop itself, on the serialized form (``ListenStream.take_wire``), to
-save an async-generator step a message. A writer that waits on its client (a slow reader)
-is simply not taking: the stream's conflating queue holds the latest value per property
-meanwhile, so memory stays bounded by the properties it matches.
+Every front end's Listen drains its :class:`~gateway.listen.stream.ListenStream` through
+:func:`taken`: the gRPC Listen handler (encoding each batch, :mod:`gateway.fronts.grpc_v1.listen_encoding`),
+the HTTP front end's event and image streams. (A Listen inside a gRPC Session is the exception:
+the Session's writer takes from all its Listens at once, when each says it is ready.) A writer
+that waits on its client (a slow reader) is simply not taking: the stream's conflating queue
+holds the latest value per property meanwhile, so memory stays bounded by the properties it
+matches.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncGenerator
 
-from gateway.fronts.grpc_v1.listen_encoding import Mark, Ready
+from gateway.engine.events import Taken
 from gateway.listen.stream import ListenStream
 
 
@@ -56,13 +57,8 @@ class Wake:
             await future
 
 
-#: What a writer takes at a time: events (with the stream's sequence number before the first),
-#: or a marker (``sync``, a heartbeat).
-Taken = tuple[list[Ready], int] | Mark
-
-
 async def taken(stream: ListenStream, wake: Wake) -> AsyncGenerator[Taken, None]:
-    """Start ``stream`` and yield what it has ready (:meth:`ListenStream.take_events`), as it
+    """Start ``stream`` and yield what it has ready (:meth:`ListenStream.take`), as it
     becomes ready.
 
     ``wake`` is the one the stream was opened with. Raises the stream's error (a
@@ -73,8 +69,10 @@ async def taken(stream: ListenStream, wake: Wake) -> AsyncGenerator[Taken, None]
     """
     await stream.start()
     while True:
-        await wake.wait()
-        while (item := stream.take_events()) is not None:
+        waiter = wake.waiter()  # awaited here, not in Wake.wait: a coroutine less a message
+        if waiter is not None:
+            await waiter
+        while (item := stream.take()) is not None:
             yield item
         if stream.error is not None:
             raise stream.error

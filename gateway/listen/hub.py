@@ -12,10 +12,11 @@ import logging
 from collections.abc import Callable, Sequence
 
 from gateway.config import Limits
+from gateway.engine.events import ListenRequest, Selector, StreamOptions
 from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
 from gateway.listen.budget import PayloadBudget
-from gateway.listen.requests import Selector, StreamOptions
+from gateway.listen.requests import check_listen
 from gateway.listen.stream import ListenStream
 from gateway.listen.topics import Topics
 from gateway.router import Router
@@ -60,6 +61,13 @@ class ListenHub:
         """Listen streams open right now."""
         return len(self._streams)
 
+    def listen(
+        self, request: ListenRequest, on_ready: Callable[[], None], subject: Subject = ANONYMOUS
+    ) -> ListenStream:
+        """:meth:`open` a stream for ``request``, checked against the limits first (InvalidArgument,
+        ResourceExhausted); what every front end calls."""
+        return self.open(*check_listen(request, self.limits), on_ready, subject)
+
     def open(
         self,
         selectors: Sequence[Selector],
@@ -67,7 +75,8 @@ class ListenHub:
         on_ready: Callable[[], None],
         subject: Subject = ANONYMOUS,
     ) -> ListenStream:
-        """A new stream (then ``start`` it, and ``close`` it when done) for ``subject``.
+        """A new stream of checked ``selectors`` and ``options`` (then ``start`` it, and ``close`` it
+        when done) for ``subject``; ``on_ready`` is called when the stream has something to take.
 
         Raises RESOURCE_EXHAUSTED beyond the limits, and UNAUTHENTICATED or PERMISSION_DENIED
         for an exact selector the subject may not read (wildcards skip what it may not read).

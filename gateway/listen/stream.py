@@ -7,8 +7,10 @@ holds, per topic, the latest value not yet sent and how many values it
 replaced. Memory is bounded by the number of topics the stream matches, never
 by how fast values change. The stream's writer (the gRPC handler, or the
 Session writer) is woken by ``on_ready`` and calls :meth:`ListenStream.take`
-until it returns None; each call drains what is ready into one
-``ListenResponse``.
+until it returns None; each call drains what is ready into one batch of events
+(:mod:`gateway.engine.events`), or hands a marker (sync, heartbeat). A change is
+queued as its :class:`~gateway.engine.events.SharedEvent`, made once for every
+stream it reaches.
 
 Wildcards follow the service: ``*`` as service follows the router's adds and
 removes (the hub calls :meth:`ListenStream.service_added`); ``*`` in a path is
@@ -48,17 +50,8 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from itertools import islice
 
 from gateway.config import Limits
-from gateway.fronts.grpc_v1.listen_encoding import (
-    Mark,
-    Ready,
-    encode_events,
-    encode_wire,
-    event_size,
-    marker_response,
-    within,
-)
+from gateway.engine.events import Mark, Ready, Selector, SharedEvent, StreamOptions, Taken
 from gateway.listen.matched import MatchedPaths
-from gateway.listen.requests import Selector, StreamOptions
 from gateway.listen.topics import (
     MISSING,
     NOTHING,
@@ -71,15 +64,13 @@ from gateway.listen.topics import (
 )
 from gateway.router import Router
 from gateway.rules import Subject
-from gateway.sizes import MAX_MESSAGE_BYTES
-from protos.propertyservice.v1 import property_service_pb2 as pb
+from gateway.sizes import BATCH_BYTES, MAX_MESSAGE_BYTES
 from services.backend import Backend, Change
 from services.backoff import pauses, wait_to_retry
 from services.conflation import ConflatingQueue
 from services.errors import Code, PropertyError, ResourceExhausted
 from services.model import PropertyModel
 from services.paths import WILDCARD, is_pattern
-from services.values import Value
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +95,19 @@ MAX_CHANGED_NAMES = 1024
 def retry_pauses() -> Iterator[float]:
     """The pauses before each new try of a skipped part: ``RETRY_FIRST_S``, doubled up to ``RETRY_MAX_S``."""
     return pauses(RETRY_FIRST_S, RETRY_MAX_S)
+
+
+def within(items: Iterable[Ready]) -> tuple[list[Ready], int]:
+    """The first of ``items`` that add up to at most BATCH_BYTES (always at least one), and their size."""
+    ready: list[Ready] = []
+    size = 0
+    for item in items:
+        n = item[1].value.size
+        if ready and size + n > BATCH_BYTES:
+            break
+        size += n
+        ready.append(item)
+    return ready, size
 
 
 class _Expansion:
@@ -266,7 +270,7 @@ class ListenStream:
         self.selectors = tuple(selectors)
         self.options = options
         self._on_ready = on_ready
-        self._pending: ConflatingQueue[Topic, Value] = ConflatingQueue()
+        self._pending: ConflatingQueue[Topic, SharedEvent] = ConflatingQueue()
         self._refs: dict[Topic, int] = {}
         #: Wildcard paths expanded per service; () until the first (most streams have none).
         self._expansions: Sequence[_Expansion] = ()
@@ -439,7 +443,8 @@ class ListenStream:
         # With updates only, a property that appears once the stream is live is a change (from
         # absent to its first value), as its going is (``removed``): it is sent.
         if (gap or self._live or not self.options.updates_only) and topic not in self._pending:
-            self._pending.put(topic, topic.value, time.time_ns(), gap)
+            now = time.time_ns()
+            self._pending.put(topic, SharedEvent(topic.service, topic.path, topic.value, now), now, gap)
             if self._live:
                 self._signal()
         return None
@@ -549,12 +554,13 @@ class ListenStream:
         if n > 1:
             self._refs[topic] = n - 1
             return
+        if announce and not topic.removed:  # else the backend's own removal is queued or sent already
+            # Told as a change of the topic is, to this stream alone: it is gone for this stream.
+            self.topic_changed(topic, Change(topic.path, "", removed=True), time.time_ns())
         del self._refs[topic]
         self._topics.unsubscribe(self, topic)
         if not announce:
             self._pending.discard(topic)
-        elif not topic.removed:  # else the backend's own removal is queued or sent already
-            self._enqueue(topic, "", time.time_ns(), gap=False, removed=True)
 
     # -- following where a service's property list changes ---------------------
 
@@ -661,21 +667,22 @@ class ListenStream:
     # -- receiving -------------------------------------------------------
 
     def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None:
-        """A change on a topic this stream shares (called by :meth:`Topic.notify`)."""
+        """A change on a topic this stream shares (called by :meth:`Topic.notify`), queued.
+
+        Every stream the change reaches queues the same :class:`SharedEvent`: the first one makes
+        it and leaves it on the topic, the others find it there (the same time, the same value).
+        """
         if topic not in self._refs:
             return
-        # _enqueue and _signal written out: this runs once per stream for every change.
-        if not self._pending.put(topic, change.value, seen_ns, change.gap, change.removed):
+        event = topic.event
+        if event is None or event.stamp != seen_ns or event.value is not change.value:
+            event = topic.event = SharedEvent(topic.service, topic.path, change.value, seen_ns)
+        if not self._pending.put(topic, event, seen_ns, change.gap, change.removed):
             self.conflated += 1
+        # _signal, written out: this runs for every stream a change reaches.
         if self._live and not self._sample_flush and not self._signalled:
             self._signalled = True
             self._on_ready()
-
-    def _enqueue(self, topic: Topic, value: Value, seen: int, gap: bool, removed: bool) -> None:
-        if not self._pending.put(topic, value, seen, gap, removed):
-            self.conflated += 1
-        if self._live and not self._sample_flush:
-            self._signal()
 
     def _signal(self) -> None:
         if not self._signalled:
@@ -706,7 +713,7 @@ class ListenStream:
         pending = self._pending
         for topic in self._refs:
             if topic not in pending:
-                pending.put(topic, topic.value, now)
+                pending.put(topic, SharedEvent(topic.service, topic.path, topic.value, now), now)
         self._sample_flush = len(self._pending) or -1
         self._signal()
 
@@ -728,32 +735,12 @@ class ListenStream:
 
     # -- sending ---------------------------------------------------------
 
-    def take(self) -> pb.ListenResponse | None:
-        """Drain what is ready into one response; None when nothing is ready."""
-        taken = self._next()
-        if isinstance(taken, list):
-            return encode_events(taken, self._sequence - len(taken))
-        return None if taken is None else marker_response(taken)
+    def take(self) -> Taken | None:
+        """What the next response carries: a batch of events (the events ready and the stream's
+        sequence number before the first), a marker, or None when nothing is ready.
 
-    def take_wire(self) -> bytes | None:
-        """:meth:`take`, serialized: the shared part of each event is encoded once for every stream
-        (:func:`gateway.fronts.grpc_v1.listen_encoding.encode_wire`)."""
-        taken = self._next()
-        if isinstance(taken, list):
-            return encode_wire(taken, self._sequence - len(taken))
-        return None if taken is None else taken.wire
-
-    def take_events(self) -> tuple[list[Ready], int] | Mark | None:
-        """:meth:`take` before encoding: the events ready and the sequence number before the
-        first, a marker, or None. A value is the one every stream shares, not a copy: the HTTP
-        front end writes it from there."""
-        taken = self._next()
-        if isinstance(taken, list):
-            return taken, self._sequence - len(taken)
-        return taken
-
-    def _next(self) -> list[Ready] | Mark | None:
-        """What the next response carries: events (numbered already), a marker, or nothing."""
+        A value is the one every stream shares, not a copy: a front writes it from there.
+        """
         self._signalled = False
         if not self._live or self.closed or self.error is not None:
             return None
@@ -778,7 +765,7 @@ class ListenStream:
             self._sample_flush = max(self._sample_flush - count, 0) or -1
         if ready is not None:
             self._sent()
-            return ready
+            return ready, self._sequence - len(ready)
         if self._sync_due:
             self._sync_due = False
             self._sent()
@@ -806,7 +793,7 @@ class ListenStream:
             ready, size = self._ready_throttled(limit)
         elif len(pending) == 1:  # one change since the last response: the commonest case
             ready = pending.take()
-            size = event_size(*ready[0])
+            size = ready[0][1].value.size
         else:
             ready, size = within(islice(pending.items(), limit))
             if len(ready) == len(pending):
@@ -816,10 +803,10 @@ class ListenStream:
         if not ready:
             return None
         if len(ready) == 1 and size > MAX_MESSAGE_BYTES:
-            topic = ready[0][0]
+            event = ready[0][1].value
             self.fail(
                 ResourceExhausted(
-                    f"{topic.service}/{topic.path}: a value of {size} bytes does not fit in one message "
+                    f"{event.service}/{event.path}: a value of {size} bytes does not fit in one message "
                     f"(at most {MAX_MESSAGE_BYTES} bytes)"
                 )
             )
@@ -829,8 +816,7 @@ class ListenStream:
         return ready
 
     def _ready_throttled(self, limit: int) -> tuple[list[Ready], int]:
-        """Like :func:`~gateway.fronts.grpc_v1.listen_encoding.within`, but only topics whose
-        ``min_interval`` has passed."""
+        """Like :func:`within`, but only topics whose ``min_interval`` has passed."""
         last_emit = self._last_emit
         assert last_emit is not None
         loop = asyncio.get_running_loop()

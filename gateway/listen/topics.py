@@ -29,7 +29,7 @@ import asyncio
 import logging
 import time
 from collections.abc import Collection, Coroutine, Mapping
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from gateway.behalf import TRAIL, Trail
 from gateway.guard import Guard
@@ -41,6 +41,9 @@ from services.directory import CALLER, context_for
 from services.errors import Code, PropertyError
 from services.model import PropertyModel
 from services.values import Value
+
+if TYPE_CHECKING:
+    from gateway.engine.events import SharedEvent
 
 log = logging.getLogger(__name__)
 
@@ -65,34 +68,13 @@ class Sink(Protocol):
     def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None: ...
 
 
-class SharedEvent:
-    """What every stream's event for one change of a topic has alike: its size, and its service,
-    property, value and time serialized (filled by :mod:`gateway.fronts.grpc_v1.listen_encoding` when a stream
-    first sends it, then reused by the others)."""
-
-    __slots__ = ("body", "leads", "rest", "size", "stamp", "value")
-
-    def __init__(self, stamp: int, value: Value, size: int) -> None:
-        #: The change it is for: the stamp and the very value object the streams' slots hold.
-        self.stamp = stamp
-        self.value = value
-        #: About the bytes the event takes (``gateway.fronts.grpc_v1.listen_encoding.event_size``).
-        self.size = size
-        #: The shared fields serialized; None until a stream sends the change serialized.
-        self.body: bytes | None = None
-        #: The event's tag and length followed by ``body``, per number of bytes a stream adds
-        #: (its sequence number, count and flags): a few distinct numbers at most.
-        self.leads: dict[int, bytes] = {}
-        #: ``body`` when it is too big to copy into each lead (it follows the lead then), else b"".
-        self.rest = b""
-
-
 class Topic:
     """One shared backend subscription and the latest value seen on it."""
 
     __slots__ = (
         "backend",
         "dead",
+        "event",
         "heard",
         "key",
         "opener",
@@ -105,7 +87,6 @@ class Topic:
         "subscription",
         "trail",
         "value",
-        "wire",
     )
 
     def __init__(self, key: TopicKey, backend: Backend) -> None:
@@ -126,9 +107,9 @@ class Topic:
         #: then, which every other subject joining it is checked for.
         self.opener: Subject | None = None
         self.trail: tuple[tuple[str, str], ...] = ()
-        #: The latest change's event as every stream sends it, encoded once for them all
-        #: (gateway.fronts.grpc_v1.listen_encoding.shared_event).
-        self.wire: SharedEvent | None = None
+        #: The latest change as every stream's event shares it: made by the first stream told of
+        #: it, found here by the others (gateway.listen.stream).
+        self.event: SharedEvent | None = None
 
     def notify(self, change: Change) -> None:
         """The backend's callback: remember the value, hand it to every sink."""

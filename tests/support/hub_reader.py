@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 
+from gateway.engine.events import Mark, events
 from gateway.listen import ListenHub, ListenStream, Selector, StreamOptions
 from support.waiting import wait_until
 
@@ -25,10 +26,13 @@ class Reader:
         asyncio.get_running_loop().call_soon(self._drain)
 
     def _drain(self) -> None:
-        while (msg := self.stream.take()) is not None:
-            self.events += [(e.service, e.property, e.value, e.gap) for e in msg.events]
-            self.removed += [(e.service, e.property) for e in msg.events if e.removed]
-            self.synced = self.synced or msg.sync
+        while (taken := self.stream.take()) is not None:
+            if isinstance(taken, Mark):
+                self.synced = self.synced or taken is Mark.SYNC
+                continue
+            heard = events(taken)
+            self.events += [(e.service, e.path, e.value, e.gap) for e in heard]
+            self.removed += [(e.service, e.path) for e in heard if e.removed]
 
     async def start(self) -> None:
         await self.stream.start()

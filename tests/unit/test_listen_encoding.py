@@ -1,33 +1,48 @@
-"""The serialized Listen response (what the gRPC Listen handler sends) reads back as the message."""
+"""The serialized Listen response (what the gRPC Listen handler sends) reads back as the message,
+and a Listen request reads into the engine's own request."""
 
 from __future__ import annotations
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from support.fake_backend import DictBackend
 
+from gateway.config import Limits
+from gateway.engine.events import ListenRequest, Mark, Selector, SharedEvent
 from gateway.fronts.grpc_v1.listen_encoding import (
     LEAD_BODY_BYTES,
-    Mark,
+    MARK_WIRE,
     encode_events,
     encode_wire,
     listen_reply_wire,
+    listen_request,
     marker_response,
     reply_wire,
 )
+from gateway.listen.requests import check_listen
 from gateway.listen.topics import Topic
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.conflation import Slot
+from services.errors import InvalidArgument, ResourceExhausted
 from services.values import Value
 
 values = st.one_of(st.text(max_size=300), st.binary(max_size=300))
 paths = st.sampled_from(["a", "robots.scout1.location", "ü.x"])
 
 
-def _slot(value: Value, stamp: int, conflated: int, gap: bool, removed: bool) -> Slot[Value]:
-    slot = Slot(value, stamp, gap, removed)
+def _slot(value: Value, stamp: int, conflated: int, gap: bool, removed: bool) -> Slot[SharedEvent]:
+    slot = Slot(SharedEvent("svc", "a", value, stamp), stamp, gap, removed)
     slot.conflated = conflated
     return slot
+
+
+def _on(path: str, slot: Slot[SharedEvent]) -> Slot[SharedEvent]:
+    """``slot``'s change as an event of property ``path`` of ``svc``."""
+    event = slot.value
+    moved = Slot(SharedEvent("svc", path, event.value, event.stamp), slot.stamp, slot.gap, slot.removed)
+    moved.conflated = slot.conflated
+    return moved
 
 
 slots = st.builds(
@@ -48,34 +63,35 @@ def _topic(service: str, path: str) -> Topic:
 @settings(deadline=None)
 @given(st.lists(st.tuples(paths, slots), min_size=1, max_size=8), st.integers(min_value=0, max_value=2**40))
 def test_the_wire_form_parses_to_the_message_built_in_place(
-    events: list[tuple[str, Slot[Value]]], sequence: int
+    events: list[tuple[str, Slot[SharedEvent]]], sequence: int
 ) -> None:
     topics = {path: _topic("svc", path) for path, _ in events}
-    ready = [(topics[path], slot) for path, slot in events]
+    ready = [(topics[path], _on(path, slot)) for path, slot in events]
     wire = encode_wire(ready, sequence)
     assert pb.ListenResponse.FromString(wire) == encode_events(ready, sequence)
 
 
 def test_two_streams_share_the_encoded_change_and_keep_their_own_numbers() -> None:
     topic = _topic("scout1", "location")
-    change = Slot[Value]("(1 2 3)", 1_700_000_000_123_456_789, False, False)
+    event = SharedEvent("scout1", "location", "(1 2 3)", 1_700_000_000_123_456_789)
+    change = Slot(event, event.stamp, False, False)
     first = pb.ListenResponse.FromString(encode_wire([(topic, change)], 0))
-    cached = topic.wire
-    behind = _slot("(1 2 3)", change.stamp, 4, True, False)
-    behind.value = change.value
+    cached = event.encoded
+    behind = Slot(event, event.stamp, True, False)
+    behind.conflated = 4
     second = pb.ListenResponse.FromString(encode_wire([(topic, behind)], 20_000))
-    assert topic.wire is cached  # encoded once
+    assert cached is not None and event.encoded is cached  # encoded once
     assert (first.events[0].sequence, first.events[0].conflated, first.events[0].gap) == (1, 0, False)
     assert (second.events[0].sequence, second.events[0].conflated, second.events[0].gap) == (20_001, 4, True)
     assert second.events[0].value == "(1 2 3)"
-    assert second.events[0].time.ToNanoseconds() == change.stamp
-    newer = Slot[Value]("(4 5 6)", change.stamp + 1, False, False)
+    assert second.events[0].time.ToNanoseconds() == event.stamp
+    newer = Slot(SharedEvent("scout1", "location", "(4 5 6)", event.stamp + 1), event.stamp + 1, False, False)
     assert pb.ListenResponse.FromString(encode_wire([(topic, newer)], 1)).events[0].value == "(4 5 6)"
 
 
 def test_markers_serialized_are_the_marker_messages() -> None:
     for mark in Mark:
-        assert pb.ListenResponse.FromString(mark.wire) == marker_response(mark)
+        assert pb.ListenResponse.FromString(MARK_WIRE[mark]) == marker_response(mark)
     assert marker_response(Mark.SYNC).sync
     assert marker_response(Mark.HEARTBEAT).heartbeat
 
@@ -83,7 +99,7 @@ def test_markers_serialized_are_the_marker_messages() -> None:
 @settings(deadline=None)
 @given(st.integers(min_value=0, max_value=2**64 - 1), slots)
 def test_listen_replies_serialized_join_the_other_replies_of_a_session_response(
-    rid: int, slot: Slot[Value]
+    rid: int, slot: Slot[SharedEvent]
 ) -> None:
     topic = _topic("svc", "a")
     answer = pb.Reply(id=3, get=pb.GetResponse(value="x"))
@@ -107,11 +123,11 @@ EDGES = [1, 127, 128, 16_383, 16_384, 2**21 - 1, 2**21, 2**28, 2**40]
     st.one_of(values, st.binary(min_size=LEAD_BODY_BYTES, max_size=LEAD_BODY_BYTES + 50)),
 )
 def test_streams_at_any_sequence_share_one_change_and_each_reads_its_own_message(
-    events: list[tuple[str, Slot[Value]]], sequences: list[int], big: Value
+    events: list[tuple[str, Slot[SharedEvent]]], sequences: list[int], big: Value
 ) -> None:
     topics = {path: _topic("svc", path) for path in ("a", "b")}
     events = [*events, ("a", _slot(big, 7, 0, False, False))]
-    ready = [(topics[path], slot) for path, slot in events]
+    ready = [(topics[path], _on(path, slot)) for path, slot in events]
     for sequence in sequences:  # one stream each, all sending the same changes
         wire = encode_wire(ready, sequence)
         expected = encode_events(ready, sequence)
@@ -145,16 +161,53 @@ def _varint(n: int) -> bytes:
 
 def test_a_change_is_led_once_per_length_and_a_big_value_is_not_copied_into_its_leads() -> None:
     topic = _topic("cam", "frame")
-    small = Slot[Value]("x", 1, False, False)
+    small = Slot(SharedEvent("cam", "frame", "x", 1), 1, False, False)
     encode_wire([(topic, small)], 0)
     encode_wire([(topic, small)], 5)  # a second stream whose sequence number is as long
-    shared = topic.wire
+    shared = small.value.encoded
     assert shared is not None and list(shared.leads) == [2] and shared.rest == b""
     encode_wire([(topic, small)], 200)  # a third, with a longer one: a second lead
     assert sorted(shared.leads) == [2, 3]
-    frame = Slot[Value](bytes(LEAD_BODY_BYTES + 1), 2, False, False)
+    frame = Slot(SharedEvent("cam", "frame", bytes(LEAD_BODY_BYTES + 1), 2), 2, False, False)
     first = encode_wire([(topic, frame)], 0)
-    shared = topic.wire
-    assert shared is not None and shared.body is not None and shared.rest is shared.body
+    shared = frame.value.encoded
+    assert shared is not None and shared.rest is shared.body
     assert all(len(lead) < 8 for lead in shared.leads.values())
-    assert pb.ListenResponse.FromString(first).events[0].data == frame.value
+    assert pb.ListenResponse.FromString(first).events[0].data == frame.value.value
+
+
+def test_a_listen_request_reads_into_the_engines_request_with_the_requests_own_service() -> None:
+    request = pb.ListenRequest(
+        service="s",
+        property="a",
+        parameters={"frame": "robot"},
+        more=[pb.PropertyRef(property="b"), pb.PropertyRef(service="t", property="c")],
+    )
+    request.options.min_interval.FromMilliseconds(5)
+    request.options.max_batch = 100_000
+    listen = listen_request(request)
+    assert list(listen.selectors) == [
+        Selector("s", "a", (("frame", "robot"),)),
+        Selector("s", "b"),
+        Selector("t", "c"),
+    ]
+    assert listen.selectors[-1] == Selector("t", "c") and len(listen.selectors) == 3
+    selectors, options = check_listen(listen, Limits())
+    assert len(selectors) == 3
+    assert (options.min_interval, options.max_batch) == (0.005, Limits().max_batch)
+
+
+def test_a_duration_whose_seconds_and_nanos_differ_in_sign_is_refused() -> None:
+    request = pb.ListenRequest(service="s", property="a")
+    request.options.heartbeat_interval.seconds = 1
+    request.options.heartbeat_interval.nanos = -5
+    with pytest.raises(InvalidArgument, match="heartbeat_interval"):
+        listen_request(request)
+
+
+def test_a_listen_of_more_selectors_than_the_limit_or_none_is_refused() -> None:
+    request = pb.ListenRequest(service="s", property="a", more=[pb.PropertyRef(property="b")] * 100)
+    with pytest.raises(ResourceExhausted, match="at most 2 selectors, this one has 101"):
+        check_listen(listen_request(request), Limits(max_selectors=2))
+    with pytest.raises(InvalidArgument, match="at least one selector"):
+        check_listen(ListenRequest([]), Limits())

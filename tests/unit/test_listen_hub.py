@@ -6,9 +6,10 @@ import pytest
 from support.fake_backend import DictBackend
 
 from gateway.config import Limits
-from gateway.listen import ListenHub, Selector, StreamOptions, parse_options, parse_selectors
+from gateway.engine.events import Event, ListenRequest, Mark, Taken, events
+from gateway.listen import ListenHub, ListenStream, Selector, StreamOptions
+from gateway.listen.requests import check_listen
 from gateway.router import Router
-from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import InvalidArgument, ResourceExhausted
 
 
@@ -19,11 +20,19 @@ def hub() -> ListenHub:
     return ListenHub(router, Limits(), call_timeout=1.0)
 
 
-def drain(stream) -> list[pb.ListenResponse]:
+def drain(stream: ListenStream) -> list[Taken]:
     out = []
-    while (msg := stream.take()) is not None:
-        out.append(msg)
+    while (taken := stream.take()) is not None:
+        out.append(taken)
     return out
+
+
+#: (path, value, sequence) of the current values a stream of s/* is sent first.
+SENT = [("a", "1", 1), ("b", "2", 2), ("c", "3", 3)]
+
+
+def values(taken: Taken) -> list[Event] | Mark:
+    return taken if isinstance(taken, Mark) else events(taken)
 
 
 async def test_current_values_then_sync_then_conflated_changes(hub: ListenHub) -> None:
@@ -31,15 +40,18 @@ async def test_current_values_then_sync_then_conflated_changes(hub: ListenHub) -
     stream = hub.open([Selector("s", "*")], StreamOptions(max_batch=2), lambda: woken.append(1))
     await stream.start()
     assert woken
-    first = drain(stream)
-    assert [[e.value for e in m.events] for m in first] == [["1", "2"], ["3"], []]
-    assert first[-1].sync
+    first = [values(taken) for taken in drain(stream)]
+    assert len(first) == 3 and first[2] is Mark.SYNC  # max_batch=2: two responses of values, then sync
+    one, two = first[0], first[1]
+    assert isinstance(one, list) and isinstance(two, list) and len(one) == 2
+    stamps = [e.time_ns for e in one + two]
+    assert one + two == [Event("s", p, v, n, t) for (p, v, n), t in zip(SENT, stamps, strict=True)]
     store = hub.router.backend("s")
     assert isinstance(store, DictBackend)
     for i in range(100):
         store.put("b", str(i))
-    (msg,) = drain(stream)
-    assert [(e.property, e.value, e.conflated, e.sequence) for e in msg.events] == [("b", "99", 99, 4)]
+    (taken,) = drain(stream)
+    assert [(e.path, e.value, e.conflated, e.sequence) for e in values(taken)] == [("b", "99", 99, 4)]
     assert len(store.subs) == 4  # a, b, c and the properties list
     stream.close()
     await hub.aclose()
@@ -62,15 +74,22 @@ async def test_topics_are_shared_between_streams(hub: ListenHub) -> None:
 
 def test_selectors_and_options_are_checked() -> None:
     limits = Limits(max_selectors=2)
-    request = pb.ListenRequest(service="s", property="a", more=[pb.PropertyRef(property="b")])
-    assert parse_selectors(request, limits) == [Selector("s", "a"), Selector("s", "b")]
+    selectors, _ = check_listen(ListenRequest([Selector("s", "a"), Selector("s", "b")]), limits)
+    assert selectors == [Selector("s", "a"), Selector("s", "b")]
+    assert check_listen(ListenRequest([Selector("s", "a")] * 2), limits)[0] == [Selector("s", "a")]  # once
     with pytest.raises(ResourceExhausted):
-        parse_selectors(pb.ListenRequest(service="s", property="a", more=[pb.PropertyRef()] * 2), limits)
+        check_listen(ListenRequest([Selector("s", "a")] * 3), limits)
     with pytest.raises(InvalidArgument):
-        parse_selectors(pb.ListenRequest(service="", property="a"), limits)
+        check_listen(ListenRequest([Selector("", "a")]), limits)
     with pytest.raises(InvalidArgument):
-        parse_selectors(pb.ListenRequest(service="s", property="a*"), limits)
-    opts = pb.ListenOptions(max_batch=100_000)
-    opts.min_interval.FromMilliseconds(5)
-    parsed = parse_options(opts, limits)
-    assert (parsed.min_interval, parsed.max_batch) == (0.005, limits.max_batch)
+        check_listen(ListenRequest([Selector("s", "a*")]), limits)
+    with pytest.raises(InvalidArgument, match="must not be negative"):
+        check_listen(ListenRequest([Selector("s", "a")], heartbeat_interval=-1.0), limits)
+    with pytest.raises(InvalidArgument, match="below the floor"):
+        check_listen(
+            ListenRequest([Selector("s", "a")], sample_interval=limits.min_interval_floor / 2), limits
+        )
+    _, options = check_listen(
+        ListenRequest([Selector("s", "a")], min_interval=0.005, max_batch=100_000), limits
+    )
+    assert (options.min_interval, options.max_batch) == (0.005, limits.max_batch)

@@ -1,124 +1,133 @@
-"""Events into ``ListenResponse`` messages: sizes, batches by bytes, and encoding in place.
+"""The Listen side of contract v1: a ``ListenRequest`` read into the engine's request, and what a
+stream takes written as ``ListenResponse`` messages, serialized in place.
 
-Two encodings of the same response: :func:`encode_events` builds the message (for the HTTP
-front end, which turns it into JSON), :func:`encode_wire` its serialized bytes (what the gRPC
-Listen handler sends, and a Session inside its replies: :func:`listen_reply_wire`). The wire
-form encodes the fields of an event that every stream sends alike once per change
-(:func:`shared_event`, kept on the topic) and adds each stream's own sequence number, count
-and flags; protobuf readers take the fields of a message in any order.
+Two encodings of the same response: :func:`listen_response` builds the message (a Session's
+Listens flushed as it ends), :func:`listen_wire` its serialized bytes (what the gRPC Listen
+handler sends, and a Session inside its replies: :func:`listen_reply_wire`). The wire form
+encodes the fields of an event that every stream sends alike once per change (kept on the
+change's :class:`~gateway.engine.events.SharedEvent`, in ``encoded``) and adds each stream's own
+sequence number, count and flags; protobuf readers take the fields of a message in any order.
+Only this module knows the contract's field numbers for a Listen.
 """
 
 from __future__ import annotations
 
-import enum
-from collections.abc import Iterable
+from collections.abc import Iterator, Mapping, Sequence
+from typing import overload
 
-from gateway.listen.topics import SharedEvent, Topic
-from gateway.sizes import BATCH_BYTES
+from google.protobuf.duration_pb2 import Duration
+
+from gateway.engine.events import ListenRequest, Mark, Ready, Selector, SharedEvent, Taken
+from gateway.listen.stream import ListenStream
 from gateway.wire_values import put
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.conflation import Slot
-from services.values import Value
+from services.errors import InvalidArgument
 
-#: One event ready to go: the topic it is about and what waits for it.
-Ready = tuple[Topic, Slot[Value]]
+# -- requests ------------------------------------------------------------------
 
 
-def event_size(topic: Topic, entry: Slot[Value]) -> int:
-    """About the bytes ``entry`` takes as an Event (exact for the value, which is what can be big).
+class _Selectors(Sequence[Selector]):
+    """The selectors of a ``ListenRequest``, read from the message as they are asked for: the hub
+    counts them against ``limits.max_selectors`` before it reads one (a message may hold a
+    hundred thousand). An empty service in ``more`` is the request's own."""
 
-    A binary value counts its bytes (it travels in ``data``). Counted once per change for
-    every stream (:func:`shared_event`).
-    """
-    return shared_event(topic, entry).size
+    __slots__ = ("_request",)
 
+    def __init__(self, request: pb.ListenRequest) -> None:
+        self._request = request
 
-def shared_event(topic: Topic, entry: Slot[Value]) -> SharedEvent:
-    """What every stream's event for ``entry``'s change has alike, kept on the topic: the
-    streams a change reaches find it there (the entry with the same stamp and value object)."""
-    cached = topic.wire
-    if cached is not None and cached.stamp == entry.stamp and cached.value is entry.value:
-        return cached
-    value = entry.value
-    n = len(value) if isinstance(value, bytes) or value.isascii() else len(value.encode())
-    shared = SharedEvent(entry.stamp, value, n + len(topic.service) + len(topic.path) + 40)
-    topic.wire = shared
-    return shared
+    def __len__(self) -> int:
+        return 1 + len(self._request.more)
 
+    @overload
+    def __getitem__(self, index: int) -> Selector: ...
 
-def within(items: Iterable[Ready]) -> tuple[list[Ready], int]:
-    """The first of ``items`` that add up to at most BATCH_BYTES (always at least one), and their size."""
-    ready: list[Ready] = []
-    size = 0
-    for item in items:
-        topic, entry = item
-        # shared_event's lookup written out: this runs for every event of every stream.
-        shared = topic.wire
-        if shared is None or shared.stamp != entry.stamp or shared.value is not entry.value:
-            shared = shared_event(topic, entry)
-        n = shared.size
-        if ready and size + n > BATCH_BYTES:
-            break
-        size += n
-        ready.append(item)
-    return ready, size
+    @overload
+    def __getitem__(self, index: slice) -> Sequence[Selector]: ...
+
+    def __getitem__(self, index: int | slice) -> Selector | Sequence[Selector]:
+        if isinstance(index, slice):
+            return [self[i] for i in range(len(self))[index]]
+        request = self._request
+        if index in (0, -len(self)):
+            return Selector(request.service, request.property, _params(request.parameters))
+        ref = request.more[index - 1 if index > 0 else index]
+        return Selector(ref.service or request.service, ref.property, _params(ref.parameters))
+
+    def __iter__(self) -> Iterator[Selector]:
+        request = self._request
+        yield Selector(request.service, request.property, _params(request.parameters))
+        for ref in request.more:
+            yield Selector(ref.service or request.service, ref.property, _params(ref.parameters))
 
 
-def encode_events(ready: list[Ready], sequence: int) -> pb.ListenResponse:
+def _params(parameters: Mapping[str, str]) -> tuple[tuple[str, str], ...]:
+    return tuple(sorted(parameters.items())) if parameters else ()
+
+
+def _seconds(d: Duration, name: str) -> float:
+    if (d.seconds < 0 < d.nanos) or (d.nanos < 0 < d.seconds):
+        raise InvalidArgument(f"options.{name} is not a Duration: its seconds and nanos differ in sign")
+    return d.seconds + d.nanos / 1e9
+
+
+def listen_request(request: pb.ListenRequest) -> ListenRequest:
+    """``request`` in the engine's terms; the hub checks it against the limits."""
+    opts = request.options
+    return ListenRequest(
+        _Selectors(request),
+        updates_only=opts.updates_only,
+        min_interval=_seconds(opts.min_interval, "min_interval"),
+        sample_interval=_seconds(opts.sample_interval, "sample_interval"),
+        heartbeat_interval=_seconds(opts.heartbeat_interval, "heartbeat_interval"),
+        max_batch=opts.max_batch,
+    )
+
+
+# -- responses, as messages ------------------------------------------------------
+
+
+def encode_events(ready: Sequence[Ready], sequence: int) -> pb.ListenResponse:
     """One response carrying ``ready``, numbered from ``sequence + 1``."""
     # Events are added in place: built apart, each would be copied into the response.
     response = pb.ListenResponse()
     add = response.events.add
     seq = sequence
-    for topic, entry in ready:
+    for _, slot in ready:
         seq += 1
-        value = entry.value
-        if isinstance(value, str):
-            ev = add(
-                service=topic.service,
-                property=topic.path,
-                value=value,
-                sequence=seq,
-                conflated=entry.conflated,
-                gap=entry.gap,
-                removed=entry.removed,
-            )
-        else:
-            ev = add(
-                service=topic.service,
-                property=topic.path,
-                data=value,
-                sequence=seq,
-                conflated=entry.conflated,
-                gap=entry.gap,
-                removed=entry.removed,
-            )
-        ev.time.seconds, ev.time.nanos = divmod(entry.stamp, 1_000_000_000)
+        shared = slot.value
+        ev = add(
+            service=shared.service,
+            property=shared.path,
+            sequence=seq,
+            conflated=slot.conflated,
+            gap=slot.gap,
+            removed=slot.removed,
+        )
+        put(ev, shared.value)
+        ev.time.seconds, ev.time.nanos = divmod(shared.stamp, 1_000_000_000)
     return response
-
-
-class Mark(enum.Enum):
-    """A response that carries no events: the ``sync`` marker, or a heartbeat."""
-
-    SYNC = "sync"
-    HEARTBEAT = "heartbeat"
-
-    @property
-    def wire(self) -> bytes:
-        """The marker's response, serialized."""
-        return _MARK_WIRE[self]
-
-
-_MARK_WIRE = {
-    Mark.SYNC: pb.ListenResponse(sync=True).SerializeToString(),
-    Mark.HEARTBEAT: pb.ListenResponse(heartbeat=True).SerializeToString(),
-}
 
 
 def marker_response(mark: Mark) -> pb.ListenResponse:
     """The marker's response, a new message (its receiver may change it)."""
     return pb.ListenResponse(sync=True) if mark is Mark.SYNC else pb.ListenResponse(heartbeat=True)
 
+
+def listen_response(taken: Taken) -> pb.ListenResponse:
+    """What a stream took (:meth:`ListenStream.take`) as one response."""
+    if isinstance(taken, Mark):
+        return marker_response(taken)
+    return encode_events(*taken)
+
+
+# -- responses, serialized ---------------------------------------------------------
+
+#: Each marker's response, serialized.
+MARK_WIRE = {
+    Mark.SYNC: pb.ListenResponse(sync=True).SerializeToString(),
+    Mark.HEARTBEAT: pb.ListenResponse(heartbeat=True).SerializeToString(),
+}
 
 # Wire tags (field number << 3 | wire type) of what a stream adds to an event's shared fields:
 # Event.sequence = 4, conflated = 6, gap = 7, removed = 8 (varints); ListenResponse.events = 1
@@ -144,6 +153,21 @@ _SEQUENCE_LOW = [_SEQUENCE + bytes((n | 0x80,)) for n in range(0x80)]
 LEAD_BODY_BYTES = 4096
 
 
+class EncodedEvent:
+    """A change's shared fields serialized (service, property, value, time), made by the first
+    stream that sends the change and kept in its :attr:`SharedEvent.encoded` for the others."""
+
+    __slots__ = ("body", "leads", "rest")
+
+    def __init__(self, body: bytes) -> None:
+        self.body = body
+        #: The event's tag and length followed by ``body``, per number of bytes a stream adds
+        #: (its sequence number, count and flags): a few distinct numbers at most.
+        self.leads: dict[int, bytes] = {}
+        #: ``body`` when it is too big to copy into each lead (it follows the lead then), else b"".
+        self.rest = body if len(body) > LEAD_BODY_BYTES else b""
+
+
 def _varint(n: int) -> bytes:
     if n < 0x80:
         return _ONE_BYTE[n]
@@ -159,67 +183,76 @@ def _varint(n: int) -> bytes:
     return bytes(out)
 
 
-def encode_wire(ready: list[Ready], sequence: int) -> bytes:
+def encode_wire(ready: Sequence[Ready], sequence: int) -> bytes:
     """:func:`encode_events`, serialized: the same response as bytes.
 
     Each event is its lead (its tag, its length and the fields every stream sends alike, kept on
-    the change's :class:`SharedEvent` for every stream whose additions take as many bytes) and
+    the change's :class:`EncodedEvent` for every stream whose additions take as many bytes) and
     what this stream adds, joined once for the whole response.
     """
     parts: list[bytes] = []
     append = parts.append
     seq = sequence
-    for topic, entry in ready:
+    for _, slot in ready:
         seq += 1
-        # shared_event's lookup written out: this runs for every event of every stream.
-        shared = topic.wire
-        if shared is None or shared.stamp != entry.stamp or shared.value is not entry.value:
-            shared = shared_event(topic, entry)
         if seq < 0x80:
             tail = _SEQUENCE_TAILS[seq]
         elif seq < 0x4000:
             tail = _SEQUENCE_LOW[seq & 0x7F] + _ONE_BYTE[seq >> 7]
         else:
             tail = _SEQUENCE + _varint(seq)
-        if entry.conflated or entry.gap or entry.removed:
-            tail += _flags(entry)
-        lead = shared.leads.get(len(tail))
+        if slot.conflated or slot.gap or slot.removed:
+            tail += _flags(slot.conflated, slot.gap, slot.removed)
+        shared = slot.value
+        encoded = shared.encoded
+        if encoded is None:
+            encoded = shared.encoded = EncodedEvent(_shared_body(shared))
+        lead = encoded.leads.get(len(tail))
         if lead is None:
-            lead = _lead(topic, entry, shared, len(tail))
+            lead = _lead(encoded, len(tail))
         append(lead)
-        if shared.rest:
-            append(shared.rest)
+        if encoded.rest:
+            append(encoded.rest)
         append(tail)
     return b"".join(parts)
 
 
-def _lead(topic: Topic, entry: Slot[Value], shared: SharedEvent, added: int) -> bytes:
-    """The lead of ``shared``'s event for a stream that adds ``added`` bytes; kept for the others."""
-    body = shared.body
-    if body is None:
-        body = shared.body = _shared_body(topic, entry)
-        # A big value is not copied into each lead: it follows the lead as a piece of its own.
-        shared.rest = body if len(body) > LEAD_BODY_BYTES else b""
+def listen_wire(taken: Taken) -> bytes:
+    """What a stream took (:meth:`ListenStream.take`) as one response, serialized."""
+    if isinstance(taken, Mark):
+        return MARK_WIRE[taken]
+    return encode_wire(*taken)
+
+
+def take_wire(stream: ListenStream) -> bytes | None:
+    """What ``stream`` has ready as one serialized response; None when nothing is."""
+    taken = stream.take()
+    return None if taken is None else listen_wire(taken)
+
+
+def _lead(encoded: EncodedEvent, added: int) -> bytes:
+    """The lead of ``encoded``'s event for a stream that adds ``added`` bytes; kept for the others."""
+    body = encoded.body
     lead = _EVENTS + _varint(len(body) + added)
-    if not shared.rest:
+    if not encoded.rest:  # a big value is not copied into each lead: it follows as a piece of its own
         lead += body
-    shared.leads[added] = lead
+    encoded.leads[added] = lead
     return lead
 
 
-def _shared_body(topic: Topic, entry: Slot[Value]) -> bytes:
-    """The fields of ``entry``'s event every stream sends alike (service, property, value, time)."""
-    event = pb.Event(service=topic.service, property=topic.path)
-    put(event, entry.value)
-    event.time.seconds, event.time.nanos = divmod(entry.stamp, 1_000_000_000)
+def _shared_body(shared: SharedEvent) -> bytes:
+    """The fields of ``shared``'s event every stream sends alike (service, property, value, time)."""
+    event = pb.Event(service=shared.service, property=shared.path)
+    put(event, shared.value)
+    event.time.seconds, event.time.nanos = divmod(shared.stamp, 1_000_000_000)
     return event.SerializeToString()
 
 
-def _flags(entry: Slot[Value]) -> bytes:
-    flags = _CONFLATED + _varint(entry.conflated) if entry.conflated else b""
-    if entry.gap:
+def _flags(conflated: int, gap: bool, removed: bool) -> bytes:
+    flags = _CONFLATED + _varint(conflated) if conflated else b""
+    if gap:
         flags += _GAP
-    if entry.removed:
+    if removed:
         flags += _REMOVED
     return flags
 
