@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
-from contextlib import aclosing
 from time import perf_counter
 from typing import Any
 
@@ -27,7 +26,7 @@ from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub
 from gateway.listen.budget import COUNTED_BYTES, GRPC_COPIES
-from gateway.listen.drain import Wake, taken
+from gateway.listen.drain import Wake, steps
 from gateway.logs import REQUEST_ID_HEADER, RequestContext, current_request, request_id_from
 from gateway.metrics.counts import GrpcCounts, MethodCounts
 from gateway.peer_protocol import PROTOCOLS_KEY, check_caller
@@ -320,27 +319,30 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         budget = self.hub.budget
         held = 0
         try:
-            async with aclosing(taken(stream, wake)) as ready:
-                async for item in ready:
-                    response = listen_wire(item)
-                    if len(response) < COUNTED_BYTES:
-                        yield response
-                        continue
-                    # A large message (a binary value) to a reader that does not read waits in
-                    # two copies, this one and grpc's, and grpc may still be writing the one
-                    # before it to the socket (measured: about 3 copies each for readers that
-                    # announce a large window and never read): all three count in the budget.
-                    counted = GRPC_COPIES * len(response)
-                    if not budget.take(counted):
-                        # Not kept by the refusal's traceback (a cycle through this frame, freed
-                        # only by the next collection: measured, 300 MB for 60 refused readers),
-                        # nor the values it carries.
-                        del response, item
-                        raise budget.refusal(counted, "Listen")
-                    held = counted
+            await stream.start()
+            for item in steps(stream, wake):
+                if isinstance(item, asyncio.Future):
+                    await item  # until the stream has something ready
+                    continue
+                response = listen_wire(item)
+                del item  # not held while the client takes its message: the message is all it holds
+                if len(response) < COUNTED_BYTES:
                     yield response
-                    budget.give_back(held)
-                    held = 0
+                    continue
+                # A large message (a binary value) to a reader that does not read waits in
+                # two copies, this one and grpc's, and grpc may still be writing the one
+                # before it to the socket (measured: about 3 copies each for readers that
+                # announce a large window and never read): all three count in the budget.
+                counted = GRPC_COPIES * len(response)
+                if not budget.take(counted):
+                    # Not kept by the refusal's traceback (a cycle through this frame, freed
+                    # only by the next collection: measured, 300 MB for 60 refused readers).
+                    del response
+                    raise budget.refusal(counted, "Listen")
+                held = counted
+                yield response
+                budget.give_back(held)
+                held = 0
             code = Code.OK
         except Exception as exc:
             err = to_property_error(exc, "Listen")

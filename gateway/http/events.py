@@ -38,7 +38,7 @@ from aiohttp import hdrs, web
 
 from gateway.calls import Calls
 from gateway.config import HttpSection, Limits
-from gateway.engine.events import Event, ListenRequest, Mark, Selector, events
+from gateway.engine.events import Event, ListenRequest, Mark, Selector
 from gateway.guard import Guard
 from gateway.http.binary import OCTET_STREAM, MediaTypes, value_json
 from gateway.http.errors import error_json
@@ -178,8 +178,7 @@ class EventStreams(StreamHandler):
         budget = self.hub.budget
         try:
             async with aclosing(taken(stream, wake)) as ready:
-                async for taken_item in ready:
-                    item = taken_item if isinstance(taken_item, Mark) else events(taken_item)
+                async for item in ready:
                     for service, path in binary_refs(item):
                         await media_types.of(service, path)  # a model read the first time only
                     chunk = encode(item, resumed and snapshot, media_types.known)

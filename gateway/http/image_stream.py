@@ -29,7 +29,7 @@ from contextlib import aclosing
 
 from aiohttp import hdrs, web
 
-from gateway.engine.events import Event, ListenRequest, Mark, Selector, Taken, events
+from gateway.engine.events import Event, ListenRequest, Mark, Selector
 from gateway.http.binary import OCTET_STREAM, RAW_HEADERS, property_model, served_type
 from gateway.http.bodies import query_parameters
 from gateway.http.errors import error_response
@@ -58,12 +58,12 @@ def part_head(media_type: str, size: int, sequence: int, conflated: int) -> byte
     ).encode("ascii")
 
 
-def latest(item: Taken) -> tuple[Event | None, int]:
+def latest(item: list[Event] | Mark) -> tuple[Event | None, int]:
     """The event of what a stream took to write (the last one), and how many values the others
     stood for (a marker: none, nothing)."""
     if isinstance(item, Mark):
         return None, 0
-    ready = events(item)
+    ready = item
     if not ready:
         return None, 0
     skipped = len(ready) - 1 + sum(event.conflated for event in ready[:-1])
@@ -113,14 +113,14 @@ class ImageStreams(StreamHandler):
     async def _serve(
         self,
         request: web.Request,
-        ready: AsyncGenerator[Taken, None],
+        ready: AsyncGenerator[list[Event] | Mark, None],
         media_type: str,
         peer: str,
     ) -> web.StreamResponse:
         # The first answer (the current value) before the response begins: a Listen that cannot
         # start is still a JSON error with its status.
         try:
-            item: Taken | None = await anext(ready)
+            item: list[Event] | Mark | None = await anext(ready)
         except StopAsyncIteration:
             item = None
         except PropertyError as exc:

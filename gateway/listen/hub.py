@@ -65,7 +65,8 @@ class ListenHub:
         self, request: ListenRequest, on_ready: Callable[[], None], subject: Subject = ANONYMOUS
     ) -> ListenStream:
         """:meth:`open` a stream for ``request``, checked against the limits first (InvalidArgument,
-        ResourceExhausted); what every front end calls."""
+        ResourceExhausted); what the gRPC front calls (the HTTP front checks a request itself
+        first: a bad one is refused before it takes a place)."""
         return self.open(*check_listen(request, self.limits), on_ready, subject)
 
     def open(

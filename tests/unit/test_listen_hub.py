@@ -7,6 +7,7 @@ from support.fake_backend import DictBackend
 
 from gateway.config import Limits
 from gateway.engine.events import Event, ListenRequest, Mark, Taken, events
+from gateway.fronts.grpc_v1.listen_encoding import listen_wire
 from gateway.listen import ListenHub, ListenStream, Selector, StreamOptions
 from gateway.listen.requests import check_listen
 from gateway.router import Router
@@ -93,3 +94,24 @@ def test_selectors_and_options_are_checked() -> None:
         ListenRequest([Selector("s", "a")], min_interval=0.005, max_batch=100_000), limits
     )
     assert (options.min_interval, options.max_batch) == (0.005, limits.max_batch)
+
+
+async def test_every_stream_a_change_reaches_takes_the_same_shared_event_encoded_once(hub: ListenHub) -> None:
+    streams = [hub.open([Selector("s", "a")], StreamOptions(), lambda: None) for _ in range(3)]
+    for stream in streams:
+        await stream.start()
+        drain(stream)  # the current value and sync
+    store = hub.router.backend("s")
+    assert isinstance(store, DictBackend)
+    store.put("a", "changed")
+    batches = [stream.take() for stream in streams]
+    assert all(isinstance(batch, tuple) and len(batch[0]) == 1 for batch in batches)
+    (event,) = {batch[0][0][1].value for batch in batches if isinstance(batch, tuple)}
+    assert event.value == "changed" and event.encoded is None  # nothing encoded before a writer asks
+    wires = [listen_wire(batch) for batch in batches if batch is not None]
+    encoded = event.encoded
+    assert encoded is not None and list(encoded.leads) == [2]  # one lead, made by the first stream
+    assert wires[0] == wires[1] == wires[2]  # each its event number 2: the same bytes
+    for stream in streams:
+        stream.close()
+    await hub.aclose()
