@@ -29,9 +29,10 @@ import asyncio
 import logging
 import time
 from collections.abc import Collection, Coroutine, Mapping
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 from gateway.behalf import TRAIL, Trail
+from gateway.engine.events import SharedEvent
 from gateway.guard import Guard
 from gateway.router import bounded_call
 from gateway.rules import Subject
@@ -41,9 +42,6 @@ from services.directory import CALLER, context_for
 from services.errors import Code, PropertyError
 from services.model import PropertyModel
 from services.values import Value
-
-if TYPE_CHECKING:
-    from gateway.engine.events import SharedEvent
 
 log = logging.getLogger(__name__)
 
