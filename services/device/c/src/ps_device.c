@@ -8,9 +8,15 @@
 
 /* Only properties below PS_MAX_PROPERTIES have a bit; the others get none (and no shift past the
  * mask's width). */
+/* One copy of a function called from several places: GCC may inline a function it sees called
+ * once or twice, and on AVR every copy costs flash. */
 #ifdef __GNUC__
-__attribute__((noinline)) /* one copy: smaller on AVR than a shift at every use */
+#define ONE_COPY __attribute__((noinline))
+#else
+#define ONE_COPY
 #endif
+
+ONE_COPY /* smaller on AVR than a shift at every use */
 static ps_mask bit_of(uint8_t index) {
     return index < PS_MAX_PROPERTIES ? (ps_mask)((ps_mask)1 << index) : (ps_mask)0;
 }
@@ -75,7 +81,7 @@ static void put_flash(ps_device *dev, const char *text) {
     for (uint8_t c; (c = ps_flash_byte(text)) != 0; text++) put(dev, c);
 }
 
-static void put_number(ps_device *dev, ps_fixed value, uint8_t decimals) {
+ONE_COPY static void put_number(ps_device *dev, ps_fixed value, uint8_t decimals) {
     char text[13];
     put_ram(dev, text, ps_format_fixed(value, decimals, text));
 }
@@ -421,15 +427,16 @@ static uint8_t parse_vector(const char *text, span length, const ps_property *p,
 }
 #endif
 
-/* SET of a whole number, vector or text, or of a vector element: store it or say why not. */
-static uint8_t store(const ps_property *p, uint8_t part, uint8_t element, char *value, span length) {
+/* SET of a whole number, vector or text (an element comes as a number of its own): store it or say
+ * why not. */
+static uint8_t store(const ps_property *p, char *value, span length) {
     if (p->type == PS_TEXT) {
         if (length >= p->size) return PS_RESOURCE_EXHAUSTED;
         memcpy(p->data, value, length + 1);
         return PS_OK;
     }
 #if PS_WITH_VECTORS
-    if (p->type == PS_VECTOR && part == WHOLE) {
+    if (p->type == PS_VECTOR) {
         /* check everything first: a refused SET leaves the vector as it was */
         uint8_t code = parse_vector(value, length, p, 0);
         return code != PS_OK ? code : parse_vector(value, length, p, (ps_fixed *)p->data);
@@ -438,7 +445,7 @@ static uint8_t store(const ps_property *p, uint8_t part, uint8_t element, char *
     ps_fixed number;
     if (ps_parse_fixed(value, length, p->decimals, &number) != PS_OK) return PS_INVALID_ARGUMENT;
     if (!in_range(p, number)) return PS_OUT_OF_RANGE;
-    ((ps_fixed *)p->data)[part == ELEMENT ? element : 0] = number;
+    *(ps_fixed *)p->data = number;
     return PS_OK;
 }
 
@@ -502,6 +509,13 @@ static void answer(ps_device *dev, uint8_t word, char *rest, span length) {
     ps_property p;
     if (part == LIST || part == MODEL) memset(&p, 0, sizeof p);
     else load(dev, index, &p);
+#if PS_WITH_VECTORS
+    if (part == ELEMENT) { /* an element reads and stores as a number of its own */
+        p.type = PS_NUMBER;
+        p.data = (ps_fixed *)p.data + element;
+    }
+#endif
+    uint8_t value_part = part == WHOLE || part == ELEMENT;
     if (word == W_SET) {
         if (ps_unescape(value, &value_length) != PS_OK) {
             reply_error(dev, PS_INVALID_ARGUMENT, WHY("bad escape"));
@@ -519,11 +533,11 @@ static void answer(ps_device *dev, uint8_t word, char *rest, span length) {
         } else
 #endif
         {
-            if ((part != WHOLE && part != ELEMENT) || !(p.access & PS_WRITE)) {
+            if (!value_part || !(p.access & PS_WRITE)) {
                 reply_error(dev, PS_FAILED_PRECONDITION, WHY("read-only"));
                 return;
             }
-            uint8_t code = store(&p, part, element, value, value_length);
+            uint8_t code = store(&p, value, value_length);
             if (code != PS_OK) {
                 /* docs/device-spec.md §3.2: outside the range is ERR 3 (INVALID_ARGUMENT, as gRPC
                  * and the gateway's own services say it); the message tells it from a bad number */
@@ -536,52 +550,49 @@ static void answer(ps_device *dev, uint8_t word, char *rest, span length) {
             dev->pending |= dev->listening & BIT(index);
             if (dev->config->on_set) dev->config->on_set(dev, index);
         }
-        line_begin(dev);
-        put_flash(dev, PS_F("OK"));
-        if (p.type != PS_ACTION && (p.access & PS_READ)) {
-            put(dev, ' ');
-            if (part == ELEMENT) put_number(dev, ((const ps_fixed *)p.data)[element], p.decimals);
-            else put_value(dev, &p, index);
-        }
-        line_end(dev);
-        return;
-    }
-    /* GET and LISTEN */
-    if (word == W_LISTEN && part != WHOLE && part != LIST) {
-        reply_error(dev, PS_UNIMPLEMENTED, WHY("listen to a whole property"));
-        return;
-    }
-    if ((part == WHOLE || part == ELEMENT) && (p.type == PS_ACTION || !(p.access & PS_READ))) {
-        reply_error(dev, PS_FAILED_PRECONDITION,
-                    p.type == PS_ACTION ? WHY("an action: SET it, reads never act") : WHY("write-only"));
-        return;
-    }
-    if (word == W_LISTEN) {
-        if (part == LIST) {
-            dev->flags |= PS_FLAG_LIST;
-        } else if (!BIT(index)) { /* §3.1: no bit in the masks for this one */
-            reply_error(dev, PS_RESOURCE_EXHAUSTED, WHY("subscription table full"));
+        /* the OK carries the value as stored, unless the property is not read (an action) */
+        value_part = p.access & PS_READ;
+    } else {
+        /* GET and LISTEN */
+        if (word == W_LISTEN && part != WHOLE && part != LIST) {
+            reply_error(dev, PS_UNIMPLEMENTED, WHY("listen to a whole property"));
             return;
-        } else {
-            dev->listening |= BIT(index);
         }
+        if (value_part && !(p.access & PS_READ)) {
+            reply_error(dev, PS_FAILED_PRECONDITION,
+                        p.type == PS_ACTION ? WHY("an action: SET it, reads never act") : WHY("write-only"));
+            return;
+        }
+        if (word == W_LISTEN) {
+            if (part == LIST) {
+                dev->flags |= PS_FLAG_LIST;
+            } else if (!BIT(index)) { /* §3.1: no bit in the masks for this one */
+                reply_error(dev, PS_RESOURCE_EXHAUSTED, WHY("subscription table full"));
+                return;
+            } else {
+                dev->listening |= BIT(index);
+            }
+        }
+        value_part = 1;
     }
     line_begin(dev);
-    put_flash(dev, PS_F("OK "));
-    if (part == LIST) put_names(dev);
+    put_flash(dev, PS_F("OK"));
+    if (value_part) {
+        put(dev, ' ');
+        if (part == LIST) put_names(dev);
 #if PS_WITH_MODEL
-    else if (part == MODEL) put_model(dev);
-    else if (part == PARAMETERS) put_flash(dev, PS_F("()"));
-    else if (part == GUI) {
-        if (p.meta) {
-            ps_meta meta;
-            ps_flash_copy(&meta, p.meta, sizeof meta);
-            if (meta.gui) put_flash(dev, meta.gui);
+        else if (part == MODEL) put_model(dev);
+        else if (part == PARAMETERS) put_flash(dev, PS_F("()"));
+        else if (part == GUI) {
+            if (p.meta) {
+                ps_meta meta;
+                ps_flash_copy(&meta, p.meta, sizeof meta);
+                if (meta.gui) put_flash(dev, meta.gui);
+            }
         }
-    }
 #endif
-    else if (part == ELEMENT) put_number(dev, ((const ps_fixed *)p.data)[element], p.decimals);
-    else put_value(dev, &p, index);
+        else put_value(dev, &p, index);
+    }
     line_end(dev);
 }
 
