@@ -52,19 +52,35 @@ uint8_t ps_parse_fixed(const char *text, size_t length, uint8_t decimals, ps_fix
     return PS_OK;
 }
 
+/* *value / 10 in place, the remainder returned: 32 steps of shift and subtract, the long division
+ * done by hand. On the AVR that is smaller than the library's 32-bit division routine, and the
+ * only division the core needs. */
+static uint8_t divide_by_ten(uint32_t *value) {
+    uint32_t quotient = *value;
+    uint8_t remainder = 0;
+    for (uint8_t bit = 0; bit < 32; bit++) {
+        remainder = (uint8_t)(remainder << 1 | (uint8_t)(quotient >> 31));
+        quotient <<= 1;
+        if (remainder >= 10) {
+            remainder -= 10;
+            quotient |= 1;
+        }
+    }
+    *value = quotient;
+    return remainder;
+}
+
 uint8_t ps_format_fixed(ps_fixed value, uint8_t decimals, char *out) {
     char digits[11]; /* least significant first; 2^31 has 10 digits, one more for "0.x" */
     uint8_t n = 0, length = 0, skip = 0;
-    uint32_t u = value < 0 ? (uint32_t)(-(value + 1)) + 1 : (uint32_t)value;
-    do {
-        digits[n++] = (char)('0' + u % 10);
-        u /= 10;
-    } while ((u || n <= decimals) && n < sizeof digits);
+    uint32_t u = value < 0 ? 0u - (uint32_t)value : (uint32_t)value;
+    do digits[n++] = (char)('0' + divide_by_ten(&u));
+    while ((u || n <= decimals) && n < sizeof digits);
     while (skip < decimals && digits[skip] == '0') skip++; /* no trailing zeros: "21.5", "3" */
     if (value < 0) out[length++] = '-';
-    for (uint8_t i = n; i-- > skip;) {
-        out[length++] = digits[i];
-        if (i == decimals && skip < decimals) out[length++] = '.';
+    while (n > skip) {
+        out[length++] = digits[--n];
+        if (n == decimals && n > skip) out[length++] = '.';
     }
     out[length] = 0;
     return length;
