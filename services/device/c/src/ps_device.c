@@ -54,6 +54,15 @@ static const char bad_tag[] PS_FLASH = "bad tag";
 enum { WHOLE, LIST, MODEL, GUI, PARAMETERS, ELEMENT };
 
 
+/* A number and a pointer kept in a PS_FLASH object, read in place. */
+#if defined(__AVR__)
+#define flash_fixed(p) ((ps_fixed)pgm_read_dword(p))
+#define flash_pointer(p) ((const char *)pgm_read_word(p))
+#else
+#define flash_fixed(p) (*(p))
+#define flash_pointer(p) (*(p))
+#endif
+
 /* ---- output: every byte goes through put(), which keeps the line's CRC ------------------------ */
 
 #if PS_WITH_CHECKSUM
@@ -394,13 +403,10 @@ static uint8_t is_name_char(char c) {
 }
 
 static uint8_t in_range(const ps_property *p, ps_fixed value) {
-    struct range { /* the tail of ps_meta: only what the check reads comes out of flash */
-        ps_fixed minimum, maximum;
-        uint8_t has_range;
-    } range;
-    if (!p->meta) return 1;
-    ps_flash_copy(&range, &p->meta->minimum, sizeof range);
-    return !range.has_range || (value >= range.minimum && value <= range.maximum);
+    /* the fields one by one, straight from flash: no copy on the stack */
+    const ps_meta *meta = p->meta;
+    return !meta || !ps_flash_byte(&meta->has_range) ||
+           (value >= flash_fixed(&meta->minimum) && value <= flash_fixed(&meta->maximum));
 }
 
 #if PS_WITH_VECTORS
@@ -584,11 +590,8 @@ static void answer(ps_device *dev, uint8_t word, char *rest, span length) {
         else if (part == MODEL) put_model(dev);
         else if (part == PARAMETERS) put_flash(dev, PS_F("()"));
         else if (part == GUI) {
-            if (p.meta) {
-                ps_meta meta;
-                ps_flash_copy(&meta, p.meta, sizeof meta);
-                if (meta.gui) put_flash(dev, meta.gui);
-            }
+            const char *gui = p.meta ? flash_pointer(&p.meta->gui) : 0;
+            if (gui) put_flash(dev, gui);
         }
 #endif
         else put_value(dev, &p, index);
