@@ -289,20 +289,6 @@ static void put_value(ps_device *dev, const ps_property *p, uint8_t index) {
 #endif
 }
 
-static void put_names(ps_device *dev) {
-    put(dev, '(');
-    uint8_t first = 1;
-    for (uint8_t i = 0; i < dev->config->count; i++) {
-        if (ABSENT(dev, i)) continue;
-        ps_property p;
-        load(dev, i, &p);
-        if (!first) put(dev, ' ');
-        first = 0;
-        put_flash(dev, p.name);
-    }
-    put(dev, ')');
-}
-
 #if PS_WITH_MODEL
 /* The n-th of the NUL-separated strings in packed. */
 static const char *nth(const char *packed, uint8_t n) {
@@ -316,52 +302,61 @@ static void put_words(ps_device *dev, const char *words) {
     put(dev, ')');
 }
 
-/* §3 "A device that describes itself": (name type access (unit) minimum maximum (doc)) each. */
-static void put_model(ps_device *dev) {
+/* §3 "A device that describes itself": (name type access (unit) minimum maximum (doc)). */
+static void put_model_entry(ps_device *dev, const ps_property *p) {
     static const char types[] PS_FLASH = "number\0vector\0text\0none\0bytes\0integer";
-    static const char access[] PS_FLASH = "read\0write\0read-write\0action";
+    static const char access[] PS_FLASH = "read\0write\0read-write\0action"; /* PS_READ .. PS_INVOKE */
+    static const ps_meta no_meta PS_FLASH = {0, 0, 0, 0, 0, 0};
+    const ps_meta *meta = p->meta ? p->meta : &no_meta;
+    put(dev, '(');
+    put_flash(dev, p->name);
+    put(dev, ' ');
+    put_flash(dev, nth(types, (p->type == PS_NUMBER && p->decimals == 0) ? 5 : p->type));
+    put(dev, ' ');
+    put_flash(dev, nth(access, (uint8_t)(p->access - 1)));
+    put(dev, ' ');
+    put_words(dev, flash_pointer(&meta->unit));
+    for (uint8_t bound = 0; bound < 2; bound++) {
+        put(dev, ' ');
+        if (ps_flash_byte(&meta->has_range))
+            put_number(dev, flash_fixed(bound ? &meta->maximum : &meta->minimum), p->decimals);
+        else put(dev, '-');
+    }
+    put(dev, ' ');
+    put_words(dev, flash_pointer(&meta->doc));
+#if PS_WITH_BYTES
+    if (p->type == PS_BYTES) { /* §3.6: (media_type TYPE/SUBTYPE) */
+        const char *media_type = flash_pointer(&((const ps_bytes_source *)p->data)->media_type);
+        if (media_type) {
+            put_flash(dev, PS_F(" (media_type "));
+            put_flash(dev, media_type);
+            put(dev, ')');
+        }
+    }
+#endif
+    put(dev, ')');
+}
+#endif
+
+/* The properties present now, by name ("properties") or described (the model): one list. */
+static void put_properties(ps_device *dev, uint8_t model) {
     put(dev, '(');
     uint8_t first = 1;
     for (uint8_t i = 0; i < dev->config->count; i++) {
         if (ABSENT(dev, i)) continue;
         ps_property p;
-        ps_meta meta;
         load(dev, i, &p);
-        if (p.meta) ps_flash_copy(&meta, p.meta, sizeof meta);
-        else memset(&meta, 0, sizeof meta);
         if (!first) put(dev, ' ');
         first = 0;
-        put(dev, '(');
-        put_flash(dev, p.name);
-        put(dev, ' ');
-        put_flash(dev, nth(types, (p.type == PS_NUMBER && p.decimals == 0) ? 5 : p.type));
-        put(dev, ' ');
-        put_flash(dev, nth(access, p.access == PS_INVOKE ? 3 : (uint8_t)(p.access - 1)));
-        put(dev, ' ');
-        put_words(dev, meta.unit);
-        for (uint8_t bound = 0; bound < 2; bound++) {
-            put(dev, ' ');
-            if (meta.has_range) put_number(dev, bound ? meta.maximum : meta.minimum, p.decimals);
-            else put(dev, '-');
-        }
-        put(dev, ' ');
-        put_words(dev, meta.doc);
-#if PS_WITH_BYTES
-        if (p.type == PS_BYTES) { /* §3.6: (media_type TYPE/SUBTYPE) */
-            ps_bytes_source source;
-            ps_flash_copy(&source, p.data, sizeof source);
-            if (source.media_type) {
-                put_flash(dev, PS_F(" (media_type "));
-                put_flash(dev, source.media_type);
-                put(dev, ')');
-            }
-        }
+#if PS_WITH_MODEL
+        if (model) put_model_entry(dev, &p);
+        else
 #endif
-        put(dev, ')');
+            put_flash(dev, p.name);
     }
+    (void)model;
     put(dev, ')');
 }
-#endif
 
 /* ---- the greeting (§4) ------------------------------------------------------------------------- */
 
@@ -585,9 +580,8 @@ static void answer(ps_device *dev, uint8_t word, char *rest, span length) {
     put_flash(dev, PS_F("OK"));
     if (value_part) {
         put(dev, ' ');
-        if (part == LIST) put_names(dev);
+        if (part == LIST || part == MODEL) put_properties(dev, part == MODEL);
 #if PS_WITH_MODEL
-        else if (part == MODEL) put_model(dev);
         else if (part == PARAMETERS) put_flash(dev, PS_F("()"));
         else if (part == GUI) {
             const char *gui = p.meta ? flash_pointer(&p.meta->gui) : 0;
@@ -627,7 +621,7 @@ static void flush_events(ps_device *dev) {
     if ((dev->flags & (PS_FLAG_LIST | PS_FLAG_LIST_DUE)) == (PS_FLAG_LIST | PS_FLAG_LIST_DUE)) {
         line_begin(dev);
         put_flash(dev, PS_F("EVENT properties "));
-        put_names(dev);
+        put_properties(dev, 0);
         line_end(dev);
     }
     dev->flags &= (uint8_t)~PS_FLAG_LIST_DUE;
