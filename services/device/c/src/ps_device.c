@@ -408,10 +408,10 @@ static uint8_t in_range(const ps_property *p, ps_fixed value) {
 static uint8_t parse_vector(const char *text, span length, const ps_property *p, ps_fixed *store) {
     span i = 0;
     uint8_t count = 0;
-    while (i < length && text[i] == ' ') i++;
+    while (text[i] == ' ') i++;
     if (i == length || text[i++] != '(') return PS_INVALID_ARGUMENT;
     for (;;) {
-        while (i < length && text[i] == ' ') i++;
+        while (text[i] == ' ') i++;
         if (i < length && text[i] == ')') break;
         span start = i;
         while (i < length && text[i] != ' ' && text[i] != ')') i++;
@@ -455,7 +455,7 @@ static void answer(ps_device *dev, uint8_t word, char *rest, span length) {
     char *path;
     span path_length;
     for (;;) { /* NAME=VALUE fields come before the path (§2.1) */
-        while (i < length && rest[i] == ' ') i++;
+        while (rest[i] == ' ') i++;
         path = rest + i;
         while (i < length && rest[i] != ' ') i++;
         path_length = (span)(rest + i - path);
@@ -484,7 +484,7 @@ static void answer(ps_device *dev, uint8_t word, char *rest, span length) {
         value = rest + i + 1;
         value_length = length - i - 1;
     } else {
-        while (i < length && rest[i] == ' ') i++; /* trailing spaces are not a field */
+        while (rest[i] == ' ') i++; /* trailing spaces are not a field */
         if (i < length) {
             reply_error(dev, PS_INVALID_ARGUMENT, WHY("unexpected text after the path"));
             return;
@@ -644,7 +644,8 @@ static void answer_line(ps_device *dev) {
     dev->flags &= (uint8_t)~(PS_FLAG_OVERFLOW | PS_FLAG_LOST);
     dev->length = 0;
     if (length && text[length - 1] == '\r') length--;
-    while (i < length && text[i] == ' ') i++;
+    text[length] = 0; /* spaces are skipped up to this end (a line is at most PS_MAXLINE - 1 bytes) */
+    while (text[i] == ' ') i++;
     if (i == length && !(flags & (PS_FLAG_OVERFLOW | PS_FLAG_LOST))) return; /* §1: blank: no reply */
 #if PS_WITH_CHECKSUM
     if (text[i] == '$') dev->flags |= PS_FLAG_MIRROR; /* §6: the reply to a '$' line is checked */
@@ -679,7 +680,7 @@ static void answer_line(ps_device *dev) {
         }
         dev->tag_at = (uint8_t)start;
         dev->tag_length = (uint8_t)(i - start);
-        while (i < length && text[i] == ' ') i++;
+        while (text[i] == ' ') i++;
     }
 #endif
     if (flags & PS_FLAG_OVERFLOW) {
@@ -708,7 +709,7 @@ static void answer_line(ps_device *dev) {
         line_end(dev);
         break;
     case W_HELLO:
-        while (rest_length && *rest == ' ') rest++, rest_length--;
+        while (*rest == ' ') rest++, rest_length--;
         if (!rest_length) {
             /* §6: a plain HELLO starts afresh without checksums; $HELLO*35 keeps them */
             if (!(dev->flags & PS_FLAG_MIRROR)) dev->flags &= (uint8_t)~PS_FLAG_CHECKSUM;
@@ -720,7 +721,7 @@ static void answer_line(ps_device *dev) {
     case W_PONG: /* the answer to a PING of ours: nothing to do */
         break;
     case W_CANCEL: /* every SET is answered before the next line is read: nothing is left to stop */
-        while (rest_length && *rest == ' ') rest++, rest_length--;
+        while (*rest == ' ') rest++, rest_length--;
         if (!dev->tag_length) /* §2.1: CANCEL names the request it cancels by its tag */
             reply_error(dev, PS_INVALID_ARGUMENT, WHY("CANCEL needs a tag"));
         else if (rest_length) /* §2.1: CANCEL takes nothing after the word */
