@@ -450,46 +450,49 @@ static uint8_t store(const ps_property *p, char *value, span length) {
     return PS_OK;
 }
 
-static void answer(ps_device *dev, uint8_t word, char *rest, span length) {
-    span i = 0;
+/* Past the spaces at text: the line ends with a NUL, which is no space. */
+static char *skip_spaces(char *text) {
+    while (*text == ' ') text++;
+    return text;
+}
+
+/* The end of the field that begins at text: the next space, or the end of the line. */
+static char *field_end(char *text, const char *end) {
+    while (text < end && *text != ' ') text++;
+    return text;
+}
+
+/* GET, SET, LISTEN, UNLISTEN: rest is what follows the word, up to the line's end. */
+static void answer(ps_device *dev, uint8_t word, char *rest, char *end) {
     char *path;
-    span path_length;
     for (;;) { /* NAME=VALUE fields come before the path (§2.1) */
-        while (rest[i] == ' ') i++;
-        path = rest + i;
-        while (i < length && rest[i] != ' ') i++;
-        path_length = (span)(rest + i - path);
-        if (!memchr(path, '=', path_length)) break;
+        path = skip_spaces(rest);
+        rest = field_end(path, end);
+        if (!memchr(path, '=', (size_t)(rest - path))) break;
         if (word != W_UNLISTEN) { /* §3.4: UNLISTEN accepts and ignores them */
             reply_error(dev, PS_INVALID_ARGUMENT, WHY("this device takes no parameters"));
             return;
         }
     }
-    for (span k = 0; k < path_length; k++) {
-        if (!is_name_char(path[k]) && !(path[k] == '.' && k && k + 1 < path_length && path[k + 1] != '.')) {
-            reply_error(dev, PS_INVALID_ARGUMENT, BAD_PATH);
-            return;
-        }
-    }
+    span path_length = (span)(rest - path);
+    /* names and dots, a dot only between two names (§2.1) */
+    uint8_t good = path_length != 0;
 #if PS_MAXLINE > PATH_MAX_LENGTH
-    if (path_length > PATH_MAX_LENGTH) path_length = 0; /* refused below */
+    if (rest - path > PATH_MAX_LENGTH) good = 0;
 #endif
-    if (!path_length) {
+    for (char *c = path; c < rest; c++)
+        if (!is_name_char(*c) && !(*c == '.' && c > path && is_name_char(c[1]))) good = 0;
+    if (!good) {
         reply_error(dev, PS_INVALID_ARGUMENT, BAD_PATH);
         return;
     }
-    char *value = rest + length; /* SET: the rest of the line after one space (§2) */
-    size_t value_length = 0;
-    if (word == W_SET && i < length) {
-        value = rest + i + 1;
-        value_length = length - i - 1;
-    } else {
-        while (rest[i] == ' ') i++; /* trailing spaces are not a field */
-        if (i < length) {
-            reply_error(dev, PS_INVALID_ARGUMENT, WHY("unexpected text after the path"));
-            return;
-        }
+    char *value = end; /* SET: the rest of the line after one space (§2) */
+    if (word == W_SET && rest < end) value = rest + 1;
+    else if (skip_spaces(rest) != end) { /* trailing spaces are not a field */
+        reply_error(dev, PS_INVALID_ARGUMENT, WHY("unexpected text after the path"));
+        return;
     }
+    size_t value_length = (size_t)(end - value);
     uint8_t index = 0, element = 0;
     uint8_t part = resolve(dev, path, path_length, &index, &element);
     if (word == W_UNLISTEN) {
@@ -636,81 +639,83 @@ static uint8_t hex_digit(char c) {
 }
 #endif
 
+#if PS_WITH_CHECKSUM
+/* The two hex digits at text as a byte, or -1. */
+static int16_t hex_byte(const char *text) {
+    uint8_t high = hex_digit(text[0]), low = hex_digit(text[1]);
+    return (high | low) > 15 ? -1 : (int16_t)(high << 4 | low);
+}
+#endif
+
 static void answer_line(ps_device *dev) {
     char *text = dev->line;
-    span length = dev->length;
+    char *end = text + dev->length;
     uint8_t flags = dev->flags;
-    span i = 0;
     dev->flags &= (uint8_t)~(PS_FLAG_OVERFLOW | PS_FLAG_LOST);
     dev->length = 0;
-    if (length && text[length - 1] == '\r') length--;
-    text[length] = 0; /* spaces are skipped up to this end (a line is at most PS_MAXLINE - 1 bytes) */
-    while (text[i] == ' ') i++;
-    if (i == length && !(flags & (PS_FLAG_OVERFLOW | PS_FLAG_LOST))) return; /* §1: blank: no reply */
+    if (end > text && end[-1] == '\r') end--;
+    *end = 0; /* spaces are skipped up to this end (a line is at most PS_MAXLINE - 1 bytes) */
+    char *at = skip_spaces(text);
+    if (at == end && !(flags & (PS_FLAG_OVERFLOW | PS_FLAG_LOST))) return; /* §1: blank: no reply */
 #if PS_WITH_CHECKSUM
-    if (text[i] == '$') dev->flags |= PS_FLAG_MIRROR; /* §6: the reply to a '$' line is checked */
+    if (*at == '$') dev->flags |= PS_FLAG_MIRROR; /* §6: the reply to a '$' line is checked */
 #endif
     if (flags & PS_FLAG_LOST) { /* the tag may be what was lost: answer untagged */
         reply_error(dev, PS_DATA_LOSS, WHY("bytes lost: the receive buffer was full"));
         return;
     }
 #if PS_WITH_CHECKSUM /* without: "$GET" is an unknown word, ERR 12 */
-    if (!(flags & PS_FLAG_OVERFLOW) && text[i] == '$') {
+    if (!(flags & PS_FLAG_OVERFLOW) && *at == '$') {
         /* §2.1: "*HH" are the last three bytes; the CRC covers what lies between '$' and '*' */
-        uint8_t high = length - i >= 4 ? hex_digit(text[length - 2]) : 255;
-        uint8_t low = length - i >= 4 ? hex_digit(text[length - 1]) : 255;
-        if (high == 255 || low == 255 || text[length - 3] != '*' ||
-            ps_crc8((const uint8_t *)text + i + 1, length - i - 4) != (uint8_t)(high << 4 | low)) {
+        if (end - at < 4 || end[-3] != '*' ||
+            hex_byte(end - 2) != ps_crc8((const uint8_t *)at + 1, (size_t)(end - at - 4))) {
             reply_error(dev, PS_DATA_LOSS, WHY("checksum mismatch")); /* §6: untagged */
             return;
         }
         dev->flags |= PS_FLAG_CHECKSUM; /* checksum mode: only a line that checks out turns it on */
-        i++;
-        length -= 3;
+        at++;
+        end -= 3;
+        *end = 0;
     }
 #endif
-    text[length] = 0;
 #if PS_WITH_TAGS /* without: "#1" is an unknown word, ERR 12 */
-    if (text[i] == '#') { /* an over-long '$' line still starts with '$': its tag is not trusted */
-        span start = ++i;
-        while (i < length && is_name_char(text[i])) i++;
-        if (i == start || i - start > TAG_MAX || i == length || text[i] != ' ') {
+    if (*at == '#') { /* an over-long '$' line still starts with '$': its tag is not trusted */
+        char *tag = ++at;
+        while (is_name_char(*at)) at++; /* the NUL at the end is no name character */
+        if (at == tag || at - tag > TAG_MAX || *at != ' ') {
             reply_error(dev, PS_INVALID_ARGUMENT, BAD_TAG); /* §2.1: untagged */
             return;
         }
-        dev->tag_at = (uint8_t)start;
-        dev->tag_length = (uint8_t)(i - start);
-        while (text[i] == ' ') i++;
+        dev->tag_at = (uint8_t)(tag - text);
+        dev->tag_length = (uint8_t)(at - tag);
+        at = skip_spaces(at);
     }
 #endif
     if (flags & PS_FLAG_OVERFLOW) {
         reply_error(dev, PS_RESOURCE_EXHAUSTED, WHY("line too long"));
         return;
     }
-    if (memchr(text + i, '\r', length - i)) {
+    if (memchr(at, '\r', (size_t)(end - at))) {
         reply_error(dev, PS_INVALID_ARGUMENT, WHY("raw CR in the line; write \\r"));
         return;
     }
-    span start = i;
-    while (i < length && text[i] != ' ') i++;
-    if (i == start) {
+    char *rest = field_end(at, end);
+    if (rest == at) {
         dev->tag_length = 0; /* untagged */
         reply_error(dev, PS_INVALID_ARGUMENT, BAD_TAG);
         return;
     }
-    uint8_t word = word_of(text + start, i - start);
-    char *rest = text + i;
-    span rest_length = length - i;
+    uint8_t word = word_of(at, (span)(rest - at));
     switch (word) {
     case W_PING:
         line_begin(dev);
         put_flash(dev, PS_F("PONG"));
-        put_ram(dev, rest, rest_length); /* the data as it came, its space included */
+        put_ram(dev, rest, (span)(end - rest)); /* the data as it came, its space included */
         line_end(dev);
         break;
     case W_HELLO:
-        while (*rest == ' ') rest++, rest_length--;
-        if (!rest_length) {
+        rest = skip_spaces(rest);
+        if (rest == end) {
             /* §6: a plain HELLO starts afresh without checksums; $HELLO*35 keeps them */
             if (!(dev->flags & PS_FLAG_MIRROR)) dev->flags &= (uint8_t)~PS_FLAG_CHECKSUM;
             greet(dev);
@@ -721,10 +726,9 @@ static void answer_line(ps_device *dev) {
     case W_PONG: /* the answer to a PING of ours: nothing to do */
         break;
     case W_CANCEL: /* every SET is answered before the next line is read: nothing is left to stop */
-        while (*rest == ' ') rest++, rest_length--;
         if (!dev->tag_length) /* §2.1: CANCEL names the request it cancels by its tag */
             reply_error(dev, PS_INVALID_ARGUMENT, WHY("CANCEL needs a tag"));
-        else if (rest_length) /* §2.1: CANCEL takes nothing after the word */
+        else if (skip_spaces(rest) != end) /* §2.1: CANCEL takes nothing after the word */
             reply_error(dev, PS_INVALID_ARGUMENT, WHY("unexpected text after CANCEL"));
         break;
     case W_REPLY:
@@ -734,7 +738,7 @@ static void answer_line(ps_device *dev) {
         reply_error(dev, PS_UNIMPLEMENTED, WHY("unknown word"));
         break;
     default:
-        answer(dev, word, rest, rest_length);
+        answer(dev, word, rest, end);
     }
 }
 
