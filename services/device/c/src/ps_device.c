@@ -198,20 +198,14 @@ static uint8_t flash_length(const char *text) {
 
 static uint8_t lower(uint8_t c) { return (c >= 'A' && c <= 'Z') ? (uint8_t)(c + 32) : c; }
 
-/* Does text[0..length) equal the flash string word, ignoring case? */
-static uint8_t same_word(const char *text, span length, const char *word) {
-    span i = 0;
-    for (; i < length; i++) {
-        uint8_t c = ps_flash_byte(word + i);
-        if (!c || lower((uint8_t)text[i]) != lower(c)) return 0;
-    }
-    return ps_flash_byte(word + i) == 0;
-}
-
-static uint8_t same_prefix(const char *text, const char *flash, uint8_t length) {
-    for (uint8_t i = 0; i < length; i++)
-        if ((uint8_t)text[i] != ps_flash_byte(flash + i)) return 0;
-    return 1;
+/* The length of the flash string word when text begins with it; 0 when it does not. What follows
+ * the text is a byte no word holds (the space after a field, the NUL at the end of the line), so
+ * a word longer than the text never matches. */
+static uint8_t match(const char *text, const char *word) {
+    uint8_t n = 0;
+    for (uint8_t c; (c = ps_flash_byte(word + n)) != 0; n++)
+        if ((uint8_t)text[n] != c) return 0;
+    return n;
 }
 
 #if PS_WITH_VECTORS
@@ -225,9 +219,8 @@ static uint8_t element_of(const char *suffix, span length, uint8_t size) {
     if (i && i == length) return index < size ? (uint8_t)index : 255;
     const char *name = element_names;
     for (uint8_t i = 0; i < 6; i++) {
-        uint8_t n = flash_length(name);
-        if (n == length && same_prefix(suffix, name, n)) return i < size ? i : 255;
-        name += n + 1;
+        if (match(suffix, name) == length) return i < size ? i : 255;
+        name += flash_length(name) + 1;
     }
     return 255;
 }
@@ -235,26 +228,27 @@ static uint8_t element_of(const char *suffix, span length, uint8_t size) {
 
 /* Resolve path: which property (*index) and which part of it (the return value); 255 = none. */
 static uint8_t resolve(const ps_device *dev, const char *path, span length, uint8_t *index, uint8_t *element) {
-    if (length == 10 && same_prefix(path, PS_F("properties"), 10)) return LIST;
+    if (match(path, PS_F("properties")) == length) return LIST;
 #if PS_WITH_MODEL
-    if (length == 16 && same_prefix(path, PS_F("properties.model"), 16)) return MODEL;
+    if (match(path, PS_F("properties.model")) == length) return MODEL;
 #endif
     for (uint8_t i = 0; i < dev->config->count; i++) {
-        ps_property p;
-        load(dev, i, &p);
-        uint8_t n = flash_length(p.name);
-        if (length < n || !same_prefix(path, p.name, n) || ABSENT(dev, i)) continue;
+        const ps_property *entry = &dev->config->properties[i]; /* read in place, in flash */
+        uint8_t n = match(path, flash_pointer(&entry->name));
+        if (!n || ABSENT(dev, i)) continue;
         *index = i;
-        if (length == n) return WHOLE;
+        if (n == length) return WHOLE;
         if (path[n] != '.') continue;
         const char *suffix = path + n + 1;
-        span rest = length - n - 1;
+        span rest = length - n - 1; /* at least 1: a path does not end with a dot */
 #if PS_WITH_MODEL
-        if (rest == 3 && same_prefix(suffix, PS_F("gui"), 3)) return GUI;
-        if (rest == 10 && same_prefix(suffix, PS_F("parameters"), 10)) return PARAMETERS;
+        if (match(suffix, PS_F("gui")) == rest) return GUI;
+        if (match(suffix, PS_F("parameters")) == rest) return PARAMETERS;
 #endif
 #if PS_WITH_VECTORS
-        if (p.type == PS_VECTOR && (*element = element_of(suffix, rest, p.size)) != 255) return ELEMENT;
+        if (ps_flash_byte(&entry->type) == PS_VECTOR &&
+            (*element = element_of(suffix, rest, ps_flash_byte(&entry->size))) != 255)
+            return ELEMENT;
 #endif
         (void)suffix;
         (void)rest;
@@ -383,11 +377,13 @@ static void greet(ps_device *dev) {
 
 enum { W_GET, W_SET, W_LISTEN, W_UNLISTEN, W_PING, W_HELLO, W_CANCEL, W_PONG, W_REPLY, W_UNKNOWN };
 
-static uint8_t word_of(const char *text, span length) {
-    static const char words[] PS_FLASH = "GET\0SET\0LISTEN\0UNLISTEN\0PING\0HELLO\0CANCEL\0PONG\0OK\0ERR\0EVENT\0GONE\0";
+/* The request word at text (lowered in place: words are read in any case, §2.2). */
+static uint8_t word_of(char *text, span length) {
+    static const char words[] PS_FLASH = "get\0set\0listen\0unlisten\0ping\0hello\0cancel\0pong\0ok\0err\0event\0gone\0";
+    for (span i = 0; i < length; i++) text[i] = (char)lower((uint8_t)text[i]);
     const char *w = words;
     for (uint8_t i = 0; ps_flash_byte(w); i++) {
-        if (same_word(text, length, w)) return i < W_REPLY ? i : W_REPLY;
+        if (match(text, w) == length) return i < W_REPLY ? i : W_REPLY;
         w += flash_length(w) + 1;
     }
     return W_UNKNOWN;
