@@ -593,11 +593,10 @@ static void answer(ps_device *dev, uint8_t word, char *rest, char *end) {
 }
 
 static void flush_events(ps_device *dev) {
-    ps_mask due = dev->pending;
+    ps_mask due = dev->pending; /* bit 0: property i, shifted down as i goes up */
     dev->pending = 0;
-    for (uint8_t i = 0; due && i < dev->config->count; i++) {
-        if (!(due & BIT(i))) continue;
-        due &= ~BIT(i);
+    for (uint8_t i = 0; due && i < dev->config->count; i++, due >>= 1) {
+        if (!(due & 1)) continue;
         ps_property p;
         load(dev, i, &p);
         line_begin(dev);
