@@ -17,18 +17,18 @@ uint8_t ps_crc8(const uint8_t *bytes, size_t count) {
  * divide instruction, and a 32-bit division per digit is a library call). */
 static uint8_t push_digit(uint32_t *value, uint8_t digit) {
     if (*value > 214748364UL || (*value == 214748364UL && digit > 7)) return 0;
-    *value = *value * 10 + digit;
+    *value = ((*value << 2) + *value) * 2 + digit; /* times 10 without the multiplication routine */
     return 1;
 }
 
 uint8_t ps_parse_fixed(const char *text, size_t length, uint8_t decimals, ps_fixed *out) {
-    size_t i = 0;
+    const char *end = text + length;
     uint8_t negative = 0, seen_digit = 0, point = 0, fraction = 0;
     uint32_t value = 0;
-    if (length && (text[0] == '-' || text[0] == '+')) negative = text[i++] == '-';
-    for (; i < length; i++) {
-        uint8_t digit = (uint8_t)(text[i] - '0');
-        if (text[i] == '.' && !point) {
+    if (text < end && (*text == '-' || *text == '+')) negative = *text++ == '-';
+    for (; text < end; text++) {
+        uint8_t digit = (uint8_t)(*text - '0');
+        if (*text == '.' && !point) {
             point = 1;
             continue;
         }
@@ -87,21 +87,22 @@ uint8_t ps_format_fixed(ps_fixed value, uint8_t decimals, char *out) {
 }
 
 uint8_t ps_unescape(char *text, size_t *length) {
-    size_t from = 0, to = 0, n = *length;
-    while (from < n) {
-        char c = text[from++];
+    const char *from = text, *end = text + *length;
+    char *to = text;
+    while (from < end) {
+        char c = *from++;
         if (c == '\\') {
-            if (from == n) return PS_INVALID_ARGUMENT;
-            c = text[from++];
+            if (from == end) return PS_INVALID_ARGUMENT;
+            c = *from++;
             if (c == 'n') c = '\n';
             else if (c == 'r') c = '\r';
             else if (c == 's') c = ' ';
             else if (c != '\\') return PS_INVALID_ARGUMENT;
         }
-        text[to++] = c;
+        *to++ = c;
     }
-    text[to] = 0;
-    *length = to;
+    *to = 0;
+    *length = (size_t)(to - text);
     return PS_OK;
 }
 
