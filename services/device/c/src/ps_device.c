@@ -389,6 +389,18 @@ static uint8_t word_of(char *text, span length) {
     return W_UNKNOWN;
 }
 
+/* Past the spaces at text: the line ends with a NUL, which is no space. */
+static char *skip_spaces(char *text) {
+    while (*text == ' ') text++;
+    return text;
+}
+
+/* The end of the field that begins at text: the next space, or the end of the line. */
+static char *field_end(char *text, const char *end) {
+    while (text < end && *text != ' ') text++;
+    return text;
+}
+
 static uint8_t is_name_char(char c) {
     return (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') || c == '_' || c == '-';
 }
@@ -401,25 +413,23 @@ static uint8_t in_range(const ps_property *p, ps_fixed value) {
 }
 
 #if PS_WITH_VECTORS
-static uint8_t parse_vector(const char *text, span length, const ps_property *p, ps_fixed *store) {
-    span i = 0;
+static uint8_t parse_vector(char *text, const char *end, const ps_property *p, ps_fixed *store) {
     uint8_t count = 0;
-    while (text[i] == ' ') i++;
-    if (i == length || text[i++] != '(') return PS_INVALID_ARGUMENT;
+    text = skip_spaces(text);
+    if (*text++ != '(') return PS_INVALID_ARGUMENT; /* the value ends with a NUL, never '(' */
     for (;;) {
-        while (text[i] == ' ') i++;
-        if (i < length && text[i] == ')') break;
-        span start = i;
-        while (i < length && text[i] != ' ' && text[i] != ')') i++;
+        text = skip_spaces(text);
+        if (*text == ')') break;
+        char *start = text;
+        while (text < end && *text != ' ' && *text != ')') text++;
         ps_fixed value;
-        if (count == p->size || ps_parse_fixed(text + start, i - start, p->decimals, &value) != PS_OK)
-            return PS_INVALID_ARGUMENT;
+        if (count == p->size || ps_parse_fixed(start, (size_t)(text - start), p->decimals, &value) != PS_OK)
+            return PS_INVALID_ARGUMENT; /* an empty number too: the value ended before ')' */
         if (!in_range(p, value)) return PS_OUT_OF_RANGE;
         if (store) store[count] = value;
         count++;
     }
-    for (i++; i < length; i++)
-        if (text[i] != ' ') return PS_INVALID_ARGUMENT;
+    if (skip_spaces(text + 1) != end) return PS_INVALID_ARGUMENT;
     return count == p->size ? PS_OK : PS_INVALID_ARGUMENT;
 }
 #endif
@@ -435,8 +445,8 @@ static uint8_t store(const ps_property *p, char *value, span length) {
 #if PS_WITH_VECTORS
     if (p->type == PS_VECTOR) {
         /* check everything first: a refused SET leaves the vector as it was */
-        uint8_t code = parse_vector(value, length, p, 0);
-        return code != PS_OK ? code : parse_vector(value, length, p, (ps_fixed *)p->data);
+        uint8_t code = parse_vector(value, value + length, p, 0);
+        return code != PS_OK ? code : parse_vector(value, value + length, p, (ps_fixed *)p->data);
     }
 #endif
     ps_fixed number;
@@ -444,18 +454,6 @@ static uint8_t store(const ps_property *p, char *value, span length) {
     if (!in_range(p, number)) return PS_OUT_OF_RANGE;
     *(ps_fixed *)p->data = number;
     return PS_OK;
-}
-
-/* Past the spaces at text: the line ends with a NUL, which is no space. */
-static char *skip_spaces(char *text) {
-    while (*text == ' ') text++;
-    return text;
-}
-
-/* The end of the field that begins at text: the next space, or the end of the line. */
-static char *field_end(char *text, const char *end) {
-    while (text < end && *text != ' ') text++;
-    return text;
 }
 
 /* GET, SET, LISTEN, UNLISTEN: rest is what follows the word, up to the line's end. */
