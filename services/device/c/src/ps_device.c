@@ -191,9 +191,9 @@ static void load(const ps_device *dev, uint8_t index, ps_property *out) {
 }
 
 static uint8_t flash_length(const char *text) {
-    uint8_t n = 0;
-    while (ps_flash_byte(text + n)) n++;
-    return n;
+    const char *start = text;
+    while (ps_flash_byte(text)) text++;
+    return (uint8_t)(text - start);
 }
 
 static uint8_t lower(uint8_t c) { return (c >= 'A' && c <= 'Z') ? (uint8_t)(c + 32) : c; }
@@ -202,10 +202,10 @@ static uint8_t lower(uint8_t c) { return (c >= 'A' && c <= 'Z') ? (uint8_t)(c + 
  * the text is a byte no word holds (the space after a field, the NUL at the end of the line), so
  * a word longer than the text never matches. */
 static uint8_t match(const char *text, const char *word) {
-    uint8_t n = 0;
-    for (uint8_t c; (c = ps_flash_byte(word + n)) != 0; n++)
-        if ((uint8_t)text[n] != c) return 0;
-    return n;
+    const char *start = word;
+    for (uint8_t c; (c = ps_flash_byte(word)) != 0; word++, text++)
+        if ((uint8_t)*text != c) return 0;
+    return (uint8_t)(word - start);
 }
 
 #if PS_WITH_VECTORS
