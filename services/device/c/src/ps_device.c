@@ -190,10 +190,11 @@ static void load(const ps_device *dev, uint8_t index, ps_property *out) {
     ps_flash_copy(out, &dev->config->properties[index], sizeof *out);
 }
 
-static uint8_t flash_length(const char *text) {
-    const char *start = text;
-    while (ps_flash_byte(text)) text++;
-    return (uint8_t)(text - start);
+/* The next of the NUL-separated strings in a packed flash string. */
+static const char *next_string(const char *text) {
+    while (ps_flash_byte(text++)) {
+    }
+    return text;
 }
 
 static uint8_t lower(uint8_t c) { return (c >= 'A' && c <= 'Z') ? (uint8_t)(c + 32) : c; }
@@ -220,7 +221,7 @@ static uint8_t element_of(const char *suffix, span length, uint8_t size) {
     const char *name = element_names;
     for (uint8_t i = 0; i < 6; i++) {
         if (match(suffix, name) == length) return i < size ? i : 255;
-        name += flash_length(name) + 1;
+        name = next_string(name);
     }
     return 255;
 }
@@ -286,7 +287,7 @@ static void put_value(ps_device *dev, const ps_property *p, uint8_t index) {
 #if PS_WITH_MODEL
 /* The n-th of the NUL-separated strings in packed. */
 static const char *nth(const char *packed, uint8_t n) {
-    for (; n; n--) packed += flash_length(packed) + 1;
+    for (; n; n--) packed = next_string(packed);
     return packed;
 }
 
@@ -384,7 +385,7 @@ static uint8_t word_of(char *text, span length) {
     const char *w = words;
     for (uint8_t i = 0; ps_flash_byte(w); i++) {
         if (match(text, w) == length) return i < W_REPLY ? i : W_REPLY;
-        w += flash_length(w) + 1;
+        w = next_string(w);
     }
     return W_UNKNOWN;
 }
