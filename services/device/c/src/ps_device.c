@@ -57,7 +57,7 @@ enum { WHOLE, LIST, MODEL, GUI, PARAMETERS, ELEMENT };
 /* A number and a pointer kept in a PS_FLASH object, read in place. */
 #if defined(__AVR__)
 #define flash_fixed(p) ((ps_fixed)pgm_read_dword(p))
-#define flash_pointer(p) ((const char *)pgm_read_word(p))
+#define flash_pointer(p) ((__typeof__(*(p)))pgm_read_word(p)) /* a string's or a function's */
 #else
 #define flash_fixed(p) (*(p))
 #define flash_pointer(p) (*(p))
@@ -262,9 +262,7 @@ static void put_value(ps_device *dev, const ps_property *p, uint8_t index) {
     (void)index;
 #if PS_WITH_BYTES
     if (p->type == PS_BYTES) {
-        ps_bytes_source source;
-        ps_flash_copy(&source, p->data, sizeof source);
-        ps_put_base64(dev, source.read, index);
+        ps_put_base64(dev, flash_pointer(&((const ps_bytes_source *)p->data)->read), index);
     } else
 #endif
     if (p->type == PS_TEXT) {
