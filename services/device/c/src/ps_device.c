@@ -26,11 +26,6 @@ static ps_mask bit_of(uint8_t index) {
 #else
 #define ABSENT(dev, i) 0 /* nothing comes and goes: no test at all */
 #endif
-#if PS_WITH_ERROR_TEXTS
-#define WHY(text) PS_F(text)
-#else
-#define WHY(text) ((const char *)0) /* "ERR 5" alone: the words are optional (§2) */
-#endif
 /* A length or position within the line: one byte wherever a line fits in 255 bytes (PS_MAXLINE
  * counts the LF), which on an 8-bit MCU halves every index's arithmetic. */
 #if PS_MAXLINE <= 256
@@ -38,15 +33,45 @@ typedef uint8_t span;
 #else
 typedef size_t span;
 #endif
-#if PS_WITH_ERROR_TEXTS /* the words two replies share: one copy in flash */
-static const char bad_path[] PS_FLASH = "bad path";
-static const char bad_tag[] PS_FLASH = "bad tag";
-#define BAD_PATH bad_path
-#define BAD_TAG bad_tag
+/* Every refusal of the core: its code (docs/device-spec.md §7) and the words after it, one table.
+ * Outside the range is ERR 3 (§3.2: INVALID_ARGUMENT, as gRPC and the gateway's own services say
+ * it); its words tell it from a bad number. On the AVR a call names a refusal with one byte, and
+ * the codes and words are two flash tables; without PS_WITH_ERROR_TEXTS the name is the code. */
+#define PS_REFUSALS(X)                                                           \
+    X(NO_PARAMETERS, PS_INVALID_ARGUMENT, "this device takes no parameters")     \
+    X(BAD_PATH, PS_INVALID_ARGUMENT, "bad path")                                 \
+    X(TEXT_AFTER_PATH, PS_INVALID_ARGUMENT, "unexpected text after the path")    \
+    X(NOT_FOUND, PS_NOT_FOUND, "no such property")                               \
+    X(BAD_ESCAPE, PS_INVALID_ARGUMENT, "bad escape")                             \
+    X(READ_ONLY, PS_FAILED_PRECONDITION, "read-only")                            \
+    X(TEXT_TOO_LONG, PS_RESOURCE_EXHAUSTED, "text too long")                     \
+    X(OUT_OF_RANGE, PS_INVALID_ARGUMENT, "out of range")                         \
+    X(BAD_VALUE, PS_INVALID_ARGUMENT, "bad value")                               \
+    X(LISTEN_TO_PART, PS_UNIMPLEMENTED, "listen to a whole property")            \
+    X(READ_ACTION, PS_FAILED_PRECONDITION, "an action: SET it, reads never act") \
+    X(WRITE_ONLY, PS_FAILED_PRECONDITION, "write-only")                          \
+    X(TABLE_FULL, PS_RESOURCE_EXHAUSTED, "subscription table full")              \
+    X(BYTES_LOST, PS_DATA_LOSS, "bytes lost: the receive buffer was full")       \
+    X(CHECKSUM_MISMATCH, PS_DATA_LOSS, "checksum mismatch")                      \
+    X(BAD_TAG, PS_INVALID_ARGUMENT, "bad tag")                                   \
+    X(LINE_TOO_LONG, PS_RESOURCE_EXHAUSTED, "line too long")                     \
+    X(RAW_CR, PS_INVALID_ARGUMENT, "raw CR in the line; write \\r")              \
+    X(TEXT_AFTER_HELLO, PS_INVALID_ARGUMENT, "unexpected text after HELLO")      \
+    X(CANCEL_UNTAGGED, PS_INVALID_ARGUMENT, "CANCEL needs a tag")                \
+    X(TEXT_AFTER_CANCEL, PS_INVALID_ARGUMENT, "unexpected text after CANCEL")    \
+    X(A_REPLY, PS_INVALID_ARGUMENT, "a reply; send a request")                   \
+    X(UNKNOWN_WORD, PS_UNIMPLEMENTED, "unknown word")
+#if PS_WITH_ERROR_TEXTS
+#define REFUSAL_NAME(name, code, words) R_##name,
+#define REFUSAL_CODE(name, code, words) code,
+#define REFUSAL_WORDS(name, code, words) words "\0"
+static const uint8_t refusal_codes[] PS_FLASH = {PS_REFUSALS(REFUSAL_CODE)};
+static const char refusal_words[] PS_FLASH = PS_REFUSALS(REFUSAL_WORDS) "the action failed";
 #else
-#define BAD_PATH WHY("")
-#define BAD_TAG WHY("")
+#define REFUSAL_NAME(name, code, words) R_##name = code, /* no words: the code is all there is */
 #endif
+/* R_ACTION_FAILED goes with the action's own code; STORED is a SET that was not refused. */
+enum { PS_REFUSALS(REFUSAL_NAME) R_ACTION_FAILED, STORED = 255 };
 #define TAG_MAX 8
 #define PATH_MAX_LENGTH 256
 
@@ -173,28 +198,47 @@ static void line_end(ps_device *dev) {
     raw(dev, '\n');
 }
 
-static void reply_error(ps_device *dev, uint8_t code, const char *message) {
+/* The next of the NUL-separated strings in a packed flash string. */
+static const char *next_string(const char *text) {
+    while (ps_flash_byte(text++)) {
+    }
+    return text;
+}
+
+#if PS_WITH_ERROR_TEXTS || PS_WITH_MODEL
+/* The n-th of the NUL-separated strings in packed. */
+static const char *nth(const char *packed, uint8_t n) {
+    for (; n; n--) packed = next_string(packed);
+    return packed;
+}
+#endif
+
+/* ERR CODE and the words of refusal (without PS_WITH_ERROR_TEXTS, "ERR 5" alone: §7). */
+static void reply_error(ps_device *dev, uint8_t code, uint8_t refusal) {
     line_begin(dev);
     put_flash(dev, PS_F("ERR "));
     put_number(dev, code, 0);
-    if (message) {
-        put(dev, ' ');
-        put_flash(dev, message);
-    }
+#if PS_WITH_ERROR_TEXTS
+    put(dev, ' ');
+    put_flash(dev, nth(refusal_words, refusal));
+#else
+    (void)refusal;
+#endif
     line_end(dev);
+}
+
+static void refuse(ps_device *dev, uint8_t refusal) {
+#if PS_WITH_ERROR_TEXTS
+    reply_error(dev, ps_flash_byte(&refusal_codes[refusal]), refusal);
+#else
+    reply_error(dev, refusal, refusal);
+#endif
 }
 
 /* ---- the property table ------------------------------------------------------------------------ */
 
 static void load(const ps_device *dev, uint8_t index, ps_property *out) {
     ps_flash_copy(out, &dev->config->properties[index], sizeof *out);
-}
-
-/* The next of the NUL-separated strings in a packed flash string. */
-static const char *next_string(const char *text) {
-    while (ps_flash_byte(text++)) {
-    }
-    return text;
 }
 
 static uint8_t lower(uint8_t c) { return (c >= 'A' && c <= 'Z') ? (uint8_t)(c + 32) : c; }
@@ -283,12 +327,6 @@ static void put_value(ps_device *dev, const ps_property *p, uint8_t index) {
 }
 
 #if PS_WITH_MODEL
-/* The n-th of the NUL-separated strings in packed. */
-static const char *nth(const char *packed, uint8_t n) {
-    for (; n; n--) packed = next_string(packed);
-    return packed;
-}
-
 static void put_words(ps_device *dev, const char *words) {
     put(dev, '(');
     if (words) put_flash(dev, words);
@@ -415,7 +453,7 @@ static uint8_t in_range(const ps_property *p, ps_fixed value) {
 static uint8_t parse_vector(char *text, const char *end, const ps_property *p, ps_fixed *store) {
     uint8_t count = 0;
     text = skip_spaces(text);
-    if (*text++ != '(') return PS_INVALID_ARGUMENT; /* the value ends with a NUL, never '(' */
+    if (*text++ != '(') return R_BAD_VALUE; /* the value ends with a NUL, never '(' */
     for (;;) {
         text = skip_spaces(text);
         if (*text == ')') break;
@@ -423,13 +461,13 @@ static uint8_t parse_vector(char *text, const char *end, const ps_property *p, p
         while (text < end && *text != ' ' && *text != ')') text++;
         ps_fixed value;
         if (count == p->size || ps_parse_fixed(start, (size_t)(text - start), p->decimals, &value) != PS_OK)
-            return PS_INVALID_ARGUMENT; /* an empty number too: the value ended before ')' */
-        if (!in_range(p, value)) return PS_OUT_OF_RANGE;
+            return R_BAD_VALUE; /* an empty number too: the value ended before ')' */
+        if (!in_range(p, value)) return R_OUT_OF_RANGE;
         if (store) store[count] = value;
         count++;
     }
-    if (skip_spaces(text + 1) != end) return PS_INVALID_ARGUMENT;
-    return count == p->size ? PS_OK : PS_INVALID_ARGUMENT;
+    if (skip_spaces(text + 1) != end) return R_BAD_VALUE;
+    return count == p->size ? STORED : R_BAD_VALUE;
 }
 #endif
 
@@ -437,22 +475,22 @@ static uint8_t parse_vector(char *text, const char *end, const ps_property *p, p
  * why not. */
 static uint8_t store(const ps_property *p, char *value, span length) {
     if (p->type == PS_TEXT) {
-        if (length >= p->size) return PS_RESOURCE_EXHAUSTED;
+        if (length >= p->size) return R_TEXT_TOO_LONG;
         memcpy(p->data, value, length + 1);
-        return PS_OK;
+        return STORED;
     }
 #if PS_WITH_VECTORS
     if (p->type == PS_VECTOR) {
         /* check everything first: a refused SET leaves the vector as it was */
-        uint8_t code = parse_vector(value, value + length, p, 0);
-        return code != PS_OK ? code : parse_vector(value, value + length, p, (ps_fixed *)p->data);
+        uint8_t refusal = parse_vector(value, value + length, p, 0);
+        return refusal != STORED ? refusal : parse_vector(value, value + length, p, (ps_fixed *)p->data);
     }
 #endif
     ps_fixed number;
-    if (ps_parse_fixed(value, length, p->decimals, &number) != PS_OK) return PS_INVALID_ARGUMENT;
-    if (!in_range(p, number)) return PS_OUT_OF_RANGE;
+    if (ps_parse_fixed(value, length, p->decimals, &number) != PS_OK) return R_BAD_VALUE;
+    if (!in_range(p, number)) return R_OUT_OF_RANGE;
     *(ps_fixed *)p->data = number;
-    return PS_OK;
+    return STORED;
 }
 
 /* GET, SET, LISTEN, UNLISTEN: rest is what follows the word, up to the line's end. */
@@ -463,7 +501,7 @@ static void answer(ps_device *dev, uint8_t word, char *rest, char *end) {
         rest = field_end(path, end);
         if (!memchr(path, '=', (size_t)(rest - path))) break;
         if (word != W_UNLISTEN) { /* §3.4: UNLISTEN accepts and ignores them */
-            reply_error(dev, PS_INVALID_ARGUMENT, WHY("this device takes no parameters"));
+            refuse(dev, R_NO_PARAMETERS);
             return;
         }
     }
@@ -476,13 +514,13 @@ static void answer(ps_device *dev, uint8_t word, char *rest, char *end) {
     for (char *c = path; c < rest; c++)
         if (!is_name_char(*c) && !(*c == '.' && c > path && is_name_char(c[1]))) good = 0;
     if (!good) {
-        reply_error(dev, PS_INVALID_ARGUMENT, BAD_PATH);
+        refuse(dev, R_BAD_PATH);
         return;
     }
     char *value = end; /* SET: the rest of the line after one space (§2) */
     if (word == W_SET && rest < end) value = rest + 1;
     else if (skip_spaces(rest) != end) { /* trailing spaces are not a field */
-        reply_error(dev, PS_INVALID_ARGUMENT, WHY("unexpected text after the path"));
+        refuse(dev, R_TEXT_AFTER_PATH);
         return;
     }
     size_t value_length = (size_t)(end - value);
@@ -500,7 +538,7 @@ static void answer(ps_device *dev, uint8_t word, char *rest, char *end) {
         return;
     }
     if (part == 255) {
-        reply_error(dev, PS_NOT_FOUND, WHY("no such property"));
+        refuse(dev, R_NOT_FOUND);
         return;
     }
     ps_property p;
@@ -515,7 +553,7 @@ static void answer(ps_device *dev, uint8_t word, char *rest, char *end) {
     uint8_t value_part = part == WHOLE || part == ELEMENT;
     if (word == W_SET) {
         if (ps_unescape(value, &value_length) != PS_OK) {
-            reply_error(dev, PS_INVALID_ARGUMENT, WHY("bad escape"));
+            refuse(dev, R_BAD_ESCAPE);
             return;
         }
 #if PS_WITH_ACTIONS
@@ -524,24 +562,19 @@ static void answer(ps_device *dev, uint8_t word, char *rest, char *end) {
             if (code != PS_OK) {
                 /* docs/device-spec.md §3.2: outside the range is ERR 3 (INVALID_ARGUMENT, as gRPC
                  * and the gateway's own services say it); the message tells it from a bad number */
-                reply_error(dev, code == PS_OUT_OF_RANGE ? PS_INVALID_ARGUMENT : code, WHY("the action failed"));
+                reply_error(dev, code == PS_OUT_OF_RANGE ? PS_INVALID_ARGUMENT : code, R_ACTION_FAILED);
                 return;
             }
         } else
 #endif
         {
             if (!value_part || !(p.access & PS_WRITE)) {
-                reply_error(dev, PS_FAILED_PRECONDITION, WHY("read-only"));
+                refuse(dev, R_READ_ONLY);
                 return;
             }
-            uint8_t code = store(&p, value, value_length);
-            if (code != PS_OK) {
-                /* docs/device-spec.md §3.2: outside the range is ERR 3 (INVALID_ARGUMENT, as gRPC
-                 * and the gateway's own services say it); the message tells it from a bad number */
-                reply_error(dev, code == PS_OUT_OF_RANGE ? PS_INVALID_ARGUMENT : code,
-                            code == PS_RESOURCE_EXHAUSTED ? WHY("text too long")
-                            : code == PS_OUT_OF_RANGE     ? WHY("out of range")
-                                                          : WHY("bad value"));
+            uint8_t refusal = store(&p, value, value_length);
+            if (refusal != STORED) {
+                refuse(dev, refusal);
                 return;
             }
             dev->pending |= dev->listening & BIT(index);
@@ -552,19 +585,18 @@ static void answer(ps_device *dev, uint8_t word, char *rest, char *end) {
     } else {
         /* GET and LISTEN */
         if (word == W_LISTEN && part != WHOLE && part != LIST) {
-            reply_error(dev, PS_UNIMPLEMENTED, WHY("listen to a whole property"));
+            refuse(dev, R_LISTEN_TO_PART);
             return;
         }
         if (value_part && !(p.access & PS_READ)) {
-            reply_error(dev, PS_FAILED_PRECONDITION,
-                        p.type == PS_ACTION ? WHY("an action: SET it, reads never act") : WHY("write-only"));
+            refuse(dev, p.type == PS_ACTION ? R_READ_ACTION : R_WRITE_ONLY);
             return;
         }
         if (word == W_LISTEN) {
             if (part == LIST) {
                 dev->flags |= PS_FLAG_LIST;
             } else if (!BIT(index)) { /* §3.1: no bit in the masks for this one */
-                reply_error(dev, PS_RESOURCE_EXHAUSTED, WHY("subscription table full"));
+                refuse(dev, R_TABLE_FULL);
                 return;
             } else {
                 dev->listening |= BIT(index);
@@ -653,7 +685,7 @@ static void answer_line(ps_device *dev) {
     if (*at == '$') dev->flags |= PS_FLAG_MIRROR; /* §6: the reply to a '$' line is checked */
 #endif
     if (flags & PS_FLAG_LOST) { /* the tag may be what was lost: answer untagged */
-        reply_error(dev, PS_DATA_LOSS, WHY("bytes lost: the receive buffer was full"));
+        refuse(dev, R_BYTES_LOST);
         return;
     }
 #if PS_WITH_CHECKSUM /* without: "$GET" is an unknown word, ERR 12 */
@@ -661,7 +693,7 @@ static void answer_line(ps_device *dev) {
         /* §2.1: "*HH" are the last three bytes; the CRC covers what lies between '$' and '*' */
         if (end - at < 4 || end[-3] != '*' ||
             hex_byte(end - 2) != ps_crc8((const uint8_t *)at + 1, (size_t)(end - at - 4))) {
-            reply_error(dev, PS_DATA_LOSS, WHY("checksum mismatch")); /* §6: untagged */
+            refuse(dev, R_CHECKSUM_MISMATCH); /* §6: untagged */
             return;
         }
         dev->flags |= PS_FLAG_CHECKSUM; /* checksum mode: only a line that checks out turns it on */
@@ -675,7 +707,7 @@ static void answer_line(ps_device *dev) {
         char *tag = ++at;
         while (is_name_char(*at)) at++; /* the NUL at the end is no name character */
         if (at == tag || at - tag > TAG_MAX || *at != ' ') {
-            reply_error(dev, PS_INVALID_ARGUMENT, BAD_TAG); /* §2.1: untagged */
+            refuse(dev, R_BAD_TAG); /* §2.1: untagged */
             return;
         }
         dev->tag_at = (uint8_t)(tag - text);
@@ -684,17 +716,17 @@ static void answer_line(ps_device *dev) {
     }
 #endif
     if (flags & PS_FLAG_OVERFLOW) {
-        reply_error(dev, PS_RESOURCE_EXHAUSTED, WHY("line too long"));
+        refuse(dev, R_LINE_TOO_LONG);
         return;
     }
     if (memchr(at, '\r', (size_t)(end - at))) {
-        reply_error(dev, PS_INVALID_ARGUMENT, WHY("raw CR in the line; write \\r"));
+        refuse(dev, R_RAW_CR);
         return;
     }
     char *rest = field_end(at, end);
     if (rest == at) {
         dev->tag_length = 0; /* untagged */
-        reply_error(dev, PS_INVALID_ARGUMENT, BAD_TAG);
+        refuse(dev, R_BAD_TAG);
         return;
     }
     uint8_t word = word_of(at, (span)(rest - at));
@@ -712,22 +744,22 @@ static void answer_line(ps_device *dev) {
             if (!(dev->flags & PS_FLAG_MIRROR)) dev->flags &= (uint8_t)~PS_FLAG_CHECKSUM;
             greet(dev);
         } else if (*rest < '0' || *rest > '9') { /* a greeting (a version follows) is never answered */
-            reply_error(dev, PS_INVALID_ARGUMENT, WHY("unexpected text after HELLO"));
+            refuse(dev, R_TEXT_AFTER_HELLO);
         }
         break;
     case W_PONG: /* the answer to a PING of ours: nothing to do */
         break;
     case W_CANCEL: /* every SET is answered before the next line is read: nothing is left to stop */
         if (!dev->tag_length) /* §2.1: CANCEL names the request it cancels by its tag */
-            reply_error(dev, PS_INVALID_ARGUMENT, WHY("CANCEL needs a tag"));
+            refuse(dev, R_CANCEL_UNTAGGED);
         else if (skip_spaces(rest) != end) /* §2.1: CANCEL takes nothing after the word */
-            reply_error(dev, PS_INVALID_ARGUMENT, WHY("unexpected text after CANCEL"));
+            refuse(dev, R_TEXT_AFTER_CANCEL);
         break;
     case W_REPLY:
-        reply_error(dev, PS_INVALID_ARGUMENT, WHY("a reply; send a request"));
+        refuse(dev, R_A_REPLY);
         break;
     case W_UNKNOWN:
-        reply_error(dev, PS_UNIMPLEMENTED, WHY("unknown word"));
+        refuse(dev, R_UNKNOWN_WORD);
         break;
     default:
         answer(dev, word, rest, end);
