@@ -6,8 +6,6 @@
 
 #include "ps_device.h"
 
-/* Only properties below PS_MAX_PROPERTIES have a bit; the others get none (and no shift past the
- * mask's width). */
 /* One copy of a function called from several places: GCC may inline a function it sees called
  * once or twice, and on AVR every copy costs flash. */
 #ifdef __GNUC__
@@ -16,6 +14,8 @@
 #define ONE_COPY
 #endif
 
+/* Only properties below PS_MAX_PROPERTIES have a bit; the others get none (and no shift past the
+ * mask's width). */
 ONE_COPY /* smaller on AVR than a shift at every use */
 static ps_mask bit_of(uint8_t index) {
     return index < PS_MAX_PROPERTIES ? (ps_mask)((ps_mask)1 << index) : (ps_mask)0;
