@@ -36,14 +36,14 @@ from gateway.config import METRICS_MAX_CONNECTIONS, REGISTRY_NAME, Config, Confi
 from gateway.connections import share_open_files
 from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
+from gateway.fronts.grpc_v1.health import NOT_SERVING, SERVING, HealthService
+from gateway.fronts.grpc_v1.servicer import PropertyServicer, add_health_and_reflection, add_to_server
 from gateway.guard import Guard
-from gateway.health import NOT_SERVING, SERVING, HealthService
 from gateway.licensing import current_caller, may_license, may_provide
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
 from gateway.router import Router
-from gateway.server import PropertyServicer, add_health_and_reflection, add_to_server
 from gateway.stores import open_store
 from gateway.tls import LineCredentials, ServerCredentials
 from protos.propertyservice.v1 import property_service_pb2 as pb
