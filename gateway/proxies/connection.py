@@ -118,6 +118,7 @@ _WIDEST_TAG_DIGITS = len(format(_TAG_MASK, "x"))
 #: Short: it must fit the smallest line limit (64 bytes) with a tag and a checksum.
 _NOT_SERVED = "not served: the gateway is the client here"
 
+
 class _Pending:
     """One request waiting for its reply: its future, its deadline, its time limit, its line."""
 
