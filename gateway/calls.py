@@ -121,9 +121,10 @@ class Calls:
         params = call.parameters
         if backend.answers_inline:
             return _inline(backend.get(path, params), time_limit, service, "get", path, backend=backend)
-        future = backend.start_get(path, params, time_limit)
-        if future is not None:
-            return RepliedCall(future, backend)
+        replied = RepliedCall(backend)
+        replied.future = backend.start_get(path, params, time_limit, replied.replied)
+        if replied.future is not None:
+            return replied
         # A proxy's call is stepped inside whichever task awaits it (its timeouts belong there).
         what = functools.partial("{}: get {}".format, service, path)
         return AwaitedCall(bounded_call(backend.get(path, params), time_limit, what), backend)

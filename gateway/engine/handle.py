@@ -88,42 +88,66 @@ class AnsweredCall(CallHandle):
 
 
 class RepliedCall(CallHandle):
-    """A call a proxy sent: its reply resolves a future from the proxy's reader (no task)."""
+    """A call a proxy sent: its reply comes from the proxy's reader (no task, no timer of its own).
 
-    __slots__ = ("_callback", "_future", "backend")
+    A successful reply is handed over in the reader itself (:meth:`replied`, the ``then`` of
+    :meth:`services.backend.Backend.start_get`), a loop turn before the future's done-callbacks
+    run; an error, a time-out or a cancellation comes through the future.
+    """
 
-    def __init__(self, future: asyncio.Future[Answer], backend: Backend) -> None:
-        self._future = future
+    __slots__ = ("_answer", "_callback", "backend", "future")
+
+    def __init__(self, backend: Backend) -> None:
         self.backend = backend
+        #: The reply's future, from :meth:`services.backend.Backend.start_get`.
+        self.future: asyncio.Future[Answer] | None = None
+        self._answer: Answer | None = None
         self._callback: DoneCallback | None = None
+
+    def replied(self, answer: Answer) -> None:
+        """The successful reply, straight from the proxy's reader."""
+        self._answer = answer
+        self._fire()
+
+    def _fire(self, _: object = None) -> None:
+        callback = self._callback
+        if callback is not None:
+            self._callback = None
+            callback(self)
+
+    def _future(self) -> asyncio.Future[Answer]:
+        if self.future is None:
+            raise asyncio.InvalidStateError("the call was not sent")
+        return self.future
 
     @property
     def done(self) -> bool:
-        return self._future.done()
+        return self._answer is not None or self._future().done()
 
     def result(self) -> Value:
-        return self._future.result().value
+        answer = self._answer
+        if answer is None:
+            answer = self._future().result()
+        return answer.value
 
     def exception(self) -> BaseException | None:
-        return self._future.exception()
+        return None if self._answer is not None else self._future().exception()
 
     def cancelled(self) -> bool:
-        return self._future.cancelled()
+        return self._answer is None and self._future().cancelled()
 
     def add_done_callback(self, callback: DoneCallback) -> None:
-        self._callback = callback
-        self._future.add_done_callback(self._fire)
-
-    def _fire(self, _: asyncio.Future[Answer]) -> None:
-        callback = self._callback
-        if callback is not None:
+        if self._answer is not None:
             callback(self)
+            return
+        self._callback = callback
+        self._future().add_done_callback(self._fire)
 
     def cancel(self) -> None:
-        self._future.cancel()
+        self._future().cancel()
 
     def __await__(self) -> Generator[Any, Any, Value]:
-        answer = yield from self._future.__await__()
+        answer = yield from self._future().__await__()
         return answer.value
 
 
