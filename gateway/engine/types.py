@@ -1,6 +1,6 @@
 """What a front end hands the engine for a Get, Set or Describe, and what it gets back.
 
-Plain named tuples (immutable values), built by each front from its own wire form (the gRPC front from the
+Plain slotted classes, built by each front from its own wire form (the gRPC front from the
 contract's messages, the HTTP front from a URL and a JSON body) and read by the call layer
 (:class:`gateway.calls.Calls`), the guard and the licences; no protobuf message passes the door.
 
@@ -18,7 +18,6 @@ contract's messages, the HTTP front from a URL and a JSON body) and read by the 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import NamedTuple
 
 from gateway.identity import ANONYMOUS
 from gateway.rules import Subject
@@ -42,57 +41,103 @@ __all__ = [
 ]
 
 
-class PropertyRef(NamedTuple):
+class _Plain:
+    """Equal by value, shown with its fields: what a dataclass would give, but with an ``__init__``
+    written out, so that the default parameters may be the shared read-only ``NO_PARAMS``."""
+
+    __slots__: tuple[str, ...] = ()
+
+    def _fields(self) -> tuple[object, ...]:
+        return tuple(getattr(self, name) for name in self.__slots__)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, _Plain) and type(other) is type(self) and self._fields() == other._fields()
+
+    #: Unhashable, as a dataclass that is not frozen: its parameters are a mapping.
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        shown = ", ".join(f"{name}={getattr(self, name)!r}" for name in self.__slots__)
+        return f"{type(self).__name__}({shown})"
+
+
+class PropertyRef(_Plain):
     """One more path a Get reads; an empty ``service`` is the Get's own."""
 
-    service: str
-    path: str
-    parameters: Mapping[str, str] = NO_PARAMS
+    __slots__ = ("parameters", "path", "service")
+
+    def __init__(self, service: str, path: str, parameters: Mapping[str, str] = NO_PARAMS) -> None:
+        self.service = service
+        self.path = path
+        self.parameters = parameters
 
 
-class GetCall(NamedTuple):
+class GetCall(_Plain):
     """A Get of ``path`` of ``service`` and of the ``more`` paths with it (all or nothing).
 
     A path with ``*`` segments makes the Get a snapshot (:func:`is_snapshot`).
     """
 
-    service: str
-    path: str
-    parameters: Mapping[str, str] = NO_PARAMS
-    more: Sequence[PropertyRef] = ()
+    __slots__ = ("more", "parameters", "path", "service")
+
+    def __init__(
+        self,
+        service: str,
+        path: str,
+        parameters: Mapping[str, str] = NO_PARAMS,
+        more: Sequence[PropertyRef] = (),
+    ) -> None:
+        self.service = service
+        self.path = path
+        self.parameters = parameters
+        self.more = more
 
 
-class SetCall(NamedTuple):
+class SetCall(_Plain):
     """A Set of ``path`` of ``service`` to ``value`` (text, or bytes for a binary property)."""
 
-    service: str
-    path: str
-    value: Value
-    parameters: Mapping[str, str] = NO_PARAMS
+    __slots__ = ("parameters", "path", "service", "value")
+
+    def __init__(
+        self, service: str, path: str, value: Value, parameters: Mapping[str, str] = NO_PARAMS
+    ) -> None:
+        self.service = service
+        self.path = path
+        self.value = value
+        self.parameters = parameters
 
 
-class DescribeCall(NamedTuple):
+class DescribeCall(_Plain):
     """The whole model of ``service``."""
 
-    service: str
+    __slots__ = ("service",)
+
+    def __init__(self, service: str) -> None:
+        self.service = service
 
 
-class PropertyValue(NamedTuple):
+class PropertyValue(_Plain):
     """One value a Get read, with the concrete path it was read at."""
 
-    service: str
-    path: str
-    value: Value
+    __slots__ = ("path", "service", "value")
+
+    def __init__(self, service: str, path: str, value: Value) -> None:
+        self.service = service
+        self.path = path
+        self.value = value
 
 
-class GetReply(NamedTuple):
+class GetReply(_Plain):
     """What a Get read: the value of its path, and the values of its ``more`` paths in order.
 
     A snapshot (:func:`is_snapshot`) lists every match in ``more`` and leaves ``value`` empty.
     """
 
-    value: Value = ""
-    more: Sequence[PropertyValue] = ()
+    __slots__ = ("more", "value")
+
+    def __init__(self, value: Value = "", more: Sequence[PropertyValue] = ()) -> None:
+        self.value = value
+        self.more = more
 
 
 def is_snapshot(call: GetCall) -> bool:

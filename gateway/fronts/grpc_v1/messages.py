@@ -50,13 +50,14 @@ def _params(params: Mapping[str, str]) -> Mapping[str, str]:
 
 def get_call(request: pb.GetRequest) -> GetCall:
     """The engine's Get for ``request``."""
+    params = request.parameters
     more = request.more
     if not more:
-        return GetCall(request.service, request.property, _params(request.parameters))
+        return GetCall(request.service, request.property, dict(params) if params else NO_PARAMS)
     return GetCall(
         request.service,
         request.property,
-        _params(request.parameters),
+        _params(params),
         [PropertyRef(ref.service, ref.property, _params(ref.parameters)) for ref in more],
     )
 

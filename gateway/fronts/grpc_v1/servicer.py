@@ -159,12 +159,8 @@ def add_health_and_reflection(server: grpc.aio.Server, health: Any, services: Se
     reflection_pb2_grpc.add_ServerReflectionServicer_to_server(ReflectionServicer(tuple(services)), generic)
 
 
-def _property(request: Any) -> str:
-    return request.property  # type: ignore[no-any-return]
-
-
-def _no_path(request: Any) -> str:
-    return ""
+def _describe_call(request: pb.DescribeRequest) -> DescribeCall:
+    return DescribeCall(request.service)
 
 
 #: The response message of a unary method.
@@ -173,16 +169,19 @@ M = TypeVar("M", bound=Message)
 
 @dataclass(frozen=True, slots=True)
 class _Unary(Generic[M]):
-    """One unary method as :meth:`PropertyServicer._unary` serves it."""
+    """One unary method as :meth:`PropertyServicer._unary` serves it: the request translated
+    into the engine's call, the engine's method that serves it, and its answer translated back."""
 
     name: str
     counts: MethodCounts | None
-    #: ``serve(request, time_limit, subject)``: the answer, translated back into the contract.
-    serve: Callable[[Any, float, Subject], Awaitable[M]]
+    to_call: Callable[[Any], Any]
+    #: ``serve(call, time_limit, subject)``: a method of :class:`gateway.calls.Calls`.
+    serve: Callable[[Any, float, Subject], Awaitable[Any]]
+    to_response: Callable[[Any], M]
     #: Who calls (a Set names its caller even when nothing is refused: the audit trail says who).
     identify: Callable[[Context], Subject]
-    #: The property the request names, for its log lines.
-    path_of: Callable[[Any], str] = _property
+    #: Whether the request names a property (for its log lines).
+    has_path: bool = True
 
 
 class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
@@ -211,11 +210,20 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         self._describe_counts: MethodCounts | None = methods.get("Describe")
         self._listen_counts: MethodCounts | None = methods.get("Listen")
         self._session_counts: MethodCounts | None = methods.get("Session")
-        self._get_method = _Unary("Get", self._get_counts, self._get, self._subject)
+        calls = self.calls
+        self._get_method = _Unary("Get", self._get_counts, get_call, calls.get, get_response, self._subject)
         # Identified even when nothing is refused: the audit trail names who set what.
-        self._set_method = _Unary("Set", self._set_counts, self._set, self.guard.identify_call)
+        self._set_method = _Unary(
+            "Set", self._set_counts, set_call, calls.set, set_response, self.guard.identify_call
+        )
         self._describe_method = _Unary(
-            "Describe", self._describe_counts, self._describe, self._subject, path_of=_no_path
+            "Describe",
+            self._describe_counts,
+            _describe_call,
+            calls.describe,
+            model_to_proto,
+            self._subject,
+            has_path=False,
         )
 
     def end_sessions(self) -> None:
@@ -254,15 +262,16 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             if isinstance(request, Undecodable):
                 _begin_unary(context, "", "")
                 raise request.error
-            logged, via = _begin_unary(context, request.service, method.path_of(request))
+            logged, via = _begin_unary(context, request.service, request.property if method.has_path else "")
             enter(via, self.gateway_id)
             subject = method.identify(context)
             logged.subject = _subject_name(subject)
             self._take_call_place()
             try:
-                response = await method.serve(request, self._deadline(context), subject)
+                answer = await method.serve(method.to_call(request), self._deadline(context), subject)
             finally:
                 self.calls_running -= 1
+            response = method.to_response(answer)
         except Exception as exc:
             await _failed(context, exc, method.name, counts, started)
             raise  # not reached: abort raises
@@ -273,17 +282,6 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         if counts is not None:
             counts.done(0, perf_counter() - started)
         return response
-
-    async def _get(self, request: pb.GetRequest, time_limit: float, subject: Subject) -> pb.GetResponse:
-        return get_response(await self.calls.get(get_call(request), time_limit, subject))
-
-    async def _set(self, request: pb.SetRequest, time_limit: float, subject: Subject) -> pb.SetResponse:
-        return set_response(await self.calls.set(set_call(request), time_limit, subject))
-
-    async def _describe(
-        self, request: pb.DescribeRequest, time_limit: float, subject: Subject
-    ) -> pb.DescribeResponse:
-        return model_to_proto(await self.calls.describe(DescribeCall(request.service), time_limit, subject))
 
     async def Get(self, request: pb.GetRequest, context: Context) -> pb.GetResponse:
         return await self._unary(request, context, self._get_method)
