@@ -519,6 +519,7 @@ class Gateway:
                 device_secrets=self._device_secrets(),
                 alternates=self._alternates,
                 seats=self.cluster,
+                calls=self.servicer.calls,
             )
         except OSError as exc:
             if exc.errno != errno.EADDRINUSE:
