@@ -18,8 +18,8 @@ from typing import Any, Generic, TypeVar
 
 import grpc
 from google.protobuf.message import Message
-from grpc_health.v1 import health_pb2_grpc
-from grpc_reflection.v1alpha import reflection_pb2_grpc
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 from grpc_reflection.v1alpha._async import ReflectionServicer
 
 from gateway.calls import Calls
@@ -53,6 +53,9 @@ from services.errors import Code, ResourceExhausted
 from services.model_codec import model_to_proto
 
 Context = grpc.aio.ServicerContext[Any, Any]
+
+#: The contract's service, by its full name (``propertyservice.v1.PropertyService``).
+SERVICE_NAME: str = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
 
 
 def arrival(context: Context) -> tuple[str, str | bytes | None]:
@@ -124,9 +127,8 @@ def add_to_server(servicer: PropertyServicer, server: grpc.aio.Server) -> None:
             response_serializer=pb.DescribeResponse.SerializeToString,
         ),
     }
-    name = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
     # Generic only, never registered: see GenericOnly.
-    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(name, handlers),))
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(SERVICE_NAME, handlers),))
 
 
 class GenericOnly:
@@ -149,14 +151,19 @@ class GenericOnly:
         """Not registered: the same methods came as generic handlers just before."""
 
 
-def add_health_and_reflection(server: grpc.aio.Server, health: Any, services: Sequence[str]) -> None:
-    """Serve the gRPC health service ``health`` and server reflection listing ``services``, as
-    generic handlers (see :class:`GenericOnly`)."""
+def add_health_and_reflection(server: grpc.aio.Server, health: Any) -> None:
+    """Serve the gRPC health service ``health`` and server reflection listing the contract's
+    service, health and reflection, as generic handlers (see :class:`GenericOnly`)."""
     generic = GenericOnly(server)
     health_pb2_grpc.add_HealthServicer_to_server(health, generic)
+    listed = (
+        SERVICE_NAME,
+        health_pb2.DESCRIPTOR.services_by_name["Health"].full_name,
+        reflection.SERVICE_NAME,
+    )
     # What reflection.enable_server_reflection does for a grpc.aio server (it tells one by its
     # type, so it cannot be handed GenericOnly): the asyncio servicer, added by the generated code.
-    reflection_pb2_grpc.add_ServerReflectionServicer_to_server(ReflectionServicer(tuple(services)), generic)
+    reflection_pb2_grpc.add_ServerReflectionServicer_to_server(ReflectionServicer(listed), generic)
 
 
 def _describe_call(request: pb.DescribeRequest) -> DescribeCall:
