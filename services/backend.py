@@ -133,7 +133,7 @@ class Backend(abc.ABC):
     Besides the calls every backend answers, a few capabilities only some
     backends have are declared here with defaults that do without them, so
     that callers never ask which kind of backend they hold:
-    :attr:`answers_inline`, :meth:`start_get`, :meth:`listen_current`,
+    :attr:`answers_inline`, :meth:`start_get`, :meth:`flush`, :meth:`listen_current`,
     :meth:`match_properties`, :meth:`listen_properties`,
     :meth:`wait_connected`, :meth:`watch_link`, :meth:`serves`, :meth:`wake`, :attr:`on_demand`.
     """
@@ -272,6 +272,16 @@ class Backend(abc.ABC):
         has no shortcut and returns None.
         """
         return None
+
+    def flush(self) -> None:  # noqa: B027 - optional hook, nothing held by default
+        """Send now what the backend holds for the end of this loop turn.
+
+        A proxy batches the requests started in one loop turn into one write to its device,
+        made at the turn's end; a caller that knows no more requests of its batch come this
+        turn (a Session, once it has started a message's requests) calls this, so that the
+        device has them a turn sooner, still in one write. A backend that holds nothing has
+        nothing to send (the default).
+        """
 
     def link_counts(self) -> LinkCounts | None:
         """The counts of a backend that keeps a connection to a device; None for any other (the default)."""

@@ -42,8 +42,8 @@ import grpc
 from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stubs
 
 from gateway.federation import outgoing
+from gateway.fronts.grpc_v1.status import error_from_remote
 from gateway.proxies.grpc_channels import ChannelKey, ChannelPool, SharedChannel, TlsFiles, channel_pool
-from gateway.status import error_from_remote
 from gateway.wire_values import put, received
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS, UNKNOWN_TYPE, Backend, BackendInfo, Change, Notify, Subscription

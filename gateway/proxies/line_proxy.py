@@ -534,6 +534,12 @@ class LineProxy(Backend):
             return
         await conn.request(Ping(), self.options.timeout)
 
+    def flush(self) -> None:
+        """Send the lines held for the end of this loop turn now (:meth:`LineConnection.flush`)."""
+        conn = self._conn
+        if conn is not None:
+            conn.flush()
+
     def start_get(
         self,
         path: str,
