@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import enum
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import ClassVar, Protocol
+from typing import Any, ClassVar, Protocol
 
 from services.model import Access, PropertyModel, ServiceModel
 from services.paths import compile_pattern, is_below
@@ -51,15 +52,33 @@ class Change:
 Notify = Callable[[Change], None]
 
 
-def tell_each(listeners: dict[int, Notify], change: Change, what: str) -> None:
-    """Hand ``change`` to every listener (token → callback); one that raises is logged, as a
-    listener of ``what``, and dropped, and the others are told all the same."""
-    for token, notify in list(listeners.items()):
+class OnRaise(enum.Enum):
+    """What :func:`tell_each` does with a listener that raises (after logging it)."""
+
+    #: Take it out of the listeners: it is told nothing more (a backend's own listeners, whose
+    #: subscription forgets a token that is already gone).
+    DROP = "it is dropped"
+    #: Leave it in place: its owner takes it out (a shared listen, a topic, a followed file, whose
+    #: last listener to leave closes what they share: dropping it here would leave that open).
+    KEEP = "it keeps its place"
+
+
+def tell_each(listeners: dict[Any, Callable[..., None]], *args: Any, what: object, on_raise: OnRaise) -> None:
+    """Call every listener (key → callback) with ``args``; one that raises is logged, as a listener
+    of ``what`` (formatted only then), and dropped or kept as ``on_raise`` says, and the others are
+    told all the same.
+
+    The one fan-out of the project: a backend's listeners, a shared upstream listen's, a listen
+    hub topic's sinks and a followed file's all go through it. It runs once per listener for every
+    change (the Listen fan-out's hot path; ``python -m bench.instructions --parts fanout`` guards it).
+    """
+    for key, notify in list(listeners.items()):
         try:
-            notify(change)
+            notify(*args)
         except Exception:
-            log.exception("a listener of %s raised; it is dropped", what)
-            listeners.pop(token, None)
+            log.exception("a listener of %s failed; %s", what, on_raise.value)
+            if on_raise is OnRaise.DROP:
+                listeners.pop(key, None)
 
 
 class Subscription(abc.ABC):
