@@ -72,13 +72,24 @@ def tell_each(listeners: dict[Any, Callable[..., None]], *args: Any, what: objec
     hub topic's sinks and a followed file's all go through it. It runs once per listener for every
     change (the Listen fan-out's hot path; ``python -m bench.instructions --parts fanout`` guards it).
     """
-    for key, notify in list(listeners.items()):
+    # The callbacks alone: a (key, callback) pair each would cost an allocation per listener, and
+    # a key is needed only to drop one.
+    for notify in list(listeners.values()):
         try:
             notify(*args)
         except Exception:
             log.exception("a listener of %s failed; %s", what, on_raise.value)
             if on_raise is OnRaise.DROP:
-                listeners.pop(key, None)
+                _drop(listeners, notify)
+
+
+def _drop(listeners: dict[Any, Callable[..., None]], notify: Callable[..., None]) -> None:
+    """Take ``notify`` out of ``listeners`` (its first key; a listener that holds two keys raises
+    again at the next, and goes then)."""
+    for key, held in listeners.items():
+        if held is notify:
+            del listeners[key]
+            return
 
 
 class Subscription(abc.ABC):
