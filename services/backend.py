@@ -63,10 +63,12 @@ class OnRaise(enum.Enum):
     KEEP = "it keeps its place"
 
 
-def tell_each(listeners: dict[Any, Callable[..., None]], *args: Any, what: object, on_raise: OnRaise) -> None:
+def tell_each(
+    listeners: dict[Any, Callable[..., None]], *args: Any, what: object, on_raise: OnRaise = OnRaise.DROP
+) -> None:
     """Call every listener (key → callback) with ``args``; one that raises is logged, as a listener
-    of ``what`` (formatted only then), and dropped or kept as ``on_raise`` says, and the others are
-    told all the same.
+    of ``what`` (formatted only then), and dropped or kept as ``on_raise`` says (dropped: a
+    backend's :data:`Notify` must not raise), and the others are told all the same.
 
     The one fan-out of the project: a backend's listeners, a shared upstream listen's, a listen
     hub topic's sinks and a followed file's all go through it. It runs once per listener for every

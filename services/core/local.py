@@ -9,16 +9,7 @@ import logging
 from collections.abc import Coroutine, Mapping
 from typing import Any
 
-from services.backend import (
-    NO_PARAMS,
-    Backend,
-    BackendInfo,
-    Change,
-    Notify,
-    OnRaise,
-    Subscription,
-    tell_each,
-)
+from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription, tell_each
 from services.backoff import pauses, wait_to_retry
 from services.core.describe import describe_matching, describe_tree
 from services.core.metadata import class_spec
@@ -112,12 +103,7 @@ class _Watch:
         if value == self.last and not removed:
             return
         self.last = value
-        tell_each(
-            self.listeners,
-            Change(self.path, value, gap=gap, removed=removed),
-            what=self.path,
-            on_raise=OnRaise.DROP,
-        )
+        tell_each(self.listeners, Change(self.path, value, gap=gap, removed=removed), what=self.path)
 
     def close(self) -> None:
         if self._unhook is not None:
@@ -332,7 +318,7 @@ class LocalService(Backend):
         return not isinstance(node, Resource) or bool(remote_children(node))
 
     def _tell_list_listeners(self, change: Change) -> None:
-        tell_each(self._list_listeners, change, what="the property list", on_raise=OnRaise.DROP)
+        tell_each(self._list_listeners, change, what="the property list")
 
     def _spawn(self, coro: Coroutine[Any, Any, None], what: str) -> asyncio.Task[None]:
         task = asyncio.get_running_loop().create_task(coro, name=what, context=own_context())

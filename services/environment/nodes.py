@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Annotated, Any
 
-from services.backend import Change, Notify, OnRaise, tell_each
+from services.backend import Change, Notify, tell_each
 from services.core import Marker, Prop, Resource
 from services.environment.fusion import MarkerFusion
 from services.environment.grid import Layer, to_npy
@@ -86,7 +86,7 @@ class LayerNode(Resource):
         self.changed("info")
         self.changed("image")
         if self.listeners:
-            tell_each(self.listeners, Change(path, self.npy()), what=path, on_raise=OnRaise.DROP)
+            tell_each(self.listeners, Change(path, self.npy()), what=path)
 
     def npy(self) -> bytes:
         """The layer's values (float32, NaN where a mean has no value yet) as ``numpy.save`` writes them."""

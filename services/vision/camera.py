@@ -30,16 +30,7 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from services.backend import (
-    NO_PARAMS,
-    UNKNOWN_TYPE,
-    Backend,
-    Change,
-    Notify,
-    OnRaise,
-    Subscription,
-    tell_each,
-)
+from services.backend import NO_PARAMS, UNKNOWN_TYPE, Backend, Change, Notify, Subscription, tell_each
 from services.core import LocalService, Prop, Resource
 from services.directory import Directory
 from services.errors import InvalidArgument, PropertyError, ReadOnly, ResourceExhausted
@@ -496,12 +487,7 @@ class Camera(Resource):
             self.changed("data")
         self.changed("markers")
         if self._camera_listeners:
-            tell_each(
-                self._camera_listeners,
-                Change("markers", camera),
-                what="markers (camera frame)",
-                on_raise=OnRaise.DROP,
-            )
+            tell_each(self._camera_listeners, Change("markers", camera), what="markers (camera frame)")
 
     def listen_camera_markers(self, notify: Notify) -> Subscription:
         """Call ``notify`` whenever the markers in the camera's frame change (CameraService's Listen)."""
