@@ -59,7 +59,7 @@ class Bounds:
             besides = f" (or {self.off:g}: off)" if self.off is not None else ""
             return f"must be {lowest} {self.high:g}{unit}{besides}"
         if self.above and self.low == 0:
-            return f"must be a positive number of {self.unit}" if self.unit else "must be positive"
+            return f"must be a positive number of {self.unit}" if self.unit else "must be a positive number"
         if self.above:
             return f"must be more than {self.low:g}{unit}"
         if not math.isfinite(value):
