@@ -23,7 +23,7 @@ from gateway.fronts.grpc_v1.listen_encoding import (
 from gateway.listen.requests import check_listen
 from gateway.listen.topics import Topic
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.conflation import Slot
+from services.conflation import ConflatingQueue, Slot
 from services.errors import InvalidArgument, ResourceExhausted
 from services.values import Value
 
@@ -31,8 +31,17 @@ values = st.one_of(st.text(max_size=300), st.binary(max_size=300))
 paths = st.sampled_from(["a", "robots.scout1.location", "ü.x"])
 
 
+def _queued(event: SharedEvent, gap: bool = False, removed: bool = False) -> Slot[SharedEvent]:
+    """What a Listen stream's queue holds for ``event``."""
+    queue: ConflatingQueue[int, SharedEvent] = ConflatingQueue()
+    queue.put(0, event, event.stamp, gap, removed)
+    slot = queue.get(0)
+    assert slot is not None
+    return slot
+
+
 def _slot(value: Value, stamp: int, conflated: int, gap: bool, removed: bool) -> Slot[SharedEvent]:
-    slot = Slot(SharedEvent("svc", "a", value, stamp), stamp, gap, removed)
+    slot = _queued(SharedEvent("svc", "a", value, stamp), gap, removed)
     slot.conflated = conflated
     return slot
 
@@ -40,7 +49,7 @@ def _slot(value: Value, stamp: int, conflated: int, gap: bool, removed: bool) ->
 def _on(path: str, slot: Slot[SharedEvent]) -> Slot[SharedEvent]:
     """``slot``'s change as an event of property ``path`` of ``svc``."""
     event = slot.value
-    moved = Slot(SharedEvent("svc", path, event.value, event.stamp), slot.stamp, slot.gap, slot.removed)
+    moved = _queued(SharedEvent("svc", path, event.value, event.stamp), slot.gap, slot.removed)
     moved.conflated = slot.conflated
     return moved
 
@@ -74,10 +83,10 @@ def test_the_wire_form_parses_to_the_message_built_in_place(
 def test_two_streams_share_the_encoded_change_and_keep_their_own_numbers() -> None:
     topic = _topic("scout1", "location")
     event = SharedEvent("scout1", "location", "(1 2 3)", 1_700_000_000_123_456_789)
-    change = Slot(event, event.stamp, False, False)
+    change = _queued(event)
     first = pb.ListenResponse.FromString(encode_wire([(topic, change)], 0))
     cached = event.encoded
-    behind = Slot(event, event.stamp, True, False)
+    behind = _queued(event, gap=True)
     behind.conflated = 4
     second = pb.ListenResponse.FromString(encode_wire([(topic, behind)], 20_000))
     assert cached is not None and event.encoded is cached  # encoded once
@@ -85,7 +94,7 @@ def test_two_streams_share_the_encoded_change_and_keep_their_own_numbers() -> No
     assert (second.events[0].sequence, second.events[0].conflated, second.events[0].gap) == (20_001, 4, True)
     assert second.events[0].value == "(1 2 3)"
     assert second.events[0].time.ToNanoseconds() == event.stamp
-    newer = Slot(SharedEvent("scout1", "location", "(4 5 6)", event.stamp + 1), event.stamp + 1, False, False)
+    newer = _queued(SharedEvent("scout1", "location", "(4 5 6)", event.stamp + 1))
     assert pb.ListenResponse.FromString(encode_wire([(topic, newer)], 1)).events[0].value == "(4 5 6)"
 
 
@@ -161,14 +170,14 @@ def _varint(n: int) -> bytes:
 
 def test_a_change_is_led_once_per_length_and_a_big_value_is_not_copied_into_its_leads() -> None:
     topic = _topic("cam", "frame")
-    small = Slot(SharedEvent("cam", "frame", "x", 1), 1, False, False)
+    small = _queued(SharedEvent("cam", "frame", "x", 1))
     encode_wire([(topic, small)], 0)
     encode_wire([(topic, small)], 5)  # a second stream whose sequence number is as long
     shared = small.value.encoded
     assert shared is not None and list(shared.leads) == [2] and shared.rest == b""
     encode_wire([(topic, small)], 200)  # a third, with a longer one: a second lead
     assert sorted(shared.leads) == [2, 3]
-    frame = Slot(SharedEvent("cam", "frame", bytes(LEAD_BODY_BYTES + 1), 2), 2, False, False)
+    frame = _queued(SharedEvent("cam", "frame", bytes(LEAD_BODY_BYTES + 1), 2))
     first = encode_wire([(topic, frame)], 0)
     shared = frame.value.encoded
     assert shared is not None and shared.rest is shared.body
