@@ -23,14 +23,11 @@ from __future__ import annotations
 import enum
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from services.conflation import Slot
 from services.paths import WILDCARD
 from services.values import Value
-
-if TYPE_CHECKING:
-    from gateway.listen.topics import Topic
 
 __all__ = [
     "Batch",
@@ -126,8 +123,9 @@ class SharedEvent:
         self.encoded: Any = None
 
 
-#: One event ready for a writer: the stream's topic it is about, and the stream's slot for it.
-Ready = tuple["Topic", Slot[SharedEvent]]
+#: One event ready for a writer: the stream's topic it is about (the hub's own: a front never reads
+#: it, so the engine's types need not know the hub), and the stream's slot for it.
+Ready = tuple[Any, Slot[SharedEvent]]
 #: Events ready, and the stream's sequence number before the first of them.
 Batch = tuple[list[Ready], int]
 #: What a writer takes at a time.
