@@ -83,7 +83,9 @@ def instruction_runs() -> dict[str, subprocess.CompletedProcess[str]]:
         )
 
     idle_cores = psutil.cpu_count() * (100.0 - psutil.cpu_percent(interval=1.0)) / 100.0
-    with ThreadPoolExecutor(max_workers=SIDE_BY_SIDE if idle_cores >= 1.5 else 1) as pool:
+    at_once = SIDE_BY_SIDE if idle_cores >= 1.5 else 1
+    print(f"bench.instructions runs: {at_once} at a time ({idle_cores:.1f} cores idle)")
+    with ThreadPoolExecutor(max_workers=at_once) as pool:
         return dict(zip(INSTRUCTION_RUNS, pool.map(run, INSTRUCTION_RUNS), strict=True))
 
 
