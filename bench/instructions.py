@@ -26,6 +26,12 @@ they are the same per call on each server) nor cache misses.
   of ten Sets (one to each) in one Session message, as the batched mode of part (c); per event
   delivered (the gateway and the floor send a burst's ten events in one message, the bare server
   one message each).
+* ``proxied``: unary Gets of ``speed`` of a device behind the gateway's TCP line proxy, one in
+  flight (the gateway only). The device is :data:`bench.line.DEVICE_ARGV`, the Python line-protocol
+  device server of part (e) of ``python -m bench``, in a process of its own on loopback and not
+  under valgrind: only the gateway's instructions are counted (the gRPC call in, the line out to
+  the device, its reply read back). The proxy's keep-alive is off, so that no PING falls into a
+  measured batch.
 
 Needs valgrind (``apt-get install valgrind``); without it the command says so and exits 2.
 """
@@ -48,9 +54,11 @@ from typing import Any
 import grpc
 
 from bench.baseline import ECHO_METHOD
+from bench.line import DEVICE, DEVICE_ARGV
+from bench.line import PROPERTY as DEVICE_PROPERTY
 from bench.listen import CHANNEL_OPTIONS
 from bench.measure import STREAM_END
-from bench.servers import ROOT
+from bench.servers import ROOT, ServerProcess
 from bench.target import BATCH_PROPERTIES, SERVICE, VALUE_PROPERTY
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -61,14 +69,15 @@ SERVERS = {
     "floor": ["bench.fanout", "--serve"],
 }
 #: What each server can be measured on: the floor serves only a fan-out, and only the gateway
-#: has Listens inside Sessions.
+#: has Listens inside Sessions and a line proxy.
 SERVES = {
     "bare": ("unary", "fanout", "batched-fanout", "session", "echo"),
-    "gateway": ("unary", "fanout", "session-fanout", "batched-fanout", "session"),
+    "gateway": ("unary", "fanout", "session-fanout", "batched-fanout", "session", "proxied"),
     "floor": ("fanout", "batched-fanout"),
 }
-#: Seconds a server under valgrind may take to print its address (it starts about fifty times slower).
-START_TIMEOUT = 180.0
+#: Seconds a server under valgrind may take to print its address (it starts about fifty times slower;
+#: on a 2-core machine running other work beside it, the gateway has taken over 180 s).
+START_TIMEOUT = 600.0
 #: Seconds one call may take under valgrind.
 CALL_TIMEOUT = 120.0
 #: Calls a round of ``unary`` measures, Sets a round of ``fanout`` makes (to 100 streams); and with
@@ -78,6 +87,8 @@ FANOUT_SETS = 40
 QUICK_CALLS = 50
 QUICK_SETS = 5
 SUBSCRIBERS = 100
+#: Unary parts: one Get per call, counted per Get.
+UNARY_PARTS = frozenset({"unary", "session", "echo", "proxied"})
 
 
 def _summary(dump: str) -> int:
@@ -182,8 +193,18 @@ async def _drain(stream: asyncio.StreamReader) -> None:
 
 async def unary_round(server: Counted, channel: grpc.aio.Channel, calls: int) -> tuple[float, float]:
     """Instructions per unary Get (all threads, main thread), ``calls`` Gets one at a time."""
+    return await _gets(server, channel, pb.GetRequest(service=SERVICE, property=VALUE_PROPERTY), calls)
+
+
+async def proxied_round(server: Counted, channel: grpc.aio.Channel, calls: int) -> tuple[float, float]:
+    """The same of a device's property, through the gateway's TCP line proxy."""
+    return await _gets(server, channel, pb.GetRequest(service=DEVICE, property=DEVICE_PROPERTY), calls)
+
+
+async def _gets(
+    server: Counted, channel: grpc.aio.Channel, request: pb.GetRequest, calls: int
+) -> tuple[float, float]:
     stub = pb_grpc.PropertyServiceStub(channel)
-    request = pb.GetRequest(service=SERVICE, property=VALUE_PROPERTY)
     await server.zero()
     for _ in range(calls):
         await stub.Get(request, timeout=CALL_TIMEOUT)
@@ -333,17 +354,56 @@ PARTS: dict[str, Callable[[Counted, grpc.aio.Channel, int], Awaitable[tuple[floa
     "session": session_round,
     "echo": echo_round,
     "batched-fanout": batched_fanout_round,
+    "proxied": proxied_round,
 }
+
+
+def _device_config(device_address: str) -> str:
+    """A gateway config serving the device at ``device_address`` as service :data:`DEVICE`.
+
+    No keep-alive PING: one falling into a measured batch would be counted; and a call timeout
+    that a gateway under valgrind cannot reach."""
+    return (
+        f'[[services]]\nname = "{DEVICE}"\nurl = "tcp://{device_address}"\n'
+        f"options = {{ keepalive = 0, timeout = {CALL_TIMEOUT} }}\n"
+    )
+
+
+async def _answering(stub: pb_grpc.PropertyServiceStub, request: pb.GetRequest) -> None:
+    """Wait until the gateway answers ``request``: its proxy connects to the device after it starts."""
+    async with asyncio.timeout(START_TIMEOUT):
+        while True:
+            try:
+                await stub.Get(request, timeout=CALL_TIMEOUT)
+                return
+            except grpc.aio.AioRpcError as error:
+                if error.code() != grpc.StatusCode.UNAVAILABLE:
+                    raise
+            await asyncio.sleep(0.5)
 
 
 async def measure(part: str, kind: str, rounds: int, quick: bool) -> list[tuple[float, float]]:
     """``rounds`` counts of ``part`` on one ``kind`` of server under callgrind."""
-    if part in {"unary", "session", "echo"}:
+    if part in UNARY_PARTS:
         size = QUICK_CALLS if quick else UNARY_CALLS
     else:
         size = QUICK_SETS if quick else FANOUT_SETS
+    device: ServerProcess | None = None
     with tempfile.TemporaryDirectory(prefix="callgrind-") as folder:
-        server = await Counted.start(SERVERS[kind], Path(folder))
+        argv = SERVERS[kind]
+        if part == "proxied":
+            device = await ServerProcess.start(
+                "device", [*DEVICE_ARGV, "--exit-with-parent"], address_on="stdout"
+            )
+            config = Path(folder) / "gateway.toml"
+            config.write_text(_device_config(device.address))
+            argv = [*argv, "--config", str(config)]
+        try:
+            server = await Counted.start(argv, Path(folder))
+        except BaseException:
+            if device is not None:
+                await device.stop()
+            raise
         try:
             async with grpc.aio.insecure_channel(server.address) as channel:
                 stub = pb_grpc.PropertyServiceStub(channel)
@@ -351,11 +411,17 @@ async def measure(part: str, kind: str, rounds: int, quick: bool) -> list[tuple[
                     first = pb.SetRequest(service=SERVICE, property=prop, value="0")
                     await stub.Set(first, timeout=CALL_TIMEOUT)
                 get = pb.GetRequest(service=SERVICE, property=VALUE_PROPERTY)
-                for _ in range(20 if part == "unary" else 0):  # warm up: the first calls import and cache
+                if part == "proxied":
+                    get = pb.GetRequest(service=DEVICE, property=DEVICE_PROPERTY)
+                    await _answering(stub, get)
+                # Warm up: the first calls import and cache.
+                for _ in range(20 if part in {"unary", "proxied"} else 0):
                     await stub.Get(get, timeout=CALL_TIMEOUT)
                 return [await PARTS[part](server, channel, size) for _ in range(rounds)]
         finally:
             await server.stop()
+            if device is not None:
+                await device.stop()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -364,7 +430,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--parts",
         default="unary,fanout",
-        help="unary, fanout, session-fanout, batched-fanout, session, echo (default unary,fanout)",
+        help="unary, fanout, session-fanout, batched-fanout, session, echo, proxied (default unary,fanout)",
     )
     parser.add_argument(
         "--servers", default="bare,gateway", help="bare, gateway, floor (default bare,gateway)"
@@ -390,6 +456,7 @@ def main(argv: list[str] | None = None) -> int:
         "batched-fanout": "event",
         "session": "Get",
         "echo": "Get",
+        "proxied": "Get",
     }
     for part in parts:
         medians: dict[str, float] = {}

@@ -8,6 +8,8 @@ failure is a ``PropertyServiceError`` subclass.
 The public surface of each module (its ``__all__``) is re-exported here.
 """
 
+from typing import Any
+
 from clients import aio, credentials, errors, sync, values
 from clients.aio import *  # noqa: F403
 from clients.credentials import *  # noqa: F403
@@ -16,3 +18,11 @@ from clients.sync import *  # noqa: F403
 from clients.values import *  # noqa: F403
 
 __all__ = aio.__all__ + credentials.__all__ + errors.__all__ + sync.__all__ + values.__all__
+
+
+def __getattr__(name: str) -> Any:
+    # clients.Vector is numpy's array type, named on first use so that importing the SDK does not
+    # load numpy (see clients.values).
+    if name == "Vector":
+        return values.Vector
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

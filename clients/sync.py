@@ -12,7 +12,7 @@ import concurrent.futures
 import threading
 from collections.abc import AsyncIterator, Awaitable, Iterable, Sequence
 from types import TracebackType
-from typing import Any, Generic, Self, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, Self, TypeVar
 
 from clients.aio import (
     DEFAULT_FAILOVER_LIMIT,
@@ -30,9 +30,12 @@ from clients.aio import (
 from clients.aio import Session as AsyncSession
 from clients.credentials import ClientCredentials
 from clients.errors import DeadlineExceeded
-from clients.values import Marker, Value, Vector
+from clients.values import Marker, Value
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.model import ServiceModel
+
+if TYPE_CHECKING:
+    from clients.values import Vector
 
 __all__ = ["Client", "ListenIterator", "SyncSession"]
 

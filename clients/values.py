@@ -17,17 +17,15 @@ A text that does not fit raises :class:`ValueFormatError` (a ``ValueError``).
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from services import values as grammar
 from services.values import (
     Marker,
     Value,
     ValueFormatError,
-    Vector,
     parse_marker,
     parse_names,
     parse_number,
@@ -39,7 +37,6 @@ __all__ = [
     "Marker",
     "Value",
     "ValueFormatError",
-    "Vector",
     "format_value",
     "outgoing_value",
     "parse_marker",
@@ -48,6 +45,19 @@ __all__ = [
     "parse_vector",
     "parse_vectors",
 ]
+
+if TYPE_CHECKING:
+    from typing import TypeAlias
+
+    Vector: TypeAlias = grammar.Vector
+
+
+def __getattr__(name: str) -> Any:
+    # Vector, the type of a parsed vector, is numpy's array: named on first use, so that importing
+    # the SDK does not load numpy (it is left out of __all__, which `clients` re-exports with *).
+    if name == "Vector":
+        return grammar.Vector
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def format_value(value: Any) -> str:
@@ -61,7 +71,8 @@ def format_value(value: Any) -> str:
     # A client sends what it means: no None for "empty", no array the grammar would flatten into lists.
     if value is None:
         raise TypeError("no value format for a NoneType")
-    if isinstance(value, np.ndarray) and value.ndim > 2:
+    numpy = sys.modules.get("numpy")  # an array can only come from a numpy already loaded
+    if numpy is not None and isinstance(value, numpy.ndarray) and value.ndim > 2:
         raise ValueFormatError(f"cannot send an array of shape {value.shape}: use 1-D or 2-D")
     if isinstance(value, Sequence) and not isinstance(value, str | list | tuple):
         value = list(value)

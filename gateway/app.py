@@ -25,8 +25,6 @@ from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
 import grpc
-from grpc_health.v1 import health_pb2
-from grpc_reflection.v1alpha import reflection
 
 from gateway.backends import open_backend, open_proxy
 from gateway.client_faults import filter_grpc_client_faults
@@ -36,17 +34,21 @@ from gateway.config import METRICS_MAX_CONNECTIONS, REGISTRY_NAME, Config, Confi
 from gateway.connections import share_open_files
 from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
+from gateway.fronts.grpc_v1.health import NOT_SERVING, SERVING, HealthService
+from gateway.fronts.grpc_v1.servicer import (
+    SERVICE_NAME,
+    PropertyServicer,
+    add_health_and_reflection,
+    add_to_server,
+)
 from gateway.guard import Guard
-from gateway.health import NOT_SERVING, SERVING, HealthService
 from gateway.licensing import current_caller, may_license, may_provide
 from gateway.line_listener import LineListener, start_line_listener
 from gateway.listen import ListenHub
 from gateway.ports import PortInUse, check_port_free, port_holder
 from gateway.router import Router
-from gateway.server import PropertyServicer, add_health_and_reflection, add_to_server
 from gateway.stores import open_store
 from gateway.tls import LineCredentials, ServerCredentials
-from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Backend, BackendInfo
 from services.catalog import build, needs_directory
 from services.errors import PropertyError
@@ -72,7 +74,6 @@ DEVICE_CONNECT_WAIT = 5.0
 #: (docs/errors.md); past it grpc ends a new call with CANCELLED before the gateway sees it.
 PENDING_CALLS = 20_000
 
-SERVICE_NAME = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
 #: Keep-alive pings the gRPC port accepts from clients (see docs/client.md, failover): the SDK pings
 #: every second while a call is open, so that a frozen gateway is found within two. grpc's own
 #: policy answers a ping more often than every 5 minutes on a quiet stream with GOAWAY "too many
@@ -519,6 +520,7 @@ class Gateway:
                 device_secrets=self._device_secrets(),
                 alternates=self._alternates,
                 seats=self.cluster,
+                calls=self.servicer.calls,
             )
         except OSError as exc:
             if exc.errno != errno.EADDRINUSE:
@@ -610,15 +612,7 @@ class Gateway:
         filter_grpc_client_faults()  # a call cancelled while a message was sent: no traceback
         # Not the generated registration: a request that does not parse is INVALID_ARGUMENT.
         add_to_server(self.servicer, server)
-        add_health_and_reflection(
-            server,
-            self.health,
-            (
-                SERVICE_NAME,
-                health_pb2.DESCRIPTOR.services_by_name["Health"].full_name,
-                reflection.SERVICE_NAME,
-            ),
-        )
+        add_health_and_reflection(server, self.health)
         listen = self.config.gateway.listen
         if self.config.tls.enabled:
             self.credentials = ServerCredentials(self.config.tls)

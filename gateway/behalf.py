@@ -127,6 +127,9 @@ class OnBehalf(Backend):
         self._read(path)
         return self.inner.start_get(path, params, time_limit, then)
 
+    def flush(self) -> None:
+        self.inner.flush()
+
     async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
         caller = CALLER.get()
         if caller is not None:

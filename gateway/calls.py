@@ -1,14 +1,14 @@
 """The call layer: a Get or Set request → one bounded backend call → its answer.
 
-The unary handlers and the Session handler both go through :class:`Calls`;
-they differ only in how they wait. :meth:`Calls.start_get` and
-:meth:`Calls.start_set` resolve the service and path (raising at once on a
-bad one) and start the call, returning one of
-
-* the value itself: an in-process service answered without waiting;
-* an :class:`asyncio.Future` of the backend's reply (a line-protocol proxy
-  sent the GET and resolves it from its reader: no task, one timer);
-* an awaitable of the value, under the call timeout, to await in a task.
+Every front end goes through :class:`Calls`, in the engine's own types
+(:mod:`gateway.engine.types`): a :class:`GetCall`, :class:`SetCall` or
+:class:`DescribeCall` in, a :class:`GetReply`, the Set's value or the model out. The
+fronts differ only in how they wait. :meth:`Calls.start_get` and
+:meth:`Calls.start_set` resolve the service and path (raising at once on a bad
+one) and start the call, returning its :class:`~gateway.engine.handle.CallHandle`:
+done already when an in-process service answered without waiting, else done
+when the backend answers (a line-protocol proxy resolves its reply from its
+reader: no task, one timer).
 
 A Get whose path (or one of whose ``more`` paths) has ``*`` segments is a
 snapshot, as gNMI's Get with a wildcard path: each pattern is expanded by the
@@ -38,20 +38,20 @@ from __future__ import annotations
 
 import asyncio
 import functools
-from collections.abc import Awaitable, Callable, Coroutine, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from typing import Any
 
+from gateway.engine.handle import AnsweredCall, AwaitedCall, CallHandle, RepliedCall
+from gateway.engine.types import DescribeCall, GetCall, GetReply, PropertyValue, SetCall, is_snapshot
 from gateway.federation import VIA
 from gateway.guard import REGISTRY, Guard
 from gateway.identity import ANONYMOUS
 from gateway.licensing import check_set
 from gateway.router import Router, bounded_call, check_path, finish_call
 from gateway.rules import Operation, Subject
-from gateway.sizes import SURELY_FITS_CHARS, check_fits
+from gateway.sizes import SURELY_FITS_CHARS, check_fits, reply_size
 from gateway.status import to_property_error
-from gateway.wire_values import put, received
-from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.backend import NO_PARAMS, Answer, Backend
+from services.backend import Backend
 from services.directory import CALLER
 from services.eager import Started, step
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, ResourceExhausted
@@ -60,38 +60,10 @@ from services.paths import is_pattern, validate_pattern
 from services.registry import Licences
 from services.values import Value
 
-#: What starting a call gives; see the module docstring.
-Begun = str | bytes | asyncio.Future[Answer] | Awaitable[Value]
+__all__ = ["Calls", "is_snapshot"]
 
 #: (service, path, parameters, backend) of one path a Get reads.
 _Ref = tuple[str, str, Mapping[str, str], Backend]
-
-
-def is_snapshot(request: pb.GetRequest) -> bool:
-    """True when a path of the Get has a ``*`` segment: its answer lists every match in ``more``."""
-    return is_pattern(request.property) or any(is_pattern(ref.property) for ref in request.more)
-
-
-class Undecodable:
-    """A request that did not parse, e.g. a string field holding bytes that are not UTF-8."""
-
-    __slots__ = ("error",)
-
-    def __init__(self, error: InvalidArgument) -> None:
-        self.error = error
-
-
-def _params(params: Mapping[str, str]) -> Mapping[str, str]:
-    return dict(params) if params else NO_PARAMS
-
-
-async def outcome(begun: Begun) -> Value:
-    """Wait for a started call's value, whichever way it was started."""
-    if isinstance(begun, str | bytes):
-        return begun
-    if isinstance(begun, asyncio.Future):
-        return (await begun).value
-    return await begun
 
 
 class Calls:
@@ -127,47 +99,42 @@ class Calls:
             raise InvalidArgument(f"{verb} needs a service name")
         return self.router.backend(service)
 
-    async def describe(self, service: str, time_limit: float, subject: Subject = ANONYMOUS) -> ServiceModel:
-        """The whole model of ``service`` (the Describe RPC), checked as a read of the service itself."""
+    async def describe(
+        self, call: DescribeCall, time_limit: float, subject: Subject = ANONYMOUS
+    ) -> ServiceModel:
+        """The whole model of the call's service, checked as a read of the service itself."""
+        service = call.service
         backend = self._backend(service, "Describe")
         if self.guard.checks:
             self.guard.require(subject, service, "", Operation.READ)
             CALLER.set(subject)
         return await bounded_call(backend.describe(), time_limit, lambda: f"{service}: describe")
 
-    def start_get(
-        self,
-        request: pb.GetRequest,
-        time_limit: float,
-        subject: Subject = ANONYMOUS,
-        then: Callable[[Answer], None] | None = None,
-    ) -> Begun:
-        """Start reading the request's one path (``more`` is :meth:`get`'s).
-
-        ``then`` goes to a proxy that answers by a future (:meth:`Backend.start_get`).
-        """
-        service = request.service
+    def start_get(self, call: GetCall, time_limit: float, subject: Subject = ANONYMOUS) -> CallHandle:
+        """Start reading the call's one path (``more`` is :meth:`get`'s)."""
+        service = call.service
         backend = self._backend(service, "Get")
-        path = check_path(request.property)
+        path = check_path(call.path)
         if self.guard.checks:
             self.guard.require(subject, service, path, Operation.READ)
             CALLER.set(subject)
-        params = request.parameters
+        params = call.parameters
         if backend.answers_inline:
-            return _inline(backend.get(path, _params(params)), time_limit, service, "get", path)
-        future = backend.start_get(path, params, time_limit, then)
-        if future is not None:
-            return future
+            return _inline(backend.get(path, params), time_limit, service, "get", path, backend=backend)
+        replied = RepliedCall(backend)
+        replied.future = backend.start_get(path, params, time_limit, replied.replied)
+        if replied.future is not None:
+            return replied
         # A proxy's call is stepped inside whichever task awaits it (its timeouts belong there).
         what = functools.partial("{}: get {}".format, service, path)
-        return bounded_call(backend.get(path, _params(params)), time_limit, what)
+        return AwaitedCall(bounded_call(backend.get(path, params), time_limit, what), backend)
 
-    def start_set(self, request: pb.SetRequest, time_limit: float, subject: Subject = ANONYMOUS) -> Begun:
-        """Start writing the request's value; the call's value is the service's answer.
+    def start_set(self, call: SetCall, time_limit: float, subject: Subject = ANONYMOUS) -> CallHandle:
+        """Start writing the call's value; the handle's value is the service's answer.
 
         Checked and audited: a refusal raises here; the outcome of the Set is recorded when it is known.
         """
-        service = request.service
+        service = call.service
         guard = self.guard
         if guard.checks or service == REGISTRY or self.licences is not None:
             # Checked deeper as this subject: the calls a service makes for it (by the rules and
@@ -175,110 +142,91 @@ class Calls:
             CALLER.set(subject)
         try:
             backend = self._backend(service, "Set")
-            path = check_path(request.property)
-            value = received(request)
-            operation = guard.set_operation(subject, service, path, value)
+            path = check_path(call.path)
+            operation = guard.set_operation(subject, service, path, call.value)
             if not self.forwarded_by_peer():
                 check_set(self.licences, subject, service, path)
         except PropertyError as exc:
             if exc.code not in (Code.PERMISSION_DENIED, Code.UNAUTHENTICATED):  # already audited
-                guard.audited(subject, service, request.property, Operation.WRITE, exc)
+                guard.audited(subject, service, call.path, Operation.WRITE, exc)
             raise
         if operation is None:
-            return self._set_after_model(
-                request, value, backend, path, time_limit=time_limit, subject=subject
+            return AwaitedCall(
+                self._set_after_model(call, backend, path, time_limit=time_limit, subject=subject), backend
             )
         try:
-            begun = self._start_set(request, value, backend, path, time_limit)
+            handle = self._start_set(call, backend, path, time_limit)
         except Exception as exc:
             guard.audited(subject, service, path, operation, exc)
             raise
-        if isinstance(begun, str | bytes):
+        if handle.done:
             guard.audited(subject, service, path, operation, None)
-            return begun
-        return _audited(begun, functools.partial(guard.audited, subject, service, path, operation))
+            return handle
+        record = functools.partial(guard.audited, subject, service, path, operation)
+        return AwaitedCall(_audited(handle, record), backend)
 
-    def _start_set(
-        self, request: pb.SetRequest, value: Value, backend: Backend, path: str, time_limit: float
-    ) -> Begun:
-        service = request.service
-        call = backend.set(path, value, _params(request.parameters))
+    def _start_set(self, call: SetCall, backend: Backend, path: str, time_limit: float) -> CallHandle:
+        service = call.service
+        coro = backend.set(path, call.value, call.parameters)
         if backend.answers_inline:
-            return _inline(call, time_limit, service, "set", path)
-        return bounded_call(call, time_limit, functools.partial("{}: set {}".format, service, path))
+            return _inline(coro, time_limit, service, "set", path, backend=backend)
+        what = functools.partial("{}: set {}".format, service, path)
+        return AwaitedCall(bounded_call(coro, time_limit, what), backend)
 
     async def _set_after_model(
-        self,
-        request: pb.SetRequest,
-        value: Value,
-        backend: Backend,
-        path: str,
-        *,
-        time_limit: float,
-        subject: Subject,
+        self, call: SetCall, backend: Backend, path: str, *, time_limit: float, subject: Subject
     ) -> Value:
         """A Set the rules treat differently as a write and as an action: the model tells which it is."""
-        service = request.service
+        service = call.service
         describe = bounded_call(
             backend.describe(), time_limit, functools.partial("{}: describe for set {}".format, service, path)
         )
         operation = await self.guard.set_operation_from_model(subject, service, path, describe)
         try:
-            answer = await outcome(self._start_set(request, value, backend, path, time_limit))
+            answer = await self._start_set(call, backend, path, time_limit)
         except Exception as exc:
             self.guard.audited(subject, service, path, operation, exc)
             raise
         self.guard.audited(subject, service, path, operation, None)
         return answer
 
-    async def get(
-        self, request: pb.GetRequest, time_limit: float, subject: Subject = ANONYMOUS
-    ) -> pb.GetResponse:
-        """Read the request's path and its ``more`` paths (a snapshot when one has ``*``); all or nothing."""
-        if not request.more and not is_pattern(request.property):
+    async def get(self, call: GetCall, time_limit: float, subject: Subject = ANONYMOUS) -> GetReply:
+        """Read the call's path and its ``more`` paths (a snapshot when one has ``*``); all or nothing."""
+        if not call.more and not is_pattern(call.path):
             # One path, the commonest Get: an in-process answer is not awaited, and an answer
             # too short to outgrow a message is not measured.
-            begun = self.start_get(request, time_limit, subject)
-            value = begun if type(begun) is str or type(begun) is bytes else await outcome(begun)
-            response = pb.GetResponse()
-            put(response, value)
+            handle = self.start_get(call, time_limit, subject)
+            value = handle.result() if handle.done else await handle
+            reply = GetReply(value)
             if len(value) <= SURELY_FITS_CHARS:
-                return response
+                return reply
         else:
             if self.guard.checks:
                 CALLER.set(subject)
-            if is_snapshot(request):
-                response = pb.GetResponse(more=await self._snapshot(request, time_limit, subject))
+            if is_snapshot(call):
+                reply = GetReply("", await self._snapshot(call, time_limit, subject))
             else:
                 # Every path is resolved (and counted) first, so that a bad one fails the call
                 # before any backend is asked.
-                refs = self._resolve_more(request, subject)
-                value = await outcome(self.start_get(request, time_limit, subject))
-                response = pb.GetResponse(more=await self._read(refs, time_limit))
-                put(response, value)
+                refs = self._resolve_more(call, subject)
+                value = await self.start_get(call, time_limit, subject)
+                reply = GetReply(value, await self._read(refs, time_limit))
         check_fits(
-            response,
-            lambda: (
-                f"{request.service}: get {request.property}"
-                + (f" and {len(request.more)} more" if request.more else "")
-            ),
+            reply_size(reply.value, reply.more),
+            lambda: f"{call.service}: get {call.path}" + (f" and {len(call.more)} more" if call.more else ""),
         )
-        return response
+        return reply
 
-    async def set(
-        self, request: pb.SetRequest, time_limit: float, subject: Subject = ANONYMOUS
-    ) -> pb.SetResponse:
-        """Write the request's value; the response carries the service's answer."""
-        response = pb.SetResponse()
-        begun = self.start_set(request, time_limit, subject)
-        answer = begun if type(begun) is str or type(begun) is bytes else await outcome(begun)
+    async def set(self, call: SetCall, time_limit: float, subject: Subject = ANONYMOUS) -> Value:
+        """Write the call's value; the service's answer is the value returned."""
+        handle = self.start_set(call, time_limit, subject)
+        answer = handle.result() if handle.done else await handle
         # A service method that returns nothing answers an empty value (empty bytes stay binary).
         if answer is None:
             answer = ""
-        put(response, answer)
         if len(answer) > SURELY_FITS_CHARS:
-            check_fits(response, lambda: f"{request.service}: set {request.property}")
-        return response
+            check_fits(reply_size(answer), lambda: f"{call.service}: set {call.path}")
+        return answer
 
     def _check_count(self, paths: int) -> None:
         if paths > self.max_get_paths:
@@ -303,22 +251,19 @@ class Calls:
         except PropertyError as exc:
             # Names are clipped: an echo of a huge bad name must not outgrow the status message.
             raise type(exc)(f"{service[:80]}/{path[:256]}: {exc.message}", exc.code) from None
-        return service, path, _params(params), backend
+        return service, path, params, backend
 
-    def _resolve_more(self, request: pb.GetRequest, subject: Subject) -> list[_Ref]:
-        """The request's ``more`` paths, counted and resolved; raises on the first bad one."""
-        self._check_count(len(request.more) + 1)
+    def _resolve_more(self, call: GetCall, subject: Subject) -> list[_Ref]:
+        """The call's ``more`` paths, counted and resolved; raises on the first bad one."""
+        self._check_count(len(call.more) + 1)
         return [
-            self._resolve(ref.service or request.service, ref.property, ref.parameters, subject)
-            for ref in request.more
+            self._resolve(ref.service or call.service, ref.path, ref.parameters, subject) for ref in call.more
         ]
 
-    async def _snapshot(
-        self, request: pb.GetRequest, time_limit: float, subject: Subject
-    ) -> list[pb.PropertyValue]:
+    async def _snapshot(self, call: GetCall, time_limit: float, subject: Subject) -> list[PropertyValue]:
         """Every path of the Get, each pattern expanded to the readable properties it matches."""
-        asked = [(request.service, request.property, request.parameters)]
-        asked += [(ref.service or request.service, ref.property, ref.parameters) for ref in request.more]
+        asked = [(call.service, call.path, call.parameters)]
+        asked += [(ref.service or call.service, ref.path, ref.parameters) for ref in call.more]
         self._check_count(len(asked))
         resolved = [
             self._resolve(service, path, params, subject, pattern=True) for service, path, params in asked
@@ -363,7 +308,7 @@ class Calls:
             raise NotFound(f"{service}/{pattern}: no readable property of {service} matches")
         return names
 
-    async def _read(self, refs: list[_Ref], time_limit: float) -> list[pb.PropertyValue]:
+    async def _read(self, refs: list[_Ref], time_limit: float) -> list[PropertyValue]:
         """Read every ref: one backend's paths one after another, backends side by side."""
         groups: dict[int, list[int]] = {}
         for i, (_, _, _, backend) in enumerate(refs):
@@ -393,24 +338,31 @@ class Calls:
             if isinstance(value, BaseException):
                 err = to_property_error(value, f"{service}: get {path}")
                 raise type(err)(f"{service}/{path}: {err.message}", err.code) from None
-            entry = pb.PropertyValue(service=service, property=path)
-            put(entry, value)
-            out.append(entry)
+            out.append(PropertyValue(service, path, value))
         return out
 
 
-def _inline(call: Coroutine[Any, Any, Value], time_limit: float, service: str, verb: str, path: str) -> Begun:
+def _inline(
+    coro: Coroutine[Any, Any, Value],
+    time_limit: float,
+    service: str,
+    verb: str,
+    path: str,
+    *,
+    backend: Backend,
+) -> CallHandle:
     """Step an in-process call here, in the caller's task: an answer at once costs no task and no timer."""
-    first = step(call)
+    first = step(coro)
     if isinstance(first, Started):
-        return finish_call(first, time_limit, functools.partial("{}: {} {}".format, service, verb, path))
-    return first if first is not None else ""
+        what = functools.partial("{}: {} {}".format, service, verb, path)
+        return AwaitedCall(finish_call(first, time_limit, what), backend)
+    return AnsweredCall(first if first is not None else "")
 
 
-async def _audited(begun: Begun, record: Callable[[BaseException | None], None]) -> Value:
+async def _audited(handle: CallHandle, record: Callable[[BaseException | None], None]) -> Value:
     """A started Set's value, its outcome recorded (``record``: see :meth:`Guard.audited`)."""
     try:
-        value = await outcome(begun)
+        value = await handle
     except BaseException as exc:
         record(exc)
         raise

@@ -13,13 +13,14 @@ import ipaddress
 import math
 import tomllib
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
 from gateway.audit import AuditSection
 from gateway.identity import Authenticator, AuthSection
 from gateway.logs import LOG_FORMATS
+from gateway.options import Wording, convert, option, read_options, shown
 from gateway.rules import Rule
 from gateway.stores.address import parse_store_url
 from gateway.stores.etcd import DEFAULT_LEASE as DEFAULT_STORE_LEASE
@@ -78,27 +79,27 @@ class GatewaySection:
     #: host:port of the raw-TCP line-protocol listener; empty = off.
     line_listen: str = ""
     #: Seconds any one backend call may take before DEADLINE_EXCEEDED.
-    call_timeout: float = 5.0
+    call_timeout: float = option(5.0, above=True, unit="seconds")
     log_level: str = "info"
     #: How log lines look: "text" (time level logger: message) or "json" (one object a line).
     log_format: str = "text"
     #: Seconds Listen and Session streams get to end at shutdown.
-    shutdown_grace: float = 2.0
+    shutdown_grace: float = option(2.0, unit="seconds")
     #: Listen on a non-loopback address without TLS (anyone who reaches the port reads and drives
     #: every service); false = such a config is refused.
     allow_insecure_remote: bool = False
     #: gRPC connections open at once (grpc.max_allowed_incoming_connections); beyond, a new one is
     #: closed as soon as it is accepted. Its share of open files (docs/security.md, "Bounded
     #: connections").
-    max_connections: int = 4096
+    max_connections: int = option(4096, low=1)
     #: Seconds a gRPC connection with no call running may stay open (grpc.max_connection_idle_ms).
-    idle_timeout: float = 300.0
+    idle_timeout: float = option(300.0, above=True, unit="seconds")
     #: Seconds a new connection gets to finish its TLS handshake and HTTP/2 preface (gRPC) or its TLS
     #: handshake (HTTPS); a connection that sends nothing is closed after it.
-    handshake_timeout: float = 10.0
+    handshake_timeout: float = option(10.0, above=True, unit="seconds")
     #: Seconds each ``[[devices]]`` process may take to say where it serves, at start and at each
     #: restart; a process still silent after it is ended and the gateway's start fails.
-    device_start_timeout: float = 30.0
+    device_start_timeout: float = option(30.0, above=True, unit="seconds")
 
 
 @dataclass(frozen=True, slots=True)
@@ -145,41 +146,41 @@ class Limits:
     """``[limits]``: bounds that keep one client from exhausting the gateway."""
 
     #: Selectors in one Listen request (the request's own plus ``more``).
-    max_selectors: int = 64
+    max_selectors: int = option(64, low=1)
     #: Properties one Listen stream may match after wildcards are expanded.
-    max_stream_properties: int = 10_000
+    max_stream_properties: int = option(10_000, low=1)
     #: Listen streams open at once, gRPC Listen and Session listens together.
-    max_streams: int = 10_000
+    max_streams: int = option(10_000, low=1)
     #: Paths in one Get (the request's own plus ``more``).
-    max_get_paths: int = 1_000
+    max_get_paths: int = option(1_000, low=1)
     #: Events in one ListenResponse when the client does not ask for fewer.
-    max_batch: int = 256
+    max_batch: int = option(256, low=1)
     #: Get and Set requests running at once in one Session; beyond, reading waits.
-    session_max_in_flight: int = 256
+    session_max_in_flight: int = option(256, low=1)
     #: Replies waiting to be written in one Session; beyond, reading waits.
-    session_max_queued_replies: int = 1024
+    session_max_queued_replies: int = option(1024, low=1)
     #: Smallest min_interval, sample_interval or heartbeat_interval accepted (seconds).
-    min_interval_floor: float = 0.001
+    min_interval_floor: float = option(0.001, unit="seconds")
     #: Seconds a line-listener connection may stay silent (nothing read, nothing written) before
     #: it is closed; and when the listener is full, the connection silent longest makes room.
-    line_idle_timeout: float = 300.0
+    line_idle_timeout: float = option(300.0, above=True, unit="seconds")
     #: Devices dialled in to the line listener from one source address served at once.
-    max_greetings_per_source: int = 64
+    max_greetings_per_source: int = option(64, low=1)
     #: Line-listener connections open at once (devices and clients); when full, the connection
     #: silent longest makes room for a new one.
-    line_max_connections: int = 1024
+    line_max_connections: int = option(1024, low=1)
     #: Line-listener connections from one address at once; beyond, that address's connection
     #: silent longest makes room (a flood from one address cannot lock out a device beside it).
-    line_max_connections_per_address: int = 128
+    line_max_connections_per_address: int = option(128, low=1)
     #: Unary calls (Get, Set, Describe) running at once on the gRPC port; beyond, RESOURCE_EXHAUSTED
     #: naming this limit. grpc's queue of calls not yet taken up holds at least 20,000 more.
-    max_calls: int = 10_000
+    max_calls: int = option(10_000, low=1)
     #: Bytes of large values (64 KiB or more: binary ones) handed to Listen readers, event and
     #: image streams and not yet taken by their connections, all readers together; a reader whose
     #: next value would pass it ends with RESOURCE_EXHAUSTED (gateway.listen.budget). A stalled
     #: reader holds at most one value (two copies of it on gRPC), so 256 MiB is about 65 readers
     #: stalled at once on 4 MB camera frames, or 1,300 on 200 KB ones.
-    max_pending_binary: int = 256 * 1024 * 1024
+    max_pending_binary: int = option(256 * 1024 * 1024, low=1)
 
 
 #: Bytes of a request body the HTTP front end reads at most (a Set's JSON); beyond, 413. A value
@@ -198,29 +199,29 @@ class HttpSection:
     console: bool = True
     #: Most bytes of a JSON request body; beyond, 413 (a binary property's raw bytes are bounded
     #: by its own ``max_size`` instead).
-    max_body: int = DEFAULT_HTTP_MAX_BODY
+    max_body: int = option(DEFAULT_HTTP_MAX_BODY, low=1)
     #: Server-Sent-Events and live image streams open at once; beyond, 503. An idle event stream
     #: costs about 13 KiB of gateway memory (bench/sse.py, docs/performance.md), so 4,096 of them
     #: about 52 MiB.
-    max_streams: int = 4096
+    max_streams: int = option(4096, low=1)
     #: Server-Sent-Events and live image streams one client address may hold at once; beyond,
     #: 429 (one client cannot take every place).
-    max_streams_per_client: int = 64
+    max_streams_per_client: int = option(64, low=1)
     #: Seconds one write to an event stream may wait for the client to read; beyond, the
     #: stream ends (a client that reads nothing for that long is gone).
-    write_timeout: float = 30.0
+    write_timeout: float = option(30.0, above=True, unit="seconds")
     #: Seconds between heartbeat comments on an idle event stream.
-    heartbeat: float = 15.0
+    heartbeat: float = option(15.0, unit="seconds")
     #: Serve HTTPS with the ``[tls]`` section's certificate (and client CA).
     tls: bool = False
     #: Connections open at once, event streams and plain requests together; beyond, a new one is
     #: answered 503 and closed at once. Its share of open files (docs/security.md).
-    max_connections: int = 6144
+    max_connections: int = option(6144, low=1)
     #: Connections one client address may hold open at once; beyond, 503 and closed at once.
-    max_connections_per_address: int = 256
+    max_connections_per_address: int = option(256, low=1)
     #: Seconds a connection may stay open with no request running (a fresh one that sends
     #: nothing, or a kept-alive one between requests); an event stream is a running request.
-    idle_timeout: float = 60.0
+    idle_timeout: float = option(60.0, above=True, unit="seconds")
 
 
 #: Connections the ``[metrics] listen`` port holds at once, and from one address: a scraper or
@@ -252,32 +253,34 @@ class RegistrySection:
     """``[registry]``: liveness checks of the services and where run-time registrations are kept."""
 
     #: Seconds between liveness checks of each service outside the gateway; 0 = no checks.
-    period: float = 5.0
+    period: float = option(5.0, unit="seconds")
     #: Seconds a service gets to answer one check.
-    timeout: float = 2.0
+    timeout: float = option(2.0, above=True, unit="seconds")
     #: Checks missed in a row before the service is ``down`` (its calls get UNAVAILABLE).
-    misses: int = 3
+    misses: int = option(3, low=1)
     #: Seconds a service registered at run time may stay ``down`` before it is removed.
-    grace: float = 60.0
+    grace: float = option(60.0, unit="seconds")
     #: JSON file keeping the registrations made by Set across restarts; empty = not kept.
     #: A relative path is taken from the config file's folder (absolute once parsed).
     persist: str = ""
     #: The scheduler: longest allocation in seconds (the seed's ``Tout``; at most the longest
     #: licence), longest wait of a queued request (``Tr``), requests waiting at once.
-    tout: float = DEFAULT_TOUT
-    tr: float = DEFAULT_TR
-    max_queued: int = DEFAULT_MAX_QUEUED
+    tout: float = option(DEFAULT_TOUT, above=True, unit="seconds")
+    tr: float = option(DEFAULT_TR, above=True, unit="seconds")
+    max_queued: int = option(DEFAULT_MAX_QUEUED, low=1)
     #: Addresses a registration may reach: networks with optional ports, serial path globs
     #: (``services.registry.allow``); default: loopback and USB serial adapters.
     allow: tuple[str, ...] = DEFAULT_ALLOW
     #: Registrations by Set held at once.
-    max_registrations: int = DEFAULT_MAX_REGISTRATIONS
+    max_registrations: int = option(DEFAULT_MAX_REGISTRATIONS, low=1)
     #: Licences held at once (``acquire``); one more is RESOURCE_EXHAUSTED.
-    max_licences: int = DEFAULT_MAX_LICENCES
+    max_licences: int = option(DEFAULT_MAX_LICENCES, low=1)
     #: Licences one holder may hold when it acquires one; one more is RESOURCE_EXHAUSTED.
-    max_licences_per_holder: int = DEFAULT_MAX_LICENCES_PER_HOLDER
+    max_licences_per_holder: int = option(DEFAULT_MAX_LICENCES_PER_HOLDER, low=1)
     #: Longest licence in seconds (a longer ``duration`` is INVALID_ARGUMENT); a longer job renews.
-    max_licence_duration: float = DEFAULT_MAX_LICENCE_DURATION
+    max_licence_duration: float = option(
+        DEFAULT_MAX_LICENCE_DURATION, above=True, high=MAX_LEASE, unit="seconds"
+    )
     #: Where the registry is kept: empty = embedded (this gateway's memory and ``persist``);
     #: ``etcd://HOST:PORT[,HOST:PORT...]`` (``etcds://`` for TLS) = shared by many gateways.
     store: str = ""
@@ -290,7 +293,9 @@ class RegistrySection:
     store_prefix: str = DEFAULT_STORE_PREFIX
     #: Seconds of this gateway's lease in etcd (kept alive every third of it): a gateway that dies
     #: loses what it owned within this time.
-    store_lease: float = DEFAULT_STORE_LEASE
+    store_lease: float = option(
+        DEFAULT_STORE_LEASE, low=MIN_STORE_LEASE, high=MAX_STORE_LEASE, unit="seconds"
+    )
     #: This gateway's id in the cluster; empty = made from the host name and the gRPC port.
     gateway_id: str = ""
     #: host:port the other gateways dial to reach this gateway's services; empty = the gRPC
@@ -307,7 +312,7 @@ class RegistrySection:
     #: time (docs/scale-out.md, "Operating a cluster"). Off: only an admin's ``cluster.rebalance``.
     rebalance: bool = False
     rebalance_spread: int = DEFAULT_REBALANCE_SPREAD
-    rebalance_batch: int = DEFAULT_REBALANCE_BATCH
+    rebalance_batch: int = option(DEFAULT_REBALANCE_BATCH, low=1)
 
 
 #: Seconds a woken dormant service stays unused before it is stopped again, by default.
@@ -421,7 +426,10 @@ class Config:
 
 
 _LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
-_TYPE_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+#: How a problem of a config table is said: where it is in the file, what is wrong, what was given.
+_IN_A_TABLE = Wording(
+    unknown="{where}.{key}: unknown key (known: {known})", bad="{where}.{key}: {why}, got {raw}"
+)
 
 
 def _check_address(value: str, where: str) -> str:
@@ -444,12 +452,10 @@ def _check_log_format(value: str, where: str) -> str:
 
 
 def _typed(value: Any, kind: type, where: str) -> Any:
-    ok = isinstance(value, kind) and not (kind is not bool and isinstance(value, bool))
-    if kind is float and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    if not ok:
-        raise ConfigError(f"{where}: expected {_TYPE_NAMES[kind]}, got {value!r}")
-    return value
+    try:
+        return convert(value, kind)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc}, got {shown(value)}") from None
 
 
 class _PartlyBad(ConfigError):
@@ -460,38 +466,25 @@ class _PartlyBad(ConfigError):
         self.partial = partial
 
 
-def _section(cls: type[Any], data: Any, where: str) -> Any:
-    """The section as ``cls``; raises _PartlyBad naming every bad key (the good ones are kept)."""
+def _section(cls: type[Any], data: Any, where: str, skip: tuple[str, ...] = ()) -> Any:
+    """The section as ``cls`` (its fields declare what each key takes, :mod:`gateway.options`);
+    raises _PartlyBad naming every bad key (the good ones are kept). ``skip``: keys read apart."""
     if not isinstance(data, Mapping):
         raise ConfigError(f"{where}: expected a table")
-    known = {f.name: f for f in fields(cls)}
-    values: dict[str, Any] = {}
-    bad: list[str] = []
-    for key, value in data.items():
-        f = known.get(key)
-        if f is None:
-            bad.append(f"{where}.{key}: unknown key (known: {', '.join(known)})")
-            continue
-        kind = type(f.default)
-        try:
-            typed = _typed(value, kind, f"{where}.{key}")
-        except ConfigError as exc:
-            bad.extend(exc.problems)
-            continue
-        if kind in (int, float) and typed < 0:
-            bad.append(f"{where}.{key}: must not be negative, got {value!r}")
-            continue
-        values[key] = typed
+    values, bad = read_options(cls, data, _IN_A_TABLE, skip=skip, where=where)
     if bad:
         raise _PartlyBad(bad, cls(**values))
     return cls(**values)
 
 
-def _checked_section(cls: type[_T], data: Any, where: str, checks: Callable[[_T, list[str]], _T]) -> _T:
-    """:func:`_section`, then ``checks(section, found)``; every problem of the section in one ConfigError."""
+def _checked_section(
+    cls: type[_T], data: Any, where: str, checks: Callable[[_T, list[str]], _T], skip: tuple[str, ...] = ()
+) -> _T:
+    """:func:`_section`, then ``checks(section, found)`` (what no one key says alone); every problem
+    of the section in one ConfigError."""
     found: list[str] = []
     try:
-        section: _T = _section(cls, data, where)
+        section: _T = _section(cls, data, where, skip)
     except _PartlyBad as partly:
         found.extend(partly.problems)
         section = partly.partial
@@ -590,14 +583,6 @@ def _gateway(data: Any, where: str) -> GatewaySection:
         problems.attempt(lambda: _check_address(gw.listen, f"{where}.listen"), None)
         if gw.line_listen:
             problems.attempt(lambda: _check_address(gw.line_listen, f"{where}.line_listen"), None)
-        if gw.call_timeout <= 0:
-            problems.found.append(f"{where}.call_timeout: must be positive, got {gw.call_timeout}")
-        if gw.max_connections < 1:
-            problems.found.append(f"{where}.max_connections: must be at least 1")
-        for key in ("idle_timeout", "handshake_timeout", "device_start_timeout"):
-            seconds = getattr(gw, key)
-            if not (math.isfinite(seconds) and seconds > 0):
-                problems.found.append(f"{where}.{key}: must be a positive number of seconds, got {seconds!r}")
         level = problems.attempt(lambda: _check_log_level(gw.log_level, f"{where}.log_level"), "info")
         log_format = problems.attempt(lambda: _check_log_format(gw.log_format, f"{where}.log_format"), "text")
         found.extend(problems.found)
@@ -632,18 +617,9 @@ def _tls_files(section: Any, where: str, folder: Path | None) -> Any:
 
 
 def _tls(data: Any, where: str, folder: Path | None) -> TlsSection:
-    if not isinstance(data, Mapping):
-        raise ConfigError(f"{where}: expected a table")
-    line_data = data.get("line", {})
-    plain = {k: v for k, v in data.items() if k != "line"}
-    for key in plain:
-        if key not in ("cert", "key", "client_ca", "require_client_cert"):
-            raise ConfigError(
-                f"{where}.{key}: unknown key (known: cert, key, client_ca, require_client_cert, line)"
-            )
-    section: TlsSection = _tls_files(_section(TlsSection, plain, where), where, folder)
+    section: TlsSection = _tls_files(_section(TlsSection, data, where, skip=("line",)), where, folder)
     line: LineTlsSection = _tls_files(
-        _section(LineTlsSection, line_data, f"{where}.line"), f"{where}.line", folder
+        _section(LineTlsSection, data.get("line", {}), f"{where}.line"), f"{where}.line", folder
     )
     if section.require_client_cert and not section.client_ca:
         raise ConfigError(
@@ -708,20 +684,7 @@ def _http(data: Any, where: str, gw: GatewaySection, tls: TlsSection, limits: Li
             except ConfigError as exc:
                 found.extend(exc.problems)
                 return replace(http, listen="")
-        for key in ("max_body", "max_streams", "max_streams_per_client", "max_connections"):
-            if getattr(http, key) < 1:
-                found.append(f"{where}.{key}: must be at least 1")
-        if http.max_connections_per_address < 1:
-            found.append(f"{where}.max_connections_per_address: must be at least 1")
-        if not (math.isfinite(http.idle_timeout) and http.idle_timeout > 0):
-            found.append(
-                f"{where}.idle_timeout: must be a positive number of seconds, got {http.idle_timeout!r}"
-            )
-        if not (math.isfinite(http.write_timeout) and http.write_timeout > 0):
-            found.append(
-                f"{where}.write_timeout: must be a positive number of seconds, got {http.write_timeout!r}"
-            )
-        if not (math.isfinite(http.heartbeat) and http.heartbeat >= limits.min_interval_floor):
+        if http.heartbeat < limits.min_interval_floor:
             found.append(
                 f"{where}.heartbeat: must be a number of seconds of at least limits.min_interval_floor"
                 f" ({limits.min_interval_floor:g}), got {http.heartbeat!r}"
@@ -758,15 +721,7 @@ def _metrics(data: Any, where: str, gw: GatewaySection) -> MetricsSection:
 
 
 def _limits(data: Any, where: str) -> Limits:
-    def checks(limits: Limits, found: list[str]) -> Limits:
-        for f in fields(Limits):
-            if f.name not in ("min_interval_floor", "line_idle_timeout") and getattr(limits, f.name) < 1:
-                found.append(f"{where}.{f.name}: must be at least 1")
-        if not (math.isfinite(limits.line_idle_timeout) and limits.line_idle_timeout > 0):
-            found.append(f"{where}.line_idle_timeout: must be a positive number of seconds")
-        return limits
-
-    return _checked_section(Limits, data, where, checks)
+    return _checked_section(Limits, data, where, lambda limits, found: limits)
 
 
 def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
@@ -782,35 +737,6 @@ def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
     def checks(section: RegistrySection, found_here: list[str]) -> RegistrySection:
         found_here.extend(found)
         section = replace(section, allow=allow)
-        if section.max_licences < 1:
-            found_here.append(f"{where}.max_licences: must be at least 1, got {section.max_licences}")
-        if section.max_licences_per_holder < 1:
-            found_here.append(
-                f"{where}.max_licences_per_holder: must be at least 1, got {section.max_licences_per_holder}"
-            )
-        longest = section.max_licence_duration
-        if not (math.isfinite(longest) and 0 < longest <= MAX_LEASE):
-            found_here.append(
-                f"{where}.max_licence_duration: must be more than 0 and at most {MAX_LEASE:g} seconds, "
-                f"got {longest}"
-            )
-        if section.max_registrations < 1:
-            found_here.append(
-                f"{where}.max_registrations: must be at least 1, got {section.max_registrations}"
-            )
-        for key in ("period", "timeout", "grace"):
-            if not math.isfinite(getattr(section, key)):
-                found_here.append(f"{where}.{key}: must be a finite number of seconds")
-        if section.timeout <= 0:
-            found_here.append(f"{where}.timeout: must be positive, got {section.timeout}")
-        if section.misses < 1:
-            found_here.append(f"{where}.misses: must be at least 1, got {section.misses}")
-        for key in ("tout", "tr"):
-            value = getattr(section, key)
-            if not (math.isfinite(value) and value > 0):
-                found_here.append(f"{where}.{key}: must be a positive number of seconds, got {value}")
-        if section.max_queued < 1:
-            found_here.append(f"{where}.max_queued: must be at least 1, got {section.max_queued}")
         section = _store(section, where, folder, found_here)
         if section.persist:
             path = Path(section.persist).expanduser()
@@ -821,8 +747,7 @@ def _registry(data: Any, where: str, folder: Path | None) -> RegistrySection:
             section = replace(section, persist=str(path))
         return section
 
-    rest = {k: v for k, v in data.items() if k != "allow"}
-    return _checked_section(RegistrySection, rest, where, checks)
+    return _checked_section(RegistrySection, data, where, checks, skip=("allow",))
 
 
 #: Longest gateway id: it is part of etcd keys and values, and of log lines.
@@ -870,11 +795,6 @@ def _store(section: RegistrySection, where: str, folder: Path | None, found: lis
             f"{where}.store_prefix: expected a folder of keys like '/propertyservice', "
             f"got {section.store_prefix!r}"
         )
-    lease = section.store_lease
-    if not (math.isfinite(lease) and MIN_STORE_LEASE <= lease <= MAX_STORE_LEASE):
-        found.append(
-            f"{where}.store_lease: must be {MIN_STORE_LEASE:g} to {MAX_STORE_LEASE:g} seconds, got {lease}"
-        )
     gateway_id = section.gateway_id
     if gateway_id and (
         len(gateway_id) > MAX_GATEWAY_ID
@@ -885,12 +805,6 @@ def _store(section: RegistrySection, where: str, folder: Path | None, found: lis
         found.append(
             f"{where}.gateway_id: 1 to {MAX_GATEWAY_ID} printable characters without '/' or spaces, "
             f"got {gateway_id[:MAX_GATEWAY_ID]!r}"
-        )
-    if section.rebalance_spread < 0:
-        found.append(f"{where}.rebalance_spread: devices, 0 or more, got {section.rebalance_spread}")
-    if section.rebalance_batch < 1:
-        found.append(
-            f"{where}.rebalance_batch: devices moved at once, 1 or more, got {section.rebalance_batch}"
         )
     if section.rebalance and not section.store:
         found.append(f"{where}.rebalance: moves devices between the gateways of a cluster: it needs a store")

@@ -52,10 +52,12 @@ import ssl
 from collections.abc import Collection, Mapping
 from typing import TYPE_CHECKING, Any, Protocol
 
+from gateway.calls import Calls
+from gateway.config import GatewaySection, Limits
 from gateway.connections import BoundedListener, ConnectionCaps
+from gateway.engine.types import GetCall, SetCall
 from gateway.guard import REGISTRY, Guard
 from gateway.identity import ANONYMOUS
-from gateway.licensing import check_set
 from gateway.rules import Operation, Subject
 from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
 from services.device import DeviceServer
@@ -93,6 +95,10 @@ if TYPE_CHECKING:
     from gateway.proxies.line_proxy import ProxyOptions
     from gateway.router import Router
 
+#: The call timeout and the most paths of a Get of a listener not given the gateway's call layer.
+CALL_TIMEOUT = GatewaySection().call_timeout
+MAX_GET_PATHS = Limits().max_get_paths
+
 log = logging.getLogger(__name__)
 
 #: Connections the listener serves at once, clients and devices that dialled in together.
@@ -129,13 +135,16 @@ class RouterBackend(Backend):
     A service's name alone reads as a namespace does: the names of its properties (its own
     ``properties``), so that every name ``properties`` lists answers a GET (docs/device-spec.md §3.1).
 
-    One per line connection: :attr:`subject` is who asks on it, checked by ``guard``.
+    One per line connection: :attr:`subject` is who asks on it. A GET and a SET go through the
+    gateway's call layer (``calls``) as the engine's own calls, exactly as a gRPC or HTTP call
+    does: the same rules, licences, audit and time limit.
     """
 
-    def __init__(self, router: Router, guard: Guard | None = None, subject: Subject = ANONYMOUS) -> None:
-        self.router = router
+    def __init__(self, calls: Calls, subject: Subject = ANONYMOUS) -> None:
+        self.calls = calls
+        self.router = calls.router
+        self.guard = calls.guard
         self.info = BackendInfo(type="gateway", url="line")
-        self.guard = guard or Guard()
         #: Who asks on this connection: anonymous until it proves who it is (then set it here).
         self.subject = subject
 
@@ -157,29 +166,18 @@ class RouterBackend(Backend):
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         if path == "properties":
             return format_names(self.router.names())
-        backend, service, rest = self._split(path)
-        self._check_read(service, rest)
-        return await backend.get(rest, params)
+        _, service, rest = self._split(path)
+        calls = self.calls
+        return await calls.start_get(GetCall(service, rest, params), calls.timeout, self.subject)
 
     async def set(self, path: str, value: Value, params: Mapping[str, str] = NO_PARAMS) -> Value:
         if path == "properties":
             raise ReadOnly("properties (the list of services) is read-only")
-        backend, service, rest = self._split(path)
-        guard, subject = self.guard, self.subject
-        # Always: what a service sets for it is checked as it, by the rules and the licences.
-        CALLER.set(subject)
-        operation = guard.set_operation(subject, service, rest, value)
-        if operation is None:
-            operation = await guard.set_operation_from_model(subject, service, rest, backend.describe())
-        try:
-            # A licence someone else holds refuses this Set as it does one over gRPC or HTTP.
-            check_set(self.router.directory.licences, subject, service, rest)
-            answer = await backend.set(rest, value, params)
-        except BaseException as exc:
-            guard.audited(subject, service, rest, operation, exc)
-            raise
-        guard.audited(subject, service, rest, operation, None)
-        return answer
+        _, service, rest = self._split(path)
+        calls = self.calls
+        answer = await calls.start_set(SetCall(service, rest, value, params), calls.timeout, self.subject)
+        # A service method that returns nothing answers an empty value.
+        return answer if answer is not None else ""
 
     async def listen(self, path: str, notify: Notify, params: Mapping[str, str] = NO_PARAMS) -> Subscription:
         if path == "properties":
@@ -429,7 +427,7 @@ class _ListenerServer(DeviceServer):
         first = _FirstLine(reader)
         # Each connection asks as its own subject: its own view of the router.
         shared = self._router_backend
-        view = RouterBackend(shared.router, shared.guard)
+        view = RouterBackend(shared.calls)
         session = self.session(first, writer, peer, view, greeting=self._listener.greeting())
         run = asyncio.create_task(session.run(), name=f"line listener {peer}")
         try:
@@ -494,8 +492,11 @@ class LineListener:
         alternates: Callable[[], list[str]] | None = None,
         max_connections_per_address: int = MAX_CONNECTIONS_PER_ADDRESS,
         seats: DeviceSeats | None = None,
+        calls: Calls | None = None,
     ) -> None:
-        """``seats``: the names a cluster holds for devices that dial in (:class:`DeviceSeats`);
+        """``calls``: the gateway's call layer, through which every GET and SET goes (default: one of
+        its own on ``router`` and ``guard``, with the default call timeout and no licences);
+        ``seats``: the names a cluster holds for devices that dial in (:class:`DeviceSeats`);
         ``alternates()`` names the line listeners of the other gateways of this one's cluster: the
         greeting tells them to every peer (``alternates=``), so that a device that dialled in knows
         where to go when this gateway is gone (docs/line-protocol.md §5);
@@ -515,7 +516,12 @@ class LineListener:
             max_connections_per_address=max_connections_per_address,
         )
         self.server = _ListenerServer(
-            self, RouterBackend(router, guard), self.bounds, name=name, type="gateway", push=True
+            self,
+            RouterBackend(calls or Calls(router, CALL_TIMEOUT, MAX_GET_PATHS, guard)),
+            self.bounds,
+            name=name,
+            type="gateway",
+            push=True,
         )
         self.address: tuple[str, int] | None = None
         self._door: BoundedListener | None = None
@@ -789,9 +795,10 @@ async def start_line_listener(
     max_connections: int = MAX_CONNECTIONS,
     max_connections_per_address: int = MAX_CONNECTIONS_PER_ADDRESS,
     seats: DeviceSeats | None = None,
+    calls: Calls | None = None,
 ) -> LineListener:
     """Start a :class:`LineListener` on ``address`` ("HOST:PORT") for ``router``, checked by ``guard``;
-    TLS with ``ssl_context``; ``alternates`` and ``seats``: see :class:`LineListener`."""
+    TLS with ``ssl_context``; ``alternates``, ``seats`` and ``calls``: see :class:`LineListener`."""
     listener = LineListener(
         router,
         on_rejoin=on_rejoin,
@@ -803,6 +810,7 @@ async def start_line_listener(
         max_connections=max_connections,
         max_connections_per_address=max_connections_per_address,
         seats=seats,
+        calls=calls,
     )
     await listener.start(*parse_address(address), ssl_context=ssl_context)
     return listener

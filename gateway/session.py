@@ -2,10 +2,14 @@
 
 One reader task parses incoming ``SessionRequest``s; the handler's own task
 is the writer, draining the reply queue and every ready Listen into one
-``SessionResponse`` per wake-up. A Get or Set on an in-process service is
-run right in the reader (it usually answers without waiting, so it costs no
-task); only when it has to wait does it go on in a task of its own. Calls to
-other backends get a task each. At most ``limits.session_max_in_flight``
+``SessionResponse`` per wake-up. A Get or Set is started right in the reader,
+translated into the engine's types, and read through its one
+:class:`~gateway.engine.handle.CallHandle`: answered at once when it is done
+(an in-process service usually answers without waiting, so it costs no task),
+else answered from the handle's done-callback. Once the requests of a message
+are started, every backend they went to sends what it holds
+(:meth:`services.backend.Backend.flush`: a device gets the message's lines in
+one write). At most ``limits.session_max_in_flight``
 run at once and at most ``limits.session_max_queued_replies`` wait to be
 written; beyond either, the reader stops reading (backpressure). A Listen's
 large value counts against the hub's budget while it is written, as a gRPC
@@ -17,17 +21,20 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import functools
 import logging
 import secrets
 from collections import deque
-from collections.abc import Awaitable, Callable, Coroutine
+from collections.abc import Coroutine
 from typing import Any
 
 import grpc
 
-from gateway.calls import Begun, Calls, Undecodable, is_snapshot
+from gateway.calls import Calls
 from gateway.config import Limits
+from gateway.engine.handle import CallHandle
+from gateway.engine.types import GetCall, is_snapshot
+from gateway.fronts.grpc_v1.messages import Undecodable, get_call, get_response, set_call
+from gateway.fronts.grpc_v1.status import abort, status_message
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, ListenStream, parse_options, parse_selectors
 from gateway.listen.budget import COUNTED_BYTES, GRPC_COPIES
@@ -35,12 +42,11 @@ from gateway.listen.drain import Wake
 from gateway.listen.encoding import listen_reply_wire, reply_wire
 from gateway.listen.hub import SHUTTING_DOWN
 from gateway.logs import RequestContext, current_request
-from gateway.proxies.connection import send_waiting_lines
 from gateway.rules import Subject
-from gateway.sizes import BATCH_BYTES, SURELY_FITS_CHARS, check_fits
-from gateway.status import abort, status_message, to_property_error
+from gateway.sizes import BATCH_BYTES, SURELY_FITS_CHARS, check_fits, reply_size
+from gateway.status import to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.backend import Answer
+from services.backend import Backend
 from services.eager import Started, step
 from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable
 from services.values import Value, value_size
@@ -69,6 +75,22 @@ class _Ready:
 
     def __call__(self) -> None:
         self.session._ready_listen(self.rid)
+
+
+class _Answered:
+    """What a pending call's handle calls once it is done: the Session answers the request."""
+
+    __slots__ = ("kind", "path", "rid", "service", "session")
+
+    def __init__(self, session: Session, rid: int, kind: str, service: str, path: str) -> None:
+        self.session = session
+        self.rid = rid
+        self.kind = kind
+        self.service = service
+        self.path = path
+
+    def __call__(self, handle: CallHandle) -> None:
+        self.session._answered(self.rid, handle, self.kind, self.service, self.path)
 
 
 class Session:
@@ -107,7 +129,9 @@ class Session:
         self._room.set()
         #: ids of Gets and Sets running in a task, and of Listens (starting or live).
         self._active: set[int] = set()
-        self._tasks: dict[int, asyncio.Future[Any]] = {}
+        self._tasks: dict[int, asyncio.Future[Any] | CallHandle] = {}
+        #: The backends of the calls started from the message being read, told to flush after it.
+        self._started_on: set[Backend] = set()
         self._listens: dict[int, ListenStream] = {}
         self._ready: dict[int, None] = {}
         #: ids of Listens still starting (their task is in _tasks).
@@ -301,8 +325,10 @@ class Session:
                     if self._stopping:
                         break
                     self._dispatch(request)
-                # The message's requests to line devices go out now, one write a device.
-                send_waiting_lines()
+                # The message's requests to devices go out now, one write a device.
+                started_on = self._started_on
+                while started_on:
+                    started_on.pop().flush()
         finally:
             self._reader_done = True
             self._wake.set()
@@ -346,88 +372,58 @@ class Session:
             self._set(rid, request.set)
 
     def _get(self, rid: int, request: pb.GetRequest) -> None:
-        if request.more or is_snapshot(request):
-            self._spawn(rid, self._get_more(rid, request))
-            return
         try:
-            begun = self._calls.start_get(
-                request, self._timeout, self._subject, functools.partial(self._got, rid)
-            )
+            call = get_call(request)
+            if call.more or is_snapshot(call):
+                self._spawn(rid, self._get_more(rid, call))
+                return
+            handle = self._calls.start_get(call, self._timeout, self._subject)
         except Exception as exc:
             self._fail(rid, exc, f"{request.service}: get {request.property}")
             return
-        if type(begun) is str or type(begun) is bytes:  # answered inline: the commonest case
-            self._answer(rid, "get", begun)
-        else:
-            self._follow(rid, begun, "get", request.service, request.property)
-
-    def _got(self, rid: int, answer: Answer) -> None:
-        """A proxy's reply to Get ``rid``, straight from its reader: answered a loop turn sooner
-        than the future's done-callback (which then finds the request gone and does nothing)."""
-        if self._tasks.pop(rid, None) is None:
-            return
-        self._active.discard(rid)
-        self._answer(rid, "get", answer.value)
-        self._room.set()
+        self._follow(rid, handle, "get", request.service, request.property)
 
     def _set(self, rid: int, request: pb.SetRequest) -> None:
         try:
-            begun = self._calls.start_set(request, self._timeout, self._subject)
+            handle = self._calls.start_set(set_call(request), self._timeout, self._subject)
         except Exception as exc:
             self._fail(rid, exc, f"{request.service}: set {request.property}")
             return
-        if type(begun) is str or type(begun) is bytes:
-            self._answer(rid, "set", begun)
-        else:
-            self._follow(rid, begun, "set", request.service, request.property)
+        self._follow(rid, handle, "set", request.service, request.property)
 
-    def _follow(self, rid: int, begun: Begun, kind: str, service: str, path: str) -> None:
-        """Answer request ``rid`` from a started call: now, when its future is done, or from a task."""
-        if isinstance(begun, str | bytes):
-            self._answer(rid, kind, begun)
+    def _follow(self, rid: int, handle: CallHandle, kind: str, service: str, path: str) -> None:
+        """Answer request ``rid`` from its call's handle: now when it is done, else once it is."""
+        if handle.done:  # answered inline: the commonest case
+            self._answer(rid, kind, handle.result())
             return
-        what = functools.partial("{}: {} {}".format, service, kind, path)
-        if isinstance(begun, asyncio.Future):
-            self._await_reply(rid, begun, kind, what)
-        else:
-            self._spawn(rid, self._finish(rid, kind, begun, what))
-
-    def _await_reply(
-        self, rid: int, future: asyncio.Future[Answer], kind: str, what: Callable[[], str]
-    ) -> None:
-        """Answer request ``rid`` when ``future`` (a proxy's reply) is done; it counts as in flight."""
         self._active.add(rid)
-        self._tasks[rid] = future
+        self._tasks[rid] = handle
+        backend = handle.backend
+        if backend is not None:
+            self._started_on.add(backend)
+        handle.add_done_callback(_Answered(self, rid, kind, service, path))
 
-        def done(_: asyncio.Future[Answer]) -> None:
-            if self._tasks.get(rid) is not future:
-                return  # answered from the reply itself (_got), or the Session is ending
-            del self._tasks[rid]
-            self._active.discard(rid)
-            if future.cancelled():
-                return
-            error = future.exception()
-            if error is not None:
-                self._fail(rid, error, what())
-            else:
-                self._answer(rid, kind, future.result().value)
-            self._room.set()
+    def _answered(self, rid: int, handle: CallHandle, kind: str, service: str, path: str) -> None:
+        """Request ``rid``'s call is done: its answer or its error goes in the reply queue."""
+        if self._tasks.get(rid) is not handle:
+            return  # the Session is ending
+        del self._tasks[rid]
+        self._active.discard(rid)
+        if handle.cancelled():
+            return
+        error = handle.exception()
+        if error is not None:
+            self._fail(rid, error, f"{service}: {kind} {path}")
+        else:
+            self._answer(rid, kind, handle.result())
+        self._room.set()
 
-        future.add_done_callback(done)
-
-    async def _get_more(self, rid: int, request: pb.GetRequest) -> None:
+    async def _get_more(self, rid: int, call: GetCall) -> None:
         try:
-            self._push(pb.Reply(id=rid, get=await self._calls.get(request, self._timeout, self._subject)))
+            reply = await self._calls.get(call, self._timeout, self._subject)
+            self._push(pb.Reply(id=rid, get=get_response(reply)))
         except Exception as exc:
             self._fail(rid, exc, "Get")
-
-    async def _finish(self, rid: int, kind: str, call: Awaitable[Value], what: Callable[[], str]) -> None:
-        try:
-            value = await call
-        except Exception as exc:
-            self._fail(rid, exc, what())
-            return
-        self._answer(rid, kind, value)
 
     def _answer(self, rid: int, kind: str, value: Value | None) -> None:
         if value is None:
@@ -441,7 +437,7 @@ class Session:
             response.data = value
         if len(value) > SURELY_FITS_CHARS:
             try:
-                check_fits(response, lambda: f"request {rid} ({kind})")
+                check_fits(reply_size(value), lambda: f"request {rid} ({kind})")
             except PropertyError as exc:
                 self._fail(rid, exc, kind)
                 return

@@ -8,11 +8,15 @@ cannot fit into RESOURCE_EXHAUSTED naming the call.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
-from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import ResourceExhausted
+from services.values import Value, value_size
 from services.values.binary import MAX_BINARY_SIZE, MAX_MESSAGE_BYTES
+
+if TYPE_CHECKING:
+    from gateway.engine.types import PropertyValue
 
 __all__ = [
     "BATCH_BYTES",
@@ -21,6 +25,7 @@ __all__ = [
     "MAX_MESSAGE_BYTES",
     "SURELY_FITS_CHARS",
     "check_fits",
+    "reply_size",
 ]
 
 # MAX_MESSAGE_BYTES: the largest message a gRPC client accepts unless it asks for more (grpc's
@@ -38,9 +43,25 @@ MAX_ANSWER_BYTES = MAX_MESSAGE_BYTES - 1024
 SURELY_FITS_CHARS = (MAX_ANSWER_BYTES - 16) // 4
 
 
-def check_fits(answer: pb.GetResponse | pb.SetResponse, what: Callable[[], str]) -> None:
-    """Raise RESOURCE_EXHAUSTED when ``answer`` is too big for a client to receive."""
-    size = answer.ByteSize()
+#: Most bytes a field's tag and length take in a message (a one-byte tag, a five-byte length).
+_FIELD_HEAD = 6
+
+
+def reply_size(value: Value, more: Sequence[PropertyValue] = ()) -> int:
+    """The most bytes an answer of ``value`` and ``more`` takes in a message of the contract.
+
+    Counted on the engine's own types, each field with the widest head it could have, so that
+    an answer that passes :func:`check_fits` fits whichever front carries it.
+    """
+    size = _FIELD_HEAD + value_size(value)
+    for item in more:
+        names = len(item.service.encode()) + len(item.path.encode())
+        size += 4 * _FIELD_HEAD + names + value_size(item.value)
+    return size
+
+
+def check_fits(size: int, what: Callable[[], str]) -> None:
+    """Raise RESOURCE_EXHAUSTED when an answer of ``size`` bytes is too big for a client to receive."""
     if size > MAX_ANSWER_BYTES:
         raise ResourceExhausted(
             f"{what()}: the answer is {size} bytes, more than one message may carry "

@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import enum
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import ClassVar, Protocol
+from typing import Any, ClassVar, Protocol
 
 from services.model import Access, PropertyModel, ServiceModel
 from services.paths import compile_pattern, is_below
@@ -51,15 +52,46 @@ class Change:
 Notify = Callable[[Change], None]
 
 
-def tell_each(listeners: dict[int, Notify], change: Change, what: str) -> None:
-    """Hand ``change`` to every listener (token → callback); one that raises is logged, as a
-    listener of ``what``, and dropped, and the others are told all the same."""
-    for token, notify in list(listeners.items()):
+class OnRaise(enum.Enum):
+    """What :func:`tell_each` does with a listener that raises (after logging it)."""
+
+    #: Take it out of the listeners: it is told nothing more (a backend's own listeners, whose
+    #: subscription forgets a token that is already gone).
+    DROP = "it is dropped"
+    #: Leave it in place: its owner takes it out (a shared listen, a topic, a followed file, whose
+    #: last listener to leave closes what they share: dropping it here would leave that open).
+    KEEP = "it keeps its place"
+
+
+def tell_each(
+    listeners: dict[Any, Callable[..., None]], *args: Any, what: object, on_raise: OnRaise = OnRaise.DROP
+) -> None:
+    """Call every listener (key → callback) with ``args``; one that raises is logged, as a listener
+    of ``what`` (formatted only then), and dropped or kept as ``on_raise`` says (dropped: a
+    backend's :data:`Notify` must not raise), and the others are told all the same.
+
+    The one fan-out of the project: a backend's listeners, a shared upstream listen's, a listen
+    hub topic's sinks and a followed file's all go through it. It runs once per listener for every
+    change (the Listen fan-out's hot path; ``python -m bench.instructions --parts fanout`` guards it).
+    """
+    # The callbacks alone: a (key, callback) pair each would cost an allocation per listener, and
+    # a key is needed only to drop one.
+    for notify in list(listeners.values()):
         try:
-            notify(change)
+            notify(*args)
         except Exception:
-            log.exception("a listener of %s raised; it is dropped", what)
-            listeners.pop(token, None)
+            log.exception("a listener of %s failed; %s", what, on_raise.value)
+            if on_raise is OnRaise.DROP:
+                _drop(listeners, notify)
+
+
+def _drop(listeners: dict[Any, Callable[..., None]], notify: Callable[..., None]) -> None:
+    """Take ``notify`` out of ``listeners`` (its first key; a listener that holds two keys raises
+    again at the next, and goes then)."""
+    for key, held in listeners.items():
+        if held is notify:
+            del listeners[key]
+            return
 
 
 class Subscription(abc.ABC):
@@ -133,7 +165,7 @@ class Backend(abc.ABC):
     Besides the calls every backend answers, a few capabilities only some
     backends have are declared here with defaults that do without them, so
     that callers never ask which kind of backend they hold:
-    :attr:`answers_inline`, :meth:`start_get`, :meth:`listen_current`,
+    :attr:`answers_inline`, :meth:`start_get`, :meth:`flush`, :meth:`listen_current`,
     :meth:`match_properties`, :meth:`listen_properties`,
     :meth:`wait_connected`, :meth:`watch_link`, :meth:`serves`, :meth:`wake`, :attr:`on_demand`.
     """
@@ -272,6 +304,16 @@ class Backend(abc.ABC):
         has no shortcut and returns None.
         """
         return None
+
+    def flush(self) -> None:  # noqa: B027 - optional hook, nothing held by default
+        """Send now what the backend holds for the end of this loop turn.
+
+        A proxy batches the requests started in one loop turn into one write to its device,
+        made at the turn's end; a caller that knows no more requests of its batch come this
+        turn (a Session, once it has started a message's requests) calls this, so that the
+        device has them a turn sooner, still in one write. A backend that holds nothing has
+        nothing to send (the default).
+        """
 
     def link_counts(self) -> LinkCounts | None:
         """The counts of a backend that keeps a connection to a device; None for any other (the default)."""

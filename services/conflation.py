@@ -23,20 +23,22 @@ V = TypeVar("V")
 
 
 class Slot(Generic[V]):
-    """What waits for one key: the latest value and what happened before it."""
+    """What waits for one key: the latest value and what happened before it.
+
+    Made only by :meth:`ConflatingQueue.put` (one a key that was not waiting), which fills it in.
+    """
 
     __slots__ = ("conflated", "gap", "removed", "stamp", "value")
 
-    def __init__(self, value: V, stamp: int, gap: bool, removed: bool) -> None:
-        self.value = value
-        #: When the latest value arrived (the user's clock, e.g. ``time.monotonic_ns``).
-        self.stamp = stamp
-        #: How many earlier values this one replaced.
-        self.conflated = 0
-        #: Values were lost before this one (sticky until taken).
-        self.gap = gap
-        #: The key's property no longer exists (the latest news wins).
-        self.removed = removed
+    value: V
+    #: When the latest value arrived (the user's clock, e.g. ``time.monotonic_ns``).
+    stamp: int
+    #: How many earlier values this one replaced.
+    conflated: int
+    #: Values were lost before this one (sticky until taken).
+    gap: bool
+    #: The key's property no longer exists (the latest news wins).
+    removed: bool
 
 
 _new_slot = object.__new__
@@ -58,8 +60,8 @@ class ConflatingQueue(Generic[K, V]):
         slots = self._slots
         slot = slots.get(key)
         if slot is None:
-            # Slot(...) written out: calling a class with an __init__ costs about half again as
-            # much, and this runs for every value of every queue (each Listen stream's).
+            # Filled in here rather than by a Slot.__init__: calling a class with an __init__ costs
+            # more, and this runs for every value of every queue (each Listen stream's).
             slot = _new_slot(Slot)
             slot.value = value
             slot.stamp = stamp

@@ -18,16 +18,13 @@ from __future__ import annotations
 
 import asyncio
 import itertools
-import logging
 from collections.abc import Awaitable, Callable, Iterator, Mapping
 from typing import Generic, TypeVar
 
-from services.backend import Change, Notify, Subscription
+from services.backend import Change, Notify, OnRaise, Subscription, tell_each
 from services.errors import Unavailable
 
 __all__ = ["ListenKey", "SharedListen", "SharedListens", "listen_key"]
-
-log = logging.getLogger(__name__)
 
 #: (path, the parameters as sorted (name, value) pairs).
 ListenKey = tuple[str, tuple[tuple[str, str], ...]]
@@ -53,12 +50,9 @@ class SharedListen:
         self.ready: asyncio.Future[None] | None = None
 
     def deliver(self, change: Change) -> None:
-        """Hand ``change`` to every listener; one that raises is logged and keeps its place."""
-        for notify in list(self.listeners.values()):
-            try:
-                notify(change)
-            except Exception:
-                log.exception("a listener of %s failed", self.path)
+        """Hand ``change`` to every listener; one that raises is logged and keeps its place (its
+        share's close takes it out, and the last one's closes the upstream listen)."""
+        tell_each(self.listeners, change, what=self.path, on_raise=OnRaise.KEEP)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.path!r}, {self.params!r}, {len(self.listeners)} listeners)"

@@ -8,7 +8,7 @@ import logging
 from collections.abc import AsyncGenerator, Callable, Iterable, Sequence
 from contextlib import aclosing
 from types import TracebackType
-from typing import Any, Self
+from typing import TYPE_CHECKING, Any, Self
 
 import grpc
 import grpc.aio
@@ -48,7 +48,6 @@ from clients.values import (
     Marker,
     Value,
     ValueFormatError,
-    Vector,
     parse_marker,
     parse_names,
     parse_number,
@@ -59,6 +58,9 @@ from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.model import ServiceModel
 from services.model_codec import model_from_proto
+
+if TYPE_CHECKING:
+    from clients.values import Vector
 
 __all__ = [
     "DEFAULT_FAILOVER_LIMIT",

@@ -5,8 +5,9 @@ A binary value is JSON ``{"data": BASE64, "media_type": TYPE}`` where text is ``
 media type (or ``application/octet-stream``) as its content type writes them
 (:mod:`gateway.http.binary`).
 
-Every call goes through the gateway's one call layer (:class:`gateway.calls.Calls`): the
-same router, time limits, rules, audit and size checks as a gRPC Get, Set or Describe.
+Every call goes through the gateway's one call layer (:class:`gateway.calls.Calls`), in the
+engine's own types (:mod:`gateway.engine.types`): the same router, time limits, rules, audit and
+size checks as a gRPC Get, Set or Describe.
 """
 
 from __future__ import annotations
@@ -16,8 +17,9 @@ from typing import Any
 
 from aiohttp import web
 
-from gateway.calls import Calls, is_snapshot
+from gateway.calls import Calls
 from gateway.config import REGISTRY_NAME
+from gateway.engine.types import DescribeCall, GetCall, PropertyRef, SetCall, is_snapshot
 from gateway.guard import Guard
 from gateway.http.binary import (
     OCTET_STREAM,
@@ -36,11 +38,11 @@ from gateway.http.errors import PAYLOAD_TOO_LARGE, error_response
 from gateway.http.safety import JSON_TYPE, identify
 from gateway.rules import Operation, Subject
 from gateway.sizes import MAX_BINARY_SIZE
-from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.backend import NO_PARAMS
 from services.errors import InvalidArgument, NotFound, PropertyError, ResourceExhausted
 from services.model import Access, ParameterModel, PropertyModel, ServiceModel
 from services.paths import WILDCARD
-from services.values import ValueFormatError, parse_names, parse_vector
+from services.values import Value, ValueFormatError, parse_names, parse_vector
 
 #: The registry's columns /api/v1/services reads, each with one wildcard Get.
 _COLUMNS = ("type", "url", "state", "location")
@@ -128,8 +130,8 @@ class Api:
     async def _names_page(self, after: str, limit: str, subject: Subject) -> list[str]:
         """One page of the registry's ``service_names``: after ``after``, at most ``limit`` ("": 1,000)."""
         parameters = {"after": after, **({"limit": limit} if limit else {})}
-        asked = pb.GetRequest(service=REGISTRY_NAME, property="service_names", parameters=parameters)
-        return parse_names((await self.calls.get(asked, self.calls.timeout, subject)).value)
+        asked = GetCall(REGISTRY_NAME, "service_names", parameters)
+        return parse_names(_text((await self.calls.get(asked, self.calls.timeout, subject)).value))
 
     async def _columns(self, names: list[str], subject: Subject) -> dict[str, dict[str, str]]:
         """``services.NAME.COLUMN`` of each name, in Gets of many paths (``max_get_paths`` each):
@@ -140,11 +142,11 @@ class Api:
         found: dict[str, dict[str, str]] = {}
         for start in range(0, len(paths), per_get):
             chunk = paths[start : start + per_get]
-            refs = [pb.PropertyRef(property=f"services.{name}.{column}") for name, column in chunk]
-            asked = pb.GetRequest(service=REGISTRY_NAME, property=refs[0].property, more=refs[1:])
+            refs = [PropertyRef("", f"services.{name}.{column}") for name, column in chunk]
+            asked = GetCall(REGISTRY_NAME, refs[0].path, more=refs[1:])
             try:
                 answer = await self.calls.get(asked, self.calls.timeout, subject)
-                values: list[str | None] = [answer.value, *(item.value for item in answer.more)]
+                values: list[str | None] = [_text(answer.value), *(_text(item.value) for item in answer.more)]
             except NotFound:
                 values = [await self._column(name, column, subject) for name, column in chunk]
             for (name, column), value in zip(chunk, values, strict=True):
@@ -153,9 +155,9 @@ class Api:
         return found
 
     async def _column(self, name: str, column: str, subject: Subject) -> str | None:
-        asked = pb.GetRequest(service=REGISTRY_NAME, property=f"services.{name}.{column}")
+        asked = GetCall(REGISTRY_NAME, f"services.{name}.{column}")
         try:
-            return (await self.calls.get(asked, self.calls.timeout, subject)).value
+            return _text((await self.calls.get(asked, self.calls.timeout, subject)).value)
         except NotFound:
             return None  # it left
 
@@ -171,10 +173,9 @@ class Api:
         if paged:
             names = await self._names_page(after, limit, subject)
         else:
-            listed = pb.GetRequest(service=REGISTRY_NAME, property="services")
-            listing = await self.calls.get(listed, timeout, subject)
+            listing = await self.calls.get(GetCall(REGISTRY_NAME, "services"), timeout, subject)
             try:
-                names = parse_names(listing.value)
+                names = parse_names(_text(listing.value))
             except ValueFormatError:  # past one value: read it a page at a time
                 names = []
                 while page := await self._names_page(names[-1] if names else "", "", subject):
@@ -199,7 +200,7 @@ class Api:
     async def model(self, request: web.Request) -> web.Response:
         service = self._service(request)
         subject = identify(request, self.guard)
-        model = await self.calls.describe(service, self.calls.timeout, subject)
+        model = await self.calls.describe(DescribeCall(service), self.calls.timeout, subject)
         return json_response(model_json(service, model))
 
     async def get(self, request: web.Request) -> web.Response:
@@ -208,7 +209,7 @@ class Api:
         raw = raw_asked(request.query)
         subject = identify(request, self.guard)
         parameters = query_parameters(request.query, ignore=(RAW_KEY,))
-        get = pb.GetRequest(service=service, property=path, parameters=parameters)
+        get = GetCall(service, path, parameters)
         answer = await self.calls.get(get, self.calls.timeout, subject)
         if is_snapshot(get):
             if raw:
@@ -216,18 +217,21 @@ class Api:
             media_types = MediaTypes(self.calls)
             values = []
             for item in answer.more:
-                data = item.data if item.HasField("data") else None
-                media_type = await media_types.of(service, item.property) if data is not None else ""
-                values.append({"path": item.property, **value_json(item.value, data, media_type)})
+                if isinstance(item.value, str):
+                    values.append({"path": item.path, **value_json(item.value, None, "")})
+                    continue
+                media_type = await media_types.of(service, item.path)
+                values.append({"path": item.path, **value_json("", item.value, media_type)})
             return json_response({"service": service, "path": path, "values": values})
-        if not answer.HasField("data"):
+        value = answer.value
+        if isinstance(value, str):
             if raw:
-                return text_response(answer.value)
-            return json_response({"service": service, "path": path, "value": answer.value})
+                return text_response(value)
+            return json_response({"service": service, "path": path, "value": value})
         media_type = await MediaTypes(self.calls).of(service, path)
         if raw or accepts_raw(request, media_type):
-            return raw_response(answer.data, media_type)
-        return json_response({"service": service, "path": path, **value_json("", answer.data, media_type)})
+            return raw_response(value, media_type)
+        return json_response({"service": service, "path": path, **value_json("", value, media_type)})
 
     async def set(self, request: web.Request) -> web.Response:
         service = self._service(request)
@@ -249,18 +253,14 @@ class Api:
             binary = await self._binary_property(service, path, subject, request.content_type)
             data = await read_body(request, max_size(binary), f"the max_size of {service}/{path}")
             body = SetBody(data, query_parameters(request.query))
-        set_request = pb.SetRequest(service=service, property=path, parameters=body.parameters)
-        if isinstance(body.value, bytes):
-            set_request.data = body.value
-        else:
-            set_request.value = body.value
-        answer = await self.calls.set(set_request, self.calls.timeout, subject)
-        if not answer.HasField("data"):
-            return json_response({"service": service, "path": path, "value": answer.value})
+        set_call = SetCall(service, path, body.value, body.parameters or NO_PARAMS)
+        answer = await self.calls.set(set_call, self.calls.timeout, subject)
+        if isinstance(answer, str):
+            return json_response({"service": service, "path": path, "value": answer})
         media_type = binary.media_type if binary is not None else ""
         if not media_type:
             media_type = await MediaTypes(self.calls).of(service, path)
-        return json_response({"service": service, "path": path, **value_json("", answer.data, media_type)})
+        return json_response({"service": service, "path": path, **value_json("", answer, media_type)})
 
     async def raw_limit(self, request: web.Request) -> int | None:
         """The most bytes a raw Set of the request's property may carry; None when that is not known
@@ -311,6 +311,11 @@ class Api:
                 f' bytes), or {JSON_TYPE} ({{"data": BASE64}}), not {content_type[:100]!r}'
             )
         return prop
+
+
+def _text(value: Value) -> str:
+    """A registry value as text (the registry's values are text; bytes would be a bug there)."""
+    return value if isinstance(value, str) else value.decode(errors="replace")
 
 
 def takes_bytes(prop: PropertyModel) -> bool:

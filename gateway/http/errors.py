@@ -58,7 +58,7 @@ def error_json(err: PropertyError) -> dict[str, str]:
 def error_response(exc: BaseException, what: str = "request", status: int | None = None) -> web.Response:
     """The JSON error response for ``exc`` (anything but a PropertyError is INTERNAL, logged)."""
     err = to_property_error(exc, what)
-    if log.isEnabledFor(logging.DEBUG):  # as a failed gRPC call is (gateway.status.abort)
+    if log.isEnabledFor(logging.DEBUG):  # as a failed gRPC call is (gateway.fronts.grpc_v1.status.abort)
         log.debug("%s: %s", what, err.message, extra={"code": err.code.name})
     body = json.dumps({"error": error_json(err)}, ensure_ascii=False)
     return web.Response(

@@ -28,7 +28,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Collection, Coroutine, Mapping
+from collections.abc import Callable, Collection, Coroutine, Mapping
 from typing import Any, Protocol
 
 from gateway.behalf import TRAIL, Trail
@@ -36,7 +36,7 @@ from gateway.guard import Guard
 from gateway.router import bounded_call
 from gateway.rules import Subject
 from gateway.status import to_property_error
-from services.backend import NO_PARAMS, Backend, Change, Subscription
+from services.backend import NO_PARAMS, Backend, Change, OnRaise, Subscription, tell_each
 from services.directory import CALLER, context_for
 from services.errors import Code, PropertyError
 from services.model import PropertyModel
@@ -113,7 +113,8 @@ class Topic:
         self.service, self.path, params = key
         self.params: Mapping[str, str] = dict(params) if params else NO_PARAMS
         self.backend = backend
-        self.sinks: set[Sink] = set()
+        #: Each sink and its ``topic_changed``, called with (this topic, the change, when it was seen).
+        self.sinks: dict[Sink, Callable[[Topic, Change, int], None]] = {}
         self.subscription: Subscription | None = None
         self.value: Value = ""
         #: The last change was the property's removal (every sink has been told).
@@ -137,12 +138,11 @@ class Topic:
         self.value = change.value
         self.removed = change.removed
         self.heard = True
-        seen = time.time_ns()
-        for sink in list(self.sinks):
-            try:
-                sink.topic_changed(self, change, seen)
-            except Exception:
-                log.exception("delivering a change of %s %s failed", self.service, self.path)
+        # A sink that raises keeps its place: its stream leaves the topic when it ends.
+        tell_each(self.sinks, self, change, time.time_ns(), what=self, on_raise=OnRaise.KEEP)
+
+    def __str__(self) -> str:
+        return f"{self.service}/{self.path}"
 
     def __repr__(self) -> str:
         return f"Topic({self.service}/{self.path}, {len(self.sinks)} sinks)"
@@ -194,7 +194,7 @@ class Topics:
                 context = context_for(caller)
                 context.run(TRAIL.set, trail)
                 topic.opening = loop.create_task(self._open(topic, trail), context=context)
-        topic.sinks.add(sink)
+        topic.sinks[sink] = sink.topic_changed
         opening = topic.opening
         assert opening is not None
         try:
@@ -303,7 +303,7 @@ class Topics:
 
     def unsubscribe(self, sink: Sink, topic: Topic) -> None:
         """``sink`` leaves ``topic``; the last one to leave closes it."""
-        topic.sinks.discard(sink)
+        topic.sinks.pop(sink, None)
         if not topic.sinks and topic.opening is not None and topic.opening.done():
             self.drop(topic)
 

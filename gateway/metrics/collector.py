@@ -27,11 +27,11 @@ from services.backend import LinkCounts
 from services.errors import Code
 
 if TYPE_CHECKING:
+    from gateway.fronts.grpc_v1.servicer import PropertyServicer
     from gateway.guard import Guard
     from gateway.http.front import HttpFront
     from gateway.listen import ListenHub
     from gateway.router import Router
-    from gateway.server import PropertyServicer
     from services.registry import Registry
 
 

@@ -14,7 +14,8 @@ What one request costs (docs/performance.md, "Get through the TCP proxy"):
   Session message is one send to the device and, as the device answers a
   batch in one write, one read back; a caller that knows its batch is
   complete (the Session, once a message's requests are started) sends it
-  at once with :func:`send_waiting_lines` rather than a loop turn later;
+  at once with :meth:`LineConnection.flush` (the proxy's :meth:`~services.backend.Backend.flush`)
+  rather than a loop turn later;
 * every complete line of one read is decoded and resolved right in
   ``data_received``: no reader task to wake, no copy into a stream buffer;
 * one timer per connection, armed at the earliest deadline of the requests
@@ -46,7 +47,6 @@ import asyncio
 import contextlib
 import heapq
 import logging
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -117,21 +117,6 @@ _WIDEST_TAG_DIGITS = len(format(_TAG_MASK, "x"))
 #: What a device that asks the gateway something on a connection the gateway opened is told.
 #: Short: it must fit the smallest line limit (64 bytes) with a tag and a checksum.
 _NOT_SERVED = "not served: the gateway is the client here"
-
-#: Per thread, so per event loop: the connections holding lines for the end of this loop turn.
-_waiting = threading.local()
-
-
-def send_waiting_lines() -> None:
-    """Send now every line the connections of this thread's loop hold for the end of its turn.
-
-    For a caller that knows no more requests of its batch come in this turn: a Session, once it
-    has started the requests of one message. The device has them a loop turn sooner (one
-    ``epoll`` and whatever else that turn runs); the batch is still one write a connection.
-    """
-    waiting: set[LineConnection] | None = _waiting.__dict__.get("connections")
-    while waiting:
-        waiting.pop()._flush()
 
 
 class _Pending:
@@ -394,19 +379,14 @@ class LineConnection(asyncio.Protocol):
         self._outgoing.append(line)
         if not self._flush_due:
             self._flush_due = True
-            self._loop.call_soon(self._flush)
-            try:
-                _waiting.connections.add(self)
-            except AttributeError:
-                _waiting.connections = {self}
+            self._loop.call_soon(self.flush)
 
-    def _flush(self) -> None:
+    def flush(self) -> None:
+        """Send the lines held for the end of this loop turn now, in one write (see :meth:`Backend.flush`)."""
         self._flush_due = False
         lines = self._outgoing
         if not lines:
             return
-        # Sent at the turn's end or sooner (send_waiting_lines): either way no longer waiting.
-        _waiting.connections.discard(self)
         self._outgoing = []
         transport = self._transport
         if transport is not None and not self._closed.is_set():
@@ -863,7 +843,7 @@ class LineConnection(asyncio.Protocol):
         self._loop.call_soon(self._close_after_refusal, error.message)
 
     def _close_after_refusal(self, message: str) -> None:
-        self._flush()
+        self.flush()
         self.close(f"the device was refused: {message}")
 
     def _bad_line(self, bad: BadLine) -> None:

@@ -33,17 +33,18 @@ import contextlib
 import logging
 import random
 from collections.abc import Mapping
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
-from urllib.parse import parse_qsl, unquote, urlsplit
+from urllib.parse import unquote, urlsplit
 
 import grpc
 from grpc.aio import EOF  # type: ignore[attr-defined]  # missing from grpc-stubs
 
 from gateway.federation import outgoing
+from gateway.fronts.grpc_v1.status import error_from_remote
+from gateway.options import Wording, option, read_options, url_options
 from gateway.proxies.grpc_channels import ChannelKey, ChannelPool, SharedChannel, TlsFiles, channel_pool
-from gateway.status import error_from_remote
 from gateway.wire_values import put, received
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import NO_PARAMS, UNKNOWN_TYPE, Backend, BackendInfo, Change, Notify, Subscription
@@ -62,13 +63,13 @@ class GrpcProxyOptions:
     """Tuning of a ``grpc://`` proxy, set in the config's ``options`` or in the URL's query."""
 
     #: Seconds a call (and the opening of a remote Listen) may take before DEADLINE_EXCEEDED.
-    timeout: float = 5.0
+    timeout: float = option(5.0, above=True, unit="seconds")
     #: Seconds a connection attempt to the remote gateway may take.
-    connect_timeout: float = 5.0
+    connect_timeout: float = option(5.0, above=True, unit="seconds")
     #: First and longest wait between attempts to re-open a broken Listen (and to reconnect the
     #: channel); doubled per failure, with jitter.
-    backoff_initial: float = 0.2
-    backoff_max: float = 10.0
+    backoff_initial: float = option(0.2, above=True, unit="seconds")
+    backoff_max: float = option(10.0, above=True, unit="seconds")
 
     @classmethod
     def parse(cls, url: str, options: Mapping[str, Any]) -> GrpcProxyOptions:
@@ -76,24 +77,9 @@ class GrpcProxyOptions:
 
         The TLS files (``ca``, ``cert``, ``key``) are left to :func:`tls_files`.
         """
-        merged: dict[str, Any] = dict(parse_qsl(urlsplit(url).query))
-        merged.update(options)
-        for key in TLS_OPTIONS:
-            merged.pop(key, None)
-        known = {f.name for f in fields(cls)}
-        values: dict[str, float] = {}
-        for key, raw in merged.items():
-            if key not in known:
-                raise InvalidArgument(
-                    f"unknown grpc proxy option {key!r} (known: {', '.join(sorted(known))})"
-                )
-            try:
-                number = float(raw)
-            except (TypeError, ValueError):
-                raise InvalidArgument(f"bad grpc proxy option {key}={raw!r}: expected seconds") from None
-            if not number > 0 or number == float("inf"):
-                raise InvalidArgument(f"bad grpc proxy option {key}={raw!r}: must be a positive number")
-            values[key] = number
+        values, problems = read_options(cls, url_options(url, options), _WORDING, text=True, skip=TLS_OPTIONS)
+        if problems:
+            raise InvalidArgument("; ".join(problems))
         parsed = cls(**values)
         if parsed.backoff_initial > parsed.backoff_max:
             raise InvalidArgument(
@@ -102,6 +88,11 @@ class GrpcProxyOptions:
             )
         return parsed
 
+
+_WORDING = Wording(
+    unknown="unknown grpc proxy option {key!r} (known: {known})",
+    bad="bad grpc proxy option {key}={raw}: {why}",
+)
 
 #: The options of a ``grpcs://`` proxy that name files: the CA, the client certificate, its key.
 TLS_OPTIONS = ("ca", "cert", "key")
@@ -113,8 +104,7 @@ def tls_files(url: str, options: Mapping[str, Any]) -> TlsFiles | None:
     InvalidArgument when a file cannot be read, when ``cert`` comes without ``key``, or when a
     ``grpc://`` URL names TLS files.
     """
-    merged: dict[str, Any] = dict(parse_qsl(urlsplit(url).query))
-    merged.update(options)
+    merged = url_options(url, options)
     files = {key: merged[key] for key in TLS_OPTIONS if merged.get(key)}
     if urlsplit(url).scheme != SECURE_SCHEME:
         if files:

@@ -31,15 +31,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 import random
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any, cast
-from urllib.parse import parse_qsl, urlsplit
 
 from gateway.logs import outside_requests
+from gateway.options import Wording, option, read_options, url_options
 from gateway.proxies.connection import LineConnection
 from services.backend import (
     NO_PARAMS,
@@ -85,99 +84,55 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True, slots=True)
 class ProxyOptions:
-    """Tuning of a line-protocol proxy, set in the config's ``options`` or in the URL's query."""
+    """Tuning of a line-protocol proxy, set in the config's ``options`` or in the URL's query.
+
+    A registration names them in its URL, so each number has bounds: without them
+    ``keepalive=0.001`` would be a PING flood and ``timeout=1e300`` a call that never ends. Out
+    of its bounds is INVALID_ARGUMENT, never silently clamped.
+    """
 
     #: Seconds a call may take before DEADLINE_EXCEEDED.
-    timeout: float = 5.0
+    timeout: float = option(5.0, low=0.01, high=600.0, unit="seconds")
     #: Seconds to open the stream and receive the device's greeting.
-    connect_timeout: float = 5.0
+    connect_timeout: float = option(5.0, low=0.01, high=3600.0, unit="seconds")
     #: First and longest wait between reconnection attempts; doubled per failure, with jitter.
-    backoff_initial: float = 0.2
-    backoff_max: float = 10.0
+    backoff_initial: float = option(0.2, low=0.01, high=600.0, unit="seconds")
+    backoff_max: float = option(10.0, low=0.01, high=3600.0, unit="seconds")
     #: Seconds between polls of a device that cannot push events.
-    poll_interval: float = 0.5
+    poll_interval: float = option(0.5, low=0.01, high=3600.0, unit="seconds")
     #: Seconds of a healthy connection between PINGs (0 = never).
-    keepalive: float = 15.0
+    keepalive: float = option(15.0, low=0.5, high=3600.0, off=0, unit="seconds")
     #: Seconds the device has to answer a keep-alive PING before the connection is dropped.
-    keepalive_timeout: float = 5.0
+    keepalive_timeout: float = option(5.0, low=0.01, high=600.0, unit="seconds")
     #: Send a CRC-8 checksum on every line.
     checksum: bool = False
     #: Calls that may be in flight on the connection at once.
-    max_in_flight: int = 256
+    max_in_flight: int = option(256, low=1, high=4096)
     #: The longest line accepted from the device, LF included (docs/device-spec.md §1.2,
-    #: docs/line-protocol.md §11): raised for a device that sends large binary values.
-    maxline: int = MAX_LINE
+    #: docs/line-protocol.md §11): raised for a device that sends large binary values. At most
+    #: 8 MiB: a line with the base64 of the largest value one gRPC message carries (4 MiB) fits.
+    maxline: int = option(MAX_LINE, low=MIN_MAX_LINE, high=8 * 1024 * 1024)
 
     @classmethod
     def parse(cls, url: str, options: Mapping[str, Any], skip: frozenset[str] = frozenset()) -> ProxyOptions:
-        """Options from the URL's query, overridden by ``options``; InvalidArgument for a bad one."""
-        merged: dict[str, Any] = dict(parse_qsl(urlsplit(url).query))
-        merged.update(options)
-        values: dict[str, Any] = {}
-        for key, raw in merged.items():
-            if key in skip:
-                continue
-            kind = cls.__dataclass_fields__.get(key)
-            if kind is None:
-                known = ", ".join(sorted({*cls.__dataclass_fields__, *skip}))
-                raise InvalidArgument(f"unknown proxy option {key!r} (known: {known})")
-            default = getattr(cls(), key)
-            try:
-                if isinstance(default, bool):
-                    values[key] = _boolean(raw)
-                elif isinstance(default, int):
-                    values[key] = int(raw)
-                else:
-                    values[key] = float(raw)
-            except (TypeError, ValueError):
-                raise InvalidArgument(f"bad proxy option {key}={raw!r}") from None
-            if values[key] < 0 or (
-                key in ("timeout", "connect_timeout", "poll_interval", "keepalive_timeout")
-                and values[key] <= 0
-            ):
-                raise InvalidArgument(f"bad proxy option {key}={raw!r}: must be positive")
-            _check_range(key, values[key], raw)
+        """Options from the URL's query, overridden by ``options``; InvalidArgument for a bad one.
+
+        ``skip``: options that are the transport's own (a serial line's ``baudrate``)."""
+        values, problems = read_options(
+            cls, url_options(url, options), _WORDING, text=True, skip=sorted(skip)
+        )
+        if problems:
+            raise InvalidArgument("; ".join(problems))
         return cls(**values)
 
+
+_WORDING = Wording(
+    unknown="unknown proxy option {key!r} (known: {known})", bad="bad proxy option {key}={raw}: {why}"
+)
 
 #: Seconds of refused connections (nothing listens at the device's address) after which a caller
 #: waiting for the device hears so at once, rather than at the end of its wait.
 REFUSED_GIVE_UP = 1.0
-
-#: Sane ranges of the numeric proxy options, as (lowest, highest). A registration names them
-#: in its URL, so without bounds ``keepalive=0.001`` would be a PING flood and ``timeout=1e300``
-#: a call that never ends. Out of range is INVALID_ARGUMENT, never silently clamped.
-OPTION_RANGES: Mapping[str, tuple[float, float]] = {
-    "timeout": (0.01, 600.0),
-    "connect_timeout": (0.01, 3600.0),
-    "backoff_initial": (0.01, 600.0),
-    "backoff_max": (0.01, 3600.0),
-    "poll_interval": (0.01, 3600.0),
-    "keepalive": (0.5, 3600.0),  # or 0: never
-    "keepalive_timeout": (0.01, 600.0),
-    "max_in_flight": (1, 4096),
-    # 8 MiB: a line with the base64 of the largest value one gRPC message carries (4 MiB) fits.
-    "maxline": (MIN_MAX_LINE, 8 * 1024 * 1024),
-}
-
-
-def _check_range(key: str, value: float, raw: Any) -> None:
-    low, high = OPTION_RANGES.get(key, (-math.inf, math.inf))
-    if key == "keepalive" and value == 0:
-        return
-    if not (math.isfinite(value) and low <= value <= high):
-        raise InvalidArgument(f"bad proxy option {key}={str(raw)[:40]!r}: must be from {low:g} to {high:g}")
-
-
-def _boolean(raw: Any) -> bool:
-    if isinstance(raw, bool):
-        return raw
-    text = str(raw).strip().lower()
-    if text in ("1", "true", "yes", "on"):
-        return True
-    if text in ("0", "false", "no", "off", ""):
-        return False
-    raise ValueError(raw)
 
 
 class _DeviceListen(SharedListen):
@@ -533,6 +488,12 @@ class LineProxy(Backend):
         if time.monotonic() - conn.last_heard <= self.heard_within:
             return
         await conn.request(Ping(), self.options.timeout)
+
+    def flush(self) -> None:
+        """Send the lines held for the end of this loop turn now (:meth:`LineConnection.flush`)."""
+        conn = self._conn
+        if conn is not None:
+            conn.flush()
 
     def start_get(
         self,

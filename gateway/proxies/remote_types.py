@@ -24,8 +24,8 @@ from typing import Any
 
 import grpc
 
+from gateway.fronts.grpc_v1.status import error_from_remote
 from gateway.peer_protocol import SPOKEN_HEADER
-from gateway.status import error_from_remote
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.errors import Code, PropertyError, Unavailable
 

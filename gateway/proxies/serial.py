@@ -5,8 +5,9 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Mapping
 from typing import Any
-from urllib.parse import parse_qsl, unquote, urlsplit
+from urllib.parse import unquote, urlsplit
 
+from gateway.options import url_options
 from gateway.proxies.line_proxy import LineProxy, ProxyOptions
 from services.backend import Backend
 from services.device.transports import serial_streams
@@ -49,7 +50,7 @@ def open_serial_backend(name: str, url: str, options: Mapping[str, Any]) -> Back
         raise InvalidArgument(
             f"service {name!r}: bad URL {url!r}; expected serial:///dev/ttyUSB0?baudrate=115200"
         )
-    raw_baud = {**dict(parse_qsl(parts.query)), **options}.get("baudrate", 115200)
+    raw_baud = url_options(url, options).get("baudrate", 115200)
     try:
         baudrate = int(raw_baud)
     except (TypeError, ValueError):

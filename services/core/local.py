@@ -103,7 +103,7 @@ class _Watch:
         if value == self.last and not removed:
             return
         self.last = value
-        tell_each(self.listeners, Change(self.path, value, gap=gap, removed=removed), self.path)
+        tell_each(self.listeners, Change(self.path, value, gap=gap, removed=removed), what=self.path)
 
     def close(self) -> None:
         if self._unhook is not None:
@@ -318,7 +318,7 @@ class LocalService(Backend):
         return not isinstance(node, Resource) or bool(remote_children(node))
 
     def _tell_list_listeners(self, change: Change) -> None:
-        tell_each(self._list_listeners, change, "the property list")
+        tell_each(self._list_listeners, change, what="the property list")
 
     def _spawn(self, coro: Coroutine[Any, Any, None], what: str) -> asyncio.Task[None]:
         task = asyncio.get_running_loop().create_task(coro, name=what, context=own_context())

@@ -86,7 +86,7 @@ class LayerNode(Resource):
         self.changed("info")
         self.changed("image")
         if self.listeners:
-            tell_each(self.listeners, Change(path, self.npy()), path)
+            tell_each(self.listeners, Change(path, self.npy()), what=path)
 
     def npy(self) -> bytes:
         """The layer's values (float32, NaN where a mean has no value yet) as ``numpy.save`` writes them."""

@@ -8,9 +8,10 @@ cannot reach the hub (services never import the gateway), so this is its own sma
 
 Nothing here ever gives up while the service runs: a service that is not in the directory yet
 is waited for (its arrival ends the pause at once), one that does not answer is tried again
-after pauses of :func:`services.backoff.pauses` (through :func:`~services.backoff.wait_to_retry`,
-so a proxy that connects again ends the pause), and one path that fails is tried again on its
-own while the others carry on. Every call has a time limit; every set of paths has a bound.
+after pauses of :func:`services.backoff.pauses` (through
+:func:`~services.backoff.wait_to_retry`, so a proxy that connects again ends the pause), and one
+path that fails is tried again on its own while the others carry on. Every call has a time
+limit; every set of paths has a bound.
 """
 
 from __future__ import annotations

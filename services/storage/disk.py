@@ -101,30 +101,36 @@ class Folder:
 
     @contextmanager
     def _parent(self, name: str, what: str, *, create: bool = False) -> Iterator[tuple[int, str]]:
-        """The open directory holding ``name`` and the last segment; directories made when ``create``."""
-        *dirs, leaf = name.split("/")
-        fd = self._open_root()
+        """The open directory holding ``name`` and the last segment; directories made when ``create``.
+
+        An OSError, met here or in the ``with`` block, comes out as the PropertyError that says
+        what went wrong while doing ``what`` (:func:`os_error`)."""
         try:
-            for segment in dirs:
-                try:
-                    child = os.open(segment, _DIR_FLAGS, dir_fd=fd)
-                except OSError as exc:
-                    if exc.errno in (errno.ENOTDIR, errno.ELOOP):
-                        _refuse_on_the_way(segment, fd, what)
-                    if exc.errno != errno.ENOENT or not create:
-                        raise
+            *dirs, leaf = name.split("/")
+            fd = self._open_root()
+            try:
+                for segment in dirs:
                     try:
-                        os.mkdir(segment, 0o777, dir_fd=fd)
-                    except FileExistsError:
-                        pass  # made by someone else meanwhile
-                    else:
-                        os.fsync(fd)
-                    child = os.open(segment, _DIR_FLAGS, dir_fd=fd)
+                        child = os.open(segment, _DIR_FLAGS, dir_fd=fd)
+                    except OSError as exc:
+                        if exc.errno in (errno.ENOTDIR, errno.ELOOP):
+                            _refuse_on_the_way(segment, fd, what)
+                        if exc.errno != errno.ENOENT or not create:
+                            raise
+                        try:
+                            os.mkdir(segment, 0o777, dir_fd=fd)
+                        except FileExistsError:
+                            pass  # made by someone else meanwhile
+                        else:
+                            os.fsync(fd)
+                        child = os.open(segment, _DIR_FLAGS, dir_fd=fd)
+                    os.close(fd)
+                    fd = child
+                yield fd, leaf
+            finally:
                 os.close(fd)
-                fd = child
-            yield fd, leaf
-        finally:
-            os.close(fd)
+        except OSError as exc:
+            raise os_error(exc, what) from None
 
     @staticmethod
     def _lstat(leaf: str, fd: int) -> os.stat_result | None:
@@ -142,95 +148,87 @@ class Folder:
         if not stat.S_ISREG(st.st_mode):
             raise FailedPrecondition(f"{what}: it is not a regular file")
 
+    @classmethod
+    def _existing_file(cls, leaf: str, fd: int, what: str) -> os.stat_result:
+        """The status of regular file ``leaf``; NotFound when there is none, FailedPrecondition
+        when it is something else."""
+        st = cls._lstat(leaf, fd)
+        if st is None:
+            raise NotFound(f"{what}: no such file")
+        cls._refuse_odd(st, what)
+        return st
+
     # -- the operations ------------------------------------------------------
 
     def read(self, name: str, limit: int) -> bytes:
         """The bytes of file ``name``; NotFound, or ResourceExhausted when it holds more than ``limit``."""
         what = f"read `{check_name(name)}`"
-        try:
-            with self._parent(name, what) as (dir_fd, leaf):
-                try:
-                    fd = os.open(leaf, _READ_FLAGS, dir_fd=dir_fd)
-                except OSError as exc:
-                    st = self._lstat(leaf, dir_fd)
-                    if st is not None:
-                        self._refuse_odd(st, what)
-                    raise exc
-                try:
-                    st = os.fstat(fd)
+        with self._parent(name, what) as (dir_fd, leaf):
+            try:
+                fd = os.open(leaf, _READ_FLAGS, dir_fd=dir_fd)
+            except OSError as exc:
+                st = self._lstat(leaf, dir_fd)
+                if st is not None:
                     self._refuse_odd(st, what)
-                    if st.st_size > limit:
-                        raise _too_big(what, st.st_size, limit)
-                    chunks: list[bytes] = []
-                    total = 0
-                    while True:
-                        chunk = os.read(fd, min(_CHUNK, limit + 1 - total))
-                        if not chunk:
-                            break
-                        chunks.append(chunk)
-                        total += len(chunk)
-                        if total > limit:  # it grew while read (written in place by someone else)
-                            raise _too_big(what, total, limit)
-                    return b"".join(chunks)
-                finally:
-                    os.close(fd)
-        except OSError as exc:
-            raise os_error(exc, what) from None
+                raise exc
+            try:
+                st = os.fstat(fd)
+                self._refuse_odd(st, what)
+                if st.st_size > limit:
+                    raise _too_big(what, st.st_size, limit)
+                chunks: list[bytes] = []
+                total = 0
+                while True:
+                    chunk = os.read(fd, min(_CHUNK, limit + 1 - total))
+                    if not chunk:
+                        break
+                    chunks.append(chunk)
+                    total += len(chunk)
+                    if total > limit:  # it grew while read (written in place by someone else)
+                        raise _too_big(what, total, limit)
+                return b"".join(chunks)
+            finally:
+                os.close(fd)
 
     def write(self, name: str, data: bytes) -> None:
         """Store ``data`` as file ``name`` atomically, making its directories; see the module docstring."""
         what = f"store `{check_name(name)}`"
-        try:
-            with self._parent(name, what, create=True) as (dir_fd, leaf):
-                old = self._lstat(leaf, dir_fd)
-                if old is not None:
-                    self._refuse_odd(old, what)
-                temp = TEMP_PREFIX + secrets.token_hex(8)
-                fd = os.open(temp, _WRITE_FLAGS, 0o666, dir_fd=dir_fd)
+        with self._parent(name, what, create=True) as (dir_fd, leaf):
+            old = self._lstat(leaf, dir_fd)
+            if old is not None:
+                self._refuse_odd(old, what)
+            temp = TEMP_PREFIX + secrets.token_hex(8)
+            fd = os.open(temp, _WRITE_FLAGS, 0o666, dir_fd=dir_fd)
+            try:
                 try:
-                    try:
-                        if old is not None:
-                            os.fchmod(fd, stat.S_IMODE(old.st_mode))
-                        view = memoryview(data)
-                        while view:
-                            view = view[os.write(fd, view) :]
-                        os.fsync(fd)
-                    finally:
-                        os.close(fd)
-                    os.rename(temp, leaf, src_dir_fd=dir_fd, dst_dir_fd=dir_fd)
-                except BaseException:
-                    _unlink_quietly(temp, dir_fd)
-                    raise
-                os.fsync(dir_fd)
-        except OSError as exc:
-            raise os_error(exc, what) from None
+                    if old is not None:
+                        os.fchmod(fd, stat.S_IMODE(old.st_mode))
+                    view = memoryview(data)
+                    while view:
+                        view = view[os.write(fd, view) :]
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+                os.rename(temp, leaf, src_dir_fd=dir_fd, dst_dir_fd=dir_fd)
+            except BaseException:
+                _unlink_quietly(temp, dir_fd)
+                raise
+            os.fsync(dir_fd)
 
     def remove(self, name: str) -> None:
         """Remove file ``name``; NotFound when there is none."""
         what = f"remove `{check_name(name)}`"
-        try:
-            with self._parent(name, what) as (dir_fd, leaf):
-                st = self._lstat(leaf, dir_fd)
-                if st is None:
-                    raise NotFound(f"{what}: no such file")
-                self._refuse_odd(st, what)
-                os.unlink(leaf, dir_fd=dir_fd)
-                os.fsync(dir_fd)
-        except OSError as exc:
-            raise os_error(exc, what) from None
+        with self._parent(name, what) as (dir_fd, leaf):
+            self._existing_file(leaf, dir_fd, what)
+            os.unlink(leaf, dir_fd=dir_fd)
+            os.fsync(dir_fd)
 
     def info(self, name: str) -> FileInfo:
         """Size and modification time of file ``name``; NotFound when there is none."""
         what = f"info of `{check_name(name)}`"
-        try:
-            with self._parent(name, what) as (dir_fd, leaf):
-                st = self._lstat(leaf, dir_fd)
-                if st is None:
-                    raise NotFound(f"{what}: no such file")
-                self._refuse_odd(st, what)
-                return FileInfo(name, st.st_size, st.st_mtime_ns)
-        except OSError as exc:
-            raise os_error(exc, what) from None
+        with self._parent(name, what) as (dir_fd, leaf):
+            st = self._existing_file(leaf, dir_fd, what)
+            return FileInfo(name, st.st_size, st.st_mtime_ns)
 
     def scan(self, keep: Callable[[FileInfo], bool], limit: int) -> tuple[list[FileInfo], bool]:
         """Every regular file below the directory that ``keep`` keeps, sorted by name, at most ``limit``.

@@ -26,7 +26,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
-from services.backend import NO_PARAMS, Change, Notify, Subscription
+from services.backend import NO_PARAMS, Change, Notify, OnRaise, Subscription, tell_each
 from services.core import LocalService, Prop, Resource, action, query
 from services.errors import (
     FailedPrecondition,
@@ -545,11 +545,8 @@ class Storage(Resource):
         if isinstance(state, _Unreadable):
             return  # nothing the property can carry; the next content is heard
         change = Change(entry.prop, "", removed=True) if state is None else Change(entry.prop, state)
-        for notify in list(entry.listeners.values()):
-            try:
-                notify(change)
-            except Exception:
-                log.exception("a listener of file %s failed", entry.name)
+        # Kept on a raise: the listener's close takes it out, and the last one's ends the follow.
+        tell_each(entry.listeners, change, what=f"file {entry.name}", on_raise=OnRaise.KEEP)
 
 
 def _everything(name: str) -> bool:

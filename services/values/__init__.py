@@ -2,7 +2,9 @@
 
 The text grammar is part of the contract, and both sides use this one
 package: the services and the gateway, and the client SDK (``clients``).
-It imports nothing of the project but :mod:`services.errors`.
+It imports nothing of the project but :mod:`services.errors`, and numpy and
+defusedxml only when a vector or a marker is first parsed (and numpy when
+:data:`Vector` is first named), so that the SDK loads without them.
 
 * :mod:`~services.values.grammar`: numbers, integers, booleans, vectors,
   lists, vectors lists and names; the limits and :class:`ValueFormatError`
@@ -15,6 +17,8 @@ It imports nothing of the project but :mod:`services.errors`.
 * :mod:`~services.values.vector_elements`: :func:`vector_index`, the
   sub-property names of a vector's elements
 """
+
+from typing import TYPE_CHECKING, Any
 
 from services.values.annotations import parse_as, parser_for, type_name
 from services.values.binary import (
@@ -31,7 +35,6 @@ from services.values.grammar import (
     MAX_LIST_DEPTH,
     MAX_VALUE_LENGTH,
     ValueFormatError,
-    Vector,
     format_bool,
     format_list,
     format_names,
@@ -48,6 +51,9 @@ from services.values.grammar import (
 )
 from services.values.markers import Marker, format_marker, parse_marker
 from services.values.vector_elements import vector_index
+
+if TYPE_CHECKING:
+    from services.values.grammar import Vector
 
 __all__ = [
     "MAX_BINARY_SIZE",
@@ -84,3 +90,13 @@ __all__ = [
     "value_size",
     "vector_index",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    # Vector names numpy's array type: made on first use (see grammar.py), so that importing the
+    # value grammar does not load numpy.
+    if name == "Vector":
+        from services.values import grammar
+
+        return grammar.Vector
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

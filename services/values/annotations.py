@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import functools
 import inspect
+import sys
 import types
 import typing
 from collections.abc import Callable
 from typing import Any
-
-import numpy as np
 
 from services.values.grammar import (
     parse_bool,
@@ -83,6 +82,11 @@ def _resolve_alias(tp: Any) -> Any:
 
 
 def _is_vector_type(tp: Any) -> bool:
+    # An annotation that names numpy's array was written by code that imported numpy; numpy
+    # itself is not imported for this check, so the client SDK loads without it.
+    np = sys.modules.get("numpy")
+    if np is None:
+        return False
     tp = _resolve_alias(tp)
     return tp is np.ndarray or typing.get_origin(tp) is np.ndarray
 

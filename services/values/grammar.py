@@ -20,13 +20,21 @@ from __future__ import annotations
 
 import math
 import re
+import sys
 from collections.abc import Iterable, Sequence
-from typing import Any
-
-import numpy as np
-import numpy.typing as npt
+from types import ModuleType
+from typing import TYPE_CHECKING, Any, TypeGuard
 
 from services.errors import InvalidArgument
+
+if TYPE_CHECKING:
+    from typing import TypeAlias
+
+    import numpy as np
+    import numpy.typing as npt
+
+    #: A parsed vector: a 1-D float64 array.
+    Vector: TypeAlias = npt.NDArray[np.float64]
 
 __all__ = [
     "MAX_LIST_DEPTH",
@@ -60,9 +68,33 @@ MAX_VALUE_LENGTH = 65536
 #: Deepest nesting of lists and marker elements; real values nest two or three levels.
 MAX_LIST_DEPTH = 32
 
-Vector = npt.NDArray[np.float64]
-
 _CLIP = 40
+
+
+# numpy is not imported with this module: the client SDK reads and writes values without it until a
+# vector is parsed, so `import clients` stays light. The parsers that make arrays import it; the
+# formatters never do: a numpy value cannot exist before numpy is loaded, so they look for numpy's
+# types only in a numpy that is already in sys.modules, found once (`_np or _find_numpy()`).
+_np: ModuleType | None = None
+
+
+def _find_numpy() -> ModuleType | None:
+    """numpy when something has imported it (kept in ``_np``), else None."""
+    global _np
+    _np = sys.modules.get("numpy")
+    return _np
+
+
+def __getattr__(name: str) -> Any:
+    # Vector names numpy's array type, so it is made (and numpy imported) on first use.
+    if name == "Vector":
+        import numpy as np
+        import numpy.typing as npt
+
+        vector = npt.NDArray[np.float64]
+        globals()["Vector"] = vector
+        return vector
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class ValueFormatError(InvalidArgument, ValueError):
@@ -151,22 +183,35 @@ def parse_number(text: str) -> float:
 _INTEGRAL_LIMIT = 1e16
 
 # Tuples rather than ``X | Y``: a union is built anew each time the expression runs,
-# and these checks run for every value formatted.
-_BOOLS = (bool, np.bool_)
-_INTEGERS = (int, np.integer)
-_NUMBERS = (int, float, np.integer, np.floating)
+# and these checks run for every value formatted. numpy's scalars and arrays are checked after them.
+_NUMBERS = (int, float)
 _SEQUENCES = (list, tuple)
-_NESTED = (list, tuple, np.ndarray)
+
+
+def _numpy_scalar(x: Any) -> bool | int | float | None:
+    """The Python scalar a numpy boolean, integer or float holds; None for anything else."""
+    np = _np or _find_numpy()
+    if np is not None and isinstance(x, (np.bool_, np.integer, np.floating)):
+        return x.item()  # type: ignore[no-any-return]
+    return None
+
+
+def _is_array(x: object) -> TypeGuard[npt.NDArray[Any]]:
+    np = _np or _find_numpy()
+    return np is not None and isinstance(x, np.ndarray)
 
 
 def format_number(x: float | np.integer[Any] | np.floating[Any]) -> str:
     """Shortest text that parses back to exactly ``x``: ``2``, ``0.5``, ``1e+20``."""
     if type(x) is float:  # the common case, kept free of the isinstance checks below
         return format_float(x)
-    if isinstance(x, _BOOLS):
+    if isinstance(x, bool):
         raise ValueFormatError(f"expected a number, got the boolean {x}")
-    if isinstance(x, _INTEGERS):
+    if isinstance(x, int):
         return str(int(x))
+    scalar = _numpy_scalar(x)
+    if scalar is not None:
+        return format_number(scalar)
     return format_float(float(x))
 
 
@@ -224,6 +269,8 @@ _EMPTY_VECTOR = 'the value is empty (unclosed or empty text; the empty vector is
 
 def parse_vector(text: str) -> Vector:
     """Parse ``(1 2.5 -3e-2)`` into a 1-D float64 array; ``()`` is the empty vector."""
+    import numpy as np
+
     check_length(text, _VECTOR_EXAMPLE)
     body = text.strip()
     if not body:
@@ -255,11 +302,15 @@ def parse_vector(text: str) -> Vector:
 
 def format_vector(v: Sequence[float] | npt.NDArray[Any]) -> str:
     """``(1 2.5 -0.03)``: each element by :func:`format_number`."""
-    if isinstance(v, np.ndarray):
+    if _is_array(v):
         if v.ndim != 1:
             raise ValueFormatError(f"expected a 1-D vector, got an array of shape {v.shape}")
         v = v.tolist()
-    return "(" + " ".join([format_number(x) for x in v]) + ")"
+    return _format_numbers(v)
+
+
+def _format_numbers(numbers: Iterable[Any]) -> str:
+    return "(" + " ".join([format_number(x) for x in numbers]) + ")"
 
 
 # ---------------------------------------------------------------------------
@@ -313,20 +364,28 @@ def _format_atom(item: Any) -> str:
                 f"cannot put {show(item)} in a list: list items are words without spaces or parentheses"
             )
         return item
-    if isinstance(item, _BOOLS):
-        return format_bool(bool(item))
+    if isinstance(item, bool):
+        return format_bool(item)
     if isinstance(item, _NUMBERS):
         return format_number(item)
+    scalar = _numpy_scalar(item)
+    if scalar is not None:
+        return _format_atom(scalar)
     raise ValueFormatError(f"cannot put a {type(item).__name__} in a list")
 
 
 def _format_items(items: Any, depth: int) -> str:
     if depth > MAX_LIST_DEPTH:
         raise ValueFormatError(f"cannot format a list nested deeper than {MAX_LIST_DEPTH} levels")
-    if isinstance(items, np.ndarray):
-        items = items.tolist()
+    np = _np or _find_numpy()
+    if np is None:
+        nested: tuple[type, ...] = _SEQUENCES
+    else:
+        nested = (*_SEQUENCES, np.ndarray)
+        if isinstance(items, np.ndarray):
+            items = items.tolist()
     parts = [
-        _format_items(item, depth + 1) if isinstance(item, _NESTED) else _format_atom(item) for item in items
+        _format_items(item, depth + 1) if isinstance(item, nested) else _format_atom(item) for item in items
     ]
     return "(" + " ".join(parts) + ")"
 
@@ -341,6 +400,8 @@ _VECTORS_EXAMPLE = 'a list of vectors like "((1 0) (2 0.1))"'
 
 def parse_vectors(text: str) -> list[Vector]:
     """Parse ``((1.0 0.0) (2.0 0.1))`` into a list of 1-D float64 arrays."""
+    import numpy as np
+
     check_length(text, _VECTORS_EXAMPLE)
     try:
         items = parse_list(text)
@@ -363,7 +424,7 @@ def parse_vectors(text: str) -> list[Vector]:
 
 def format_vectors(vs: Iterable[Sequence[float] | npt.NDArray[Any]]) -> str:
     """``((1 0) (2 0.1))``."""
-    if isinstance(vs, np.ndarray) and vs.ndim != 2:
+    if _is_array(vs) and vs.ndim != 2:
         raise ValueFormatError(f"expected a 2-D array of vectors, got an array of shape {vs.shape}")
     return "(" + " ".join([format_vector(v) for v in vs]) + ")"
 
@@ -410,18 +471,21 @@ def format_plain(obj: Any) -> str:
         return ""
     if isinstance(obj, str):
         return obj
-    if isinstance(obj, _BOOLS):
-        return format_bool(bool(obj))
+    if isinstance(obj, bool):
+        return format_bool(obj)
     if isinstance(obj, _NUMBERS):
         return format_number(obj)
-    if isinstance(obj, np.ndarray):
+    np = _np or _find_numpy()
+    if np is not None and isinstance(obj, np.ndarray):
         if obj.ndim == 0:
             return format_plain(obj.item())
         if obj.ndim == 1:
-            return format_vector(obj)
+            return _format_numbers(obj.tolist())
         return format_list(obj)
     if isinstance(obj, _SEQUENCES):
-        if obj and all(isinstance(v, np.ndarray) for v in obj):
+        if obj and np is not None and all(isinstance(v, np.ndarray) for v in obj):
             return format_vectors(obj)
         return format_list(obj)
+    if np is not None and isinstance(obj, (np.bool_, np.integer, np.floating)):
+        return format_plain(obj.item())
     raise TypeError(f"no value format for a {type(obj).__name__}")

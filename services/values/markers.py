@@ -12,23 +12,23 @@ import re
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
-
-import defusedxml
-import defusedxml.ElementTree as DET
-import numpy.typing as npt
+from typing import TYPE_CHECKING, Any
 
 from services.errors import NotFound
 from services.values.grammar import (
     MAX_LIST_DEPTH,
     ValueFormatError,
-    Vector,
     check_length,
     fail,
     format_plain,
     parse_vector,
     show,
 )
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from services.values.grammar import Vector
 
 __all__ = ["Marker", "format_marker", "format_markers", "parse_marker", "parse_markers"]
 
@@ -102,6 +102,10 @@ class Marker:
 
 def parse_marker(text: str) -> Marker:
     """Parse a marker with defusedxml; DTDs, entities and external references are refused."""
+    # defusedxml is imported by the parsers, not with this module: see _loaded_numpy in grammar.py.
+    import defusedxml
+    import defusedxml.ElementTree as DET
+
     check_length(text, _MARKER_EXAMPLE)
     try:
         root = DET.fromstring(text, forbid_dtd=True, forbid_entities=True, forbid_external=True)
@@ -198,6 +202,9 @@ def parse_markers(text: str) -> list[Marker]:
     inner = inner[1:-1]
     if not inner.strip():
         return []
+    import defusedxml
+    import defusedxml.ElementTree as DET
+
     # One document: the markers as the children of a root that no marker can name.
     try:
         root = DET.fromstring(f"<_>{inner}</_>", forbid_dtd=True, forbid_entities=True, forbid_external=True)

@@ -487,7 +487,7 @@ class Camera(Resource):
             self.changed("data")
         self.changed("markers")
         if self._camera_listeners:
-            tell_each(self._camera_listeners, Change("markers", camera), "markers (camera frame)")
+            tell_each(self._camera_listeners, Change("markers", camera), what="markers (camera frame)")
 
     def listen_camera_markers(self, notify: Notify) -> Subscription:
         """Call ``notify`` whenever the markers in the camera's frame change (CameraService's Listen)."""

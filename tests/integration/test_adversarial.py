@@ -460,7 +460,7 @@ BAD_UTF8 = b"\x0a\x03\xff\xfe\xfd"  # field 1 (a string) holding bytes that are 
 
 
 async def test_requests_with_bad_utf8_are_invalid_argument(gw) -> None:
-    from gateway.server import add_to_server
+    from gateway.fronts.grpc_v1.servicer import add_to_server
 
     server = grpc.aio.server()
     add_to_server(gw.servicer, server)

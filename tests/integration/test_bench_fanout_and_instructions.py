@@ -132,6 +132,16 @@ def test_instructions_counts_a_batched_event_on_the_gateway_and_the_floor(
         ), out
 
 
+@pytest.mark.skipif(shutil.which("callgrind_control") is None, reason="valgrind is not installed")
+@pytest.mark.timeout(400)
+def test_instructions_counts_a_get_through_the_line_proxy_on_the_gateway_only() -> None:
+    out = _quick_instructions("proxied", "bare,gateway")
+    assert re.search(
+        r"^proxied\s+gateway\s+instructions per Get: [\d,]+ \([\d,]+ main\)", out, re.MULTILINE
+    ), out
+    assert re.search(r"^proxied\s+bare\s+\(not measured", out, re.MULTILINE), out
+
+
 @pytest.mark.timeout(120)
 def test_hub_fanout_times_an_event_and_a_message_of_the_hub_alone() -> None:
     out = _run("bench.hub_fanout", "--bursts", "5", timeout=100)

@@ -94,7 +94,7 @@ async def test_a_malformed_service_name_is_invalid_in_every_call(demo_gateway: G
             )
             assert err.code() == grpc.StatusCode.INVALID_ARGUMENT, (shown, err.details())
             # An empty service in `more` means the request's own service. (A huge one is left out:
-            # gateway/server.py repeats the whole name in the message of a failed `more` path.)
+            # the call layer repeats the whole name in the message of a failed `more` path.)
             if 0 < len(name) <= 64:
                 err = await rpc_error(
                     stub.Get(

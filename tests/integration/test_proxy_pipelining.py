@@ -28,7 +28,7 @@ from support.session_stream import replies_until
 from support.waiting import WAIT, eventually
 
 from gateway.proxies import TcpProxy
-from gateway.proxies.connection import LineConnection, send_waiting_lines
+from gateway.proxies.connection import LineConnection
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.errors import Code, PropertyError
@@ -328,7 +328,7 @@ async def test_a_batch_known_complete_goes_out_at_once_in_one_write() -> None:
         before = len(link.chunks)
         paths = [f"p{i}" for i in range(5)]
         futures = [proxy.start_get(path, {}, WAIT) for path in paths]
-        send_waiting_lines()
+        proxy.flush()
         # No turn of this loop from here on: the device, in a thread of its own, reads them anyway.
         deadline = time.monotonic() + WAIT
         while len(link.chunks) == before and time.monotonic() < deadline:

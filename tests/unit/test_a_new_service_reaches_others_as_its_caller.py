@@ -9,10 +9,10 @@ from collections.abc import AsyncIterator
 import pytest
 
 from gateway.calls import Calls
+from gateway.engine.types import GetCall, SetCall
 from gateway.guard import Guard
 from gateway.router import Router
 from gateway.rules import Rule, Rules, Subject
-from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.core import Resource, action, query, serve
 from services.directory import Directory, own_context
 from services.errors import PermissionDenied
@@ -82,13 +82,13 @@ async def test_what_a_service_reads_or_writes_for_a_caller_is_checked_as_that_ca
 ) -> None:
     _, calls, _ = await _gateway(Guard(_rules()), routers)
     with pytest.raises(PermissionDenied, match=r"read scout1/sensors\.battery: viewer may not"):
-        await calls.get(pb.GetRequest(service="relay", property="battery"), 5.0, VIEWER)
+        await calls.get(GetCall("relay", "battery"), 5.0, VIEWER)
     with pytest.raises(PermissionDenied, match=r"write scout1/speed: viewer may not"):
-        await calls.set(pb.SetRequest(service="relay", property="slow_down"), 5.0, VIEWER)
-    answer = await calls.get(pb.GetRequest(service="relay", property="battery"), 5.0, ADMIN)
+        await calls.set(SetCall("relay", "slow_down", ""), 5.0, VIEWER)
+    answer = await calls.get(GetCall("relay", "battery"), 5.0, ADMIN)
     assert float(answer.value) > 0
-    await calls.set(pb.SetRequest(service="relay", property="slow_down"), 5.0, ADMIN)
-    assert (await calls.get(pb.GetRequest(service="scout1", property="speed"), 5.0, VIEWER)).value == "0.1"
+    await calls.set(SetCall("relay", "slow_down", ""), 5.0, ADMIN)
+    assert (await calls.get(GetCall("scout1", "speed"), 5.0, VIEWER)).value == "0.1"
 
 
 async def test_a_service_s_own_work_is_not_checked_even_when_a_caller_started_it(
@@ -97,7 +97,7 @@ async def test_a_service_s_own_work_is_not_checked_even_when_a_caller_started_it
     _, calls, relay = await _gateway(Guard(_rules()), routers)
     # A viewer's call ran first in this task: the service's background task is still its own.
     with pytest.raises(PermissionDenied):
-        await calls.get(pb.GetRequest(service="relay", property="battery"), 5.0, VIEWER)
+        await calls.get(GetCall("relay", "battery"), 5.0, VIEWER)
     await asyncio.get_running_loop().create_task(relay.read_on_its_own(), context=own_context())
     assert float(relay.heard) > 0
 
@@ -105,5 +105,5 @@ async def test_a_service_s_own_work_is_not_checked_even_when_a_caller_started_it
 async def test_with_no_rules_a_service_reaches_everything_as_before(routers: list[Router]) -> None:
     router, calls, _ = await _gateway(Guard(), routers)
     assert router.directory.backend("scout1") is router.lookup("scout1")
-    answer = await calls.get(pb.GetRequest(service="relay", property="battery"), 5.0, VIEWER)
+    answer = await calls.get(GetCall("relay", "battery"), 5.0, VIEWER)
     assert float(answer.value) > 0

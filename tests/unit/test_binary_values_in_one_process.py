@@ -12,7 +12,7 @@ from gateway.sizes import BATCH_BYTES, MAX_BINARY_SIZE
 from gateway.wire_values import put, received
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.backend import Change
-from services.conflation import Slot
+from services.conflation import ConflatingQueue, Slot
 from services.core import LocalService, Prop, Resource, action, query
 from services.errors import InvalidArgument, NotFound, ResourceExhausted
 from services.model import Access, PropertyModel, ServiceModel
@@ -136,17 +136,26 @@ async def test_listeners_hear_bytes(svc: LocalService, camera: Camera) -> None:
         await sub.close()
 
 
+def _waiting(value: Value) -> Slot[Value]:
+    """What a Listen stream's queue holds for one new value."""
+    queue: ConflatingQueue[int, Value] = ConflatingQueue()
+    queue.put(0, value)
+    slot = queue.get(0)
+    assert slot is not None
+    return slot
+
+
 def test_a_listen_batch_counts_the_bytes_of_binary_values() -> None:
     topic = Topic(("cam", "frame", ()), backend=None)  # type: ignore[arg-type]
     frame = bytes(300_000)
-    items: list[tuple[Topic, Slot[Value]]] = [(topic, Slot(frame, 0, False, False)) for _ in range(10)]
+    items: list[tuple[Topic, Slot[Value]]] = [(topic, _waiting(frame)) for _ in range(10)]
     batch, size = within(items)
     assert len(batch) == BATCH_BYTES // 300_100 and size <= BATCH_BYTES
     response = encode_events(batch, 0)
     assert all(e.HasField("data") and e.data == frame and e.value == "" for e in response.events)
     assert response.ByteSize() <= BATCH_BYTES + 1024
     # Text and bytes side by side: each in its own field.
-    mixed = encode_events([(topic, Slot("(1 2)", 0, False, False)), (topic, Slot(b"", 0, False, False))], 0)
+    mixed = encode_events([(topic, _waiting("(1 2)")), (topic, _waiting(b""))], 0)
     assert not mixed.events[0].HasField("data") and mixed.events[0].value == "(1 2)"
     assert mixed.events[1].HasField("data") and mixed.events[1].data == b""
 

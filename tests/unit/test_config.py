@@ -81,7 +81,7 @@ def test_overrides_from_the_command_line() -> None:
     [
         ('[gateway]\nlisten = "127.0.0.1:1"\nport = 3', "gateway.port: unknown key"),
         ("[gateway]\ncall_timeout = 'soon'", "gateway.call_timeout: expected a number"),
-        ("[gateway]\ncall_timeout = 0", "gateway.call_timeout: must be positive"),
+        ("[gateway]\ncall_timeout = 0", "gateway.call_timeout: must be a positive number of seconds"),
         ("[gateway]\nlisten = '50051'", "gateway.listen: expected host:port"),
         ("[gateway]\nlog_level = 'loud'", "gateway.log_level: expected one of"),
         ("[limits]\nmax_streams = true", "limits.max_streams: expected an integer"),

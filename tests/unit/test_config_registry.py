@@ -36,7 +36,7 @@ def test_registry_settings_are_read_and_persist_is_taken_from_the_config_folder(
     ("text", "message"),
     [
         ("[registry]\nperiod = -1", "registry.period: must not be negative"),
-        ("[registry]\ntimeout = 0", "registry.timeout: must be positive"),
+        ("[registry]\ntimeout = 0", "registry.timeout: must be a positive number of seconds"),
         ("[registry]\nmisses = 0", "registry.misses: must be at least 1"),
         ("[registry]\nmisses = 1.5", "registry.misses: expected an integer"),
         ("[registry]\ngrace = inf", "registry.grace: must be a finite number"),

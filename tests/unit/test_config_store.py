@@ -99,8 +99,8 @@ def test_the_gateway_id_is_the_same_for_the_same_host_and_port() -> None:
         ('store = "etcds://127.0.0.1:2379"\nstore_cert = "c.pem"', "give both 'store_cert' and 'store_key'"),
         ('store_prefix = "propertyservice"', "registry.store_prefix: expected a folder of keys"),
         ('store_prefix = "/"', "registry.store_prefix: expected a folder of keys"),
-        ("store_lease = 0.5", "registry.store_lease: must be 1 to 3600 seconds"),
-        ("store_lease = nan", "registry.store_lease: must be 1 to 3600 seconds"),
+        ("store_lease = 0.5", "registry.store_lease: must be from 1 to 3600 seconds"),
+        ("store_lease = nan", "registry.store_lease: must be from 1 to 3600 seconds"),
         ('store_lease = "5s"', "registry.store_lease: expected a number"),
         ('gateway_id = "a/b"', "registry.gateway_id: 1 to 128 printable characters"),
         ('gateway_id = "a b"', "registry.gateway_id: 1 to 128 printable characters"),
@@ -125,7 +125,7 @@ def test_check_config_names_every_bad_store_key(tmp_path: Path, capsys: pytest.C
     assert main(["check-config", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "registry.store: unknown store scheme 'consul://'" in err
-    assert "registry.store_lease: must be 1 to 3600 seconds" in err
+    assert "registry.store_lease: must be from 1 to 3600 seconds" in err
 
 
 def test_store_urls_parse_into_endpoints() -> None:

@@ -6,7 +6,8 @@ import grpc
 import pytest
 
 from clients import errors as client_errors
-from gateway.status import GRPC_STATUS, error_from_status, to_property_error
+from gateway.fronts.grpc_v1.status import GRPC_STATUS, error_from_status
+from gateway.status import to_property_error
 from services import errors
 from services.errors import Code, NotFound, PropertyError, ReadOnly, error_for
 from services.line_protocol import ErrorReply, decode_line

@@ -70,7 +70,7 @@ def test_the_http_section_reads_back() -> None:
     [
         ('listen = "8080"', "http.listen: expected host:port"),
         ("max_body = 0", "http.max_body: must be at least 1"),
-        ("max_streams = -1", "http.max_streams: must not be negative"),
+        ("max_streams = -1", "http.max_streams: must be at least 1, got -1"),
         ("heartbeat = 0", "http.heartbeat"),
         ('heartbeat = "often"', "http.heartbeat: expected a number"),
         ("max_streams_per_client = 0", "http.max_streams_per_client: must be at least 1"),

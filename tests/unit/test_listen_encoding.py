@@ -17,7 +17,7 @@ from gateway.listen.encoding import (
 )
 from gateway.listen.topics import Topic
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.conflation import Slot
+from services.conflation import ConflatingQueue, Slot
 from services.values import Value
 
 values = st.one_of(st.text(max_size=300), st.binary(max_size=300))
@@ -25,7 +25,10 @@ paths = st.sampled_from(["a", "robots.scout1.location", "ü.x"])
 
 
 def _slot(value: Value, stamp: int, conflated: int, gap: bool, removed: bool) -> Slot[Value]:
-    slot = Slot(value, stamp, gap, removed)
+    queue: ConflatingQueue[int, Value] = ConflatingQueue()
+    queue.put(0, value, stamp, gap, removed)
+    slot = queue.get(0)
+    assert slot is not None
     slot.conflated = conflated
     return slot
 
@@ -58,7 +61,7 @@ def test_the_wire_form_parses_to_the_message_built_in_place(
 
 def test_two_streams_share_the_encoded_change_and_keep_their_own_numbers() -> None:
     topic = _topic("scout1", "location")
-    change = Slot[Value]("(1 2 3)", 1_700_000_000_123_456_789, False, False)
+    change = _slot("(1 2 3)", 1_700_000_000_123_456_789, 0, False, False)
     first = pb.ListenResponse.FromString(encode_wire([(topic, change)], 0))
     cached = topic.wire
     behind = _slot("(1 2 3)", change.stamp, 4, True, False)
@@ -69,7 +72,7 @@ def test_two_streams_share_the_encoded_change_and_keep_their_own_numbers() -> No
     assert (second.events[0].sequence, second.events[0].conflated, second.events[0].gap) == (20_001, 4, True)
     assert second.events[0].value == "(1 2 3)"
     assert second.events[0].time.ToNanoseconds() == change.stamp
-    newer = Slot[Value]("(4 5 6)", change.stamp + 1, False, False)
+    newer = _slot("(4 5 6)", change.stamp + 1, 0, False, False)
     assert pb.ListenResponse.FromString(encode_wire([(topic, newer)], 1)).events[0].value == "(4 5 6)"
 
 
@@ -145,14 +148,14 @@ def _varint(n: int) -> bytes:
 
 def test_a_change_is_led_once_per_length_and_a_big_value_is_not_copied_into_its_leads() -> None:
     topic = _topic("cam", "frame")
-    small = Slot[Value]("x", 1, False, False)
+    small = _slot("x", 1, 0, False, False)
     encode_wire([(topic, small)], 0)
     encode_wire([(topic, small)], 5)  # a second stream whose sequence number is as long
     shared = topic.wire
     assert shared is not None and list(shared.leads) == [2] and shared.rest == b""
     encode_wire([(topic, small)], 200)  # a third, with a longer one: a second lead
     assert sorted(shared.leads) == [2, 3]
-    frame = Slot[Value](bytes(LEAD_BODY_BYTES + 1), 2, False, False)
+    frame = _slot(bytes(LEAD_BODY_BYTES + 1), 2, 0, False, False)
     first = encode_wire([(topic, frame)], 0)
     shared = topic.wire
     assert shared is not None and shared.body is not None and shared.rest is shared.body

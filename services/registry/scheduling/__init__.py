@@ -5,7 +5,7 @@ set of providers covering a capability set: exact up to :data:`EXACT_LIMIT` capa
 beyond), ``cost`` (drive distance, odometry, ranking by cost and QoS), ``qos`` (the assessments
 per provider), ``queue`` (requests waiting for a busy provider), ``model`` (the records),
 ``scheduler`` (rules (a)–(f) and the five steps). The registry wires it to its table, the
-licences and the clock in ``services.registry.scheduling_service``.
+licences and the clock in ``services.registry.dispatch``.
 """
 
 from services.registry.scheduling.capabilities import MAX_CAPABILITIES, check_capabilities, parse_capabilities

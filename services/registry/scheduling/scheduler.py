@@ -1,6 +1,6 @@
 """The scheduler's decisions, without I/O: rules (a)–(f) of the seed and its five steps.
 
-The registry (``services.registry.scheduling.wiring``) gives it a snapshot of the providers and
+The registry (``services.registry.dispatch``) gives it a snapshot of the providers and
 the clock; it answers with a :class:`Plan` (providers chosen and reserved), or queues the request,
 or raises a :class:`~services.errors.PropertyError` saying why not. The caller then wakes the
 dormant providers of the plan and grants their licences, and :meth:`Scheduler.commit`\\s the plan

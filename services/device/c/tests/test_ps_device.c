@@ -167,6 +167,10 @@ static void test_get_and_set(void) {
     EXCHANGE("#2 GET nosuch\n", "#2 ERR 5 no such property\n");
     EXCHANGE("GET Temp\n", "ERR 5 no such property\n"); /* paths are case-sensitive */
     EXCHANGE("GET te..mp\n", "ERR 3 bad path\n");
+    EXCHANGE("GET temp.\n", "ERR 3 bad path\n"); /* a dot only between two names */
+    EXCHANGE("GET .temp\n", "ERR 3 bad path\n");
+    EXCHANGE("GeT temp\n", "OK 21.5\n"); /* words in any case */
+    EXCHANGE("GET temp.gui.x\n", "ERR 5 no such property\n");
     EXCHANGE("GET unit=K temp\n", "ERR 3 this device takes no parameters\n");
     EXCHANGE("GET temp extra\n", "ERR 3 unexpected text after the path\n");
     EXCHANGE("GET temp   \n", "OK 21.5\n"); /* trailing spaces are not a field */
@@ -256,6 +260,7 @@ static void test_checksums(void) {
     EXCHANGE("$GET temp*00\n", mismatch);
     EXCHANGE("$#1 GET temp\n", mismatch);
     EXCHANGE("$\n", mismatch);
+    EXCHANGE("$ab\n", mismatch); /* too short for "*HH" */
     EXCHANGE("GET temp\n", "OK 21.5\n"); /* a bad '$' line does not turn checksums on */
     EXCHANGE("$GET location*54\n", "$ERR 5 no such property*14\n");
     EXCHANGE("HELLO\n", "HELLO 1 name=t1 type=sensor push=1 maxline=64 inflight=1 rxbuf=32\n"); /* mode off */

@@ -1,26 +1,40 @@
 """The ``propertyservice.v1.PropertyService`` servicer: Get, Set, Listen, Session and Describe.
 
-Get, Set and Describe go through the router to one backend each, under the
-call timeout (and the client's deadline when that is shorter). Listen streams
-come from the listen hub. Session lives in :mod:`gateway.session`.
+Get, Set and Describe are translated at the door into the engine's own types
+(:mod:`gateway.fronts.grpc_v1.messages`) and served by one unary wrapper
+(:meth:`PropertyServicer._unary`: the request id, ``[limits] max_calls``, the
+call timeout or the client's deadline when that is shorter, the status of a
+failure, the counts) through the call layer (:class:`gateway.calls.Calls`).
+Listen streams come from the listen hub. Session lives in :mod:`gateway.session`.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Callable, Mapping, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
+from dataclasses import dataclass
 from time import perf_counter
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import grpc
-from google.protobuf.message import DecodeError, Message
-from grpc_health.v1 import health_pb2_grpc
-from grpc_reflection.v1alpha import reflection_pb2_grpc
+from google.protobuf.message import Message
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 from grpc_reflection.v1alpha._async import ReflectionServicer
 
-from gateway.calls import Calls, Undecodable
+from gateway.calls import Calls
 from gateway.config import Config
+from gateway.engine.types import DescribeCall
 from gateway.federation import VIA_KEY, enter, new_gateway_id
+from gateway.fronts.grpc_v1.messages import (
+    Undecodable,
+    get_call,
+    get_response,
+    lenient,
+    set_call,
+    set_response,
+)
+from gateway.fronts.grpc_v1.status import abort
 from gateway.guard import Guard
 from gateway.identity import ANONYMOUS
 from gateway.listen import ListenHub, parse_options, parse_selectors
@@ -32,13 +46,16 @@ from gateway.peer_protocol import PROTOCOLS_KEY, check_caller
 from gateway.router import Router
 from gateway.rules import Subject
 from gateway.session import Session
-from gateway.status import abort, to_property_error
+from gateway.status import to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.errors import Code, InvalidArgument, ResourceExhausted
+from services.errors import Code, ResourceExhausted
 from services.model_codec import model_to_proto
 
 Context = grpc.aio.ServicerContext[Any, Any]
+
+#: The contract's service, by its full name (``propertyservice.v1.PropertyService``).
+SERVICE_NAME: str = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
 
 
 def arrival(context: Context) -> tuple[str, str | bytes | None]:
@@ -76,19 +93,6 @@ def _begin_unary(context: Context, service: str, path: str) -> tuple[RequestCont
     return request, via
 
 
-def _lenient(message: type[Message]) -> Callable[[bytes], Message | Undecodable]:
-    # grpc's own handling of a deserializer that raises is UNKNOWN and a logged traceback.
-    name = message.DESCRIPTOR.full_name
-
-    def parse(data: bytes) -> Message | Undecodable:
-        try:
-            return message.FromString(data)
-        except DecodeError as exc:
-            return Undecodable(InvalidArgument(f"the request is not a valid {name}: {exc}"))
-
-    return parse
-
-
 def _serialized(response: bytes) -> bytes:
     return response
 
@@ -99,33 +103,32 @@ def add_to_server(servicer: PropertyServicer, server: grpc.aio.Server) -> None:
     handlers = {
         "Get": grpc.unary_unary_rpc_method_handler(
             servicer.Get,
-            request_deserializer=_lenient(pb.GetRequest),
+            request_deserializer=lenient(pb.GetRequest),
             response_serializer=pb.GetResponse.SerializeToString,
         ),
         "Set": grpc.unary_unary_rpc_method_handler(
             servicer.Set,
-            request_deserializer=_lenient(pb.SetRequest),
+            request_deserializer=lenient(pb.SetRequest),
             response_serializer=pb.SetResponse.SerializeToString,
         ),
         "Listen": grpc.unary_stream_rpc_method_handler(
             servicer.Listen,
-            request_deserializer=_lenient(pb.ListenRequest),
+            request_deserializer=lenient(pb.ListenRequest),
             response_serializer=_serialized,  # Listen yields its responses serialized already
         ),
         "Session": grpc.stream_stream_rpc_method_handler(
             servicer.Session,
-            request_deserializer=_lenient(pb.SessionRequest),
+            request_deserializer=lenient(pb.SessionRequest),
             response_serializer=_serialized,  # a Session writes its responses serialized already
         ),
         "Describe": grpc.unary_unary_rpc_method_handler(
             servicer.Describe,
-            request_deserializer=_lenient(pb.DescribeRequest),
+            request_deserializer=lenient(pb.DescribeRequest),
             response_serializer=pb.DescribeResponse.SerializeToString,
         ),
     }
-    name = pb.DESCRIPTOR.services_by_name["PropertyService"].full_name
     # Generic only, never registered: see GenericOnly.
-    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(name, handlers),))
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(SERVICE_NAME, handlers),))
 
 
 class GenericOnly:
@@ -134,9 +137,8 @@ class GenericOnly:
 
     grpc.aio's accept loop waits (``asyncio.wait``) on one pending request per registered method
     plus one for every generic method, so each registered method makes every call of every method
-    dearer. Measured with callgrind on a unary Get (one in flight): 624,000 instructions with the
-    contract's five methods, health's two and reflection's one registered, 572,000 with none
-    (about 6,000 a registered method); finding a generic method is a dictionary lookup.
+    dearer (callgrind shows it on a unary Get: ``python -m bench.instructions --parts unary``);
+    finding a generic method is a dictionary lookup.
     """
 
     def __init__(self, server: grpc.aio.Server) -> None:
@@ -149,14 +151,44 @@ class GenericOnly:
         """Not registered: the same methods came as generic handlers just before."""
 
 
-def add_health_and_reflection(server: grpc.aio.Server, health: Any, services: Sequence[str]) -> None:
-    """Serve the gRPC health service ``health`` and server reflection listing ``services``, as
-    generic handlers (see :class:`GenericOnly`)."""
+def add_health_and_reflection(server: grpc.aio.Server, health: Any) -> None:
+    """Serve the gRPC health service ``health`` and server reflection listing the contract's
+    service, health and reflection, as generic handlers (see :class:`GenericOnly`)."""
     generic = GenericOnly(server)
     health_pb2_grpc.add_HealthServicer_to_server(health, generic)
+    listed = (
+        SERVICE_NAME,
+        health_pb2.DESCRIPTOR.services_by_name["Health"].full_name,
+        reflection.SERVICE_NAME,
+    )
     # What reflection.enable_server_reflection does for a grpc.aio server (it tells one by its
     # type, so it cannot be handed GenericOnly): the asyncio servicer, added by the generated code.
-    reflection_pb2_grpc.add_ServerReflectionServicer_to_server(ReflectionServicer(tuple(services)), generic)
+    reflection_pb2_grpc.add_ServerReflectionServicer_to_server(ReflectionServicer(listed), generic)
+
+
+def _describe_call(request: pb.DescribeRequest) -> DescribeCall:
+    return DescribeCall(request.service)
+
+
+#: The response message of a unary method.
+M = TypeVar("M", bound=Message)
+
+
+@dataclass(frozen=True, slots=True)
+class _Unary(Generic[M]):
+    """One unary method as :meth:`PropertyServicer._unary` serves it: the request translated
+    into the engine's call, the engine's method that serves it, and its answer translated back."""
+
+    name: str
+    counts: MethodCounts | None
+    to_call: Callable[[Any], Any]
+    #: ``serve(call, time_limit, subject)``: a method of :class:`gateway.calls.Calls`.
+    serve: Callable[[Any, float, Subject], Awaitable[Any]]
+    to_response: Callable[[Any], M]
+    #: Who calls (a Set names its caller even when nothing is refused: the audit trail says who).
+    identify: Callable[[Context], Subject]
+    #: Whether the request names a property (for its log lines).
+    has_path: bool = True
 
 
 class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
@@ -185,6 +217,21 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         self._describe_counts: MethodCounts | None = methods.get("Describe")
         self._listen_counts: MethodCounts | None = methods.get("Listen")
         self._session_counts: MethodCounts | None = methods.get("Session")
+        calls = self.calls
+        self._get_method = _Unary("Get", self._get_counts, get_call, calls.get, get_response, self._subject)
+        # Identified even when nothing is refused: the audit trail names who set what.
+        self._set_method = _Unary(
+            "Set", self._set_counts, set_call, calls.set, set_response, self.guard.identify_call
+        )
+        self._describe_method = _Unary(
+            "Describe",
+            self._describe_counts,
+            _describe_call,
+            calls.describe,
+            model_to_proto,
+            self._subject,
+            has_path=False,
+        )
 
     def end_sessions(self) -> None:
         """Gateway shutdown: every Session flushes, ends its listens and ends with OK."""
@@ -213,24 +260,27 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         timeout = self._timeout
         return remaining if remaining is not None and remaining < timeout else timeout
 
-    async def Get(self, request: pb.GetRequest, context: Context) -> pb.GetResponse:
+    async def _unary(self, request: Any, context: Context, method: _Unary[M]) -> M:
+        """Serve a unary call: its request id, its place among ``[limits] max_calls``, its deadline,
+        the ``method``'s answer, and its count; a failure ends it with its status."""
         started = perf_counter()
-        counts = self._get_counts
+        counts = method.counts
         try:
             if isinstance(request, Undecodable):
                 _begin_unary(context, "", "")
                 raise request.error
-            logged, via = _begin_unary(context, request.service, request.property)
+            logged, via = _begin_unary(context, request.service, request.property if method.has_path else "")
             enter(via, self.gateway_id)
-            subject = self._subject(context)
+            subject = method.identify(context)
             logged.subject = _subject_name(subject)
             self._take_call_place()
             try:
-                response = await self.calls.get(request, self._deadline(context), subject)
+                answer = await method.serve(method.to_call(request), self._deadline(context), subject)
             finally:
                 self.calls_running -= 1
+            response = method.to_response(answer)
         except Exception as exc:
-            await _failed(context, exc, "Get", counts, started)
+            await _failed(context, exc, method.name, counts, started)
             raise  # not reached: abort raises
         except asyncio.CancelledError:
             if counts is not None:
@@ -240,56 +290,14 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             counts.done(0, perf_counter() - started)
         return response
 
+    async def Get(self, request: pb.GetRequest, context: Context) -> pb.GetResponse:
+        return await self._unary(request, context, self._get_method)
+
     async def Set(self, request: pb.SetRequest, context: Context) -> pb.SetResponse:
-        started = perf_counter()
-        counts = self._set_counts
-        try:
-            if isinstance(request, Undecodable):
-                _begin_unary(context, "", "")
-                raise request.error
-            logged, via = _begin_unary(context, request.service, request.property)
-            enter(via, self.gateway_id)
-            # Identified even when nothing is refused: the audit trail names who set what.
-            subject = self.guard.identify_call(context)
-            logged.subject = _subject_name(subject)
-            self._take_call_place()
-            try:
-                response = await self.calls.set(request, self._deadline(context), subject)
-            finally:
-                self.calls_running -= 1
-        except Exception as exc:
-            await _failed(context, exc, "Set", counts, started)
-            raise
-        except asyncio.CancelledError:
-            if counts is not None:
-                counts.done(Code.CANCELLED, None)
-            raise
-        if counts is not None:
-            counts.done(0, perf_counter() - started)
-        return response
+        return await self._unary(request, context, self._set_method)
 
     async def Describe(self, request: pb.DescribeRequest, context: Context) -> pb.DescribeResponse:
-        started = perf_counter()
-        try:
-            if isinstance(request, Undecodable):
-                _begin_unary(context, "", "")
-                raise request.error
-            logged, via = _begin_unary(context, request.service, "")
-            enter(via, self.gateway_id)
-            subject = self._subject(context)
-            logged.subject = _subject_name(subject)
-            self._take_call_place()
-            try:
-                model = await self.calls.describe(request.service, self._deadline(context), subject)
-            finally:
-                self.calls_running -= 1
-            response = model_to_proto(model)
-        except Exception as exc:
-            await _failed(context, exc, "Describe", self._describe_counts, started)
-            raise
-        if self._describe_counts is not None:
-            self._describe_counts.done(0, perf_counter() - started)
-        return response
+        return await self._unary(request, context, self._describe_method)
 
     async def Listen(self, request: pb.ListenRequest, context: Context) -> AsyncIterator[bytes]:
         # Responses are yielded rather than written with context.write: grpc.aio

@@ -1,0 +1,1 @@
+"""The protocol-neutral engine: plain request, reply and event types, and the parts that work in them."""

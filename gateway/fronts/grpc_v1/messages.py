@@ -1,0 +1,84 @@
+"""The contract's messages into the engine's types and back.
+
+A request is translated at the door (:func:`get_call`, :func:`set_call`), the engine's answer on
+the way out (:func:`get_response`, :func:`set_response`); a message that does not parse reaches a
+handler as :class:`Undecodable` (:func:`lenient`), never as grpc's own UNKNOWN with a traceback.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+from google.protobuf.message import DecodeError, Message
+
+from gateway.engine.types import GetCall, GetReply, PropertyRef, SetCall
+from gateway.wire_values import put, received
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.backend import NO_PARAMS
+from services.errors import InvalidArgument
+from services.values import Value
+
+__all__ = ["Undecodable", "get_call", "get_response", "lenient", "set_call", "set_response"]
+
+
+class Undecodable:
+    """A request that did not parse, e.g. a string field holding bytes that are not UTF-8."""
+
+    __slots__ = ("error",)
+
+    def __init__(self, error: InvalidArgument) -> None:
+        self.error = error
+
+
+def lenient(message: type[Message]) -> Callable[[bytes], Message | Undecodable]:
+    """A deserializer of ``message`` that gives :class:`Undecodable` for bytes that do not parse."""
+    # grpc's own handling of a deserializer that raises is UNKNOWN and a logged traceback.
+    name = message.DESCRIPTOR.full_name
+
+    def parse(data: bytes) -> Message | Undecodable:
+        try:
+            return message.FromString(data)
+        except DecodeError as exc:
+            return Undecodable(InvalidArgument(f"the request is not a valid {name}: {exc}"))
+
+    return parse
+
+
+def _params(params: Mapping[str, str]) -> Mapping[str, str]:
+    return dict(params) if params else NO_PARAMS
+
+
+def get_call(request: pb.GetRequest) -> GetCall:
+    """The engine's Get for ``request``."""
+    params = request.parameters
+    more = request.more
+    if not more:
+        return GetCall(request.service, request.property, dict(params) if params else NO_PARAMS)
+    return GetCall(
+        request.service,
+        request.property,
+        _params(params),
+        [PropertyRef(ref.service, ref.property, _params(ref.parameters)) for ref in more],
+    )
+
+
+def set_call(request: pb.SetRequest) -> SetCall:
+    """The engine's Set for ``request``; INVALID_ARGUMENT when it carries both text and bytes."""
+    return SetCall(request.service, request.property, received(request), _params(request.parameters))
+
+
+def get_response(reply: GetReply) -> pb.GetResponse:
+    """``reply`` as the contract's GetResponse."""
+    response = pb.GetResponse()
+    put(response, reply.value)
+    for item in reply.more:
+        entry = response.more.add(service=item.service, property=item.path)
+        put(entry, item.value)
+    return response
+
+
+def set_response(value: Value) -> pb.SetResponse:
+    """A Set's answer as the contract's SetResponse."""
+    response = pb.SetResponse()
+    put(response, value)
+    return response
