@@ -53,6 +53,7 @@ INSTRUCTION_RUNS = {
     "fanout": "bare,gateway",
     "batched-fanout": "gateway,floor",
     "unary": "bare,gateway",
+    "proxied": "bare,gateway",
 }
 #: Runs at once where a core is idle: a server under callgrind starting keeps one core busy, and a
 #: count does not move with the machine's load. On a machine already busy they go one at a time, as
@@ -132,10 +133,12 @@ def test_instructions_counts_a_batched_event_on_the_gateway_and_the_floor(
         ), out
 
 
-@pytest.mark.skipif(shutil.which("callgrind_control") is None, reason="valgrind is not installed")
-@pytest.mark.timeout(400)
-def test_instructions_counts_a_get_through_the_line_proxy_on_the_gateway_only() -> None:
-    out = _quick_instructions("proxied", "bare,gateway")
+@needs_valgrind
+@pytest.mark.timeout(RUNS_TIMEOUT)
+def test_instructions_counts_a_get_through_the_line_proxy_on_the_gateway_only(
+    instruction_runs: dict[str, subprocess.CompletedProcess[str]],
+) -> None:
+    out = _instructions_output(instruction_runs, "proxied")
     assert re.search(
         r"^proxied\s+gateway\s+instructions per Get: [\d,]+ \([\d,]+ main\)", out, re.MULTILINE
     ), out
