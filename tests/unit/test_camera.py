@@ -137,7 +137,11 @@ async def test_a_mounted_camera_follows_its_robot(world: MemoryDirectory) -> Non
     await wait_until(lambda: camera.location[0] == pytest.approx(3.2), what="the camera is on scout1")
     np.testing.assert_allclose(parse_vector(await service.get("location")), [3.2, 0, 0.5, 0, 0, 0])
     assert ids(await service.get("markers")) == ["east"]  # not scout1 itself
-    await drive(world, "scout1", 3.0, 2.0)  # turns to face +y on the way
+    # A robot turns toward its target on each step that does not arrive, and a step is at most five
+    # ticks of driving: at 20 m/s that is 0.5 m, so however late the loop wakes it, the 2 m below
+    # take several steps and scout1 faces +y on the way (at 200 m/s one late tick arrived unturned).
+    await world.backend("scout1").set("speed", "20")
+    await drive(world, "scout1", 3.0, 2.0)
     await wait_until(lambda: camera.location[1] == pytest.approx(2.2), what="the camera moved with scout1")
     assert camera.location[5] == pytest.approx(math.pi / 2)
     assert ids(await service.get("markers")) == ["north"]

@@ -18,6 +18,7 @@ from __future__ import annotations
 import ast
 from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 
 import pytest
@@ -134,10 +135,12 @@ def _known_prefix(dotted: str, modules: set[str]) -> str | None:
     return None
 
 
-def project_imports() -> list[Import]:
+@cache
+def project_imports() -> tuple[Import, ...]:
+    """Every import of a project module by another; parsed once for all the tests here."""
     files = module_files()
     names = set(files)
-    return [imp for name, path in files.items() for imp in imports_of(name, path, names)]
+    return tuple(imp for name, path in files.items() for imp in imports_of(name, path, names))
 
 
 def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
@@ -190,7 +193,7 @@ def a_circle_through(start: str, members: set[str], edges: dict[str, set[str]]) 
     return [start]
 
 
-def runtime_edges(imports: list[Import]) -> dict[str, set[str]]:
+def runtime_edges(imports: tuple[Import, ...]) -> dict[str, set[str]]:
     edges: dict[str, set[str]] = {}
     for imp in imports:
         if not imp.typing_only:

@@ -16,36 +16,52 @@ from services.registry.scheduling import Plan, Request, Scheduler
 CAPS = ("survey", "video", "ptz", "power")
 
 
+#: One provider: its capabilities, where it is (or nowhere), whether it is down, whether it is dormant.
+#: Built once: a strategy made afresh for every provider of every example costs Hypothesis more than
+#: the drawing does.
+PROVIDERS = st.lists(
+    st.tuples(
+        st.sets(st.sampled_from(CAPS), max_size=3),
+        st.none() | st.tuples(st.floats(-50, 50), st.floats(-50, 50)),
+        st.sampled_from(["up", "up", "up", "down"]),
+        st.integers(0, 5).map(lambda roll: roll == 0),
+    ),
+    min_size=1,
+    max_size=40,
+)
+REQUESTS = st.tuples(
+    st.sets(st.sampled_from(CAPS), min_size=1, max_size=3),
+    st.integers(1, 3),
+    st.none() | st.tuples(st.floats(-50, 50), st.floats(-50, 50)),
+    st.sampled_from([0.0, 0.5, 1.0]),
+)
+
+
 @st.composite
 def registries(draw: st.DrawFn) -> tuple[Registry, list[tuple[str, float]], Request]:
-    n = draw(st.integers(1, 40))
-    features = {}
-    for i in range(n):
-        features[f"p{i}"] = tuple(draw(st.sets(st.sampled_from(CAPS), max_size=3)))
-    registry = Registry(period=0, features=features)
-    for i in range(n):
+    providers = draw(PROVIDERS)
+    n = len(providers)
+    registry = Registry(period=0, features={f"p{i}": tuple(caps) for i, (caps, *_) in enumerate(providers)})
+    for i, (_, place, state, dormant) in enumerate(providers):
         name = f"p{i}"
         registry.add(name, BackendInfo(type="mobile_robot", url="local"))
-        if draw(st.booleans()):
-            registry.set_location(name, np.array([draw(st.floats(-50, 50)), draw(st.floats(-50, 50)), 0.0]))
-        state = draw(st.sampled_from(["up", "up", "up", "down"]))
+        if place is not None:
+            registry.set_location(name, np.array([*place, 0.0]))
         if state == "down":
             registry.set_state(name, "down")
-        if draw(st.integers(0, 5)) == 0:
+        if dormant:
             registry.set_dormant(name, True)
-    assessments = [
-        (f"p{draw(st.integers(0, n - 1))}", draw(st.floats(0, 1))) for _ in range(draw(st.integers(0, 6)))
-    ]
-    wanted = frozenset(draw(st.sets(st.sampled_from(CAPS), min_size=1, max_size=3)))
+    assessments = draw(
+        st.lists(st.tuples(st.integers(0, n - 1).map("p{}".format), st.floats(0, 1)), max_size=6)
+    )
+    wanted, count, location, weight = draw(REQUESTS)
     request = Request(
         "consumer",
-        wanted,
-        count=draw(st.integers(1, 3)),
-        location=np.array([draw(st.floats(-50, 50)), draw(st.floats(-50, 50))])
-        if draw(st.booleans())
-        else None,
+        frozenset(wanted),
+        count=count,
+        location=None if location is None else np.array(location),
         duration=10.0,
-        weight=draw(st.sampled_from([0.0, 0.5, 1.0])),
+        weight=weight,
     )
     return registry, assessments, request
 

@@ -15,6 +15,9 @@ from pathlib import Path
 
 import pytest
 
+# node starts once for each module and once for its test runner: seconds, not milliseconds.
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[2]
 CONSOLE = ROOT / "gateway" / "console"
 NODE = shutil.which("node")
