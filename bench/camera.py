@@ -107,7 +107,7 @@ async def _listen(address: str, counter: _Counter, ready: asyncio.Event, stop: a
 
 def _baseline(seconds: float) -> dict[str, Any]:
     """The camera's render and encode of the same view in this process, one frame after another."""
-    from services.vision.camera import Camera
+    from services.apps.vision.camera import Camera
 
     camera = Camera(**OPTIONS, objects=OBJECTS)
     frames = 0

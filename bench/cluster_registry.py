@@ -55,7 +55,7 @@ from bench.register import start_farms
 from bench.servers import ServerError, ServerProcess, end_process
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.values import parse_names
+from services.kernel.values import parse_names
 
 #: Seconds of each gateway's etcd lease in the registry part: how long a dead gateway's devices wait.
 STORE_LEASE = 5.0

@@ -77,7 +77,7 @@ async def _http_p99(base: str) -> float:
 
 
 def _start_device(line: str, name: str) -> subprocess.Popen[bytes]:
-    argv = [sys.executable, "-m", "services.device_server", "--service", "sim-robot", "--name", name]
+    argv = [sys.executable, "-m", "services.device", "--service", "sim-robot", "--name", name]
     return subprocess.Popen(
         [*argv, "--connect", line], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )

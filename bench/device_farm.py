@@ -26,9 +26,9 @@ import sys
 from pathlib import Path
 
 from bench.baseline import until_stopped
-from services.core import LocalService
+from services.apps.simulators import SimRobot
 from services.device import DeviceServer
-from services.simulators import SimRobot
+from services.kernel.core import LocalService
 
 #: Each device serves the gateway's proxy and little else.
 CONNECTIONS_PER_DEVICE = 4

@@ -1,6 +1,6 @@
 """``python -m bench.environment_picture FILE``: the heat map of docs/environment.md, made for real.
 
-Four simulated robots (``services.simulators.SimRobot``, the demo world's temperature field)
+Four simulated robots (``services.apps.simulators.SimRobot``, the demo world's temperature field)
 drive a lawn-mower pattern over an 8 m × 6 m grid of 0.25 m cells, each over its own strip;
 an environment model follows their locations and temperature readings through a router, as
 in a gateway, and ``grid.temperature.image`` is written to FILE. Prints the layer's info.
@@ -14,11 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-from gateway.router import Router
-from services.core import LocalService
-from services.core import serve as serve_backend
-from services.environment import EnvironmentModel
-from services.simulators import SimRobot
+from gateway.engine.router import Router
+from services.apps.environment import EnvironmentModel
+from services.apps.simulators import SimRobot
+from services.kernel.core import LocalService
+from services.kernel.core import serve as serve_backend
 
 ORIGIN = (-1.0, -1.0)
 CELL = 0.25

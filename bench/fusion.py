@@ -1,6 +1,6 @@
 """Part (n), in this process: the environment model's cost per observation at 100 and 10,000 markers.
 
-A :class:`services.environment.MarkerFusion` holds ``n`` markers of four classes, one in each
+A :class:`services.apps.environment.MarkerFusion` holds ``n`` markers of four classes, one in each
 3 m square of a square field (9 m² per marker, as :mod:`bench.groups` lays out a registry),
 placed at random within 0.5 m of the square's centre so that no two start merged. One observation
 is a noisy copy (σ 5 cm) of a random marker: the association (spatial hash, gate) and the
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from services.environment import MarkerFusion, Observation
+from services.apps.environment import MarkerFusion, Observation
 
 CLASSES = ("box", "ball", "robot", "cone")
 SIGMA = 0.05

@@ -1,7 +1,7 @@
 """The gateway under test: a real :class:`gateway.app.Gateway` serving one bench-only service.
 
 The service is :class:`BenchTarget`, a plain Resource with settable text
-properties, served in-process by ``services.core.LocalService`` — the same
+properties, served in-process by ``services.kernel.core.LocalService`` — the same
 path as every Python service behind the gateway (router, listen hub, Session
 handler, class wrapper), with nothing device-like behind it.
 
@@ -20,7 +20,7 @@ import sys
 
 from bench.baseline import until_stopped
 from bench.target import SERVICE
-from services.core import Resource
+from services.kernel.core import Resource
 
 
 class BenchTarget(Resource):
@@ -55,7 +55,7 @@ async def serve(
 
     from gateway.app import Gateway
     from gateway.config import Config, GatewaySection, HttpSection, MetricsSection, load_config
-    from services.core import LocalService
+    from services.kernel.core import LocalService
 
     config = Config(gateway=GatewaySection(listen=listen, log_level="warning"))
     if config_file:

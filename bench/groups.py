@@ -1,7 +1,7 @@
 """Parts (f) and (g), in this process: a group's ``behaviors.moveto`` and the registry's ``find``.
 
 Both run the services in-process, behind the gateway's own
-:class:`gateway.router.Router` as their directory (no gRPC), so the figures
+:class:`gateway.engine.router.Router` as their directory (no gRPC), so the figures
 are what the group and the registry themselves cost.
 """
 
@@ -14,12 +14,12 @@ from typing import Any
 
 import numpy as np
 
-from gateway.router import Router
-from services.core import LocalService
-from services.group import Group
-from services.registry import Registry, RegistryService
-from services.simulators import SimRobot, SimSensor
-from services.values import parse_names
+from gateway.engine.router import Router
+from services.apps.group import Group
+from services.apps.registry import Registry, RegistryService
+from services.apps.simulators import SimRobot, SimSensor
+from services.kernel.core import LocalService
+from services.kernel.values import parse_names
 
 TARGET = "<marker><location>(0 0)</location></marker>"
 #: A member answers a moveto at once; it only starts driving after (no tick until then).

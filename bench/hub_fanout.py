@@ -21,10 +21,10 @@ import time
 from bench.gateway_server import BenchTarget
 from bench.target import BATCH_PROPERTIES, SERVICE
 from gateway.config import Limits
+from gateway.engine.listen import ListenHub, ListenStream, Selector, StreamOptions
+from gateway.engine.router import Router
 from gateway.fronts.grpc_v1.listen_encoding import take_wire
-from gateway.listen import ListenHub, ListenStream, Selector, StreamOptions
-from gateway.router import Router
-from services.core import LocalService
+from services.kernel.core import LocalService
 
 STREAMS = 100
 #: Bursts before the measured ones: the first changes of a stream take its start-up paths.

@@ -28,7 +28,7 @@ import aiohttp
 
 from bench.measure import window
 from bench.servers import ServerError, ServerProcess
-from services.core import Prop, Resource
+from services.kernel.core import Prop, Resource
 
 _HTTP = re.compile(r"HTTP front end and console on (https?://\S+/)")
 CONFIG = """

@@ -25,9 +25,9 @@ import time
 from typing import Annotated, Any
 
 from gateway.testing import serve
-from services.backend import BackendInfo
-from services.core import Prop, Resource
-from services.registry import Licences, Registry
+from services.apps.registry import Licences, Registry
+from services.kernel.backend import BackendInfo
+from services.kernel.core import Prop, Resource
 
 
 class Dial(Resource):

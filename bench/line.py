@@ -1,13 +1,13 @@
 """Part (e): Get through the gateway's TCP proxy beside a line-protocol client talking to the device.
 
-Three processes: the device (``python -m services.device_server --service
+Three processes: the device (``python -m services.device --service
 sim-robot --tcp 127.0.0.1:0``), a gateway whose config names it as
 ``url = "tcp://127.0.0.1:PORT"``, and this one, the load generator. The same
 Gets of the robot's ``speed`` are made two ways in the same run, taking turns:
 
 * *direct*: one TCP connection to the device speaking the line protocol, each
   request tagged so that several are in flight (the codec of
-  :mod:`services.line_protocol` on both ends);
+  :mod:`services.kernel.line_protocol` on both ends);
 * *gateway*: unary gRPC Gets of service ``dev`` on one channel; the gateway's
   proxy turns each into a tagged line on its one connection to the device;
 * *gateway-session*: the same Gets over one Session stream of the gateway, batched as
@@ -47,7 +47,7 @@ from bench.measure import Latencies
 from bench.servers import ServerProcess
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.line_protocol import ErrorReply, Get, Hello, LineReceiver, Ok, encode
+from services.kernel.line_protocol import ErrorReply, Get, Hello, LineReceiver, Ok, encode
 
 #: The device's name in the gateway, and the property every call reads.
 DEVICE = "dev"
@@ -62,7 +62,7 @@ WAYS = ("direct", "gateway", "gateway-session", "session-floor", "bare-session")
 #: The value the bare server holds for the bare-session way (set before it is measured).
 BARE_SERVICE, BARE_PROPERTY = "bench", "value"
 
-DEVICE_ARGV = ["services.device_server", "--service", "sim-robot", "--name", DEVICE, "--tcp", "127.0.0.1:0"]
+DEVICE_ARGV = ["services.device", "--service", "sim-robot", "--name", DEVICE, "--tcp", "127.0.0.1:0"]
 
 
 class SessionClient:

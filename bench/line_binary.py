@@ -49,7 +49,7 @@ async def main(quick: bool) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "files"
         folder.mkdir()
-        argv = ["services.device_server", "--service", "storage", "--option", f"directory={folder}"]
+        argv = ["services.device", "--service", "storage", "--option", f"directory={folder}"]
         argv += ["--name", "files", "--tcp", "127.0.0.1:0", "--max-line", str(MAX_LINE)]
         device = await ServerProcess.start("device", argv, address_on="stdout")
         config = Path(tmp) / "gateway.toml"

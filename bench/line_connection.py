@@ -46,7 +46,7 @@ class _Sink:
 async def cycles(calls: int) -> None:
     """``calls`` Gets, one at a time, answered as a device would."""
     from gateway.proxies.connection import LineConnection
-    from services.line_protocol import Get
+    from services.kernel.line_protocol import Get
 
     connection = LineConnection(label="bench", on_event=lambda frame: None)
     sink = _Sink()

@@ -1,6 +1,6 @@
 """What line-protocol flow control costs: Gets through the TCP proxy to a device that states it, and not.
 
-A Python device process (``python -m services.device_server --service
+A Python device process (``python -m services.device --service
 sim-robot --tcp 127.0.0.1:0``) is started once per setting of its greeting:
 no flow-control fields (as a 1.0 device), ``inflight=1`` (what a serial
 device that states nothing gets) and ``rxbuf=32`` (a 32-byte receive buffer).
@@ -61,7 +61,7 @@ def run(calls: int, concurrency: int) -> list[tuple[str, float, float]]:
         argv = [
             sys.executable,
             "-m",
-            "services.device_server",
+            "services.device",
             "--service",
             "sim-robot",
             "--tcp",

@@ -30,7 +30,7 @@ from bench.device_farm import FD_SPARE, device_name, raise_fd_limit
 from bench.servers import ServerProcess
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.values import parse_names
+from services.kernel.values import parse_names
 
 FARM_SIZE = 500
 SETTLE_S = 1.0

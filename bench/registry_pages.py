@@ -26,7 +26,7 @@ import aiohttp
 from clients import AsyncClient
 from gateway.config import Config, HttpSection
 from gateway.testing import running_gateway
-from services.core import Resource
+from services.kernel.core import Resource
 
 
 class Idle(Resource):

@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from services.backend import BackendInfo
-from services.registry import Registry, RegistryService
-from services.values import parse_list
+from services.apps.registry import Registry, RegistryService
+from services.kernel.backend import BackendInfo
+from services.kernel.values import parse_list
 
 
 async def measure_scheduler(n: int, rounds: int = 200, seed: int = 1) -> dict[str, Any]:

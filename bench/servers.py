@@ -46,7 +46,7 @@ class ServerProcess:
 
         The line is looked for on stderr, or with ``address_on="stdout"`` on
         stdout (stderr then goes to the same pipe), for programs that print
-        their address there (``python -m services.device_server``).
+        their address there (``python -m services.device``).
         """
         on_stdout = address_on == "stdout"
         env = dict(os.environ)

@@ -1,7 +1,7 @@
 """Part (j), in this process: transitions per second of a chart whose every transition Sets a property.
 
 The chart steps between two states; entering each Sets ``counter/value`` (an
-in-process service behind the gateway's own :class:`gateway.router.Router`),
+in-process service behind the gateway's own :class:`gateway.engine.router.Router`),
 counts, and sends itself the next event, so every transition is a macrostep
 of its own with one Set, one assignment, one guard and one event. The
 baseline is a bare loop of the same number of Sets on the same service
@@ -15,9 +15,9 @@ import asyncio
 import time
 from typing import Annotated, Any
 
-from gateway.router import Router
-from services.core import LocalService, Prop, Resource
-from services.statemachine import StateMachineService
+from gateway.engine.router import Router
+from services.apps.statemachine import StateMachineService
+from services.kernel.core import LocalService, Prop, Resource
 
 CHART = """<scxml xmlns="http://www.w3.org/2005/07/scxml" xmlns:ps="urn:propertyservice:scxml" initial="a">
   <datamodel><data id="n" expr="0"/><data id="total" expr="{total}"/></datamodel>

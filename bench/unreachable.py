@@ -60,7 +60,7 @@ def free_port() -> int:
 
 
 async def start_device(port: int) -> ServerProcess:
-    argv = ["services.device_server", "--service", "sim-robot", "--name", "rover"]
+    argv = ["services.device", "--service", "sim-robot", "--name", "rover"]
     argv += ["--tcp", f"127.0.0.1:{port}"]
     return await ServerProcess.start("device", argv, address_on="stdout")
 

@@ -23,10 +23,10 @@ from dataclasses import dataclass
 from gateway.cli import YOUNG_COLLECTION_THRESHOLD
 from gateway.config import Limits
 from gateway.engine.events import Mark, events
-from gateway.listen import ListenHub, Selector, StreamOptions
-from gateway.router import Router
-from services.core import LocalService, Resource
-from services.registry import Registry, RegistryService
+from gateway.engine.listen import ListenHub, Selector, StreamOptions
+from gateway.engine.router import Router
+from services.apps.registry import Registry, RegistryService
+from services.kernel.core import LocalService, Resource
 
 PATTERN = "services.*.state"
 #: Seconds any one wait may take before the round is reported as failed.

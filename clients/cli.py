@@ -35,7 +35,7 @@ from clients.cluster_view import ACTIONS, cluster_command
 from clients.credentials import ENVIRONMENT, ClientCredentials
 from clients.errors import GatewayUnreachable, NotFound, PropertyServiceError
 from clients.values import Value, ValueFormatError
-from services.model import ParameterModel, PropertyModel
+from services.kernel.model import ParameterModel, PropertyModel
 
 __all__ = ["EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_UNREACHABLE", "EXIT_USAGE", "main"]
 

@@ -4,9 +4,9 @@ Every failed call raises a :class:`PropertyServiceError` subclass carrying the
 status code, the server's message and the (service, property) the call was
 about, so that ``except NotFound:`` reads like the failure it handles.
 
-The codes and their classes are the one table of ``services.errors``: each
+The codes and their classes are the one table of ``services.kernel.errors``: each
 class here names the service-side class it reports (``reports=``), and
-:func:`error_for_code` picks the class through ``services.errors.error_class``.
+:func:`error_for_code` picks the class through ``services.kernel.errors.error_class``.
 The client's errors keep grpc's own ``grpc.StatusCode`` in ``code``, so they
 are not service-side errors themselves (a gateway never mistakes one for a
 status it may pass on).
@@ -18,7 +18,7 @@ from typing import Any, ClassVar
 
 import grpc
 
-from services import errors
+from services.kernel import errors
 
 __all__ = [
     "Aborted",

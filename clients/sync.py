@@ -32,7 +32,7 @@ from clients.credentials import ClientCredentials
 from clients.errors import DeadlineExceeded
 from clients.values import Marker, Value
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.model import ServiceModel
+from services.kernel.model import ServiceModel
 
 if TYPE_CHECKING:
     from clients.values import Vector

@@ -1,7 +1,7 @@
 """Typed decoding and encoding of property values on the client side.
 
 Values travel as text, in the grammar the services use too
-(:mod:`services.values`); this module is the SDK's view of it. A binary
+(:mod:`services.kernel.values`); this module is the SDK's view of it. A binary
 property (Describe type ``bytes``: a JPEG frame, a numpy grid) reads as
 ``bytes`` and is Set from ``bytes`` (:data:`Value` is ``str | bytes``).
 
@@ -21,8 +21,8 @@ import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from services import values as grammar
-from services.values import (
+from services.kernel import values as grammar
+from services.kernel.values import (
     Marker,
     Value,
     ValueFormatError,

@@ -34,6 +34,10 @@ from gateway.config import METRICS_MAX_CONNECTIONS, REGISTRY_NAME, Config, Confi
 from gateway.connections import share_open_files
 from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
+from gateway.engine.guard import Guard
+from gateway.engine.licensing import current_caller, may_license, may_provide
+from gateway.engine.listen import ListenHub
+from gateway.engine.router import Router
 from gateway.fronts.grpc_v1.health import NOT_SERVING, SERVING, HealthService
 from gateway.fronts.grpc_v1.servicer import (
     SERVICE_NAME,
@@ -41,23 +45,19 @@ from gateway.fronts.grpc_v1.servicer import (
     add_health_and_reflection,
     add_to_server,
 )
-from gateway.guard import Guard
-from gateway.licensing import current_caller, may_license, may_provide
-from gateway.line_listener import LineListener, start_line_listener
-from gateway.listen import ListenHub
+from gateway.fronts.line.listener import LineListener, start_line_listener
 from gateway.ports import PortInUse, check_port_free, port_holder
-from gateway.router import Router
 from gateway.stores import open_store
 from gateway.tls import LineCredentials, ServerCredentials
-from services.backend import Backend, BackendInfo
-from services.catalog import build, needs_directory
-from services.errors import PropertyError
-from services.registry import DEFAULT_REGISTER_TIMEOUT, AllowList, Licence, Registry, RegistryService
-from services.registry.store import SharedStore
-from services.registry.table import GONE
+from services.apps.catalog import build, needs_directory
+from services.apps.registry import DEFAULT_REGISTER_TIMEOUT, AllowList, Licence, Registry, RegistryService
+from services.apps.registry.store import SharedStore
+from services.apps.registry.table import GONE
+from services.kernel.backend import Backend, BackendInfo
+from services.kernel.errors import PropertyError
 
 if TYPE_CHECKING:
-    from gateway.http import HttpFront
+    from gateway.fronts.http import HttpFront
     from gateway.metrics.endpoint import MetricsEndpoint
 
 log = logging.getLogger("gateway")
@@ -538,7 +538,7 @@ class Gateway:
         if not self.config.http.listen:
             return
         # Imported only when configured: aiohttp takes a quarter of a second to import.
-        from gateway.http import HttpFront
+        from gateway.fronts.http import HttpFront
 
         self.http = HttpFront(self.servicer.calls, self.hub, self.config, self.guard)
         self.http.max_connections = self.shares.get("http.max_connections", self.config.http.max_connections)

@@ -17,8 +17,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from gateway.rules import Operation, Subject
-from services.errors import Code, PropertyError
+from gateway.engine.rules import Operation, Subject
+from services.kernel.errors import Code, PropertyError
 
 log = logging.getLogger("gateway.audit")
 

@@ -1,7 +1,7 @@
 """Open a backend from a configuration entry or a registration.
 
-An entry with ``type`` is an in-process service: ``services.catalog.build(type,
-options)`` builds the resource and ``services.core.serve`` serves it (a LocalService, or
+An entry with ``type`` is an in-process service: ``services.apps.catalog.build(type,
+options)`` builds the resource and ``services.kernel.core.serve`` serves it (a LocalService, or
 the subclass its class names).
 An entry with ``url`` is a proxy: the URL's scheme picks a factory from the
 static table :data:`PROXY_SCHEMES`.
@@ -17,14 +17,14 @@ from urllib.parse import urlsplit
 from gateway.proxies.grpc_proxy import open_grpc_backend
 from gateway.proxies.serial import open_serial_backend
 from gateway.proxies.tcp import open_tcp_backend
-from services.backend import Backend
-from services.catalog import build
-from services.core import serve
-from services.errors import InvalidArgument, PropertyError
+from services.apps.catalog import build
+from services.kernel.backend import Backend
+from services.kernel.core import serve
+from services.kernel.errors import InvalidArgument, PropertyError
 
 if TYPE_CHECKING:
     from gateway.config import ServiceEntry
-    from services.directory import Directory
+    from services.kernel.directory import Directory
 
 #: (service name, url, options) → a Backend that is not started yet.
 ProxyFactory = Callable[[str, str, Mapping[str, Any]], Backend]
@@ -53,7 +53,7 @@ def open_backend(entry: ServiceEntry, directory: Directory | None = None) -> Bac
     """The backend a config entry describes (not started); raises PropertyError when it cannot be built.
 
     ``directory`` is the gateway's directory of services
-    (:attr:`gateway.router.Router.directory`), handed to the kinds that reach
+    (:attr:`gateway.engine.router.Router.directory`), handed to the kinds that reach
     other services (``type = "group"``).
     """
     if entry.url:

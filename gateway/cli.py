@@ -136,7 +136,7 @@ def _config_errors(exc: ConfigError) -> int:
 def _serve(args: argparse.Namespace) -> int:
     from gateway.app import serve
     from gateway.ports import PortInUse
-    from services.errors import PropertyError
+    from services.kernel.errors import PropertyError
 
     try:
         config = _load(args)
@@ -167,9 +167,9 @@ def _serve(args: argparse.Namespace) -> int:
 
 def _check_config(args: argparse.Namespace) -> int:
     from gateway.backends import open_backend
-    from gateway.router import Router
-    from services.catalog import build
-    from services.errors import PropertyError
+    from gateway.engine.router import Router
+    from services.apps.catalog import build
+    from services.kernel.errors import PropertyError
 
     config, problems = load_config_partly(args.file)
     if config is None:

@@ -18,18 +18,16 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from gateway.audit import AuditSection
-from gateway.identity import Authenticator, AuthSection
+from gateway.engine.identity import Authenticator, AuthSection
+from gateway.engine.rules import Rule
 from gateway.logs import LOG_FORMATS
 from gateway.options import Wording, convert, option, read_options, shown
-from gateway.rules import Rule
 from gateway.stores.address import parse_store_url
 from gateway.stores.etcd import DEFAULT_LEASE as DEFAULT_STORE_LEASE
 from gateway.stores.etcd import DEFAULT_PREFIX as DEFAULT_STORE_PREFIX
 from gateway.stores.etcd import MAX_LEASE as MAX_STORE_LEASE
 from gateway.stores.etcd import MIN_LEASE as MIN_STORE_LEASE
-from services.errors import InvalidArgument, PropertyError
-from services.paths import validate_service_name
-from services.registry import (
+from services.apps.registry import (
     DEFAULT_ALLOW,
     DEFAULT_MAX_LICENCE_DURATION,
     DEFAULT_MAX_LICENCES,
@@ -37,8 +35,10 @@ from services.registry import (
     DEFAULT_MAX_REGISTRATIONS,
     parse_allow_entry,
 )
-from services.registry.lease import MAX_LEASE
-from services.registry.scheduling import DEFAULT_MAX_QUEUED, DEFAULT_TOUT, DEFAULT_TR, check_capabilities
+from services.apps.registry.lease import MAX_LEASE
+from services.apps.registry.scheduling import DEFAULT_MAX_QUEUED, DEFAULT_TOUT, DEFAULT_TR, check_capabilities
+from services.kernel.errors import InvalidArgument, PropertyError
+from services.kernel.paths import validate_service_name
 
 #: The service every gateway hosts itself; a config may not define it.
 REGISTRY_NAME = "registry"
@@ -177,14 +177,14 @@ class Limits:
     max_calls: int = option(10_000, low=1)
     #: Bytes of large values (64 KiB or more: binary ones) handed to Listen readers, event and
     #: image streams and not yet taken by their connections, all readers together; a reader whose
-    #: next value would pass it ends with RESOURCE_EXHAUSTED (gateway.listen.budget). A stalled
+    #: next value would pass it ends with RESOURCE_EXHAUSTED (gateway.engine.listen.budget). A stalled
     #: reader holds at most one value (two copies of it on gRPC), so 256 MiB is about 65 readers
     #: stalled at once on 4 MB camera frames, or 1,300 on 200 KB ones.
     max_pending_binary: int = option(256 * 1024 * 1024, low=1)
 
 
 #: Bytes of a request body the HTTP front end reads at most (a Set's JSON); beyond, 413. A value
-#: text is at most 64 KiB (services.values.MAX_VALUE_LENGTH); 1 MiB leaves room for JSON escapes
+#: text is at most 64 KiB (services.kernel.values.MAX_VALUE_LENGTH); 1 MiB leaves room for JSON escapes
 #: (up to 6 bytes a character) and parameters, and is nginx's default client_max_body_size.
 DEFAULT_HTTP_MAX_BODY = 1024 * 1024
 
@@ -269,7 +269,7 @@ class RegistrySection:
     tr: float = option(DEFAULT_TR, above=True, unit="seconds")
     max_queued: int = option(DEFAULT_MAX_QUEUED, low=1)
     #: Addresses a registration may reach: networks with optional ports, serial path globs
-    #: (``services.registry.allow``); default: loopback and USB serial adapters.
+    #: (``services.apps.registry.allow``); default: loopback and USB serial adapters.
     allow: tuple[str, ...] = DEFAULT_ALLOW
     #: Registrations by Set held at once.
     max_registrations: int = option(DEFAULT_MAX_REGISTRATIONS, low=1)
@@ -356,7 +356,7 @@ class DeviceEntry:
     """One ``[[devices]]`` entry: a Python stand-in for a microcontroller.
 
     The gateway starts it as a child process
-    (``python -m services.device_server ... --exit-with-parent``), on raw TCP
+    (``python -m services.device ... --exit-with-parent``), on raw TCP
     (``tcp``) or on a pseudo-terminal (``serial = "pty"``), serves it as
     service ``name`` through the tcp:// or serial:// proxy, and ends it at
     shutdown.
@@ -370,7 +370,7 @@ class DeviceEntry:
     serial: str = ""
     #: Baud rate of the serial line.
     baudrate: int = 115200
-    #: Handed to ``services.catalog.create(type, **options)`` in the device process.
+    #: Handed to ``services.apps.catalog.create(type, **options)`` in the device process.
     options: Mapping[str, Any] = field(default_factory=dict)
     #: Handed to the proxy (timeout, keepalive, ...), as for a ``[[services]]`` url.
     proxy: Mapping[str, Any] = field(default_factory=dict)
@@ -972,9 +972,9 @@ def _dormancy(service: ServiceEntry, entry: Mapping[str, Any], where: str) -> Se
 
 
 def _paths_resolved(kind: str, options: Mapping[str, Any], folder: Path | None) -> dict[str, Any]:
-    """``options`` with the relative paths among them (``services.catalog.PATH_OPTIONS``) taken from
+    """``options`` with the relative paths among them (``services.apps.catalog.PATH_OPTIONS``) taken from
     the config file's folder, as every path in a config is."""
-    from services.catalog import PATH_OPTIONS, PATH_TABLE_OPTIONS
+    from services.apps.catalog import PATH_OPTIONS, PATH_TABLE_OPTIONS
 
     def resolve(value: str) -> str:
         path = Path(value).expanduser()
@@ -1019,7 +1019,7 @@ def _secret_file(service: ServiceEntry, secret_file: str, where: str, folder: Pa
 
 
 def _device(entry: Any, where: str, seen: set[str]) -> DeviceEntry:
-    from services.catalog import CATALOG, factory_of, needs_directory
+    from services.apps.catalog import CATALOG, factory_of, needs_directory
 
     known = ("name", "type", "tcp", "serial", "baudrate", "options", "proxy")
     name = _name(entry, where, known, seen)

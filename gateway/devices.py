@@ -1,10 +1,10 @@
 """Devices the gateway starts itself: Python stand-ins for microcontrollers, one process each.
 
 A ``[[devices]]`` entry of the configuration (:class:`gateway.config.DeviceEntry`)
-becomes a child process running the device server (``services.device_server``)::
+becomes a child process running the device server (``services.device``)::
 
-    python -m services.device_server --service sim-robot --name rover1 --exit-with-parent --tcp 127.0.0.1:0
-    python -m services.device_server --service sim-robot --name rover2 --exit-with-parent --pty
+    python -m services.device --service sim-robot --name rover1 --exit-with-parent --tcp 127.0.0.1:0
+    python -m services.device --service sim-robot --name rover2 --exit-with-parent --pty
 
 The child serves the service over the line protocol on raw TCP or on a
 pseudo-terminal, and prints one line saying where:
@@ -47,7 +47,7 @@ from urllib.parse import urlsplit
 
 from gateway.config import DeviceEntry
 from gateway.logs import outside_requests
-from services.errors import Unavailable
+from services.kernel.errors import Unavailable
 
 log = logging.getLogger(__name__)
 
@@ -121,7 +121,7 @@ async def _terminate(process: asyncio.subprocess.Process, wait_s: float) -> None
 
 def device_command(entry: DeviceEntry) -> list[str]:
     """The command line of the child process for ``entry``."""
-    args = [sys.executable, "-m", "services.device_server", "--service", entry.type, "--name", entry.name]
+    args = [sys.executable, "-m", "services.device", "--service", entry.type, "--name", entry.name]
     for key, value in entry.options.items():
         args += ["--option", f"{key}={json.dumps(value)}"]
     args.append("--exit-with-parent")
@@ -140,7 +140,7 @@ async def start_device(entry: DeviceEntry, *, wait_s: float = START_TIMEOUT) -> 
     Raises InvalidArgument for bad options and Unavailable when the process
     ends or stays silent; the process is ended in both cases.
     """
-    from services.catalog import build
+    from services.apps.catalog import build
 
     build(entry.type, entry.options)  # bad options fail here, with the catalog's message
     process = await asyncio.create_subprocess_exec(

@@ -19,10 +19,18 @@ import logging
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 
-from services.backend import NO_PARAMS, Backend, BackendInfo, LinkCounts, Notify, Subscription, close_quietly
-from services.errors import PropertyError, Unavailable
-from services.model import PropertyModel, ServiceModel
-from services.values import Value
+from services.kernel.backend import (
+    NO_PARAMS,
+    Backend,
+    BackendInfo,
+    LinkCounts,
+    Notify,
+    Subscription,
+    close_quietly,
+)
+from services.kernel.errors import PropertyError, Unavailable
+from services.kernel.model import PropertyModel, ServiceModel
+from services.kernel.values import Value
 
 __all__ = ["DormantBackend"]
 

@@ -18,7 +18,7 @@ import secrets
 
 from gateway.logs import REQUEST_ID_HEADER, current_request_id
 from gateway.peer_protocol import SPOKEN_HEADER
-from services.errors import InvalidArgument
+from services.kernel.errors import InvalidArgument
 
 #: The metadata key of the chain of gateways (comma-separated ids, the first gateway first).
 VIA_KEY = "ps-via"

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 
-from services.errors import FailedPrecondition
+from services.kernel.errors import FailedPrecondition
 
 __all__ = [
     "CLUSTER_PROTOCOL",

@@ -8,12 +8,12 @@ translated into the engine's types, and read through its one
 (an in-process service usually answers without waiting, so it costs no task),
 else answered from the handle's done-callback. Once the requests of a message
 are started, every backend they went to sends what it holds
-(:meth:`services.backend.Backend.flush`: a device gets the message's lines in
+(:meth:`services.kernel.backend.Backend.flush`: a device gets the message's lines in
 one write). At most ``limits.session_max_in_flight``
 run at once and at most ``limits.session_max_queued_replies`` wait to be
 written; beyond either, the reader stops reading (backpressure). A Listen's
 large value counts against the hub's budget while it is written, as a gRPC
-Listen's does (:mod:`gateway.listen.budget`); one that does not fit ends that
+Listen's does (:mod:`gateway.engine.listen.budget`); one that does not fit ends that
 Listen with RESOURCE_EXHAUSTED, and the Session goes on.
 """
 
@@ -29,9 +29,17 @@ from typing import Any
 
 import grpc
 
-from gateway.calls import Calls
 from gateway.config import Limits
+from gateway.engine.calls import Calls
 from gateway.engine.handle import CallHandle
+from gateway.engine.identity import ANONYMOUS
+from gateway.engine.listen import ListenHub, ListenStream
+from gateway.engine.listen.budget import COUNTED_BYTES, GRPC_COPIES
+from gateway.engine.listen.drain import Wake
+from gateway.engine.listen.hub import SHUTTING_DOWN
+from gateway.engine.rules import Subject
+from gateway.engine.sizes import BATCH_BYTES, SURELY_FITS_CHARS, check_fits, reply_size
+from gateway.engine.status import to_property_error
 from gateway.engine.types import GetCall, is_snapshot
 from gateway.fronts.grpc_v1.listen_encoding import (
     listen_reply_wire,
@@ -42,20 +50,12 @@ from gateway.fronts.grpc_v1.listen_encoding import (
 )
 from gateway.fronts.grpc_v1.messages import Undecodable, get_call, get_response, set_call
 from gateway.fronts.grpc_v1.status import abort, status_message
-from gateway.identity import ANONYMOUS
-from gateway.listen import ListenHub, ListenStream
-from gateway.listen.budget import COUNTED_BYTES, GRPC_COPIES
-from gateway.listen.drain import Wake
-from gateway.listen.hub import SHUTTING_DOWN
 from gateway.logs import RequestContext, current_request
-from gateway.rules import Subject
-from gateway.sizes import BATCH_BYTES, SURELY_FITS_CHARS, check_fits, reply_size
-from gateway.status import to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.backend import Backend
-from services.eager import Started, step
-from services.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable
-from services.values import Value, value_size
+from services.kernel.backend import Backend
+from services.kernel.eager import Started, step
+from services.kernel.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable
+from services.kernel.values import Value, value_size
 
 log = logging.getLogger(__name__)
 

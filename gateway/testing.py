@@ -15,9 +15,9 @@ closed and the folder with the socket is removed::
             assert await client.get("lamp", "on") == "true"
 
 Several services are served by a dict (``serve({"lamp": Lamp(), "bot":
-Robot()})``); a service is a :class:`services.core.Resource` (served as
-``services.core.serve`` serves it) or any built
-:class:`services.backend.Backend`. ``config`` sets limits and timeouts
+Robot()})``); a service is a :class:`services.kernel.core.Resource` (served as
+``services.kernel.core.serve`` serves it) or any built
+:class:`services.kernel.backend.Backend`. ``config`` sets limits and timeouts
 (``Config(limits=Limits(max_streams=2))``); its ``listen`` address is
 replaced by the socket. :func:`serve_sync` is the same for blocking tests
 and yields a :class:`clients.Client`; :func:`running_gateway` yields the
@@ -42,9 +42,9 @@ from typing import Any, TypeVar
 from clients import DEFAULT_TIMEOUT, AsyncClient, Client
 from gateway.app import Gateway
 from gateway.config import Config
-from services.backend import Backend
-from services.core import Resource
-from services.core import serve as backend_for
+from services.kernel.backend import Backend
+from services.kernel.core import Resource
+from services.kernel.core import serve as backend_for
 
 T = TypeVar("T")
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from services.errors import InvalidArgument
-from services.values import Value
+from services.kernel.errors import InvalidArgument
+from services.kernel.values import Value
 
 
 class Carrier(Protocol):

@@ -56,8 +56,8 @@ from clients.values import (
 )
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.model import ServiceModel
-from services.model_codec import model_from_proto
+from services.kernel.model import ServiceModel
+from services.kernel.model_codec import model_from_proto
 
 if TYPE_CHECKING:
     from clients.values import Vector

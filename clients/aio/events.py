@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.values import Value
+from services.kernel.values import Value
 
 __all__ = ["HEARTBEAT", "SYNC", "Event", "Mark", "listen_items"]
 

@@ -8,7 +8,7 @@ import dataclasses
 from clients.aio.events import Event, Mark, listen_items
 from clients.errors import PropertyServiceError
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.conflation import ConflatingQueue
+from services.kernel.conflation import ConflatingQueue
 
 __all__ = ["ListenBuffer"]
 

@@ -10,7 +10,7 @@ from google.protobuf.duration_pb2 import Duration
 from clients.errors import Unknown
 from clients.values import Value, ValueFormatError, format_value, outgoing_value
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.values import as_text
+from services.kernel.values import as_text
 
 __all__ = [
     "ListenOptions",

@@ -12,9 +12,9 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
-from gateway.router import RouterDirectory
-from services.backend import Backend, BackendInfo
-from services.directory import DirectoryListener
+from gateway.engine.router import RouterDirectory
+from services.kernel.backend import Backend, BackendInfo
+from services.kernel.directory import DirectoryListener
 
 __all__ = ["ClusterDirectory", "ClusterRegistrar"]
 
@@ -31,7 +31,7 @@ class ClusterRegistrar(Protocol):
 
 
 class ClusterDirectory:
-    """A :class:`services.directory.Directory` whose changes go through a :class:`ClusterRegistrar`."""
+    """A :class:`services.kernel.directory.Directory` whose changes go through a :class:`ClusterRegistrar`."""
 
     def __init__(self, router: RouterDirectory, node: ClusterRegistrar) -> None:
         self._node = node

@@ -9,7 +9,7 @@ the plan names), then ``create``\\ s the owners key unless somebody has: the fir
 when it cannot (it died too, it lost the store), the next one in the order takes over a step later.
 
 The orphans of one rank are claimed together, in one call (:meth:`SharedStore.create_many
-<services.registry.store.SharedStore.create_many>`: 128 owners keys a transaction on etcd), not
+<services.apps.registry.store.SharedStore.create_many>`: 128 owners keys a transaction on etcd), not
 one transaction each: a dead gateway's thousand devices are a few dozen transactions, not a
 thousand at once that etcd would apply behind every gateway's lease renewal.
 

@@ -9,7 +9,7 @@
 
 It starts Debian's ``etcd`` (a one-member cluster in a temporary folder), then the gateways
 (``python -m gateway serve``, each with ``[registry] store`` naming that etcd, a line listener and
-the HTTP front end), then simulated line devices (``python -m services.device_server``): most on a
+the HTTP front end), then simulated line devices (``python -m services.device``): most on a
 TCP port of their own, registered by a Set on one gateway each in turn, the others dialling in to a
 gateway's line listener. Once every gateway lists every device it prints who owns what, and runs
 until Ctrl-C (or SIGTERM), when it stops every process it started, by PID: the devices, the
@@ -49,7 +49,7 @@ from gateway.stores.etcd import MAX_LEASE, MIN_LEASE
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.device.cli import bounded_int
-from services.values import parse_names
+from services.kernel.values import parse_names
 
 __all__ = ["DESCRIPTION", "main"]
 
@@ -289,7 +289,7 @@ period = 1.0
             name = f"{'thermo' if kind == 'sim-sensor' else 'rover'}{i + 1}"
             gateway = self.gateways[i % len(self.gateways)]
             dials_in = (i // len(self.gateways)) % 2 == 1
-            command = [sys.executable, "-m", "services.device_server", "--service", kind, "--name", name]
+            command = [sys.executable, "-m", "services.device", "--service", kind, "--name", name]
             if dials_in:
                 command += ["--connect", gateway.line_address, "--exit-with-parent"]
                 self._spawn(f"device {name}", command, stdin=True)

@@ -38,12 +38,12 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from services.errors import FailedPrecondition, PropertyError, Unavailable
-from services.registry import Lease, Licence, Registry
-from services.registry.licences import Licences
-from services.registry.service import LicenceList, LicenceView
-from services.registry.store import Kind, SharedStore
-from services.values import format_names
+from services.apps.registry import Lease, Licence, Registry
+from services.apps.registry.licences import Licences
+from services.apps.registry.service import LicenceList, LicenceView
+from services.apps.registry.store import Kind, SharedStore
+from services.kernel.errors import FailedPrecondition, PropertyError, Unavailable
+from services.kernel.values import format_names
 
 __all__ = ["MAX_ATTEMPTS", "ClusterLicenceList", "ClusterLicences"]
 
@@ -117,7 +117,7 @@ class ClusterLicenceList(LicenceList):
 
 
 class ClusterLicences:
-    """A registry's :class:`~services.registry.licences.LicenceClaims` on a shared store."""
+    """A registry's :class:`~services.apps.registry.licences.LicenceClaims` on a shared store."""
 
     def __init__(self, store: SharedStore) -> None:
         self.store = store

@@ -54,16 +54,16 @@ from gateway.cluster.switching import SwitchingBackend
 from gateway.cluster.view import ClusterView
 from gateway.cluster.writer import LatestWrites
 from gateway.config import DEFAULT_REBALANCE_BATCH, DEFAULT_REBALANCE_SPREAD
-from gateway.guard import current_subject
+from gateway.engine.guard import current_subject
+from gateway.engine.router import Router
 from gateway.peer_protocol import ProtocolMismatch, check_cluster
 from gateway.proxies.grpc_proxy import open_grpc_backend
-from gateway.router import Router
-from services.backend import Backend, BackendInfo
-from services.errors import AlreadyExists, FailedPrecondition, NotFound, PropertyError, Unavailable
-from services.registry import AllowList, Registry
-from services.registry.store import Change, Kind, SharedStore
-from services.registry.table import GONE
-from services.worker_pool import run_bounded
+from services.apps.registry import AllowList, Registry
+from services.apps.registry.store import Change, Kind, SharedStore
+from services.apps.registry.table import GONE
+from services.kernel.backend import Backend, BackendInfo
+from services.kernel.errors import AlreadyExists, FailedPrecondition, NotFound, PropertyError, Unavailable
+from services.kernel.worker_pool import run_bounded
 
 __all__ = [
     "FORWARD_OPTIONS",

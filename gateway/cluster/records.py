@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from gateway.peer_protocol import SPOKEN, read_protocols
-from services.registry import STATES
-from services.registry.store import decode_registration, encode_registration
+from services.apps.registry import STATES
+from services.apps.registry.store import decode_registration, encode_registration
 
 __all__ = [
     "DIAL_IN_PREFIX",

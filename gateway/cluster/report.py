@@ -24,10 +24,10 @@ import logging
 from typing import Annotated, Any
 
 from gateway.cluster.node import ClusterNode
-from services.core import Prop, Resource, action
-from services.errors import PropertyError
-from services.paths import validate_service_name
-from services.values import format_names
+from services.kernel.core import Prop, Resource, action
+from services.kernel.errors import PropertyError
+from services.kernel.paths import validate_service_name
+from services.kernel.values import format_names
 
 __all__ = ["REFRESH_EVERY", "ClusterReport", "MemberReport"]
 

@@ -31,7 +31,7 @@ import logging
 import random
 from collections.abc import Mapping
 
-from services.backend import (
+from services.kernel.backend import (
     NO_PARAMS,
     UNKNOWN_TYPE,
     Backend,
@@ -42,9 +42,9 @@ from services.backend import (
     Subscription,
     close_quietly,
 )
-from services.errors import Code, PropertyError, Unavailable
-from services.model import PropertyModel, ServiceModel
-from services.values import Value
+from services.kernel.errors import Code, PropertyError, Unavailable
+from services.kernel.model import PropertyModel, ServiceModel
+from services.kernel.values import Value
 
 __all__ = [
     "CALLS_END_WAIT",

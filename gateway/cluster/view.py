@@ -20,7 +20,7 @@ from gateway.cluster.records import (
     read_registration,
     read_state,
 )
-from services.registry.store import Change, Kind
+from services.apps.registry.store import Change, Kind
 
 __all__ = ["ClusterView"]
 

@@ -15,8 +15,8 @@ from __future__ import annotations
 import asyncio
 import logging
 
-from services.errors import PropertyError
-from services.registry.store import Kind, SharedStore
+from services.apps.registry.store import Kind, SharedStore
+from services.kernel.errors import PropertyError
 
 __all__ = ["LatestWrites"]
 

@@ -2,7 +2,7 @@
 
 ``psgateway device-check URL`` (:mod:`gateway.device_check_cli`) runs it; tests call
 :func:`check_device` and read the :class:`Report`. The kit is a client of the line protocol
-built on the project's one codec (``services.line_protocol``).
+built on the project's one codec (``services.kernel.line_protocol``).
 """
 
 from gateway.conformance.clauses import CLAUSES, Clause

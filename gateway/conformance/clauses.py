@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 from functools import partial
 
 from gateway.conformance.probe import Heard, Probe, checked, is_error
-from services.errors import Code, PropertyError
-from services.line_protocol import BadLine, ErrorReply, Frame, Hello, Ok, Pong, crc8
-from services.model import Access, PropertyModel, ServiceModel
-from services.model_codec import model_from_text
-from services.values.grammar import parse_names, parse_number
+from services.kernel.errors import Code, PropertyError
+from services.kernel.line_protocol import BadLine, ErrorReply, Frame, Hello, Ok, Pong, crc8
+from services.kernel.model import Access, PropertyModel, ServiceModel
+from services.kernel.model_codec import model_from_text
+from services.kernel.values.grammar import parse_names, parse_number
 
 #: Properties read one by one to find those a GET answers; a device lists a few dozen at most.
 READ_AT_MOST = 24

@@ -13,8 +13,8 @@ import contextlib
 from dataclasses import dataclass
 from urllib.parse import parse_qsl, unquote, urlsplit
 
-from services.errors import Code
-from services.line_protocol import (
+from services.kernel.errors import Code
+from services.kernel.line_protocol import (
     BadLine,
     ErrorReply,
     Event,

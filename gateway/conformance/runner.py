@@ -15,7 +15,7 @@ from urllib.parse import urlsplit
 
 from gateway.conformance.clauses import CLAUSES, Device, Failed, Skipped
 from gateway.conformance.probe import Probe, open_url
-from services.line_protocol import BadLine, Hello
+from services.kernel.line_protocol import BadLine, Hello
 
 #: Seconds between two HELLOs on a serial line while no greeting has come: a bootloader that
 #: ate the first one has handed over by then on the common boards (Optiboot waits about 1 s).

@@ -2,13 +2,13 @@
 
 Every front end turns its own form of a Listen into a :class:`ListenRequest` (the gRPC front from
 a ``ListenRequest`` message, the HTTP front from ``sel=`` query keys or an image stream's URL);
-the listen hub checks it against the limits (:func:`gateway.listen.requests.check_listen`) and
+the listen hub checks it against the limits (:func:`gateway.engine.listen.requests.check_listen`) and
 opens a stream. What the stream has ready, the front's writer takes (``ListenStream.take``):
 
 * a :data:`Batch`: events in order, with the stream's sequence number before the first;
 * or a :class:`Mark`: the ``sync`` marker (the current values were sent), or a heartbeat.
 
-A batch holds each event as the stream queued it: a :class:`~services.conflation.Slot` (what this
+A batch holds each event as the stream queued it: a :class:`~services.kernel.conflation.Slot` (what this
 stream alone has of it: how many values it replaced, ``gap``, ``removed``) around a
 :class:`SharedEvent` (what every stream the change reaches has alike: service, path, value,
 time). :func:`events` turns a batch into plain :class:`Event` values, which is all most fronts
@@ -25,9 +25,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from services.conflation import Slot
-from services.paths import WILDCARD
-from services.values import Value
+from services.kernel.conflation import Slot
+from services.kernel.paths import WILDCARD
+from services.kernel.values import Value
 
 __all__ = [
     "Batch",

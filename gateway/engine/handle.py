@@ -1,6 +1,6 @@
 """The handle of a started Get or Set: done at once, or done later.
 
-:meth:`gateway.calls.Calls.start_get` and :meth:`~gateway.calls.Calls.start_set` give one
+:meth:`gateway.engine.calls.Calls.start_get` and :meth:`~gateway.engine.calls.Calls.start_set` give one
 :class:`CallHandle` whatever the backend: an in-process service that answered without waiting
 gives one that is :attr:`~CallHandle.done` already; a proxy's reply or a call that has to wait
 gives one that completes later. Whoever started it reads it one way: its value at once when it
@@ -9,7 +9,7 @@ is done, else ``await handle`` (in the awaiting task, no task of its own) or
 has the handle once it is done).
 
 A pending handle names the :attr:`~CallHandle.backend` that serves it: a caller that started a
-batch of calls tells each backend to send what it holds (:meth:`services.backend.Backend.flush`).
+batch of calls tells each backend to send what it holds (:meth:`services.kernel.backend.Backend.flush`).
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import asyncio
 from collections.abc import Callable, Coroutine, Generator
 from typing import Any
 
-from services.backend import Answer, Backend
-from services.values import Value
+from services.kernel.backend import Answer, Backend
+from services.kernel.values import Value
 
 __all__ = ["AnsweredCall", "AwaitedCall", "CallHandle", "RepliedCall"]
 
@@ -91,7 +91,7 @@ class RepliedCall(CallHandle):
     """A call a proxy sent: its reply comes from the proxy's reader (no task, no timer of its own).
 
     A successful reply is handed over in the reader itself (:meth:`replied`, the ``then`` of
-    :meth:`services.backend.Backend.start_get`), a loop turn before the future's done-callbacks
+    :meth:`services.kernel.backend.Backend.start_get`), a loop turn before the future's done-callbacks
     run; an error, a time-out or a cancellation comes through the future.
     """
 
@@ -99,7 +99,7 @@ class RepliedCall(CallHandle):
 
     def __init__(self, backend: Backend) -> None:
         self.backend = backend
-        #: The reply's future, from :meth:`services.backend.Backend.start_get`.
+        #: The reply's future, from :meth:`services.kernel.backend.Backend.start_get`.
         self.future: asyncio.Future[Answer] | None = None
         self._answer: Answer | None = None
         self._callback: DoneCallback | None = None

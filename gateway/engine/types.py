@@ -2,16 +2,16 @@
 
 Plain slotted classes, built by each front from its own wire form (the gRPC front from the
 contract's messages, the HTTP front from a URL and a JSON body) and read by the call layer
-(:class:`gateway.calls.Calls`), the guard and the licences; no protobuf message passes the door.
+(:class:`gateway.engine.calls.Calls`), the guard and the licences; no protobuf message passes the door.
 
 * A call names the **service** (its registry name) and the **path** inside it, the request
   **parameters** (name → text), and for a Set the **value**: text (``str``) or bytes. How long
   the engine may take is the time limit handed beside the call (the front knows the client's
   deadline).
-* The **caller** is a :class:`~gateway.rules.Subject` (:data:`ANONYMOUS` when nothing proved a
+* The **caller** is a :class:`~gateway.engine.rules.Subject` (:data:`ANONYMOUS` when nothing proved a
   name); each front identifies it its own way (a certificate, a token, a secret on a line).
-* A failure is a :class:`~services.errors.PropertyError` carrying its
-  :class:`~services.errors.Code`; each front turns it into its own status (a gRPC status, an
+* A failure is a :class:`~services.kernel.errors.PropertyError` carrying its
+  :class:`~services.kernel.errors.Code`; each front turns it into its own status (a gRPC status, an
   HTTP status, an ``ERR`` line).
 """
 
@@ -19,12 +19,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-from gateway.identity import ANONYMOUS
-from gateway.rules import Subject
-from services.backend import NO_PARAMS
-from services.errors import Code, PropertyError
-from services.paths import is_pattern
-from services.values import Value
+from gateway.engine.identity import ANONYMOUS
+from gateway.engine.rules import Subject
+from services.kernel.backend import NO_PARAMS
+from services.kernel.errors import Code, PropertyError
+from services.kernel.paths import is_pattern
+from services.kernel.values import Value
 
 __all__ = [
     "ANONYMOUS",

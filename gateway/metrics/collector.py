@@ -23,16 +23,16 @@ from prometheus_client.registry import Collector
 
 from gateway.metrics.counts import LATENCY_BOUNDS, Latency
 from gateway.proxies.grpc_channels import channel_pool
-from services.backend import LinkCounts
-from services.errors import Code
+from services.kernel.backend import LinkCounts
+from services.kernel.errors import Code
 
 if TYPE_CHECKING:
+    from gateway.engine.guard import Guard
+    from gateway.engine.listen import ListenHub
+    from gateway.engine.router import Router
     from gateway.fronts.grpc_v1.servicer import PropertyServicer
-    from gateway.guard import Guard
-    from gateway.http.front import HttpFront
-    from gateway.listen import ListenHub
-    from gateway.router import Router
-    from services.registry import Registry
+    from gateway.fronts.http.front import HttpFront
+    from services.apps.registry import Registry
 
 
 class Measured(Protocol):

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from bisect import bisect_left
 
-from services.errors import Code
+from services.kernel.errors import Code
 
 #: Upper bounds (seconds) of the latency buckets: 100 µs (an in-process Get through the gateway
 #: takes about that much) up to 10 s (the longest device timeouts); beyond is +Inf.

@@ -25,12 +25,12 @@ from gateway.config import (
     is_loopback,
 )
 from gateway.connections import BoundedListener, ConnectionCaps
-from gateway.http.errors import connection_refusal, error_response
-from gateway.http.safety import check_request, identify
+from gateway.engine.rules import Operation
+from gateway.fronts.http.errors import connection_refusal, error_response
+from gateway.fronts.http.safety import check_request, identify
 from gateway.metrics.collector import GatewayCollector, Measured
 from gateway.ports import start_bounded
-from gateway.rules import Operation
-from services.errors import PropertyError
+from services.kernel.errors import PropertyError
 
 log = logging.getLogger(__name__)
 

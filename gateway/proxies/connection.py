@@ -14,7 +14,7 @@ What one request costs (docs/performance.md, "Get through the TCP proxy"):
   Session message is one send to the device and, as the device answers a
   batch in one write, one read back; a caller that knows its batch is
   complete (the Session, once a message's requests are started) sends it
-  at once with :meth:`LineConnection.flush` (the proxy's :meth:`~services.backend.Backend.flush`)
+  at once with :meth:`LineConnection.flush` (the proxy's :meth:`~services.kernel.backend.Backend.flush`)
   rather than a loop turn later;
 * every complete line of one read is decoded and resolved right in
   ``data_received``: no reader task to wake, no copy into a stream buffer;
@@ -53,7 +53,7 @@ from collections.abc import Callable
 from typing import Protocol, cast
 
 from gateway.logs import current_request_id, outside_requests
-from services.errors import (
+from services.kernel.errors import (
     Code,
     DataLoss,
     DeadlineExceeded,
@@ -63,7 +63,7 @@ from services.errors import (
     Unavailable,
     error_for,
 )
-from services.line_protocol import (
+from services.kernel.line_protocol import (
     MAX_LINE,
     PROTOCOL_REVISION,
     PROTOCOL_VERSION,

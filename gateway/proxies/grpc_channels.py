@@ -33,7 +33,7 @@ import grpc
 
 from gateway.proxies.remote_types import RemoteTypes
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.errors import Unavailable
+from services.kernel.errors import Unavailable
 
 __all__ = ["ChannelKey", "ChannelPool", "SharedChannel", "TlsFiles", "channel_pool"]
 

@@ -12,10 +12,10 @@ reach ``scout1`` of gateway B as if it were local. The proxy
   address, TLS files and settings, reference counted); Get and Set are unary
   calls under the per-call timeout (a binary value travels in ``data`` both
   ways, and so do Listen events), and the remote's status codes come back
-  1:1 as :class:`~services.errors.PropertyError` with the remote's message,
+  1:1 as :class:`~services.kernel.errors.PropertyError` with the remote's message,
   prefixed by which remote said it;
 * holds one remote Listen (``updates_only``) per (path, parameters), shared
-  by all its local listeners (reference counted, :mod:`services.sharing`); a listen returns only once
+  by all its local listeners (reference counted, :mod:`services.kernel.sharing`); a listen returns only once
   the remote's ``sync`` marker arrived, so no change falls between the
   caller's subscribe and its Get;
 * re-opens a broken remote Listen (the remote gateway restarted) with
@@ -47,13 +47,21 @@ from gateway.options import Wording, option, read_options, url_options
 from gateway.proxies.grpc_channels import ChannelKey, ChannelPool, SharedChannel, TlsFiles, channel_pool
 from gateway.wire_values import put, received
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.backend import NO_PARAMS, UNKNOWN_TYPE, Backend, BackendInfo, Change, Notify, Subscription
-from services.errors import Code, DeadlineExceeded, InvalidArgument, PropertyError, Unavailable
-from services.model import ServiceModel
-from services.model_codec import model_from_proto
-from services.paths import validate_service_name
-from services.sharing import SharedListen, SharedListens
-from services.values import Value
+from services.kernel.backend import (
+    NO_PARAMS,
+    UNKNOWN_TYPE,
+    Backend,
+    BackendInfo,
+    Change,
+    Notify,
+    Subscription,
+)
+from services.kernel.errors import Code, DeadlineExceeded, InvalidArgument, PropertyError, Unavailable
+from services.kernel.model import ServiceModel
+from services.kernel.model_codec import model_from_proto
+from services.kernel.paths import validate_service_name
+from services.kernel.sharing import SharedListen, SharedListens
+from services.kernel.values import Value
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,7 @@ subclass only says how to open the stream. The proxy
   with UNAVAILABLE;
 * times out every call (DEADLINE_EXCEEDED) and pipelines calls by tag;
 * holds one device LISTEN per (property, parameters), shared by all its
-  listeners (reference counted, :mod:`services.sharing`); after a reconnect
+  listeners (reference counted, :mod:`services.kernel.sharing`); after a reconnect
   it listens again, reads the current value and hands it to every listener
   as a ``Change(gap=True)``;
 * polls a device whose greeting says ``push=0`` and forwards only changes;
@@ -40,7 +40,7 @@ from typing import Any, cast
 from gateway.logs import outside_requests
 from gateway.options import Wording, option, read_options, url_options
 from gateway.proxies.connection import LineConnection
-from services.backend import (
+from services.kernel.backend import (
     NO_PARAMS,
     UNKNOWN_TYPE,
     Answer,
@@ -51,7 +51,7 @@ from services.backend import (
     Notify,
     Subscription,
 )
-from services.errors import (
+from services.kernel.errors import (
     Code,
     InvalidArgument,
     NotFound,
@@ -60,7 +60,7 @@ from services.errors import (
     Unavailable,
     error_for,
 )
-from services.line_protocol import (
+from services.kernel.line_protocol import (
     MAX_LINE,
     MIN_MAX_LINE,
     Event,
@@ -74,10 +74,10 @@ from services.line_protocol import (
     Set,
     Unlisten,
 )
-from services.model import ServiceModel
-from services.model_codec import MODEL_PATH, model_from_text
-from services.sharing import SharedListen, SharedListens
-from services.values import Value, as_text
+from services.kernel.model import ServiceModel
+from services.kernel.model_codec import MODEL_PATH, model_from_text
+from services.kernel.sharing import SharedListen, SharedListens
+from services.kernel.values import Value, as_text
 
 log = logging.getLogger(__name__)
 

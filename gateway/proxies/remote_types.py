@@ -27,7 +27,7 @@ import grpc
 from gateway.fronts.grpc_v1.status import error_from_remote
 from gateway.peer_protocol import SPOKEN_HEADER
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.errors import Code, PropertyError, Unavailable
+from services.kernel.errors import Code, PropertyError, Unavailable
 
 __all__ = ["MAX_NAMES_PER_GET", "REMOTE_REGISTRY", "RemoteTypes"]
 
@@ -73,7 +73,7 @@ class RemoteTypes:
     def ask(self, name: str) -> asyncio.Future[str]:
         """The future of ``services.NAME.type`` in the remote registry: its value (``unknown`` while
         the remote has not heard from the service's device), or the remote's error as a
-        :class:`~services.errors.PropertyError` (Unavailable when the channel closes first)."""
+        :class:`~services.kernel.errors.PropertyError` (Unavailable when the channel closes first)."""
         loop = asyncio.get_running_loop()
         future = self._pending.get(name)
         if future is not None:

@@ -9,9 +9,9 @@ from urllib.parse import unquote, urlsplit
 
 from gateway.options import url_options
 from gateway.proxies.line_proxy import LineProxy, ProxyOptions
-from services.backend import Backend
 from services.device.transports import serial_streams
-from services.errors import InvalidArgument
+from services.kernel.backend import Backend
+from services.kernel.errors import InvalidArgument
 
 _SERIAL_KEYS = frozenset({"baudrate"})
 

@@ -9,12 +9,12 @@ from urllib.parse import urlsplit
 
 from gateway.proxies.connection import LineConnection
 from gateway.proxies.line_proxy import LineProxy, ProxyOptions
-from services.backend import Backend
-from services.errors import InvalidArgument
+from services.kernel.backend import Backend
+from services.kernel.errors import InvalidArgument
 
 
 class TcpProxy(LineProxy):
-    """A raw-TCP Property Service (a Wi-Fi board, ``python -m services.device_server --tcp``) as a Backend."""
+    """A raw-TCP Property Service (a Wi-Fi board, ``python -m services.device --tcp``) as a Backend."""
 
     def __init__(self, name: str, url: str, host: str, port: int, options: ProxyOptions) -> None:
         super().__init__(name, url, options)

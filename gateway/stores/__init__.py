@@ -1,4 +1,4 @@
-"""The registry's stores (:mod:`services.registry.store`) as the gateway opens them: etcd
+"""The registry's stores (:mod:`services.apps.registry.store`) as the gateway opens them: etcd
 (:mod:`gateway.stores.etcd`), the URL that names it (:mod:`gateway.stores.address`), and
 :func:`open_store`, which picks the store a config names (:mod:`gateway.stores.opening`)."""
 

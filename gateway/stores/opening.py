@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING
 
 from gateway.stores.address import parse_store_url
 from gateway.stores.etcd import EtcdStore, EtcdTls
-from services.registry.embedded import EmbeddedStore
-from services.registry.store import RegistryStore
+from services.apps.registry.embedded import EmbeddedStore
+from services.apps.registry.store import RegistryStore
 
 if TYPE_CHECKING:
     from gateway.config import Config

@@ -6,7 +6,7 @@
 * :class:`DeviceSession` — one connection's protocol session; module ``session``
   (its outbox of replies and conflated events: ``outbox``).
 * ``transports`` — serial ports, ptys and pipes as asyncio streams.
-* ``cli`` — the device command, ``python -m services.device_server`` and
+* ``cli`` — the device command, ``python -m services.device`` and
   ``psgateway device``.
 """
 

@@ -1,11 +1,11 @@
-"""The device command: ``python -m services.device_server`` and ``psgateway device``.
+"""The device command: ``python -m services.device`` and ``psgateway device``.
 
 ::
 
-    python -m services.device_server --service sim-robot --tcp 127.0.0.1:7001
-    python -m services.device_server --service sim-sensor --serial /dev/pts/3 --baud 115200
-    python -m services.device_server --service sim-robot --name scout4 --connect 127.0.0.1:7100
-    python -m services.device_server --service sim-robot --name rover2 --pty
+    python -m services.device --service sim-robot --tcp 127.0.0.1:7001
+    python -m services.device --service sim-sensor --serial /dev/pts/3 --baud 115200
+    python -m services.device --service sim-robot --name scout4 --connect 127.0.0.1:7100
+    python -m services.device --service sim-robot --name rover2 --pty
 
 With ``--connect`` the device dials out to a gateway's line listener and
 greets; the gateway registers it under its name (docs/line-protocol.md §5).
@@ -29,11 +29,11 @@ import sys
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-from services.backend import Backend
 from services.device.server import DIAL_KEEPALIVE, DeviceServer
 from services.device.session import KEEPALIVE_TIMEOUT
-from services.errors import PropertyError
-from services.line_protocol import MAX_INFLIGHT, MAX_LINE, MAX_RXBUF, MIN_MAX_LINE, MIN_RXBUF
+from services.kernel.backend import Backend
+from services.kernel.errors import PropertyError
+from services.kernel.line_protocol import MAX_INFLIGHT, MAX_LINE, MAX_RXBUF, MIN_MAX_LINE, MIN_RXBUF
 
 __all__ = ["DESCRIPTION", "add_arguments", "bounded_int", "main", "run", "serve"]
 
@@ -183,8 +183,8 @@ def bounded_int(what: str, low: int, high: int) -> Callable[[str], int]:
 
 
 def _make_backend(kind: str, options: Mapping[str, Any]) -> Backend:
-    from services.catalog import build
-    from services.core import serve
+    from services.apps.catalog import build
+    from services.kernel.core import serve
 
     return serve(build(kind, options))
 
@@ -258,9 +258,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m services.device_server``."""
+    """``python -m services.device``."""
     parser = argparse.ArgumentParser(
-        prog="python -m services.device_server",
+        prog="python -m services.device",
         description=DESCRIPTION,
     )
     add_arguments(parser)

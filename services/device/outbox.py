@@ -5,8 +5,8 @@ from __future__ import annotations
 import asyncio
 from collections import deque
 
-from services.conflation import ConflatingQueue
-from services.line_protocol import Event, Gone
+from services.kernel.conflation import ConflatingQueue
+from services.kernel.line_protocol import Event, Gone
 
 __all__ = ["Outbox"]
 

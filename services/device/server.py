@@ -1,7 +1,7 @@
 """Serve any Property Service over the line protocol, on a TCP port or a serial port.
 
 This is the device side of docs/device-spec.md in Python: it stands in for a
-microcontroller in tests and demos, and lets any :class:`services.backend.Backend`
+microcontroller in tests and demos, and lets any :class:`services.kernel.backend.Backend`
 (a simulated robot, a sensor, a whole gateway's router) be reached by anything
 that speaks lines of text. Every connection gets its own
 :class:`~services.device.session.DeviceSession`.
@@ -17,12 +17,12 @@ import ssl
 from collections.abc import Callable
 from dataclasses import replace
 
-from services.backend import Backend
 from services.device.alternates import ALTERNATES_FIELD, GatewayAddresses
 from services.device.session import CALL_TIMEOUT, KEEPALIVE_TIMEOUT, READ_SIZE, DeviceSession
 from services.device.transports import open_pty, open_serial, pipe_streams
-from services.errors import Code
-from services.line_protocol import MAX_LINE, ErrorReply, Hello, encode
+from services.kernel.backend import Backend
+from services.kernel.errors import Code
+from services.kernel.line_protocol import MAX_LINE, ErrorReply, Hello, encode
 
 __all__ = ["DeviceServer"]
 

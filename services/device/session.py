@@ -13,11 +13,11 @@ import logging
 from collections.abc import Callable, Coroutine
 from typing import Any
 
-from services.backend import Backend, Change, Subscription, close_quietly
 from services.device.outbox import Outbox
-from services.eager import Started, step
-from services.errors import Code, DeadlineExceeded, NotFound, PropertyError, ResourceExhausted
-from services.line_protocol import (
+from services.kernel.backend import Backend, Change, Subscription, close_quietly
+from services.kernel.eager import Started, step
+from services.kernel.errors import Code, DeadlineExceeded, NotFound, PropertyError, ResourceExhausted
+from services.kernel.line_protocol import (
     MAX_LINE,
     BadLine,
     Cancel,
@@ -38,9 +38,9 @@ from services.line_protocol import (
     Unlisten,
     encode,
 )
-from services.model import ServiceModel
-from services.model_codec import MODEL_PATH, model_to_text
-from services.values import Value
+from services.kernel.model import ServiceModel
+from services.kernel.model_codec import MODEL_PATH, model_to_text
+from services.kernel.values import Value
 
 __all__ = [
     "CALL_TIMEOUT",

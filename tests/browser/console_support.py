@@ -209,9 +209,9 @@ def eventually(probe: Callable[[], T], ok: Callable[[T], bool], what: str, withi
 
 @contextmanager
 def device_process(*args: str) -> Iterator[tuple[subprocess.Popen[str], str]]:
-    """``python -m services.device_server ARGS --tcp 127.0.0.1:0``; yields it and its ``tcp://`` URL."""
+    """``python -m services.device ARGS --tcp 127.0.0.1:0``; yields it and its ``tcp://`` URL."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.device_server", *args, "--tcp", "127.0.0.1:0"],
+        [sys.executable, "-m", "services.device", *args, "--tcp", "127.0.0.1:0"],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         text=True,

@@ -57,7 +57,7 @@ def console_gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Consol
         gw.stop()
 
 
-DEVICE = [sys.executable, "-m", "services.device_server", "--service", "sim-robot", "--name", "far"]
+DEVICE = [sys.executable, "-m", "services.device", "--service", "sim-robot", "--name", "far"]
 
 
 def device(port: int) -> subprocess.Popen[str]:

@@ -27,7 +27,7 @@ from console_support import (
 )
 
 from clients.sync import Client
-from services.formations import formation_targets
+from services.apps.formations import formation_targets
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.timeout(120)]
 

@@ -32,7 +32,7 @@ from console_support import (
 )
 
 from clients.sync import Client
-from services.values import parse_names
+from services.kernel.values import parse_names
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.timeout(120)]
 

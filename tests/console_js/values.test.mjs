@@ -1,4 +1,4 @@
-// The value grammar as the console reads and writes it: the same texts as services/values.
+// The value grammar as the console reads and writes it: the same texts as services/kernel/values.
 import assert from 'node:assert/strict';
 import { test } from 'node:test';
 

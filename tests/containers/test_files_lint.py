@@ -131,8 +131,8 @@ def test_the_compose_cluster_has_etcd_three_gateways_on_it_and_devices_they_may_
 
 
 async def test_the_cluster_configs_allow_the_devices_on_the_compose_network_and_no_other_port() -> None:
-    from services.errors import PermissionDenied
-    from services.registry.allow import AllowList
+    from services.apps.registry.allow import AllowList
+    from services.kernel.errors import PermissionDenied
 
     for gateway in CLUSTER_GATEWAYS:
         allow = AllowList(load_config(ROOT / f"containers/cluster-{gateway}.toml").registry.allow)

@@ -23,9 +23,9 @@ ROOT = Path(__file__).resolve().parents[2]
 def device_process(
     *args: str, env: dict[str, str] | None = None
 ) -> Iterator[tuple[subprocess.Popen[str], str]]:
-    """Run ``python -m services.device_server ARGS``; yield it and its first line of output."""
+    """Run ``python -m services.device ARGS``; yield it and its first line of output."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.device_server", *args],
+        [sys.executable, "-m", "services.device", *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         text=True,

@@ -23,7 +23,7 @@ from contextlib import asynccontextmanager
 
 from line_device_support import pty_client, pty_pair
 
-from services.line_protocol import (
+from services.kernel.line_protocol import (
     MAX_LINE,
     BadLine,
     ErrorReply,

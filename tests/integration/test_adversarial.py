@@ -25,8 +25,8 @@ from gateway.session import Session
 from gateway.testing import running_gateway
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.backend import NO_PARAMS
-from services.simulators import SimRobot
+from services.apps.simulators import SimRobot
+from services.kernel.backend import NO_PARAMS
 
 WAIT = 10.0
 U64_MAX = 2**64 - 1

@@ -30,12 +30,12 @@ from support.blobs import Blobs
 from support.gateway_process import GatewayProcess, StartGateway
 from support.waiting import eventually
 
-from gateway.line_listener import LineListener
-from gateway.router import Router
+from gateway.engine.router import Router
+from gateway.fronts.line.listener import LineListener
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.core import LocalService
-from services.line_protocol import encode_value
+from services.kernel.core import LocalService
+from services.kernel.line_protocol import encode_value
 
 pytestmark = pytest.mark.slow
 

@@ -19,7 +19,7 @@ from support.waiting import eventually
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.line_protocol import crc8
+from services.kernel.line_protocol import crc8
 
 WAIT = 15.0
 PROXY_OPTIONS = "{ timeout = 2.0, backoff_initial = 0.05, backoff_max = 0.5 }"

@@ -15,8 +15,8 @@ from support.waiting import eventually
 from clients import AsyncClient
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.values import parse_vector
-from services.values.markers import parse_markers
+from services.kernel.values import parse_vector
+from services.kernel.values.markers import parse_markers
 
 WAIT = 10.0
 

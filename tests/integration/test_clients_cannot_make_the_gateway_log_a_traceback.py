@@ -23,7 +23,7 @@ from support.gateway_process import GatewayProcess, StartGateway
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.line_protocol import Listen
+from services.kernel.line_protocol import Listen
 
 SECRET = "correct horse battery staple, long enough for HS256"
 WAIT = 20.0

@@ -2,7 +2,7 @@
 
 Each test starts etcd (``tests/support/etcd.py``) and three gateways (``gw-a``, ``gw-b``, ``gw-c``)
 whose ``[registry] store`` names it, with short leases, and real line-protocol devices as processes
-(``python -m services.device_server``). Users act as they would: the asyncio SDK against any
+(``python -m services.device``). Users act as they would: the asyncio SDK against any
 gateway. Without the ``etcd`` command the tests skip, saying so.
 """
 
@@ -335,7 +335,7 @@ async def _etcd_keys(etcd: EtcdServer) -> set[str]:
     """The keys under the default prefix, read with etcd's v3 API through the gateway's own store."""
     from gateway.stores.address import parse_store_url
     from gateway.stores.etcd import EtcdStore
-    from services.registry.store import Kind
+    from services.apps.registry.store import Kind
 
     store = EtcdStore(parse_store_url(etcd.url), gateway_id="test-reader")
     await store.start()

@@ -24,7 +24,7 @@ from bench.register import start_farms
 from bench.servers import ServerProcess
 from clients import AsyncClient
 from clients.errors import PropertyServiceError
-from services.registry.store import Kind
+from services.apps.registry.store import Kind
 
 pytestmark = pytest.mark.timeout(240)
 

@@ -41,7 +41,7 @@ from bench.servers import ServerProcess
 from clients import AsyncClient
 from clients.aio import Event
 from clients.errors import PropertyServiceError
-from services.registry.store import Kind
+from services.apps.registry.store import Kind
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 

@@ -35,7 +35,7 @@ from gateway.cluster.records import GatewayRecord
 from gateway.peer_protocol import SPOKEN, UNVERSIONED
 from gateway.stores.address import parse_store_url
 from gateway.stores.etcd import EtcdStore
-from services.registry.store import Kind
+from services.apps.registry.store import Kind
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 

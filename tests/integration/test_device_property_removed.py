@@ -28,7 +28,7 @@ from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 
 RIG = """
-from services.core import Resource, functional
+from services.kernel.core import Resource, functional
 
 
 class Tool(Resource):

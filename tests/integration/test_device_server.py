@@ -12,10 +12,10 @@ from collections.abc import Mapping
 from line_device_support import LineClient, device_process, pty_client, pty_pair, tcp_device
 from support.fake_backend import DictBackend
 
-from services.backend import NO_PARAMS
 from services.device import DeviceServer
-from services.line_protocol import BadLine, Frame, Get, LineReceiver, Ok, crc8, encode
-from services.values import Value
+from services.kernel.backend import NO_PARAMS
+from services.kernel.line_protocol import BadLine, Frame, Get, LineReceiver, Ok, crc8, encode
+from services.kernel.values import Value
 
 
 async def test_a_whole_tcp_session() -> None:
@@ -120,7 +120,7 @@ async def test_device_on_its_own_pty_ends_with_its_stdin() -> None:
         "--exit-with-parent",
     ]
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "services.device_server", *args, stdin=PIPE, stdout=PIPE
+        sys.executable, "-m", "services.device", *args, stdin=PIPE, stdout=PIPE
     )
     try:
         assert proc.stdin is not None and proc.stdout is not None

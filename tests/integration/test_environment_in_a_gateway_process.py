@@ -24,9 +24,9 @@ from support.waiting import eventually
 from clients.aio import AsyncClient
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.environment.observations import parse_marker_list
-from services.temperature_field import DEFAULT_FIELD
-from services.values import parse_list, parse_marker
+from services.apps.environment.observations import parse_marker_list
+from services.apps.temperature_field import DEFAULT_FIELD
+from services.kernel.values import parse_list, parse_marker
 
 WAIT = 15.0
 # Steps of at most 0.5 m (5 ticks of a late loop): no cell of 1 m is stepped over.

@@ -15,7 +15,7 @@ from gateway.config import Config, GatewaySection
 from gateway.testing import running_gateway
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.simulators import SimRobot
+from services.apps.simulators import SimRobot
 
 WAIT = 5.0
 

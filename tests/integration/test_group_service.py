@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 from support.group_support import MemoryDirectory, sim_robot, wait_for
 
-from services.backend import BackendInfo, Change
-from services.core import LocalService
-from services.errors import Code, PropertyError
-from services.formations import formation_targets
-from services.group import Group
-from services.registry import Registry, RegistryService
-from services.simulators import SimRobot, SimSensor
-from services.values import parse_names, parse_vector
+from services.apps.formations import formation_targets
+from services.apps.group import Group
+from services.apps.registry import Registry, RegistryService
+from services.apps.simulators import SimRobot, SimSensor
+from services.kernel.backend import BackendInfo, Change
+from services.kernel.core import LocalService
+from services.kernel.errors import Code, PropertyError
+from services.kernel.values import parse_names, parse_vector
 
 
 async def start(directory: MemoryDirectory) -> RegistryService:

@@ -24,7 +24,7 @@ from support.waiting import eventually
 
 from clients import AsyncClient, ClientCredentials
 from clients.errors import FailedPrecondition, NotFound, PermissionDenied, ResourceExhausted, Unauthenticated
-from services.values import parse_list
+from services.kernel.values import parse_list
 
 SECRET = "a shared secret of the lab, long enough for HS256"
 

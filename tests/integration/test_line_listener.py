@@ -9,12 +9,12 @@ import pytest
 from line_device_support import LineClient, tcp_device
 from support.ports import free_port
 
-from gateway.line_listener import LineListener
-from gateway.router import Router
+from gateway.engine.router import Router
+from gateway.fronts.line.listener import LineListener
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.catalog import create
-from services.core import LocalService
+from services.apps.catalog import create
+from services.kernel.core import LocalService
 
 
 async def test_a_microcontroller_reaches_every_service_through_the_listener() -> None:

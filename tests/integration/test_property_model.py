@@ -19,7 +19,7 @@ import pytest
 from support.gateway_process import GatewayProcess, StartGateway
 
 from clients import AsyncClient, Client
-from services.model import Access, PropertyModel
+from services.kernel.model import Access, PropertyModel
 
 PSCTL = [sys.executable, "-m", "clients.cli"]
 FAR = "<marker><location>(500 0 0 0 0 0)</location></marker>"

@@ -18,9 +18,9 @@ from gateway.app import Gateway
 from gateway.backends import open_proxy
 from gateway.config import loads_config
 from gateway.proxies import GrpcProxy
-from services.backend import Change
-from services.errors import Code, InvalidArgument, PropertyError
-from services.registry import check_url
+from services.apps.registry import check_url
+from services.kernel.backend import Change
+from services.kernel.errors import Code, InvalidArgument, PropertyError
 
 FAST = {"timeout": 2.0, "connect_timeout": 1.0, "backoff_initial": 0.05, "backoff_max": 0.5}
 

@@ -11,10 +11,10 @@ from line_device_support import tcp_device
 from support.gateway_process import ROOT
 
 from gateway.proxies import TcpProxy, open_tcp_backend
-from services.backend import Change
+from services.kernel.backend import Change
 
 SCALE = """
-from services.core import Resource, query
+from services.kernel.core import Resource, query
 
 
 class Scale(Resource):

@@ -31,8 +31,8 @@ from gateway.proxies import TcpProxy
 from gateway.proxies.connection import LineConnection
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.errors import Code, PropertyError
-from services.line_protocol import Get, Ok
+from services.kernel.errors import Code, PropertyError
+from services.kernel.line_protocol import Get, Ok
 
 GREETING = "HELLO 1 name=fake type=thing push=1"
 FAST = {"timeout": 5.0, "connect_timeout": 5.0, "backoff_initial": 0.05, "backoff_max": 0.3}

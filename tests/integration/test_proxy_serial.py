@@ -12,9 +12,9 @@ import pytest
 from line_device_support import LineClient, device_process, pty_client, pty_pair
 
 from gateway.proxies import SerialProxy, open_serial_backend
-from services.backend import Change
-from services.errors import Code, PropertyError
-from services.line_protocol import crc8
+from services.kernel.backend import Change
+from services.kernel.errors import Code, PropertyError
+from services.kernel.line_protocol import crc8
 
 FAST = {"timeout": 1.0, "connect_timeout": 2.0, "backoff_initial": 0.05, "backoff_max": 0.3}
 

@@ -15,9 +15,9 @@ from support.group_support import MemoryDirectory
 from support.ports import free_port
 
 from gateway.proxies import TcpProxy, open_tcp_backend
-from services.backend import Change
-from services.errors import Code, PropertyError
-from services.registry import Registry, RegistryService
+from services.apps.registry import Registry, RegistryService
+from services.kernel.backend import Change
+from services.kernel.errors import Code, PropertyError
 
 FAST = {
     "timeout": 1.0,

@@ -52,9 +52,9 @@ def test_bench_help_needs_no_test_extra() -> None:
 
 
 def test_vector_and_marker_import_where_the_docs_say() -> None:
-    from services.core import Marker, Vector
-    from services.values import Marker as ValueMarker
-    from services.values import Vector as ValueVector
+    from services.kernel.core import Marker, Vector
+    from services.kernel.values import Marker as ValueMarker
+    from services.kernel.values import Vector as ValueVector
 
     assert (Vector, Marker) == (ValueVector, ValueMarker)
     docs = "\n".join(p.read_text(encoding="utf-8") for p in Path(ROOT, "docs").glob("*.md")) + README

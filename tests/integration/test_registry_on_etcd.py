@@ -12,10 +12,10 @@ from support.group_support import MemoryDirectory, sim_robot
 from support.waiting import eventually, wait_until
 
 from gateway.stores import EtcdStore, parse_store_url
-from services.backend import Change
-from services.errors import Code, PropertyError
-from services.registry import Registry, RegistryService
-from services.registry.store import Kind
+from services.apps.registry import Registry, RegistryService
+from services.apps.registry.store import Kind
+from services.kernel.backend import Change
+from services.kernel.errors import Code, PropertyError
 
 pytestmark = pytest.mark.slow
 

@@ -19,12 +19,12 @@ from support.group_support import (
     wait_for,
 )
 
-from services.backend import Change
-from services.core import LocalService
-from services.errors import Code, PropertyError
-from services.registry import Registry, RegistryService, check_url
-from services.simulators import SimSensor
-from services.values import parse_names, parse_vector
+from services.apps.registry import Registry, RegistryService, check_url
+from services.apps.simulators import SimSensor
+from services.kernel.backend import Change
+from services.kernel.core import LocalService
+from services.kernel.errors import Code, PropertyError
+from services.kernel.values import parse_names, parse_vector
 
 
 async def start_registry(directory: MemoryDirectory, **options: Any) -> tuple[Registry, RegistryService]:
@@ -267,6 +267,6 @@ async def test_find_scales_to_ten_thousand_entries(world: MemoryDirectory) -> No
 
 
 def _info(kind: str) -> Any:
-    from services.backend import BackendInfo
+    from services.kernel.backend import BackendInfo
 
     return BackendInfo(type=kind, url="tcp://127.0.0.1:1")

@@ -28,7 +28,7 @@ from clients.errors import (
     ResourceExhausted,
     Unavailable,
 )
-from services.values import parse_list
+from services.kernel.values import parse_list
 
 SECRET = "a shared secret of the lab, long enough for HS256"
 

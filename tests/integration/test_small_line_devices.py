@@ -26,9 +26,9 @@ from clients.errors import PropertyServiceError
 from gateway.app import Gateway
 from gateway.config import parse_config
 from gateway.proxies import LineProxy, SerialProxy, TcpProxy, open_serial_backend, open_tcp_backend
-from services.backend import Change
-from services.errors import Code, PropertyError
-from services.line_protocol import crc8
+from services.kernel.backend import Change
+from services.kernel.errors import Code, PropertyError
+from services.kernel.line_protocol import crc8
 
 FAST = {
     "timeout": 2.0,

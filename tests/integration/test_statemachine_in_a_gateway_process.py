@@ -22,7 +22,7 @@ from support.waiting import eventually
 
 from clients.aio import AsyncClient
 from clients.errors import InvalidArgument, NotFound
-from services.formations import formation_targets
+from services.apps.formations import formation_targets
 
 CONFIG = """
 [[services]]

@@ -7,7 +7,7 @@ import pytest
 from support.gateway_process import GatewayProcess
 from support.psctl import psctl
 
-from gateway.status import MAX_MESSAGE_CHARS
+from gateway.engine.status import MAX_MESSAGE_CHARS
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 

@@ -1,7 +1,7 @@
 """A store on a full disk: refused as RESOURCE_EXHAUSTED, and the file it would have replaced is kept.
 
 The disk is a real one, a 256 KiB tmpfs mounted in a user namespace of its own (``unshare -rm``),
-with the storage service's :class:`~services.storage.disk.Folder` writing to it in a child
+with the storage service's :class:`~services.apps.storage.disk.Folder` writing to it in a child
 process; where user namespaces or unshare are missing, the test skips saying why.
 """
 
@@ -25,8 +25,8 @@ _FULL_DISK = textwrap.dedent(
     """
     import os, subprocess, sys
     from pathlib import Path
-    from services.errors import ResourceExhausted
-    from services.storage.disk import Folder
+    from services.kernel.errors import ResourceExhausted
+    from services.apps.storage.disk import Folder
     root = Path(sys.argv[1])
     subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(root)], check=True)
     folder = Folder(root)

@@ -22,7 +22,7 @@ from clients import (
     NotFound,
     ResourceExhausted,
 )
-from services.storage import MAX_FILE_SIZE
+from services.apps.storage import MAX_FILE_SIZE
 
 WAIT = 10.0
 

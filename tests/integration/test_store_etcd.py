@@ -14,8 +14,8 @@ from support.waiting import wait_until
 
 from gateway.stores import EtcdStore, EtcdTls, parse_store_url
 from gateway.stores.etcd import START_WAIT
-from services.errors import InvalidArgument, Unavailable
-from services.registry.store import Change, Kind, RegistryStore, SharedStore
+from services.apps.registry.store import Change, Kind, RegistryStore, SharedStore
+from services.kernel.errors import InvalidArgument, Unavailable
 
 __all__ = ["certificates"]
 

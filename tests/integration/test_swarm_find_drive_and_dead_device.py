@@ -24,10 +24,10 @@ from clients.aio import AsyncClient
 from clients.errors import PropertyServiceError
 from gateway.app import Gateway
 from gateway.config import parse_config
-from services.core import LocalService
-from services.formations import formation_targets
-from services.group import Group
-from services.registry import RegistryService
+from services.apps.formations import formation_targets
+from services.apps.group import Group
+from services.apps.registry import RegistryService
+from services.kernel.core import LocalService
 
 T = TypeVar("T")
 

@@ -27,7 +27,7 @@ from support.waiting import eventually
 
 from clients.aio import AsyncClient
 from clients.errors import PropertyServiceError
-from services.formations import formation_targets
+from services.apps.formations import formation_targets
 
 WAIT = 10.0
 CONFIG = """

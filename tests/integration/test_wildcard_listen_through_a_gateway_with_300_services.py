@@ -24,7 +24,7 @@ from support.sse import SseReader
 from clients import SYNC, AsyncClient, Event, ValueFormatError
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.values import MAX_VALUE_LENGTH
+from services.kernel.values import MAX_VALUE_LENGTH
 
 SENSORS = 300
 #: Every sensor's entry and the registry's own.

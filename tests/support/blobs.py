@@ -24,7 +24,7 @@ import zlib
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
-from services.core import Prop, Resource, action, query
+from services.kernel.core import Prop, Resource, action, query
 
 if TYPE_CHECKING:
     from support.gateway_process import GatewayProcess

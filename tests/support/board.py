@@ -6,7 +6,7 @@ from typing import Annotated
 
 import numpy as np
 
-from services.core import Prop, Resource, Vector, action
+from services.kernel.core import Prop, Resource, Vector, action
 
 BOARD_TYPE = "tests.support.board:Board"
 

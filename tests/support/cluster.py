@@ -20,7 +20,7 @@ from pathlib import Path
 
 from gateway.stores.address import parse_store_url
 from gateway.stores.etcd import EtcdStore
-from services.registry.store import Kind
+from services.apps.registry.store import Kind
 from support.etcd import EtcdServer
 from support.gateway_process import GatewayProcess, start_gateway
 from support.ports import stable_ports

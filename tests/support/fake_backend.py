@@ -14,9 +14,9 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Mapping
 
-from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
-from services.errors import NotFound, ReadOnly, Unavailable
-from services.values import format_names
+from services.kernel.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
+from services.kernel.errors import NotFound, ReadOnly, Unavailable
+from services.kernel.values import format_names
 
 
 class DictSubscription(Subscription):

@@ -19,7 +19,7 @@ from typing import Annotated
 
 import numpy as np
 
-from services.core import Prop, Resource, action
+from services.kernel.core import Prop, Resource, action
 
 FRAMES_TYPE = "tests.support.frames:FrameSource"
 WIDTH = 32

@@ -11,11 +11,11 @@ import asyncio
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from services.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
-from services.core import LocalService
-from services.directory import DirectoryListener
-from services.errors import AlreadyExists, NotFound, Unavailable
-from services.simulators import SimRobot
+from services.apps.simulators import SimRobot
+from services.kernel.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
+from services.kernel.core import LocalService
+from services.kernel.directory import DirectoryListener
+from services.kernel.errors import AlreadyExists, NotFound, Unavailable
 from support.fake_backend import DictBackend
 
 

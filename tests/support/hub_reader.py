@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 
 from gateway.engine.events import Mark, events
-from gateway.listen import ListenHub, ListenStream, Selector, StreamOptions
+from gateway.engine.listen import ListenHub, ListenStream, Selector, StreamOptions
 from support.waiting import wait_until
 
 #: (service, property, value, gap) of one event.

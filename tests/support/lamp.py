@@ -2,7 +2,7 @@
 
 from typing import Annotated
 
-from services.core import Prop, Resource, action
+from services.kernel.core import Prop, Resource, action
 
 
 class Lamp(Resource):

@@ -1,6 +1,6 @@
 """A shared registry store held in memory: a test double of etcd for fast tests of the cluster's logic.
 
-It keeps what :class:`services.registry.store.SharedStore` promises, and nothing of etcd's wire:
+It keeps what :class:`services.apps.registry.store.SharedStore` promises, and nothing of etcd's wire:
 keys in folders, keys bound to a gateway's lease (gone when the lease is ended, as when a gateway
 dies), compare-and-set, a watch that reports every change on the event loop a moment later (as a
 watch stream would), a server that can be stopped (every store is read-only) and started again,
@@ -20,8 +20,8 @@ import json
 from collections.abc import Callable, Mapping
 from typing import TypeVar
 
-from services.errors import Unavailable
-from services.registry.store import Change, Kind, StoreListener
+from services.apps.registry.store import Change, Kind, StoreListener
+from services.kernel.errors import Unavailable
 
 __all__ = ["MemoryServer", "MemoryStore"]
 
@@ -98,7 +98,7 @@ class MemoryServer:
 
 
 class MemoryStore:
-    """One gateway's view of a :class:`MemoryServer`: a :class:`~services.registry.store.SharedStore`."""
+    """One gateway's view of a :class:`MemoryServer`: a :class:`~services.apps.registry.store.SharedStore`."""
 
     def __init__(self, server: MemoryServer, gateway_id: str) -> None:
         self.server = server

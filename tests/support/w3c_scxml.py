@@ -27,10 +27,10 @@ import tarfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.core import LocalService
-from services.errors import PropertyError
-from services.statemachine import StateMachineService
-from services.values import as_text
+from services.apps.statemachine import StateMachineService
+from services.kernel.core import LocalService
+from services.kernel.errors import PropertyError
+from services.kernel.values import as_text
 from support.group_support import MemoryDirectory
 
 #: The release whose sdist carries the charts; raise it on purpose, updating expected.txt.

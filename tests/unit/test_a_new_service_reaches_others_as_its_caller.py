@@ -8,15 +8,15 @@ from collections.abc import AsyncIterator
 
 import pytest
 
-from gateway.calls import Calls
+from gateway.engine.calls import Calls
+from gateway.engine.guard import Guard
+from gateway.engine.router import Router
+from gateway.engine.rules import Rule, Rules, Subject
 from gateway.engine.types import GetCall, SetCall
-from gateway.guard import Guard
-from gateway.router import Router
-from gateway.rules import Rule, Rules, Subject
-from services.core import Resource, action, query, serve
-from services.directory import Directory, own_context
-from services.errors import PermissionDenied
-from services.simulators import SimRobot
+from services.apps.simulators import SimRobot
+from services.kernel.core import Resource, action, query, serve
+from services.kernel.directory import Directory, own_context
+from services.kernel.errors import PermissionDenied
 
 VIEWER = Subject("viewer", authenticated=True, via="token")
 ADMIN = Subject("admin", authenticated=True, via="token")

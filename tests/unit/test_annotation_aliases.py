@@ -17,8 +17,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from services.core import LocalService, Prop, Resource
-from services.values import Vector, parse_as, type_name
+from services.kernel.core import LocalService, Prop, Resource
+from services.kernel.values import Vector, parse_as, type_name
 
 if sys.version_info >= (3, 12):
     from typing import TypeAliasType
@@ -43,7 +43,7 @@ VECTOR_FORMS = [
     pytest.param(npt.NDArray[np.float64], id="installed NDArray[float64]"),
     pytest.param(npt.NDArray[Any], id="installed NDArray[Any]"),
     pytest.param(npt.NDArray, id="installed NDArray"),
-    pytest.param(Vector, id="services.values.Vector"),
+    pytest.param(Vector, id="services.kernel.values.Vector"),
     pytest.param(NDArrayAlias[np.float64], id="numpy>=2.5 NDArray[float64]"),
     pytest.param(NDArrayAlias, id="numpy>=2.5 NDArray"),
     pytest.param(Pose, id="alias of NDArray[float64]"),

@@ -7,19 +7,19 @@ from typing import Annotated
 import pytest
 
 from gateway.engine.events import SharedEvent
+from gateway.engine.listen.stream import within
+from gateway.engine.listen.topics import Topic
+from gateway.engine.sizes import BATCH_BYTES, MAX_BINARY_SIZE
 from gateway.fronts.grpc_v1.listen_encoding import encode_events
-from gateway.listen.stream import within
-from gateway.listen.topics import Topic
-from gateway.sizes import BATCH_BYTES, MAX_BINARY_SIZE
 from gateway.wire_values import put, received
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.backend import Change
-from services.conflation import ConflatingQueue, Slot
-from services.core import LocalService, Prop, Resource, action, query
-from services.errors import InvalidArgument, NotFound, ResourceExhausted
-from services.model import Access, PropertyModel, ServiceModel
-from services.model_codec import model_from_proto, model_from_text, model_to_proto, model_to_text
-from services.values import Value, as_text, loggable, value_size
+from services.kernel.backend import Change
+from services.kernel.conflation import ConflatingQueue, Slot
+from services.kernel.core import LocalService, Prop, Resource, action, query
+from services.kernel.errors import InvalidArgument, NotFound, ResourceExhausted
+from services.kernel.model import Access, PropertyModel, ServiceModel
+from services.kernel.model_codec import model_from_proto, model_from_text, model_to_proto, model_to_text
+from services.kernel.values import Value, as_text, loggable, value_size
 
 
 class Camera(Resource):

@@ -13,8 +13,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from services.errors import Code
-from services.line_protocol import (
+from services.kernel.errors import Code
+from services.kernel.line_protocol import (
     MAX_LINE,
     BadLine,
     ErrorReply,

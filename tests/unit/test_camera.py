@@ -14,13 +14,13 @@ from PIL import Image
 from support.group_support import MemoryDirectory
 from support.waiting import wait_until
 
-from services.backend import Change
-from services.core import LocalService, serve
-from services.errors import Code, InvalidArgument, PropertyError
-from services.simulators import SimRobot
-from services.values import parse_names, parse_vector
-from services.values.markers import parse_markers
-from services.vision import Camera
+from services.apps.simulators import SimRobot
+from services.apps.vision import Camera
+from services.kernel.backend import Change
+from services.kernel.core import LocalService, serve
+from services.kernel.errors import Code, InvalidArgument, PropertyError
+from services.kernel.values import parse_names, parse_vector
+from services.kernel.values.markers import parse_markers
 
 OBJECTS = [
     {"id": "crate", "class": "box", "location": [4, 0.5], "colour": "red", "size": 0.6},

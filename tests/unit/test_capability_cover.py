@@ -7,7 +7,7 @@ import itertools
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.registry.scheduling import EXACT_LIMIT, cover, exact_cover, greedy_cover
+from services.apps.registry.scheduling import EXACT_LIMIT, cover, exact_cover, greedy_cover
 
 CAPS = [f"c{i}" for i in range(6)]
 

@@ -157,7 +157,7 @@ def test_number_round_trip(x: float) -> None:
 
 
 def test_the_client_reads_values_with_the_services_grammar() -> None:
-    from services import values as grammar
+    from services.kernel import values as grammar
 
     assert parse_vector is grammar.parse_vector
     assert Marker is grammar.Marker

@@ -10,9 +10,9 @@ from support.memory_store import MemoryServer
 from support.waiting import wait_until
 
 from gateway.cluster import ClusterLicences
-from services.errors import Code, PropertyError
-from services.registry import Licences
-from services.registry.store import Kind
+from services.apps.registry import Licences
+from services.apps.registry.store import Kind
+from services.kernel.errors import Code, PropertyError
 
 
 def _licences(server: MemoryServer, gateway: str) -> Licences:

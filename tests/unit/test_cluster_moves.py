@@ -20,11 +20,11 @@ from support.waiting import wait_until
 from gateway.cluster import ClusterNode, SwitchingBackend
 from gateway.cluster.moves import rebalance_quota, taking_loads
 from gateway.cluster.records import GatewayRecord, read_gateway
-from gateway.router import Router
+from gateway.engine.router import Router
+from services.apps.registry import Registry
+from services.apps.registry.store import Kind
 from services.device import DeviceServer
-from services.errors import Code, PropertyError
-from services.registry import Registry
-from services.registry.store import Kind
+from services.kernel.errors import Code, PropertyError
 
 LEASE = 1.0
 DEVICES = 12

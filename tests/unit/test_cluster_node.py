@@ -21,11 +21,11 @@ from support.memory_store import MemoryServer, MemoryStore
 from support.waiting import eventually, wait_until
 
 from gateway.cluster import ClusterNode, SwitchingBackend
-from gateway.router import Router
+from gateway.engine.router import Router
+from services.apps.registry import Registry
+from services.apps.registry.store import Kind
 from services.device import DeviceServer
-from services.errors import Code, PropertyError
-from services.registry import Registry
-from services.registry.store import Kind
+from services.kernel.errors import Code, PropertyError
 
 LEASE = 1.0
 

@@ -16,6 +16,7 @@ from support.memory_store import MemoryServer
 
 from gateway.cluster import ClusterNode
 from gateway.cluster.records import GatewayRecord, read_gateway
+from gateway.engine.router import Router
 from gateway.peer_protocol import (
     PROTOCOLS_KEY,
     SPOKEN,
@@ -24,12 +25,11 @@ from gateway.peer_protocol import (
     format_protocols,
     parse_protocols,
 )
-from gateway.router import Router
 from gateway.testing import running_gateway
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.registry import Registry
-from services.registry.store import Kind
+from services.apps.registry import Registry
+from services.apps.registry.store import Kind
 
 #: The gateways key a gateway of the previous release writes: no versions in it.
 PREVIOUS_RELEASE_KEY = json.dumps({"address": "127.0.0.1:50061", "http": "", "line": "", "owned": 0})

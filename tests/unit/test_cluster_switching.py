@@ -9,8 +9,8 @@ from support.fake_backend import DictBackend
 from support.waiting import wait_until
 
 from gateway.cluster import SwitchingBackend
-from services.backend import Change
-from services.errors import Code, PropertyError
+from services.kernel.backend import Change
+from services.kernel.errors import Code, PropertyError
 
 
 async def test_calls_reach_the_target_and_say_why_without_one() -> None:

@@ -11,7 +11,7 @@ from gateway.cluster import ClusterView, GatewayRecord, Registration, takeover_r
 from gateway.cluster.failover import Takeover
 from gateway.cluster.picture import draw_owners
 from gateway.cluster.records import Ownership, read_gateway, read_registration
-from services.registry.store import Change, Kind
+from services.apps.registry.store import Change, Kind
 
 
 def test_records_round_trip_and_bad_values_are_refused() -> None:

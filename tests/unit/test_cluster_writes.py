@@ -7,7 +7,7 @@ import json
 from support.memory_store import MemoryServer
 
 from gateway.cluster.writer import LatestWrites
-from services.registry.store import Kind
+from services.apps.registry.store import Kind
 
 
 async def test_waiting_puts_of_one_folder_go_in_one_bulk_write_the_newest_value_each() -> None:

@@ -8,7 +8,7 @@ import pytest
 
 from gateway.backends import PROXY_SCHEMES, open_proxy
 from gateway.config import ConfigError, default_config, load_config, loads_config
-from services.errors import InvalidArgument
+from services.kernel.errors import InvalidArgument
 
 FULL = """
 [gateway]

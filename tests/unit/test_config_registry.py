@@ -1,4 +1,4 @@
-"""``[registry]`` and groups in the gateway config; ``services.catalog`` and the gateway's directory."""
+"""``[registry]`` and groups in the gateway config; ``services.apps.catalog`` and the gateway's directory."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import pytest
 from gateway.backends import open_backend
 from gateway.cli import main
 from gateway.config import ConfigError, RegistrySection, default_config, load_config, loads_config
-from gateway.router import Router
-from services.catalog import create, needs_directory
-from services.core import LocalService
-from services.errors import InvalidArgument
-from services.group import Group
+from gateway.engine.router import Router
+from services.apps.catalog import create, needs_directory
+from services.apps.group import Group
+from services.kernel.core import LocalService
+from services.kernel.errors import InvalidArgument
 
 
 def test_registry_settings_default_to_the_registry_s_own() -> None:

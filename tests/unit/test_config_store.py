@@ -10,8 +10,8 @@ import pytest
 from gateway.cli import main
 from gateway.config import ConfigError, load_config, loads_config
 from gateway.stores import EtcdStore, default_gateway_id, open_store, parse_store_url
-from services.registry.embedded import EmbeddedStore
-from services.registry.store import EMBEDDED, SharedStore
+from services.apps.registry.embedded import EmbeddedStore
+from services.apps.registry.store import EMBEDDED, SharedStore
 
 
 def test_the_store_is_embedded_by_default() -> None:

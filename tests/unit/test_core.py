@@ -7,9 +7,9 @@ from typing import Annotated
 import numpy as np
 import pytest
 
-from services.core import LocalService, Prop, Resource, functional, query
-from services.errors import Code, InvalidArgument, NotFound, PropertyError
-from services.values import Marker, Vector, parse_list, parse_marker, parse_names
+from services.kernel.core import LocalService, Prop, Resource, functional, query
+from services.kernel.errors import Code, InvalidArgument, NotFound, PropertyError
+from services.kernel.values import Marker, Vector, parse_list, parse_marker, parse_names
 
 
 class Gripper(Resource):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.core import LocalService, Resource, functional
+from services.kernel.core import LocalService, Resource, functional
 
 
 def test_an_attribute_annotation_that_does_not_resolve_names_class_member_and_annotation() -> None:

@@ -9,11 +9,11 @@ import pytest
 from support.fake_backend import DictBackend
 from support.waiting import wait_until
 
-from services.backend import Backend, Change
-from services.core import LocalService, Resource
-from services.core import local as local_module
-from services.simulators import SimRobot
-from services.values import parse_names
+from services.apps.simulators import SimRobot
+from services.kernel.backend import Backend, Change
+from services.kernel.core import LocalService, Resource
+from services.kernel.core import local as local_module
+from services.kernel.values import parse_names
 
 
 class Holder(Resource):

@@ -8,10 +8,10 @@ from typing import Annotated
 import numpy as np
 import pytest
 
-from services.backend import Change
-from services.core import LocalService, Prop, Resource, functional
-from services.errors import AlreadyExists, InvalidArgument, NotFound
-from services.values import Marker, Vector, parse_marker, parse_names
+from services.kernel.backend import Change
+from services.kernel.core import LocalService, Prop, Resource, functional
+from services.kernel.errors import AlreadyExists, InvalidArgument, NotFound
+from services.kernel.values import Marker, Vector, parse_marker, parse_names
 
 
 class Tool(Resource):

@@ -7,11 +7,11 @@ from typing import Annotated
 import numpy as np
 import pytest
 
-from services.backend import Change
-from services.core import LocalService, Prop, Resource, action, functional, query, read_write
-from services.errors import Code, InvalidArgument, PropertyError
-from services.model import Access, ParameterModel
-from services.values import Marker, Vector
+from services.kernel.backend import Change
+from services.kernel.core import LocalService, Prop, Resource, action, functional, query, read_write
+from services.kernel.errors import Code, InvalidArgument, PropertyError
+from services.kernel.model import Access, ParameterModel
+from services.kernel.values import Marker, Vector
 from tests.support.fake_backend import DictBackend
 
 

@@ -1,5 +1,5 @@
 """Every crafted token is UNAUTHENTICATED: any header, any key, any claims, signed or not, through the
-real verifier (:class:`gateway.identity.Authenticator`)."""
+real verifier (:class:`gateway.engine.identity.Authenticator`)."""
 
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from jwt.algorithms import get_default_algorithms
 
-from gateway.identity import Authenticator, AuthSection
-from gateway.rules import Subject
-from services.errors import Unauthenticated
+from gateway.engine.identity import Authenticator, AuthSection
+from gateway.engine.rules import Subject
+from services.kernel.errors import Unauthenticated
 
 SECRET = "correct horse battery staple, long enough for HS256, HS384 and even HS512 keys"
 

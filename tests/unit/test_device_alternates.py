@@ -9,8 +9,8 @@ import pytest
 from support.fake_backend import DictBackend
 from support.waiting import wait_until
 
-from gateway.line_listener import LineListener
-from gateway.router import Router
+from gateway.engine.router import Router
+from gateway.fronts.line.listener import LineListener
 from services.device import DeviceServer
 from services.device.alternates import GatewayAddresses, format_alternates, parse_alternates
 
@@ -101,7 +101,7 @@ async def test_a_device_refused_by_every_gateway_pauses_between_rounds(
         router.add("probe", DictBackend({"x": "0"}, url="tcp://127.0.0.1:9"))  # the name is taken
     device = DeviceServer(DictBackend({"x": "1"}, type="sensor"), name="probe")
     assert listener_a.address is not None
-    caplog.set_level("WARNING", logger="gateway.line_listener")
+    caplog.set_level("WARNING", logger="gateway.fronts.line.listener")
     dialling = asyncio.ensure_future(device.dial(*listener_a.address, retry_initial=0.2, retry_max=0.4))
     try:
         await asyncio.sleep(1.0)

@@ -9,8 +9,17 @@ from pathlib import Path
 import pytest
 
 from gateway.conformance import CLAUSES
-from services.errors import Code
-from services.line_protocol import ErrorReply, Event, Hello, LineProtocolError, Ok, Pong, crc8, decode_line
+from services.kernel.errors import Code
+from services.kernel.line_protocol import (
+    ErrorReply,
+    Event,
+    Hello,
+    LineProtocolError,
+    Ok,
+    Pong,
+    crc8,
+    decode_line,
+)
 
 SPEC = Path(__file__).resolve().parents[2] / "docs" / "device-spec.md"
 #: The size a firmware author reads alone (Firmata's protocol document is 14.7 KB).

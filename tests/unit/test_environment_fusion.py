@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.environment import MarkerFusion, Observation
+from services.apps.environment import MarkerFusion, Observation
 
 
 def sighting(

@@ -12,13 +12,13 @@ from support.waiting import wait_until
 from clients import AsyncClient
 from clients.errors import InvalidArgument as InvalidArgumentError
 from gateway.testing import serve
-from services.backend import Change
-from services.catalog import create
-from services.core import serve as serve_backend
-from services.environment import EnvironmentModel, GridSpec, HitLayer, MeanLayer, heat_map_png, to_npy
-from services.environment.observations import parse_marker_list, write_marker_list
-from services.errors import InvalidArgument
-from services.values import parse_list, parse_marker
+from services.apps.catalog import create
+from services.apps.environment import EnvironmentModel, GridSpec, HitLayer, MeanLayer, heat_map_png, to_npy
+from services.apps.environment.observations import parse_marker_list, write_marker_list
+from services.kernel.backend import Change
+from services.kernel.core import serve as serve_backend
+from services.kernel.errors import InvalidArgument
+from services.kernel.values import parse_list, parse_marker
 
 
 class Clock:

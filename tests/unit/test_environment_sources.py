@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from support.waiting import eventually, wait_until
 
-import services.environment.sources as sources_module
-from gateway.router import Router
-from services.backend import NO_PARAMS, Notify, Subscription
-from services.core import LocalService, Prop, Resource
-from services.environment import EnvironmentModel
-from services.errors import Unavailable
-from services.simulators import SimRobot
-from services.values import parse_list
+import services.apps.environment.sources as sources_module
+from gateway.engine.router import Router
+from services.apps.environment import EnvironmentModel
+from services.apps.simulators import SimRobot
+from services.kernel.backend import NO_PARAMS, Notify, Subscription
+from services.kernel.core import LocalService, Prop, Resource
+from services.kernel.errors import Unavailable
+from services.kernel.values import parse_list
 
 
 class ScriptedCamera(Resource):

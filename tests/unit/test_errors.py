@@ -6,11 +6,11 @@ import grpc
 import pytest
 
 from clients import errors as client_errors
+from gateway.engine.status import to_property_error
 from gateway.fronts.grpc_v1.status import GRPC_STATUS, error_from_status
-from gateway.status import to_property_error
-from services import errors
-from services.errors import Code, NotFound, PropertyError, ReadOnly, error_for
-from services.line_protocol import ErrorReply, decode_line
+from services.kernel import errors
+from services.kernel.errors import Code, NotFound, PropertyError, ReadOnly, error_for
+from services.kernel.line_protocol import ErrorReply, decode_line
 
 
 @pytest.mark.parametrize("code", [c for c in Code if c is not Code.OK])

@@ -1,11 +1,11 @@
-"""services.backend.tell_each: the one fan-out, and what it does with a listener that raises."""
+"""services.kernel.backend.tell_each: the one fan-out, and what it does with a listener that raises."""
 
 from __future__ import annotations
 
 import pytest
 
-from gateway.listen.topics import Topic
-from services.backend import Change, OnRaise, tell_each
+from gateway.engine.listen.topics import Topic
+from services.kernel.backend import Change, OnRaise, tell_each
 from tests.support.fake_backend import DictBackend
 
 

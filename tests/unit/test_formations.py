@@ -9,14 +9,14 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from services.errors import Code, PropertyError
-from services.formations import (
+from services.apps.formations import (
     FORMATIONS,
     centroid,
     formation_offsets,
     formation_targets,
     natural_key,
 )
+from services.kernel.errors import Code, PropertyError
 
 
 @pytest.mark.parametrize("formation", FORMATIONS)

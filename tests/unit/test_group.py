@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from support.group_support import MemoryDirectory, mute_robot, unreachable_robot, wait_for
 
-from services.backend import Change
-from services.core import LocalService
-from services.errors import Code, PropertyError
-from services.formations import formation_targets
-from services.group import Group, GroupCallFailed, query_params
-from services.simulators import SimRobot
-from services.values import parse_list, parse_names, parse_vector
+from services.apps.formations import formation_targets
+from services.apps.group import Group, GroupCallFailed, query_params
+from services.apps.simulators import SimRobot
+from services.kernel.backend import Change
+from services.kernel.core import LocalService
+from services.kernel.errors import Code, PropertyError
+from services.kernel.values import parse_list, parse_names, parse_vector
 
 
 def robot(x: float, y: float) -> LocalService:

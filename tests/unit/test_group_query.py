@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.errors import Code, PropertyError
-from services.query import Query, ServiceIndex, values_equal
+from services.apps.query import Query, ServiceIndex, values_equal
+from services.kernel.errors import Code, PropertyError
 
 
 def _index() -> ServiceIndex:

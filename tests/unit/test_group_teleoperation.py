@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from support.group_support import MemoryDirectory, unreachable_robot, wait_for
 
-from services.core import LocalService
-from services.errors import Code, PropertyError
-from services.group import Group, GroupCallFailed
-from services.simulators import SimRobot
-from services.values import parse_list, parse_names, parse_vector
+from services.apps.group import Group, GroupCallFailed
+from services.apps.simulators import SimRobot
+from services.kernel.core import LocalService
+from services.kernel.errors import Code, PropertyError
+from services.kernel.values import parse_list, parse_names, parse_vector
 
 ZERO = "(0 0 0 0 0 0)"
 

@@ -20,7 +20,7 @@ from gateway.proxies import GrpcProxy
 from gateway.proxies.grpc_channels import ChannelKey, ChannelPool, channel_pool
 from gateway.proxies.grpc_proxy import tls_files
 from gateway.proxies.remote_types import MAX_NAMES_PER_GET
-from services.errors import Code, PropertyError
+from services.kernel.errors import Code, PropertyError
 
 FAST = {"timeout": 2.0, "connect_timeout": 1.0, "backoff_initial": 0.05, "backoff_max": 0.5}
 #: Services the remote gateway serves (sim robots), each reached through a proxy of its own here.

@@ -17,16 +17,16 @@ from support.board import Board
 
 from gateway.app import Gateway
 from gateway.config import Config, ConfigError, HttpSection, default_config, loads_config
-from gateway.http import HttpFront
-from gateway.http.binary import served_type
-from gateway.http.bodies import parse_set_body
-from gateway.http.console import Console, console_file
-from gateway.http.errors import HTTP_STATUS
-from gateway.http.openapi import document
-from gateway.http.safety import is_loopback_host
+from gateway.fronts.http import HttpFront
+from gateway.fronts.http.binary import served_type
+from gateway.fronts.http.bodies import parse_set_body
+from gateway.fronts.http.console import Console, console_file
+from gateway.fronts.http.errors import HTTP_STATUS
+from gateway.fronts.http.openapi import document
+from gateway.fronts.http.safety import is_loopback_host
 from gateway.testing import running_gateway
-from services.core import Prop, Resource
-from services.errors import Code, InvalidArgument, NotFound
+from services.kernel.core import Prop, Resource
+from services.kernel.errors import Code, InvalidArgument, NotFound
 
 # -- configuration ---------------------------------------------------------------------------
 

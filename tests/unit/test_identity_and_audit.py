@@ -13,10 +13,10 @@ from cryptography.hazmat.primitives.asymmetric import ec
 
 from gateway.audit import Audit, AuditSection, TokenBucket
 from gateway.config import ConfigError, loads_config
-from gateway.guard import Guard, registry_operation
-from gateway.identity import ANONYMOUS, Authenticator, AuthSection, bearer_token, certificate_subject
-from gateway.rules import Operation, Subject
-from services.errors import InvalidArgument, NotFound, Unauthenticated
+from gateway.engine.guard import Guard, registry_operation
+from gateway.engine.identity import ANONYMOUS, Authenticator, AuthSection, bearer_token, certificate_subject
+from gateway.engine.rules import Operation, Subject
+from services.kernel.errors import InvalidArgument, NotFound, Unauthenticated
 
 SECRET = "correct horse battery staple, long enough for HS256"
 

@@ -10,6 +10,8 @@ from support.fake_backend import DictBackend
 
 from gateway.config import Limits
 from gateway.engine.events import ListenRequest, Mark, Selector, SharedEvent
+from gateway.engine.listen.requests import check_listen
+from gateway.engine.listen.topics import Topic
 from gateway.fronts.grpc_v1.listen_encoding import (
     LEAD_BODY_BYTES,
     MARK_WIRE,
@@ -20,12 +22,10 @@ from gateway.fronts.grpc_v1.listen_encoding import (
     marker_response,
     reply_wire,
 )
-from gateway.listen.requests import check_listen
-from gateway.listen.topics import Topic
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.conflation import ConflatingQueue, Slot
-from services.errors import InvalidArgument, ResourceExhausted
-from services.values import Value
+from services.kernel.conflation import ConflatingQueue, Slot
+from services.kernel.errors import InvalidArgument, ResourceExhausted
+from services.kernel.values import Value
 
 values = st.one_of(st.text(max_size=300), st.binary(max_size=300))
 paths = st.sampled_from(["a", "robots.scout1.location", "ü.x"])

@@ -7,11 +7,11 @@ from support.fake_backend import DictBackend
 
 from gateway.config import Limits
 from gateway.engine.events import Event, ListenRequest, Mark, Taken, events
+from gateway.engine.listen import ListenHub, ListenStream, Selector, StreamOptions
+from gateway.engine.listen.requests import check_listen
+from gateway.engine.router import Router
 from gateway.fronts.grpc_v1.listen_encoding import listen_wire
-from gateway.listen import ListenHub, ListenStream, Selector, StreamOptions
-from gateway.listen.requests import check_listen
-from gateway.router import Router
-from services.errors import InvalidArgument, ResourceExhausted
+from services.kernel.errors import InvalidArgument, ResourceExhausted
 
 
 @pytest.fixture

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 
-from gateway.listen.drain import Wake
+from gateway.engine.listen.drain import Wake
 
 
 async def test_a_wake_before_the_writer_asks_lets_it_go_on_at_once_then_makes_it_wait() -> None:

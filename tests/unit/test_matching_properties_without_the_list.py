@@ -12,14 +12,14 @@ from support.fake_backend import DictBackend
 from support.group_support import MemoryDirectory
 from support.waiting import wait_until
 
-from gateway.listen.matched import MatchedPaths
-from services.backend import Change
-from services.core import LocalService, Resource
-from services.errors import Code, PropertyError
-from services.model import Access
-from services.paths import compile_pattern, is_below
-from services.registry import Registry, RegistryService
-from services.values import MAX_VALUE_LENGTH
+from gateway.engine.listen.matched import MatchedPaths
+from services.apps.registry import Registry, RegistryService
+from services.kernel.backend import Change
+from services.kernel.core import LocalService, Resource
+from services.kernel.errors import Code, PropertyError
+from services.kernel.model import Access
+from services.kernel.paths import compile_pattern, is_below
+from services.kernel.values import MAX_VALUE_LENGTH
 
 SERVICES = 40
 

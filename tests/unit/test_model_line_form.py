@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import pytest
 
-from services.errors import InvalidArgument
-from services.model import Access, ParameterModel, PropertyModel, ServiceModel
-from services.model_codec import model_from_text, model_to_text
+from services.kernel.errors import InvalidArgument
+from services.kernel.model import Access, ParameterModel, PropertyModel, ServiceModel
+from services.kernel.model_codec import model_from_text, model_to_text
 
 MOVETO = PropertyModel(
     name="behaviors.moveto",

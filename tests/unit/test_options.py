@@ -10,7 +10,7 @@ import pytest
 from gateway.options import Bounds, Wording, option, read_options, url_options
 from gateway.proxies.grpc_proxy import GrpcProxyOptions
 from gateway.proxies.line_proxy import ProxyOptions
-from services.errors import InvalidArgument
+from services.kernel.errors import InvalidArgument
 
 
 @dataclass(frozen=True, slots=True)

@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from services.errors import Code, InvalidArgument
-from services.paths import (
+from services.kernel.errors import Code, InvalidArgument
+from services.kernel.paths import (
     MAX_PATH_LENGTH,
     compile_pattern,
     is_pattern,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from gateway.config import ConfigError, loads_config
-from gateway.listen.budget import COUNTED_BYTES, PayloadBudget
-from services.errors import Code
+from gateway.engine.listen.budget import COUNTED_BYTES, PayloadBudget
+from services.kernel.errors import Code
 
 
 def test_large_values_count_until_given_back_and_one_past_the_limit_does_not_fit() -> None:

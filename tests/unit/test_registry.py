@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import pytest
 
-from services.backend import BackendInfo, Change
-from services.core import LocalService
-from services.errors import Code, InvalidArgument, NotFound, PropertyError
-from services.registry import Registry
-from services.values import parse_names
+from services.apps.registry import Registry
+from services.kernel.backend import BackendInfo, Change
+from services.kernel.core import LocalService
+from services.kernel.errors import Code, InvalidArgument, NotFound, PropertyError
+from services.kernel.values import parse_names
 
 
 @pytest.fixture

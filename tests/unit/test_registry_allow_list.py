@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 from support.group_support import MemoryDirectory, sim_robot
 
-from services.errors import Code, InvalidArgument, PropertyError
-from services.registry import AllowList, Registry, RegistryService, parse_allow_entry
+from services.apps.registry import AllowList, Registry, RegistryService, parse_allow_entry
+from services.kernel.errors import Code, InvalidArgument, PropertyError
 
 
 @pytest.mark.parametrize(

@@ -7,11 +7,11 @@ import asyncio
 import pytest
 from support.waiting import wait_until
 
-from services.backend import BackendInfo, Change
-from services.core import LocalService
-from services.errors import Code, PropertyError
-from services.registry import Lease, Licence, Registry
-from services.registry.lease import now
+from services.apps.registry import Lease, Licence, Registry
+from services.apps.registry.lease import now
+from services.kernel.backend import BackendInfo, Change
+from services.kernel.core import LocalService
+from services.kernel.errors import Code, PropertyError
 
 
 @pytest.fixture

@@ -20,11 +20,11 @@ from clients import Client
 from clients.cli import main as psctl
 from clients.values import ValueFormatError
 from gateway.config import Config, HttpSection
-from gateway.router import Router
+from gateway.engine.router import Router
 from gateway.testing import running_gateway, serve_sync
-from services.errors import InvalidArgument
-from services.registry import Registry
-from services.values import MAX_VALUE_LENGTH, format_names, parse_names
+from services.apps.registry import Registry
+from services.kernel.errors import InvalidArgument
+from services.kernel.values import MAX_VALUE_LENGTH, format_names, parse_names
 
 #: Enough long names that the registry's ``services`` value passes 64 KiB.
 NAMES = [f"{'sensor-' * 8}unit{i:04d}" for i in range(1_100)]

@@ -12,10 +12,10 @@ from support.group_support import MemoryDirectory, sim_robot
 from support.ports import free_port
 
 from gateway.stores import EtcdStore, parse_store_url
-from services.errors import Code, InvalidArgument, PropertyError
-from services.registry import Registry, RegistryService
-from services.registry.embedded import EmbeddedStore
-from services.registry.store import EMBEDDED, RegistryStore, decode_registration, encode_registration
+from services.apps.registry import Registry, RegistryService
+from services.apps.registry.embedded import EmbeddedStore
+from services.apps.registry.store import EMBEDDED, RegistryStore, decode_registration, encode_registration
+from services.kernel.errors import Code, InvalidArgument, PropertyError
 
 
 @pytest.fixture

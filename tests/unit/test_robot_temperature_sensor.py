@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from services.core import LocalService
-from services.errors import InvalidArgument, ReadOnly
-from services.simulators import SimRobot
-from services.temperature_field import DEFAULT_FIELD, TemperatureField, WarmSpot
+from services.apps.simulators import SimRobot
+from services.apps.temperature_field import DEFAULT_FIELD, TemperatureField, WarmSpot
+from services.kernel.core import LocalService
+from services.kernel.errors import InvalidArgument, ReadOnly
 
 
 def test_the_field_is_a_base_plus_gaussian_spots() -> None:

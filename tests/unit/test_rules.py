@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from gateway.rules import (
+from gateway.engine.rules import (
     Operation,
     Rule,
     Rules,
@@ -15,7 +15,7 @@ from gateway.rules import (
     path_specificity,
     refusal,
 )
-from services.errors import Code, InvalidArgument, PermissionDenied, Unauthenticated
+from services.kernel.errors import Code, InvalidArgument, PermissionDenied, Unauthenticated
 
 READ, WRITE, INVOKE = Operation.READ, Operation.WRITE, Operation.INVOKE
 ALICE = Subject("alice", authenticated=True, via="token")

@@ -8,10 +8,10 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.backend import BackendInfo
-from services.errors import PropertyError
-from services.registry import Registry
-from services.registry.scheduling import Plan, Request, Scheduler
+from services.apps.registry import Registry
+from services.apps.registry.scheduling import Plan, Request, Scheduler
+from services.kernel.backend import BackendInfo
+from services.kernel.errors import PropertyError
 
 CAPS = ("survey", "video", "ptz", "power")
 

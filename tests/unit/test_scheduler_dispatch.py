@@ -7,12 +7,12 @@ from typing import Annotated
 
 import pytest
 
-from gateway.router import Router
-from services.core import LocalService, Prop, Resource
-from services.registry import Registry, RegistryService
-from services.registry.scheduling import Plan
-from services.simulators import SimRobot
-from services.values import parse_list
+from gateway.engine.router import Router
+from services.apps.registry import Registry, RegistryService
+from services.apps.registry.scheduling import Plan
+from services.apps.simulators import SimRobot
+from services.kernel.core import LocalService, Prop, Resource
+from services.kernel.values import parse_list
 
 
 class Camera(Resource):
@@ -96,7 +96,7 @@ async def test_a_provider_that_refuses_its_licence_is_left_out_and_nothing_stays
     dispatcher = reg._dispatcher
     request = dispatcher.scheduler
     # A plan is made for cam1 and cam2 (both video cameras, as a team of two) ...
-    from services.registry.scheduling import Request
+    from services.apps.registry.scheduling import Request
 
     plan = request.submit(
         Request("A", frozenset({"video"}), count=2, duration=10.0, weight=0.0), dispatcher.providers(), 0.0
@@ -118,7 +118,7 @@ async def test_a_provider_that_refuses_its_licence_is_left_out_and_nothing_stays
 async def test_a_registration_declares_its_features_and_bad_ones_register_nothing() -> None:
     from support.group_support import MemoryDirectory, sim_robot
 
-    from services.errors import InvalidArgument
+    from services.kernel.errors import InvalidArgument
 
     directory = MemoryDirectory()
     directory.devices["tcp://127.0.0.1:7001"] = lambda: sim_robot(5, 5)
@@ -168,8 +168,8 @@ async def test_listeners_of_requests_and_allocations_hear_the_queue_move(
 
 
 def test_a_request_is_invoked_like_the_licence_actions_not_an_administration() -> None:
-    from gateway.guard import registry_operation
-    from gateway.rules import Operation
+    from gateway.engine.guard import registry_operation
+    from gateway.engine.rules import Operation
 
     assert registry_operation("request", "(survey)") is Operation.INVOKE
     assert registry_operation("release", "") is Operation.INVOKE

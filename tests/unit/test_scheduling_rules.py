@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.errors import FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted, Unavailable
-from services.registry.scheduling import (
+from services.apps.registry.scheduling import (
     Plan,
     Provider,
     ProviderState,
@@ -17,6 +16,13 @@ from services.registry.scheduling import (
     parse_assessments,
     parse_capabilities,
     rank_scores,
+)
+from services.kernel.errors import (
+    FailedPrecondition,
+    InvalidArgument,
+    NotFound,
+    ResourceExhausted,
+    Unavailable,
 )
 
 READY, DORMANT, BUSY, DOWN = (

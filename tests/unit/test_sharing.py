@@ -1,4 +1,4 @@
-"""services.sharing: one upstream listen per (path, parameters), shared and reference counted."""
+"""services.kernel.sharing: one upstream listen per (path, parameters), shared and reference counted."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import asyncio
 
 import pytest
 
-from services.backend import Change
-from services.errors import NotFound
-from services.sharing import SharedListen, SharedListens, listen_key
+from services.kernel.backend import Change
+from services.kernel.errors import NotFound
+from services.kernel.sharing import SharedListen, SharedListens, listen_key
 
 
 class Upstream:

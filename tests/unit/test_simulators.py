@@ -9,12 +9,12 @@ from collections.abc import AsyncIterator
 import numpy as np
 import pytest
 
-from services.backend import Change
-from services.catalog import CATALOG, create
-from services.core import LocalService
-from services.errors import Code, InvalidArgument, PropertyError
-from services.simulators import SimRobot, SimSensor
-from services.values import parse_list, parse_names, parse_vector
+from services.apps.catalog import CATALOG, create
+from services.apps.simulators import SimRobot, SimSensor
+from services.kernel.backend import Change
+from services.kernel.core import LocalService
+from services.kernel.errors import Code, InvalidArgument, PropertyError
+from services.kernel.values import parse_list, parse_names, parse_vector
 
 # Fast enough that a few metres take well under a second of real time.
 FAST = {"speed": 20.0, "tick_hz": 200.0}

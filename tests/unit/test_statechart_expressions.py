@@ -6,8 +6,7 @@ from typing import Any
 
 import pytest
 
-from services.errors import InvalidArgument
-from services.statemachine.expressions import (
+from services.apps.statemachine.expressions import (
     FUNCTIONS,
     EvaluationError,
     Record,
@@ -16,6 +15,7 @@ from services.statemachine.expressions import (
     format_chart_value,
     parse_chart_value,
 )
+from services.kernel.errors import InvalidArgument
 
 
 def run(source: str, /, **variables: Any) -> Any:

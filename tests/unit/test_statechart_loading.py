@@ -8,7 +8,7 @@ import xml.etree.ElementTree as ET
 import pytest
 import yaml
 
-from services.statemachine import ChartError, compile_chart, render_svg, shipped_chart
+from services.apps.statemachine import ChartError, compile_chart, render_svg, shipped_chart
 
 SCXML = """<scxml xmlns="http://www.w3.org/2005/07/scxml" xmlns:ps="urn:propertyservice:scxml" initial="idle">
   <datamodel><data id="n" expr="0"/></datamodel>

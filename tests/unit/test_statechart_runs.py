@@ -20,11 +20,11 @@ from support.fake_backend import DictBackend
 from support.group_support import MemoryDirectory
 from support.waiting import eventually
 
-from services.backend import NO_PARAMS
-from services.core import LocalService, Prop, Resource, action, query
-from services.errors import FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted
-from services.statemachine import StateMachineService
-from services.statemachine.interpreter import MAX_ACTIONS, MAX_QUEUED_EVENTS
+from services.apps.statemachine import StateMachineService
+from services.apps.statemachine.interpreter import MAX_ACTIONS, MAX_QUEUED_EVENTS
+from services.kernel.backend import NO_PARAMS
+from services.kernel.core import LocalService, Prop, Resource, action, query
+from services.kernel.errors import FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted
 
 HEAD = '<scxml xmlns="http://www.w3.org/2005/07/scxml" xmlns:ps="urn:propertyservice:scxml"'
 
@@ -761,7 +761,7 @@ async def test_a_stored_chart_whose_file_name_is_no_machine_name_is_skipped_with
     chart = HEAD + ' initial="a"><state id="a"/></scxml>'
     storage.content = {"statecharts/my.chart.scxml": chart, "statecharts/fine.scxml": chart}
     await directory.add("store", storage)
-    with caplog.at_level("WARNING", logger="services.statemachine.service"):
+    with caplog.at_level("WARNING", logger="services.apps.statemachine.service"):
         sm, _ = await service(directory, storage="store")
         await sm.start()
     assert await sm.get("machines") == "(fine)"

@@ -10,12 +10,18 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gateway.sizes import MAX_ANSWER_BYTES, MAX_MESSAGE_BYTES
-from services.errors import FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted, Unavailable
-from services.storage import MAX_FILE_SIZE, check_name
-from services.storage.disk import FileInfo, Folder
-from services.storage.find import FindQuery, format_time, glob_matcher, parse_time
-from services.storage.names import MAX_SEGMENT_BYTES, TEMP_PREFIX, is_carried
+from gateway.engine.sizes import MAX_ANSWER_BYTES, MAX_MESSAGE_BYTES
+from services.apps.storage import MAX_FILE_SIZE, check_name
+from services.apps.storage.disk import FileInfo, Folder
+from services.apps.storage.find import FindQuery, format_time, glob_matcher, parse_time
+from services.apps.storage.names import MAX_SEGMENT_BYTES, TEMP_PREFIX, is_carried
+from services.kernel.errors import (
+    FailedPrecondition,
+    InvalidArgument,
+    NotFound,
+    ResourceExhausted,
+    Unavailable,
+)
 
 
 @pytest.mark.parametrize(

@@ -13,12 +13,12 @@ from support.waiting import wait_until
 from clients import Event, InvalidArgument, Unavailable
 from gateway.config import loads_config
 from gateway.testing import serve
-from services.catalog import build, create, needs_directory
-from services.core import LocalService
-from services.core import serve as backend_for
-from services.errors import InvalidArgument as ServiceInvalidArgument
-from services.simulators import SimSensor
-from services.storage import MAX_FILE_SIZE, Storage, StorageService
+from services.apps.catalog import build, create, needs_directory
+from services.apps.simulators import SimSensor
+from services.apps.storage import MAX_FILE_SIZE, Storage, StorageService
+from services.kernel.core import LocalService
+from services.kernel.core import serve as backend_for
+from services.kernel.errors import InvalidArgument as ServiceInvalidArgument
 
 WAIT = 10.0
 

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from support.waiting import wait_until
 
-from services.backend import Change
-from services.core import LocalService
-from services.errors import Code, InvalidArgument, PropertyError
-from services.simulators import DEFAULT_VELOCITY_TIMEOUT, SimRobot
-from services.values import parse_vector
+from services.apps.simulators import DEFAULT_VELOCITY_TIMEOUT, SimRobot
+from services.kernel.backend import Change
+from services.kernel.core import LocalService
+from services.kernel.errors import Code, InvalidArgument, PropertyError
+from services.kernel.values import parse_vector
 
 MOVETO_FAR = "<marker><location>(0 100)</location></marker>"
 

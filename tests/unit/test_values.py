@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from services.errors import Code, InvalidArgument, NotFound
-from services.values import (
+from services.kernel.errors import Code, InvalidArgument, NotFound
+from services.kernel.values import (
     MAX_LIST_DEPTH,
     MAX_VALUE_LENGTH,
     Marker,

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from services.errors import InvalidArgument
-from services.values.markers import format_markers, parse_markers
-from services.vision.geometry import confidence, in_view, mounted_pose, to_camera_frame
-from services.vision.scene import Thing, look, parse_objects
+from services.apps.vision.geometry import confidence, in_view, mounted_pose, to_camera_frame
+from services.apps.vision.scene import Thing, look, parse_objects
+from services.kernel.errors import InvalidArgument
+from services.kernel.values.markers import format_markers, parse_markers
 
 
 def thing(ident: str, x: float, y: float, z: float = 0.0) -> Thing:

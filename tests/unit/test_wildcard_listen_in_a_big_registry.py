@@ -18,13 +18,13 @@ from support.hub_reader import Reader
 from support.waiting import wait_until
 
 from gateway.config import Limits
-from gateway.listen import ListenHub, Selector
-from gateway.listen import stream as stream_module
-from gateway.router import Router
-from services.errors import Code, Internal, PropertyError
-from services.model import ServiceModel
-from services.registry import Registry, RegistryService
-from services.values import MAX_VALUE_LENGTH
+from gateway.engine.listen import ListenHub, Selector
+from gateway.engine.listen import stream as stream_module
+from gateway.engine.router import Router
+from services.apps.registry import Registry, RegistryService
+from services.kernel.errors import Code, Internal, PropertyError
+from services.kernel.model import ServiceModel
+from services.kernel.values import MAX_VALUE_LENGTH
 
 REGISTRY = "registry"
 

@@ -2,7 +2,7 @@
 
 Services are :class:`~support.fake_backend.DictBackend`s whose link the test cuts and mends.
 The pauses between tries are shortened here (the real ones are 0.5 s doubling to 10 s, which
-:func:`gateway.listen.stream.retry_pauses` shows).
+:func:`gateway.engine.listen.stream.retry_pauses` shows).
 """
 
 from __future__ import annotations
@@ -17,12 +17,12 @@ from support.hub_reader import Reader
 from support.waiting import wait_until
 
 from gateway.config import Limits
-from gateway.listen import ListenHub, Selector, StreamOptions
-from gateway.listen import stream as stream_module
-from gateway.router import Router
-from services.backend import NO_PARAMS, Notify, Subscription
-from services.backoff import pauses
-from services.errors import Code, PropertyError, ResourceExhausted, Unavailable
+from gateway.engine.listen import ListenHub, Selector, StreamOptions
+from gateway.engine.listen import stream as stream_module
+from gateway.engine.router import Router
+from services.kernel.backend import NO_PARAMS, Notify, Subscription
+from services.kernel.backoff import pauses
+from services.kernel.errors import Code, PropertyError, ResourceExhausted, Unavailable
 
 
 @pytest.fixture(autouse=True)

@@ -1,4 +1,4 @@
-// The built-in widgets, one per `.gui` word the services use (services/core: number, slider,
+// The built-in widgets, one per `.gui` word the services use (services/kernel/core: number, slider,
 // switch, text, vector, pose, gauge, plot, list, marker, button, group; statechart, a state
 // machine's diagram, from statechart.js; image and camera, a live image, from image_widget.js)
 // and one per data type (bytes: by its media type).

@@ -1,6 +1,6 @@
 // The value grammar of the Property Service, as the console reads and writes it.
 //
-// Values travel as text (services/values/grammar.py and markers.py are the reference):
+// Values travel as text (services/kernel/values/grammar.py and markers.py are the reference):
 //   number  0.5   -3e-2          boolean  true / false (also 1/0, on/off, yes/no)
 //   vector  (1 2.5 -0.03)        list     ((1 2) (a b (c 1)))      names  (location velocity)
 //   marker  <marker><location>(1 2)</location><color>(1 0 0)</color></marker>

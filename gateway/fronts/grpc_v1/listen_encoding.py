@@ -18,10 +18,10 @@ from typing import overload
 from google.protobuf.duration_pb2 import Duration
 
 from gateway.engine.events import ListenRequest, Mark, Ready, Selector, SharedEvent, Taken
-from gateway.listen.stream import ListenStream
+from gateway.engine.listen.stream import ListenStream
 from gateway.wire_values import put
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.errors import InvalidArgument
+from services.kernel.errors import InvalidArgument
 
 # -- requests ------------------------------------------------------------------
 

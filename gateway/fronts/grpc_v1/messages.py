@@ -14,9 +14,9 @@ from google.protobuf.message import DecodeError, Message
 from gateway.engine.types import GetCall, GetReply, PropertyRef, SetCall
 from gateway.wire_values import put, received
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.backend import NO_PARAMS
-from services.errors import InvalidArgument
-from services.values import Value
+from services.kernel.backend import NO_PARAMS
+from services.kernel.errors import InvalidArgument
+from services.kernel.values import Value
 
 __all__ = ["Undecodable", "get_call", "get_response", "lenient", "set_call", "set_response"]
 

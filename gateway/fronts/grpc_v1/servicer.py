@@ -4,7 +4,7 @@ Get, Set and Describe are translated at the door into the engine's own types
 (:mod:`gateway.fronts.grpc_v1.messages`) and served by one unary wrapper
 (:meth:`PropertyServicer._unary`: the request id, ``[limits] max_calls``, the
 call timeout or the client's deadline when that is shorter, the status of a
-failure, the counts) through the call layer (:class:`gateway.calls.Calls`).
+failure, the counts) through the call layer (:class:`gateway.engine.calls.Calls`).
 Listen streams come from the listen hub. Session lives in :mod:`gateway.session`.
 """
 
@@ -22,8 +22,16 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 from grpc_reflection.v1alpha._async import ReflectionServicer
 
-from gateway.calls import Calls
 from gateway.config import Config
+from gateway.engine.calls import Calls
+from gateway.engine.guard import Guard
+from gateway.engine.identity import ANONYMOUS
+from gateway.engine.listen import ListenHub
+from gateway.engine.listen.budget import COUNTED_BYTES, GRPC_COPIES
+from gateway.engine.listen.drain import Wake, steps
+from gateway.engine.router import Router
+from gateway.engine.rules import Subject
+from gateway.engine.status import to_property_error
 from gateway.engine.types import DescribeCall
 from gateway.federation import VIA_KEY, enter, new_gateway_id
 from gateway.fronts.grpc_v1.listen_encoding import listen_request, listen_wire
@@ -36,22 +44,14 @@ from gateway.fronts.grpc_v1.messages import (
     set_response,
 )
 from gateway.fronts.grpc_v1.status import abort
-from gateway.guard import Guard
-from gateway.identity import ANONYMOUS
-from gateway.listen import ListenHub
-from gateway.listen.budget import COUNTED_BYTES, GRPC_COPIES
-from gateway.listen.drain import Wake, steps
 from gateway.logs import REQUEST_ID_HEADER, RequestContext, current_request, request_id_from
 from gateway.metrics.counts import GrpcCounts, MethodCounts
 from gateway.peer_protocol import PROTOCOLS_KEY, check_caller
-from gateway.router import Router
-from gateway.rules import Subject
 from gateway.session import Session
-from gateway.status import to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
-from services.errors import Code, ResourceExhausted
-from services.model_codec import model_to_proto
+from services.kernel.errors import Code, ResourceExhausted
+from services.kernel.model_codec import model_to_proto
 
 Context = grpc.aio.ServicerContext[Any, Any]
 
@@ -183,7 +183,7 @@ class _Unary(Generic[M]):
     name: str
     counts: MethodCounts | None
     to_call: Callable[[Any], Any]
-    #: ``serve(call, time_limit, subject)``: a method of :class:`gateway.calls.Calls`.
+    #: ``serve(call, time_limit, subject)``: a method of :class:`gateway.engine.calls.Calls`.
     serve: Callable[[Any, float, Subject], Awaitable[Any]]
     to_response: Callable[[Any], M]
     #: Who calls (a Set names its caller even when nothing is refused: the audit trail says who).

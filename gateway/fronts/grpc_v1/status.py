@@ -3,8 +3,8 @@
 ``Code`` numbers are the gRPC (google.rpc.Code) numbers, so the table is the
 identity on numbers; it lives here so that the gRPC front turns an error into a
 status, and the gRPC proxies turn a remote status into an error
-(:func:`error_from_status`, of the class ``services.errors.error_for`` picks),
-the same way. Every message leaves clipped (:func:`gateway.status.clip_message`).
+(:func:`error_from_status`, of the class ``services.kernel.errors.error_for`` picks),
+the same way. Every message leaves clipped (:func:`gateway.engine.status.clip_message`).
 Which call returns which code when is documented in ``docs/errors.md``.
 """
 
@@ -15,9 +15,9 @@ from typing import Final
 
 import grpc
 
-from gateway.status import MAX_MESSAGE_CHARS, clip_message, to_property_error
+from gateway.engine.status import MAX_MESSAGE_CHARS, clip_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.errors import Code, PropertyError, error_for
+from services.kernel.errors import Code, PropertyError, error_for
 
 __all__ = [
     "CODE_OF_STATUS",
