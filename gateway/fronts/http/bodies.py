@@ -4,8 +4,8 @@ A Set's body is ``{"value": TEXT, "parameters": {"name": "text"}}``, or for a bi
 ``{"data": BASE64, "parameters": {...}}`` (or the raw bytes, :mod:`gateway.fronts.http.api`).
 Values travel as text (the value grammar of ``services.kernel.values``); for convenience a JSON
 number, boolean or array is formatted into that grammar here (``1.5`` → ``1.5``, ``true`` →
-``true``, ``[1, 2]`` → ``(1 2)``), so that ``{"value": 0.5}`` and ``{"value": "0.5"}`` are the same Set. Anything
-that does not fit is INVALID_ARGUMENT naming what is wrong.
+``true``, ``[1, 2]`` → ``(1 2)``), so that ``{"value": 0.5}`` and ``{"value": "0.5"}`` are the
+same Set. Anything that does not fit is INVALID_ARGUMENT naming what is wrong.
 """
 
 from __future__ import annotations
