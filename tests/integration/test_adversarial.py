@@ -21,7 +21,7 @@ from support.waiting import wait_until
 
 from gateway.app import Gateway
 from gateway.config import Config, GatewaySection, Limits
-from gateway.session import Session
+from gateway.fronts.grpc_v1.session import Session
 from gateway.testing import running_gateway
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc

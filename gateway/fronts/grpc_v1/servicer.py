@@ -5,7 +5,7 @@ Get, Set and Describe are translated at the door into the engine's own types
 (:meth:`PropertyServicer._unary`: the request id, ``[limits] max_calls``, the
 call timeout or the client's deadline when that is shorter, the status of a
 failure, the counts) through the call layer (:class:`gateway.engine.calls.Calls`).
-Listen streams come from the listen hub. Session lives in :mod:`gateway.session`.
+Listen streams come from the listen hub. Session lives in :mod:`gateway.fronts.grpc_v1.session`.
 """
 
 from __future__ import annotations
@@ -43,11 +43,11 @@ from gateway.fronts.grpc_v1.messages import (
     set_call,
     set_response,
 )
+from gateway.fronts.grpc_v1.session import Session
 from gateway.fronts.grpc_v1.status import abort
 from gateway.logs import REQUEST_ID_HEADER, RequestContext, current_request, request_id_from
 from gateway.metrics.counts import GrpcCounts, MethodCounts
 from gateway.peer_protocol import PROTOCOLS_KEY, check_caller
-from gateway.session import Session
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 from services.kernel.errors import Code, ResourceExhausted
@@ -206,7 +206,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         #: Unary calls (Get, Set, Describe) running now, and how many may (``[limits] max_calls``).
         self.calls_running = 0
         self._max_calls = config.limits.max_calls
-        #: Session calls running now (see gateway.session).
+        #: Session calls running now (see gateway.fronts.grpc_v1.session).
         self.sessions: set[Session] = set()
         #: This gateway's id in the ``ps-via`` chain of federated calls (gateway.federation).
         self.gateway_id = new_gateway_id()
