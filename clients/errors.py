@@ -19,6 +19,7 @@ from typing import Any, ClassVar
 import grpc
 
 from services.kernel import errors
+from services.kernel.grpc_status import GRPC_STATUS
 
 __all__ = [
     "Aborted",
@@ -44,10 +45,8 @@ __all__ = [
 ]
 
 
-#: A service-side Code → grpc's status of the same number.
-_STATUS: dict[errors.Code, grpc.StatusCode] = {
-    code: status for status in grpc.StatusCode for code in errors.Code if status.value[0] == code.value
-}
+#: A service-side Code → grpc's status of the same number (the gateway's own table).
+_STATUS = GRPC_STATUS
 #: A service-side error class → the client's class that reports it (filled as the classes are made).
 _CLIENT_CLASS: dict[type[errors.PropertyError], type[PropertyServiceError]] = {}
 

@@ -11,13 +11,13 @@ Which call returns which code when is documented in ``docs/errors.md``.
 from __future__ import annotations
 
 import logging
-from typing import Final
 
 import grpc
 
 from gateway.engine.status import MAX_MESSAGE_CHARS, clip_message, to_property_error
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.kernel.errors import Code, PropertyError, error_for
+from services.kernel.grpc_status import CODE_OF_STATUS, GRPC_STATUS
 
 __all__ = [
     "CODE_OF_STATUS",
@@ -29,16 +29,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-#: Code → grpc.StatusCode, matched by number.
-GRPC_STATUS: Final[dict[Code, grpc.StatusCode]] = {
-    code: status for status in grpc.StatusCode for code in Code if status.value[0] == code.value
-}
-
-assert len(GRPC_STATUS) == len(Code), "every Code has a gRPC status of the same number"
-
-#: grpc.StatusCode → Code, the reverse of :data:`GRPC_STATUS`.
-CODE_OF_STATUS: Final[dict[grpc.StatusCode, Code]] = {status: code for code, status in GRPC_STATUS.items()}
 
 
 def error_from_status(status: grpc.StatusCode, message: str) -> PropertyError:
