@@ -34,7 +34,7 @@ from gateway.engine.rules import Subject
 from gateway.engine.status import to_property_error
 from gateway.engine.types import DescribeCall, GetCall, SetCall
 from gateway.fronts.rosbridge import messages, protocol
-from gateway.fronts.rosbridge.naming import Target, for_service, parse_name
+from gateway.fronts.rosbridge.naming import Target, for_service, global_name, parse_name
 from gateway.fronts.rosbridge.rosapi import ROSAPI_PREFIX, Rosapi
 from services.kernel.backend import NO_PARAMS
 from services.kernel.errors import (
@@ -81,6 +81,8 @@ class Subscription:
     #: The ids of the ``subscribe`` ops that asked for it (an ``unsubscribe`` names one).
     idents: set[str | None] = field(default_factory=set)
     writer: asyncio.Task[None] | None = None
+    #: Messages written so far: a fragmented one's id is ``publish:TOPIC:N``, each its own.
+    written: int = 0
 
     def same_options(self, op: protocol.Subscribe, type_name: str) -> bool:
         return (self.type, self.throttle_rate, self.fragment_size) == (
@@ -366,9 +368,10 @@ class Connection:
 
     async def call_service(self, op: protocol.CallService) -> Any:
         """The response values of a service call: rosapi, an action (a Set), a query or a property (a Get)."""
-        if op.service.startswith(ROSAPI_PREFIX):
-            return await self.rosapi.answer(op.service, op.args, self.subject)
+        if global_name(op.service).startswith(ROSAPI_PREFIX):
+            return await self.rosapi.answer(global_name(op.service), op.args, self.subject)
         target, prop = await self.resolve(op.service, "service")
+        limit = min(op.timeout, self.calls.timeout) if op.timeout > 0 else self.calls.timeout
         args = op.args if op.args is not None else {}
         if isinstance(args, list) and not args:
             args = {}
@@ -377,12 +380,12 @@ class Connection:
         if prop is not None and prop.access == Access.ACTION:
             value, parameters = action_value(prop, args)
             answer = await self.calls.set(
-                SetCall(target.service, target.path, value, parameters), self.calls.timeout, self.subject
+                SetCall(target.service, target.path, value, parameters), limit, self.subject
             )
             return {"success": True, "message": _text(answer)}
         parameters = {key: _parameter(key, x) for key, x in args.items()}
         reply = await self.calls.get(
-            GetCall(target.service, target.path, parameters or NO_PARAMS), self.calls.timeout, self.subject
+            GetCall(target.service, target.path, parameters or NO_PARAMS), limit, self.subject
         )
         return query_values(prop, reply.value)
 
@@ -479,7 +482,8 @@ def _text(value: Value) -> str:
 
 
 def _fragment_id(sub: Subscription) -> str:
-    return f"publish:{sub.topic[:200]}"
+    sub.written += 1
+    return f"publish:{sub.topic[:200]}:{sub.written}"
 
 
 def _first(idents: set[str | None]) -> str | None:

@@ -40,6 +40,12 @@ def ros_name(service: str, path: str) -> str:
     return f"/{service}/{path.replace('.', '/')}"
 
 
+def global_name(name: str) -> str:
+    """A relative name (``rosapi/topics``, as roslibjs names rosapi's services) made global, as
+    rosbridge resolves it: the gateway has no namespaces, so ``/`` goes before it."""
+    return name if name.startswith("/") else "/" + name
+
+
 def parse_name(name: object, what: str = "topic") -> Target:
     """A topic or service name as the property it names; InvalidArgument for anything else.
 
@@ -50,8 +56,8 @@ def parse_name(name: object, what: str = "topic") -> Target:
         raise InvalidArgument(f"a {what} name must be a non-empty string like /scout1/location")
     if len(name) > MAX_NAME_CHARS:
         raise InvalidArgument(f"a {what} name may have at most {MAX_NAME_CHARS} characters")
-    parts = name.strip("/").split("/")
-    if not name.startswith("/") or len(parts) < 2 or any(not part for part in parts):
+    parts = global_name(name).strip("/").split("/")
+    if len(parts) < 2 or any(not part for part in parts):
         raise InvalidArgument(
             f"{what} {name[:200]!r} must be /SERVICE/PATH with the path's dots as slashes,"
             " like /scout1/location or /scout1/sensors/battery"

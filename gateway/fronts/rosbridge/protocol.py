@@ -80,6 +80,8 @@ class CallService:
     service: str
     args: Any
     fragment_size: int
+    #: Seconds the client waits for the answer (roslibjs sends it; 0: the gateway's call timeout).
+    timeout: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,6 +128,15 @@ def _count(message: Mapping[str, Any], key: str, op: str, ident: str | None) -> 
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
         raise BadMessage(f"{op}: {key!r} must be a number of at least 0", op, ident)
     return int(value)
+
+
+def _seconds(message: Mapping[str, Any], key: str, op: str, ident: str | None) -> float:
+    value = message.get(key)
+    if value is None:
+        return 0.0
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
+        raise BadMessage(f"{op}: {key!r} must be a number of seconds of at least 0", op, ident)
+    return float(value)
 
 
 def _compression(message: Mapping[str, Any], op: str, ident: str | None) -> None:
@@ -177,6 +188,7 @@ def parse(text: str | bytes) -> Operation:
             _text(message, "service", op, ident),
             message.get("args", {}),
             _count(message, "fragment_size", op, ident),
+            _seconds(message, "timeout", op, ident),
         )
     if op == "auth":
         token = message.get("token", message.get("mac"))
