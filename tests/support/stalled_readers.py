@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import os
 import socket
 import struct
@@ -87,9 +88,33 @@ def http_get_bytes(authority: str, target: str) -> bytes:
     return f"GET {target} HTTP/1.1\r\nHost: {authority}\r\n\r\n".encode()
 
 
+def websocket_text_frame(text: str) -> bytes:
+    """One client-to-server WebSocket text frame (RFC 6455 5.2), masked as a client's must be, with
+    the all-zero mask: the payload goes as it is."""
+    payload = text.encode()
+    length = len(payload)
+    if length < 126:
+        head = bytes([0x81, 0x80 | length])
+    elif length < 65536:
+        head = bytes([0x81, 0x80 | 126]) + length.to_bytes(2, "big")
+    else:
+        head = bytes([0x81, 0x80 | 127]) + length.to_bytes(8, "big")
+    return head + bytes(4) + payload
+
+
+def rosbridge_subscribe_bytes(authority: str, topic: str) -> bytes:
+    """A WebSocket upgrade to ``/rosbridge`` and, right behind it, a rosbridge ``subscribe`` of ``topic``."""
+    upgrade = (
+        f"GET /rosbridge HTTP/1.1\r\nHost: {authority}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    )
+    subscribe = json.dumps({"op": "subscribe", "id": "stalled", "topic": topic})
+    return upgrade.encode() + websocket_text_frame(subscribe)
+
+
 def open_reader(kind: str, *, grpc_address: str, http_address: str, service: str, path: str) -> socket.socket:
-    """One reader of ``kind`` (``stream``, ``sse``, ``grpc`` or ``session``) that has asked and will
-    read nothing."""
+    """One reader of ``kind`` (``stream``, ``sse``, ``grpc``, ``session`` or ``rosbridge``) that has
+    asked and will read nothing."""
     address = grpc_address if kind in ("grpc", "session") else http_address
     host, port = address.rsplit(":", 1)
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -97,6 +122,8 @@ def open_reader(kind: str, *, grpc_address: str, http_address: str, service: str
     sock.connect((host, int(port)))
     if kind in ("grpc", "session"):
         sock.sendall(grpc_listen_bytes(address, service, path, session=kind == "session"))
+    elif kind == "rosbridge":
+        sock.sendall(rosbridge_subscribe_bytes(address, f"/{service}/{path.replace('.', '/')}"))
     elif kind == "stream":
         sock.sendall(http_get_bytes(address, f"/api/v1/services/{service}/properties/{path}/stream"))
     else:

@@ -19,7 +19,7 @@ import asyncio
 import logging
 import math
 from collections import OrderedDict
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from contextlib import aclosing, suppress
 from dataclasses import dataclass, field
 from typing import Any
@@ -59,7 +59,11 @@ MAX_MODELS = 64
 #: The smallest fragment_size honoured: smaller ones would multiply frames for nothing.
 MIN_FRAGMENT = 256
 
-Send = Callable[[str], Awaitable[None]]
+#: Writes one text frame (its UTF-8 bytes) to the client.
+Send = Callable[[bytes], Awaitable[None]]
+#: The copies of a large message a slow reader holds while it is written: the encoded message and
+#: the transport's copy of what the socket did not take (counted against limits.max_pending_binary).
+WRITE_COPIES = 2
 
 
 def error_text(err: PropertyError) -> str:
@@ -131,15 +135,20 @@ class Connection:
 
     # -- sending -----------------------------------------------------------
 
-    async def send(self, *frames: str) -> None:
+    async def send(self, frames: Iterable[str]) -> None:
+        """Write ``frames`` in order, none of another message between them (each encoded as it goes)."""
         async with self._sending:
             for frame in frames:
-                await self._send(frame)
+                await self._send(frame.encode())
+
+    async def send_encoded(self, data: bytes) -> None:
+        async with self._sending:
+            await self._send(data)
 
     async def report(self, level: str, text: str, ident: str | None = None) -> None:
         """A ``status`` message, when the client's ``set_level`` lets it hear ``level``."""
         if protocol.heard(level, self.status_level):
-            await self.send(protocol.status(level, text, ident))
+            await self.send([protocol.status(level, text, ident)])
 
     # -- receiving ---------------------------------------------------------
 
@@ -269,12 +278,18 @@ class Connection:
             return
         self._end(sub)
 
-    def _end(self, sub: Subscription) -> None:
+    def _end(self, sub: Subscription) -> asyncio.Task[None] | None:
+        """Close ``sub``'s stream and cancel its writer (returned, to be awaited by who wants)."""
         if self.subscriptions.get(sub.topic) is sub:
             del self.subscriptions[sub.topic]
         sub.stream.close()
-        if sub.writer is not None and sub.writer is not asyncio.current_task():
-            sub.writer.cancel()
+        # The writer's frame holds ``sub``: without this, a cancelled writer's traceback and the
+        # subscription would keep each other (and the message being written) until a full GC.
+        writer, sub.writer = sub.writer, None
+        if writer is None or writer is asyncio.current_task():
+            return None
+        writer.cancel()
+        return writer
 
     async def _write(self, sub: Subscription, wake: Wake) -> None:
         """Write one subscription's messages as its stream has them, one at a time."""
@@ -288,14 +303,21 @@ class Connection:
                         if event.removed:
                             continue
                         text = self._message(sub, event)
-                        size = len(text)
+                        size = len(text) * WRITE_COPIES
                         if not budget.take(size):
                             raise budget.refusal(size, f"topic {sub.topic[:200]}")
                         try:
-                            await self.send(*protocol.fragments(text, sub.fragment_size, _fragment_id(sub)))
+                            if sub.fragment_size and len(text) > sub.fragment_size:
+                                await self.send(
+                                    protocol.fragments(text, sub.fragment_size, _fragment_id(sub))
+                                )
+                            else:
+                                data = text.encode()
+                                del text  # the encoded message is the one copy held while it waits
+                                await self.send_encoded(data)
+                                del data
                         finally:
                             budget.give_back(size)
-                        del text
         except asyncio.CancelledError:
             raise
         except ConnectionError:
@@ -364,7 +386,7 @@ class Connection:
         text = protocol.service_response(op.ident, op.service, values, result)
         ident = op.ident if op.ident is not None else f"call_service:{op.service[:200]}"
         with suppress(ConnectionError):
-            await self.send(*protocol.fragments(text, _fragment(op.fragment_size), ident))
+            await self.send(protocol.fragments(text, _fragment(op.fragment_size), ident))
 
     async def call_service(self, op: protocol.CallService) -> Any:
         """The response values of a service call: rosapi, an action (a Set), a query or a property (a Get)."""
@@ -394,9 +416,9 @@ class Connection:
     async def aclose(self) -> None:
         """End every subscription and call of the connection."""
         self.closed = True
-        for sub in list(self.subscriptions.values()):
-            self._end(sub)
-        tasks = [sub.writer for sub in self.subscriptions.values() if sub.writer is not None]
+        tasks = [
+            writer for sub in list(self.subscriptions.values()) if (writer := self._end(sub)) is not None
+        ]
         for task in list(self._calls):
             task.cancel()
             tasks.append(task)

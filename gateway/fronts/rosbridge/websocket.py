@@ -47,10 +47,10 @@ class RosbridgeEndpoint:
         within = self.write_timeout
         peer = request.remote or "?"
 
-        async def send(text: str) -> None:
+        async def send(data: bytes) -> None:
             try:
                 async with asyncio.timeout(within):
-                    await socket.send_str(text)
+                    await socket.send_frame(data, WSMsgType.TEXT)
             except TimeoutError:
                 log.info(
                     "rosbridge client %s dropped: it read nothing for %g s (http.write_timeout)", peer, within
@@ -59,6 +59,12 @@ class RosbridgeEndpoint:
                 if request.transport is not None:
                     request.transport.abort()
                 raise ConnectionResetError("the client reads nothing") from None
+            except ConnectionError as exc:
+                # aiohttp keeps this error in the future its writer waited on, whose frame is in the
+                # error's traceback: a cycle that would hold our frames (and the message being
+                # written) until a full collection. Without its traceback nothing holds them.
+                exc.__traceback__ = None
+                raise ConnectionResetError("the client went away") from None
 
         connection = Connection(
             calls=self.calls, hub=self.hub, guard=self.guard, subject=subject, send=send, peer=peer
