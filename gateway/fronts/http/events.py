@@ -47,9 +47,9 @@ from gateway.engine.rules import Subject
 from gateway.engine.status import to_property_error
 from gateway.fronts.http.binary import OCTET_STREAM, MediaTypes, value_json
 from gateway.fronts.http.errors import error_json
-from gateway.fronts.http.places import StreamHandler, StreamPlaces, too_many, write_or_drop
+from gateway.fronts.http.places import StreamHandler, StreamPlaces, write_or_drop
 from gateway.fronts.http.safety import identify
-from services.kernel.errors import InvalidArgument, PropertyError, ResourceExhausted
+from services.kernel.errors import InvalidArgument, PropertyError
 
 log = logging.getLogger(__name__)
 
@@ -141,24 +141,18 @@ class EventStreams(StreamHandler):
             raise InvalidArgument(f"unknown query key {unknown[0][:100]!r} (known: {SELECTOR_KEY})")
         listen = listen_request(request.query.getall(SELECTOR_KEY, []), self.heartbeat)
         # Checked before the stream takes a place: a bad Listen is refused whatever the load.
-        selectors, options = check_listen(listen, self.limits)
+        checked = check_listen(listen, self.limits)
         subject = identify(request, self.guard)
         peer = request.remote or "?"
         refused = self.places.refusal(peer)
         if refused is not None:
             return refused
-        wake = Wake()
-        try:
-            stream = self.hub.open(selectors, options, wake.set, subject)
-        except ResourceExhausted as exc:
-            return too_many(exc.message)
-        self.open.add(stream)
-        try:
-            with self.places.held(peer):
-                return await self._serve(request, stream, wake, peer, subject)
-        finally:
-            stream.close()
-            self.open.discard(stream)
+        return await self.serve_stream(
+            peer,
+            subject,
+            checked,
+            lambda stream, wake: self._serve(request, stream, wake, peer, subject),
+        )
 
     async def _serve(
         self, request: web.Request, stream: ListenStream, wake: Wake, peer: str, subject: Subject

@@ -30,6 +30,7 @@ from contextlib import aclosing
 from aiohttp import hdrs, web
 
 from gateway.engine.events import Event, ListenRequest, Mark, Selector
+from gateway.engine.listen import ListenStream
 from gateway.engine.listen.drain import Wake, taken
 from gateway.engine.listen.requests import check_listen
 from gateway.engine.rules import Operation
@@ -37,9 +38,9 @@ from gateway.engine.status import to_property_error
 from gateway.fronts.http.binary import OCTET_STREAM, RAW_HEADERS, property_model, served_type
 from gateway.fronts.http.bodies import query_parameters
 from gateway.fronts.http.errors import error_response
-from gateway.fronts.http.places import StreamHandler, too_many, write_or_drop
+from gateway.fronts.http.places import StreamHandler, write_or_drop
 from gateway.fronts.http.safety import identify
-from services.kernel.errors import InvalidArgument, PropertyError, ResourceExhausted
+from services.kernel.errors import InvalidArgument, PropertyError
 from services.kernel.paths import WILDCARD, is_pattern, validate_path
 
 log = logging.getLogger(__name__)
@@ -95,20 +96,12 @@ class ImageStreams(StreamHandler):
         if refused is not None:
             return refused
         listen = ListenRequest([Selector(service, path, tuple(sorted(parameters.items())))])
-        selectors, options = check_listen(listen, self.limits)
-        wake = Wake()
-        try:
-            stream = self.hub.open(selectors, options, wake.set, subject)
-        except ResourceExhausted as exc:
-            return too_many(exc.message)
-        self.open.add(stream)
-        try:
-            with self.places.held(peer):
-                async with aclosing(taken(stream, wake)) as ready:
-                    return await self._serve(request, ready, media_type, peer)
-        finally:
-            stream.close()
-            self.open.discard(stream)
+
+        async def serve(stream: ListenStream, wake: Wake) -> web.StreamResponse:
+            async with aclosing(taken(stream, wake)) as ready:
+                return await self._serve(request, ready, media_type, peer)
+
+        return await self.serve_stream(peer, subject, check_listen(listen, self.limits), serve)
 
     async def _serve(
         self,

@@ -12,15 +12,18 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from contextlib import contextmanager
 
 from aiohttp import web
 
 from gateway.config import HttpSection, Limits
 from gateway.engine.calls import Calls
+from gateway.engine.events import Selector, StreamOptions
 from gateway.engine.guard import Guard
 from gateway.engine.listen import ListenHub, ListenStream
+from gateway.engine.listen.drain import Wake
+from gateway.engine.rules import Subject
 from gateway.fronts.http.errors import TOO_MANY_REQUESTS, TOO_MANY_STREAMS, error_response
 from services.kernel.errors import ResourceExhausted
 
@@ -83,6 +86,29 @@ class StreamHandler:
         self.places = places
         self.write_timeout = settings.write_timeout
         self.open: set[ListenStream] = set()
+
+    async def serve_stream(
+        self,
+        peer: str,
+        subject: Subject,
+        listen: tuple[list[Selector], StreamOptions],
+        serve: Callable[[ListenStream, Wake], Awaitable[web.StreamResponse]],
+    ) -> web.StreamResponse:
+        """Open a hub stream of the checked ``listen`` for ``peer`` and answer with
+        ``serve(stream, wake)``; the stream and the peer's place are given back however it ends."""
+        selectors, options = listen
+        wake = Wake()
+        try:
+            stream = self.hub.open(selectors, options, wake.set, subject)
+        except ResourceExhausted as exc:
+            return too_many(exc.message)
+        self.open.add(stream)
+        try:
+            with self.places.held(peer):
+                return await serve(stream, wake)
+        finally:
+            stream.close()
+            self.open.discard(stream)
 
 
 def too_many(message: str, status: int = TOO_MANY_STREAMS) -> web.Response:
