@@ -57,7 +57,7 @@ from services.kernel.backend import Backend, BackendInfo
 from services.kernel.errors import PropertyError
 
 if TYPE_CHECKING:
-    from gateway.fronts.http import HttpFront
+    from gateway.fronts.http import HttpFront, WebSocketRoute
     from gateway.metrics.endpoint import MetricsEndpoint
 
 log = logging.getLogger("gateway")
@@ -539,17 +539,30 @@ class Gateway:
             return
         # Imported only when configured: aiohttp takes a quarter of a second to import.
         from gateway.fronts.http import HttpFront
-        from gateway.fronts.rosbridge import ROSBRIDGE_PATH, RosbridgeEndpoint
 
         self.http = HttpFront(self.servicer.calls, self.hub, self.config, self.guard)
-        self.http.websockets[ROSBRIDGE_PATH] = RosbridgeEndpoint(
-            self.servicer.calls, self.hub, self.guard, write_timeout=self.config.http.write_timeout
-        )
         self.http.max_connections = self.shares.get("http.max_connections", self.config.http.max_connections)
         if self.config.metrics.enabled:
             self.http.metrics = self._metrics_endpoint().guarded
+        self.http.websockets.append(self._rosbridge_route())
         await self.http.start()
         self.http_address = self.http.address
+
+    def _rosbridge_route(self) -> WebSocketRoute:
+        """rosbridge v2 on the HTTP front's port, at ``/rosbridge`` (docs/ros-and-foxglove.md)."""
+        from gateway.fronts.http import WebSocketRoute
+        from gateway.fronts.rosbridge import ROSBRIDGE_PATH, RosbridgeEndpoint
+
+        http = self.config.http
+        endpoint = RosbridgeEndpoint(
+            self.servicer.calls,
+            self.hub,
+            self.guard,
+            write_timeout=http.write_timeout,
+            heartbeat=http.heartbeat,
+            max_message=http.max_body,
+        )
+        return WebSocketRoute(ROSBRIDGE_PATH, RosbridgeEndpoint.protocols, endpoint.serve)
 
     def _metrics_endpoint(self) -> MetricsEndpoint:
         if self.metrics is None:

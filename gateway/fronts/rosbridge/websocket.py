@@ -1,10 +1,12 @@
 """rosbridge v2 over one aiohttp WebSocket: text frames in, :class:`Connection`'s messages out.
 
-The HTTP front end upgrades the request at ``/rosbridge`` (its Origin and Host checks, the
-caller's identity from the bearer header, the ``ps_token`` cookie or a client certificate, and
-one of its stream places: ``http.max_streams`` and ``http.max_streams_per_client``) and hands
-the socket here. A write that the client does not take within ``http.write_timeout`` drops the
-connection: a client that reads nothing for that long is gone.
+The HTTP front end hands the request at ``/rosbridge`` here (a ``WebSocketRoute``) once it has
+made its checks (Origin, Host), named the caller (the bearer header, the ``ps_token`` cookie or
+a client certificate; a bad token is 401 before any upgrade) and given it one of its stream
+places (``http.max_streams``, ``http.max_streams_per_client``). The endpoint upgrades it: pings
+every ``http.heartbeat`` seconds find a client that vanished, a message larger than
+``http.max_body`` closes the socket (1009), and a write the client does not take within
+``http.write_timeout`` drops the connection: a client that reads nothing for that long is gone.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from gateway.engine.guard import Guard
 from gateway.engine.listen import ListenHub
 from gateway.engine.rules import Subject
 from gateway.fronts.rosbridge.connection import Connection
+from services.kernel.errors import InvalidArgument
 
 log = logging.getLogger(__name__)
 
@@ -34,16 +37,39 @@ class RosbridgeEndpoint:
     #: rosbridge clients ask for no subprotocol.
     protocols: tuple[str, ...] = ()
 
-    def __init__(self, calls: Calls, hub: ListenHub, guard: Guard, *, write_timeout: float) -> None:
+    def __init__(
+        self,
+        calls: Calls,
+        hub: ListenHub,
+        guard: Guard,
+        *,
+        write_timeout: float,
+        heartbeat: float = 0.0,
+        max_message: int = 1024 * 1024,
+    ) -> None:
         self.calls = calls
         self.hub = hub
         self.guard = guard
         self.write_timeout = write_timeout
+        #: Seconds between pings (``http.heartbeat``; 0: none): no pong within half of it closes the socket.
+        self.heartbeat = heartbeat
+        #: The largest message a client may send (``http.max_body``).
+        self.max_message = max_message
         #: The connections open now (read by the tests and the metrics).
         self.connections: set[Connection] = set()
 
-    async def serve(self, socket: web.WebSocketResponse, request: web.Request, subject: Subject) -> None:
-        """Serve one prepared socket of ``request`` until either side closes it."""
+    async def serve(self, request: web.Request, subject: Subject) -> web.StreamResponse:
+        """Upgrade ``request`` and serve the client as ``subject`` until either side closes."""
+        socket = web.WebSocketResponse(
+            protocols=self.protocols, heartbeat=self.heartbeat or None, max_msg_size=self.max_message
+        )
+        if not socket.can_prepare(request).ok:
+            raise InvalidArgument(f"{request.path[:200]} speaks WebSocket only: send an Upgrade request")
+        await socket.prepare(request)
+        await self._serve(socket, request, subject)
+        return socket
+
+    async def _serve(self, socket: web.WebSocketResponse, request: web.Request, subject: Subject) -> None:
         within = self.write_timeout
         peer = request.remote or "?"
 
