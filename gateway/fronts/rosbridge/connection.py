@@ -56,6 +56,9 @@ MAX_SUBSCRIPTIONS = 256
 MAX_CALLS_IN_FLIGHT = 16
 #: Service models a connection keeps (each read by Describe once, for the types of its topics).
 MAX_MODELS = 64
+#: A Describe refused with one of these is remembered as "no model" (the caller's topics of that
+#: service are plain strings, each read still checked by the rules).
+REFUSED = frozenset((Code.PERMISSION_DENIED, Code.UNAUTHENTICATED))
 #: The smallest fragment_size honoured: smaller ones would multiply frames for nothing.
 MIN_FRAGMENT = 256
 
@@ -162,8 +165,12 @@ class Connection:
             return
         try:
             await self._carry_out(op)
-        except PropertyError as exc:
-            await self.report("error", f"{_op_name(op)} {_what(op)}: {error_text(exc)}", _ident(op))
+        except ConnectionError:
+            raise  # the client went away: the WebSocket's loop ends
+        except Exception as exc:
+            # A bug is logged once with its traceback and told as INTERNAL; the connection goes on.
+            err = to_property_error(exc, f"rosbridge {_op_name(op)}")
+            await self.report("error", f"{_op_name(op)} {_what(op)}: {error_text(err)}", _ident(op))
 
     async def _carry_out(self, op: protocol.Operation) -> None:
         if isinstance(op, protocol.Subscribe):
@@ -211,9 +218,9 @@ class Connection:
                 DescribeCall(service), self.calls.timeout, self.subject
             )
         except PropertyError as exc:
-            if exc.code == Code.NOT_FOUND:
-                raise
-            found = None  # refused or unreachable: its topics are plain strings
+            if exc.code not in REFUSED:
+                raise  # gone, or not answering now: said as it is, and asked again next time
+            found = None  # the caller may not describe it: its topics are plain strings
         self._models[service] = found
         if len(self._models) > MAX_MODELS:
             self._models.popitem(last=False)
