@@ -8,6 +8,7 @@ reactor in a thread of its own: the tests wait on queues, each bounded.
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import time
 from collections.abc import Callable, Iterator
@@ -162,14 +163,26 @@ def test_publishing_a_number_sets_the_property(robots: Any) -> None:
 
 
 def test_cmd_vel_drives_the_robots_velocity_until_its_dead_man_stops_it(robots: Any) -> None:
-    cmd_vel = roslibpy.Topic(robots, "/scout1/cmd_vel", "geometry_msgs/Twist")
-    cmd_vel.publish(
-        roslibpy.Message({"linear": {"x": 0.3, "y": 0, "z": 0}, "angular": {"x": 0, "y": 0, "z": 0}})
-    )
+    velocities: queue.Queue[list[float]] = queue.Queue(maxsize=1000)
     velocity = roslibpy.Topic(robots, "/scout1/velocity", "std_msgs/Float64MultiArray")
-    assert received(velocity, lambda m: m["data"][0] == 0.3)["data"] == [0.3, 0, 0, 0, 0, 0]
-    # Not renewed: the robot's velocity_timeout (its dead-man) ends the command by itself.
-    assert received(velocity, lambda m: m["data"] == [0, 0, 0, 0, 0, 0])["data"] == [0, 0, 0, 0, 0, 0]
+    velocity.subscribe(lambda m: velocities.put_nowait(m["data"]) if not velocities.full() else None)
+    cmd_vel = roslibpy.Topic(robots, "/scout1/cmd_vel", "geometry_msgs/Twist")
+    ahead = roslibpy.Message({"linear": {"x": 0.3, "y": 0, "z": 0}, "angular": {"x": 0, "y": 0, "z": 0}})
+    deadline = time.monotonic() + WAIT
+    try:
+        # Renewed every 0.1 s, as a teleop page does while its stick is held, until it drives.
+        driving = False
+        while not driving:
+            assert time.monotonic() < deadline, "the robot never drove at 0.3 m/s"
+            cmd_vel.publish(ahead)
+            with contextlib.suppress(queue.Empty):
+                while not driving:
+                    driving = velocities.get(timeout=0.1) == [0.3, 0, 0, 0, 0, 0]
+        # Not renewed: the robot's velocity_timeout (its dead-man) ends the command by itself.
+        while velocities.get(timeout=max(0.01, deadline - time.monotonic())) != [0, 0, 0, 0, 0, 0]:
+            pass
+    finally:
+        velocity.unsubscribe()
 
 
 def test_a_query_and_an_unknown_service_are_answered_as_service_calls(robots: Any) -> None:
