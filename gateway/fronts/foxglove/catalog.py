@@ -17,6 +17,7 @@ describes the services and hands the models in.
 from __future__ import annotations
 
 import enum
+import functools
 import json
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -43,6 +44,28 @@ class Kind(enum.Enum):
     SCENE = "scene"
 
 
+def _compact(schema: dict[str, Any]) -> str:
+    return json.dumps(schema, separators=(",", ":"))
+
+
+POSE_SCHEMA_TEXT = _compact(schemas.POSE_SCHEMA)
+SCENE_SCHEMA_TEXT = _compact(schemas.SCENE_SCHEMA)
+
+
+@functools.lru_cache(maxsize=MAX_CHANNELS)
+def value_schema_text(prop: PropertyModel, service: str) -> str:
+    """A property's schema as text, made once for every connection that is shown it (an idle
+    connection holds references, not copies)."""
+    return _compact(schemas.value_schema(prop, service))
+
+
+@functools.lru_cache(maxsize=4 * MAX_CHANNELS)
+def shared(prop: PropertyModel) -> PropertyModel:
+    """The one instance of a model equal to ``prop`` that connections keep: each connection
+    describes the services afresh, and would otherwise hold its own copy of every model."""
+    return prop
+
+
 def topic_of(service: str, path: str) -> str:
     return f"/{service}/{path.replace('.', '/')}"
 
@@ -57,7 +80,8 @@ class Channel:
     path: str
     model: PropertyModel | None
     schema_name: str
-    schema: dict[str, Any]
+    #: The JSON schema as text: one string shared by every connection shown the same model.
+    schema: str
 
     def advertised(self) -> dict[str, Any]:
         return {
@@ -65,7 +89,7 @@ class Channel:
             "topic": self.topic,
             "encoding": JSON_ENCODING,
             "schemaName": self.schema_name,
-            "schema": json.dumps(self.schema, separators=(",", ":")),
+            "schema": self.schema,
             "schemaEncoding": SCHEMA_ENCODING,
         }
 
@@ -149,9 +173,10 @@ class Catalog:
     def add(self, service: str, model: ServiceModel, may_read: Iterable[str] | None = None) -> None:
         """Show ``service``'s properties (only the paths in ``may_read`` when given)."""
         readable = None if may_read is None else set(may_read)
-        for prop in model.properties:
-            if prop.type == "namespace":
+        for described in model.properties:
+            if described.type == "namespace":
                 continue
+            prop = shared(described)
             topic = topic_of(service, prop.name)
             self.properties[topic] = (service, prop.name, prop)
             if prop.access in (Access.ACTION, Access.QUERY):
@@ -170,7 +195,7 @@ class Catalog:
                 prop.name,
                 prop,
                 schemas.value_schema_name(prop),
-                schemas.value_schema(prop, service),
+                value_schema_text(prop, service),
             )
             if schemas.is_pose(prop) and prop.name == schemas.LOCATION:
                 self._channel(
@@ -180,7 +205,7 @@ class Catalog:
                     prop.name,
                     prop,
                     schemas.POSE_SCHEMA_NAME,
-                    schemas.POSE_SCHEMA,
+                    POSE_SCHEMA_TEXT,
                 )
 
     def add_scene(self) -> None:
@@ -193,7 +218,7 @@ class Catalog:
                 schemas.LOCATION,
                 None,
                 schemas.SCENE_SCHEMA_NAME,
-                schemas.SCENE_SCHEMA,
+                SCENE_SCHEMA_TEXT,
             )
 
     def parameter(self, name: str) -> tuple[str, str, PropertyModel] | None:
