@@ -300,3 +300,40 @@ async def test_foxglove_connections_take_the_http_fronts_stream_places(
     await second.ws.close()
     await third.ws.close()
     gw.stop()
+
+
+async def test_a_service_that_joins_is_advertised_and_unadvertised_when_it_leaves(
+    gateway_process: StartGateway, session: aiohttp.ClientSession
+) -> None:
+    gw = gateway_process(ROBOT)
+    elsewhere = gateway_process(ROBOT.replace('"bot"', '"rover"'))
+    client = await connect(session, gw)
+    assert "/rover/speed" not in client.channels
+
+    async def register(url: str) -> None:
+        async with session.put(
+            f"{gw.http_url}api/v1/services/registry/properties/services.rover", json={"value": url}
+        ) as answer:
+            assert answer.status == 200, await answer.text()
+
+    await register(f"grpc://{elsewhere.address}")  # rover joins, served by another gateway
+    channels = {c["topic"]: c for c in (await client.json("advertise"))["channels"]}
+    assert channels["/rover/speed"]["schemaName"] == "propertyservice.Number"
+    assert "/bot/speed" not in channels  # only what is new
+    services = {s["name"]: s for s in (await client.json("advertiseServices"))["services"]}
+    assert "/rover/behaviors/moveto" in services
+    client.channels.update(channels)
+    await client.subscribe(1, "/rover/speed")
+    assert (await client.message(1))[1] == {"value": 0.5}
+
+    await register("")  # and leaves
+    gone = await client.json("unadvertise")
+    assert set(gone["channelIds"]) == {c["id"] for t, c in channels.items() if t.startswith("/rover/")}
+    unoffered = await client.json("unadvertiseServices")
+    assert set(unoffered["serviceIds"]) == {s["id"] for s in services.values()}
+    # The rest goes on.
+    await client.subscribe(2, "/bot/speed")
+    assert (await client.message(2))[1] == {"value": 0.5}
+    await client.ws.close()
+    gw.stop()
+    elsewhere.stop()

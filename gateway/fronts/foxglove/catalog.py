@@ -156,6 +156,7 @@ class Catalog:
     #: Whether :data:`MAX_CHANNELS` cut the catalog short.
     clipped: bool = False
     _next_id: int = 1
+    _next_service_id: int = 1
 
     def _id(self) -> int:
         given = self._next_id
@@ -180,9 +181,9 @@ class Catalog:
             topic = topic_of(service, prop.name)
             self.properties[topic] = (service, prop.name, prop)
             if prop.access in (Access.ACTION, Access.QUERY):
-                self.services[len(self.services) + 1] = Service(
-                    len(self.services) + 1, topic, service, prop.name, prop
-                )
+                service_id = self._next_service_id
+                self._next_service_id += 1
+                self.services[service_id] = Service(service_id, topic, service, prop.name, prop)
                 continue
             if not prop.access.listenable or prop.needs_parameters:
                 continue
@@ -208,8 +209,24 @@ class Catalog:
                     POSE_SCHEMA_TEXT,
                 )
 
+    def remove(self, service: str) -> tuple[list[int], list[int]]:
+        """Forget ``service`` (it left, or is shown again): the ids of its channels and services."""
+        channels = [c.id for c in self.channels.values() if c.service == service and c.kind is not Kind.SCENE]
+        for channel_id in channels:
+            del self.channels[channel_id]
+        services = [s.id for s in self.services.values() if s.service == service]
+        for service_id in services:
+            del self.services[service_id]
+        for topic in [t for t, (name, _, _) in self.properties.items() if name == service]:
+            del self.properties[topic]
+        if len(self.channels) < MAX_CHANNELS:
+            self.clipped = False
+        return channels, services
+
     def add_scene(self) -> None:
         """The one channel of every location, once any service has one."""
+        if any(c.kind is Kind.SCENE for c in self.channels.values()):
+            return
         if any(c.kind is Kind.POSE for c in self.channels.values()):
             self._channel(
                 SCENE_TOPIC,

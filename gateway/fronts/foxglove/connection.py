@@ -109,14 +109,23 @@ class Connection:
         self._calls = asyncio.Semaphore(MAX_CALLS)
         self._tasks: set[asyncio.Task[None]] = set()
         self._closed = False
+        #: Services that joined or left since the catalog was last brought up to date (a set:
+        #: bounded by the services there are, however often they come and go).
+        self._changed: set[str] = set()
+        self._changes = Wake()
 
     # --- the session -------------------------------------------------------------------------
 
     async def run(self) -> None:
         writer = asyncio.create_task(self._write_loop())
+        # Watched from the start: a service that comes or goes while the catalog is made is shown
+        # again once it is sent.
+        unwatch = self.calls.router.watch(self._service_changed)
+        follower: asyncio.Task[None] | None = None
         try:
             await self._send(protocol.server_info(self.name, str(time.time_ns())))
             await self._advertise()
+            follower = asyncio.create_task(self._follow_services())
             async for message in self.ws:
                 if message.type is WSMsgType.TEXT:
                     await self._on_text(message.data)
@@ -128,14 +137,18 @@ class Connection:
             pass
         finally:
             self._closed = True
+            unwatch()
+            if follower is not None:
+                follower.cancel()
             writer.cancel()
             for task in list(self._tasks):
                 task.cancel()
             for sub in self.subscribed.values():
                 sub.stream.close()
             self.subscribed.clear()
-            with suppress(asyncio.CancelledError):
-                await writer
+            for task in [t for t in (writer, follower) if t is not None]:
+                with suppress(asyncio.CancelledError, ConnectionError):
+                    await task
 
     async def _send(self, frame: str | bytes) -> None:
         """One message, within ``write_timeout``; a client that takes nothing for that long is dropped."""
@@ -159,32 +172,67 @@ class Connection:
     async def _status(self, level: Level, message: str) -> None:
         await self._send(protocol.status(level, message))
 
+    def _service_changed(self, name: str, backend: object) -> None:
+        self._changed.add(name)
+        self._changes.set()
+
+    async def _follow_services(self) -> None:
+        """Advertise the channels and services of a service that joins, unadvertise those of one
+        that leaves (its subscriptions end), one service at a time."""
+        while True:
+            await self._changes.wait()
+            while self._changed:
+                await self._show_again(self._changed.pop())
+
+    async def _show_again(self, service: str) -> None:
+        catalog = self.catalog
+        channels, services = catalog.remove(service)
+        for sub in [s for s in self.subscribed.values() if s.channel.id in channels]:
+            del self.subscribed[sub.id]
+            sub.stream.close()
+            self._ready.discard(sub)
+        if channels:
+            await self._send(protocol.text({"op": "unadvertise", "channelIds": channels}))
+        if services:
+            await self._send(protocol.text({"op": "unadvertiseServices", "serviceIds": services}))
+        if service not in self.calls.router:
+            return
+        known_channels, known_services = set(catalog.channels), set(catalog.services)
+        await self._describe(service)
+        catalog.add_scene()
+        added = [c.advertised() for i, c in catalog.channels.items() if i not in known_channels]
+        if added:
+            await self._send(protocol.text({"op": "advertise", "channels": added}))
+        offered = [s.advertised() for i, s in catalog.services.items() if i not in known_services]
+        if offered:
+            await self._send(protocol.text({"op": "advertiseServices", "services": offered}))
+
+    async def _describe(self, service: str) -> None:
+        """Add ``service`` to the catalog, as far as the subject may see it."""
+        guard = self.calls.guard
+        try:
+            model = await self.calls.describe(DescribeCall(service), self.calls.timeout, self.subject)
+        except PropertyError as exc:
+            if exc.code not in (Code.PERMISSION_DENIED, Code.UNAUTHENTICATED):
+                await self._status(Level.WARNING, _failure(exc, f"describe {service}"))
+            return
+        readable = None
+        if guard.checks:
+            readable = [
+                p.name for p in model.properties if guard.may(self.subject, service, p.name, Operation.READ)
+            ]
+        self.catalog.add(service, model, readable)
+
     async def _advertise(self) -> None:
         """Describe every service the gateway serves and advertise what the subject may see.
 
         The names come from the router, not the registry's ``services``: rules may keep the
         registry to administrators, while a service's own model is for whoever may read it.
         """
-        timeout = self.calls.timeout
-        guard = self.calls.guard
-        names = self.calls.router.names()
-        for service in names:
+        for service in self.calls.router.names():
             if self.catalog.clipped:
                 break
-            try:
-                model = await self.calls.describe(DescribeCall(service), timeout, self.subject)
-            except PropertyError as exc:
-                if exc.code not in (Code.PERMISSION_DENIED, Code.UNAUTHENTICATED):
-                    await self._status(Level.WARNING, _failure(exc, f"describe {service}"))
-                continue
-            readable = None
-            if guard.checks:
-                readable = [
-                    p.name
-                    for p in model.properties
-                    if guard.may(self.subject, service, p.name, Operation.READ)
-                ]
-            self.catalog.add(service, model, readable)
+            await self._describe(service)
         self.catalog.add_scene()
         if self.catalog.clipped:
             await self._status(Level.WARNING, "only the first 4096 channels are advertised")
