@@ -337,3 +337,23 @@ async def test_a_service_that_joins_is_advertised_and_unadvertised_when_it_leave
     await client.ws.close()
     gw.stop()
     elsewhere.stop()
+
+
+async def test_a_page_of_another_origin_opens_the_socket_only_when_the_config_names_its_origin(
+    gateway_process: StartGateway, session: aiohttp.ClientSession
+) -> None:
+    foxglove_app = {"Origin": "https://app.foxglove.dev"}
+    gw = gateway_process(ROBOT)
+    with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+        await session.ws_connect(f"{gw.http_url}foxglove", protocols=[SUBPROTOCOL], headers=foxglove_app)
+    assert refused.value.status == 403
+    gw.stop()
+
+    allowed = gateway_process(ROBOT + '\n[http]\nwebsocket_origins = ["https://app.foxglove.dev"]\n')
+    ws = await session.ws_connect(f"{allowed.http_url}", protocols=[SUBPROTOCOL], headers=foxglove_app)
+    assert json.loads((await ws.receive()).data)["op"] == "serverInfo"
+    await ws.close()
+    # The origin opens the WebSocket, not the JSON routes.
+    async with session.get(f"{allowed.http_url}api/v1/services", headers=foxglove_app) as answer:
+        assert answer.status == 403
+    allowed.stop()

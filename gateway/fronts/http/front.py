@@ -109,6 +109,7 @@ class HttpFront:
         self.guard = guard
         #: WebSocket protocols of other fronts served here (set before :meth:`start`).
         self.websockets: list[WebSocketRoute] = []
+        self.websocket_origins = frozenset(origin.lower() for origin in self.settings.websocket_origins)
         #: Event streams and live images share the bounds on open streams.
         self.places = StreamPlaces(self.settings)
         self.events = EventStreams(
@@ -248,7 +249,12 @@ class HttpFront:
             RequestContext(request_id, request.match_info.get("service"), request.match_info.get("path"))
         )
         try:
-            check_request(request, self.loopback_only, routed=request.match_info.http_exception is None)
+            check_request(
+                request,
+                self.loopback_only,
+                routed=request.match_info.http_exception is None,
+                websocket_origins=self.websocket_origins,
+            )
             return await handler(request)
         except BodyTooLarge as exc:
             return error_response(exc, what, status=PAYLOAD_TOO_LARGE)
