@@ -10,14 +10,16 @@ Topics name properties as ROS names them: ``/<service>/<path with dots as slashe
   ``{"value": TEXT, "parameters": {NAME: TEXT}}`` and answering ``{"value": TEXT}``;
 * every read-write number, integer, boolean or text is a **parameter** of the topic's name.
 
-Ids are given once per topic and kept while the connection lasts. Pure: the connection
-describes the services and hands the models in.
+Ids are given once per topic and schema in the process, and what two connections are shown alike
+is one object (an idle connection holds references, not copies). Pure but for those shared
+tables: the connection describes the services and hands the models in.
 """
 
 from __future__ import annotations
 
 import enum
 import functools
+import itertools
 import json
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -66,6 +68,7 @@ def shared(prop: PropertyModel) -> PropertyModel:
     return prop
 
 
+@functools.lru_cache(maxsize=4 * MAX_CHANNELS)
 def topic_of(service: str, path: str) -> str:
     return f"/{service}/{path.replace('.', '/')}"
 
@@ -145,6 +148,32 @@ class Service:
         }
 
 
+#: Ids of channels and services, given once per (topic, schema) in the whole process: equal
+#: channels of two connections are one object, with one id (the spec lets a channel that
+#: reappears the same keep its id).
+_channel_ids = itertools.count(1)
+_service_ids = itertools.count(1)
+
+
+#: What makes a channel, but its id: topic, kind, service, path, model, schema name, schema.
+ChannelSpec = tuple[str, Kind, str, str, PropertyModel | None, str, str]
+
+
+@functools.lru_cache(maxsize=4 * MAX_CHANNELS)
+def shared_channel(spec: ChannelSpec) -> Channel:
+    return Channel(next(_channel_ids), *spec)
+
+
+@functools.lru_cache(maxsize=4 * MAX_CHANNELS)
+def shared_service(name: str, service: str, path: str, prop: PropertyModel) -> Service:
+    return Service(next(_service_ids), name, service, path, prop)
+
+
+@functools.lru_cache(maxsize=4 * MAX_CHANNELS)
+def shared_property(service: str, path: str, prop: PropertyModel) -> tuple[str, str, PropertyModel]:
+    return service, path, prop
+
+
 @dataclass(slots=True)
 class Catalog:
     """What one connection is shown; :meth:`add` a service's model at a time."""
@@ -155,19 +184,12 @@ class Catalog:
     properties: dict[str, tuple[str, str, PropertyModel]] = field(default_factory=dict)
     #: Whether :data:`MAX_CHANNELS` cut the catalog short.
     clipped: bool = False
-    _next_id: int = 1
-    _next_service_id: int = 1
 
-    def _id(self) -> int:
-        given = self._next_id
-        self._next_id += 1
-        return given
-
-    def _channel(self, *args: Any) -> Channel | None:
+    def _channel(self, *args: Any) -> Channel | None:  # the fields of a ChannelSpec
         if len(self.channels) >= MAX_CHANNELS:
             self.clipped = True
             return None
-        channel = Channel(self._id(), *args)
+        channel = shared_channel(args)
         self.channels[channel.id] = channel
         return channel
 
@@ -179,11 +201,10 @@ class Catalog:
                 continue
             prop = shared(described)
             topic = topic_of(service, prop.name)
-            self.properties[topic] = (service, prop.name, prop)
+            self.properties[topic] = shared_property(service, prop.name, prop)
             if prop.access in (Access.ACTION, Access.QUERY):
-                service_id = self._next_service_id
-                self._next_service_id += 1
-                self.services[service_id] = Service(service_id, topic, service, prop.name, prop)
+                offered = shared_service(topic, service, prop.name, prop)
+                self.services[offered.id] = offered
                 continue
             if not prop.access.listenable or prop.needs_parameters:
                 continue
@@ -200,7 +221,7 @@ class Catalog:
             )
             if schemas.is_pose(prop) and prop.name == schemas.LOCATION:
                 self._channel(
-                    f"/{service}/pose",
+                    topic_of(service, "pose"),
                     Kind.POSE,
                     service,
                     prop.name,
