@@ -553,8 +553,9 @@ class Gateway:
         from gateway.fronts.foxglove import SUBPROTOCOLS, FoxgloveEndpoint
         from gateway.fronts.http import WebSocketRoute
 
+        http = self.config.http
         endpoint = FoxgloveEndpoint(
-            self.servicer.calls, self.hub, write_timeout=self.config.http.write_timeout
+            self.servicer.calls, self.hub, write_timeout=http.write_timeout, heartbeat=http.heartbeat
         )
         return WebSocketRoute("/foxglove", SUBPROTOCOLS, endpoint.serve)
 

@@ -357,3 +357,31 @@ async def test_a_page_of_another_origin_opens_the_socket_only_when_the_config_na
     async with session.get(f"{allowed.http_url}api/v1/services", headers=foxglove_app) as answer:
         assert answer.status == 403
     allowed.stop()
+
+
+async def test_a_client_that_answers_no_ping_is_closed_and_gives_its_place_back(
+    gateway_process: StartGateway, session: aiohttp.ClientSession
+) -> None:
+    gw = gateway_process(ROBOT + "\n[http]\nheartbeat = 0.5\nmax_streams_per_client = 1\n")
+    ws = await session.ws_connect(f"{gw.http_url}foxglove", protocols=[SUBPROTOCOL], autoping=False)
+    kinds = []
+    deadline = time.monotonic() + WAIT
+    while time.monotonic() < deadline:
+        message = await asyncio.wait_for(ws.receive(), WAIT)
+        kinds.append(message.type)
+        if message.type in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.CLOSING):
+            break
+    assert aiohttp.WSMsgType.PING in kinds
+    assert kinds[-1] in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.CLOSING), kinds
+    await ws.close()
+    # The one place this address has is free again.
+    deadline = time.monotonic() + WAIT
+    while True:
+        try:
+            client = await connect(session, gw)
+            break
+        except aiohttp.WSServerHandshakeError:
+            assert time.monotonic() < deadline
+            await asyncio.sleep(0.1)
+    await client.ws.close()
+    gw.stop()

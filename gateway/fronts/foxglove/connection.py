@@ -133,8 +133,8 @@ class Connection:
                     await self._on_binary(message.data)
                 elif message.type is WSMsgType.ERROR:
                     break
-        except (ConnectionError, asyncio.CancelledError):
-            pass
+        except ConnectionError:
+            pass  # the client went away, or read nothing for write_timeout
         finally:
             self._closed = True
             unwatch()

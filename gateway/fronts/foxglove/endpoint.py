@@ -21,11 +21,19 @@ class FoxgloveEndpoint:
     """Serves Foxglove clients through the engine's calls and listen hub."""
 
     def __init__(
-        self, calls: Calls, hub: ListenHub, *, write_timeout: float, name: str = "psgateway"
+        self,
+        calls: Calls,
+        hub: ListenHub,
+        *,
+        write_timeout: float,
+        heartbeat: float = 0.0,
+        name: str = "psgateway",
     ) -> None:
         self.calls = calls
         self.hub = hub
         self.write_timeout = write_timeout
+        #: Seconds between pings (``http.heartbeat``); 0: none.
+        self.heartbeat = heartbeat
         self.name = name
 
     async def serve(self, request: web.Request, subject: Subject) -> web.StreamResponse:
@@ -38,7 +46,15 @@ class FoxgloveEndpoint:
                 f"a Foxglove client must offer the WebSocket subprotocol {' or '.join(SUBPROTOCOLS)}"
                 f" (offered: {', '.join(offered)[:200] or 'none'})"
             )
-        ws = web.WebSocketResponse(protocols=SUBPROTOCOLS, max_msg_size=MAX_FRAME_BYTES, autoping=True)
+        # A ping every ``heartbeat`` seconds, and the socket closed when no pong follows within half
+        # of it: a client that vanished without a FIN gives its place back, as an event stream's
+        # heartbeat does.
+        ws = web.WebSocketResponse(
+            protocols=SUBPROTOCOLS,
+            max_msg_size=MAX_FRAME_BYTES,
+            autoping=True,
+            heartbeat=self.heartbeat or None,
+        )
         await ws.prepare(request)
         connection = Connection(
             ws,
