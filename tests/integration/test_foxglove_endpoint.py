@@ -115,7 +115,7 @@ async def test_bad_messages_get_error_statuses_and_the_connection_goes_on(
         ('{"op": "dance"}', "unknown op 'dance'"),
         ('{"op": "subscribe", "subscriptions": [{"id": 1, "channelId": 99999}]}', "no channel 99999"),
         ('{"op": "subscribe", "subscriptions": [{"id": -1, "channelId": 1}]}', "subscription id must be"),
-        ('{"op": "subscribeParameterUpdates", "parameterNames": []}', "is not supported"),
+        ('{"op": "subscribeConnectionGraph"}', "is not supported"),
         (b"\x07", "unknown binary opcode 0x07"),
         (b"\x01\x05\x00\x00\x00{}", "no client channel 5: advertise it first"),
         (
@@ -383,5 +383,42 @@ async def test_a_client_that_answers_no_ping_is_closed_and_gives_its_place_back(
         except aiohttp.WSServerHandshakeError:
             assert time.monotonic() < deadline
             await asyncio.sleep(0.1)
+    await client.ws.close()
+    gw.stop()
+
+
+async def test_parameters_are_read_written_and_followed_as_properties(
+    gateway_process: StartGateway, session: aiohttp.ClientSession
+) -> None:
+    gw = gateway_process(ROBOT)
+    client = await connect(session, gw)
+    await client.send({"op": "getParameters", "parameterNames": [], "id": "all"})
+    every = await client.json("parameterValues")
+    assert every["id"] == "all"
+    values = {p["name"]: p["value"] for p in every["parameters"]}
+    assert values["/bot/speed"] == 0.5
+    assert values["/bot/actuators/led"] is False
+    assert "/bot/location" not in values  # read-only, and no scalar
+
+    await client.send({"op": "subscribeParameterUpdates", "parameterNames": ["/bot/speed"]})
+    update = await client.json("parameterValues")
+    assert update == {"op": "parameterValues", "parameters": [{"name": "/bot/speed", "value": 0.5}]}
+    await client.send({"op": "setParameters", "parameters": [{"name": "/bot/speed", "value": 0.25}]})
+    update = await client.json("parameterValues")
+    assert update["parameters"] == [{"name": "/bot/speed", "value": 0.25}]
+
+    await client.send({"op": "unsubscribeParameterUpdates", "parameterNames": ["/bot/speed"]})
+    await client.send(
+        {"op": "setParameters", "parameters": [{"name": "/bot/speed", "value": 0.75}], "id": "s"}
+    )
+    answer = await client.json("parameterValues")
+    assert answer == {
+        "op": "parameterValues",
+        "parameters": [{"name": "/bot/speed", "value": 0.75}],
+        "id": "s",
+    }
+    await client.send({"op": "setParameters", "parameters": [{"name": "/bot/speed", "value": "fast"}]})
+    status = await client.json("status")
+    assert status["message"].startswith("set parameter /bot/speed: INVALID_ARGUMENT"), status
     await client.ws.close()
     gw.stop()

@@ -44,6 +44,8 @@ class Kind(enum.Enum):
     VALUE = "value"
     POSE = "pose"
     SCENE = "scene"
+    #: A parameter's updates (``subscribeParameterUpdates``): ``parameterValues`` messages.
+    PARAMETER = "parameter"
 
 
 def _compact(schema: dict[str, Any]) -> str:
@@ -265,6 +267,14 @@ class Catalog:
         if found is None or not is_parameter(found[2]):
             return None
         return found
+
+    def parameter_channel(self, name: str) -> Channel | None:
+        """What a subscription to parameter ``name``'s updates follows (no channel is advertised)."""
+        found = self.parameter(name)
+        if found is None:
+            return None
+        service, path, prop = found
+        return shared_channel((name, Kind.PARAMETER, service, path, prop, "", ""))
 
     def parameter_names(self) -> list[str]:
         return [topic for topic, (_, _, prop) in self.properties.items() if is_parameter(prop)]

@@ -62,6 +62,8 @@ class Subscribed:
     id: int
     channel: Channel
     stream: ListenStream
+    #: False once unsubscribed: what the writer still holds of it is dropped.
+    live: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,6 +104,8 @@ class Connection:
         self.name = name
         self.catalog = Catalog()
         self.subscribed: dict[int, Subscribed] = {}
+        #: Parameter name → the subscription to its updates (counted with :attr:`subscribed`).
+        self.parameter_subs: dict[str, Subscribed] = {}
         self.publishing: dict[int, Publishing] = {}
         self._ready: set[Subscribed] = set()
         self._wake = Wake()
@@ -143,9 +147,10 @@ class Connection:
             writer.cancel()
             for task in list(self._tasks):
                 task.cancel()
-            for sub in self.subscribed.values():
+            for sub in [*self.subscribed.values(), *self.parameter_subs.values()]:
                 sub.stream.close()
             self.subscribed.clear()
+            self.parameter_subs.clear()
             for task in [t for t in (writer, follower) if t is not None]:
                 with suppress(asyncio.CancelledError, ConnectionError):
                     await task
@@ -189,8 +194,11 @@ class Connection:
         channels, services = catalog.remove(service)
         for sub in [s for s in self.subscribed.values() if s.channel.id in channels]:
             del self.subscribed[sub.id]
-            sub.stream.close()
-            self._ready.discard(sub)
+            self._end(sub)
+        for name, sub in list(self.parameter_subs.items()):
+            if sub.channel.service == service:
+                del self.parameter_subs[name]
+                self._end(sub)
         if channels:
             await self._send(protocol.text({"op": "unadvertise", "channelIds": channels}))
         if services:
@@ -279,20 +287,31 @@ class Connection:
                 raise ProtocolError(f"no channel {item.channel}")
             if item.id in self.subscribed:
                 raise ProtocolError(f"subscription id {item.id} is in use")
-            if len(self.subscribed) >= MAX_SUBSCRIPTIONS:
-                raise ProtocolError(f"a connection may hold at most {MAX_SUBSCRIPTIONS} subscriptions")
-            box: list[Subscribed] = []
-            try:
-                stream = self._open(channel, box)
-                await stream.start()
-            except PropertyError as exc:
-                await self._status(Level.ERROR, _failure(exc, f"subscribe {channel.topic}"))
-                continue
-            sub = Subscribed(item.id, channel, stream)
-            box.append(sub)
-            self.subscribed[item.id] = sub
-            self._ready.add(sub)  # the current value may be queued already
-            self._wake.set()
+            sub = await self._follow(item.id, channel)
+            if sub is not None:
+                self.subscribed[item.id] = sub
+
+    async def _follow(self, sub_id: int, channel: Channel) -> Subscribed | None:
+        """A started subscription to ``channel``; None (and an error status) when it cannot be."""
+        if len(self.subscribed) + len(self.parameter_subs) >= MAX_SUBSCRIPTIONS:
+            raise ProtocolError(f"a connection may hold at most {MAX_SUBSCRIPTIONS} subscriptions")
+        box: list[Subscribed] = []
+        try:
+            stream = self._open(channel, box)
+            await stream.start()
+        except PropertyError as exc:
+            await self._status(Level.ERROR, _failure(exc, f"subscribe {channel.topic}"))
+            return None
+        sub = Subscribed(sub_id, channel, stream)
+        box.append(sub)
+        self._ready.add(sub)  # the current value may be queued already
+        self._wake.set()
+        return sub
+
+    def _end(self, sub: Subscribed) -> None:
+        sub.live = False
+        sub.stream.close()
+        self._ready.discard(sub)
 
     def _open(self, channel: Channel, box: list[Subscribed]) -> ListenStream:
         """A listen-hub stream for ``channel``; it tells the writer of the subscription put in
@@ -310,8 +329,27 @@ class Connection:
         for sub_id in protocol.ids(body, "subscriptionIds", MAX_ITEMS):
             sub = self.subscribed.pop(sub_id, None)
             if sub is not None:
-                sub.stream.close()
-                self._ready.discard(sub)
+                self._end(sub)
+
+    async def _subscribe_parameters(self, body: Mapping[str, Any]) -> None:
+        names = protocol.names(body, "parameterNames", MAX_ITEMS) or self.catalog.parameter_names()
+        for name in names:
+            if name in self.parameter_subs:
+                continue  # the spec: a parameter is subscribed at most once
+            channel = self.catalog.parameter_channel(name)
+            if channel is None:
+                await self._status(Level.WARNING, f"no parameter {name[:200]!r}")
+                continue
+            sub = await self._follow(0, channel)
+            if sub is not None:
+                self.parameter_subs[name] = sub
+
+    async def _unsubscribe_parameters(self, body: Mapping[str, Any]) -> None:
+        names = protocol.names(body, "parameterNames", MAX_ITEMS) or list(self.parameter_subs)
+        for name in names:
+            sub = self.parameter_subs.pop(name, None)
+            if sub is not None:
+                self._end(sub)
 
     async def _client_advertise(self, body: Mapping[str, Any]) -> None:
         for channel in protocol.client_channels(body, MAX_ITEMS):
@@ -459,8 +497,8 @@ class Connection:
         "unadvertise": _client_unadvertise,
         "getParameters": _get_parameters,
         "setParameters": _set_parameters,
-        "subscribeParameterUpdates": _unsupported,
-        "unsubscribeParameterUpdates": _unsupported,
+        "subscribeParameterUpdates": _subscribe_parameters,
+        "unsubscribeParameterUpdates": _unsubscribe_parameters,
         "subscribeConnectionGraph": _unsupported,
         "unsubscribeConnectionGraph": _unsupported,
         "fetchAsset": _unsupported,
@@ -474,7 +512,7 @@ class Connection:
             await self._wake.wait()
             while self._ready:
                 sub = self._ready.pop()
-                if self.subscribed.get(sub.id) is not sub:
+                if not sub.live:
                     continue  # unsubscribed meanwhile
                 while (item := sub.stream.take()) is not None:
                     if isinstance(item, Mark):
@@ -499,12 +537,23 @@ class Connection:
                     await self._status(
                         Level.ERROR, _failure(sub.stream.error, f"subscription {sub.channel.topic}")
                     )
-                    self.subscribed.pop(sub.id, None)
-                    sub.stream.close()
+                    if self.subscribed.get(sub.id) is sub:
+                        del self.subscribed[sub.id]
+                    if self.parameter_subs.get(sub.channel.topic) is sub:
+                        del self.parameter_subs[sub.channel.topic]
+                    self._end(sub)
 
-    def _frame(self, sub: Subscribed, service: str, value: Any, time_ns: int, removed: bool) -> bytes | None:
+    def _frame(
+        self, sub: Subscribed, service: str, value: Any, time_ns: int, removed: bool
+    ) -> bytes | str | None:
         channel = sub.channel
         message: dict[str, Any] | None
+        if channel.kind is Kind.PARAMETER:
+            if removed or not isinstance(value, str):
+                return None
+            assert channel.model is not None
+            update = {"name": channel.topic, "value": schemas.typed(channel.model.type, value)}
+            return protocol.text({"op": "parameterValues", "parameters": [update]})
         if channel.kind is Kind.SCENE:
             message = schemas.scene_message(
                 service, value if isinstance(value, str) else "", time_ns, removed

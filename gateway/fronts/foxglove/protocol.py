@@ -26,7 +26,7 @@ JSON_ENCODING = "json"
 SCHEMA_ENCODING = "jsonschema"
 
 #: What this server does beyond sending messages (the spec's "Server Info" capabilities).
-CAPABILITIES = ("clientPublish", "parameters", "services")
+CAPABILITIES = ("clientPublish", "parameters", "parametersSubscribe", "services")
 
 
 class ServerOp(enum.IntEnum):
