@@ -177,3 +177,34 @@ def test_only_what_the_subject_may_read_becomes_a_channel() -> None:
     catalog = Catalog()
     catalog.add("bot", ROBOT, may_read=["speed"])
     assert [c.topic for c in catalog.channels.values()] == ["/bot/speed"]
+
+
+def test_two_connections_shown_the_same_robot_share_its_channels_and_their_ids() -> None:
+    first, second = Catalog(), Catalog()
+    first.add("bot", ROBOT)
+    second.add("bot", ROBOT)
+    assert list(first.channels) == list(second.channels)
+    assert all(first.channels[i] is second.channels[i] for i in first.channels)
+
+
+def test_a_service_that_leaves_is_taken_out_of_the_catalog_with_the_ids_to_unadvertise() -> None:
+    catalog = Catalog()
+    catalog.add("bot", ROBOT)
+    catalog.add("other", ServiceModel("mobile_robot", (SPEED,)))
+    catalog.add_scene()
+    bot_channels = {c.id for c in catalog.channels.values() if c.service == "bot"}
+    channels, services = catalog.remove("bot")
+    assert set(channels) == bot_channels
+    assert len(services) == 2
+    assert sorted(c.topic for c in catalog.channels.values()) == ["/other/speed", SCENE_TOPIC]
+    assert catalog.parameter_names() == ["/other/speed"]
+
+
+def test_a_parameter_is_followed_by_a_channel_of_its_own_kind() -> None:
+    catalog = Catalog()
+    catalog.add("bot", ROBOT)
+    channel = catalog.parameter_channel("/bot/speed")
+    assert channel is not None
+    assert (channel.kind, channel.service, channel.path) == (Kind.PARAMETER, "bot", "speed")
+    assert channel.id not in catalog.channels  # never advertised
+    assert catalog.parameter_channel("/bot/location") is None
