@@ -238,7 +238,9 @@ class HttpFront:
             raise
         finally:
             route = _route_of(request)
-            streamed = route in STREAM_ROUTES or any(route == f"GET {ws.path}" for ws in self.websockets)
+            # A WebSocket (its own route, or an upgrade at /) lives as long as its client stays.
+            upgraded = request.headers.get(hdrs.UPGRADE, "").lower() == "websocket"
+            streamed = route in STREAM_ROUTES or upgraded
             counts.done(route, status, None if streamed else perf_counter() - started)
 
     async def _answer(self, request: web.Request, handler: Handler) -> web.StreamResponse:
