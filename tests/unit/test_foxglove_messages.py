@@ -10,6 +10,7 @@ import struct
 
 import pytest
 
+from gateway.fronts.foxglove import catalog as catalog_module
 from gateway.fronts.foxglove import protocol, schemas
 from gateway.fronts.foxglove.catalog import SCENE_TOPIC, Catalog, Kind
 from gateway.fronts.foxglove.protocol import ClientMessage, ProtocolError, ServiceCallRequest
@@ -208,3 +209,11 @@ def test_a_parameter_is_followed_by_a_channel_of_its_own_kind() -> None:
     assert (channel.kind, channel.service, channel.path) == (Kind.PARAMETER, "bot", "speed")
     assert channel.id not in catalog.channels  # never advertised
     assert catalog.parameter_channel("/bot/location") is None
+
+
+def test_a_catalog_stops_at_its_bound_and_says_it_was_cut(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(catalog_module, "MAX_PROPERTIES", 3)
+    catalog = Catalog()
+    catalog.add("bot", ROBOT)
+    assert catalog.clipped
+    assert len(catalog.properties) == 3

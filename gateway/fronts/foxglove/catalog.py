@@ -34,6 +34,10 @@ SCENE_TOPIC = "/scene"
 #: The most channels one connection is shown: each is a line of the advertisement and, once
 #: subscribed, a Listen stream; a registry bigger than this is shown in part, and says so.
 MAX_CHANNELS = 4096
+#: The most properties (channels, services and parameters together) one connection is shown:
+#: a registry of 10,000 services describes 13 properties for each, and a connection's tables
+#: must stay small whatever the gateway serves.
+MAX_PROPERTIES = 4 * MAX_CHANNELS
 #: Types a parameter may have: what Foxglove's parameter panel edits as a scalar.
 PARAMETER_TYPES = frozenset({"number", "integer", "boolean", "text"})
 
@@ -201,6 +205,9 @@ class Catalog:
         for described in model.properties:
             if described.type == "namespace":
                 continue
+            if len(self.properties) >= MAX_PROPERTIES:
+                self.clipped = True
+                return
             prop = shared(described)
             topic = topic_of(service, prop.name)
             self.properties[topic] = shared_property(service, prop.name, prop)

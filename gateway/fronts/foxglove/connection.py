@@ -37,7 +37,7 @@ from gateway.engine.rules import Operation, Subject
 from gateway.engine.status import to_property_error
 from gateway.engine.types import DescribeCall, GetCall, SetCall
 from gateway.fronts.foxglove import protocol, schemas
-from gateway.fronts.foxglove.catalog import Catalog, Channel, Kind, Service
+from gateway.fronts.foxglove.catalog import MAX_CHANNELS, MAX_PROPERTIES, Catalog, Channel, Kind, Service
 from gateway.fronts.foxglove.protocol import Level, ProtocolError
 from services.kernel.errors import Code, InvalidArgument, PropertyError
 
@@ -243,7 +243,10 @@ class Connection:
             await self._describe(service)
         self.catalog.add_scene()
         if self.catalog.clipped:
-            await self._status(Level.WARNING, "only the first 4096 channels are advertised")
+            await self._status(
+                Level.WARNING,
+                f"only the first {MAX_CHANNELS} channels and {MAX_PROPERTIES} properties are shown",
+            )
         channels = [c.advertised() for c in self.catalog.channels.values()]
         await self._send(protocol.text({"op": "advertise", "channels": channels}))
         services = [s.advertised() for s in self.catalog.services.values()]
