@@ -15,6 +15,6 @@
 The routes and formats are documented in ``docs/http-api.md``.
 """
 
-from gateway.fronts.http.front import HttpFront
+from gateway.fronts.http.front import HttpFront, WebSocketRoute
 
-__all__ = ["HttpFront"]
+__all__ = ["HttpFront", "WebSocketRoute"]

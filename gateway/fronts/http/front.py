@@ -16,6 +16,7 @@ import json
 import logging
 from collections.abc import Awaitable, Callable
 from time import perf_counter
+from typing import NamedTuple
 
 from aiohttp import HttpVersion11, hdrs, web
 from aiohttp.http_exceptions import HttpProcessingError
@@ -26,6 +27,7 @@ from gateway.connections import BoundedListener, ConnectionCaps
 from gateway.engine.calls import Calls
 from gateway.engine.guard import Guard
 from gateway.engine.listen import ListenHub
+from gateway.engine.rules import Subject
 from gateway.fronts.http.api import Api, body_too_large
 from gateway.fronts.http.bodies import BodyTooLarge
 from gateway.fronts.http.console import CONSOLE_ROOT, Console
@@ -34,7 +36,7 @@ from gateway.fronts.http.events import EventStreams
 from gateway.fronts.http.image_stream import ImageStreams
 from gateway.fronts.http.openapi import document
 from gateway.fronts.http.places import StreamPlaces
-from gateway.fronts.http.safety import JSON_TYPE, check_request
+from gateway.fronts.http.safety import JSON_TYPE, check_request, identify
 from gateway.logs import (
     REQUEST_ID_HEADER,
     RequestContext,
@@ -50,6 +52,22 @@ from services.kernel.errors import Code, InvalidArgument, PropertyError, Resourc
 log = logging.getLogger("gateway.fronts.http")
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+
+class WebSocketRoute(NamedTuple):
+    """A WebSocket protocol served on this port by another front (Foxglove's, rosbridge's).
+
+    The HTTP front checks the request as every other (Origin, Host), names its subject (bearer
+    header, ``ps_token`` cookie, client certificate) and holds one of the stream places
+    (``http.max_streams``, ``max_streams_per_client``) while ``handler`` serves it. ``path`` is its
+    own route; an upgrade at ``/`` that offers one of ``subprotocols`` goes to it too (clients such
+    as Foxglove's dial ``ws://host:port/``).
+    """
+
+    path: str
+    subprotocols: tuple[str, ...]
+    handler: Callable[[web.Request, Subject], Awaitable[web.StreamResponse]]
+
 
 #: HTTP errors aiohttp raises itself, as the code each stands for (others: by their class of status).
 _HTTP_CODES = {404: Code.NOT_FOUND, 413: Code.RESOURCE_EXHAUSTED}
@@ -88,6 +106,10 @@ class HttpFront:
         self.settings = config.http
         self.config = config
         self.api = Api(calls, guard, self.settings.max_body)
+        self.guard = guard
+        #: WebSocket protocols of other fronts served here (set before :meth:`start`).
+        self.websockets: list[WebSocketRoute] = []
+        self.websocket_origins = frozenset(origin.lower() for origin in self.settings.websocket_origins)
         #: Event streams and live images share the bounds on open streams.
         self.places = StreamPlaces(self.settings)
         self.events = EventStreams(
@@ -142,10 +164,37 @@ class HttpFront:
         add("GET", "/api/v1/openapi.json", openapi_json)
         if self.metrics is not None:
             add("GET", "/metrics", self.metrics)
+        for route in self.websockets:
+            add("GET", route.path, self._websocket(route))
+        if self.settings.console or self.websockets:
+            add("GET", "/", self._root)
         if self.settings.console:
-            add("GET", "/", self.console.file)
             add("GET", "/console/{file:.*}", self.console.file)
         return app
+
+    def _websocket(self, route: WebSocketRoute) -> Handler:
+        async def serve(request: web.Request) -> web.StreamResponse:
+            subject = identify(request, self.guard)
+            peer = request.remote or "?"
+            refused = self.places.refusal(peer)
+            if refused is not None:
+                return refused
+            with self.places.held(peer):
+                return await route.handler(request, subject)
+
+        return serve
+
+    async def _root(self, request: web.Request) -> web.StreamResponse:
+        """``/``: a WebSocket upgrade offering a served subprotocol goes to its front; anything
+        else is the console (when served)."""
+        if request.headers.get(hdrs.UPGRADE, "").lower() == "websocket":
+            offered = {p.strip() for p in request.headers.get(hdrs.SEC_WEBSOCKET_PROTOCOL, "").split(",")}
+            for route in self.websockets:
+                if offered.intersection(route.subprotocols):
+                    return await self._websocket(route)(request)
+        if not self.settings.console:
+            raise web.HTTPNotFound()
+        return await self.console.file(request)
 
     async def _expect(self, request: web.Request) -> web.StreamResponse | None:
         """``Expect: 100-continue``: a body announced over ``max_body`` (JSON) or over the property's
@@ -189,7 +238,10 @@ class HttpFront:
             raise
         finally:
             route = _route_of(request)
-            counts.done(route, status, None if route in STREAM_ROUTES else perf_counter() - started)
+            # A WebSocket (its own route, or an upgrade at /) lives as long as its client stays.
+            upgraded = request.headers.get(hdrs.UPGRADE, "").lower() == "websocket"
+            streamed = route in STREAM_ROUTES or upgraded
+            counts.done(route, status, None if streamed else perf_counter() - started)
 
     async def _answer(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         what = f"{request.method} {request.path[:200]}"
@@ -199,7 +251,12 @@ class HttpFront:
             RequestContext(request_id, request.match_info.get("service"), request.match_info.get("path"))
         )
         try:
-            check_request(request, self.loopback_only, routed=request.match_info.http_exception is None)
+            check_request(
+                request,
+                self.loopback_only,
+                routed=request.match_info.http_exception is None,
+                websocket_origins=self.websocket_origins,
+            )
             return await handler(request)
         except BodyTooLarge as exc:
             return error_response(exc, what, status=PAYLOAD_TOO_LARGE)
