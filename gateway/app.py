@@ -544,9 +544,21 @@ class Gateway:
         self.http.max_connections = self.shares.get("http.max_connections", self.config.http.max_connections)
         if self.config.metrics.enabled:
             self.http.metrics = self._metrics_endpoint().guarded
+        self.http.websockets.append(self._foxglove_route())
         self.http.websockets.append(self._rosbridge_route())
         await self.http.start()
         self.http_address = self.http.address
+
+    def _foxglove_route(self) -> WebSocketRoute:
+        """The Foxglove WebSocket protocol on the HTTP front's port (docs/ros-and-foxglove.md)."""
+        from gateway.fronts.foxglove import SUBPROTOCOLS, FoxgloveEndpoint
+        from gateway.fronts.http import WebSocketRoute
+
+        http = self.config.http
+        endpoint = FoxgloveEndpoint(
+            self.servicer.calls, self.hub, write_timeout=http.write_timeout, heartbeat=http.heartbeat
+        )
+        return WebSocketRoute("/foxglove", SUBPROTOCOLS, endpoint.serve)
 
     def _rosbridge_route(self) -> WebSocketRoute:
         """rosbridge v2 on the HTTP front's port, at ``/rosbridge`` (docs/ros-and-foxglove.md)."""

@@ -222,6 +222,9 @@ class HttpSection:
     #: Seconds a connection may stay open with no request running (a fresh one that sends
     #: nothing, or a kept-alive one between requests); an event stream is a running request.
     idle_timeout: float = option(60.0, above=True, unit="seconds")
+    #: Origins besides the front end's own whose pages may open its WebSockets (the Foxglove
+    #: endpoint), e.g. ``["https://app.foxglove.dev"]``; every other route keeps to its own origin.
+    websocket_origins: tuple[str, ...] = ()
 
 
 #: Connections the ``[metrics] listen`` port holds at once, and from one address: a scraper or
@@ -676,8 +679,29 @@ def _check_http_exposure(http: HttpSection, gw: GatewaySection, tls: TlsSection,
     )
 
 
+def _origins(value: Any, where: str) -> tuple[str, ...]:
+    """Origins as a browser sends them: ``scheme://host`` with an optional port, nothing after."""
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise ConfigError(f'{where}: expected an array of origins like ["https://app.foxglove.dev"]')
+    for origin in value:
+        scheme, sep, rest = origin.partition("://")
+        if not sep or not scheme or not rest or "/" in rest:
+            raise ConfigError(f"{where}: {origin[:100]!r} is no origin: write scheme://host[:port], no path")
+    return tuple(value)
+
+
 def _http(data: Any, where: str, gw: GatewaySection, tls: TlsSection, limits: Limits) -> HttpSection:
+    found_before: list[str] = []
+    origins: tuple[str, ...] = ()
+    if isinstance(data, Mapping) and "websocket_origins" in data:
+        try:
+            origins = _origins(data["websocket_origins"], f"{where}.websocket_origins")
+        except ConfigError as exc:
+            found_before.extend(exc.problems)
+
     def checks(http: HttpSection, found: list[str]) -> HttpSection:
+        found.extend(found_before)
+        http = replace(http, websocket_origins=origins)
         if http.listen:
             try:
                 _check_address(http.listen, f"{where}.listen")
@@ -697,7 +721,7 @@ def _http(data: Any, where: str, gw: GatewaySection, tls: TlsSection, limits: Li
             found.extend(exc.problems)
         return http
 
-    return _checked_section(HttpSection, data, where, checks)
+    return _checked_section(HttpSection, data, where, checks, skip=("websocket_origins",))
 
 
 def _metrics(data: Any, where: str, gw: GatewaySection) -> MetricsSection:

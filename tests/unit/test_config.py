@@ -135,3 +135,15 @@ def test_unknown_url_scheme_is_a_clear_error() -> None:
     assert "nope" not in PROXY_SCHEMES
     with pytest.raises(InvalidArgument, match="unknown URL scheme"):
         open_proxy("arm", "nope://somewhere", {})
+
+
+def test_websocket_origins_are_read_as_origins_and_anything_else_is_refused() -> None:
+    config = loads_config(
+        '[http]\nwebsocket_origins = ["https://app.foxglove.dev", "http://localhost:5173"]\n'
+    )
+    assert config.http.websocket_origins == ("https://app.foxglove.dev", "http://localhost:5173")
+    assert loads_config("").http.websocket_origins == ()
+    with pytest.raises(ConfigError, match="expected an array of origins"):
+        loads_config('[http]\nwebsocket_origins = "https://app.foxglove.dev"\n')
+    with pytest.raises(ConfigError, match="is no origin"):
+        loads_config('[http]\nwebsocket_origins = ["app.foxglove.dev"]\n')

@@ -55,11 +55,13 @@ Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 
 class WebSocketRoute(NamedTuple):
-    """A WebSocket protocol served on this port by another front (rosbridge's).
+    """A WebSocket protocol served on this port by another front (Foxglove's, rosbridge's).
 
     The HTTP front checks the request as every other (Origin, Host), names its subject (bearer
     header, ``ps_token`` cookie, client certificate) and holds one of the stream places
-    (``http.max_streams``, ``max_streams_per_client``) while ``handler`` serves it.
+    (``http.max_streams``, ``max_streams_per_client``) while ``handler`` serves it. ``path`` is its
+    own route; an upgrade at ``/`` that offers one of ``subprotocols`` goes to it too (clients such
+    as Foxglove's dial ``ws://host:port/``).
     """
 
     path: str
@@ -107,6 +109,7 @@ class HttpFront:
         self.guard = guard
         #: WebSocket protocols of other fronts served here (set before :meth:`start`).
         self.websockets: list[WebSocketRoute] = []
+        self.websocket_origins = frozenset(origin.lower() for origin in self.settings.websocket_origins)
         #: Event streams and live images share the bounds on open streams.
         self.places = StreamPlaces(self.settings)
         self.events = EventStreams(
@@ -154,8 +157,6 @@ class HttpFront:
         add("POST", "/api/v1/services/{service}/properties/{path}", api.set, expect_handler=self._expect)
         add("GET", "/api/v1/events", self.events.events)
         add("GET", "/api/v1/health", api.health)
-        for route in self.websockets:
-            add("GET", route.path, self._websocket(route))
 
         async def openapi_json(request: web.Request) -> web.Response:
             return web.Response(text=openapi, content_type="application/json")
@@ -163,8 +164,11 @@ class HttpFront:
         add("GET", "/api/v1/openapi.json", openapi_json)
         if self.metrics is not None:
             add("GET", "/metrics", self.metrics)
+        for route in self.websockets:
+            add("GET", route.path, self._websocket(route))
+        if self.settings.console or self.websockets:
+            add("GET", "/", self._root)
         if self.settings.console:
-            add("GET", "/", self.console.file)
             add("GET", "/console/{file:.*}", self.console.file)
         return app
 
@@ -179,6 +183,18 @@ class HttpFront:
                 return await route.handler(request, subject)
 
         return serve
+
+    async def _root(self, request: web.Request) -> web.StreamResponse:
+        """``/``: a WebSocket upgrade offering a served subprotocol goes to its front; anything
+        else is the console (when served)."""
+        if request.headers.get(hdrs.UPGRADE, "").lower() == "websocket":
+            offered = {p.strip() for p in request.headers.get(hdrs.SEC_WEBSOCKET_PROTOCOL, "").split(",")}
+            for route in self.websockets:
+                if offered.intersection(route.subprotocols):
+                    return await self._websocket(route)(request)
+        if not self.settings.console:
+            raise web.HTTPNotFound()
+        return await self.console.file(request)
 
     async def _expect(self, request: web.Request) -> web.StreamResponse | None:
         """``Expect: 100-continue``: a body announced over ``max_body`` (JSON) or over the property's
@@ -222,7 +238,9 @@ class HttpFront:
             raise
         finally:
             route = _route_of(request)
-            streamed = route in STREAM_ROUTES or any(route == f"GET {ws.path}" for ws in self.websockets)
+            # A WebSocket (its own route, or an upgrade at /) lives as long as its client stays.
+            upgraded = request.headers.get(hdrs.UPGRADE, "").lower() == "websocket"
+            streamed = route in STREAM_ROUTES or upgraded
             counts.done(route, status, None if streamed else perf_counter() - started)
 
     async def _answer(self, request: web.Request, handler: Handler) -> web.StreamResponse:
@@ -233,7 +251,12 @@ class HttpFront:
             RequestContext(request_id, request.match_info.get("service"), request.match_info.get("path"))
         )
         try:
-            check_request(request, self.loopback_only, routed=request.match_info.http_exception is None)
+            check_request(
+                request,
+                self.loopback_only,
+                routed=request.match_info.http_exception is None,
+                websocket_origins=self.websocket_origins,
+            )
             return await handler(request)
         except BodyTooLarge as exc:
             return error_response(exc, what, status=PAYLOAD_TOO_LARGE)

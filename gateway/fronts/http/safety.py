@@ -55,10 +55,13 @@ def is_loopback_host(host: str) -> bool:
         return False
 
 
-def check_request(request: web.Request, loopback: bool, routed: bool = True) -> None:
+def check_request(
+    request: web.Request, loopback: bool, routed: bool = True, websocket_origins: frozenset[str] = frozenset()
+) -> None:
     """Refuse (PermissionDenied, InvalidArgument) what a browser may have been tricked into sending.
 
     ``routed``: the request matched a route (else its content type is not judged: 404 or 405 tells more).
+    ``websocket_origins``: origins (lower case) whose pages may also open a WebSocket here.
     """
     host = request.headers.get(hdrs.HOST, "")
     if loopback and not is_loopback_host(host):
@@ -69,7 +72,8 @@ def check_request(request: web.Request, loopback: bool, routed: bool = True) -> 
     origin = request.headers.get(hdrs.ORIGIN)
     if origin is not None:
         own = f"{request.scheme}://{host}".lower()
-        if origin.lower() != own:
+        upgrade = request.headers.get(hdrs.UPGRADE, "").lower() == "websocket"
+        if origin.lower() != own and not (upgrade and origin.lower() in websocket_origins):
             raise PermissionDenied(
                 f"origin {origin[:100]!r} is not this front end's own ({own[:100]!r}): requests from"
                 " pages of other origins are refused"
