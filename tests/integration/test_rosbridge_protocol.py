@@ -224,3 +224,21 @@ async def test_a_page_of_another_origin_and_a_plain_get_are_refused(
     async with session.get(f"http://{robot.http_address}/rosbridge") as plain:
         assert plain.status == 400
         assert "speaks WebSocket only" in (await plain.json())["error"]["message"]
+
+
+async def test_a_page_of_an_origin_named_in_websocket_origins_may_open_rosbridge(
+    gateway_process: Callable[[str], GatewayProcess], session: aiohttp.ClientSession
+) -> None:
+    gw = gateway_process(ROBOT + '[http]\nwebsocket_origins = ["http://teleop.example"]\n')
+    url = f"ws://{gw.http_address}/rosbridge"
+    async with session.ws_connect(url, origin="http://teleop.example") as ws:
+        await ws.send_json({"op": "call_service", "id": "c", "service": "/scout1/speed"})
+        assert (await next_of(ws, "service_response"))["result"] is True
+    # Its pages still may not use the JSON routes, nor may another origin's open the socket.
+    async with session.get(
+        f"http://{gw.http_address}/api/v1/health", headers={"Origin": "http://teleop.example"}
+    ) as r:
+        assert r.status == 403
+    with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+        await session.ws_connect(url, origin="http://evil.example")
+    assert refused.value.status == 403
