@@ -95,12 +95,13 @@
     locationOut.textContent = "—";
     if (!robot) return;
 
-    const name_ = topicTypes.has(`/${robot}/location`) ? `/${robot}/location` : `/${robot}/odom`;
-    locationOut.dataset.topic = name_;
+    // The robot's location as a geometry_msgs/Pose2D (x, y, theta), at most 10 a second.
+    const poseName = `/${robot}/location`;
+    locationOut.dataset.topic = poseName;
     locationTopic = new ROSLIB.Topic({
       ros,
-      name: name_,
-      messageType: topicTypes.get(name_) || "geometry_msgs/Pose2D",
+      name: poseName,
+      messageType: "geometry_msgs/Pose2D",
       throttle_rate: 100,
       queue_length: 1,
     });
