@@ -539,8 +539,12 @@ class Gateway:
             return
         # Imported only when configured: aiohttp takes a quarter of a second to import.
         from gateway.fronts.http import HttpFront
+        from gateway.fronts.rosbridge import ROSBRIDGE_PATH, RosbridgeEndpoint
 
         self.http = HttpFront(self.servicer.calls, self.hub, self.config, self.guard)
+        self.http.websockets[ROSBRIDGE_PATH] = RosbridgeEndpoint(
+            self.servicer.calls, self.hub, self.guard, write_timeout=self.config.http.write_timeout
+        )
         self.http.max_connections = self.shares.get("http.max_connections", self.config.http.max_connections)
         if self.config.metrics.enabled:
             self.http.metrics = self._metrics_endpoint().guarded

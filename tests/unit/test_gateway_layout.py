@@ -17,7 +17,7 @@ from tests.unit.test_import_graph import Import, project_imports
 ENGINE = "gateway.engine"
 FRONTS = "gateway.fronts"
 #: The fronts there are; a new one is a new folder here and in docs/architecture.md.
-FRONT_NAMES = ("grpc_v1", "http", "line")
+FRONT_NAMES = ("grpc_v1", "http", "line", "rosbridge")
 #: What stands above the engine: the assembly, the command line and its entry point.
 ABOVE_THE_ENGINE = ("gateway.app", "gateway.cli", "gateway.__main__", "gateway.testing")
 CONFIG = "gateway.config"

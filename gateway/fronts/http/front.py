@@ -35,6 +35,7 @@ from gateway.fronts.http.image_stream import ImageStreams
 from gateway.fronts.http.openapi import document
 from gateway.fronts.http.places import StreamPlaces
 from gateway.fronts.http.safety import JSON_TYPE, check_request
+from gateway.fronts.http.websockets import WebSocketEndpoint, WebSockets
 from gateway.logs import (
     REQUEST_ID_HEADER,
     RequestContext,
@@ -97,6 +98,10 @@ class HttpFront:
             hub, calls, guard=guard, limits=config.limits, settings=self.settings, places=self.places
         )
         self.console = Console(CONSOLE_ROOT)
+        #: WebSocket endpoints by path (rosbridge's at ``/rosbridge``), set by the gateway before
+        #: :meth:`start`; each socket takes a place of the stream count.
+        self.websockets: dict[str, WebSocketEndpoint] = {}
+        self.sockets = WebSockets(guard, self.settings, self.places)
         #: Whether Host headers must be loopback names (DNS rebinding): the front end listens on loopback.
         self.loopback_only = is_loopback(self.settings.listen)
         self._runner: web.AppRunner | None = None
@@ -135,6 +140,8 @@ class HttpFront:
         add("POST", "/api/v1/services/{service}/properties/{path}", api.set, expect_handler=self._expect)
         add("GET", "/api/v1/events", self.events.events)
         add("GET", "/api/v1/health", api.health)
+        for path, endpoint in self.websockets.items():
+            add("GET", path, self.sockets.handler(endpoint))
 
         async def openapi_json(request: web.Request) -> web.Response:
             return web.Response(text=openapi, content_type="application/json")
@@ -189,7 +196,8 @@ class HttpFront:
             raise
         finally:
             route = _route_of(request)
-            counts.done(route, status, None if route in STREAM_ROUTES else perf_counter() - started)
+            streamed = route in STREAM_ROUTES or route.partition(" ")[2] in self.websockets
+            counts.done(route, status, None if streamed else perf_counter() - started)
 
     async def _answer(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         what = f"{request.method} {request.path[:200]}"

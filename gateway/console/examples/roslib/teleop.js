@@ -192,12 +192,12 @@
     const service = new ROSLIB.Service({
       ros,
       name: `/${robot}/behaviors/moveto`,
-      serviceType: "propertyservice/Action",
+      serviceType: "geometry_msgs/Pose2D",
     });
     result.dataset.state = "calling";
     result.textContent = "calling…";
     service.callService(
-      new ROSLIB.ServiceRequest({ target: `<marker><location>(${x} ${y} 0 0 0 0)</location></marker>` }),
+      new ROSLIB.ServiceRequest({ x, y }), // the target as a point, as ROS's go-to services take it
       () => {
         result.dataset.state = "ok";
         result.textContent = `moving to ${x} ${y}`;
