@@ -192,7 +192,7 @@
     const service = new ROSLIB.Service({
       ros,
       name: `/${robot}/behaviors/moveto`,
-      serviceType: "geometry_msgs/Pose2D",
+      serviceType: "propertyservice/Action", // what /rosapi/service_type says of an action
     });
     result.dataset.state = "calling";
     result.textContent = "calling…";
