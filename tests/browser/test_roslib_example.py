@@ -156,6 +156,15 @@ def readout(browser: Any) -> str:
     return str(browser.find_element(CSS, "#location").text.strip())
 
 
+def readout_xy(browser: Any) -> np.ndarray:
+    """The x and y of the readout (``x 1.23 y -0.45 θ 0.10``); NaN when it shows none yet."""
+    words = readout(browser).split()
+    try:
+        return np.array([float(words[words.index("x") + 1]), float(words[words.index("y") + 1])])
+    except (ValueError, IndexError):
+        return np.array([np.nan, np.nan])
+
+
 def test_the_page_lists_the_topics_of_every_robot(page: Any, robots_gateway: ConsoleGateway) -> None:
     open_page(page, robots_gateway, "scout1")
     for robot in ROBOTS:
@@ -194,7 +203,14 @@ def test_the_joystick_drives_the_robot_and_letting_go_stops_it(
     finally:
         ActionChains(page).release().perform()
         robots.set(robot, "velocity_timeout", 0.5)
-    assert float(np.linalg.norm(xy(robots, robot) - start)) > 0.01, f"{robot} moved"
+    here = xy(robots, robot)
+    assert float(np.linalg.norm(here - start)) > 0.01, f"{robot} moved"
+    # Standing still, the readout shows where the robot is (to its two decimals).
+    wait_for(
+        page,
+        lambda d: np.allclose(readout_xy(d), here, atol=0.011),
+        f"the readout showing {robot} at {here}",
+    )
 
 
 @pytest.mark.parametrize("robot", ROBOTS)

@@ -5,10 +5,10 @@
 "use strict";
 
 (() => {
-  //: How often a held joystick repeats its command: the robot stops when commands stop coming
-  //: (its velocity_timeout), so a held stick must renew well within it. 10 Hz is teleop's usual rate.
+  // How often a held joystick repeats its command: the robot stops when commands stop coming
+  // (its velocity_timeout), so a held stick must renew well within it. 10 Hz is teleop's usual rate.
   const PUBLISH_PERIOD_MS = 100;
-  //: Full deflection of the stick: m/s forward and rad/s of turn (the simulated robots clip to theirs).
+  // Full deflection of the stick: m/s forward and rad/s of turn (the simulated robots clip to theirs).
   const MAX_LINEAR = 0.5;
   const MAX_ANGULAR = 1.0;
 
@@ -111,18 +111,10 @@
     cmdVel = new ROSLIB.Topic({ ros, name: `/${robot}/cmd_vel`, messageType: "geometry_msgs/Twist" });
   }
 
-  // The position in whichever of the usual shapes the topic's type has.
-  function describePosition(message) {
+  // A geometry_msgs/Pose2D as the readout shows it.
+  function describePosition(pose) {
     const fixed = (v) => Number(v).toFixed(2);
-    if (message.pose && message.pose.pose) message = message.pose; // nav_msgs/Odometry
-    if (message.pose && message.pose.position) {
-      return `x ${fixed(message.pose.position.x)} y ${fixed(message.pose.position.y)}`;
-    }
-    if ("x" in message && "y" in message) {
-      return `x ${fixed(message.x)} y ${fixed(message.y)}` + ("theta" in message ? ` θ ${fixed(message.theta)}` : "");
-    }
-    if (Array.isArray(message.data)) return `x ${fixed(message.data[0])} y ${fixed(message.data[1])}`;
-    return JSON.stringify(message);
+    return `x ${fixed(pose.x)} y ${fixed(pose.y)} θ ${fixed(pose.theta)}`;
   }
 
   // -- the joystick: drag to drive, let go to stop ------------------------------------------------
