@@ -38,6 +38,7 @@ from bench.peer_ratios import compare as compare_with_peers
 from bench.peers import BY_NAME as PEERS_BY_NAME
 from bench.peers import run_peer
 from bench.register import run_register
+from bench.rosbridge import run_rosbridge
 from bench.scheduler import run_scheduler
 from bench.sequential import run_sequential
 from bench.servers import ServerProcess
@@ -60,6 +61,7 @@ PARTS = (
     "tls",
     "storage",
     "sse",
+    "rosbridge",
     "statemachine",
     "scheduler",
     "camera",
@@ -101,6 +103,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "scheduler_sizes": (100, 10_000),
         "scheduler_rounds": 1_000,
         "camera_seconds": 10.0,
+        "cmd_vel_trips": 1_000,
         "fusion_sizes": (100, 10_000),
         "fusion_observations": 20_000,
         "cluster_gateways": (1, 2, 4),
@@ -132,6 +135,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "scheduler_sizes": (100, 10_000),
         "scheduler_rounds": 100,
         "camera_seconds": 3.0,
+        "cmd_vel_trips": 200,
         "fusion_sizes": (100, 10_000),
         "fusion_observations": 2_000,
         "cluster_gateways": (1, 2, 4),
@@ -201,7 +205,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "(the floor); (r) Listen fan-out with paced Sets; (s) the peers, OPC UA (asyncua) and Zenoh, "
         "with the same patterns; "
         "(t) Listen fan-out from 1, 2 and 4 gateway processes, the others forwarding from the first, and "
-        "devices across 4 gateways sharing a registry in etcd (registration, find, forwarded Get, failover). "
+        "devices across 4 gateways sharing a registry in etcd (registration, find, forwarded Get, failover); "
+        "(u) rosbridge subscribers beside gRPC Listen and SSE, and a cmd_vel round trip to a robot. "
         "Prints figures, ratios and targets.",
     )
     parser.add_argument(
@@ -311,6 +316,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--camera-seconds",
         type=float,
         help=f"(o) seconds 10 Listeners count a 640x480 30 Hz camera's frames {both('camera_seconds')}",
+    )
+    sizes.add_argument(
+        "--cmd-vel-trips",
+        type=_positive,
+        help=f"(u) Twists published on cmd_vel, each awaited on velocity {both('cmd_vel_trips')}",
     )
     sizes.add_argument(
         "--fusion-sizes",
@@ -558,6 +568,19 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
                 set_rate=args.set_rate,
                 rounds=max(args.rounds, 2),
                 time_limit=args.time_limit,
+            ),
+        )
+    if "rosbridge" in args.parts:
+        results.setdefault("gateway", {})["rosbridge"] = await _timed(
+            f"rosbridge: {args.subscribers} rosbridge subscribers, SSE clients and gRPC Listens on one "
+            f"property; {args.cmd_vel_trips:,} cmd_vel round trips",
+            lambda: run_rosbridge(
+                subscribers=args.subscribers,
+                sets=args.sets,
+                set_rate=args.set_rate,
+                rounds=max(args.rounds, 2),
+                time_limit=args.time_limit,
+                trips=args.cmd_vel_trips,
             ),
         )
     if "statemachine" in args.parts:

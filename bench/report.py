@@ -408,6 +408,41 @@ TARGETS += (
 )
 
 
+#: rosbridge fan-out against gRPC Listen fan-out on one gateway: like SSE, JSON text per message and
+#: one connection per client, plus WebSocket framing; held to SSE's bounds (figures in
+#: docs/performance.md).
+ROSBRIDGE_FANOUT_BOUND = SSE_FANOUT_BOUND
+ROSBRIDGE_LATENCY_BOUND = SSE_LATENCY_BOUND
+
+
+def _rosbridge(results: Results, way: str, figure: str) -> float:
+    data: dict[str, Any] = results["gateway"]["rosbridge"][way]
+    if figure.endswith("_us"):
+        return float(data["latency"][figure])
+    return float(data[figure])
+
+
+TARGETS += (
+    Target(
+        "rosbridge-fanout",
+        "events/s to rosbridge subscribers / to gRPC Listen streams, same subscribers, property and gateway",
+        lambda r: _rosbridge(r, "rosbridge", "events_per_s") / _rosbridge(r, "grpc", "events_per_s"),
+        "min",
+        ROSBRIDGE_FANOUT_BOUND,
+        "x",
+        (("gateway", "rosbridge"),),
+    ),
+    Target(
+        "rosbridge-latency-p50",
+        "Set-to-delivery p50, rosbridge / gRPC Listen, in the same run",
+        lambda r: _rosbridge(r, "rosbridge", "p50_us") / _rosbridge(r, "grpc", "p50_us"),
+        "max",
+        ROSBRIDGE_LATENCY_BOUND,
+        "x",
+        (("gateway", "rosbridge"),),
+    ),
+)
+
 TARGETS += (
     # A bare in-process Set is the cheapest call there is (a few µs, no I/O); a transition also
     # selects, exits, enters, evaluates a guard and an assignment and queues an event. Bound: one
@@ -1126,6 +1161,7 @@ def _issue_tables(out: TextIO, results: Results) -> None:
     elif storage:
         _table(out, "(j) storage", ["where", "figures"], [_error_row("gateway", storage)])
     _sse_table(out, results)
+    _rosbridge_table(out, results)
     _statemachine_table(out, results)
     _scheduler_table(out, results)
     _camera_table(out, results)
@@ -1498,6 +1534,69 @@ def _sse_table(out: TextIO, results: Results) -> None:
         print(
             f"  {idle['streams']} idle SSE streams on a fresh gateway: RSS {idle['rss_before_mib']} → "
             f"{idle['rss_after_mib']} MiB, {idle['per_stream_kib']} KiB per stream",
+            file=out,
+        )
+
+
+def _rosbridge_table(out: TextIO, results: Results) -> None:
+    part = results.get("gateway", {}).get("rosbridge")
+    if not part or "error" in part:
+        return
+    rows = []
+    for way, label in (("grpc", "gRPC Listen"), ("sse", "Server-Sent Events"), ("rosbridge", "rosbridge")):
+        d = part[way]
+        lat, win = d["latency"], d["window"]
+        rows.append(
+            [
+                label,
+                f"{d['events']:,}/{d['expected_events']:,}",
+                _fmt(d["events_per_s"]),
+                _fmt(d["sets_per_s"]),
+                _fmt(lat["p50_us"]),
+                _fmt(lat["p99_us"]),
+                _fmt(d["server_cpu_us_per_event"], 1),
+                f"{win['server_busy']:.0%}",
+                f"{win['client_busy']:.0%}",
+            ]
+        )
+    first = part["rosbridge"]
+    _table(
+        out,
+        f"(u) fan-out to {first['subscribers']} subscribers on one property of one gateway, "
+        f"{first['sets']} Sets: gRPC Listen streams, SSE clients and rosbridge WebSocket subscribers",
+        [
+            "way",
+            "events",
+            "events/s",
+            "Sets/s",
+            "p50 µs",
+            "p99 µs",
+            "srv CPU µs/event",
+            "srv busy",
+            "load busy",
+        ],
+        rows,
+    )
+    ros, grpc_, sse = part["rosbridge"], part["grpc"], part["sse"]
+
+    def ratio(top: float, bottom: float) -> str:
+        return f"{top / bottom:.2f}" if bottom else "n/a"
+
+    print(
+        "  rosbridge / gRPC Listen: events/s "
+        f"{ratio(ros['events_per_s'], grpc_['events_per_s'])}, p50 "
+        f"{ratio(ros['latency']['p50_us'], grpc_['latency']['p50_us'])}; rosbridge / SSE: events/s "
+        f"{ratio(ros['events_per_s'], sse['events_per_s'])}, p50 "
+        f"{ratio(ros['latency']['p50_us'], sse['latency']['p50_us'])}",
+        file=out,
+    )
+    trip = part.get("cmd_vel")
+    if trip:
+        lat = trip["latency"]
+        print(
+            f"  cmd_vel round trip (publish Twist on rosbridge -> the robot's velocity message back): "
+            f"{trip['done']:,}/{trip['trips']:,} trips, p50 {_fmt(lat['p50_us'])} µs, "
+            f"p99 {_fmt(lat['p99_us'])} µs",
             file=out,
         )
 

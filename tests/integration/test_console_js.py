@@ -67,3 +67,25 @@ def test_no_inline_script_handlers_or_eval() -> None:
         text = module.read_text(encoding="utf-8")
         for banned in ("eval(", "new Function(", ".innerHTML", "document.write("):
             assert banned not in text, f"{module.name} uses {banned}"
+
+
+EXAMPLE = CONSOLE / "examples" / "roslib"
+
+
+@needs_node
+def test_the_roslib_example_page_script_parses() -> None:
+    result = _node("--check", str(EXAMPLE / "teleop.js"))
+    assert result.returncode == 0, result.stderr
+
+
+def test_the_roslib_example_page_has_no_inline_scripts_and_loads_roslib_from_its_package() -> None:
+    html = (EXAMPLE / "index.html").read_text(encoding="utf-8")
+    assert re.search(r"\son[a-z]+\s*=", html) is None, "inline event handler in the example page"
+    scripts = re.findall(r"<script\b[^>]*>", html)
+    assert all("src=" in script for script in scripts), scripts
+    # roslibjs comes from the npm package installed beside the page, never from a copy or a CDN.
+    assert '<script src="node_modules/roslib/build/roslib.min.js"></script>' in html
+    assert not list(EXAMPLE.glob("roslib*.js")), "a copy of roslibjs beside the page"
+    text = (EXAMPLE / "teleop.js").read_text(encoding="utf-8")
+    for banned in ("eval(", "new Function(", ".innerHTML", "document.write("):
+        assert banned not in text, f"teleop.js uses {banned}"
