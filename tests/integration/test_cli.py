@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 from support.ports import free_port
+from support.psctl import ctrl_c_reaches_children
 
 PSCTL = [sys.executable, "-m", "clients.cli"]
 
@@ -125,12 +126,13 @@ def test_listen_duration_ends_by_itself(demo_target: str) -> None:
 
 
 def test_listen_ctrl_c_exits_cleanly(demo_target: str) -> None:
-    proc = subprocess.Popen(
-        [*PSCTL, "-t", demo_target, "listen", "thermo1", "data"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    with ctrl_c_reaches_children():
+        proc = subprocess.Popen(
+            [*PSCTL, "-t", demo_target, "listen", "thermo1", "data"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
     try:
         assert proc.stdout is not None
         first = proc.stdout.readline()  # the current value: the stream is up
