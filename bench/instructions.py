@@ -4,7 +4,9 @@ Run ``python -m bench.instructions`` (``--rounds N``, ``--servers bare,gateway,f
 ``--parts unary,fanout``). Each server runs under ``valgrind --tool=callgrind`` (about fifty
 times slower, so the counts come from a few hundred calls); the load comes from this process
 with the same client code as ``python -m bench``. Around each measured batch the counters are
-zeroed and dumped (``callgrind_control``), so start-up and warm-up are not counted. The figure
+zeroed and dumped (``callgrind_control``), so start-up, warm-up and the parts measured before on
+the same server are not counted: each server starts once and serves every part asked of it, one
+after the other (``proxied`` on a start of its own, with the device in its config). The figure
 is the instructions of all the server's threads divided by the calls or events, and of its main
 thread (the event loop: Python, grpc.aio's Cython and the calls into grpc core made from it).
 
@@ -87,6 +89,8 @@ FANOUT_SETS = 40
 QUICK_CALLS = 50
 QUICK_SETS = 5
 SUBSCRIBERS = 100
+#: Seconds the server is left alone between two parts it serves.
+SETTLE = 2.0
 #: Unary parts: one Get per call, counted per Get.
 UNARY_PARTS = frozenset({"unary", "session", "echo", "proxied"})
 
@@ -382,27 +386,50 @@ async def _answering(stub: pb_grpc.PropertyServiceStub, request: pb.GetRequest) 
             await asyncio.sleep(0.5)
 
 
-async def measure(part: str, kind: str, rounds: int, quick: bool) -> list[tuple[float, float]]:
-    """``rounds`` counts of ``part`` on one ``kind`` of server under callgrind."""
+def _size(part: str, quick: bool) -> int:
+    """Calls (unary parts) or Sets (fan-out parts) one round of ``part`` makes."""
     if part in UNARY_PARTS:
-        size = QUICK_CALLS if quick else UNARY_CALLS
-    else:
-        size = QUICK_SETS if quick else FANOUT_SETS
-    device: ServerProcess | None = None
+        return QUICK_CALLS if quick else UNARY_CALLS
+    return QUICK_SETS if quick else FANOUT_SETS
+
+
+async def measure(
+    parts: list[str], kind: str, rounds: int, quick: bool
+) -> dict[str, list[tuple[float, float]]]:
+    """``rounds`` counts of each of ``parts`` on one ``kind`` of server under callgrind, by part.
+
+    One server process serves every part, one after the other (a server under valgrind takes tens
+    of seconds to start); the counters are zeroed and dumped around each measured batch, so what a
+    part before it did is not counted. ``proxied`` alone gets a server of its own, configured with
+    the device: every other part is measured on the server as it runs without one."""
+    counts: dict[str, list[tuple[float, float]]] = {}
+    plain = [part for part in parts if part != "proxied"]
+    if plain:
+        counts.update(await _measure_on_one_server(plain, kind, rounds, quick, device=False))
+    if "proxied" in parts:
+        counts.update(await _measure_on_one_server(["proxied"], kind, rounds, quick, device=True))
+    return {part: counts[part] for part in parts}
+
+
+async def _measure_on_one_server(
+    parts: list[str], kind: str, rounds: int, quick: bool, *, device: bool
+) -> dict[str, list[tuple[float, float]]]:
+    """:func:`measure` on one server process; with ``device``, the gateway serves a line device."""
+    proxy: ServerProcess | None = None
     with tempfile.TemporaryDirectory(prefix="callgrind-") as folder:
         argv = SERVERS[kind]
-        if part == "proxied":
-            device = await ServerProcess.start(
+        if device:
+            proxy = await ServerProcess.start(
                 "device", [*DEVICE_ARGV, "--exit-with-parent"], address_on="stdout"
             )
             config = Path(folder) / "gateway.toml"
-            config.write_text(_device_config(device.address))
+            config.write_text(_device_config(proxy.address))
             argv = [*argv, "--config", str(config)]
         try:
             server = await Counted.start(argv, Path(folder))
         except BaseException:
-            if device is not None:
-                await device.stop()
+            if proxy is not None:
+                await proxy.stop()
             raise
         try:
             async with grpc.aio.insecure_channel(server.address) as channel:
@@ -410,18 +437,27 @@ async def measure(part: str, kind: str, rounds: int, quick: bool) -> list[tuple[
                 for prop in (VALUE_PROPERTY, *BATCH_PROPERTIES):  # the bare server makes them on a Set
                     first = pb.SetRequest(service=SERVICE, property=prop, value="0")
                     await stub.Set(first, timeout=CALL_TIMEOUT)
-                get = pb.GetRequest(service=SERVICE, property=VALUE_PROPERTY)
-                if part == "proxied":
-                    get = pb.GetRequest(service=DEVICE, property=DEVICE_PROPERTY)
-                    await _answering(stub, get)
-                # Warm up: the first calls import and cache.
-                for _ in range(20 if part in {"unary", "proxied"} else 0):
-                    await stub.Get(get, timeout=CALL_TIMEOUT)
-                return [await PARTS[part](server, channel, size) for _ in range(rounds)]
+                counts: dict[str, list[tuple[float, float]]] = {}
+                for number, part in enumerate(parts):
+                    if number:
+                        # Let the server finish tearing down the part before (its streams are
+                        # cancelled as it ends), so that none of it falls into this part's batch.
+                        await asyncio.sleep(SETTLE)
+                    get = pb.GetRequest(service=SERVICE, property=VALUE_PROPERTY)
+                    if part == "proxied":
+                        get = pb.GetRequest(service=DEVICE, property=DEVICE_PROPERTY)
+                        await _answering(stub, get)
+                    # Warm up: the first calls import and cache.
+                    for _ in range(20 if part in {"unary", "proxied"} else 0):
+                        await stub.Get(get, timeout=CALL_TIMEOUT)
+                    counts[part] = [
+                        await PARTS[part](server, channel, _size(part, quick)) for _ in range(rounds)
+                    ]
+                return counts
         finally:
             await server.stop()
-            if device is not None:
-                await device.stop()
+            if proxy is not None:
+                await proxy.stop()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -458,15 +494,20 @@ def main(argv: list[str] | None = None) -> int:
         "echo": "Get",
         "proxied": "Get",
     }
+    # Each server starts once and serves all its parts; the figures are then shown part by part.
+    counts = {
+        kind: asyncio.run(measure([p for p in parts if p in SERVES[kind]], kind, args.rounds, args.quick))
+        for kind in kinds
+        if any(p in SERVES[kind] for p in parts)
+    }
     for part in parts:
         medians: dict[str, float] = {}
         for kind in kinds:
             if part not in SERVES[kind]:
                 print(f"{part:6} {kind:8} (not measured: it serves {', '.join(SERVES[kind])} only)")
                 continue
-            counts = asyncio.run(measure(part, kind, args.rounds, args.quick))
-            medians[kind] = statistics.median(total for total, _ in counts)
-            shown = ", ".join(f"{total:,.0f} ({main:,.0f} main)" for total, main in counts)
+            medians[kind] = statistics.median(total for total, _ in counts[kind][part])
+            shown = ", ".join(f"{total:,.0f} ({main:,.0f} main)" for total, main in counts[kind][part])
             print(f"{part:6} {kind:8} instructions per {per[part]}: {shown}; median {medians[kind]:,.0f}")
         if "bare" in medians:
             for kind, median in medians.items():
