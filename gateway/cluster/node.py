@@ -82,6 +82,12 @@ log = logging.getLogger(__name__)
 FORWARD_OPTIONS: Mapping[str, Any] = {"backoff_initial": 0.1, "backoff_max": 2.0}
 #: Seconds a gateway that stops spends handing its services over (deleting its keys) at most.
 LEAVE_WAIT = 3.0
+#: Seconds a registration waits for a name's owner to let the name go when its registration is
+#: gone already: unregistered through another gateway, the owner deletes its owners key once it
+#: sees that, a moment later (longer on a busy machine).
+RELEASE_WAIT = 2.0
+#: Seconds between two tries to take such a name.
+RELEASE_POLL = 0.05
 #: Writes to the store at once when this gateway hands its keys over (leaving).
 MAX_WRITES = 64
 #: Devices taken over that are being connected at once (a TCP connect, the greeting, a properties
@@ -528,7 +534,7 @@ class ClusterNode:
 
     async def _claim(self, name: str, registration: Registration, *, leased: bool) -> None:
         """Create the owners key, then the services key; AlreadyExists (nothing left) when taken."""
-        if not await self._create(Kind.OWNER, name, self.me, leased=True):
+        if not await self._take_owner(name):
             owner = self.view.owners.get(name, "another gateway")
             raise AlreadyExists(f"the name {name!r} is taken in the cluster (owned by gateway {owner})")
         if not await self._create(Kind.SERVICE, name, registration.to_json(), leased=leased):
@@ -536,6 +542,17 @@ class ClusterNode:
             held = self.view.registrations.get(name)
             by = f"by {held.url}" if held is not None else "by another registration"
             raise AlreadyExists(f"the name {name!r} is taken in the cluster ({by}); unregister it first")
+
+    async def _take_owner(self, name: str) -> bool:
+        """Create the name's owners key. While the name has no registration (its owner is letting
+        it go), try again for up to RELEASE_WAIT seconds; False when it stays taken."""
+        loop = asyncio.get_running_loop()
+        give_up = loop.time() + RELEASE_WAIT
+        while not await self._create(Kind.OWNER, name, self.me, leased=True):
+            if name in self.view.registrations or loop.time() >= give_up:
+                return False
+            await asyncio.sleep(RELEASE_POLL)
+        return True
 
     async def _release(self, name: str, registration: Registration) -> None:
         """Undo :meth:`_claim` (the proxy could not be made); never raises."""
