@@ -182,6 +182,37 @@ async def test_readers_past_the_budget_are_ended_with_resource_exhausted_until_t
         assert "Traceback" not in gw.output
 
 
+async def listen_in_a_session(stub: pb_grpc.PropertyServiceStub, count: int) -> dict[int, pb.Reply] | None:
+    """Set a new picture (the stalled readers' next value waits for them), then, in one Session, a
+    Listen (id 1) and, once it is answered, a Get (id 2): both replies when the Listen was refused,
+    None when it was served (the readers' values had left for their sockets meanwhile)."""
+    await stub.Set(pb.SetRequest(service="blobs", property="picture", data=payload(VALUE, count)), timeout=10)
+    requests: asyncio.Queue[pb.SessionRequest | None] = asyncio.Queue()
+
+    async def sent() -> AsyncIterator[pb.SessionRequest]:
+        while (message := await requests.get()) is not None:
+            yield message
+
+    session = stub.Session(sent(), timeout=10)
+    listen = pb.ListenRequest(service="blobs", property="picture")
+    get = pb.GetRequest(service="blobs", property="small")
+    await requests.put(pb.SessionRequest(requests=[pb.Request(id=1, listen=listen)]))
+    replies: dict[int, pb.Reply] = {}
+    try:
+        async for message in session:
+            replies.update((reply.id, reply) for reply in message.replies)
+            if 1 in replies and replies[1].status.code == 0:
+                return None  # served: not refused
+            if 1 in replies and 2 not in replies:
+                await requests.put(pb.SessionRequest(requests=[pb.Request(id=2, get=get)]))
+            if 2 in replies:
+                return replies
+    finally:
+        await requests.put(None)
+        session.cancel()
+    return None
+
+
 async def test_listens_in_a_session_count_in_the_budget_and_one_past_it_ends_alone(
     small_budget: GatewayProcess,
 ) -> None:
@@ -193,29 +224,18 @@ async def test_listens_in_a_session_count_in_the_budget_and_one_past_it_ends_alo
         # Two Sessions whose Listen never reads take the budget as two stalled gRPC Listens do.
         stalled = open_readers("session", 2, **target(gw))
         try:
-            await eventually(refusal_prober(stub), bool, within=20)
             # A Listen in a Session is ended with the refusal; the Session goes on answering.
-            requests: asyncio.Queue[pb.SessionRequest | None] = asyncio.Queue()
-
-            async def sent() -> AsyncIterator[pb.SessionRequest]:
-                while (message := await requests.get()) is not None:
-                    yield message
-
-            session = stub.Session(sent(), timeout=10)
-            listen = pb.ListenRequest(service="blobs", property="picture")
-            get = pb.GetRequest(service="blobs", property="small")
-            await requests.put(pb.SessionRequest(requests=[pb.Request(id=1, listen=listen)]))
-            replies: dict[int, pb.Reply] = {}
-            async for message in session:
-                replies.update((reply.id, reply) for reply in message.replies)
-                if 1 in replies and 2 not in replies:
-                    await requests.put(pb.SessionRequest(requests=[pb.Request(id=2, get=get)]))
-                if 2 in replies:
-                    break
+            counts = itertools.count(3)
+            replies = await eventually(
+                lambda: listen_in_a_session(stub, next(counts)),
+                lambda answer: answer is not None,
+                within=20,
+                what="a Listen in a Session refused while two stalled Sessions hold the budget",
+            )
+            assert replies is not None
             assert replies[1].status.code == grpc.StatusCode.RESOURCE_EXHAUSTED.value[0], replies[1]
             assert "limits.max_pending_binary" in replies[1].status.message
             assert replies[2].get.data == b"tiny", replies[2]
-            await requests.put(None)
         finally:
             close_readers(stalled)
 
