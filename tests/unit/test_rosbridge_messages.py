@@ -9,6 +9,7 @@ import math
 
 import pytest
 
+from gateway.fronts.foxglove.schemas import pose_of
 from gateway.fronts.rosbridge import messages, protocol
 from gateway.fronts.rosbridge.connection import action_value, query_values
 from gateway.fronts.rosbridge.naming import Target, for_service, parse_name, ros_name
@@ -171,3 +172,15 @@ def test_a_querys_answer_is_its_text_and_its_typed_value() -> None:
     }
     assert query_values(prop("speed", "number"), "0.5") == {"value": "0.5", "data": 0.5}
     assert query_values(None, "text") == {"value": "text"}
+
+
+def test_a_tilted_robots_pose_is_the_same_quaternion_in_ros_and_in_foxglove() -> None:
+    location = "(1 2 0.5 0.1 -0.2 0.3)"
+    ros = messages.to_message("geometry_msgs/PoseStamped", location)["pose"]["orientation"]
+    shown = pose_of(location)
+    assert shown is not None
+    position, foxglove = shown
+    assert position == [1.0, 2.0, 0.5]
+    assert [ros["x"], ros["y"], ros["z"], ros["w"]] == pytest.approx(foxglove)
+    assert ros["x"] != pytest.approx(0.0)  # the roll is in it, not only the yaw
+    assert sum(q * q for q in foxglove) == pytest.approx(1.0)

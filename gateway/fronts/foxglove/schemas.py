@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import base64
 import json
-import math
 from collections.abc import Mapping
 from typing import Any
 
 from services.kernel.errors import InvalidArgument
 from services.kernel.model import PropertyModel
+from services.kernel.pose import quaternion
 from services.kernel.values import (
     ValueFormatError,
     format_value,
@@ -261,19 +261,6 @@ def pose_of(text: str) -> tuple[list[float], list[float]] | None:
     numbers += [0.0] * (6 - len(numbers))
     x, y, z, roll, pitch, yaw = numbers[:6]
     return [x, y, z], quaternion(roll, pitch, yaw)
-
-
-def quaternion(roll: float, pitch: float, yaw: float) -> list[float]:
-    """Roll, pitch and yaw (radians, applied yaw, then pitch, then roll) as ``x y z w``."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return [
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-        cr * cp * cy + sr * sp * sy,
-    ]
 
 
 def _pose_json(position: list[float], orientation: list[float]) -> dict[str, Any]:

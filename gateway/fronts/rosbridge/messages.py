@@ -21,6 +21,7 @@ from typing import Any
 
 from services.kernel.errors import InvalidArgument
 from services.kernel.model import PropertyModel
+from services.kernel.pose import quaternion
 from services.kernel.values import Value, format_number, format_vector, parse_bool, parse_number, parse_vector
 
 FLOAT64 = "std_msgs/Float64"
@@ -100,9 +101,10 @@ def _pose(value: str) -> list[float]:
     return (numbers + [0.0] * 6)[:6]
 
 
-def _quaternion(yaw: float) -> dict[str, float]:
-    """A rotation of ``yaw`` about z as a quaternion (roll and pitch of a robot on a plane are 0)."""
-    return {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)}
+def _orientation(roll: float, pitch: float, yaw: float) -> dict[str, float]:
+    """``geometry_msgs/Quaternion`` of a location's rotation (the same quaternion every front shows)."""
+    x, y, z, w = quaternion(roll, pitch, yaw)
+    return {"x": x, "y": y, "z": z, "w": w}
 
 
 def _header(stamp_ns: int) -> dict[str, Any]:
@@ -136,10 +138,10 @@ def to_message(type_name: str, value: Value, *, stamp_ns: int = 0, media_type: s
     if type_name == TWIST:
         v = _pose(value)
         return {"linear": {"x": v[0], "y": v[1], "z": v[2]}, "angular": {"x": v[3], "y": v[4], "z": v[5]}}
-    x, y, z, _, _, yaw = _pose(value)
+    x, y, z, roll, pitch, yaw = _pose(value)
     if type_name == POSE2D:
         return {"x": x, "y": y, "theta": yaw}
-    pose = {"position": {"x": x, "y": y, "z": z}, "orientation": _quaternion(yaw)}
+    pose = {"position": {"x": x, "y": y, "z": z}, "orientation": _orientation(roll, pitch, yaw)}
     if type_name == POSE_STAMPED:
         return {"header": _header(stamp_ns), "pose": pose}
     if type_name == ODOMETRY:
