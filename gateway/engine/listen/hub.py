@@ -107,6 +107,31 @@ class ListenHub:
         self._streams.add(stream)
         return stream
 
+    def open_own(
+        self, selectors: Sequence[Selector], options: StreamOptions, on_ready: Callable[[], None]
+    ) -> ListenStream:
+        """A new stream the gateway opens for its own work (the history of properties): no
+        caller's rules (whoever reads what it keeps is checked then) and no client's limit on
+        streams; it follows services coming and going as every stream does."""
+        if self._closing:
+            raise Unavailable(SHUTTING_DOWN)
+        stream = ListenStream(
+            self.router,
+            self.topics,
+            self.limits,
+            selectors=selectors,
+            options=options,
+            on_ready=on_ready,
+            on_close=self._closed,
+        )
+        self._streams.add(stream)
+        return stream
+
+    @property
+    def closing(self) -> bool:
+        """The gateway is shutting down: no stream opens any more."""
+        return self._closing
+
     def _closed(self, stream: ListenStream) -> None:
         self._streams.discard(stream)
         self.closed_events_sent += stream.events_sent
