@@ -548,7 +548,7 @@ class Gateway:
         # Imported only when configured: aiohttp takes a quarter of a second to import.
         from gateway.fronts.http import HttpFront
 
-        self.http = HttpFront(self.servicer.calls, self.hub, self.config, self.guard)
+        self.http = HttpFront(self.servicer.calls, self.hub, self.config, self.guard, self.history)
         self.http.max_connections = self.shares.get("http.max_connections", self.config.http.max_connections)
         if self.config.metrics.enabled:
             self.http.metrics = self._metrics_endpoint().guarded

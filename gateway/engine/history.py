@@ -23,6 +23,7 @@ wildcard skips what the caller may not read (as a Listen). When the rings do not
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import heapq
 import importlib
 import logging
@@ -88,27 +89,16 @@ class OlderEvents(Protocol):
         directory: Path,
         service_glob: str,
         path_glob: str,
+        *,
         since_ns: int | None,
         until_ns: int | None,
         limit: int,
     ) -> Sequence[RecordedLike]: ...
 
 
-class Kept:
-    """One kept change of one property."""
-
-    __slots__ = ("conflated", "gap", "removed", "sequence", "size", "time_ns", "value")
-
-    def __init__(
-        self, value: Value, time_ns: int, sequence: int, conflated: int, gap: bool, removed: bool
-    ) -> None:
-        self.value = value
-        self.time_ns = time_ns
-        self.sequence = sequence
-        self.conflated = conflated
-        self.gap = gap
-        self.removed = removed
-        self.size = len(value) + ENTRY_OVERHEAD_BYTES
+def kept_size(event: Event) -> int:
+    """What a kept change counts against ``max_bytes``."""
+    return len(event.value) + ENTRY_OVERHEAD_BYTES
 
 
 class Ring:
@@ -117,7 +107,8 @@ class Ring:
     __slots__ = ("complete_since", "entries", "sequence")
 
     def __init__(self, started_ns: int) -> None:
-        self.entries: deque[Kept] = deque()
+        #: Each change as a Listen event, its ``sequence`` the ring's own count.
+        self.entries: deque[Event] = deque()
         #: Changes kept so far (the sequence number of the latest).
         self.sequence = 0
         #: Since when the ring holds every change: when the keeper began following the property,
@@ -167,7 +158,9 @@ def parse_selector(text: str) -> Selector:
     """``SERVICE/PATH`` (``*`` for the service, or for a path segment) as a selector; InvalidArgument."""
     service, slash, path = text.partition("/")
     if not slash or not service or not path:
-        raise InvalidArgument(f"selector {text[:300]!r} must be SERVICE/PATH, like scout1/location or */location")
+        raise InvalidArgument(
+            f"selector {text[:300]!r} must be SERVICE/PATH, like scout1/location or */location"
+        )
     if service != WILDCARD:
         validate_service_name(service)
     compile_pattern(path)
@@ -196,7 +189,7 @@ class HistoryKeeper:
         self.rings: dict[tuple[str, str], Ring] = {}
         #: Every kept change in the order it was kept, with its property: the oldest of all goes
         #: first. Entries a ring let go already are skipped when they come up (``is`` its oldest?).
-        self._order: deque[tuple[tuple[str, str], Kept]] = deque()
+        self._order: deque[tuple[tuple[str, str], Event]] = deque()
         self.kept_entries = 0
         self.kept_bytes = 0
         #: Changes not kept: binary values with ``binary = false``.
@@ -269,11 +262,11 @@ class HistoryKeeper:
         if ring is None:
             ring = self.rings[key] = Ring(event.time_ns)
         ring.sequence += 1
-        kept = Kept(value, event.time_ns, ring.sequence, event.conflated, event.gap, event.removed)
+        kept = dataclasses.replace(event, sequence=ring.sequence)
         ring.entries.append(kept)
         self._order.append((key, kept))
         self.kept_entries += 1
-        self.kept_bytes += kept.size
+        self.kept_bytes += kept_size(kept)
         if len(ring.entries) > self.settings.size:
             self._let_go(key, ring)
         settings = self.settings
@@ -292,7 +285,7 @@ class HistoryKeeper:
         """Let the oldest change of ``ring`` go; a ring left empty goes too."""
         old = ring.entries.popleft()
         self.kept_entries -= 1
-        self.kept_bytes -= old.size
+        self.kept_bytes -= kept_size(old)
         if ring.entries:
             ring.complete_since = ring.entries[0].time_ns
         else:
@@ -346,14 +339,15 @@ class HistoryKeeper:
         # The rings hold everything since the latest of their starts; before it, the recordings.
         boundary = max((ring.complete_since for _, ring in matched), default=self.clock())
         older: list[Event] = []
+        since_in_rings: int | None = since
         if self.older is not None and (since is None or since < boundary):
             older_until = boundary if until is None else min(until, boundary)
-            older = self._older(service, path, since, older_until, limit + 1, subject)
+            older = self._older(
+                service, path, since=since, until=older_until, limit=limit + 1, subject=subject
+            )
             since_in_rings = boundary
-        else:
-            since_in_rings = since
         recent = heapq.merge(
-            *(self._between(key, ring, since_in_rings, until) for key, ring in matched),
+            *(self._between(ring, since_in_rings, until) for _, ring in matched),
             key=lambda e: e.time_ns,
         )
         out: list[Event] = []
@@ -379,28 +373,30 @@ class HistoryKeeper:
         return False
 
     @staticmethod
-    def _between(key: tuple[str, str], ring: Ring, since: int | None, until: int | None) -> Iterable[Event]:
-        service, path = key
+    def _between(ring: Ring, since: int | None, until: int | None) -> Iterable[Event]:
         for kept in ring.entries:
             t = kept.time_ns
             if since is not None and t < since:
                 continue
             if until is not None and t >= until:
                 return
-            yield Event(service, path, kept.value, kept.sequence, t, kept.conflated, kept.gap, kept.removed)
+            yield kept
 
     def _older(
-        self, service: str, path: str, since: int | None, until: int | None, limit: int, subject: Subject
+        self, service: str, path: str, *, since: int | None, until: int | None, limit: int, subject: Subject
     ) -> list[Event]:
         """Events before the rings, from the recordings, that ``subject`` may read."""
         assert self.older is not None
-        found = self.older(Path(self.settings.recordings), service, path, since, until, limit)
+        found = self.older(
+            Path(self.settings.recordings), service, path, since_ns=since, until_ns=until, limit=limit
+        )
         guard = self.guard
         binary = self.settings.binary
         return [
             Event(e.service, e.path, e.value, e.sequence, e.time_ns, e.conflated, e.gap, e.removed)
             for e in found
-            if (binary or not isinstance(e.value, bytes)) and guard.may(subject, e.service, e.path, Operation.READ)
+            if (binary or not isinstance(e.value, bytes))
+            and guard.may(subject, e.service, e.path, Operation.READ)
         ]
 
 

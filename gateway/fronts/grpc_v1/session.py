@@ -89,7 +89,7 @@ class _Answered:
     __slots__ = ("kind", "params", "path", "rid", "service", "session")
 
     def __init__(
-        self, session: Session, rid: int, kind: str, service: str, path: str, params: Mapping[str, str]
+        self, session: Session, rid: int, kind: str, service: str, path: str, *, params: Mapping[str, str]
     ) -> None:
         self.session = session
         self.rid = rid
@@ -99,7 +99,7 @@ class _Answered:
         self.params = params
 
     def __call__(self, handle: CallHandle) -> None:
-        self.session._answered(self.rid, handle, self.kind, self.service, self.path, self.params)
+        self.session._answered(self.rid, handle, self.kind, self.service, self.path, params=self.params)
 
 
 class Session:
@@ -390,7 +390,7 @@ class Session:
         except Exception as exc:
             self._fail(rid, exc, f"{request.service}: get {request.property}")
             return
-        self._follow(rid, handle, "get", request.service, request.property, call.parameters)
+        self._follow(rid, handle, "get", request.service, request.property, params=call.parameters)
 
     def _set(self, rid: int, request: pb.SetRequest) -> None:
         try:
@@ -407,21 +407,22 @@ class Session:
         kind: str,
         service: str,
         path: str,
+        *,
         params: Mapping[str, str] = NO_PARAMS,
     ) -> None:
         """Answer request ``rid`` from its call's handle: now when it is done, else once it is."""
         if handle.done:  # answered inline: the commonest case
-            self._answer(rid, kind, handle.result(), service, path, params)
+            self._answer(rid, kind, handle.result(), service, path, params=params)
             return
         self._active.add(rid)
         self._tasks[rid] = handle
         backend = handle.backend
         if backend is not None:
             self._started_on.add(backend)
-        handle.add_done_callback(_Answered(self, rid, kind, service, path, params))
+        handle.add_done_callback(_Answered(self, rid, kind, service, path, params=params))
 
     def _answered(
-        self, rid: int, handle: CallHandle, kind: str, service: str, path: str, params: Mapping[str, str]
+        self, rid: int, handle: CallHandle, kind: str, service: str, path: str, *, params: Mapping[str, str]
     ) -> None:
         """Request ``rid``'s call is done: its answer or its error goes in the reply queue."""
         if self._tasks.get(rid) is not handle:
@@ -434,7 +435,7 @@ class Session:
         if error is not None:
             self._fail(rid, error, f"{service}: {kind} {path}")
         else:
-            self._answer(rid, kind, handle.result(), service, path, params)
+            self._answer(rid, kind, handle.result(), service, path, params=params)
         self._room.set()
 
     async def _get_more(self, rid: int, call: GetCall) -> None:
@@ -445,7 +446,7 @@ class Session:
             self._fail(rid, exc, "Get")
 
     def _answer(
-        self, rid: int, kind: str, value: Value | None, service: str, path: str, params: Mapping[str, str]
+        self, rid: int, kind: str, value: Value | None, service: str, path: str, *, params: Mapping[str, str]
     ) -> None:
         if value is None:
             value = ""

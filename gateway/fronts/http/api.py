@@ -217,12 +217,12 @@ class Api:
             media_types = MediaTypes(self.calls)
             values = []
             for item in answer.more:
-                when = {"time": item.time_ns / 1e9}
+                item_time = {"time": item.time_ns / 1e9}
                 if isinstance(item.value, str):
-                    values.append({"path": item.path, **value_json(item.value, None, ""), **when})
+                    values.append({"path": item.path, **value_json(item.value, None, ""), **item_time})
                     continue
                 media_type = await media_types.of(service, item.path)
-                values.append({"path": item.path, **value_json("", item.value, media_type), **when})
+                values.append({"path": item.path, **value_json("", item.value, media_type), **item_time})
             return json_response({"service": service, "path": path, "values": values})
         value = answer.value
         # The value's source time, in seconds since the epoch, as an event's ``time``.
