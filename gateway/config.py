@@ -258,9 +258,9 @@ class HistorySection:
     binary: bool = False
     #: Changes kept of all properties together; past it, the oldest change of all goes first.
     max_entries: int = option(1_000_000, low=1)
-    #: Bytes of kept values (and about 160 a change besides) of all properties together; past
-    #: it, the oldest change of all goes first. 64 MiB holds a million small numbers' changes
-    #: only with their entries counted, so both bounds hold in the worst case.
+    #: Bytes of kept values (and 256 a change besides: what a change costs, measured) of all
+    #: properties together; past it, the oldest change of all goes first. 64 MiB holds about
+    #: 250,000 changes of short values, so for those it is reached before ``max_entries``.
     max_bytes: int = option(64 * 1024 * 1024, low=1)
     #: Events a History call answers when it asks for no fewer (its ``limit`` 0).
     default_limit: int = option(1000, low=1)

@@ -48,9 +48,9 @@ from services.kernel.values import Value
 
 log = logging.getLogger(__name__)
 
-#: Bytes a kept change costs besides its value (the entry, its slot in the ring, its place in the
-#: order of all): what ``max_bytes`` counts beside the values, measured roughly with sys.getsizeof.
-ENTRY_OVERHEAD_BYTES = 160
+#: Bytes a kept change costs besides its value (its event, its slot in the ring, its place in the
+#: order of all): measured with tracemalloc, about 250 for 100,000 changes of 100 properties.
+ENTRY_OVERHEAD_BYTES = 256
 #: Bytes an event takes in the answer besides its value (the Event's other fields and tags).
 EVENT_WIRE_BYTES = 64
 #: Seconds before a selector whose stream could not start (its service is not there yet) or

