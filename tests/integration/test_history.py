@@ -175,6 +175,22 @@ async def test_get_answers_a_fresh_time_after_a_set_and_the_time_of_the_change_o
     assert again.time == unchanged.time
 
 
+async def test_a_get_in_a_session_answers_the_same_time(
+    gateway: tuple[str, str], client: AsyncClient
+) -> None:
+    await client.set("bot1", "speed", "0.66")
+    kept = await eventually(lambda: client.history("bot1", "speed"), lambda h: h.events[-1].value == "0.66")
+    async with grpc.aio.insecure_channel(gateway[0]) as channel:
+        session = pb_grpc.PropertyServiceStub(channel).Session()
+        get = pb.GetRequest(service="bot1", property="speed")
+        await session.write(pb.SessionRequest(requests=[pb.Request(id=1, get=get)]))
+        response = await asyncio.wait_for(session.read(), WAIT)
+        await session.done_writing()
+    reply = response.replies[0]
+    assert reply.get.value == "0.66"
+    assert reply.get.time.ToDatetime(tzinfo=kept.events[-1].time.tzinfo) == kept.events[-1].time
+
+
 async def test_history_over_http_and_psctl(gateway: tuple[str, str], client: AsyncClient) -> None:
     first = await kept_values(client, "bot1", "speed", 1)
     await client.set("bot1", "speed", "0.41")

@@ -45,6 +45,8 @@ class ListenHub:
         #: What every reader of every front end holds of large values, together (limits.max_pending_binary).
         self.budget = PayloadBudget(limits.max_pending_binary)
         self._streams: set[ListenStream] = set()
+        #: The gateway's own streams (:meth:`open_own`): not counted among the clients' streams.
+        self._own: set[ListenStream] = set()
         #: Events sent and values conflated by the streams already closed (the open ones keep their own).
         self.closed_events_sent = 0
         self.closed_conflated = 0
@@ -122,9 +124,9 @@ class ListenHub:
             selectors=selectors,
             options=options,
             on_ready=on_ready,
-            on_close=self._closed,
+            on_close=self._own.discard,
         )
-        self._streams.add(stream)
+        self._own.add(stream)
         return stream
 
     @property
@@ -148,24 +150,25 @@ class ListenHub:
         return sent, conflated, queued
 
     def _service_changed(self, name: str, backend: Backend | None) -> None:
+        streams = [*self._streams, *self._own]
         if backend is not None:
-            for stream in list(self._streams):
+            for stream in streams:
                 stream.service_added(name, backend)
             return
         self.topics.service_removed(name)
-        for stream in list(self._streams):
+        for stream in streams:
             stream.service_removed(name)
 
     def end_all(self) -> None:
         """End every stream with UNAVAILABLE "gateway shutting down"; refuse new ones."""
         self._closing = True
-        for stream in list(self._streams):
+        for stream in [*self._streams, *self._own]:
             stream.fail(Unavailable(SHUTTING_DOWN))
 
     async def aclose(self) -> None:
         """End every stream and close every backend subscription."""
         self.end_all()
         self._unwatch()
-        for stream in list(self._streams):
+        for stream in [*self._streams, *self._own]:
             stream.close()
         await self.topics.aclose()
