@@ -70,7 +70,9 @@ def test_a_vector_is_plotted_one_line_per_element_from_its_history(page: Any, cl
     eventually(lambda: client.history("scout2", "location"), lambda h: len(h) >= 5, "scout2 moving, kept")
     select(page, "scout2")
     toggle = wait_for(
-        page, lambda d: prop(d, "location").find_element(CSS, "[data-action=plot]"), "a plot button on location"
+        page,
+        lambda d: prop(d, "location").find_element(CSS, "[data-action=plot]"),
+        "a plot button on location",
     )
     toggle.click()
     state = wait_for(
@@ -84,4 +86,8 @@ def test_a_vector_is_plotted_one_line_per_element_from_its_history(page: Any, cl
     legend = prop(page, "location").find_element(CSS, ".plot-legend").text.split()
     assert legend == ["x", "y", "z", "roll", "pitch", "yaw"]
     toggle.click()
-    wait_for(page, lambda d: not d.find_elements(CSS, '#service-view [data-property="location"] svg.plot'), "closed")
+    wait_for(
+        page,
+        lambda d: not d.find_elements(CSS, '#service-view [data-property="location"] svg.plot'),
+        "closed",
+    )
