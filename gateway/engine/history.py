@@ -245,8 +245,15 @@ class HistoryKeeper:
     def _drain(self, stream: ListenStream, done: asyncio.Future[None]) -> None:
         """Keep what ``stream`` has ready, now (called by the stream whenever it has some)."""
         while (taken := stream.take()) is not None:
-            if isinstance(taken, tuple):
-                for event in events(taken):
+            if not isinstance(taken, tuple):
+                continue  # the sync marker
+            for (topic, _), event in zip(taken[0], events(taken), strict=True):
+                first = (event.service, event.path) not in self.rings
+                if first and topic.value is event.value and topic.stamp:
+                    # A property's first value is as old as the topic heard it (a Listen may have
+                    # opened it before), as a Get of it says.
+                    self.keep(dataclasses.replace(event, time_ns=min(event.time_ns, topic.stamp)))
+                else:
                     self.keep(event)
         if (stream.error is not None or stream.ended) and not done.done():
             done.set_result(None)

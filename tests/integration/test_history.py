@@ -158,6 +158,8 @@ async def test_get_answers_a_fresh_time_after_a_set_and_the_time_of_the_change_o
     before = time.time()
     unchanged = await client.get_with_time("bot1", "max_speed")
     assert unchanged.time.timestamp() < before - 0.2, "a value that did not change is as old as its change"
+    first = (await client.history("bot1", "max_speed")).events[0]
+    assert (first.value, first.time) == (unchanged.value, unchanged.time), "as the history says"
 
     before = time.time()
     await client.set("bot1", "speed", "0.77")
