@@ -155,7 +155,10 @@ class Topics:
         """When the gateway heard ``value`` become the value of ``path`` of ``service``, as the
         open topic of that property (no parameters) knows it; 0 when no topic follows it, or its
         latest value is another (the value read is newer than what the topic heard)."""
-        topic = self._topics.get((service, path, ()))
+        topics = self._topics
+        if not topics:  # nothing followed at all: the commonest case of a gateway serving Gets
+            return 0
+        topic = topics.get((service, path, ()))
         if topic is None or topic.removed:
             return 0
         held = topic.value
