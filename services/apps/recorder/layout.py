@@ -42,7 +42,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf import descriptor_pb2
-from google.protobuf.descriptor import Descriptor, FileDescriptor
+from google.protobuf.descriptor import FileDescriptor
 from google.protobuf.message import Message
 from mcap.writer import CompressionType, Writer
 
@@ -93,7 +93,7 @@ def file_name(name: str, index: int) -> str:
     return f"{name}-{index:04d}.mcap"
 
 
-def _descriptor_set(descriptor: Descriptor) -> bytes:
+def _descriptor_set(descriptor: Any) -> bytes:
     """The FileDescriptorSet of a message type and every file it depends on (as
     ``mcap-protobuf-support`` writes a protobuf schema), dependencies first."""
     files = descriptor_pb2.FileDescriptorSet()
@@ -231,9 +231,7 @@ class RecordingFile:
             name, data = _proto_schema(message)
             schema = self._schema(name, _PROTOBUF, data)
             channel_id = self._writer.register_channel(topic, _PROTOBUF, schema)
-            channel = self._channels[key] = _Channel(
-                channel_id, PropertyModel(topic, "bytes", Access.READ)
-            )
+            channel = self._channels[key] = _Channel(channel_id, PropertyModel(topic, "bytes", Access.READ))
         return channel
 
     def _value_channel(self, service: str, model: PropertyModel) -> _Channel:
@@ -383,7 +381,7 @@ class RecordingFile:
 
     def finish(self) -> None:
         """Write the summary and the footer (the file is complete and indexed) and flush it."""
-        self._writer.finish()
+        self._writer.finish()  # type: ignore[no-untyped-call]
         self._stream.flush()
 
 

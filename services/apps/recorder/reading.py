@@ -105,7 +105,7 @@ def recorded_events(path: Path) -> Iterator[RecordedEvent]:
         yield _event(message)
 
 
-def events_between(
+def events_between(  # noqa: PLR0917 - the signature replay and history call it by (docs/recording.md)
     directory: Path, service_glob: str, path_glob: str, since_ns: int | None, until_ns: int | None, limit: int
 ) -> list[RecordedEvent]:
     """The first ``limit`` changes (oldest first, by their time) of the properties ``service_glob``
@@ -121,7 +121,7 @@ def events_between(
         for file in sorted(directory.rglob("*.mcap")):
             for message in _file_events(file, since_ns):
                 event = _event(message)
-                if service_glob != WILDCARD and event.service != service_glob:
+                if service_glob not in (WILDCARD, event.service):
                     continue
                 if not path_matches(event.path):
                     continue

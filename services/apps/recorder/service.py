@@ -316,11 +316,13 @@ class Recorder(Resource):
 
     # -- the actions ------------------------------------------------------------------------
 
+    # An action named like the lifecycle hook is the action, not the hook (the kernel tells them
+    # apart): the folder is opened and closed by RecorderService instead.
     @action(
         doc="record what a Listen of the selectors hears (*/location scout1/*); parameters name, "
         "max_size (B), max_duration (s); answers the recording's name"
     )
-    async def start(
+    async def start(  # type: ignore[override]
         self, selectors: str, *, name: str = "", max_size: int = 0, max_duration: float = 0.0
     ) -> str:
         """Start a recording for the caller (see the module docstring); answers its name."""
@@ -379,7 +381,7 @@ class Recorder(Resource):
         return name
 
     @action(doc="stop the recording the value names (* stops every one)")
-    async def stop(self, name: str) -> str:
+    async def stop(self, name: str) -> str:  # type: ignore[override]
         """Stop a recording (or every one, ``*``); answers the names stopped."""
         if name == ALL:
             stopping = [r for r in self._recordings.values() if r.active]
