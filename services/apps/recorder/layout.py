@@ -151,23 +151,24 @@ def _set_pose(pose: Any, position: list[float], orientation: list[float]) -> Non
     pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = orientation
 
 
-@dataclass(frozen=True, slots=True)
 class ServiceInfo:
     """What a recording knows of a recorded service: its type and model (None: not known)."""
 
-    type: str
-    model: ServiceModel | None
+    __slots__ = ("_by_name", "model", "type")
+
+    def __init__(self, service_type: str, model: ServiceModel | None) -> None:
+        self.type = service_type
+        self.model = model
+        self._by_name = {p.name: p for p in model.properties} if model is not None else {}
 
     def property(self, path: str, value: bytes | str) -> PropertyModel:
         """The model of ``path``; one of type ``bytes`` or ``text`` (by the value) when the
         service's model does not name it (a property that came later, a model not read)."""
-        if self.model is not None:
-            for prop in self.model.properties:
-                if prop.name == path:
-                    return prop
-        return PropertyModel(
-            name=path, type="bytes" if isinstance(value, bytes) else "text", access=Access.READ
-        )
+        found = self._by_name.get(path)
+        if found is None:
+            kind = "bytes" if isinstance(value, bytes) else "text"
+            found = self._by_name[path] = PropertyModel(name=path, type=kind, access=Access.READ)
+        return found
 
 
 @dataclass(slots=True)
