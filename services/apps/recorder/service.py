@@ -187,7 +187,7 @@ class Recorder(Resource):
         str,
         Prop(
             readonly=True,
-            gui="json",
+            gui="code",
             doc="the recordings as JSON: name, selectors, start, duration (s), size (B), messages, events, "
             "files, state (recording, stopped, failed: why), reason, gaps, conflated, dropped",
         ),
