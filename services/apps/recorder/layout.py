@@ -33,8 +33,8 @@ from __future__ import annotations
 
 import base64
 import json
+import math
 import time
-from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import IO, Any
 
@@ -50,7 +50,8 @@ from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.kernel.follow import FollowedEvent
 from services.kernel.model import Access, PropertyModel, ServiceModel
 from services.kernel.model_codec import model_to_text
-from services.kernel.typed import WORLD_FRAME, is_image, is_pose, pose_of, typed, value_json_schema
+from services.kernel.typed import LOCATION, WORLD_FRAME, is_image, is_pose, pose_of, typed, value_json_schema
+from services.kernel.values import Value
 
 __all__ = [
     "CHUNK_BYTES",
@@ -80,6 +81,8 @@ CHUNK_SECONDS = 1.0
 #: unit tests fail at once should a release of the library rename it.
 _FINALIZE_CHUNK = "_Writer__finalize_chunk"
 _PROTOBUF = "protobuf"
+_COMPACT = (",", ":")
+_JSON_BOOL = {False: "false", True: "true"}
 _JSON = "json"
 
 
@@ -171,11 +174,18 @@ class ServiceInfo:
         return found
 
 
-@dataclass(slots=True)
 class _Channel:
-    id: int
-    model: PropertyModel
-    sequence: int = 0
+    """One channel of the file: its id, the model of what it carries, its messages so far."""
+
+    __slots__ = ("id", "image", "model", "pose", "sequence")
+
+    def __init__(self, channel_id: int, model: PropertyModel) -> None:
+        self.id = channel_id
+        self.model = model
+        self.sequence = 0
+        #: A location's channel (it feeds a pose and the scene), a binary image's (it feeds an image).
+        self.pose = is_pose(model)
+        self.image = is_image(model)
 
 
 class RecordingFile:
@@ -199,6 +209,9 @@ class RecordingFile:
         self._writer.start(profile="", library=f"psgateway recorder {version}".strip())
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], _Channel] = {}
+        #: Each property's own channel by (service, path), once its first change is written.
+        self._targets: dict[tuple[str, str], _Channel] = {}
+        self._events: _Channel | None = None
         self._services: set[str] = set()
         self._chunk_opened = clock()
         self._pending = False
@@ -270,12 +283,20 @@ class RecordingFile:
         self._writer.add_metadata(SERVICE_METADATA, {"service": service, "type": info.type, "model": model})
         self._services.add(service)
 
+    def _target(self, service: str, path: str, value: Value, info: ServiceInfo) -> _Channel:
+        """The property's own channel (made on its first change in the file)."""
+        channel = self._targets.get((service, path))
+        if channel is None:
+            channel = self._targets[service, path] = self._value_channel(service, info.property(path, value))
+        return channel
+
     def write(self, event: FollowedEvent, log_ns: int, info: ServiceInfo, extra_gap: bool = False) -> None:
         """One change on its channels (its own, ``/_events``, and the well-known ones it feeds)."""
         value = event.value
         gap = event.gap or extra_gap
         publish_ns = event.time_ns or log_ns
-        model = info.property(event.path, value)
+        channel = self._target(event.service, event.path, value, info)
+        model = channel.model
         record = pb.Event(
             service=event.service,
             property=event.path,
@@ -289,31 +310,33 @@ class RecordingFile:
             record.data = value
         else:
             record.value = value
-        self._add(self._proto_channel(EVENTS_TOPIC, pb.Event), log_ns, publish_ns, record.SerializeToString())
+        events = self._events or self._proto_channel(EVENTS_TOPIC, pb.Event)
+        self._events = events
+        self._add(events, log_ns, publish_ns, record.SerializeToString())
 
-        channel = self._value_channel(event.service, model)
-        shown: Any = (
-            base64.b64encode(value).decode("ascii") if isinstance(value, bytes) else typed(model.type, value)
+        if event.removed:
+            shown: Any = _empty_of(model)
+        elif isinstance(value, bytes):
+            shown = base64.b64encode(value).decode("ascii")
+        else:
+            shown = typed(model.type, value)
+            if isinstance(shown, float) and not math.isfinite(shown):
+                shown = value  # NaN and infinities are no JSON numbers: the value's text
+        # The flags written out by hand: one json.dumps (of the value) a change, not of a dict.
+        message = (
+            f'{{"value":{json.dumps(shown, separators=_COMPACT)},"seq":{event.sequence},'
+            f'"conflated":{event.conflated},"gap":{_JSON_BOOL[gap]},"removed":{_JSON_BOOL[event.removed]}}}'
         )
-        if event.removed:
-            shown = _empty_of(model)
-        message = {
-            "value": shown,
-            "seq": event.sequence,
-            "conflated": event.conflated,
-            "gap": gap,
-            "removed": event.removed,
-        }
-        self._add(channel, log_ns, publish_ns, json.dumps(message, separators=(",", ":")).encode())
+        self._add(channel, log_ns, publish_ns, message.encode())
 
-        if event.removed:
-            if is_pose(model) and event.path == "location":
-                self._scene(event.service, None, log_ns, publish_ns)
-            return
-        if isinstance(value, str) and is_pose(model):
-            pose = pose_of(value)
+        if channel.pose:
+            if event.removed:
+                if event.path == LOCATION:
+                    self._scene(event.service, None, log_ns, publish_ns)
+                return
+            pose = pose_of(value) if isinstance(value, str) else None
             if pose is not None:
-                if event.path == "location":
+                if event.path == LOCATION:
                     self._scene(event.service, pose, log_ns, publish_ns)
                 stamped = PoseInFrame(frame_id=WORLD_FRAME)
                 _timestamp(stamped.timestamp, publish_ns)
@@ -323,7 +346,7 @@ class RecordingFile:
                 self._add(
                     self._proto_channel(topic, PoseInFrame), log_ns, publish_ns, stamped.SerializeToString()
                 )
-        elif isinstance(value, bytes) and is_image(model):
+        elif channel.image and isinstance(value, bytes) and not event.removed:
             image = CompressedImage(
                 frame_id=event.service, data=value, format=model.media_type.partition("/")[2]
             )
