@@ -201,11 +201,12 @@ class RecordingFile:
         started_ns: int,
         index: int,
         version: str,
+        chunk_bytes: int = CHUNK_BYTES,
         clock: Any = time.monotonic,
     ) -> None:
         self._stream = stream
         self._clock = clock
-        self._writer = Writer(stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self._writer = Writer(stream, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
         self._writer.start(profile="", library=f"psgateway recorder {version}".strip())
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], _Channel] = {}

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import IO
 
 from services.apps.recorder.budget import DiskBudget
-from services.apps.recorder.layout import CHUNK_SECONDS, RecordingFile, ServiceInfo, file_name
+from services.apps.recorder.layout import CHUNK_BYTES, CHUNK_SECONDS, RecordingFile, ServiceInfo, file_name
 from services.kernel.follow import FollowedEvent
 
 __all__ = ["Limits", "RecordingWriter"]
@@ -150,8 +150,9 @@ class RecordingWriter:
 
     def removed(self, path: Path) -> None:
         """The budget removed one of this recording's files."""
-        if path.parent == self.folder and path.name in self.files:
-            self.files = [f for f in self.files if f != path.name]
+        with self._cond:
+            if path.parent == self.folder and path.name in self.files:
+                self.files = [f for f in self.files if f != path.name]
 
     # -- the thread --------------------------------------------------------------------------
 
@@ -180,7 +181,8 @@ class RecordingWriter:
                             path = self.folder / file_name(self.name, index)
                             stream = self._open_file(path)
                             self._budget.opened(path)
-                            self.files = [*self.files, path.name]
+                            with self._cond:
+                                self.files = [*self.files, path.name]
                             current = RecordingFile(
                                 stream,
                                 name=self.name,
@@ -188,6 +190,9 @@ class RecordingWriter:
                                 started_ns=self.started_ns,
                                 index=index,
                                 version=self.version,
+                                # Rotation by size is judged at closed chunks: small ones keep a
+                                # file near its max_file_bytes.
+                                chunk_bytes=min(CHUNK_BYTES, max(4096, self.limits.max_file_bytes // 4)),
                             )
                             file_started = time.monotonic()
                             counted = 0
@@ -255,19 +260,20 @@ class RecordingWriter:
             self.gaps += 1
         self.conflated += event.conflated
 
-    def _count(self, current: RecordingFile, counted: int) -> int:
-        """Report the file's growth since ``counted`` bytes; the budget may stop the recording."""
+    def _count(self, current: RecordingFile, counted: int, *, enforce: bool = True) -> int:
+        """Report the file's growth since ``counted`` bytes; the budget may stop the recording
+        (unless the file is being finished: its summary is the last of it)."""
         size = current.size
         if size > counted:
             self.size += size - counted
-            if not self._budget.grow(size - counted):
+            if not self._budget.grow(size - counted) and enforce:
                 raise _BudgetFull()
         return size
 
     def _finish(self, current: RecordingFile, stream: IO[bytes], path: Path, counted: int) -> int:
         try:
             current.finish()
-            counted = self._count(current, counted)
+            counted = self._count(current, counted, enforce=False)
         finally:
             self._budget.closed(path)
             # What could not be written (a full disk) is lost; the recording's state said so already.
