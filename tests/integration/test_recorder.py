@@ -26,7 +26,7 @@ from support.gateway_process import GatewayProcess, StartGateway
 from support.waiting import eventually
 
 from clients.aio import AsyncClient
-from clients.errors import PermissionDenied
+from clients.errors import AlreadyExists, FailedPrecondition, InvalidArgument, NotFound, PermissionDenied
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.apps.recorder.layout import EVENTS_TOPIC
 from services.apps.recorder.reading import RecordedEvent, recorded_events
@@ -301,3 +301,30 @@ async def test_a_caller_records_only_what_it_may_read(gateway_process: StartGate
         await operator.set("recorder", "stop", "mine")
     recorded = list(recorded_events(folder / "mine" / "mine-0001.mcap"))
     assert {e.service for e in recorded} == {"scout1"}
+
+
+async def test_bad_starts_and_stops_get_clear_errors_and_leave_nothing_behind(
+    gateway_process: StartGateway, tmp_path: Path
+) -> None:
+    folder = tmp_path / "recordings"
+    gw = gateway_process(ROBOTS.format(folder=folder, seconds=600, budget=1 << 30))
+    async with AsyncClient(gw.address, timeout=15.0) as client:
+        with pytest.raises(InvalidArgument, match="SERVICE/PATH"):
+            await client.set("recorder", "start", "location")
+        with pytest.raises(InvalidArgument, match="give what to record"):
+            await client.set("recorder", "start", "  ")
+        with pytest.raises(InvalidArgument, match="bad recording name"):
+            await client.set("recorder", "start", "scout1/location", name="../up")
+        with pytest.raises(NotFound):
+            await client.set("recorder", "start", "nosuch/location", name="ghost")
+        assert not (folder / "ghost").exists()
+        with pytest.raises(NotFound, match="no recording named"):
+            await client.set("recorder", "stop", "ghost")
+        await client.set("recorder", "start", "scout1/location", name="once")
+        with pytest.raises(AlreadyExists):
+            await client.set("recorder", "start", "scout2/location", name="once")
+        await client.set("recorder", "stop", "once")
+        with pytest.raises(FailedPrecondition, match="stopped already"):
+            await client.set("recorder", "stop", "once")
+        assert list(await recordings(client)) == ["once"]
+    assert sorted(p.name for p in folder.iterdir()) == ["once"]
