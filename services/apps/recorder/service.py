@@ -274,8 +274,13 @@ class Recorder(Resource):
             ) from None
         self._budget = DiskBudget(self._root, self.max_total_bytes, self.when_full, self._file_removed)
         await asyncio.to_thread(self._budget.scan)
-        for found in await asyncio.to_thread(_found_on_disk, self._root):
-            self._recordings[found.name] = found
+        try:
+            found = await asyncio.to_thread(_found_on_disk, self._root)
+        except OSError as exc:
+            log.warning("the recordings in %s could not be listed: %s", self._root, exc.strerror or exc)
+            found = []
+        for recording in found:
+            self._recordings[recording.name] = recording
         self._refresh()
         self._ticker = self._loop.create_task(self._tick(), name="recorder refresh")
 
@@ -366,6 +371,7 @@ class Recorder(Resource):
             on_end=self._ended_by_itself,
         )
         recording = self._recordings[name] = _Recording(name, writer)
+        self._forget_old()
         writer.start()
         try:
             # For the caller of this Set: it hears only what that caller may read.
@@ -397,6 +403,17 @@ class Recorder(Resource):
         return " ".join(r.name for r in stopping)
 
     # -- inside -----------------------------------------------------------------------------
+
+    def _forget_old(self) -> None:
+        """Keep at most :data:`MAX_LISTED` recordings in mind: the oldest stopped ones go first
+        (their files stay, and their names stay taken by their folders)."""
+        excess = len(self._recordings) - MAX_LISTED
+        if excess <= 0:
+            return
+        for old in [r for r in self._recordings.values() if not r.active and r.subscription is None][:excess]:
+            writer = old.writer
+            if writer is None or not writer.running:
+                del self._recordings[old.name]
 
     def _new_name(self, name: str) -> str:
         if name:
@@ -480,13 +497,17 @@ def _found_on_disk(root: Path) -> list[_Recording]:
     """The recordings in ``root`` already (a folder with ``.mcap`` files), oldest first: listed as stopped."""
     found = []
     for folder in sorted(p for p in root.iterdir() if p.is_dir()):
-        files = sorted(f.name for f in folder.glob("*.mcap") if f.is_file())
-        if not files:
+        try:
+            sizes = {f.name: f.stat().st_size for f in folder.glob("*.mcap") if f.is_file()}
+            started_ns = folder.stat().st_mtime_ns
+        except OSError:  # removed meanwhile
+            continue
+        if not sizes:
             continue
         recording = _Recording(folder.name)
-        recording.files = files
-        recording.size = sum((folder / f).stat().st_size for f in files)
-        recording.started_ns = folder.stat().st_mtime_ns
+        recording.files = sorted(sizes)
+        recording.size = sum(sizes.values())
+        recording.started_ns = started_ns
         found.append(recording)
     found.sort(key=lambda r: r.started_ns)
     return found[-MAX_LISTED:]

@@ -144,6 +144,11 @@ class RecordingWriter:
         self._thread.join(timeout)
 
     @property
+    def running(self) -> bool:
+        """The thread has not ended yet (a stopped recording's thread may still finish its file)."""
+        return self._thread.is_alive()
+
+    @property
     def duration(self) -> float:
         end = self._ended if self._ended is not None else time.monotonic()
         return end - self._started
