@@ -11,6 +11,8 @@ import contextlib
 import json
 import shutil
 import signal
+import subprocess
+import sys
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -328,3 +330,57 @@ async def test_bad_starts_and_stops_get_clear_errors_and_leave_nothing_behind(
             await client.set("recorder", "stop", "once")
         assert list(await recordings(client)) == ["once"]
     assert sorted(p.name for p in folder.iterdir()) == ["once"]
+
+
+def tiny_tmpfs_or_skip(mount_point: Path) -> str:
+    """``unshare``, once it has shown that it can mount a tmpfs on ``mount_point`` in a user
+    namespace of its own; else the test skips, saying why."""
+    unshare = shutil.which("unshare")
+    if unshare is None:
+        pytest.skip("a full disk needs a tiny tmpfs: unshare (util-linux) is not installed")
+    probe = subprocess.run(
+        [unshare, "-rm", "sh", "-c", f"mount -t tmpfs -o size=32k tmpfs {mount_point}"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if probe.returncode != 0:
+        pytest.skip(f"cannot mount a tiny tmpfs in a user namespace here: {probe.stderr.strip()}")
+    return unshare
+
+
+async def test_a_full_disk_fails_the_recording_and_says_so(tmp_path: Path) -> None:
+    """The disk is a real one, a 32 KiB tmpfs mounted in a user namespace of the gateway's own
+    (``unshare -rm``); where user namespaces or unshare are missing, the test skips saying why."""
+    small = tmp_path / "small"
+    small.mkdir()
+    unshare = tiny_tmpfs_or_skip(small)
+    config = tmp_path / "gateway.toml"
+    config.write_text(ROBOTS.format(folder=small / "recordings", seconds=600, budget=1 << 30))
+    serve = f"mount -t tmpfs -o size=32k tmpfs {small} && exec {sys.executable} -m gateway.cli serve"
+    gw = GatewayProcess(
+        [unshare, "-rm", "sh", "-c", f'{serve} --config "$0" --listen 127.0.0.1:0', str(config)]
+    )
+    try:
+        gw.wait_ready()
+        gw.expect_in_log(
+            "could not finish full-0001.mcap"
+        )  # a warning line: the summary found no room either
+        async with AsyncClient(gw.address, timeout=15.0) as client:
+            await client.set("scout1", "behaviors.moveto", DRIVE)
+            await client.set("scout2", "behaviors.moveto", DRIVE)
+            await client.set("recorder", "start", "scout1/* scout2/*", name="full")
+
+            async def state() -> dict[str, Any]:
+                return (await recordings(client))["full"]
+
+            listed = await eventually(
+                state, lambda r: r["state"] != "recording", within=60, what="a full disk"
+            )
+            assert listed["state"] == "failed: disk full"
+            assert "No space left on device" in listed["reason"]
+            assert listed["events"] > 0
+            # The gateway goes on serving.
+            assert await client.get("scout1", "location")
+    finally:
+        gw.stop()
