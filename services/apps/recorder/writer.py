@@ -50,7 +50,7 @@ class Limits:
     max_bytes: int = 0
     max_seconds: float = 0.0
     max_queued_events: int = 50_000
-    max_queued_bytes: int = 64 * 1024 * 1024
+    max_queued_bytes: int = 16 * 1024 * 1024
 
 
 #: The blocking lookup of a service's type and model, made on the writer thread.
