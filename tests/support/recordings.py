@@ -196,7 +196,7 @@ def write_recording(
                 writer.add_message(
                     events, change.log_time_ns, event.SerializeToString(), change.time_ns, sequences[events]
                 )
-            writer.finish()
+            writer.finish()  # type: ignore[no-untyped-call]
     return where
 
 

@@ -64,6 +64,8 @@ class ReplayedService(Backend):
         self._position = position
         #: The value of each property where the replay stands (none before its first change).
         self._values: dict[str, Value] = {}
+        #: The properties removed where the replay stands (NOT_FOUND, as they were then).
+        self._removed: set[str] = set()
         self._listeners: dict[str, dict[int, Notify]] = {}
         self._tokens = itertools.count()
 
@@ -71,17 +73,28 @@ class ReplayedService(Backend):
 
     def apply(self, path: str, value: Value, *, gap: bool = False, removed: bool = False) -> None:
         """The replay reached a change of ``path``: hold it and tell its listeners."""
+        listed = path not in self._removed
         if removed:
             self._values.pop(path, None)
+            self._removed.add(path)
         else:
             self._values[path] = value
+            self._removed.discard(path)
         listeners = self._listeners.get(path)
         if listeners:
             tell_each(listeners, Change(path, "" if removed else value, gap, removed), what=self.name)
+        if listed == removed:
+            # The property went, or came back: wildcard Listens look at the list again.
+            followers = self._listeners.get(_PROPERTIES)
+            if followers:
+                tell_each(followers, Change(_PROPERTIES, self._names()), what=self.name)
 
     def values(self) -> dict[str, Value]:
         """The values held now (a copy)."""
         return dict(self._values)
+
+    def _names(self) -> str:
+        return format_names([name for name in self._props if name not in self._removed])
 
     # -- Backend -----------------------------------------------------------------
 
@@ -90,13 +103,15 @@ class ReplayedService(Backend):
 
     def _model_of(self, path: str) -> PropertyModel | None:
         prop = self._props.get(path)
+        if path in self._removed:
+            raise NotFound(f"{self.name}.{path} is {self.mark}: it was removed before {self._position} s")
         if prop is None and path not in self._values:
             raise NotFound(f"{self.name} ({self.mark}) has no property {path[:200]!r}")
         return prop
 
     async def get(self, path: str, params: Mapping[str, str] = NO_PARAMS) -> Value:
         if path == _PROPERTIES:
-            return format_names(list(self._props))
+            return self._names()
         prop = self._model_of(path)
         if prop is not None and prop.access is Access.ACTION:
             raise FailedPrecondition(f"{self.name}.{path} is an action ({self.mark}): it has no value")
@@ -125,6 +140,11 @@ class ReplayedService(Backend):
 
     async def describe(self) -> ServiceModel:
         return self.model
+
+    async def match_properties(self, pattern: str, under: str = "") -> list[PropertyModel]:
+        # A property removed where the replay stands is not there to follow, as it was not then.
+        matching = await super().match_properties(pattern, under)
+        return [p for p in matching if p.name not in self._removed]
 
     async def aclose(self) -> None:
         self._listeners.clear()

@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -39,7 +39,7 @@ __all__ = ["ExportReport", "export_ros2", "message_type"]
 #: std_msgs, geometry_msgs and sensor_msgs used here are the same in every ROS 2 release since).
 STORE = Stores.ROS2_HUMBLE
 #: The bag format version rosbags writes (9: what ROS 2 Jazzy's rosbag2 reads and writes).
-BAG_VERSION = 9
+BAG_VERSION: Literal[8, 9] = 9
 
 #: Unreadable values the report names (it counts them all).
 MAX_REPORTED = 20
@@ -57,7 +57,7 @@ class ExportReport:
     types: dict[str, str] = field(default_factory=dict)
     #: Removals, which have no message.
     removals: int = 0
-    #: Values that did not read as their type (left out), each with why: (topic, reason), the first :data:`MAX_REPORTED`.
+    #: Values that did not read as their type (left out): (topic, why), the first :data:`MAX_REPORTED`.
     unreadable: list[tuple[str, str]] = field(default_factory=list)
     unreadable_count: int = 0
 
@@ -87,7 +87,9 @@ def _built(store: Typestore, type_name: str, fields: Mapping[str, Any]) -> Any:
     ``secs`` beside ROS 2's ``sec``) are ignored; missing ones are an error."""
     _consts, defs = store.fielddefs[type_name]
     values: dict[str, Any] = {}
-    for name, (node, detail) in defs:
+    for name, (node, spec) in defs:
+        # The definition's shape depends on the node kind (rosbags' Nodetype): read it as such.
+        detail: Any = spec
         given = fields[name]
         kind = node.name
         if kind == "NAME":
