@@ -8,6 +8,7 @@ import base64
 import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
+from typing import Any
 
 import aiohttp
 import pytest
@@ -164,7 +165,7 @@ def test_psctl_lists_and_reads_the_replayed_services(paused: GatewayProcess) -> 
     assert "replayed from swarm: read-only" in refused.stderr
 
 
-async def _opened(events: AsyncIterator[Event | object], within: float = 10) -> AsyncIterator[Event | object]:
+async def _opened(events: Any, within: float = 10) -> Any:
     """``events`` (a Listen with marks) once its current values are read: what follows are changes."""
     async with asyncio.timeout(within):
         async for item in events:
@@ -173,13 +174,13 @@ async def _opened(events: AsyncIterator[Event | object], within: float = 10) -> 
     raise AssertionError("the Listen ended before its current values")
 
 
-async def _heard(events: AsyncIterator[Event | object], value: str, within: float = 20) -> None:
+async def _heard(events: Any, value: str, within: float = 20) -> None:
     """Read ``events`` until a change carries ``value``; then close them."""
     async with asyncio.timeout(within):
         async for item in events:
             if isinstance(item, Event) and item.value == value:
                 break
-    await events.aclose()  # type: ignore[attr-defined]
+    await events.aclose()
 
 
 async def _sdk_changes(events: AsyncIterator[Event | object], into: list[Event]) -> None:
