@@ -27,7 +27,7 @@ from services.apps.replay.replayed import ReplayedService
 from services.apps.replay.timeline import Timeline
 from services.kernel.core import Prop, Resource, action
 from services.kernel.directory import Directory, own_context
-from services.kernel.errors import InvalidArgument, NotFound, PropertyError
+from services.kernel.errors import AlreadyExists, InvalidArgument, NotFound, PropertyError
 from services.kernel.paths import validate_service_name
 from services.kernel.values import Value
 
@@ -198,7 +198,13 @@ class Replay(Resource):
     async def start(self) -> None:
         try:
             for name, replayed in self._replayed.items():
-                await self._directory.serve(self._names[name], replayed)
+                try:
+                    await self._directory.serve(self._names[name], replayed)
+                except AlreadyExists:
+                    raise AlreadyExists(
+                        f"replay of {self.recording}: a service named {self._names[name]!r} is served"
+                        " already; give the replay a prefix"
+                    ) from None
                 self._served.append(self._names[name])
             await self._go_to(0.0)
         except BaseException:
