@@ -36,12 +36,13 @@ SELECTORS = [
 ]
 
 
-def replay_config(recording: Path, *, speed: float = 1.0, autostart: bool = False) -> str:
+def replay_config(recording: Path, *, speed: float = 1.0, prefix: str = "") -> str:
+    """A replay of ``recording`` that stands at the start until it is told to play."""
     return f"""
         [[services]]
         name = "replay"
         type = "replay"
-        options = {{ recording = "{recording}", speed = {speed}, autostart = {str(autostart).lower()} }}
+        options = {{ recording = "{recording}", speed = {speed}, autostart = false, prefix = "{prefix}" }}
     """
 
 
@@ -335,3 +336,28 @@ async def test_seek_speed_pause_and_loop_steer_the_replay_and_position_follows(
             assert await sdk.get(service, path) == value, (service, path)
         with pytest.raises(NotFound, match="removed"):
             await sdk.get("scout2", "status")
+
+
+async def test_a_prefix_serves_the_recording_beside_the_live_services_of_the_same_names(
+    gateway_process: StartGateway, recording: Path
+) -> None:
+    gw = gateway_process(
+        f"""
+        [[services]]
+        name = "scout1"
+        type = "sim-robot"
+        options = {{ start = [7.0, 7.0] }}
+        {replay_config(recording, prefix="was-")}
+        """
+    )
+    async with AsyncClient(gw.address, timeout=10) as sdk:
+        assert {"scout1", "was-scout1", "was-scout2", "was-cam1"} <= set(
+            await sdk.get_names("registry", "services")
+        )
+        assert await sdk.get("was-scout1", "location") == state_at(0.0)[("scout1", "location")]
+        assert "replayed from swarm" in (await sdk.describe("was-scout1")).doc
+        assert "replayed" not in (await sdk.describe("scout1")).doc
+        assert (await sdk.get_vector("scout1", "location"))[:2].tolist() == [7.0, 7.0]
+        await sdk.set("scout1", "speed", 0.25)  # the live robot takes Sets
+        with pytest.raises(FailedPrecondition):
+            await sdk.set("was-scout1", "speed", 0.25)

@@ -137,6 +137,8 @@ class Replay(Resource):
         self._cursor_ns = self._recording.start_ns
         #: Set when the timeline changes (pause, play, speed): the player looks at it again.
         self._retimed = asyncio.Event()
+        #: One seek at a time: a second waits for the first to hold its values, then moves on.
+        self._seeking = asyncio.Lock()
         self._player: asyncio.Task[None] | None = None
         self._ticker: asyncio.Task[None] | None = None
         self._served: list[str] = []
@@ -247,16 +249,17 @@ class Replay(Resource):
 
     async def _go_to(self, position_s: float) -> None:
         """Stand at ``position_s``: each service holds its values there; a change is told with ``gap``."""
-        player, self._player = self._player, None
-        if player is not None:
-            player.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await player
-        await self._rewind(position_s)
-        if self._timeline.playing:
-            self._played()
-        else:
-            self._told()
+        async with self._seeking:
+            player, self._player = self._player, None
+            if player is not None:
+                player.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await player
+            await self._rewind(position_s)
+            if self._timeline.playing:
+                self._played()
+            else:
+                self._told()
 
     async def _rewind(self, position_s: float) -> None:
         """Hold the values at ``position_s`` and move the cursor and the timeline there."""
