@@ -185,7 +185,7 @@ class Replay(Resource):
         if self._timeline.position() >= self._timeline.duration_s and self._player is None:
             await self._go_to(0.0)
         self._timeline.play()
-        self._played()
+        self._follow()
 
     @action(doc="stop where the replay stands")
     def pause(self) -> None:
@@ -214,7 +214,7 @@ class Replay(Resource):
             raise
         if self._autostart:
             self._timeline.play()
-            self._played()
+            self._follow()
 
     async def stop(self) -> None:
         for task in (self._player, self._ticker):
@@ -234,8 +234,9 @@ class Replay(Resource):
         self.changed("playing")
         self.changed("position")
 
-    def _played(self) -> None:
-        """The timeline plays: make sure a player follows it, and that ``position`` is told."""
+    def _follow(self) -> None:
+        """Make sure a player follows the timeline, and tell ``playing`` and ``position``. A player
+        runs while paused too: it reads its first batch and waits, so that ``play`` starts at once."""
         if self._player is None:
             self._player = asyncio.get_running_loop().create_task(
                 self._play(), name="replay player", context=own_context()
@@ -256,10 +257,7 @@ class Replay(Resource):
                 with contextlib.suppress(asyncio.CancelledError):
                     await player
             await self._rewind(position_s)
-            if self._timeline.playing:
-                self._played()
-            else:
-                self._told()
+            self._follow()
 
     async def _rewind(self, position_s: float) -> None:
         """Hold the values at ``position_s`` and move the cursor and the timeline there."""
