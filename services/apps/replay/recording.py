@@ -155,12 +155,11 @@ class Recording:
             yield from self._events_of(file, since_ns)
 
     def _events_of(self, file: Path, since_ns: int | None) -> Iterator[RecordedEvent]:
-        start = None if since_ns is None else since_ns + 1
         try:
             with file.open("rb") as stream:
                 reader = make_reader(stream)
                 for schema, _channel, message in reader.iter_messages(
-                    topics=[EVENTS_TOPIC], start_time=start
+                    topics=[EVENTS_TOPIC], starting_after=since_ns
                 ):
                     if schema is None or schema.name != _EVENT_SCHEMA:
                         continue

@@ -84,14 +84,31 @@ class ReplayedService(Backend):
         if listeners:
             tell_each(listeners, Change(path, "" if removed else value, gap, removed), what=self.name)
         if listed == removed:
-            # The property went, or came back: wildcard Listens look at the list again.
-            followers = self._listeners.get(_PROPERTIES)
-            if followers:
-                tell_each(followers, Change(_PROPERTIES, self._names()), what=self.name)
+            self._tell_properties()  # it went, or came back: wildcard Listens look at the list again
+
+    def forget(self, path: str) -> None:
+        """The replay went back to before ``path``'s first change: it has no value (not removed)."""
+        had = path in self._values
+        self._values.pop(path, None)
+        if path in self._removed:
+            self._removed.discard(path)
+            self._tell_properties()
+        listeners = self._listeners.get(path)
+        if had and listeners:
+            tell_each(listeners, Change(path, "", gap=True, removed=True), what=self.name)
 
     def values(self) -> dict[str, Value]:
         """The values held now (a copy)."""
         return dict(self._values)
+
+    def removed(self) -> set[str]:
+        """The properties removed where the replay stands (a copy)."""
+        return set(self._removed)
+
+    def _tell_properties(self) -> None:
+        followers = self._listeners.get(_PROPERTIES)
+        if followers:
+            tell_each(followers, Change(_PROPERTIES, self._names()), what=self.name)
 
     def _names(self) -> str:
         return format_names([name for name in self._props if name not in self._removed])

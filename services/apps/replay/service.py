@@ -8,10 +8,11 @@ properties drive the playback: ``speed``, ``loop``, ``seek``, ``play``, ``pause`
 
 How it plays: a task reads the ``/_events`` channel in batches in a worker thread (a batch is at
 most :data:`BATCH_EVENTS` changes and :data:`BATCH_BYTES` of values) and tells each change to its
-service when the :class:`Timeline` reaches the change's log time. A seek (and a loop back to the
-start) reads the recording up to the new position in the worker thread, keeping only the last
-value of each property, and tells each property whose value differs there with ``gap`` set: values
-were skipped.
+service when the :class:`Timeline` reaches the change's log time; it runs while paused too, its
+next batch read. A seek (and a loop back to the start) reads the recording up to the new position
+in the worker thread (from where the replay stands, for a seek forward; else from the start),
+keeping only the last value of each property, and tells each property whose value differs there
+with ``gap`` set: values were skipped.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import Iterator
+from dataclasses import dataclass, field
 from typing import Annotated
 
 from services.apps.replay.recording import RecordedEvent, Recording
@@ -31,7 +33,7 @@ from services.kernel.errors import AlreadyExists, InvalidArgument, NotFound, Pro
 from services.kernel.paths import validate_service_name
 from services.kernel.values import Value
 
-__all__ = ["BATCH_BYTES", "BATCH_EVENTS", "MAX_SPEED", "MIN_SPEED", "Replay"]
+__all__ = ["BATCH_BYTES", "BATCH_EVENTS", "MAX_SPEED", "MIN_SPEED", "POSITION_PERIOD_S", "Replay"]
 
 log = logging.getLogger(__name__)
 
@@ -46,28 +48,59 @@ MAX_SPEED = 1000.0
 POSITION_PERIOD_S = 0.25
 
 
-def _next_batch(events: Iterator[RecordedEvent]) -> list[RecordedEvent]:
-    """The next changes of ``events`` (at most a batch; none at the end). Runs in a worker thread."""
-    batch: list[RecordedEvent] = []
-    size = 0
-    for event in events:
-        batch.append(event)
-        size += len(event.value)
-        if len(batch) >= BATCH_EVENTS or size >= BATCH_BYTES:
-            break
-    return batch
+class _Batches:
+    """A recording's changes in batches, read in a worker thread. A batch never ends between two
+    changes of one log time: the player tells those in one go, so the cursor (a log time) never
+    stands between them."""
+
+    def __init__(self, events: Iterator[RecordedEvent]) -> None:
+        self._events = events
+        self._held: RecordedEvent | None = None
+
+    def take(self) -> list[RecordedEvent]:
+        """The next changes (a batch, and the rest of its last log time's); none at the end."""
+        batch: list[RecordedEvent] = []
+        size = 0
+        if self._held is not None:
+            batch.append(self._held)
+            size += len(self._held.value)
+            self._held = None
+        for event in self._events:
+            full = len(batch) >= BATCH_EVENTS or size >= BATCH_BYTES
+            if full and event.log_time_ns != batch[-1].log_time_ns:
+                self._held = event
+                break
+            batch.append(event)
+            size += len(event.value)
+        return batch
 
 
-def _state_at(recording: Recording, until_ns: int) -> dict[tuple[str, str], Value]:
-    """The value of every property at log time ``until_ns`` (removed ones absent). Worker thread."""
-    state: dict[tuple[str, str], Value] = {}
-    for event in recording.events():
+#: (service, path) → value: the recorded values at one time.
+Values = dict[tuple[str, str], Value]
+
+
+@dataclass
+class _State:
+    """Every property's value at one log time, and the properties removed by then."""
+
+    values: Values = field(default_factory=dict)
+    removed: set[tuple[str, str]] = field(default_factory=set)
+
+
+def _state_at(recording: Recording, until_ns: int, since: tuple[int, _State] | None = None) -> _State:
+    """The state at log time ``until_ns``: read from the start, or from ``since`` (a log time and
+    the state then) when it is earlier, so a seek forward reads only what lies between. Worker thread."""
+    since_ns, state = since if since is not None else (None, _State())
+    for event in recording.events(since_ns):
         if event.log_time_ns > until_ns:
             break
+        key = (event.service, event.path)
         if event.removed:
-            state.pop((event.service, event.path), None)
+            state.values.pop(key, None)
+            state.removed.add(key)
         else:
-            state[(event.service, event.path)] = event.value
+            state.values[key] = event.value
+            state.removed.discard(key)
     return state
 
 
@@ -133,8 +166,8 @@ class Replay(Resource):
         self.services = list(self._names.values())
         self.duration = round(self._recording.duration_s, 3)
         self.loop = bool(loop)
-        #: The log time up to which every change is told (the state the services hold).
-        self._cursor_ns = self._recording.start_ns
+        #: The log time up to which every change is told (the state the services hold): none yet.
+        self._cursor_ns = self._recording.start_ns - 1
         #: Set when the timeline changes (pause, play, speed): the player looks at it again.
         self._retimed = asyncio.Event()
         #: One seek at a time: a second waits for the first to hold its values, then moves on.
@@ -262,14 +295,29 @@ class Replay(Resource):
     async def _rewind(self, position_s: float) -> None:
         """Hold the values at ``position_s`` and move the cursor and the timeline there."""
         until_ns = self._recording.start_ns + round(position_s * 1e9)
-        state = await asyncio.to_thread(_state_at, self._recording, until_ns)
+        since = None
+        if until_ns >= self._cursor_ns:
+            now = _State()
+            for name, replayed in self._replayed.items():
+                now.values.update(((name, path), value) for path, value in replayed.values().items())
+                now.removed.update((name, path) for path in replayed.removed())
+            since = (self._cursor_ns, now)
+        state = await asyncio.to_thread(_state_at, self._recording, until_ns, since)
+        recorded: dict[str, set[str]] = {}
+        for service, path in (*state.values, *state.removed):
+            recorded.setdefault(service, set()).add(path)
         for name, replayed in self._replayed.items():
-            held = replayed.values()
-            for path in held.keys() - {p for (s, p) in state if s == name}:
-                replayed.apply(path, "", gap=True, removed=True)
-            for (service, path), value in state.items():
-                if service == name and held.get(path) != value:
-                    replayed.apply(path, value, gap=True)
+            held, gone = replayed.values(), replayed.removed()
+            for path in held.keys() | gone | recorded.get(name, set()):
+                value = state.values.get((name, path))
+                if value is not None:
+                    if held.get(path) != value:
+                        replayed.apply(path, value, gap=True)
+                elif (name, path) in state.removed:
+                    if path not in gone:
+                        replayed.apply(path, "", gap=True, removed=True)
+                else:
+                    replayed.forget(path)  # not recorded yet there
         self._cursor_ns = until_ns
         self._timeline.seek(position_s)
 
@@ -280,8 +328,8 @@ class Replay(Resource):
         """Tell each change after the cursor when the timeline reaches it; at the end, loop or stop."""
         try:
             while True:
-                events = self._recording.events(since_ns=self._cursor_ns)
-                while batch := await asyncio.to_thread(_next_batch, events):
+                batches = _Batches(self._recording.events(since_ns=self._cursor_ns))
+                while batch := await asyncio.to_thread(batches.take):
                     for event in batch:
                         await self._reach(self._seconds_of(event))
                         replayed = self._replayed.get(event.service)
