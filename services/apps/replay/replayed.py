@@ -149,7 +149,7 @@ class ReplayedService(Backend):
             prop = self._model_of(path)
             if prop is not None and prop.access is Access.ACTION:
                 raise FailedPrecondition(f"{self.name}.{path} is an action ({self.mark}): it has no value")
-        # The list of properties is the recorded model's, which never changes: its listeners wait.
+        # ``properties`` changes only when the recording removes a property or a seek brings it back.
         listeners = self._listeners.setdefault(path, {})
         token = next(self._tokens)
         listeners[token] = notify

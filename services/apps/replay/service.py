@@ -147,11 +147,16 @@ class Replay(Resource):
             raise InvalidArgument("a replay needs recording = an .mcap file or a recording's folder")
         if not isinstance(prefix, str):
             raise InvalidArgument(f"prefix must be text, got {prefix!r}")
+        for option, given in (("loop", loop), ("autostart", autostart)):
+            if not isinstance(given, bool):
+                raise InvalidArgument(f"{option} must be true or false, got {given!r}")
+        if isinstance(speed, bool) or not isinstance(speed, int | float):
+            raise InvalidArgument(f"speed must be a number, got {speed!r}")
         self._recording = Recording(recording)
         self._directory = directory
         self._timeline = Timeline(self._recording.duration_s)
         self._timeline.set_speed(_check_speed(speed))
-        self._autostart = bool(autostart)
+        self._autostart = autostart
         position = _Position(self._timeline)
         source = self._recording.path.name
         #: Recorded name → the service replaying it.
@@ -165,7 +170,7 @@ class Replay(Resource):
         self.recording = str(self._recording.path)
         self.services = list(self._names.values())
         self.duration = round(self._recording.duration_s, 3)
-        self.loop = bool(loop)
+        self.loop = loop
         #: The log time up to which every change is told (the state the services hold): none yet.
         self._cursor_ns = self._recording.start_ns - 1
         #: Set when the timeline changes (pause, play, speed): the player looks at it again.
