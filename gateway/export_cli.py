@@ -1,4 +1,4 @@
-"""``psgateway export-ros2 RECORDING OUT_DIR``: a recording as a ROS 2 bag (MCAP storage).
+"""psgateway export-ros2 RECORDING OUT_DIR: a recording as a ROS 2 bag (MCAP storage).
 
   psgateway export-ros2 recordings/patrol patrol-bag
   psgateway export-ros2 recordings/patrol/patrol-0001.mcap patrol-bag
@@ -40,8 +40,14 @@ def add_parser(subparsers: Any) -> None:
 def _export(args: argparse.Namespace) -> int:
     # Imported here: rosbags is needed by this command only, not by a gateway that serves.
     from services.apps.replay.recording import Recording
-    from services.apps.replay.ros2 import ProgressLine, export_ros2
     from services.kernel.errors import PropertyError
+
+    try:
+        from services.apps.replay.ros2 import ProgressLine, export_ros2
+    except ModuleNotFoundError as exc:
+        install = "pip install 'propertyservice-gateway[ros2]'"
+        print(f"psgateway export-ros2: needs the {exc.name} package: {install}", file=sys.stderr)
+        return 1
 
     try:
         recording = Recording(args.recording)
