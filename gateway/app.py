@@ -717,6 +717,8 @@ class Gateway:
         groups = {e.name for e in self.config.services if _needs_directory(e)}
         names = reversed(self.router.names())
         for name in sorted(names, key=lambda n: 0 if n in groups else 1 if n == REGISTRY_NAME else 2):
+            if name not in self.router:
+                continue  # a service a closed one served (a replay's recorded services) went with it
             backend = self.router.remove(name)
             try:
                 await asyncio.wait_for(backend.aclose(), grace)

@@ -27,6 +27,7 @@ from typing import Any
 from services.apps.environment import EnvironmentModel
 from services.apps.group import Group
 from services.apps.recorder import Recorder
+from services.apps.replay import Replay
 from services.apps.simulators import SimRobot, SimSensor
 from services.apps.statemachine import StateMachineService
 from services.apps.storage import Storage
@@ -52,6 +53,7 @@ CATALOG: dict[str, Callable[..., Resource]] = {
     "environment": EnvironmentModel,
     "group": Group,
     "recorder": Recorder,
+    "replay": Replay,
     "sim-robot": SimRobot,
     "sim-sensor": SimSensor,
     "statemachine": StateMachineService,
@@ -60,7 +62,11 @@ CATALOG: dict[str, Callable[..., Resource]] = {
 
 #: Options of a kind that name a file or folder: a configuration takes a relative one from its
 #: own folder (``gateway.config``), as it does for every other path it holds.
-PATH_OPTIONS: dict[str, tuple[str, ...]] = {"recorder": ("folder",), "storage": ("directory",)}
+PATH_OPTIONS: dict[str, tuple[str, ...]] = {
+    "recorder": ("folder",),
+    "replay": ("recording",),
+    "storage": ("directory",),
+}
 #: Options of a kind that are tables of name → file, taken from the config's folder alike; a value
 #: with the given prefix names something else (``builtin:patrol``, a chart shipped with the package).
 PATH_TABLE_OPTIONS: dict[str, tuple[tuple[str, str], ...]] = {"statemachine": (("charts", "builtin:"),)}
