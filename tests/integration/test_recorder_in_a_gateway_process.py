@@ -384,3 +384,37 @@ async def test_a_full_disk_fails_the_recording_and_says_so(tmp_path: Path) -> No
             assert await client.get("scout1", "location")
     finally:
         gw.stop()
+
+
+async def test_a_recording_plays_back_as_live_services_in_another_gateway(
+    gateway_process: StartGateway, tmp_path: Path
+) -> None:
+    folder = tmp_path / "recordings"
+    recorder = gateway_process(ROBOTS.format(folder=folder, seconds=600, budget=1 << 30))
+    async with AsyncClient(recorder.address, timeout=15.0) as client:
+        await client.set("scout1", "behaviors.moveto", DRIVE)
+        await client.set("recorder", "start", "scout1/location", name="drive", max_duration=2.0)
+        await eventually(
+            lambda: recordings(client), lambda r: r["drive"]["state"] == "stopped", within=30, what="the end"
+        )
+    recorded = list(recorded_events(folder / "drive" / "drive-0001.mcap"))
+    assert len({e.value for e in recorded}) > 5  # it drove
+
+    player = gateway_process(
+        f"""
+        [[services]]
+        name = "replay"
+        type = "replay"
+        options = {{ recording = "{folder / "drive"}", autostart = false }}
+        """
+    )
+    async with AsyncClient(player.address, timeout=15.0) as client:
+        assert await client.get("replay", "services") == "(scout1)"
+        duration = float(str(await client.get("replay", "duration")))
+        assert duration == pytest.approx((recorded[-1].log_time_ns - recorded[0].log_time_ns) / 1e9, abs=0.01)
+        middle = round(duration / 2, 3)
+        await client.set("replay", "seek", str(middle))
+        # The value the recording held then: its last change at or before that offset.
+        first = recorded[0].log_time_ns
+        then = [e.value for e in recorded if e.log_time_ns - first <= middle * 1e9][-1]
+        assert await client.get("scout1", "location") == then
