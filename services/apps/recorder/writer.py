@@ -115,8 +115,8 @@ class RecordingWriter:
         """Hand a batch to the writer (never blocks); dropped and counted when the intake is full."""
         size = sum(len(e.value) for e in events)
         with self._cond:
-            if self._stopping:
-                return
+            if self._stopping or self._ended is not None:
+                return  # stopped, or ended by itself: its follow is being closed
             limits = self.limits
             if (
                 self._queued_events + len(events) > limits.max_queued_events
