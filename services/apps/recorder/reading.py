@@ -79,8 +79,9 @@ def _streamed(path: Path) -> Iterator[Message]:
             log.debug("%s ends early: %s", path, exc)
 
 
-def _file_events(path: Path, since_ns: int | None) -> Iterator[Message]:
-    """The ``/_events`` messages of one file; a finished file is read through its index."""
+def _file_events(path: Path, since_ns: int | None, after_log_ns: int | None = None) -> Iterator[Message]:
+    """The ``/_events`` messages of one file (logged after ``after_log_ns``, when given); a finished
+    file is read through its index, which skips the chunks before that."""
     with open(path, "rb") as stream:
         try:
             reader = make_reader(stream)
@@ -93,15 +94,20 @@ def _file_events(path: Path, since_ns: int | None) -> Iterator[Message]:
             # logged before ``since`` holds no event of the range.
             if since_ns is not None and statistics is not None and statistics.message_end_time < since_ns:
                 return
-            for _, _, message in reader.iter_messages(topics=[EVENTS_TOPIC], log_time_order=False):
+            for _, _, message in reader.iter_messages(
+                topics=[EVENTS_TOPIC], log_time_order=False, starting_after=after_log_ns
+            ):
                 yield message
             return
-    yield from _streamed(path)
+    for message in _streamed(path):
+        if after_log_ns is None or message.log_time > after_log_ns:
+            yield message
 
 
-def recorded_events(path: Path) -> Iterator[RecordedEvent]:
-    """Every change one recording file holds, in the order written."""
-    for message in _file_events(path, None):
+def recorded_events(path: Path, after_log_ns: int | None = None) -> Iterator[RecordedEvent]:
+    """Every change one recording file holds (logged after ``after_log_ns``, when given), in the
+    order written; a file its writer never finished is read up to its last complete chunk."""
+    for message in _file_events(path, None, after_log_ns):
         yield _event(message)
 
 

@@ -19,41 +19,15 @@ from google.protobuf.message import DecodeError
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
-from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.apps.recorder.layout import EVENTS_TOPIC, RECORDING_METADATA, SERVICE_METADATA
+from services.apps.recorder.reading import RecordedEvent, recorded_events
 from services.kernel.errors import InvalidArgument
 from services.kernel.model import ServiceModel
 from services.kernel.model_codec import model_from_text
-from services.kernel.values import Value
 
 __all__ = ["EVENTS_TOPIC", "RecordedEvent", "RecordedService", "Recording"]
 
 log = logging.getLogger(__name__)
-
-#: The channel every recorded change is on (docs/recording.md).
-EVENTS_TOPIC = "/_events"
-#: The metadata record naming one recorded service, its type and its model.
-SERVICE_METADATA = "propertyservice.service"
-#: The metadata record naming the recording.
-RECORDING_METADATA = "propertyservice.recording"
-_EVENT_SCHEMA = "propertyservice.v1.Event"
-
-
-@dataclass(frozen=True, slots=True)
-class RecordedEvent:
-    """One recorded change of one property."""
-
-    service: str
-    path: str
-    #: Text, or bytes for a binary property; "" when ``removed``.
-    value: Value
-    #: The change's own time (its source's, when it had one), ns since the epoch.
-    time_ns: int
-    #: When the gateway received it, ns since the epoch: the recording's time line.
-    log_time_ns: int
-    sequence: int
-    conflated: int
-    gap: bool
-    removed: bool
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,30 +130,6 @@ class Recording:
 
     def _events_of(self, file: Path, since_ns: int | None) -> Iterator[RecordedEvent]:
         try:
-            with file.open("rb") as stream:
-                reader = make_reader(stream)
-                for schema, _channel, message in reader.iter_messages(
-                    topics=[EVENTS_TOPIC], starting_after=since_ns
-                ):
-                    if schema is None or schema.name != _EVENT_SCHEMA:
-                        continue
-                    yield _decoded(message.data, message.log_time, message.publish_time)
-        except (McapError, DecodeError, OSError, ValueError, EOFError) as exc:
-            # A file cut short (its writer was killed) is read up to where it ends.
+            yield from recorded_events(file, since_ns)
+        except (DecodeError, OSError) as exc:
             log.warning("recording %s: reading stopped early: %s", file, exc)
-
-
-def _decoded(data: bytes, log_time: int, publish_time: int) -> RecordedEvent:
-    event = pb.Event.FromString(data)
-    value: Value = event.data if event.HasField("data") else event.value
-    return RecordedEvent(
-        service=event.service,
-        path=event.property,
-        value=value,
-        time_ns=publish_time,
-        log_time_ns=log_time,
-        sequence=event.sequence,
-        conflated=event.conflated,
-        gap=event.gap,
-        removed=event.removed,
-    )
