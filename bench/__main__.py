@@ -37,6 +37,7 @@ from bench.peer_measure import PeerSizes
 from bench.peer_ratios import compare as compare_with_peers
 from bench.peers import BY_NAME as PEERS_BY_NAME
 from bench.peers import run_peer
+from bench.recording import run_recording
 from bench.register import run_register
 from bench.rosbridge import run_rosbridge
 from bench.scheduler import run_scheduler
@@ -62,6 +63,7 @@ PARTS = (
     "storage",
     "sse",
     "rosbridge",
+    "recording",
     "statemachine",
     "scheduler",
     "camera",
@@ -104,6 +106,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "scheduler_rounds": 1_000,
         "camera_seconds": 10.0,
         "cmd_vel_trips": 1_000,
+        "recording_seconds": 5.0,
         "fusion_sizes": (100, 10_000),
         "fusion_observations": 20_000,
         "cluster_gateways": (1, 2, 4),
@@ -136,6 +139,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         "scheduler_rounds": 100,
         "camera_seconds": 3.0,
         "cmd_vel_trips": 200,
+        "recording_seconds": 2.0,
         "fusion_sizes": (100, 10_000),
         "fusion_observations": 2_000,
         "cluster_gateways": (1, 2, 4),
@@ -206,7 +210,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "with the same patterns; "
         "(t) Listen fan-out from 1, 2 and 4 gateway processes, the others forwarding from the first, and "
         "devices across 4 gateways sharing a registry in etcd (registration, find, forwarded Get, failover); "
-        "(u) rosbridge subscribers beside gRPC Listen and SSE, and a cmd_vel round trip to a robot. "
+        "(u) rosbridge subscribers beside gRPC Listen and SSE, and a cmd_vel round trip to a robot; "
+        "(v) the gateway's CPU recording 100 properties changing at 100 Hz, beside not recording. "
         "Prints figures, ratios and targets.",
     )
     parser.add_argument(
@@ -321,6 +326,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--cmd-vel-trips",
         type=_positive,
         help=f"(u) Twists published on cmd_vel, each awaited on velocity {both('cmd_vel_trips')}",
+    )
+    sizes.add_argument(
+        "--recording-seconds",
+        type=float,
+        help=f"(v) seconds of each window: idle, recording, one Listen {both('recording_seconds')}",
     )
     sizes.add_argument(
         "--fusion-sizes",
@@ -598,6 +608,14 @@ async def _issue_parts(args: argparse.Namespace, results: report.Results) -> Non
         results.setdefault("gateway", {})["camera"] = await _timed(
             f"camera: 10 gRPC Listens on a 640x480 camera's frame at 30 Hz for {args.camera_seconds:g} s",
             lambda: run_camera(seconds=args.camera_seconds, time_limit=args.time_limit),
+        )
+    if "recording" in args.parts:
+        results.setdefault("gateway", {})["recording"] = await _timed(
+            f"recording: 100 properties at 100 Hz recorded to MCAP, beside not recording, "
+            f"{args.recording_seconds:g} s windows",
+            lambda: run_recording(
+                seconds=args.recording_seconds, rounds=max(args.rounds, 1), time_limit=args.time_limit
+            ),
         )
     if "fusion" in args.parts:
         results.setdefault("in-process", {})["fusion"] = await _timed(

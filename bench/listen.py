@@ -33,7 +33,7 @@ import contextlib
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import grpc
 
@@ -271,6 +271,54 @@ async def _burst(
                     final[prop] = value
 
 
+class Hearing(Protocol):
+    """A subscriber of a run, on whatever front: what :func:`measure_delivery` reads of it."""
+
+    done: asyncio.Event
+    last_ns: int
+    events: int
+
+    def check_done(self) -> None: ...
+
+
+async def measure_delivery(
+    server: ServerProcess,
+    setter: pb_grpc.PropertyServiceStub,
+    subs: Sequence[Hearing],
+    run: Run,
+    result: ListenResult,
+    *,
+    properties: Sequence[str],
+    sets: int,
+    set_rate: float,
+    deadline: float,
+) -> int:
+    """The measured window of a run: ``sets`` Sets at ``set_rate``, then until every subscriber has
+    heard the last (at most DRAIN_TIMEOUT, never past ``deadline``). Fills the result's window and
+    setter time; returns when the first Set was sent (``time.perf_counter_ns``)."""
+    with window(server) as result.window:
+        first_set_ns = time.perf_counter_ns()
+        run.final = await set_all(
+            setter, properties=properties, sets=sets, set_rate=set_rate, deadline=deadline, result=result
+        )
+        result.setter_s = (time.perf_counter_ns() - first_set_ns) / 1e9
+        for sub in subs:
+            sub.check_done()
+        drain_until = min(deadline, time.monotonic() + DRAIN_TIMEOUT)
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(max(drain_until - time.monotonic(), 0.0)):
+                await asyncio.gather(*(sub.done.wait() for sub in subs))
+    return first_set_ns
+
+
+def count_delivery(result: ListenResult, subs: Sequence[Hearing], run: Run, first_set_ns: int) -> None:
+    """What the subscribers heard, into ``result``: the delivery time, the events, the latencies."""
+    last_ns = max((sub.last_ns for sub in subs), default=0)
+    result.delivery_s = max(last_ns - first_set_ns, 0) / 1e9
+    result.events = sum(sub.events for sub in subs)
+    result.latency = Latencies.of(run.samples)
+
+
 async def run_listen(
     server: ServerProcess,
     *,
@@ -329,19 +377,17 @@ async def run_listen(
             await asyncio.gather(*(sub.wait_sync() for sub in subs))
         tasks = [asyncio.create_task(sub.consume()) for sub in subs]
 
-        with window(server) as result.window:
-            first_set_ns = time.perf_counter_ns()
-            final = await set_all(
-                setter, properties=properties, sets=sets, set_rate=set_rate, deadline=deadline, result=result
-            )
-            result.setter_s = (time.perf_counter_ns() - first_set_ns) / 1e9
-            run.final = final
-            for sub in subs:
-                sub.check_done()
-            drain_until = min(deadline, time.monotonic() + DRAIN_TIMEOUT)
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(max(drain_until - time.monotonic(), 0.0)):
-                    await asyncio.gather(*(sub.done.wait() for sub in subs))
+        first_set_ns = await measure_delivery(
+            server,
+            setter,
+            subs,
+            run,
+            result,
+            properties=properties,
+            sets=sets,
+            set_rate=set_rate,
+            deadline=deadline,
+        )
     finally:
         for task in tasks:
             task.cancel()
@@ -351,12 +397,9 @@ async def run_listen(
         for channel in [*opened, setter_channel]:
             await channel.close(None)
 
-    last_ns = max((sub.last_ns for sub in subs), default=0)
-    result.delivery_s = max(last_ns - first_set_ns, 0) / 1e9
-    result.events = sum(sub.events for sub in subs)
+    count_delivery(result, subs, run, first_set_ns)
     result.conflated = sum(sub.conflated for sub in subs)
     result.messages = sum(sub.messages for sub in subs)
     result.complete_subscribers = sum(sub.listens for sub in subs if sub.done.is_set())
-    result.latency = Latencies.of(run.samples)
     server.check_alive()
     return result

@@ -513,6 +513,21 @@ TARGETS += (
 )
 
 
+TARGETS += (
+    # The recorder is off to the side: a recording of 10,000 changes a second should cost the
+    # gateway little beside not recording (docs/recording.md, docs/performance.md).
+    Target(
+        "recording-cpu",
+        "gateway CPU recording 100 properties at 100 Hz / not recording, same run",
+        lambda r: float(r["gateway"]["recording"]["ratio"]),
+        "max",
+        1.10,
+        "x",
+        (("gateway", "recording"),),
+    ),
+)
+
+
 def _fusion_scaling(r: Results) -> float:
     sizes = r["in-process"]["fusion"]["sizes"]
     smallest = min(sizes, key=lambda d: d["markers"])
@@ -1165,6 +1180,7 @@ def _issue_tables(out: TextIO, results: Results) -> None:
     _statemachine_table(out, results)
     _scheduler_table(out, results)
     _camera_table(out, results)
+    _recording_table(out, results)
     _fusion_table(out, results)
     _metrics_table(out, results)
     _cores_table(out, results)
@@ -1483,6 +1499,40 @@ def _camera_table(out: TextIO, results: Results) -> None:
                 _fmt(camera["gateway_cpu_ms_per_frame"], 2),
                 _fmt(base["frames_per_s"]),
                 _fmt(base["ms_per_frame"], 2),
+            ]
+        ],
+    )
+
+
+def _recording_table(out: TextIO, results: Results) -> None:
+    recording = results.get("gateway", {}).get("recording")
+    if not recording or "error" in recording:
+        return
+    cores = recording["cores"]
+    _table(
+        out,
+        f"(v) recording: {recording['properties']} properties at {recording['rate_hz']:g} Hz, "
+        f"{recording['window_s']} s windows, best of {recording['rounds']}",
+        [
+            "idle cores",
+            "recording cores",
+            "one Listen cores",
+            "ratio",
+            "rec / Listen",
+            "events/s",
+            "MiB/s",
+            "dropped",
+        ],
+        [
+            [
+                _fmt(cores["idle"], 3),
+                _fmt(cores["recording"], 3),
+                _fmt(cores["listen"], 3),
+                _fmt(recording["ratio"], 2),
+                _fmt(recording["recording_over_listen"], 2),
+                _fmt(recording["events_per_s"]),
+                _fmt(recording["mib_per_s"], 2),
+                _fmt(recording["dropped"]),
             ]
         ],
     )

@@ -33,8 +33,16 @@ from typing import Any
 import aiohttp
 import grpc
 
-from bench.listen import CALL_TIMEOUT, CHANNEL_OPTIONS, DRAIN_TIMEOUT, ListenResult, Run, run_listen, set_all
-from bench.measure import Latencies, window
+from bench.listen import (
+    CALL_TIMEOUT,
+    CHANNEL_OPTIONS,
+    ListenResult,
+    Run,
+    count_delivery,
+    measure_delivery,
+    run_listen,
+)
+from bench.measure import Latencies
 from bench.servers import ServerProcess
 from bench.sse import ARGV, http_url, run_sse_listen, sessions_from_sources
 from bench.target import SERVICE, VALUE_PROPERTY
@@ -147,37 +155,27 @@ async def run_rosbridge_listen(
             await asyncio.sleep(0.2)  # the warm-up Sets' messages are read before counting starts
             for sub in subs:
                 sub.measuring = True
-            with window(server) as result.window:
-                first_set_ns = time.perf_counter_ns()
-                final = await set_all(
-                    setter,
-                    properties=(VALUE_PROPERTY,),
-                    sets=sets,
-                    set_rate=set_rate,
-                    deadline=deadline,
-                    result=result,
-                )
-                result.setter_s = (time.perf_counter_ns() - first_set_ns) / 1e9
-                run.final = final
-                for sub in subs:
-                    sub.check_done()
-                drain_until = min(deadline, time.monotonic() + DRAIN_TIMEOUT)
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(max(drain_until - time.monotonic(), 0.0)):
-                        await asyncio.gather(*(sub.done.wait() for sub in subs))
+            first_set_ns = await measure_delivery(
+                server,
+                setter,
+                subs,
+                run,
+                result,
+                properties=(VALUE_PROPERTY,),
+                sets=sets,
+                set_rate=set_rate,
+                deadline=deadline,
+            )
         finally:
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
             await asyncio.gather(*(sub.ws.close() for sub in subs), return_exceptions=True)
-    last_ns = max((sub.last_ns for sub in subs), default=0)
-    result.delivery_s = max(last_ns - first_set_ns, 0) / 1e9
-    result.events = sum(sub.events for sub in subs)
+    count_delivery(result, subs, run, first_set_ns)
     # rosbridge has no count of values left out: every Set a subscriber missed was conflated.
     result.conflated = sets * subscribers - result.events if all(s.done.is_set() for s in subs) else 0
     result.messages = result.events
     result.complete_subscribers = sum(sub.done.is_set() for sub in subs)
-    result.latency = Latencies.of(run.samples)
     server.check_alive()
     return result
 

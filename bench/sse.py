@@ -32,8 +32,15 @@ from typing import Any
 import aiohttp
 import grpc
 
-from bench.listen import CALL_TIMEOUT, CHANNEL_OPTIONS, DRAIN_TIMEOUT, ListenResult, Run, run_listen, set_all
-from bench.measure import Latencies, window
+from bench.listen import (
+    CALL_TIMEOUT,
+    CHANNEL_OPTIONS,
+    ListenResult,
+    Run,
+    count_delivery,
+    measure_delivery,
+    run_listen,
+)
 from bench.servers import ServerError, ServerProcess
 from bench.target import SERVICE, VALUE_PROPERTY
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -151,37 +158,27 @@ async def run_sse_listen(
                 subs = [_SseSubscriber(response, run) for response in responses]
                 await asyncio.gather(*(sub.wait_sync() for sub in subs))
             tasks = [asyncio.create_task(sub.consume()) for sub in subs]
-            with window(server) as result.window:
-                first_set_ns = time.perf_counter_ns()
-                final = await set_all(
-                    setter,
-                    properties=(VALUE_PROPERTY,),
-                    sets=sets,
-                    set_rate=set_rate,
-                    deadline=deadline,
-                    result=result,
-                )
-                result.setter_s = (time.perf_counter_ns() - first_set_ns) / 1e9
-                run.final = final
-                for sub in subs:
-                    sub.check_done()
-                drain_until = min(deadline, time.monotonic() + DRAIN_TIMEOUT)
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(max(drain_until - time.monotonic(), 0.0)):
-                        await asyncio.gather(*(sub.done.wait() for sub in subs))
+            first_set_ns = await measure_delivery(
+                server,
+                setter,
+                subs,
+                run,
+                result,
+                properties=(VALUE_PROPERTY,),
+                sets=sets,
+                set_rate=set_rate,
+                deadline=deadline,
+            )
         finally:
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
             for sub in subs:
                 sub.response.close()
-    last_ns = max((sub.last_ns for sub in subs), default=0)
-    result.delivery_s = max(last_ns - first_set_ns, 0) / 1e9
-    result.events = sum(sub.events for sub in subs)
+    count_delivery(result, subs, run, first_set_ns)
     result.conflated = sum(sub.conflated for sub in subs)
     result.messages = result.events
     result.complete_subscribers = sum(sub.done.is_set() for sub in subs)
-    result.latency = Latencies.of(run.samples)
     server.check_alive()
     return result
 

@@ -38,6 +38,7 @@ from gateway.engine.guard import Guard
 from gateway.engine.history import HistoryKeeper, recorded_events
 from gateway.engine.licensing import current_caller, may_license, may_provide
 from gateway.engine.listen import ListenHub
+from gateway.engine.listen.follow import HubFollow
 from gateway.engine.router import Router
 from gateway.fronts.grpc_v1.health import NOT_SERVING, SERVING, HealthService
 from gateway.fronts.grpc_v1.servicer import (
@@ -97,6 +98,8 @@ class Gateway:
         self.guard = Guard.from_config(self.config)
         self.router = Router(self.guard)
         self.hub = ListenHub(self.router, self.config.limits, self.config.gateway.call_timeout, self.guard)
+        #: Listens of the services that follow changes themselves (the recorder), on the hub.
+        self.follow = HubFollow(self.hub)
         self._extra = dict(backends or {})
         self._server: grpc.aio.Server | None = None
         #: gRPC health: the whole gateway ("") and each service by name, following the registry.
@@ -240,7 +243,7 @@ class Gateway:
         but served by a :class:`DormantBackend`, which builds and starts it when a call needs it.
         """
         try:
-            backend = open_backend(entry, self.router.directory)
+            backend = open_backend(entry, self.router.directory, self.follow)
         except PropertyError as exc:
             raise ConfigError(f"{self.config.source}: services ({entry.name}): {exc.message}") from None
         if not entry.dormant:
@@ -248,7 +251,7 @@ class Gateway:
         directory = self.router.directory
         dormant = self._dormant[entry.name] = DormantBackend(
             entry.name,
-            lambda: open_backend(entry, directory),
+            lambda: open_backend(entry, directory, self.follow),
             info=backend.info,
             idle_stop=entry.idle_stop,
             awake=self._awake,
@@ -724,6 +727,8 @@ class Gateway:
         groups = {e.name for e in self.config.services if _needs_directory(e)}
         names = reversed(self.router.names())
         for name in sorted(names, key=lambda n: 0 if n in groups else 1 if n == REGISTRY_NAME else 2):
+            if name not in self.router:
+                continue  # a service a closed one served (a replay's recorded services) went with it
             backend = self.router.remove(name)
             try:
                 await asyncio.wait_for(backend.aclose(), grace)

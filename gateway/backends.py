@@ -25,6 +25,7 @@ from services.kernel.errors import InvalidArgument, PropertyError
 if TYPE_CHECKING:
     from gateway.config import ServiceEntry
     from services.kernel.directory import Directory
+    from services.kernel.follow import Follow
 
 #: (service name, url, options) → a Backend that is not started yet.
 ProxyFactory = Callable[[str, str, Mapping[str, Any]], Backend]
@@ -49,17 +50,20 @@ def open_proxy(name: str, url: str, options: Mapping[str, Any]) -> Backend:
     return factory(name, url, options)
 
 
-def open_backend(entry: ServiceEntry, directory: Directory | None = None) -> Backend:
+def open_backend(
+    entry: ServiceEntry, directory: Directory | None = None, follow: Follow | None = None
+) -> Backend:
     """The backend a config entry describes (not started); raises PropertyError when it cannot be built.
 
     ``directory`` is the gateway's directory of services
     (:attr:`gateway.engine.router.Router.directory`), handed to the kinds that reach
-    other services (``type = "group"``).
+    other services (``type = "group"``), and ``follow`` (:class:`gateway.engine.listen.follow.HubFollow`)
+    to the kinds that follow changes as a Listen does (``type = "recorder"``).
     """
     if entry.url:
         return open_proxy(entry.name, entry.url, entry.options)
     try:
-        resource = build(entry.type, entry.options, directory)
+        resource = build(entry.type, entry.options, directory, follow)
     except PropertyError:
         raise
     except TypeError as exc:

@@ -17,7 +17,7 @@ from typing import Any
 
 # First among the gateway's imports: it sets GRPC_VERBOSITY before anything imports grpc.
 import gateway.grpc_core_logs  # noqa: F401
-from gateway import device_check_cli, device_cli
+from gateway import device_check_cli, device_cli, export_cli
 from gateway.allocator import return_large_blocks
 from gateway.config import Config, ConfigError, default_config, load_config, load_config_partly
 from gateway.logs import LOG_FORMATS, setup_logging
@@ -117,6 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_subcommand(subparsers)
     device_cli.add_parser(subparsers)
     device_check_cli.add_parser(subparsers)
+    export_cli.add_parser(subparsers)
     return parser
 
 

@@ -52,5 +52,10 @@ class ClusterDirectory:
     async def register(self, name: str, url: str, options: Mapping[str, Any] | None = None) -> BackendInfo:
         return await self._node.register(name, url, options)
 
+    async def serve(self, name: str, backend: Backend) -> None:
+        # A service's own in-process backends are this gateway's, as its configured services are:
+        # served here, not claimed in the cluster's store.
+        await self._router.serve(name, backend)
+
     async def unregister(self, name: str) -> None:
         await self._node.unregister(name)

@@ -82,7 +82,8 @@ class RecordedLike(Protocol):
 
 class OlderEvents(Protocol):
     """Where values older than the rings come from: ``events_between(directory, service_glob,
-    path_glob, since_ns, until_ns, limit)``, oldest first (the recorder's reading of its files)."""
+    path_glob, since_ns, until_ns, limit)``, oldest first, ``until_ns`` included (the recorder's
+    reading of its files)."""
 
     def __call__(
         self,
@@ -394,8 +395,10 @@ class HistoryKeeper:
     ) -> list[Event]:
         """Events before the rings, from the recordings, that ``subject`` may read."""
         assert self.older is not None
+        # ``until`` is excluded here, included by the recordings' reader.
+        last = None if until is None else until - 1
         found = self.older(
-            Path(self.settings.recordings), service, path, since_ns=since, until_ns=until, limit=limit
+            Path(self.settings.recordings), service, path, since_ns=since, until_ns=last, limit=limit
         )
         guard = self.guard
         binary = self.settings.binary

@@ -168,14 +168,21 @@ class Router:
         if name in self._backends:
             raise AlreadyExists(f"a service named {name!r} already exists")
         backend = open_proxy(name, url, options or {})
+        await self.serve(name, backend)
+        log.info("service %s registered at %s", name, url)
+        return backend.info
+
+    async def serve(self, name: str, backend: Backend) -> None:
+        """Start ``backend`` and serve it as ``name``; it is closed when it cannot be served."""
         try:
+            validate_service_name(name)
+            if name in self._backends:
+                raise AlreadyExists(f"a service named {name!r} already exists")
             await backend.start()
             self.add(name, backend)
         except BaseException:
             await backend.aclose()
             raise
-        log.info("service %s registered at %s", name, url)
-        return backend.info
 
     async def unregister(self, name: str) -> None:
         """Stop serving ``name`` and close its backend; raises NotFound."""
@@ -249,6 +256,10 @@ class RouterDirectory:
 
     async def register(self, name: str, url: str, options: Mapping[str, Any] | None = None) -> BackendInfo:
         return await self.router.register(name, url, options)
+
+    async def serve(self, name: str, backend: Backend) -> None:
+        await self.router.serve(name, backend)
+        log.info("service %s started (%s)", name, backend.info.url)
 
     async def unregister(self, name: str) -> None:
         await self.router.unregister(name)

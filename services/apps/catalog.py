@@ -6,7 +6,9 @@ becomes ``create("sim-robot", start=[1, 2])``.
 A kind whose factory takes a ``directory`` (a group of robots reaches its
 members through the gateway's directory) gets the one passed to
 :func:`create`; the others never see it, so a device process, which has no
-directory, can still create every kind that does not need one.
+directory, can still create every kind that does not need one. A kind whose factory takes a
+``follow`` (the recorder: :data:`services.kernel.follow.Follow`, a Listen of its own) gets the
+gateway's when one is passed to :func:`build`; no configuration gives it.
 
 A kind may also name your own class by import path, ``package.module:Class``
 (a :class:`~services.kernel.core.Resource` subclass, or a function returning one):
@@ -24,6 +26,8 @@ from typing import Any
 
 from services.apps.environment import EnvironmentModel
 from services.apps.group import Group
+from services.apps.recorder import Recorder
+from services.apps.replay import Replay
 from services.apps.simulators import SimRobot, SimSensor
 from services.apps.statemachine import StateMachineService
 from services.apps.storage import Storage
@@ -31,6 +35,7 @@ from services.apps.vision import Camera
 from services.kernel.core import Resource
 from services.kernel.directory import Directory
 from services.kernel.errors import InvalidArgument
+from services.kernel.follow import Follow
 
 __all__ = [
     "CATALOG",
@@ -40,12 +45,15 @@ __all__ = [
     "create",
     "factory_of",
     "needs_directory",
+    "takes_follow",
 ]
 
 CATALOG: dict[str, Callable[..., Resource]] = {
     "camera": Camera,
     "environment": EnvironmentModel,
     "group": Group,
+    "recorder": Recorder,
+    "replay": Replay,
     "sim-robot": SimRobot,
     "sim-sensor": SimSensor,
     "statemachine": StateMachineService,
@@ -54,13 +62,19 @@ CATALOG: dict[str, Callable[..., Resource]] = {
 
 #: Options of a kind that name a file or folder: a configuration takes a relative one from its
 #: own folder (``gateway.config``), as it does for every other path it holds.
-PATH_OPTIONS: dict[str, tuple[str, ...]] = {"storage": ("directory",)}
+PATH_OPTIONS: dict[str, tuple[str, ...]] = {
+    "recorder": ("folder",),
+    "replay": ("recording",),
+    "storage": ("directory",),
+}
 #: Options of a kind that are tables of name → file, taken from the config's folder alike; a value
 #: with the given prefix names something else (``builtin:patrol``, a chart shipped with the package).
 PATH_TABLE_OPTIONS: dict[str, tuple[tuple[str, str], ...]] = {"statemachine": (("charts", "builtin:"),)}
 
 #: The keyword a factory declares to be handed the gateway's directory.
 _DIRECTORY = "directory"
+#: The keyword a factory declares to be handed the gateway's :data:`Follow`.
+_FOLLOW = "follow"
 #: Keywords of a factory that are for the service's own use, never options from a config.
 _INTERNAL: dict[str, tuple[str, ...]] = {"environment": ("clock",), "group": ("within",)}
 
@@ -127,9 +141,20 @@ def needs_directory(kind: str) -> bool:
     return param is not None and _takes_directory(param)
 
 
+def takes_follow(kind: str) -> bool:
+    """True when services of ``kind`` follow changes as a Listen does (the recorder), and so are
+    handed the gateway's :data:`Follow`."""
+    try:
+        factory = factory_of(kind)
+    except InvalidArgument:
+        return False
+    return _FOLLOW in _parameters(factory) and kind in CATALOG
+
+
 def _internal(kind: str) -> tuple[str, ...]:
     """Keywords of ``kind``'s factory that no config may give."""
-    return (_DIRECTORY, *_INTERNAL.get(kind, ())) if needs_directory(kind) else _INTERNAL.get(kind, ())
+    internal = (_DIRECTORY, *_INTERNAL.get(kind, ())) if needs_directory(kind) else _INTERNAL.get(kind, ())
+    return (*internal, _FOLLOW) if takes_follow(kind) else internal
 
 
 def _accepted(kind: str, factory: Callable[..., Resource]) -> str:
@@ -156,8 +181,11 @@ def create(kind: str, *, directory: Directory | None = None, **options: Any) -> 
     return build(kind, options, directory)
 
 
-def build(kind: str, options: Mapping[str, Any], directory: Directory | None = None) -> Resource:
-    """:func:`create` with the options as a mapping: any option name, ``directory`` included."""
+def build(
+    kind: str, options: Mapping[str, Any], directory: Directory | None = None, follow: Follow | None = None
+) -> Resource:
+    """:func:`create` with the options as a mapping: any option name, ``directory`` included;
+    ``follow`` is handed to the kinds that take one (:func:`takes_follow`)."""
     factory = factory_of(kind)
     for key in _internal(kind):
         if key in options:
@@ -169,6 +197,8 @@ def build(kind: str, options: Mapping[str, Any], directory: Directory | None = N
         if directory is None:
             raise InvalidArgument(f"a {kind!r} service reaches other services: it runs only inside a gateway")
         options[_DIRECTORY] = directory
+    if follow is not None and takes_follow(kind):
+        options[_FOLLOW] = follow
     try:
         signature: inspect.Signature | None = inspect.signature(factory)
     except ValueError:

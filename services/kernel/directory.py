@@ -91,6 +91,15 @@ class Directory(Protocol):
         """
         ...
 
+    async def serve(self, name: str, backend: Backend) -> None:
+        """Start ``backend``, an in-process one a service made (a replay's recorded services), and
+        serve it as ``name`` beside every other service, until :meth:`unregister`.
+
+        Raises ``InvalidArgument`` for a malformed name and ``AlreadyExists`` for a taken one;
+        the backend is closed when it cannot be served.
+        """
+        ...
+
     async def unregister(self, name: str) -> None:
         """Stop serving ``name`` and close its backend; raises ``NotFound``."""
         ...

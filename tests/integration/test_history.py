@@ -343,3 +343,45 @@ async def test_a_gateway_without_history_says_so(gateway_process: StartGateway) 
             await client.history("bot", "speed")
         reading = await client.get_with_time("bot", "speed")
         assert abs(reading.time.timestamp() - time.time()) < 5
+
+
+RECORDED_CONFIG = """
+[[services]]
+name = "bot"
+type = "sim-robot"
+
+[[services]]
+name = "recorder"
+type = "recorder"
+options = { folder = "recs" }
+
+[history]
+selectors = ["bot/speed"]
+size = 3
+recordings = "recs"
+"""
+
+
+async def test_values_older_than_the_rings_come_from_the_recordings(gateway_process: StartGateway) -> None:
+    gw = gateway_process(RECORDED_CONFIG)
+    values = [f"0.{i}5" for i in range(8)]
+    async with AsyncClient(gw.address, timeout=WAIT) as client:
+        first = await kept_values(client, "bot", "speed", 1)
+        name = await client.set("recorder", "start", "bot/speed", name="run1")
+        # The recording holds the current value first, then every change.
+        await eventually(
+            lambda: client.get("recorder", "recordings"), lambda text: json.loads(text)[0]["events"] >= 1
+        )
+        for value in values:
+            await client.set("bot", "speed", value)
+        await eventually(lambda: client.history("bot", "speed"), lambda h: h.events[-1].value == values[-1])
+        await client.set("recorder", "stop", name)
+        await eventually(
+            lambda: client.get("recorder", "recordings"),
+            lambda text: json.loads(text)[0]["state"] == "stopped",
+        )
+        kept = await client.history("bot", "speed", since=timedelta(hours=1))
+        ring = await client.history("bot", "speed", since=kept.events[-3].time)
+    assert [e.value for e in ring] == values[-3:], "the ring keeps three"
+    assert [e.value for e in kept] == [first[0], *values], "before them, the recording's"
+    assert [e.time for e in kept] == sorted(e.time for e in kept)

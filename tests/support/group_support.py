@@ -52,6 +52,9 @@ class MemoryDirectory:
             w(name, backend)
         return backend
 
+    async def serve(self, name: str, backend: Backend) -> None:
+        await self.add(name, backend)
+
     async def register(self, name: str, url: str, options: Mapping[str, Any] | None = None) -> BackendInfo:
         if name in self.backends:
             raise AlreadyExists(f"a service named {name!r} already exists")

@@ -61,6 +61,7 @@ def test_the_demo_config() -> None:
         ("camera1", "camera"),
         ("scout1cam", "camera"),
         ("environment", "environment"),
+        ("recorder", "recorder"),
     ]
     assert [(d.name, d.tcp or d.serial) for d in cfg.devices] == [
         ("rover1", "127.0.0.1:0"),

@@ -3,7 +3,9 @@ other front.
 
 ``gateway/engine/`` is the protocol-neutral heart (plain types, router, guard, licences, calls,
 the listen hub); ``gateway/fronts/`` holds one folder per wire protocol (``grpc_v1``, ``http``,
-``line``), each translating its wire into the engine's types. The imports are read with
+``line``, ``foxglove``, ``rosbridge``), each translating its wire into the engine's types; a plain
+module directly in ``gateway/fronts/`` (``websocket.py``) is no front but what several fronts share,
+and imports no front itself. The imports are read with
 :mod:`ast` by the same reader as ``test_import_graph`` (nothing is imported; imports under
 ``if TYPE_CHECKING`` count, since a type from another layer is still a dependency on it).
 """
@@ -11,6 +13,7 @@ the listen hub); ``gateway/fronts/`` holds one folder per wire protocol (``grpc_
 from __future__ import annotations
 
 from collections import defaultdict
+from pathlib import Path
 
 from tests.unit.test_import_graph import Import, project_imports
 
@@ -38,7 +41,12 @@ def _within(module: str, package: str) -> bool:
 
 def _front_of(module: str) -> str | None:
     parts = module.split(".")
-    return parts[2] if _within(module, FRONTS) and len(parts) > 2 else None
+    return parts[2] if _within(module, FRONTS) and len(parts) > 2 and parts[2] in FRONT_NAMES else None
+
+
+def _shared_by_fronts(module: str) -> bool:
+    parts = module.split(".")
+    return _within(module, FRONTS) and len(parts) == 3 and parts[2] not in FRONT_NAMES
 
 
 def _imports_by_source() -> dict[str, list[Import]]:
@@ -95,3 +103,18 @@ def test_no_front_imports_another_front() -> None:
         and _front_of(imp.source) != _front_of(imp.target)
     ]
     assert wrong == []
+
+
+def test_what_the_fronts_share_imports_no_front() -> None:
+    wrong = [
+        _where(imp)
+        for imp in project_imports()
+        if _shared_by_fronts(imp.source) and _front_of(imp.target) is not None
+    ]
+    assert wrong == []
+
+
+def test_every_folder_of_the_fronts_is_a_front_named_here() -> None:
+    folder = Path(__file__).resolve().parents[2] / "gateway" / "fronts"
+    folders = {p.name for p in folder.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
+    assert folders == set(FRONT_NAMES)

@@ -124,7 +124,8 @@ class Recorded:
 
 
 class FakeRecordings:
-    """An older-events source with the recorder's signature, over a list of recorded changes."""
+    """An older-events source with the recorder's signature (``until_ns`` included, as the
+    recorder's reader has it), over a list of recorded changes."""
 
     def __init__(self, recorded: list[Recorded]) -> None:
         self.recorded = recorded
@@ -144,7 +145,7 @@ class FakeRecordings:
         found = [
             r
             for r in self.recorded
-            if (since_ns is None or r.time_ns >= since_ns) and (until_ns is None or r.time_ns < until_ns)
+            if (since_ns is None or r.time_ns >= since_ns) and (until_ns is None or r.time_ns <= until_ns)
         ]
         return found[:limit]
 
@@ -173,7 +174,8 @@ def test_values_older_than_the_rings_come_from_the_recordings() -> None:
         ("a", "4"),
         ("a", "5"),
     ]
-    assert recordings.asked == [(Path("/recordings"), "*", "x", 1 * S, 3 * S, 1001)]
+    # Up to the rings' start, which the recordings' reader includes: the nanosecond before it.
+    assert recordings.asked == [(Path("/recordings"), "*", "x", 1 * S, 3 * S - 1, 1001)]
     # Within the rings, the recordings are not asked.
     recordings.asked.clear()
     assert [e.value for e in k.query(HistoryQuery("a", "x", since_ns=4 * S), caller).events] == ["4", "5"]

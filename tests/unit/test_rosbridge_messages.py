@@ -10,11 +10,12 @@ import math
 import pytest
 
 from gateway.fronts.foxglove.schemas import pose_of
-from gateway.fronts.rosbridge import messages, protocol
+from gateway.fronts.rosbridge import protocol
 from gateway.fronts.rosbridge.connection import action_value, query_values
-from gateway.fronts.rosbridge.naming import Target, for_service, parse_name, ros_name
+from services.kernel import ros_messages as messages
 from services.kernel.errors import InvalidArgument
 from services.kernel.model import Access, ParameterModel, PropertyModel
+from services.kernel.ros_names import Target, for_service, parse_name, ros_name
 from services.kernel.values import parse_marker
 
 

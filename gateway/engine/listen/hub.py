@@ -77,17 +77,22 @@ class ListenHub:
         options: StreamOptions,
         on_ready: Callable[[], None],
         subject: Subject = ANONYMOUS,
+        *,
+        own_work: bool = False,
     ) -> ListenStream:
         """A new stream of checked ``selectors`` and ``options`` (then ``start`` it, and ``close`` it
         when done) for ``subject``; ``on_ready`` is called when the stream has something to take.
 
         Raises RESOURCE_EXHAUSTED beyond the limits, and UNAUTHENTICATED or PERMISSION_DENIED
         for an exact selector the subject may not read (wildcards skip what it may not read).
+        ``own_work``: a service's own stream (a configuration's follow,
+        :mod:`gateway.engine.listen.follow`), which no rule checks.
         """
         if self._closing:
             raise Unavailable(SHUTTING_DOWN)
         guard = self.guard
-        if guard.checks:
+        checks = guard.checks and not own_work
+        if checks:
             for sel in selectors:
                 if sel.service != WILDCARD and not is_pattern(sel.path):
                     guard.require(subject, sel.service, sel.path, Operation.READ)
@@ -103,8 +108,8 @@ class ListenHub:
             options=options,
             on_ready=on_ready,
             on_close=self._closed,
-            may_read=guard.reader(subject),
-            caller=subject if guard.checks else None,
+            may_read=guard.reader(subject) if checks else None,
+            caller=subject if checks else None,
         )
         self._streams.add(stream)
         return stream

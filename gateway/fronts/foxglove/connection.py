@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import logging
 import time
 from collections.abc import Awaitable, Callable, Mapping
 from contextlib import suppress
@@ -39,9 +38,8 @@ from gateway.engine.types import DescribeCall, GetCall, SetCall
 from gateway.fronts.foxglove import protocol, schemas
 from gateway.fronts.foxglove.catalog import MAX_CHANNELS, MAX_PROPERTIES, Catalog, Channel, Kind, Service
 from gateway.fronts.foxglove.protocol import Level, ProtocolError
+from gateway.fronts.websocket import send_within
 from services.kernel.errors import Code, InvalidArgument, PropertyError
-
-log = logging.getLogger(__name__)
 
 #: Subscriptions one connection may hold; each is a listen-hub stream.
 MAX_SUBSCRIPTIONS = 1024
@@ -157,22 +155,9 @@ class Connection:
 
     async def _send(self, frame: str | bytes) -> None:
         """One message, within ``write_timeout``; a client that takes nothing for that long is dropped."""
+        data, kind = (frame.encode(), WSMsgType.TEXT) if isinstance(frame, str) else (frame, WSMsgType.BINARY)
         async with self._send_lock:
-            try:
-                async with asyncio.timeout(self.write_timeout):
-                    if isinstance(frame, str):
-                        await self.ws.send_str(frame)
-                    else:
-                        await self.ws.send_bytes(frame)
-            except TimeoutError:
-                log.info(
-                    "Foxglove connection from %s ended: it read nothing for %g s (http.write_timeout)",
-                    self.request.remote,
-                    self.write_timeout,
-                )
-                if self.request.transport is not None:
-                    self.request.transport.abort()
-                raise ConnectionError("the client reads nothing") from None
+            await send_within(self.ws, self.request, data, kind, within=self.write_timeout, front="Foxglove")
 
     async def _status(self, level: Level, message: str) -> None:
         await self._send(protocol.status(level, message))

@@ -13,6 +13,8 @@ panels draw them with no set-up:
 * a binary property of an ``image/*`` media type as ``foxglove.CompressedImage`` (the Image panel).
 
 Pure functions of the model and the value: no I/O, so the unit tests feed them values directly.
+The value typing and the pose (shared with the recorder's MCAP channels) are the kernel's,
+:mod:`services.kernel.typed`; re-exported here for the front's own use.
 """
 
 from __future__ import annotations
@@ -24,26 +26,41 @@ from typing import Any
 
 from services.kernel.errors import InvalidArgument
 from services.kernel.model import PropertyModel
-from services.kernel.pose import quaternion
-from services.kernel.values import (
-    ValueFormatError,
-    format_value,
-    parse_bool,
-    parse_int,
-    parse_number,
-    parse_vector,
+from services.kernel.typed import (
+    LOCATION,
+    WORLD_FRAME,
+    is_image,
+    is_pose,
+    pose_of,
+    typed,
+    value_json_schema,
 )
+from services.kernel.values import format_value
 from services.kernel.values.binary import Value
 
-#: The frame every pose and scene entity is given: a location is in the world frame.
-WORLD_FRAME = "world"
+__all__ = [
+    "IMAGE_SCHEMA",
+    "LOCATION",
+    "POSE_SCHEMA",
+    "SCENE_SCHEMA",
+    "WORLD_FRAME",
+    "is_image",
+    "is_pose",
+    "json_to_text",
+    "pose_message",
+    "pose_of",
+    "published_value",
+    "scene_message",
+    "stamp",
+    "typed",
+    "value_message",
+    "value_schema",
+    "value_schema_name",
+]
 
 POSE_SCHEMA_NAME = "foxglove.PoseInFrame"
 SCENE_SCHEMA_NAME = "foxglove.SceneUpdate"
 IMAGE_SCHEMA_NAME = "foxglove.CompressedImage"
-
-#: The property whose vector value is a pose (``x y z roll pitch yaw``) by the robots' convention.
-LOCATION = "location"
 
 _TIME = {
     "type": "object",
@@ -145,19 +162,6 @@ IMAGE_SCHEMA: dict[str, Any] = {
     },
 }
 
-#: The JSON type of a model's data type word; what is not here travels as its text.
-_JSON_TYPES = {"number": "number", "integer": "integer", "boolean": "boolean"}
-
-
-def is_image(model: PropertyModel) -> bool:
-    """A binary property whose values are images (a camera's frames)."""
-    return model.type == "bytes" and model.media_type.startswith("image/")
-
-
-def is_pose(model: PropertyModel) -> bool:
-    """A ``location`` vector: a pose by the robots' convention."""
-    return model.type == "vector" and model.name.rpartition(".")[2] == LOCATION
-
 
 def value_schema_name(model: PropertyModel) -> str:
     """The schema name of a property's own channel: ``propertyservice.<type word>``."""
@@ -179,36 +183,12 @@ def value_schema(model: PropertyModel, service: str) -> dict[str, Any]:
                 "media_type": {"type": "string"},
             },
         }
-    value: dict[str, Any]
-    if model.type == "vector":
-        item: dict[str, Any] = {"type": "number"}
-        _bounds(item, model)
-        value = {"type": "array", "items": item}
-        if model.length is not None:
-            value.update(minItems=model.length, maxItems=model.length)
-    elif model.type in _JSON_TYPES:
-        value = {"type": _JSON_TYPES[model.type]}
-        _bounds(value, model)
-    else:
-        value = {"type": "string"}
-        if model.choices:
-            value["enum"] = list(model.choices)
-    described = " ".join(part for part in (model.doc, f"({model.unit})" if model.unit else "") if part)
-    if described:
-        value["description"] = described
     return {
         "title": f"{service}/{model.name}",
         "type": "object",
-        "properties": {"value": value},
+        "properties": {"value": value_json_schema(model)},
         "required": ["value"],
     }
-
-
-def _bounds(schema: dict[str, Any], model: PropertyModel) -> None:
-    if model.minimum is not None:
-        schema["minimum"] = model.minimum
-    if model.maximum is not None:
-        schema["maximum"] = model.maximum
 
 
 def stamp(time_ns: int) -> dict[str, int]:
@@ -230,37 +210,6 @@ def value_message(model: PropertyModel, value: Value, time_ns: int) -> dict[str,
             }
         return {"data": data, "media_type": model.media_type or "application/octet-stream"}
     return {"value": typed(model.type, value)}
-
-
-def typed(data_type: str, text: str) -> Any:
-    """A value's text as the JSON value of its type; its text when it does not read as that type
-    (a device may answer outside its model: the message still goes out)."""
-    try:
-        if data_type == "number":
-            return parse_number(text)
-        if data_type == "integer":
-            return parse_int(text)
-        if data_type == "boolean":
-            return parse_bool(text)
-        if data_type == "vector":
-            return [float(x) for x in parse_vector(text)]
-    except ValueFormatError:
-        return text
-    return text
-
-
-def pose_of(text: str) -> tuple[list[float], list[float]] | None:
-    """A location's text (``x y [z [roll pitch yaw]]``) as a position and a quaternion; None
-    when it is not one (an empty location, a word)."""
-    try:
-        numbers = [float(x) for x in parse_vector(text)]
-    except ValueFormatError:
-        return None
-    if len(numbers) < 2:
-        return None
-    numbers += [0.0] * (6 - len(numbers))
-    x, y, z, roll, pitch, yaw = numbers[:6]
-    return [x, y, z], quaternion(roll, pitch, yaw)
 
 
 def _pose_json(position: list[float], orientation: list[float]) -> dict[str, Any]:

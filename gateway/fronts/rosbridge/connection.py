@@ -33,9 +33,9 @@ from gateway.engine.listen.requests import check_listen
 from gateway.engine.rules import Subject
 from gateway.engine.status import to_property_error
 from gateway.engine.types import DescribeCall, GetCall, SetCall
-from gateway.fronts.rosbridge import messages, protocol
-from gateway.fronts.rosbridge.naming import Target, for_service, global_name, parse_name
+from gateway.fronts.rosbridge import protocol
 from gateway.fronts.rosbridge.rosapi import ROSAPI_PREFIX, Rosapi
+from services.kernel import ros_messages as messages
 from services.kernel.backend import NO_PARAMS
 from services.kernel.errors import (
     Code,
@@ -45,6 +45,7 @@ from services.kernel.errors import (
     ResourceExhausted,
 )
 from services.kernel.model import Access, PropertyModel, ServiceModel
+from services.kernel.ros_names import Target, for_service, global_name, parse_name
 from services.kernel.values import Marker, Value, format_marker, format_number, parse_names, parse_vector
 
 log = logging.getLogger(__name__)

@@ -20,10 +20,10 @@ from gateway.engine.calls import Calls
 from gateway.engine.guard import Guard
 from gateway.engine.rules import Operation, Subject
 from gateway.engine.types import DescribeCall, GetCall
-from gateway.fronts.rosbridge import messages
-from gateway.fronts.rosbridge.naming import CONVENTIONS, MOBILE_ROBOT, ros_name
+from services.kernel import ros_messages as messages
 from services.kernel.errors import InvalidArgument, NotFound, PropertyError
 from services.kernel.model import Access, PropertyModel, ServiceModel
+from services.kernel.ros_names import CONVENTIONS, MOBILE_ROBOT, ros_name
 from services.kernel.values import parse_names
 
 ROSAPI_PREFIX = "/rosapi/"

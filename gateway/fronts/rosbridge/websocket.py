@@ -11,9 +11,6 @@ every ``http.heartbeat`` seconds find a client that vanished, a message larger t
 
 from __future__ import annotations
 
-import asyncio
-import logging
-
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from gateway.engine.calls import Calls
@@ -21,9 +18,8 @@ from gateway.engine.guard import Guard
 from gateway.engine.listen import ListenHub
 from gateway.engine.rules import Subject
 from gateway.fronts.rosbridge.connection import Connection
+from gateway.fronts.websocket import send_within
 from services.kernel.errors import InvalidArgument
-
-log = logging.getLogger(__name__)
 
 #: Where the HTTP front end serves rosbridge (what roslibjs's ``new ROSLIB.Ros({url})`` names).
 ROSBRIDGE_PATH = "/rosbridge"
@@ -70,27 +66,12 @@ class RosbridgeEndpoint:
         return socket
 
     async def _serve(self, socket: web.WebSocketResponse, request: web.Request, subject: Subject) -> None:
-        within = self.write_timeout
         peer = request.remote or "?"
 
         async def send(data: bytes) -> None:
-            try:
-                async with asyncio.timeout(within):
-                    await socket.send_frame(data, WSMsgType.TEXT)
-            except TimeoutError:
-                log.info(
-                    "rosbridge client %s dropped: it read nothing for %g s (http.write_timeout)", peer, within
-                )
-                # Dropped, not closed: a close frame would wait behind the same full buffer.
-                if request.transport is not None:
-                    request.transport.abort()
-                raise ConnectionResetError("the client reads nothing") from None
-            except ConnectionError as exc:
-                # aiohttp keeps this error in the future its writer waited on, whose frame is in the
-                # error's traceback: a cycle that would hold our frames (and the message being
-                # written) until a full collection. Without its traceback nothing holds them.
-                exc.__traceback__ = None
-                raise ConnectionResetError("the client went away") from None
+            await send_within(
+                socket, request, data, WSMsgType.TEXT, within=self.write_timeout, front="rosbridge"
+            )
 
         connection = Connection(
             calls=self.calls, hub=self.hub, guard=self.guard, subject=subject, send=send, peer=peer

@@ -1,0 +1,356 @@
+"""The recorder's parts in one process: one file's layout read back with the ``mcap`` library, the
+events read back for history, a file cut short, a full disk, the disk budget and a full intake."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections import Counter
+from pathlib import Path
+
+import jsonschema
+import pytest
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from mcap.reader import make_reader
+from mcap.records import Channel, Message, Metadata
+from mcap.stream_reader import StreamReader
+
+from protos.propertyservice.v1 import property_service_pb2 as pb
+from services.apps.recorder.budget import DiskBudget
+from services.apps.recorder.layout import (
+    EVENTS_TOPIC,
+    RECORDING_METADATA,
+    SERVICE_METADATA,
+    RecordingFile,
+    ServiceInfo,
+)
+from services.apps.recorder.reading import RecordedEvent, events_between, recorded_events
+from services.apps.recorder.writer import Limits, RecordingWriter
+from services.kernel.follow import FollowedEvent
+from services.kernel.model import Access, PropertyModel, ServiceModel
+from services.kernel.model_codec import model_from_text
+from services.kernel.pose import quaternion
+
+ROBOT = ServiceModel(
+    "mobile_robot",
+    (
+        PropertyModel("location", "vector", Access.READ, length=6, unit="m", doc="where it is"),
+        PropertyModel("battery", "number", Access.READ, unit="%", minimum=0, maximum=100),
+        PropertyModel("moving", "boolean", Access.READ),
+        PropertyModel("camera", "bytes", Access.READ, media_type="image/jpeg"),
+        PropertyModel("name", "text", Access.READ_WRITE),
+    ),
+    doc="a robot",
+)
+INFO = ServiceInfo("mobile_robot", ROBOT)
+T0 = 1_800_000_000_000_000_000
+
+
+def event(
+    seq: int, path: str, value: str | bytes, *, service: str = "scout1", **flags: object
+) -> FollowedEvent:
+    return FollowedEvent(service, path, value, T0 + seq * 1_000_000, seq, **flags)  # type: ignore[arg-type]
+
+
+def write_file(path: Path, events: list[FollowedEvent], *, finish: bool = True) -> RecordingFile:
+    stream = open(path, "xb")  # noqa: SIM115 - closed below, or left open as a killed writer leaves it
+    recording = RecordingFile(
+        stream, name="run1", selectors=["*/location", "scout1/*"], started_ns=T0, index=1, version="9.9"
+    )
+    for e in events:
+        if not recording.has_service(e.service):
+            recording.add_service(e.service, INFO)
+        recording.write(e, e.time_ns + 500, INFO)
+    if finish:
+        recording.finish()
+        stream.close()
+    return recording
+
+
+SOME = [
+    event(1, "location", "(1 2 0 0 0 1.5)"),
+    event(2, "battery", "87.5"),
+    event(3, "moving", "true"),
+    event(4, "camera", b"\xff\xd8\xff\xe0jpeg"),
+    event(5, "name", "scout one"),
+    event(6, "location", "(1.5 2 0 0 0 1.5)", conflated=2),
+    event(7, "location", "(2 2 0 0 0 1.5)", service="scout2", gap=True),
+    event(8, "battery", "", removed=True),
+]
+
+
+def test_a_recording_file_holds_metadata_channels_and_messages_every_reader_understands(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "run1-0001.mcap"
+    write_file(path, SOME)
+
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_header().library == "psgateway recorder 9.9"
+        assert reader.get_header().profile == ""
+        metadata = list(reader.iter_metadata())
+        summary = reader.get_summary()
+        assert summary is not None
+        messages = list(reader.iter_messages(log_time_order=False))
+
+    recording = [m.metadata for m in metadata if m.name == RECORDING_METADATA]
+    assert recording == [
+        {
+            "name": "run1",
+            "selectors": json.dumps(["*/location", "scout1/*"]),
+            "started": "2027-01-15T08:00:00Z",
+            "file": "1",
+            "gateway": "9.9",
+        }
+    ]
+    services = {m.metadata["service"]: m.metadata for m in metadata if m.name == SERVICE_METADATA}
+    assert set(services) == {"scout1", "scout2"}
+    assert services["scout1"]["type"] == "mobile_robot"
+    assert model_from_text(services["scout1"]["model"], "mobile_robot").properties == ROBOT.properties
+
+    channels = {c.topic: c for c in summary.channels.values()}
+    assert set(channels) == {
+        EVENTS_TOPIC,
+        "/scout1/location",
+        "/scout1/battery",
+        "/scout1/moving",
+        "/scout1/camera",
+        "/scout1/camera/image",
+        "/scout1/name",
+        "/scout1/pose",
+        "/scout2/location",
+        "/scout2/pose",
+        "/scene",
+    }
+    schema_of = {topic: summary.schemas[c.schema_id] for topic, c in channels.items()}
+    assert schema_of["/scout1/battery"].name == "propertyservice.number"
+    assert schema_of["/scout1/battery"].encoding == "jsonschema"
+    assert channels["/scout1/battery"].message_encoding == "json"
+    assert channels["/scout1/battery"].metadata == {
+        "service": "scout1",
+        "property": "battery",
+        "type": "number",
+        "unit": "%",
+    }
+    assert channels["/scout1/camera"].metadata["binary"] == "true"
+    for topic, name in (
+        (EVENTS_TOPIC, "propertyservice.v1.Event"),
+        ("/scout1/pose", "foxglove.PoseInFrame"),
+        ("/scene", "foxglove.SceneUpdate"),
+        ("/scout1/camera/image", "foxglove.CompressedImage"),
+    ):
+        assert (schema_of[topic].name, schema_of[topic].encoding) == (name, "protobuf")
+        assert channels[topic].message_encoding == "protobuf"
+
+    by_topic: dict[str, list[Message]] = {}
+    for _, channel, message in messages:
+        by_topic.setdefault(channel.topic, []).append(message)
+    # Every change on the contract channel, in order, whatever else it feeds.
+    events = [pb.Event.FromString(m.data) for m in by_topic[EVENTS_TOPIC]]
+    assert [(e.service, e.property, e.sequence) for e in events] == [
+        (e.service, e.path, e.sequence) for e in SOME
+    ]
+    assert events[3].data == b"\xff\xd8\xff\xe0jpeg" and events[3].value == ""
+    assert (events[5].conflated, events[6].gap, events[7].removed) == (2, True, True)
+    assert events[0].time.ToNanoseconds() == SOME[0].time_ns
+    # log time: when heard by the recorder; publish time: the event's own; sequences per channel.
+    assert [(m.log_time, m.publish_time) for m in by_topic[EVENTS_TOPIC]] == [
+        (e.time_ns + 500, e.time_ns) for e in SOME
+    ]
+    assert [m.sequence for m in by_topic["/scout1/location"]] == [1, 2]
+
+    # Every JSON message is valid against its channel's schema, its value typed by the model.
+    for topic, listed in by_topic.items():
+        if channels[topic].message_encoding != "json":
+            continue
+        schema = json.loads(schema_of[topic].data)
+        for message in listed:
+            jsonschema.validate(json.loads(message.data), schema)
+    values = {
+        topic: [json.loads(m.data)["value"] for m in listed]
+        for topic, listed in by_topic.items()
+        if channels[topic].message_encoding == "json"
+    }
+    assert values["/scout1/location"] == [[1.0, 2.0, 0.0, 0.0, 0.0, 1.5], [1.5, 2.0, 0.0, 0.0, 0.0, 1.5]]
+    assert values["/scout1/moving"] == [True]
+    assert values["/scout1/camera"] == ["/9j/4GpwZWc="]
+    assert json.loads(by_topic["/scout1/location"][1].data)["conflated"] == 2
+
+    pose = PoseInFrame.FromString(by_topic["/scout1/pose"][0].data)
+    assert pose.frame_id == "world"
+    assert (pose.pose.position.x, pose.pose.position.y) == (1.0, 2.0)
+    orientation = pose.pose.orientation
+    assert [orientation.x, orientation.y, orientation.z, orientation.w] == pytest.approx(
+        quaternion(0, 0, 1.5)
+    )
+    scenes = [SceneUpdate.FromString(m.data) for m in by_topic["/scene"]]
+    assert [e.id for s in scenes for e in s.entities] == ["scout1", "scout1", "scout2"]
+    image = CompressedImage.FromString(by_topic["/scout1/camera/image"][0].data)
+    assert (image.format, image.data) == ("jpeg", b"\xff\xd8\xff\xe0jpeg")
+
+
+def test_a_service_s_metadata_stands_before_its_first_message(tmp_path: Path) -> None:
+    path = tmp_path / "run1-0001.mcap"
+    write_file(path, SOME)
+    seen: list[str] = []
+    topics: dict[int, str] = {}
+    with open(path, "rb") as f:
+        for record in StreamReader(f).records:
+            if isinstance(record, Metadata) and record.name == SERVICE_METADATA:
+                seen.append("meta " + record.metadata["service"])
+            elif isinstance(record, Channel):
+                topics[record.id] = record.topic
+            elif isinstance(record, Message) and topics[record.channel_id] == EVENTS_TOPIC:
+                service = pb.Event.FromString(record.data).service
+                if f"meta {service}" not in seen:
+                    seen.append(f"message of {service} before its metadata")
+    assert seen == ["meta scout1", "meta scout2"]
+
+
+def test_history_reads_the_events_of_every_file_oldest_first_within_its_range(tmp_path: Path) -> None:
+    (tmp_path / "run1").mkdir()
+    (tmp_path / "run2").mkdir()
+    write_file(tmp_path / "run2" / "run2-0001.mcap", [event(n, "location", f"({n} 0)") for n in (10, 11, 12)])
+    write_file(tmp_path / "run1" / "run1-0001.mcap", SOME)
+
+    locations = events_between(tmp_path, "*", "location", None, None, 100)
+    assert [(e.service, e.value) for e in locations] == [
+        ("scout1", "(1 2 0 0 0 1.5)"),
+        ("scout1", "(1.5 2 0 0 0 1.5)"),
+        ("scout2", "(2 2 0 0 0 1.5)"),
+        ("scout1", "(10 0)"),
+        ("scout1", "(11 0)"),
+        ("scout1", "(12 0)"),
+    ]
+    ranged = events_between(tmp_path, "scout1", "location", T0 + 6_000_000, T0 + 11_000_000, 100)
+    assert [e.sequence for e in ranged] == [6, 10, 11]
+    assert events_between(tmp_path, "scout1", "*", None, None, 2) == [
+        RecordedEvent(
+            "scout1", "location", "(1 2 0 0 0 1.5)", T0 + 1_000_000, T0 + 1_000_500, 1, 0, False, False
+        ),
+        RecordedEvent("scout1", "battery", "87.5", T0 + 2_000_000, T0 + 2_000_500, 2, 0, False, False),
+    ]
+    binary = events_between(tmp_path, "*", "camera", None, None, 10)
+    assert [e.value for e in binary] == [b"\xff\xd8\xff\xe0jpeg"]
+    assert events_between(tmp_path, "*", "*", None, None, 0) == []
+
+
+def test_a_file_its_writer_never_finished_is_read_up_to_its_last_complete_chunk(tmp_path: Path) -> None:
+    path = tmp_path / "run1-0001.mcap"
+    recording = write_file(path, SOME[:3], finish=False)
+    recording.close_chunk()
+    for e in SOME[3:]:
+        recording.write(e, e.time_ns, INFO)  # in a chunk never closed: lost with the writer
+    complete = path.stat().st_size
+    with open(path, "ab") as f:
+        f.write(b"\x06half a chunk")  # what a write cut off by a kill leaves
+    assert [e.sequence for e in recorded_events(path)] == [1, 2, 3]
+    assert path.stat().st_size > complete
+
+
+def _writer(tmp_path: Path, **limits: int) -> tuple[RecordingWriter, list[RecordingWriter]]:
+    ended: list[RecordingWriter] = []
+    budget = DiskBudget(tmp_path, 1 << 30, "refuse", lambda p: None)
+    writer = RecordingWriter(
+        name="run1",
+        selectors=["scout1/*"],
+        folder=tmp_path,
+        version="",
+        limits=Limits(max_file_bytes=1 << 20, max_file_seconds=600, **limits),  # type: ignore[arg-type]
+        budget=budget,
+        describe=lambda service: INFO,
+        on_end=ended.append,
+    )
+    return writer, ended
+
+
+def test_a_full_intake_drops_values_counts_them_and_marks_the_next_one_a_gap(tmp_path: Path) -> None:
+    writer, _ = _writer(tmp_path, max_queued_events=3)
+    # The thread has not started: nothing is taken, so the intake fills.
+    writer.offer([event(1, "battery", "1"), event(2, "location", "(0 0)")])
+    writer.offer([event(3, "battery", "2"), event(4, "moving", "true")])  # over 3: dropped
+    writer.offer([event(5, "name", "a")])
+    writer.start()
+    writer.stop()
+    writer.join(10)
+    writer.offer([event(6, "battery", "3")])  # after the stop: nothing more
+    assert writer.state == "stopped"
+    assert (writer.dropped, writer.events) == (2, 3)
+
+    writer2, _ = _writer(tmp_path / "again", max_queued_events=10)
+    (tmp_path / "again").mkdir()
+    writer2.offer([event(1, "battery", "1")])
+    writer2._lost[("scout1", "battery")] = None  # as a drop leaves it
+    writer2.offer([event(2, "battery", "2"), event(3, "name", "b")])
+    writer2.start()
+    writer2.stop()
+    writer2.join(10)
+    recorded = list(recorded_events(tmp_path / "again" / "run1-0001.mcap"))
+    assert [(e.value, e.gap) for e in recorded] == [("1", True), ("2", False), ("b", False)]
+    assert writer2.gaps == 1
+
+
+def test_a_full_disk_stops_the_recording_with_a_clear_state(tmp_path: Path) -> None:
+    writer, ended = _writer(tmp_path)
+    writer._open_file = lambda path: open("/dev/full", "wb")  # noqa: SIM115 - every write: ENOSPC
+    writer.start()
+    writer.offer([event(n, "name", "x" * 10_000) for n in range(1, 50)])
+    writer.join(10)
+    assert writer.state == "failed: disk full"
+    assert "no space left" in writer.reason
+    assert ended == [writer]
+
+
+def test_a_recording_ends_at_its_own_size_limit_and_says_why(tmp_path: Path) -> None:
+    writer, ended = _writer(tmp_path, max_bytes=70_000)
+    writer.start()
+    deadline = time.monotonic() + 20
+    n = 0
+    while writer._thread.is_alive() and time.monotonic() < deadline:
+        n += 1
+        writer.offer([event(n, "name", os.urandom(2000).hex())])  # what zstd cannot shrink much
+        time.sleep(0.005)
+    writer.join(10)
+    assert writer.state == "stopped"
+    assert writer.reason.startswith("max_size reached")
+    assert ended == [writer]
+    assert writer.size >= 70_000
+
+
+def test_the_budget_removes_the_oldest_finished_files_and_never_an_open_one(tmp_path: Path) -> None:
+    removed: list[Path] = []
+    for i, name in enumerate(("a/a-0001.mcap", "a/a-0002.mcap", "b/b-0001.mcap")):
+        path = tmp_path / name
+        path.parent.mkdir(exist_ok=True)
+        path.write_bytes(b"x" * 1000)
+        stamp = 1_700_000_000 + i
+        os.utime(path, (stamp, stamp))
+    budget = DiskBudget(tmp_path, 2500, "drop_oldest", removed.append)
+    budget.scan()
+    assert budget.used == 3000
+    budget.opened(tmp_path / "a/a-0001.mcap")
+    assert budget.grow(0)
+    assert removed == [tmp_path / "a/a-0002.mcap"]  # the oldest, a-0001, is being written
+    assert budget.grow(600)
+    assert removed[1:] == [tmp_path / "b/b-0001.mcap"]
+    assert not budget.grow(2000)  # nothing left that may go
+    assert (tmp_path / "a/a-0001.mcap").exists()
+
+    refusing = DiskBudget(tmp_path, 500, "refuse", removed.append)
+    refusing.scan()
+    assert refusing.full()
+    assert not refusing.grow(1)
+    assert (tmp_path / "a/a-0001.mcap").exists()
+
+
+def test_recorded_counts_by_topic_match_what_was_written(tmp_path: Path) -> None:
+    path = tmp_path / "run1-0001.mcap"
+    write_file(path, SOME)
+    with open(path, "rb") as f:
+        counts = Counter(channel.topic for _, channel, _ in make_reader(f).iter_messages())
+    assert counts[EVENTS_TOPIC] == len(SOME)
+    assert counts["/scout1/location"] == 2 and counts["/scout1/pose"] == 2 and counts["/scene"] == 3
