@@ -1,16 +1,17 @@
 """The history of properties: what each kept property was, and since when, for the History call.
 
 The :class:`HistoryKeeper` follows the ``[history]`` selectors (``scout1/location``,
-``*/location``, ``bench/*``) through the engine's listen hub as the gateway's own work (no
-caller's rules: what a caller may see is checked when it asks), and keeps each matched
+``*/location``, ``bench/*``) through the engine's listen hub as the gateway's own work (a stream
+of ``own_work``: no caller's rules, what a caller may see is checked when it asks), and keeps each matched
 property's latest ``size`` changes in a ring of its own. The rings together hold at most
 ``max_entries`` changes and ``max_bytes`` of values: past either, the oldest change of all goes
 first. Binary values are kept only with ``binary = true`` (a camera would fill the bound with a
 few seconds of frames).
 
 A change is drained from the keeper's streams the moment the hub hands it over (on the stream's
-``on_ready``, in the same call), so the keeper's streams never conflate: the history holds every
-change a Listen that keeps up would see, with the same time.
+``on_ready``, in the same call: not on a task, as :class:`~gateway.engine.listen.follow.HubFollow`
+drains for the recorder), so the keeper's streams never conflate: the history holds every change
+a Listen that keeps up would see, with the same time.
 
 :meth:`HistoryKeeper.query` answers a History call: the events of the matched properties whose
 time lies in ``[since, until)``, oldest first, at most ``limit`` (``truncated`` when more lay in
@@ -37,6 +38,7 @@ from typing import Protocol
 from gateway.config import ConfigError, HistorySection
 from gateway.engine.events import Event, Selector, StreamOptions, events
 from gateway.engine.guard import Guard
+from gateway.engine.listen.follow import parse_selector
 from gateway.engine.listen.hub import ListenHub
 from gateway.engine.listen.stream import ListenStream
 from gateway.engine.rules import Operation, Subject
@@ -155,19 +157,6 @@ def recorded_events(source: str) -> OlderEvents:
     return reader
 
 
-def parse_selector(text: str) -> Selector:
-    """``SERVICE/PATH`` (``*`` for the service, or for a path segment) as a selector; InvalidArgument."""
-    service, slash, path = text.partition("/")
-    if not slash or not service or not path:
-        raise InvalidArgument(
-            f"selector {text[:300]!r} must be SERVICE/PATH, like scout1/location or */location"
-        )
-    if service != WILDCARD:
-        validate_service_name(service)
-    compile_pattern(path)
-    return Selector(service, path)
-
-
 class HistoryKeeper:
     """Keeps the history of the ``[history]`` selectors; see the module docstring."""
 
@@ -240,7 +229,8 @@ class HistoryKeeper:
         def ready() -> None:
             self._drain(stream, done)
 
-        stream = self.hub.open_own([selector], StreamOptions(), ready)
+        # The gateway's own work: no caller's rules (a caller is checked when it asks).
+        stream = self.hub.open([selector], StreamOptions(), ready, own_work=True)
         return stream
 
     def _drain(self, stream: ListenStream, done: asyncio.Future[None]) -> None:

@@ -45,8 +45,6 @@ class ListenHub:
         #: What every reader of every front end holds of large values, together (limits.max_pending_binary).
         self.budget = PayloadBudget(limits.max_pending_binary)
         self._streams: set[ListenStream] = set()
-        #: The gateway's own streams (:meth:`open_own`): not counted among the clients' streams.
-        self._own: set[ListenStream] = set()
         #: Events sent and values conflated by the streams already closed (the open ones keep their own).
         self.closed_events_sent = 0
         self.closed_conflated = 0
@@ -114,26 +112,6 @@ class ListenHub:
         self._streams.add(stream)
         return stream
 
-    def open_own(
-        self, selectors: Sequence[Selector], options: StreamOptions, on_ready: Callable[[], None]
-    ) -> ListenStream:
-        """A new stream the gateway opens for its own work (the history of properties): no
-        caller's rules (whoever reads what it keeps is checked then) and no client's limit on
-        streams; it follows services coming and going as every stream does."""
-        if self._closing:
-            raise Unavailable(SHUTTING_DOWN)
-        stream = ListenStream(
-            self.router,
-            self.topics,
-            self.limits,
-            selectors=selectors,
-            options=options,
-            on_ready=on_ready,
-            on_close=self._own.discard,
-        )
-        self._own.add(stream)
-        return stream
-
     @property
     def closing(self) -> bool:
         """The gateway is shutting down: no stream opens any more."""
@@ -155,25 +133,24 @@ class ListenHub:
         return sent, conflated, queued
 
     def _service_changed(self, name: str, backend: Backend | None) -> None:
-        streams = [*self._streams, *self._own]
         if backend is not None:
-            for stream in streams:
+            for stream in list(self._streams):
                 stream.service_added(name, backend)
             return
         self.topics.service_removed(name)
-        for stream in streams:
+        for stream in list(self._streams):
             stream.service_removed(name)
 
     def end_all(self) -> None:
         """End every stream with UNAVAILABLE "gateway shutting down"; refuse new ones."""
         self._closing = True
-        for stream in [*self._streams, *self._own]:
+        for stream in list(self._streams):
             stream.fail(Unavailable(SHUTTING_DOWN))
 
     async def aclose(self) -> None:
         """End every stream and close every backend subscription."""
         self.end_all()
         self._unwatch()
-        for stream in [*self._streams, *self._own]:
+        for stream in list(self._streams):
             stream.close()
         await self.topics.aclose()
