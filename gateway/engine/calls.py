@@ -42,8 +42,8 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import time
 from collections.abc import Callable, Coroutine, Mapping
+from time import time_ns
 from typing import Any
 
 from gateway.engine.guard import REGISTRY, Guard
@@ -240,7 +240,7 @@ class Calls:
             heard = heard_at(service, path, value)
             if heard:
                 return heard
-        return time.time_ns()
+        return time_ns()
 
     async def set(self, call: SetCall, time_limit: float, subject: Subject = ANONYMOUS) -> Value:
         """Write the call's value; the service's answer is the value returned."""

@@ -126,6 +126,8 @@ class Session:
         #: Marked with this Session's token: an anonymous caller holds licences under it.
         self._subject = dataclasses.replace(subject, session=secrets.token_hex(8))
         self._calls = calls
+        #: The source time of a value a Get read (Calls.value_time), looked up once.
+        self._value_time = calls.value_time
         self._hub = hub
         self._context = context
         self._limits = limits
@@ -456,7 +458,7 @@ class Session:
         if kind == "get":
             response = reply.get
             stamp = response.time
-            when = self._calls.value_time(service, path, params, value)
+            when = self._value_time(service, path, params, value)
             stamp.seconds, stamp.nanos = divmod(when, 1_000_000_000)
         else:
             response = reply.set
