@@ -1,4 +1,4 @@
-"""``psctl``: Get, Set and Listen on a Property Service gateway from the shell.
+"""``psctl``: Get, Set, Listen and History on a Property Service gateway from the shell.
 
 Exit codes: 0 success (also a Listen ended by --count, --duration or Ctrl-C);
 1 the call failed (the gateway answered with an error status); 2 usage error
@@ -14,9 +14,10 @@ import base64
 import json
 import math
 import os
+import re
 import sys
 from collections.abc import Sequence
-from datetime import datetime
+from datetime import UTC, datetime, timedelta
 from typing import Any, TextIO
 
 from clients.aio import (
@@ -30,6 +31,7 @@ from clients.aio import (
     Event,
     Mark,
     Selector,
+    TimeArg,
 )
 from clients.cluster_view import ACTIONS, cluster_command
 from clients.credentials import ENVIRONMENT, ClientCredentials
@@ -63,6 +65,7 @@ examples:
   psctl listen thermo1 data --count 10        ten readings of the sensor (it changes by itself)
   psctl listen scout1 location --duration 5   scout1's pose for five seconds
   psctl listen scout1 location --also scout2:location --min-interval 0.1 --duration 5
+  psctl history scout1 location --since 60s   what the gateway kept of the last minute ([history])
   psctl --json get scout1 location            machine-readable output
   psctl cluster --devices                     the gateways of a cluster and who owns each device
   psctl cluster drain gw1                     gw1 hands its devices over (undrain gw1; rebalance)
@@ -93,8 +96,39 @@ The stream ends with exit code 0 at --count, --duration or Ctrl-C; a stream the 
 """
 
 
+_HISTORY_EPILOG = """\
+TIME is a duration before now (90s, 5m, 2h, 1d, 250ms) or an ISO-8601 time (2026-01-01T12:00:00Z;
+without a zone: UTC). With more values in the range than --limit (or the gateway's default), the
+oldest are printed and a last line says so: ask again with --since after the last one's time.
+
+examples:
+  psctl history scout1 location --since 60s             the last minute of scout1's pose
+  psctl history '*' location --since 5m --until 1m      every robot's pose, from 5 to 1 minute ago
+  psctl --json history bench value --limit 100          the oldest 100 kept values, as JSON lines
+"""
+
+
 class _UsageError(Exception):
     pass
+
+
+#: A duration before now: a number and its unit.
+_DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(ms|s|m|h|d)\s*$")
+_DURATION_UNITS = {"ms": 0.001, "s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
+
+
+def _when(text: str) -> TimeArg:
+    """A --since or --until: a duration before now, or an ISO-8601 time (naive: UTC)."""
+    found = _DURATION.match(text)
+    if found is not None:
+        return timedelta(seconds=float(found.group(1)) * _DURATION_UNITS[found.group(2)])
+    try:
+        when = datetime.fromisoformat(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a duration before now like 60s, 5m or 2h, or an ISO-8601 time, got {text!r}"
+        ) from None
+    return when if when.tzinfo is not None else when.replace(tzinfo=UTC)
 
 
 def _common_options() -> argparse.ArgumentParser:
@@ -298,6 +332,30 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="listen on a Listen stream of its own rather than inside a Session (the default, which "
         "costs the gateway a tenth of the memory)",
+    )
+    history = commands.add_parser(
+        "history",
+        parents=[common],
+        help="print the values the gateway kept of a property (its [history])",
+        description=(
+            "Print the kept values of PATH of SERVICE ('*' for the service or a path segment: every "
+            "match), oldest first, one line each as listen prints them. The gateway keeps the "
+            "properties its [history] selectors name (docs/recording.md)."
+        ),
+        epilog=_HISTORY_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    history.add_argument("service")
+    history.add_argument("path")
+    history.add_argument(
+        "--since",
+        type=_when,
+        metavar="TIME",
+        help="from TIME on: a duration before now (60s, 5m, 2h, 1d) or ISO-8601",
+    )
+    history.add_argument("--until", type=_when, metavar="TIME", help="before TIME (the same forms)")
+    history.add_argument(
+        "--limit", type=_count, default=0, metavar="N", help="at most N values (default: the gateway's)"
     )
     cluster = commands.add_parser(
         "cluster",
@@ -669,6 +727,18 @@ async def _listen(client: AsyncClient, args: argparse.Namespace, as_json: bool) 
     return EXIT_FAILED
 
 
+async def _history(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+    kept = await client.history(args.service, args.path, since=args.since, until=args.until, limit=args.limit)
+    for event in kept:
+        _emit_json(_event_json(event)) if as_json else _out(_event_line(event))
+    if kept.truncated:
+        if as_json:
+            _emit_json({"truncated": True})
+        else:
+            _out(f"-- {len(kept)} shown, more lie in the range: ask again with --since after the last one")
+    return EXIT_OK
+
+
 def _print_mark(mark: Mark, as_json: bool) -> None:
     if as_json:
         _emit_json({"mark": mark.value, "time": datetime.now().astimezone().isoformat()})
@@ -700,7 +770,14 @@ async def _cluster(client: AsyncClient, args: argparse.Namespace, as_json: bool)
     return EXIT_OK
 
 
-_COMMANDS = {"ls": _ls, "get": _get, "set": _set, "listen": _listen, "cluster": _cluster}
+_COMMANDS = {
+    "ls": _ls,
+    "get": _get,
+    "set": _set,
+    "listen": _listen,
+    "history": _history,
+    "cluster": _cluster,
+}
 
 
 def _credentials(args: argparse.Namespace) -> ClientCredentials:

@@ -23,9 +23,12 @@ from clients.aio import (
     DEFAULT_TIMEOUT,
     AsyncClient,
     Event,
+    History,
     ListenCalls,
     Mark,
+    Reading,
     Selector,
+    TimeArg,
 )
 from clients.aio import Session as AsyncSession
 from clients.credentials import ClientCredentials
@@ -218,6 +221,23 @@ class Client(_BlockingCalls):
         if self._runner.loop.is_running():
             self._runner.run(self._aio.close(), _GRACE)
         self._runner.stop()
+
+    def get_with_time(self, service: str, prop: str, /, **params: Any) -> Reading:
+        """See :meth:`AsyncClient.get_with_time`."""
+        return self._runner.call(self._aio.get_with_time(service, prop, **params))
+
+    def history(
+        self,
+        service: str,
+        prop: str,
+        /,
+        *,
+        since: TimeArg = None,
+        until: TimeArg = None,
+        limit: int = 0,
+    ) -> History:
+        """See :meth:`AsyncClient.history`."""
+        return self._runner.call(self._aio.history(service, prop, since=since, until=until, limit=limit))
 
     def get_bytes(self, service: str, prop: str, /, **params: Any) -> bytes:
         """See :meth:`AsyncClient.get_bytes`."""

@@ -35,6 +35,7 @@ from gateway.connections import share_open_files
 from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
 from gateway.engine.guard import Guard
+from gateway.engine.history import HistoryKeeper, recorded_events
 from gateway.engine.licensing import current_caller, may_license, may_provide
 from gateway.engine.listen import ListenHub
 from gateway.engine.listen.follow import HubFollow
@@ -122,7 +123,12 @@ class Gateway:
         self.address = ""
         #: "host:port" of the line-protocol listener (the real port when 0 was asked); "" when off.
         self.line_address = ""
-        self.servicer = PropertyServicer(self.router, self.hub, self.config)
+        #: The kept changes of the ``[history]`` selectors; None when none are given.
+        self.history: HistoryKeeper | None = None
+        if self.config.history.selectors:
+            older = recorded_events(self.config.source) if self.config.history.recordings else None
+            self.history = HistoryKeeper(self.hub, self.config.history, self.guard, older)
+        self.servicer = PropertyServicer(self.router, self.hub, self.config, history=self.history)
         #: "host:port" of the HTTP front end (the real port when 0 was asked); "" when off.
         self.http_address = ""
         #: ``/metrics`` (on the HTTP front end and/or ``[metrics] listen``); None when not served.
@@ -185,6 +191,8 @@ class Gateway:
                     self._warn_missing_members(entry)
                     await self._add(entry.name, self._open(entry), _described(entry))
             await self._start_line_listener()
+            if self.history is not None:
+                self.history.start()
             await self._server.start()
             await self._start_http()
             await self._start_metrics()
@@ -543,7 +551,7 @@ class Gateway:
         # Imported only when configured: aiohttp takes a quarter of a second to import.
         from gateway.fronts.http import HttpFront
 
-        self.http = HttpFront(self.servicer.calls, self.hub, self.config, self.guard)
+        self.http = HttpFront(self.servicer.calls, self.hub, self.config, self.guard, self.history)
         self.http.max_connections = self.shares.get("http.max_connections", self.config.http.max_connections)
         if self.config.metrics.enabled:
             self.http.metrics = self._metrics_endpoint().guarded
@@ -686,6 +694,8 @@ class Gateway:
         self._stopped.set()
         grace = self.config.gateway.shutdown_grace if grace is None else grace
         self.health.shut_down()
+        if self.history is not None:
+            await self.history.aclose()
         self.hub.end_all()
         self.servicer.end_sessions()
         if self.http is not None:

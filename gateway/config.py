@@ -38,7 +38,7 @@ from services.apps.registry import (
 from services.apps.registry.lease import MAX_LEASE
 from services.apps.registry.scheduling import DEFAULT_MAX_QUEUED, DEFAULT_TOUT, DEFAULT_TR, check_capabilities
 from services.kernel.errors import InvalidArgument, PropertyError
-from services.kernel.paths import validate_service_name
+from services.kernel.paths import WILDCARD, validate_pattern, validate_service_name
 
 #: The service every gateway hosts itself; a config may not define it.
 REGISTRY_NAME = "registry"
@@ -244,6 +244,33 @@ class MetricsSection:
     listen: str = ""
 
 
+@dataclass(frozen=True, slots=True)
+class HistorySection:
+    """``[history]``: the changes of which properties the gateway keeps in memory for the History
+    call (docs/recording.md, "History"); off when no selector is given."""
+
+    #: ``SERVICE/PATH`` selectors of the properties kept, ``*`` standing for the service or for a
+    #: path segment as in a Listen (``["*/location", "scout1/battery"]``); empty = no history.
+    selectors: tuple[str, ...] = ()
+    #: Changes kept per property (its latest ones).
+    size: int = option(1000, low=1)
+    #: Keep binary values too (camera frames fill the bounds in seconds: off unless asked).
+    binary: bool = False
+    #: Changes kept of all properties together; past it, the oldest change of all goes first.
+    max_entries: int = option(1_000_000, low=1)
+    #: Bytes of kept values (and 256 a change besides: what a change costs, measured) of all
+    #: properties together; past it, the oldest change of all goes first. 64 MiB holds about
+    #: 250,000 changes of short values, so for those it is reached before ``max_entries``.
+    max_bytes: int = option(64 * 1024 * 1024, low=1)
+    #: Events a History call answers when it asks for no fewer (its ``limit`` 0).
+    default_limit: int = option(1000, low=1)
+    #: Events a History call answers at most, whatever it asks (a message stays under 4 MiB too).
+    max_limit: int = option(10_000, low=1)
+    #: A folder of recordings (the recorder's) that answers for the time before the rings
+    #: reach; empty = the rings only.
+    recordings: str = ""
+
+
 #: Devices a gateway hands over at once when it rebalances: each is a connection closed, a claim and
 #: a connection opened; a few dozen keep one round short and the other gateways' work small.
 DEFAULT_REBALANCE_BATCH = 32
@@ -399,6 +426,8 @@ class Config:
     audit: AuditSection = field(default_factory=AuditSection)
     #: ``[metrics]``: the Prometheus endpoint (docs/metrics.md).
     metrics: MetricsSection = field(default_factory=MetricsSection)
+    #: ``[history]``: the properties whose changes are kept (docs/recording.md, "History").
+    history: HistorySection = field(default_factory=HistorySection)
     #: Where it came from, for messages.
     source: str = "<config>"
 
@@ -521,6 +550,7 @@ def parse_config_partly(
     top = (
         *("gateway", "limits", "registry", "tls", "http", "services", "devices", "auth", "rules", "audit"),
         "metrics",
+        "history",
     )
     problems = _Problems()
     for key in data:
@@ -561,6 +591,9 @@ def parse_config_partly(
     metrics: MetricsSection = problems.attempt(
         lambda: _metrics(data.get("metrics", {}), f"{source}: metrics", gw), MetricsSection()
     )
+    history: HistorySection = problems.attempt(
+        lambda: _history(data.get("history", {}), f"{source}: history", folder), HistorySection()
+    )
     if any(e.dials_in for e in services) and not gw.line_listen:
         problems.found.append(f"{source}: services: a device that dials in needs gateway.line_listen")
     config = Config(
@@ -568,6 +601,7 @@ def parse_config_partly(
         rules=rules,
         audit=audit or AuditSection(),
         metrics=metrics,
+        history=history,
         gateway=gw,
         limits=limits,
         registry=registry,
@@ -722,6 +756,35 @@ def _http(data: Any, where: str, gw: GatewaySection, tls: TlsSection, limits: Li
         return http
 
     return _checked_section(HttpSection, data, where, checks, skip=("websocket_origins",))
+
+
+def _history(data: Any, where: str, folder: Path | None) -> HistorySection:
+    def checks(history: HistorySection, found: list[str]) -> HistorySection:
+        raw = data.get("selectors", []) if isinstance(data, Mapping) else []
+        if not isinstance(raw, list) or not all(isinstance(text, str) for text in raw):
+            found.append(f"{where}.selectors: expected a list of SERVICE/PATH strings, got {shown(raw)}")
+            raw = []
+        history = replace(history, selectors=tuple(raw))
+        for i, text in enumerate(history.selectors):
+            service, slash, path = text.partition("/")
+            try:
+                if not slash or not service or not path:
+                    raise InvalidArgument("must be SERVICE/PATH, like scout1/location or */location")
+                if service != WILDCARD:
+                    validate_service_name(service)
+                validate_pattern(path)
+            except PropertyError as exc:
+                found.append(f"{where}.selectors[{i}]: {exc.message}, got {shown(text)}")
+        if history.default_limit > history.max_limit:
+            found.append(f"{where}.default_limit: must be at most max_limit ({history.max_limit})")
+        if history.recordings:
+            recordings = Path(history.recordings).expanduser()
+            if not recordings.is_absolute():
+                recordings = (folder if folder is not None else Path.cwd()) / recordings
+            history = replace(history, recordings=str(recordings))
+        return history
+
+    return _checked_section(HistorySection, data, where, checks, skip=("selectors",))
 
 
 def _metrics(data: Any, where: str, gw: GatewaySection) -> MetricsSection:

@@ -15,10 +15,10 @@ making many small calls. A client's listens share one Session of the client
 """
 
 from clients.aio.client import DEFAULT_MAX_IN_FLIGHT, DEFAULT_TARGET, DEFAULT_TIMEOUT, AsyncClient
-from clients.aio.events import HEARTBEAT, SYNC, Event, Mark
+from clients.aio.events import HEARTBEAT, SYNC, Event, History, Mark, Reading
 from clients.aio.gateways import DEFAULT_FAILOVER_LIMIT, DEFAULT_KEEPALIVE
 from clients.aio.listen import ListenCalls
-from clients.aio.requests import ListenOptions, Selector
+from clients.aio.requests import ListenOptions, Selector, TimeArg
 from clients.aio.session import DEFAULT_SESSION_QUEUE, MAX_SESSION_BATCH, Session
 
 __all__ = [
@@ -33,9 +33,12 @@ __all__ = [
     "SYNC",
     "AsyncClient",
     "Event",
+    "History",
     "ListenCalls",
     "ListenOptions",
     "Mark",
+    "Reading",
     "Selector",
     "Session",
+    "TimeArg",
 ]

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any, Self
 import grpc
 import grpc.aio
 
-from clients.aio.events import Event, Mark, listen_items
+from clients.aio.events import Event, History, Mark, Reading, history_of, listen_items, reading_of
 from clients.aio.gateways import (
     DEFAULT_FAILOVER_LIMIT,
     DEFAULT_KEEPALIVE,
@@ -25,11 +25,13 @@ from clients.aio.gateways import (
 from clients.aio.listen import ListenCalls
 from clients.aio.requests import (
     Selector,
+    TimeArg,
     binary,
     decode,
     format_params,
     get_many_request,
     get_many_values,
+    history_request,
     matching_values,
     set_request,
     value_of,
@@ -87,7 +89,7 @@ RESUME_FIRST_PAUSE = 0.1
 RESUME_MAX_PAUSE = 5.0
 #: Unary calls that only read: one that failed on the way to a gateway is asked again of the next.
 #: A Set is asked again only when it never reached a gateway (it may have been applied otherwise).
-_READS = frozenset({"Get", "Describe"})
+_READS = frozenset({"Get", "Describe", "History"})
 
 log = logging.getLogger(__name__)
 
@@ -293,6 +295,33 @@ class AsyncClient(ListenCalls[AsyncGenerator[Event, None], AsyncGenerator[Event 
         ``bytes``); keyword arguments are request parameters."""
         request = pb.GetRequest(service=service, property=prop, parameters=format_params(params))
         return value_of(await self._unary("Get", request, service, prop))
+
+    async def get_with_time(self, service: str, prop: str, /, **params: Any) -> Reading:
+        """The value of ``prop`` of ``service`` and its source time (:class:`Reading`): when the
+        value became true, as far as the gateway knows."""
+        request = pb.GetRequest(service=service, property=prop, parameters=format_params(params))
+        return reading_of(await self._unary("Get", request, service, prop))
+
+    async def history(
+        self,
+        service: str,
+        prop: str,
+        /,
+        *,
+        since: TimeArg = None,
+        until: TimeArg = None,
+        limit: int = 0,
+    ) -> History:
+        """The values the gateway kept of ``prop`` of ``service`` (``*`` for the service or a path
+        segment: every match) with ``since <= time < until``, oldest first.
+
+        ``since`` and ``until``: a ``datetime`` (naive is UTC), a ``timedelta`` before now, or
+        seconds since the epoch; None is open. ``limit``: the most events (0: the gateway's
+        default); with more in the range, :attr:`History.truncated` is set. FAILED_PRECONDITION
+        when the gateway keeps no history; NOT_FOUND when it keeps none of these properties.
+        """
+        request = history_request(service, prop, since, until, limit)
+        return history_of(await self._unary("History", request, service, prop))
 
     async def get_bytes(self, service: str, prop: str, /, **params: Any) -> bytes:
         """The value of a binary property; ValueFormatError when it is text."""

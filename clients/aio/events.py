@@ -1,15 +1,27 @@
-"""What a Listen yields: :class:`Event` values and :class:`Mark` stream markers."""
+"""What a Listen yields (:class:`Event` values and :class:`Mark` stream markers), what a Get with
+its time answers (:class:`Reading`), and what a History call answers (:class:`History`)."""
 
 from __future__ import annotations
 
 import enum
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.kernel.values import Value
 
-__all__ = ["HEARTBEAT", "SYNC", "Event", "Mark", "listen_items"]
+__all__ = [
+    "HEARTBEAT",
+    "SYNC",
+    "Event",
+    "History",
+    "Mark",
+    "Reading",
+    "history_of",
+    "listen_items",
+    "reading_of",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -30,6 +42,37 @@ class Event:
     gap: bool = False
     #: The property no longer exists; ``value`` is empty.
     removed: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Reading:
+    """A value and its source time: when it became true (the service's own time when it gives
+    one, else when the gateway heard the change, or when the answer arrived for a value read
+    fresh)."""
+
+    #: Text, or ``bytes`` for a binary property.
+    value: Value
+    #: Timezone-aware, UTC.
+    time: datetime
+
+
+@dataclass(frozen=True, slots=True)
+class History:
+    """The kept values of the properties a History call matched, oldest first; iterate over it
+    for the events.
+
+    ``truncated``: more values lay in the range than the limit allowed; the newest were left out
+    (ask again with ``since`` just after the last event's time).
+    """
+
+    events: list[Event]
+    truncated: bool = False
+
+    def __iter__(self) -> Iterator[Event]:
+        return iter(self.events)
+
+    def __len__(self) -> int:
+        return len(self.events)
 
 
 class Mark(enum.Enum):
@@ -56,6 +99,16 @@ def _event(ev: pb.Event) -> Event:
         ev.gap,
         ev.removed,
     )
+
+
+def reading_of(resp: pb.GetResponse) -> Reading:
+    """The value of a GetResponse and its source time."""
+    return Reading(resp.data if resp.HasField("data") else resp.value, resp.time.ToDatetime(tzinfo=UTC))
+
+
+def history_of(resp: pb.HistoryResponse) -> History:
+    """The events of a HistoryResponse."""
+    return History([_event(ev) for ev in resp.events], resp.truncated)
 
 
 def listen_items(resp: pb.ListenResponse, marks: bool) -> list[Event | Mark]:

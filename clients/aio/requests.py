@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from datetime import UTC, datetime, timedelta
 from typing import Any, Protocol, TypedDict, TypeVar
 
 from google.protobuf.duration_pb2 import Duration
+from google.protobuf.timestamp_pb2 import Timestamp
 
 from clients.errors import Unknown
 from clients.values import Value, ValueFormatError, format_value, outgoing_value
@@ -29,6 +31,9 @@ T = TypeVar("T")
 
 #: A Listen selector: ``(service, property)`` or ``(service, property, parameters)``.
 Selector = tuple[str, str] | tuple[str, str, Mapping[str, Any]]
+#: A time a History call takes: a ``datetime`` (naive is UTC), a ``timedelta`` before now, seconds
+#: since the epoch, or None (open).
+TimeArg = datetime | timedelta | float | None
 
 
 class ListenOptions(TypedDict, total=False):
@@ -78,6 +83,37 @@ def _duration(seconds: float | None, what: str) -> Duration | None:
     d = Duration()
     d.FromNanoseconds(round(seconds * 1e9))
     return d
+
+
+def _timestamp(when: TimeArg, what: str) -> Timestamp | None:
+    if when is None:
+        return None
+    if isinstance(when, timedelta):
+        when = datetime.now(UTC) - when
+    elif isinstance(when, int | float) and not isinstance(when, bool):
+        if not when >= 0:
+            raise ValueError(f"{what} must be seconds since the epoch (not negative), got {when!r}")
+        when = datetime.fromtimestamp(when, UTC)
+    elif not isinstance(when, datetime):
+        raise TypeError(f"{what} must be a datetime, a timedelta or seconds since the epoch, got {when!r}")
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=UTC)
+    stamp = Timestamp()
+    stamp.FromDatetime(when)
+    return stamp
+
+
+def history_request(service: str, prop: str, since: TimeArg, until: TimeArg, limit: int) -> pb.HistoryRequest:
+    """A HistoryRequest; ``since`` and ``until`` as :data:`TimeArg` says."""
+    if limit < 0:
+        raise ValueError(f"limit must not be negative, got {limit}")
+    return pb.HistoryRequest(
+        service=service,
+        property=prop,
+        since=_timestamp(since, "since"),
+        until=_timestamp(until, "until"),
+        limit=limit,
+    )
 
 
 def _ref(selector: Selector) -> pb.PropertyRef:

@@ -27,6 +27,10 @@ Set's outcome is audited. When the guard checks, the subject is also put in
 a system service makes for this one (a group's members, a wildcard into them)
 are checked as the same subject (:mod:`gateway.engine.behalf`).
 
+Every value a Get answers carries its source time (:meth:`Calls.value_time`): when the gateway
+heard it change, when a Listen (or the history, :mod:`gateway.engine.history`) follows the
+property and its latest change is the value read; else when the answer arrived.
+
 Every Set is also checked against the licences the registry holds
 (:mod:`gateway.engine.licensing`): a Set or an action on a service (or subtree) that
 someone else holds a licence on is FAILED_PRECONDITION naming the holder and the
@@ -39,6 +43,7 @@ from __future__ import annotations
 import asyncio
 import functools
 from collections.abc import Callable, Coroutine, Mapping
+from time import time_ns
 from typing import Any
 
 from gateway.engine.guard import REGISTRY, Guard
@@ -70,9 +75,17 @@ class Calls:
     """Get and Set against the router, shared by the unary calls and Session."""
 
     def __init__(
-        self, router: Router, call_timeout: float, max_get_paths: int, guard: Guard | None = None
+        self,
+        router: Router,
+        call_timeout: float,
+        max_get_paths: int,
+        guard: Guard | None = None,
+        heard_at: Callable[[str, str, Value], int] | None = None,
     ) -> None:
+        """``heard_at(service, path, value)``: when the gateway heard ``value`` become the value of
+        the property, 0 when it does not know (the listen hub's topics: :meth:`Topics.heard_at`)."""
         self.router = router
+        self.heard_at = heard_at
         self.timeout = call_timeout
         self.max_get_paths = max_get_paths
         self.guard = guard or Guard()
@@ -197,7 +210,7 @@ class Calls:
             # too short to outgrow a message is not measured.
             handle = self.start_get(call, time_limit, subject)
             value = handle.result() if handle.done else await handle
-            reply = GetReply(value)
+            reply = GetReply(value, (), self.value_time(call.service, call.path, call.parameters, value))
             if len(value) <= SURELY_FITS_CHARS:
                 return reply
         else:
@@ -210,12 +223,24 @@ class Calls:
                 # before any backend is asked.
                 refs = self._resolve_more(call, subject)
                 value = await self.start_get(call, time_limit, subject)
-                reply = GetReply(value, await self._read(refs, time_limit))
+                when = self.value_time(call.service, call.path, call.parameters, value)
+                reply = GetReply(value, await self._read(refs, time_limit), when)
         check_fits(
             reply_size(reply.value, reply.more),
             lambda: f"{call.service}: get {call.path}" + (f" and {len(call.more)} more" if call.more else ""),
         )
         return reply
+
+    def value_time(self, service: str, path: str, params: Mapping[str, str], value: Value) -> int:
+        """The source time of ``value`` just read from ``path`` of ``service`` (ns since the epoch):
+        when the gateway heard it change, if something follows the property and its latest change
+        is this value; else now, when the answer arrived."""
+        heard_at = self.heard_at
+        if heard_at is not None and not params:
+            heard = heard_at(service, path, value)
+            if heard:
+                return heard
+        return time_ns()
 
     async def set(self, call: SetCall, time_limit: float, subject: Subject = ANONYMOUS) -> Value:
         """Write the call's value; the service's answer is the value returned."""
@@ -334,11 +359,11 @@ class Calls:
         elif groups:
             await asyncio.gather(*(read_group(ix) for ix in groups.values()))
         out = []
-        for (service, path, _, _), value in zip(refs, values, strict=True):
+        for (service, path, params, _), value in zip(refs, values, strict=True):
             if isinstance(value, BaseException):
                 err = to_property_error(value, f"{service}: get {path}")
                 raise type(err)(f"{service}/{path}: {err.message}", err.code) from None
-            out.append(PropertyValue(service, path, value))
+            out.append(PropertyValue(service, path, value, self.value_time(service, path, params, value)))
         return out
 
 

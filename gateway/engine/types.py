@@ -117,27 +117,32 @@ class DescribeCall(_Plain):
 
 
 class PropertyValue(_Plain):
-    """One value a Get read, with the concrete path it was read at."""
+    """One value a Get read, with the concrete path it was read at and its source time."""
 
-    __slots__ = ("path", "service", "value")
+    __slots__ = ("path", "service", "time_ns", "value")
 
-    def __init__(self, service: str, path: str, value: Value) -> None:
+    def __init__(self, service: str, path: str, value: Value, time_ns: int = 0) -> None:
         self.service = service
         self.path = path
         self.value = value
+        #: When the value became true, in nanoseconds since the epoch (0: not known).
+        self.time_ns = time_ns
 
 
 class GetReply(_Plain):
     """What a Get read: the value of its path, and the values of its ``more`` paths in order.
 
     A snapshot (:func:`is_snapshot`) lists every match in ``more`` and leaves ``value`` empty.
+    ``time_ns`` is the source time of ``value`` (:meth:`gateway.engine.calls.Calls.value_time`):
+    when the gateway heard it change, or when the answer arrived for a value nobody follows.
     """
 
-    __slots__ = ("more", "value")
+    __slots__ = ("more", "time_ns", "value")
 
-    def __init__(self, value: Value = "", more: Sequence[PropertyValue] = ()) -> None:
+    def __init__(self, value: Value = "", more: Sequence[PropertyValue] = (), time_ns: int = 0) -> None:
         self.value = value
         self.more = more
+        self.time_ns = time_ns
 
 
 def is_snapshot(call: GetCall) -> bool:

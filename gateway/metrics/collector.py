@@ -136,14 +136,14 @@ class GatewayCollector(Collector):
         )
         latency = HistogramMetricFamily(
             f"{PREFIX}_grpc_call_duration_seconds",
-            "Time from a unary call's arrival to its answer (Get, Set, Describe)",
+            "Time from a unary call's arrival to its answer (Get, Set, Describe, History)",
             labels=("method",),
         )
         for method, method_counts in counts.methods.items():
             for number, n in enumerate(method_counts.codes):
                 if n or number == 0:
                     calls.add_metric((method, CODE_NAMES[number]), n)
-            if method in ("Get", "Set", "Describe"):
+            if method in ("Get", "Set", "Describe", "History"):
                 buckets, total = _buckets(method_counts.latency)
                 latency.add_metric((method,), buckets, total)
         yield calls

@@ -72,7 +72,7 @@ class MethodCounts:
 class GrpcCounts:
     """The gRPC front end: one :class:`MethodCounts` per method of the contract, and Session requests."""
 
-    METHODS = ("Get", "Set", "Describe", "Listen", "Session")
+    METHODS = ("Get", "Set", "Describe", "Listen", "Session", "History")
     #: What a Session request can be (``Request.call``), and "none" for one that names no call.
     SESSION_REQUESTS = ("get", "set", "listen", "cancel", "none")
 

@@ -136,11 +136,10 @@ async def test_model_is_the_describe_model(http: aiohttp.ClientSession, grpc_cli
 async def test_get_reads_what_grpc_reads(http: aiohttp.ClientSession, grpc_client: AsyncClient) -> None:
     status, body, _ = await call(http, "GET", prop("thermo1", "location"))
     assert status == 200
-    assert body == {
-        "service": "thermo1",
-        "path": "location",
-        "value": await grpc_client.get("thermo1", "location"),
-    }
+    reading = await grpc_client.get_with_time("thermo1", "location")
+    assert body == {"service": "thermo1", "path": "location", "value": reading.value, "time": body["time"]}
+    # The value's source time, in seconds since the epoch as gRPC's Timestamp says it.
+    assert abs(body["time"] - reading.time.timestamp()) < 5
 
 
 async def test_a_wildcard_get_lists_every_match(

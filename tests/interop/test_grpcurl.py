@@ -80,7 +80,7 @@ def test_describe_shows_every_rpc(grpcurl: str, addr: str) -> None:
     assert done.returncode == 0, done.stderr
     text = done.stdout
     assert f"{SERVICE} is a service" in text
-    for rpc in ("Get", "Set", "Listen", "Session", "Describe"):
+    for rpc in ("Get", "Set", "Listen", "Session", "Describe", "History"):
         assert re.search(rf"rpc {rpc} \(", text), f"rpc {rpc} missing from:\n{text}"
     assert re.search(r"rpc Listen \( \.propertyservice\.v1\.ListenRequest \) returns \( stream ", text)
     assert re.search(r"rpc Session \( stream ", text)

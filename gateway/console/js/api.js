@@ -165,6 +165,17 @@ export function getProperty(service, path, parameters = {}) {
   return request('GET', propertyUrl(service, path, parameters));
 }
 
+/**
+ * The values the gateway kept of a property (its `[history]`, docs/recording.md): resolves to
+ * {service, path, events: [{value, time, sequence, ...}], truncated}, oldest first. `since` is a
+ * duration before now ("60s") or seconds since the epoch.
+ */
+export function getHistory(service, path, { since = '60s', limit = 0 } = {}) {
+  const query = new URLSearchParams({ since: String(since) });
+  if (limit) query.set('limit', String(limit));
+  return request('GET', `${propertyUrl(service, path)}/history?${query}`);
+}
+
 /** Set: resolves to {service, path, value} (the reply text). */
 export function setProperty(service, path, value, parameters = {}, options = {}) {
   const body = { value: String(value) };

@@ -1,6 +1,7 @@
 // The built-in widgets, one per `.gui` word the services use (services/kernel/core: number, slider,
-// switch, text, vector, pose, gauge, plot, list, marker, button, group; statechart, a state
-// machine's diagram, from statechart.js; image and camera, a live image, from image_widget.js)
+// switch, text, vector, pose, gauge, list, marker, button, group; plot, the last minute from the
+// history then live, from plot.js; statechart, a state machine's diagram, from statechart.js;
+// image and camera, a live image, from image_widget.js)
 // and one per data type (bytes: by its media type).
 // Every writable widget has one input or select and a button [data-action=set]; an action has
 // an input per parameter [data-param=NAME], a value input [data-value] when it takes a value,
@@ -14,11 +15,10 @@ import {
   registerMediaWidget,
   registerTypeWidget,
 } from './widgets.js';
+import { plotWidget } from './plot.js';
 import { statechartWidget } from './statechart.js';
 import { findMarkers, formatNumber, markerFromInput, parseVector, valueFromInput } from './values.js';
 
-/** Points a plot keeps: a minute at the simulated sensor's 2 Hz is well inside. */
-const PLOT_POINTS = 120;
 const POSE_AXES = ['x', 'y', 'z', 'roll', 'pitch', 'yaw'];
 
 function finite(x) {
@@ -332,33 +332,6 @@ function gaugeWidget(prop, ctx) {
       gauge.classList.toggle('low', f < 0.2);
       gauge.setAttribute('aria-valuenow', String(x));
       label.textContent = `${Math.round(f * 100)} %`;
-    },
-  };
-}
-
-/** A number over time: the last PLOT_POINTS values as a line, with the range seen. */
-function plotWidget(prop, ctx) {
-  const points = [];
-  const line = ctx.svg('polyline', { class: 'plot-line', points: '' });
-  const chart = ctx.svg('svg', { class: 'plot', viewBox: '0 0 240 60', preserveAspectRatio: 'none' }, line);
-  const range = ctx.h('small', { class: 'plot-range' });
-  return {
-    element: ctx.h('div', { class: 'plot-box' }, chart, range),
-    update(text) {
-      const x = Number(text);
-      if (!finite(x)) return;
-      points.push(x);
-      if (points.length > PLOT_POINTS) points.shift();
-      const lo = Math.min(...points);
-      const hi = Math.max(...points);
-      const span = hi - lo || 1;
-      line.setAttribute(
-        'points',
-        points
-          .map((y, i) => `${((i / (PLOT_POINTS - 1)) * 240).toFixed(1)},${(56 - ((y - lo) / span) * 52).toFixed(1)}`)
-          .join(' '),
-      );
-      range.textContent = `${round(lo)} … ${round(hi)}${prop.unit ? ` ${prop.unit}` : ''} (last ${points.length})`;
     },
   };
 }

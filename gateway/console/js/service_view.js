@@ -2,7 +2,7 @@
 // access, unit, range), grouped by namespace, each following its value through the page's one
 // event stream. A change of the service's `properties` list loads the model again.
 
-import { describe, getProperty, setProperty } from './api.js';
+import { describe, getHistory, getProperty, setProperty } from './api.js';
 import { h } from './dom.js';
 import { followedOnStream, needsParameters, propertyView } from './widgets.js';
 
@@ -103,6 +103,7 @@ export class ServiceView {
       const view = propertyView(service.name, prop, {
         setProperty,
         getProperty,
+        getHistory,
         label: ns ? prop.name.slice(ns.length + 1) : prop.name,
       });
       this._views.set(prop.name, view);

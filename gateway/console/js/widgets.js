@@ -123,6 +123,11 @@ export function widgetFor(prop) {
   return media ?? builtins.get(prop.gui) ?? builtinTypes.get(prop.type) ?? builtins.get('text');
 }
 
+/** Whether a property's values can be plotted: a readable number or vector. */
+export function plottable(prop) {
+  return ['number', 'integer', 'vector'].includes(prop.type) && ['read', 'read-write'].includes(prop.access);
+}
+
 /** Whether the page's event stream follows the property: a binary one is read its own way. */
 export function followedOnStream(prop) {
   return prop.type !== 'bytes';
@@ -142,7 +147,7 @@ const ACCESS_SHORT = {
  * parameters)` and `getProperty(...)` are the API calls (js/api.js). Returns
  * {element, update(value, event), dispose()}.
  */
-export function propertyView(service, prop, { setProperty, getProperty, label = prop.name }) {
+export function propertyView(service, prop, { setProperty, getProperty, getHistory, label = prop.name }) {
   const writable = ['write', 'read-write', 'action', 'unknown'].includes(prop.access);
   const value = h('output', { class: 'value', 'aria-live': 'off' });
   const error = h('div', { class: 'error', role: 'alert', hidden: true });
@@ -224,6 +229,8 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
         return null;
       }
     },
+    /** The kept values of the property since `since` ("60s"); rejects when the gateway keeps none. */
+    history: getHistory ? (since) => getHistory(service, prop.name, { since }) : undefined,
   };
 
   let widget;
@@ -236,7 +243,37 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
   }
   // A widget that shows the value its own way (a statechart's SVG) hides the value text.
   if (widget.hidesValue) value.hidden = true;
-  frame.append(h('div', { class: 'prop-body' }, value, widget.element ?? ''), error);
+  // A number or a vector can be plotted beside its own widget: the last minute, then live.
+  let plot = null;
+  const plotBox = h('div', { class: 'prop-plot' });
+  const plotToggle = plottable(prop) && prop.gui !== 'plot'
+    ? h(
+        'button',
+        {
+          class: 'plot-toggle',
+          type: 'button',
+          title: 'plot the last minute, then live',
+          'aria-pressed': 'false',
+          dataset: { action: 'plot' },
+          onclick: () => {
+            if (plot) {
+              plot.dispose?.();
+              plot = null;
+              plotBox.replaceChildren();
+            } else {
+              plot = builtins.get('plot')(prop, ctx);
+              plotBox.replaceChildren(plot.element);
+              const shownText = value.textContent;
+              if (shownText) plot.update(shownText);
+            }
+            plotToggle.setAttribute('aria-pressed', String(Boolean(plot)));
+          },
+        },
+        'plot',
+      )
+    : null;
+  if (plotToggle) frame.querySelector('.prop-head').append(plotToggle);
+  frame.append(h('div', { class: 'prop-body' }, value, widget.element ?? ''), plotBox, error);
   return {
     element: frame,
     update(text, event = {}) {
@@ -244,6 +281,7 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
       frame.classList.toggle('gap', Boolean(event.gap));
       try {
         widget.update?.(text, event);
+        plot?.update(text, event);
       } catch (e) {
         console.error(`the widget for ${prop.name} could not show ${JSON.stringify(text)}:`, e);
       }
@@ -254,6 +292,7 @@ export function propertyView(service, prop, { setProperty, getProperty, label = 
     },
     dispose() {
       widget.dispose?.();
+      plot?.dispose?.();
     },
   };
 }

@@ -112,6 +112,11 @@ class ListenHub:
         self._streams.add(stream)
         return stream
 
+    @property
+    def closing(self) -> bool:
+        """The gateway is shutting down: no stream opens any more."""
+        return self._closing
+
     def _closed(self, stream: ListenStream) -> None:
         self._streams.discard(stream)
         self.closed_events_sent += stream.events_sent

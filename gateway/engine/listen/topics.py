@@ -82,6 +82,7 @@ class Topic:
         "removed",
         "service",
         "sinks",
+        "stamp",
         "subscription",
         "trail",
         "value",
@@ -96,6 +97,9 @@ class Topic:
         self.sinks: dict[Sink, Callable[[Topic, Change, int], None]] = {}
         self.subscription: Subscription | None = None
         self.value: Value = ""
+        #: When the gateway heard ``value`` (ns since the epoch): the opening Listen's answer or
+        #: the latest change; 0 until then. What a Get of the property answers as its time.
+        self.stamp = 0
         #: The last change was the property's removal (every sink has been told).
         self.removed = False
         self.dead = False
@@ -117,8 +121,9 @@ class Topic:
         self.value = change.value
         self.removed = change.removed
         self.heard = True
+        self.stamp = now = time.time_ns()
         # A sink that raises keeps its place: its stream leaves the topic when it ends.
-        tell_each(self.sinks, self, change, time.time_ns(), what=self, on_raise=OnRaise.KEEP)
+        tell_each(self.sinks, self, change, now, what=self, on_raise=OnRaise.KEEP)
 
     def __str__(self) -> str:
         return f"{self.service}/{self.path}"
@@ -145,6 +150,19 @@ class Topics:
     def get(self, key: TopicKey) -> Topic | None:
         """The open topic ``key``, or None."""
         return self._topics.get(key)
+
+    def heard_at(self, service: str, path: str, value: Value) -> int:
+        """When the gateway heard ``value`` become the value of ``path`` of ``service``, as the
+        open topic of that property (no parameters) knows it; 0 when no topic follows it, or its
+        latest value is another (the value read is newer than what the topic heard)."""
+        topics = self._topics
+        if not topics:  # nothing followed at all: the commonest case of a gateway serving Gets
+            return 0
+        topic = topics.get((service, path, ()))
+        if topic is None or topic.removed:
+            return 0
+        held = topic.value
+        return topic.stamp if held is value or held == value else 0
 
     async def subscribe(
         self,
@@ -265,6 +283,7 @@ class Topics:
                     topic.trail = trail.close()
             if not topic.heard:
                 topic.value = value
+                topic.stamp = time.time_ns()
         except BaseException as exc:
             if self._topics.get(topic.key) is topic:
                 del self._topics[topic.key]

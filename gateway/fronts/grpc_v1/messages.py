@@ -11,6 +11,8 @@ from collections.abc import Callable, Mapping
 
 from google.protobuf.message import DecodeError, Message
 
+from gateway.engine.events import Event
+from gateway.engine.history import HistoryQuery, HistoryReply
 from gateway.engine.types import GetCall, GetReply, PropertyRef, SetCall
 from gateway.wire_values import put, received
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -18,7 +20,16 @@ from services.kernel.backend import NO_PARAMS
 from services.kernel.errors import InvalidArgument
 from services.kernel.values import Value
 
-__all__ = ["Undecodable", "get_call", "get_response", "lenient", "set_call", "set_response"]
+__all__ = [
+    "Undecodable",
+    "get_call",
+    "get_response",
+    "history_query",
+    "history_response",
+    "lenient",
+    "set_call",
+    "set_response",
+]
 
 
 class Undecodable:
@@ -68,12 +79,18 @@ def set_call(request: pb.SetRequest) -> SetCall:
 
 
 def get_response(reply: GetReply) -> pb.GetResponse:
-    """``reply`` as the contract's GetResponse."""
+    """``reply`` as the contract's GetResponse, each value with its source time."""
     response = pb.GetResponse()
     put(response, reply.value)
+    if reply.time_ns:
+        stamp = response.time
+        stamp.seconds, stamp.nanos = divmod(reply.time_ns, 1_000_000_000)
     for item in reply.more:
         entry = response.more.add(service=item.service, property=item.path)
         put(entry, item.value)
+        if item.time_ns:
+            stamp = entry.time
+            stamp.seconds, stamp.nanos = divmod(item.time_ns, 1_000_000_000)
     return response
 
 
@@ -82,3 +99,29 @@ def set_response(value: Value) -> pb.SetResponse:
     response = pb.SetResponse()
     put(response, value)
     return response
+
+
+def history_query(request: pb.HistoryRequest) -> HistoryQuery:
+    """The engine's History call for ``request`` (an unset ``since`` or ``until`` is open)."""
+    since = request.since.ToNanoseconds() if request.HasField("since") else None
+    until = request.until.ToNanoseconds() if request.HasField("until") else None
+    return HistoryQuery(request.service, request.property, since, until, request.limit)
+
+
+def _event(event: Event) -> pb.Event:
+    message = pb.Event(
+        service=event.service,
+        property=event.path,
+        sequence=event.sequence,
+        conflated=event.conflated,
+        gap=event.gap,
+        removed=event.removed,
+    )
+    put(message, event.value)
+    message.time.seconds, message.time.nanos = divmod(event.time_ns, 1_000_000_000)
+    return message
+
+
+def history_response(reply: HistoryReply) -> pb.HistoryResponse:
+    """A History call's answer as the contract's HistoryResponse."""
+    return pb.HistoryResponse(events=[_event(e) for e in reply.events], truncated=reply.truncated)

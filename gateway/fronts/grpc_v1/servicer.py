@@ -25,6 +25,7 @@ from grpc_reflection.v1alpha._async import ReflectionServicer
 from gateway.config import Config
 from gateway.engine.calls import Calls
 from gateway.engine.guard import Guard
+from gateway.engine.history import HistoryKeeper, HistoryQuery, HistoryReply, kept_history
 from gateway.engine.identity import ANONYMOUS
 from gateway.engine.listen import ListenHub
 from gateway.engine.listen.budget import COUNTED_BYTES, GRPC_COPIES
@@ -39,6 +40,8 @@ from gateway.fronts.grpc_v1.messages import (
     Undecodable,
     get_call,
     get_response,
+    history_query,
+    history_response,
     lenient,
     set_call,
     set_response,
@@ -127,6 +130,11 @@ def add_to_server(servicer: PropertyServicer, server: grpc.aio.Server) -> None:
             request_deserializer=lenient(pb.DescribeRequest),
             response_serializer=pb.DescribeResponse.SerializeToString,
         ),
+        "History": grpc.unary_unary_rpc_method_handler(
+            servicer.History,
+            request_deserializer=lenient(pb.HistoryRequest),
+            response_serializer=pb.HistoryResponse.SerializeToString,
+        ),
     }
     # Generic only, never registered: see GenericOnly.
     server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(SERVICE_NAME, handlers),))
@@ -195,11 +203,26 @@ class _Unary(Generic[M]):
 class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
     """Serves the v1 contract from a router and a listen hub."""
 
-    def __init__(self, router: Router, hub: ListenHub, config: Config, guard: Guard | None = None) -> None:
-        """``guard`` checks every call (the hub's own: the same rules hold for every front end)."""
+    def __init__(
+        self,
+        router: Router,
+        hub: ListenHub,
+        config: Config,
+        guard: Guard | None = None,
+        history: HistoryKeeper | None = None,
+    ) -> None:
+        """``guard`` checks every call (the hub's own: the same rules hold for every front end);
+        ``history`` answers History (None: the gateway keeps none)."""
         self.router = router
+        self.history = history
         self.guard = guard or hub.guard
-        self.calls = Calls(router, config.gateway.call_timeout, config.limits.max_get_paths, self.guard)
+        self.calls = Calls(
+            router,
+            config.gateway.call_timeout,
+            config.limits.max_get_paths,
+            self.guard,
+            heard_at=hub.topics.heard_at,
+        )
         self.hub = hub
         self.config = config
         self._timeout = config.gateway.call_timeout
@@ -218,6 +241,7 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
         self._describe_counts: MethodCounts | None = methods.get("Describe")
         self._listen_counts: MethodCounts | None = methods.get("Listen")
         self._session_counts: MethodCounts | None = methods.get("Session")
+        self._history_counts: MethodCounts | None = methods.get("History")
         calls = self.calls
         self._get_method = _Unary("Get", self._get_counts, get_call, calls.get, get_response, self._subject)
         # Identified even when nothing is refused: the audit trail names who set what.
@@ -233,6 +257,13 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
             self._subject,
             has_path=False,
         )
+        self._history_method = _Unary(
+            "History", self._history_counts, history_query, self.read_history, history_response, self._subject
+        )
+
+    async def read_history(self, query: HistoryQuery, time_limit: float, subject: Subject) -> HistoryReply:
+        """A History call, answered from the history keeper (FAILED_PRECONDITION when it keeps none)."""
+        return kept_history(self.history, query, subject)
 
     def end_sessions(self) -> None:
         """Gateway shutdown: every Session flushes, ends its listens and ends with OK."""
@@ -299,6 +330,9 @@ class PropertyServicer(pb_grpc.PropertyServiceServicer):  # type: ignore[misc]
 
     async def Describe(self, request: pb.DescribeRequest, context: Context) -> pb.DescribeResponse:
         return await self._unary(request, context, self._describe_method)
+
+    async def History(self, request: pb.HistoryRequest, context: Context) -> pb.HistoryResponse:
+        return await self._unary(request, context, self._history_method)
 
     async def Listen(self, request: pb.ListenRequest, context: Context) -> AsyncIterator[bytes]:
         # Responses are yielded rather than written with context.write: grpc.aio

@@ -24,7 +24,7 @@ import dataclasses
 import logging
 import secrets
 from collections import deque
-from collections.abc import Coroutine
+from collections.abc import Coroutine, Mapping
 from typing import Any
 
 import grpc
@@ -52,7 +52,7 @@ from gateway.fronts.grpc_v1.messages import Undecodable, get_call, get_response,
 from gateway.fronts.grpc_v1.status import abort, status_message
 from gateway.logs import RequestContext, current_request
 from protos.propertyservice.v1 import property_service_pb2 as pb
-from services.kernel.backend import Backend
+from services.kernel.backend import NO_PARAMS, Backend
 from services.kernel.eager import Started, step
 from services.kernel.errors import Code, InvalidArgument, NotFound, PropertyError, Unavailable
 from services.kernel.values import Value, value_size
@@ -86,17 +86,20 @@ class _Ready:
 class _Answered:
     """What a pending call's handle calls once it is done: the Session answers the request."""
 
-    __slots__ = ("kind", "path", "rid", "service", "session")
+    __slots__ = ("kind", "params", "path", "rid", "service", "session")
 
-    def __init__(self, session: Session, rid: int, kind: str, service: str, path: str) -> None:
+    def __init__(
+        self, session: Session, rid: int, kind: str, service: str, path: str, *, params: Mapping[str, str]
+    ) -> None:
         self.session = session
         self.rid = rid
         self.kind = kind
         self.service = service
         self.path = path
+        self.params = params
 
     def __call__(self, handle: CallHandle) -> None:
-        self.session._answered(self.rid, handle, self.kind, self.service, self.path)
+        self.session._answered(self.rid, handle, self.kind, self.service, self.path, params=self.params)
 
 
 class Session:
@@ -123,6 +126,8 @@ class Session:
         #: Marked with this Session's token: an anonymous caller holds licences under it.
         self._subject = dataclasses.replace(subject, session=secrets.token_hex(8))
         self._calls = calls
+        #: The source time of a value a Get read (Calls.value_time), looked up once.
+        self._value_time = calls.value_time
         self._hub = hub
         self._context = context
         self._limits = limits
@@ -387,7 +392,7 @@ class Session:
         except Exception as exc:
             self._fail(rid, exc, f"{request.service}: get {request.property}")
             return
-        self._follow(rid, handle, "get", request.service, request.property)
+        self._follow(rid, handle, "get", request.service, request.property, params=call.parameters)
 
     def _set(self, rid: int, request: pb.SetRequest) -> None:
         try:
@@ -397,19 +402,30 @@ class Session:
             return
         self._follow(rid, handle, "set", request.service, request.property)
 
-    def _follow(self, rid: int, handle: CallHandle, kind: str, service: str, path: str) -> None:
+    def _follow(
+        self,
+        rid: int,
+        handle: CallHandle,
+        kind: str,
+        service: str,
+        path: str,
+        *,
+        params: Mapping[str, str] = NO_PARAMS,
+    ) -> None:
         """Answer request ``rid`` from its call's handle: now when it is done, else once it is."""
         if handle.done:  # answered inline: the commonest case
-            self._answer(rid, kind, handle.result())
+            self._answer(rid, kind, handle.result(), service, path, params=params)
             return
         self._active.add(rid)
         self._tasks[rid] = handle
         backend = handle.backend
         if backend is not None:
             self._started_on.add(backend)
-        handle.add_done_callback(_Answered(self, rid, kind, service, path))
+        handle.add_done_callback(_Answered(self, rid, kind, service, path, params=params))
 
-    def _answered(self, rid: int, handle: CallHandle, kind: str, service: str, path: str) -> None:
+    def _answered(
+        self, rid: int, handle: CallHandle, kind: str, service: str, path: str, *, params: Mapping[str, str]
+    ) -> None:
         """Request ``rid``'s call is done: its answer or its error goes in the reply queue."""
         if self._tasks.get(rid) is not handle:
             return  # the Session is ending
@@ -421,7 +437,7 @@ class Session:
         if error is not None:
             self._fail(rid, error, f"{service}: {kind} {path}")
         else:
-            self._answer(rid, kind, handle.result())
+            self._answer(rid, kind, handle.result(), service, path, params=params)
         self._room.set()
 
     async def _get_more(self, rid: int, call: GetCall) -> None:
@@ -431,12 +447,21 @@ class Session:
         except Exception as exc:
             self._fail(rid, exc, "Get")
 
-    def _answer(self, rid: int, kind: str, value: Value | None) -> None:
+    def _answer(
+        self, rid: int, kind: str, value: Value | None, service: str, path: str, *, params: Mapping[str, str]
+    ) -> None:
         if value is None:
             value = ""
         # Filled in place: building the answer apart would copy it into the reply.
         reply = pb.Reply(id=rid)
-        response: pb.GetResponse | pb.SetResponse = reply.get if kind == "get" else reply.set
+        response: pb.GetResponse | pb.SetResponse
+        if kind == "get":
+            response = reply.get
+            stamp = response.time
+            when = self._value_time(service, path, params, value)
+            stamp.seconds, stamp.nanos = divmod(when, 1_000_000_000)
+        else:
+            response = reply.set
         if isinstance(value, str):
             response.value = value
         else:

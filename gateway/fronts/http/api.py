@@ -217,21 +217,26 @@ class Api:
             media_types = MediaTypes(self.calls)
             values = []
             for item in answer.more:
+                item_time = {"time": item.time_ns / 1e9}
                 if isinstance(item.value, str):
-                    values.append({"path": item.path, **value_json(item.value, None, "")})
+                    values.append({"path": item.path, **value_json(item.value, None, ""), **item_time})
                     continue
                 media_type = await media_types.of(service, item.path)
-                values.append({"path": item.path, **value_json("", item.value, media_type)})
+                values.append({"path": item.path, **value_json("", item.value, media_type), **item_time})
             return json_response({"service": service, "path": path, "values": values})
         value = answer.value
+        # The value's source time, in seconds since the epoch, as an event's ``time``.
+        when = answer.time_ns / 1e9
         if isinstance(value, str):
             if raw:
                 return text_response(value)
-            return json_response({"service": service, "path": path, "value": value})
+            return json_response({"service": service, "path": path, "value": value, "time": when})
         media_type = await MediaTypes(self.calls).of(service, path)
         if raw or accepts_raw(request, media_type):
             return raw_response(value, media_type)
-        return json_response({"service": service, "path": path, **value_json("", value, media_type)})
+        return json_response(
+            {"service": service, "path": path, **value_json("", value, media_type), "time": when}
+        )
 
     async def set(self, request: web.Request) -> web.Response:
         service = self._service(request)

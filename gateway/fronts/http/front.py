@@ -26,13 +26,16 @@ from gateway.config import Config, is_loopback
 from gateway.connections import BoundedListener, ConnectionCaps
 from gateway.engine.calls import Calls
 from gateway.engine.guard import Guard
+from gateway.engine.history import HistoryKeeper
 from gateway.engine.listen import ListenHub
 from gateway.engine.rules import Subject
 from gateway.fronts.http.api import Api, body_too_large
+from gateway.fronts.http.binary import MediaTypes
 from gateway.fronts.http.bodies import BodyTooLarge
 from gateway.fronts.http.console import CONSOLE_ROOT, Console
 from gateway.fronts.http.errors import PAYLOAD_TOO_LARGE, connection_refusal, error_response
 from gateway.fronts.http.events import EventStreams
+from gateway.fronts.http.history import HistoryRoute
 from gateway.fronts.http.image_stream import ImageStreams
 from gateway.fronts.http.openapi import document
 from gateway.fronts.http.places import StreamPlaces
@@ -102,10 +105,14 @@ def _route_of(request: web.Request) -> str:
 class HttpFront:
     """The HTTP/JSON + SSE front end of one gateway; :meth:`start` and :meth:`stop` in its loop."""
 
-    def __init__(self, calls: Calls, hub: ListenHub, config: Config, guard: Guard) -> None:
+    def __init__(
+        self, calls: Calls, hub: ListenHub, config: Config, guard: Guard, history: HistoryKeeper | None = None
+    ) -> None:
+        """``history``: what answers the history route (None: the gateway keeps no history)."""
         self.settings = config.http
         self.config = config
         self.api = Api(calls, guard, self.settings.max_body)
+        self.history = HistoryRoute(history, guard, MediaTypes(calls))
         self.guard = guard
         #: WebSocket protocols of other fronts served here (set before :meth:`start`).
         self.websockets: list[WebSocketRoute] = []
@@ -153,6 +160,7 @@ class HttpFront:
         add("GET", "/api/v1/services/{service}/model", api.model)
         add("GET", "/api/v1/services/{service}/properties/{path}", api.get)
         add("GET", "/api/v1/services/{service}/properties/{path}/stream", self.images.stream)
+        add("GET", "/api/v1/services/{service}/properties/{path}/history", self.history.history_json)
         add("PUT", "/api/v1/services/{service}/properties/{path}", api.set, expect_handler=self._expect)
         add("POST", "/api/v1/services/{service}/properties/{path}", api.set, expect_handler=self._expect)
         add("GET", "/api/v1/events", self.events.events)

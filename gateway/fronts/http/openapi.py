@@ -188,6 +188,47 @@ DOCUMENT: dict[str, Any] = {
             "put": _SET,
             "post": _SET,
         },
+        "/api/v1/services/{service}/properties/{path}/history": {
+            "get": {
+                "summary": "The kept values of a property (or of every match), oldest first",
+                "description": (
+                    "What the gateway kept of the `[history]` selectors (and, further back, its"
+                    " recordings): the same events as `/api/v1/events` sends, each with its"
+                    " `sequence` and its source `time`. Refused as a Get is (`read`); a wildcard"
+                    " skips what the caller may not read. With more than `limit` in the range, the"
+                    " oldest are answered and `truncated` is true: ask again from the last `time`."
+                ),
+                "parameters": [
+                    {**_SERVICE, "description": "The service's registry name, or `*` for every service."},
+                    _PATH,
+                    {
+                        "name": "since",
+                        "in": "query",
+                        "description": (
+                            "From this time on: seconds since the epoch, ISO-8601, or a duration"
+                            " before now (`60s`, `5m`, `2h`); unset: from the oldest kept."
+                        ),
+                        "schema": {"type": "string"},
+                    },
+                    {
+                        "name": "until",
+                        "in": "query",
+                        "description": "Before this time (the same forms); unset: up to now.",
+                        "schema": {"type": "string"},
+                    },
+                    {
+                        "name": "limit",
+                        "in": "query",
+                        "description": "Most events answered; 0 or unset: `[history] default_limit`.",
+                        "schema": {"type": "integer", "minimum": 0},
+                    },
+                ],
+                "responses": {
+                    "200": _json({"$ref": "#/components/schemas/History"}, "The kept events"),
+                    **_errors("400", "401", "403", "404", "500"),
+                },
+            }
+        },
         "/api/v1/services/{service}/properties/{path}/stream": {
             "get": {
                 "summary": "A live image: every value of a binary property as multipart/x-mixed-replace",
@@ -311,6 +352,20 @@ DOCUMENT: dict[str, Any] = {
                     "value": {"type": "string"},
                     "data": _BASE64,
                     "media_type": {"type": "string"},
+                    "time": {
+                        "type": "number",
+                        "description": "The value's source time, seconds since the epoch.",
+                    },
+                },
+            },
+            "History": {
+                "type": "object",
+                "required": ["service", "path", "events", "truncated"],
+                "properties": {
+                    "service": {"type": "string"},
+                    "path": {"type": "string"},
+                    "events": {"type": "array", "items": {"$ref": "#/components/schemas/Event"}},
+                    "truncated": {"type": "boolean"},
                 },
             },
             "Snapshot": {
@@ -328,6 +383,7 @@ DOCUMENT: dict[str, Any] = {
                                 "value": {"type": "string"},
                                 "data": _BASE64,
                                 "media_type": {"type": "string"},
+                                "time": {"type": "number"},
                             },
                         },
                     },
@@ -413,6 +469,10 @@ DOCUMENT: dict[str, Any] = {
                     "gap": {"type": "boolean"},
                     "removed": {"type": "boolean"},
                     "conflated": {"type": "integer"},
+                    "sequence": {
+                        "type": "integer",
+                        "description": "In a history: the property's count of kept changes.",
+                    },
                     "time": {"type": "number"},
                 },
             },

@@ -26,7 +26,7 @@ from google.protobuf import duration_pb2 as google_dot_protobuf_dot_duration__pb
 from google.protobuf import timestamp_pb2 as google_dot_protobuf_dot_timestamp__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n)propertyservice/v1/property_service.proto\x12\x12propertyservice.v1\x1a\x1egoogle/protobuf/duration.proto\x1a\x1fgoogle/protobuf/timestamp.proto\"\xa8\x01\n\x0bPropertyRef\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12\x43\n\nparameters\x18\x03 \x03(\x0b\x32/.propertyservice.v1.PropertyRef.ParametersEntry\x1a\x31\n\x0fParametersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\t:\x02\x38\x01\"\xd5\x01\n\nGetRequest\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12\x42\n\nparameters\x18\x03 \x03(\x0b\x32..propertyservice.v1.GetRequest.ParametersEntry\x12-\n\x04more\x18\x04 \x03(\x0b\x32\x1f.propertyservice.v1.PropertyRef\x1a\x31\n\x0fParametersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\t:\x02\x38\x01\"i\n\x0bGetResponse\x12\r\n\x05value\x18\x01 \x01(\t\x12/\n\x04more\x18\x02 \x03(\x0b\x32!.propertyservice.v1.PropertyValue\x12\x11\n\x04\x64\x61ta\x18\x03 \x01(\x0cH\x00\x88\x01\x01\x42\x07\n\x05_data\"]\n\rPropertyValue\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12\r\n\x05value\x18\x03 \x01(\t\x12\x11\n\x04\x64\x61ta\x18\x04 \x01(\x0cH\x00\x88\x01\x01\x42\x07\n\x05_data\"\xd1\x01\n\nSetRequest\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12\x42\n\nparameters\x18\x03 \x03(\x0b\x32..propertyservice.v1.SetRequest.ParametersEntry\x12\r\n\x05value\x18\x04 \x01(\t\x12\x11\n\x04\x64\x61ta\x18\x05 \x01(\x0cH\x00\x88\x01\x01\x1a\x31\n\x0fParametersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\t:\x02\x38\x01\x42\x07\n\x05_data\"8\n\x0bSetResponse\x12\r\n\x05value\x18\x01 \x01(\t\x12\x11\n\x04\x64\x61ta\x18\x02 \x01(\x0cH\x00\x88\x01\x01\x42\x07\n\x05_data\"\xd4\x01\n\rListenOptions\x12\x14\n\x0cupdates_only\x18\x01 \x01(\x08\x12/\n\x0cmin_interval\x18\x02 \x01(\x0b\x32\x19.google.protobuf.Duration\x12\x32\n\x0fsample_interval\x18\x03 \x01(\x0b\x32\x19.google.protobuf.Duration\x12\x35\n\x12heartbeat_interval\x18\x04 \x01(\x0b\x32\x19.google.protobuf.Duration\x12\x11\n\tmax_batch\x18\x05 \x01(\r\"\x8f\x02\n\rListenRequest\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12\x45\n\nparameters\x18\x03 \x03(\x0b\x32\x31.propertyservice.v1.ListenRequest.ParametersEntry\x12-\n\x04more\x18\x04 \x03(\x0b\x32\x1f.propertyservice.v1.PropertyRef\x12\x32\n\x07options\x18\x05 \x01(\x0b\x32!.propertyservice.v1.ListenOptions\x1a\x31\n\x0fParametersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\t:\x02\x38\x01\"\xc2\x01\n\x05\x45vent\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12\r\n\x05value\x18\x03 \x01(\t\x12\x10\n\x08sequence\x18\x04 \x01(\x04\x12(\n\x04time\x18\x05 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x11\n\tconflated\x18\x06 \x01(\r\x12\x0b\n\x03gap\x18\x07 \x01(\x08\x12\x0f\n\x07removed\x18\x08 \x01(\x08\x12\x11\n\x04\x64\x61ta\x18\t \x01(\x0cH\x00\x88\x01\x01\x42\x07\n\x05_data\"\\\n\x0eListenResponse\x12)\n\x06\x65vents\x18\x01 \x03(\x0b\x32\x19.propertyservice.v1.Event\x12\x0c\n\x04sync\x18\x02 \x01(\x08\x12\x11\n\theartbeat\x18\x03 \x01(\x08\"\'\n\x06Status\x12\x0c\n\x04\x63ode\x18\x01 \x01(\x05\x12\x0f\n\x07message\x18\x02 \x01(\t\"\x14\n\x06\x43\x61ncel\x12\n\n\x02id\x18\x01 \x01(\x04\"\xde\x01\n\x07Request\x12\n\n\x02id\x18\x01 \x01(\x04\x12-\n\x03get\x18\x02 \x01(\x0b\x32\x1e.propertyservice.v1.GetRequestH\x00\x12-\n\x03set\x18\x03 \x01(\x0b\x32\x1e.propertyservice.v1.SetRequestH\x00\x12\x33\n\x06listen\x18\x04 \x01(\x0b\x32!.propertyservice.v1.ListenRequestH\x00\x12,\n\x06\x63\x61ncel\x18\x05 \x01(\x0b\x32\x1a.propertyservice.v1.CancelH\x00\x42\x06\n\x04\x63\x61ll\"\xdf\x01\n\x05Reply\x12\n\n\x02id\x18\x01 \x01(\x04\x12*\n\x06status\x18\x02 \x01(\x0b\x32\x1a.propertyservice.v1.Status\x12.\n\x03get\x18\x03 \x01(\x0b\x32\x1f.propertyservice.v1.GetResponseH\x00\x12.\n\x03set\x18\x04 \x01(\x0b\x32\x1f.propertyservice.v1.SetResponseH\x00\x12\x34\n\x06listen\x18\x05 \x01(\x0b\x32\".propertyservice.v1.ListenResponseH\x00\x42\x08\n\x06result\"?\n\x0eSessionRequest\x12-\n\x08requests\x18\x01 \x03(\x0b\x32\x1b.propertyservice.v1.Request\"=\n\x0fSessionResponse\x12*\n\x07replies\x18\x01 \x03(\x0b\x32\x19.propertyservice.v1.Reply\"\"\n\x0f\x44\x65scribeRequest\x12\x0f\n\x07service\x18\x01 \x01(\t\"c\n\x10\x44\x65scribeResponse\x12\x0c\n\x04type\x18\x01 \x01(\t\x12\x34\n\nproperties\x18\x02 \x03(\x0b\x32 .propertyservice.v1.PropertyInfo\x12\x0b\n\x03\x64oc\x18\x03 \x01(\t\"\xf2\x02\n\x0cPropertyInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04type\x18\x02 \x01(\t\x12*\n\x06\x61\x63\x63\x65ss\x18\x03 \x01(\x0e\x32\x1a.propertyservice.v1.Access\x12\x0e\n\x06length\x18\x04 \x01(\r\x12\x0c\n\x04unit\x18\x05 \x01(\t\x12\x14\n\x07minimum\x18\x06 \x01(\x01H\x00\x88\x01\x01\x12\x14\n\x07maximum\x18\x07 \x01(\x01H\x01\x88\x01\x01\x12\x0f\n\x07\x63hoices\x18\x08 \x03(\t\x12\x0b\n\x03\x64oc\x18\t \x01(\t\x12\x0b\n\x03gui\x18\n \x01(\t\x12\x30\n\x05value\x18\x0b \x01(\x0b\x32!.propertyservice.v1.ParameterInfo\x12\x35\n\nparameters\x18\x0c \x03(\x0b\x32!.propertyservice.v1.ParameterInfo\x12\x12\n\nmedia_type\x18\r \x01(\t\x12\x10\n\x08max_size\x18\x0e \x01(\x04\x42\n\n\x08_minimumB\n\n\x08_maximum\"[\n\rParameterInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04type\x18\x02 \x01(\t\x12\x10\n\x08required\x18\x03 \x01(\x08\x12\x0f\n\x07\x64\x65\x66\x61ult\x18\x04 \x01(\t\x12\x0b\n\x03\x64oc\x18\x05 \x01(\t*{\n\x06\x41\x63\x63\x65ss\x12\x12\n\x0e\x41\x43\x43\x45SS_UNKNOWN\x10\x00\x12\x0f\n\x0b\x41\x43\x43\x45SS_READ\x10\x01\x12\x10\n\x0c\x41\x43\x43\x45SS_WRITE\x10\x02\x12\x15\n\x11\x41\x43\x43\x45SS_READ_WRITE\x10\x03\x12\x11\n\rACCESS_ACTION\x10\x04\x12\x10\n\x0c\x41\x43\x43\x45SS_QUERY\x10\x05\x32\xa3\x03\n\x0fPropertyService\x12\x46\n\x03Get\x12\x1e.propertyservice.v1.GetRequest\x1a\x1f.propertyservice.v1.GetResponse\x12\x46\n\x03Set\x12\x1e.propertyservice.v1.SetRequest\x1a\x1f.propertyservice.v1.SetResponse\x12Q\n\x06Listen\x12!.propertyservice.v1.ListenRequest\x1a\".propertyservice.v1.ListenResponse0\x01\x12V\n\x07Session\x12\".propertyservice.v1.SessionRequest\x1a#.propertyservice.v1.SessionResponse(\x01\x30\x01\x12U\n\x08\x44\x65scribe\x12#.propertyservice.v1.DescribeRequest\x1a$.propertyservice.v1.DescribeResponseb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n)propertyservice/v1/property_service.proto\x12\x12propertyservice.v1\x1a\x1egoogle/protobuf/duration.proto\x1a\x1fgoogle/protobuf/timestamp.proto\"\xa8\x01\n\x0bPropertyRef\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12\x43\n\nparameters\x18\x03 \x03(\x0b\x32/.propertyservice.v1.PropertyRef.ParametersEntry\x1a\x31\n\x0fParametersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\t:\x02\x38\x01\"\xd5\x01\n\nGetRequest\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12\x42\n\nparameters\x18\x03 \x03(\x0b\x32..propertyservice.v1.GetRequest.ParametersEntry\x12-\n\x04more\x18\x04 \x03(\x0b\x32\x1f.propertyservice.v1.PropertyRef\x1a\x31\n\x0fParametersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\t:\x02\x38\x01\"\x93\x01\n\x0bGetResponse\x12\r\n\x05value\x18\x01 \x01(\t\x12/\n\x04more\x18\x02 \x03(\x0b\x32!.propertyservice.v1.PropertyValue\x12\x11\n\x04\x64\x61ta\x18\x03 \x01(\x0cH\x00\x88\x01\x01\x12(\n\x04time\x18\x04 \x01(\x0b\x32\x1a.google.protobuf.TimestampB\x07\n\x05_data\"\x87\x01\n\rPropertyValue\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12\r\n\x05value\x18\x03 \x01(\t\x12\x11\n\x04\x64\x61ta\x18\x04 \x01(\x0cH\x00\x88\x01\x01\x12(\n\x04time\x18\x05 \x01(\x0b\x32\x1a.google.protobuf.TimestampB\x07\n\x05_data\"\xd1\x01\n\nSetRequest\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12\x42\n\nparameters\x18\x03 \x03(\x0b\x32..propertyservice.v1.SetRequest.ParametersEntry\x12\r\n\x05value\x18\x04 \x01(\t\x12\x11\n\x04\x64\x61ta\x18\x05 \x01(\x0cH\x00\x88\x01\x01\x1a\x31\n\x0fParametersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\t:\x02\x38\x01\x42\x07\n\x05_data\"8\n\x0bSetResponse\x12\r\n\x05value\x18\x01 \x01(\t\x12\x11\n\x04\x64\x61ta\x18\x02 \x01(\x0cH\x00\x88\x01\x01\x42\x07\n\x05_data\"\xd4\x01\n\rListenOptions\x12\x14\n\x0cupdates_only\x18\x01 \x01(\x08\x12/\n\x0cmin_interval\x18\x02 \x01(\x0b\x32\x19.google.protobuf.Duration\x12\x32\n\x0fsample_interval\x18\x03 \x01(\x0b\x32\x19.google.protobuf.Duration\x12\x35\n\x12heartbeat_interval\x18\x04 \x01(\x0b\x32\x19.google.protobuf.Duration\x12\x11\n\tmax_batch\x18\x05 \x01(\r\"\x8f\x02\n\rListenRequest\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12\x45\n\nparameters\x18\x03 \x03(\x0b\x32\x31.propertyservice.v1.ListenRequest.ParametersEntry\x12-\n\x04more\x18\x04 \x03(\x0b\x32\x1f.propertyservice.v1.PropertyRef\x12\x32\n\x07options\x18\x05 \x01(\x0b\x32!.propertyservice.v1.ListenOptions\x1a\x31\n\x0fParametersEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\t:\x02\x38\x01\"\xc2\x01\n\x05\x45vent\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12\r\n\x05value\x18\x03 \x01(\t\x12\x10\n\x08sequence\x18\x04 \x01(\x04\x12(\n\x04time\x18\x05 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x11\n\tconflated\x18\x06 \x01(\r\x12\x0b\n\x03gap\x18\x07 \x01(\x08\x12\x0f\n\x07removed\x18\x08 \x01(\x08\x12\x11\n\x04\x64\x61ta\x18\t \x01(\x0cH\x00\x88\x01\x01\x42\x07\n\x05_data\"\\\n\x0eListenResponse\x12)\n\x06\x65vents\x18\x01 \x03(\x0b\x32\x19.propertyservice.v1.Event\x12\x0c\n\x04sync\x18\x02 \x01(\x08\x12\x11\n\theartbeat\x18\x03 \x01(\x08\"\'\n\x06Status\x12\x0c\n\x04\x63ode\x18\x01 \x01(\x05\x12\x0f\n\x07message\x18\x02 \x01(\t\"\x14\n\x06\x43\x61ncel\x12\n\n\x02id\x18\x01 \x01(\x04\"\xde\x01\n\x07Request\x12\n\n\x02id\x18\x01 \x01(\x04\x12-\n\x03get\x18\x02 \x01(\x0b\x32\x1e.propertyservice.v1.GetRequestH\x00\x12-\n\x03set\x18\x03 \x01(\x0b\x32\x1e.propertyservice.v1.SetRequestH\x00\x12\x33\n\x06listen\x18\x04 \x01(\x0b\x32!.propertyservice.v1.ListenRequestH\x00\x12,\n\x06\x63\x61ncel\x18\x05 \x01(\x0b\x32\x1a.propertyservice.v1.CancelH\x00\x42\x06\n\x04\x63\x61ll\"\xdf\x01\n\x05Reply\x12\n\n\x02id\x18\x01 \x01(\x04\x12*\n\x06status\x18\x02 \x01(\x0b\x32\x1a.propertyservice.v1.Status\x12.\n\x03get\x18\x03 \x01(\x0b\x32\x1f.propertyservice.v1.GetResponseH\x00\x12.\n\x03set\x18\x04 \x01(\x0b\x32\x1f.propertyservice.v1.SetResponseH\x00\x12\x34\n\x06listen\x18\x05 \x01(\x0b\x32\".propertyservice.v1.ListenResponseH\x00\x42\x08\n\x06result\"?\n\x0eSessionRequest\x12-\n\x08requests\x18\x01 \x03(\x0b\x32\x1b.propertyservice.v1.Request\"=\n\x0fSessionResponse\x12*\n\x07replies\x18\x01 \x03(\x0b\x32\x19.propertyservice.v1.Reply\"\"\n\x0f\x44\x65scribeRequest\x12\x0f\n\x07service\x18\x01 \x01(\t\"c\n\x10\x44\x65scribeResponse\x12\x0c\n\x04type\x18\x01 \x01(\t\x12\x34\n\nproperties\x18\x02 \x03(\x0b\x32 .propertyservice.v1.PropertyInfo\x12\x0b\n\x03\x64oc\x18\x03 \x01(\t\"\xf2\x02\n\x0cPropertyInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04type\x18\x02 \x01(\t\x12*\n\x06\x61\x63\x63\x65ss\x18\x03 \x01(\x0e\x32\x1a.propertyservice.v1.Access\x12\x0e\n\x06length\x18\x04 \x01(\r\x12\x0c\n\x04unit\x18\x05 \x01(\t\x12\x14\n\x07minimum\x18\x06 \x01(\x01H\x00\x88\x01\x01\x12\x14\n\x07maximum\x18\x07 \x01(\x01H\x01\x88\x01\x01\x12\x0f\n\x07\x63hoices\x18\x08 \x03(\t\x12\x0b\n\x03\x64oc\x18\t \x01(\t\x12\x0b\n\x03gui\x18\n \x01(\t\x12\x30\n\x05value\x18\x0b \x01(\x0b\x32!.propertyservice.v1.ParameterInfo\x12\x35\n\nparameters\x18\x0c \x03(\x0b\x32!.propertyservice.v1.ParameterInfo\x12\x12\n\nmedia_type\x18\r \x01(\t\x12\x10\n\x08max_size\x18\x0e \x01(\x04\x42\n\n\x08_minimumB\n\n\x08_maximum\"[\n\rParameterInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04type\x18\x02 \x01(\t\x12\x10\n\x08required\x18\x03 \x01(\x08\x12\x0f\n\x07\x64\x65\x66\x61ult\x18\x04 \x01(\t\x12\x0b\n\x03\x64oc\x18\x05 \x01(\t\"\x98\x01\n\x0eHistoryRequest\x12\x0f\n\x07service\x18\x01 \x01(\t\x12\x10\n\x08property\x18\x02 \x01(\t\x12)\n\x05since\x18\x03 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12)\n\x05until\x18\x04 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\r\n\x05limit\x18\x05 \x01(\r\"O\n\x0fHistoryResponse\x12)\n\x06\x65vents\x18\x01 \x03(\x0b\x32\x19.propertyservice.v1.Event\x12\x11\n\ttruncated\x18\x02 \x01(\x08*{\n\x06\x41\x63\x63\x65ss\x12\x12\n\x0e\x41\x43\x43\x45SS_UNKNOWN\x10\x00\x12\x0f\n\x0b\x41\x43\x43\x45SS_READ\x10\x01\x12\x10\n\x0c\x41\x43\x43\x45SS_WRITE\x10\x02\x12\x15\n\x11\x41\x43\x43\x45SS_READ_WRITE\x10\x03\x12\x11\n\rACCESS_ACTION\x10\x04\x12\x10\n\x0c\x41\x43\x43\x45SS_QUERY\x10\x05\x32\xf7\x03\n\x0fPropertyService\x12\x46\n\x03Get\x12\x1e.propertyservice.v1.GetRequest\x1a\x1f.propertyservice.v1.GetResponse\x12\x46\n\x03Set\x12\x1e.propertyservice.v1.SetRequest\x1a\x1f.propertyservice.v1.SetResponse\x12Q\n\x06Listen\x12!.propertyservice.v1.ListenRequest\x1a\".propertyservice.v1.ListenResponse0\x01\x12V\n\x07Session\x12\".propertyservice.v1.SessionRequest\x1a#.propertyservice.v1.SessionResponse(\x01\x30\x01\x12U\n\x08\x44\x65scribe\x12#.propertyservice.v1.DescribeRequest\x1a$.propertyservice.v1.DescribeResponse\x12R\n\x07History\x12\".propertyservice.v1.HistoryRequest\x1a#.propertyservice.v1.HistoryResponseb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -41,8 +41,8 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_SETREQUEST_PARAMETERSENTRY']._serialized_options = b'8\001'
   _globals['_LISTENREQUEST_PARAMETERSENTRY']._loaded_options = None
   _globals['_LISTENREQUEST_PARAMETERSENTRY']._serialized_options = b'8\001'
-  _globals['_ACCESS']._serialized_start=3014
-  _globals['_ACCESS']._serialized_end=3137
+  _globals['_ACCESS']._serialized_start=3336
+  _globals['_ACCESS']._serialized_end=3459
   _globals['_PROPERTYREF']._serialized_start=131
   _globals['_PROPERTYREF']._serialized_end=299
   _globals['_PROPERTYREF_PARAMETERSENTRY']._serialized_start=250
@@ -51,46 +51,50 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_GETREQUEST']._serialized_end=515
   _globals['_GETREQUEST_PARAMETERSENTRY']._serialized_start=250
   _globals['_GETREQUEST_PARAMETERSENTRY']._serialized_end=299
-  _globals['_GETRESPONSE']._serialized_start=517
-  _globals['_GETRESPONSE']._serialized_end=622
-  _globals['_PROPERTYVALUE']._serialized_start=624
-  _globals['_PROPERTYVALUE']._serialized_end=717
-  _globals['_SETREQUEST']._serialized_start=720
-  _globals['_SETREQUEST']._serialized_end=929
+  _globals['_GETRESPONSE']._serialized_start=518
+  _globals['_GETRESPONSE']._serialized_end=665
+  _globals['_PROPERTYVALUE']._serialized_start=668
+  _globals['_PROPERTYVALUE']._serialized_end=803
+  _globals['_SETREQUEST']._serialized_start=806
+  _globals['_SETREQUEST']._serialized_end=1015
   _globals['_SETREQUEST_PARAMETERSENTRY']._serialized_start=250
   _globals['_SETREQUEST_PARAMETERSENTRY']._serialized_end=299
-  _globals['_SETRESPONSE']._serialized_start=931
-  _globals['_SETRESPONSE']._serialized_end=987
-  _globals['_LISTENOPTIONS']._serialized_start=990
-  _globals['_LISTENOPTIONS']._serialized_end=1202
-  _globals['_LISTENREQUEST']._serialized_start=1205
-  _globals['_LISTENREQUEST']._serialized_end=1476
+  _globals['_SETRESPONSE']._serialized_start=1017
+  _globals['_SETRESPONSE']._serialized_end=1073
+  _globals['_LISTENOPTIONS']._serialized_start=1076
+  _globals['_LISTENOPTIONS']._serialized_end=1288
+  _globals['_LISTENREQUEST']._serialized_start=1291
+  _globals['_LISTENREQUEST']._serialized_end=1562
   _globals['_LISTENREQUEST_PARAMETERSENTRY']._serialized_start=250
   _globals['_LISTENREQUEST_PARAMETERSENTRY']._serialized_end=299
-  _globals['_EVENT']._serialized_start=1479
-  _globals['_EVENT']._serialized_end=1673
-  _globals['_LISTENRESPONSE']._serialized_start=1675
-  _globals['_LISTENRESPONSE']._serialized_end=1767
-  _globals['_STATUS']._serialized_start=1769
-  _globals['_STATUS']._serialized_end=1808
-  _globals['_CANCEL']._serialized_start=1810
-  _globals['_CANCEL']._serialized_end=1830
-  _globals['_REQUEST']._serialized_start=1833
-  _globals['_REQUEST']._serialized_end=2055
-  _globals['_REPLY']._serialized_start=2058
-  _globals['_REPLY']._serialized_end=2281
-  _globals['_SESSIONREQUEST']._serialized_start=2283
-  _globals['_SESSIONREQUEST']._serialized_end=2346
-  _globals['_SESSIONRESPONSE']._serialized_start=2348
-  _globals['_SESSIONRESPONSE']._serialized_end=2409
-  _globals['_DESCRIBEREQUEST']._serialized_start=2411
-  _globals['_DESCRIBEREQUEST']._serialized_end=2445
-  _globals['_DESCRIBERESPONSE']._serialized_start=2447
-  _globals['_DESCRIBERESPONSE']._serialized_end=2546
-  _globals['_PROPERTYINFO']._serialized_start=2549
-  _globals['_PROPERTYINFO']._serialized_end=2919
-  _globals['_PARAMETERINFO']._serialized_start=2921
-  _globals['_PARAMETERINFO']._serialized_end=3012
-  _globals['_PROPERTYSERVICE']._serialized_start=3140
-  _globals['_PROPERTYSERVICE']._serialized_end=3559
+  _globals['_EVENT']._serialized_start=1565
+  _globals['_EVENT']._serialized_end=1759
+  _globals['_LISTENRESPONSE']._serialized_start=1761
+  _globals['_LISTENRESPONSE']._serialized_end=1853
+  _globals['_STATUS']._serialized_start=1855
+  _globals['_STATUS']._serialized_end=1894
+  _globals['_CANCEL']._serialized_start=1896
+  _globals['_CANCEL']._serialized_end=1916
+  _globals['_REQUEST']._serialized_start=1919
+  _globals['_REQUEST']._serialized_end=2141
+  _globals['_REPLY']._serialized_start=2144
+  _globals['_REPLY']._serialized_end=2367
+  _globals['_SESSIONREQUEST']._serialized_start=2369
+  _globals['_SESSIONREQUEST']._serialized_end=2432
+  _globals['_SESSIONRESPONSE']._serialized_start=2434
+  _globals['_SESSIONRESPONSE']._serialized_end=2495
+  _globals['_DESCRIBEREQUEST']._serialized_start=2497
+  _globals['_DESCRIBEREQUEST']._serialized_end=2531
+  _globals['_DESCRIBERESPONSE']._serialized_start=2533
+  _globals['_DESCRIBERESPONSE']._serialized_end=2632
+  _globals['_PROPERTYINFO']._serialized_start=2635
+  _globals['_PROPERTYINFO']._serialized_end=3005
+  _globals['_PARAMETERINFO']._serialized_start=3007
+  _globals['_PARAMETERINFO']._serialized_end=3098
+  _globals['_HISTORYREQUEST']._serialized_start=3101
+  _globals['_HISTORYREQUEST']._serialized_end=3253
+  _globals['_HISTORYRESPONSE']._serialized_start=3255
+  _globals['_HISTORYRESPONSE']._serialized_end=3334
+  _globals['_PROPERTYSERVICE']._serialized_start=3462
+  _globals['_PROPERTYSERVICE']._serialized_end=3965
 # @@protoc_insertion_point(module_scope)

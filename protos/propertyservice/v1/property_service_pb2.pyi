@@ -63,26 +63,30 @@ class GetRequest(_message.Message):
     def __init__(self, service: _Optional[str] = ..., property: _Optional[str] = ..., parameters: _Optional[_Mapping[str, str]] = ..., more: _Optional[_Iterable[_Union[PropertyRef, _Mapping]]] = ...) -> None: ...
 
 class GetResponse(_message.Message):
-    __slots__ = ("value", "more", "data")
+    __slots__ = ("value", "more", "data", "time")
     VALUE_FIELD_NUMBER: _ClassVar[int]
     MORE_FIELD_NUMBER: _ClassVar[int]
     DATA_FIELD_NUMBER: _ClassVar[int]
+    TIME_FIELD_NUMBER: _ClassVar[int]
     value: str
     more: _containers.RepeatedCompositeFieldContainer[PropertyValue]
     data: bytes
-    def __init__(self, value: _Optional[str] = ..., more: _Optional[_Iterable[_Union[PropertyValue, _Mapping]]] = ..., data: _Optional[bytes] = ...) -> None: ...
+    time: _timestamp_pb2.Timestamp
+    def __init__(self, value: _Optional[str] = ..., more: _Optional[_Iterable[_Union[PropertyValue, _Mapping]]] = ..., data: _Optional[bytes] = ..., time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ...) -> None: ...
 
 class PropertyValue(_message.Message):
-    __slots__ = ("service", "property", "value", "data")
+    __slots__ = ("service", "property", "value", "data", "time")
     SERVICE_FIELD_NUMBER: _ClassVar[int]
     PROPERTY_FIELD_NUMBER: _ClassVar[int]
     VALUE_FIELD_NUMBER: _ClassVar[int]
     DATA_FIELD_NUMBER: _ClassVar[int]
+    TIME_FIELD_NUMBER: _ClassVar[int]
     service: str
     property: str
     value: str
     data: bytes
-    def __init__(self, service: _Optional[str] = ..., property: _Optional[str] = ..., value: _Optional[str] = ..., data: _Optional[bytes] = ...) -> None: ...
+    time: _timestamp_pb2.Timestamp
+    def __init__(self, service: _Optional[str] = ..., property: _Optional[str] = ..., value: _Optional[str] = ..., data: _Optional[bytes] = ..., time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ...) -> None: ...
 
 class SetRequest(_message.Message):
     __slots__ = ("service", "property", "parameters", "value", "data")
@@ -295,3 +299,25 @@ class ParameterInfo(_message.Message):
     default: str
     doc: str
     def __init__(self, name: _Optional[str] = ..., type: _Optional[str] = ..., required: _Optional[bool] = ..., default: _Optional[str] = ..., doc: _Optional[str] = ...) -> None: ...
+
+class HistoryRequest(_message.Message):
+    __slots__ = ("service", "property", "since", "until", "limit")
+    SERVICE_FIELD_NUMBER: _ClassVar[int]
+    PROPERTY_FIELD_NUMBER: _ClassVar[int]
+    SINCE_FIELD_NUMBER: _ClassVar[int]
+    UNTIL_FIELD_NUMBER: _ClassVar[int]
+    LIMIT_FIELD_NUMBER: _ClassVar[int]
+    service: str
+    property: str
+    since: _timestamp_pb2.Timestamp
+    until: _timestamp_pb2.Timestamp
+    limit: int
+    def __init__(self, service: _Optional[str] = ..., property: _Optional[str] = ..., since: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., until: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., limit: _Optional[int] = ...) -> None: ...
+
+class HistoryResponse(_message.Message):
+    __slots__ = ("events", "truncated")
+    EVENTS_FIELD_NUMBER: _ClassVar[int]
+    TRUNCATED_FIELD_NUMBER: _ClassVar[int]
+    events: _containers.RepeatedCompositeFieldContainer[Event]
+    truncated: bool
+    def __init__(self, events: _Optional[_Iterable[_Union[Event, _Mapping]]] = ..., truncated: _Optional[bool] = ...) -> None: ...

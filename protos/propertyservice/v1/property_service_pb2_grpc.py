@@ -60,6 +60,11 @@ class PropertyServiceStub:
                 request_serializer=propertyservice_dot_v1_dot_property__service__pb2.DescribeRequest.SerializeToString,
                 response_deserializer=propertyservice_dot_v1_dot_property__service__pb2.DescribeResponse.FromString,
                 _registered_method=True)
+        self.History = channel.unary_unary(
+                '/propertyservice.v1.PropertyService/History',
+                request_serializer=propertyservice_dot_v1_dot_property__service__pb2.HistoryRequest.SerializeToString,
+                response_deserializer=propertyservice_dot_v1_dot_property__service__pb2.HistoryResponse.FromString,
+                _registered_method=True)
 
 
 class PropertyServiceServicer:
@@ -106,6 +111,15 @@ class PropertyServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def History(self, request, context):
+        """History returns the values the gateway kept of the matched properties
+        between `since` and `until`, oldest first: from its in-memory history
+        (the `[history]` selectors) and, further back, from its recordings.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_PropertyServiceServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -133,6 +147,11 @@ def add_PropertyServiceServicer_to_server(servicer, server):
                     servicer.Describe,
                     request_deserializer=propertyservice_dot_v1_dot_property__service__pb2.DescribeRequest.FromString,
                     response_serializer=propertyservice_dot_v1_dot_property__service__pb2.DescribeResponse.SerializeToString,
+            ),
+            'History': grpc.unary_unary_rpc_method_handler(
+                    servicer.History,
+                    request_deserializer=propertyservice_dot_v1_dot_property__service__pb2.HistoryRequest.FromString,
+                    response_serializer=propertyservice_dot_v1_dot_property__service__pb2.HistoryResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -271,6 +290,33 @@ class PropertyService:
             '/propertyservice.v1.PropertyService/Describe',
             propertyservice_dot_v1_dot_property__service__pb2.DescribeRequest.SerializeToString,
             propertyservice_dot_v1_dot_property__service__pb2.DescribeResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def History(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/propertyservice.v1.PropertyService/History',
+            propertyservice_dot_v1_dot_property__service__pb2.HistoryRequest.SerializeToString,
+            propertyservice_dot_v1_dot_property__service__pb2.HistoryResponse.FromString,
             options,
             channel_credentials,
             insecure,
