@@ -35,7 +35,7 @@ from gateway.connections import share_open_files
 from gateway.devices import SupervisedDevice, start_supervised
 from gateway.dormant import DormantBackend
 from gateway.engine.guard import Guard
-from gateway.engine.history import HistoryKeeper, recorded_events
+from gateway.engine.history import HistoryKeeper
 from gateway.engine.licensing import current_caller, may_license, may_provide
 from gateway.engine.listen import ListenHub
 from gateway.engine.listen.follow import HubFollow
@@ -52,6 +52,7 @@ from gateway.ports import PortInUse, check_port_free, port_holder
 from gateway.stores import open_store
 from gateway.tls import LineCredentials, ServerCredentials
 from services.apps.catalog import build, needs_directory
+from services.apps.recorder.reading import events_between
 from services.apps.registry import DEFAULT_REGISTER_TIMEOUT, AllowList, Licence, Registry, RegistryService
 from services.apps.registry.store import SharedStore
 from services.apps.registry.table import GONE
@@ -126,7 +127,7 @@ class Gateway:
         #: The kept changes of the ``[history]`` selectors; None when none are given.
         self.history: HistoryKeeper | None = None
         if self.config.history.selectors:
-            older = recorded_events(self.config.source) if self.config.history.recordings else None
+            older = events_between if self.config.history.recordings else None
             self.history = HistoryKeeper(self.hub, self.config.history, self.guard, older)
         self.servicer = PropertyServicer(self.router, self.hub, self.config, history=self.history)
         #: "host:port" of the HTTP front end (the real port when 0 was asked); "" when off.

@@ -26,7 +26,6 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import heapq
-import importlib
 import logging
 import time
 from collections import deque
@@ -35,7 +34,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from gateway.config import ConfigError, HistorySection
 from gateway.engine.events import Event, Selector, StreamOptions, events
 from gateway.engine.guard import Guard
 from gateway.engine.listen.follow import parse_selector
@@ -139,22 +137,26 @@ class HistoryReply:
     truncated: bool = False
 
 
-#: The module whose ``events_between`` reads the recordings (the recorder's).
-RECORDINGS_READER = "services.apps.recorder.reading"
+class HistorySettings(Protocol):
+    """What the keeper reads of its settings: ``[history]`` (``gateway.config.HistorySection``,
+    docs/recording.md, "History")."""
 
-
-def recorded_events(source: str) -> OlderEvents:
-    """The recorder's reading of its recordings, for ``[history] recordings``; a ConfigError
-    naming ``source`` (the config) when this gateway has no recorder to read them."""
-    try:
-        module = importlib.import_module(RECORDINGS_READER)
-    except ModuleNotFoundError:
-        raise ConfigError(
-            f"{source}: history.recordings: this gateway has no recorder to read recordings with"
-            f" ({RECORDINGS_READER}); leave recordings out to keep the history in memory only"
-        ) from None
-    reader: OlderEvents = module.events_between
-    return reader
+    @property
+    def selectors(self) -> Sequence[str]: ...
+    @property
+    def size(self) -> int: ...
+    @property
+    def binary(self) -> bool: ...
+    @property
+    def max_entries(self) -> int: ...
+    @property
+    def max_bytes(self) -> int: ...
+    @property
+    def default_limit(self) -> int: ...
+    @property
+    def max_limit(self) -> int: ...
+    @property
+    def recordings(self) -> str: ...
 
 
 class HistoryKeeper:
@@ -163,7 +165,7 @@ class HistoryKeeper:
     def __init__(
         self,
         hub: ListenHub,
-        settings: HistorySection,
+        settings: HistorySettings,
         guard: Guard | None = None,
         older: OlderEvents | None = None,
         clock: Callable[[], int] = time.time_ns,
