@@ -121,10 +121,10 @@ def _init(args: argparse.Namespace) -> int:
         ("server.pem, server.key", f"the gateway's certificate, for {', '.join(hosts)}"),
         *((f"{name}.pem, {name}.key", f"a client certificate, subject CN={name}") for name in clients),
     ]
-    width = max(len(files) for files, _ in rows)
+    width = max(len(names) for names, _ in rows)
     print(f"wrote in {folder}:")
-    for files, what in rows:
-        print(f"  {files.ljust(width)}  {what}")
+    for names, what in rows:
+        print(f"  {names.ljust(width)}  {what}")
     print("\nthe gateway's config file (docs/security.md):\n")
     print("[tls]")
     print(f'cert = "{server.cert}"')
