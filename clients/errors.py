@@ -190,8 +190,9 @@ _NO_CONNECTION = ("failed to connect to all addresses", "connection refused", "d
 
 # What grpc core says when a connection was accepted and then closed before any answer, or its TLS
 # handshake failed: a plaintext client on a TLS port sees "Socket closed", a client without the
-# certificate a mutual-TLS gateway requires the same or a handshake error. A refused connection
-# (nothing listening) is not TLS's doing and gets no hint.
+# certificate a mutual-TLS gateway requires the same or a handshake error. A gateway past its
+# connection bound closes a new connection the same way (docs/errors.md), so the hint is a
+# condition, not a verdict. A refused connection (nothing listening) is not TLS's doing: no hint.
 _TLS_SIGNS = ("socket closed", "handshake", "ssl", "wrong version number", "certificate")
 _NOT_TLS = ("connection refused",)
 
