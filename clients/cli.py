@@ -20,6 +20,8 @@ from collections.abc import Sequence
 from datetime import UTC, datetime, timedelta
 from typing import Any, TextIO
 
+import shtab
+
 from clients.aio import (
     DEFAULT_FAILOVER_LIMIT,
     DEFAULT_KEEPALIVE,
@@ -38,6 +40,7 @@ from clients.credentials import ENVIRONMENT, ClientCredentials
 from clients.errors import GatewayUnreachable, NotFound, PropertyServiceError
 from clients.values import Value, ValueFormatError
 from services.kernel.model import ParameterModel, PropertyModel
+from services.kernel.release import version_line
 
 __all__ = ["EXIT_FAILED", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_UNREACHABLE", "EXIT_USAGE", "main"]
 
@@ -46,6 +49,9 @@ EXIT_FAILED = 1
 EXIT_USAGE = 2
 EXIT_UNREACHABLE = 3
 EXIT_INTERRUPTED = 130
+
+#: The shells `psctl completion` writes a script for (shtab writes them from the argument parser).
+COMPLETION_SHELLS = ("bash", "zsh", "fish")
 
 #: Most Gets in flight at once when ``ls -l`` reads details.
 _LS_CONCURRENCY = 32
@@ -69,6 +75,7 @@ examples:
   psctl --json get scout1 location            machine-readable output
   psctl cluster --devices                     the gateways of a cluster and who owns each device
   psctl cluster drain gw1                     gw1 hands its devices over (undrain gw1; rebalance)
+  source <(psctl completion bash)             tab completion of commands and options (also zsh, fish)
 
 The gateway address comes from --target, else $PSCTL_TARGET, else 127.0.0.1:50051. Several
 addresses, comma-separated (-t gw1:50051,gw2:50051), or a gRPC name that stands for several
@@ -176,9 +183,11 @@ def _common_options() -> argparse.ArgumentParser:
     )
     for flag, metavar, text in security:
         variable = ENVIRONMENT[flag[2:]]
-        common.add_argument(
+        action = common.add_argument(
             flag, metavar=metavar, default=argparse.SUPPRESS, help=f"{text} (default: ${variable})"
         )
+        if metavar == "FILE":
+            action.complete = shtab.FILE  # type: ignore[attr-defined]  # shtab reads this attribute
     return common
 
 
@@ -233,6 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         parents=[common],
     )
+    parser.add_argument("--version", action="version", version=version_line("psctl"))
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     ls = commands.add_parser(
@@ -371,6 +381,14 @@ def build_parser() -> argparse.ArgumentParser:
     cluster.add_argument("--devices", action="store_true", help="also each device's owner and since when")
     cluster.add_argument("--watch", action="store_true", help="show the view again each time it changes")
     cluster.add_argument("--count", type=_count, metavar="N", help="with --watch: exit after N views")
+    completion = commands.add_parser(
+        "completion",
+        help="print a shell's tab-completion script for psctl",
+        description="Print a script that completes psctl's commands and options; load it with "
+        "`source <(psctl completion bash)` (zsh: the same; fish: `psctl completion fish | source`), "
+        "or put it where the shell loads completions from (docs/client.md).",
+    )
+    completion.add_argument("shell", choices=COMPLETION_SHELLS, help="the shell: bash, zsh or fish")
     return parser
 
 
@@ -804,6 +822,11 @@ async def _run(args: argparse.Namespace, target: str, call_timeout: float | None
         return await _COMMANDS[args.command](client, args, as_json)
 
 
+def completion_script(shell: str) -> str:
+    """The tab-completion script of psctl for ``shell`` (one of :data:`COMPLETION_SHELLS`)."""
+    return str(shtab.complete(build_parser(), shell=shell))
+
+
 def _error(message: str) -> None:
     print(f"error: {message}", file=sys.stderr, flush=True)
 
@@ -812,6 +835,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run ``psctl`` with ``argv`` (default: the process arguments); return the exit code."""
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
+    if args.command == "completion":
+        if extra:
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        print(completion_script(args.shell), end="")
+        return EXIT_OK
     if extra:
         # argparse gives a set's optional VALUE up once an option comes between it and the path
         # (`psctl set files blob -p name=a.txt hello`): it is still the value.

@@ -152,10 +152,20 @@ class Unavailable(PropertyServiceError, reports=errors.Unavailable):
 
 
 class GatewayUnreachable(Unavailable):
-    """No connection to the gateway itself could be made."""
+    """No connection to the gateway itself could be made.
+
+    ``hint`` says what to try when the failure looks like a TLS mismatch (:func:`tls_hint`); it is
+    added to ``str(err)`` after the message, so ``message`` stays grpc's reason alone.
+    """
 
     #: Every gateway address tried, in order, when a client with several gave up on all of them.
     tried: tuple[str, ...] = ()
+    #: What to try, when the reason suggests one ("" when it does not).
+    hint: str = ""
+
+    def __str__(self) -> str:
+        text = super().__str__()
+        return f"{text} ({self.hint})" if self.hint else text
 
 
 class DataLoss(PropertyServiceError, reports=errors.DataLoss):
@@ -178,6 +188,30 @@ assert set(_CLIENT_CLASS) >= set(errors.ERROR_CLASSES.values()), (
 _NO_CONNECTION = ("failed to connect to all addresses", "connection refused", "dns resolution failed")
 
 
+# What grpc core says when a connection was accepted and then closed before any answer, or its TLS
+# handshake failed: a plaintext client on a TLS port sees "Socket closed", a client without the
+# certificate a mutual-TLS gateway requires the same or a handshake error. A gateway past its
+# connection bound closes a new connection the same way (docs/errors.md), so the hint is a
+# condition, not a verdict. A refused connection (nothing listening) is not TLS's doing: no hint.
+_TLS_SIGNS = ("socket closed", "handshake", "ssl", "wrong version number", "certificate")
+_NOT_TLS = ("connection refused",)
+
+#: The hint a TLS-looking failure to reach the gateway carries (psctl's flags, the SDK's arguments).
+TLS_HINT = (
+    "if the gateway serves TLS, give --ca; with client certificates, --cert and --key;"
+    " in the SDK, ClientCredentials(ca=, cert=, key=)"
+)
+
+
+def tls_hint(reason: str) -> str:
+    """:data:`TLS_HINT` when ``reason`` (grpc's words for a failed connection) plausibly comes from
+    a TLS mismatch, else ""."""
+    lowered = reason.lower()
+    if any(sign in lowered for sign in _NOT_TLS):
+        return ""
+    return TLS_HINT if any(sign in lowered for sign in _TLS_SIGNS) else ""
+
+
 def error_for_code(
     code: grpc.StatusCode | int, message: str, service: str = "", property: str = ""
 ) -> PropertyServiceError:
@@ -197,5 +231,7 @@ def error_from_rpc(
     message = (details_fn() if callable(details_fn) else None) or str(err)
     if code == grpc.StatusCode.UNAVAILABLE and message.lower().startswith(_NO_CONNECTION):
         where = f" at {target}" if target else ""
-        return GatewayUnreachable(code, f"cannot reach the gateway{where} ({message})", service, property)
+        error = GatewayUnreachable(code, f"cannot reach the gateway{where} ({message})", service, property)
+        error.hint = tls_hint(message)
+        return error
     return error_for_code(code, message, service, property)

@@ -1,7 +1,8 @@
 """``psgateway``: run the Property Service gateway.
 
-Subcommands: ``serve`` and ``check-config`` (here), ``device`` (:mod:`gateway.device_cli`)
-and ``device-check`` (:mod:`gateway.device_check_cli`); each adds its parser and sets
+Subcommands: ``serve`` and ``check-config`` (here), ``device`` (:mod:`gateway.device_cli`),
+``device-check`` (:mod:`gateway.device_check_cli`), ``export-ros2`` (:mod:`gateway.export_cli`)
+and ``tls`` (:mod:`gateway.tls_cli`); each adds its parser and sets
 ``func`` (``args -> exit code``) with ``set_defaults``.
 """
 
@@ -17,10 +18,11 @@ from typing import Any
 
 # First among the gateway's imports: it sets GRPC_VERBOSITY before anything imports grpc.
 import gateway.grpc_core_logs  # noqa: F401
-from gateway import device_check_cli, device_cli, export_cli
+from gateway import device_check_cli, device_cli, export_cli, tls_cli
 from gateway.allocator import return_large_blocks
 from gateway.config import Config, ConfigError, default_config, load_config, load_config_partly
 from gateway.logs import LOG_FORMATS, setup_logging
+from services.kernel.release import version_line
 
 #: Exit code of a gateway that cannot start as configured: a config error or a port in use.
 EXIT_CONFIG = 2
@@ -48,6 +50,8 @@ examples:
                                               one JSON object a log line, with request ids
   psgateway check-config site.toml            check a config file and exit (0 = fine, 2 = errors)
   psgateway device-check tcp://10.0.0.7:7000  check a device against docs/device-spec.md (0 = conforms)
+  psgateway tls init certs --client operator  a CA, server and client certificates for TLS, and the
+                                              config lines and psctl flags that use them
 
 then, from another shell:
   grpcurl -plaintext 127.0.0.1:50051 list
@@ -113,11 +117,13 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=version_line("psgateway"))
     subparsers = parser.add_subparsers(title="commands", metavar="COMMAND")
     add_subcommand(subparsers)
     device_cli.add_parser(subparsers)
     device_check_cli.add_parser(subparsers)
     export_cli.add_parser(subparsers)
+    tls_cli.add_parser(subparsers)
     return parser
 
 
@@ -227,7 +233,7 @@ def _check_config(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``psgateway``; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help")):
+    if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help", "--version")):
         # `psgateway` alone, or with only serve's options, serves.
         argv.insert(0, "serve")
     args = build_parser().parse_args(argv)

@@ -15,7 +15,7 @@ from typing import Any
 
 import grpc
 
-from clients.errors import GatewayUnreachable
+from clients.errors import GatewayUnreachable, tls_hint
 
 __all__ = [
     "DEFAULT_FAILOVER_LIMIT",
@@ -100,6 +100,7 @@ def no_gateway_answered(
     reasons = "; ".join(f"{address}: {why}" for address, why in tried.items())
     error = GatewayUnreachable(None, f"no gateway answered{how} (tried {reasons})", service, prop)
     error.tried = tuple(tried)
+    error.hint = next(filter(None, (tls_hint(why) for why in tried.values())), "")
     return error
 
 
