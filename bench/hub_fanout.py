@@ -12,10 +12,10 @@ pays too. ``--profile`` prints where it goes (cProfile).
 ``--instructions`` counts instead of timing: the same process under ``valgrind --tool=callgrind``,
 its counters zeroed and dumped (``callgrind_control``) around each of three runs, after a garbage
 collection each (a collection that falls into one run and not the next would swing its count by
-3-5 %), less the count of an empty run (the ``callgrind_control`` calls). Unlike the gateway's
-figures of ``python -m bench.instructions``, whose rounds swing 2-5 % with where the collections
-fall, these repeat within 0.2 %: what settles a change of a few instructions per event in the
-engine's fan-out (``services.kernel.backend.tell_each``, ``ListenStream.topic_changed``).
+3-5 %), less the count of an empty run (the ``callgrind_control`` calls). The gateway's figures
+of ``python -m bench.instructions`` swing 2-5 % from round to round; these repeat within 0.2 %:
+what settles a change of a hundred instructions per event in the engine's fan-out
+(``services.kernel.backend.tell_each``, ``ListenStream.topic_changed``).
 """
 
 from __future__ import annotations
