@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from gateway.engine.listen.topics import Topic
+from gateway.engine.listen.topics import Topic, TopicChange
 from services.kernel.backend import Change, OnRaise, tell_each
 from tests.support.fake_backend import DictBackend
 
@@ -52,10 +52,11 @@ def test_a_listener_that_leaves_during_the_fan_out_does_not_disturb_it() -> None
 class _Sink:
     def __init__(self, broken: bool) -> None:
         self.broken = broken
-        self.heard: list[str] = []
+        self.heard: list[tuple[Topic, str]] = []
 
-    def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None:
-        self.heard.append(str(change.value))
+    def topic_changed(self, news: TopicChange) -> None:
+        topic, change, _ = news
+        self.heard.append((topic, str(change.value)))
         if self.broken:
             raise RuntimeError("sink bug")
 
@@ -69,6 +70,6 @@ def test_a_topic_sink_that_raises_keeps_hearing_the_topic_and_the_others_hear_it
     topic.sinks[good] = good.topic_changed
     topic.notify(Change("speed", "1"))
     topic.notify(Change("speed", "2"))
-    assert broken.heard == good.heard == ["1", "2"]
+    assert broken.heard == good.heard == [(topic, "1"), (topic, "2")]
     assert topic.value == "2"
     assert "a listener of scout1/speed failed; it keeps its place" in caplog.text

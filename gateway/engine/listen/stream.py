@@ -59,6 +59,7 @@ from gateway.engine.listen.topics import (
     REFUSED,
     UNREACHABLE,
     Topic,
+    TopicChange,
     TopicKey,
     Topics,
 )
@@ -178,7 +179,8 @@ class _Expansion:
         self.changed, self.gap = set(), False
         return names, gap
 
-    def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None:
+    def topic_changed(self, news: TopicChange) -> None:
+        change = news[1]
         if change.removed:  # the service left the router: the stream forgets the expansion
             return
         self.stream.list_changed(self, change.path, change.gap)
@@ -556,7 +558,7 @@ class ListenStream:
             return
         if announce and not topic.removed:  # else the backend's own removal is queued or sent already
             # Told as a change of the topic is, to this stream alone: it is gone for this stream.
-            self.topic_changed(topic, Change(topic.path, "", removed=True), time.time_ns())
+            self.topic_changed((topic, Change(topic.path, "", removed=True), time.time_ns()))
         del self._refs[topic]
         self._topics.unsubscribe(self, topic)
         if not announce:
@@ -666,12 +668,13 @@ class ListenStream:
 
     # -- receiving -------------------------------------------------------
 
-    def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None:
+    def topic_changed(self, news: TopicChange) -> None:
         """A change on a topic this stream shares (called by :meth:`Topic.notify`), queued.
 
         Every stream the change reaches queues the same :class:`SharedEvent`: the first one makes
         it and leaves it on the topic, the others find it there (the same time, the same value).
         """
+        topic, change, seen_ns = news
         if topic not in self._refs:
             return
         event = topic.event

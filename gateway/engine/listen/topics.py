@@ -60,10 +60,16 @@ NOTHING: frozenset[Code] = frozenset()
 PROPERTY_LIST = "*"
 
 
+#: What a topic tells each of its sinks of a change, in one object: the topic, the change, and when
+#: the gateway heard it (nanoseconds since the epoch). Made once per change; each sink is called
+#: with it alone (the fan-out's calls take one argument: :func:`services.kernel.backend.tell_each`).
+TopicChange = tuple["Topic", Change, int]
+
+
 class Sink(Protocol):
     """Who hears a topic's changes: a stream, or a stream's wildcard expansion."""
 
-    def topic_changed(self, topic: Topic, change: Change, seen_ns: int) -> None: ...
+    def topic_changed(self, news: TopicChange) -> None: ...
 
 
 class Topic:
@@ -93,8 +99,8 @@ class Topic:
         self.service, self.path, params = key
         self.params: Mapping[str, str] = dict(params) if params else NO_PARAMS
         self.backend = backend
-        #: Each sink and its ``topic_changed``, called with (this topic, the change, when it was seen).
-        self.sinks: dict[Sink, Callable[[Topic, Change, int], None]] = {}
+        #: Each sink and its ``topic_changed``, called with each change (:data:`TopicChange`).
+        self.sinks: dict[Sink, Callable[[TopicChange], None]] = {}
         self.subscription: Subscription | None = None
         self.value: Value = ""
         #: When the gateway heard ``value`` (ns since the epoch): the opening Listen's answer or
@@ -123,7 +129,7 @@ class Topic:
         self.heard = True
         self.stamp = now = time.time_ns()
         # A sink that raises keeps its place: its stream leaves the topic when it ends.
-        tell_each(self.sinks, self, change, now, what=self, on_raise=OnRaise.KEEP)
+        tell_each(self.sinks, (self, change, now), what=self, on_raise=OnRaise.KEEP)
 
     def __str__(self) -> str:
         return f"{self.service}/{self.path}"
