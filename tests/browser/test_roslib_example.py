@@ -15,9 +15,6 @@ gRPC, are the checks; a stop within STOP_WITHIN is the page's doing, because eac
 
 from __future__ import annotations
 
-import hashlib
-import shutil
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -37,17 +34,14 @@ from console_support import (
     xy,
 )
 from support.gateway_process import start_gateway
+from support.npm import NPM_TIMEOUT, npm_ci
 
 from clients.sync import Client
 
-#: `npm ci` of the page's one dependency may take a while the first time; then it is stamped.
-NPM_TIMEOUT = 300.0
 pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.timeout(NPM_TIMEOUT + 120)]
 
 PAGE_DIR = ROOT / "gateway" / "console" / "examples" / "roslib"
 BUNDLE = PAGE_DIR / "node_modules" / "roslib" / "build" / "roslib.min.js"
-# Written after a successful `npm ci`: the hash of the lock file it installed.
-STAMP = PAGE_DIR / "node_modules" / ".installed-lock-sha256"
 #: Seconds a velocity command holds once the test raised the robot's velocity_timeout.
 TELEOP_HOLD = 30.0
 ROBOTS = ("scout1", "rover1", "rover2")
@@ -74,25 +68,7 @@ options = { start = [4.0, 0.0] }
 @pytest.fixture(scope="module")
 def roslib_bundle() -> Path:
     """roslibjs's browser bundle, installed beside the page by `npm ci` (once per lock file)."""
-    npm = shutil.which("npm")
-    if npm is None:
-        pytest.skip("the roslibjs example needs npm to install roslib (Debian packages nodejs, npm)")
-    lock = hashlib.sha256((PAGE_DIR / "package-lock.json").read_bytes()).hexdigest()
-    if not (STAMP.is_file() and STAMP.read_text().strip() == lock and BUNDLE.is_file()):
-        try:
-            done = subprocess.run(
-                [npm, "ci", "--no-audit", "--no-fund"],
-                cwd=PAGE_DIR,
-                capture_output=True,
-                text=True,
-                timeout=NPM_TIMEOUT,
-                check=False,
-            )
-        except subprocess.TimeoutExpired:
-            pytest.skip(f"`npm ci` in {PAGE_DIR} took longer than {NPM_TIMEOUT:.0f} s: roslib not installed")
-        if done.returncode != 0:
-            pytest.skip(f"`npm ci` in {PAGE_DIR} failed, roslib not installed:\n{done.stderr[-2000:]}")
-        STAMP.write_text(lock + "\n")
+    npm_ci(PAGE_DIR, "the roslibjs example page's tests", installed=BUNDLE)
     assert BUNDLE.is_file(), f"npm installed roslib without its browser bundle {BUNDLE}"
     return BUNDLE
 

@@ -7,19 +7,16 @@ and sees buf refuse it, so that a passing lint means the rules ran.
 
 from __future__ import annotations
 
-import hashlib
 import shutil
 import subprocess
 from pathlib import Path
 
 import pytest
+from support.npm import NPM_TIMEOUT, npm_ci
 
 ROOT = Path(__file__).resolve().parents[2]
 BUF_DIR = ROOT / "tests" / "interop" / "buf"
 BUF = BUF_DIR / "node_modules" / ".bin" / "buf"
-# Written after a successful `npm ci`: the hash of the lock file it installed.
-STAMP = BUF_DIR / "node_modules" / ".installed-lock-sha256"
-NPM_TIMEOUT = 300.0
 BUF_TIMEOUT = 60.0
 PROTO = Path("propertyservice") / "v1" / "property_service.proto"
 
@@ -29,25 +26,7 @@ pytestmark = pytest.mark.timeout(NPM_TIMEOUT + 60)
 @pytest.fixture(scope="session")
 def buf() -> Path:
     """The buf binary, installed by `npm ci` in tests/interop/buf (once per lock file)."""
-    npm = shutil.which("npm")
-    if npm is None:
-        pytest.skip("buf lint needs npm: tests/run.sh installs it with apt-get (Debian packages nodejs, npm)")
-    lock = hashlib.sha256((BUF_DIR / "package-lock.json").read_bytes()).hexdigest()
-    if not (STAMP.is_file() and STAMP.read_text().strip() == lock):
-        try:
-            done = subprocess.run(
-                [npm, "ci", "--no-audit", "--no-fund"],
-                cwd=BUF_DIR,
-                capture_output=True,
-                text=True,
-                timeout=NPM_TIMEOUT,
-                check=False,
-            )
-        except subprocess.TimeoutExpired:
-            pytest.fail(f"`npm ci` in {BUF_DIR} took longer than {NPM_TIMEOUT:.0f} s", pytrace=False)
-        if done.returncode != 0:
-            pytest.fail(f"`npm ci` in {BUF_DIR} failed:\n{done.stdout}\n{done.stderr}", pytrace=False)
-        STAMP.write_text(lock + "\n")
+    npm_ci(BUF_DIR, "the buf lint tests", installed=BUF)
     return BUF
 
 

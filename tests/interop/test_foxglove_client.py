@@ -10,9 +10,7 @@ file; without npm or its registry the tests skip, saying so.
 
 from __future__ import annotations
 
-import hashlib
 import json
-import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -21,12 +19,11 @@ from typing import Any
 import jwt
 import pytest
 from support.gateway_process import GatewayProcess, StartGateway
+from support.npm import NPM_TIMEOUT, npm_ci, tool
 
 ROOT = Path(__file__).resolve().parents[2]
 CLIENT_DIR = ROOT / "tests" / "interop" / "foxglove"
 DRIVE = CLIENT_DIR / "drive.js"
-STAMP = CLIENT_DIR / "node_modules" / ".installed-lock-sha256"
-NPM_TIMEOUT = 300.0
 DRIVE_TIMEOUT = 40.0
 SUBPROTOCOLS = ("foxglove.websocket.v1", "foxglove.sdk.v1")
 
@@ -64,29 +61,9 @@ effect = "permit"
 @pytest.fixture(scope="session")
 def node() -> str:
     """``node``, with the client's packages installed by ``npm ci`` (once per lock file)."""
-    node, npm = shutil.which("node"), shutil.which("npm")
-    if node is None or npm is None:
-        print("SKIPPED: the Foxglove client test needs node and npm (tests/run.sh installs them)")
-        pytest.skip("the Foxglove client test needs node and npm: tests/run.sh installs them with apt-get")
-    lock = hashlib.sha256((CLIENT_DIR / "package-lock.json").read_bytes()).hexdigest()
-    if not (STAMP.is_file() and STAMP.read_text().strip() == lock):
-        try:
-            done = subprocess.run(
-                [npm, "ci", "--no-audit", "--no-fund"],
-                cwd=CLIENT_DIR,
-                capture_output=True,
-                text=True,
-                timeout=NPM_TIMEOUT,
-                check=False,
-            )
-        except subprocess.TimeoutExpired:
-            pytest.skip(
-                f"`npm ci` in {CLIENT_DIR} took longer than {NPM_TIMEOUT:.0f} s: is the registry reachable?"
-            )
-        if done.returncode != 0:
-            print(f"SKIPPED: `npm ci` in {CLIENT_DIR} failed:\n{done.stderr[-2000:]}")
-            pytest.skip(f"`npm ci` failed (no registry?): {done.stderr.strip()[-300:]}")
-        STAMP.write_text(lock + "\n")
+    what = "the Foxglove client tests"
+    node = tool("node", what)
+    npm_ci(CLIENT_DIR, what)
     return node
 
 

@@ -10,9 +10,7 @@ and installed by ``npm ci`` once per lock file; without npm or its registry the 
 from __future__ import annotations
 
 import asyncio
-import hashlib
 import json
-import shutil
 import subprocess
 from collections import Counter
 from pathlib import Path
@@ -20,14 +18,13 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 from support.gateway_process import StartGateway
+from support.npm import NPM_TIMEOUT, npm_ci, tool
 
 from clients.aio import AsyncClient
 
 ROOT = Path(__file__).resolve().parents[2]
 READER_DIR = ROOT / "tests" / "interop" / "mcap"
 COUNT = READER_DIR / "count.mjs"
-STAMP = READER_DIR / "node_modules" / ".installed-lock-sha256"
-NPM_TIMEOUT = 300.0
 READ_TIMEOUT = 40.0
 
 pytestmark = pytest.mark.timeout(NPM_TIMEOUT + 120)
@@ -51,29 +48,9 @@ options = {{ folder = "{folder}" }}
 @pytest.fixture(scope="session")
 def node() -> str:
     """``node``, with the reader's packages installed by ``npm ci`` (once per lock file)."""
-    node, npm = shutil.which("node"), shutil.which("npm")
-    if node is None or npm is None:
-        print("SKIPPED: the MCAP reader test needs node and npm (tests/run.sh installs them)")
-        pytest.skip("the MCAP reader test needs node and npm: tests/run.sh installs them with apt-get")
-    lock = hashlib.sha256((READER_DIR / "package-lock.json").read_bytes()).hexdigest()
-    if not (STAMP.is_file() and STAMP.read_text().strip() == lock):
-        try:
-            done = subprocess.run(
-                [npm, "ci", "--no-audit", "--no-fund"],
-                cwd=READER_DIR,
-                capture_output=True,
-                text=True,
-                timeout=NPM_TIMEOUT,
-                check=False,
-            )
-        except subprocess.TimeoutExpired:
-            pytest.skip(
-                f"`npm ci` in {READER_DIR} took longer than {NPM_TIMEOUT:.0f} s: is the registry reachable?"
-            )
-        if done.returncode != 0:
-            print(f"SKIPPED: `npm ci` in {READER_DIR} failed:\n{done.stderr[-2000:]}")
-            pytest.skip(f"`npm ci` failed (no registry?): {done.stderr.strip()[-300:]}")
-        STAMP.write_text(lock + "\n")
+    what = "the MCAP reader tests"
+    node = tool("node", what)
+    npm_ci(READER_DIR, what)
     return node
 
 

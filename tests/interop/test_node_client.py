@@ -7,12 +7,10 @@ through @grpc/grpc-js: a second language, a second gRPC stack, one contract.
 from __future__ import annotations
 
 import asyncio
-import hashlib
 import itertools
 import json
 import math
 import re
-import shutil
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -20,6 +18,7 @@ from typing import Any
 import grpc
 import pytest
 from support.certs import make_certificates
+from support.npm import NPM_TIMEOUT, npm_ci, tool
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
@@ -27,10 +26,7 @@ from protos.propertyservice.v1 import property_service_pb2_grpc as pb_grpc
 ROOT = Path(__file__).resolve().parents[2]
 NODE_DIR = ROOT / "clients" / "examples" / "node"
 PROPCTL = NODE_DIR / "propctl.mjs"
-# Written after a successful `npm ci`: the hash of the lock file it installed.
-STAMP = NODE_DIR / "node_modules" / ".installed-lock-sha256"
 NODE_MAJOR = 18
-NPM_TIMEOUT = 300.0
 CALL_TIMEOUT = 30.0
 MOVETO = "<marker><location>(2.0 1.0 0 0 0 0)</location></marker>"
 TARGET_XY = (2.0, 1.0)
@@ -46,32 +42,14 @@ pytestmark = pytest.mark.timeout(NPM_TIMEOUT + 60)
 @pytest.fixture(scope="session")
 def node() -> str:
     """The `node` binary, with the client's packages installed by `npm ci` (once per lock file)."""
-    node, npm = shutil.which("node"), shutil.which("npm")
-    if node is None or npm is None:
-        pytest.fail(f"{'node' if node is None else 'npm'} not found; {INSTALL_HINT}", pytrace=False)
+    node = tool("node", INSTALL_HINT, required=True)
     version = subprocess.run(
         [node, "--version"], check=False, capture_output=True, text=True, timeout=30
     ).stdout
     m = re.match(r"v(\d+)\.", version)
     if m is None or int(m.group(1)) < NODE_MAJOR:
         pytest.fail(f"node {version.strip()} is too old; {INSTALL_HINT}", pytrace=False)
-
-    lock = hashlib.sha256((NODE_DIR / "package-lock.json").read_bytes()).hexdigest()
-    if not (STAMP.is_file() and STAMP.read_text().strip() == lock):
-        try:
-            done = subprocess.run(
-                [npm, "ci", "--no-audit", "--no-fund"],
-                cwd=NODE_DIR,
-                check=False,
-                capture_output=True,
-                text=True,
-                timeout=NPM_TIMEOUT,
-            )
-        except subprocess.TimeoutExpired:
-            pytest.fail(f"`npm ci` in {NODE_DIR} took longer than {NPM_TIMEOUT:.0f} s", pytrace=False)
-        if done.returncode != 0:
-            pytest.fail(f"`npm ci` in {NODE_DIR} failed:\n{done.stdout}\n{done.stderr}", pytrace=False)
-        STAMP.write_text(lock + "\n")
+    npm_ci(NODE_DIR, "the Node.js client tests", required=True)
     return node
 
 

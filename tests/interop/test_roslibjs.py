@@ -10,19 +10,16 @@ roslib comes pinned from npm (tests/interop/roslib/package.json and its lock fil
 
 from __future__ import annotations
 
-import hashlib
 import json
-import shutil
 import subprocess
 from pathlib import Path
 from typing import Any
 
 import pytest
+from support.npm import NPM_TIMEOUT, npm_ci, tool
 
 ROOT = Path(__file__).resolve().parents[2]
 ROSLIB_DIR = ROOT / "tests" / "interop" / "roslib"
-STAMP = ROSLIB_DIR / "node_modules" / ".installed-lock-sha256"
-NPM_TIMEOUT = 300.0
 RUN_TIMEOUT = 90.0
 
 pytestmark = pytest.mark.timeout(NPM_TIMEOUT + 2 * RUN_TIMEOUT)
@@ -31,33 +28,9 @@ pytestmark = pytest.mark.timeout(NPM_TIMEOUT + 2 * RUN_TIMEOUT)
 @pytest.fixture(scope="session")
 def node() -> str:
     """The ``node`` binary, with roslib installed by ``npm ci`` in tests/interop/roslib."""
-    node, npm = shutil.which("node"), shutil.which("npm")
-    if node is None or npm is None:
-        pytest.skip(
-            "the roslibjs tests need node and npm on PATH (Debian packages nodejs, npm): skipped",
-        )
-    lock = hashlib.sha256((ROSLIB_DIR / "package-lock.json").read_bytes()).hexdigest()
-    if not (STAMP.is_file() and STAMP.read_text().strip() == lock):
-        try:
-            done = subprocess.run(
-                [npm, "ci", "--no-audit", "--no-fund"],
-                cwd=ROSLIB_DIR,
-                check=False,
-                capture_output=True,
-                text=True,
-                timeout=NPM_TIMEOUT,
-            )
-        except subprocess.TimeoutExpired:
-            pytest.skip(
-                f"`npm ci` in {ROSLIB_DIR} took longer than {NPM_TIMEOUT:.0f} s (is the npm registry"
-                " reachable?): roslibjs tests skipped"
-            )
-        if done.returncode != 0:
-            pytest.skip(
-                f"`npm ci` in {ROSLIB_DIR} failed (no npm registry here?), roslibjs tests skipped:\n"
-                f"{done.stderr[-2000:]}"
-            )
-        STAMP.write_text(lock + "\n")
+    what = "the roslibjs tests"
+    node = tool("node", what)
+    npm_ci(ROSLIB_DIR, what)
     return node
 
 
