@@ -94,7 +94,8 @@ async def test_a_binary_value_is_base64_json_byte_for_byte_what_grpc_reads(
     async with http.get(prop("cam", "snapshot")) as r:
         assert r.status == 200 and r.content_type == "application/json"
         body = await r.json()
-    assert set(body) == {"service", "path", "data", "media_type"}
+    # ``time``: when the value was true (docs/recording.md, "Time of a value").
+    assert set(body) == {"service", "path", "data", "media_type", "time"}
     assert body["media_type"] == "image/png"
     assert (
         base64.b64decode(body["data"], validate=True) == picture == await grpc_data(stub, "cam", "snapshot")
@@ -104,7 +105,7 @@ async def test_a_binary_value_is_base64_json_byte_for_byte_what_grpc_reads(
         frame = base64.b64decode((await r.json())["data"])
     assert frame.startswith(PNG_SIGNATURE)
     async with http.get(prop("cam", "count")) as r:
-        assert set(await r.json()) == {"service", "path", "value"}
+        assert set(await r.json()) == {"service", "path", "value", "time"}
 
 
 async def test_the_model_names_media_type_and_max_size(http: aiohttp.ClientSession) -> None:
