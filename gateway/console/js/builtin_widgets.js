@@ -157,8 +157,9 @@ function sliderWidget(prop, ctx) {
   const spanFor = (x) => {
     span = sliderSpan(prop, x);
     const spanDecimals = Math.max(0, decimalsOf(span.step) ?? 0);
-    low.textContent = formatMeasure(span.lo, spanDecimals, unit);
-    high.textContent = formatMeasure(span.hi, spanDecimals, unit);
+    const end = (x) => `${roundedText(x, spanDecimals)}${unit ? ` ${unit}` : ''}`;
+    low.textContent = end(span.lo);
+    high.textContent = end(span.hi);
     const declared = finite(prop.minimum) && finite(prop.maximum);
     allowed.textContent = span.zoomed && declared ? `allowed ${formatNumber(prop.minimum)} … ${formatNumber(prop.maximum)}` : '';
     track.setAttribute('aria-valuemin', String(span.lo));
@@ -174,9 +175,12 @@ function sliderWidget(prop, ctx) {
   };
   let pointer = null;
   const follow = (x) => {
+    const first = !finite(shownValue);
     shownValue = x;
-    // Out of the span, or in its last tenth (no room to drag up): a span that fits the value.
-    if (pointer === null && (x < span.lo || x > span.hi - (span.hi - span.lo) / 10)) spanFor(x);
+    // The first value, one out of the span, in its last tenth (no room to drag up) or its first
+    // twentieth (the knob at the far left): a span that fits the value.
+    const f = (x - span.lo) / (span.hi - span.lo);
+    if (pointer === null && (first || f < 0.05 || f > 0.9)) spanFor(x);
     place(x);
   };
   spanFor(undefined);
@@ -229,10 +233,15 @@ function sliderWidget(prop, ctx) {
     const delta = { ArrowRight: 1, ArrowUp: 1, ArrowLeft: -1, ArrowDown: -1 }[e.key];
     if (delta === undefined) return;
     e.preventDefault();
+    // The arrows move the knob, not the robot: the page's driving keys never hear them.
+    e.stopPropagation();
     const now = Number(input.value);
     const from = finite(now) && input.value.trim() !== '' ? now : finite(shownValue) ? shownValue : span.lo;
     move(clamp(Math.round((from + delta * span.step) / span.step) * span.step));
     ed.send();
+  });
+  track.addEventListener('keyup', (e) => {
+    if (e.key.startsWith('Arrow')) e.stopPropagation();
   });
   return {
     element: ctx.h('div', { class: 'slider-box' }, track, scale, ed.element),
