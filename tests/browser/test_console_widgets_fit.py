@@ -33,7 +33,10 @@ options = { location = [0.0, -3.0, 1.5, 0.0, 0.0, 1.5708], resolution = [64, 48]
 [[services]]
 name = "environment"
 type = "environment"
-options = { robots = ["swarm"], readings = [{ selector = "swarm robots.*.sensors.temperature", layer = "temperature" }], grid = { origin = [-4.0, -4.0], cell = 0.5, shape = [16, 16] } }
+[services.options]
+robots = ["swarm"]
+readings = [{ selector = "swarm robots.*.sensors.temperature", layer = "temperature" }]
+grid = { origin = [-4.0, -4.0], cell = 0.5, shape = [16, 16] }
 """
 
 
@@ -70,7 +73,9 @@ def test_a_speed_slider_spans_what_the_speed_needs_and_a_location_reads_rounded(
 ) -> None:
     client.set("scout1", "speed", "0.5")
     select(page, "scout1")
-    state = wait_for(page, lambda d: (s := slider_state(d, "speed")).get("now") == "0.5" and s, "speed's slider at 0.5")
+    state = wait_for(
+        page, lambda d: (s := slider_state(d, "speed")).get("now") == "0.5" and s, "speed's slider at 0.5"
+    )
     # The model allows 0 … 1000 m/s; the slider spans 0 … 1 m/s, the knob in the middle.
     assert (state["min"], state["max"], state["knob"]) == ("0", "1", "50%"), state
     assert "m/s" in state["scale"] and "allowed 0 … 1000" in state["scale"], state
@@ -104,16 +109,29 @@ def test_a_speed_slider_spans_what_the_speed_needs_and_a_location_reads_rounded(
 
 
 def test_group_headings_name_the_types_for_people(page: Any) -> None:
-    wait_for(page, lambda d: d.find_elements(CSS, '#services [data-service="environment"]'), "the environment listed")
+    wait_for(
+        page,
+        lambda d: d.find_elements(CSS, '#services [data-service="environment"]'),
+        "the environment listed",
+    )
     headings = [h.text.strip() for h in page.find_elements(CSS, "#services h3.by-type")]
-    for expected in ("Camera (1)", "Environment model (1)", "Group (1)", "Registry (1)", "Robots (2)", "Sensor (1)"):
+    for expected in (
+        "Camera (1)",
+        "Environment model (1)",
+        "Group (1)",
+        "Registry (1)",
+        "Robots (2)",
+        "Sensor (1)",
+    ):
         assert expected in headings, headings
     assert not any("_" in h for h in headings), headings
 
 
 def test_a_service_doc_shows_its_code_and_its_guide_path(page: Any) -> None:
     select(page, "camera1")
-    path = wait_for(page, lambda d: d.find_element(CSS, "#service-view div.doc code.doc-path"), "the doc's guide path")
+    path = wait_for(
+        page, lambda d: d.find_element(CSS, "#service-view div.doc code.doc-path"), "the doc's guide path"
+    )
     assert path.text == "docs/vision.md"
     doc = page.find_element(CSS, "#service-view div.doc").text
     assert "``" not in doc and "see docs/vision.md" in doc, doc
@@ -128,7 +146,9 @@ def test_the_heat_map_has_axes_a_scale_and_a_colour_legend(page: Any, client: Cl
         client.set("swarm", "behaviors.moveto", Marker.at([x, y]), formation="line", spacing="1.5")
         eventually(
             lambda x=x, y=y: client.get("swarm", "location"),
-            lambda v, x=x, y=y: abs(float(v.strip("()").split()[0]) - x) + abs(float(v.strip("()").split()[1]) - y) < 0.2,
+            lambda v, x=x, y=y: (
+                abs(float(v.strip("()").split()[0]) - x) + abs(float(v.strip("()").split()[1]) - y) < 0.2
+            ),
             f"the swarm at ({x} {y})",
             within=20.0,
         )
@@ -141,7 +161,9 @@ def test_the_heat_map_has_axes_a_scale_and_a_colour_legend(page: Any, client: Cl
     select(page, "environment")
     heat = wait_for(
         page,
-        lambda d: d.find_element(CSS, '#service-view [data-property="grid.temperature.image"] .heat-map[data-legend=drawn]'),
+        lambda d: d.find_element(
+            CSS, '#service-view [data-property="grid.temperature.image"] .heat-map[data-legend=drawn]'
+        ),
         "the heat map's legend drawn",
         within=20.0,
     )
@@ -157,7 +179,9 @@ def test_the_heat_map_has_axes_a_scale_and_a_colour_legend(page: Any, client: Cl
     assert float(low.split()[0]) <= float(high.split()[0])
     # North is up: the y axis's largest coordinate is drawn at the top.
     tops = page.execute_script(
-        "return [...arguments[0].querySelectorAll('.heat-axis-y .tick')].map(t => t.getBoundingClientRect().top)", heat
+        "const ticks = arguments[0].querySelectorAll('.heat-axis-y .tick');"
+        "return [...ticks].map(t => t.getBoundingClientRect().top)",
+        heat,
     )
     assert tops == sorted(tops, reverse=True), tops
     page.execute_script("arguments[0].scrollIntoView({block: 'center'})", heat)
@@ -172,10 +196,10 @@ def plotted(page: Any) -> dict[str, Any]:
         if (!box) return {};
         const signals = {};
         for (const line of box.querySelectorAll('polyline[data-signal]')) {
-          signals[line.dataset.signal] = (line.getAttribute('points') || '').split(' ').filter(Boolean).length;
+          const points = (line.getAttribute('points') || '').split(' ');
+          signals[line.dataset.signal] = points.filter(Boolean).length;
         }
         return {
-          first: (box.querySelector('polyline[data-element="0"]')?.getAttribute('points') || '').split(' ').filter(Boolean).length,
           signals,
           keys: [...box.querySelectorAll('.plot-signal-key:not([hidden])')].map((k) => k.dataset.signal),
           history: Object.fromEntries([...box.querySelectorAll('.plot-signal-key[data-history-points]')].map(
@@ -194,9 +218,11 @@ def add_signal(page: Any, path: str) -> None:
     picker = wait_for(
         page,
         lambda d: (
-            s := prop(d, "speed").find_element(CSS, "select[data-action=add-signal]")
-        ).find_elements(CSS, f'option[value="{path}"]')
-        and s,
+            (s := prop(d, "speed").find_element(CSS, "select[data-action=add-signal]")).find_elements(
+                CSS, f'option[value="{path}"]'
+            )
+            and s
+        ),
         f"{path} offered to the plot",
     )
     Select(picker).select_by_value(path)
@@ -207,7 +233,9 @@ def test_a_plot_takes_a_second_and_a_third_signal_each_from_its_history(page: An
         client.set("scout1", "max_speed", value)
     eventually(lambda: client.history("scout1", "max_speed"), lambda h: len(h) >= 2, "max_speed kept")
     select(page, "scout1")
-    wait_for(page, lambda d: prop(d, "speed").find_element(CSS, "[data-action=plot]"), "a plot button").click()
+    wait_for(
+        page, lambda d: prop(d, "speed").find_element(CSS, "[data-action=plot]"), "a plot button"
+    ).click()
     add_signal(page, "max_speed")
     add_signal(page, "sensors.battery")
     state = wait_for(
@@ -222,12 +250,16 @@ def test_a_plot_takes_a_second_and_a_third_signal_each_from_its_history(page: An
     # Then the added signal follows live.
     before = state["signals"]["max_speed"]
     client.set("scout1", "max_speed", "0.9")
-    wait_for(page, lambda d: plotted(d)["signals"]["max_speed"] > before, "max_speed's live value in the plot")
+    wait_for(
+        page, lambda d: plotted(d)["signals"]["max_speed"] > before, "max_speed's live value in the plot"
+    )
     page.execute_script(
         "arguments[0].scrollIntoView({block: 'center'})", prop(page, "speed").find_element(CSS, ".plot-box")
     )
     doc_image(page, "plot-signals")
     # A signal taken off gives its place back.
-    prop(page, "speed").find_element(CSS, '[data-signal="sensors.battery"] [data-action=remove-signal]').click()
+    prop(page, "speed").find_element(
+        CSS, '[data-signal="sensors.battery"] [data-action=remove-signal]'
+    ).click()
     state = wait_for(page, lambda d: (s := plotted(d))["picker"] and s, "the picker back")
     assert state["keys"] == ["speed", "max_speed"], state

@@ -238,6 +238,7 @@ export function plotWidget(prop, ctx, { now = () => Date.now() } = {}) {
   const picker = canAdd
     ? ctx.h('select', { class: 'plot-add', 'aria-label': `add a signal to the plot of ${prop.name}`, dataset: { action: 'add-signal' } })
     : null;
+  let offered = []; // the numbers the picker offers now
   const fillPicker = async () => {
     let model;
     try {
@@ -248,14 +249,13 @@ export function plotWidget(prop, ctx, { now = () => Date.now() } = {}) {
     }
     if (disposed) return;
     const taken = new Set(signals.map((s) => s.prop.name));
-    const offered = (model?.properties ?? []).filter((p) => addableSignal(p) && !taken.has(p.name));
+    offered = (model?.properties ?? []).filter((p) => addableSignal(p) && !taken.has(p.name));
     picker.replaceChildren(
       ctx.h('option', { value: '' }, offered.length ? '+ signal…' : 'no other numbers'),
       ...offered.map((p) => ctx.h('option', { value: p.name }, p.name)),
     );
     picker.disabled = !offered.length;
     picker.hidden = signals.length >= MAX_SIGNALS;
-    picker.modelProperties = offered;
   };
   const removeSignal = (signal) => {
     signal.stop?.();
@@ -314,7 +314,7 @@ export function plotWidget(prop, ctx, { now = () => Date.now() } = {}) {
   };
   if (picker) {
     picker.addEventListener('change', () => {
-      const chosen = (picker.modelProperties ?? []).find((p) => p.name === picker.value);
+      const chosen = offered.find((p) => p.name === picker.value);
       picker.value = '';
       if (chosen) addSignal(chosen);
     });
