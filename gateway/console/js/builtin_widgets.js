@@ -115,7 +115,8 @@ function numberInput(ctx, prop) {
   return ctx.h('input', {
     type: 'number',
     'aria-label': prop.name,
-    step: prop.type === 'integer' ? '1' : 'any',
+    // The spinner steps by the model's resolution where it declares one.
+    step: prop.type === 'integer' ? '1' : finite(prop.resolution) && prop.resolution > 0 ? prop.resolution : 'any',
     min: finite(prop.minimum) ? prop.minimum : null,
     max: finite(prop.maximum) ? prop.maximum : null,
   });
@@ -134,8 +135,8 @@ function numberWidget(prop, ctx) {
  * moves the number box and sets on release. Its span comes from the model's range, narrowed
  * around the value when that range is far wider than the value needs (values.js sliderSpan: a
  * speed allowed up to 1000 m/s at 0.5 m/s spans 0 … 1 m/s); the scale names the span with its
- * unit, and the model's whole range when the span is narrower. The span follows the value when a
- * value leaves it or reaches its last tenth, never while the knob is held.
+ * unit, and the model's whole range when the span is narrower. The span follows the value (see
+ * `follow`), never while the knob is held.
  */
 function sliderWidget(prop, ctx) {
   const unit = prop.unit ?? '';
@@ -157,7 +158,7 @@ function sliderWidget(prop, ctx) {
   const spanFor = (x) => {
     span = sliderSpan(prop, x);
     const spanDecimals = Math.max(0, decimalsOf(span.step) ?? 0);
-    const end = (x) => `${roundedText(x, spanDecimals)}${unit ? ` ${unit}` : ''}`;
+    const end = (edge) => `${roundedText(edge, spanDecimals)}${unit ? ` ${unit}` : ''}`;
     low.textContent = end(span.lo);
     high.textContent = end(span.hi);
     const declared = finite(prop.minimum) && finite(prop.maximum);
