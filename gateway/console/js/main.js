@@ -5,6 +5,7 @@ import * as api from './api.js';
 import './builtin_widgets.js';
 import { EventMux } from './events.js';
 import { Failover, fetchProbe, withRoundEnded } from './failover.js';
+import { GamepadDriver } from './gamepad.js';
 import { Inspector } from './inspector.js';
 import { RobotMap } from './map.js';
 import { ServiceList } from './service_list.js';
@@ -112,6 +113,16 @@ const teleop = new Teleop(
   },
   { selected, poseOf: (name) => map.poses.get(name) ?? null, onDrive: (name) => map.forgetTarget(name) },
 );
+
+// A gamepad drives through the teleop, with its own dead-man (js/gamepad.js).
+new GamepadDriver({
+  drive: (stick) => teleop.gamepad(stick),
+  onPad: (text) => {
+    const el = $('#teleop-gamepad');
+    el.textContent = text;
+    el.hidden = !text;
+  },
+});
 
 const inspector = new Inspector(
   {

@@ -53,6 +53,7 @@ export class Teleop {
     Object.assign(this, { els, selected, poseOf, onDrive, setVelocity, page });
     this.keys = new Set();
     this.stick = null; // {forward, turn} while the joystick is held
+    this.pad = null; // {forward, turn} while a gamepad asks for it (js/gamepad.js)
     this.timer = null;
     this.inFlight = false;
     this.driving = null; // the service the last non-zero command went to
@@ -76,6 +77,7 @@ export class Teleop {
   selectionChanged() {
     this.keys.clear();
     this.stick = null;
+    this.pad = null;
     this.showKeys();
     this.release();
     const t = this.target();
@@ -127,7 +129,7 @@ export class Teleop {
       joystick.classList.remove('active');
       this.stick = null;
       this.showKeys(); // the keys still held, or the centre
-      if (this.keys.size) this.hold();
+      if (this.keys.size || this.pad) this.hold();
       else this.release();
     };
     joystick.addEventListener('pointerup', end);
@@ -149,15 +151,26 @@ export class Teleop {
       const key = KEYS[e.key.toLowerCase()];
       if (!key || !this.keys.delete(key)) return;
       this.showKeys();
-      if (this.keys.size || this.stick) this.hold();
+      if (this.keys.size || this.stick || this.pad) this.hold();
       else this.release();
     });
+  }
+
+  /**
+   * The gamepad's hook: `stick` ({forward, turn}) is held and driven like the on-screen stick;
+   * null lets go (the pad's stick centred, its dead-man released, the pad gone).
+   */
+  gamepad(stick) {
+    this.pad = stick && this.target() ? stick : null;
+    if (this.pad) this.hold();
+    else if (!this.keys.size && !this.stick) this.release();
   }
 
   _bindPage() {
     const lost = () => {
       this.keys.clear();
       this.stick = null;
+      this.pad = null;
       this.showKeys();
       // Only a robot this page drives is stopped: losing focus must not end another's moveto.
       this.release(false, true);
@@ -191,11 +204,15 @@ export class Teleop {
     let forward = 0;
     let turn = 0;
     if (this.stick) ({ forward, turn } = this.stick);
+    if (this.pad) {
+      forward += this.pad.forward;
+      turn += this.pad.turn;
+    }
     if (this.keys.has('forward')) forward += 1;
     if (this.keys.has('back')) forward -= 1;
     if (this.keys.has('left')) turn += 1;
     if (this.keys.has('right')) turn -= 1;
-    if (!this.stick && !this.keys.size) return null;
+    if (!this.stick && !this.pad && !this.keys.size) return null;
     const t = this.target();
     if (!t) return null;
     const pose = this.poseOf(t.name);
