@@ -97,6 +97,7 @@ const map = new RobotMap($('#map'), {
     el.classList.toggle('error-text', isError);
   },
   onPose: (name) => list.moved(name),
+  backgroundSelect: $('#map-background'),
 });
 
 const teleop = new Teleop(
