@@ -2,6 +2,8 @@
 
 The demo starts its sensor thermo1 where the robot scout1 stands, (0 0), and its
 group's centroid lies between its robots: no two names may be drawn over each other.
+A row of six robots 15 cm apart (a few pixels on the fitted map) keeps every name clear
+of the other names and of the other robots, the far ones joined to theirs by a line.
 """
 
 from __future__ import annotations
@@ -45,7 +47,39 @@ options = { members = ["scout1"] }
 name = "pair"
 type = "group"
 options = { members = ["scout2", "scout3"] }
+
+[[services]]
+name = "row1"
+type = "sim-robot"
+options = { start = [8.15, 2.0] }
+
+[[services]]
+name = "row2"
+type = "sim-robot"
+options = { start = [8.30, 2.0] }
+
+[[services]]
+name = "row3"
+type = "sim-robot"
+options = { start = [8.45, 2.0] }
+
+[[services]]
+name = "row4"
+type = "sim-robot"
+options = { start = [8.60, 2.0] }
+
+[[services]]
+name = "row5"
+type = "sim-robot"
+options = { start = [8.75, 2.0] }
+
+[[services]]
+name = "row6"
+type = "sim-robot"
+options = { start = [8.90, 2.0] }
 """
+#: Every thing on the map: the six of the first world, and the row.
+THINGS = 12
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +110,42 @@ def overlap(a: list[float], b: list[float]) -> bool:
 
 
 def test_names_of_things_at_one_place_are_not_drawn_over_each_other(page: Any) -> None:
-    boxes = wait_for(page, lambda d: (b := label_boxes(d)) and len(b) == 6 and b, "six names on the map")
+    boxes = wait_for(page, lambda d: (b := label_boxes(d)) and len(b) == THINGS and b, "every name on the map")
     names = sorted(boxes)
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
             assert not overlap(boxes[a], boxes[b]), f"the names {a} and {b} overlap: {boxes}"
+
+
+def shape_boxes(driver: Any) -> dict[str, list[float]]:
+    """Each thing's shape on the map (its triangle, diamond or dot): [left, top, right, bottom]."""
+    boxes: dict[str, list[float]] = driver.execute_script(
+        "const out = {};"
+        "for (const g of document.querySelectorAll('#map g[data-service]')) {"
+        "  const r = g.querySelector(':scope > .shape').getBoundingClientRect();"
+        "  out[g.dataset.service] = [r.left, r.top, r.right, r.bottom];"
+        "}"
+        "return out;"
+    )
+    return boxes
+
+
+def test_names_of_robots_a_few_pixels_apart_stay_clear_of_each_other_and_of_the_robots(page: Any) -> None:
+    row = [f"row{i}" for i in range(1, 7)]
+
+    def settled(d: Any) -> dict[str, list[float]] | None:
+        b = label_boxes(d)
+        return b if all(name in b for name in row) and all(b[n][2] > b[n][0] for n in row) else None
+
+    boxes = wait_for(page, settled, "the row's names on the map")
+    shapes = shape_boxes(page)
+    centres = [((shapes[n][0] + shapes[n][2]) / 2) for n in row]
+    assert max(centres) - min(centres) < 80, f"the row is a few pixels a robot apart: {centres}"
+    for i, a in enumerate(row):
+        for b in row[i + 1 :]:
+            assert not overlap(boxes[a], boxes[b]), f"the names {a} and {b} overlap: {boxes}"
+        for other in row:
+            if other != a:
+                assert not overlap(boxes[a], shapes[other]), f"the name {a} covers {other}: {boxes[a]} {shapes[other]}"
+    leaders = page.execute_script("return document.querySelectorAll('#map g[data-service] > line.leader').length")
+    assert leaders > 0, "names set off from their robots have a leader line"
