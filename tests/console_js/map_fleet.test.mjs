@@ -88,3 +88,63 @@ test('a trail fades with age and is not joined across a gap', () => {
   const last = after.at(-1);
   assert.deepEqual(last.points, [[50, 50], [51, 50]], 'the part after the gap stands alone');
 });
+
+// -- the map's background -------------------------------------------------------------------------
+
+const { gridInfo, isExtent, occupancyPixels, parseNpy } = await import('../../gateway/console/js/map_background.js');
+const { goalPoint, isGoalProperty } = await import('../../gateway/console/js/map.js');
+
+/** A 2-D float32 array as numpy.save writes it (format 1.0). */
+function npy(rows, cols, numbers, descr = '<f4') {
+  let header = `{'descr': '${descr}', 'fortran_order': False, 'shape': (${rows}, ${cols}), }`;
+  header += ' '.repeat(64 - ((10 + header.length + 1) % 64)) + '\n';
+  const data = descr === '<f8' ? new Float64Array(numbers) : new Float32Array(numbers);
+  const out = new Uint8Array(10 + header.length + data.byteLength);
+  out.set([0x93, 0x4e, 0x55, 0x4d, 0x50, 0x59, 1, 0], 0);
+  new DataView(out.buffer).setUint16(8, header.length, true);
+  out.set(new TextEncoder().encode(header), 10);
+  out.set(new Uint8Array(data.buffer), 10 + header.length);
+  return out.buffer;
+}
+
+test('a grid layer\'s info places it on the plane', () => {
+  const info = '((kind hits) (origin (-2 -1)) (cell 0.5) (shape (10 16)) (min 0) (max 3) (filled 4) (total 7) (outside 0) (unit ()))';
+  assert.deepEqual(gridInfo(info), { extent: [-2, -1, 6, 4], kind: 'hits' });
+  assert.equal(gridInfo('((kind mean) (origin (0 0)) (cell 0) (shape (2 2)))'), null, 'no cell size');
+  assert.equal(gridInfo('not a list'), null);
+  assert.ok(isExtent([-3, -2, 7, 5.5]));
+  assert.ok(!isExtent([1, 0, 0, 1]) && !isExtent([0, 0, 1]) && !isExtent(null));
+});
+
+test('a numpy array of hit counts reads back with its shape', () => {
+  const grid = parseNpy(npy(2, 3, [0, 1, 2, 0, 0, 7]));
+  assert.deepEqual([grid.rows, grid.cols, [...grid.values]], [2, 3, [0, 1, 2, 0, 0, 7]]);
+  const wide = parseNpy(npy(1, 2, [0.5, 1.5], '<f8'));
+  assert.deepEqual([...wide.values], [0.5, 1.5]);
+  assert.throws(() => parseNpy(new Uint8Array([1, 2, 3]).buffer), /not a numpy array/);
+  assert.throws(() => parseNpy(npy(2, 3, [1, 2, 3, 4, 5, 6]).slice(0, 140)), /shorter than its shape/);
+  assert.throws(() => parseNpy(npy(2, 3, [0, 0, 0, 0, 0, 0], '>f4')), /little-endian float/);
+});
+
+test('an occupancy grid is drawn north up, clear where nothing was seen, darker where more was', () => {
+  // Row 0 is the south: (row 0, col 1) one hit, (row 1, col 2) seven.
+  const pixels = occupancyPixels({ rows: 2, cols: 3, values: [0, 1, 0, 0, 0, 7] });
+  const alpha = (top, col) => pixels[(top * 3 + col) * 4 + 3];
+  assert.equal(alpha(1, 0), 0, 'never seen: clear');
+  assert.ok(alpha(1, 1) > 0, 'the south row is the bottom of the picture');
+  assert.ok(alpha(0, 2) > alpha(1, 1), 'seven hits darker than one');
+  assert.equal(alpha(0, 2), 255);
+});
+
+test('a goal property says where its service is sent, as a marker or x y', () => {
+  assert.deepEqual(goalPoint('<marker><location>(4 4 0)</location></marker>'), [4, 4]);
+  assert.deepEqual(goalPoint('(1.5 -2)'), [1.5, -2]);
+  assert.equal(goalPoint('<marker></marker>'), null, 'an empty marker: sent nowhere');
+  assert.equal(goalPoint(''), null);
+  assert.ok(isGoalProperty({ name: 'goal', type: 'marker', access: 'read-write' }));
+  assert.ok(isGoalProperty({ name: 'behaviors.target', type: 'vector', access: 'read' }));
+  assert.ok(isGoalProperty({ name: 'destination', type: 'marker', gui: 'goal', access: 'read' }));
+  assert.ok(!isGoalProperty({ name: 'goal', type: 'marker', access: 'write' }), 'not readable');
+  assert.ok(!isGoalProperty({ name: 'goal', type: 'string', access: 'read' }), 'not a place');
+  assert.ok(!isGoalProperty({ name: 'location', type: 'vector', access: 'read' }));
+});

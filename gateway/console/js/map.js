@@ -487,15 +487,26 @@ export class RobotMap {
     else setTimeout(run, 16);
   }
 
-  labelWidth(name, text) {
-    let width = this._labelWidths.get(name);
+  labelWidth(words, text) {
+    let width = this._labelWidths.get(words);
     if (!width) {
       width = text.getComputedTextLength?.() || 0;
-      if (!width) return 7 * name.length; // not laid out yet (hidden): a guess, measured next time
-      this._labelWidths.set(name, width);
+      if (!width) return 7 * words.length; // not laid out yet (hidden): a guess, measured next time
+      this._labelWidths.set(words, width);
       if (this._labelWidths.size > 4096) this._labelWidths.delete(this._labelWidths.keys().next().value);
     }
     return width;
+  }
+
+  /** Every name on the map: {id, g, text, at: [x, y] (m), kind}, things first, then targets and markers. */
+  *labelled() {
+    for (const g of [...this.layers.robots.children, ...this.layers.others.children]) {
+      const at = this.poses.get(g.dataset.service);
+      if (at) yield { id: g.dataset.service, g, at, kind: g.dataset.kind };
+    }
+    for (const g of this.layers.targets.children) if (g.placedAt) yield { id: `→ ${g.dataset.target}`, g, at: g.placedAt, kind: 'target' };
+    let i = 0;
+    for (const g of this.layers.markers.children) if (g.placedAt) yield { id: `marker ${(i += 1)}`, g, at: g.placedAt, kind: 'marker' };
   }
 
   /** Place every name in sight clear of the others and of the things (js/labels.js). */
@@ -504,26 +515,24 @@ export class RobotMap {
     const { cx, cy, scale } = this.view;
     const s = 1 / scale;
     const items = [];
-    const groups = new Map();
+    const found = new Map();
     const selected = this.selected();
-    for (const g of [...this.layers.robots.children, ...this.layers.others.children]) {
-      const name = g.dataset.service;
-      const pose = this.poses.get(name);
-      const text = g.querySelector(':scope > text');
-      if (!pose || !text) continue;
-      const x = width / 2 + (pose[0] - cx) * scale;
-      const y = height / 2 - (pose[1] - cy) * scale;
+    // The selected thing's name chooses first, then robots, groups, the rest, targets and markers.
+    const RANK = { mobile_robot: 1, group: 2, target: 4, marker: 5 };
+    for (const entry of this.labelled()) {
+      const text = entry.g.querySelector(':scope > text');
+      if (!text) continue;
+      const x = width / 2 + (entry.at[0] - cx) * scale;
+      const y = height / 2 - (entry.at[1] - cy) * scale;
       if (x < -200 || y < -200 || x > width + 200 || y > height + 200) continue; // out of sight
-      const item = { id: name, x, y, width: this.labelWidth(name, text), height: LABEL_HEIGHT_PX, kind: g.dataset.kind };
-      // The selected thing's name chooses first, then robots, groups and the rest, each by name.
-      item.rank = name === selected ? 0 : { mobile_robot: 1, group: 2 }[g.dataset.kind] ?? 3;
+      const item = { id: entry.id, x, y, width: this.labelWidth(text.textContent, text), height: LABEL_HEIGHT_PX, kind: entry.kind };
+      item.rank = entry.id === selected ? 0 : RANK[entry.kind] ?? 3;
       items.push(item);
-      groups.set(name, { g, text });
+      found.set(entry.id, { g: entry.g, text, item });
     }
     items.sort((a, b) => a.rank - b.rank || (a.id < b.id ? -1 : a.id > b.id ? 1 : 0));
-    for (const [name, box] of placeLabels(items)) {
-      const { g, text } = groups.get(name);
-      const item = items.find((i) => i.id === name);
+    for (const [id, box] of placeLabels(items)) {
+      const { g, text, item } = found.get(id);
       const dx = box.left - item.x;
       const dy = box.top + LABEL_BASELINE_PX - item.y;
       text.setAttribute('transform', `translate(${dx * s} ${-dy * s}) scale(${s} ${-s})`);
@@ -616,14 +625,15 @@ export class RobotMap {
         { class: 'target', dataset: { target: name } },
         svg('line', { class: 'target-line' }),
         svg('g', { class: 'target-mark' }, svg('circle', { r: 8 }), svg('path', { d: 'M-12,0 H12 M0,-12 V12' })),
-        this.label(`→ ${name}`, 0, 0, 'label target-label'),
+        this.label(`→ ${name}`, 10 * s, -16 * s, 'label target-label'), // placed by layoutLabels
       );
       this.layers.targets.append(g);
     }
     g.classList.toggle('goal', Boolean(goal));
     g.setAttribute('transform', `translate(${x} ${y})`);
+    if (!g.placedAt || g.placedAt[0] !== x || g.placedAt[1] !== y) this.scheduleLabels();
+    g.placedAt = point;
     g.querySelector('.target-mark').setAttribute('transform', `scale(${s})`);
-    g.querySelector('text').setAttribute('transform', `translate(${10 * s} ${-16 * s}) scale(${s} ${-s})`);
     const line = g.querySelector('.target-line');
     line.setAttribute('display', pose ? 'inline' : 'none');
     if (pose) {
@@ -636,17 +646,18 @@ export class RobotMap {
     const shapes = [];
     for (const [selector, markers] of this.markers) {
       for (const { location, label, color } of markers) {
-        shapes.push(
-          svg(
-            'g',
-            { class: 'marker', dataset: { marker: selector }, transform: `translate(${location[0]} ${location[1]})` },
-            svg('title', {}, `${selector}${label ? `: ${label}` : ''}`),
-            svg('g', { transform: `scale(${s})` }, svg('rect', { x: -5, y: -5, width: 10, height: 10, style: color ? `fill: ${color}` : null })),
-            label ? this.label(label, 8 * s, 8 * s) : null,
-          ),
+        const shape = svg(
+          'g',
+          { class: 'marker', dataset: { marker: selector }, transform: `translate(${location[0]} ${location[1]})` },
+          svg('title', {}, `${selector}${label ? `: ${label}` : ''}`),
+          svg('g', { transform: `scale(${s})` }, svg('rect', { x: -5, y: -5, width: 10, height: 10, style: color ? `fill: ${color}` : null })),
+          label ? this.label(label, 8 * s, 8 * s) : null,
         );
+        shape.placedAt = location; // its name is placed by layoutLabels
+        shapes.push(shape);
       }
     }
     this.layers.markers.replaceChildren(...shapes);
+    this.scheduleLabels();
   }
 }

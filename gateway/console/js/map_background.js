@@ -5,7 +5,11 @@
 // plan when there is one, else the first environment model's `occupancy`.
 //
 // A grid layer is read again when its `.info` changes (it counts what was added), at most once
-// every GRID_REFRESH_MS: the picture is a few kilobytes, its changes many.
+// every GRID_REFRESH_MS: the picture is a few kilobytes, its changes many. A layer of means (a
+// temperature) is the model's own heat map, empty cells clear. A layer of hit counts (the
+// occupancy) is drawn here from its numbers (`grid.LAYER`, a numpy array): the heat map would
+// paint every cell never seen in the coldest colour over the whole floor, where an occupancy map
+// leaves it clear and darkens a cell the more often something was seen there.
 
 import { propertyUrl, token } from './api.js';
 import { svg } from './dom.js';
@@ -22,11 +26,15 @@ const MAX_MODELS = 8;
 export const FLOOR_PLAN = 'floor-plan';
 export const NONE = 'none';
 
+/** Cells a grid layer has at most (the environment model's own bound). */
+export const MAX_CELLS = 1000000;
+
 /**
  * The plane a grid layer covers, from its `.info` text ("((kind hits) (origin (x0 y0)) (cell m)
- * (shape (rows cols)) ...)"): [x0, y0, x1, y1] in metres, or null when the text says no grid.
+ * (shape (rows cols)) ...)"): {extent: [x0, y0, x1, y1] in metres, kind}, or null when the text
+ * says no grid.
  */
-export function gridExtent(info) {
+export function gridInfo(info) {
   let fields;
   try {
     fields = new Map(parseList(info).filter((f) => Array.isArray(f) && f.length >= 2).map(([k, v]) => [k, v]));
@@ -40,7 +48,59 @@ export function gridExtent(info) {
   const [x0, y0] = origin.map(Number);
   const [rows, cols] = shape.map(Number);
   if (![x0, y0, rows, cols, cell].every(Number.isFinite) || cell <= 0 || rows <= 0 || cols <= 0) return null;
-  return [x0, y0, x0 + cols * cell, y0 + rows * cell];
+  return { extent: [x0, y0, x0 + cols * cell, y0 + rows * cell], kind: String(fields.get('kind') ?? '') };
+}
+
+/**
+ * A 2-D array of numbers as `numpy.save` writes it (format 1.0 to 3.0, little-endian float32 or
+ * float64, C order): {rows, cols, values}. Throws an Error saying what it is not.
+ */
+export function parseNpy(buffer) {
+  const bytes = new Uint8Array(buffer);
+  const magic = [0x93, 0x4e, 0x55, 0x4d, 0x50, 0x59]; // \x93NUMPY
+  if (bytes.length < 10 || magic.some((b, i) => bytes[i] !== b)) throw new Error('not a numpy array (.npy)');
+  const view = new DataView(buffer);
+  const major = bytes[6];
+  const start = major === 1 ? 10 : 12;
+  const length = major === 1 ? view.getUint16(8, true) : view.getUint32(8, true);
+  if (start + length > bytes.length) throw new Error('a numpy header longer than the file');
+  const header = new TextDecoder('latin1').decode(bytes.subarray(start, start + length));
+  const descr = /'descr':\s*'([<|]?)f([48])'/.exec(header);
+  const shape = /'shape':\s*\((\d+),\s*(\d+),?\)/.exec(header);
+  if (!descr) throw new Error('not a little-endian float array');
+  if (/'fortran_order':\s*True/.test(header)) throw new Error('a Fortran-ordered array');
+  if (!shape) throw new Error('not a 2-D array');
+  const [rows, cols] = [Number(shape[1]), Number(shape[2])];
+  const size = Number(descr[2]);
+  if (rows * cols > MAX_CELLS) throw new Error(`more than ${MAX_CELLS} cells`);
+  const data = buffer.slice(start + length, start + length + rows * cols * size);
+  if (data.byteLength !== rows * cols * size) throw new Error('a numpy array shorter than its shape');
+  const values = size === 4 ? new Float32Array(data) : new Float64Array(data);
+  return { rows, cols, values };
+}
+
+/** Colour of an occupied cell (the console's ink); its opacity grows with its hits. */
+const OCCUPIED = [36, 41, 47];
+
+/**
+ * RGBA pixels (one a cell, row 0 at the top: north up) of a grid of hit counts whose row 0 is at
+ * the south: a cell never hit is clear, a hit one from faint to dark on a log scale of the most hits.
+ */
+export function occupancyPixels({ rows, cols, values }) {
+  let most = 0;
+  for (const v of values) if (v > most && Number.isFinite(v)) most = v;
+  const pixels = new Uint8ClampedArray(rows * cols * 4);
+  for (let r = 0; r < rows; r += 1) {
+    const top = rows - 1 - r;
+    for (let c = 0; c < cols; c += 1) {
+      const v = values[r * cols + c];
+      if (!(v > 0) || !Number.isFinite(v)) continue;
+      const at = (top * cols + c) * 4;
+      pixels.set(OCCUPIED, at);
+      pixels[at + 3] = 70 + Math.round((185 * Math.log1p(v)) / Math.log1p(most));
+    }
+  }
+  return pixels;
 }
 
 /** Whether `extent` is four finite numbers with x1 > x0 and y1 > y0. */
@@ -163,7 +223,9 @@ export class MapBackground {
     this._info = info;
     info.unsubscribe = this.mux.subscribe(`${service}/${path}.info`, {
       onValue: ({ value, removed }) => {
-        info.extent = removed ? null : gridExtent(value);
+        const known = removed ? null : gridInfo(value);
+        info.extent = known?.extent ?? null;
+        info.kind = known?.kind ?? '';
         if (!info.extent) return;
         const wait = info.loadedAt + GRID_REFRESH_MS - Date.now();
         if (wait <= 0) this._loadGrid(info, service, path);
@@ -177,15 +239,16 @@ export class MapBackground {
     info.loadedAt = Date.now();
     const headers = {};
     if (token()) headers.Authorization = `Bearer ${token()}`;
+    const hits = info.kind === 'hits';
     let blob;
     try {
-      const response = await this.fetcher(`${propertyUrl(service, `${path}.image`)}?raw=1`, {
+      const response = await this.fetcher(`${propertyUrl(service, hits ? path : `${path}.image`)}?raw=1`, {
         headers,
         credentials: 'same-origin',
         signal: AbortSignal.timeout(10000),
       });
       if (!response.ok) return;
-      blob = await response.blob();
+      blob = hits ? await occupancyPicture(parseNpy(await response.arrayBuffer())) : await response.blob();
     } catch {
       return; // tried again with the next change of the layer
     }
@@ -207,4 +270,13 @@ export class MapBackground {
       this._blobUrl = null;
     }
   }
+}
+
+/** A grid of hit counts as a PNG blob, a pixel a cell (drawn in a canvas of the page). */
+function occupancyPicture(grid) {
+  const canvas = document.createElement('canvas');
+  canvas.width = grid.cols;
+  canvas.height = grid.rows;
+  canvas.getContext('2d').putImageData(new ImageData(occupancyPixels(grid), grid.cols, grid.rows), 0, 0);
+  return new Promise((resolve, reject) => canvas.toBlob((b) => (b ? resolve(b) : reject(new Error('no picture'))), 'image/png'));
 }
