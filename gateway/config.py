@@ -761,7 +761,9 @@ def _console(data: Any, where: str, folder: Path | None) -> ConsoleSection:
     if isinstance(data, Mapping) and "map_extent" in data:
         raw = data["map_extent"]
         numbers = raw if isinstance(raw, list) and len(raw) == 4 else None
-        if numbers is None or not all(
+        if raw == []:
+            pass  # none, as when the key is left out
+        elif numbers is None or not all(
             isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in numbers
         ):
             found_before.append(
@@ -790,7 +792,9 @@ def _console(data: Any, where: str, folder: Path | None) -> ConsoleSection:
             )
             return replace(section, map_image="")
         try:
-            section = replace(section, map_image=_config_file(section.map_image, f"{where}.map_image", folder))
+            section = replace(
+                section, map_image=_config_file(section.map_image, f"{where}.map_image", folder)
+            )
         except ConfigError as exc:
             found.extend(exc.problems)
             return replace(section, map_image="")

@@ -99,7 +99,9 @@ def draw_floor_plan(path: Path) -> None:
     draw.line((wall_x, 2.5 * px, 10 * px - 3 * px, 2.5 * px), fill="#5b5346", width=5)
     for i in range(4):  # shelves along the bottom right
         left = int((5 + 1.1 * i) * px)
-        draw.rectangle((left, int(6.2 * px), left + int(0.7 * px), int(7.2 * px)), fill="#c9b79c", outline="#8a7a60")
+        draw.rectangle(
+            (left, int(6.2 * px), left + int(0.7 * px), int(7.2 * px)), fill="#c9b79c", outline="#8a7a60"
+        )
     image.save(path)
 
 
@@ -142,7 +144,7 @@ pad.timestamp += 1;
 
 LET_GO = {
     "the stick returns to the centre": "window.testPad.axes[0] = 0.04; window.testPad.axes[1] = -0.06;",
-    "the dead-man button is let go": "window.testPad.buttons[4] = {pressed: false, touched: false, value: 0};",
+    "the dead-man button is let go": "window.testPad.buttons[4] = {pressed: false, value: 0};",
     "the pad disconnects": (
         "const gone = window.testPad; gone.connected = false; window.testPads = [null];"
         "const e = new Event('gamepaddisconnected'); Object.defineProperty(e, 'gamepad', {value: gone});"
@@ -158,13 +160,17 @@ def test_a_gamepad_drives_the_robot_and_stops_it_when(page: Any, client: Client,
     client.set("scout2", "velocity_timeout", TELEOP_HOLD)
     try:
         page.execute_script(INSTALL_PAD)
-        wait_for(page, lambda d: "synthetic pad" in d.find_element(CSS, "#teleop-gamepad").text, "#teleop-gamepad")
+        wait_for(
+            page, lambda d: "synthetic pad" in d.find_element(CSS, "#teleop-gamepad").text, "#teleop-gamepad"
+        )
         page.execute_script(HOLD, True, 0.0, -1.0)  # full forward
         eventually(lambda: forward(client, "scout2"), lambda v: v > 0.3, "scout2 drives forward with the pad")
         v = velocity(client, "scout2")
         yaw = float(np.asarray(client.get_vector("scout2", "location"))[5])
         heading = np.array([np.cos(yaw), np.sin(yaw)])
-        assert abs(float(heading[0] * v[1] - heading[1] * v[0])) < 0.05, f"{v[:2]} is along the heading {heading}"
+        assert abs(float(heading[0] * v[1] - heading[1] * v[0])) < 0.05, (
+            f"{v[:2]} is along the heading {heading}"
+        )
         page.execute_script(HOLD, True, 1.0, 0.0)  # full right: turns clockwise on the spot
         eventually(lambda: velocity(client, "scout2")[5], lambda wz: wz < -0.5, "scout2 turns right")
         if how == "the stick returns to the centre":
@@ -182,13 +188,17 @@ def test_a_gamepad_drives_the_robot_and_stops_it_when(page: Any, client: Client,
             # Back on the page with the pad still held: nothing drives until the dead-man is pressed anew.
             page.execute_script("window.dispatchEvent(new Event('focus'));")
             time.sleep(0.5)
-            assert not velocity(client, "scout2").any(), "the pad drove again without its dead-man pressed anew"
+            assert not velocity(client, "scout2").any(), (
+                "the pad drove again without its dead-man pressed anew"
+            )
             page.execute_script(HOLD, False, 0.0, -1.0)
             time.sleep(0.2)
             page.execute_script(HOLD, True, 0.0, -1.0)
             eventually(lambda: forward(client, "scout2"), lambda v: v > 0.3, "pressed anew, the pad drives")
             page.execute_script(HOLD, False, 0.0, 0.0)
-            eventually(lambda: velocity(client, "scout2"), lambda v: not v.any(), "stopped", within=STOP_WITHIN)
+            eventually(
+                lambda: velocity(client, "scout2"), lambda v: not v.any(), "stopped", within=STOP_WITHIN
+            )
     finally:
         page.execute_script("window.testPads = [];")
         client.set("scout2", "velocity_timeout", 0.5)
@@ -201,11 +211,12 @@ def test_a_gamepad_drives_the_robot_and_stops_it_when(page: Any, client: Client,
 def trail_points(driver: Any, robot: str) -> list[list[float]]:
     """The points of the robot's trail on the map, oldest first (world metres)."""
     points: list[list[float]] = driver.execute_script(
-        "const g = document.querySelector(`#map [data-trail=\"${arguments[0]}\"]`);"
+        'const g = document.querySelector(`#map [data-trail="${arguments[0]}"]`);'
         "if (!g) return [];"
         "const out = [];"
         "for (const line of g.querySelectorAll('polyline'))"
-        "  for (const p of line.getAttribute('points').trim().split(/\\s+/)) out.push(p.split(',').map(Number));"
+        "  for (const p of line.getAttribute('points').trim().split(/\\s+/))"
+        "    out.push(p.split(',').map(Number));"
         "return out;",
         robot,
     )
@@ -215,7 +226,7 @@ def trail_points(driver: Any, robot: str) -> list[list[float]]:
 def target_line(driver: Any, robot: str) -> list[float] | None:
     """The line from the robot to its target mark: its start, relative to the target (metres)."""
     found: list[float] | None = driver.execute_script(
-        "const line = document.querySelector(`#map [data-target=\"${arguments[0]}\"] .target-line`);"
+        'const line = document.querySelector(`#map [data-target="${arguments[0]}"] .target-line`);'
         "return line && line.getAttribute('display') !== 'none'"
         "  ? [Number(line.getAttribute('x1')), Number(line.getAttribute('y1'))] : null;",
         robot,
@@ -223,13 +234,19 @@ def target_line(driver: Any, robot: str) -> list[float] | None:
     return found
 
 
-def test_a_robot_leaves_a_trail_and_its_target_is_marked_with_a_line_from_it(page: Any, client: Client) -> None:
+def test_a_robot_leaves_a_trail_and_its_target_is_marked_with_a_line_from_it(
+    page: Any, client: Client
+) -> None:
     from selenium.webdriver.common.action_chains import ActionChains
 
     client.set("scout1", "speed", 2.0)
     client.set("scout1", "behaviors.moveto", "<marker><location>(2 1)</location></marker>")
-    eventually(lambda: xy(client, "scout1"), lambda p: bool(np.allclose(p, [2, 1], atol=0.01)), "scout1 at (2 1)")
-    points = wait_for(page, lambda d: (p := trail_points(d, "scout1")) and len(p) >= 10 and p, "scout1's trail")
+    eventually(
+        lambda: xy(client, "scout1"), lambda p: bool(np.allclose(p, [2, 1], atol=0.01)), "scout1 at (2 1)"
+    )
+    points = wait_for(
+        page, lambda d: (p := trail_points(d, "scout1")) and len(p) >= 10 and p, "scout1's trail"
+    )
     assert np.allclose(points[0], [0, 0], atol=0.1), f"the trail starts where scout1 started: {points[0]}"
     assert np.allclose(points[-1], [2, 1], atol=0.1), f"and ends where it is: {points[-1]}"
     # Every point of the trail lies on the way it drove, from (0 0) to (2 1).
@@ -242,19 +259,25 @@ def test_a_robot_leaves_a_trail_and_its_target_is_marked_with_a_line_from_it(pag
     target = translation(wait_for(page, lambda d: target_on_map(d, "scout2"), "scout2's target on the map"))
     start = wait_for(page, lambda d: target_line(d, "scout2"), "a line from scout2 to its target")
     at = xy(client, "scout2")
-    assert np.allclose(np.add(target, start), at, atol=0.3), f"the line starts at scout2 {at}: {start} from {target}"
+    assert np.allclose(np.add(target, start), at, atol=0.3), (
+        f"the line starts at scout2 {at}: {start} from {target}"
+    )
     client.set("scout2", "behaviors.stop", "")
 
     # courier1 is sent by its own goal property: the map marks it as a goal, with its line.
     client.set("courier1", "goal", "<marker><location>(4 4)</location></marker>")
     goal = translation(wait_for(page, lambda d: target_on_map(d, "courier1"), "courier1's goal on the map"))
     assert np.allclose(goal, [4, 4]), goal
-    assert page.execute_script("return document.querySelector('#map [data-target=\"courier1\"]').classList.contains('goal')")
+    assert page.execute_script(
+        "return document.querySelector('#map [data-target=\"courier1\"]').classList.contains('goal')"
+    )
     line = wait_for(page, lambda d: target_line(d, "courier1"), "a line from courier1 to its goal")
     assert np.allclose(np.add(goal, line), xy(client, "courier1"), atol=0.2), line
     doc_image(page, "fleet-trails")
     client.set("courier1", "speed", 50.0)
-    wait_for(page, lambda d: target_on_map(d, "courier1") is None, "courier1's goal mark gone once it is there")
+    wait_for(
+        page, lambda d: target_on_map(d, "courier1") is None, "courier1's goal mark gone once it is there"
+    )
 
 
 # -- what lies under the robots -------------------------------------------------------------------------
@@ -284,14 +307,28 @@ def assert_placed(driver: Any, image: str, extent: list[float]) -> None:
 
 
 def test_the_floor_plan_the_config_names_lies_under_the_robots_at_its_extent(page: Any) -> None:
-    wait_for(page, lambda d: d.find_element(CSS, "#map-background").get_attribute("value") == "floor-plan", "the floor plan chosen")
-    href = wait_for(page, lambda d: d.execute_script(
-        "const i = document.querySelector('#map .background image.floor-plan'); return i && i.getAttribute('href');"
-    ), "the floor plan on the map")
+    wait_for(
+        page,
+        lambda d: d.find_element(CSS, "#map-background").get_attribute("value") == "floor-plan",
+        "the floor plan chosen",
+    )
+    href = wait_for(
+        page,
+        lambda d: d.execute_script(
+            "const i = document.querySelector('#map .background image.floor-plan');"
+            "return i && i.getAttribute('href');"
+        ),
+        "the floor plan on the map",
+    )
     assert href == "/console/floor-plan"
-    wait_for(page, lambda d: d.execute_script(
-        "const i = document.querySelector('#map .background image'); return i && i.getBoundingClientRect().width > 100;"
-    ), "the floor plan drawn")
+    wait_for(
+        page,
+        lambda d: d.execute_script(
+            "const i = document.querySelector('#map .background image');"
+            "return i && i.getBoundingClientRect().width > 100;"
+        ),
+        "the floor plan drawn",
+    )
     page.find_element(CSS, "#map-fit").click()
     assert_placed(page, "#map .background image.floor-plan", EXTENT)
     doc_image(page, "fleet-floor-plan")
@@ -301,17 +338,26 @@ def test_an_environment_models_occupancy_grid_lies_under_the_robots(page: Any, c
     from selenium.webdriver.support.ui import Select
 
     for x, y in [(0.5, 1.5), (0.5, 1.5), (1.5, 0.5), (3.0, 2.5), (3.0, 2.5), (3.0, 2.5), (4.5, 0.0)]:
-        client.set("environment", "observe", f"<marker><class>crate</class><location>({x} {y})</location></marker>")
+        client.set(
+            "environment", "observe", f"<marker><class>crate</class><location>({x} {y})</location></marker>"
+        )
     choice = "environment/grid.occupancy"
     wait_for(
         page,
-        lambda d: choice in [o.get_attribute("value") for o in d.find_elements(CSS, "#map-background option")],
+        lambda d: (
+            choice in [o.get_attribute("value") for o in d.find_elements(CSS, "#map-background option")]
+        ),
         "the occupancy grid offered",
     )
     Select(page.find_element(CSS, "#map-background")).select_by_value(choice)
-    href = wait_for(page, lambda d: d.execute_script(
-        "const i = document.querySelector('#map .background image.grid-layer'); return i && i.getAttribute('href');"
-    ), "the occupancy grid on the map")
+    href = wait_for(
+        page,
+        lambda d: d.execute_script(
+            "const i = document.querySelector('#map .background image.grid-layer');"
+            "return i && i.getAttribute('href');"
+        ),
+        "the occupancy grid on the map",
+    )
     assert re.match(r"blob:", href), href
     # origin (-2 -1), cell 0.5, 10 rows × 16 columns: x from -2 to 6, y from -1 to 4.
     assert_placed(page, "#map .background image.grid-layer", [-2.0, -1.0, 6.0, 4.0])

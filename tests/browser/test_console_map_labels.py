@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from console_support import ConsoleGateway, wait_for
+from console_support import ConsoleGateway, doc_image, wait_for
 from support.gateway_process import start_gateway
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.timeout(120)]
@@ -110,7 +110,9 @@ def overlap(a: list[float], b: list[float]) -> bool:
 
 
 def test_names_of_things_at_one_place_are_not_drawn_over_each_other(page: Any) -> None:
-    boxes = wait_for(page, lambda d: (b := label_boxes(d)) and len(b) == THINGS and b, "every name on the map")
+    boxes = wait_for(
+        page, lambda d: (b := label_boxes(d)) and len(b) == THINGS and b, "every name on the map"
+    )
     names = sorted(boxes)
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
@@ -146,6 +148,11 @@ def test_names_of_robots_a_few_pixels_apart_stay_clear_of_each_other_and_of_the_
             assert not overlap(boxes[a], boxes[b]), f"the names {a} and {b} overlap: {boxes}"
         for other in row:
             if other != a:
-                assert not overlap(boxes[a], shapes[other]), f"the name {a} covers {other}: {boxes[a]} {shapes[other]}"
-    leaders = page.execute_script("return document.querySelectorAll('#map g[data-service] > line.leader').length")
+                assert not overlap(boxes[a], shapes[other]), (
+                    f"the name {a} covers {other}: {boxes[a]} {shapes[other]}"
+                )
+    leaders = page.execute_script(
+        "return document.querySelectorAll('#map g[data-service] > line.leader').length"
+    )
     assert leaders > 0, "names set off from their robots have a leader line"
+    doc_image(page, "map-labels")

@@ -118,7 +118,8 @@ export class GamepadDriver {
     if (this.index === null) this.index = pad?.index ?? this.pads().findIndex(Boolean);
     if (this.index < 0) this.index = null;
     if (this.index === null) return;
-    this.onPad(`gamepad: ${this.pad()?.id ?? 'connected'} (hold the left shoulder button and steer with the left stick)`);
+    const id = String(this.pad()?.id ?? 'connected').slice(0, 40);
+    this.onPad(`gamepad ${id}: hold the left shoulder button, steer with the left stick`);
     if (this.timer === null) this.timer = setInterval(() => this.poll(), POLL_MS);
     this.poll();
   }

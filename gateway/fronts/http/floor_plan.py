@@ -48,7 +48,9 @@ class FloorPlan:
         if not path.is_file():
             if not self._missing_logged:
                 self._missing_logged = True
-                log.warning("the floor plan %s ([console] map_image) is gone: the map is drawn without it", path)
+                log.warning(
+                    "the floor plan %s ([console] map_image) is gone: the map is drawn without it", path
+                )
             raise NotFound("the floor plan's file is gone (see the gateway's log)")
         self._missing_logged = False
         return web.FileResponse(

@@ -318,7 +318,7 @@ DOCUMENT: dict[str, Any] = {
         },
         "/console/floor-plan.json": {
             "get": {
-                "summary": "The console's floor plan: its picture's route and where it lies ([console] map_image)",
+                "summary": "The console's floor plan ([console] map_image): its route and where it lies",
                 "responses": {
                     "200": _json(
                         {
