@@ -33,6 +33,8 @@ const GOAL_WORDS = new Set(['goal', 'target']);
 /** Pixels of a name's height on the map (12 px text), and from its top to its baseline. */
 const LABEL_HEIGHT_PX = 15;
 const LABEL_BASELINE_PX = 11;
+/** Pixels within which a marker named like a thing (or another marker) stands where it does. */
+const SAME_PLACE_PX = 24;
 /** Seconds between redraws of the trails' fading while nothing moves. */
 const TRAIL_FADE_MS = 1000;
 
@@ -519,12 +521,24 @@ export class RobotMap {
     const selected = this.selected();
     // The selected thing's name chooses first, then robots, groups, the rest, targets and markers.
     const RANK = { mobile_robot: 1, group: 2, target: 4, marker: 5 };
+    const shown = new Map(); // name text -> the places (px) it is shown at
     for (const entry of this.labelled()) {
       const text = entry.g.querySelector(':scope > text');
       if (!text) continue;
       const x = width / 2 + (entry.at[0] - cx) * scale;
       const y = height / 2 - (entry.at[1] - cy) * scale;
       if (x < -200 || y < -200 || x > width + 200 || y > height + 200) continue; // out of sight
+      // A marker of a thing where that thing stands (an environment model's marker of a robot,
+      // a camera's sighting of it) says its name a second time: the name shows once.
+      const words = text.textContent;
+      const twice = entry.kind === 'marker' && (shown.get(words) ?? []).some(([u, v]) => Math.hypot(u - x, v - y) < SAME_PLACE_PX);
+      text.setAttribute('display', twice ? 'none' : 'inline');
+      if (twice) {
+        entry.g.querySelector(':scope > line.leader')?.remove();
+        continue;
+      }
+      if (!shown.has(words)) shown.set(words, []);
+      shown.get(words).push([x, y]);
       const item = { id: entry.id, x, y, width: this.labelWidth(text.textContent, text), height: LABEL_HEIGHT_PX, kind: entry.kind };
       item.rank = entry.id === selected ? 0 : RANK[entry.kind] ?? 3;
       items.push(item);
