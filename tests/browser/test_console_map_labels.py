@@ -8,11 +8,12 @@ of the other names and of the other robots, the far ones joined to theirs by a l
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from console_support import ConsoleGateway, doc_image, wait_for
+from console_support import ConsoleGateway, doc_image, page_errors, wait_for
 from support.gateway_process import start_gateway
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.timeout(120)]
@@ -156,3 +157,50 @@ def test_names_of_robots_a_few_pixels_apart_stay_clear_of_each_other_and_of_the_
     )
     assert leaders > 0, "names set off from their robots have a leader line"
     doc_image(page, "map-labels")
+
+
+def visible_label_boxes(driver: Any) -> dict[str, list[float]]:
+    """Every name the map shows (things, targets, markers): its box on the page, by a key that names it."""
+    boxes: dict[str, list[float]] = driver.execute_script(
+        "const out = {};"
+        "let i = 0;"
+        "const names = '#map .robots text, #map .others text, #map .markers text';"
+        "for (const t of document.querySelectorAll(names)) {"
+        "  if (t.getAttribute('display') === 'none') continue;"
+        "  const r = t.getBoundingClientRect();"
+        "  out[`${t.textContent} #${(i += 1)}`] = [r.left, r.top, r.right, r.bottom];"
+        "}"
+        "return out;"
+    )
+    return boxes
+
+
+def test_in_the_demo_no_name_is_drawn_over_another(browser: Any, demo_gateway: Any) -> None:
+    """The demo's thermo1 stands on scout1, its swarm's centroid among the robots, and an environment
+    model and a camera mark every robot again where it stands: each name is shown once, and clear."""
+    browser.get(demo_gateway.http_url)
+    wait_for(
+        browser, lambda d: d.find_elements("css selector", '#map g[data-service="rover2"]'), "the demo's map"
+    )
+    # The camera's and the environment model's markers arrive after the robots.
+    wait_for(
+        browser, lambda d: len(d.find_elements("css selector", "#map .markers g")) >= 6, "the demo's markers"
+    )
+    time.sleep(1.0)  # a frame or two for the layout
+
+    def clear_of_each_other(d: Any) -> dict[str, list[float]] | None:
+        boxes = visible_label_boxes(d)
+        keys = sorted(boxes)
+        for i, a in enumerate(keys):
+            for b in keys[i + 1 :]:
+                if overlap(boxes[a], boxes[b]):
+                    return None
+        return boxes
+
+    boxes = wait_for(browser, clear_of_each_other, "every name on the demo's map clear of the others")
+    names = [key.split(" #")[0] for key in boxes]
+    for thing in ("scout1", "thermo1", "swarm", "rover1"):
+        assert names.count(thing) == 1, f"{thing} is named {names.count(thing)} times: {sorted(names)}"
+    doc_image(browser, "demo-map-labels")
+    errors = page_errors(browser)
+    assert not errors, errors
