@@ -28,6 +28,7 @@ from console_support import (
     doc_image,
     eventually,
     forward,
+    pose_on_map,
     select,
     target_on_map,
     translation,
@@ -239,6 +240,10 @@ def test_a_robot_leaves_a_trail_and_its_target_is_marked_with_a_line_from_it(
 ) -> None:
     from selenium.webdriver.common.action_chains import ActionChains
 
+    start = xy(client, "scout1")
+    assert np.allclose(start, [0, 0]), f"scout1 starts at (0 0), not {start}"
+    # The page shows scout1 where it stands before it drives: its trail begins there.
+    wait_for(page, lambda d: pose_on_map(d, "scout1"), "scout1 on the map")
     client.set("scout1", "speed", 2.0)
     client.set("scout1", "behaviors.moveto", "<marker><location>(2 1)</location></marker>")
     eventually(
