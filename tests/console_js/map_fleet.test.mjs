@@ -59,6 +59,14 @@ test('a crowd beyond every free place still gets a place for each name, the leas
   for (const p of placed.values()) assert.ok(Math.abs(p.left - 500) < 200 && Math.abs(p.top - 500) < 200 + RINGS * 20);
 });
 
+test('past the most names one layout places, the rest are hidden, the first placed', () => {
+  const items = Array.from({ length: 12 }, (_, i) => name(`r${i}`, 100 + 40 * i, 100));
+  const placed = placeLabels(items, 10);
+  assert.equal(placed.size, 12);
+  assert.ok(!placed.get('r9').hidden && placed.get('r9').width > 0);
+  assert.deepEqual([placed.get('r10'), placed.get('r11')], [{ hidden: true }, { hidden: true }]);
+});
+
 test('a trail keeps points a step apart, at most its bound, and drops the old', () => {
   const trail = new Trail({ points: 50, ageMs: 10000, stepM: 0.05 });
   assert.ok(trail.add(0, 0, 0));

@@ -547,6 +547,11 @@ export class RobotMap {
     items.sort((a, b) => a.rank - b.rank || (a.id < b.id ? -1 : a.id > b.id ? 1 : 0));
     for (const [id, box] of placeLabels(items)) {
       const { g, text, item } = found.get(id);
+      text.setAttribute('display', box.hidden ? 'none' : 'inline');
+      if (box.hidden) {
+        g.querySelector(':scope > line.leader')?.remove();
+        continue;
+      }
       const dx = box.left - item.x;
       const dy = box.top + LABEL_BASELINE_PX - item.y;
       text.setAttribute('transform', `translate(${dx * s} ${-dy * s}) scale(${s} ${-s})`);
