@@ -203,6 +203,8 @@ window.PropertyConsole = Object.freeze({
   values: Object.freeze({ ...values }),
   select,
   selected: () => selectedName,
+  /** What the page's one stream costs: its selectors, and the events it threw away (docs/console.md). */
+  streamStats: () => mux.stats(),
 });
 
 list.start();
