@@ -11,11 +11,10 @@ no view wanted.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
-from console_support import CSS, page_errors, pose_on_map, save_screenshot, select, wait_for
+from console_support import CSS, doc_image, page_errors, pose_on_map, save_screenshot, select, wait_for
 from support.gateway_process import GatewayProcess, start_gateway
 
 from clients.sync import Client
@@ -25,7 +24,8 @@ pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.timeout(240)]
 ROBOTS = 50
 #: The robots the test drives; the others stand still.
 DRIVEN = ("scout37", "scout50")
-#: Seconds a live value has to change in: the gateway, 50 simulated robots and Chromium share two loaded cores.
+#: Seconds a live value has to change in: the gateway, 50 simulated robots and Chromium share
+#: two loaded cores.
 LIVE_WITHIN = 30.0
 
 
@@ -37,7 +37,9 @@ def fleet_config(robots: int = ROBOTS) -> str:
             f'[[services]]\nname = "scout{i + 1}"\ntype = "sim-robot"\n'
             f"options = {{ start = [{i % 10}.0, {i // 10}.0] }}\n"
         )
-    parts.append('[[services]]\nname = "swarm"\ntype = "group"\noptions = { query = { type = "mobile_robot" } }\n')
+    parts.append(
+        '[[services]]\nname = "swarm"\ntype = "group"\noptions = { query = { type = "mobile_robot" } }\n'
+    )
     return "\n".join(parts)
 
 
@@ -68,9 +70,17 @@ def changes_live(driver: Any, path: str, what: str) -> None:
     """Wait for ``path``'s value in the view, then for two changes of it."""
     first = wait_for(driver, lambda d: value_text(d, path), f"{what}: a value", within=LIVE_WITHIN)
     second = wait_for(
-        driver, lambda d: (v := value_text(d, path)) not in (None, first) and v, f"{what} changing", within=LIVE_WITHIN
+        driver,
+        lambda d: (v := value_text(d, path)) not in (None, first) and v,
+        f"{what} changing",
+        within=LIVE_WITHIN,
     )
-    wait_for(driver, lambda d: value_text(d, path) not in (None, second), f"{what} changing again", within=LIVE_WITHIN)
+    wait_for(
+        driver,
+        lambda d: value_text(d, path) not in (None, second),
+        f"{what} changing again",
+        within=LIVE_WITHIN,
+    )
 
 
 def stream_stats(driver: Any) -> dict[str, Any]:
@@ -87,7 +97,8 @@ def cost_of_view(driver: Any, name: str, before: dict[str, Any]) -> dict[str, An
     unwanted = now["unwanted"] - before["unwanted"]
     print(
         f"\n{name}: {now['subscriptions']} subscriptions in {len(now['selectors'])} selectors;"
-        f" {received} value events received, {unwanted} ({100 * unwanted / max(1, received):.1f} %) wanted by none"
+        f" {received} value events received,"
+        f" {unwanted} ({100 * unwanted / max(1, received):.1f} %) wanted by none"
         f"\n  {' '.join(now['selectors'])}"
     )
     return now
@@ -110,10 +121,13 @@ def test_every_view_of_fifty_robots_follows_its_values_live(browser: Any, fleet:
 
         select(browser, "swarm")
         changes_live(browser, "robots.scout37.location", "swarm: robots.scout37.location")
-        changes_live(browser, "robots.scout50.sensors.temperature", "swarm: robots.scout50.sensors.temperature")
+        changes_live(
+            browser, "robots.scout50.sensors.temperature", "swarm: robots.scout50.sensors.temperature"
+        )
         assert not notices(browser), f"the group's view reads something once: {notices(browser)}"
         shown = len(browser.find_elements(CSS, "#service-view [data-property]"))
         assert shown > 14 * ROBOTS, f"the group's view shows {shown} properties"
+        doc_image(browser, "fifty-robots")
         stats = cost_of_view(browser, "swarm", stats)
 
         select(browser, "registry")
@@ -125,7 +139,9 @@ def test_every_view_of_fifty_robots_follows_its_values_live(browser: Any, fleet:
         changes_live(browser, "location", "scout37: location")
         assert not notices(browser), f"scout37's view reads something once: {notices(browser)}"
         before = pose_on_map(browser, "scout50")
-        wait_for(browser, lambda d: pose_on_map(d, "scout50") not in (None, before), "scout50 moving on the map")
+        wait_for(
+            browser, lambda d: pose_on_map(d, "scout50") not in (None, before), "scout50 moving on the map"
+        )
         cost_of_view(browser, "scout37", stats)
 
         errors = page_errors(browser)

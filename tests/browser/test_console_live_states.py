@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from console_support import CONFIG, CSS, page_errors, save_screenshot, wait_for
+from console_support import CONFIG, CSS, doc_image, page_errors, save_screenshot, wait_for
 from support.gateway_process import GatewayProcess, start_gateway
 from support.ports import free_port
 
@@ -77,7 +77,11 @@ def test_services_show_unknown_while_the_gateway_is_away_and_the_truth_once_it_i
             "every service up",
             within=NOTICE_WITHIN,
         )
-        wait_for(browser, lambda d: d.find_element(CSS, '#services [data-service="scout1"]').click() or True, "scout1")
+        wait_for(
+            browser,
+            lambda d: d.find_element(CSS, '#services [data-service="scout1"]').click() or True,
+            "scout1",
+        )
         wait_for(browser, lambda d: d.find_elements(CSS, "#service-view [data-property]"), "scout1's view")
 
         gateways[0].stop()
@@ -89,7 +93,7 @@ def test_services_show_unknown_while_the_gateway_is_away_and_the_truth_once_it_i
         )
         badge = browser.find_element(CSS, "#service-view .view-head .badge")
         assert badge.get_attribute("data-state") == "unknown", badge.text
-        save_screenshot(browser, "console-gateway-away")
+        doc_image(browser, "gateway-away")
         # It stays so: nothing the page retries meanwhile brings back an "up" nobody vouched for.
         time.sleep(QUIET_FOR)
         assert all(s == ("unknown", "unknown") for s in states(browser).values()), states(browser)
@@ -103,7 +107,9 @@ def test_services_show_unknown_while_the_gateway_is_away_and_the_truth_once_it_i
         )
         wait_for(
             browser,
-            lambda d: d.find_element(CSS, "#service-view .view-head .badge").get_attribute("data-state") == "up",
+            lambda d: (
+                d.find_element(CSS, "#service-view .view-head .badge").get_attribute("data-state") == "up"
+            ),
             "scout1's badge up again",
         )
         errors = page_errors(browser)
@@ -147,9 +153,13 @@ def test_a_listen_stopped_after_a_reconnect_logs_nothing_more(
         )
         # The Listen went on through the restart: the moving robot is logged, and it still listens.
         logged = location_events(browser)
-        wait_for(browser, lambda d: location_events(d) > logged + 2, "scout1 moving, logged after the restart")
+        wait_for(
+            browser, lambda d: location_events(d) > logged + 2, "scout1 moving, logged after the restart"
+        )
         listen = browser.find_element(CSS, "#inspector-listen")
-        assert listen.get_attribute("aria-pressed") == "true", browser.find_element(CSS, "#inspector-output").text
+        assert listen.get_attribute("aria-pressed") == "true", browser.find_element(
+            CSS, "#inspector-output"
+        ).text
 
         listen.click()
         output = browser.find_element(CSS, "#inspector-output").text

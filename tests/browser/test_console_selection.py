@@ -46,9 +46,13 @@ def test_the_drive_status_speaks_of_the_selected_robot_only(page: Any, client: C
     blur(page)
     ActionChains(page).key_down("w").perform()
     try:
-        wait_for(page, lambda d: teleop_status(d).startswith("driving scout1"), "driving scout1 in #teleop-status")
+        wait_for(
+            page, lambda d: teleop_status(d).startswith("driving scout1"), "driving scout1 in #teleop-status"
+        )
         # Selecting another robot while driving stops scout1; what scout1 answers is not shown.
-        wait_for(page, lambda d: d.find_element(CSS, '#services [data-service="scout2"]').click() or True, "scout2")
+        wait_for(
+            page, lambda d: d.find_element(CSS, '#services [data-service="scout2"]').click() or True, "scout2"
+        )
     finally:
         ActionChains(page).key_up("w").perform()
     wait_for(page, lambda d: view_title(d) == "scout2", "scout2's view")
@@ -57,14 +61,18 @@ def test_the_drive_status_speaks_of_the_selected_robot_only(page: Any, client: C
     assert "scout1" not in teleop_status(page), teleop_status(page)
 
     page.find_element(CSS, "#teleop-stop").click()
-    wait_for(page, lambda d: teleop_status(d).startswith("stopped scout2"), "stopped scout2 in #teleop-status")
+    wait_for(
+        page, lambda d: teleop_status(d).startswith("stopped scout2"), "stopped scout2 in #teleop-status"
+    )
     select(page, "thermo1")
     wait_for(page, lambda d: teleop_status(d) == "", "an empty #teleop-status for a sensor")
 
 
 def test_the_url_fragment_selects_a_service_and_back_and_forward_walk_the_selections(page: Any) -> None:
     page.execute_script("location.hash = '#scout2'")
-    wait_for(page, lambda d: selected(d) == "scout2" and view_title(d) == "scout2", "scout2 selected by #scout2")
+    wait_for(
+        page, lambda d: selected(d) == "scout2" and view_title(d) == "scout2", "scout2 selected by #scout2"
+    )
     item = page.find_element(CSS, '#services [data-service="scout2"]')
     assert item.get_attribute("aria-selected") == "true"
 
@@ -74,7 +82,9 @@ def test_the_url_fragment_selects_a_service_and_back_and_forward_walk_the_select
     assert page.execute_script("return location.hash") == "#swarm"
 
     page.back()
-    wait_for(page, lambda d: selected(d) == "thermo1" and view_title(d) == "thermo1", "thermo1 again after back")
+    wait_for(
+        page, lambda d: selected(d) == "thermo1" and view_title(d) == "thermo1", "thermo1 again after back"
+    )
     page.back()
     wait_for(page, lambda d: selected(d) == "scout2" and view_title(d) == "scout2", "scout2 again after back")
     page.forward()

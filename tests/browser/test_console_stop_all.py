@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from console_support import CSS, device_process, eventually, save_screenshot, velocity, wait_for, xy
+from console_support import CSS, device_process, doc_image, eventually, velocity, wait_for, xy
 
 from clients.sync import Client
 
@@ -61,7 +61,9 @@ def test_stop_all_asks_then_stops_every_robot(page: Any, client: Client) -> None
 
     page.find_element(CSS, "#teleop-stop-all").click()
     confirmation(page).accept()
-    wait_for(page, lambda d: report(d)["text"].startswith("Stop all: 3 of 3 stopped"), "the report of Stop all")
+    wait_for(
+        page, lambda d: report(d)["text"].startswith("Stop all: 3 of 3 stopped"), "the report of Stop all"
+    )
     assert report(page)["stopped"].split() == ["scout1", "scout2", "swarm"], report(page)
     assert report(page)["failed"] == "", report(page)
     for robot in ROBOTS:
@@ -69,19 +71,26 @@ def test_stop_all_asks_then_stops_every_robot(page: Any, client: Client) -> None
         where = xy(client, robot)
         time.sleep(STILL_FOR)
         assert np.allclose(xy(client, robot), where), f"{robot} moved on after Stop all"
-    save_screenshot(page, "console-stop-all")
+    doc_image(page, "stop-all")
 
 
 def test_stop_all_names_a_robot_that_does_not_answer(page: Any, client: Client) -> None:
     with device_process("--service", "sim-robot", "--name", "rover9") as (device, url):
         client.set("registry", "services.rover9", url, type="mobile_robot")
-        wait_for(page, lambda d: d.find_elements(CSS, '#services [data-service="rover9"]'), "rover9 in the list")
+        wait_for(
+            page, lambda d: d.find_elements(CSS, '#services [data-service="rover9"]'), "rover9 in the list"
+        )
         device.kill()  # its device is gone: nothing answers for rover9
         device.wait(5)
         drive_away(client)
         page.find_element(CSS, "#teleop-stop-all").click()
         confirmation(page).accept()
-        wait_for(page, lambda d: "rover9" in report(d)["failed"].split(), "rover9 reported as not answering", within=20)
+        wait_for(
+            page,
+            lambda d: "rover9" in report(d)["failed"].split(),
+            "rover9 reported as not answering",
+            within=20,
+        )
         stopped = report(page)["stopped"].split()
         assert {"scout1", "scout2"} <= set(stopped), report(page)
         assert "no answer from" in report(page)["text"] and "rover9 (" in report(page)["text"], report(page)

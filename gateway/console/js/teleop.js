@@ -375,5 +375,6 @@ export class StopAll {
     status.classList.toggle('error-text', isError);
     status.dataset.stopped = stopped.join(' ');
     status.dataset.failed = failed.join(' ');
+    status.scrollIntoView?.({ block: 'nearest' }); // below the panel's fold on a small screen
   }
 }
