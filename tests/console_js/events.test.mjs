@@ -448,3 +448,21 @@ test('a property that does not exist is dropped by the path its error names', ()
   assert.ok(!m.subscriptions.has('swarm/sensors.battery'));
   assert.ok(m.subscriptions.has('swarm/sensors'));
 });
+
+test('a subscription the synced stream already covers hears its latest value and the sync at once', () => {
+  const { m, timers, last } = mux({ maxSelectors: 1 });
+  m.subscribe('swarm/robots.scout1.location', {});
+  m.subscribe('swarm/robots.scout2.location', {});
+  timers.advance(100);
+  assert.deepEqual(last().selectors(), ['swarm/robots.*.location']);
+  last().emit('open');
+  last().emit('value', { service: 'swarm', path: 'robots.scout3.location', value: '(3 0)' });
+  last().emit('sync', {});
+  const heard = [];
+  m.subscribe('swarm/robots.scout3.location', { onValue: (e) => heard.push(e.value), onSync: () => heard.push('sync') });
+  const streams = StreamStandIn.made.length;
+  timers.advance(100);
+  assert.deepEqual(heard, ['(3 0)', 'sync']);
+  assert.equal(StreamStandIn.made.length, streams, 'the same cover: no new stream');
+  assert.equal(m.stats().unwanted, 1, 'scout3 was nobody\'s when it arrived');
+});

@@ -132,6 +132,7 @@ export class EventMux {
     this._streamSelectors = new Set(); // the selectors of the open stream
     this._latest = new Map(); // "service\0path" -> the last value event, oldest first
     this._confirmed = new Set(); // selectors of a stream that reached `sync`: known good
+    this._synced = false; // the open stream's snapshot is complete
     this._reopenTimer = null;
     this._watchdog = null;
     this._errorsInRow = 0;
@@ -308,6 +309,7 @@ export class EventMux {
       this._setState('closed');
       return;
     }
+    this._synced = false;
     const url = eventsUrl(selectors, this.url);
     const source = new this.EventSourceImpl(url, { withCredentials: false });
     this.source = source;
@@ -408,7 +410,8 @@ export class EventMux {
       const event = this._latest.get(`${service}\u0000${path}`);
       if (event) sub.onValue(event);
     }
-    if (this._confirmed.has(selector)) sub.onSync();
+    // A subscription the synced stream already covers has had its snapshot: the values above.
+    if (this._confirmed.has(selector) || (this._synced && this._streamCovers(selector))) sub.onSync();
   }
 
   _remember(event) {
@@ -444,6 +447,7 @@ export class EventMux {
   }
 
   _onSync() {
+    this._synced = true;
     for (const selector of this._streamWanted) {
       this._confirmed.add(selector);
       this._quarantine.delete(selector); // it works again: a later failure starts a short time out
