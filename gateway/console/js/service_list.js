@@ -14,12 +14,36 @@ const AREA_M = 5;
 /** Refetches of the list coalesce: a burst of registry changes costs one request. */
 const REFRESH_DEBOUNCE_MS = 150;
 
-const TYPE_TITLES = {
-  mobile_robot: 'Robots',
-  group: 'Groups',
-  sensor: 'Sensors',
-  registry: 'Registry',
-};
+/** The word people use for a standard type whose name qualifies it (the map, too, says robot). */
+const SHORT_NAMES = { mobile_robot: 'robot' };
+/** Plurals that no rule below makes. */
+const IRREGULAR_PLURALS = { person: 'people', child: 'children', mouse: 'mice', status: 'statuses', series: 'series' };
+
+/** The plural of an English noun: registry -> registries, box -> boxes, camera -> cameras. */
+export function pluralOf(word) {
+  if (word in IRREGULAR_PLURALS) return IRREGULAR_PLURALS[word];
+  if (/[^aeiou]y$/.test(word)) return `${word.slice(0, -1)}ies`;
+  if (/(s|x|z|ch|sh)$/.test(word)) return `${word}es`;
+  return `${word}s`;
+}
+
+/**
+ * A group heading for people, from the type name and how many services have it:
+ * ("environment_model", 1) -> "Environment model (1)", ("mobile_robot", 4) -> "Robots (4)",
+ * ("registry", 2) -> "Registries (2)"; an empty type is "Other".
+ */
+export function typeTitle(type, count) {
+  const raw = String(type ?? '').trim();
+  const words = (SHORT_NAMES[raw] ?? raw)
+    .replace(/([a-z0-9])([A-Z])/g, '$1 $2') // camelCase too
+    .split(/[\s_.-]+/)
+    .filter(Boolean)
+    .map((w) => w.toLowerCase());
+  if (!words.length) words.push('other');
+  if (count !== 1) words[words.length - 1] = pluralOf(words[words.length - 1]);
+  const text = words.join(' ');
+  return `${text[0].toUpperCase()}${text.slice(1)} (${count})`;
+}
 
 /** The area a location falls in, as a title ("x 0…5 m, y -5…0 m"), or "No location". */
 export function areaOf(location) {
@@ -170,8 +194,8 @@ export class ServiceList {
         h(
           'h3',
           { class: this.groupBy === 'type' ? 'by-type' : 'by-area' },
-          this.groupBy === 'type' ? (TYPE_TITLES[key] ?? key) : key,
-          h('small', {}, ` ${groups.get(key).length}`),
+          this.groupBy === 'type' ? typeTitle(key, groups.get(key).length) : key,
+          this.groupBy === 'type' ? null : h('small', {}, ` ${groups.get(key).length}`),
         ),
         h(
           'ul',

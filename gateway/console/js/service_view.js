@@ -4,6 +4,7 @@
 
 import { describe, getHistory, getProperty, setProperty } from './api.js';
 import { h } from './dom.js';
+import { plainDoc, renderDoc } from './doc_text.js';
 import { MAX_SUBSCRIPTIONS } from './events.js';
 import { followedOnStream, needsParameters, propertyView } from './widgets.js';
 
@@ -101,6 +102,8 @@ export class ServiceView {
         setProperty,
         getProperty,
         getHistory,
+        describe: (name) => this.describe(name),
+        subscribe: (selector, handlers) => this.mux.subscribe(selector, handlers),
         label: ns ? prop.name.slice(ns.length + 1) : prop.name,
       });
       this._views.set(prop.name, view);
@@ -129,7 +132,7 @@ export class ServiceView {
       return h(
         'fieldset',
         attrs,
-        h('legend', { title: byName.get(ns)?.doc || ns }, parent ? ns.slice(parent.length + 1) : ns, value),
+        h('legend', { title: plainDoc(byName.get(ns)?.doc) || ns }, parent ? ns.slice(parent.length + 1) : ns, value),
         leaves.map((prop) => leafView(ns, prop)),
         subs.sort().map((sub) => fieldset(sub, ns)),
       );
@@ -170,7 +173,7 @@ export class ServiceView {
     // replaceChildren, unlike h(), writes a null as the text "null": leave the absent ones out.
     const parts = [
       this.header(service),
-      model?.doc ? h('p', { class: 'doc' }, model.doc) : null,
+      model?.doc ? renderDoc(model.doc, { h }) : null,
       note,
       h('div', { class: 'namespaces' }, sections),
     ];
