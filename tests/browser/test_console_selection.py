@@ -77,9 +77,9 @@ def test_the_url_fragment_selects_a_service_and_back_and_forward_walk_the_select
     assert item.get_attribute("aria-selected") == "true"
 
     select(page, "thermo1")
-    assert page.execute_script("return location.hash") == "#thermo1"
+    wait_for(page, lambda d: d.execute_script("return location.hash") == "#thermo1", "#thermo1 in the URL")
     select(page, "swarm")
-    assert page.execute_script("return location.hash") == "#swarm"
+    wait_for(page, lambda d: d.execute_script("return location.hash") == "#swarm", "#swarm in the URL")
 
     page.back()
     wait_for(
