@@ -1,6 +1,10 @@
 // The service list (#services): every service the registry knows, grouped by type or by
 // location, with its live state. It follows the registry's `revision` (which counts joins,
 // leaves and changes of state) and asks GET /api/v1/services again when it moves.
+//
+// While the gateway cannot be reached (the list cannot be read, or the page's stream is down
+// and a read of the list fails), nobody knows the services' states: each shows as unknown,
+// grey, until the gateway answers again and the list is read anew.
 
 import { listServices } from './api.js';
 import { h } from './dom.js';
@@ -55,8 +59,10 @@ export class ServiceList {
    * `root` is #services; `mux` the event multiplexer; `onSelect(name)` hears a click;
    * `onChange(services)` hears every new list; `locationOf(name)` gives a live location.
    */
-  constructor(root, { mux, onSelect, onChange = () => {}, locationOf = () => null, status }) {
-    Object.assign(this, { root, mux, onSelect, onChange, locationOf, status });
+  constructor(root, { mux, onSelect, onChange = () => {}, onReachable = () => {}, locationOf = () => null, status }) {
+    Object.assign(this, { root, mux, onSelect, onChange, onReachable, locationOf, status });
+    /** Whether the last read of the list succeeded: the states shown are the gateway's. */
+    this.reachable = true;
     this.services = [];
     this.selected = null;
     this.groupBy = 'type';
@@ -105,11 +111,14 @@ export class ServiceList {
       this.services = Array.isArray(answer?.services) ? answer.services : [];
       const registry = this.services.find((s) => s.type === 'registry');
       if (registry && registry.name !== this.registry) this.follow(registry.name);
+      this.reachable = true;
       this.render();
       this.status('');
       this.onChange(this.services);
+      this.onReachable(true);
     } catch (e) {
       this.status(`cannot list the services: ${e.code}: ${e.message}`);
+      this.unreachable();
     } finally {
       this._inFlight = false;
       if (this._again) {
@@ -117,6 +126,28 @@ export class ServiceList {
         this.refreshSoon();
       }
     }
+  }
+
+  /**
+   * Hear the page's stream state: when it is not open, the list is read (the states may have
+   * changed, or the gateway may be gone, and then they are unknown). Open again, its `sync`
+   * reads the list anyway.
+   */
+  connectionChanged(state) {
+    if (state !== 'open') this.refreshSoon();
+  }
+
+  /** The gateway does not answer: every state shown becomes unknown (the list itself stays). */
+  unreachable() {
+    if (!this.reachable) return;
+    this.reachable = false;
+    this.render();
+    this.onReachable(false);
+  }
+
+  /** The state to show: the gateway's, or unknown while it cannot be reached. */
+  stateOf(service) {
+    return this.reachable ? (service.state ?? 'unknown') : 'unknown';
   }
 
   byName(name) {
@@ -192,7 +223,7 @@ export class ServiceList {
         title: service.address ? `${service.name} at ${service.address}` : service.name,
         dataset: {
           service: service.name,
-          state: service.state ?? 'unknown',
+          state: this.stateOf(service),
           type: service.type ?? '',
           area: areaOf(this.locationOf(service.name) ?? service.location),
         },
@@ -204,10 +235,10 @@ export class ServiceList {
           }
         },
       },
-      h('span', { class: 'state-dot', title: service.state ?? 'unknown' }),
+      h('span', { class: 'state-dot', title: this.reachable ? this.stateOf(service) : 'unknown: the gateway cannot be reached' }),
       h('span', { class: 'service-name' }, service.name),
       h('span', { class: 'service-type' }, service.type ?? ''),
-      h('span', { class: 'service-state' }, service.state ?? 'unknown'),
+      h('span', { class: 'service-state' }, this.stateOf(service)),
     );
   }
 }

@@ -80,6 +80,7 @@ export class Teleop {
     this.pad = null;
     this.showKeys();
     this.release();
+    this.showStatus('', false); // the status is the selected robot's: what the last one heard goes
     const t = this.target();
     this.els.target.textContent = t ? `${t.name} (${t.type === 'group' ? 'group' : 'robot'})` : 'no robot selected';
     this.els.root.classList.toggle('disabled', !t);
@@ -253,9 +254,9 @@ export class Teleop {
     try {
       await this.setVelocity(name, text, keepalive);
       this.lastSent = text;
-      this.showStatus(`${stopping ? 'stopped' : 'driving'} ${name}: velocity ${text}`, false);
+      this.showStatusOf(name, `${stopping ? 'stopped' : 'driving'} ${name}: velocity ${text}`, false);
     } catch (e) {
-      this.showStatus(`${name}: velocity ${text}: ${e.code}: ${e.message}`, true);
+      this.showStatusOf(name, `${name}: velocity ${text}: ${e.code}: ${e.message}`, true);
     } finally {
       if (!stopping) {
         this.inFlight = false;
@@ -281,6 +282,11 @@ export class Teleop {
     this.els.status.textContent = text;
     this.els.status.classList.toggle('error-text', isError);
   }
+
+  /** Show what `name` answered, if it is still the one selected (a stop sent on leaving it is not). */
+  showStatusOf(name, text, isError) {
+    if (this.target()?.name === name) this.showStatus(text, isError);
+  }
 }
 
 /** Set `velocity` of `name` (keepalive: the request outlives the page). */
@@ -290,4 +296,102 @@ function sendVelocity(name, text, keepalive) {
 
 function isTyping(el) {
   return Boolean(el?.isContentEditable) || ['INPUT', 'TEXTAREA', 'SELECT'].includes(el?.tagName);
+}
+
+// -- Stop all ---------------------------------------------------------------------------------
+// One action that reaches every service the teleop can drive (every robot and group listed),
+// after the operator confirmed it: zeros sent to each, a few at a time, and a report of which
+// stopped and which did not answer.
+
+/** Stops in flight at once: a fleet of hundreds is stopped in waves, never hundreds of requests at once. */
+export const STOP_ALL_AT_ONCE = 16;
+
+/** The services `services` ({name, type}) that Stop all reaches: robots and groups, by name. */
+export function drivableNames(services) {
+  return services
+    .filter((s) => s.type === 'mobile_robot' || s.type === 'group')
+    .map((s) => s.name)
+    .sort((a, b) => a.localeCompare(b, undefined, { numeric: true }));
+}
+
+/**
+ * Send zeros to the `velocity` of every one of `names`, at most `atOnce` at a time; resolves to
+ * {stopped: [name], failed: [{name, error}]} in the order of `names`.
+ */
+export async function stopEvery(names, { setVelocity = sendVelocity, atOnce = STOP_ALL_AT_ONCE } = {}) {
+  const zero = formatVector(ZERO);
+  const results = new Array(names.length);
+  let next = 0;
+  const worker = async () => {
+    while (next < names.length) {
+      const at = next++;
+      try {
+        await setVelocity(names[at], zero, false);
+        results[at] = { name: names[at] };
+      } catch (error) {
+        results[at] = { name: names[at], error };
+      }
+    }
+  };
+  await Promise.all(Array.from({ length: Math.min(atOnce, names.length) }, worker));
+  return {
+    stopped: results.filter((r) => !r.error).map((r) => r.name),
+    failed: results.filter((r) => r.error).map(({ name, error }) => ({ name, error })),
+  };
+}
+
+/** The report of a Stop all, as the page shows it. */
+export function stopAllReport({ stopped, failed }) {
+  const parts = [`Stop all: ${stopped.length} of ${stopped.length + failed.length} stopped`];
+  if (stopped.length) parts.push(`stopped ${stopped.join(', ')}`);
+  if (failed.length) {
+    parts.push(`no answer from ${failed.map(({ name, error }) => `${name} (${error?.code ?? 'UNKNOWN'}: ${error?.message ?? error})`).join(', ')}`);
+  }
+  return parts.join('; ');
+}
+
+/**
+ * The Stop all button: `els` {button, status}; `services()` the listed services; `teleop` the
+ * page's Teleop (its own driving ends first); `confirm(text)` asks the operator.
+ */
+export class StopAll {
+  constructor(els, { services, teleop, confirm = (text) => globalThis.confirm(text), setVelocity = sendVelocity }) {
+    Object.assign(this, { els, services, teleop, confirm, setVelocity });
+    this.running = false;
+    els.button.addEventListener('click', () => this.run());
+  }
+
+  async run() {
+    if (this.running) return; // one at a time: a second press while it runs adds nothing
+    const names = drivableNames(this.services());
+    if (!names.length) {
+      this.show('Stop all: no robot or group is listed', false, [], []);
+      return;
+    }
+    if (!this.confirm(`Stop every robot and group (${names.length}: ${names.join(', ')})?`)) return;
+    this.running = true;
+    this.els.button.disabled = true;
+    // The page's own driving ends first, so that no renewal follows the stop.
+    this.teleop.keys.clear();
+    this.teleop.stick = null;
+    this.teleop.showKeys();
+    this.teleop.release();
+    this.show(`Stop all: stopping ${names.length}…`, false, [], []);
+    try {
+      const result = await stopEvery(names, { setVelocity: this.setVelocity });
+      this.show(stopAllReport(result), result.failed.length > 0, result.stopped, result.failed.map((f) => f.name));
+    } finally {
+      this.running = false;
+      this.els.button.disabled = false;
+    }
+  }
+
+  show(text, isError, stopped, failed) {
+    const { status } = this.els;
+    status.textContent = text;
+    status.classList.toggle('error-text', isError);
+    status.dataset.stopped = stopped.join(' ');
+    status.dataset.failed = failed.join(' ');
+    status.scrollIntoView?.({ block: 'nearest' }); // below the panel's fold on a small screen
+  }
 }
