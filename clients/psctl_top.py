@@ -11,16 +11,19 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import curses
 import locale
 import sys
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from datetime import datetime
+from typing import TYPE_CHECKING
 
 from clients.aio import AsyncClient, Event, Mark, Selector
 from clients.values import Value
+
+if TYPE_CHECKING:
+    import curses  # imported when drawn: the standard library has no curses on Windows, and piped needs none
 
 __all__ = ["MAX_ROWS", "LiveTable", "StreamEnded", "TopError", "age_text", "run_top"]
 
@@ -250,6 +253,10 @@ async def _print_tables(
 def _terminal() -> Iterator[curses.window]:
     """curses on the whole screen, keys read one at a time without echo; the terminal as it was
     afterwards, whatever ends the view (q, Ctrl-C, an error)."""
+    try:
+        import curses  # only a terminal view needs it
+    except ImportError:
+        raise TopError("this Python has no curses (Windows): pipe the output for plain tables") from None
     locale.setlocale(locale.LC_ALL, "")  # curses then writes UTF-8 values as characters
     try:
         screen = curses.initscr()
@@ -273,6 +280,8 @@ def _terminal() -> Iterator[curses.window]:
 async def _draw(screen: curses.window, table: LiveTable, heading: str) -> AsyncIterator[None]:
     """Draw ``table`` on ``screen`` when it changed (ten times a second at most) and every second
     for the ages; end on q."""
+    import curses  # loaded by _terminal already
+
     loop = asyncio.get_running_loop()
     quit_pressed = asyncio.Event()
 
