@@ -3,7 +3,8 @@
 Exit codes: 0 success (also a Listen ended by --count, --duration or Ctrl-C);
 1 the call failed (the gateway answered with an error status); 2 usage error
 (bad arguments, a malformed -p or value); 3 the gateway cannot be reached;
-130 interrupted by Ctrl-C (commands other than listen).
+130 interrupted by Ctrl-C (commands other than listen and top). With several
+-t, the highest code of the targets.
 """
 
 from __future__ import annotations
@@ -83,6 +84,9 @@ examples:
   psctl listen scout1 location --also scout2:location --min-interval 0.1 --duration 5
   psctl history scout1 location --since 60s   what the gateway kept of the last minute ([history])
   psctl --json get scout1 location            machine-readable output
+  psctl -t gw1:50051 -t gw2:50051 get thermo1 data     on each gateway, each line tagged [gw1:50051]
+  psctl --format jsonl listen thermo1 data --count 3      records: one JSON object a line (-o FILE: appended)
+  psctl top scout1                            a live table of scout1's properties (q quits)
   psctl cluster --devices                     the gateways of a cluster and who owns each device
   psctl cluster drain gw1                     gw1 hands its devices over (undrain gw1; rebalance)
   source <(psctl completion bash)             tab completion of commands and options (also zsh, fish)
@@ -91,7 +95,10 @@ The gateway address comes from --target, else $PSCTL_TARGET, else 127.0.0.1:5005
 addresses, comma-separated (-t gw1:50051,gw2:50051), or a gRPC name that stands for several
 (dns:///gateways.local:50051): a call that cannot reach one gateway is made through the next, and
 `listen --resume` moves to the next when its gateway dies or freezes; when none answers, the
-error names each address tried (exit 3).
+error names each address tried (exit 3). -t given again (at most 32): the command runs on each
+gateway at once; a gateway that fails is reported and the others go on, and the exit code is the
+highest of theirs. --format jsonl: one JSON object a line (target, service, property, value, time,
+kind); --output FILE appends them, moving FILE to FILE.1 at --output-max-bytes (0: no bound).
 exit codes: 0 ok, 1 the call failed, 2 usage error, 3 gateway unreachable, 130 interrupted.
 """
 
