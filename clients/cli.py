@@ -39,7 +39,7 @@ from clients.aio import (
 from clients.cluster_view import ACTIONS, cluster_command
 from clients.credentials import ENVIRONMENT, ClientCredentials
 from clients.errors import GatewayUnreachable, NotFound, PropertyServiceError
-from clients.psctl_output import FORMATS, RecordFile, TargetOutput
+from clients.psctl_output import FORMATS, RecordFile, RecordFileError, TargetOutput
 from clients.psctl_top import StreamEnded, TopError, run_top
 from clients.values import Value, ValueFormatError
 from services.kernel.model import ParameterModel, PropertyModel
@@ -1098,6 +1098,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (_UsageError, ValueFormatError, ValueError) as e:
         _error(str(e))
         return EXIT_USAGE
+    except RecordFileError as e:
+        _error(str(e))
+        return EXIT_FAILED
     except BrokenPipeError:
         # The reader went away (e.g. `psctl listen ... | head`); keep the interpreter's final flush quiet.
         devnull = os.open(os.devnull, os.O_WRONLY)

@@ -11,6 +11,7 @@ line with ``target``, ``service``, ``property``, ``value``, ``time`` and ``kind`
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import logging
 import logging.handlers
@@ -21,7 +22,7 @@ from typing import Any, TextIO
 
 from clients.values import Value
 
-__all__ = ["FORMATS", "RecordFile", "TargetOutput", "record_json"]
+__all__ = ["FORMATS", "RecordFile", "RecordFileError", "TargetOutput", "record_json"]
 
 #: ``--format`` choices: lines for people, one JSON document per result, one JSON record a line.
 FORMATS = ("text", "json", "jsonl")
@@ -63,6 +64,10 @@ class _RaisingRotatingHandler(logging.handlers.RotatingFileHandler):
             raise error
 
 
+class RecordFileError(Exception):
+    """A record could not be written to the ``--output`` file (a full disk, a file removed under it)."""
+
+
 class RecordFile:
     """``--output FILE`` for ``--format jsonl``: records appended to FILE, one a line.
 
@@ -82,10 +87,15 @@ class RecordFile:
 
     def write(self, line: str) -> None:
         """Append one record (a line without its newline); it is on disk when this returns."""
-        self._handler.emit(logging.makeLogRecord({"msg": line, "args": None}))
+        try:
+            self._handler.emit(logging.makeLogRecord({"msg": line, "args": None}))
+        except OSError as e:
+            raise RecordFileError(f"--output {self.path}: {e.strerror or e}") from None
 
     def close(self) -> None:
-        self._handler.close()
+        # A write that failed was said already; closing must not raise it a second time.
+        with contextlib.suppress(OSError):
+            self._handler.close()
 
 
 class TargetOutput:

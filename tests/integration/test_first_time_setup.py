@@ -69,7 +69,8 @@ def test_bash_completion_of_psctl_registers_and_offers_its_commands(tmp_path: Pa
         ' && COMP_WORDS=(psctl completion "") COMP_CWORD=2 && _shtab_psctl && echo "shell: ${COMPREPLY[*]}"'
         ' && COMP_WORDS=(psctl top scout1 --p) COMP_CWORD=3 && _shtab_psctl && echo "top: ${COMPREPLY[*]}"'
         ' && COMP_WORDS=(psctl get --form) COMP_CWORD=2 && _shtab_psctl && echo "option: ${COMPREPLY[*]}"'
-        ' && COMP_WORDS=(psctl get --format "") COMP_CWORD=3 && _shtab_psctl && echo "format: ${COMPREPLY[*]}"',
+        ' && COMP_WORDS=(psctl get --format "") COMP_CWORD=3 && _shtab_psctl'
+        ' && echo "format: ${COMPREPLY[*]}"',
     )
     assert shell.returncode == 0, shell.stderr
     registered, first, shells, top, option, formats = shell.stdout.splitlines()

@@ -239,3 +239,6 @@ def test_records_are_appended_to_an_output_file_that_rotates_at_its_bound(
     assert done.returncode == 2 and "--format jsonl" in done.stderr
     done = run("-t", a, "--format", "jsonl", "ls", "--output", str(tmp_path))
     assert done.returncode == 2 and done.stderr.startswith(f"error: --output {tmp_path}: ")
+    if Path("/dev/full").exists():  # a full disk: one line, exit 1, no traceback
+        done = run("-t", a, "-t", b, "--format", "jsonl", "get", "thermo1", "rate_hz", "-o", "/dev/full")
+        assert (done.returncode, done.stderr) == (1, "error: --output /dev/full: No space left on device\n")

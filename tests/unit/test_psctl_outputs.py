@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from clients.aio import Event
-from clients.psctl_output import RecordFile, TargetOutput, record_json
+from clients.psctl_output import RecordFile, RecordFileError, TargetOutput, record_json
 from clients.psctl_top import LiveTable, age_text
 
 T0 = datetime(2026, 1, 2, 3, 4, 5, tzinfo=UTC)
@@ -133,3 +133,14 @@ def test_an_unbounded_output_file_only_appends(tmp_path: Path) -> None:
         records.close()
     assert [p.name for p in tmp_path.iterdir()] == ["all.jsonl"]
     assert len(path.read_text().splitlines()) == 100
+
+
+def test_a_record_the_disk_refuses_is_a_clear_error() -> None:
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full here")
+    records = RecordFile("/dev/full", max_bytes=1024, keep=1)  # a device: written, never moved aside
+    try:
+        with pytest.raises(RecordFileError, match=r"^--output /dev/full: No space left on device$"):
+            records.write('{"n": 1}')
+    finally:
+        records.close()
