@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import base64
+import contextlib
 import functools
 import math
 import os
@@ -40,7 +41,7 @@ from clients.cluster_view import ACTIONS, cluster_command
 from clients.credentials import ENVIRONMENT, ClientCredentials
 from clients.errors import GatewayUnreachable, NotFound, PropertyServiceError
 from clients.psctl_output import FORMATS, RecordFile, RecordFileError, TargetOutput
-from clients.psctl_top import StreamEnded, TopError, run_top
+from clients.psctl_top import StreamEnded, TopError, TopSource, run_top
 from clients.values import Value, ValueFormatError
 from services.kernel.model import ParameterModel, PropertyModel
 from services.kernel.release import version_line
@@ -896,25 +897,45 @@ async def _history(client: AsyncClient, args: argparse.Namespace, out: TargetOut
     return EXIT_OK
 
 
-async def _top(client: AsyncClient, args: argparse.Namespace, out: TargetOutput) -> int:
+async def _top(
+    args: argparse.Namespace,
+    *,
+    targets: list[str],
+    clients: list[AsyncClient],
+    codes: list[int],
+) -> int:
+    """``top`` on every target in one table; a target that fails is reported, the others go on."""
+    several = len(targets) > 1
+    outs = {target: TargetOutput(target, tagged=several) for target in targets}
     paths = [p.strip() for p in args.properties.split(",") if p.strip()] if args.properties else None
+
+    def report(target: str, error: Exception) -> None:
+        outs[target].error(str(error))
+        codes.append(_exit_code(error))
+
     try:
         await run_top(
-            client,
+            [TopSource(target, client) for target, client in zip(targets, clients, strict=True)],
             args.service,
             paths,
             interval=args.interval,
             count=args.count,
             duration=args.duration,
-            print_line=out.line,
-            title=out.target,
+            print_line=TargetOutput(targets[0]).line,  # a table's lines, tagged by its TARGET column
+            report=report,
         )
-    except StreamEnded as e:
-        out.error(str(e))
-        return EXIT_FAILED
     except TopError as e:
         raise _UsageError(str(e)) from None
-    return EXIT_OK
+    return max(codes, default=EXIT_OK)
+
+
+def _exit_code(error: Exception) -> int:
+    """The exit code of a target that failed with ``error``."""
+    if isinstance(error, GatewayUnreachable):
+        return EXIT_UNREACHABLE
+    if isinstance(error, StreamEnded | PropertyServiceError):
+        return EXIT_FAILED
+    return EXIT_USAGE
 
 
 def _print_mark(mark: Mark, out: TargetOutput) -> None:
@@ -957,7 +978,6 @@ _COMMANDS = {
     "listen": _listen,
     "history": _history,
     "cluster": _cluster,
-    "top": _top,
 }
 
 
@@ -985,26 +1005,26 @@ async def _run_target(
     going. Its exit code is also added to ``codes`` as soon as it is known."""
     code = EXIT_FAILED
     try:
-        async with AsyncClient(
-            target,
-            timeout=call_timeout,
-            credentials=credentials,
-            separate_listens=getattr(args, "separate_stream", False),
-            keepalive=getattr(args, "keepalive", DEFAULT_KEEPALIVE) or None,
-            failover_limit=getattr(args, "failover_limit", DEFAULT_FAILOVER_LIMIT) or None,
-        ) as client:
+        async with _client(args, target, call_timeout, credentials) as client:
             code = await _COMMANDS[args.command](client, args, out)
-    except GatewayUnreachable as e:
+    except (PropertyServiceError, _UsageError, ValueFormatError, ValueError) as e:
         out.error(str(e))
-        code = EXIT_UNREACHABLE
-    except PropertyServiceError as e:
-        out.error(str(e))
-        code = EXIT_FAILED
-    except (_UsageError, ValueFormatError, ValueError) as e:
-        out.error(str(e))
-        code = EXIT_USAGE
+        code = _exit_code(e)
     codes.append(code)
     return code
+
+
+def _client(
+    args: argparse.Namespace, target: str, call_timeout: float | None, credentials: ClientCredentials
+) -> AsyncClient:
+    return AsyncClient(
+        target,
+        timeout=call_timeout,
+        credentials=credentials,
+        separate_listens=getattr(args, "separate_stream", False),
+        keepalive=getattr(args, "keepalive", DEFAULT_KEEPALIVE) or None,
+        failover_limit=getattr(args, "failover_limit", DEFAULT_FAILOVER_LIMIT) or None,
+    )
 
 
 async def _run(
@@ -1020,6 +1040,13 @@ async def _run(
     each target's results when it is done, in the order of -t; a listen's lines come as they happen.
     The exit code: 0 when every target succeeded, else the highest of theirs."""
     credentials = _credentials(args)
+    if args.command == "top":
+        async with contextlib.AsyncExitStack() as opened:
+            clients = [
+                await opened.enter_async_context(_client(args, target, call_timeout, credentials))
+                for target in targets
+            ]
+            return await _top(args, targets=targets, clients=clients, codes=codes)
     several = len(targets) > 1
     held = several and args.command != "listen"
     outs = [
@@ -1125,7 +1152,7 @@ def _targets(args: argparse.Namespace) -> list[str]:
     twice = sorted({t for t in targets if targets.count(t) > 1})
     if twice:
         raise _UsageError(f"-t {twice[0]} is given twice")
-    if len(targets) > 1 and args.command in ("cluster", "top"):
+    if len(targets) > 1 and args.command == "cluster":
         raise _UsageError(f"{args.command} shows one gateway's view: give one -t")
     return targets
 

@@ -1,10 +1,11 @@
 """``psctl top SERVICE``: a service's properties as a table that changes in place as they do.
 
-One Listen of the properties feeds a :class:`LiveTable` (name, value, unit, age since the last
-change, changes seen); on a terminal curses draws it over the whole screen, at most ten times a
-second and once a second for the ages, until q or Ctrl-C, and gives the terminal back as it found
-it. Piped (no terminal on stdin and stdout) it prints a plain table whenever values changed, at most
-once per ``interval``: the first as soon as the current values are in.
+One Listen of the properties on each gateway feeds a :class:`LiveTable` (name, value, unit, age
+since the last change, changes seen; the gateway first, with several); on a terminal curses draws
+it over the whole screen, at most ten times a second and once a second for the ages, until q or
+Ctrl-C, and gives the terminal back as it found it. Piped (no terminal on stdin and stdout) it
+prints a plain table whenever values changed, at most once per ``interval``: the first as soon as
+the current values are in.
 """
 
 from __future__ import annotations
@@ -14,18 +15,19 @@ import contextlib
 import locale
 import sys
 import time
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator, Sequence
 from dataclasses import dataclass
 from datetime import datetime
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from clients.aio import AsyncClient, Event, Mark, Selector
+from clients.errors import PropertyServiceError
 from clients.values import Value
 
 if TYPE_CHECKING:
     import curses  # imported when drawn: the standard library has no curses on Windows, and piped needs none
 
-__all__ = ["MAX_ROWS", "LiveTable", "StreamEnded", "TopError", "age_text", "run_top"]
+__all__ = ["MAX_ROWS", "LiveTable", "StreamEnded", "TopError", "TopSource", "age_text", "run_top"]
 
 #: Redraws a second at most on a terminal: a property that changes at 1 kHz costs ten draws.
 _MAX_FRAMES_PER_S = 10
@@ -79,62 +81,72 @@ class _Row:
 
 
 class LiveTable:
-    """The latest value of each property, when it last changed and how often it did; drawn as
-    lines by :meth:`lines`. ``units``: property name → unit (from the service's model)."""
+    """The latest value of each property of each target, when it last changed and how often it
+    did; drawn as lines by :meth:`lines`, with a TARGET column first when there are several
+    ``targets`` (their rows in that order)."""
 
-    def __init__(self, units: dict[str, str]) -> None:
-        self._units = units
-        self._rows: dict[str, _Row] = {}
+    def __init__(self, targets: Sequence[str] = ("",)) -> None:
+        self._show_target = len(targets) > 1
+        self._order = {target: i for i, target in enumerate(targets)}
+        #: (target, property) → unit, from each target's model of the service.
+        self.units: dict[tuple[str, str], str] = {}
+        self._rows: dict[tuple[str, str], _Row] = {}
         #: Set by each change, cleared by whoever draws.
         self.changed = asyncio.Event()
 
     def __len__(self) -> int:
         return len(self._rows)
 
-    def update(self, ev: Event) -> None:
-        """One event of the Listen: the first of a property is its current value (0 changes)."""
+    def update(self, ev: Event, target: str = "") -> None:
+        """One event of ``target``'s Listen: the first of a property is its current value (0 changes)."""
+        key = (target, ev.property)
         if ev.removed:
-            self._rows.pop(ev.property, None)
+            self._rows.pop(key, None)
         else:
-            row = self._rows.get(ev.property)
+            row = self._rows.get(key)
             when = ev.time.timestamp()
             if row is not None:
                 row.value, row.changed, row.changes = _one_line(ev.value), when, row.changes + 1
             elif len(self._rows) < MAX_ROWS:
-                self._rows[ev.property] = _Row(_one_line(ev.value), when, 0)
+                self._rows[key] = _Row(_one_line(ev.value), when, 0)
         self.changed.set()
 
     def lines(self, width: int | None, now: float) -> list[str]:
-        """The header and one line per property in name order; values shortened to fit ``width``
-        (None: whole)."""
-        names = sorted(self._rows)
-        name_width = max([len("NAME"), *(len(n) for n in names)])
-        unit_width = max([len("UNIT"), *(len(self._units.get(n, "")) for n in names)])
+        """The header and one line per property, by target (in their order) and name; values shortened to fit
+        ``width`` (None: whole)."""
+        keys = sorted(self._rows, key=lambda key: (self._order.get(key[0], len(self._order)), key[1]))
+        columns = ["TARGET"] if self._show_target else []
+        columns += ["NAME", "VALUE", "UNIT", "AGE", "CHANGES"]
+        cells = [
+            [
+                *([target] if self._show_target else []),
+                name,
+                self._rows[target, name].value,
+                self.units.get((target, name), ""),
+                age_text(now - self._rows[target, name].changed),
+                str(self._rows[target, name].changes),
+            ]
+            for target, name in keys
+        ]
+        widths = [max([len(title), *(len(row[i]) for row in cells)]) for i, title in enumerate(columns)]
+        # Room for an age of "10.0s" and a count in the millions from the start: columns that do
+        # not move while the numbers grow.
+        widths[-2], widths[-1] = max(widths[-2], _AGE_WIDTH), max(widths[-1], _CHANGES_WIDTH)
+        value = columns.index("VALUE")
         if width is not None:
-            name_width = min(name_width, max(width // 3, 4))
-        fixed = name_width + unit_width + _AGE_WIDTH + _CHANGES_WIDTH + 8  # four two-space gaps
-        value_width = (
-            max(len("VALUE"), 5, *(len(r.value) for r in self._rows.values()))
-            if width is None
-            else max(width - fixed, 5)
-        )
+            for i in range(value):  # TARGET and NAME: a third of the width at most, together
+                widths[i] = min(widths[i], max(width // (3 * value), 4))
+            fixed = sum(widths) - widths[value] + 2 * (len(columns) - 1)
+            widths[value] = max(width - fixed, 5)
+        right = {len(columns) - 2, len(columns) - 1}  # AGE and CHANGES: numbers, right-aligned
 
-        def line(name: str, value: str, unit: str, age: str, changes: str) -> str:
-            return (
-                f"{_shortened(name, name_width):<{name_width}}  "
-                f"{_shortened(value, value_width):<{value_width}}  "
-                f"{unit:<{unit_width}}  {age:>{_AGE_WIDTH}}  {changes:>{_CHANGES_WIDTH}}"
+        def line(row: list[str]) -> str:
+            return "  ".join(
+                f"{cell:>{w}}" if i in right else f"{_shortened(cell, w):<{w}}"
+                for i, (cell, w) in enumerate(zip(row, widths, strict=True))
             ).rstrip()
 
-        out = [line("NAME", "VALUE", "UNIT", "AGE", "CHANGES")]
-        for name in names:
-            row = self._rows[name]
-            out.append(
-                line(
-                    name, row.value, self._units.get(name, ""), age_text(now - row.changed), str(row.changes)
-                )
-            )
-        return out
+        return [line(columns), *(line(row) for row in cells)]
 
 
 async def _units(client: AsyncClient, service: str) -> tuple[dict[str, str], list[str]]:
@@ -145,42 +157,71 @@ async def _units(client: AsyncClient, service: str) -> tuple[dict[str, str], lis
     return units, listenable
 
 
-async def _follow(
-    client: AsyncClient, selectors: list[Selector], table: LiveTable, synced: asyncio.Event
-) -> None:
-    """Feed ``table`` from one Listen of ``selectors`` until cancelled (or the stream fails)."""
-    stream = client.listen(*selectors[0], *selectors[1:], marks=True)
-    try:
-        async for item in stream:
-            if isinstance(item, Mark):
-                if item is Mark.SYNC:
-                    synced.set()
-                    table.changed.set()
-                continue
-            table.update(item)
-    finally:
-        await stream.aclose()
+@dataclass
+class TopSource:
+    """One gateway whose properties ``top`` shows: its ``-t`` and a client of it."""
+
+    target: str
+    client: AsyncClient
+
+
+class _Follow:
+    """Feeds the table from one target's Listen; what ended it, when it failed, is ``error``."""
+
+    def __init__(self, source: TopSource, table: LiveTable, started: Callable[[], None]) -> None:
+        self.source = source
+        self._table = table
+        self._started = started
+        self.error: Exception | None = None
+
+    async def run(self, service: str, paths: list[str] | None) -> None:
+        try:
+            await self._listen(service, paths)
+        except (PropertyServiceError, TopError) as e:
+            self.error = e
+            self._table.changed.set()  # drawn: the failure's line
+        finally:
+            self._started()  # a target that failed before its current values came holds nothing up
+
+    async def _listen(self, service: str, paths: list[str] | None) -> None:
+        target, client = self.source.target, self.source.client
+        units, listenable = await _units(client, service)
+        self._table.units.update({(target, name): unit for name, unit in units.items()})
+        chosen = paths if paths else listenable
+        if not chosen:
+            raise TopError(f"{service} has no property a Listen can follow; name some with --properties")
+        selectors: list[Selector] = [(service, path) for path in chosen]
+        stream = client.listen(*selectors[0], *selectors[1:], marks=True)
+        try:
+            async for item in stream:
+                if isinstance(item, Mark):
+                    if item is Mark.SYNC:
+                        self._started()
+                        self._table.changed.set()
+                    continue
+                self._table.update(item, target)
+        finally:
+            await stream.aclose()
+        raise StreamEnded("the gateway ended the stream")
 
 
 async def _until_done(
-    follow: asyncio.Task[None], show: Callable[[], AsyncIterator[None]], duration: float | None
+    follows: list[asyncio.Task[None]], show: Callable[[], AsyncIterator[None]], duration: float | None
 ) -> None:
-    """Run ``show`` while ``follow`` runs; the first to end (or ``duration``) ends both. A failed
-    Listen raises its error here."""
+    """Run ``show`` while any of ``follows`` runs; ``show`` ending, every follow ending, or
+    ``duration`` ends them all."""
     shower = asyncio.ensure_future(_drain(show()))
-    both = {follow, shower}
+    feeding: asyncio.Future[list[None]] = asyncio.gather(*follows)
+    both: list[asyncio.Future[Any]] = [feeding, shower]
     try:
         async with asyncio.timeout(duration):
             await asyncio.wait(both, return_when=asyncio.FIRST_COMPLETED)
     except TimeoutError:
         pass
     finally:
-        for task in both:
+        for task in [*both, *follows]:
             task.cancel()
-        await asyncio.gather(*both, return_exceptions=True)
-    if follow.done() and not follow.cancelled():
-        follow.result()  # raises the stream's error
-        raise StreamEnded("the gateway ended the stream")
+        await asyncio.gather(*both, *follows, return_exceptions=True)
 
 
 async def _drain(items: AsyncIterator[None]) -> None:
@@ -189,7 +230,7 @@ async def _drain(items: AsyncIterator[None]) -> None:
 
 
 async def run_top(
-    client: AsyncClient,
+    sources: list[TopSource],
     service: str,
     paths: list[str] | None,
     *,
@@ -197,47 +238,88 @@ async def run_top(
     count: int | None,
     duration: float | None,
     print_line: Callable[[str], None],
-    title: str,
+    report: Callable[[str, Exception], None],
 ) -> None:
-    """Show ``paths`` of ``service`` (every listenable property when None) until q, Ctrl-C,
-    ``duration``, or, piped, ``count`` tables. ``print_line`` prints a piped table's lines."""
-    units, listenable = await _units(client, service)
-    chosen = paths if paths else listenable
-    if not chosen:
-        raise TopError(f"{service} has no property a Listen can follow; name some with --properties")
-    table = LiveTable(units)
-    synced = asyncio.Event()
-    follow = asyncio.create_task(_follow(client, [(service, p) for p in chosen], table, synced))
-    heading = f"{title}  {service}"
-    if sys.stdin.isatty() and sys.stdout.isatty():
-        with _terminal() as screen:
-            await _until_done(follow, lambda: _draw(screen, table, heading), duration)
+    """Show ``paths`` of ``service`` (every listenable property when None) of every source until
+    q, Ctrl-C, ``duration``, every source failing, or, piped, ``count`` tables. ``print_line``
+    prints a piped table's lines; ``report(target, error)`` tells of a source that failed (the others
+    go on): at once when piped, once the terminal is given back when drawn."""
+    table = LiveTable([source.target for source in sources])
+    started = asyncio.Event()
+    waiting = len(sources)
+
+    def one_started() -> None:
+        nonlocal waiting
+        waiting -= 1
+        if waiting <= 0:
+            started.set()
+
+    follows = [_Follow(source, table, _once(one_started)) for source in sources]
+    heading = sources[0].target if len(sources) == 1 else f"{len(sources)} gateways"
+    heading = f"{heading}  {service}"
+    interactive = sys.stdin.isatty() and sys.stdout.isatty()
+
+    async def follow(one: _Follow) -> None:
+        await one.run(service, paths)
+        if one.error is not None and not interactive:
+            report(one.source.target, one.error)
+
+    tasks = [asyncio.create_task(follow(one)) for one in follows]
+    if interactive:
+        try:
+            with _terminal() as screen:
+                await _until_done(tasks, lambda: _draw(screen, table, heading, follows), duration)
+        finally:
+            for one in follows:
+                if one.error is not None:
+                    report(one.source.target, one.error)
     else:
         await _until_done(
-            follow,
+            tasks,
             lambda: _print_tables(
-                table, synced=synced, heading=heading, interval=interval, count=count, print_line=print_line
+                table,
+                started=started,
+                alive=lambda: any(one.error is None for one in follows),
+                heading=heading,
+                interval=interval,
+                count=count,
+                print_line=print_line,
             ),
             duration,
         )
 
 
+def _once(call: Callable[[], None]) -> Callable[[], None]:
+    done = False
+
+    def once() -> None:
+        nonlocal done
+        if not done:
+            done = True
+            call()
+
+    return once
+
+
 async def _print_tables(
     table: LiveTable,
     *,
-    synced: asyncio.Event,
+    started: asyncio.Event,
+    alive: Callable[[], bool],
     heading: str,
     interval: float,
     count: int | None,
     print_line: Callable[[str], None],
 ) -> AsyncIterator[None]:
-    """Piped: a table when values changed, the first once the current values are in; at most one
-    per ``interval``; ``count`` of them at most."""
-    await synced.wait()
+    """Piped: a table when values changed, the first once the current values are in (of every
+    target that did not fail); at most one per ``interval``; ``count`` of them at most."""
+    await started.wait()
     printed = 0
     while count is None or printed < count:
         await table.changed.wait()
         table.changed.clear()
+        if not alive():
+            return  # every target failed: their errors say so, an empty table would not
         now = time.time()
         clock = datetime.fromtimestamp(now).strftime("%H:%M:%S")
         print_line(f"-- {clock} {heading} ({len(table)} properties)")
@@ -277,9 +359,11 @@ def _terminal() -> Iterator[curses.window]:
         curses.endwin()
 
 
-async def _draw(screen: curses.window, table: LiveTable, heading: str) -> AsyncIterator[None]:
+async def _draw(
+    screen: curses.window, table: LiveTable, heading: str, follows: list[_Follow]
+) -> AsyncIterator[None]:
     """Draw ``table`` on ``screen`` when it changed (ten times a second at most) and every second
-    for the ages; end on q."""
+    for the ages, with a line for each target that failed; end on q."""
     import curses  # loaded by _terminal already
 
     loop = asyncio.get_running_loop()
@@ -301,7 +385,8 @@ async def _draw(screen: curses.window, table: LiveTable, heading: str) -> AsyncI
             screen.erase()
             clock = datetime.fromtimestamp(now).strftime("%H:%M:%S")
             status = f"{heading}  {len(table)} properties  {clock}  q quits"
-            lines = [status[: cols - 1], "", *table.lines(cols - 1, now)]
+            failed = [f"{one.source.target}: error: {one.error}" for one in follows if one.error is not None]
+            lines = [status[: cols - 1], *(f[: cols - 1] for f in failed), "", *table.lines(cols - 1, now)]
             for y, text in enumerate(lines[:rows]):
                 with contextlib.suppress(curses.error):  # the bottom-right cell cannot be written
                     screen.addnstr(y, 0, text, cols - 1)

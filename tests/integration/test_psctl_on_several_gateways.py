@@ -153,6 +153,31 @@ def test_the_number_of_targets_is_bounded_and_each_given_once(two_gateways: tupl
     assert done.stderr.count("error:") == 1
 
 
+def test_top_of_two_gateways_shows_both_in_one_table_and_reports_one_that_fails(
+    two_gateways: tuple[str, str],
+) -> None:
+    a, b = two_gateways
+    done = run("-t", a, "-t", b, "top", "thermo1", "--properties", "data,rate_hz", "--count", "2")
+    assert done.returncode == 0, done.stderr
+    tables = [block.splitlines() for block in done.stdout.strip("\n").split("\n\n")]
+    assert len(tables) == 2
+    for table in tables:
+        assert table[0].endswith(" 2 gateways  thermo1 (4 properties)")
+        assert table[1].split() == ["TARGET", "NAME", "VALUE", "UNIT", "AGE", "CHANGES"]
+        assert [row.split()[:2] for row in table[2:]] == [
+            [a, "data"],
+            [a, "rate_hz"],
+            [b, "data"],
+            [b, "rate_hz"],
+        ]
+
+    dead = f"127.0.0.1:{free_port()}"
+    done = run("-t", a, "-t", dead, "top", "thermo1", "--properties", "rate_hz", "--count", "1")
+    assert done.returncode == 3
+    assert done.stderr.startswith(f"[{dead}] error: UNAVAILABLE: cannot reach the gateway at {dead}")
+    assert [row.split()[:3] for row in done.stdout.splitlines()[2:] if row] == [[a, "rate_hz", "5"]]
+
+
 def records(text: str) -> list[dict[str, object]]:
     return [json.loads(line) for line in text.splitlines()]
 

@@ -37,7 +37,8 @@ def test_an_age_reads_at_a_glance(seconds: float, shown: str) -> None:
 
 
 def test_the_live_table_counts_changes_after_the_current_value_and_ages_from_the_last() -> None:
-    table = LiveTable({"speed": "m/s"})
+    table = LiveTable()
+    table.units["", "speed"] = "m/s"
     table.update(event("speed", "0.5"))
     table.update(event("location", "(0 0)"))
     table.update(event("speed", "0.7", T0 + timedelta(seconds=2)))
@@ -53,7 +54,7 @@ def test_the_live_table_counts_changes_after_the_current_value_and_ages_from_the
 
 
 def test_the_live_table_shortens_values_to_the_width_and_keeps_them_on_one_line() -> None:
-    table = LiveTable({})
+    table = LiveTable()
     table.update(event("marker", "<marker>\n<location>(1 2 3)</location></marker>"))
     table.update(event("frame", b"\xff" * 48213))
     lines = table.lines(60, T0.timestamp())
@@ -61,6 +62,20 @@ def test_the_live_table_shortens_values_to_the_width_and_keeps_them_on_one_line(
     marker = next(line for line in lines if line.startswith("marker"))
     assert "<marker>\\n<loc" in marker and "..." in marker
     assert "<48213 bytes>" in next(line for line in lines if line.startswith("frame"))
+
+
+def test_the_live_table_of_several_gateways_names_the_gateway_first_in_their_order() -> None:
+    table = LiveTable(["gw2:1", "gw1:1"])
+    table.units["gw2:1", "speed"] = "m/s"
+    table.update(event("speed", "0.5"), "gw2:1")
+    table.update(event("speed", "0.7"), "gw1:1")
+    table.update(event("location", "(0 0)"), "gw1:1")
+    assert table.lines(None, T0.timestamp()) == [
+        "TARGET  NAME      VALUE  UNIT      AGE  CHANGES",
+        "gw2:1   speed     0.5    m/s      0.0s        0",
+        "gw1:1   location  (0 0)           0.0s        0",
+        "gw1:1   speed     0.7             0.0s        0",
+    ]
 
 
 def test_one_target_among_several_tags_its_lines_and_json_and_holds_them_until_released(
