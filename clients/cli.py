@@ -88,6 +88,7 @@ examples:
   psctl -t gw1:50051 -t gw2:50051 get thermo1 data     on each gateway, each line tagged [gw1:50051]
   psctl --format jsonl listen thermo1 data --count 3      records: one JSON object a line (-o FILE: appended)
   psctl top scout1                            a live table of scout1's properties (q quits)
+  psctl -t gw1:50051 -t gw2:50051 top thermo1          both gateways' thermo1 in one live table
   psctl cluster --devices                     the gateways of a cluster and who owns each device
   psctl cluster drain gw1                     gw1 hands its devices over (undrain gw1; rebalance)
   source <(psctl completion bash)             tab completion of commands and options (also zsh, fish)
@@ -451,10 +452,10 @@ def build_parser() -> argparse.ArgumentParser:
         "top",
         parents=[common],
         help="a live table of a service's properties, updated as they change",
-        description="Show SERVICE's properties as a table that changes in place as they do (a Listen): "
-        "name, value (shortened to the terminal's width), unit, age since the last change, and how "
-        "many changes were seen. q or Ctrl-C quits. Piped, it prints a plain table whenever values "
-        "changed, at most once per --interval.",
+        description="Show SERVICE's properties as a table that changes in place as they do (a Listen):\n"
+        "name, value (shortened to the terminal's width), unit, age since the last change, and how\n"
+        "many changes were seen; with several -t, the gateway first. q or Ctrl-C quits. Piped, it\n"
+        "prints a plain table whenever values changed, at most once per --interval.",
         epilog=_TOP_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -134,8 +134,8 @@ class LiveTable:
         widths[-2], widths[-1] = max(widths[-2], _AGE_WIDTH), max(widths[-1], _CHANGES_WIDTH)
         value = columns.index("VALUE")
         if width is not None:
-            for i in range(value):  # TARGET and NAME: a third of the width at most, together
-                widths[i] = min(widths[i], max(width // (3 * value), 4))
+            for i in range(value):  # TARGET and NAME: half the width at most, together
+                widths[i] = min(widths[i], max(width // (2 * value), 4))
             fixed = sum(widths) - widths[value] + 2 * (len(columns) - 1)
             widths[value] = max(width - fixed, 5)
         right = {len(columns) - 2, len(columns) - 1}  # AGE and CHANGES: numbers, right-aligned
