@@ -695,10 +695,6 @@ async def _get(client: AsyncClient, args: argparse.Namespace, out: TargetOutput)
     if output is not None:
         if len(paths) != 1 or "*" in paths[0]:
             raise _UsageError("--output takes the value of one PATH (no pattern)")
-        if out.tagged:
-            raise _UsageError(
-                "--output FILE takes the value of one target; with several -t, use --format jsonl"
-            )
         value = await client.get(service, paths[0], **params)
         size = _write_output(output, value)
         if out.as_json and output != "-":
@@ -1175,6 +1171,8 @@ def _output_format(args: argparse.Namespace, n_targets: int) -> str:
         raise _UsageError(
             f"--output FILE takes --format jsonl records; {args.command} has no other use for it"
         )
+    if output is not None and chosen != "jsonl" and n_targets > 1:
+        raise _UsageError("--output FILE takes the value of one target; with several -t, use --format jsonl")
     if output == "-" and chosen == "jsonl":
         raise _UsageError("--output - with --format jsonl: the records go to stdout without --output")
     return chosen

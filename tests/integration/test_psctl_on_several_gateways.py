@@ -262,6 +262,9 @@ def test_records_are_appended_to_an_output_file_that_rotates_at_its_bound(
     # --output belongs to jsonl records (get's value file aside); a folder is a clear error.
     done = run("-t", a, "listen", "thermo1", "data", "--count", "1", "--output", str(out))
     assert done.returncode == 2 and "--format jsonl" in done.stderr
+    done = run("-t", a, "-t", b, "get", "thermo1", "rate_hz", "--output", str(tmp_path / "value"))
+    assert (done.returncode, done.stderr.count("error:")) == (2, 1)
+    assert "with several -t, use --format jsonl" in done.stderr
     done = run("-t", a, "--format", "jsonl", "ls", "--output", str(tmp_path))
     assert done.returncode == 2 and done.stderr.startswith(f"error: --output {tmp_path}: ")
     if Path("/dev/full").exists():  # a full disk: one line, exit 1, no traceback
