@@ -264,10 +264,10 @@ async def run_top(
         if one.error is not None and not interactive:
             report(one.source.target, one.error)
 
-    tasks = [asyncio.create_task(follow(one)) for one in follows]
     if interactive:
         try:
-            with _terminal() as screen:
+            with _terminal() as screen:  # first: a terminal curses cannot drive asks no gateway
+                tasks = [asyncio.create_task(follow(one)) for one in follows]
                 await _until_done(tasks, lambda: _draw(screen, table, heading, follows), duration)
         finally:
             for one in follows:
@@ -275,7 +275,7 @@ async def run_top(
                     report(one.source.target, one.error)
     else:
         await _until_done(
-            tasks,
+            [asyncio.create_task(follow(one)) for one in follows],
             lambda: _print_tables(
                 table,
                 started=started,

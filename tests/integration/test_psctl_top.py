@@ -63,7 +63,7 @@ def gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GatewayProcess
 class Terminal:
     """psctl on a pseudo-terminal of ``rows`` x ``cols``; what it writes is played into a pyte screen."""
 
-    def __init__(self, args: list[str], rows: int, cols: int) -> None:
+    def __init__(self, args: list[str], rows: int, cols: int, term: str = "xterm-256color") -> None:
         self.master, self.slave = pty.openpty()
         fcntl.ioctl(self.slave, termios.TIOCSWINSZ, struct.pack("HHHH", rows, cols, 0, 0))
         self.modes_before = termios.tcgetattr(self.slave)
@@ -76,7 +76,7 @@ class Terminal:
                 stdin=self.slave,
                 stdout=self.slave,
                 stderr=self.slave,
-                env={**os.environ, "TERM": "xterm-256color", "LANG": "C.UTF-8", "LC_ALL": "C.UTF-8"},
+                env={**os.environ, "TERM": term, "LANG": "C.UTF-8", "LC_ALL": "C.UTF-8"},
                 start_new_session=True,
             )
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -104,7 +104,8 @@ class Terminal:
             if found(lines):
                 return lines
             if self.proc.poll() is not None:
-                break
+                # Ended: what it wrote last may still be on its way through the reader thread.
+                deadline = min(deadline, time.monotonic() + 2.0)
             time.sleep(0.05)
         raise AssertionError(
             f"{what}: not on the screen (exit {self.proc.poll()}):\n" + "\n".join(self.lines())
@@ -122,8 +123,8 @@ class Terminal:
 def terminal() -> Iterator[Callable[..., Terminal]]:
     opened: list[Terminal] = []
 
-    def open_terminal(*args: str, rows: int = 24, cols: int = 80) -> Terminal:
-        opened.append(Terminal(list(args), rows, cols))
+    def open_terminal(*args: str, rows: int = 24, cols: int = 80, term: str = "xterm-256color") -> Terminal:
+        opened.append(Terminal(list(args), rows, cols, term))
         return opened[-1]
 
     yield open_terminal
@@ -195,6 +196,19 @@ def test_ctrl_c_ends_top_and_gives_the_terminal_back(
     assert t.proc.wait(20) == 0
     assert_terminal_given_back(t)
     assert "Traceback" not in "\n".join(t.lines())
+
+
+def test_a_terminal_curses_cannot_drive_is_a_clear_error(
+    gateway: GatewayProcess, terminal: Callable[..., Terminal]
+) -> None:
+    t = terminal("-t", gateway.address, "top", "thermo1", term="no-such-terminal")
+    assert t.proc.wait(20) == 2
+    shown = " ".join(
+        line.strip() for line in t.wait_for("the error", lambda ls: "error:" in "".join(ls)) if line
+    )
+    assert shown.startswith("error: cannot drive this terminal (")
+    assert "pipe the output for plain tables" in shown
+    assert_terminal_given_back(t)
 
 
 def test_top_piped_prints_a_plain_table_on_each_change(gateway: GatewayProcess) -> None:
