@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import signal
 import subprocess
 from collections.abc import Iterator
 from datetime import datetime
@@ -14,7 +15,7 @@ from pathlib import Path
 import pytest
 from support.gateway_process import GatewayProcess, start_gateway
 from support.ports import free_port
-from support.psctl import PSCTL
+from support.psctl import PSCTL, ctrl_c_reaches_children
 
 from clients.cli import MAX_TARGETS
 
@@ -136,6 +137,35 @@ def test_a_gateway_that_fails_is_reported_while_the_others_go_on(two_gateways: t
     assert nothing.stdout == ""
     assert nothing.stderr.splitlines()[0].startswith(f"[{a}] error: NOT_FOUND: ")
     assert nothing.stderr.splitlines()[1].startswith(f"[{b}] error: NOT_FOUND: ")
+
+
+def test_ctrl_c_ends_a_listen_on_several_gateways_with_the_status_of_any_that_failed(
+    two_gateways: tuple[str, str],
+) -> None:
+    a, b = two_gateways
+    dead = f"127.0.0.1:{free_port()}"
+    for targets, status in (((a, b), 0), ((a, dead), 3)):
+        with ctrl_c_reaches_children():
+            proc = subprocess.Popen(
+                [*PSCTL, *(arg for t in targets for arg in ("-t", t)), "listen", "thermo1", "data"],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+        try:
+            assert proc.stdout is not None
+            assert proc.stdout.readline().startswith(tuple(f"[{t}] " for t in targets))  # a stream is up
+            if status:
+                assert proc.stderr is not None
+                assert proc.stderr.readline().startswith(f"[{dead}] error: UNAVAILABLE")
+            proc.send_signal(signal.SIGINT)
+            _, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+        assert proc.returncode == status
+        assert "Traceback" not in err
 
 
 def test_the_number_of_targets_is_bounded_and_each_given_once(two_gateways: tuple[str, str]) -> None:

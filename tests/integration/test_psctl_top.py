@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterator
 
 import pytest
 from support.gateway_process import GatewayProcess, start_gateway
+from support.ports import free_port
 from support.psctl import PSCTL, ctrl_c_reaches_children
 
 pyte = pytest.importorskip(
@@ -252,3 +253,25 @@ def test_top_of_an_unknown_property_or_as_records_is_a_clear_error(gateway: Gate
     done = top("-t", gateway.address, "top", "thermo1", "--format", "jsonl")
     assert done.returncode == 2
     assert done.stderr.startswith("error: top is a view for people")
+
+
+def test_top_of_two_gateways_on_a_terminal_shows_the_one_that_failed_and_says_why_afterwards(
+    gateway: GatewayProcess, terminal: Callable[..., Terminal]
+) -> None:
+    dead = f"127.0.0.1:{free_port()}"
+    t = terminal("-t", gateway.address, "-t", dead, "top", "thermo1", "--properties", "data", cols=100)
+    lines = t.wait_for(
+        "the live gateway's row and the other's error",
+        lambda ls: (
+            any(line.startswith(f"{dead}: error: UNAVAILABLE") for line in ls)
+            and any(line.startswith(gateway.address) for line in ls)
+        ),
+    )
+    header = next(line for line in lines if "NAME" in line)
+    assert header.split() == ["TARGET", "NAME", "VALUE", "UNIT", "AGE", "CHANGES"]
+    os.write(t.master, b"q")
+    assert t.proc.wait(20) == 3  # one gateway could not be reached
+    assert_terminal_given_back(t)
+    t.wait_for(
+        "the error on stderr", lambda ls: any(line.startswith(f"[{dead}] error: UNAVAILABLE") for line in ls)
+    )
