@@ -73,8 +73,10 @@ class RecordFile:
 
     ``max_bytes`` bounds the file: a record that would take it past the bound first moves FILE to
     FILE.1 (FILE.1 to FILE.2, and so on, ``keep`` old files at most; the oldest is dropped), as
-    logging's RotatingFileHandler does, which does the writing. ``max_bytes`` 0 appends without a
-    bound, for a user who asks for that.
+    logging's RotatingFileHandler does, which does the writing (it counts a record's characters, so
+    a file of non-ASCII values may pass the bound by their extra bytes). ``max_bytes`` 0 appends
+    without a bound, for a user who asks for that. A FILE that is not a regular file (a pipe,
+    /dev/stdout) is never moved.
     """
 
     def __init__(self, path: str, *, max_bytes: int, keep: int) -> None:
@@ -86,7 +88,7 @@ class RecordFile:
         self.path = path
 
     def write(self, line: str) -> None:
-        """Append one record (a line without its newline); it is on disk when this returns."""
+        """Append one record (a line without its newline), flushed to the file before this returns."""
         try:
             self._handler.emit(logging.makeLogRecord({"msg": line, "args": None}))
         except OSError as e:
