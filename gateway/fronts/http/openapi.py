@@ -474,6 +474,7 @@ DOCUMENT: dict[str, Any] = {
                                 "doc": _NULLABLE_TEXT,
                                 "media_type": _NULLABLE_TEXT,
                                 "max_size": {"type": ["integer", "null"]},
+                                "resolution": {"type": ["number", "null"]},
                                 "value": {
                                     "oneOf": [{"$ref": "#/components/schemas/Parameter"}, {"type": "null"}]
                                 },
