@@ -63,7 +63,6 @@ EXIT_TIMEOUT = 30.0
 
 _FIELDS = attrgetter("service", "path", "value", "time_ns", "sequence", "conflated", "gap", "removed")
 _VALUE = itemgetter(2)
-_GAP = 6
 #: The folder above ``services``: the writer process imports the package from where this one did.
 _IMPORT_ROOT = str(Path(__file__).resolve().parents[3])
 
@@ -144,12 +143,11 @@ class RecordingFeed:
     def _mark_gaps(self, fields: list[EventFields]) -> None:
         """The first change of each property that lost one to a full intake carries ``gap``."""
         lost = self._lost
-        for i, f in enumerate(fields):
-            key = (f[0], f[1])
-            if key in lost:
-                del lost[key]
-                if not f[_GAP]:
-                    fields[i] = (*f[:_GAP], True, f[_GAP + 1])
+        for i, (service, path, value, time_ns, sequence, conflated, gap, removed) in enumerate(fields):
+            if (service, path) in lost:
+                del lost[service, path]
+                if not gap:
+                    fields[i] = (service, path, value, time_ns, sequence, conflated, True, removed)
 
     def flush(self) -> None:
         """Send what the intake gathered to the writer process, as one frame."""
@@ -357,7 +355,7 @@ class WriterLink:
             why = f"it sent what it should not ({exc})"
             with contextlib.suppress(ProcessLookupError):
                 process.kill()
-        self._alive = False
+        unexpected, self._alive = self._alive, False
         code = await process.wait()
         if not why:
             why = (
@@ -365,6 +363,8 @@ class WriterLink:
                 if code < 0 and -code in signal.Signals._value2member_map_
                 else f"it exited with status {code}"
             )
+        if unexpected:
+            log.warning("the recorder's writer process (pid %d) ended: %s", process.pid, why)
         for feed in list(self._feeds.values()):
             feed.lost(f"the recorder's writer process (pid {process.pid}) ended: {why}")
         self._feeds.clear()
