@@ -8,7 +8,7 @@ a question about a service's model (answered from the loop), log lines. When the
 ended``, and the next start starts a new process.
 
 :class:`RecordingFeed` is one recording's intake, on the event loop. The follow's callback hands
-it each batch (:meth:`RecordingFeed.offer`), which keeps the changes' fields as tuples; every
+it each batch (:meth:`RecordingFeed.offer`), which keeps the changes as plain tuples; every
 :data:`BATCH_SECONDS`, or at :data:`BATCH_EVENTS` changes or :data:`BATCH_BYTES` of values, the
 batch goes to the process as one frame (one ``pickle.dumps`` of a list of tuples, one write on
 the pipe). What the intake holds — changes not sent yet and changes sent that the process has not
@@ -28,7 +28,7 @@ import sys
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import asdict
-from operator import attrgetter, itemgetter
+from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -61,7 +61,6 @@ MAX_LOST_KEYS = 100_000
 #: Seconds the recorder waits for the writer process to end after its input closed.
 EXIT_TIMEOUT = 30.0
 
-_FIELDS = attrgetter("service", "path", "value", "time_ns", "sequence", "conflated", "gap", "removed")
 _VALUE = itemgetter(2)
 #: The folder above ``services``: the writer process imports the package from where this one did.
 _IMPORT_ROOT = str(Path(__file__).resolve().parents[3])
@@ -116,7 +115,7 @@ class RecordingFeed:
         """Take a batch from the follow (never blocks); dropped and counted when the intake is full."""
         if self._stopping or self._ended.is_set():
             return  # stopped, or ended by itself: its follow is being closed
-        fields: list[EventFields] = list(map(_FIELDS, events))
+        fields: list[EventFields] = list(map(tuple, events))  # type: ignore[arg-type]
         size = sum(map(len, map(_VALUE, fields)))
         limits = self.limits
         if (
@@ -143,11 +142,11 @@ class RecordingFeed:
     def _mark_gaps(self, fields: list[EventFields]) -> None:
         """The first change of each property that lost one to a full intake carries ``gap``."""
         lost = self._lost
-        for i, (service, path, value, time_ns, sequence, conflated, gap, removed) in enumerate(fields):
+        for i, (service, path, value, sequence, time_ns, conflated, gap, removed) in enumerate(fields):
             if (service, path) in lost:
                 del lost[service, path]
                 if not gap:
-                    fields[i] = (service, path, value, time_ns, sequence, conflated, True, removed)
+                    fields[i] = (service, path, value, sequence, time_ns, conflated, True, removed)
 
     def flush(self) -> None:
         """Send what the intake gathered to the writer process, as one frame."""

@@ -110,7 +110,7 @@ class RecordingWriter:
         try:
             for log_ns, events in groups:
                 for fields in events:
-                    self._write(FollowedEvent(*fields), log_ns)
+                    self._write(FollowedEvent._make(fields), log_ns)
             self._after_batch()
         except Exception as exc:
             self._end_with(exc)
