@@ -40,7 +40,7 @@ from services.apps.recorder.frames import (
     read_header,
     read_payload,
 )
-from services.apps.recorder.writer import RECORDING, Limits
+from services.apps.recorder.writer import RECORDING, STOPPING, Limits
 from services.kernel.follow import FollowedEvent
 from services.kernel.model import ServiceModel
 
@@ -85,7 +85,7 @@ class RecordingFeed:
         self.limits = limits
         self.started_ns = started_ns
         self._send = send
-        #: Called once the recording ended by itself (a limit, an error, the process gone).
+        #: Called once the recording ended (a stop, a limit, an error, the process gone).
         self._on_end = on_end
         self._started = time.monotonic()
         self._ended_at: float | None = None
@@ -169,6 +169,7 @@ class RecordingFeed:
             return
         self.flush()
         self._stopping = True
+        self.state = STOPPING
         self._send(("stop", self.name))
 
     async def wait(self, within: float) -> None:
@@ -228,8 +229,7 @@ class RecordingFeed:
         self.reason = reason
         self._ended_at = time.monotonic()
         self._ended.set()
-        if not self._stopping:
-            self._on_end(self)
+        self._on_end(self)
 
 
 #: The recorder's answer to ``describe``: a service's type and model (None: not read).

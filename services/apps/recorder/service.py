@@ -67,8 +67,12 @@ MAX_LISTED = 200
 REFRESH_SECONDS = 1.0
 #: Seconds the recorder waits for a recorded service's model (read once per service a recording).
 DESCRIBE_TIMEOUT = 5.0
-#: Seconds a stop waits for the writer to finish its file.
+#: Seconds the recorder's close waits for the writer to finish each file.
 STOP_TIMEOUT = 30.0
+#: Seconds a ``stop`` waits for the writer process to finish the file before it answers: within
+#: the gateway's call timeout (5 s by default). A process behind by many changes (a loaded
+#: machine) finishes later; the recording is ``stopping`` until then.
+STOP_ANSWER_SECONDS = 3.0
 ALL = "*"
 
 
@@ -306,7 +310,7 @@ class Recorder(Resource):
             self._ticker.cancel()
             self._ticker = None
         await asyncio.gather(
-            *(self._end(r) for r in list(self._recordings.values()) if r.writer is not None),
+            *(self._end(r, STOP_TIMEOUT) for r in list(self._recordings.values()) if r.writer is not None),
             return_exceptions=True,
         )
         link, self._link = self._link, None
@@ -377,7 +381,7 @@ class Recorder(Resource):
                 max_seconds=max_duration,
                 max_queued_events=self._max_queued_events,
             ),
-            on_end=self._ended_by_itself,
+            on_end=self._ended,
         )
         recording = self._recordings[name] = _Recording(name, writer)
         self._forget_old()
@@ -406,7 +410,7 @@ class Recorder(Resource):
             if not recording.active:
                 raise FailedPrecondition(f"recording {name!r} is {recording.writer.state} already")
             stopping = [recording]
-        await asyncio.gather(*(self._end(r) for r in stopping))
+        await asyncio.gather(*(self._end(r, STOP_ANSWER_SECONDS) for r in stopping))
         self._refresh()
         return " ".join(r.name for r in stopping)
 
@@ -458,25 +462,27 @@ class Recorder(Resource):
             candidate = f"{base}-{n}"
         return candidate
 
-    async def _end(self, recording: _Recording) -> None:
+    async def _end(self, recording: _Recording, within: float) -> None:
         subscription, recording.subscription = recording.subscription, None
         if subscription is not None:
             await close_quietly(subscription)
         writer = recording.writer
         if writer is not None:
             writer.stop()
-            await writer.wait(STOP_TIMEOUT)
-            log.info(
-                "recording %s %s: %d messages in %d files",
-                writer.name,
-                writer.state,
-                writer.messages,
-                len(writer.files),
-            )
+            await writer.wait(within)
 
-    def _ended_by_itself(self, writer: RecordingFeed) -> None:
-        """A limit or an error ended the recording (or its writer process ended): its follow ends too."""
+    def _ended(self, writer: RecordingFeed) -> None:
+        """The writer process ended the recording (a stop, a limit, an error, or the process itself
+        ended): its follow ends too."""
         name = writer.name
+        log.info(
+            "recording %s %s: %d messages in %d files%s",
+            name,
+            writer.state,
+            writer.messages,
+            len(writer.files),
+            f" ({writer.reason})" if writer.reason else "",
+        )
         recording = self._recordings.get(name)
         if recording is not None and recording.subscription is not None:
             subscription, recording.subscription = recording.subscription, None

@@ -30,11 +30,13 @@ from services.apps.recorder.frames import EventFields
 from services.apps.recorder.layout import CHUNK_BYTES, RecordingFile, ServiceInfo, file_name
 from services.kernel.follow import FollowedEvent
 
-__all__ = ["RECORDING", "STOPPED", "Limits", "RecordingWriter"]
+__all__ = ["RECORDING", "STOPPED", "STOPPING", "Limits", "RecordingWriter"]
 
 log = logging.getLogger(__name__)
 
 RECORDING = "recording"
+#: Stopped, and the writer process is still writing what it was handed before the stop.
+STOPPING = "stopping"
 STOPPED = "stopped"
 
 
