@@ -291,8 +291,8 @@ class WriterLink:
     def send(self, message: tuple[Any, ...]) -> None:
         """Write a message on the process's input (never waits: the feeds bound what is in flight)."""
         process = self._process
-        if not self._alive or process is None or process.stdin is None:
-            return
+        if not self._alive or process is None or process.stdin is None or process.stdin.is_closing():
+            return  # the process is ending: the reader fails its recordings
         process.stdin.write(frame(message))
 
     def open_recording(
@@ -336,6 +336,9 @@ class WriterLink:
             await process.wait()
         if self._reader is not None:
             await asyncio.gather(self._reader, return_exceptions=True)
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
 
     # -- the process's answers --------------------------------------------------------------
 
