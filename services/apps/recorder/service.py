@@ -279,6 +279,9 @@ class Recorder(Resource):
             raise FailedPrecondition(
                 f"cannot create the folder {str(self._root)!r}: {exc.strerror or exc}"
             ) from None
+        # The writer process keeps the budget (it removes files, it stops recordings); this count,
+        # from the files found here and then from what the process reports, refuses a start when
+        # the budget is full and when_full is refuse.
         self._budget = DiskBudget(self._root, self.max_total_bytes, self.when_full, self._file_removed)
         await asyncio.to_thread(self._budget.scan)
         try:
