@@ -325,6 +325,23 @@ async def test_a_batch_goes_to_the_writer_process_after_a_twentieth_of_a_second_
     assert len(sent) == 2  # at once
 
 
+async def test_a_stopped_recording_is_stopping_until_the_writer_process_has_finished_its_file() -> None:
+    sent: list[tuple[Any, ...]] = []
+    ended: list[RecordingFeed] = []
+    feed = _feed(sent, ended)
+    feed.offer([event(1, "battery", "1")])
+    feed.stop()
+    assert [m[0] for m in sent] == ["events", "stop"]  # what was gathered goes first
+    assert (feed.state, feed.running) == ("stopping", True)
+    await feed.wait(0.01)  # the process has not answered: the wait ends at its bound
+    assert feed.running
+    stats = {"size": 900, "messages": 2, "events": 1, "gaps": 0, "conflated": 0, "files": ["run1-0001.mcap"]}
+    feed.ended("stopped", "", stats)
+    await feed.wait(1.0)
+    assert (feed.state, feed.running, feed.size, feed.files) == ("stopped", False, 900, ["run1-0001.mcap"])
+    assert ended == [feed]
+
+
 async def test_a_recording_whose_writer_process_is_gone_fails_and_says_why() -> None:
     ended: list[RecordingFeed] = []
     feed = _feed([], ended)
