@@ -32,14 +32,7 @@ from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
-from services.apps.recorder.frames import (
-    HEADER_BYTES,
-    EventFields,
-    FrameError,
-    frame,
-    read_header,
-    read_payload,
-)
+from services.apps.recorder.frames import HEADER_BYTES, EventFields, frame, read_header, read_payload
 from services.apps.recorder.writer import RECORDING, STOPPING, Limits
 from services.kernel.follow import FollowedEvent
 from services.kernel.model import ServiceModel
@@ -353,8 +346,8 @@ class WriterLink:
                 self._handle(read_payload(await stdout.readexactly(length)))
         except asyncio.IncompleteReadError:
             pass  # its output ended: it is ending
-        except (FrameError, ValueError, KeyError) as exc:  # not the process this code starts
-            why = f"it sent what it should not ({exc})"
+        except Exception as exc:  # a frame this side cannot read: not the process this code starts
+            why = f"it sent what it should not ({type(exc).__name__}: {exc})"
             with contextlib.suppress(ProcessLookupError):
                 process.kill()
         unexpected, self._alive = self._alive, False
