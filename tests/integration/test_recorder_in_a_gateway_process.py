@@ -241,7 +241,7 @@ def summary_of(path: Path) -> Summary | None:
 def writer_process_of(gw: GatewayProcess) -> psutil.Process:
     """The recorder's writer process, a child of the gateway's."""
     for child in psutil.Process(gw.proc.pid).children():
-        if "services.apps.recorder.process" in child.cmdline():
+        if any("services.apps.recorder.process" in part for part in child.cmdline()):
             return child
     raise AssertionError("the gateway has no writer process")
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
 import signal
 import sys
 import time
@@ -57,6 +56,11 @@ EXIT_TIMEOUT = 30.0
 _VALUE = itemgetter(2)
 #: The folder above ``services``: the writer process imports the package from where this one did.
 _IMPORT_ROOT = str(Path(__file__).resolve().parents[3])
+#: What the writer process runs: the folder is appended to its path (after its own entries, so that
+#: it shadows nothing, where PYTHONPATH would come before the standard library).
+_WRITER_MAIN = (
+    "import sys; sys.path.append(sys.argv[1]); from services.apps.recorder.process import main; main()"
+)
 
 
 class RecordingFeed:
@@ -265,17 +269,15 @@ class WriterLink:
 
     async def start(self) -> None:
         """Start the writer process and open the folder in it."""
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (_IMPORT_ROOT, env.get("PYTHONPATH", "")) if p)
         self._process = await asyncio.create_subprocess_exec(
             sys.executable,
-            "-m",
-            "services.apps.recorder.process",
+            "-c",
+            _WRITER_MAIN,
+            _IMPORT_ROOT,
             stdin=asyncio.subprocess.PIPE,
             stdout=asyncio.subprocess.PIPE,
             # Its own session: a Ctrl-C for the gateway reaches it as the end of its input only.
             start_new_session=True,
-            env=env,
         )
         self._alive = True
         self.send(("open", str(self._root), self._max_total_bytes, self._when_full))

@@ -1,4 +1,4 @@
-"""The recorder's writer process: ``python -m services.apps.recorder.process``, started by the recorder.
+"""The recorder's writer process: :func:`main`, started by the recorder (``python -m`` runs it too).
 
 It reads :mod:`~services.apps.recorder.frames` on its standard input and answers on its standard
 output; :mod:`services.apps.recorder.writer_process` is the other end. Every recording of one
