@@ -39,7 +39,7 @@ from services.kernel.line_protocol import (
     encode,
 )
 from services.kernel.model import ServiceModel
-from services.kernel.model_codec import MODEL_PATH, model_to_text
+from services.kernel.model_codec import HINT_TAGS, MODEL_PATH, model_to_text
 from services.kernel.values import Value
 
 __all__ = [
@@ -379,14 +379,17 @@ class DeviceSession:
     def _model_reply(self, model: ServiceModel, tag: str | None) -> str:
         """The device describes itself (docs/device-spec.md §9): the model in one reply line.
 
-        A model too long for a line goes without its docs, then without its tags (gui,
-        length, choices, value, parameters); one still too long is NOT_FOUND, as from a
-        device that does not describe itself. Each form is measured as the reply line it
-        becomes (this tag, a checksum whether or not one is asked for), not against a guess.
+        A model too long for a line goes without its docs, then without the tags that only say
+        how to show a value (resolution, then gui), then without any tags (length, choices,
+        value, parameters); one still too long is NOT_FOUND, as from a device that does not
+        describe itself. Each form is measured as the reply line it becomes (this tag, a
+        checksum whether or not one is asked for), not against a guess.
         """
-        # Widest first: docs and tags; then tags without docs; then the names, types and bounds alone.
-        for docs, tags in ((True, True), (False, True), (False, False)):
-            text = model_to_text(model, docs=docs, tags=tags)
+        # Widest first: docs and tags; then tags without docs, the hints dropped one by one; then
+        # the names, types and bounds alone.
+        forms = [(True, True, HINT_TAGS)] + [(False, True, HINT_TAGS[i:]) for i in range(len(HINT_TAGS) + 1)]
+        for docs, tags, hints in [*forms, (False, False, ())]:
+            text = model_to_text(model, docs=docs, tags=tags, hints=hints)
             try:
                 encode(Ok(text, tag), checksum=True, max_line=MAX_LINE)
             except LineProtocolError:

@@ -39,6 +39,7 @@ from services.kernel.model import DATA_TYPES, Access, ParameterModel, PropertyMo
 from services.kernel.values.grammar import format_list, parse_list, parse_number
 
 __all__ = [
+    "HINT_TAGS",
     "MODEL_PATH",
     "model_from_proto",
     "model_from_text",
@@ -166,9 +167,13 @@ def _parameter_tail(param: ParameterModel, docs: bool) -> list[Any]:
     ]
 
 
-def _tags(p: PropertyModel, docs: bool) -> list[Any]:
+#: Tags that only say how to show a value; a model too long for a line leaves them out first.
+HINT_TAGS = ("resolution", "gui")
+
+
+def _tags(p: PropertyModel, docs: bool, hints: frozenset[str] = frozenset(HINT_TAGS)) -> list[Any]:
     tags: list[Any] = []
-    if _is_word(p.gui):
+    if "gui" in hints and _is_word(p.gui):
         tags.append(["gui", p.gui])
     if p.length:
         tags.append(["length", p.length])
@@ -178,7 +183,7 @@ def _tags(p: PropertyModel, docs: bool) -> list[Any]:
         tags.append(["media_type", p.media_type])
     if p.max_size:
         tags.append(["max_size", p.max_size])
-    if p.resolution is not None:
+    if "resolution" in hints and p.resolution is not None:
         tags.append(["resolution", p.resolution])
     if p.value is not None:
         tags.append(["value", p.value.name, *_parameter_tail(p.value, docs)])
@@ -186,9 +191,12 @@ def _tags(p: PropertyModel, docs: bool) -> list[Any]:
     return tags
 
 
-def model_to_text(model: ServiceModel, *, docs: bool = True, tags: bool = True) -> str:
+def model_to_text(
+    model: ServiceModel, *, docs: bool = True, tags: bool = True, hints: tuple[str, ...] = HINT_TAGS
+) -> str:
     """The line form of ``model`` (see the module docstring); ``docs=False`` leaves the docs out,
-    ``tags=False`` the tagged lists (gui, length, choices, value, parameters)."""
+    ``tags=False`` the tagged lists (gui, length, choices, value, parameters, ...), and ``hints``
+    names the tags of :data:`HINT_TAGS` (how a value is shown) to keep when tags are written."""
     entries = []
     for p in model.properties:
         entry: list[Any] = [
@@ -199,7 +207,7 @@ def model_to_text(model: ServiceModel, *, docs: bool = True, tags: bool = True) 
             _bound(p.minimum),
             _bound(p.maximum),
         ]
-        extra = _tags(p, docs) if tags else []
+        extra = _tags(p, docs, frozenset(hints)) if tags else []
         if docs or extra:
             entry.append(_words(p.doc) if docs else [])
         entries.append(entry + extra)

@@ -158,12 +158,14 @@ async def test_a_line_device_has_the_same_model_as_an_in_process_robot(
 ) -> None:
     """rover1 (TCP) and rover2 (a serial line) are the same sim-robot as scout1, served in-process:
     through the line protocol their models carry the same widgets, types, ranges, value and
-    parameters (the docs may be left out to fit the device's line)."""
+    parameters (the docs, and the resolution that only says how to show a value, may be left out
+    to fit the device's line: what a Set and a call need is kept first)."""
 
     def shape(p: PropertyModel) -> PropertyModel:
         return dataclasses.replace(
             p,
             doc="",
+            resolution=None,
             value=p.value and dataclasses.replace(p.value, doc=""),
             parameters=tuple(dataclasses.replace(q, doc="") for q in p.parameters),
         )

@@ -4,6 +4,8 @@ and parameters."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from services.kernel.errors import InvalidArgument
@@ -57,6 +59,21 @@ def test_without_docs_everything_else_travels() -> None:
     assert moveto.value == ParameterModel(name="target", type="marker")
     assert [(q.name, q.default) for q in moveto.parameters] == [("frame", "world"), ("offset", "(0 0.5)")]
     assert back["location"].length == 6 and back["mode"].choices == ("auto", "manual")
+
+
+def test_the_hints_are_left_out_before_what_a_set_or_a_call_needs() -> None:
+    resolved = ServiceModel(
+        type="mobile_robot",
+        properties=(dataclasses.replace(MODEL.properties[0], resolution=0.01), *MODEL.properties[1:]),
+    )
+    assert "(resolution 0.01)" in model_to_text(resolved, docs=False)
+    without_resolution = model_to_text(resolved, docs=False, hints=("gui",))
+    assert "resolution" not in without_resolution and "(gui pose)" in without_resolution
+    bare = model_to_text(resolved, docs=False, hints=())
+    assert "resolution" not in bare and "gui" not in bare
+    moveto = {p.name: p for p in model_from_text(bare, "mobile_robot").properties}["behaviors.moveto"]
+    assert moveto.value == ParameterModel(name="target", type="marker")
+    assert [q.name for q in moveto.parameters] == ["frame", "offset"]
 
 
 def test_without_tags_it_is_the_first_form() -> None:
