@@ -3,7 +3,8 @@
 Exit codes: 0 success (also a Listen ended by --count, --duration or Ctrl-C);
 1 the call failed (the gateway answered with an error status); 2 usage error
 (bad arguments, a malformed -p or value); 3 the gateway cannot be reached;
-130 interrupted by Ctrl-C (commands other than listen).
+130 interrupted by Ctrl-C (commands other than listen and top). With several
+-t, the highest code of the targets.
 """
 
 from __future__ import annotations
@@ -11,14 +12,15 @@ from __future__ import annotations
 import argparse
 import asyncio
 import base64
-import json
+import contextlib
+import functools
 import math
 import os
 import re
 import sys
 from collections.abc import Sequence
 from datetime import UTC, datetime, timedelta
-from typing import Any, TextIO
+from typing import Any
 
 import shtab
 
@@ -38,6 +40,8 @@ from clients.aio import (
 from clients.cluster_view import ACTIONS, cluster_command
 from clients.credentials import ENVIRONMENT, ClientCredentials
 from clients.errors import GatewayUnreachable, NotFound, PropertyServiceError
+from clients.psctl_output import FORMATS, RecordFile, RecordFileError, TargetOutput
+from clients.psctl_top import StreamEnded, TopError, TopSource, run_top
 from clients.values import Value, ValueFormatError
 from services.kernel.model import ParameterModel, PropertyModel
 from services.kernel.release import version_line
@@ -56,6 +60,14 @@ COMPLETION_SHELLS = ("bash", "zsh", "fish")
 #: Most Gets in flight at once when ``ls -l`` reads details.
 _LS_CONCURRENCY = 32
 
+#: Most gateways one command runs on (repeated -t): each is a channel and, for listen, a stream, and
+#: their output shares one terminal. More is a usage error rather than a slow, unreadable run.
+MAX_TARGETS = 32
+
+#: --output-max-bytes and --output-keep by default: at most 4 x 64 MiB on disk for a listen left running.
+_OUTPUT_MAX_BYTES = 64 * 2**20
+_OUTPUT_KEEP = 3
+
 _EPILOG = """\
 examples:
   psctl ls                                    services known to the registry
@@ -73,6 +85,10 @@ examples:
   psctl listen scout1 location --also scout2:location --min-interval 0.1 --duration 5
   psctl history scout1 location --since 60s   what the gateway kept of the last minute ([history])
   psctl --json get scout1 location            machine-readable output
+  psctl -t gw1:50051 -t gw2:50051 get thermo1 data     on each gateway, each line tagged [gw1:50051]
+  psctl --format jsonl listen thermo1 data --count 3      records: one JSON object a line (-o FILE: appended)
+  psctl top scout1                            a live table of scout1's properties (q quits)
+  psctl -t gw1:50051 -t gw2:50051 top thermo1          both gateways' thermo1 in one live table
   psctl cluster --devices                     the gateways of a cluster and who owns each device
   psctl cluster drain gw1                     gw1 hands its devices over (undrain gw1; rebalance)
   source <(psctl completion bash)             tab completion of commands and options (also zsh, fish)
@@ -81,7 +97,10 @@ The gateway address comes from --target, else $PSCTL_TARGET, else 127.0.0.1:5005
 addresses, comma-separated (-t gw1:50051,gw2:50051), or a gRPC name that stands for several
 (dns:///gateways.local:50051): a call that cannot reach one gateway is made through the next, and
 `listen --resume` moves to the next when its gateway dies or freezes; when none answers, the
-error names each address tried (exit 3).
+error names each address tried (exit 3). -t given again (at most 32): the command runs on each
+gateway at once; a gateway that fails is reported and the others go on, and the exit code is the
+highest of theirs. --format jsonl: one JSON object a line (target, service, property, value, time,
+kind); --output FILE appends them, moving FILE to FILE.1 at --output-max-bytes (0: no bound).
 exit codes: 0 ok, 1 the call failed, 2 usage error, 3 gateway unreachable, 130 interrupted.
 """
 
@@ -115,6 +134,15 @@ examples:
 """
 
 
+_TOP_EPILOG = """\
+examples:
+  psctl top scout1                                    every property of scout1, live
+  psctl top thermo1 --properties data,location        two properties
+  psctl top swarm --properties 'robots.*.location'    every robot's pose in the group
+  psctl top thermo1 --count 3 | cat                   piped: three plain tables, one per change
+"""
+
+
 class _UsageError(Exception):
     pass
 
@@ -138,16 +166,22 @@ def _when(text: str) -> TimeArg:
     return when if when.tzinfo is not None else when.replace(tzinfo=UTC)
 
 
-def _common_options() -> argparse.ArgumentParser:
+def _common_options(targets_dest: str) -> argparse.ArgumentParser:
+    """The options every command takes, before or after its name. ``targets_dest``: where ``-t``
+    gathers its targets; the ones before the command and the ones after it are kept apart (a
+    subcommand's options land in a namespace of their own) and joined in :func:`_targets`."""
     # SUPPRESS defaults let the options appear before or after the command
     # without the subcommand's defaults overwriting what was given before it.
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument(
         "-t",
         "--target",
+        action="append",
+        dest=targets_dest,
         metavar="HOST:PORT[,HOST:PORT...]",
         default=argparse.SUPPRESS,
-        help=f"gateway address, or several to fail over between (default: $PSCTL_TARGET or {DEFAULT_TARGET})",
+        help="a gateway, or several comma-separated to fail over between; repeat -t to run the command "
+        f"on each of several gateways (at most {MAX_TARGETS}) (default: $PSCTL_TARGET or {DEFAULT_TARGET})",
     )
     common.add_argument(
         "--timeout",
@@ -174,6 +208,37 @@ def _common_options() -> argparse.ArgumentParser:
     )
     common.add_argument(
         "--json", action="store_true", default=argparse.SUPPRESS, help="machine-readable JSON output"
+    )
+    common.add_argument(
+        "--format",
+        choices=FORMATS,
+        default=argparse.SUPPRESS,
+        help="text (default); json (as --json); jsonl: one JSON object a line with target, service, "
+        "property, value, time and kind (get, ls, set, listen, history)",
+    )
+    common.add_argument(
+        "-o",
+        "--output",
+        metavar="FILE",
+        default=argparse.SUPPRESS,
+        help="with --format jsonl: append the records to FILE (see --output-max-bytes). get without "
+        "jsonl: write the value (one PATH) into FILE, bytes as they are ('-': to stdout); a binary "
+        "value is never written to a terminal without it",
+    ).complete = shtab.FILE  # type: ignore[attr-defined]  # shtab reads this attribute
+    common.add_argument(
+        "--output-max-bytes",
+        type=_size,
+        metavar="SIZE",
+        default=argparse.SUPPRESS,
+        help="when the --output file would grow past SIZE (bytes; k, M, G), it moves to FILE.1 and a new "
+        f"one starts; 0 appends without a bound (default: {_OUTPUT_MAX_BYTES // 2**20}M)",
+    )
+    common.add_argument(
+        "--output-keep",
+        type=_count,
+        metavar="N",
+        default=argparse.SUPPRESS,
+        help=f"moved --output files kept, FILE.1 (newest) to FILE.N (default: {_OUTPUT_KEEP})",
     )
     security = (
         ("--ca", "FILE", "PEM CA that signs the gateway's certificate; makes the channel TLS"),
@@ -232,15 +297,24 @@ def _count(text: str) -> int:
     return n
 
 
+def _size(text: str) -> int:
+    found = re.fullmatch(r"\s*(\d+)\s*([kMG]?)i?B?\s*", text)
+    if found is None:
+        raise argparse.ArgumentTypeError(
+            f"expected a size in bytes like 1000000, 512k, 64M or 1G, got {text!r}"
+        )
+    return int(found.group(1)) * {"": 1, "k": 2**10, "M": 2**20, "G": 2**30}[found.group(2)]
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``psctl`` argument parser."""
-    common = _common_options()
+    common = _common_options("targets_after")
     parser = argparse.ArgumentParser(
         prog="psctl",
         description="Get, Set and Listen on the services behind a Property Service gateway.",
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        parents=[common],
+        parents=[_common_options("targets")],
     )
     parser.add_argument("--version", action="version", version=version_line("psctl"))
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -264,13 +338,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     get.add_argument("service")
     get.add_argument("paths", nargs="+", metavar="PATH", help="dotted property path, e.g. location.x")
-    get.add_argument(
-        "-o",
-        "--output",
-        metavar="FILE",
-        help="write the value (one PATH) into FILE, bytes as they are ('-': to stdout); a binary "
-        "value is never written to a terminal without it",
-    )
     _param_option(get)
 
     set_ = commands.add_parser(
@@ -381,6 +448,29 @@ def build_parser() -> argparse.ArgumentParser:
     cluster.add_argument("--devices", action="store_true", help="also each device's owner and since when")
     cluster.add_argument("--watch", action="store_true", help="show the view again each time it changes")
     cluster.add_argument("--count", type=_count, metavar="N", help="with --watch: exit after N views")
+    top = commands.add_parser(
+        "top",
+        parents=[common],
+        help="a live table of a service's properties, updated as they change",
+        description="Show SERVICE's properties as a table that changes in place as they do (a Listen):\n"
+        "name, value (shortened to the terminal's width), unit, age since the last change, and how\n"
+        "many changes were seen; with several -t, the gateway first. q or Ctrl-C quits. Piped, it\n"
+        "prints a plain table whenever values changed, at most once per --interval.",
+        epilog=_TOP_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    top.add_argument("service")
+    top.add_argument(
+        "--properties",
+        metavar="PATH[,PATH...]",
+        help="the properties to show, comma-separated; '*' matches one segment (robots.*.location) "
+        "(default: every property of SERVICE that can be listened to)",
+    )
+    top.add_argument(
+        "--interval", type=_positive, default=1.0, metavar="S", help="piped: at most one table per S seconds"
+    )
+    top.add_argument("--count", type=_count, metavar="N", help="piped: exit after N tables")
+    top.add_argument("--duration", type=_positive, metavar="S", help="exit after S seconds")
     completion = commands.add_parser(
         "completion",
         help="print a shell's tab-completion script for psctl",
@@ -409,14 +499,6 @@ def _parse_selector(text: str) -> Selector:
     return (service, path)
 
 
-def _out(line: str, stream: TextIO | None = None) -> None:
-    print(line, file=stream or sys.stdout, flush=True)
-
-
-def _emit_json(obj: Any) -> None:
-    _out(json.dumps(obj, ensure_ascii=False))
-
-
 async def _gather_optional(client: AsyncClient, refs: list[tuple[str, str]]) -> list[str | None]:
     """Values of ``refs`` (as text: a binary one as ``<N bytes>``), None for each that does not exist."""
     limit = asyncio.Semaphore(_LS_CONCURRENCY)
@@ -429,12 +511,6 @@ async def _gather_optional(client: AsyncClient, refs: list[tuple[str, str]]) -> 
                 return None
 
     return list(await asyncio.gather(*(one(s, p) for s, p in refs)))
-
-
-def _table(rows: list[list[str]]) -> None:
-    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
-    for row in rows:
-        _out("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip())
 
 
 def _type_text(prop: PropertyModel) -> str:
@@ -478,46 +554,58 @@ def _property_json(prop: PropertyModel) -> dict[str, Any]:
     }
 
 
-async def _ls_model(client: AsyncClient, service: str, as_json: bool) -> int:
-    """``ls -l SERVICE``: the service's model (the Describe RPC) as a table or JSON."""
+async def _ls_model(client: AsyncClient, service: str, out: TargetOutput) -> int:
+    """``ls -l SERVICE``: the service's model (the Describe RPC) as a table, JSON or records."""
     model = await client.describe(service)
-    if as_json:
-        _emit_json([_property_json(p) for p in model.properties])
+    if out.as_records:
+        for p in model.properties:
+            out.record("property", service, p.name, extra={"model": _property_json(p)})
+    elif out.as_json:
+        out.json([_property_json(p) for p in model.properties])
     elif model.properties:
         header = ["NAME", "TYPE", "ACCESS", "UNIT", "RANGE", "DOC"]
         rows = [
             [p.name, _type_text(p), p.access.value, p.unit or "-", _range_text(p) or "-", p.doc or "-"]
             for p in model.properties
         ]
-        _table([header, *rows])
+        out.table([header, *rows])
     return EXIT_OK
 
 
-async def _ls(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+async def _ls(client: AsyncClient, args: argparse.Namespace, out: TargetOutput) -> int:
     if args.service is not None and args.long:
-        return await _ls_model(client, args.service, as_json)
+        return await _ls_model(client, args.service, out)
     if args.service is None:
         names = await client.services()
     else:
         names = await client.properties(args.service)
     if not args.long:
-        if as_json:
-            _emit_json(names)
+        if out.as_records:
+            for name in names:
+                if args.service is None:
+                    out.record("service", name, None)
+                else:
+                    out.record("property", args.service, name)
+        elif out.as_json:
+            out.json(names)
         else:
             for name in names:
-                _out(name)
+                out.line(name)
         return EXIT_OK
     columns = ("type", "url", "state")
     refs = [("registry", f"services.{name}.{c}") for name in names for c in columns]
     values = await _gather_optional(client, refs)
     n = len(columns)
     details = [dict(zip(columns, values[i * n : (i + 1) * n], strict=True)) for i in range(len(names))]
-    if as_json:
-        _emit_json([{"name": name, **d} for name, d in zip(names, details, strict=True)])
+    if out.as_records:
+        for name, d in zip(names, details, strict=True):
+            out.record("service", name, None, extra=d)
+    elif out.as_json:
+        out.json([{"name": name, **d} for name, d in zip(names, details, strict=True)])
     elif names:
         header = ["NAME", *(c.upper() for c in columns)]
         rows = [[name, *(d[c] or "-" for c in columns)] for name, d in zip(names, details, strict=True)]
-        _table([header, *rows])
+        out.table([header, *rows])
     return EXIT_OK
 
 
@@ -575,17 +663,42 @@ async def _print_binary(
     _write_output("-", value)
 
 
-async def _get(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+async def _readings(
+    client: AsyncClient, service: str, path: str, params: dict[str, str]
+) -> list[tuple[str, Value, datetime | None]]:
+    """``(path, value, time)`` of a PATH: one with its source time, or every match of a pattern
+    (whose time the gateway does not give: None)."""
+    if "*" in path:
+        return [(p, v, None) for p, v in (await client.get_matching(service, path, **params)).items()]
+    reading = await client.get_with_time(service, path, **params)
+    return [(path, reading.value, reading.time)]
+
+
+async def _get_records(
+    client: AsyncClient, service: str, paths: list[str], params: dict[str, str], out: TargetOutput
+) -> int:
+    """``get`` in ``--format jsonl``: a ``value`` record per path (per match of a pattern)."""
+    found = await asyncio.gather(*(_readings(client, service, path, params) for path in paths))
+    for readings in found:
+        for path, value, time in readings:
+            out.record("value", service, path, value, time=time)
+    return EXIT_OK
+
+
+async def _get(client: AsyncClient, args: argparse.Namespace, out: TargetOutput) -> int:
     params = _parse_params(args.param)
     service: str = args.service
     paths: list[str] = args.paths
-    if args.output is not None:
+    if out.as_records:
+        return await _get_records(client, service, paths, params, out)
+    output: str | None = getattr(args, "output", None)
+    if output is not None:
         if len(paths) != 1 or "*" in paths[0]:
             raise _UsageError("--output takes the value of one PATH (no pattern)")
         value = await client.get(service, paths[0], **params)
-        size = _write_output(args.output, value)
-        if as_json and args.output != "-":
-            _emit_json({"service": service, "property": paths[0], "output": args.output, "size": size})
+        size = _write_output(output, value)
+        if out.as_json and output != "-":
+            out.json({"service": service, "property": paths[0], "output": output, "size": size})
         return EXIT_OK
     values: list[Value]
     if any("*" in path for path in paths):
@@ -597,27 +710,28 @@ async def _get(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> 
             else:
                 found[path] = await client.get(service, path, **params)
         paths, values = list(found), list(found.values())
-        if not as_json and len(paths) == 1:
-            _out(f"{paths[0]} = {_shown(values[0])}")
+        if not out.as_json and len(paths) == 1:
+            out.line(f"{paths[0]} = {_shown(values[0])}")
             return EXIT_OK
     elif len(paths) == 1:
         values = [await client.get(service, paths[0], **params)]
     else:
         values = await client.get_many([(service, path, params) for path in paths])
-    if as_json:
+    if out.as_json:
         objs = [
             {"service": service, "property": p, **_json_value(v)} for p, v in zip(paths, values, strict=True)
         ]
-        _emit_json(objs[0] if len(objs) == 1 else objs)
+        out.json(objs[0] if len(objs) == 1 else objs)
     elif len(paths) == 1:
         value = values[0]
-        if isinstance(value, bytes):
+        if isinstance(value, bytes) and not out.tagged:
             await _print_binary(client, service, paths[0], params, value)
         else:
-            _out(value)
+            # Several targets share the output: a binary value shows as <N bytes>, as in a list.
+            out.line(_shown(value))
     else:
         for path, value in zip(paths, values, strict=True):
-            _out(f"{path} = {_shown(value)}")
+            out.line(f"{path} = {_shown(value)}")
     return EXIT_OK
 
 
@@ -661,7 +775,7 @@ async def _set_value(client: AsyncClient, args: argparse.Namespace) -> Value:
     if text is None:
         raise _UsageError("set needs a VALUE (or --file FILE)")
     if text == "-":
-        return sys.stdin.read().rstrip("\n")
+        return _stdin_text()
     if text.startswith("@@"):
         return text[1:]
     if text.startswith("@") and len(text) > 1:
@@ -669,16 +783,24 @@ async def _set_value(client: AsyncClient, args: argparse.Namespace) -> Value:
     return text
 
 
-async def _set(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+@functools.cache
+def _stdin_text() -> str:
+    """``set ... -``: stdin, read once, whatever the number of targets that are sent it."""
+    return sys.stdin.read().rstrip("\n")
+
+
+async def _set(client: AsyncClient, args: argparse.Namespace, out: TargetOutput) -> int:
     params = _parse_params(args.param)
     value = await _set_value(client, args)
     answer = await client.set(args.service, args.path, value, **params)
-    if as_json:
-        _emit_json({"service": args.service, "property": args.path, **_json_value(answer)})
+    if out.as_records:
+        out.record("set", args.service, args.path, answer)
+    elif out.as_json:
+        out.json({"service": args.service, "property": args.path, **_json_value(answer)})
     elif isinstance(answer, bytes):
-        _out(_shown(answer))
+        out.line(_shown(answer))
     elif answer:
-        _out(answer)
+        out.line(answer)
     return EXIT_OK
 
 
@@ -710,7 +832,18 @@ def _event_json(ev: Event) -> dict[str, Any]:
     }
 
 
-async def _listen(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+def _print_event(ev: Event, out: TargetOutput, kind: str) -> None:
+    """A listened (``kind`` "event") or kept ("history") event, in the output's format."""
+    if out.as_records:
+        extra = {"sequence": ev.sequence, "conflated": ev.conflated, "gap": ev.gap, "removed": ev.removed}
+        out.record(kind, ev.service, ev.property, ev.value, time=ev.time, extra=extra)
+    elif out.as_json:
+        out.json(_event_json(ev))
+    else:
+        out.line(_event_line(ev))
+
+
+async def _listen(client: AsyncClient, args: argparse.Namespace, out: TargetOutput) -> int:
     more = [_parse_selector(s) for s in args.also]
     stream = client.listen(
         args.service,
@@ -730,9 +863,9 @@ async def _listen(client: AsyncClient, args: argparse.Namespace, as_json: bool) 
             async for item in stream:
                 if isinstance(item, Mark):
                     if args.marks:
-                        _print_mark(item, as_json)
+                        _print_mark(item, out)
                     continue
-                _emit_json(_event_json(item)) if as_json else _out(_event_line(item))
+                _print_event(item, out, "event")
                 seen += 1
                 if args.count is not None and seen >= args.count:
                     return EXIT_OK
@@ -741,32 +874,79 @@ async def _listen(client: AsyncClient, args: argparse.Namespace, as_json: bool) 
     finally:
         await stream.aclose()
     # Neither --count nor --duration ended it, nor Ctrl-C: the gateway did (an error raises above).
-    _error(f"the gateway ended the stream after {seen} event{'' if seen == 1 else 's'}")
+    out.error(f"the gateway ended the stream after {seen} event{'' if seen == 1 else 's'}")
     return EXIT_FAILED
 
 
-async def _history(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+async def _history(client: AsyncClient, args: argparse.Namespace, out: TargetOutput) -> int:
     kept = await client.history(args.service, args.path, since=args.since, until=args.until, limit=args.limit)
     for event in kept:
-        _emit_json(_event_json(event)) if as_json else _out(_event_line(event))
+        _print_event(event, out, "history")
     if kept.truncated:
-        if as_json:
-            _emit_json({"truncated": True})
+        if out.as_records:
+            out.record("truncated", args.service, args.path)
+        elif out.as_json:
+            out.json({"truncated": True})
         else:
-            _out(f"-- {len(kept)} shown, more lie in the range: ask again with --since after the last one")
+            out.line(
+                f"-- {len(kept)} shown, more lie in the range: ask again with --since after the last one"
+            )
     return EXIT_OK
 
 
-def _print_mark(mark: Mark, as_json: bool) -> None:
-    if as_json:
-        _emit_json({"mark": mark.value, "time": datetime.now().astimezone().isoformat()})
+async def _top(
+    args: argparse.Namespace,
+    *,
+    targets: list[str],
+    clients: list[AsyncClient],
+    codes: list[int],
+) -> int:
+    """``top`` on every target in one table; a target that fails is reported, the others go on."""
+    several = len(targets) > 1
+    outs = {target: TargetOutput(target, tagged=several) for target in targets}
+    paths = [p.strip() for p in args.properties.split(",") if p.strip()] if args.properties else None
+
+    def report(target: str, error: Exception) -> None:
+        outs[target].error(str(error))
+        codes.append(_exit_code(error))
+
+    try:
+        await run_top(
+            [TopSource(target, client) for target, client in zip(targets, clients, strict=True)],
+            args.service,
+            paths,
+            interval=args.interval,
+            count=args.count,
+            duration=args.duration,
+            print_line=TargetOutput(targets[0]).line,  # a table's lines, tagged by its TARGET column
+            report=report,
+        )
+    except TopError as e:
+        raise _UsageError(str(e)) from None
+    return max(codes, default=EXIT_OK)
+
+
+def _exit_code(error: Exception) -> int:
+    """The exit code of a target that failed with ``error``."""
+    if isinstance(error, GatewayUnreachable):
+        return EXIT_UNREACHABLE
+    if isinstance(error, StreamEnded | PropertyServiceError):
+        return EXIT_FAILED
+    return EXIT_USAGE
+
+
+def _print_mark(mark: Mark, out: TargetOutput) -> None:
+    if out.as_records:
+        out.record(str(mark.value), None, None)
+    elif out.as_json:
+        out.json({"mark": mark.value, "time": datetime.now().astimezone().isoformat()})
     elif mark is SYNC:
-        _out("-- sync: current values sent, changes follow")
+        out.line("-- sync: current values sent, changes follow")
     elif mark is HEARTBEAT:
-        _out(f"{_clock(datetime.now())} -- heartbeat")
+        out.line(f"{_clock(datetime.now())} -- heartbeat")
 
 
-async def _cluster(client: AsyncClient, args: argparse.Namespace, as_json: bool) -> int:
+async def _cluster(client: AsyncClient, args: argparse.Namespace, out: TargetOutput) -> int:
     takes_gateway = ACTIONS[args.action]
     if takes_gateway and not args.gateway:
         raise _UsageError(
@@ -781,9 +961,9 @@ async def _cluster(client: AsyncClient, args: argparse.Namespace, as_json: bool)
         devices=args.devices,
         watch=args.watch,
         count=args.count,
-        as_json=as_json,
-        table=_table,
-        out=_out,
+        as_json=out.as_json,
+        table=out.table,
+        out=out.line,
     )
     return EXIT_OK
 
@@ -809,17 +989,83 @@ def _credentials(args: argparse.Namespace) -> ClientCredentials:
     return credentials
 
 
-async def _run(args: argparse.Namespace, target: str, call_timeout: float | None) -> int:
-    as_json = bool(getattr(args, "json", False))
-    async with AsyncClient(
+async def _run_target(
+    args: argparse.Namespace,
+    *,
+    target: str,
+    call_timeout: float | None,
+    credentials: ClientCredentials,
+    out: TargetOutput,
+    codes: list[int],
+) -> int:
+    """The command on one target; its failure is reported through ``out`` and leaves the others
+    going. Its exit code is also added to ``codes`` as soon as it is known."""
+    code = EXIT_FAILED
+    try:
+        async with _client(args, target, call_timeout, credentials) as client:
+            code = await _COMMANDS[args.command](client, args, out)
+    except (PropertyServiceError, _UsageError, ValueFormatError, ValueError) as e:
+        out.error(str(e))
+        code = _exit_code(e)
+    codes.append(code)
+    return code
+
+
+def _client(
+    args: argparse.Namespace, target: str, call_timeout: float | None, credentials: ClientCredentials
+) -> AsyncClient:
+    return AsyncClient(
         target,
         timeout=call_timeout,
-        credentials=_credentials(args),
+        credentials=credentials,
         separate_listens=getattr(args, "separate_stream", False),
         keepalive=getattr(args, "keepalive", DEFAULT_KEEPALIVE) or None,
         failover_limit=getattr(args, "failover_limit", DEFAULT_FAILOVER_LIMIT) or None,
-    ) as client:
-        return await _COMMANDS[args.command](client, args, as_json)
+    )
+
+
+async def _run(
+    args: argparse.Namespace,
+    *,
+    targets: list[str],
+    call_timeout: float | None,
+    output_format: str,
+    records: RecordFile | None,
+    codes: list[int],
+) -> int:
+    """The command on every target at once. With several, a command that ends by itself prints
+    each target's results when it is done, in the order of -t; a listen's lines come as they happen.
+    The exit code: 0 when every target succeeded, else the highest of theirs."""
+    credentials = _credentials(args)
+    if args.command == "top":
+        async with contextlib.AsyncExitStack() as opened:
+            clients = [
+                await opened.enter_async_context(_client(args, target, call_timeout, credentials))
+                for target in targets
+            ]
+            return await _top(args, targets=targets, clients=clients, codes=codes)
+    several = len(targets) > 1
+    held = several and args.command != "listen"
+    outs = [
+        TargetOutput(target, tagged=several, held=held, format=output_format, records=records)
+        for target in targets
+    ]
+    tasks = [
+        asyncio.create_task(
+            _run_target(
+                args, target=target, call_timeout=call_timeout, credentials=credentials, out=out, codes=codes
+            )
+        )
+        for target, out in zip(targets, outs, strict=True)
+    ]
+    try:
+        for out, task in zip(outs, tasks, strict=True):
+            await task
+            out.release()
+    finally:
+        for task in tasks:
+            task.cancel()
+    return max(codes, default=EXIT_OK)
 
 
 def completion_script(shell: str) -> str:
@@ -847,28 +1093,108 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.value = extra[0]
         else:
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
-    target = getattr(args, "target", None) or os.environ.get("PSCTL_TARGET") or DEFAULT_TARGET
     timeout: float | None = getattr(args, "timeout", DEFAULT_TIMEOUT)
     if timeout is not None and timeout <= 0:
         timeout = None
+    codes: list[int] = []
+    records: RecordFile | None = None
     try:
-        return asyncio.run(_run(args, target, timeout))
+        targets = _targets(args)
+        output_format = _output_format(args, len(targets))
+        _check_arguments(args)
+        if output_format == "jsonl" and getattr(args, "output", None) is not None:
+            records = _record_file(args)
+        return asyncio.run(
+            _run(
+                args,
+                targets=targets,
+                call_timeout=timeout,
+                output_format=output_format,
+                records=records,
+                codes=codes,
+            )
+        )
     except KeyboardInterrupt:
-        return EXIT_OK if args.command == "listen" else EXIT_INTERRUPTED
-    except GatewayUnreachable as e:
-        _error(str(e))
-        return EXIT_UNREACHABLE
-    except PropertyServiceError as e:
-        _error(str(e))
-        return EXIT_FAILED
+        if args.command in ("listen", "top"):
+            # Ctrl-C ends a listen well; a target that failed before it did not.
+            return max(codes, default=EXIT_OK)
+        return EXIT_INTERRUPTED
     except (_UsageError, ValueFormatError, ValueError) as e:
         _error(str(e))
         return EXIT_USAGE
+    except RecordFileError as e:
+        _error(str(e))
+        return EXIT_FAILED
     except BrokenPipeError:
         # The reader went away (e.g. `psctl listen ... | head`); keep the interpreter's final flush quiet.
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_OK
+    finally:
+        if records is not None:
+            records.close()
+
+
+def _targets(args: argparse.Namespace) -> list[str]:
+    """The gateways to run on: every -t, before the command and after it, in order; else
+    $PSCTL_TARGET, else the default. Each may itself be comma-separated addresses to fail over between."""
+    given: list[str] = [*getattr(args, "targets", []), *getattr(args, "targets_after", [])]
+    if not given:
+        return [os.environ.get("PSCTL_TARGET") or DEFAULT_TARGET]
+    targets = [t.strip() for t in given]
+    if any(not t for t in targets):
+        raise _UsageError("-t needs an address, e.g. -t 127.0.0.1:50051")
+    if len(targets) > MAX_TARGETS:
+        raise _UsageError(f"{len(targets)} targets: at most {MAX_TARGETS} in one command")
+    twice = sorted({t for t in targets if targets.count(t) > 1})
+    if twice:
+        raise _UsageError(f"-t {twice[0]} is given twice")
+    if len(targets) > 1 and args.command == "cluster":
+        raise _UsageError(f"{args.command} shows one gateway's view: give one -t")
+    return targets
+
+
+def _output_format(args: argparse.Namespace, n_targets: int) -> str:
+    """--format, or json for --json; what each command can print."""
+    as_json = bool(getattr(args, "json", False))
+    chosen: str = getattr(args, "format", "json" if as_json else "text")
+    if as_json and chosen != "json":
+        raise _UsageError(f"--json and --format {chosen} disagree: give one")
+    if chosen != "text" and args.command == "top":
+        raise _UsageError("top is a view for people: text only (listen --format jsonl gives records)")
+    if chosen == "jsonl" and args.command == "cluster":
+        raise _UsageError(
+            "cluster prints JSON with --json; --format jsonl is for ls, get, set, listen, history"
+        )
+    output = getattr(args, "output", None)
+    if output is not None and chosen != "jsonl" and args.command != "get":
+        raise _UsageError(
+            f"--output FILE takes --format jsonl records; {args.command} has no other use for it"
+        )
+    if output is not None and chosen != "jsonl" and n_targets > 1:
+        raise _UsageError("--output FILE takes the value of one target; with several -t, use --format jsonl")
+    if output == "-" and chosen == "jsonl":
+        raise _UsageError("--output - with --format jsonl: the records go to stdout without --output")
+    return chosen
+
+
+def _check_arguments(args: argparse.Namespace) -> None:
+    """Malformed -p and --also: said once, before any gateway is asked, not once per target."""
+    _parse_params(getattr(args, "param", []))
+    for selector in getattr(args, "also", []):
+        _parse_selector(selector)
+
+
+def _record_file(args: argparse.Namespace) -> RecordFile:
+    name: str = args.output
+    try:
+        return RecordFile(
+            name,
+            max_bytes=getattr(args, "output_max_bytes", _OUTPUT_MAX_BYTES),
+            keep=getattr(args, "output_keep", _OUTPUT_KEEP),
+        )
+    except OSError as e:
+        raise _UsageError(f"--output {name}: {e.strerror}") from None
 
 
 if __name__ == "__main__":

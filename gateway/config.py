@@ -227,6 +227,30 @@ class HttpSection:
     websocket_origins: tuple[str, ...] = ()
 
 
+#: Picture files a floor plan may be (``[console] map_image``), by suffix: what a browser draws
+#: in an SVG ``<image>``, with the content type the HTTP front end serves it as.
+MAP_IMAGE_TYPES = {
+    ".png": "image/png",
+    ".jpg": "image/jpeg",
+    ".jpeg": "image/jpeg",
+    ".gif": "image/gif",
+    ".webp": "image/webp",
+    ".svg": "image/svg+xml",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class ConsoleSection:
+    """``[console]``: what the browser console shows beyond the gateway's services (docs/console.md)."""
+
+    #: A floor-plan picture drawn under the map's robots (PNG, JPEG, GIF, WebP or SVG); empty = none.
+    #: A relative path is taken from the config file's folder (absolute once parsed).
+    map_image: str = ""
+    #: Where the picture lies on the plane, metres: ``[x0, y0, x1, y1]``, its lower left (south-west)
+    #: and upper right (north-east) corners.
+    map_extent: tuple[float, ...] = ()
+
+
 #: Connections the ``[metrics] listen`` port holds at once, and from one address: a scraper or
 #: two beside the gateway need a handful (its share of open files, docs/security.md).
 METRICS_MAX_CONNECTIONS = 64
@@ -428,6 +452,8 @@ class Config:
     metrics: MetricsSection = field(default_factory=MetricsSection)
     #: ``[history]``: the properties whose changes are kept (docs/recording.md, "History").
     history: HistorySection = field(default_factory=HistorySection)
+    #: ``[console]``: the browser console's floor plan (docs/console.md).
+    console: ConsoleSection = field(default_factory=ConsoleSection)
     #: Where it came from, for messages.
     source: str = "<config>"
 
@@ -551,6 +577,7 @@ def parse_config_partly(
         *("gateway", "limits", "registry", "tls", "http", "services", "devices", "auth", "rules", "audit"),
         "metrics",
         "history",
+        "console",
     )
     problems = _Problems()
     for key in data:
@@ -594,6 +621,9 @@ def parse_config_partly(
     history: HistorySection = problems.attempt(
         lambda: _history(data.get("history", {}), f"{source}: history", folder), HistorySection()
     )
+    console: ConsoleSection = problems.attempt(
+        lambda: _console(data.get("console", {}), f"{source}: console", folder), ConsoleSection()
+    )
     if any(e.dials_in for e in services) and not gw.line_listen:
         problems.found.append(f"{source}: services: a device that dials in needs gateway.line_listen")
     config = Config(
@@ -602,6 +632,7 @@ def parse_config_partly(
         audit=audit or AuditSection(),
         metrics=metrics,
         history=history,
+        console=console,
         gateway=gw,
         limits=limits,
         registry=registry,
@@ -722,6 +753,56 @@ def _origins(value: Any, where: str) -> tuple[str, ...]:
         if not sep or not scheme or not rest or "/" in rest:
             raise ConfigError(f"{where}: {origin[:100]!r} is no origin: write scheme://host[:port], no path")
     return tuple(value)
+
+
+def _console(data: Any, where: str, folder: Path | None) -> ConsoleSection:
+    found_before: list[str] = []
+    extent: tuple[float, ...] = ()
+    if isinstance(data, Mapping) and "map_extent" in data:
+        raw = data["map_extent"]
+        numbers = raw if isinstance(raw, list) and len(raw) == 4 else None
+        if raw == []:
+            pass  # none, as when the key is left out
+        elif numbers is None or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in numbers
+        ):
+            found_before.append(
+                f"{where}.map_extent: expected four numbers [x0, y0, x1, y1] (metres), got {shown(raw)}"
+            )
+        elif not (numbers[2] > numbers[0] and numbers[3] > numbers[1]):
+            found_before.append(
+                f"{where}.map_extent: the upper right corner (x1, y1) must lie right of and above the"
+                f" lower left (x0, y0), got {shown(raw)}"
+            )
+        else:
+            extent = tuple(float(v) for v in numbers)
+
+    def checks(section: ConsoleSection, found: list[str]) -> ConsoleSection:
+        found.extend(found_before)
+        section = replace(section, map_extent=extent)
+        if not section.map_image:
+            if extent:
+                found.append(f"{where}.map_extent: give map_image too (the picture it places)")
+            return section
+        suffix = Path(section.map_image).suffix.lower()
+        if suffix not in MAP_IMAGE_TYPES:
+            found.append(
+                f"{where}.map_image: {section.map_image[:200]!r} is not a picture the console draws"
+                f" (known: {', '.join(MAP_IMAGE_TYPES)})"
+            )
+            return replace(section, map_image="")
+        try:
+            section = replace(
+                section, map_image=_config_file(section.map_image, f"{where}.map_image", folder)
+            )
+        except ConfigError as exc:
+            found.extend(exc.problems)
+            return replace(section, map_image="")
+        if not extent and not found_before:
+            found.append(f"{where}.map_extent: give where the floor plan lies, [x0, y0, x1, y1] in metres")
+        return section
+
+    return _checked_section(ConsoleSection, data, where, checks, skip=("map_extent",))
 
 
 def _http(data: Any, where: str, gw: GatewaySection, tls: TlsSection, limits: Limits) -> HttpSection:

@@ -145,7 +145,7 @@ def read_options(
         f = declared.get(key)
         kind = type(f.default) if f is not None else None
         if f is None or kind not in _TYPE_NAMES:
-            known = ", ".join([*declared, *skip])
+            known = ", ".join(dict.fromkeys([*declared, *skip]))  # a field read apart is named once
             problems.append(wording.unknown.format(key=key, known=known, **names))
             continue
         try:

@@ -21,9 +21,9 @@ serialized once, not N times.
 from __future__ import annotations
 
 import enum
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar, overload
 
 from services.kernel.conflation import Slot
 from services.kernel.paths import WILDCARD
@@ -152,15 +152,26 @@ class Event:
     removed: bool = False
 
 
-def events(batch: Batch) -> list[Event]:
-    """The events of ``batch`` as plain values, numbered."""
+_Made = TypeVar("_Made")
+#: What makes an event of its fields, in :class:`Event`'s order (``Event`` itself, or a type of the
+#: same shape: the follow's :class:`~services.kernel.follow.FollowedEvent`).
+MakeEvent = Callable[[str, str, Value, int, int, int, bool, bool], _Made]
+
+
+@overload
+def events(batch: Batch) -> list[Event]: ...
+@overload
+def events(batch: Batch, make: MakeEvent[_Made]) -> list[_Made]: ...
+def events(batch: Batch, make: MakeEvent[Any] = Event) -> list[Any]:
+    """The events of ``batch`` as plain values, numbered; each made by ``make`` (an in-process
+    follower takes its own type straight from the batch, with no :class:`Event` in between)."""
     ready, sequence = batch
     out = []
     for _, slot in ready:
         sequence += 1
         shared = slot.value
         out.append(
-            Event(
+            make(
                 shared.service,
                 shared.path,
                 shared.value,

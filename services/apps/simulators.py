@@ -137,7 +137,9 @@ class Actuators(Resource):
     """What the robot can switch or drive."""
 
     led: Annotated[bool, Prop(doc="status light on top of the robot")] = False
-    wheels: Annotated[Vector, Prop(readonly=True, unit="m/s", length=2, doc="left and right wheel speeds")]
+    wheels: Annotated[
+        Vector, Prop(readonly=True, unit="m/s", length=2, resolution=0.01, doc="left and right wheel speeds")
+    ]
 
     def __init__(self) -> None:
         self.wheels = np.zeros(2)
@@ -146,12 +148,18 @@ class Actuators(Resource):
 class Sensors(Resource):
     """What the robot senses about itself."""
 
-    battery: Annotated[float, Prop(readonly=True, gui="gauge", minimum=0, maximum=1, doc="charge left")]
+    battery: Annotated[
+        float, Prop(readonly=True, gui="gauge", minimum=0, maximum=1, resolution=0.001, doc="charge left")
+    ]
     bumper: Annotated[bool, Prop(readonly=True, doc="true while the bumper touches something")] = False
     temperature: Annotated[
         float,
         Prop(
-            readonly=True, gui="plot", unit="degC", doc="air temperature where the robot is, degrees Celsius"
+            readonly=True,
+            gui="plot",
+            unit="degC",
+            resolution=0.1,
+            doc="air temperature where the robot is, degrees Celsius",
         ),
     ]
 
@@ -210,10 +218,25 @@ class SimRobot(Resource):
 
     location: Annotated[
         Vector,
-        Prop(readonly=True, gui="pose", unit="m, rad", length=6, doc="x y z roll pitch yaw, world frame"),
+        Prop(
+            readonly=True,
+            gui="pose",
+            unit="m, rad",
+            length=6,
+            resolution=0.01,
+            doc="x y z roll pitch yaw, world frame",
+        ),
     ]
     speed: Annotated[
-        float, Prop(minimum=0.0, maximum=MAX_SPEED, unit="m/s", gui="slider", doc="cruise speed of moveto")
+        float,
+        Prop(
+            minimum=0.0,
+            maximum=MAX_SPEED,
+            unit="m/s",
+            resolution=0.01,
+            gui="slider",
+            doc="cruise speed of moveto",
+        ),
     ]
     max_speed: Annotated[
         float,
@@ -221,6 +244,7 @@ class SimRobot(Resource):
             minimum=0.0,
             maximum=MAX_SPEED,
             unit="m/s",
+            resolution=0.01,
             gui="slider",
             doc="fastest linear speed a velocity command gets; a faster one is scaled down",
         ),
@@ -231,6 +255,7 @@ class SimRobot(Resource):
             minimum=0.0,
             maximum=MAX_TURN_RATE,
             unit="rad/s",
+            resolution=0.01,
             gui="slider",
             doc="fastest turn a velocity command gets; a faster one is clipped",
         ),
@@ -493,8 +518,13 @@ class SimSensor(Resource):
 
     resource_type = "sensor"
 
-    location: Annotated[Vector, Prop(readonly=True, gui="pose", unit="m, rad", length=6, doc="sensor pose")]
-    data: Annotated[float, Prop(readonly=True, gui="plot", unit="degC", doc="temperature, degrees Celsius")]
+    location: Annotated[
+        Vector, Prop(readonly=True, gui="pose", unit="m, rad", length=6, resolution=0.01, doc="sensor pose")
+    ]
+    data: Annotated[
+        float,
+        Prop(readonly=True, gui="plot", unit="degC", resolution=0.1, doc="temperature, degrees Celsius"),
+    ]
 
     def __init__(
         self,

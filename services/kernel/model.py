@@ -101,6 +101,9 @@ class PropertyModel:
     media_type: str = ""
     #: Type ``bytes``: the most bytes a Set may carry (0: the gateway's default, one message).
     max_size: int = 0
+    #: Numbers and vectors: the smallest step the value is known to (0.01: to the hundredth), so a
+    #: client shows as many decimals as that; None when the service gives none.
+    resolution: float | None = None
 
     @property
     def needs_parameters(self) -> bool:

@@ -18,7 +18,7 @@ parenthesis, and the parentheses of a text are dropped). Every field after
 
 After the doc, an entry may carry tagged lists, in any order::
 
-    (gui WORD) (length N) (choices WORD ...) (media_type WORD) (max_size N)
+    (gui WORD) (length N) (choices WORD ...) (media_type WORD) (max_size N) (resolution X)
     (value NAME TYPE required|optional (DEFAULT) (doc words))
     (param NAME TYPE required|optional (DEFAULT) (doc words))   one per parameter
 
@@ -91,6 +91,8 @@ def _property_to_proto(prop: PropertyModel) -> pb.PropertyInfo:
         info.minimum = prop.minimum
     if prop.maximum is not None:
         info.maximum = prop.maximum
+    if prop.resolution is not None:
+        info.resolution = prop.resolution
     if prop.value is not None:
         info.value.CopyFrom(_parameter_to_proto(prop.value))
     return info
@@ -113,6 +115,7 @@ def _property_from_proto(info: pb.PropertyInfo) -> PropertyModel:
         parameters=tuple(_parameter_from_proto(p) for p in info.parameters),
         media_type=info.media_type,
         max_size=info.max_size,
+        resolution=info.resolution if info.HasField("resolution") and info.resolution > 0 else None,
     )
 
 
@@ -175,6 +178,8 @@ def _tags(p: PropertyModel, docs: bool) -> list[Any]:
         tags.append(["media_type", p.media_type])
     if p.max_size:
         tags.append(["max_size", p.max_size])
+    if p.resolution is not None:
+        tags.append(["resolution", p.resolution])
     if p.value is not None:
         tags.append(["value", p.value.name, *_parameter_tail(p.value, docs)])
     tags.extend(["param", q.name, *_parameter_tail(q, docs)] for q in p.parameters if _is_word(q.name))
@@ -213,6 +218,16 @@ def _number_or_none(item: Any, where: str) -> float | None:
     if not isinstance(item, str):
         raise InvalidArgument(f"{where}: a bound must be a number or -")
     return parse_number(item)
+
+
+def _step_or_none(text: str) -> float | None:
+    """A ``(resolution X)`` tag's step; a step that is not a positive number is skipped, as an
+    unknown tag is (a model stays readable)."""
+    try:
+        step = parse_number(text)
+    except InvalidArgument:
+        return None
+    return step if step > 0 else None
 
 
 def model_from_text(text: str, service_type: str) -> ServiceModel:
@@ -280,6 +295,8 @@ def _read_tags(items: list[Any]) -> dict[str, Any]:
             found["media_type"] = args[0]
         elif tag == "max_size" and args and isinstance(args[0], str) and args[0].isdigit():
             found["max_size"] = int(args[0])
+        elif tag == "resolution" and args and isinstance(args[0], str):
+            found["resolution"] = _step_or_none(args[0])
         elif tag == "choices":
             found["choices"] = tuple(a for a in args if isinstance(a, str))
         elif tag == "value" and args and isinstance(args[0], str):

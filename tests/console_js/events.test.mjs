@@ -7,6 +7,7 @@ import { test } from 'node:test';
 import { Backoff } from '../../gateway/console/js/backoff.js';
 import {
   EventMux,
+  MAX_SUBSCRIPTIONS,
   eventsUrl,
   namedSelectors,
   namesIn,
@@ -237,12 +238,29 @@ test('a stream that never opens is replaced by the watchdog', () => {
   assert.notEqual(last(), stream);
 });
 
-test('the number of selectors is bounded', () => {
-  const { m } = mux({ maxSelectors: 2 });
-  m.subscribe('a/x', {});
-  m.subscribe('a/y', {});
-  m.subscribe('a/y', {}); // the same selector again costs nothing
-  assert.throws(() => m.subscribe('a/z', {}), /follows 2 selectors already/);
+test('more selectors than the stream may name are covered by a wildcard, and the rest thrown away', () => {
+  const { m, timers, last } = mux({ maxSelectors: 2 });
+  const heard = [];
+  m.subscribe('registry/revision', {});
+  for (const robot of ['scout1', 'scout2', 'scout3']) {
+    m.subscribe(`swarm/robots.${robot}.location`, { onValue: (e) => heard.push(e.path) });
+  }
+  timers.advance(100);
+  assert.deepEqual(last().selectors(), ['registry/revision', 'swarm/robots.*.location']);
+  last().emit('open');
+  for (const robot of ['scout1', 'scout4']) {
+    last().emit('value', { service: 'swarm', path: `robots.${robot}.location`, value: '(0 0)' });
+  }
+  assert.deepEqual(heard, ['robots.scout1.location'], 'scout4 is not subscribed to: its event is dropped');
+  assert.deepEqual(m.stats().received, 2);
+  assert.deepEqual(m.stats().unwanted, 1);
+});
+
+test('the number of subscriptions is bounded', () => {
+  const { m } = mux();
+  for (let i = 0; i < MAX_SUBSCRIPTIONS; i += 1) m.subscribe(`a/p${i}`, {});
+  m.subscribe('a/p0', {}); // the same selector again costs nothing
+  assert.throws(() => m.subscribe('a/z', {}), new RegExp(`follows ${MAX_SUBSCRIPTIONS} selectors already`));
 });
 
 test('a handler that throws does not stop the others', () => {
@@ -355,7 +373,7 @@ test('a service that goes away is left out for a growing while, and the rest of 
   assert.equal(m.subscriptions.size, 2, 'nobody lost a subscription');
 });
 
-test('a gateway that allows fewer selectors says so, and the page takes its word', () => {
+test('a gateway that allows fewer selectors says so, and the page covers them with fewer', () => {
   let told = null;
   const { m, timers, last } = mux({ onLimit: (n) => (told = n) });
   m.subscribe('a/x', {});
@@ -369,9 +387,31 @@ test('a gateway that allows fewer selectors says so, and the page takes its word
   last().emit('error', { code: 'RESOURCE_EXHAUSTED', message: 'a Listen may have at most 2 selectors, this one has 3' });
   assert.equal(m.maxSelectors, 2);
   assert.equal(told, 2);
-  assert.deepEqual(refused, ['RESOURCE_EXHAUSTED', 'RESOURCE_EXHAUSTED'], 'the newest subscriptions hear why');
+  assert.deepEqual(refused, [], 'nobody lost a subscription');
   timers.advance(0);
-  assert.deepEqual(last().selectors(), ['a/x']);
+  assert.deepEqual(last().selectors(), ['a/*']);
+  assert.equal(m.subscriptions.size, 3);
+});
+
+test('a property the page reads on its own route is never covered by a wildcard', () => {
+  const { m, timers, last } = mux({ maxSelectors: 2 });
+  m.avoid('camera1/frame');
+  for (const path of ['data', 'rate_hz', 'location']) m.subscribe(`camera1/${path}`, {});
+  m.subscribe('registry/revision', {});
+  timers.advance(100);
+  const named = last().selectors();
+  assert.ok(!named.includes('camera1/*'), `camera1/* would carry its frames: ${named}`);
+});
+
+test('a subscription the limit cannot cover hears so and is not dropped', () => {
+  const { m, timers, last } = mux({ maxSelectors: 1 });
+  const errors = [];
+  m.subscribe('a/x', {});
+  m.subscribe('b/y.z', { onError: (e, detail) => errors.push([e.code, detail.dropped]) });
+  timers.advance(100);
+  assert.equal(last().selectors().length, 1);
+  assert.deepEqual(errors, [['RESOURCE_EXHAUSTED', false]]);
+  assert.equal(m.subscriptions.size, 2);
 });
 
 test('of many new selectors only the one the error names is left out', () => {
@@ -407,4 +447,22 @@ test('a property that does not exist is dropped by the path its error names', ()
   assert.deepEqual(errors, [['battery', 'NOT_FOUND']]);
   assert.ok(!m.subscriptions.has('swarm/sensors.battery'));
   assert.ok(m.subscriptions.has('swarm/sensors'));
+});
+
+test('a subscription the synced stream already covers hears its latest value and the sync at once', () => {
+  const { m, timers, last } = mux({ maxSelectors: 1 });
+  m.subscribe('swarm/robots.scout1.location', {});
+  m.subscribe('swarm/robots.scout2.location', {});
+  timers.advance(100);
+  assert.deepEqual(last().selectors(), ['swarm/robots.*.location']);
+  last().emit('open');
+  last().emit('value', { service: 'swarm', path: 'robots.scout3.location', value: '(3 0)' });
+  last().emit('sync', {});
+  const heard = [];
+  m.subscribe('swarm/robots.scout3.location', { onValue: (e) => heard.push(e.value), onSync: () => heard.push('sync') });
+  const streams = StreamStandIn.made.length;
+  timers.advance(100);
+  assert.deepEqual(heard, ['(3 0)', 'sync']);
+  assert.equal(StreamStandIn.made.length, streams, 'the same cover: no new stream');
+  assert.equal(m.stats().unwanted, 1, 'scout3 was nobody\'s when it arrived');
 });

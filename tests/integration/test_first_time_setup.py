@@ -19,7 +19,7 @@ from clients import AsyncClient, GatewayUnreachable
 
 PSGATEWAY = [sys.executable, "-m", "gateway.cli"]
 TLS_HINT = "if the gateway serves TLS, give --ca; with client certificates, --cert and --key"
-COMMANDS = ("ls", "get", "set", "listen", "history", "cluster", "completion")
+COMMANDS = ("ls", "get", "set", "listen", "history", "cluster", "top", "completion")
 
 SIM = """
 [[services]]
@@ -66,13 +66,20 @@ def test_bash_completion_of_psctl_registers_and_offers_its_commands(tmp_path: Pa
         "-c",
         f'source "{script}" && complete -p psctl'
         ' && COMP_WORDS=(psctl "") COMP_CWORD=1 && _shtab_psctl && echo "first: ${COMPREPLY[*]}"'
-        ' && COMP_WORDS=(psctl completion "") COMP_CWORD=2 && _shtab_psctl && echo "shell: ${COMPREPLY[*]}"',
+        ' && COMP_WORDS=(psctl completion "") COMP_CWORD=2 && _shtab_psctl && echo "shell: ${COMPREPLY[*]}"'
+        ' && COMP_WORDS=(psctl top scout1 --p) COMP_CWORD=3 && _shtab_psctl && echo "top: ${COMPREPLY[*]}"'
+        ' && COMP_WORDS=(psctl get --form) COMP_CWORD=2 && _shtab_psctl && echo "option: ${COMPREPLY[*]}"'
+        ' && COMP_WORDS=(psctl get --format "") COMP_CWORD=3 && _shtab_psctl'
+        ' && echo "format: ${COMPREPLY[*]}"',
     )
     assert shell.returncode == 0, shell.stderr
-    registered, first, shells = shell.stdout.splitlines()
+    registered, first, shells, top, option, formats = shell.stdout.splitlines()
     assert registered.startswith("complete ") and registered.endswith(" psctl")
     assert sorted(first.removeprefix("first: ").split()) == sorted(COMMANDS)
     assert shells.removeprefix("shell: ").split() == ["bash", "zsh", "fish"]
+    assert top.removeprefix("top: ").split() == ["--properties"]
+    assert option.removeprefix("option: ").split() == ["--format"]
+    assert formats.removeprefix("format: ").split() == ["text", "json", "jsonl"]
 
 
 def test_zsh_and_fish_completion_scripts_name_every_command() -> None:

@@ -122,9 +122,11 @@ async def test_model_is_the_describe_model(http: aiohttp.ClientSession, grpc_cli
         "doc": None,
         "media_type": None,
         "max_size": None,
+        "resolution": 0.01,
         "value": None,
         "parameters": [],
     }
+    assert next(p for p in described.properties if p.name == "level").resolution == 0.01
     ring = next(p for p in body["properties"] if p["name"] == "ring")
     assert ring["access"] == "action"
     assert ring["value"]["type"] == "integer"

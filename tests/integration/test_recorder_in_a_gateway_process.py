@@ -1,7 +1,8 @@
 """The recorder in a real gateway process: a recording started and stopped through the SDK, read
 back with the ``mcap`` library and checked against what a Listen of the same selectors heard at
-the same time; files that rotate under a small disk budget; a gateway killed mid-recording; a
-caller that may not read what it asks to record.
+the same time; files that rotate under a small disk budget; a gateway killed mid-recording (its
+writer process finishes the file) and a writer process killed (the recording fails, the next one
+gets a new process); a caller that may not read what it asks to record.
 """
 
 from __future__ import annotations
@@ -19,11 +20,13 @@ from pathlib import Path
 from typing import Any
 
 import jsonschema
+import psutil
 import pytest
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.exceptions import EndOfFile
 from mcap.reader import NonSeekingReader, make_reader
+from mcap.summary import Summary
 from support.gateway_process import GatewayProcess, StartGateway
 from support.waiting import eventually
 
@@ -229,7 +232,21 @@ def streamed_events(path: Path) -> int:
     return streamed
 
 
-async def test_a_gateway_killed_mid_recording_leaves_a_file_read_up_to_its_last_chunk(
+def summary_of(path: Path) -> Summary | None:
+    """The summary a finished file ends with (None: the file was not finished)."""
+    with open(path, "rb") as f:
+        return make_reader(f).get_summary()
+
+
+def writer_process_of(gw: GatewayProcess) -> psutil.Process:
+    """The recorder's writer process, a child of the gateway's."""
+    for child in psutil.Process(gw.proc.pid).children():
+        if any("services.apps.recorder.process" in part for part in child.cmdline()):
+            return child
+    raise AssertionError("the gateway has no writer process")
+
+
+async def test_a_gateway_killed_mid_recording_leaves_a_finished_file_and_no_writer_behind(
     gateway_process: StartGateway, tmp_path: Path
 ) -> None:
     folder = tmp_path / "recordings"
@@ -239,15 +256,60 @@ async def test_a_gateway_killed_mid_recording_leaves_a_file_read_up_to_its_last_
         listened: list[Any] = []
         listening = asyncio.create_task(heard(client, ("scout1/location",), listened))
         await client.set("recorder", "start", "scout1/location", name="cut")
-        await asyncio.sleep(2.5)  # two chunks at least are closed
+        await asyncio.sleep(2.5)
+        writer = writer_process_of(gw)
         gw.proc.send_signal(signal.SIGKILL)
         gw.proc.wait(10)
         await asyncio.gather(listening, return_exceptions=True)
+    # The writer sees its input end, finishes the file and ends: it never outlives the gateway.
+    await asyncio.to_thread(writer.wait, 30)
     path = folder / "cut" / "cut-0001.mcap"
+    summary = summary_of(path)
+    assert summary is not None, "the file was left without its summary"
     recorded = list(recorded_events(path))
     assert len(recorded) >= 20  # 20 Hz while it drives
     assert_accounted_for(recorded, listened)
     assert streamed_events(path) == len(recorded)
+    assert summary.statistics is not None
+    events_channel = next(c.id for c in summary.channels.values() if c.topic == EVENTS_TOPIC)
+    assert summary.statistics.channel_message_counts[events_channel] == len(recorded)
+
+
+async def test_a_writer_process_that_dies_fails_its_recording_and_the_next_start_gets_a_new_one(
+    gateway_process: StartGateway, tmp_path: Path
+) -> None:
+    folder = tmp_path / "recordings"
+    gw = gateway_process(ROBOTS.format(folder=folder, seconds=600, budget=1 << 30))
+    async with AsyncClient(gw.address, timeout=15.0) as client:
+        await client.set("scout1", "behaviors.moveto", DRIVE)
+        await client.set("recorder", "start", "scout1/location", name="first")
+        await eventually(
+            lambda: recordings(client), lambda r: r["first"]["events"] > 0, within=30, what="events written"
+        )
+        await asyncio.sleep(1.5)  # a chunk is closed
+        writer = writer_process_of(gw)
+        writer.kill()
+        listed = await eventually(
+            lambda: recordings(client),
+            lambda r: r["first"]["state"] != "recording",
+            within=30,
+            what="the recording failed",
+        )
+        assert listed["first"]["state"] == "failed: the writer process ended"
+        assert "killed by SIGKILL" in listed["first"]["reason"]
+        with pytest.raises(FailedPrecondition, match="failed: the writer process ended already"):
+            await client.set("recorder", "stop", "first")
+
+        await client.set("recorder", "start", "scout1/location", name="second")
+        await asyncio.sleep(1.5)
+        assert writer_process_of(gw).pid != writer.pid
+        assert await client.set("recorder", "stop", "second") == "second"
+        listed = await recordings(client)
+    assert listed["second"]["state"] == "stopped"
+    recorded = list(recorded_events(folder / "second" / "second-0001.mcap"))
+    assert len(recorded) == listed["second"]["events"] > 0
+    # What the first one wrote before its writer died stays readable up to its last closed chunk.
+    assert streamed_events(folder / "first" / "first-0001.mcap") > 0
 
 
 RULES = """

@@ -18,7 +18,7 @@ class Board(Resource):
     note: str = ""
     point: Vector
     lit: bool = False
-    level: Annotated[float, Prop(minimum=0.0, maximum=10.0, unit="m")] = 0.0
+    level: Annotated[float, Prop(minimum=0.0, maximum=10.0, unit="m", resolution=0.01)] = 0.0
 
     def __init__(self) -> None:
         self.point = np.zeros(2)

@@ -1,13 +1,17 @@
 """The recorder's parts in one process: one file's layout read back with the ``mcap`` library, the
-events read back for history, a file cut short, a full disk, the disk budget and a full intake."""
+events read back for history, a file cut short, a full disk, the disk budget, a full intake, the
+batches to the writer process and that process's loop on real pipes."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
-import time
+import threading
 from collections import Counter
+from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import jsonschema
 import pytest
@@ -20,6 +24,8 @@ from mcap.stream_reader import StreamReader
 
 from protos.propertyservice.v1 import property_service_pb2 as pb
 from services.apps.recorder.budget import DiskBudget
+from services.apps.recorder.feed import BATCH_EVENTS, BATCH_SECONDS, RecordingFeed
+from services.apps.recorder.frames import EventFields, FrameError, FrameReader, frame
 from services.apps.recorder.layout import (
     EVENTS_TOPIC,
     RECORDING_METADATA,
@@ -27,6 +33,7 @@ from services.apps.recorder.layout import (
     RecordingFile,
     ServiceInfo,
 )
+from services.apps.recorder.process import WriterProcess
 from services.apps.recorder.reading import RecordedEvent, events_between, recorded_events
 from services.apps.recorder.writer import Limits, RecordingWriter
 from services.kernel.follow import FollowedEvent
@@ -52,7 +59,7 @@ T0 = 1_800_000_000_000_000_000
 def event(
     seq: int, path: str, value: str | bytes, *, service: str = "scout1", **flags: object
 ) -> FollowedEvent:
-    return FollowedEvent(service, path, value, T0 + seq * 1_000_000, seq, **flags)  # type: ignore[arg-type]
+    return FollowedEvent(service, path, value, seq, T0 + seq * 1_000_000, **flags)  # type: ignore[arg-type]
 
 
 def write_file(path: Path, events: list[FollowedEvent], *, finish: bool = True) -> RecordingFile:
@@ -252,10 +259,13 @@ def test_a_file_its_writer_never_finished_is_read_up_to_its_last_complete_chunk(
     assert path.stat().st_size > complete
 
 
-def _writer(tmp_path: Path, **limits: int) -> tuple[RecordingWriter, list[RecordingWriter]]:
-    ended: list[RecordingWriter] = []
+def fields(e: FollowedEvent) -> EventFields:
+    return tuple(e)  # type: ignore[return-value]
+
+
+def _writer(tmp_path: Path, **limits: int) -> RecordingWriter:
     budget = DiskBudget(tmp_path, 1 << 30, "refuse", lambda p: None)
-    writer = RecordingWriter(
+    return RecordingWriter(
         name="run1",
         selectors=["scout1/*"],
         folder=tmp_path,
@@ -263,62 +273,169 @@ def _writer(tmp_path: Path, **limits: int) -> tuple[RecordingWriter, list[Record
         limits=Limits(max_file_bytes=1 << 20, max_file_seconds=600, **limits),  # type: ignore[arg-type]
         budget=budget,
         describe=lambda service: INFO,
+    )
+
+
+def _feed(sent: list[tuple[Any, ...]], ended: list[RecordingFeed], **limits: int) -> RecordingFeed:
+    return RecordingFeed(
+        name="run1",
+        selectors=["scout1/*"],
+        limits=Limits(max_file_bytes=1 << 20, max_file_seconds=600, **limits),  # type: ignore[arg-type]
+        started_ns=T0,
+        send=sent.append,
         on_end=ended.append,
     )
-    return writer, ended
 
 
-def test_a_full_intake_drops_values_counts_them_and_marks_the_next_one_a_gap(tmp_path: Path) -> None:
-    writer, _ = _writer(tmp_path, max_queued_events=3)
-    # The thread has not started: nothing is taken, so the intake fills.
-    writer.offer([event(1, "battery", "1"), event(2, "location", "(0 0)")])
-    writer.offer([event(3, "battery", "2"), event(4, "moving", "true")])  # over 3: dropped
-    writer.offer([event(5, "name", "a")])
-    writer.start()
-    writer.stop()
-    writer.join(10)
-    writer.offer([event(6, "battery", "3")])  # after the stop: nothing more
-    assert writer.state == "stopped"
-    assert (writer.dropped, writer.events) == (2, 3)
+def _sent_events(sent: list[tuple[Any, ...]]) -> list[EventFields]:
+    return [f for message in sent if message[0] == "events" for _, group in message[2] for f in group]
 
-    writer2, _ = _writer(tmp_path / "again", max_queued_events=10)
-    (tmp_path / "again").mkdir()
-    writer2.offer([event(1, "battery", "1")])
-    writer2._lost[("scout1", "battery")] = None  # as a drop leaves it
-    writer2.offer([event(2, "battery", "2"), event(3, "name", "b")])
-    writer2.start()
-    writer2.stop()
-    writer2.join(10)
-    recorded = list(recorded_events(tmp_path / "again" / "run1-0001.mcap"))
-    assert [(e.value, e.gap) for e in recorded] == [("1", True), ("2", False), ("b", False)]
-    assert writer2.gaps == 1
+
+async def test_a_full_intake_drops_values_counts_them_and_marks_the_next_one_a_gap() -> None:
+    sent: list[tuple[Any, ...]] = []
+    feed = _feed(sent, [], max_queued_events=3)
+    feed.offer([event(1, "battery", "1"), event(2, "location", "(0 0)")])
+    feed.offer([event(3, "battery", "2"), event(4, "moving", "true")])  # over 3: dropped
+    feed.offer([event(5, "name", "a")])
+    feed.flush()
+    # Sent but not reported written by the writer process: still in the intake, which is full.
+    feed.offer([event(6, "battery", "3")])
+    assert feed.dropped == 3
+    assert [f[3] for f in _sent_events(sent)] == [1, 2, 5]
+
+    feed.progress(3, 7, {"size": 0, "messages": 6, "events": 3, "gaps": 0, "conflated": 0, "files": []})
+    feed.offer([event(7, "moving", "false"), event(8, "battery", "4"), event(9, "battery", "5")])
+    feed.stop()
+    assert sent[-1] == ("stop", "run1")
+    # The first change after a loss of each property carries gap; the next one does not.
+    assert [(f[3], f[6]) for f in _sent_events(sent)[3:]] == [(7, True), (8, True), (9, False)]
+    feed.offer([event(10, "battery", "6")])  # after the stop: nothing more
+    assert len(_sent_events(sent)) == 6
+
+
+async def test_a_batch_goes_to_the_writer_process_after_a_twentieth_of_a_second_or_when_large() -> None:
+    sent: list[tuple[Any, ...]] = []
+    feed = _feed(sent, [])
+    feed.offer([event(1, "battery", "1")])
+    feed.offer([event(2, "battery", "2")])
+    assert sent == []
+    await asyncio.sleep(BATCH_SECONDS * 2)
+    assert [len(message[2]) for message in sent] == [2]  # one frame, the two offers' groups
+    feed.offer([event(n, "battery", str(n)) for n in range(3, 3 + BATCH_EVENTS)])
+    assert len(sent) == 2  # at once
+
+
+async def test_a_stopped_recording_is_stopping_until_the_writer_process_has_finished_its_file() -> None:
+    sent: list[tuple[Any, ...]] = []
+    ended: list[RecordingFeed] = []
+    feed = _feed(sent, ended)
+    feed.offer([event(1, "battery", "1")])
+    feed.stop()
+    assert [m[0] for m in sent] == ["events", "stop"]  # what was gathered goes first
+    assert (feed.state, feed.running) == ("stopping", True)
+    await feed.wait(0.01)  # the process has not answered: the wait ends at its bound
+    assert feed.running
+    stats = {"size": 900, "messages": 2, "events": 1, "gaps": 0, "conflated": 0, "files": ["run1-0001.mcap"]}
+    feed.ended("stopped", "", stats)
+    await feed.wait(1.0)
+    assert (feed.state, feed.running, feed.size, feed.files) == ("stopped", False, 900, ["run1-0001.mcap"])
+    assert ended == [feed]
+
+
+async def test_a_recording_whose_writer_process_is_gone_fails_and_says_why() -> None:
+    ended: list[RecordingFeed] = []
+    feed = _feed([], ended)
+    feed.offer([event(1, "battery", "1")])
+    feed.lost("the recorder's writer process (pid 7) ended: it was killed by SIGKILL")
+    await feed.wait(1.0)
+    assert (feed.state, feed.running) == ("failed: the writer process ended", False)
+    assert "killed by SIGKILL" in feed.reason
+    assert ended == [feed]
 
 
 def test_a_full_disk_stops_the_recording_with_a_clear_state(tmp_path: Path) -> None:
-    writer, ended = _writer(tmp_path)
+    writer = _writer(tmp_path)
     writer._open_file = lambda path: open("/dev/full", "wb")  # noqa: SIM115 - every write: ENOSPC
-    writer.start()
-    writer.offer([event(n, "name", "x" * 10_000) for n in range(1, 50)])
-    writer.join(10)
+    writer.write([(T0, [fields(event(n, "name", "x" * 10_000)) for n in range(1, 50)])])
+    assert writer.ended
     assert writer.state == "failed: disk full"
     assert "no space left" in writer.reason
-    assert ended == [writer]
 
 
 def test_a_recording_ends_at_its_own_size_limit_and_says_why(tmp_path: Path) -> None:
-    writer, ended = _writer(tmp_path, max_bytes=70_000)
-    writer.start()
-    deadline = time.monotonic() + 20
-    n = 0
-    while writer._thread.is_alive() and time.monotonic() < deadline:
-        n += 1
-        writer.offer([event(n, "name", os.urandom(2000).hex())])  # what zstd cannot shrink much
-        time.sleep(0.005)
-    writer.join(10)
+    writer = _writer(tmp_path, max_bytes=70_000)
+    for n in range(1, 1000):
+        writer.write([(T0, [fields(event(n, "name", os.urandom(2000).hex()))])])  # zstd cannot shrink it
+        writer.tick()
+        if writer.ended:
+            break
     assert writer.state == "stopped"
     assert writer.reason.startswith("max_size reached")
-    assert ended == [writer]
     assert writer.size >= 70_000
+
+
+def test_the_end_of_the_writer_process_s_input_finishes_every_file(tmp_path: Path) -> None:
+    """The process's loop on real pipes, in this process: the recorder's messages in, then the end
+    of its input, as a gateway killed leaves it; the file is complete, summary and all."""
+    to_writer, from_recorder = os.pipe()
+    to_recorder, from_writer = os.pipe()
+    folder = tmp_path / "run1"
+    folder.mkdir()
+    answers = os.fdopen(to_recorder, "rb")
+    out = os.fdopen(from_writer, "wb")
+    process = WriterProcess(to_writer, out)
+    loop = threading.Thread(target=process.run)
+    loop.start()
+    try:
+        with os.fdopen(from_recorder, "wb") as recorder:
+            recorder.write(frame(("open", str(tmp_path), 1 << 30, "refuse")))
+            limits = asdict(Limits(max_file_bytes=1 << 20, max_file_seconds=600))
+            recorder.write(frame(("start", "run1", ["scout1/*"], str(folder), "9.9", T0, limits)))
+            recorder.write(frame(("events", "run1", [(T0, [fields(e) for e in SOME])])))
+            recorder.flush()
+            reader = FrameReader()
+            received: list[tuple[Any, ...]] = []
+            while not any(m[0] == "describe" for m in received):
+                received += reader.feed(os.read(to_recorder, 65536))
+            recorder.write(frame(("service", "scout1", "mobile_robot", ROBOT)))
+            recorder.write(frame(("service", "scout2", "mobile_robot", ROBOT)))
+            recorder.flush()
+            while not any(m[0] == "progress" for m in received):
+                received += reader.feed(os.read(to_recorder, 65536))
+        # The end of the input: the loop finishes the file and returns.
+        loop.join(10)
+        assert not loop.is_alive()
+        out.close()  # as the process's exit closes it
+        received += reader.feed(answers.read())
+    finally:
+        answers.close()
+    assert [m[1] for m in received if m[0] == "describe"] == ["scout1", "scout2"]
+    progress = next(m for m in received if m[0] == "progress")
+    assert progress[1:3] == ("run1", len(SOME))
+    ended = next(m for m in received if m[0] == "ended")
+    assert ended[1:3] == ("run1", "stopped")
+    path = folder / "run1-0001.mcap"
+    assert ended[4]["size"] == path.stat().st_size
+    with open(path, "rb") as f:
+        reader_ = make_reader(f)
+        assert reader_.get_summary() is not None
+        events = [
+            pb.Event.FromString(m.data) for _, c, m in reader_.iter_messages() if c.topic == EVENTS_TOPIC
+        ]
+    assert [e.sequence for e in events] == [e.sequence for e in SOME]
+
+
+def test_frames_cut_anywhere_read_back_whole_and_an_oversized_one_is_refused() -> None:
+    messages = [("events", "run1", [(T0, [fields(e) for e in SOME])]), ("stop", "run1")]
+    data = b"".join(frame(m) for m in messages)
+    reader = FrameReader()
+    read: list[tuple[Any, ...]] = []
+    for i in range(0, len(data), 7):
+        read += reader.feed(data[i : i + 7])
+    assert read == messages
+    assert reader.pending == 0
+    with pytest.raises(FrameError, match="over"):
+        FrameReader().feed(b"\xff\xff\xff\xff")
 
 
 def test_the_budget_removes_the_oldest_finished_files_and_never_an_open_one(tmp_path: Path) -> None:

@@ -17,16 +17,24 @@ import {
 } from './widgets.js';
 import { plotWidget } from './plot.js';
 import { statechartWidget } from './statechart.js';
-import { findMarkers, formatNumber, markerFromInput, parseVector, valueFromInput } from './values.js';
+import {
+  decimalsFor,
+  decimalsOf,
+  findMarkers,
+  formatMeasure,
+  formatNumber,
+  markerFromInput,
+  parseVector,
+  roundedText,
+  sliderSpan,
+  unitOf,
+  valueFromInput,
+} from './values.js';
 
 const POSE_AXES = ['x', 'y', 'z', 'roll', 'pitch', 'yaw'];
 
 function finite(x) {
   return typeof x === 'number' && Number.isFinite(x);
-}
-
-function round(x, digits = 3) {
-  return finite(x) ? formatNumber(Number(x.toFixed(digits))) : String(x);
 }
 
 /**
@@ -107,7 +115,8 @@ function numberInput(ctx, prop) {
   return ctx.h('input', {
     type: 'number',
     'aria-label': prop.name,
-    step: prop.type === 'integer' ? '1' : 'any',
+    // The spinner steps by the model's resolution where it declares one.
+    step: prop.type === 'integer' ? '1' : finite(prop.resolution) && prop.resolution > 0 ? prop.resolution : 'any',
     min: finite(prop.minimum) ? prop.minimum : null,
     max: finite(prop.maximum) ? prop.maximum : null,
   });
@@ -122,61 +131,86 @@ function numberWidget(prop, ctx) {
 }
 
 /**
- * A slider between the property's bounds: a drawn track (not a second <input>, so the
- * number box stays the one input) that moves the number box and sets on release.
+ * A slider: a drawn track (not a second <input>, so the number box stays the one input) that
+ * moves the number box and sets on release. Its span comes from the model's range, narrowed
+ * around the value when that range is far wider than the value needs (values.js sliderSpan: a
+ * speed allowed up to 1000 m/s at 0.5 m/s spans 0 … 1 m/s); the scale names the span with its
+ * unit, and the model's whole range when the span is narrower. The span follows the value (see
+ * `follow`), never while the knob is held.
  */
 function sliderWidget(prop, ctx) {
-  if (!finite(prop.minimum) || !finite(prop.maximum) || !(prop.maximum > prop.minimum)) {
-    return numberWidget(prop, ctx);
-  }
-  const { minimum: lo, maximum: hi } = prop;
+  const unit = prop.unit ?? '';
+  const decimals = decimalsFor(prop);
   const fill = ctx.h('div', { class: 'slider-fill' });
   const thumb = ctx.h('div', { class: 'slider-thumb' });
   const track = ctx.h(
     'div',
-    {
-      class: 'slider',
-      role: 'slider',
-      tabindex: ctx.writable ? '0' : null,
-      'aria-label': prop.name,
-      'aria-valuemin': lo,
-      'aria-valuemax': hi,
-    },
+    { class: 'slider', role: 'slider', tabindex: ctx.writable ? '0' : null, 'aria-label': prop.name },
     fill,
     thumb,
   );
+  const low = ctx.h('span', { class: 'slider-lo' });
+  const high = ctx.h('span', { class: 'slider-hi' });
+  const allowed = ctx.h('span', { class: 'slider-range' });
+  const scale = ctx.h('div', { class: 'slider-scale' }, low, allowed, high);
+  let span = null;
+  let shownValue = NaN;
+  const spanFor = (x) => {
+    span = sliderSpan(prop, x);
+    const spanDecimals = Math.max(0, decimalsOf(span.step) ?? 0);
+    const end = (edge) => `${roundedText(edge, spanDecimals)}${unit ? ` ${unit}` : ''}`;
+    low.textContent = end(span.lo);
+    high.textContent = end(span.hi);
+    const declared = finite(prop.minimum) && finite(prop.maximum);
+    allowed.textContent = span.zoomed && declared ? `allowed ${formatNumber(prop.minimum)} … ${formatNumber(prop.maximum)}` : '';
+    track.setAttribute('aria-valuemin', String(span.lo));
+    track.setAttribute('aria-valuemax', String(span.hi));
+    track.dataset.zoomed = String(span.zoomed);
+  };
   const place = (x) => {
-    const f = Math.min(1, Math.max(0, (x - lo) / (hi - lo)));
+    const f = Math.min(1, Math.max(0, (x - span.lo) / (span.hi - span.lo)));
     fill.style.width = `${f * 100}%`;
     thumb.style.left = `${f * 100}%`;
     track.setAttribute('aria-valuenow', String(x));
+    track.setAttribute('aria-valuetext', formatMeasure(x, decimals, unit));
   };
-  const scale = ctx.h('div', { class: 'slider-scale' }, ctx.h('span', {}, formatNumber(lo)), ctx.h('span', {}, formatNumber(hi)));
+  let pointer = null;
+  const follow = (x) => {
+    const first = !finite(shownValue);
+    shownValue = x;
+    // The first value, one out of the span, in its last tenth (no room to drag up) or its first
+    // twentieth (the knob at the far left): a span that fits the value.
+    const f = (x - span.lo) / (span.hi - span.lo);
+    if (pointer === null && (first || f < 0.05 || f > 0.9)) spanFor(x);
+    place(x);
+  };
+  spanFor(undefined);
   if (!ctx.writable) {
     return {
       element: ctx.h('div', { class: 'slider-box' }, track, scale),
       update(text) {
         const x = Number(text);
-        if (finite(x)) place(x);
+        if (text.trim() !== '' && finite(x)) follow(x);
       },
     };
   }
   const input = numberInput(ctx, prop);
   const ed = editor(ctx, input, { read: () => valueFromInput(prop.type, input.value) });
-  // Snap to a round step: a thousandth of the range, or whole numbers for an integer.
-  const step = prop.type === 'integer' ? 1 : Number(((hi - lo) / 1000).toPrecision(1));
+  const clamp = (x) => {
+    const lo = finite(prop.minimum) ? Math.max(span.lo, prop.minimum) : span.lo;
+    const hi = finite(prop.maximum) ? Math.min(span.hi, prop.maximum) : span.hi;
+    return Number(Math.min(hi, Math.max(lo, x)).toPrecision(12));
+  };
   const at = (clientX) => {
     const rect = track.getBoundingClientRect();
     const f = Math.min(1, Math.max(0, (clientX - rect.left) / rect.width));
-    const x = Math.round((lo + f * (hi - lo)) / step) * step;
-    return Number(Math.min(hi, Math.max(lo, x)).toPrecision(12));
+    return clamp(Math.round((span.lo + f * (span.hi - span.lo)) / span.step) * span.step);
   };
   const move = (x) => {
-    input.value = formatNumber(x);
+    input.value = roundedText(x, Math.max(decimals, decimalsOf(span.step) ?? 0));
     input.dispatchEvent(new Event('input'));
     place(x);
   };
-  let pointer = null;
   track.addEventListener('pointerdown', (e) => {
     pointer = e.pointerId;
     try {
@@ -197,19 +231,25 @@ function sliderWidget(prop, ctx) {
   track.addEventListener('pointerup', release);
   track.addEventListener('pointercancel', release);
   track.addEventListener('keydown', (e) => {
-    const delta = { ArrowRight: step, ArrowUp: step, ArrowLeft: -step, ArrowDown: -step }[e.key];
+    const delta = { ArrowRight: 1, ArrowUp: 1, ArrowLeft: -1, ArrowDown: -1 }[e.key];
     if (delta === undefined) return;
     e.preventDefault();
+    // The arrows move the knob, not the robot: the page's driving keys never hear them.
+    e.stopPropagation();
     const now = Number(input.value);
-    move(Math.min(hi, Math.max(lo, (finite(now) ? now : lo) + delta)));
+    const from = finite(now) && input.value.trim() !== '' ? now : finite(shownValue) ? shownValue : span.lo;
+    move(clamp(Math.round((from + delta * span.step) / span.step) * span.step));
     ed.send();
+  });
+  track.addEventListener('keyup', (e) => {
+    if (e.key.startsWith('Arrow')) e.stopPropagation();
   });
   return {
     element: ctx.h('div', { class: 'slider-box' }, track, scale, ed.element),
     update(text) {
       ed.show(text);
       const x = Number(text);
-      if (finite(x)) place(x);
+      if (text.trim() !== '' && finite(x)) follow(x);
     },
   };
 }
@@ -253,7 +293,12 @@ function vectorTable(ctx, prop) {
       const names = elementNames(prop, numbers.length);
       table.replaceChildren(
         ...numbers.map((x, i) =>
-          ctx.h('span', { class: 'cell' }, ctx.h('small', {}, names[i]), ctx.h('span', {}, round(x))),
+          ctx.h(
+            'span',
+            { class: 'cell', title: formatNumber(x) },
+            ctx.h('small', {}, names[i]),
+            ctx.h('span', {}, roundedText(x, decimalsFor(prop, i, numbers.length))),
+          ),
         ),
       );
     },
@@ -277,6 +322,28 @@ function vectorWidget(prop, ctx) {
       ed.show(text);
     },
   };
+}
+
+/**
+ * A pose read by people: x and y in metres and the heading in degrees, each to the precision the
+ * model implies (a pose with no unit or resolution is read to the centimetre), e.g.
+ * "x 1.23 m  y -0.50 m  heading 45.0°"; a vector of two to five numbers has no heading.
+ */
+export function poseText(prop, v) {
+  const n = v.length;
+  const model = prop.unit || finite(prop.resolution) ? prop : { ...prop, unit: 'm, rad' };
+  const metres = unitOf(model, 0, n) || 'm';
+  const places = decimalsFor(model, 0, n);
+  const parts = [`x ${formatMeasure(v[0], places, metres)}`, `y ${formatMeasure(v[1], places, metres)}`];
+  if (n >= 6) {
+    // Radians read to 0.01 are about half a degree: degrees get one decimal.
+    parts.push(`heading ${formatMeasure((v[5] * 180) / Math.PI, 1)}°`);
+  }
+  return parts.join('  ');
+}
+
+function formatVectorText(v) {
+  return `(${v.map(formatNumber).join(' ')})`;
 }
 
 /** A pose: x, y and the heading in degrees, with a compass needle. */
@@ -309,7 +376,8 @@ function poseWidget(prop, ctx) {
       const yaw = v.length >= 6 ? v[5] : 0;
       // Map north is +y; the needle points along the heading (counter-clockwise from +x).
       needle.setAttribute('transform', `rotate(${90 - (yaw * 180) / Math.PI})`);
-      text.textContent = `x ${round(v[0], 2)}  y ${round(v[1], 2)}  heading ${round((yaw * 180) / Math.PI, 1)}°`;
+      text.textContent = poseText(prop, v);
+      text.title = formatVectorText(v);
     },
   };
 }

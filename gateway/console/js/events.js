@@ -9,15 +9,23 @@
 // answers with the snapshot marked gap). A watchdog takes over when that is not enough: a stream
 // the browser gave up on (an HTTP error), or one that failed several times in a row, is reopened
 // after an exponential backoff, which a completed snapshot (`sync`) resets.
+//
+// The gateway bounds the selectors of one Listen; the page may follow many more (a group of 50
+// robots shows some 700 properties). The stream names a cover of the subscriptions
+// (js/selector_cover.js: a few wildcards where many exact selectors would not fit), and the
+// events the cover brings that no subscription wants are thrown away here, and counted.
 
 import { Backoff } from './backoff.js';
+import { coverSelectors, covers } from './selector_cover.js';
 
 export const EVENTS_URL = '/api/v1/events';
 /**
- * Selectors one page follows at most: the gateway's default `[limits] max_selectors` for one
- * Listen. A gateway configured lower says so in its error, and the page takes its word.
+ * Selectors the page's stream names at most: the gateway's default `[limits] max_selectors` for
+ * one Listen. A gateway configured lower says so in its error, and the page takes its word.
  */
 export const MAX_SELECTORS = 64;
+/** Distinct selectors the page subscribes to at most (the stream covers them with fewer). */
+export const MAX_SUBSCRIPTIONS = 4096;
 /** Latest events kept for subscribers that join a selector the stream already follows. */
 export const MAX_CACHED = 4096;
 /** Native errors in a row before the watchdog replaces EventSource's own fixed-delay retry. */
@@ -111,12 +119,20 @@ export class EventMux {
     this._readmitTimer = null;
     /** selector -> Set of subscriptions ({onValue, onSync, onError}). */
     this.subscriptions = new Map();
+    this._wildcards = new Set(); // the subscribed selectors with a `*`: matched one by one
+    this._avoided = new Map(); // exact selector -> how many asked that no wildcard covers it
+    this._streamMembers = new Map(); // cover selector of the stream -> the subscriptions it carries
+    this._streamWanted = new Set(); // the subscriptions the open stream carries
+    this._leftOut = new Set(); // subscriptions no cover within the limit could carry
+    this.received = 0; // value events the streams brought
+    this.unwanted = 0; // of them, those no subscription matched (the cover's cost)
     this.state = 'closed';
     this.source = null;
     this._previous = null; // the stream being replaced, delivering until its successor opens
     this._streamSelectors = new Set(); // the selectors of the open stream
     this._latest = new Map(); // "service\0path" -> the last value event, oldest first
     this._confirmed = new Set(); // selectors of a stream that reached `sync`: known good
+    this._synced = false; // the open stream's snapshot is complete
     this._reopenTimer = null;
     this._watchdog = null;
     this._errorsInRow = 0;
@@ -132,16 +148,17 @@ export class EventMux {
     splitSelector(selector);
     let subs = this.subscriptions.get(selector);
     if (!subs) {
-      if (this.subscriptions.size >= this.maxSelectors) {
-        throw new Error(`this page follows ${this.maxSelectors} selectors already; close a view first`);
+      if (this.subscriptions.size >= MAX_SUBSCRIPTIONS) {
+        throw new Error(`this page follows ${MAX_SUBSCRIPTIONS} selectors already; close a view first`);
       }
       subs = new Set();
       this.subscriptions.set(selector, subs);
+      if (selector.includes('*')) this._wildcards.add(selector);
       this._schedule(this.debounceMs);
     }
     const sub = { onValue, onSync, onError };
     subs.add(sub);
-    if (this._streamSelectors.has(selector) && this.source) {
+    if (this.source && this._streamCovers(selector)) {
       // The stream follows this selector already and sends no new snapshot for it: the latest
       // values it delivered stand in for one (after the caller has finished setting up).
       this.timers.setTimeout(() => this._replay(selector, sub), 0);
@@ -152,11 +169,54 @@ export class EventMux {
   _unsubscribe(selector, sub) {
     const subs = this.subscriptions.get(selector);
     if (!subs || !subs.delete(sub)) return;
-    if (!subs.size) {
-      this.subscriptions.delete(selector);
-      this._quarantine.delete(selector);
-      this._schedule(this.debounceMs);
-    }
+    if (!subs.size) this._forget(selector);
+  }
+
+  _forget(selector) {
+    this.subscriptions.delete(selector);
+    this._wildcards.delete(selector);
+    this._quarantine.delete(selector);
+    this._leftOut.delete(selector);
+    this._schedule(this.debounceMs);
+  }
+
+  /**
+   * Keep `selector` (an exact one: a camera's frame) out of every wildcard the stream uses: the
+   * page reads it on a route of its own. Returns the function that ends the request.
+   */
+  avoid(selector) {
+    splitSelector(selector);
+    this._avoided.set(selector, (this._avoided.get(selector) ?? 0) + 1);
+    this._schedule(this.debounceMs);
+    let done = false;
+    return () => {
+      if (done) return;
+      done = true;
+      const left = this._avoided.get(selector) - 1;
+      if (left > 0) this._avoided.set(selector, left);
+      else this._avoided.delete(selector);
+    };
+  }
+
+  /** Whether the open stream carries `selector` already (one of its cover selectors matches it). */
+  _streamCovers(selector) {
+    if (this._streamSelectors.has(selector)) return true;
+    for (const wide of this._streamSelectors) if (covers(wide, selector)) return true;
+    return false;
+  }
+
+  /**
+   * What the stream costs: `selectors` it names, `subscriptions` it carries, value events
+   * `received`, and `unwanted` ones (matched by a cover's wildcard but by no subscription).
+   */
+  stats() {
+    return {
+      selectors: [...this._streamSelectors],
+      subscriptions: this.subscriptions.size,
+      leftOut: this._leftOut.size,
+      received: this.received,
+      unwanted: this.unwanted,
+    };
   }
 
   /** The selectors the stream should carry now: every subscription but those left out for a while. */
@@ -216,10 +276,18 @@ export class EventMux {
   }
 
   _open() {
-    const selectors = this._wanted();
+    const wanted = this._wanted();
+    const { cover, members, left } = coverSelectors(wanted, this.maxSelectors, { avoid: this._avoided.keys() });
+    this._noteLeftOut(left);
+    const selectors = new Set(cover);
     const same =
       selectors.size === this._streamSelectors.size && [...selectors].every((s) => this._streamSelectors.has(s));
-    if (same && this.source && this.source.readyState !== 2) return; // already following exactly these
+    const carried = new Set([...members.values()].flat());
+    if (same && this.source && this.source.readyState !== 2) {
+      this._streamMembers = members; // already following exactly these
+      this._streamWanted = carried;
+      return;
+    }
     // Make before break: an open stream goes on delivering until its successor is open, so
     // selecting another service neither blanks the page nor shows it as disconnected.
     const previous = this.source && this.source.readyState === 1 && this._opened ? this.source : null;
@@ -230,6 +298,8 @@ export class EventMux {
     }
     this._closeSource(false);
     this._streamSelectors = selectors;
+    this._streamMembers = members;
+    this._streamWanted = carried;
     for (const [key, event] of this._latest) {
       // What no selector follows any more would only be stale if it came back.
       if (![...selectors].some((s) => selectorMatches(s, event.service, event.path))) this._latest.delete(key);
@@ -239,6 +309,7 @@ export class EventMux {
       this._setState('closed');
       return;
     }
+    this._synced = false;
     const url = eventsUrl(selectors, this.url);
     const source = new this.EventSourceImpl(url, { withCredentials: false });
     this.source = source;
@@ -270,6 +341,20 @@ export class EventMux {
       this._watchdog = null;
       if (current() && source.readyState !== 1) this._retryLater();
     }, CONNECT_TIMEOUT_MS);
+  }
+
+  /** Tell the subscriptions that the limit leaves out now (once), and forget those back in. */
+  _noteLeftOut(left) {
+    const now = new Set(left);
+    for (const selector of now) {
+      if (this._leftOut.has(selector)) continue;
+      const error = {
+        code: 'RESOURCE_EXHAUSTED',
+        message: `the stream's limit of ${this.maxSelectors} selectors leaves ${selector} out`,
+      };
+      for (const sub of this.subscriptions.get(selector) ?? []) sub.onError(error, { dropped: false });
+    }
+    this._leftOut = now;
   }
 
   _closePrevious() {
@@ -316,10 +401,17 @@ export class EventMux {
 
   _replay(selector, sub) {
     if (!this.subscriptions.get(selector)?.has(sub)) return; // gone meanwhile
-    for (const event of this._latest.values()) {
-      if (selectorMatches(selector, event.service, event.path)) sub.onValue(event);
+    if (selector.includes('*')) {
+      for (const event of this._latest.values()) {
+        if (selectorMatches(selector, event.service, event.path)) sub.onValue(event);
+      }
+    } else {
+      const [service, path] = splitSelector(selector);
+      const event = this._latest.get(`${service}\u0000${path}`);
+      if (event) sub.onValue(event);
     }
-    if (this._confirmed.has(selector)) sub.onSync();
+    // A subscription the synced stream already covers has had its snapshot: the values above.
+    if (this._confirmed.has(selector) || (this._synced && this._streamCovers(selector))) sub.onSync();
   }
 
   _remember(event) {
@@ -333,9 +425,18 @@ export class EventMux {
   /** Hand one value event to every subscription whose selector matches it. */
   dispatch(event) {
     this._remember(event);
-    for (const [selector, subs] of this.subscriptions) {
-      if (!selectorMatches(selector, event.service, event.path)) continue;
-      for (const sub of [...subs]) {
+    this.received += 1;
+    // An exact subscription is found by its name; only the wildcard ones are matched in turn
+    // (a view of a large group subscribes to hundreds of exact selectors).
+    const exact = `${event.service}/${event.path}`;
+    const matched = [];
+    if (this.subscriptions.has(exact)) matched.push(exact);
+    for (const selector of this._wildcards) {
+      if (selectorMatches(selector, event.service, event.path)) matched.push(selector);
+    }
+    if (!matched.length) this.unwanted += 1;
+    for (const selector of matched) {
+      for (const sub of [...(this.subscriptions.get(selector) ?? [])]) {
         try {
           sub.onValue(event);
         } catch (e) {
@@ -346,7 +447,8 @@ export class EventMux {
   }
 
   _onSync() {
-    for (const selector of this._streamSelectors) {
+    this._synced = true;
+    for (const selector of this._streamWanted) {
       this._confirmed.add(selector);
       this._quarantine.delete(selector); // it works again: a later failure starts a short time out
     }
@@ -373,18 +475,23 @@ export class EventMux {
   _failed(error) {
     this._closeSource();
     const limit = /at most (\d+) selectors/.exec(error?.message ?? '');
-    if (error?.code === 'RESOURCE_EXHAUSTED' && limit) {
-      this.maxSelectors = Math.max(1, Number(limit[1])); // the newest (the suspects) go below
+    if (error?.code === 'RESOURCE_EXHAUSTED' && limit && Number(limit[1]) < this.maxSelectors) {
+      // The gateway allows fewer selectors than the page thought: the same subscriptions,
+      // covered again with fewer (wider) selectors. Nobody's subscription failed.
+      this.maxSelectors = Math.max(1, Number(limit[1]));
       this.onLimit(this.maxSelectors);
+      this._schedule(0);
+      return;
     }
-    // The culprits: the selectors the error names (a Listen error names the service or the
+    // The culprits: the subscriptions the error names (a Listen error names the service or the
     // property that failed), else those added since the last good snapshot.
-    const named = namedSelectors(error?.message, this._streamSelectors);
-    const suspects = [...this._streamSelectors].filter((s) => !this._confirmed.has(s));
-    let culprits = named.length < this._streamSelectors.size ? named : [];
+    const carried = this._streamWanted;
+    const named = namedSelectors(error?.message, carried);
+    const suspects = [...carried].filter((s) => !this._confirmed.has(s));
+    let culprits = named.length < carried.size ? named : [];
     if (!culprits.length) culprits = suspects;
     if (!culprits.length) {
-      for (const subs of this.subscriptions.values()) for (const sub of subs) sub.onError(error);
+      for (const subs of this.subscriptions.values()) for (const sub of subs) sub.onError(error, { dropped: false });
       this._retryLater();
       return;
     }
@@ -401,9 +508,8 @@ export class EventMux {
         };
         q.until = now + q.backoff.next();
         this._quarantine.set(selector, q);
-      } else {
-        this.subscriptions.delete(selector);
-        this._quarantine.delete(selector);
+      } else if (subs) {
+        this._forget(selector);
       }
       for (const sub of subs ?? []) sub.onError(error, { dropped: !transient });
     }
@@ -454,7 +560,9 @@ export class EventMux {
     if (error && !['RESOURCE_EXHAUSTED', 'UNAVAILABLE', 'UNAUTHENTICATED'].includes(error.code)) {
       this._failed(error);
     } else {
-      if (error) for (const subs of this.subscriptions.values()) for (const sub of subs) sub.onError(error);
+      if (error) {
+        for (const subs of this.subscriptions.values()) for (const sub of subs) sub.onError(error, { dropped: false });
+      }
       this._retryLater();
     }
   }

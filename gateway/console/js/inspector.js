@@ -32,6 +32,7 @@ export class Inspector {
     Object.assign(this, { els, mux, isUp });
     this.unlisten = null;
     this.listening = null;
+    this._listen = null; // the current Listen's own token
     this._described = null;
     els.get.addEventListener('click', () => this.get());
     els.set.addEventListener('click', () => this.set());
@@ -98,14 +99,20 @@ export class Inspector {
       const { service, path } = this.fields();
       selector = `${service}/${path}`;
       splitSelector(selector);
+      // Each Listen is its own: what its subscription hears after it was stopped (a replay
+      // queued before, a stream still delivering) is not logged.
+      const listen = {};
+      const current = () => this._listen === listen;
       this.unlisten = this.mux.subscribe(selector, {
-        onValue: (event) => this.logEvent(event),
-        onSync: () => this.logLine('sync', 'snapshot complete; changes follow'),
-        onError: (e, { dropped = true } = {}) => {
+        onValue: (event) => current() && this.logEvent(event),
+        onSync: () => current() && this.logLine('sync', 'snapshot complete; changes follow'),
+        onError: (e, { dropped = false } = {}) => {
+          if (!current()) return;
           this.logLine('error', `${e.code}: ${e.message}${dropped ? '' : ' (tried again shortly)'}`);
-          if (dropped) this.stopListening(false);
+          if (dropped) this.stopListening();
         },
       });
+      this._listen = listen;
     } catch (e) {
       this.showError(e);
       return;
@@ -117,9 +124,12 @@ export class Inspector {
     this.show(`Listening to ${selector}`);
   }
 
-  stopListening(unsubscribe = true) {
-    if (unsubscribe) this.unlisten?.();
+  stopListening() {
+    // Always ended at the multiplexer too: a subscription it dropped is gone already (a no-op),
+    // and one it kept (an error it tries again after) must not go on logging.
+    this.unlisten?.();
     this.unlisten = null;
+    this._listen = null;
     if (this.listening) this.show(`Stopped listening to ${this.listening}`);
     this.listening = null;
     this.els.listen.textContent = 'Listen';

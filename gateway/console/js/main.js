@@ -5,11 +5,12 @@ import * as api from './api.js';
 import './builtin_widgets.js';
 import { EventMux } from './events.js';
 import { Failover, fetchProbe, withRoundEnded } from './failover.js';
+import { GamepadDriver } from './gamepad.js';
 import { Inspector } from './inspector.js';
 import { RobotMap } from './map.js';
 import { ServiceList } from './service_list.js';
 import { ServiceView } from './service_view.js';
-import { Teleop } from './teleop.js';
+import { StopAll, Teleop } from './teleop.js';
 import * as values from './values.js';
 import { registerWidget, widgetNames } from './widgets.js';
 
@@ -45,6 +46,7 @@ const mux = new EventMux({
     const retry = detail?.retryInSeconds ? ` · retry in ${detail.retryInSeconds} s` : '';
     connection.querySelector('.connection-text').textContent = `${CONNECTION_TEXT[state] ?? state}${retry}`;
     failover.stateChanged(state);
+    list.connectionChanged(state);
   },
 });
 
@@ -71,7 +73,7 @@ const list = new ServiceList($('#services'), {
       select(name);
     }
     if (selectedName && !services.some((s) => s.name === selectedName)) {
-      select(null); // it left: its view and its subscriptions go
+      select(null, { push: false }); // it left: its view and its subscriptions go
     } else {
       view.updateState(selected());
       map.drawAll();
@@ -80,6 +82,9 @@ const list = new ServiceList($('#services'), {
     fillDatalist(services);
   },
   locationOf: (name) => map.poses.get(name) ?? null,
+  // The selected service's badge says unknown too while the gateway cannot be reached; its
+  // view is built anew when the list says it is up again (onChange).
+  onReachable: (reachable) => !reachable && selected() && view.updateState({ ...selected(), state: 'unknown' }),
 });
 
 const view = new ServiceView($('#service-view'), { mux });
@@ -96,6 +101,7 @@ const map = new RobotMap($('#map'), {
     el.classList.toggle('error-text', isError);
   },
   onPose: (name) => list.moved(name),
+  backgroundSelect: $('#map-background'),
 });
 
 const teleop = new Teleop(
@@ -111,6 +117,21 @@ const teleop = new Teleop(
     target: $('#teleop-target'),
   },
   { selected, poseOf: (name) => map.poses.get(name) ?? null, onDrive: (name) => map.forgetTarget(name) },
+);
+
+// A gamepad drives through the teleop, with its own dead-man (js/gamepad.js).
+new GamepadDriver({
+  drive: (stick) => teleop.gamepad(stick),
+  onPad: (text) => {
+    const el = $('#teleop-gamepad');
+    el.textContent = text;
+    el.hidden = !text;
+  },
+});
+// Stop all: every robot and group the list holds, after the operator confirmed it.
+new StopAll(
+  { button: $('#teleop-stop-all'), status: $('#teleop-stop-all-status') },
+  { services: () => list.services, teleop },
 );
 
 const inspector = new Inspector(
@@ -130,7 +151,11 @@ const inspector = new Inspector(
   { mux, isUp: (name) => (list.byName(name)?.state ?? 'up') === 'up' },
 );
 
-function select(name) {
+/**
+ * Select `name` (null: nothing). The URL's fragment follows: a new history entry for the
+ * operator's choice (`push`), so that back and forward go through the selections.
+ */
+function select(name, { push = true } = {}) {
   if (name === selectedName) return;
   selectedName = name;
   list.select(name);
@@ -145,8 +170,31 @@ function select(name) {
   const url = new URL(location.href);
   if (name) url.hash = encodeURIComponent(name);
   else url.hash = '';
-  history.replaceState(null, '', url);
+  if (url.href === location.href) return; // selected from the URL itself
+  if (push) history.pushState(null, '', url);
+  else history.replaceState(null, '', url);
 }
+
+/** The service the URL's fragment names (`#scout1`), or null. */
+function hashService() {
+  try {
+    return decodeURIComponent(location.hash.slice(1)) || null;
+  } catch {
+    return null; // a malformed escape names nothing
+  }
+}
+
+// A fragment typed into the address bar, or back and forward through the selections, selects
+// the service it names (once the list holds it).
+window.addEventListener('hashchange', () => {
+  const name = hashService();
+  if (name && !list.byName(name)) {
+    pendingSelect = name;
+    return;
+  }
+  pendingSelect = null;
+  select(name);
+});
 
 function fillDatalist(services) {
   $('#inspector-services').replaceChildren(
@@ -203,6 +251,8 @@ window.PropertyConsole = Object.freeze({
   values: Object.freeze({ ...values }),
   select,
   selected: () => selectedName,
+  /** What the page's one stream costs: its selectors, and the events it threw away (docs/console.md). */
+  streamStats: () => mux.stats(),
 });
 
 list.start();

@@ -2,11 +2,18 @@
 // triangle pointing along its heading with its name, sensors and group centroids, markers
 // (the targets sent from here and every marker-typed property of the services), zoom (wheel),
 // pan (drag) and click-to-go: a click on the plane sends behaviors.moveto to the selected robot
-// or group (groups with the formation and spacing chosen beside the map).
+// or group (groups with the formation and spacing chosen beside the map). For a fleet: each
+// robot's recent path as a fading trail (js/trails.js), its target (a click-to-go, or a property
+// of its own that says where it is sent, below) as a mark with a line from the robot, a floor plan
+// or an environment model's grid under everything (js/map_background.js), and names placed clear
+// of each other (js/labels.js).
 
 import { describe, setProperty } from './api.js';
 import { clear, svg } from './dom.js';
-import { findMarkers, markerAt, markerLocation, parseVector } from './values.js';
+import { placeLabels } from './labels.js';
+import { MapBackground } from './map_background.js';
+import { Trail } from './trails.js';
+import { findMarkers, markerAt, markerLocation, parseMarker, parseVector } from './values.js';
 
 /** Services whose models the map reads for marker properties; a larger system keeps the first. */
 const MAX_DESCRIBED = 64;
@@ -21,13 +28,41 @@ const TARGET_TTL_MS = 120000;
 const MOVABLE_TYPES = new Set(['mobile_robot', 'group']);
 /** Types that have a location by their standard property set, even before the registry saw one. */
 const LOCATED_TYPES = new Set(['mobile_robot', 'group', 'sensor']);
-/**
- * Where a thing's name goes, in pixels from its place (y up): a robot's above right, a group's
- * below left (anchored at its end), anything else's (a sensor) below right, so that the names of
- * things that stand together (a sensor on a robot, a group of one, a group between its robots)
- * are not drawn over each other.
- */
-const LABEL_AT = { mobile_robot: [12, 10], group: [-12, -20], other: [12, -20] };
+/** Words that make a readable property a service's goal: where it is sent (a marker or x y). */
+const GOAL_WORDS = new Set(['goal', 'target']);
+/** Pixels of a name's height on the map (12 px text), and from its top to its baseline. */
+const LABEL_HEIGHT_PX = 15;
+const LABEL_BASELINE_PX = 11;
+/** Pixels within which a marker named like a thing (or another marker) stands where it does. */
+const SAME_PLACE_PX = 24;
+/** Seconds between redraws of the trails' fading while nothing moves. */
+const TRAIL_FADE_MS = 1000;
+
+/** A goal property's value as a point [x, y]: a marker with a location, or a vector; else null. */
+export function goalPoint(text) {
+  if (!text || !text.trim()) return null;
+  try {
+    const marker = parseMarker(text);
+    const location = markerLocation(marker);
+    return location && location.length >= 2 ? [location[0], location[1]] : null;
+  } catch {
+    // not a marker: x y ...
+  }
+  try {
+    const v = parseVector(text);
+    return v.length >= 2 ? [v[0], v[1]] : null;
+  } catch {
+    return null;
+  }
+}
+
+/** Whether a property of a model names where its service is sent (`goal`, `behaviors.target`, `.gui` goal). */
+export function isGoalProperty(prop) {
+  const last = String(prop.name ?? '').split('.').at(-1);
+  const readable = ['read', 'read-write'].includes(prop.access);
+  const shaped = ['marker', 'vector'].includes(prop.type) || ['marker', 'pose', 'vector', 'goal', 'target'].includes(prop.gui);
+  return readable && shaped && (GOAL_WORDS.has(last) || GOAL_WORDS.has(prop.gui));
+}
 
 function colorOf(text) {
   try {
@@ -44,10 +79,12 @@ export class RobotMap {
    * `svgRoot` is the #map <svg>; `services()` the current list; `selected()` the selected
    * service; `onSelect(name)` for a click on a robot; `formation()` gives {formation, spacing}.
    */
-  constructor(svgRoot, { mux, services, selected, onSelect, formation, status, onPose = () => {} }) {
+  constructor(svgRoot, { mux, services, selected, onSelect, formation, status, onPose = () => {}, backgroundSelect = null }) {
     Object.assign(this, { root: svgRoot, mux, services, selected, onSelect, formation, status, onPose });
     this.poses = new Map(); // service -> [x y z roll pitch yaw]
-    this.targets = new Map(); // service -> [x, y]
+    this.targets = new Map(); // service -> [x, y] where a click sent it (with .at, ms)
+    this.goals = new Map(); // service -> [x, y] its own goal property says
+    this.trails = new Map(); // robot -> Trail
     this.markers = new Map(); // "service/path" -> [{location, label, color}]
     this.stale = new Set(); // services shown where last seen: not up, or their Listen failed
     this._locationSubs = new Map(); // service -> unsubscribe
@@ -57,7 +94,9 @@ export class RobotMap {
     this._drag = null;
     this._userMoved = false; // the operator zoomed or panned: the map no longer fits by itself
     this.layers = {
+      background: svg('g', { class: 'background' }),
       grid: svg('g', { class: 'grid' }),
+      trails: svg('g', { class: 'trails' }),
       markers: svg('g', { class: 'markers' }),
       targets: svg('g', { class: 'targets' }),
       others: svg('g', { class: 'others' }), // sensors and group centroids, under the robots
@@ -67,15 +106,23 @@ export class RobotMap {
     clear(this.root).append(this.world);
     this._bind();
     new ResizeObserver(() => this.draw()).observe(this.root);
+    this._labelWidths = new Map(); // name -> px
+    this._labelsQueued = false;
+    this.background = backgroundSelect
+      ? new MapBackground(this.layers.background, backgroundSelect, { mux, onExtent: () => !this._userMoved && this.fit() })
+      : null;
+    // The trails fade with time even where nothing moves.
+    setInterval(() => this.trails.size && this.drawTrails(), TRAIL_FADE_MS);
   }
 
   start() {
     this._fitted = false;
+    this.background?.start();
   }
 
   // -- data ----------------------------------------------------------------------------------
 
-  located({ service, value, removed }) {
+  located({ service, value, removed, gap }) {
     let pose = null;
     if (!removed) {
       try {
@@ -89,10 +136,15 @@ export class RobotMap {
     this.stale.delete(service);
     const target = this.targets.get(service);
     const arrived = target && pose && Math.hypot(pose[0] - target[0], pose[1] - target[1]) < ARRIVED_M;
-    if (target && (arrived || this.clock() - target.at > TARGET_TTL_MS)) {
-      this.targets.delete(service);
-      this.drawTargets();
+    if (target && (arrived || this.clock() - target.at > TARGET_TTL_MS)) this.targets.delete(service);
+    if (pose && this.typeOf(service) === 'mobile_robot') {
+      let trail = this.trails.get(service);
+      if (!trail) this.trails.set(service, (trail = new Trail()));
+      if (trail.add(pose[0], pose[1], this.clock(), Boolean(gap))) this.drawTrail(service);
+    } else if (!pose && this.trails.delete(service)) {
+      this.drawTrail(service);
     }
+    this.drawTarget(service);
     this.drawRobot(service);
     this.onPose(service);
   }
@@ -134,6 +186,9 @@ export class RobotMap {
       );
     }
     for (const name of [...this.poses.keys()]) if (!names.has(name)) this.poses.delete(name);
+    for (const name of [...this.trails.keys()]) if (!names.has(name)) this.trails.delete(name);
+    for (const name of [...this.goals.keys()]) if (!names.has(name)) this.goals.delete(name);
+    this.background?.servicesChanged(list);
     for (const s of list) {
       if (follow.has(s.name) || (many && s.state === 'up')) continue;
       this.stale.add(s.name);
@@ -146,6 +201,8 @@ export class RobotMap {
         this.markers.delete(selector);
       }
     }
+    // A goal followed of a service that is gone, or not up (its goal is read anew when it is).
+    for (const s of list) if (s.state !== 'up') this.goals.delete(s.name);
     this.drawAll();
     // A service that is not up is described again once it is (its model may have changed).
     for (const service of list) if (service.state !== 'up') this._described.delete(service.name);
@@ -166,6 +223,22 @@ export class RobotMap {
         continue;
       }
       for (const prop of model.properties ?? []) {
+        if (isGoalProperty(prop) && this._markerSubs.size < MAX_MARKER_PROPERTIES) {
+          const selector = `${service.name}/${prop.name}`;
+          const name = service.name;
+          this._markerSubs.set(
+            selector,
+            this.mux.subscribe(selector, {
+              onValue: ({ value, removed }) => {
+                const point = removed ? null : goalPoint(value);
+                if (point) this.goals.set(name, point);
+                else this.goals.delete(name);
+                this.drawTarget(name);
+              },
+            }),
+          );
+          continue;
+        }
         const isMarker = prop.type === 'marker' || prop.gui === 'marker' || prop.gui === 'markers';
         if (!isMarker || !['read', 'read-write'].includes(prop.access)) continue;
         if (this._markerSubs.size >= MAX_MARKER_PROPERTIES) return;
@@ -200,7 +273,7 @@ export class RobotMap {
 
   /** `name` is driven by hand now: its click-to-go target is over. */
   forgetTarget(name) {
-    if (this.targets.delete(name)) this.drawTargets();
+    if (this.targets.delete(name)) this.drawTarget(name);
   }
 
   typeOf(name) {
@@ -227,6 +300,8 @@ export class RobotMap {
   /** Zoom and pan so that every robot and marker is in sight. */
   fit() {
     const points = [...this.poses.values(), ...[...this.markers.values()].flat().map((m) => m.location)];
+    const plan = this.background?.choice === 'floor-plan' ? this.background.floorPlan?.extent : null;
+    if (plan) points.push([plan[0], plan[1]], [plan[2], plan[3]]);
     if (!points.length) return;
     const xs = points.map((p) => p[0]);
     const ys = points.map((p) => p[1]);
@@ -303,7 +378,7 @@ export class RobotMap {
       if (spacing) parameters.spacing = spacing;
     }
     this.targets.set(name, target);
-    this.drawTargets();
+    this.drawTarget(name);
     this.status(`${name}: moving to (${target.join(' ')})…`);
     try {
       const reply = await setProperty(name, 'behaviors.moveto', markerAt(target), parameters);
@@ -311,7 +386,7 @@ export class RobotMap {
       this.status(`${name}: behaviors.moveto (${target.join(' ')}) accepted${members}`);
     } catch (e) {
       this.targets.delete(name);
-      this.drawTargets();
+      this.drawTarget(name);
       this.status(`${name}: ${e.code}: ${e.message}`, true);
     }
   }
@@ -334,10 +409,12 @@ export class RobotMap {
   drawAll() {
     this.drawMarkers();
     this.drawTargets();
+    this.drawTrails();
     for (const layer of [this.layers.robots, this.layers.others]) {
       for (const g of [...layer.children]) if (!this.poses.has(g.dataset.service)) g.remove();
     }
     for (const name of this.poses.keys()) this.drawRobot(name);
+    this.scheduleLabels();
   }
 
   drawGrid(width, height) {
@@ -395,8 +472,132 @@ export class RobotMap {
     g.classList.toggle('stale', this.stale.has(name));
     g.querySelector('title').textContent = `${name} (${type}) at x ${x.toFixed(2)} y ${y.toFixed(2)}`;
     g.querySelector('.shape').setAttribute('transform', `scale(${s}) rotate(${(yaw * 180) / Math.PI})`);
-    const [dx, dy] = LABEL_AT[type] ?? LABEL_AT.other;
-    g.querySelector(':scope > text').setAttribute('transform', `translate(${dx * s} ${dy * s}) scale(${s} ${-s})`);
+    this.scheduleLabels();
+  }
+
+  // -- names ---------------------------------------------------------------------------------
+
+  /** Lay the names out again at the next frame: many moves in one frame cost one layout. */
+  scheduleLabels() {
+    if (this._labelsQueued) return;
+    this._labelsQueued = true;
+    const run = () => {
+      this._labelsQueued = false;
+      this.layoutLabels();
+    };
+    if (typeof requestAnimationFrame === 'function') requestAnimationFrame(run);
+    else setTimeout(run, 16);
+  }
+
+  labelWidth(words, text) {
+    let width = this._labelWidths.get(words);
+    if (!width) {
+      width = text.getComputedTextLength?.() || 0;
+      if (!width) return 7 * words.length; // not laid out yet (hidden): a guess, measured next time
+      this._labelWidths.set(words, width);
+      if (this._labelWidths.size > 4096) this._labelWidths.delete(this._labelWidths.keys().next().value);
+    }
+    return width;
+  }
+
+  /** Every name on the map: {id, g, text, at: [x, y] (m), kind}, things first, then targets and markers. */
+  *labelled() {
+    for (const g of [...this.layers.robots.children, ...this.layers.others.children]) {
+      const at = this.poses.get(g.dataset.service);
+      if (at) yield { id: g.dataset.service, g, at, kind: g.dataset.kind };
+    }
+    for (const g of this.layers.targets.children) if (g.placedAt) yield { id: `→ ${g.dataset.target}`, g, at: g.placedAt, kind: 'target' };
+    let i = 0;
+    for (const g of this.layers.markers.children) if (g.placedAt) yield { id: `marker ${(i += 1)}`, g, at: g.placedAt, kind: 'marker' };
+  }
+
+  /** Place every name in sight clear of the others and of the things (js/labels.js). */
+  layoutLabels() {
+    const { width, height } = this.size();
+    const { cx, cy, scale } = this.view;
+    const s = 1 / scale;
+    const items = [];
+    const found = new Map();
+    const selected = this.selected();
+    // The selected thing's name chooses first, then robots, groups, the rest, targets and markers.
+    const RANK = { mobile_robot: 1, group: 2, target: 4, marker: 5 };
+    const shown = new Map(); // name text -> the places (px) it is shown at
+    for (const entry of this.labelled()) {
+      const text = entry.g.querySelector(':scope > text');
+      if (!text) continue;
+      const x = width / 2 + (entry.at[0] - cx) * scale;
+      const y = height / 2 - (entry.at[1] - cy) * scale;
+      if (x < -200 || y < -200 || x > width + 200 || y > height + 200) continue; // out of sight
+      // A marker of a thing where that thing stands (an environment model's marker of a robot,
+      // a camera's sighting of it) says its name a second time: the name shows once.
+      const words = text.textContent;
+      const twice = entry.kind === 'marker' && (shown.get(words) ?? []).some(([u, v]) => Math.hypot(u - x, v - y) < SAME_PLACE_PX);
+      text.setAttribute('display', twice ? 'none' : 'inline');
+      if (twice) {
+        entry.g.querySelector(':scope > line.leader')?.remove();
+        continue;
+      }
+      if (!shown.has(words)) shown.set(words, []);
+      shown.get(words).push([x, y]);
+      const item = { id: entry.id, x, y, width: this.labelWidth(text.textContent, text), height: LABEL_HEIGHT_PX, kind: entry.kind };
+      item.rank = entry.id === selected ? 0 : RANK[entry.kind] ?? 3;
+      items.push(item);
+      found.set(entry.id, { g: entry.g, text, item });
+    }
+    items.sort((a, b) => a.rank - b.rank || (a.id < b.id ? -1 : a.id > b.id ? 1 : 0));
+    for (const [id, box] of placeLabels(items)) {
+      const { g, text, item } = found.get(id);
+      text.setAttribute('display', box.hidden ? 'none' : 'inline');
+      if (box.hidden) {
+        g.querySelector(':scope > line.leader')?.remove();
+        continue;
+      }
+      const dx = box.left - item.x;
+      const dy = box.top + LABEL_BASELINE_PX - item.y;
+      text.setAttribute('transform', `translate(${dx * s} ${-dy * s}) scale(${s} ${-s})`);
+      let leader = g.querySelector(':scope > line.leader');
+      if (box.leader) {
+        // From the thing's edge to the nearest point of its name's box.
+        const nx = Math.max(box.left, Math.min(item.x, box.left + box.width)) - item.x;
+        const ny = Math.max(box.top, Math.min(item.y, box.top + box.height)) - item.y;
+        if (!leader) g.append((leader = svg('line', { class: 'leader' })));
+        const length = Math.hypot(nx, ny) || 1;
+        const from = Math.min(8, length) / length;
+        Object.entries({ x1: nx * from * s, y1: -ny * from * s, x2: nx * s, y2: -ny * s, 'stroke-width': s }).forEach(([k, v]) => leader.setAttribute(k, v));
+      } else {
+        leader?.remove();
+      }
+    }
+  }
+
+  // -- trails --------------------------------------------------------------------------------
+
+  drawTrails() {
+    const now = this.clock();
+    for (const [name, trail] of this.trails) {
+      trail.prune(now);
+      if (!trail.length || !this.poses.has(name)) this.trails.delete(name);
+    }
+    for (const g of [...this.layers.trails.children]) if (!this.trails.has(g.dataset.trail)) g.remove();
+    for (const name of this.trails.keys()) this.drawTrail(name);
+  }
+
+  /** The trail of `name`: a <g data-trail=NAME> of polylines, the older the fainter. */
+  drawTrail(name) {
+    let g = this.layers.trails.querySelector(`[data-trail="${CSS.escape(name)}"]`);
+    const trail = this.trails.get(name);
+    if (!trail) {
+      g?.remove();
+      return;
+    }
+    if (!g) this.layers.trails.append((g = svg('g', { class: 'trail', dataset: { trail: name } })));
+    const px = 1 / this.view.scale;
+    g.dataset.points = String(trail.length);
+    g.replaceChildren(
+      ...trail.polylines(this.clock()).map(({ points, opacity }) =>
+        svg('polyline', { points: points.map((p) => p.join(',')).join(' '), 'stroke-opacity': opacity, 'stroke-width': 2 * px }),
+      ),
+    );
   }
 
   robotShape(name, type) {
@@ -411,23 +612,52 @@ export class RobotMap {
     } else {
       body = svg('circle', { r: 6, class: 'sensor-body' });
     }
-    const label = this.label(name, 0, 0);
-    if (type === 'group') label.setAttribute('text-anchor', 'end'); // left of it: see LABEL_AT
+    const label = this.label(name, 0, 0); // placed by layoutLabels
     return svg('g', attrs, svg('title', {}), svg('g', { class: 'shape' }, body), label);
   }
 
   drawTargets() {
+    const names = new Set([...this.targets.keys(), ...this.goals.keys()]);
+    for (const g of [...this.layers.targets.children]) if (!names.has(g.dataset.target)) g.remove();
+    for (const name of names) this.drawTarget(name);
+  }
+
+  /**
+   * Where `name` is sent, a <g data-target=NAME> (class `goal` when its own property says it, which
+   * wins over a click): a cross in a circle, its name, and a line from the robot while it is on
+   * its way (gone once it is there).
+   */
+  drawTarget(name) {
+    let g = this.layers.targets.querySelector(`[data-target="${CSS.escape(name)}"]`);
+    const goal = this.goals.get(name);
+    const point = goal ?? this.targets.get(name);
+    const pose = this.poses.get(name);
+    if (!point || (goal && pose && Math.hypot(pose[0] - goal[0], pose[1] - goal[1]) < ARRIVED_M)) {
+      g?.remove();
+      return;
+    }
     const s = 1 / this.view.scale;
-    this.layers.targets.replaceChildren(
-      ...[...this.targets].map(([name, [x, y]]) =>
-        svg(
-          'g',
-          { class: 'target', dataset: { target: name }, transform: `translate(${x} ${y})` },
-          svg('g', { transform: `scale(${s})` }, svg('circle', { r: 8 }), svg('path', { d: 'M-12,0 H12 M0,-12 V12' })),
-          this.label(`→ ${name}`, 10 * s, -16 * s, 'label target-label'),
-        ),
-      ),
-    );
+    const [x, y] = point;
+    if (!g) {
+      g = svg(
+        'g',
+        { class: 'target', dataset: { target: name } },
+        svg('line', { class: 'target-line' }),
+        svg('g', { class: 'target-mark' }, svg('circle', { r: 8 }), svg('path', { d: 'M-12,0 H12 M0,-12 V12' })),
+        this.label(`→ ${name}`, 10 * s, -16 * s, 'label target-label'), // placed by layoutLabels
+      );
+      this.layers.targets.append(g);
+    }
+    g.classList.toggle('goal', Boolean(goal));
+    g.setAttribute('transform', `translate(${x} ${y})`);
+    if (!g.placedAt || g.placedAt[0] !== x || g.placedAt[1] !== y) this.scheduleLabels();
+    g.placedAt = point;
+    g.querySelector('.target-mark').setAttribute('transform', `scale(${s})`);
+    const line = g.querySelector('.target-line');
+    line.setAttribute('display', pose ? 'inline' : 'none');
+    if (pose) {
+      Object.entries({ x1: pose[0] - x, y1: pose[1] - y, x2: 0, y2: 0, 'stroke-width': 1.5 * s }).forEach(([k, v]) => line.setAttribute(k, v));
+    }
   }
 
   drawMarkers() {
@@ -435,17 +665,18 @@ export class RobotMap {
     const shapes = [];
     for (const [selector, markers] of this.markers) {
       for (const { location, label, color } of markers) {
-        shapes.push(
-          svg(
-            'g',
-            { class: 'marker', dataset: { marker: selector }, transform: `translate(${location[0]} ${location[1]})` },
-            svg('title', {}, `${selector}${label ? `: ${label}` : ''}`),
-            svg('g', { transform: `scale(${s})` }, svg('rect', { x: -5, y: -5, width: 10, height: 10, style: color ? `fill: ${color}` : null })),
-            label ? this.label(label, 8 * s, 8 * s) : null,
-          ),
+        const shape = svg(
+          'g',
+          { class: 'marker', dataset: { marker: selector }, transform: `translate(${location[0]} ${location[1]})` },
+          svg('title', {}, `${selector}${label ? `: ${label}` : ''}`),
+          svg('g', { transform: `scale(${s})` }, svg('rect', { x: -5, y: -5, width: 10, height: 10, style: color ? `fill: ${color}` : null })),
+          label ? this.label(label, 8 * s, 8 * s) : null,
         );
+        shape.placedAt = location; // its name is placed by layoutLabels
+        shapes.push(shape);
       }
     }
     this.layers.markers.replaceChildren(...shapes);
+    this.scheduleLabels();
   }
 }

@@ -4,12 +4,10 @@
 
 import { describe, getHistory, getProperty, setProperty } from './api.js';
 import { h } from './dom.js';
+import { plainDoc, renderDoc } from './doc_text.js';
+import { MAX_SUBSCRIPTIONS } from './events.js';
 import { followedOnStream, needsParameters, propertyView } from './widgets.js';
 
-/** Selectors a view follows at least, however full the page's stream is. */
-const MIN_FOLLOWED = 8;
-/** Selectors kept free for what comes after the view (the inspector's Listen, new services on the map). */
-const RESERVED_SELECTORS = 6;
 /** Wildcard Gets one view sends to read what it does not follow. */
 const MAX_READ_PATTERNS = 32;
 const LISTENABLE = new Set(['read', 'read-write', 'unknown']);
@@ -104,6 +102,8 @@ export class ServiceView {
         setProperty,
         getProperty,
         getHistory,
+        describe: (name) => this.describe(name),
+        subscribe: (selector, handlers) => this.mux.subscribe(selector, handlers),
         label: ns ? prop.name.slice(ns.length + 1) : prop.name,
       });
       this._views.set(prop.name, view);
@@ -111,6 +111,9 @@ export class ServiceView {
       // A binary one (a camera's frame) is read by its widget, on a connection of its own.
       if (LISTENABLE.has(prop.access) && !needsParameters(prop) && followedOnStream(prop)) {
         targets.set(prop.name, leafTarget(view));
+      } else if (!followedOnStream(prop)) {
+        // Nor may a wildcard of the page's stream bring its values (base64 frames) beside the rest.
+        this._unsubscribe.push(this.mux.avoid(`${service.name}/${prop.name}`));
       }
       return view.element;
     };
@@ -129,7 +132,7 @@ export class ServiceView {
       return h(
         'fieldset',
         attrs,
-        h('legend', { title: byName.get(ns)?.doc || ns }, parent ? ns.slice(parent.length + 1) : ns, value),
+        h('legend', { title: plainDoc(byName.get(ns)?.doc) || ns }, parent ? ns.slice(parent.length + 1) : ns, value),
         leaves.map((prop) => leafView(ns, prop)),
         subs.sort().map((sub) => fieldset(sub, ns)),
       );
@@ -147,21 +150,22 @@ export class ServiceView {
       );
     }
     for (const ns of top.subs.sort()) sections.push(fieldset(ns, ''));
-    // The gateway bounds the selectors of one Listen ([limits] max_selectors): the view follows
-    // the shallowest properties live within what the page's stream has left, one exact selector
-    // each (so that a member that goes away costs only its own), and reads the rest once.
-    const budget = Math.max(MIN_FOLLOWED, this.mux.maxSelectors - this.mux.subscriptions.size - RESERVED_SELECTORS);
+    // Every property is followed live, one exact selector each: the page's stream covers them
+    // with a few wildcards when they are more than one Listen may name (js/selector_cover.js).
+    // Only beyond what the page subscribes to at all (thousands: a registry of hundreds of
+    // services) are the deepest read once instead.
     const order = [...targets.keys()].sort((a, b) => a.split('.').length - b.split('.').length);
-    const live = order.slice(0, budget);
-    const rest = order.slice(budget);
-    for (const path of live) this.follow(`${service.name}/${path}`, targets.get(path));
+    const rest = [];
+    for (const path of order) {
+      if (rest.length || !this.follow(`${service.name}/${path}`, targets.get(path))) rest.push(path);
+    }
     let note = null;
     if (rest.length) {
       const refresh = () => this.readOnce(service.name, rest, targets);
       note = h(
         'p',
         { class: 'muted notice' },
-        `${rest.length} deeper properties are read once, not followed live (the stream's limit is ${this.mux.maxSelectors} selectors). `,
+        `${rest.length} deeper properties are read once, not followed live (the page follows at most ${MAX_SUBSCRIPTIONS} properties). `,
         h('button', { type: 'button', dataset: { action: 'refresh' }, onclick: refresh }, 'Read again'),
       );
       refresh();
@@ -169,25 +173,30 @@ export class ServiceView {
     // replaceChildren, unlike h(), writes a null as the text "null": leave the absent ones out.
     const parts = [
       this.header(service),
-      model?.doc ? h('p', { class: 'doc' }, model.doc) : null,
+      model?.doc ? renderDoc(model.doc, { h }) : null,
       note,
       h('div', { class: 'namespaces' }, sections),
     ];
     this.root.replaceChildren(...parts.filter((part) => part !== null));
-    this._unsubscribe.push(
-      this.mux.subscribe(`${service.name}/properties`, {
-        onValue: (event) => this.propertiesChanged(event.value),
-      }),
-    );
+    this.follow(`${service.name}/properties`, {
+      update: (event) => this.propertiesChanged(event.value),
+      error: () => {},
+    });
   }
 
+  /** Follow `selector` into `target`; false when the page follows as many as it may already. */
   follow(selector, target) {
-    this._unsubscribe.push(
-      this.mux.subscribe(selector, {
-        onValue: (event) => target.update(event),
-        onError: (e) => target.error(e),
-      }),
-    );
+    try {
+      this._unsubscribe.push(
+        this.mux.subscribe(selector, {
+          onValue: (event) => target.update(event),
+          onError: (e) => target.error(e),
+        }),
+      );
+      return true;
+    } catch {
+      return false;
+    }
   }
 
   /** Read `paths` once with a wildcard Get per namespace (a few requests, not one per property). */

@@ -53,6 +53,7 @@ export class Teleop {
     Object.assign(this, { els, selected, poseOf, onDrive, setVelocity, page });
     this.keys = new Set();
     this.stick = null; // {forward, turn} while the joystick is held
+    this.pad = null; // {forward, turn} while a gamepad asks for it (js/gamepad.js)
     this.timer = null;
     this.inFlight = false;
     this.driving = null; // the service the last non-zero command went to
@@ -76,8 +77,10 @@ export class Teleop {
   selectionChanged() {
     this.keys.clear();
     this.stick = null;
+    this.pad = null;
     this.showKeys();
     this.release();
+    this.showStatus('', false); // the status is the selected robot's: what the last one heard goes
     const t = this.target();
     this.els.target.textContent = t ? `${t.name} (${t.type === 'group' ? 'group' : 'robot'})` : 'no robot selected';
     this.els.root.classList.toggle('disabled', !t);
@@ -127,7 +130,7 @@ export class Teleop {
       joystick.classList.remove('active');
       this.stick = null;
       this.showKeys(); // the keys still held, or the centre
-      if (this.keys.size) this.hold();
+      if (this.keys.size || this.pad) this.hold();
       else this.release();
     };
     joystick.addEventListener('pointerup', end);
@@ -149,15 +152,26 @@ export class Teleop {
       const key = KEYS[e.key.toLowerCase()];
       if (!key || !this.keys.delete(key)) return;
       this.showKeys();
-      if (this.keys.size || this.stick) this.hold();
+      if (this.keys.size || this.stick || this.pad) this.hold();
       else this.release();
     });
+  }
+
+  /**
+   * The gamepad's hook: `stick` ({forward, turn}) is held and driven like the on-screen stick;
+   * null lets go (the pad's stick centred, its dead-man released, the pad gone).
+   */
+  gamepad(stick) {
+    this.pad = stick && this.target() ? stick : null;
+    if (this.pad) this.hold();
+    else if (!this.keys.size && !this.stick) this.release();
   }
 
   _bindPage() {
     const lost = () => {
       this.keys.clear();
       this.stick = null;
+      this.pad = null;
       this.showKeys();
       // Only a robot this page drives is stopped: losing focus must not end another's moveto.
       this.release(false, true);
@@ -191,11 +205,15 @@ export class Teleop {
     let forward = 0;
     let turn = 0;
     if (this.stick) ({ forward, turn } = this.stick);
+    if (this.pad) {
+      forward += this.pad.forward;
+      turn += this.pad.turn;
+    }
     if (this.keys.has('forward')) forward += 1;
     if (this.keys.has('back')) forward -= 1;
     if (this.keys.has('left')) turn += 1;
     if (this.keys.has('right')) turn -= 1;
-    if (!this.stick && !this.keys.size) return null;
+    if (!this.stick && !this.pad && !this.keys.size) return null;
     const t = this.target();
     if (!t) return null;
     const pose = this.poseOf(t.name);
@@ -236,9 +254,9 @@ export class Teleop {
     try {
       await this.setVelocity(name, text, keepalive);
       this.lastSent = text;
-      this.showStatus(`${stopping ? 'stopped' : 'driving'} ${name}: velocity ${text}`, false);
+      this.showStatusOf(name, `${stopping ? 'stopped' : 'driving'} ${name}: velocity ${text}`, false);
     } catch (e) {
-      this.showStatus(`${name}: velocity ${text}: ${e.code}: ${e.message}`, true);
+      this.showStatusOf(name, `${name}: velocity ${text}: ${e.code}: ${e.message}`, true);
     } finally {
       if (!stopping) {
         this.inFlight = false;
@@ -264,6 +282,11 @@ export class Teleop {
     this.els.status.textContent = text;
     this.els.status.classList.toggle('error-text', isError);
   }
+
+  /** Show what `name` answered, if it is still the one selected (a stop sent on leaving it is not). */
+  showStatusOf(name, text, isError) {
+    if (this.target()?.name === name) this.showStatus(text, isError);
+  }
 }
 
 /** Set `velocity` of `name` (keepalive: the request outlives the page). */
@@ -273,4 +296,102 @@ function sendVelocity(name, text, keepalive) {
 
 function isTyping(el) {
   return Boolean(el?.isContentEditable) || ['INPUT', 'TEXTAREA', 'SELECT'].includes(el?.tagName);
+}
+
+// -- Stop all ---------------------------------------------------------------------------------
+// One action that reaches every service the teleop can drive (every robot and group listed),
+// after the operator confirmed it: zeros sent to each, a few at a time, and a report of which
+// stopped and which did not answer.
+
+/** Stops in flight at once: a fleet of hundreds is stopped in waves, never hundreds of requests at once. */
+export const STOP_ALL_AT_ONCE = 16;
+
+/** The services `services` ({name, type}) that Stop all reaches: robots and groups, by name. */
+export function drivableNames(services) {
+  return services
+    .filter((s) => s.type === 'mobile_robot' || s.type === 'group')
+    .map((s) => s.name)
+    .sort((a, b) => a.localeCompare(b, undefined, { numeric: true }));
+}
+
+/**
+ * Send zeros to the `velocity` of every one of `names`, at most `atOnce` at a time; resolves to
+ * {stopped: [name], failed: [{name, error}]} in the order of `names`.
+ */
+export async function stopEvery(names, { setVelocity = sendVelocity, atOnce = STOP_ALL_AT_ONCE } = {}) {
+  const zero = formatVector(ZERO);
+  const results = new Array(names.length);
+  let next = 0;
+  const worker = async () => {
+    while (next < names.length) {
+      const at = next++;
+      try {
+        await setVelocity(names[at], zero, false);
+        results[at] = { name: names[at] };
+      } catch (error) {
+        results[at] = { name: names[at], error };
+      }
+    }
+  };
+  await Promise.all(Array.from({ length: Math.min(atOnce, names.length) }, worker));
+  return {
+    stopped: results.filter((r) => !r.error).map((r) => r.name),
+    failed: results.filter((r) => r.error).map(({ name, error }) => ({ name, error })),
+  };
+}
+
+/** The report of a Stop all, as the page shows it. */
+export function stopAllReport({ stopped, failed }) {
+  const parts = [`Stop all: ${stopped.length} of ${stopped.length + failed.length} stopped`];
+  if (stopped.length) parts.push(`stopped ${stopped.join(', ')}`);
+  if (failed.length) {
+    parts.push(`no answer from ${failed.map(({ name, error }) => `${name} (${error?.code ?? 'UNKNOWN'}: ${error?.message ?? error})`).join(', ')}`);
+  }
+  return parts.join('; ');
+}
+
+/**
+ * The Stop all button: `els` {button, status}; `services()` the listed services; `teleop` the
+ * page's Teleop (its own driving ends first); `confirm(text)` asks the operator.
+ */
+export class StopAll {
+  constructor(els, { services, teleop, confirm = (text) => globalThis.confirm(text), setVelocity = sendVelocity }) {
+    Object.assign(this, { els, services, teleop, confirm, setVelocity });
+    this.running = false;
+    els.button.addEventListener('click', () => this.run());
+  }
+
+  async run() {
+    if (this.running) return; // one at a time: a second press while it runs adds nothing
+    const names = drivableNames(this.services());
+    if (!names.length) {
+      this.show('Stop all: no robot or group is listed', false, [], []);
+      return;
+    }
+    if (!this.confirm(`Stop every robot and group (${names.length}: ${names.join(', ')})?`)) return;
+    this.running = true;
+    this.els.button.disabled = true;
+    // The page's own driving ends first, so that no renewal follows the stop.
+    this.teleop.keys.clear();
+    this.teleop.stick = null;
+    this.teleop.showKeys();
+    this.teleop.release();
+    this.show(`Stop all: stopping ${names.length}…`, false, [], []);
+    try {
+      const result = await stopEvery(names, { setVelocity: this.setVelocity });
+      this.show(stopAllReport(result), result.failed.length > 0, result.stopped, result.failed.map((f) => f.name));
+    } finally {
+      this.running = false;
+      this.els.button.disabled = false;
+    }
+  }
+
+  show(text, isError, stopped, failed) {
+    const { status } = this.els;
+    status.textContent = text;
+    status.classList.toggle('error-text', isError);
+    status.dataset.stopped = stopped.join(' ');
+    status.dataset.failed = failed.join(' ');
+    status.scrollIntoView?.({ block: 'nearest' }); // below the panel's fold on a small screen
+  }
 }

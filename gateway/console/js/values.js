@@ -363,3 +363,122 @@ export function shownValue(item) {
   if (item?.data === undefined || item?.data === null) return item?.value ?? '';
   return `[${base64Size(item.data)} bytes, ${item.media_type || 'application/octet-stream'}]`;
 }
+
+// -- numbers for people ----------------------------------------------------------------------
+// A value text may carry every digit a double has ("1.2345678901234567"); a person reads it to
+// the property's resolution. The model's `resolution`, where a service declares one, says how
+// fine; else the unit's usual reading on a robot, else three decimals.
+
+/** Decimals a robot's quantities are read to when the model declares no resolution. */
+const UNIT_DECIMALS = { m: 2, 'm/s': 2, rad: 2, 'rad/s': 2, degC: 1, s: 2, Hz: 1, '%': 0 };
+/** Decimals of a number whose model says nothing about its precision. */
+export const DEFAULT_DECIMALS = 3;
+/** Most decimals shown, whatever the model says (a double holds about 16 significant digits). */
+const MAX_DECIMALS = 9;
+
+/** Decimals a resolution implies: 0.01 -> 2, 0.5 -> 1, 0.25 -> 2, 5 -> 0; null for none. */
+export function decimalsOf(resolution) {
+  if (typeof resolution !== 'number' || !Number.isFinite(resolution) || resolution <= 0) return null;
+  for (let d = 0; d < MAX_DECIMALS; d += 1) {
+    const scaled = resolution * 10 ** d;
+    if (Math.abs(scaled - Math.round(scaled)) < 1e-6) return d;
+  }
+  return MAX_DECIMALS;
+}
+
+/**
+ * The unit of element `i` of an `n`-element value: a pose's "m, rad" is metres for x y z and
+ * radians for roll pitch yaw; any other unit holds for every element.
+ */
+export function unitOf(prop, i = 0, n = 1) {
+  const parts = String(prop?.unit ?? '').split(',').map((part) => part.trim());
+  if (parts.length === 2 && n === 6) return i < 3 ? parts[0] : parts[1];
+  return parts[0];
+}
+
+/** Decimals a value of `prop` (element `i` of `n`) is shown with: resolution, type, unit. */
+export function decimalsFor(prop, i = 0, n = 1) {
+  const declared = decimalsOf(prop?.resolution);
+  if (declared !== null) return declared;
+  if (prop?.type === 'integer') return 0;
+  return UNIT_DECIMALS[unitOf(prop, i, n)] ?? DEFAULT_DECIMALS;
+}
+
+/** x rounded to `decimals` as value text, no trailing zeros: (0.12345, 2) -> "0.12", (0.5, 2) -> "0.5". */
+export function roundedText(x, decimals) {
+  return formatNumber(Number(x.toFixed(Math.min(MAX_DECIMALS, Math.max(0, decimals)))) + 0);
+}
+
+/** x as a measurement: exactly `decimals` decimals and the unit, (0.5, 2, "m/s") -> "0.50 m/s". */
+export function formatMeasure(x, decimals, unit = '') {
+  if (typeof x !== 'number' || !Number.isFinite(x)) return '–';
+  let fixed = x.toFixed(Math.min(MAX_DECIMALS, Math.max(0, decimals)));
+  if (Number(fixed) === 0) fixed = fixed.replace(/^-/, ''); // never "-0.00"
+  return unit ? `${fixed} ${unit}` : fixed;
+}
+
+/**
+ * A number or vector value text rounded as `prop` says it is read ("(1.2345678 2 0 0 0 0.785398)"
+ * -> "(1.23 2 0 0 0 0.79)"); any other text, or one that does not parse, as it is.
+ */
+export function roundedValue(prop, text) {
+  const source = String(text ?? '');
+  try {
+    if (prop?.type === 'number' || prop?.type === 'integer') {
+      return roundedText(parseNumber(source), decimalsFor(prop));
+    }
+    if (prop?.type === 'vector') {
+      const numbers = parseVector(source);
+      return `(${numbers.map((x, i) => roundedText(x, decimalsFor(prop, i, numbers.length))).join(' ')})`;
+    }
+  } catch {
+    // not a number after all: shown as the service sent it
+  }
+  return source;
+}
+
+/** The round number at or above x (> 0): 1, 2 or 5 times a power of ten. */
+export function niceCeil(x) {
+  if (!(x > 0) || !Number.isFinite(x)) return 1;
+  const power = 10 ** Math.floor(Math.log10(x));
+  for (const m of [1, 2, 5, 10]) {
+    const nice = Number((m * power).toPrecision(12));
+    if (nice >= x * (1 - 1e-12)) return nice;
+  }
+  return 10 * power;
+}
+
+/** A span this many times wider than the value needs is narrowed around the value. */
+export const SLIDER_ZOOM_FACTOR = 5;
+/** The span a slider gets with no range in the model and no value yet (0 … 1). */
+const DEFAULT_SPAN = 1;
+
+/**
+ * The span a slider of `prop` draws for `value`: the model's range (minimum … maximum), unless it
+ * is far wider than the value needs (a speed declared 0 … 1000 m/s so that a Set of 5 passes, at
+ * 0.5 m/s), or absent: then a round span that holds the value in its lower half (0 … 1 for 0.5),
+ * within the model's range. The number box beside it still takes the whole range. `step` is the
+ * model's resolution, 1 for an integer, else a power of ten a hundredth of the span or finer.
+ * Returns {lo, hi, step, zoomed}; `zoomed` when the span is narrower than the model's range.
+ */
+export function sliderSpan(prop, value) {
+  const finite = (x) => typeof x === 'number' && Number.isFinite(x);
+  const min = finite(prop?.minimum) ? prop.minimum : null;
+  const max = finite(prop?.maximum) ? prop.maximum : null;
+  const known = finite(value);
+  const typical = known && value !== 0 ? niceCeil(Math.abs(value) * 2) : DEFAULT_SPAN;
+  let lo;
+  let hi;
+  if (min !== null && max !== null && max > min && (max - min <= SLIDER_ZOOM_FACTOR * typical || !known)) {
+    [lo, hi] = [min, max];
+  } else {
+    lo = min !== null && min >= -typical ? min : known && value < 0 ? -typical : min !== null ? -typical : 0;
+    if (min !== null) lo = Math.max(lo, min);
+    hi = max !== null ? Math.min(max, Math.max(typical, lo + typical)) : Math.max(typical, lo + typical);
+    if (!(hi > lo)) hi = lo + typical;
+  }
+  const declaredStep = finite(prop?.resolution) && prop.resolution > 0 ? prop.resolution : null;
+  const step = declaredStep ?? (prop?.type === 'integer' ? 1 : 10 ** Math.floor(Math.log10((hi - lo) / 100)));
+  const zoomed = min === null || max === null || lo > min || hi < max;
+  return { lo, hi, step, zoomed };
+}

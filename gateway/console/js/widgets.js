@@ -5,7 +5,8 @@
 //          gui, doc, parameters), as GET /api/v1/services/{service}/model gives it;
 //   ctx    {service, path, writable, set(text, parameters) -> Promise<reply|null>,
 //           setPath(path, text, parameters) (another property of the service, the same way),
-//           get(parameters) -> Promise<value|null>, showValue(text), h, svg}
+//           get(parameters) -> Promise<value|null>, showValue(text), h, svg,
+//           history(since), historyOf(path, since), readPath(path), model(), subscribe(path, handlers)}
 //          (a binary reply reads as "[N bytes, media/type]", values.js shownValue)
 //   update is called with the value text on every change (and once with the current value).
 // The frame (`[data-property=PATH]`) shows the name, unit and access, the current value text in
@@ -15,7 +16,8 @@
 // registered there wins over the built-in one for that `.gui` word (docs/console.md).
 
 import { h, svg } from './dom.js';
-import { formatTime, shownValue } from './values.js';
+import { plainDoc } from './doc_text.js';
+import { formatTime, roundedValue, shownValue } from './values.js';
 
 /** `.gui` words of a text shown in a text area of several lines (a chart, a script, a note). */
 export const TEXT_AREA_GUIS = new Set(['text-area', 'code']);
@@ -30,12 +32,19 @@ export function needsConfirmation(prop) {
 
 /**
  * The text shown for a value of `prop`, and its tooltip: a `.gui` `time` (Unix seconds, the
- * registry's `last_seen`) shows as a local date and time with the number in the tooltip.
+ * registry's `last_seen`) shows as a local date and time with the number in the tooltip; a number
+ * or a vector rounded to the precision its model implies (values.js roundedValue: a location's
+ * "(1.2345678901234567 …)" reads "(1.23 …)"), the text as sent in the tooltip.
  */
 export function displayValue(prop, text) {
   if (prop.gui === 'time') {
     const time = formatTime(text);
     if (time !== null) return { text: time, title: `${text} (Unix seconds)` };
+  }
+  if (prop.type === 'number' || prop.type === 'integer' || prop.type === 'vector') {
+    const rounded = roundedValue(prop, text);
+    const unit = prop.unit ? ` ${prop.unit}` : '';
+    return { text: rounded, title: `${text}${text === '' ? '' : unit}` };
   }
   return { text, title: text };
 }
@@ -147,7 +156,11 @@ const ACCESS_SHORT = {
  * parameters)` and `getProperty(...)` are the API calls (js/api.js). Returns
  * {element, update(value, event), dispose()}.
  */
-export function propertyView(service, prop, { setProperty, getProperty, getHistory, label = prop.name }) {
+export function propertyView(
+  service,
+  prop,
+  { setProperty, getProperty, getHistory, describe, subscribe, label = prop.name },
+) {
   const writable = ['write', 'read-write', 'action', 'unknown'].includes(prop.access);
   const value = h('output', { class: 'value', 'aria-live': 'off' });
   const error = h('div', { class: 'error', role: 'alert', hidden: true });
@@ -161,7 +174,7 @@ export function propertyView(service, prop, { setProperty, getProperty, getHisto
     h(
       'div',
       { class: 'prop-head' },
-      h('span', { class: 'prop-name', title: prop.doc || prop.name }, label),
+      h('span', { class: 'prop-name', title: plainDoc(prop.doc) || prop.name }, label),
       unit,
       h('span', { class: 'prop-access' }, ACCESS_SHORT[prop.access] ?? prop.access ?? ''),
     ),
@@ -231,6 +244,14 @@ export function propertyView(service, prop, { setProperty, getProperty, getHisto
     },
     /** The kept values of the property since `since` ("60s"); rejects when the gateway keeps none. */
     history: getHistory ? (since) => getHistory(service, prop.name, { since }) : undefined,
+    /** The same for another property of the service (a further signal of a plot). */
+    historyOf: getHistory ? (path, since) => getHistory(service, path, { since }) : undefined,
+    /** The value text of another property of the service; rejects with the error, shows nothing. */
+    readPath: getProperty ? async (path) => shownValue(await getProperty(service, path)) : undefined,
+    /** The service's model (shared with the views that read it at the same time). */
+    model: describe ? () => describe(service) : undefined,
+    /** Follow another property on the page's event stream: returns the function that ends it. */
+    subscribe: subscribe ? (path, handlers) => subscribe(`${service}/${path}`, handlers) : undefined,
   };
 
   let widget;

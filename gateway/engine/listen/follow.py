@@ -98,12 +98,7 @@ async def _drain(stream: ListenStream, wake: Wake, on_events: OnEvents, selector
                 continue
             if isinstance(step, Mark):
                 continue
-            followed = [
-                FollowedEvent(
-                    e.service, e.path, e.value, e.time_ns, e.sequence, e.conflated, e.gap, e.removed
-                )
-                for e in events(step)
-            ]
+            followed = events(step, FollowedEvent)
             del step
             try:
                 on_events(followed)

@@ -86,6 +86,7 @@ def property_json(p: PropertyModel) -> dict[str, Any]:
         "doc": _or_none(p.doc),
         "media_type": _or_none(p.media_type),
         "max_size": (p.max_size or MAX_BINARY_SIZE) if p.type == "bytes" else None,
+        "resolution": p.resolution,
         "value": parameter_json(p.value) if p.value is not None else None,
         "parameters": [parameter_json(q) for q in p.parameters],
     }

@@ -35,6 +35,7 @@ from gateway.fronts.http.bodies import BodyTooLarge
 from gateway.fronts.http.console import CONSOLE_ROOT, Console
 from gateway.fronts.http.errors import PAYLOAD_TOO_LARGE, connection_refusal, error_response
 from gateway.fronts.http.events import EventStreams
+from gateway.fronts.http.floor_plan import DESCRIPTION_ROUTE, IMAGE_ROUTE, FloorPlan
 from gateway.fronts.http.history import HistoryRoute
 from gateway.fronts.http.image_stream import ImageStreams
 from gateway.fronts.http.openapi import document
@@ -126,6 +127,7 @@ class HttpFront:
             hub, calls, guard=guard, limits=config.limits, settings=self.settings, places=self.places
         )
         self.console = Console(CONSOLE_ROOT)
+        self.floor_plan = FloorPlan(config.console)
         #: Whether Host headers must be loopback names (DNS rebinding): the front end listens on loopback.
         self.loopback_only = is_loopback(self.settings.listen)
         self._runner: web.AppRunner | None = None
@@ -177,6 +179,9 @@ class HttpFront:
         if self.settings.console or self.websockets:
             add("GET", "/", self._root)
         if self.settings.console:
+            # Before the console's files, whose route takes every other /console/ path.
+            add("GET", DESCRIPTION_ROUTE, self.floor_plan.description)
+            add("GET", IMAGE_ROUTE, self.floor_plan.image)
             add("GET", "/console/{file:.*}", self.console.file)
         return app
 

@@ -316,6 +316,34 @@ DOCUMENT: dict[str, Any] = {
                 "responses": {"200": {"description": "HTML", "content": {"text/html": {}}}, "404": _ERROR},
             }
         },
+        "/console/floor-plan.json": {
+            "get": {
+                "summary": "The console's floor plan ([console] map_image): its route and where it lies",
+                "responses": {
+                    "200": _json(
+                        {
+                            "type": "object",
+                            "properties": {
+                                "image": {"type": ["string", "null"]},
+                                "extent": {
+                                    "type": ["array", "null"],
+                                    "items": {"type": "number"},
+                                    "minItems": 4,
+                                    "maxItems": 4,
+                                },
+                            },
+                        },
+                        "The route of the picture (null: none) and [x0, y0, x1, y1] in metres",
+                    )
+                },
+            }
+        },
+        "/console/floor-plan": {
+            "get": {
+                "summary": "The console's floor-plan picture",
+                "responses": {"200": {"description": "The picture"}, "404": _ERROR},
+            }
+        },
         "/console/{file}": {
             "get": {
                 "summary": "A file of the browser console",
@@ -446,6 +474,7 @@ DOCUMENT: dict[str, Any] = {
                                 "doc": _NULLABLE_TEXT,
                                 "media_type": _NULLABLE_TEXT,
                                 "max_size": {"type": ["integer", "null"]},
+                                "resolution": {"type": ["number", "null"]},
                                 "value": {
                                     "oneOf": [{"$ref": "#/components/schemas/Parameter"}, {"type": "null"}]
                                 },
@@ -485,5 +514,5 @@ def document(console: bool) -> dict[str, Any]:
     """The document; without the console its two routes are left out."""
     if console:
         return DOCUMENT
-    paths = {p: v for p, v in DOCUMENT["paths"].items() if p not in ("/", "/console/{file}")}
+    paths = {p: v for p, v in DOCUMENT["paths"].items() if not (p == "/" or p.startswith("/console/"))}
     return {**DOCUMENT, "paths": paths}

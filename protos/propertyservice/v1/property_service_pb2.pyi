@@ -255,7 +255,7 @@ class DescribeResponse(_message.Message):
     def __init__(self, type: _Optional[str] = ..., properties: _Optional[_Iterable[_Union[PropertyInfo, _Mapping]]] = ..., doc: _Optional[str] = ...) -> None: ...
 
 class PropertyInfo(_message.Message):
-    __slots__ = ("name", "type", "access", "length", "unit", "minimum", "maximum", "choices", "doc", "gui", "value", "parameters", "media_type", "max_size")
+    __slots__ = ("name", "type", "access", "length", "unit", "minimum", "maximum", "choices", "doc", "gui", "value", "parameters", "media_type", "max_size", "resolution")
     NAME_FIELD_NUMBER: _ClassVar[int]
     TYPE_FIELD_NUMBER: _ClassVar[int]
     ACCESS_FIELD_NUMBER: _ClassVar[int]
@@ -270,6 +270,7 @@ class PropertyInfo(_message.Message):
     PARAMETERS_FIELD_NUMBER: _ClassVar[int]
     MEDIA_TYPE_FIELD_NUMBER: _ClassVar[int]
     MAX_SIZE_FIELD_NUMBER: _ClassVar[int]
+    RESOLUTION_FIELD_NUMBER: _ClassVar[int]
     name: str
     type: str
     access: Access
@@ -284,7 +285,8 @@ class PropertyInfo(_message.Message):
     parameters: _containers.RepeatedCompositeFieldContainer[ParameterInfo]
     media_type: str
     max_size: int
-    def __init__(self, name: _Optional[str] = ..., type: _Optional[str] = ..., access: _Optional[_Union[Access, str]] = ..., length: _Optional[int] = ..., unit: _Optional[str] = ..., minimum: _Optional[float] = ..., maximum: _Optional[float] = ..., choices: _Optional[_Iterable[str]] = ..., doc: _Optional[str] = ..., gui: _Optional[str] = ..., value: _Optional[_Union[ParameterInfo, _Mapping]] = ..., parameters: _Optional[_Iterable[_Union[ParameterInfo, _Mapping]]] = ..., media_type: _Optional[str] = ..., max_size: _Optional[int] = ...) -> None: ...
+    resolution: float
+    def __init__(self, name: _Optional[str] = ..., type: _Optional[str] = ..., access: _Optional[_Union[Access, str]] = ..., length: _Optional[int] = ..., unit: _Optional[str] = ..., minimum: _Optional[float] = ..., maximum: _Optional[float] = ..., choices: _Optional[_Iterable[str]] = ..., doc: _Optional[str] = ..., gui: _Optional[str] = ..., value: _Optional[_Union[ParameterInfo, _Mapping]] = ..., parameters: _Optional[_Iterable[_Union[ParameterInfo, _Mapping]]] = ..., media_type: _Optional[str] = ..., max_size: _Optional[int] = ..., resolution: _Optional[float] = ...) -> None: ...
 
 class ParameterInfo(_message.Message):
     __slots__ = ("name", "type", "required", "default", "doc")

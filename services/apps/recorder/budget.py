@@ -1,9 +1,10 @@
 """The recorder's disk budget: every recording's files together stay under ``max_total_bytes``.
 
-Each writer thread reports what its file grew by (:meth:`DiskBudget.grow`). Past the budget,
-``when_full = "drop_oldest"`` removes the oldest finished files (by modification time, of any
-recording; never a file being written) until the total fits again; ``"refuse"`` (or nothing left
-to remove) answers False, and the recording that grew stops with ``failed: disk budget full``.
+Each recording's writer (in the writer process) reports what its file grew by
+(:meth:`DiskBudget.grow`). Past the budget, ``when_full = "drop_oldest"`` removes the oldest
+finished files (by modification time, of any recording; never a file being written) until the
+total fits again; ``"refuse"`` (or nothing left to remove) answers False, and the recording that
+grew stops with ``failed: disk budget full``.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ _SUFFIX = ".mcap"
 class DiskBudget:
     """The bytes every recording under one folder takes, bounded; see the module docstring.
 
-    Shared by the writer threads: every method takes the lock.
+    Shared by the recordings' writers: every method takes the lock (they run on one thread in the
+    writer process today; the lock costs nothing there and keeps the budget safe for any caller).
     """
 
     def __init__(
@@ -34,7 +36,7 @@ class DiskBudget:
         self.root = root
         self.max_total_bytes = max_total_bytes
         self.when_full = when_full
-        #: Called (on the writer thread) with each file removed to make room.
+        #: Called (in the writer process) with each file removed to make room.
         self._on_removed = on_removed
         self._lock = threading.Lock()
         self._open: set[Path] = set()

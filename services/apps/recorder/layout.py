@@ -190,7 +190,7 @@ class _Channel:
 
 class RecordingFile:
     """One MCAP file of a recording being written; see the module docstring. Not thread-safe: one
-    writer thread owns it."""
+    writer (in the writer process) owns it."""
 
     def __init__(
         self,

@@ -19,9 +19,10 @@ would hear, for as long as it runs: the gateway's follow
 exact selector that caller may not read refuses the start (PERMISSION_DENIED) and a wildcard
 leaves out what it may not read. No one can record what they may not read.
 
-The files are written by a thread per recording (:mod:`services.apps.recorder.writer`), laid out
+The files are written in a process of the recorder's own (:mod:`services.apps.recorder.process`,
+started at the first recording), fed in batches by :mod:`services.apps.recorder.feed`, laid out
 as :mod:`services.apps.recorder.layout` says, and bounded together by the disk budget
-(:mod:`services.apps.recorder.budget`).
+(:mod:`services.apps.recorder.budget`): the gateway's process only hands the changes over.
 """
 
 from __future__ import annotations
@@ -37,8 +38,8 @@ from pathlib import Path
 from typing import Annotated
 
 from services.apps.recorder.budget import WHEN_FULL, DiskBudget
-from services.apps.recorder.layout import ServiceInfo
-from services.apps.recorder.writer import RECORDING, Limits, RecordingWriter
+from services.apps.recorder.feed import RecordingFeed, WriterLink
+from services.apps.recorder.writer import RECORDING, Limits
 from services.kernel.backend import Subscription, close_quietly
 from services.kernel.core import LocalService, Prop, Resource, action
 from services.kernel.directory import Directory, own_work
@@ -50,6 +51,7 @@ from services.kernel.errors import (
     ResourceExhausted,
 )
 from services.kernel.follow import Follow
+from services.kernel.model import ServiceModel
 
 __all__ = ["Recorder", "RecorderService"]
 
@@ -63,10 +65,14 @@ MAX_SELECTORS = 64
 MAX_LISTED = 200
 #: Seconds between refreshes of ``recordings`` while a recording runs (its size and duration grow).
 REFRESH_SECONDS = 1.0
-#: Seconds the writer thread waits for a recorded service's model (read once per service).
+#: Seconds the recorder waits for a recorded service's model (read once per service a recording).
 DESCRIBE_TIMEOUT = 5.0
-#: Seconds a stop waits for the writer to finish its file.
+#: Seconds the recorder's close waits for the writer to finish each file.
 STOP_TIMEOUT = 30.0
+#: Seconds a ``stop`` waits for the writer process to finish the file before it answers: within
+#: the gateway's call timeout (5 s by default). A process behind by many changes (a loaded
+#: machine) finishes later; the recording is ``stopping`` until then.
+STOP_ANSWER_SECONDS = 3.0
 ALL = "*"
 
 
@@ -103,11 +109,11 @@ def parse_selectors(text: str) -> list[str]:
 
 
 class _Recording:
-    """A recording this service knows: one it writes (its writer, its follow), or one found on disk."""
+    """A recording this service knows: one it writes (its feed, its follow), or one found on disk."""
 
     __slots__ = ("files", "name", "selectors", "size", "started_ns", "subscription", "writer")
 
-    def __init__(self, name: str, writer: RecordingWriter | None = None) -> None:
+    def __init__(self, name: str, writer: RecordingFeed | None = None) -> None:
         self.name = name
         self.writer = writer
         self.subscription: Subscription | None = None
@@ -246,6 +252,7 @@ class Recorder(Resource):
         self._max_queued_events = max_queued_events
         self._recordings: dict[str, _Recording] = {}
         self._budget: DiskBudget | None = None
+        self._link: WriterLink | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._ticker: asyncio.Task[None] | None = None
         self._version = _version()
@@ -272,6 +279,9 @@ class Recorder(Resource):
             raise FailedPrecondition(
                 f"cannot create the folder {str(self._root)!r}: {exc.strerror or exc}"
             ) from None
+        # The writer process keeps the budget (it removes files, it stops recordings); this count,
+        # from the files found here and then from what the process reports, refuses a start when
+        # the budget is full and when_full is refuse.
         self._budget = DiskBudget(self._root, self.max_total_bytes, self.when_full, self._file_removed)
         await asyncio.to_thread(self._budget.scan)
         try:
@@ -303,9 +313,12 @@ class Recorder(Resource):
             self._ticker.cancel()
             self._ticker = None
         await asyncio.gather(
-            *(self._end(r) for r in list(self._recordings.values()) if r.writer is not None),
+            *(self._end(r, STOP_TIMEOUT) for r in list(self._recordings.values()) if r.writer is not None),
             return_exceptions=True,
         )
+        link, self._link = self._link, None
+        if link is not None:
+            await link.close()
 
     async def _tick(self) -> None:
         while True:
@@ -354,7 +367,12 @@ class Recorder(Resource):
             raise AlreadyExists(f"a recording named {name!r} is in {self.folder} already") from None
         except OSError as exc:
             raise FailedPrecondition(f"cannot create {str(folder)!r}: {exc.strerror or exc}") from None
-        writer = RecordingWriter(
+        try:
+            link = await self._writer_process(budget)
+        except OSError as exc:
+            await asyncio.to_thread(_remove_empty, folder)
+            raise FailedPrecondition(f"the recorder's writer process did not start: {exc}") from None
+        writer = link.open_recording(
             name=name,
             selectors=wanted,
             folder=folder,
@@ -366,20 +384,17 @@ class Recorder(Resource):
                 max_seconds=max_duration,
                 max_queued_events=self._max_queued_events,
             ),
-            budget=budget,
-            describe=self._describe_blocking,
-            on_end=self._ended_by_itself,
+            on_end=self._ended,
         )
         recording = self._recordings[name] = _Recording(name, writer)
         self._forget_old()
-        writer.start()
         try:
             # For the caller of this Set: it hears only what that caller may read.
             recording.subscription = await follow(wanted, writer.offer)
         except BaseException:
             writer.stop()
             del self._recordings[name]
-            await asyncio.to_thread(writer.join, STOP_TIMEOUT)
+            await writer.wait(STOP_TIMEOUT)
             await asyncio.to_thread(_remove_empty, folder)
             raise
         log.info("recording %s started: %s", name, " ".join(wanted))
@@ -398,11 +413,30 @@ class Recorder(Resource):
             if not recording.active:
                 raise FailedPrecondition(f"recording {name!r} is {recording.writer.state} already")
             stopping = [recording]
-        await asyncio.gather(*(self._end(r) for r in stopping))
+        await asyncio.gather(*(self._end(r, STOP_ANSWER_SECONDS) for r in stopping))
         self._refresh()
         return " ".join(r.name for r in stopping)
 
     # -- inside -----------------------------------------------------------------------------
+
+    async def _writer_process(self, budget: DiskBudget) -> WriterLink:
+        """The writer process: started at the first recording, and again after one ended."""
+        link = self._link
+        if link is not None and link.alive:
+            return link
+        if link is not None:
+            await link.close()
+        link = WriterLink(
+            root=self._root,
+            max_total_bytes=budget.max_total_bytes,
+            when_full=budget.when_full,
+            describe=self._describe,
+            on_removed=self._file_removed,
+            on_budget=self._budget_used,
+        )
+        await link.start()
+        self._link = link
+        return link
 
     def _forget_old(self) -> None:
         """Keep at most :data:`MAX_LISTED` recordings in mind: the oldest stopped ones go first
@@ -431,31 +465,27 @@ class Recorder(Resource):
             candidate = f"{base}-{n}"
         return candidate
 
-    async def _end(self, recording: _Recording) -> None:
+    async def _end(self, recording: _Recording, within: float) -> None:
         subscription, recording.subscription = recording.subscription, None
         if subscription is not None:
             await close_quietly(subscription)
         writer = recording.writer
         if writer is not None:
             writer.stop()
-            await asyncio.to_thread(writer.join, STOP_TIMEOUT)
-            log.info(
-                "recording %s %s: %d messages in %d files",
-                writer.name,
-                writer.state,
-                writer.messages,
-                len(writer.files),
-            )
+            await writer.wait(within)
 
-    def _ended_by_itself(self, writer: RecordingWriter) -> None:
-        """On the writer thread: a limit or an error ended the recording; its follow ends too."""
-        loop = self._loop
-        if loop is None or loop.is_closed():
-            return
-        with contextlib.suppress(RuntimeError):  # the loop is closing: the service's close ends it
-            loop.call_soon_threadsafe(self._after_end, writer.name)
-
-    def _after_end(self, name: str) -> None:
+    def _ended(self, writer: RecordingFeed) -> None:
+        """The writer process ended the recording (a stop, a limit, an error, or the process itself
+        ended): its follow ends too."""
+        name = writer.name
+        log.info(
+            "recording %s %s: %d messages in %d files%s",
+            name,
+            writer.state,
+            writer.messages,
+            len(writer.files),
+            f" ({writer.reason})" if writer.reason else "",
+        )
         recording = self._recordings.get(name)
         if recording is not None and recording.subscription is not None:
             subscription, recording.subscription = recording.subscription, None
@@ -463,7 +493,7 @@ class Recorder(Resource):
         self._refresh()
 
     def _file_removed(self, path: Path) -> None:
-        """On a writer thread: the budget removed a file to make room."""
+        """The budget (in the writer process) removed a file to make room."""
         recording = self._recordings.get(path.parent.name)
         if recording is not None:
             if recording.writer is not None:
@@ -471,26 +501,25 @@ class Recorder(Resource):
             elif path.name in recording.files:
                 recording.files = [f for f in recording.files if f != path.name]
 
-    def _describe_blocking(self, service: str) -> ServiceInfo:
-        """On a writer thread: the service's type and model, read on the event loop."""
-        loop = self._loop
-        if loop is None:
-            return ServiceInfo("", None)
-        future = asyncio.run_coroutine_threadsafe(self._describe(service), loop)
-        try:
-            return future.result(DESCRIBE_TIMEOUT)
-        except Exception as exc:
-            future.cancel()
-            log.info(
-                "recording: the model of %s was not read (%s); its values are recorded as text", service, exc
-            )
-            return ServiceInfo("", None)
+    def _budget_used(self, used: int) -> None:
+        if self._budget is not None:
+            self._budget.used = used
 
-    async def _describe(self, service: str) -> ServiceInfo:
-        with own_work():
-            backend = self._directory.backend(service)
-            model = await backend.describe()
-        return ServiceInfo(backend.info.type, model)
+    async def _describe(self, service: str) -> tuple[str, ServiceModel | None]:
+        """For the writer process: the service's type and model (None when it cannot be read)."""
+        try:
+            async with asyncio.timeout(DESCRIBE_TIMEOUT):
+                with own_work():
+                    backend = self._directory.backend(service)
+                    model = await backend.describe()
+        except Exception as exc:
+            log.info(
+                "recording: the model of %s was not read (%s); its values are recorded as text",
+                service,
+                exc or type(exc).__name__,
+            )
+            return "", None
+        return backend.info.type, model
 
 
 def _found_on_disk(root: Path) -> list[_Recording]:

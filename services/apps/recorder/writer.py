@@ -1,16 +1,17 @@
-"""One recording's writer: a thread of its own, fed through a bounded intake, never the event loop.
+"""One recording's writer, in the writer process: batches of changes into its MCAP files.
 
-The follow's callback (on the event loop) hands each batch to :meth:`RecordingWriter.offer`,
-which only appends it to the intake. When the intake holds :attr:`max_queued_events` events or
-:attr:`max_queued_bytes` bytes already, the batch is dropped, counted (``dropped``), and the next
-change written of each property that lost one carries ``gap``: a slow disk costs values, never
-memory, and never the loop's time.
+The writer process (:mod:`services.apps.recorder.process`) holds one :class:`RecordingWriter` a
+recording and hands it each batch the recorder sent (:meth:`RecordingWriter.write`); between
+batches it calls :meth:`RecordingWriter.tick` a few times a second. The writer writes each change
+into the current :class:`~services.apps.recorder.layout.RecordingFile`, closes a chunk at least
+every second, starts the next file at ``max_file_bytes`` or ``max_file_seconds``, reports growth
+to the :class:`~services.apps.recorder.budget.DiskBudget`, and ends the recording at its own
+``max_bytes`` or ``max_seconds``. A full disk (``ENOSPC``) ends it with ``failed: disk full``; any
+other error of the file system with ``failed: <why>``.
 
-The thread writes the intake into the current :class:`~services.apps.recorder.layout.RecordingFile`,
-closes a chunk at least every second, starts the next file at ``max_file_bytes`` or
-``max_file_seconds``, reports growth to the :class:`~services.apps.recorder.budget.DiskBudget`,
-and ends the recording at its own ``max_bytes`` or ``max_seconds``. A full disk (``ENOSPC``) ends
-it with ``failed: disk full``; any other error of the file system with ``failed: <why>``.
+Nothing here is thread-safe or asynchronous: the process has one thread, which owns every writer.
+The bounded intake and the ``gap`` of a change after a dropped one are the recorder's side
+(:mod:`services.apps.recorder.writer_process`).
 """
 
 from __future__ import annotations
@@ -18,27 +19,25 @@ from __future__ import annotations
 import contextlib
 import errno
 import logging
-import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from services.apps.recorder.budget import DiskBudget
-from services.apps.recorder.layout import CHUNK_BYTES, CHUNK_SECONDS, RecordingFile, ServiceInfo, file_name
+from services.apps.recorder.frames import EventFields
+from services.apps.recorder.layout import CHUNK_BYTES, RecordingFile, ServiceInfo, file_name
 from services.kernel.follow import FollowedEvent
 
-__all__ = ["Limits", "RecordingWriter"]
+__all__ = ["RECORDING", "STOPPED", "STOPPING", "Limits", "RecordingWriter"]
 
 log = logging.getLogger(__name__)
 
 RECORDING = "recording"
+#: Stopped, and the writer process is still writing what it was handed before the stop.
+STOPPING = "stopping"
 STOPPED = "stopped"
-#: Distinct properties remembered as having lost a value to a full intake (beyond, the oldest
-#: are forgotten: their next value is then written without ``gap``, which the ``dropped`` count says).
-MAX_LOST_KEYS = 100_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,12 +52,12 @@ class Limits:
     max_queued_bytes: int = 16 * 1024 * 1024
 
 
-#: The blocking lookup of a service's type and model, made on the writer thread.
+#: The blocking lookup of a service's type and model (the writer process asks the recorder).
 Describe = Callable[[str], ServiceInfo]
 
 
 class RecordingWriter:
-    """Writes one recording on its own thread; see the module docstring."""
+    """Writes one recording's files, batch by batch; see the module docstring."""
 
     def __init__(
         self,
@@ -70,7 +69,7 @@ class RecordingWriter:
         limits: Limits,
         budget: DiskBudget,
         describe: Describe,
-        on_end: Callable[[RecordingWriter], None],
+        started_ns: int | None = None,
         open_file: Callable[[Path], IO[bytes]] | None = None,
     ) -> None:
         self.name = name
@@ -80,12 +79,9 @@ class RecordingWriter:
         self.limits = limits
         self._budget = budget
         self._describe = describe
-        #: Called on the writer thread once the recording ended by itself (a limit, an error).
-        self._on_end = on_end
         self._open_file = open_file or _open_new
-        self.started_ns = time.time_ns()
+        self.started_ns = started_ns if started_ns is not None else time.time_ns()
         self._started = time.monotonic()
-        self._ended: float | None = None
         self.state = RECORDING
         #: Why it stopped, when not by a stop: a limit reached, an error.
         self.reason = ""
@@ -96,142 +92,110 @@ class RecordingWriter:
         self.events = 0
         self.gaps = 0
         self.conflated = 0
-        self.dropped = 0
-        self._cond = threading.Condition()
-        self._intake: deque[tuple[list[FollowedEvent], int]] = deque()
-        self._queued_events = 0
-        self._queued_bytes = 0
-        self._lost: dict[tuple[str, str], None] = {}
-        self._stopping = False
+        #: The recording has ended (stopped, a limit, an error): it writes nothing more.
+        self.ended = False
         self._services: dict[str, ServiceInfo] = {}
-        self._thread = threading.Thread(target=self._run, name=f"recorder {name}", daemon=True)
+        self._current: RecordingFile | None = None
+        self._path: Path | None = None
+        self._stream: IO[bytes] | None = None
+        self._file_started = 0.0
+        self._counted = 0
+        self._index = 0
 
-    # -- the event loop's side -------------------------------------------------------------
+    # -- what the process calls -------------------------------------------------------------
 
-    def start(self) -> None:
-        self._thread.start()
+    def write(self, groups: list[tuple[int, list[EventFields]]]) -> None:
+        """Write the changes of a batch, each group with the time the recorder heard it; an error or
+        a limit reached ends the recording (see :attr:`ended`)."""
+        if self.ended:
+            return
+        try:
+            for log_ns, events in groups:
+                for fields in events:
+                    self._write(FollowedEvent._make(fields), log_ns)
+            self._after_batch()
+        except Exception as exc:
+            self._end_with(exc)
 
-    def offer(self, events: list[FollowedEvent]) -> None:
-        """Hand a batch to the writer (never blocks); dropped and counted when the intake is full."""
-        size = sum(len(e.value) for e in events)
-        with self._cond:
-            if self._stopping or self._ended is not None:
-                return  # stopped, or ended by itself: its follow is being closed
-            limits = self.limits
-            if (
-                self._queued_events + len(events) > limits.max_queued_events
-                or self._queued_bytes + size > limits.max_queued_bytes
-            ):
-                self.dropped += len(events)
-                lost = self._lost
-                for e in events:
-                    lost[e.service, e.path] = None
-                while len(lost) > MAX_LOST_KEYS:
-                    del lost[next(iter(lost))]
-                return
-            self._intake.append((events, time.time_ns()))
-            self._queued_events += len(events)
-            self._queued_bytes += size
-            self._cond.notify()
+    def tick(self) -> None:
+        """Between batches: close a chunk open a second, rotate by time, end at ``max_seconds``."""
+        if self.ended:
+            return
+        try:
+            self._after_batch()
+        except Exception as exc:
+            self._end_with(exc)
 
     def stop(self) -> None:
-        """Ask the thread to write what it holds, finish the file and end (see :meth:`join`)."""
-        with self._cond:
-            self._stopping = True
-            self._cond.notify()
-
-    def join(self, timeout: float | None = None) -> None:
-        self._thread.join(timeout)
-
-    @property
-    def running(self) -> bool:
-        """The thread has not ended yet (a stopped recording's thread may still finish its file)."""
-        return self._thread.is_alive()
-
-    @property
-    def duration(self) -> float:
-        end = self._ended if self._ended is not None else time.monotonic()
-        return end - self._started
+        """Finish the file (its summary and footer); the recording is ``stopped``."""
+        if not self.ended:
+            self._close()
 
     def removed(self, path: Path) -> None:
         """The budget removed one of this recording's files."""
-        with self._cond:
-            if path.parent == self.folder and path.name in self.files:
-                self.files = [f for f in self.files if f != path.name]
+        if path.parent == self.folder and path.name in self.files:
+            self.files = [f for f in self.files if f != path.name]
 
-    # -- the thread --------------------------------------------------------------------------
+    @property
+    def duration(self) -> float:
+        return time.monotonic() - self._started
 
-    def _run(self) -> None:
-        current: RecordingFile | None = None
-        path: Path | None = None
-        stream: IO[bytes] | None = None
-        file_started = 0.0
-        counted = 0
-        index = 0
-        try:
-            while True:
-                with self._cond:
-                    if not self._intake and not self._stopping:
-                        self._cond.wait(CHUNK_SECONDS / 2)
-                    taken = self._intake
-                    self._intake = deque()
-                    self._queued_events = self._queued_bytes = 0
-                    stopping = self._stopping
-                for events, log_ns in taken:
-                    for event in events:
-                        if current is None or self._rotate_due(current, file_started):
-                            if current is not None and stream is not None and path is not None:
-                                counted = self._finish(current, stream, path, counted)
-                            index += 1
-                            path = self.folder / file_name(self.name, index)
-                            stream = self._open_file(path)
-                            self._budget.opened(path)
-                            with self._cond:
-                                self.files = [*self.files, path.name]
-                            current = RecordingFile(
-                                stream,
-                                name=self.name,
-                                selectors=self.selectors,
-                                started_ns=self.started_ns,
-                                index=index,
-                                version=self.version,
-                                # Rotation by size is judged at closed chunks: small ones keep a
-                                # file near its max_file_bytes.
-                                chunk_bytes=min(CHUNK_BYTES, max(4096, self.limits.max_file_bytes // 4)),
-                            )
-                            file_started = time.monotonic()
-                            counted = 0
-                        self._write(current, event, log_ns)
-                if current is not None:
-                    current.tick()
-                    counted = self._count(current, counted)
-                if stopping or self._limit_reached():
-                    break
-        except OSError as exc:
-            self._fail(exc)
-        except Exception as exc:
-            log.exception("recording %s failed", self.name)
-            self._fail(exc)
-        finally:
-            if current is not None and stream is not None and path is not None:
-                try:
-                    self._finish(current, stream, path, counted)
-                except Exception as exc:
-                    # The file keeps what its closed chunks hold (a reader streams them).
-                    log.warning("recording %s: could not finish %s: %s", self.name, path.name, exc)
-            self._ended = time.monotonic()
-            if self.state == RECORDING:
-                self.state = STOPPED
-            if not self._stopping:
-                self._on_end(self)
+    def stats(self) -> dict[str, Any]:
+        """The figures the recorder shows: size, messages, events, gaps, conflated, files."""
+        return {
+            "size": self.size,
+            "messages": self.messages,
+            "events": self.events,
+            "gaps": self.gaps,
+            "conflated": self.conflated,
+            "files": list(self.files),
+        }
 
-    def _rotate_due(self, current: RecordingFile, file_started: float) -> bool:
+    # -- inside -----------------------------------------------------------------------------
+
+    def _after_batch(self) -> None:
+        current = self._current
+        if current is not None:
+            current.tick()
+            self._counted = self._count(current, self._counted)
+        if self._limit_reached():
+            self._close()
+
+    def _file(self) -> RecordingFile:
+        current = self._current
+        if current is not None and not self._rotate_due(current):
+            return current
+        if current is not None:
+            self._finish()
+        self._index += 1
+        path = self._path = self.folder / file_name(self.name, self._index)
+        stream = self._stream = self._open_file(path)
+        self._budget.opened(path)
+        self.files = [*self.files, path.name]
+        current = self._current = RecordingFile(
+            stream,
+            name=self.name,
+            selectors=self.selectors,
+            started_ns=self.started_ns,
+            index=self._index,
+            version=self.version,
+            # Rotation by size is judged at closed chunks: small ones keep a file near its
+            # max_file_bytes.
+            chunk_bytes=min(CHUNK_BYTES, max(4096, self.limits.max_file_bytes // 4)),
+        )
+        self._file_started = time.monotonic()
+        self._counted = 0
+        return current
+
+    def _rotate_due(self, current: RecordingFile) -> bool:
         limits = self.limits
         if current.messages == 0:
             return False
         if limits.max_file_bytes and current.size >= limits.max_file_bytes:
             return True
-        return bool(limits.max_file_seconds) and time.monotonic() - file_started >= limits.max_file_seconds
+        return (
+            bool(limits.max_file_seconds) and time.monotonic() - self._file_started >= limits.max_file_seconds
+        )
 
     def _limit_reached(self) -> bool:
         limits = self.limits
@@ -243,25 +207,19 @@ class RecordingWriter:
             return True
         return False
 
-    def _write(self, current: RecordingFile, event: FollowedEvent, log_ns: int) -> None:
+    def _write(self, event: FollowedEvent, log_ns: int) -> None:
+        current = self._file()
         service = event.service
         info = self._services.get(service)
         if info is None:
             info = self._services[service] = self._describe(service)
         if not current.has_service(service):
             current.add_service(service, info)
-        extra_gap = False
-        if self._lost:
-            key = (service, event.path)
-            with self._cond:
-                extra_gap = key in self._lost
-                if extra_gap:
-                    del self._lost[key]
         before = current.messages
-        current.write(event, log_ns, info, extra_gap)
+        current.write(event, log_ns, info)
         self.messages += current.messages - before
         self.events += 1
-        if event.gap or extra_gap:
+        if event.gap:
             self.gaps += 1
         self.conflated += event.conflated
 
@@ -275,16 +233,39 @@ class RecordingWriter:
                 raise _BudgetFull()
         return size
 
-    def _finish(self, current: RecordingFile, stream: IO[bytes], path: Path, counted: int) -> int:
+    def _finish(self) -> None:
+        current, stream, path = self._current, self._stream, self._path
+        self._current = self._stream = self._path = None
+        if current is None or stream is None or path is None:
+            return
         try:
             current.finish()
-            counted = self._count(current, counted, enforce=False)
+            self._counted = self._count(current, self._counted, enforce=False)
         finally:
             self._budget.closed(path)
-            # What could not be written (a full disk) is lost; the recording's state said so already.
+            # What could not be written (a full disk) is lost; the recording's state says so.
             with contextlib.suppress(OSError):
                 stream.close()
-        return counted
+
+    def _close(self) -> None:
+        """Finish the file and end the recording (its state stays a failure's, if it failed)."""
+        self.ended = True
+        path = self._path
+        try:
+            self._finish()
+        except Exception as exc:
+            # The file keeps what its closed chunks hold (a reader streams them).
+            log.warning(
+                "recording %s: could not finish %s: %s", self.name, path.name if path else "its file", exc
+            )
+        if self.state == RECORDING:
+            self.state = STOPPED
+
+    def _end_with(self, exc: Exception) -> None:
+        if not isinstance(exc, OSError):
+            log.exception("recording %s failed", self.name)
+        self._fail(exc)
+        self._close()
 
     def _fail(self, exc: BaseException) -> None:
         if isinstance(exc, _BudgetFull):

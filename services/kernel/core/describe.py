@@ -92,6 +92,7 @@ def _member_model(path: str, member: Member) -> PropertyModel:
         gui=member.gui,
         media_type=member.media_type,
         max_size=member.max_size,
+        resolution=member.resolution,
     )
 
 

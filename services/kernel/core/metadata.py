@@ -17,6 +17,7 @@ import dataclasses
 import enum
 import inspect
 import logging
+import math
 import sys
 import typing
 from collections.abc import Callable
@@ -85,6 +86,9 @@ class Prop:
     media_type: str | None = None
     #: A ``bytes`` value: the most bytes a Set may carry (None: what one message can carry).
     max_size: int | None = None
+    #: A number or vector: the smallest step the value is known to (0.01 m for a location to the
+    #: centimetre); clients show as many decimals as it implies. None: not declared.
+    resolution: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -245,6 +249,8 @@ class Member:
     #: may carry (0: what one message can carry).
     media_type: str = ""
     max_size: int = 0
+    #: A number or vector: the smallest step its value is known to (None: not declared).
+    resolution: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -289,6 +295,10 @@ def _split_annotated(tp: Any) -> tuple[Any, Prop | None]:
 
 def _is_node_type(tp: Any) -> bool:
     return isinstance(tp, type) and issubclass(tp, Backend | Namespace)
+
+
+#: The value types a resolution means something for.
+_RESOLVED_TYPES = frozenset({"number", "integer", "vector", "vectors"})
 
 
 def _type_word(tp: Any) -> str:
@@ -487,7 +497,22 @@ def _value_member(
         binary=binary,
         media_type=media_type,
         max_size=_max_size(where, meta),
+        resolution=_resolution(where, tp, meta),
     )
+
+
+def _resolution(where: str, tp: Any, meta: Prop | None) -> float | None:
+    """``Prop.resolution``, checked: a positive finite step, on a number or a vector."""
+    step = meta.resolution if meta is not None else None
+    if step is None:
+        return None
+    if isinstance(step, bool) or not isinstance(step, int | float) or not math.isfinite(step) or step <= 0:
+        raise TypeError(
+            f"{where}: resolution must be a positive number (the value's smallest step), not {step!r}"
+        )
+    if _type_word(tp) not in _RESOLVED_TYPES:
+        raise TypeError(f"{where}: resolution is for a number or a vector, not {_type_word(tp)}")
+    return float(step)
 
 
 def _computed_member(cls: type, name: str, prop: property) -> Member:
