@@ -119,5 +119,7 @@ fi
 echo "== ruff check"; python -m ruff check .
 echo "== ruff format --check"; python -m ruff format --check .
 echo "== mypy"; python -m mypy
-echo "== pytest"; python -m pytest "$@"
+# Two workers side by side (pytest-xdist; PSGATEWAY_TEST_WORKERS=0 runs in this process): each test
+# file is one group, so its module fixtures start once (tests/conftest.py).
+echo "== pytest"; python -m pytest -n "${PSGATEWAY_TEST_WORKERS:-2}" --dist loadgroup "$@"
 echo "== compatibility check"; python tests/compat/check.py

@@ -59,6 +59,9 @@ def test_a_good_hs256_token_names_its_subject_and_scopes(secret_file: Path) -> N
         ("not.a.token", "bearer token refused"),
         (jwt.encode(fresh(), None, algorithm="none"), "algorithm 'none' is not accepted"),
     ],
+    # Named by the reason, not the token: a token holds the time it was made, and the test ids must
+    # be the same in every process that collects them (pytest-xdist's workers).
+    ids=["expired", "no-exp", "wrong-secret", "empty-sub", "unknown-operation", "not-a-token", "alg-none"],
 )
 def test_bad_tokens_are_unauthenticated_naming_why(secret_file: Path, token: str, why: str) -> None:
     auth = Authenticator(AuthSection(jwt_secret_file=str(secret_file)))
