@@ -25,7 +25,6 @@ A value another program wrote badly is not trusted: :func:`read_registration` an
 
 from __future__ import annotations
 
-import importlib.metadata
 import json
 import math
 from collections.abc import Mapping
@@ -35,6 +34,7 @@ from typing import Any
 from gateway.peer_protocol import SPOKEN, read_protocols
 from services.apps.registry import STATES
 from services.apps.registry.store import decode_registration, encode_registration
+from services.kernel.release import package_version
 
 __all__ = [
     "DIAL_IN_PREFIX",
@@ -55,11 +55,8 @@ DIAL_IN_PREFIX = "tcp-in://"
 
 
 def gateway_version() -> str:
-    """This gateway's release (the installed package's version), "" when it is not installed."""
-    try:
-        return importlib.metadata.version("propertyservice-gateway")
-    except importlib.metadata.PackageNotFoundError:
-        return ""
+    """This gateway's release, as ``--version`` tells it (:func:`services.kernel.release.package_version`)."""
+    return package_version()
 
 
 @dataclass(frozen=True, slots=True)

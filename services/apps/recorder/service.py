@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import importlib.metadata
 import json
 import logging
 import re
@@ -52,6 +51,7 @@ from services.kernel.errors import (
 )
 from services.kernel.follow import Follow
 from services.kernel.model import ServiceModel
+from services.kernel.release import package_version
 
 __all__ = ["Recorder", "RecorderService"]
 
@@ -74,13 +74,6 @@ STOP_TIMEOUT = 30.0
 #: machine) finishes later; the recording is ``stopping`` until then.
 STOP_ANSWER_SECONDS = 3.0
 ALL = "*"
-
-
-def _version() -> str:
-    try:
-        return importlib.metadata.version("propertyservice-gateway")
-    except importlib.metadata.PackageNotFoundError:
-        return ""
 
 
 def _iso(time_ns: int) -> str:
@@ -255,7 +248,7 @@ class Recorder(Resource):
         self._link: WriterLink | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._ticker: asyncio.Task[None] | None = None
-        self._version = _version()
+        self._version = package_version()
         self.recordings = "[]"
         self.folder = str(self._root) if folder else ""
         self.max_total_bytes = max_total_bytes
