@@ -121,6 +121,27 @@ async def test_a_client_without_a_certificate_is_told_apart_from_one_of_another_
     assert "127.0.0.5" not in gw.output
 
 
+async def test_a_silent_client_is_named_when_the_handshake_time_is_over(
+    gateway_process: StartGateway, certificates: CertificateFiles
+) -> None:
+    alice = certificates.clients["alice"]
+    credentials = grpc.ssl_channel_credentials(
+        root_certificates=certificates.ca.read_bytes(),
+        private_key=alice.key.read_bytes(),
+        certificate_chain=alice.cert.read_bytes(),
+    )
+    config = "[gateway]\nhandshake_timeout = 0.5\n" + _https_config(certificates)
+    gw = gateway_process(config, credentials=credentials)
+    host, port = gw.http_address.rsplit(":", 1)
+    # A plaintext client of a protocol in which the server speaks first: it waits, sending nothing.
+    reader, writer = await asyncio.open_connection(host, int(port), local_addr=("127.0.0.8", 0))
+    assert await asyncio.wait_for(reader.read(100), LOG_WAIT) == b""  # closed by the gateway
+    writer.close()
+    line = await _log_line(gw, r"TLS handshake with 127\.0\.0\.8 failed")
+    assert "(no handshake in time)" in line
+    assert "a plaintext client waiting for the gateway to speak first" in line
+
+
 async def test_many_bad_connections_leave_a_bounded_log_with_a_count_of_the_rest(
     gateway_process: StartGateway, certificates: CertificateFiles
 ) -> None:
