@@ -36,6 +36,8 @@ from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
+from gateway.handshake_log import HandshakeFailureLog
+
 log = logging.getLogger(__name__)
 
 #: Descriptors kept beside the ports' shares: devices and their proxies, the registry's and
@@ -135,7 +137,7 @@ class BoundedListener:
     ``protocol_factory`` makes the protocol of each admitted connection (aiohttp's
     ``runner.server``, a line-protocol session's); ``refusal`` is written to a refused
     connection before it is closed (plaintext ports only); ``what`` names the port's option in
-    logs (``http.listen``).
+    logs (``http.listen``); ``handshake_failures`` tells the log of TLS handshakes that failed.
     """
 
     def __init__(
@@ -148,6 +150,7 @@ class BoundedListener:
         ssl_handshake_timeout: float | None = None,
         refusal: Callable[[str], bytes] | None = None,
         log_interval: float = LOG_INTERVAL,
+        handshake_failures: HandshakeFailureLog | None = None,
     ) -> None:
         self._factory = protocol_factory
         #: Seconds between two lines about refused connections or failed accepts.
@@ -157,6 +160,7 @@ class BoundedListener:
         self._ssl = ssl_context
         self._handshake_timeout = ssl_handshake_timeout if ssl_context is not None else None
         self._refusal = refusal
+        self._handshake_failures = handshake_failures
         self._sockets: list[socket.socket] = []
         #: Connections open now, by the peer's address.
         self.by_address: Counter[str] = Counter()
@@ -270,11 +274,11 @@ class BoundedListener:
                 del self.by_address[address]
 
         protocol = _Counted(self._factory(), release)
-        task = asyncio.get_running_loop().create_task(self._connect(conn, protocol))
+        task = asyncio.get_running_loop().create_task(self._connect(conn, protocol, address))
         self._handshakes.add(task)
         task.add_done_callback(self._handshakes.discard)
 
-    async def _connect(self, conn: socket.socket, protocol: _Counted) -> None:
+    async def _connect(self, conn: socket.socket, protocol: _Counted, address: str) -> None:
         loop = asyncio.get_running_loop()
         try:
             await loop.connect_accepted_socket(
@@ -287,7 +291,10 @@ class BoundedListener:
             conn.close()
             if not isinstance(exc, Exception):
                 raise
-            log.debug("%s: a connection ended before it began: %s", self.what, exc)
+            if self._handshake_failures is not None:
+                self._handshake_failures.failed(address, exc)
+            else:
+                log.debug("%s: a connection ended before it began: %s", self.what, exc)
 
     def _refuse(self, conn: socket.socket, reason: str, address: str) -> None:
         if self._refusal is not None:
@@ -340,3 +347,5 @@ class BoundedListener:
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
+        if self._handshake_failures is not None:
+            self._handshake_failures.close()

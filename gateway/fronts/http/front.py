@@ -41,6 +41,7 @@ from gateway.fronts.http.image_stream import ImageStreams
 from gateway.fronts.http.openapi import document
 from gateway.fronts.http.places import StreamPlaces
 from gateway.fronts.http.safety import JSON_TYPE, check_request, identify
+from gateway.handshake_log import HandshakeFailureLog, TlsPortAdvice
 from gateway.logs import (
     REQUEST_ID_HEADER,
     RequestContext,
@@ -54,6 +55,13 @@ from gateway.tls import HttpsCredentials
 from services.kernel.errors import Code, InvalidArgument, PropertyError, ResourceExhausted, error_for
 
 log = logging.getLogger("gateway.fronts.http")
+
+#: What the log says of a failed handshake on the HTTPS port (``[http] tls = true``, the ``[tls]`` files).
+HTTPS_ADVICE = TlsPortAdvice(
+    connect="use https:// and the CA",
+    requires_cert="[http] tls follows [tls] require_client_cert",
+    client_ca="[tls] client_ca",
+)
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
@@ -332,6 +340,9 @@ class HttpFront:
             ssl_context=ssl_context,
             ssl_handshake_timeout=self.config.gateway.handshake_timeout,
             refusal=None if ssl_context is not None else connection_refusal,
+            handshake_failures=None
+            if ssl_context is None
+            else HandshakeFailureLog("http.listen", HTTPS_ADVICE),
         )
         self.address = await start_bounded(self.listener, runner, host, port, "http.listen")
         self._runner = runner

@@ -59,6 +59,7 @@ from gateway.engine.guard import REGISTRY, Guard
 from gateway.engine.identity import ANONYMOUS
 from gateway.engine.rules import Operation, Subject
 from gateway.engine.types import GetCall, SetCall
+from gateway.handshake_log import HandshakeFailureLog, TlsPortAdvice
 from services.device import DeviceServer
 from services.device.alternates import ALTERNATES_FIELD, format_alternates
 from services.kernel.backend import NO_PARAMS, Backend, BackendInfo, Change, Notify, Subscription
@@ -100,6 +101,13 @@ CALL_TIMEOUT = GatewaySection().call_timeout
 MAX_GET_PATHS = Limits().max_get_paths
 
 log = logging.getLogger(__name__)
+
+#: What the log says of a failed handshake on the line listener (``[tls.line]``).
+LINE_TLS_ADVICE = TlsPortAdvice(
+    connect="connect with TLS and the CA of [tls.line] cert",
+    requires_cert="[tls.line] client_ca",
+    client_ca="[tls.line] client_ca",
+)
 
 #: Connections the listener serves at once, clients and devices that dialled in together.
 MAX_CONNECTIONS = 1024
@@ -749,6 +757,9 @@ class LineListener:
             "gateway.line_listen",
             ssl_context=ssl_context,
             refusal=None if ssl_context is not None else _line_refusal,
+            handshake_failures=None
+            if ssl_context is None
+            else HandshakeFailureLog("gateway.line_listen", LINE_TLS_ADVICE),
         )
         self.address = await self._door.start(host, port)
         self._reaper = asyncio.create_task(self._close_idle_connections(), name="line listener: idle")
