@@ -4,7 +4,9 @@ The page's ``site.toml`` block is the config; its console block is run line by l
 shell in the config's folder, ``psctl`` and ``python`` being this checkout's (the gateway itself is
 started by the test from that config where the session says ``psgateway serve``). Each command's
 output must be what the page shows, licence ids and times aside (they differ from run to run);
-a command shown with ``error:`` must fail, every other one succeed.
+a command shown with ``error:`` must fail, every other one succeed. It runs on a busy machine (one
+spinning process per core, tests/support/cpu_burner.py), where each ``psctl`` call takes a second
+or two, as on a reader's shared machine: the page's output must not depend on the pace.
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+from support.cpu_burner import spinning
 from support.gateway_process import ROOT
 
 PAGE = ROOT / "docs" / "scheduler.md"
@@ -22,6 +26,9 @@ VARYING = (
     (re.compile(r"\bL\d+-[0-9a-f]{6}\b"), "LICENCE"),
     (re.compile(r"\d{4}-\d\d-\d\dT[\d:.]+Z"), "TIME"),
 )
+#: Seconds between one command's end and the next one's start: a reader types each command, so the
+#: session runs at a person's pace (with the busy machine's: about 2 s a command), not a script's.
+READER_PAUSE = 1.0
 #: Lines the script prints around each command's output.
 BEGIN, END = "@@walkthrough-begin", "@@walkthrough-rc"
 
@@ -54,7 +61,10 @@ def normalised(lines: list[str]) -> list[str]:
     return out
 
 
-def test_the_scenario_session_of_the_page_runs_as_written(gateway_process, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+@pytest.mark.timeout(300)
+def test_the_scenario_session_of_the_page_runs_as_written_on_a_busy_machine(  # type: ignore[no-untyped-def]
+    busy_machine: list[int], gateway_process, tmp_path: Path
+) -> None:
     page = PAGE.read_text()
     config = block_after(page, "site.toml")
     steps = session(block_after(page, "session"))
@@ -75,13 +85,13 @@ def test_the_scenario_session_of_the_page_runs_as_written(gateway_process, tmp_p
         shown.append((command, output))
     lines = list(script)
     for i, (command, _) in enumerate(shown):
-        lines += [f"echo '{BEGIN} {i}'", f"{command} 2>&1", f"echo '{END}' $?"]
+        lines += [f"sleep {READER_PAUSE}", f"echo '{BEGIN} {i}'", f"{command} 2>&1", f"echo '{END}' $?"]
     done = subprocess.run(
         ["bash", "-c", "\n".join(lines)],
         cwd=tmp_path,
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=240,
         env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "HOME": str(tmp_path)},
         check=False,
     )
@@ -96,3 +106,4 @@ def test_the_scenario_session_of_the_page_runs_as_written(gateway_process, tmp_p
         assert normalised(output) == normalised(expected), f"$ {command}"
         failing = bool(expected) and expected[0].startswith("error:")
         assert (rc != 0) == failing, f"$ {command}: exit code {rc}"
+    assert all(spinning(pid) for pid in busy_machine), "the machine was busy until the session ended"

@@ -1,0 +1,87 @@
+"""A machine kept busy: one spinning child process per core, beside a test.
+
+The docs' walkthroughs are read by people whose machines are busy with other work, where every
+``psctl`` call takes a second or two to start. A walkthrough test that passes only on an idle
+machine says nothing about what those readers see, so these tests run beside :func:`cpu_burners`::
+
+    def test_the_page_runs_as_written(busy_machine, gateway_process):
+        ...
+
+Each burner is a child process that spins until its own deadline (so one outlives neither its
+``limit`` nor a test run that was killed), and is ended by its PID when the block ends.
+``PS_TEST_BURNERS`` sets how many (``0``: none, for a run that must not load a shared machine);
+one per core by default.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import pytest
+
+#: Seconds a burner spins at most, whatever happens to the test that started it: longer than any
+#: walkthrough test's own time limit.
+DEFAULT_LIMIT = 300.0
+#: The loop each burner runs: busy until its deadline, then it exits by itself.
+_SPIN = "\n".join(
+    [
+        "import sys, time",
+        "end = time.monotonic() + float(sys.argv[1])",
+        "while time.monotonic() < end:",
+        "    pass",
+    ]
+)
+
+
+def burner_count() -> int:
+    """How many burners a busy machine gets: ``PS_TEST_BURNERS``, else one per core."""
+    configured = os.environ.get("PS_TEST_BURNERS", "").strip()
+    if configured:
+        return max(0, min(int(configured), 64))
+    return os.cpu_count() or 1
+
+
+@contextmanager
+def cpu_burners(count: int | None = None, limit: float = DEFAULT_LIMIT) -> Iterator[list[int]]:
+    """Run ``count`` spinning processes (default :func:`burner_count`) for the block; their PIDs.
+
+    Each stops by itself after ``limit`` seconds; the rest are killed by PID when the block ends."""
+    burners: list[subprocess.Popen[bytes]] = []
+    try:
+        for _ in range(burner_count() if count is None else count):
+            burners.append(
+                subprocess.Popen(
+                    [sys.executable, "-c", _SPIN, str(limit)],
+                    stdin=subprocess.DEVNULL,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
+        yield [burner.pid for burner in burners]
+    finally:
+        for burner in burners:
+            if burner.poll() is None:
+                burner.kill()
+        for burner in burners:
+            burner.wait(10)
+
+
+def spinning(pid: int) -> bool:
+    """Whether process ``pid`` is alive and not a zombie (Linux: its state in ``/proc``)."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as stat:
+            state = stat.read().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError, IndexError):
+        return False
+    return state not in ("Z", "X")
+
+
+@pytest.fixture
+def busy_machine() -> Iterator[list[int]]:
+    """The test runs with :func:`cpu_burners` beside it; the burners' PIDs."""
+    with cpu_burners() as pids:
+        yield pids
