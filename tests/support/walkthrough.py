@@ -1,0 +1,87 @@
+"""A doc page's commands, run as a reader runs them: one bash shell, one command line at a time.
+
+A walkthrough test picks a fenced block out of a page (:func:`fenced_block`), runs its lines with
+:func:`run_in_one_shell` — ``psctl`` and ``python`` being this checkout's, ``PSCTL_TARGET`` the
+test's gateway — and compares what each line printed with what the page says. Run it beside the
+``busy_machine`` fixture (tests/support/cpu_burner.py): each ``psctl`` then takes a second or two,
+and :data:`READER_PAUSE` before each line gives the session a person's pace, not a script's.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from support.gateway_process import ROOT
+
+#: Seconds before each command line: a reader types or pastes each one.
+READER_PAUSE = 1.0
+#: Lines the script prints around each command line's output.
+_BEGIN, _END = "@@walkthrough-begin", "@@walkthrough-rc"
+
+
+@dataclass(frozen=True)
+class Step:
+    """One command line as the shell ran it: what it printed (stdout and stderr, blank lines
+    dropped) and its exit status."""
+
+    command: str
+    output: list[str]
+    status: int
+
+
+def fenced_block(text: str, after: str, language: str = "bash") -> str:
+    """The first ```LANGUAGE block of ``text`` after the first occurrence of ``after``."""
+    assert after in text, f"the page has no {after!r}"
+    rest = text.split(after, 1)[1]
+    assert f"```{language}\n" in rest, f"no ```{language} block after {after!r}"
+    return rest.split(f"```{language}\n", 1)[1].split("```", 1)[0]
+
+
+def command_lines(block: str) -> list[str]:
+    """The lines of a shell block, ``# comments`` (whole lines or trailing) and blank lines dropped."""
+    lines = (re.sub(r"(^|\s+)#.*$", "", line).strip() for line in block.splitlines())
+    return [line for line in lines if line]
+
+
+def run_in_one_shell(
+    commands: list[str],
+    cwd: Path,
+    target: str = "",
+    *,
+    timeout: float = 240.0,
+    pause: float = READER_PAUSE,
+    prelude: list[str] | None = None,
+) -> list[Step]:
+    """Run ``commands`` in one bash shell in ``cwd``, ``pause`` seconds before each; each one's output.
+
+    ``psctl`` is this checkout's CLI and talks to ``target`` (``PSCTL_TARGET``) unless a command says
+    otherwise; ``prelude``: lines run first, their output not kept (``export``s of a session)."""
+    script = [
+        f'psctl() {{ "{sys.executable}" -m clients.cli "$@"; }}',
+        f'python() {{ "{sys.executable}" "$@"; }}',
+        *(prelude or []),
+    ]
+    if target:
+        script.append(f"export PSCTL_TARGET={target}")
+    for i, command in enumerate(commands):
+        script += [f"sleep {pause}", f"echo '{_BEGIN} {i}'", f"{command} 2>&1", f"echo '{_END}' $?"]
+    done = subprocess.run(
+        ["bash", "-c", "\n".join(script)],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "HOME": str(cwd)},
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    found = {
+        int(m.group(1)): ([line for line in m.group(2).splitlines() if line], int(m.group(3)))
+        for m in re.finditer(rf"^{_BEGIN} (\d+)\n(.*?)^{_END} (\d+)$", done.stdout, re.S | re.M)
+    }
+    assert sorted(found) == list(range(len(commands))), done.stdout
+    return [Step(command, *found[i]) for i, command in enumerate(commands)]
