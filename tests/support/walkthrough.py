@@ -2,14 +2,15 @@
 
 A walkthrough test picks a fenced block out of a page (:func:`fenced_block`), runs its lines with
 :func:`run_in_one_shell` — ``psctl`` and ``python`` being this checkout's, ``PSCTL_TARGET`` the
-test's gateway — and compares what each line printed with what the page says. Run it beside the
-``busy_machine`` fixture (tests/support/cpu_burner.py): each ``psctl`` then takes a second or two,
+test's gateway — and compares what each line printed with what the page says. Run it inside
+``cpu_burners()`` (tests/support/cpu_burner.py): each ``psctl`` then takes a second or two,
 and :data:`READER_PAUSE` before each line gives the session a person's pace, not a script's.
 """
 
 from __future__ import annotations
 
 import re
+import shutil
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -59,12 +60,16 @@ def run_in_one_shell(
     """Run ``commands`` in one bash shell in ``cwd``, ``pause`` seconds before each; each one's output.
 
     ``psctl`` is this checkout's CLI and talks to ``target`` (``PSCTL_TARGET``) unless a command says
-    otherwise; ``prelude``: lines run first, their output not kept (``export``s of a session)."""
+    otherwise, ``grpcurl`` the one on this process's PATH; ``prelude``: lines run first, their output
+    not kept (``export``s of a session)."""
     script = [
         f'psctl() {{ "{sys.executable}" -m clients.cli "$@"; }}',
         f'python() {{ "{sys.executable}" "$@"; }}',
         *(prelude or []),
     ]
+    grpcurl = shutil.which("grpcurl")
+    if grpcurl:
+        script.append(f'grpcurl() {{ "{grpcurl}" "$@"; }}')
     if target:
         script.append(f"export PSCTL_TARGET={target}")
     for i, command in enumerate(commands):
@@ -85,3 +90,24 @@ def run_in_one_shell(
     }
     assert sorted(found) == list(range(len(commands))), done.stdout
     return [Step(command, *found[i]) for i, command in enumerate(commands)]
+
+
+def console_steps(block: str) -> list[tuple[str, list[str]]]:
+    """(command, the lines shown after it) of a ```console block: ``$ `` starts a command."""
+    steps: list[tuple[str, list[str]]] = []
+    for line in block.splitlines():
+        if line.startswith("$ "):
+            steps.append((line[2:], []))
+        elif line and steps:
+            steps[-1][1].append(line)
+    return steps
+
+
+def normalised(lines: list[str], varying: tuple[tuple[re.Pattern[str], str], ...]) -> list[str]:
+    """``lines`` with what differs from run to run (each pattern) replaced by its placeholder."""
+    out = []
+    for line in lines:
+        for pattern, placeholder in varying:
+            line = pattern.sub(placeholder, line)  # noqa: PLW2901 - the same line, normalised
+        out.append(line)
+    return out
