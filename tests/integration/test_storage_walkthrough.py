@@ -11,13 +11,12 @@ from __future__ import annotations
 
 import os
 import re
-import sys
 from pathlib import Path
 
 import pytest
 from support.cpu_burner import cpu_burners, spinning
-from support.gateway_process import ROOT, GatewayProcess
-from support.walkthrough import command_lines, fenced_block, run_in_one_shell
+from support.gateway_process import ROOT
+from support.walkthrough import command_lines, demo_gateway_in, fenced_block, run_in_one_shell
 
 PAGE = Path(ROOT, "docs", "storage.md").read_text(encoding="utf-8")
 EDITED = "edited by hand"
@@ -33,18 +32,9 @@ def test_the_storage_examples_do_what_the_page_says_on_a_busy_machine(tmp_path: 
     lines[4] = f"{listen} --duration 15 & sleep 6; printf '{EDITED}\\n' > .demo-files/notes/hello.txt; wait"
     photo = os.urandom(2048)
     (tmp_path / "a.jpg").write_bytes(photo)
-    gw = GatewayProcess(
-        [sys.executable, "-m", "gateway.cli", "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"],
-        {"PYTHONPATH": str(ROOT)},
-        cwd=tmp_path,
-    )
-    try:
-        gw.wait_ready()
-        with cpu_burners() as burners:
-            ran = run_in_one_shell(lines, tmp_path, gw.address)
-            assert all(spinning(pid) for pid in burners), "the machine was busy until the examples ended"
-    finally:
-        gw.stop()
+    with demo_gateway_in(tmp_path) as gw, cpu_burners() as burners:
+        ran = run_in_one_shell(lines, tmp_path, gw.address)
+        assert all(spinning(pid) for pid in burners), "the machine was busy until the examples ended"
     for step in ran:
         assert step.status == 0, f"$ {step.command}: {step.output}"
     _store, read, info, find, watched, _remove, put, get = ran

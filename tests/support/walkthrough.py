@@ -13,10 +13,12 @@ import re
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from support.gateway_process import ROOT
+from support.gateway_process import ROOT, GatewayProcess
 
 #: Seconds before each command line: a reader types or pastes each one.
 READER_PAUSE = 1.0
@@ -111,3 +113,19 @@ def normalised(lines: list[str], varying: tuple[tuple[re.Pattern[str], str], ...
             line = pattern.sub(placeholder, line)  # noqa: PLW2901 - the same line, normalised
         out.append(line)
     return out
+
+
+@contextmanager
+def demo_gateway_in(folder: Path) -> Iterator[GatewayProcess]:
+    """The demo gateway, ready, running in ``folder`` (its ``files`` keep ``folder/.demo-files``, as
+    they would in a reader's folder), on free ports; stopped when the block ends."""
+    gw = GatewayProcess(
+        [sys.executable, "-m", "gateway.cli", "serve", "--listen", "127.0.0.1:0", "--http", "127.0.0.1:0"],
+        {"PYTHONPATH": str(ROOT)},
+        cwd=folder,
+    )
+    try:
+        gw.wait_ready()
+        yield gw
+    finally:
+        gw.stop()
