@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from support.cpu_burner import cpu_burners, spinning
 from support.gateway_process import ROOT, StartGateway
-from support.walkthrough import console_steps, normalised, run_in_one_shell
+from support.walkthrough import console_steps, fenced_block, normalised, run_in_one_shell
 
 PAGE = ROOT / "docs" / "scheduler.md"
 #: What differs between runs: licence ids and ISO 8601 times.
@@ -61,3 +61,13 @@ def test_the_scenario_session_of_the_page_runs_as_written_on_a_busy_machine(
         assert normalised(step.output, VARYING) == normalised(expected, VARYING), f"$ {command}"
         failing = bool(expected) and expected[0].startswith("error:")
         assert (step.status != 0) == failing, f"$ {command}: exit code {step.status}"
+
+
+def test_the_readmes_excerpt_is_the_sessions_own_steps_in_its_order() -> None:
+    # The README shows four steps of this session: they are run (above) as part of it.
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    excerpt = console_steps(fenced_block(readme, "asks for two surveyors", "console"))
+    steps = console_steps(block_after(PAGE.read_text(), "session"))
+    assert len(excerpt) == 4
+    positions = [steps.index(step) for step in excerpt]
+    assert positions == sorted(positions), "in the session's order"
