@@ -57,17 +57,14 @@ def run_in_one_shell(
     *,
     timeout: float = 240.0,
     pause: float = READER_PAUSE,
-    prelude: list[str] | None = None,
 ) -> list[Step]:
     """Run ``commands`` in one bash shell in ``cwd``, ``pause`` seconds before each; each one's output.
 
     ``psctl`` is this checkout's CLI and talks to ``target`` (``PSCTL_TARGET``) unless a command says
-    otherwise, ``grpcurl`` the one on this process's PATH; ``prelude``: lines run first, their output
-    not kept (``export``s of a session)."""
+    otherwise, ``grpcurl`` the one on this process's PATH."""
     script = [
         f'psctl() {{ "{sys.executable}" -m clients.cli "$@"; }}',
         f'python() {{ "{sys.executable}" "$@"; }}',
-        *(prelude or []),
     ]
     grpcurl = shutil.which("grpcurl")
     if grpcurl:
