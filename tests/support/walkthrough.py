@@ -18,6 +18,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import pytest
+
 from support.gateway_process import ROOT, GatewayProcess
 
 #: Seconds before each command line: a reader types or pastes each one.
@@ -126,3 +128,11 @@ def demo_gateway_in(folder: Path) -> Iterator[GatewayProcess]:
         yield gw
     finally:
         gw.stop()
+
+
+@pytest.fixture
+def fresh_demo_gateway(tmp_path: Path) -> Iterator[GatewayProcess]:
+    """:func:`demo_gateway_in` the test's own folder: a reader's fresh demo, with nothing another
+    test stored in its ``files`` (a chart Set there is loaded again at the next start)."""
+    with demo_gateway_in(tmp_path) as gw:
+        yield gw
