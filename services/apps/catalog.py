@@ -94,7 +94,12 @@ def _imported(kind: str) -> Callable[..., Resource]:
     try:
         module = importlib.import_module(module_name)
     except ImportError as e:
-        raise InvalidArgument(f"service type {kind!r}: cannot import {module_name!r}: {e}") from None
+        hint = ""
+        if isinstance(e, ModuleNotFoundError) and e.name == module_name.partition(".")[0]:
+            # The usual slip with a module of one's own: it sits in the current folder, which the
+            # installed `psgateway` script (unlike `python -m`) does not import from.
+            hint = " (imported from the installed packages and PYTHONPATH: PYTHONPATH=. for one here)"
+        raise InvalidArgument(f"service type {kind!r}: cannot import {module_name!r}: {e}{hint}") from None
     factory: Any = module
     for part in attr.split("."):
         factory = getattr(factory, part, None)
