@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import grpc
-import psutil
 
 from bench.servers import ServerProcess
 from protos.propertyservice.v1 import property_service_pb2 as pb
@@ -189,6 +188,8 @@ async def run_recording(*, seconds: float, rounds: int, time_limit: float) -> di
 
 def _children_cpu(pid: int) -> dict[int, float]:
     """User plus system CPU seconds of each living child of ``pid`` (the recorder's writer process)."""
+    import psutil  # only when measuring: `python -m bench --help` runs without the test extra
+
     spent = {}
     try:
         children = psutil.Process(pid).children(recursive=True)

@@ -77,7 +77,14 @@ class Terminal:
                 stdin=self.slave,
                 stdout=self.slave,
                 stderr=self.slave,
-                env={**os.environ, "TERM": term, "LANG": "C.UTF-8", "LC_ALL": "C.UTF-8"},
+                # curses takes COLUMNS and LINES over the terminal's own size, and a test runner
+                # may export them (pytest-xdist's workers do): this terminal's size is the pty's.
+                env={
+                    **{k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")},
+                    "TERM": term,
+                    "LANG": "C.UTF-8",
+                    "LC_ALL": "C.UTF-8",
+                },
                 start_new_session=True,
             )
         self._reader = threading.Thread(target=self._read, daemon=True)

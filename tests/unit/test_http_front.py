@@ -409,3 +409,23 @@ async def test_a_raw_set_of_any_bytes_takes_any_content_type() -> None:
                 message = (await put.json())["error"]["message"]
             assert "Content-Type: image/png or application/octet-stream" in message, message
             assert message.count("application/octet-stream") == 1, message
+
+
+async def test_a_client_gone_before_its_answer_is_written_is_no_error_to_log(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A page closed just as its event stream opened: the headers' write finds the transport closing."""
+    from aiohttp.client_exceptions import ClientConnectionResetError
+    from aiohttp.test_utils import make_mocked_request
+
+    async def gone(request: web.Request) -> web.StreamResponse:
+        raise ClientConnectionResetError("Cannot write to closing transport")
+
+    config = Config(http=HttpSection(listen="127.0.0.1:0", console=False))
+    async with running_gateway(Board(), name="board", config=config) as gateway:
+        assert gateway.http is not None
+        request = make_mocked_request("GET", "/api/v1/events", headers={"Host": "127.0.0.1"})
+        with caplog.at_level("DEBUG"):
+            answer = await gateway.http._answer(request, gone)
+    assert answer.status == 499
+    assert not [r for r in caplog.records if r.levelname in ("ERROR", "WARNING")], caplog.text

@@ -299,6 +299,11 @@ class HttpFront:
             code = _HTTP_CODES.get(exc.status, Code.INVALID_ARGUMENT if exc.status < 500 else Code.INTERNAL)
             message = f"no route {request.path[:200]}" if exc.status == 404 else exc.reason
             return error_response(error_for(code, message), status=exc.status)
+        except ConnectionResetError:
+            # The client went away while its answer's headers were being written (a page closed
+            # just as its event stream opened): nobody is left to answer, and it is no fault of
+            # ours to log. aiohttp drops the answer quietly; 499 is what the access count shows.
+            return web.Response(status=CLIENT_CLOSED, reason="Client Closed Request")
         except Exception as exc:
             # A bug: INTERNAL, logged with its traceback by to_property_error; still JSON.
             return error_response(exc, what)
