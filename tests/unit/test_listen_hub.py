@@ -115,3 +115,42 @@ async def test_every_stream_a_change_reaches_takes_the_same_shared_event_encoded
     for stream in streams:
         stream.close()
     await hub.aclose()
+
+
+async def test_a_topic_that_fails_to_open_after_its_listener_left_logs_no_unretrieved_error(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A Listen cancelled while its topic opens (the client went away), then the device's link
+    closes: the opening's failure is handled (the topic is dropped), so asyncio has nothing to log."""
+    import asyncio
+    import gc
+
+    from services.kernel.errors import Unavailable
+
+    release = asyncio.Event()
+
+    class ClosingLink(DictBackend):
+        async def listen_current(self, path, notify, params=None):  # type: ignore[no-untyped-def,override]
+            await release.wait()
+            raise Unavailable("device d: proxy closed")
+
+    router = Router()
+    router.add("d", ClosingLink({"a": "1"}))
+    hub = ListenHub(router, Limits(), call_timeout=5.0)
+    stream = hub.open([Selector("d", "a")], StreamOptions(), lambda: None)
+    starting = asyncio.create_task(stream.start())
+    await asyncio.sleep(0.01)
+    starting.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await starting
+    stream.close()
+    with caplog.at_level("ERROR", logger="asyncio"):
+        release.set()
+        for _ in range(5):
+            await asyncio.sleep(0)
+        await hub.aclose()
+        del stream, starting
+        gc.collect()
+        await asyncio.sleep(0)
+    assert "never retrieved" not in caplog.text, caplog.text
+    assert hub.topic_count == 0

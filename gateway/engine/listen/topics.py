@@ -138,6 +138,14 @@ class Topic:
         return f"Topic({self.service}/{self.path}, {len(self.sinks)} sinks)"
 
 
+def _failure_seen(opening: asyncio.Task[None]) -> None:
+    """An opening's failure is handled where it happens (the topic is dropped, each waiting sink
+    hears it); one whose sinks all left meanwhile (their Listens cancelled) has nobody to read it,
+    and asyncio would log it as never retrieved."""
+    if not opening.cancelled():
+        opening.exception()
+
+
 class Topics:
     """The open topics of one hub, and the background work of opening and closing them."""
 
@@ -197,6 +205,7 @@ class Topics:
                 context = context_for(caller)
                 context.run(TRAIL.set, trail)
                 topic.opening = loop.create_task(self._open(topic, trail), context=context)
+            topic.opening.add_done_callback(_failure_seen)
         topic.sinks[sink] = sink.topic_changed
         opening = topic.opening
         assert opening is not None
