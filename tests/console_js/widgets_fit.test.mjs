@@ -81,6 +81,7 @@ test('a speed allowed up to 1000 m/s is slid over what its value needs', () => {
 test('group headings name the types for people, with a count', () => {
   assert.equal(typeTitle('environment_model', 1), 'Environment model (1)');
   assert.equal(typeTitle('mobile_robot', 4), 'Robots (4)');
+  assert.equal(typeTitle('statemachine', 2), 'State machines (2)');
   assert.equal(typeTitle('registry', 1), 'Registry (1)');
   assert.equal(typeTitle('registry', 2), 'Registries (2)');
   assert.equal(typeTitle('camera', 2), 'Cameras (2)');

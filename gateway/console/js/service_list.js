@@ -15,7 +15,7 @@ const AREA_M = 5;
 const REFRESH_DEBOUNCE_MS = 150;
 
 /** The word people use for a standard type whose name qualifies it (the map, too, says robot). */
-const SHORT_NAMES = { mobile_robot: 'robot' };
+const SHORT_NAMES = { mobile_robot: 'robot', statemachine: 'state machine' };
 /** Plurals that no rule below makes. */
 const IRREGULAR_PLURALS = { person: 'people', child: 'children', mouse: 'mice', status: 'statuses', series: 'series' };
 
