@@ -1167,6 +1167,12 @@ class ClusterNode:
                 async with asyncio.timeout_at(deadline):
                     await self._owners_changed.wait()
         count = sum(1 for name in names if moved(name))
+        for name in names:
+            if self.view.owners.get(name) == self.me:
+                # Still this gateway's after the wait (not let go, or claimed back here): served here
+                # again, never left closed with calls told it is moving.
+                self._handing.discard(name)
+                self._mark(name)
         seconds = loop.time() - began
         self.last_move = (count, seconds, why)
         log.info(

@@ -260,3 +260,31 @@ async def test_with_the_policy_on_a_gateway_that_joins_gets_devices_a_batch_at_a
     finally:
         for member in members:
             await _stop(member)
+
+
+async def test_a_device_not_let_go_in_a_move_is_served_again_by_its_owner(device: str) -> None:
+    """A move whose owners key stayed this gateway's (its let-go did not happen) leaves the device
+    open here again after the wait, not closed with every call told that it is moving."""
+    server = MemoryServer()
+    members = [await _member(server, f"gw-{letter}") for letter in "ab"]
+    a = members[0]
+    try:
+        names = ["kept", "moved"]
+        for name in names:
+            await a.registry.register(name, device)
+        await wait_until(lambda: all(name in a.node.owned for name in names), what="gw-a owns both")
+        let_go = a.node._let_go
+
+        async def keep_one(kind: Kind, name: str, expected: str) -> bool:
+            return False if name == "kept" else await let_go(kind, name, expected)
+
+        a.node._let_go = keep_one  # type: ignore[method-assign]
+        await a.node._hand_over_locked(names, "rebalancing")
+        assert server.value(Kind.OWNER, "kept") == "gw-a" and server.value(Kind.OWNER, "moved") == "gw-b"
+        switching = a.router.lookup("kept")
+        assert isinstance(switching, SwitchingBackend)
+        await wait_until(lambda: switching.target is not None, what="kept open on gw-a again")
+        assert await switching.get("temperature") == "21.5"
+    finally:
+        for member in members:
+            await _stop(member)
