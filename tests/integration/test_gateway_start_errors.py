@@ -179,6 +179,23 @@ def test_check_config_reports_every_service_that_cannot_be_built(tmp_path: Path)
     assert "services (a)" in result.stderr and "services (b)" in result.stderr
 
 
+def test_check_config_takes_a_device_that_dials_in_as_serve_does(tmp_path: Path) -> None:
+    config = tmp_path / "dial-in.toml"
+    (tmp_path / "rover.secret").write_text("rover-secret-7f3a\n")
+    config.write_text(
+        '[gateway]\nline_listen = "127.0.0.1:7700"\n'
+        '[[services]]\nname = "rover"\nurl = "tcp-in://"\nsecret_file = "rover.secret"\n'
+    )
+    result = run_gateway("check-config", str(config))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith(f"{config}: fine (1 services, listening on ")
+    # Its secret file is still checked.
+    (tmp_path / "rover.secret").unlink()
+    missing = run_gateway("check-config", str(config))
+    assert missing.returncode == EXIT_CONFIG
+    assert "services[0] (rover).secret_file: cannot read" in missing.stderr
+
+
 def test_check_config_reports_keys_values_and_builds_together(tmp_path: Path) -> None:
     # Two bad keys in one section, a bad value beside them, and services that parse but do not
     # build: all in the first run, not a few at a time.
