@@ -5,7 +5,8 @@ Three parts of the page: the first TLS set-up (``psgateway tls init``, a gateway
 client certificate and a bearer token (psctl, its environment, grpcurl, the SDK; the Node example
 apart, as it needs npm's packages); and the worked config of the rules with its session of tokens,
 refusals and audit lines. Each runs in one bash shell at a reader's pace beside one spinning process
-per core (tests/support/cpu_burner.py), and what each line printed is compared with the page.
+per core (tests/support/cpu_burner.py), and what each line printed is compared with the page. The
+page's transport and registry configs pass ``check-config`` with the files they name in place.
 """
 
 from __future__ import annotations
@@ -307,3 +308,51 @@ def test_the_worked_rules_refuse_and_audit_as_the_page_shows_on_a_busy_machine(t
         expected_line = json.loads(shown)
         found = [line for line in audited if expected_line in ({**line, "message": "..."}, line)]
         assert found, f"{shown} not in the audit lines: {audited}"
+
+
+def check_config(path: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "gateway.cli", "check-config", str(path)],
+        cwd=path.parent,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+
+def test_the_pages_transport_and_registry_configs_pass_check_config(tmp_path: Path) -> None:
+    made = subprocess.run(
+        [sys.executable, "-m", "gateway.cli", "tls", "init", str(tmp_path / "made")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert made.returncode == 0, made.stderr
+    # The files the transport config names, from what tls init made.
+    certs = tmp_path / "certs"
+    certs.mkdir()
+    for made_name, name in (
+        ("server.pem", "gateway.pem"),
+        ("server.key", "gateway.key"),
+        ("ca.pem", "clients-ca.pem"),
+        ("ca.pem", "devices-ca.pem"),
+    ):
+        (certs / name).write_bytes((tmp_path / "made" / made_name).read_bytes())
+    transport = tmp_path / "transport.toml"
+    transport.write_text(fenced_block(PAGE, "## Transport security", "toml"))
+    checked = check_config(transport)
+    assert checked.returncode == 0, checked.stderr
+    assert checked.stdout.startswith(f"{transport}: fine (0 services, listening on 0.0.0.0:50051)")
+    # Without a file it names: the error names it.
+    (certs / "devices-ca.pem").unlink()
+    missing = check_config(transport)
+    assert missing.returncode == 2 and "devices-ca.pem" in missing.stderr, missing.stderr
+
+    registry = tmp_path / "registry.toml"
+    registry.write_text(fenced_block(PAGE, "A worked config:\n", "toml"))
+    (tmp_path / "rover.secret").write_text("rover-secret-7f3a\n")
+    checked = check_config(registry)
+    assert checked.returncode == 0, checked.stderr
+    assert checked.stdout.startswith(f"{registry}: fine (1 services, listening on ")
