@@ -55,7 +55,11 @@ def test_a_scrape_of_a_gateway_just_started_prints_what_the_page_shows_on_a_busy
     assert http is not None, serve
     (tmp_path / "site.toml").write_text('[http]\nlisten = "127.0.0.1:0"\n')
     args = shlex.split(serve.split("#", 1)[0].strip().removesuffix("&"))[1:]
-    gw = GatewayProcess([sys.executable, "-m", "gateway.cli", *args, "--listen", "127.0.0.1:0"], cwd=tmp_path)
+    gw = GatewayProcess(
+        [sys.executable, "-m", "gateway.cli", *args, "--listen", "127.0.0.1:0"],
+        {"PYTHONPATH": str(ROOT)},  # run in the reader's folder: this checkout's packages
+        cwd=tmp_path,
+    )
     try:
         gw.wait_ready(30)
         with cpu_burners() as burners:

@@ -12,6 +12,7 @@ page's transport and registry configs pass ``check-config`` with the files they 
 from __future__ import annotations
 
 import json
+import os
 import re
 import shlex
 import shutil
@@ -40,6 +41,8 @@ RESTING = "(0 0 0 0 0 0)"
 NODE_DIR = ROOT / "clients" / "examples" / "node"
 #: A shared secret for the HS256 tokens of the clients' lines (the session writes its own).
 SECRET = "a secret of this test, long enough for HS256"
+#: The environment of a gateway run in a reader's folder: this checkout's packages.
+CHECKOUT = {"PYTHONPATH": str(ROOT)}
 
 
 def printed_tls_section(output: list[str]) -> str:
@@ -91,7 +94,7 @@ def test_the_first_tls_set_up_serves_mutual_tls_as_the_page_says_on_a_busy_machi
         # The page's serve line, on a free port of every address (0.0.0.0 is what TLS makes allowed).
         args = shlex.split(serve.replace(":50051", ":0"))[1:]
         assert args[-2:] == ["--listen", "0.0.0.0:0"], args
-        gw = GatewayProcess([sys.executable, "-m", "gateway.cli", *args], cwd=tmp_path)
+        gw = GatewayProcess([sys.executable, "-m", "gateway.cli", *args], CHECKOUT, cwd=tmp_path)
         try:
             started(gw, "localhost", operator)
             [listed] = run_in_one_shell([psctl_line.replace("gw.example:50051", gw.address)], tmp_path)
@@ -132,6 +135,7 @@ def alice_gateway(folder: Path, require_client_cert: bool) -> Alice:
         text=True,
         timeout=60,
         check=False,
+        env={**os.environ, **CHECKOUT},
     )
     assert made.returncode == 0, made.stderr
     (folder / "jwt.secret").write_text(SECRET)
@@ -241,6 +245,7 @@ def test_without_require_client_cert_the_grpc_port_names_no_caller_by_certificat
             text=True,
             timeout=60,
             check=False,
+            env={**os.environ, **CHECKOUT},
         )
         by_token = subprocess.run(
             [*PSCTL, *target, "--ca", "ca.pem", "--token", optional.token, "get", "scout1", "location"],
@@ -249,6 +254,7 @@ def test_without_require_client_cert_the_grpc_port_names_no_caller_by_certificat
             text=True,
             timeout=60,
             check=False,
+            env={**os.environ, **CHECKOUT},
         )
     finally:
         optional.gateway.stop()
@@ -281,7 +287,7 @@ def test_the_worked_rules_refuse_and_audit_as_the_page_shows_on_a_busy_machine(t
         ran_before = run_in_one_shell([command for command, _ in before], tmp_path)
         args = shlex.split(steps[serving[0]][0].removesuffix("&"))[1:]
         gw = GatewayProcess(
-            [sys.executable, "-m", "gateway.cli", *args, "--listen", "127.0.0.1:0"], cwd=tmp_path
+            [sys.executable, "-m", "gateway.cli", *args, "--listen", "127.0.0.1:0"], CHECKOUT, cwd=tmp_path
         )
         try:
             gw.wait_ready(30)
@@ -318,6 +324,7 @@ def check_config(path: Path) -> subprocess.CompletedProcess[str]:
         text=True,
         timeout=60,
         check=False,
+        env={**os.environ, **CHECKOUT},
     )
 
 
@@ -328,6 +335,7 @@ def test_the_pages_transport_and_registry_configs_pass_check_config(tmp_path: Pa
         text=True,
         timeout=60,
         check=False,
+        env={**os.environ, **CHECKOUT},
     )
     assert made.returncode == 0, made.stderr
     # The files the transport config names, from what tls init made.
