@@ -37,6 +37,7 @@ SHARED_BUILDS = {
 SHARED_FOLDERS = {"containers": "containers"}
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's own, which reads the groups into the test ids
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Put each test in its xdist group (see the module docstring)."""
     for item in items:
