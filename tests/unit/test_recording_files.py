@@ -5,6 +5,7 @@ batches to the writer process and that process's loop on real pipes."""
 from __future__ import annotations
 
 import asyncio
+import io
 import json
 import os
 import threading
@@ -423,6 +424,32 @@ def test_the_end_of_the_writer_process_s_input_finishes_every_file(tmp_path: Pat
             pb.Event.FromString(m.data) for _, c, m in reader_.iter_messages() if c.topic == EVENTS_TOPIC
         ]
     assert [e.sequence for e in events] == [e.sequence for e in SOME]
+
+
+def test_a_file_the_budget_removes_as_a_recording_ends_is_not_among_the_files_its_end_reports(
+    tmp_path: Path,
+) -> None:
+    """Finishing the last file (its summary) can spend the budget: the oldest file of the same
+    recording goes, and the ``ended`` message lists what is on disk."""
+    out = io.BytesIO()
+    process = WriterProcess(-1, out)
+    folder = tmp_path / "run1"
+    folder.mkdir()
+    process._handle(("open", str(tmp_path), 1 << 30, "drop_oldest"))
+    limits = asdict(Limits(max_file_bytes=20_000, max_file_seconds=600))
+    process._handle(("start", "run1", ["scout1/*"], str(folder), "9.9", T0, limits))
+    process._writers["run1"]._services["scout1"] = INFO  # as the recorder would answer
+    for n in range(1, 30):  # several files: rotation at 20 kB
+        process._handle(("events", "run1", [(T0, [fields(event(n, "name", os.urandom(1500).hex()))])]))
+    assert len(list(folder.iterdir())) >= 3
+    assert process._budget is not None
+    process._budget.max_total_bytes = process._budget.used  # the open file's summary will not fit
+    process._handle(("stop", "run1"))
+    sent = FrameReader().feed(out.getvalue())
+    removed = [Path(m[1]).name for m in sent if m[0] == "removed"]
+    assert removed == ["run1-0001.mcap"], "the oldest went to make room for the summary"
+    ended = next(m for m in sent if m[0] == "ended")
+    assert ended[4]["files"] == sorted(p.name for p in folder.iterdir())
 
 
 def test_frames_cut_anywhere_read_back_whole_and_an_oversized_one_is_refused() -> None:

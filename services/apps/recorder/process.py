@@ -171,10 +171,15 @@ class WriterProcess:
             self.send(("budget", self._budget.used))
 
     def _end(self, name: str) -> None:
-        writer = self._writers.pop(name, None)
+        writer = self._writers.get(name)
         if writer is None:
             return
-        writer.stop()
+        try:
+            # Still listed while it finishes: the budget may remove one of its own older files to
+            # make room for the summary, and the files its end reports must not name that one.
+            writer.stop()
+        finally:
+            del self._writers[name]
         self.send(("ended", name, writer.state, writer.reason, writer.stats()))
         if self._budget is not None:
             self.send(("budget", self._budget.used))
