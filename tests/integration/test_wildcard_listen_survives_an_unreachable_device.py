@@ -26,8 +26,9 @@ from support.waiting import eventually, wait_until
 
 from clients import SYNC, AsyncClient, Event, Mark, Unavailable
 
-#: Seconds any one wait may take: the gateway tries a skipped device again at most every 10 s.
-WAIT = 20.0
+#: Seconds any one wait may take: the gateway tries a skipped device again at most every 10 s, and
+#: the device process may take seconds to start again on a loaded machine.
+WAIT = 35.0
 EVENTS = "/api/v1/events"
 MOVETO = "<marker><location>(4 1)</location></marker>"
 
