@@ -327,6 +327,12 @@ class ClusterNode:
         await self._writes.aclose()
 
     async def _leave(self) -> None:
+        async def close(name: str) -> None:
+            registration, switching = self.owned.get(name), self.served.get(name)
+            if switching is not None and (registration is None or not registration.dialled_in):
+                reason = f"service {name!r} is moving to another gateway (stopping)"
+                await switching.switch(None, reason=reason)
+
         async def hand_over(name: str) -> None:
             registration = self.owned.get(name)
             await self._let_go(Kind.OWNER, name, self.me)
@@ -334,6 +340,13 @@ class ClusterNode:
             if registration is not None and registration.dialled_in:
                 await self._delete(Kind.SERVICE, name)
 
+        # Each device's link closes before its owners key goes: a link still open here once another
+        # gateway owns the device would pass on its changes beside the new owner's, and a Listen
+        # forwarded here could hear a value newer than the new owner's first one, then go back.
+        # A call hung on a device holds its link open: the keys go anyway after a third of the wait.
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(LEAVE_WAIT / 3):
+                await run_bounded(sorted(self.owned), close, MAX_WRITES)
         await run_bounded(sorted(self.owned), hand_over, MAX_WRITES)
         await self.store.delete(Kind.GATEWAY, self.me)
 

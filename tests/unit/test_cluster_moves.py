@@ -288,3 +288,42 @@ async def test_a_device_not_let_go_in_a_move_is_served_again_by_its_owner(device
     finally:
         for member in members:
             await _stop(member)
+
+
+async def test_a_gateway_that_stops_closes_each_device_link_before_its_owners_key_goes(device: str) -> None:
+    """A link left open once another gateway owns the device would pass on its changes beside the
+    new owner's; a Listen forwarded through the leaving gateway could then go back in value."""
+    server = MemoryServer()
+    members = [await _member(server, f"gw-{letter}") for letter in "ab"]
+    a, b = members
+    try:
+        await a.registry.register("dev", device)
+        await wait_until(lambda: "dev" in a.node.owned, what="gw-a owns dev")
+        switching = a.router.lookup("dev")
+        assert isinstance(switching, SwitchingBackend) and switching.target is not None
+        link = switching.target
+        closed: list[bool] = []
+        close_link = link.aclose
+
+        async def aclose() -> None:
+            closed.append(True)
+            await close_link()
+
+        link.aclose = aclose  # type: ignore[method-assign]
+        let_go = a.node._let_go
+        seen_at_let_go: list[tuple[object, bool]] = []
+
+        async def watched(kind: Kind, name: str, expected: str) -> bool:
+            if kind is Kind.OWNER and name == "dev":
+                seen_at_let_go.append((switching.target, bool(closed)))
+            return await let_go(kind, name, expected)
+
+        a.node._let_go = watched  # type: ignore[method-assign]
+        await a.node.stop()
+        assert seen_at_let_go == [(None, True)], "the link was closed before the owners key went"
+        await wait_until(lambda: server.value(Kind.OWNER, "dev") == "gw-b", what="gw-b owns dev")
+        await wait_until(lambda: "dev" in b.node.owned, what="gw-b serves dev")
+        assert await b.router.lookup("dev").get("temperature") == "21.5"
+    finally:
+        for member in members:
+            await _stop(member)
