@@ -55,7 +55,7 @@ VIEW_VARYING = (
 #: A row of the command's gateway table: id, gRPC address, HTTP URL, line listener, devices owned.
 GATEWAY_ROW = re.compile(r"^(gw\d)\s+(127\.0\.0\.1:\d+)\s+http://\S+/\s+(127\.0\.0\.1:\d+)\s+(.*)$")
 #: A row of its device table: name, URL it is registered as, owner.
-DEVICE_ROW = re.compile(r"^((?:thermo|rover)\d+)\s+(\S+)\s+(\S+)$")
+DEVICE_ROW = re.compile(r"^((?:thermo|rover)\d+)\s+(\S+)\s+(\S+|\(none yet\))$")
 #: Seconds the failover Listen runs (until Ctrl-C on the page): the kill comes at LISTEN_KILL_AT,
 #: the device is owned again within the lease (3 s) and a few seconds more on a busy machine.
 LISTEN_S = 25
@@ -151,7 +151,7 @@ def test_the_one_command_cluster_answers_anywhere_and_outlives_a_killed_gateway(
             assert step.status == 0, f"$ {step.command}: {step.output}"
         forwarded, owner, states, failed_over = ran
         # thermo1 is owned by gw1 and read through gw2: forwarded.
-        assert owners["thermo1"] == "gw1" and re.fullmatch(r"-?\d+\.\d+", forwarded.output[0]), (
+        assert owners["thermo1"] == "gw1" and re.fullmatch(r"-?\d+(\.\d+)?", forwarded.output[0]), (
             forwarded.output
         )
         assert owner.output == ["gw1"]
@@ -180,14 +180,17 @@ def test_the_one_command_cluster_answers_anywhere_and_outlives_a_killed_gateway(
         now = {m.group(1): set(m.group(4).split(", ")) for m in map(GATEWAY_ROW.match, story) if m}
         assert sorted(now) == survivors == sorted(page_after)
         # A device that had dialled in to the dead gateway is with whichever survivor it reached
-        # first once the lease was over: the page's is one of them, and so is this run's.
+        # first once the lease was over: the page's is one of them, and so is this run's, unless
+        # (a busy machine) it has not dialled in again yet.
         redialled = {
             name for name, owner in owners.items() if owner == dead and registered[name].startswith("tcp-in:")
         }
         assert redialled, registered
+        owners_now = {m.group(1): m.group(3) for m in map(DEVICE_ROW.match, story) if m}
         for name in redialled:
             assert sum(name in devices for devices in page_after.values()) == 1, (name, page_after)
-            assert sum(name in devices for devices in now.values()) == 1, (name, now)
+            with_one = sum(name in devices for devices in now.values()) == 1
+            assert with_one or owners_now[name] == "(none yet)", story
         assert {g: d - redialled for g, d in now.items()} == {g: d - redialled for g, d in page_after.items()}
     finally:
         status = command.stop()
