@@ -109,6 +109,10 @@ fi
 if ! command -v etcd >/dev/null; then
   apt_install "the shared registry store (etcd)" etcd-server
 fi
+# docs/operations.md reads the gateway's JSON log with jq (tests/integration/test_operations_walkthrough.py).
+if ! command -v jq >/dev/null; then
+  apt_install "the operations page's log queries" jq
+fi
 bash tests/containers/setup.sh || echo "note: tests/containers/setup.sh failed; the container tests will skip"
 # The benchmark's instruction counts (python -m bench.instructions, and its smoke test) run
 # the servers under valgrind's callgrind.

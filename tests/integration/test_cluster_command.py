@@ -8,11 +8,11 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
+from support.cluster_command import ClusterCommand
 from support.etcd import etcd_binary
 from support.waiting import eventually
 
@@ -23,46 +23,6 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 ROOT = Path(__file__).resolve().parents[2]
 _GATEWAY_ROW = re.compile(r"^(gw\d)\s+(127\.0\.0\.1:\d+)\s+http://\S+/\s+127\.0\.0\.1:\d+\s+(.*)$")
 _DEVICE_ROW = re.compile(r"^((?:thermo|rover)\d+)\s+(\S+)\s+(\S+)$")
-
-
-class Command:
-    """The cluster command running in the background, its output read as it comes."""
-
-    def __init__(self, *args: str, env: dict[str, str] | None = None) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "gateway.cluster", *args],
-            cwd=ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
-        )
-        self.lines: list[str] = []
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append(line.rstrip("\n"))
-
-    def wait_for(self, text: str, within: float = 120.0) -> None:
-        deadline = time.monotonic() + within
-        while not any(text in line for line in self.lines):
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise AssertionError(f"no {text!r} (exit {self.proc.poll()}):\n" + "\n".join(self.lines))
-            time.sleep(0.05)
-
-    def stop(self) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)  # Ctrl-C
-            try:
-                self.proc.wait(60)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
-        self._reader.join(10)
-        return self.proc.returncode
 
 
 def _alive(pid: int) -> bool:
@@ -77,18 +37,18 @@ def _alive(pid: int) -> bool:
 
 async def test_one_command_starts_a_cluster_that_answers_everywhere_and_stops_it_all() -> None:
     etcd_binary()  # skips, saying why, without etcd
-    command = Command("--gateways", "3", "--devices", "5", "--base-port", "0", "--lease", "2")
+    command = ClusterCommand(["--gateways", "3", "--devices", "5", "--base-port", "0", "--lease", "2"])
     try:
         command.wait_for("cluster ready")
         gateways = {m.group(1): (m.group(2), m.group(3)) for m in map(_GATEWAY_ROW.match, command.lines) if m}
         devices = {m.group(1): m.group(3) for m in map(_DEVICE_ROW.match, command.lines) if m}
         # --base-port 0 picks etcd's ports free too: it runs beside an etcd on 2379.
-        assert not _line(command, "etcd:").startswith("etcd: etcd://127.0.0.1:2379 ")
+        assert not command.line("etcd:").startswith("etcd: etcd://127.0.0.1:2379 ")
         assert sorted(gateways) == ["gw1", "gw2", "gw3"]
         assert len(devices) == 5
         assert set(devices.values()) <= set(gateways), devices  # every device has a live owner
         assert len(set(devices.values())) == 3  # spread over the three gateways
-        pids = dict(item.split("=") for item in _line(command, "processes:").split()[1:])
+        pids = command.pids()
         assert len(pids) == 1 + 3 + 5  # etcd, the gateways, the devices
         for name, (address, _) in gateways.items():
             async with AsyncClient(address) as client:
@@ -107,10 +67,6 @@ async def test_one_command_starts_a_cluster_that_answers_everywhere_and_stops_it
     assert command.lines[-1] == "stopped"
     for what, pid in pids.items():
         assert not _alive(int(pid)), f"{what} (pid {pid}) still runs"
-
-
-def _line(command: Command, start: str) -> str:
-    return next(line for line in command.lines if line.startswith(start))
 
 
 def test_without_etcd_it_says_what_to_install(tmp_path: Path) -> None:
@@ -167,12 +123,12 @@ def test_help_names_the_ports_and_the_picture() -> None:
 
 def test_a_gateway_killed_is_named_and_its_devices_shown_with_their_new_owners() -> None:
     etcd_binary()  # skips, saying why, without etcd
-    command = Command("--gateways", "3", "--devices", "6", "--base-port", "0", "--lease", "2")
+    command = ClusterCommand(["--gateways", "3", "--devices", "6", "--base-port", "0", "--lease", "2"])
     try:
         command.wait_for("cluster ready")
         before = {m.group(1): m.group(3) for m in map(_DEVICE_ROW.match, command.lines) if m}
         registered = {m.group(1): m.group(2) for m in map(_DEVICE_ROW.match, command.lines) if m}
-        pids = dict(item.split("=") for item in _line(command, "processes:").split()[1:])
+        pids = command.pids()
         victim = before["rover1"] if "rover1" in before else sorted(set(before.values()))[0]
         moved = sorted(name for name, owner in before.items() if owner == victim)
         assert moved, before

@@ -136,3 +136,23 @@ def fresh_demo_gateway(tmp_path: Path) -> Iterator[GatewayProcess]:
     test stored in its ``files`` (a chart Set there is loaded again at the next start)."""
     with demo_gateway_in(tmp_path) as gw:
         yield gw
+
+
+def commented_steps(block: str) -> list[tuple[str, list[str]]]:
+    """(command, the lines shown after it) of a shell block that shows each command's output as
+    ``# `` comments below it; a line that ends in a backslash goes on in the next one, and a
+    comment at the end of a command line is dropped."""
+    steps: list[tuple[str, list[str]]] = []
+    going_on = ""
+    for line in block.splitlines():
+        if line.startswith("#") and not going_on:
+            if steps:
+                steps[-1][1].append(line.removeprefix("#").removeprefix(" "))
+            continue
+        command = going_on + re.sub(r"\s+#.*$", "", line).strip()
+        if command.endswith("\\"):
+            going_on = command.removesuffix("\\")
+        elif command:
+            going_on = ""
+            steps.append((command, []))
+    return steps
