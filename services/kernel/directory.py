@@ -47,8 +47,15 @@ def context_for(caller: object | None) -> contextvars.Context:
 
 
 def own_context() -> contextvars.Context:
-    """A copy of the current context in which calls are a service's own work (for its background tasks)."""
-    return context_for(None)
+    """A new, empty context in which calls are a service's own work (for its background tasks).
+
+    Empty, not a copy: nothing of the task that happens to start the work carries over, not the
+    client it serves, not the trail of its call, not the service a gateway's log lines name for it.
+    A group's refresh started by a device's reconnection is the group's work, not the device's.
+    """
+    context = contextvars.Context()
+    context.run(CALLER.set, None)
+    return context
 
 
 @contextlib.contextmanager

@@ -17,6 +17,7 @@ from gateway.logs import (
     outside_requests,
     request_id_from,
 )
+from services.kernel.directory import own_context
 
 
 @pytest.fixture
@@ -101,6 +102,24 @@ def test_a_task_for_a_service_names_it_until_a_request_does(written: tuple) -> N
     assert first["service"] == "rover" and "request_id" not in first
     assert second["service"] == "scout1" and second["request_id"] == "r-4"
     assert "service" not in json.loads(JsonFormatter().format(logging.makeLogRecord({"msg": "x"})))
+
+
+def test_a_service_s_own_work_started_by_a_device_s_task_does_not_log_as_that_device(
+    written: tuple,
+) -> None:
+    """A group's refresh started from rover1's proxy task (its reconnection reached the registry,
+    whose change reached the group) calls rover2: rover2's lines must not name rover1."""
+    logger, out, handler = written
+    handler.setFormatter(JsonFormatter())
+
+    def start_own_work() -> None:
+        own_context().run(logger.info, "device rover2: sent a line")
+
+    rover1_task = outside_requests("rover1")
+    rover1_task.run(current_request.set, RequestContext("r-5", service="rover1"))
+    rover1_task.run(start_own_work)
+    [line] = (json.loads(line) for line in out.getvalue().splitlines())
+    assert "service" not in line and "request_id" not in line, line
 
 
 @pytest.mark.parametrize("chosen", ["", "x" * 65, "caf\u00e9", "a\nb", "tab\there", "   "])
