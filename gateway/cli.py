@@ -223,6 +223,10 @@ def _check_config(args: argparse.Namespace) -> int:
     if config.metrics.enabled and config.metrics.listen:
         listening += f", metrics on {config.metrics.listen}"
     print(f"{config.source}: fine ({counted}, listening on {listening})")
+    if config.tls.client_ca and not config.tls.require_client_cert:
+        from gateway.tls import OPTIONAL_CLIENT_CERT
+
+        print(f"  note: {OPTIONAL_CLIENT_CERT}")
     # What a big registry meets first: one Listen follows a property of each registration, and the
     # registry's own entry is one of them (docs/registry-and-groups.md, "A big registry").
     most = config.limits.max_stream_properties

@@ -22,6 +22,15 @@ from gateway.config import LineTlsSection, TlsSection
 log = logging.getLogger("gateway.tls")
 
 
+#: What ``client_ca`` without ``require_client_cert`` means on the gRPC port (said by check-config,
+#: and logged at start): grpc's server credentials ask for a certificate only when they require one.
+OPTIONAL_CLIENT_CERT = (
+    "[tls] client_ca without require_client_cert: the gRPC port asks no client for a certificate, "
+    "so none names a caller there (the HTTPS port checks one when given); "
+    "require_client_cert = true names callers by certificate on both"
+)
+
+
 class ServerCredentials:
     """The gRPC port's TLS (or mutual TLS) credentials, re-read from their files on :meth:`reload`."""
 
@@ -31,6 +40,8 @@ class ServerCredentials:
         self._lock = threading.Lock()
         self._pending: grpc.ServerCertificateConfiguration | None = None
         initial = self._read()
+        if settings.client_ca and not settings.require_client_cert:
+            log.warning("%s", OPTIONAL_CLIENT_CERT)
         self.credentials = grpc.dynamic_ssl_server_credentials(
             initial,
             # grpc documents None from the fetcher as "unchanged"; grpc-stubs does not allow it.

@@ -16,6 +16,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import grpc
 import pytest
 from support.gateway_process import ROOT, GatewayProcess
 
@@ -194,6 +195,34 @@ def test_check_config_takes_a_device_that_dials_in_as_serve_does(tmp_path: Path)
     missing = run_gateway("check-config", str(config))
     assert missing.returncode == EXIT_CONFIG
     assert "services[0] (rover).secret_file: cannot read" in missing.stderr
+
+
+def test_client_ca_without_require_client_cert_is_noted_by_check_config_and_logged_at_start(
+    tmp_path: Path,
+) -> None:
+    # The gRPC port names no caller by certificate then: a reader who set client_ca is told so.
+    made = run_gateway("tls", "init", str(tmp_path / "certs"), "--host", "localhost", "--client", "op")
+    assert made.returncode == 0, made.stderr
+    certs = tmp_path / "certs"
+    config = tmp_path / "optional.toml"
+    config.write_text(
+        '[gateway]\nlisten = "127.0.0.1:0"\n'
+        f'[tls]\ncert = "{certs / "server.pem"}"\nkey = "{certs / "server.key"}"\n'
+        f'client_ca = "{certs / "ca.pem"}"\n'
+    )
+    checked = run_gateway("check-config", str(config))
+    assert checked.returncode == 0, checked.stderr
+    note = "note: [tls] client_ca without require_client_cert: the gRPC port asks no client"
+    assert note in checked.stdout
+    gw = GatewayProcess([sys.executable, "-m", "gateway.cli", "serve", "--config", str(config)], {})
+    try:
+        gw.wait_ready(credentials=grpc.ssl_channel_credentials((certs / "ca.pem").read_bytes()))
+        assert "client_ca without require_client_cert" in gw.output
+    finally:
+        gw.stop()
+    required = config.read_text() + "require_client_cert = true\n"
+    config.write_text(required)
+    assert "note:" not in run_gateway("check-config", str(config)).stdout
 
 
 def test_check_config_reports_keys_values_and_builds_together(tmp_path: Path) -> None:
