@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from services.apps.recorder.frames import HEADER_BYTES, EventFields, frame, read_header, read_payload
-from services.apps.recorder.writer import RECORDING, STOPPING, Limits
+from services.apps.recorder.writer import STOPPING, Limits, RecordingCounts
 from services.kernel.follow import FollowedEvent
 from services.kernel.model import ServiceModel
 
@@ -63,7 +63,7 @@ _WRITER_MAIN = (
 )
 
 
-class RecordingFeed:
+class RecordingFeed(RecordingCounts):
     """One recording's bounded intake and what the writer process reported of it; see the module
     docstring. On the event loop only."""
 
@@ -77,6 +77,7 @@ class RecordingFeed:
         send: Callable[[tuple[Any, ...]], None],
         on_end: Callable[[RecordingFeed], None],
     ) -> None:
+        super().__init__()
         self.name = name
         self.selectors = selectors
         self.limits = limits
@@ -86,15 +87,6 @@ class RecordingFeed:
         self._on_end = on_end
         self._started = time.monotonic()
         self._ended_at: float | None = None
-        self.state = RECORDING
-        #: Why it stopped, when not by a stop: a limit reached, an error.
-        self.reason = ""
-        self.files: list[str] = []
-        self.size = 0
-        self.messages = 0
-        self.events = 0
-        self.gaps = 0
-        self.conflated = 0
         self.dropped = 0
         self._pending: list[tuple[int, list[EventFields]]] = []
         self._pending_events = 0
@@ -195,24 +187,16 @@ class RecordingFeed:
         """The process wrote ``taken_events`` more changes: the intake has that much more room."""
         self._sent_events = max(0, self._sent_events - taken_events)
         self._sent_bytes = max(0, self._sent_bytes - taken_bytes)
-        self._update(stats)
+        self.take_counts(stats)
 
     def ended(self, state: str, reason: str, stats: dict[str, Any]) -> None:
         """The process ended the recording (a stop, a limit, an error) and finished its file."""
-        self._update(stats)
+        self.take_counts(stats)
         self._end(state, reason)
 
     def lost(self, why: str) -> None:
         """The process is gone before the recording ended."""
         self._end("failed: the writer process ended", why)
-
-    def _update(self, stats: dict[str, Any]) -> None:
-        self.size = stats["size"]
-        self.messages = stats["messages"]
-        self.events = stats["events"]
-        self.gaps = stats["gaps"]
-        self.conflated = stats["conflated"]
-        self.files = stats["files"]
 
     def _end(self, state: str, reason: str) -> None:
         if self._ended.is_set():

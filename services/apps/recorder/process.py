@@ -134,7 +134,7 @@ class WriterProcess:
                 if writer.ended:
                     self._end(name)
                     return
-                self.send(("progress", name, taken, size, writer.stats()))
+                self.send(("progress", name, taken, size, writer.counts()))
             # A batch for a recording that has ended is not written; the recorder stopped counting it.
         elif kind == "start":
             _, name, selectors, folder, version, started_ns, limits = message
@@ -180,7 +180,7 @@ class WriterProcess:
             writer.stop()
         finally:
             del self._writers[name]
-        self.send(("ended", name, writer.state, writer.reason, writer.stats()))
+        self.send(("ended", name, writer.state, writer.reason, writer.counts()))
         if self._budget is not None:
             self.send(("budget", self._budget.used))
 

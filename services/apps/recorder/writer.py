@@ -30,7 +30,7 @@ from services.apps.recorder.frames import EventFields
 from services.apps.recorder.layout import CHUNK_BYTES, RecordingFile, ServiceInfo, file_name
 from services.kernel.follow import FollowedEvent
 
-__all__ = ["RECORDING", "STOPPED", "STOPPING", "Limits", "RecordingWriter"]
+__all__ = ["RECORDING", "STOPPED", "STOPPING", "Limits", "RecordingCounts", "RecordingWriter"]
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,47 @@ class Limits:
 Describe = Callable[[str], ServiceInfo]
 
 
-class RecordingWriter:
+class RecordingCounts:
+    """What a recording shows of itself in ``recordings``: its state, and the figures of what it wrote.
+
+    The writer process keeps them (:class:`RecordingWriter`) and reports :meth:`counts` with each
+    batch and at the end; the recorder's intake (:class:`~services.apps.recorder.feed.RecordingFeed`)
+    takes them in (:meth:`take_counts`)."""
+
+    def __init__(self) -> None:
+        self.state = RECORDING
+        #: Why it stopped, when not by a stop: a limit reached, an error.
+        self.reason = ""
+        #: The files written, oldest first (names in the folder); those the budget removed leave.
+        self.files: list[str] = []
+        self.size = 0
+        self.messages = 0
+        self.events = 0
+        self.gaps = 0
+        self.conflated = 0
+
+    def counts(self) -> dict[str, Any]:
+        """The figures, as the writer process sends them: size, messages, events, gaps, conflated, files."""
+        return {
+            "size": self.size,
+            "messages": self.messages,
+            "events": self.events,
+            "gaps": self.gaps,
+            "conflated": self.conflated,
+            "files": list(self.files),
+        }
+
+    def take_counts(self, counts: dict[str, Any]) -> None:
+        """Take in the figures the writer process sent (:meth:`counts`)."""
+        self.size = counts["size"]
+        self.messages = counts["messages"]
+        self.events = counts["events"]
+        self.gaps = counts["gaps"]
+        self.conflated = counts["conflated"]
+        self.files = counts["files"]
+
+
+class RecordingWriter(RecordingCounts):
     """Writes one recording's files, batch by batch; see the module docstring."""
 
     def __init__(
@@ -72,6 +112,7 @@ class RecordingWriter:
         started_ns: int | None = None,
         open_file: Callable[[Path], IO[bytes]] | None = None,
     ) -> None:
+        super().__init__()
         self.name = name
         self.selectors = selectors
         self.folder = folder
@@ -82,16 +123,6 @@ class RecordingWriter:
         self._open_file = open_file or _open_new
         self.started_ns = started_ns if started_ns is not None else time.time_ns()
         self._started = time.monotonic()
-        self.state = RECORDING
-        #: Why it stopped, when not by a stop: a limit reached, an error.
-        self.reason = ""
-        #: The files written, oldest first (names in the folder); those the budget removed leave.
-        self.files: list[str] = []
-        self.size = 0
-        self.messages = 0
-        self.events = 0
-        self.gaps = 0
-        self.conflated = 0
         #: The recording has ended (stopped, a limit, an error): it writes nothing more.
         self.ended = False
         self._services: dict[str, ServiceInfo] = {}
@@ -139,17 +170,6 @@ class RecordingWriter:
     @property
     def duration(self) -> float:
         return time.monotonic() - self._started
-
-    def stats(self) -> dict[str, Any]:
-        """The figures the recorder shows: size, messages, events, gaps, conflated, files."""
-        return {
-            "size": self.size,
-            "messages": self.messages,
-            "events": self.events,
-            "gaps": self.gaps,
-            "conflated": self.conflated,
-            "files": list(self.files),
-        }
 
     # -- inside -----------------------------------------------------------------------------
 
