@@ -93,15 +93,26 @@ def console_gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Consol
         gw.stop()
 
 
+#: Read after two animation frames: the map lays its names out at the frame after a thing
+#: appears or moves (js/map.js, scheduleLabels), and a name read before that frame stands where
+#: its thing does, not where it is placed (a slow frame on a loaded machine showed it).
+_AFTER_THE_LAYOUT = (
+    "const done = arguments[arguments.length - 1];"
+    "requestAnimationFrame(() => requestAnimationFrame(() => done(read())));"
+)
+
+
 def label_boxes(driver: Any) -> dict[str, list[float]]:
-    """Each thing's name on the map: its box on the page, [left, top, right, bottom]."""
-    boxes: dict[str, list[float]] = driver.execute_script(
-        "const out = {};"
-        "for (const g of document.querySelectorAll('#map g[data-service]')) {"
-        "  const r = g.querySelector(':scope > text').getBoundingClientRect();"
-        "  out[g.dataset.service] = [r.left, r.top, r.right, r.bottom];"
-        "}"
-        "return out;"
+    """Each thing's name on the map, as laid out: its box on the page, [left, top, right, bottom]."""
+    boxes: dict[str, list[float]] = driver.execute_async_script(
+        "const read = () => {"
+        "  const out = {};"
+        "  for (const g of document.querySelectorAll('#map g[data-service]')) {"
+        "    const r = g.querySelector(':scope > text').getBoundingClientRect();"
+        "    out[g.dataset.service] = [r.left, r.top, r.right, r.bottom];"
+        "  }"
+        "  return out;"
+        "};" + _AFTER_THE_LAYOUT
     )
     return boxes
 
@@ -161,16 +172,18 @@ def test_names_of_robots_a_few_pixels_apart_stay_clear_of_each_other_and_of_the_
 
 def visible_label_boxes(driver: Any) -> dict[str, list[float]]:
     """Every name the map shows (things, targets, markers): its box on the page, by a key that names it."""
-    boxes: dict[str, list[float]] = driver.execute_script(
-        "const out = {};"
-        "let i = 0;"
-        "const names = '#map .robots text, #map .others text, #map .markers text';"
-        "for (const t of document.querySelectorAll(names)) {"
-        "  if (t.getAttribute('display') === 'none') continue;"
-        "  const r = t.getBoundingClientRect();"
-        "  out[`${t.textContent} #${(i += 1)}`] = [r.left, r.top, r.right, r.bottom];"
-        "}"
-        "return out;"
+    boxes: dict[str, list[float]] = driver.execute_async_script(
+        "const read = () => {"
+        "  const out = {};"
+        "  let i = 0;"
+        "  const names = '#map .robots text, #map .others text, #map .markers text';"
+        "  for (const t of document.querySelectorAll(names)) {"
+        "    if (t.getAttribute('display') === 'none') continue;"
+        "    const r = t.getBoundingClientRect();"
+        "    out[`${t.textContent} #${(i += 1)}`] = [r.left, r.top, r.right, r.bottom];"
+        "  }"
+        "  return out;"
+        "};" + _AFTER_THE_LAYOUT
     )
     return boxes
 
