@@ -103,18 +103,28 @@ _AFTER_THE_LAYOUT = (
 
 
 def label_boxes(driver: Any) -> dict[str, list[float]]:
-    """Each thing's name on the map, as laid out: its box on the page, [left, top, right, bottom]."""
-    boxes: dict[str, list[float]] = driver.execute_async_script(
-        "const read = () => {"
+    """Each thing's name on the map, as laid out: its box on the page, [left, top, right, bottom];
+    empty while the layout is not settled.
+
+    Settled: every thing's type is known (a thing whose type arrives is drawn anew, its name
+    where it stands until the next frame's layout), and the boxes are the same two frames apart.
+    """
+    read: dict[str, Any] = driver.execute_async_script(
+        "const boxes = () => {"
         "  const out = {};"
         "  for (const g of document.querySelectorAll('#map g[data-service]')) {"
         "    const r = g.querySelector(':scope > text').getBoundingClientRect();"
         "    out[g.dataset.service] = [r.left, r.top, r.right, r.bottom];"
         "  }"
         "  return out;"
-        "};" + _AFTER_THE_LAYOUT
+        "};"
+        "const known = () => [...document.querySelectorAll('#map g[data-service]')]"
+        "  .every((g) => g.dataset.kind !== 'unknown');"
+        "const first = boxes();"
+        "const read = () => ({ first, then: boxes(), known: known() });" + _AFTER_THE_LAYOUT
     )
-    return boxes
+    settled = read["known"] and read["first"] == read["then"]
+    return read["then"] if settled else {}
 
 
 def overlap(a: list[float], b: list[float]) -> bool:
